@@ -1,0 +1,42 @@
+"""Local metric projections: the UTM zone of a place, and transforms to and from WGS84."""
+
+from __future__ import annotations
+
+import math
+import threading
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+from pyproj import Transformer
+
+
+def utm_crs(lon: float, lat: float) -> str:
+    """The UTM zone CRS (``"EPSG:326zz"`` or ``"EPSG:327zz"``) containing ``(lon, lat)``."""
+    zone = min(max(math.floor((lon + 180.0) / 6.0) + 1, 1), 60)
+    return f"EPSG:{(32600 if lat >= 0 else 32700) + zone}"
+
+
+_local = threading.local()
+
+
+def _transformer(src: str, dst: str) -> Transformer:
+    """A cached transformer for this thread (pyproj transformers are not shared across threads)."""
+    cache: dict[tuple[str, str], Transformer] | None = getattr(_local, "cache", None)
+    if cache is None:
+        cache = _local.cache = {}
+    tf = cache.get((src, dst))
+    if tf is None:
+        tf = cache[(src, dst)] = Transformer.from_crs(src, dst, always_xy=True)
+    return tf
+
+
+def to_xy(crs: str, lon: ArrayLike, lat: ArrayLike) -> NDArray[np.float64]:
+    """WGS84 lon/lat to (P, 2) metres in ``crs``."""
+    x, y = _transformer("EPSG:4326", crs).transform(np.asarray(lon, float), np.asarray(lat, float))
+    return np.column_stack([np.atleast_1d(x), np.atleast_1d(y)])
+
+
+def to_lonlat(crs: str, x: ArrayLike, y: ArrayLike) -> NDArray[np.float64]:
+    """(P, 2) WGS84 lon/lat from metres in ``crs``."""
+    lon, lat = _transformer(crs, "EPSG:4326").transform(np.asarray(x, float), np.asarray(y, float))
+    return np.column_stack([np.atleast_1d(lon), np.atleast_1d(lat)])

@@ -1,0 +1,390 @@
+"""The prepared road graph: dense arrays, CSR adjacency, external ids only at the edges.
+
+Nodes are intersections and dead ends, indexed ``0..N-1``; directed edges are the roads
+between them, indexed ``0..E-1``. Coordinates are metres in a local projected CRS
+(``crs``, usually UTM). Edge polylines are flattened into ``seg_xy`` with ``edge_seg_ptr``
+(shapely's ragged-array layout): edge ``e`` runs through ``seg_xy[edge_seg_ptr[e]:edge_seg_ptr[e+1]]``.
+
+Nothing here imports osmnx or networkx: matchers and the service use this class alone.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from graph.errors import GraphError
+
+RESTRICTION_NO = 0
+RESTRICTION_ONLY = 1
+
+ARRAY_FIELDS: tuple[str, ...] = (
+    "node_xy",
+    "node_lonlat",
+    "node_id",
+    "edge_u",
+    "edge_v",
+    "edge_len",
+    "edge_bearing_start",
+    "edge_bearing_end",
+    "edge_way_id",
+    "edge_name_idx",
+    "edge_highway_idx",
+    "edge_speed_kph",
+    "edge_reverse",
+    "seg_xy",
+    "edge_seg_ptr",
+    "out_ptr",
+    "out_edges",
+    "in_ptr",
+    "in_edges",
+    "restrictions",
+)
+
+
+def bearing_deg(dx: NDArray[np.float64], dy: NDArray[np.float64]) -> NDArray[np.float64]:
+    """Compass bearing in degrees (0 = north/+y, 90 = east/+x) of vectors ``(dx, dy)``."""
+    return np.degrees(np.arctan2(dx, dy)) % 360.0
+
+
+def _csr(keys: NDArray[np.int64], n: int) -> tuple[NDArray[np.int64], NDArray[np.int32]]:
+    order = np.argsort(keys, kind="stable").astype(np.int32)
+    counts = np.bincount(keys, minlength=n)
+    ptr = np.zeros(n + 1, dtype=np.int64)
+    np.cumsum(counts, out=ptr[1:])
+    return ptr, order
+
+
+@dataclass(frozen=True, eq=False)
+class RoadGraph:
+    """A directed road graph held as parallel numpy arrays (read-only, thread-safe).
+
+    Attributes
+    ----------
+    crs : str
+        The projected CRS of ``node_xy`` and ``seg_xy`` (e.g. ``"EPSG:32635"``).
+    node_xy, node_lonlat : (N, 2) float64
+        Node positions in metres and in WGS84 lon/lat.
+    node_id : (N,) int64
+        The source's node id (OSM node id, or a GIS-derived id).
+    edge_u, edge_v : (E,) int32
+        Start and end node of each directed edge.
+    edge_len : (E,) float64
+        Polyline length in metres.
+    edge_bearing_start, edge_bearing_end : (E,) float64
+        Compass bearing in degrees of the first and last polyline segment, in travel direction.
+    edge_way_id : (E,) int64
+        OSM way id (or GIS feature id), -1 when unknown.
+    edge_name_idx, edge_highway_idx : (E,) int32
+        Indices into ``names`` and ``highways``; -1 when unknown.
+    edge_speed_kph : (E,) float32
+        Posted or default speed, NaN when unknown.
+    edge_reverse : (E,) int32
+        Index of the opposite-direction edge with the same geometry, or -1 (one-way).
+    seg_xy : (S, 2) float64 and edge_seg_ptr : (E+1,) int64
+        Flattened polylines.
+    out_ptr, out_edges, in_ptr, in_edges
+        CSR adjacency: edges leaving node ``n`` are ``out_edges[out_ptr[n]:out_ptr[n+1]]``.
+    restrictions : (R, 4) int32
+        Turn restrictions as rows ``(from_edge, via_node, to_edge, kind)`` with kind
+        ``RESTRICTION_NO`` or ``RESTRICTION_ONLY``.
+    names, highways : list of str
+        Lookup tables.
+    meta : dict
+        Free-form build metadata (source, parameters); stored in the artifact manifest.
+    """
+
+    crs: str
+    node_xy: NDArray[np.float64]
+    node_lonlat: NDArray[np.float64]
+    node_id: NDArray[np.int64]
+    edge_u: NDArray[np.int32]
+    edge_v: NDArray[np.int32]
+    edge_len: NDArray[np.float64]
+    edge_bearing_start: NDArray[np.float64]
+    edge_bearing_end: NDArray[np.float64]
+    edge_way_id: NDArray[np.int64]
+    edge_name_idx: NDArray[np.int32]
+    edge_highway_idx: NDArray[np.int32]
+    edge_speed_kph: NDArray[np.float32]
+    edge_reverse: NDArray[np.int32]
+    seg_xy: NDArray[np.float64]
+    edge_seg_ptr: NDArray[np.int64]
+    out_ptr: NDArray[np.int64]
+    out_edges: NDArray[np.int32]
+    in_ptr: NDArray[np.int64]
+    in_edges: NDArray[np.int32]
+    restrictions: NDArray[np.int32]
+    names: list[str] = field(default_factory=list)
+    highways: list[str] = field(default_factory=list)
+    meta: dict[str, Any] = field(default_factory=dict)
+
+    # ------------------------------------------------------------------ construction
+    @classmethod
+    def from_edges(
+        cls,
+        *,
+        crs: str,
+        node_xy: NDArray[np.float64] | Sequence[Sequence[float]],
+        node_lonlat: NDArray[np.float64] | Sequence[Sequence[float]] | None = None,
+        node_id: NDArray[np.int64] | Sequence[int] | None = None,
+        edge_u: NDArray[np.integer] | Sequence[int],
+        edge_v: NDArray[np.integer] | Sequence[int],
+        edge_geoms: Sequence[NDArray[np.float64]] | None = None,
+        edge_way_id: NDArray[np.int64] | Sequence[int] | None = None,
+        edge_names: Sequence[str | None] | None = None,
+        edge_highways: Sequence[str | None] | None = None,
+        edge_speed_kph: NDArray[np.floating] | Sequence[float] | None = None,
+        restrictions: NDArray[np.integer] | Sequence[Sequence[int]] | None = None,
+        meta: dict[str, Any] | None = None,
+    ) -> RoadGraph:
+        """Build a graph from directed edges, deriving lengths, bearings, CSR and reverses.
+
+        Parameters
+        ----------
+        crs
+            Projected CRS of ``node_xy`` and the geometries.
+        node_xy
+            (N, 2) node positions in metres.
+        node_lonlat
+            (N, 2) WGS84 positions; computed from ``node_xy`` with pyproj when omitted.
+        node_id
+            External node ids; defaults to ``0..N-1``.
+        edge_u, edge_v
+            Directed edges as node indices. A two-way road is two edges.
+        edge_geoms
+            Per edge an (k, 2) polyline from ``u`` to ``v`` in metres; straight when omitted.
+        edge_way_id, edge_names, edge_highways, edge_speed_kph
+            Optional attributes per edge.
+        restrictions
+            Rows ``(from_edge, via_node, to_edge, kind)``.
+        meta
+            Build metadata.
+        """
+        xy = np.ascontiguousarray(node_xy, dtype=np.float64).reshape(-1, 2)
+        n = len(xy)
+        u = np.asarray(edge_u, dtype=np.int32).ravel()
+        v = np.asarray(edge_v, dtype=np.int32).ravel()
+        e = len(u)
+        if len(v) != e:
+            raise GraphError("edge_u and edge_v differ in length")
+        if e and (u.min() < 0 or v.min() < 0 or u.max() >= n or v.max() >= n):
+            raise GraphError("edge endpoints must be node indices in 0..N-1")
+        if node_lonlat is None:
+            from pyproj import Transformer
+
+            tf = Transformer.from_crs(crs, "EPSG:4326", always_xy=True)
+            lon, lat = tf.transform(xy[:, 0], xy[:, 1])
+            lonlat = np.column_stack([lon, lat]).astype(np.float64)
+        else:
+            lonlat = np.ascontiguousarray(node_lonlat, dtype=np.float64).reshape(-1, 2)
+        ids = np.arange(n, dtype=np.int64) if node_id is None else np.asarray(node_id, dtype=np.int64)
+
+        # polylines, forcing exact node positions at both ends
+        if edge_geoms is None:
+            seg = np.empty((2 * e, 2), dtype=np.float64)
+            seg[0::2] = xy[u]
+            seg[1::2] = xy[v]
+            ptr = np.arange(0, 2 * e + 1, 2, dtype=np.int64)
+        else:
+            if len(edge_geoms) != e:
+                raise GraphError("edge_geoms must have one polyline per edge")
+            parts = []
+            for i, g in enumerate(edge_geoms):
+                a = np.asarray(g, dtype=np.float64).reshape(-1, 2)
+                if len(a) < 2:
+                    a = np.vstack([xy[u[i]], xy[v[i]]])
+                else:
+                    a = a.copy()
+                    a[0] = xy[u[i]]
+                    a[-1] = xy[v[i]]
+                parts.append(a)
+            lens = np.array([len(p) for p in parts], dtype=np.int64)
+            ptr = np.zeros(e + 1, dtype=np.int64)
+            np.cumsum(lens, out=ptr[1:])
+            seg = np.vstack(parts) if parts else np.empty((0, 2), dtype=np.float64)
+        d = np.diff(seg, axis=0)
+        seglen = np.hypot(d[:, 0], d[:, 1])
+        # lengths: sum of segment lengths inside each edge (exclude the joins between edges)
+        within = np.ones(max(len(seg) - 1, 0), dtype=bool)
+        within[ptr[1:-1] - 1] = False
+        cum = np.concatenate([[0.0], np.cumsum(np.where(within, seglen, 0.0))])
+        elen = cum[ptr[1:] - 1] - cum[ptr[:-1]] if e else np.empty(0)
+        b_start, b_end = _end_bearings(seg, ptr)
+
+        def _lookup(vals: Sequence[str | None] | None) -> tuple[NDArray[np.int32], list[str]]:
+            if vals is None:
+                return np.full(e, -1, dtype=np.int32), []
+            table: dict[str, int] = {}
+            idx = np.full(e, -1, dtype=np.int32)
+            for i, s in enumerate(vals):
+                if s:
+                    idx[i] = table.setdefault(str(s), len(table))
+            return idx, list(table)
+
+        name_idx, names = _lookup(edge_names)
+        hw_idx, highways = _lookup(edge_highways)
+        way = np.full(e, -1, dtype=np.int64) if edge_way_id is None else np.asarray(edge_way_id, np.int64)
+        speed = (
+            np.full(e, np.nan, dtype=np.float32)
+            if edge_speed_kph is None
+            else np.asarray(edge_speed_kph, dtype=np.float32)
+        )
+        out_ptr, out_edges = _csr(u.astype(np.int64), n)
+        in_ptr, in_edges = _csr(v.astype(np.int64), n)
+        rev = _reverse_edges(u, v, seg, ptr)
+        r = (
+            np.empty((0, 4), dtype=np.int32)
+            if restrictions is None or len(restrictions) == 0
+            else np.asarray(restrictions, dtype=np.int32).reshape(-1, 4)
+        )
+        return cls(
+            crs=crs,
+            node_xy=xy,
+            node_lonlat=lonlat,
+            node_id=ids,
+            edge_u=u,
+            edge_v=v,
+            edge_len=np.asarray(elen, dtype=np.float64),
+            edge_bearing_start=b_start,
+            edge_bearing_end=b_end,
+            edge_way_id=way,
+            edge_name_idx=name_idx,
+            edge_highway_idx=hw_idx,
+            edge_speed_kph=speed,
+            edge_reverse=rev,
+            seg_xy=seg,
+            edge_seg_ptr=ptr,
+            out_ptr=out_ptr,
+            out_edges=out_edges,
+            in_ptr=in_ptr,
+            in_edges=in_edges,
+            restrictions=r,
+            names=names,
+            highways=highways,
+            meta=dict(meta or {}),
+        )
+
+    # ------------------------------------------------------------------ sizes and lookups
+    @property
+    def n_nodes(self) -> int:
+        return len(self.node_xy)
+
+    @property
+    def n_edges(self) -> int:
+        return len(self.edge_u)
+
+    def out_of(self, node: int) -> NDArray[np.int32]:
+        """Edges leaving ``node``."""
+        return self.out_edges[self.out_ptr[node] : self.out_ptr[node + 1]]
+
+    def into(self, node: int) -> NDArray[np.int32]:
+        """Edges entering ``node``."""
+        return self.in_edges[self.in_ptr[node] : self.in_ptr[node + 1]]
+
+    def edge_xy(self, edge: int) -> NDArray[np.float64]:
+        """The polyline of ``edge`` in metres, from ``u`` to ``v``."""
+        return self.seg_xy[self.edge_seg_ptr[edge] : self.edge_seg_ptr[edge + 1]]
+
+    def edge_name(self, edge: int) -> str:
+        i = int(self.edge_name_idx[edge])
+        return self.names[i] if i >= 0 else ""
+
+    def edge_highway(self, edge: int) -> str:
+        i = int(self.edge_highway_idx[edge])
+        return self.highways[i] if i >= 0 else ""
+
+    @property
+    def bbox(self) -> tuple[float, float, float, float]:
+        """``(min_lon, min_lat, max_lon, max_lat)`` of the nodes."""
+        if not self.n_nodes:
+            return (0.0, 0.0, 0.0, 0.0)
+        lo = self.node_lonlat.min(axis=0)
+        hi = self.node_lonlat.max(axis=0)
+        return (float(lo[0]), float(lo[1]), float(hi[0]), float(hi[1]))
+
+    def stats(self) -> dict[str, Any]:
+        """Map statistics the online matcher needs, and counts for summaries."""
+        two_way = self.edge_reverse >= 0
+        # km of road: a two-way road counts once
+        road_len = float(self.edge_len[~two_way].sum() + self.edge_len[two_way].sum() / 2.0)
+        q = np.percentile(self.edge_len, [5, 25, 50, 75, 95]).tolist() if self.n_edges else [0.0] * 5
+        return {
+            "nodes": self.n_nodes,
+            "edges": self.n_edges,
+            "oneway_edges": int((~two_way).sum()),
+            "road_km": road_len / 1000.0,
+            "edge_len_max_m": float(self.edge_len.max()) if self.n_edges else 0.0,
+            "edge_len_mean_m": float(self.edge_len.mean()) if self.n_edges else 0.0,
+            "edge_len_p5_p25_p50_p75_p95_m": [float(x) for x in q],
+            "restrictions": len(self.restrictions),
+        }
+
+    def arrays(self) -> dict[str, NDArray[Any]]:
+        """The array fields by name (what the artifact stores)."""
+        return {k: getattr(self, k) for k in ARRAY_FIELDS}
+
+    def equals(self, other: RoadGraph) -> bool:
+        """Exact equality of every array, table and the CRS."""
+        if self.crs != other.crs or self.names != other.names or self.highways != other.highways:
+            return False
+        for k in ARRAY_FIELDS:
+            a, b = getattr(self, k), getattr(other, k)
+            if a.shape != b.shape or a.dtype != b.dtype or not np.array_equal(a, b, equal_nan=True):
+                return False
+        return True
+
+
+def _end_bearings(
+    seg: NDArray[np.float64], ptr: NDArray[np.int64]
+) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """Bearing of the first and last non-degenerate segment of each polyline."""
+    e = len(ptr) - 1
+    start = np.zeros(e, dtype=np.float64)
+    end = np.zeros(e, dtype=np.float64)
+    if e == 0:
+        return start, end
+    # first and last segment; fall back to chord when the segment is degenerate
+    a0, a1 = seg[ptr[:-1]], seg[ptr[:-1] + 1]
+    b0, b1 = seg[ptr[1:] - 2], seg[ptr[1:] - 1]
+    c0, c1 = seg[ptr[:-1]], seg[ptr[1:] - 1]
+    ds = a1 - a0
+    de = b1 - b0
+    dc = c1 - c0
+    bad_s = np.hypot(ds[:, 0], ds[:, 1]) < 1e-9
+    bad_e = np.hypot(de[:, 0], de[:, 1]) < 1e-9
+    ds[bad_s] = dc[bad_s]
+    de[bad_e] = dc[bad_e]
+    start[:] = bearing_deg(ds[:, 0], ds[:, 1])
+    end[:] = bearing_deg(de[:, 0], de[:, 1])
+    return start, end
+
+
+def _reverse_edges(
+    u: NDArray[np.int32], v: NDArray[np.int32], seg: NDArray[np.float64], ptr: NDArray[np.int64]
+) -> NDArray[np.int32]:
+    """For each edge, the edge running v -> u along the same polyline reversed, or -1."""
+    e = len(u)
+    rev = np.full(e, -1, dtype=np.int32)
+    if e == 0:
+        return rev
+    by_uv: dict[tuple[int, int], list[int]] = {}
+    for i in range(e):
+        by_uv.setdefault((int(u[i]), int(v[i])), []).append(i)
+    for i in range(e):
+        if rev[i] >= 0:
+            continue
+        for j in by_uv.get((int(v[i]), int(u[i])), ()):
+            if j == i or rev[j] >= 0:
+                continue
+            gi = seg[ptr[i] : ptr[i + 1]]
+            gj = seg[ptr[j] : ptr[j + 1]]
+            if len(gi) == len(gj) and np.allclose(gi, gj[::-1], atol=0.01):
+                rev[i] = j
+                rev[j] = i
+                break
+    return rev

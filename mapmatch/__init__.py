@@ -1,0 +1,1 @@
+"""Map matching of fused vehicle positions: online per-vehicle filtering and batch Viterbi."""

@@ -1,0 +1,5 @@
+import sys
+
+from mapmatch.cli import main
+
+sys.exit(main())

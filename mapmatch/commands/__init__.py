@@ -1,0 +1,1 @@
+"""Subcommands of the ``mapmatch`` CLI, one module each (see ``mapmatch.cli``)."""

@@ -1,0 +1,106 @@
+"""Matcher configuration: one frozen dataclass of named defaults, validated, overridable per call."""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from dataclasses import dataclass
+from typing import Any
+
+from mapmatch.errors import ConfigError
+
+
+@dataclass(frozen=True)
+class MatchConfig:
+    """Parameters of the shared probabilistic model and of both inference modes.
+
+    Model (shared)
+    --------------
+    gps_sigma : default 1-σ position error in metres when a fix gives none.
+    heading_sigma : default 1-σ heading error in degrees when a fix gives a heading but no accuracy.
+    heading_min_speed : m/s below which a heading is not trusted (0 disables the check).
+    beta : scale in metres of |route distance - travelled distance| (Newson & Krumm's β).
+    uturn_penalty : log-probability penalty of a U-turn.
+    max_speed : m/s; transitions needing more are penalised.
+    speed_penalty : log-probability penalty per (m/s) above ``max_speed``.
+
+    Candidates
+    ----------
+    search_radius : metres around a fix to search for candidate edges.
+    max_candidates : nearest roads kept per fix.
+
+    Online
+    ------
+    drift_rate : expected dead-reckoning drift as a fraction of distance (thesis: 0.04).
+    ambiguous_min_radius : lower bound of the ambiguous-region radius in metres.
+    ambiguous_sigma_factor : the region grows to this many position σ.
+    ambiguous_max_radius : upper bound of the region radius in metres.
+    turn_window : odometer metres over which the heading step is measured.
+    turn_threshold : degrees of heading change that count as a turn.
+    reinit_time : seconds of inconsistency before re-initialising.
+    reinit_distance : metres travelled while inconsistent before re-initialising.
+    reinit_sigmas : a fix is inconsistent when further than this many σ from the road.
+    dr_sigma_growth : fraction of distance travelled since the last GPS-aided fix added to σ.
+
+    Batch
+    -----
+    max_route_factor : routes longer than this times the straight line (+ ``route_slack``) are cut.
+    route_slack : metres added to the bound of each routing search.
+    gap_time : seconds between fixes that split a track.
+    gap_distance : metres between fixes that split a track.
+    outlier_distance : a fix further than this from every road is unmatched.
+    interpolate_distance : fixes closer than this to the previous kept fix are interpolated.
+    """
+
+    gps_sigma: float = 5.0
+    heading_sigma: float = 20.0
+    heading_min_speed: float = 1.0
+    beta: float = 5.0
+    uturn_penalty: float = 6.0
+    max_speed: float = 60.0
+    speed_penalty: float = 0.5
+
+    search_radius: float = 50.0
+    max_candidates: int = 8
+
+    drift_rate: float = 0.04
+    ambiguous_min_radius: float = 10.0
+    ambiguous_sigma_factor: float = 2.0
+    ambiguous_max_radius: float = 150.0
+    turn_window: float = 30.0
+    turn_threshold: float = 25.0
+    reinit_time: float = 10.0
+    reinit_distance: float = 100.0
+    reinit_sigmas: float = 4.0
+    dr_sigma_growth: float = 0.04
+
+    max_route_factor: float = 3.0
+    route_slack: float = 100.0
+    gap_time: float = 120.0
+    gap_distance: float = 2000.0
+    outlier_distance: float = 100.0
+    interpolate_distance: float = 0.0
+
+    def __post_init__(self) -> None:
+        for f in dataclasses.fields(self):
+            v = getattr(self, f.name)
+            if isinstance(v, bool) or not isinstance(v, int | float) or not math.isfinite(v) or v < 0:
+                raise ConfigError(f"{f.name} must be a finite non-negative number, got {v!r}")
+        if self.max_candidates < 1:
+            raise ConfigError("max_candidates must be at least 1")
+        if self.gps_sigma <= 0 or self.beta <= 0 or self.heading_sigma <= 0:
+            raise ConfigError("gps_sigma, beta and heading_sigma must be positive")
+
+    def replace(self, **overrides: Any) -> MatchConfig:
+        """A copy with some parameters changed (validated)."""
+        names = {f.name for f in dataclasses.fields(self)}
+        unknown = set(overrides) - names
+        if unknown:
+            raise ConfigError(f"unknown parameter(s): {', '.join(sorted(unknown))}")
+        return dataclasses.replace(self, **overrides)
+
+    def to_dict(self) -> dict[str, Any]:
+        return dataclasses.asdict(self)
+
+
+DEFAULT_CONFIG = MatchConfig()

@@ -1,0 +1,121 @@
+"""The one probabilistic model shared by online filtering and batch Viterbi.
+
+Emission: log p(z | c) = -½ (d/σ)² + κ · (cos(ψ − bearing(c)) − 1), with κ = 1/σψ² (von Mises),
+0 when there is no usable heading.
+Transition: log p(c_t | c_{t-1}) = −|route_dist − travelled| / β (Newson & Krumm 2009), where
+travelled is the odometer distance when given, else the straight-line distance; minus a
+U-turn penalty and a speed-plausibility penalty; forbidden moves are −inf.
+
+Every function takes and returns numpy arrays, so the same code scores one fix's few
+candidates online and a whole track's lattice in batch.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from mapmatch.config import MatchConfig
+
+NEG_INF = -np.inf
+
+
+def heading_kappa(
+    heading: ArrayLike, heading_sigma: ArrayLike, speed: ArrayLike, config: MatchConfig
+) -> NDArray[np.float64]:
+    """Concentration κ of the heading term per fix: 0 where the heading is missing or not trusted."""
+    h = np.asarray(heading, dtype=np.float64)
+    s = np.where(np.isnan(heading_sigma), config.heading_sigma, np.asarray(heading_sigma, dtype=np.float64))
+    s = np.maximum(s, 1.0)
+    k = 1.0 / np.radians(s) ** 2
+    v = np.asarray(speed, dtype=np.float64)
+    slow = ~np.isnan(v) & (v < config.heading_min_speed)
+    return np.where(np.isnan(h) | slow, 0.0, k)
+
+
+def position_sigma(pos_sigma: ArrayLike, config: MatchConfig) -> NDArray[np.float64]:
+    """σ in metres per fix: the fix's own accuracy, or the configured default."""
+    s = np.asarray(pos_sigma, dtype=np.float64)
+    return np.where(np.isnan(s) | (s <= 0), config.gps_sigma, np.maximum(s, 0.5))
+
+
+def emission_logp(
+    dist: ArrayLike,
+    sigma: ArrayLike,
+    heading: ArrayLike,
+    bearing: ArrayLike,
+    kappa: ArrayLike,
+) -> NDArray[np.float64]:
+    """Emission log-probability of candidates (unnormalised).
+
+    Parameters
+    ----------
+    dist
+        Distance in metres from the fix to the candidate position.
+    sigma
+        Position σ in metres (broadcast).
+    heading
+        Fix heading in degrees (broadcast); NaN where unknown.
+    bearing
+        Road bearing at the candidate, in the direction of travel, degrees.
+    kappa
+        Heading concentration from :func:`heading_kappa` (0 disables the heading term).
+    """
+    d = np.asarray(dist, dtype=np.float64)
+    s = np.asarray(sigma, dtype=np.float64)
+    k = np.asarray(kappa, dtype=np.float64)
+    dh = np.radians(np.asarray(heading, dtype=np.float64) - np.asarray(bearing, dtype=np.float64))
+    head = np.where(k > 0, k * (np.cos(dh) - 1.0), 0.0)
+    return -0.5 * (d / s) ** 2 - np.log(s) + np.nan_to_num(head, nan=0.0)
+
+
+def transition_logp(
+    route_dist: ArrayLike,
+    travelled: ArrayLike,
+    dt: ArrayLike,
+    config: MatchConfig,
+    *,
+    uturn: ArrayLike | bool = False,
+) -> NDArray[np.float64]:
+    """Transition log-probability between candidates of consecutive fixes.
+
+    Parameters
+    ----------
+    route_dist
+        Network distance in metres between the two candidate positions (inf = unreachable).
+    travelled
+        Odometer distance when given, else the straight-line distance between the fixes.
+    dt
+        Seconds between the fixes (NaN or 0 disables the speed check).
+    config
+        Supplies β, the U-turn penalty and the speed limits.
+    uturn
+        True where the move reverses direction on the same road.
+    """
+    r = np.asarray(route_dist, dtype=np.float64)
+    d = np.asarray(travelled, dtype=np.float64)
+    lp = -np.abs(r - d) / config.beta
+    t = np.asarray(dt, dtype=np.float64)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        v = np.where((t > 0) & np.isfinite(r), r / np.where(t > 0, t, 1.0), 0.0)
+    lp = lp - config.speed_penalty * np.maximum(v - config.max_speed, 0.0)
+    lp = lp - config.uturn_penalty * np.asarray(uturn, dtype=np.float64)
+    return np.where(np.isfinite(r), lp, NEG_INF)
+
+
+def angle_diff(a: ArrayLike, b: ArrayLike) -> NDArray[np.float64]:
+    """Signed smallest difference ``a - b`` of angles in degrees, in (-180, 180]."""
+    d = (np.asarray(a, dtype=np.float64) - np.asarray(b, dtype=np.float64) + 180.0) % 360.0 - 180.0
+    return np.where(d == -180.0, 180.0, d)
+
+
+def normalise_log(lp: ArrayLike) -> NDArray[np.float64]:
+    """Probabilities from log-probabilities (softmax); uniform if all are −inf."""
+    a = np.asarray(lp, dtype=np.float64)
+    if a.size == 0:
+        return a
+    m = np.max(a)
+    if not np.isfinite(m):
+        return np.full(a.shape, 1.0 / a.size)
+    p = np.exp(a - m)
+    return p / p.sum()

@@ -1,0 +1,176 @@
+"""Domain types shared by the online and batch matchers, the CLI and the service."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from enum import StrEnum
+
+from mapmatch.errors import ValidationError
+
+
+class State(StrEnum):
+    """What the online matcher believes about a vehicle after a fix."""
+
+    INITIALISING = "initialising"
+    ON_ROAD = "on_road"
+    AMBIGUOUS = "ambiguous"
+    OFF_ROAD = "off_road"
+    REINITIALISED = "reinitialised"
+
+
+class Turn(StrEnum):
+    """The manoeuvre detected at an intersection."""
+
+    NONE = "none"
+    LEFT = "left"
+    RIGHT = "right"
+    STRAIGHT = "straight"
+    U_TURN = "u_turn"
+
+
+class PointStatus(StrEnum):
+    """How the batch matcher placed one point of a track."""
+
+    MATCHED = "matched"
+    INTERPOLATED = "interpolated"
+    UNMATCHED = "unmatched"
+
+
+@dataclass(frozen=True, slots=True)
+class Fix:
+    """One fused position from a vehicle's fusion node.
+
+    Attributes
+    ----------
+    time : float
+        Seconds (any epoch; must increase within a vehicle).
+    lat, lon : float
+        WGS84 degrees.
+    heading : float
+        Fused heading in degrees clockwise from north, in [0, 360); NaN when unknown.
+    pos_sigma : float
+        1-σ position accuracy in metres; NaN when not given.
+    heading_sigma : float
+        1-σ heading accuracy in degrees; NaN when not given.
+    speed : float
+        m/s; NaN when not given.
+    distance : float
+        Odometer distance travelled since the previous fix, metres; NaN when not given.
+    gps_valid : bool | None
+        True when GPS-aided, False when dead reckoning only, None when not given.
+    pos_cov : tuple of 3 floats or None
+        Optional 2x2 east/north covariance (m²) as ``(var_e, cov_en, var_n)``.
+    """
+
+    time: float
+    lat: float
+    lon: float
+    heading: float = math.nan
+    pos_sigma: float = math.nan
+    heading_sigma: float = math.nan
+    speed: float = math.nan
+    distance: float = math.nan
+    gps_valid: bool | None = None
+    pos_cov: tuple[float, float, float] | None = None
+
+    def validate(self) -> None:
+        """Raise :class:`ValidationError` naming the first bad field."""
+        if not math.isfinite(self.time):
+            raise ValidationError("time", "must be a finite number of seconds")
+        if not (math.isfinite(self.lat) and -90.0 <= self.lat <= 90.0):
+            raise ValidationError("lat", "must be a finite latitude in [-90, 90]")
+        if not (math.isfinite(self.lon) and -180.0 <= self.lon <= 180.0):
+            raise ValidationError("lon", "must be a finite longitude in [-180, 180]")
+        if not math.isnan(self.heading) and not (
+            math.isfinite(self.heading) and 0.0 <= self.heading <= 360.0
+        ):
+            raise ValidationError("heading", "must be in [0, 360] degrees or unset")
+        for name in ("pos_sigma", "heading_sigma", "speed", "distance"):
+            v = getattr(self, name)
+            if not math.isnan(v) and not (math.isfinite(v) and v >= 0.0):
+                raise ValidationError(name, "must be a finite non-negative number or unset")
+        if self.pos_cov is not None:
+            ve, cen, vn = self.pos_cov
+            if not all(math.isfinite(x) for x in self.pos_cov) or ve < 0 or vn < 0 or cen * cen > ve * vn:
+                raise ValidationError("pos_cov", "must be a finite positive semi-definite 2x2 covariance")
+
+
+@dataclass(frozen=True, slots=True)
+class Candidate:
+    """A road segment the vehicle may be on, with its probability."""
+
+    edge: int
+    u: int
+    v: int
+    way_id: int
+    probability: float
+    offset: float
+    dist: float
+
+
+@dataclass(frozen=True, slots=True)
+class Correction:
+    """A revision of earlier reported edges: from ``time_from`` to ``time_to`` the vehicle was
+    on ``edges`` (in order), not on what was reported then."""
+
+    time_from: float
+    time_to: float
+    edges: tuple[int, ...]
+    replaced_edges: tuple[int, ...]
+
+
+@dataclass(frozen=True, slots=True)
+class SnapResult:
+    """The online matcher's answer for one fix.
+
+    ``edge`` is -1 (and the position fields NaN) when the vehicle is not placed on a road.
+    Node ids ``u``/``v`` and ``way_id`` are the map's external ids (OSM ids).
+    """
+
+    time: float
+    state: State
+    edge: int = -1
+    u: int = -1
+    v: int = -1
+    way_id: int = -1
+    offset: float = math.nan
+    lat: float = math.nan
+    lon: float = math.nan
+    bearing: float = math.nan
+    dist: float = math.nan
+    turn: Turn = Turn.NONE
+    candidates: tuple[Candidate, ...] = ()
+    correction: Correction | None = None
+    raw_lat: float = math.nan
+    raw_lon: float = math.nan
+
+
+@dataclass(slots=True)
+class MatchedPoint:
+    """The batch matcher's placement of one track point."""
+
+    index: int
+    status: PointStatus
+    edge: int = -1
+    offset: float = math.nan
+    lat: float = math.nan
+    lon: float = math.nan
+    dist: float = math.nan
+
+
+@dataclass(slots=True)
+class TrackMatch:
+    """The batch matcher's result for one track.
+
+    ``routes`` holds one edge sequence per connected piece; a new piece starts where the
+    track was split (``splits`` lists the point indices where a piece starts, after the first).
+    """
+
+    track_id: str
+    points: list[MatchedPoint] = field(default_factory=list)
+    routes: list[list[int]] = field(default_factory=list)
+    route_lonlat: list[list[tuple[float, float]]] = field(default_factory=list)
+    splits: list[int] = field(default_factory=list)
+    length_m: float = 0.0
+    confidence: float = 0.0

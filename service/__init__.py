@@ -1,0 +1,1 @@
+"""The gRPC service for fusion nodes: a thin layer over ``mapmatch``."""
