@@ -149,9 +149,9 @@ def parse_ascii_map(
     )
     amap = AsciiMap(graph=base, nodes=nodes, scale=scale)
     rows = []
-    for a, via, b, kind in restrictions:
+    for src, via, dst, kind in restrictions:
         k = {"no": RESTRICTION_NO, "only": RESTRICTION_ONLY}[kind]
-        rows.append((amap.edge(a, via), nodes[via], amap.edge(via, b), k))
+        rows.append((amap.edge(src, via), nodes[via], amap.edge(via, dst), k))
     if rows:
         g = RoadGraph.from_edges(
             crs=ASCII_CRS,

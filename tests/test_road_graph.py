@@ -81,5 +81,5 @@ def test_index_returns_both_directions_nearest_first() -> None:
     by_edge = dict(zip(cand.edge.tolist(), cand.offset.tolist(), strict=True))
     assert by_edge[m.edge("b", "c")] == pytest.approx(20.0)
     assert by_edge[m.edge("c", "b")] == pytest.approx(20.0)
-    far = idx.query(([*m.xy("a"), 500.0, 500.0])[None], 50.0)
+    far = idx.query(np.add(m.xy("a"), [500.0, 500.0])[None], 50.0)
     assert len(far) == 0
