@@ -6,6 +6,9 @@ import math
 from dataclasses import dataclass, field
 from enum import StrEnum
 
+import numpy as np
+from numpy.typing import NDArray
+
 from mapmatch.errors import ValidationError
 
 
@@ -174,3 +177,24 @@ class TrackMatch:
     splits: list[int] = field(default_factory=list)
     length_m: float = 0.0
     confidence: float = 0.0
+
+
+@dataclass(slots=True)
+class Track:
+    """A historic track for batch matching: parallel arrays, one entry per point.
+
+    ``time`` in seconds (NaN when unknown), ``lat``/``lon`` in WGS84 degrees; the optional
+    arrays are None when the source has no such column, NaN where a value is missing.
+    """
+
+    track_id: str
+    time: NDArray[np.float64]
+    lat: NDArray[np.float64]
+    lon: NDArray[np.float64]
+    heading: NDArray[np.float64] | None = None
+    speed: NDArray[np.float64] | None = None
+    pos_sigma: NDArray[np.float64] | None = None
+    distance: NDArray[np.float64] | None = None
+
+    def __len__(self) -> int:
+        return len(self.lat)
