@@ -40,3 +40,15 @@ def to_lonlat(crs: str, x: ArrayLike, y: ArrayLike) -> NDArray[np.float64]:
     """(P, 2) WGS84 lon/lat from metres in ``crs``."""
     lon, lat = _transformer(crs, "EPSG:4326").transform(np.asarray(x, float), np.asarray(y, float))
     return np.column_stack([np.atleast_1d(lon), np.atleast_1d(lat)])
+
+
+def point_to_xy(crs: str, lon: float, lat: float) -> tuple[float, float]:
+    """One WGS84 point to metres in ``crs`` (plain floats; the online matcher's hot path)."""
+    x, y = _transformer("EPSG:4326", crs).transform(lon, lat)
+    return float(x), float(y)
+
+
+def point_to_lonlat(crs: str, x: float, y: float) -> tuple[float, float]:
+    """One point in metres in ``crs`` to WGS84 ``(lon, lat)`` (plain floats)."""
+    lon, lat = _transformer(crs, "EPSG:4326").transform(x, y)
+    return float(lon), float(lat)

@@ -383,7 +383,7 @@ def _reverse_edges(
                 continue
             gi = seg[ptr[i] : ptr[i + 1]]
             gj = seg[ptr[j] : ptr[j + 1]]
-            if len(gi) == len(gj) and np.allclose(gi, gj[::-1], atol=0.01):
+            if len(gi) == len(gj) and np.allclose(gi, gj[::-1], rtol=0.0, atol=0.01):
                 rev[i] = j
                 rev[j] = i
                 break

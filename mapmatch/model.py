@@ -13,6 +13,7 @@ candidates online and a whole track's lattice in batch.
 from __future__ import annotations
 
 import numpy as np
+from numba import njit
 from numpy.typing import ArrayLike, NDArray
 
 from mapmatch.config import MatchConfig
@@ -119,3 +120,24 @@ def normalise_log(lp: ArrayLike) -> NDArray[np.float64]:
         return np.full(a.shape, 1.0 / a.size)
     p = np.exp(a - m)
     return p / p.sum()
+
+
+def transition_params(config: MatchConfig) -> NDArray[np.float64]:
+    """The transition parameters as an array for :func:`transition_logp_one`."""
+    return np.array([config.beta, config.max_speed, config.speed_penalty, config.uturn_penalty], dtype=np.float64)
+
+
+@njit(cache=True)
+def transition_logp_one(route_dist: float, travelled: float, dt: float, params: NDArray[np.float64], uturn: bool) -> float:
+    """:func:`transition_logp` for one pair, compiled (for loops that route and score together).
+
+    ``params`` comes from :func:`transition_params`; the result equals :func:`transition_logp`.
+    """
+    if not np.isfinite(route_dist):
+        return -np.inf
+    lp = -abs(route_dist - travelled) / params[0]
+    if dt > 0:
+        lp -= params[2] * max(route_dist / dt - params[1], 0.0)
+    if uturn:
+        lp -= params[3]
+    return lp

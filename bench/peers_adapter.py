@@ -1,0 +1,99 @@
+"""Our batch matcher behind the peers' custom-engine hook (``/work/shared/peers/README.md``).
+
+``load`` prepares the map (not timed); ``call`` is the timed match of one sub-sampled track;
+``convert`` returns the matched route as lon/lat polylines, one per connected piece.
+Map: ``graph.build.build_map(roads.geojson)`` when the project has it, else a small
+bench-only loader of ``roads.geojson`` (degree-2 chains contracted, as for fastmm).
+"""
+
+from __future__ import annotations
+
+import json
+import sys
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+if str(ROOT) not in sys.path:
+    sys.path.insert(0, str(ROOT))
+
+from graph.road_graph import RoadGraph  # noqa: E402
+from mapmatch.batch import BatchMatcher  # noqa: E402
+from mapmatch.types import Track  # noqa: E402
+
+
+def version() -> str:
+    from importlib.metadata import PackageNotFoundError
+    from importlib.metadata import version as v
+
+    try:
+        return f"mapmatch {v('mapmatch')}"
+    except PackageNotFoundError:
+        return "mapmatch (source tree)"
+
+
+def _fallback_map(work: Path) -> RoadGraph:
+    """Bench-only loader: roads.geojson -> contracted directed polylines in the track's UTM zone."""
+    peers = Path("/work/shared/peers")
+    sys.path.insert(0, str(peers))
+    from roadgraph import directed_edges, read_roads  # type: ignore[import-not-found]
+
+    from graph.projection import to_xy
+
+    feats, coords = read_roads(work / "roads.geojson")
+    chains = directed_edges(feats)
+    ends = sorted({c[0] for c in chains} | {c[-1] for c in chains})
+    pos = {n: i for i, n in enumerate(ends)}
+    epsg = json.loads((work / "meta.json").read_text())["utm_epsg"]
+    crs = f"EPSG:{epsg}"
+    ids = np.array(sorted(coords))
+    ll = np.array([coords[i] for i in ids])
+    xy_all = to_xy(crs, ll[:, 0], ll[:, 1])
+    xy_of = {int(i): xy_all[k] for k, i in enumerate(ids)}
+    node_xy = np.array([xy_of[n] for n in ends])
+    node_ll = np.array([coords[n] for n in ends])
+    geoms = [np.array([xy_of[n] for n in c]) for c in chains]
+    return RoadGraph.from_edges(
+        crs=crs,
+        node_xy=node_xy,
+        node_lonlat=node_ll,
+        node_id=np.array(ends, dtype=np.int64),
+        edge_u=[pos[c[0]] for c in chains],
+        edge_v=[pos[c[-1]] for c in chains],
+        edge_geoms=geoms,
+    )
+
+
+def load_graph(work: Path) -> RoadGraph:
+    try:
+        from graph.build import build_map  # type: ignore[import-not-found]
+    except ImportError:
+        return _fallback_map(work)
+    return build_map(work / "roads.geojson")
+
+
+def load(work: Path) -> BatchMatcher:
+    matcher = BatchMatcher(load_graph(Path(work)))
+    # warm up: loads the numba cache before the timed calls
+    lon, lat = matcher.graph.node_lonlat[0]
+    matcher.match(Track("warmup", np.array([0.0, 1.0]), np.array([lat, lat]), np.array([lon, lon])))
+    return matcher
+
+
+def call(obj: BatchMatcher, t: list[float], lat: list[float], lon: list[float]) -> Any:
+    return obj.match(Track("track", np.asarray(t, float), np.asarray(lat, float), np.asarray(lon, float)))
+
+
+def convert(obj: BatchMatcher, raw: Any) -> tuple[list[list[list[float]]], dict[str, Any]]:
+    lines = [[[x, y] for x, y in piece] for piece in raw.route_lonlat if len(piece) >= 2]
+    n_matched = sum(1 for p in raw.points if p.status != "unmatched")
+    info = {
+        "pieces": len(lines),
+        "splits": list(raw.splits),
+        "points_matched": n_matched,
+        "confidence": round(raw.confidence, 4),
+        "length_m": round(raw.length_m, 1),
+    }
+    return lines, info

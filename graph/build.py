@@ -1,0 +1,234 @@
+"""Build a RoadGraph from a source file (OSM PBF/XML or GIS lines) or an osmnx download.
+
+Pipeline: read -> raw MultiDiGraph (every vertex a node, projected to local UTM) ->
+:func:`osmnx.simplify_graph` -> optional :func:`osmnx.consolidate_intersections` ->
+:class:`RoadGraph` (turn restrictions mapped onto the simplified edges).
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from collections.abc import Callable
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any
+
+import networkx as nx
+
+from graph.errors import InputError
+from graph.gis import GIS_SUFFIXES, GisOptions, OnewayConvention
+from graph.road_graph import RoadGraph
+
+log = logging.getLogger(__name__)
+
+OSM_PBF_SUFFIXES = (".pbf",)
+OSM_XML_SUFFIXES = (".osm", ".osm.bz2", ".osm.gz", ".xml", ".osm.xml")
+
+Progress = Callable[[str], None]
+
+
+def source_format(path: Path) -> str:
+    """``"osm-pbf"``, ``"osm-xml"`` or ``"gis"`` from the file name; InputError otherwise."""
+    name = path.name.lower()
+    if name.endswith(OSM_PBF_SUFFIXES):
+        return "osm-pbf"
+    if name.endswith(OSM_XML_SUFFIXES):
+        return "osm-xml"
+    if name.endswith(GIS_SUFFIXES):
+        return "gis"
+    raise InputError(
+        f"unknown input format: {path.name} (expected .osm.pbf, .osm, .osm.bz2, .geojson, .gpkg or .shp)"
+    )
+
+
+@dataclass
+class BuildReport:
+    """What a build did: raw and final sizes, components, dropped features and why."""
+
+    source_format: str = ""
+    raw_nodes: int = 0
+    raw_edges: int = 0
+    dropped: dict[str, int] = field(default_factory=dict)
+    weak_components: int = 0
+    strong_components: int = 0
+    source_weak_components: int = 0
+    source_strong_components: int = 0
+    restrictions_read: int = 0
+    restrictions_unmapped: int = 0
+    self_loops_split: int = 0
+    self_loops_dropped: int = 0
+    fields: dict[str, Any] = field(default_factory=dict)
+    seconds: dict[str, float] = field(default_factory=dict)
+
+
+def build_map(
+    source: str | Path | None,
+    *,
+    place: str | None = None,
+    bbox: tuple[float, float, float, float] | None = None,
+    consolidate_tolerance: float | None = None,
+    snap_tolerance: float = 0.01,
+    node_crossings: bool = False,
+    oneway_field: str | None = None,
+    oneway_convention: OnewayConvention | str | None = None,
+    name_field: str | None = None,
+    speed_field: str | None = None,
+    highway_field: str | None = None,
+    id_field: str | None = None,
+    node_id_fields: tuple[str, str] | None = None,
+    crs: str | None = None,
+    layer: str | None = None,
+    network_type: str = "drive",
+    progress: Progress | None = None,
+) -> RoadGraph:
+    """Build a prepared road graph.
+
+    Parameters
+    ----------
+    source
+        An OSM file (``.osm.pbf``, ``.osm``, ``.osm.bz2``) or GIS lines (``.geojson``,
+        ``.gpkg``, ``.shp``). ``None`` with ``place`` or ``bbox`` downloads through osmnx.
+    place, bbox
+        Download by place name, or ``bbox=(west, south, east, north)`` in degrees; with an
+        OSM ``source`` the bbox clips it instead.
+    consolidate_tolerance
+        Merge complex intersections whose nodes lie within this many metres
+        (:func:`osmnx.consolidate_intersections`); ``None`` (default) keeps every node.
+    snap_tolerance, node_crossings, oneway_field, oneway_convention, name_field, speed_field,
+    highway_field, id_field, node_id_fields, crs, layer
+        GIS options, see :class:`graph.gis.GisOptions`.
+    network_type
+        osmnx network type for OSM input: ``"drive"`` (default) or ``"drive_service"``.
+    progress
+        Called with a short message at the start of each step.
+
+    Returns
+    -------
+    RoadGraph
+        With ``meta`` holding ``source`` (path, format, sha256, bytes), ``build`` (the
+        parameters) and ``report`` (a :class:`BuildReport` as a dict).
+
+    Raises
+    ------
+    InputError
+        Missing file, unknown format, corrupt data, no drivable roads, unreadable CRS.
+    """
+    from graph.artifact import file_sha256
+    from graph.simplify import consolidate, simplify, to_road_graph
+
+    say = progress or (lambda msg: log.info("%s", msg))
+    report = BuildReport()
+    params: dict[str, Any] = {
+        "network_type": network_type,
+        "consolidate_tolerance": consolidate_tolerance,
+        "place": place,
+        "bbox": list(bbox) if bbox else None,
+    }
+    t0 = time.perf_counter()
+    restrictions: list[tuple[int, int, int, int]] = []
+    src_meta: dict[str, Any]
+    if source is None:
+        if place is None and bbox is None:
+            raise InputError("give a source file, a place name or a bounding box")
+        from graph.osm import download_graph
+
+        say(f"downloading the {network_type} network from OpenStreetMap")
+        G, crs_out, dropped = download_graph(place=place, bbox=bbox, network_type=network_type)
+        report.source_format = "osm-download"
+        src_meta = {"format": "osm-download", "place": place, "bbox": list(bbox) if bbox else None}
+    else:
+        path = Path(source)
+        if not path.exists():
+            raise InputError(f"no such file: {path}")
+        if path.is_dir():
+            raise InputError(f"{path} is a directory, not a road data file")
+        fmt = source_format(path)
+        report.source_format = fmt
+        say(f"checksumming {path.name}")
+        src_meta = {
+            "path": str(path),
+            "name": path.name,
+            "format": fmt,
+            "bytes": path.stat().st_size,
+            "sha256": file_sha256(path),
+        }
+        if fmt == "gis":
+            from graph.gis import lines_to_graph
+
+            conv = (
+                OnewayConvention.parse(oneway_convention)
+                if isinstance(oneway_convention, str)
+                else oneway_convention or OnewayConvention()
+            )
+            opts = GisOptions(
+                oneway_field=oneway_field,
+                oneway_convention=conv,
+                name_field=name_field,
+                speed_field=speed_field,
+                highway_field=highway_field,
+                id_field=id_field,
+                node_id_fields=node_id_fields,
+                snap_tolerance=snap_tolerance,
+                node_crossings=node_crossings,
+                crs=crs,
+                layer=layer,
+                bbox=bbox,
+            )
+            params.update(
+                {
+                    "snap_tolerance": snap_tolerance,
+                    "node_crossings": node_crossings,
+                    "oneway_field": oneway_field,
+                    "oneway_convention": {k: sorted(v) for k, v in asdict(conv).items()},
+                    "name_field": name_field,
+                    "speed_field": speed_field,
+                    "highway_field": highway_field,
+                    "id_field": id_field,
+                    "node_id_fields": list(node_id_fields) if node_id_fields else None,
+                    "crs": crs,
+                    "layer": layer,
+                }
+            )
+            say(f"reading GIS lines from {path.name}")
+            G, crs_out, dropped, fields = lines_to_graph(path, opts)
+            report.fields = fields
+        else:
+            from graph.osm import read_osm
+
+            say(f"reading OSM {'PBF' if fmt == 'osm-pbf' else 'XML'} from {path.name}")
+            G, crs_out, dropped, restrictions = read_osm(path, network_type=network_type, bbox=bbox)
+            report.restrictions_read = len(restrictions)
+    report.dropped = dropped
+    report.seconds["read"] = time.perf_counter() - t0
+    if G.number_of_edges() == 0:
+        raise InputError(f"{src_meta.get('name', 'the source')} has no drivable roads")
+    report.raw_nodes, report.raw_edges = G.number_of_nodes(), G.number_of_edges()
+    report.source_weak_components = nx.number_weakly_connected_components(G)
+    report.source_strong_components = nx.number_strongly_connected_components(G)
+
+    t1 = time.perf_counter()
+    say(f"simplifying {report.raw_nodes:,} nodes / {report.raw_edges:,} edges to intersections")
+    G = simplify(G)
+    if consolidate_tolerance is not None and consolidate_tolerance > 0:
+        say(f"consolidating intersections within {consolidate_tolerance:g} m")
+        G = consolidate(G, consolidate_tolerance)
+        if G.number_of_edges() == 0:
+            raise InputError(
+                f"no roads left after consolidating intersections within {consolidate_tolerance:g} m"
+            )
+    report.seconds["simplify"] = time.perf_counter() - t1
+    report.weak_components = nx.number_weakly_connected_components(G)
+    report.strong_components = nx.number_strongly_connected_components(G)
+
+    t2 = time.perf_counter()
+    say(f"converting {G.number_of_nodes():,} nodes / {G.number_of_edges():,} edges to arrays")
+    meta = {"source": src_meta, "build": params}
+    rg, info = to_road_graph(G, crs=crs_out, restrictions=restrictions, meta=meta)
+    report.restrictions_unmapped = int(info["restrictions_unmapped"])
+    report.self_loops_split = int(info["self_loops_split"])
+    report.self_loops_dropped = int(info["self_loops_dropped"])
+    report.seconds["convert"] = time.perf_counter() - t2
+    report.seconds["total"] = time.perf_counter() - t0
+    rg.meta["report"] = asdict(report)
+    return rg

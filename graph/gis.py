@@ -1,0 +1,420 @@
+"""GIS road centre lines (GeoJSON, GeoPackage, Shapefile) -> raw MultiDiGraph.
+
+Topology comes from shared line endpoints (within a snap tolerance); crossings without a
+shared vertex stay unconnected (bridges) unless noding is asked for. One-way comes from a
+configurable field and value convention.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import re
+from collections.abc import Iterable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import networkx as nx
+import numpy as np
+import shapely
+from numpy.typing import NDArray
+
+from graph.components import union_find
+from graph.errors import InputError
+from graph.projection import utm_crs
+
+log = logging.getLogger(__name__)
+
+GIS_SUFFIXES = (".geojson", ".json", ".gpkg", ".shp", ".fgb")
+
+FORWARD = 1
+BOTH = 0
+REVERSE = -1
+
+
+@dataclass(frozen=True)
+class OnewayConvention:
+    """How the values of a one-way field read (case-insensitive, compared as text).
+
+    ``forward`` values make the feature one-way in digitised direction, ``reverse`` values
+    one-way against it, ``both`` two-way. A missing value (null) means two-way; any other
+    value is counted as unrecognised and read as two-way.
+    """
+
+    forward: frozenset[str] = frozenset({"true", "yes", "1", "y", "t", "ft"})
+    reverse: frozenset[str] = frozenset({"-1", "tf", "reverse", "r"})
+    both: frozenset[str] = frozenset({"false", "no", "0", "n", "f", "b", "both", ""})
+
+    def code(self, value: Any) -> int | None:
+        """``FORWARD``, ``REVERSE`` or ``BOTH`` for one value; ``None`` when unrecognised."""
+        if value is None or (isinstance(value, float) and math.isnan(value)):
+            return BOTH
+        if isinstance(value, bool | np.bool_):
+            return FORWARD if value else BOTH
+        if isinstance(value, int | float | np.integer | np.floating) and float(value).is_integer():
+            value = int(value)
+        s = str(value).strip().lower()
+        if s in self.forward:
+            return FORWARD
+        if s in self.reverse:
+            return REVERSE
+        if s in self.both:
+            return BOTH
+        return None
+
+    @classmethod
+    def parse(cls, spec: str) -> OnewayConvention:
+        """Parse ``"forward=yes,1;reverse=-1;both=no,0"`` (omitted groups keep their defaults)."""
+        kw: dict[str, frozenset[str]] = {}
+        for part in filter(None, (p.strip() for p in spec.split(";"))):
+            key, _, vals = part.partition("=")
+            key = key.strip().lower()
+            if key not in ("forward", "reverse", "both"):
+                raise InputError(f"one-way convention: unknown group {key!r} (use forward/reverse/both)")
+            kw[key] = frozenset(v.strip().lower() for v in vals.split(","))
+        return cls(**kw)
+
+
+@dataclass(frozen=True)
+class GisOptions:
+    """Options for reading GIS road lines (all keyword, all optional).
+
+    Attributes
+    ----------
+    oneway_field
+        Field holding one-way information; ``None`` tries ``oneway``, ``one_way``, ``ONEWAY``,
+        ``dir``, ``direction`` and otherwise treats every road as two-way.
+    oneway_convention
+        How that field's values read.
+    name_field, speed_field, highway_field, id_field
+        Optional fields for the road name, speed (km/h), road class and feature id;
+        ``None`` tries common names (``name``; ``maxspeed``/``speed``; ``highway``/``class``;
+        ``id``/``osm_id``).
+    snap_tolerance
+        Endpoints closer than this many metres become one node.
+    node_crossings
+        Split lines where they cross without a shared vertex (off by default: bridges).
+    crs
+        CRS to assume when the file has none (e.g. ``"EPSG:4326"``).
+    layer
+        Layer of a multi-layer source (GeoPackage).
+    bbox
+        ``(west, south, east, north)`` in degrees: keep only lines that intersect it.
+    node_id_fields
+        Integer fields with the ids of each line's first and last node; ``None`` uses ``u``
+        and ``v`` when present and consistent (osmnx exports, Kubicka data).
+    """
+
+    oneway_field: str | None = None
+    oneway_convention: OnewayConvention = field(default_factory=OnewayConvention)
+    name_field: str | None = None
+    speed_field: str | None = None
+    highway_field: str | None = None
+    id_field: str | None = None
+    snap_tolerance: float = 0.01
+    node_crossings: bool = False
+    crs: str | None = None
+    layer: str | None = None
+    bbox: tuple[float, float, float, float] | None = None
+    node_id_fields: tuple[str, str] | None = None
+
+
+def _pick(columns: Iterable[str], wanted: str | None, candidates: tuple[str, ...], what: str) -> str | None:
+    cols = list(columns)
+    if wanted is not None:
+        if wanted not in cols:
+            raise InputError(f"the {what} field {wanted!r} is not in the data (fields: {', '.join(cols)})")
+        return wanted
+    lower = {c.lower(): c for c in cols}
+    for c in candidates:
+        if c in lower:
+            return lower[c]
+    return None
+
+
+def _parse_speed(value: Any) -> float:
+    """Speed in km/h from a number or text such as ``"50"``, ``"30 mph"``; NaN when unknown."""
+    if value is None:
+        return math.nan
+    if isinstance(value, int | float | np.integer | np.floating):
+        return float(value) if float(value) > 0 else math.nan
+    m = re.match(r"\s*([\d.]+)\s*(mph|knots|km/h|kmh|kph)?", str(value).lower())
+    if not m:
+        return math.nan
+    try:
+        v = float(m.group(1))
+    except ValueError:
+        return math.nan
+    unit = m.group(2)
+    if unit == "mph":
+        v *= 1.609344
+    elif unit == "knots":
+        v *= 1.852
+    return v if v > 0 else math.nan
+
+
+def read_lines(path: Path, opts: GisOptions) -> tuple[Any, dict[str, int]]:
+    """Read line features into a GeoDataFrame (exploded to LineStrings, in WGS84).
+
+    Returns the frame and counts of dropped features by reason.
+    """
+    import pyogrio
+    from pyproj import CRS
+    from pyproj.exceptions import CRSError
+
+    try:
+        gdf = pyogrio.read_dataframe(path, layer=opts.layer)
+    except Exception as exc:  # pyogrio raises several unrelated types for unreadable files
+        msg = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+        raise InputError(f"cannot read {path.name} as GIS data: {msg}") from exc
+    dropped: dict[str, int] = {}
+    if gdf.geometry is None or len(gdf) == 0:
+        raise InputError(f"{path.name} has no line features")
+    geom = gdf.geometry.values
+    types = shapely.get_type_id(geom)
+    is_line = np.isin(types, [1, 5])  # LineString, MultiLineString
+    n_null = int(shapely.is_missing(geom).sum())
+    if n_null:
+        dropped["no geometry"] = n_null
+    n_other = int((~is_line).sum()) - n_null
+    if n_other:
+        dropped["not a line"] = n_other
+    if not is_line.any():
+        raise InputError(f"{path.name} has no line features (LineString or MultiLineString)")
+    gdf = gdf[is_line]
+    crs = gdf.crs
+    if opts.crs is not None:
+        try:
+            crs = CRS.from_user_input(opts.crs)
+        except CRSError as exc:
+            raise InputError(f"unreadable CRS {opts.crs!r}: {exc}") from exc
+        gdf = gdf.set_crs(crs, allow_override=True)
+    if crs is None:
+        x0, y0, x1, y1 = gdf.total_bounds
+        if -180 <= x0 <= x1 <= 180 and -90 <= y0 <= y1 <= 90:
+            log.warning("%s has no CRS; its coordinates look like lon/lat, assuming EPSG:4326", path.name)
+            gdf = gdf.set_crs("EPSG:4326")
+        else:
+            raise InputError(
+                f"{path.name} has no readable CRS and its coordinates are not lon/lat; give the CRS (--crs)"
+            )
+    try:
+        gdf = gdf.to_crs("EPSG:4326")
+    except Exception as exc:
+        raise InputError(f"{path.name}: cannot transform from its CRS to lon/lat: {exc}") from exc
+    if opts.bbox is not None:
+        inside = gdf.intersects(shapely.box(*opts.bbox))
+        if not inside.all():
+            dropped["outside the bbox"] = int((~inside).sum())
+        gdf = gdf[inside]
+        if len(gdf) == 0:
+            raise InputError(f"{path.name} has no line features inside the bbox")
+    gdf = gdf.explode(index_parts=False)
+    geom = gdf.geometry.values
+    ncoords = shapely.get_num_coordinates(geom)
+    short = ncoords < 2
+    if short.any():
+        dropped["fewer than 2 points"] = int(short.sum())
+        gdf = gdf[~short]
+    return gdf, dropped
+
+
+def lines_to_graph(
+    path: Path, opts: GisOptions
+) -> tuple[nx.MultiDiGraph, str, dict[str, int], dict[str, Any]]:
+    """Read GIS road lines into a raw MultiDiGraph in the local UTM CRS.
+
+    Returns
+    -------
+    G, crs, dropped, info
+        The raw graph (every vertex a node), its CRS, dropped features by reason, and the
+        fields that were used.
+    """
+    from graph.projection import to_xy
+
+    gdf, dropped = read_lines(path, opts)
+    cols = [c for c in gdf.columns if c != gdf.geometry.name]
+    oneway_f = _pick(cols, opts.oneway_field, ("oneway", "one_way", "dir", "direction"), "one-way")
+    name_f = _pick(cols, opts.name_field, ("name",), "name")
+    speed_f = _pick(cols, opts.speed_field, ("maxspeed", "speed", "speed_kph"), "speed")
+    hw_f = _pick(cols, opts.highway_field, ("highway", "class", "fclass"), "highway")
+    id_f = _pick(cols, opts.id_field, ("id", "osm_id", "fid"), "id")
+    info: dict[str, Any] = {
+        "oneway_field": oneway_f,
+        "name_field": name_f,
+        "speed_field": speed_f,
+        "highway_field": hw_f,
+    }
+
+    lines = np.asarray(gdf.geometry.values)
+    n_feat = len(lines)
+    fid = (
+        np.asarray(gdf[id_f], dtype=np.int64)
+        if id_f is not None and np.issubdtype(np.asarray(gdf[id_f]).dtype, np.integer)
+        else np.arange(n_feat, dtype=np.int64)
+    )
+    if oneway_f is not None:
+        codes = [opts.oneway_convention.code(v) for v in gdf[oneway_f].tolist()]
+        bad = sum(c is None for c in codes)
+        if bad:
+            dropped["unrecognised one-way value (read as two-way)"] = bad
+        direction = np.array([BOTH if c is None else c for c in codes], dtype=np.int8)
+    else:
+        direction = np.zeros(n_feat, dtype=np.int8)
+    names = gdf[name_f].tolist() if name_f else [None] * n_feat
+    hws = gdf[hw_f].tolist() if hw_f else [None] * n_feat
+    speeds = [_parse_speed(v) for v in gdf[speed_f].tolist()] if speed_f else [math.nan] * n_feat
+
+    b = shapely.bounds(lines)
+    lon0 = float((np.nanmin(b[:, 0]) + np.nanmax(b[:, 2])) / 2)
+    lat0 = float((np.nanmin(b[:, 1]) + np.nanmax(b[:, 3])) / 2)
+    crs = utm_crs(lon0, lat0)
+
+    if opts.node_crossings:
+        lines, src = _node_lines(lines)
+        fid, direction = fid[src], direction[src]
+        names = [names[i] for i in src]
+        hws = [hws[i] for i in src]
+        speeds = [speeds[i] for i in src]
+        n_feat = len(lines)
+
+    ll, owner = shapely.get_coordinates(lines, return_index=True)
+    xy = to_xy(crs, ll[:, 0], ll[:, 1])
+    counts = np.bincount(owner, minlength=n_feat)
+    start = np.zeros(n_feat + 1, dtype=np.int64)
+    np.cumsum(counts, out=start[1:])
+    first, last = start[:-1], start[1:] - 1
+    # endpoints -> nodes: exact duplicates first, then snapping within the tolerance
+    ends = np.concatenate([first, last])
+    end_xy = xy[ends]
+    uniq, inv = np.unique(np.round(end_xy, 6), axis=0, return_inverse=True)
+    inv = inv.ravel()
+    if opts.snap_tolerance > 0 and len(uniq) > 1:
+        tree = shapely.STRtree(shapely.points(uniq))
+        pa, pb = tree.query(shapely.points(uniq), predicate="dwithin", distance=opts.snap_tolerance)
+        keep = pa < pb
+        lab = union_find(len(uniq), pa[keep].astype(np.int64), pb[keep].astype(np.int64))
+        _, lab = np.unique(lab, return_inverse=True)
+    else:
+        lab = np.arange(len(uniq))
+    n_end_nodes = int(lab.max()) + 1 if len(lab) else 0
+    node_of_end = lab[inv]
+    # node position: mean of its endpoints
+    node_xy = np.zeros((n_end_nodes, 2))
+    np.add.at(node_xy, node_of_end, end_xy)
+    node_xy /= np.bincount(node_of_end, minlength=n_end_nodes)[:, None]
+    node_ll = ll[ends][np.unique(node_of_end, return_index=True)[1]]
+    info["snapped_endpoints"] = int(len(uniq) - n_end_nodes)
+
+    # every vertex is a node: endpoints shared, interior vertices private to their feature
+    vnode = np.empty(len(xy), dtype=np.int64)
+    interior = np.ones(len(xy), dtype=bool)
+    interior[ends] = False
+    vnode[ends] = node_of_end
+    vnode[interior] = n_end_nodes + np.arange(int(interior.sum()))
+    all_xy = np.vstack([node_xy, xy[interior]])
+    all_ll = np.vstack([node_ll, ll[interior]])
+    # node keys are the source ids: u/v fields when they name the endpoints consistently,
+    # else 0..N-1; interior vertices get negative keys
+    end_ids = _endpoint_ids(gdf, opts, node_of_end, n_end_nodes, n_feat)
+    info["node_ids"] = "u/v fields" if end_ids is not None else "generated"
+    keys = np.concatenate(
+        [
+            end_ids if end_ids is not None else np.arange(n_end_nodes, dtype=np.int64),
+            -1 - np.arange(int(interior.sum()), dtype=np.int64),
+        ]
+    )
+    vnode = keys[vnode]
+
+    G = nx.MultiDiGraph(crs=crs)
+    G.add_nodes_from(
+        (k, {"x": float(p[0]), "y": float(p[1]), "lon": float(q[0]), "lat": float(q[1]), "osmid": k})
+        for k, p, q in zip(keys.tolist(), all_xy.tolist(), all_ll.tolist(), strict=True)
+    )
+    seg_a = np.arange(len(xy) - 1)
+    seg_a = seg_a[owner[seg_a] == owner[seg_a + 1]]
+    a_n, b_n = vnode[seg_a], vnode[seg_a + 1]
+    f = owner[seg_a]
+    d = xy[seg_a + 1] - xy[seg_a]
+    seg_len = np.hypot(d[:, 0], d[:, 1])
+    zero_len = a_n == b_n
+    edges = []
+    for a, bb, fi, L in zip(
+        a_n[~zero_len].tolist(),
+        b_n[~zero_len].tolist(),
+        f[~zero_len].tolist(),
+        seg_len[~zero_len].tolist(),
+        strict=True,
+    ):
+        attrs = {
+            "osmid": int(fid[fi]),
+            "length": L,
+            "name": names[fi],
+            "highway": hws[fi],
+            "speed_kph": speeds[fi],
+            "oneway": bool(direction[fi] != BOTH),
+        }
+        dirn = direction[fi]
+        if dirn in (BOTH, FORWARD):
+            edges.append((a, bb, attrs))
+        if dirn in (BOTH, REVERSE):
+            edges.append((bb, a, dict(attrs)))
+    G.add_edges_from(edges)
+    # features that collapsed to one point
+    flen = np.bincount(f, weights=seg_len, minlength=n_feat)
+    collapsed = int((flen <= opts.snap_tolerance).sum())
+    if collapsed:
+        dropped["zero length after snapping"] = collapsed
+    G.remove_nodes_from([n for n, deg in G.degree() if deg == 0])
+    return G, crs, dropped, info
+
+
+def _endpoint_ids(
+    gdf: Any, opts: GisOptions, node_of_end: NDArray[np.int64], n_nodes: int, n_feat: int
+) -> NDArray[np.int64] | None:
+    """Endpoint node ids from the u/v fields (as in osmnx's exports and the Kubicka data).
+
+    Used only when every node gets exactly one non-negative id and no two nodes share one;
+    otherwise ``None`` (ids are generated).
+    """
+    fields = opts.node_id_fields
+    if fields is None:
+        cols = {c.lower(): c for c in gdf.columns}
+        if "u" not in cols or "v" not in cols:
+            return None
+        fields = (cols["u"], cols["v"])
+    elif any(f not in gdf.columns for f in fields):
+        raise InputError(f"node id fields {fields} are not in the data")
+    if opts.node_crossings or gdf.index.has_duplicates or len(gdf) != n_feat:
+        return None  # parts of multi-part lines or noded pieces have no ids of their own
+    try:
+        u = np.asarray(gdf[fields[0]], dtype=np.int64)
+        v = np.asarray(gdf[fields[1]], dtype=np.int64)
+    except (TypeError, ValueError):
+        return None
+    ids = np.concatenate([u, v])
+    out = np.full(n_nodes, -1, dtype=np.int64)
+    out[node_of_end] = ids
+    if (out < 0).any() or not np.array_equal(out[node_of_end], ids) or len(np.unique(out)) != n_nodes:
+        log.info("u/v fields do not name the line endpoints consistently; generating node ids")
+        return None
+    return out
+
+
+def _node_lines(lines: NDArray[Any]) -> tuple[NDArray[Any], NDArray[np.int64]]:
+    """Split lines at every crossing; each piece keeps the index of the line it came from."""
+    pieces = shapely.get_parts(shapely.node(shapely.multilinestrings(lines)))
+    tree = shapely.STRtree(lines)
+    mid = shapely.line_interpolate_point(pieces, 0.5, normalized=True)
+    pi, li = tree.query(mid, predicate="dwithin", distance=1e-9)
+    src = np.full(len(pieces), -1, dtype=np.int64)
+    src[pi[::-1]] = li[::-1]  # first match wins
+    ok = src >= 0
+    pieces, src = pieces[ok], src[ok]
+    # orient each piece like its source line
+    proj_a = shapely.line_locate_point(lines[src], shapely.get_point(pieces, 0))
+    proj_b = shapely.line_locate_point(lines[src], shapely.get_point(pieces, -1))
+    flip = proj_b < proj_a
+    pieces[flip] = shapely.reverse(pieces[flip])
+    return pieces, src

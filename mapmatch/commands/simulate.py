@@ -1,0 +1,162 @@
+"""``mapmatch simulate``: a fused drive (fixes CSV) and its ground truth from a map and a route."""
+
+from __future__ import annotations
+
+import argparse
+import time
+from collections.abc import Iterator
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from mapmatch.cli import CommandError
+from mapmatch.types import Fix, SnapResult
+
+if TYPE_CHECKING:
+    from mapmatch.sim.drive import Drive
+
+
+def register(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
+    p = subparsers.add_parser(
+        "simulate",
+        help="simulate a fusion node's fused fixes along a route, with ground truth",
+        description=(
+            "Drive a route (given, or random and legal) with a realistic speed profile, simulate GPS "
+            "(noise, multipath, outages), gyro, odometer and compass, fuse them with a DR/GPS Kalman "
+            "filter and write the fused fixes (the columns mapmatch replay and send read) and the truth."
+        ),
+    )
+    p.add_argument("--map", required=True, help="prepared map file (mapmatch prep) or an OSM/GIS source")
+    src = p.add_mutually_exclusive_group(required=True)
+    src.add_argument("--route", help="GeoJSON LineString of the route to drive (e.g. a truth file)")
+    src.add_argument("--random-route", action="store_true", help="drive a random legal route")
+    p.add_argument("--length-km", type=float, default=10.0, help="length of a random route (default 10)")
+    p.add_argument("--rate", type=int, choices=(1, 10), default=1, help="fused output rate in Hz (default 1)")
+    p.add_argument(
+        "--outages",
+        default="paper",
+        help="GPS outages: 'paper' (60, 90, 92, 83, 48 s from 296, 896, 1510, 2160, 3230 s), 'none', "
+        "or START:DURATION[,START:DURATION...] in seconds (default paper)",
+    )
+    p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
+    p.add_argument("--vehicle-id", default="sim-1", help="vehicle id written to the fixes (default sim-1)")
+    p.add_argument("--time0", type=float, default=0.0, help="time of the first fix in seconds (default 0)")
+    p.add_argument("-o", "--output", required=True, help="fused fixes CSV to write")
+    p.add_argument(
+        "--truth",
+        help="truth to write: per-fix CSV and route GeoJSON with the same stem (give either name)",
+    )
+    p.add_argument("--server", metavar="HOST:PORT", help="also replay the fixes to a running server")
+    p.add_argument("--realtime", action="store_true", help="with --server: send at the fixes' own pace")
+    p.add_argument("--speedup", type=float, default=1.0, help="with --realtime: pace this many times faster")
+    p.add_argument("--map-id", default="", help="with --server: the server's map id (default: its only map)")
+    p.add_argument("--matched", help="with --server: results CSV to write (default OUTPUT.matched.csv)")
+    p.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    from mapmatch.commands._maps import load_any_map
+    from mapmatch.sim.drive import position_error, read_route, simulate_drive, write_fixes_csv, write_truth
+    from mapmatch.sim.routes import random_route
+    from mapmatch.sim.sensors import parse_outages
+
+    if args.length_km <= 0:
+        raise CommandError("--length-km must be positive")
+    if args.speedup <= 0:
+        raise CommandError("--speedup must be positive")
+    outages = parse_outages(args.outages)
+    graph = load_any_map(args.map)
+    if args.route:
+        route = read_route(graph, args.route)
+    else:
+        route = random_route(graph, length_m=args.length_km * 1000.0, rng=np.random.default_rng(args.seed))
+    drive = simulate_drive(
+        graph,
+        route,
+        rate=args.rate,
+        outages=outages,
+        seed=args.seed,
+        vehicle_id=args.vehicle_id,
+        time0=args.time0,
+    )
+    write_fixes_csv(drive, args.output)
+    written = [args.output]
+    if args.truth:
+        written += [str(p) for p in write_truth(graph, drive, args.truth)]
+    err = position_error(drive)
+    valid = drive.fixes["gps_valid"].to_numpy() > 0
+    print(
+        f"{len(drive.fixes)} fixes at {args.rate} Hz, {route.length / 1000:.2f} km in "
+        f"{drive.trajectory.duration:.0f} s, {len(drive.node_index)} intersections, "
+        f"{sum(1 for a, _ in drive.outages if a < drive.trajectory.duration)} GPS outages"
+    )
+    print(
+        f"fused position error: {err[valid].mean():.1f} m mean with GPS"
+        + (f", {err[~valid].max():.1f} m max without" if (~valid).any() else "")
+    )
+    print("wrote " + ", ".join(written))
+    if args.server:
+        return _replay(args, drive)
+    return 0
+
+
+def paced(fixes: list[tuple[str, Fix]], *, realtime: bool, speedup: float = 1.0) -> Iterator[tuple[str, Fix]]:
+    """Yield the fixes, sleeping so that they go out at their own pace when ``realtime``."""
+    if not fixes:
+        return
+    t_first = fixes[0][1].time
+    wall0 = time.monotonic()
+    for vid, fix in fixes:
+        if realtime:
+            wait = (fix.time - t_first) / speedup - (time.monotonic() - wall0)
+            if wait > 0:
+                time.sleep(wait)
+        yield vid, fix
+
+
+def replay_to_server(
+    drive: Drive,
+    server: str,
+    *,
+    vehicle_id: str,
+    map_id: str = "",
+    realtime: bool = False,
+    speedup: float = 1.0,
+    timeout: float | None = None,
+) -> list[tuple[str, Fix, SnapResult | None, str]]:
+    """Stream the drive's fixes to a running server; one ``(vehicle, fix, result, error)`` per fix."""
+    from service.client import MapMatchClient
+
+    out: list[tuple[str, Fix, SnapResult | None, str]] = []
+    pairs = [(vehicle_id, f) for f in drive.fix_objects()]
+    with MapMatchClient(server) as client:
+        for a in client.stream(
+            paced(pairs, realtime=realtime, speedup=speedup), map_id=map_id, timeout=timeout
+        ):
+            err = "" if a.error is None else f"{a.error.code.name}: {a.error.field}: {a.error.message}"
+            out.append((a.vehicle_id, a.fix, a.result, err))
+    return out
+
+
+def _replay(args: argparse.Namespace, drive: Drive) -> int:
+    import grpc
+
+    from mapmatch.fixes import write_results_csv
+
+    matched = Path(args.matched) if args.matched else Path(args.output).with_suffix(".matched.csv")
+    try:
+        rows = replay_to_server(
+            drive,
+            args.server,
+            vehicle_id=args.vehicle_id,
+            map_id=args.map_id,
+            realtime=args.realtime,
+            speedup=args.speedup,
+        )
+    except grpc.RpcError as exc:
+        raise CommandError(f"server {args.server}: {exc.code().name}: {exc.details()}") from None
+    write_results_csv(matched, rows)
+    bad = sum(1 for r in rows if r[2] is None)
+    print(f"replayed {len(rows)} fixes to {args.server} ({bad} rejected); wrote {matched}")
+    return 0 if bad == 0 else 1

@@ -1,0 +1,200 @@
+"""Fused-fix files: read fixes per vehicle, write one result row per fix.
+
+Input columns: ``vehicle_id``, ``time``, ``lat``, ``lon``, ``heading`` and optional
+``pos_sigma``, ``heading_sigma``, ``speed``, ``distance``, ``gps_valid``. Times are seconds
+(any epoch) or ISO 8601 timestamps. Empty cells are "not given". Output columns:
+:data:`RESULT_COLUMNS` (documented in README, "Online matching and ``mapmatch replay``").
+"""
+
+from __future__ import annotations
+
+import csv
+import math
+import os
+import tempfile
+from collections.abc import Iterable
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+from graph.road_graph import RoadGraph
+from mapmatch.errors import ValidationError
+from mapmatch.types import Fix, SnapResult
+
+REQUIRED_COLUMNS: tuple[str, ...] = ("vehicle_id", "time", "lat", "lon", "heading")
+OPTIONAL_COLUMNS: tuple[str, ...] = ("pos_sigma", "heading_sigma", "speed", "distance", "gps_valid")
+RESULT_COLUMNS: tuple[str, ...] = (
+    "vehicle_id",
+    "time",
+    "state",
+    "edge",
+    "u",
+    "v",
+    "way_id",
+    "offset",
+    "lat",
+    "lon",
+    "bearing",
+    "dist",
+    "turn",
+    "raw_lat",
+    "raw_lon",
+    "candidates",
+    "correction",
+    "correction_from",
+    "correction_to",
+    "correction_replaced",
+    "error",
+)
+_TRUE = {"1", "true", "t", "yes", "y"}
+_FALSE = {"0", "false", "f", "no", "n"}
+
+
+def _numeric(df: pd.DataFrame, col: str) -> np.ndarray:
+    if col not in df.columns:
+        return np.full(len(df), np.nan)
+    raw = df[col]
+    vals = pd.to_numeric(raw, errors="coerce")
+    bad = vals.isna() & raw.notna() & (raw.astype(str).str.strip() != "")
+    if bad.any():
+        row = int(np.flatnonzero(bad.to_numpy())[0]) + 2
+        raise ValidationError(col, f"not a number on line {row}: {raw[bad].iloc[0]!r}")
+    return vals.to_numpy(dtype=np.float64)
+
+
+def _times(df: pd.DataFrame) -> np.ndarray:
+    raw = df["time"]
+    vals = pd.to_numeric(raw, errors="coerce")
+    if vals.notna().all():
+        return vals.to_numpy(dtype=np.float64)
+    ts = pd.to_datetime(raw, errors="coerce", utc=True, format="ISO8601")
+    if ts.isna().any():
+        row = int(np.flatnonzero(ts.isna().to_numpy())[0]) + 2
+        raise ValidationError("time", f"neither seconds nor an ISO 8601 time on line {row}")
+    return (ts - pd.Timestamp(0, tz="UTC")).dt.total_seconds().to_numpy(dtype=np.float64)
+
+
+def _gps_valid(df: pd.DataFrame) -> list[bool | None]:
+    if "gps_valid" not in df.columns:
+        return [None] * len(df)
+    out: list[bool | None] = []
+    for i, v in enumerate(df["gps_valid"].astype(str).str.strip().str.lower()):
+        if v in ("", "nan", "none"):
+            out.append(None)
+        elif v in _TRUE:
+            out.append(True)
+        elif v in _FALSE:
+            out.append(False)
+        else:
+            raise ValidationError("gps_valid", f"not a boolean on line {i + 2}: {v!r}")
+    return out
+
+
+def read_fixes_csv(path: str | os.PathLike[str]) -> dict[str, list[Fix]]:
+    """Read a fused-fix CSV into fixes per vehicle, in file order.
+
+    Raises
+    ------
+    ValidationError
+        A required column is missing or a cell is not a number (values themselves are
+        validated by the matcher, fix by fix).
+    """
+    try:
+        df = pd.read_csv(path, dtype=str, keep_default_na=False, skipinitialspace=True)
+    except pd.errors.EmptyDataError:
+        raise ValidationError("file", f"{path} is empty") from None
+    except (pd.errors.ParserError, UnicodeDecodeError) as exc:
+        raise ValidationError("file", f"{path} is not a readable CSV ({exc})") from None
+    df.columns = [str(c).strip() for c in df.columns]
+    missing = [c for c in REQUIRED_COLUMNS if c not in df.columns]
+    if missing:
+        raise ValidationError("columns", f"missing {', '.join(missing)} (need {', '.join(REQUIRED_COLUMNS)})")
+    df = df.replace({"": None})
+    t = _times(df)
+    cols = {c: _numeric(df, c) for c in ("lat", "lon", "heading", *OPTIONAL_COLUMNS[:-1])}
+    gps = _gps_valid(df)
+    out: dict[str, list[Fix]] = {}
+    vids = df["vehicle_id"].astype(str).str.strip().tolist()
+    for i, vid in enumerate(vids):
+        out.setdefault(vid, []).append(
+            Fix(
+                time=float(t[i]),
+                lat=float(cols["lat"][i]),
+                lon=float(cols["lon"][i]),
+                heading=float(cols["heading"][i]),
+                pos_sigma=float(cols["pos_sigma"][i]),
+                heading_sigma=float(cols["heading_sigma"][i]),
+                speed=float(cols["speed"][i]),
+                distance=float(cols["distance"][i]),
+                gps_valid=gps[i],
+            )
+        )
+    return out
+
+
+def _num(x: float, fmt: str) -> str:
+    return "" if math.isnan(x) else format(x, fmt)
+
+
+def result_row(vehicle_id: str, fix: Fix, result: SnapResult | None, error: str = "") -> list[str]:
+    """One output row (strings, in :data:`RESULT_COLUMNS` order). ``result`` None = rejected fix."""
+    if result is None:
+        return [vehicle_id, repr(fix.time), "rejected", "-1", "", "", "", "", "", "", "", "", "none",
+                _num(fix.lat, ".8f"), _num(fix.lon, ".8f"), "", "", "", "", "", error]  # fmt: skip
+    placed = result.edge >= 0
+    c = result.correction
+    return [
+        vehicle_id,
+        repr(result.time),
+        str(result.state),
+        str(result.edge),
+        str(result.u) if placed else "",
+        str(result.v) if placed else "",
+        str(result.way_id) if placed else "",
+        _num(result.offset, ".3f"),
+        _num(result.lat, ".8f"),
+        _num(result.lon, ".8f"),
+        _num(result.bearing, ".2f"),
+        _num(result.dist, ".3f"),
+        str(result.turn),
+        _num(result.raw_lat, ".8f"),
+        _num(result.raw_lon, ".8f"),
+        ";".join(f"{k.edge}:{k.probability:.4f}" for k in result.candidates),
+        "" if c is None else ";".join(map(str, c.edges)),
+        "" if c is None else repr(c.time_from),
+        "" if c is None else repr(c.time_to),
+        "" if c is None else ";".join(map(str, c.replaced_edges)),
+        error,
+    ]
+
+
+def write_results_csv(
+    path: str | os.PathLike[str],
+    rows: Iterable[tuple[str, Fix, SnapResult | None] | tuple[str, Fix, SnapResult | None, str]],
+    graph: RoadGraph | None = None,
+) -> int:
+    """Write one row per fix (atomic: a temp file renamed into place). Returns the row count.
+
+    ``rows`` yields ``(vehicle_id, fix, result)`` or ``(vehicle_id, fix, None, error)`` for a
+    rejected fix. ``graph`` is accepted for the shared signature; results already carry
+    external ids.
+    """
+    p = Path(path)
+    p.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{p.name}.", dir=p.parent)
+    n = 0
+    try:
+        with os.fdopen(fd, "w", newline="") as fh:
+            w = csv.writer(fh)
+            w.writerow(RESULT_COLUMNS)
+            for row in rows:
+                vid, fix, res = row[0], row[1], row[2]
+                err = row[3] if len(row) > 3 else ""  # type: ignore[misc]
+                w.writerow(result_row(vid, fix, res, err))
+                n += 1
+        os.replace(tmp, p)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+    return n

@@ -1,0 +1,448 @@
+"""Track input (CSV, GPX, Parquet/GeoParquet) and batch-result output (GeoJSON, CSV, GeoParquet).
+
+Results travel as one table with a row per track (:func:`results_table`): the route geometry,
+its edge sequence with OSM way ids and names, length, confidence, splits, and the per-point
+placements as list columns. Every writer goes through that table, so a partition written by a
+worker and the final file hold exactly the same values. Files are written to a temporary name
+and renamed, never left half-written.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from datetime import UTC, datetime
+import tempfile
+from collections.abc import Iterable, Iterator, Sequence
+from contextlib import contextmanager
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pandas as pd
+from numpy.typing import NDArray
+
+from graph.road_graph import RoadGraph
+from mapmatch.errors import MatchError
+from mapmatch.types import Track, TrackMatch
+
+
+class TrackInputError(MatchError):
+    """A track file cannot be read (missing column, unknown format, bad values)."""
+
+
+@dataclass(frozen=True)
+class Columns:
+    """Column names of tabular track input (CSV, Parquet). Optional ones are used when present."""
+
+    id: str = "id"
+    time: str = "time"
+    lat: str = "lat"
+    lon: str = "lon"
+    heading: str = "heading"
+    speed: str = "speed"
+    pos_sigma: str = "pos_sigma"
+    distance: str = "distance"
+
+
+DEFAULT_COLUMNS = Columns()
+TRACK_SUFFIXES = (".csv", ".csv.gz", ".gpx", ".parquet", ".geoparquet", ".pq")
+OUTPUT_SUFFIXES = (".geojson", ".json", ".csv", ".parquet", ".geoparquet")
+
+
+# ---------------------------------------------------------------------- reading
+def read_tracks(path: str | os.PathLike[str], *, columns: Columns = DEFAULT_COLUMNS) -> list[Track]:
+    """Read every track of a CSV, GPX or (Geo)Parquet file, or of a folder of Parquet parts."""
+    p = Path(path)
+    if p.is_dir():
+        parts = sorted(q for q in p.iterdir() if q.name.lower().endswith((".parquet", ".geoparquet", ".pq")))
+        if not parts:
+            raise TrackInputError(f"{p}: no Parquet files in the folder")
+        return [t for q in parts for t in read_tracks(q, columns=columns)]
+    name = p.name.lower()
+    if not p.exists():
+        raise FileNotFoundError(2, "No such file", str(p))
+    if name.endswith((".csv", ".csv.gz")):
+        return read_tracks_csv(p, columns=columns)
+    if name.endswith(".gpx"):
+        return read_tracks_gpx(p)
+    if name.endswith((".parquet", ".geoparquet", ".pq")):
+        return read_tracks_parquet(p, columns=columns)
+    raise TrackInputError(f"{p}: unknown track format (use one of {', '.join(TRACK_SUFFIXES)})")
+
+
+def read_tracks_csv(path: str | os.PathLike[str], *, columns: Columns = DEFAULT_COLUMNS) -> list[Track]:
+    """Tracks from a CSV file with configurable column names; no id column means one track."""
+    try:
+        df = pd.read_csv(path)
+    except (pd.errors.ParserError, UnicodeDecodeError, pd.errors.EmptyDataError) as exc:
+        raise TrackInputError(f"{path}: not a readable CSV file ({exc})") from exc
+    return tracks_from_frame(df, columns=columns, default_id=_stem(path))
+
+
+def read_tracks_parquet(path: str | os.PathLike[str], *, columns: Columns = DEFAULT_COLUMNS) -> list[Track]:
+    """Tracks from Parquet; GeoParquet point geometry is used when there are no lat/lon columns."""
+    import pyarrow.parquet as pq
+
+    try:
+        table = pq.read_table(path)
+    except Exception as exc:  # pyarrow raises several types for a bad file
+        raise TrackInputError(f"{path}: not a readable Parquet file ({exc})") from exc
+    meta = table.schema.metadata or {}
+    df = table.to_pandas()
+    if (columns.lat not in df or columns.lon not in df) and b"geo" in meta:
+        import shapely
+
+        geo = json.loads(meta[b"geo"])
+        gcol = geo.get("primary_column", "geometry")
+        pts = shapely.from_wkb(df[gcol].to_numpy())
+        xy = shapely.get_coordinates(pts)
+        if len(xy) != len(df):
+            raise TrackInputError(f"{path}: geometry column {gcol!r} must hold one point per row")
+        df[columns.lon] = xy[:, 0]
+        df[columns.lat] = xy[:, 1]
+    return tracks_from_frame(df, columns=columns, default_id=_stem(path))
+
+
+def read_tracks_gpx(path: str | os.PathLike[str]) -> list[Track]:
+    """One track per GPX ``<trk>`` (its segments joined) and per ``<rte>``; speed when recorded."""
+    import gpxpy
+    import gpxpy.gpx
+
+    try:
+        with open(path, encoding="utf-8") as f:
+            gpx = gpxpy.parse(f)
+    except (gpxpy.gpx.GPXException, ValueError) as exc:
+        raise TrackInputError(f"{path}: not a readable GPX file ({exc})") from exc
+    out: list[Track] = []
+    stem = _stem(path)
+    for i, trk in enumerate(gpx.tracks):
+        pts = [p for seg in trk.segments for p in seg.points]
+        if pts:
+            out.append(_gpx_track(trk.name or (stem if len(gpx.tracks) == 1 else f"{stem}-{i}"), pts))
+    for i, rte in enumerate(gpx.routes):
+        if rte.points:
+            out.append(_gpx_track(rte.name or f"{stem}-route-{i}", rte.points))
+    return out
+
+
+def _gpx_track(name: str, pts: Sequence[Any]) -> Track:
+    t = np.array([p.time.timestamp() if p.time else np.nan for p in pts], dtype=np.float64)
+    speed = np.array([p.speed if p.speed is not None else np.nan for p in pts], dtype=np.float64)
+    return Track(
+        track_id=str(name),
+        time=t,
+        lat=np.array([p.latitude for p in pts], dtype=np.float64),
+        lon=np.array([p.longitude for p in pts], dtype=np.float64),
+        speed=speed if np.isfinite(speed).any() else None,
+    )
+
+
+def tracks_from_frame(df: pd.DataFrame, *, columns: Columns = DEFAULT_COLUMNS, default_id: str) -> list[Track]:
+    """Split a point table into tracks by the id column, in order of first appearance."""
+    for need in (columns.lat, columns.lon):
+        if need not in df.columns:
+            raise TrackInputError(f"missing column {need!r} (columns are: {', '.join(map(str, df.columns))})")
+    n = len(df)
+    ids = df[columns.id].astype(str).to_numpy() if columns.id in df.columns else np.full(n, default_id)
+    time = _time_seconds(df[columns.time]) if columns.time in df.columns else np.full(n, np.nan)
+
+    def num(col: str) -> NDArray[np.float64] | None:
+        if col not in df.columns:
+            return None
+        return pd.to_numeric(df[col], errors="coerce").to_numpy(dtype=np.float64)
+
+    lat, lon = num(columns.lat), num(columns.lon)
+    assert lat is not None and lon is not None
+    opt = {k: num(getattr(columns, k)) for k in ("heading", "speed", "pos_sigma", "distance")}
+    # group rows by id, keeping the order of first appearance and the row order inside
+    uniq, first, inv = np.unique(ids, return_index=True, return_inverse=True)
+    order_ids = np.argsort(first, kind="stable")
+    rank = np.empty(len(uniq), dtype=np.int64)
+    rank[order_ids] = np.arange(len(uniq))
+    rows = np.argsort(rank[inv], kind="stable")
+    bounds = np.searchsorted(rank[inv][rows], np.arange(len(uniq) + 1))
+    out = []
+    for k in range(len(uniq)):
+        r = rows[bounds[k] : bounds[k + 1]]
+        out.append(
+            Track(
+                track_id=str(uniq[order_ids[k]]),
+                time=time[r],
+                lat=lat[r],
+                lon=lon[r],
+                **{name: (a[r] if a is not None else None) for name, a in opt.items()},
+            )
+        )
+    return out
+
+
+def _time_seconds(s: pd.Series) -> NDArray[np.float64]:
+    """Numeric seconds, or ISO-8601 / datetime values as seconds since the epoch."""
+    if pd.api.types.is_numeric_dtype(s):
+        return s.to_numpy(dtype=np.float64)
+    if pd.api.types.is_datetime64_any_dtype(s):
+        dt = s
+    else:
+        num = pd.to_numeric(s, errors="coerce")
+        if num.notna().sum() == s.notna().sum():
+            return num.to_numpy(dtype=np.float64)
+        dt = pd.to_datetime(s, errors="coerce", utc=True, format="ISO8601")
+    if getattr(dt.dt, "tz", None) is None:
+        dt = dt.dt.tz_localize("UTC")
+    secs = (dt - pd.Timestamp(0, tz="UTC")).dt.total_seconds()
+    return secs.to_numpy(dtype=np.float64, na_value=np.nan)
+
+
+def _stem(path: str | os.PathLike[str]) -> str:
+    name = Path(path).name
+    for suf in sorted(TRACK_SUFFIXES, key=len, reverse=True):
+        if name.lower().endswith(suf):
+            return name[: -len(suf)]
+    return Path(path).stem
+
+
+def tracks_to_frame(tracks: Iterable[Track], *, columns: Columns = DEFAULT_COLUMNS) -> pd.DataFrame:
+    """The point table of some tracks (the inverse of :func:`tracks_from_frame`)."""
+    frames = []
+    for t in tracks:
+        d: dict[str, Any] = {
+            columns.id: np.full(len(t), t.track_id, dtype=object),
+            columns.time: t.time,
+            columns.lat: t.lat,
+            columns.lon: t.lon,
+        }
+        for k in ("heading", "speed", "pos_sigma", "distance"):
+            a = getattr(t, k)
+            if a is not None:
+                d[getattr(columns, k)] = a
+        frames.append(pd.DataFrame(d))
+    if not frames:
+        return pd.DataFrame({columns.id: [], columns.time: [], columns.lat: [], columns.lon: []})
+    return pd.concat(frames, ignore_index=True)
+
+
+def write_tracks(path: str | os.PathLike[str], tracks: Iterable[Track], *, columns: Columns = DEFAULT_COLUMNS) -> None:
+    """Write tracks as CSV, Parquet or GPX (by suffix), atomically."""
+    p = Path(path)
+    name = p.name.lower()
+    tracks = list(tracks)
+    if name.endswith(".gpx"):
+        import gpxpy.gpx
+
+        gpx = gpxpy.gpx.GPX()
+        for t in tracks:
+            trk = gpxpy.gpx.GPXTrack(name=t.track_id)
+            seg = gpxpy.gpx.GPXTrackSegment()
+            for i in range(len(t)):
+                tm = datetime.fromtimestamp(float(t.time[i]), tz=UTC) if np.isfinite(t.time[i]) else None
+                sp = float(t.speed[i]) if t.speed is not None and np.isfinite(t.speed[i]) else None
+                seg.points.append(
+                    gpxpy.gpx.GPXTrackPoint(float(t.lat[i]), float(t.lon[i]), time=tm, speed=sp)
+                )
+            trk.segments.append(seg)
+            gpx.tracks.append(trk)
+        # GPX 1.0 is the version with a <speed> element
+        xml = gpx.to_xml(version="1.0" if any(t.speed is not None for t in tracks) else "1.1")
+        with atomic_path(p) as tmp:
+            tmp.write_text(xml, encoding="utf-8")
+        return
+    df = tracks_to_frame(tracks, columns=columns)
+    with atomic_path(p) as tmp:
+        if name.endswith((".parquet", ".geoparquet", ".pq")):
+            df.to_parquet(tmp, index=False)
+        elif name.endswith(".csv"):
+            df.to_csv(tmp, index=False)
+        else:
+            raise TrackInputError(f"{p}: unknown track format")
+
+
+# ---------------------------------------------------------------------- results
+RESULT_COLUMNS = (
+    "track_id", "n_points", "n_matched", "n_interpolated", "n_unmatched", "length_m", "confidence",
+    "splits", "edges", "way_ids", "names", "route_wkb",
+    "pt_status", "pt_edge", "pt_way_id", "pt_offset", "pt_lat", "pt_lon", "pt_dist",
+)  # fmt: skip
+
+
+def results_table(results: Iterable[TrackMatch], graph: RoadGraph) -> pd.DataFrame:
+    """One row per track: route (WKB, lon/lat), edge sequence, way ids, names, and point lists."""
+    import shapely
+
+    rows: list[dict[str, Any]] = []
+    for r in results:
+        edges = [e for piece in r.routes for e in piece]
+        e_arr = np.asarray(edges, dtype=np.int64)
+        ways = graph.edge_way_id[e_arr].tolist() if len(e_arr) else []
+        names = [graph.edge_name(int(e)) for e in e_arr]
+        lines = [np.asarray(p, dtype=np.float64) for p in r.route_lonlat if len(p) >= 2]
+        if len(lines) == 1:
+            geom = shapely.linestrings(lines[0])
+        elif lines:
+            geom = shapely.multilinestrings([shapely.linestrings(a) for a in lines])
+        else:
+            geom = shapely.from_wkt("LINESTRING EMPTY")
+        st = [str(p.status) for p in r.points]
+        pe = np.array([p.edge for p in r.points], dtype=np.int64)
+        rows.append(
+            {
+                "track_id": r.track_id,
+                "n_points": len(r.points),
+                "n_matched": st.count("matched"),
+                "n_interpolated": st.count("interpolated"),
+                "n_unmatched": st.count("unmatched"),
+                "length_m": float(r.length_m),
+                "confidence": float(r.confidence),
+                "splits": [int(s) for s in r.splits],
+                "edges": edges,
+                "way_ids": [int(w) for w in ways],
+                "names": names,
+                "route_wkb": shapely.to_wkb(geom),
+                "pt_status": st,
+                "pt_edge": pe.tolist(),
+                "pt_way_id": np.where(pe >= 0, graph.edge_way_id[np.maximum(pe, 0)], -1).tolist()
+                if len(pe)
+                else [],
+                "pt_offset": [p.offset for p in r.points],
+                "pt_lat": [p.lat for p in r.points],
+                "pt_lon": [p.lon for p in r.points],
+                "pt_dist": [p.dist for p in r.points],
+            }
+        )
+    if not rows:
+        return pd.DataFrame({c: [] for c in RESULT_COLUMNS})
+    return pd.DataFrame(rows, columns=list(RESULT_COLUMNS))
+
+
+def points_frame(table: pd.DataFrame) -> pd.DataFrame:
+    """The per-point rows of a results table (one row per input point)."""
+    if len(table) == 0:
+        cols = ["track_id", "index", "status", "edge", "way_id", "offset", "lat", "lon", "dist"]
+        return pd.DataFrame({c: [] for c in cols})
+    n = table["n_points"].to_numpy(dtype=np.int64)
+
+    def flat(col: str) -> NDArray[Any]:
+        return np.concatenate([np.asarray(v) for v in table[col]]) if n.sum() else np.empty(0)
+
+    return pd.DataFrame(
+        {
+            "track_id": np.repeat(table["track_id"].to_numpy(), n),
+            "index": np.concatenate([np.arange(k) for k in n]),
+            "status": flat("pt_status"),
+            "edge": flat("pt_edge").astype(np.int64),
+            "way_id": flat("pt_way_id").astype(np.int64),
+            "offset": flat("pt_offset"),
+            "lat": flat("pt_lat"),
+            "lon": flat("pt_lon"),
+            "dist": flat("pt_dist"),
+        }
+    )
+
+
+def write_results(path: str | os.PathLike[str], table: pd.DataFrame) -> None:
+    """Write a results table as GeoJSON (a feature per track), CSV (a row per point) or GeoParquet."""
+    p = Path(path)
+    name = p.name.lower()
+    if name.endswith((".geojson", ".json")):
+        write_geojson(p, table)
+    elif name.endswith(".csv"):
+        with atomic_path(p) as tmp:
+            points_frame(table).to_csv(tmp, index=False)
+    elif name.endswith((".parquet", ".geoparquet")):
+        write_geoparquet(p, table)
+    else:
+        raise TrackInputError(f"{p}: unknown output format (use one of {', '.join(OUTPUT_SUFFIXES)})")
+
+
+def write_geojson(path: str | os.PathLike[str], table: pd.DataFrame) -> None:
+    """A FeatureCollection with one (Multi)LineString feature per track."""
+    import shapely
+
+    feats = []
+    for row in table.itertuples(index=False):
+        geom = shapely.from_wkb(row.route_wkb)
+        feats.append(
+            {
+                "type": "Feature",
+                "geometry": json.loads(shapely.to_geojson(geom)) if not geom.is_empty else None,
+                "properties": {
+                    "track_id": row.track_id,
+                    "length_m": round(float(row.length_m), 3),
+                    "confidence": round(float(row.confidence), 6),
+                    "n_points": int(row.n_points),
+                    "n_matched": int(row.n_matched),
+                    "n_interpolated": int(row.n_interpolated),
+                    "n_unmatched": int(row.n_unmatched),
+                    "splits": [int(s) for s in row.splits],
+                    "edges": [int(e) for e in row.edges],
+                    "way_ids": [int(w) for w in row.way_ids],
+                    "names": [str(s) for s in row.names],
+                },
+            }
+        )
+    with atomic_path(Path(path)) as tmp:
+        tmp.write_text(json.dumps({"type": "FeatureCollection", "features": feats}), encoding="utf-8")
+
+
+def write_geoparquet(path: str | os.PathLike[str], table: pd.DataFrame) -> None:
+    """GeoParquet: one row per track, the route as WKB ``geometry`` (EPSG:4326), all columns kept."""
+    import pyarrow as pa
+    import pyarrow.parquet as pq
+    import shapely
+
+    df = table.rename(columns={"route_wkb": "geometry"})
+    at = pa.Table.from_pandas(df, preserve_index=False)
+    geoms = shapely.from_wkb(df["geometry"].to_numpy()) if len(df) else np.empty(0, dtype=object)
+    types = sorted({g.geom_type for g in geoms if g is not None and not g.is_empty})
+    bbox = list(shapely.total_bounds(geoms)) if len(df) else []
+    geo = {
+        "version": "1.0.0",
+        "primary_column": "geometry",
+        "columns": {
+            "geometry": {
+                "encoding": "WKB",
+                "geometry_types": types,
+                "crs": _crs_projjson(),
+                **({"bbox": bbox} if bbox and np.all(np.isfinite(bbox)) else {}),
+            }
+        },
+    }
+    meta = dict(at.schema.metadata or {})
+    meta[b"geo"] = json.dumps(geo).encode()
+    at = at.replace_schema_metadata(meta)
+    with atomic_path(Path(path)) as tmp:
+        pq.write_table(at, tmp)
+
+
+def read_results(path: str | os.PathLike[str]) -> pd.DataFrame:
+    """A results table back from GeoParquet written by :func:`write_geoparquet`."""
+    df = pd.read_parquet(path)
+    df = df.rename(columns={"geometry": "route_wkb"})
+    for c in ("splits", "edges", "way_ids", "names", "pt_status", "pt_edge", "pt_way_id"):
+        df[c] = [list(v) for v in df[c]]
+    for c in ("pt_offset", "pt_lat", "pt_lon", "pt_dist"):
+        df[c] = [np.asarray(v, dtype=np.float64).tolist() for v in df[c]]
+    return df[list(RESULT_COLUMNS)]
+
+
+def _crs_projjson() -> dict[str, Any] | None:
+    from pyproj import CRS
+
+    return json.loads(CRS.from_epsg(4326).to_json())
+
+
+@contextmanager
+def atomic_path(path: Path) -> Iterator[Path]:
+    """A temporary path beside ``path``, renamed onto it when the block succeeds."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, name = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    os.close(fd)
+    tmp = Path(name)
+    try:
+        yield tmp
+        os.replace(tmp, path)
+    finally:
+        tmp.unlink(missing_ok=True)
+

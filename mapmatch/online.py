@@ -1,0 +1,777 @@
+"""Online per-vehicle matching: the thesis's ambiguous-region algorithm as a small discrete filter.
+
+The filter holds a few *path hypotheses*. A hypothesis is a short sequence of directed edges
+the vehicle may be driving (the committed edge first), its position along that path and a
+log-probability. Between intersections there is one hypothesis on one edge: each fix is
+projected onto that edge and nothing else is searched. When the vehicle comes within the
+ambiguous-region radius ``r_a`` of the edge's end node, the path is extended with every legal
+outgoing edge (one-ways, turn restrictions, a penalised U-turn; two hops where junctions are
+closer than ``r_a``). Each fix then adds to every hypothesis the shared model's emission
+(distance and heading), the transition (along-path progress against odometer distance) and
+turn evidence (heading change over the last ``turn_window`` metres against the path's bearing
+change). The most probable hypothesis is reported; when it has left the circle it is
+committed, the turn at the intersection is classified and, when the committed path disagrees
+with what was reported live, a :class:`~mapmatch.types.Correction` is returned.
+
+Fixes far off the map are not errors: they return ``State.OFF_ROAD`` with ``edge == -1``.
+Invalid input raises :class:`~mapmatch.errors.ValidationError` and leaves the state unchanged.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from graph.index import EdgeIndex
+from graph.projection import point_to_lonlat, point_to_xy
+from graph.road_graph import RESTRICTION_ONLY, RoadGraph
+from mapmatch.config import DEFAULT_CONFIG, MatchConfig
+from mapmatch.errors import ValidationError
+from mapmatch.turns import (
+    add_sample,
+    angle_diff,
+    classify_turn,
+    emission_scalar,
+    heading_change,
+    transition_scalar,
+)
+from mapmatch.types import Candidate, Correction, Fix, SnapResult, State, Turn
+
+MAX_HYPOTHESES = 32
+MAX_HOPS = 4
+PRUNE_LOGP = -25.0
+INIT_COMMIT_P = 0.99
+TURN_SIGMA_DEG = 20.0
+EVIDENCE_TIME_S = 1.0
+MAX_LIVE = 512
+STATE_VERSION = 1
+FAR_OFF_M = 100_000.0
+DR_CARRY_TOL_M = 5.0
+INIT_MAX_HEADING_DEG = 100.0
+POS_SIGMA_FLOOR_M = 2.0
+HEADING_SIGMA_FLOOR_DEG = 5.0
+RESIDUAL_TIME_S = 20.0
+LIMITS = {"speed": 1_000.0, "distance": 100_000.0, "pos_sigma": 100_000.0, "heading_sigma": 360.0}
+
+
+@dataclass(slots=True)
+class Hypothesis:
+    """One candidate path: ``edges[k]`` is where the vehicle is, ``off`` metres from its start."""
+
+    edges: list[int]
+    k: int
+    off: float
+    s: float  # distance along the path from the start of edges[0]
+    logp: float
+    enter: list[float]  # time the position first lay on edges[j], j <= k
+    dist: float = math.nan
+    px: float = math.nan
+    py: float = math.nan
+    bearing: float = math.nan
+
+    def to_list(self) -> list[Any]:
+        return [
+            self.edges,
+            self.k,
+            self.off,
+            self.s,
+            self.logp,
+            self.enter,
+            self.dist,
+            self.px,
+            self.py,
+            self.bearing,
+        ]
+
+    @classmethod
+    def from_list(cls, a: list[Any]) -> Hypothesis:
+        return cls(
+            edges=[int(e) for e in a[0]],
+            k=int(a[1]),
+            off=float(a[2]),
+            s=float(a[3]),
+            logp=float(a[4]),
+            enter=[float(t) for t in a[5]],
+            dist=float(a[6]),
+            px=float(a[7]),
+            py=float(a[8]),
+            bearing=float(a[9]),
+        )
+
+
+@dataclass
+class SessionState:
+    """Everything the matcher remembers about one vehicle (small, serialisable)."""
+
+    time: float = math.nan
+    x: float = math.nan
+    y: float = math.nan
+    odo: float = 0.0
+    gps_odo: float = 0.0
+    bad_time: float = math.nan
+    bad_odo: float = math.nan
+    init_pending: bool = True
+    init_odo: float = 0.0
+    hyps: list[Hypothesis] = field(default_factory=list)
+    # while ambiguous: [time, reported edge, x, y, heading, sigma, kappa] per fix
+    live: list[list[float]] = field(default_factory=list)
+    headings: list[list[float]] = field(default_factory=list)  # [odometer, heading]
+    res_pos2: float = 25.0  # running mean of squared distance to the road (m²), on road
+    res_head2: float = 400.0  # running mean of squared heading residual (deg²), on road
+
+    def to_bytes(self) -> bytes:
+        """Compact JSON encoding (a few hundred bytes)."""
+        d = {
+            "v": STATE_VERSION,
+            "t": self.time,
+            "xy": [self.x, self.y],
+            "odo": [self.odo, self.gps_odo, self.init_odo],
+            "bad": [self.bad_time, self.bad_odo],
+            "init": self.init_pending,
+            "h": [h.to_list() for h in self.hyps],
+            "live": self.live,
+            "hd": self.headings,
+            "res": [self.res_pos2, self.res_head2],
+        }
+        return json.dumps(d, separators=(",", ":"), allow_nan=True).encode()
+
+    @classmethod
+    def from_bytes(cls, data: bytes) -> SessionState:
+        """Decode :meth:`to_bytes`; raises :class:`ValidationError` on anything else."""
+        try:
+            d = json.loads(data)
+            if d.get("v") != STATE_VERSION:
+                raise ValueError("unknown version")
+            st = cls(
+                time=float(d["t"]),
+                x=float(d["xy"][0]),
+                y=float(d["xy"][1]),
+                odo=float(d["odo"][0]),
+                gps_odo=float(d["odo"][1]),
+                init_odo=float(d["odo"][2]),
+                bad_time=float(d["bad"][0]),
+                bad_odo=float(d["bad"][1]),
+                init_pending=bool(d["init"]),
+                hyps=[Hypothesis.from_list(a) for a in d["h"]],
+                live=[[float(v) for v in entry[:7]] for entry in d["live"] if len(entry) == 7],
+                headings=[[float(o), float(h)] for o, h in d["hd"]],
+                res_pos2=float(d["res"][0]),
+                res_head2=float(d["res"][1]),
+            )
+        except (ValueError, TypeError, KeyError, IndexError, AttributeError) as exc:
+            raise ValidationError("state", f"not a valid session state ({exc})") from None
+        for h in st.hyps:
+            if not h.edges or not 0 <= h.k < len(h.edges) or len(h.enter) != h.k + 1:
+                raise ValidationError("state", "not a valid session state (bad hypothesis)")
+        return st
+
+
+@dataclass(frozen=True, slots=True)
+class _Step:
+    """Per-fix quantities shared by all hypotheses."""
+
+    time: float
+    x: float
+    y: float
+    sigma: float
+    heading: float
+    kappa: float
+    travelled: float  # metres since the previous fix (nan when unknown)
+    odo_known: bool
+    dt: float
+    gps: bool
+    weight: float
+    r_a: float
+
+
+class OnlineMatcher:
+    """Per-vehicle online matcher over one read-only road graph (thread-safe, shared).
+
+    Parameters
+    ----------
+    graph
+        The road graph.
+    index
+        Its spatial index (built when omitted).
+    config
+        Default parameters; :meth:`update` accepts a per-call override.
+    """
+
+    def __init__(
+        self, graph: RoadGraph, index: EdgeIndex | None = None, config: MatchConfig = DEFAULT_CONFIG
+    ):
+        self.graph = graph
+        self.index = index if index is not None else EdgeIndex(graph)
+        self.config = config
+        e = graph.n_edges
+        self._elen: list[float] = graph.edge_len.tolist()
+        self._ev: list[int] = graph.edge_v.tolist()
+        self._eu: list[int] = graph.edge_u.tolist()
+        self._rev: list[int] = graph.edge_reverse.tolist()
+        self._bstart: list[float] = graph.edge_bearing_start.tolist()
+        self._bend: list[float] = graph.edge_bearing_end.tolist()
+        self._ptr: list[int] = graph.edge_seg_ptr.tolist()
+        self._seg = graph.seg_xy
+        self._out_ptr: list[int] = graph.out_ptr.tolist()
+        self._out = graph.out_edges
+        rev = graph.edge_reverse
+        road = (rev < 0) | (np.arange(e) < rev)
+        deg = np.bincount(graph.edge_u[road], minlength=graph.n_nodes) + np.bincount(
+            graph.edge_v[road], minlength=graph.n_nodes
+        )
+        self._branching: list[bool] = (deg >= 3).tolist()
+        self._restr: dict[int, list[tuple[int, int, int]]] = {}
+        for fe, via, te, kind in graph.restrictions.tolist():
+            self._restr.setdefault(int(fe), []).append((int(via), int(te), int(kind)))
+        # a robust "longest distance between adjacent nodes" for the region radius
+        self.edge_len_ref = float(np.percentile(graph.edge_len, 95)) if e else 0.0
+        self._bounds = (
+            (
+                float(graph.seg_xy[:, 0].min()),
+                float(graph.seg_xy[:, 1].min()),
+                float(graph.seg_xy[:, 0].max()),
+                float(graph.seg_xy[:, 1].max()),
+            )
+            if len(graph.seg_xy)
+            else None
+        )
+
+    # ------------------------------------------------------------------ public API
+    def new_session(self) -> SessionState:
+        """A fresh vehicle state."""
+        return SessionState()
+
+    def region_radius(self, sigma: float, config: MatchConfig | None = None) -> float:
+        """Ambiguous-region radius in metres for a fix of position σ (DR growth included)."""
+        cfg = config or self.config
+        r = max(
+            cfg.ambiguous_min_radius, cfg.drift_rate * self.edge_len_ref, cfg.ambiguous_sigma_factor * sigma
+        )
+        return min(r, max(cfg.ambiguous_max_radius, cfg.ambiguous_min_radius))
+
+    def update(self, state: SessionState, fix: Fix, *, config: MatchConfig | None = None) -> SnapResult:
+        """Match one fix; mutates ``state``. Raises :class:`ValidationError` (state unchanged)."""
+        cfg = config or self.config
+        step = self._prepare(state, fix, cfg)
+        if step is None:  # far off the map: accepted, but nowhere to put it
+            state.time = fix.time
+            return SnapResult(time=fix.time, state=State.OFF_ROAD, raw_lat=fix.lat, raw_lon=fix.lon)
+        # --- accepted: mutate the state from here on
+        if not math.isnan(step.travelled):
+            state.odo += step.travelled
+        if step.gps:
+            state.gps_odo = state.odo
+        state.time, state.x, state.y = step.time, step.x, step.y
+        if step.kappa > 0.0:
+            add_sample(state.headings, state.odo, step.heading, window=cfg.turn_window)
+
+        reinit = False
+        if state.hyps:
+            self._advance(state, step, cfg)
+            best = self._best(state.hyps)
+            if best.dist > cfg.reinit_sigmas * step.sigma:
+                if math.isnan(state.bad_time):
+                    state.bad_time, state.bad_odo = step.time, state.odo
+                if (
+                    step.time - state.bad_time >= cfg.reinit_time
+                    or state.odo - state.bad_odo >= cfg.reinit_distance
+                ):
+                    reinit = True
+                    self._initialise(state, step, cfg)
+            else:
+                state.bad_time = state.bad_odo = math.nan
+                if len(state.hyps) == 1 and not state.init_pending:
+                    self._learn_residuals(state, best, step)
+        else:
+            self._initialise(state, step, cfg)
+        if not state.hyps:
+            return SnapResult(time=fix.time, state=State.OFF_ROAD, raw_lat=fix.lat, raw_lon=fix.lon)
+
+        turn, correction = (Turn.NONE, None) if reinit else self._commit(state, step, cfg)
+        return self._result(state, step, fix, turn, correction, reinit)
+
+    # ------------------------------------------------------------------ per-fix preparation
+    def _prepare(self, state: SessionState, fix: Fix, cfg: MatchConfig) -> _Step | None:
+        fix.validate()
+        for name, top in LIMITS.items():
+            if getattr(fix, name) > top:
+                raise ValidationError(name, f"must be at most {top:g}")
+        if fix.pos_cov is not None and max(fix.pos_cov) > LIMITS["pos_sigma"] ** 2:
+            raise ValidationError("pos_cov", "variance too large")
+        heading = 0.0 if fix.heading == 360.0 else fix.heading
+        if not math.isnan(state.time) and not fix.time > state.time:
+            raise ValidationError("time", "must increase from one fix to the next within a vehicle")
+        for h in state.hyps:
+            if max(h.edges) >= len(self._elen) or min(h.edges) < 0:
+                raise ValidationError("state", "does not belong to this map")
+        x, y = point_to_xy(self.graph.crs, fix.lon, fix.lat)
+        if not (math.isfinite(x) and math.isfinite(y)) or self._far_off(x, y):
+            return None
+        dt = fix.time - state.time if not math.isnan(state.time) else math.nan
+        odo_known = True
+        if not math.isnan(fix.distance):
+            travelled = fix.distance
+        elif not math.isnan(fix.speed) and not math.isnan(dt):
+            travelled = fix.speed * dt
+        else:
+            odo_known = False
+            travelled = math.hypot(x - state.x, y - state.y) if not math.isnan(state.x) else math.nan
+        if fix.pos_cov is not None:
+            sigma = math.sqrt(max(0.5 * (fix.pos_cov[0] + fix.pos_cov[2]), 0.25))
+        elif math.isnan(fix.pos_sigma) or fix.pos_sigma <= 0.0:
+            sigma = cfg.gps_sigma
+        else:
+            sigma = fix.pos_sigma
+        # reported accuracies are often optimistic: never below the floor or what the road saw
+        sigma = max(sigma, POS_SIGMA_FLOOR_M, math.sqrt(state.res_pos2))
+        gps = fix.gps_valid is not False
+        if not gps:
+            dr = state.odo + (travelled if not math.isnan(travelled) else 0.0) - state.gps_odo
+            sigma = max(sigma, cfg.gps_sigma + cfg.dr_sigma_growth * dr)
+        kappa = 0.0
+        if not math.isnan(heading) and (math.isnan(fix.speed) or fix.speed >= cfg.heading_min_speed):
+            hs = cfg.heading_sigma if math.isnan(fix.heading_sigma) else fix.heading_sigma
+            hs = max(hs, HEADING_SIGMA_FLOOR_DEG, math.sqrt(state.res_head2))
+            kappa = 1.0 / math.radians(hs) ** 2
+        weight = 1.0 if math.isnan(dt) else min(1.0, dt / EVIDENCE_TIME_S)
+        return _Step(
+            time=fix.time,
+            x=x,
+            y=y,
+            sigma=sigma,
+            heading=heading,
+            kappa=kappa,
+            travelled=travelled,
+            odo_known=odo_known,
+            dt=dt,
+            gps=gps,
+            weight=weight,
+            r_a=self.region_radius(sigma, cfg),
+        )
+
+    @staticmethod
+    def _learn_residuals(state: SessionState, best: Hypothesis, step: _Step) -> None:
+        """Running estimate of the real position and heading error, from on-road fixes."""
+        a = 1.0 if math.isnan(step.dt) else min(1.0, step.dt / RESIDUAL_TIME_S)
+        if step.gps:
+            state.res_pos2 += a * (min(best.dist, 50.0) ** 2 - state.res_pos2)
+        if step.kappa > 0.0:
+            dh = angle_diff(step.heading, best.bearing)
+            state.res_head2 += a * (min(dh * dh, 90.0**2) - state.res_head2)
+
+    def _far_off(self, x: float, y: float) -> bool:
+        b = self._bounds
+        if b is None:
+            return True
+        dx = max(b[0] - x, 0.0, x - b[2])
+        dy = max(b[1] - y, 0.0, y - b[3])
+        return math.hypot(dx, dy) > FAR_OFF_M
+
+    # ------------------------------------------------------------------ geometry (plain floats)
+    def _project(self, e: int, x: float, y: float) -> tuple[float, float, float, float, float]:
+        """``(offset, dist, px, py, bearing)`` of the point's projection onto edge ``e``."""
+        pts = self._seg[self._ptr[e] : self._ptr[e + 1]].tolist()
+        best = math.inf
+        acc = 0.0
+        res = (0.0, pts[0][0], pts[0][1], 0.0, 1.0)
+        ax, ay = pts[0]
+        for bx, by in pts[1:]:
+            dx, dy = bx - ax, by - ay
+            l2 = dx * dx + dy * dy
+            t = ((x - ax) * dx + (y - ay) * dy) / l2 if l2 > 1e-12 else 0.0
+            t = 0.0 if t < 0.0 else (1.0 if t > 1.0 else t)
+            qx, qy = ax + t * dx, ay + t * dy
+            d2 = (x - qx) ** 2 + (y - qy) ** 2
+            seg = math.sqrt(l2)
+            if d2 < best:
+                best = d2
+                res = (acc + t * seg, qx, qy, dx, dy)
+            acc += seg
+            ax, ay = bx, by
+        off = min(res[0], self._elen[e])
+        brg = math.degrees(math.atan2(res[3], res[4])) % 360.0 if (res[3] or res[4]) else self._bstart[e]
+        return off, math.sqrt(best), res[1], res[2], brg
+
+    def _locate(self, e: int, off: float) -> tuple[float, float, float]:
+        """``(x, y, bearing)`` at ``off`` metres along edge ``e``."""
+        pts = self._seg[self._ptr[e] : self._ptr[e + 1]].tolist()
+        acc = 0.0
+        ax, ay = pts[0]
+        dx = dy = 0.0
+        for bx, by in pts[1:]:
+            dx, dy = bx - ax, by - ay
+            seg = math.hypot(dx, dy)
+            if acc + seg >= off and seg > 0.0:
+                t = (off - acc) / seg
+                return ax + t * dx, ay + t * dy, math.degrees(math.atan2(dx, dy)) % 360.0
+            acc += seg
+            ax, ay = bx, by
+        return ax, ay, self._bend[e]
+
+    def _bearing_on_path(self, h: Hypothesis, s: float) -> float:
+        if s <= 0.0:
+            return self._bstart[h.edges[0]]
+        acc = 0.0
+        for e in h.edges:
+            if s <= acc + self._elen[e]:
+                return self._locate(e, s - acc)[2]
+            acc += self._elen[e]
+        return self._bend[h.edges[-1]]
+
+    # ------------------------------------------------------------------ road rules
+    def _children(self, e: int, cfg: MatchConfig) -> list[tuple[int, float]]:
+        """Legal continuations of edge ``e`` at its end node, with log-penalties."""
+        v = self._ev[e]
+        outs: list[int] = self._out[self._out_ptr[v] : self._out_ptr[v + 1]].tolist()
+        rules = self._restr.get(e)
+        if rules:
+            only = {te for via, te, kind in rules if via == v and kind == RESTRICTION_ONLY}
+            banned = {te for via, te, kind in rules if via == v and kind != RESTRICTION_ONLY}
+            if only:
+                outs = [o for o in outs if o in only]
+            outs = [o for o in outs if o not in banned]
+        rev = self._rev[e]
+        u = self._eu[e]
+        is_back = [
+            o == rev or (rev < 0 and self._ev[o] == u and self._elen[o] == self._elen[e]) for o in outs
+        ]
+        ahead = [o for o, b in zip(outs, is_back, strict=True) if not b]
+        back = [o for o, b in zip(outs, is_back, strict=True) if b]
+        if not ahead:
+            return [(o, 0.0) for o in back]
+        if self._branching[v]:
+            return [(o, 0.0) for o in ahead] + [(o, -cfg.uturn_penalty) for o in back]
+        return [(o, 0.0) for o in ahead]
+
+    # ------------------------------------------------------------------ filter steps
+    def _initialise(self, state: SessionState, step: _Step, cfg: MatchConfig) -> None:
+        """Start again from a spatial-index search around the fix."""
+        radius = max(cfg.search_radius, cfg.reinit_sigmas * step.sigma)
+        cand = self.index.query([[step.x, step.y]], radius, k=cfg.max_candidates)
+        hyps = []
+        for e in cand.edge.tolist():
+            off, dist, px, py, brg = self._project(e, step.x, step.y)
+            if step.kappa > 0.0 and abs(angle_diff(step.heading, brg)) > INIT_MAX_HEADING_DEG:
+                continue  # never start against the direction of travel (one-ways)
+            lp = emission_scalar(dist, step.sigma, step.heading, brg, step.kappa)
+            hyps.append(Hypothesis([e], 0, off, off, lp, [step.time], dist, px, py, brg))
+        state.hyps = self._normalise(hyps)
+        state.init_pending = len({h.edges[0] for h in state.hyps}) > 1
+        state.init_odo = state.odo
+        state.live = []
+        state.bad_time = state.bad_odo = math.nan
+
+    def _advance(self, state: SessionState, step: _Step, cfg: MatchConfig) -> None:
+        """Extend paths near their end node, place the fix on each path and score it."""
+        d = step.travelled
+        ahead = (d if not math.isnan(d) else 0.0) + step.r_a
+        hyps: list[Hypothesis] = []
+        for h in state.hyps:
+            self._extend(h, h.s + ahead, cfg, hyps)
+        if len(hyps) > MAX_HYPOTHESES:
+            hyps.sort(key=lambda h: -h.logp)
+            del hyps[MAX_HYPOTHESES:]
+        turn_obs, covered = (math.nan, 0.0)
+        if len(hyps) > 1 and step.kappa > 0.0:
+            turn_obs, covered = heading_change(state.headings, state.odo, window=cfg.turn_window)
+        for h in hyps:
+            s_prev = h.s
+            score = self._place(h, step, cfg)
+            if covered >= 0.5 * cfg.turn_window and not math.isnan(turn_obs):
+                expect = angle_diff(h.bearing, self._bearing_on_path(h, h.s - covered))
+                miss = angle_diff(turn_obs, expect) / TURN_SIGMA_DEG
+                frac = min(1.0, max(h.s - s_prev, 0.0) / cfg.turn_window)
+                score -= 0.5 * miss * miss * frac
+            h.logp += step.weight * score if len(hyps) > 1 else 0.0
+        state.hyps = self._normalise(hyps)
+
+    def _extend(self, h: Hypothesis, reach: float, cfg: MatchConfig, out: list[Hypothesis]) -> None:
+        total = 0.0
+        for e in h.edges:
+            total += self._elen[e]
+        if total >= reach or len(h.edges) - h.k >= MAX_HOPS:
+            out.append(h)
+            return
+        kids = self._children(h.edges[-1], cfg)
+        if not kids:
+            out.append(h)
+            return
+        for e2, pen in kids:
+            g = Hypothesis(
+                [*h.edges, e2], h.k, h.off, h.s, h.logp + pen, list(h.enter), h.dist, h.px, h.py, h.bearing
+            )
+            self._extend(g, reach, cfg, out)
+
+    def _place(self, h: Hypothesis, step: _Step, cfg: MatchConfig) -> float:
+        """Move ``h`` to its best position for this fix; return that position's log-score."""
+        x, y, sigma = step.x, step.y, step.sigma
+        d = step.travelled
+        best_sc = -math.inf
+        best: tuple[int, float, float, float, float, float, float] = (
+            h.k,
+            h.off,
+            h.s,
+            h.dist,
+            h.px,
+            h.py,
+            h.bearing,
+        )
+        acc = 0.0
+        for j in range(h.k):
+            acc += self._elen[h.edges[j]]
+        for j in range(h.k, len(h.edges)):
+            e = h.edges[j]
+            off, dist, px, py, brg = self._project(e, x, y)
+            s = acc + off
+            sc = emission_scalar(dist, sigma, step.heading, brg, step.kappa)
+            if not math.isnan(d):
+                sc += transition_scalar(
+                    s - h.s,
+                    d,
+                    step.dt,
+                    beta=cfg.beta,
+                    max_speed=cfg.max_speed,
+                    speed_penalty=cfg.speed_penalty,
+                )
+            if sc > best_sc + 1e-9:
+                best_sc = sc
+                best = (j, off, s, dist, px, py, brg)
+            acc += self._elen[e]
+        if not step.gps and step.odo_known and abs(best[2] - (h.s + d)) > DR_CARRY_TOL_M:
+            # dead reckoning: the drifting fix and the odometer disagree, carry by distance
+            s_pred = min(h.s + d, acc)
+            j, rest = h.k, s_pred
+            for i in range(h.k):
+                rest -= self._elen[h.edges[i]]
+            while j < len(h.edges) - 1 and rest > self._elen[h.edges[j]]:
+                rest -= self._elen[h.edges[j]]
+                j += 1
+            rest = min(max(rest, 0.0), self._elen[h.edges[j]])
+            px, py, brg = self._locate(h.edges[j], rest)
+            dist = math.hypot(px - x, py - y)
+            best_sc = emission_scalar(dist, sigma, step.heading, brg, step.kappa) + transition_scalar(
+                s_pred - h.s,
+                d,
+                step.dt,
+                beta=cfg.beta,
+                max_speed=cfg.max_speed,
+                speed_penalty=cfg.speed_penalty,
+            )
+            best = (j, rest, s_pred, dist, px, py, brg)
+        j = best[0]
+        while h.k < j:
+            h.k += 1
+            h.enter.append(step.time)
+        h.off, h.s, h.dist, h.px, h.py, h.bearing = best[1], best[2], best[3], best[4], best[5], best[6]
+        return best_sc
+
+    @staticmethod
+    def _normalise(hyps: list[Hypothesis]) -> list[Hypothesis]:
+        if not hyps:
+            return hyps
+        m = max(h.logp for h in hyps)
+        if not math.isfinite(m):
+            for h in hyps:
+                h.logp = 0.0
+            return hyps
+        keep = []
+        for h in hyps:
+            h.logp -= m
+            if h.logp >= PRUNE_LOGP:
+                keep.append(h)
+        return keep
+
+    @staticmethod
+    def _best(hyps: list[Hypothesis]) -> Hypothesis:
+        best = hyps[0]
+        for h in hyps:
+            if h.logp > best.logp:
+                best = h
+        return best
+
+    # ------------------------------------------------------------------ commit, turn, correction
+    def _commit(self, state: SessionState, step: _Step, cfg: MatchConfig) -> tuple[Turn, Correction | None]:
+        hyps = state.hyps
+        best = self._best(hyps)
+        correction: Correction | None = None
+        turn = Turn.NONE
+        if state.init_pending:
+            total = sum(math.exp(h.logp) for h in hyps)
+            group = sum(math.exp(h.logp) for h in hyps if h.edges[0] == best.edges[0]) / total
+            if group >= INIT_COMMIT_P or state.odo - state.init_odo >= max(2.0 * step.r_a, cfg.turn_window):
+                correction = self._correction(state, best, step)
+                state.hyps = hyps = [h for h in hyps if h.edges[0] == best.edges[0]]
+                state.init_pending = False
+            else:
+                return turn, None
+        while best.k >= 1 and best.s - self._elen[best.edges[0]] >= step.r_a:
+            e0, e1 = best.edges[0], best.edges[1]
+            if state.live:
+                c = self._correction(state, best, step)
+                correction = c if correction is None else _merge(correction, c)
+            hyps = [h for h in hyps if len(h.edges) > 1 and h.edges[1] == e1]
+            v = self._ev[e0]
+            is_rev = e1 == self._rev[e0]
+            if self._branching[v] or is_rev:
+                turn = classify_turn(angle_diff(self._bstart[e1], self._bend[e0]), is_reverse=is_rev)
+            state.live = [x for x in state.live if int(x[1]) != e0]
+            for h in hyps:
+                h.s -= self._elen[e0]
+                h.k -= 1
+                del h.edges[0]
+                del h.enter[0]
+            state.hyps = hyps = self._normalise(hyps)
+        if len(hyps) == 1 and state.live:
+            # the alternatives died out: that decision is final too
+            c = self._correction(state, hyps[0], step)
+            correction = c if correction is None else _merge(correction, c)
+            state.live = []
+        return turn, correction
+
+    def _correction(self, state: SessionState, best: Hypothesis, step: _Step) -> Correction | None:
+        """Compare what was reported live with the committed path's timeline."""
+        if not state.live:
+            return None
+        mism: list[tuple[float, int, int]] = []
+        assigned = self._smooth(state.live, best)
+        for entry, j in zip(state.live, assigned, strict=True):
+            t, rep = entry[0], int(entry[1])
+            now = best.edges[j]
+            if now != rep:
+                mism.append((t, now, rep))
+                entry[1] = float(now)
+        if not mism:
+            return None
+        return Correction(
+            time_from=mism[0][0],
+            time_to=mism[-1][0],
+            edges=_dedup([m[1] for m in mism]),
+            replaced_edges=_dedup([m[2] for m in mism]),
+        )
+
+    def _smooth(self, live: list[list[float]], best: Hypothesis) -> list[int]:
+        """Fixed-lag smoothing: the most likely monotone assignment of the region's fixes to
+        the committed path's edges ``edges[0..k]`` (a small Viterbi)."""
+        n_j = best.k + 1
+        cost: list[list[float]] = []
+        for t_, _e, x, y, hd, sg, kp in live:
+            row = []
+            for j in range(n_j):
+                _, dist, _, _, brg = self._project(best.edges[j], x, y)
+                row.append(-emission_scalar(dist, sg, hd, brg, kp))
+            cost.append(row)
+        acc = cost[0][:]
+        back: list[list[int]] = []
+        for i in range(1, len(cost)):
+            run_min, run_arg = math.inf, 0
+            new, arg = [], []
+            for j in range(n_j):
+                if acc[j] < run_min:
+                    run_min, run_arg = acc[j], j
+                new.append(cost[i][j] + run_min)
+                arg.append(run_arg)
+            acc = new
+            back.append(arg)
+        j = min(range(n_j), key=lambda q: acc[q])
+        out = [j]
+        for arg in reversed(back):
+            j = arg[j]
+            out.append(j)
+        return out[::-1]
+
+    # ------------------------------------------------------------------ result
+    def _result(
+        self,
+        state: SessionState,
+        step: _Step,
+        fix: Fix,
+        turn: Turn,
+        correction: Correction | None,
+        reinit: bool,
+    ) -> SnapResult:
+        hyps = state.hyps
+        best = self._best(hyps)
+        e = best.edges[best.k]
+        candidates: tuple[Candidate, ...] = ()
+        if len(hyps) > 1:
+            if len(state.live) < MAX_LIVE:
+                state.live.append([step.time, float(e), step.x, step.y, step.heading, step.sigma, step.kappa])
+            total = 0.0
+            agg: dict[int, list[float]] = {}
+            for h in hyps:
+                p = math.exp(h.logp)
+                total += p
+                he = h.edges[h.k]
+                a = agg.get(he)
+                if a is None:
+                    agg[he] = [p, h.off, h.dist]
+                else:
+                    if p > a[0]:
+                        a[1], a[2] = h.off, h.dist
+                    a[0] += p
+            g = self.graph
+            candidates = tuple(
+                Candidate(
+                    edge=ce,
+                    u=int(g.node_id[self._eu[ce]]),
+                    v=int(g.node_id[self._ev[ce]]),
+                    way_id=int(g.edge_way_id[ce]),
+                    probability=a[0] / total,
+                    offset=a[1],
+                    dist=a[2],
+                )
+                for ce, a in sorted(agg.items(), key=lambda kv: -kv[1][0])
+            )
+        if reinit:
+            st = State.REINITIALISED
+        elif not math.isnan(state.bad_time):
+            st = State.OFF_ROAD
+        elif state.init_pending:
+            st = State.INITIALISING
+        elif len(hyps) > 1:
+            st = State.AMBIGUOUS
+        else:
+            st = State.ON_ROAD
+        lon, lat = point_to_lonlat(self.graph.crs, best.px, best.py)
+        g = self.graph
+        return SnapResult(
+            time=fix.time,
+            state=st,
+            edge=e,
+            u=int(g.node_id[self._eu[e]]),
+            v=int(g.node_id[self._ev[e]]),
+            way_id=int(g.edge_way_id[e]),
+            offset=best.off,
+            lat=lat,
+            lon=lon,
+            bearing=best.bearing,
+            dist=best.dist,
+            turn=turn,
+            candidates=candidates,
+            correction=correction,
+            raw_lat=fix.lat,
+            raw_lon=fix.lon,
+        )
+
+
+def _dedup(seq: list[int]) -> tuple[int, ...]:
+    out: list[int] = []
+    for e in seq:
+        if not out or out[-1] != e:
+            out.append(e)
+    return tuple(out)
+
+
+def _merge(a: Correction, b: Correction | None) -> Correction:
+    if b is None:
+        return a
+    return Correction(
+        time_from=min(a.time_from, b.time_from),
+        time_to=max(a.time_to, b.time_to),
+        edges=_dedup([*a.edges, *b.edges]),
+        replaced_edges=_dedup([*a.replaced_edges, *b.replaced_edges]),
+    )

@@ -1,0 +1,391 @@
+"""Bounded shortest paths on the CSR road graph, compiled with numba.
+
+The search is edge-based (a state is a directed edge, its key the distance to the edge's
+start), so turn restrictions and U-turn rules apply exactly. Two ways to get the distances
+the batch matcher needs between the candidates of consecutive fixes:
+
+* :func:`step_route_distances`: one bounded Dijkstra per source candidate, stopped as soon
+  as every target edge is settled or the bound is passed (no precomputation);
+* :class:`Ubodt`: an FMM-style upper-bounded origin-destination table, precomputed once per
+  map for a bound in metres, then looked up (``bench/bench_batch.py`` measures both).
+
+U-turns at a node are allowed only at dead ends; a U-turn along the road is a separate,
+penalised move the matcher scores itself.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from numba import njit
+from numpy.typing import NDArray
+
+from graph.road_graph import RoadGraph
+
+INF = np.inf
+
+
+@dataclass(frozen=True)
+class RoutingArrays:
+    """The graph arrays the compiled searches read, restrictions as CSR keyed by from-edge."""
+
+    out_ptr: NDArray[np.int64]
+    out_edges: NDArray[np.int32]
+    edge_v: NDArray[np.int32]
+    edge_len: NDArray[np.float64]
+    edge_rev: NDArray[np.int32]
+    r_ptr: NDArray[np.int64]
+    r_to: NDArray[np.int32]
+    r_kind: NDArray[np.int32]
+
+    @classmethod
+    def from_graph(cls, graph: RoadGraph) -> RoutingArrays:
+        e = graph.n_edges
+        r = graph.restrictions
+        if len(r):
+            order = np.argsort(r[:, 0], kind="stable")
+            r = r[order]
+            counts = np.bincount(r[:, 0], minlength=e)
+        else:
+            counts = np.zeros(e, dtype=np.int64)
+        ptr = np.zeros(e + 1, dtype=np.int64)
+        np.cumsum(counts, out=ptr[1:])
+        return cls(
+            out_ptr=np.ascontiguousarray(graph.out_ptr, dtype=np.int64),
+            out_edges=np.ascontiguousarray(graph.out_edges, dtype=np.int32),
+            edge_v=np.ascontiguousarray(graph.edge_v, dtype=np.int32),
+            edge_len=np.ascontiguousarray(graph.edge_len, dtype=np.float64),
+            edge_rev=np.ascontiguousarray(graph.edge_reverse, dtype=np.int32),
+            r_ptr=ptr,
+            r_to=np.ascontiguousarray(r[:, 2] if len(r) else np.empty(0), dtype=np.int32),
+            r_kind=np.ascontiguousarray(r[:, 3] if len(r) else np.empty(0), dtype=np.int32),
+        )
+
+
+class Workspace:
+    """Per-thread scratch arrays sized to the graph (reset after each search, never reallocated)."""
+
+    def __init__(self, n_edges: int) -> None:
+        self.dist = np.full(n_edges, INF)
+        self.pred = np.full(n_edges, -1, dtype=np.int32)
+        self.done = np.zeros(n_edges, dtype=np.uint8)
+        self.tgt = np.zeros(n_edges, dtype=np.uint8)
+        self.touched = np.empty(n_edges + 1, dtype=np.int32)
+        self.heap_k = np.empty(n_edges + 16, dtype=np.float64)
+        self.heap_v = np.empty(n_edges + 16, dtype=np.int32)
+
+
+@njit(cache=True, inline="always")
+def _allowed(e: int, f: int, out_ptr, out_edges, edge_v, edge_rev, r_ptr, r_to, r_kind) -> bool:  # type: ignore[no-untyped-def]
+    if f == edge_rev[e]:
+        v = edge_v[e]
+        # U-turn at a node only at a dead end
+        for i in range(out_ptr[v], out_ptr[v + 1]):
+            if out_edges[i] != f:
+                return False
+    has_only = False
+    found_only = False
+    for i in range(r_ptr[e], r_ptr[e + 1]):
+        if r_kind[i] == 0:
+            if r_to[i] == f:
+                return False
+        else:
+            has_only = True
+            if r_to[i] == f:
+                found_only = True
+    return not has_only or found_only
+
+
+@njit(cache=True, inline="always")
+def _push(heap_k, heap_v, n: int, k: float, v: int) -> int:  # type: ignore[no-untyped-def]
+    i = n
+    heap_k[i] = k
+    heap_v[i] = v
+    while i > 0:
+        p = (i - 1) >> 1
+        if heap_k[p] <= heap_k[i]:
+            break
+        heap_k[p], heap_k[i] = heap_k[i], heap_k[p]
+        heap_v[p], heap_v[i] = heap_v[i], heap_v[p]
+        i = p
+    return n + 1
+
+
+@njit(cache=True, inline="always")
+def _pop(heap_k, heap_v, n: int) -> int:  # type: ignore[no-untyped-def]
+    n -= 1
+    heap_k[0] = heap_k[n]
+    heap_v[0] = heap_v[n]
+    i = 0
+    while True:
+        left = 2 * i + 1
+        if left >= n:
+            break
+        c = left
+        if left + 1 < n and heap_k[left + 1] < heap_k[left]:
+            c = left + 1
+        if heap_k[i] <= heap_k[c]:
+            break
+        heap_k[c], heap_k[i] = heap_k[i], heap_k[c]
+        heap_v[c], heap_v[i] = heap_v[i], heap_v[c]
+        i = c
+    return n
+
+
+@njit(cache=True)
+def _search(  # type: ignore[no-untyped-def]
+    src: int,
+    base: float,
+    bound: float,
+    n_targets: int,
+    out_ptr,
+    out_edges,
+    edge_v,
+    edge_len,
+    edge_rev,
+    r_ptr,
+    r_to,
+    r_kind,
+    dist,
+    pred,
+    done,
+    tgt,
+    touched,
+    heap_k,
+    heap_v,
+) -> int:
+    """Dijkstra from the end of edge ``src`` (``base`` metres ahead of the start point).
+
+    ``dist[f]`` becomes the distance to the start of edge ``f``; stops when ``n_targets``
+    edges flagged in ``tgt`` are settled or keys pass ``bound``. Returns the number of
+    touched edges (listed in ``touched``; the caller resets them with :func:`_reset`).
+    """
+    nt = 0
+    nh = 0
+    v = edge_v[src]
+    for i in range(out_ptr[v], out_ptr[v + 1]):
+        f = out_edges[i]
+        if base <= bound and base < dist[f] and _allowed(src, f, out_ptr, out_edges, edge_v, edge_rev, r_ptr, r_to, r_kind):
+            if dist[f] == INF:
+                touched[nt] = f
+                nt += 1
+            dist[f] = base
+            pred[f] = src
+            nh = _push(heap_k, heap_v, nh, base, f)
+    left = n_targets
+    while nh > 0 and left > 0:
+        d = heap_k[0]
+        e = heap_v[0]
+        nh = _pop(heap_k, heap_v, nh)
+        if done[e] or d > dist[e]:
+            continue
+        done[e] = 1
+        if tgt[e]:
+            left -= 1
+        nd = d + edge_len[e]
+        if nd > bound:
+            continue
+        w = edge_v[e]
+        for i in range(out_ptr[w], out_ptr[w + 1]):
+            f = out_edges[i]
+            if nd < dist[f] and not done[f] and _allowed(e, f, out_ptr, out_edges, edge_v, edge_rev, r_ptr, r_to, r_kind):
+                if dist[f] == INF:
+                    touched[nt] = f
+                    nt += 1
+                dist[f] = nd
+                pred[f] = e
+                if nh < len(heap_k):
+                    nh = _push(heap_k, heap_v, nh, nd, f)
+    return nt
+
+
+@njit(cache=True, inline="always")
+def _reset(nt: int, touched, dist, pred, done) -> None:  # type: ignore[no-untyped-def]
+    for i in range(nt):
+        f = touched[i]
+        dist[f] = INF
+        pred[f] = -1
+        done[f] = 0
+
+
+@njit(cache=True)
+def route_block(  # type: ignore[no-untyped-def]
+    a0,
+    a1,
+    b0,
+    b1,
+    cand_edge,
+    cand_off,
+    bound_tight,
+    bound,
+    reverse_tol,
+    route,
+    uturn,
+    out_ptr,
+    out_edges,
+    edge_v,
+    edge_len,
+    edge_rev,
+    r_ptr,
+    r_to,
+    r_kind,
+    dist,
+    pred,
+    done,
+    tgt,
+    touched,
+    heap_k,
+    heap_v,
+) -> bool:
+    """Route distances from candidates ``a0:a1`` to candidates ``b0:b1`` into ``route`` (row-major).
+
+    ``route`` gets the network distance (inf = not reachable within the bound), ``uturn`` the
+    along-road U-turn distance (inf where the pair is not the two directions of one road).
+    Searches stop at ``bound_tight``; only when nothing is reachable they go on to ``bound``.
+    Returns whether any pair is connected.
+    """
+    kb = b1 - b0
+    for q in range(len(route)):
+        route[q] = INF
+        uturn[q] = INF
+    nuniq = 0
+    for j in range(b0, b1):
+        if tgt[cand_edge[j]] == 0:
+            tgt[cand_edge[j]] = 1
+            nuniq += 1
+    found = False
+    for npass in range(2):
+        lim = bound_tight if npass == 0 else bound
+        if npass == 1 and (lim <= bound_tight or found):
+            break
+        for i in range(a0, a1):
+            e = cand_edge[i]
+            o = cand_off[i]
+            row = (i - a0) * kb
+            need = 0
+            for j in range(b0, b1):
+                f = cand_edge[j]
+                if f == e and cand_off[j] >= o - reverse_tol:
+                    route[row + j - b0] = max(cand_off[j] - o, 0.0)
+                    found = True
+                else:
+                    need += 1
+                    if f == edge_rev[e]:
+                        uturn[row + j - b0] = abs(edge_len[e] - cand_off[j] - o)
+                        found = True
+            if need == 0:
+                continue
+            nt = _search(
+                e, edge_len[e] - o, lim, nuniq, out_ptr, out_edges, edge_v, edge_len, edge_rev,
+                r_ptr, r_to, r_kind, dist, pred, done, tgt, touched, heap_k, heap_v,
+            )  # fmt: skip
+            for j in range(b0, b1):
+                f = cand_edge[j]
+                if f == e and cand_off[j] >= o - reverse_tol:
+                    continue
+                r = dist[f] + cand_off[j]
+                if r <= lim:
+                    route[row + j - b0] = r
+                    found = True
+            _reset(nt, touched, dist, pred, done)
+    for j in range(b0, b1):
+        tgt[cand_edge[j]] = 0
+    return found
+
+
+@njit(cache=True)
+def path_edges(  # type: ignore[no-untyped-def]
+    src: int,
+    src_off: float,
+    dst: int,
+    bound: float,
+    out_ptr,
+    out_edges,
+    edge_v,
+    edge_len,
+    edge_rev,
+    r_ptr,
+    r_to,
+    r_kind,
+    dist,
+    pred,
+    done,
+    tgt,
+    touched,
+    heap_k,
+    heap_v,
+):
+    """The edges strictly between ``src`` and ``dst`` on the shortest route (None if none)."""
+    tgt[dst] = 1
+    nt = _search(
+        src, edge_len[src] - src_off, bound, 1, out_ptr, out_edges, edge_v, edge_len, edge_rev,
+        r_ptr, r_to, r_kind, dist, pred, done, tgt, touched, heap_k, heap_v,
+    )  # fmt: skip
+    tgt[dst] = 0
+    ok = dist[dst] < INF
+    out = np.empty(0, dtype=np.int32)
+    if ok:
+        m = 0
+        e = pred[dst]
+        while e != src and e >= 0:
+            m += 1
+            e = pred[e]
+        out = np.empty(m, dtype=np.int32)
+        e = pred[dst]
+        while e != src and e >= 0:
+            m -= 1
+            out[m] = e
+            e = pred[e]
+    _reset(nt, touched, dist, pred, done)
+    if not ok:
+        return None
+    return out
+
+
+def search_args(ra: RoutingArrays, ws: Workspace) -> tuple[NDArray[np.generic], ...]:
+    """The trailing positional arguments of the compiled searches, in order."""
+    return (
+        ra.out_ptr,
+        ra.out_edges,
+        ra.edge_v,
+        ra.edge_len,
+        ra.edge_rev,
+        ra.r_ptr,
+        ra.r_to,
+        ra.r_kind,
+        ws.dist,
+        ws.pred,
+        ws.done,
+        ws.tgt,
+        ws.touched,
+        ws.heap_k,
+        ws.heap_v,
+    )
+
+
+def shortest_route(
+    graph: RoadGraph,
+    src: int,
+    src_off: float,
+    dst: int,
+    dst_off: float,
+    *,
+    bound: float = 1e9,
+    ra: RoutingArrays | None = None,
+    ws: Workspace | None = None,
+) -> tuple[float, list[int]] | None:
+    """Shortest route from a position on ``src`` to one on ``dst``: ``(metres, edges)``.
+
+    ``edges`` runs from ``src`` to ``dst`` inclusive. None when unreachable within ``bound``.
+    """
+    ra = ra or RoutingArrays.from_graph(graph)
+    ws = ws or Workspace(graph.n_edges)
+    if src == dst and dst_off >= src_off:
+        return dst_off - src_off, [src]
+    mid = path_edges(src, src_off, dst, bound, *search_args(ra, ws))
+    if mid is None:
+        return None
+    edges = [src, *(int(e) for e in mid), dst]
+    metres = float(graph.edge_len[src] - src_off + graph.edge_len[edges[1:-1]].sum() + dst_off)
+    return metres, edges

@@ -1,0 +1,303 @@
+"""A simulated drive: route → true motion → raw sensors → Kalman filter → fused fixes + truth.
+
+The fused fixes use the columns ``mapmatch replay`` and ``mapmatch send`` read
+(:data:`FIX_COLUMNS`). The truth is one row per fix (true position, edge, offset, heading)
+plus the route: its edges and the sequence of intersections passed.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import tempfile
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pandas as pd
+
+from graph.projection import to_lonlat, to_xy
+from graph.road_graph import RoadGraph
+from mapmatch.errors import ValidationError
+from mapmatch.sim.kalman import DEFAULT_KALMAN, FusedStream, KalmanConfig, fused_stream, run_filter
+from mapmatch.sim.profile import DEFAULT_PROFILE, ProfileConfig, Trajectory, drive_profile
+from mapmatch.sim.routes import Route, route_from_edges, route_from_geometry
+from mapmatch.sim.sensors import DEFAULT_SENSORS, SensorConfig, SensorData, parse_outages, simulate_sensors
+from mapmatch.types import Fix
+
+FIX_COLUMNS: tuple[str, ...] = (
+    "vehicle_id",
+    "time",
+    "lat",
+    "lon",
+    "heading",
+    "pos_sigma",
+    "heading_sigma",
+    "speed",
+    "distance",
+    "gps_valid",
+)
+TRUTH_COLUMNS: tuple[str, ...] = (
+    "vehicle_id",
+    "time",
+    "lat",
+    "lon",
+    "x",
+    "y",
+    "edge",
+    "offset",
+    "u",
+    "v",
+    "way_id",
+    "heading",
+    "speed",
+    "route_s",
+    "gps_outage",
+)
+
+
+@dataclass
+class Drive:
+    """Everything one simulated drive produced.
+
+    ``fixes`` (columns :data:`FIX_COLUMNS`) and ``truth`` (:data:`TRUTH_COLUMNS`) have one
+    row per fused fix; ``gps`` holds the raw 1 Hz receiver fixes (NaN in outages).
+    """
+
+    route: Route
+    trajectory: Trajectory
+    sensors: SensorData
+    fused: FusedStream
+    fixes: pd.DataFrame
+    truth: pd.DataFrame
+    gps: pd.DataFrame
+    node_index: np.ndarray
+    node_time: np.ndarray
+    outages: list[tuple[float, float]] = field(default_factory=list)
+
+    def fix_objects(self) -> list[Fix]:
+        """The fused fixes as :class:`Fix` objects, in time order."""
+        f = self.fixes
+        cols = [f[c].to_numpy(dtype=np.float64).tolist() for c in FIX_COLUMNS[1:]]
+        return [
+            Fix(time=t, lat=la, lon=lo, heading=h, pos_sigma=ps, heading_sigma=hs, speed=sp, distance=d,
+                gps_valid=bool(v))
+            for t, la, lo, h, ps, hs, sp, d, v in zip(*cols, strict=True)
+        ]  # fmt: skip
+
+
+def simulate_drive(
+    graph: RoadGraph,
+    route: Route,
+    *,
+    rate: float = 1.0,
+    outages: str | Sequence[tuple[float, float]] | None = "paper",
+    seed: int = 0,
+    vehicle_id: str = "sim-1",
+    time0: float = 0.0,
+    profile: ProfileConfig = DEFAULT_PROFILE,
+    sensors: SensorConfig = DEFAULT_SENSORS,
+    kalman: KalmanConfig = DEFAULT_KALMAN,
+) -> Drive:
+    """Drive ``route`` and return fused fixes at ``rate`` Hz (1 or 10) with the truth.
+
+    Parameters
+    ----------
+    graph
+        The map the route lies on.
+    route
+        What to drive (see :mod:`mapmatch.sim.routes`).
+    rate
+        Fused output rate in Hz: 1 or 10.
+    outages
+        GPS outages: ``"paper"``, ``"none"``, ``"START:DUR,..."`` or (start, duration) pairs,
+        seconds from the start of the drive. Outages past the end of the drive do nothing.
+    seed
+        Seed of every random choice (driver, sensors).
+    vehicle_id, time0
+        The vehicle id and the time of the first fix written to the output.
+    """
+    if rate not in (1, 1.0, 10, 10.0):
+        raise ValidationError("rate", "must be 1 or 10 Hz")
+    rng = np.random.default_rng(seed)
+    outs = parse_outages(outages)
+    traj = drive_profile(graph, route, rng=rng, rate_hz=sensors.gyro_rate, config=profile)
+    raw = simulate_sensors(traj, rng=rng, outages=outs, config=sensors)
+    res = run_filter(raw, config=kalman)
+    fused = fused_stream(res, rate=float(rate))
+    ll = to_lonlat(graph.crs, fused.x, fused.y)
+    n = len(fused.time)
+    fixes = pd.DataFrame(
+        {
+            "vehicle_id": [vehicle_id] * n,
+            "time": fused.time + time0,
+            "lat": ll[:, 1],
+            "lon": ll[:, 0],
+            "heading": fused.heading,
+            "pos_sigma": fused.pos_sigma,
+            "heading_sigma": fused.heading_sigma,
+            "speed": fused.speed,
+            "distance": fused.distance,
+            "gps_valid": fused.gps_valid.astype(int),
+        },
+        columns=list(FIX_COLUMNS),
+    )
+    # truth at the fix times
+    ft = fused.time
+    tx = np.interp(ft, traj.t, traj.x)
+    ty = np.interp(ft, traj.t, traj.y)
+    ts = np.interp(ft, traj.t, traj.s)
+    edge, off = route.locate(ts)
+    tll = to_lonlat(graph.crs, tx, ty)
+    in_out = np.zeros(n, dtype=bool)
+    for a, d in outs:
+        in_out |= (ft >= a) & (ft < a + d)
+    truth = pd.DataFrame(
+        {
+            "vehicle_id": [vehicle_id] * n,
+            "time": ft + time0,
+            "lat": tll[:, 1],
+            "lon": tll[:, 0],
+            "x": tx,
+            "y": ty,
+            "edge": edge,
+            "offset": off,
+            "u": graph.node_id[graph.edge_u[edge]],
+            "v": graph.node_id[graph.edge_v[edge]],
+            "way_id": graph.edge_way_id[edge],
+            "heading": np.degrees(np.interp(ft, traj.t, traj.psi)) % 360.0,
+            "speed": np.interp(ft, traj.t, traj.speed),
+            "route_s": ts,
+            "gps_outage": in_out.astype(int),
+        },
+        columns=list(TRUTH_COLUMNS),
+    )
+    gll = to_lonlat(graph.crs, np.nan_to_num(raw.gps_x), np.nan_to_num(raw.gps_y))
+    have = ~np.isnan(raw.gps_x)
+    gps = pd.DataFrame(
+        {
+            "time": raw.gps_t + time0,
+            "lat": np.where(have, gll[:, 1], np.nan),
+            "lon": np.where(have, gll[:, 0], np.nan),
+            "x": raw.gps_x,
+            "y": raw.gps_y,
+            "outlier": raw.gps_outlier.astype(int),
+        }
+    )
+    nodes = route.nodes(graph)
+    # time each intersection is passed (the trajectory's route distance is monotonic)
+    node_t = np.interp(route.node_distance(), traj.s, traj.t) + time0
+    return Drive(
+        route=route,
+        trajectory=traj,
+        sensors=raw,
+        fused=fused,
+        fixes=fixes,
+        truth=truth,
+        gps=gps,
+        node_index=nodes,
+        node_time=node_t,
+        outages=outs,
+    )
+
+
+# --------------------------------------------------------------------------- files
+def _atomic_write(path: Path, write: Any) -> None:
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", dir=path.parent)
+    os.close(fd)
+    try:
+        write(tmp)
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+
+
+def write_fixes_csv(drive: Drive, path: str | os.PathLike[str]) -> None:
+    """Write the fused fixes (atomic) with the columns :data:`FIX_COLUMNS`."""
+    _atomic_write(Path(path), lambda p: drive.fixes.to_csv(p, index=False, float_format="%.7f"))
+
+
+def truth_paths(path: str | os.PathLike[str]) -> tuple[Path, Path]:
+    """The per-fix truth CSV and the route GeoJSON that belong together (same stem)."""
+    p = Path(path)
+    if p.suffix.lower() in (".geojson", ".json"):
+        return p.with_suffix(".csv"), p
+    return p, p.with_suffix(".geojson")
+
+
+def route_geojson(graph: RoadGraph, drive: Drive) -> dict[str, Any]:
+    """The true route as a GeoJSON Feature: geometry, dense edges, external ids, intersections."""
+    r = drive.route
+    ll = to_lonlat(graph.crs, r.xy[:, 0], r.xy[:, 1])
+    return {
+        "type": "Feature",
+        "geometry": {"type": "LineString", "coordinates": np.round(ll, 7).tolist()},
+        "properties": {
+            "kind": "mapmatch-sim-truth",
+            "edges": r.edges.tolist(),
+            "start_offset": r.start_offset,
+            "end_offset": r.end_offset,
+            "way_ids": graph.edge_way_id[r.edges].tolist(),
+            "node_ids": graph.node_id[drive.node_index].tolist(),
+            "node_index": drive.node_index.tolist(),
+            "node_time": np.round(drive.node_time, 3).tolist(),
+            "outages": [list(o) for o in drive.outages],
+            "length_m": r.length,
+            "duration_s": drive.trajectory.duration,
+        },
+    }
+
+
+def write_truth(graph: RoadGraph, drive: Drive, path: str | os.PathLike[str]) -> tuple[Path, Path]:
+    """Write the per-fix truth CSV and the route GeoJSON (both atomic); return their paths."""
+    csv_path, gj_path = truth_paths(path)
+    _atomic_write(csv_path, lambda p: drive.truth.to_csv(p, index=False, float_format="%.7f"))
+    text = json.dumps(route_geojson(graph, drive))
+    _atomic_write(gj_path, lambda p: Path(p).write_text(text))
+    return csv_path, gj_path
+
+
+def read_route(graph: RoadGraph, path: str | os.PathLike[str]) -> Route:
+    """A route from a GeoJSON file: the simulator's own truth (edges), else any LineString.
+
+    A simulator truth whose edges do not fit ``graph`` (another map build) falls back to its
+    geometry.
+    """
+    data = json.loads(Path(path).read_text())
+    feats = data.get("features", [data]) if isinstance(data, dict) else []
+    for f in feats:
+        props = f.get("properties") or {}
+        geom = f.get("geometry") or {}
+        edges = props.get("edges")
+        if edges and all(isinstance(e, int) and 0 <= e < graph.n_edges for e in edges):
+            try:
+                return route_from_edges(
+                    graph,
+                    edges,
+                    start_offset=float(props.get("start_offset", 0.0)),
+                    end_offset=props.get("end_offset"),
+                )
+            except Exception:
+                pass
+        coords: list[Any] = []
+        if geom.get("type") == "LineString":
+            coords = geom["coordinates"]
+        elif geom.get("type") == "MultiLineString":
+            coords = [c for part in geom["coordinates"] for c in part]
+        if len(coords) >= 2:
+            lonlat = np.asarray(coords, dtype=np.float64)[:, :2]
+            xy = to_xy(graph.crs, lonlat[:, 0], lonlat[:, 1])
+            return route_from_geometry(graph, xy)
+    raise ValidationError("route", f"{path}: no LineString feature found")
+
+
+def position_error(drive: Drive) -> np.ndarray:
+    """Distance in metres between each fused fix and the true position."""
+    return np.asarray(
+        np.hypot(drive.fused.x - drive.truth["x"].to_numpy(), drive.fused.y - drive.truth["y"].to_numpy())
+    )

@@ -1,0 +1,297 @@
+"""Proto <-> domain conversion: the only module that imports both the stubs and ``mapmatch`` types.
+
+Unset optional proto fields become NaN/None in the domain types and back.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import numpy as np
+from google.protobuf import struct_pb2
+from google.protobuf.json_format import ParseDict
+
+from graph.road_graph import RoadGraph
+from mapmatch.errors import ValidationError
+from mapmatch.types import (
+    Candidate,
+    Correction,
+    Fix,
+    MatchedPoint,
+    PointStatus,
+    SnapResult,
+    State,
+    Track,
+    TrackMatch,
+    Turn,
+)
+from service.gen.mapmatch.v1 import mapmatch_pb2 as pb
+
+_STATE = {
+    State.INITIALISING: pb.STATE_INITIALISING,
+    State.ON_ROAD: pb.STATE_ON_ROAD,
+    State.AMBIGUOUS: pb.STATE_AMBIGUOUS,
+    State.OFF_ROAD: pb.STATE_OFF_ROAD,
+    State.REINITIALISED: pb.STATE_REINITIALISED,
+}
+_STATE_BACK = {v: k for k, v in _STATE.items()}
+_TURN = {
+    Turn.NONE: pb.TURN_NONE,
+    Turn.LEFT: pb.TURN_LEFT,
+    Turn.RIGHT: pb.TURN_RIGHT,
+    Turn.STRAIGHT: pb.TURN_STRAIGHT,
+    Turn.U_TURN: pb.TURN_U_TURN,
+}
+_TURN_BACK = {v: k for k, v in _TURN.items()}
+_POINT = {
+    PointStatus.MATCHED: pb.POINT_STATUS_MATCHED,
+    PointStatus.INTERPOLATED: pb.POINT_STATUS_INTERPOLATED,
+    PointStatus.UNMATCHED: pb.POINT_STATUS_UNMATCHED,
+}
+_NAN = math.nan
+
+
+def _opt(msg: Any, name: str) -> float:
+    return float(getattr(msg, name)) if msg.HasField(name) else _NAN
+
+
+# ---------------------------------------------------------------------------------- fixes
+def fix_from_proto(msg: pb.Fix) -> Fix:
+    """A domain :class:`Fix`; unset optional fields are NaN/None. Not validated here."""
+    cov = (msg.pos_cov.var_e, msg.pos_cov.cov_en, msg.pos_cov.var_n) if msg.HasField("pos_cov") else None
+    return Fix(
+        time=msg.time,
+        lat=msg.lat,
+        lon=msg.lon,
+        heading=_opt(msg, "heading"),
+        pos_sigma=_opt(msg, "pos_sigma"),
+        heading_sigma=_opt(msg, "heading_sigma"),
+        speed=_opt(msg, "speed"),
+        distance=_opt(msg, "distance"),
+        gps_valid=msg.gps_valid if msg.HasField("gps_valid") else None,
+        pos_cov=cov,
+    )
+
+
+def fix_to_proto(fix: Fix) -> pb.Fix:
+    """The proto of a domain fix; NaN/None fields are left unset."""
+    kw: dict[str, Any] = {"time": fix.time, "lat": fix.lat, "lon": fix.lon}
+    for name in ("heading", "pos_sigma", "heading_sigma", "speed", "distance"):
+        v = getattr(fix, name)
+        if not math.isnan(v):
+            kw[name] = v
+    if fix.gps_valid is not None:
+        kw["gps_valid"] = bool(fix.gps_valid)
+    if fix.pos_cov is not None:
+        ve, cen, vn = fix.pos_cov
+        kw["pos_cov"] = pb.PositionCovariance(var_e=ve, cov_en=cen, var_n=vn)
+    return pb.Fix(**kw)
+
+
+# ---------------------------------------------------------------------------------- results
+def _candidate_to_proto(c: Candidate) -> pb.Candidate:
+    return pb.Candidate(
+        edge=c.edge, u=c.u, v=c.v, way_id=c.way_id, probability=c.probability, offset=c.offset, dist=c.dist
+    )
+
+
+def snap_result_to_proto(r: SnapResult) -> pb.SnapResult:
+    """The proto of an online :class:`SnapResult`."""
+    msg = pb.SnapResult(
+        time=r.time,
+        state=_STATE[r.state],
+        edge=r.edge,
+        u=r.u,
+        v=r.v,
+        way_id=r.way_id,
+        offset=r.offset,
+        lat=r.lat,
+        lon=r.lon,
+        bearing=r.bearing,
+        dist=r.dist,
+        turn=_TURN[r.turn],
+        candidates=[_candidate_to_proto(c) for c in r.candidates],
+        raw_lat=r.raw_lat,
+        raw_lon=r.raw_lon,
+    )
+    if r.correction is not None:
+        c = r.correction
+        msg.correction.CopyFrom(
+            pb.Correction(
+                time_from=c.time_from, time_to=c.time_to, edges=c.edges, replaced_edges=c.replaced_edges
+            )
+        )
+    return msg
+
+
+def snap_result_from_proto(msg: pb.SnapResult) -> SnapResult:
+    """The domain :class:`SnapResult` of a response (used by the client)."""
+    corr = None
+    if msg.HasField("correction"):
+        c = msg.correction
+        corr = Correction(
+            time_from=c.time_from,
+            time_to=c.time_to,
+            edges=tuple(c.edges),
+            replaced_edges=tuple(c.replaced_edges),
+        )
+    return SnapResult(
+        time=msg.time,
+        state=_STATE_BACK.get(msg.state, State.INITIALISING),
+        edge=msg.edge,
+        u=msg.u,
+        v=msg.v,
+        way_id=msg.way_id,
+        offset=msg.offset,
+        lat=msg.lat,
+        lon=msg.lon,
+        bearing=msg.bearing,
+        dist=msg.dist,
+        turn=_TURN_BACK.get(msg.turn, Turn.NONE),
+        candidates=tuple(
+            Candidate(
+                edge=c.edge,
+                u=c.u,
+                v=c.v,
+                way_id=c.way_id,
+                probability=c.probability,
+                offset=c.offset,
+                dist=c.dist,
+            )
+            for c in msg.candidates
+        ),
+        correction=corr,
+        raw_lat=msg.raw_lat,
+        raw_lon=msg.raw_lon,
+    )
+
+
+def error_to_proto(code: int, field: str, message: str) -> pb.Error:
+    return pb.Error(code=code, field=field, message=message)
+
+
+# ---------------------------------------------------------------------------------- tracks
+_TRACK_OPTIONAL = ("heading", "speed", "pos_sigma", "distance")
+
+
+def track_from_proto(msg: pb.Track, *, prefix: str = "track") -> Track:
+    """A domain :class:`Track`; raises :class:`ValidationError` naming a bad array."""
+    lat = np.asarray(msg.lat, dtype=np.float64)
+    lon = np.asarray(msg.lon, dtype=np.float64)
+    n = len(lat)
+    if n == 0:
+        raise ValidationError(f"{prefix}.lat", "a track needs at least one point")
+    if len(lon) != n:
+        raise ValidationError(f"{prefix}.lon", f"has {len(lon)} values for {n} latitudes")
+    if not (np.isfinite(lat).all() and (np.abs(lat) <= 90).all()):
+        raise ValidationError(f"{prefix}.lat", "must be finite latitudes in [-90, 90]")
+    if not (np.isfinite(lon).all() and (np.abs(lon) <= 180).all()):
+        raise ValidationError(f"{prefix}.lon", "must be finite longitudes in [-180, 180]")
+    time = np.asarray(msg.time, dtype=np.float64) if len(msg.time) else np.full(n, np.nan)
+    if len(time) != n:
+        raise ValidationError(
+            f"{prefix}.time", f"has {len(time)} values for {n} points (give none or one each)"
+        )
+    opt: dict[str, Any] = {}
+    for name in _TRACK_OPTIONAL:
+        vals = getattr(msg, name)
+        if not len(vals):
+            opt[name] = None
+            continue
+        a = np.asarray(vals, dtype=np.float64)
+        if len(a) != n:
+            raise ValidationError(
+                f"{prefix}.{name}", f"has {len(a)} values for {n} points (give none or one each)"
+            )
+        opt[name] = a
+    return Track(track_id=msg.track_id, time=time, lat=lat, lon=lon, **opt)
+
+
+def track_to_proto(track: Track) -> pb.Track:
+    kw: dict[str, Any] = {
+        "track_id": track.track_id,
+        "lat": track.lat.tolist(),
+        "lon": track.lon.tolist(),
+        "time": track.time.tolist(),
+    }
+    for name in _TRACK_OPTIONAL:
+        a = getattr(track, name)
+        if a is not None:
+            kw[name] = np.asarray(a, dtype=np.float64).tolist()
+    return pb.Track(**kw)
+
+
+def _point_to_proto(p: MatchedPoint) -> pb.MatchedPoint:
+    return pb.MatchedPoint(
+        index=p.index,
+        status=_POINT[p.status],
+        edge=p.edge,
+        offset=p.offset,
+        lat=p.lat,
+        lon=p.lon,
+        dist=p.dist,
+    )
+
+
+def track_match_to_proto(m: TrackMatch, graph: RoadGraph) -> pb.TrackResult:
+    """The proto of a batch :class:`TrackMatch` (way ids looked up in ``graph``)."""
+    routes = []
+    for i, edges in enumerate(m.routes):
+        e = np.asarray(edges, dtype=np.int64)
+        ways = graph.edge_way_id[e].tolist() if len(e) else []
+        ll = m.route_lonlat[i] if i < len(m.route_lonlat) else []
+        routes.append(
+            pb.Route(edges=e.tolist(), way_ids=ways, lon=[p[0] for p in ll], lat=[p[1] for p in ll])
+        )
+    return pb.TrackResult(
+        track_id=m.track_id,
+        points=[_point_to_proto(p) for p in m.points],
+        routes=routes,
+        splits=list(m.splits),
+        length_m=m.length_m,
+        confidence=m.confidence,
+    )
+
+
+# ---------------------------------------------------------------------------------- maps
+def map_info_to_proto(entry: Any, *, session_count: int = 0) -> pb.MapInfo:
+    """The proto of a :class:`service.maps.MapEntry`."""
+    g: RoadGraph = entry.graph
+    bbox = g.bbox
+    stats = g.stats()
+    build = struct_pb2.Struct()
+    ParseDict(_plain(entry.build_parameters), build)
+    return pb.MapInfo(
+        map_id=entry.map_id,
+        min_lon=bbox[0],
+        min_lat=bbox[1],
+        max_lon=bbox[2],
+        max_lat=bbox[3],
+        node_count=g.n_nodes,
+        edge_count=g.n_edges,
+        restriction_count=len(g.restrictions),
+        road_km=float(stats["road_km"]),
+        version=entry.version,
+        checksum=entry.checksum,
+        crs=g.crs,
+        source=entry.source,
+        build_parameters=build,
+        session_count=session_count,
+    )
+
+
+def _plain(obj: Any) -> Any:
+    """JSON-like values for a protobuf Struct (numbers as floats, unknown objects as strings)."""
+    if isinstance(obj, dict):
+        return {str(k): _plain(v) for k, v in obj.items()}
+    if isinstance(obj, list | tuple | set):
+        return [_plain(v) for v in obj]
+    if isinstance(obj, np.generic):
+        return _plain(obj.item())
+    if isinstance(obj, bool) or obj is None or isinstance(obj, str):
+        return obj
+    if isinstance(obj, int | float):
+        f = float(obj)
+        return f if math.isfinite(f) else None
+    return str(obj)

@@ -1,0 +1,182 @@
+"""Per-vehicle matcher sessions keyed by ``(map id, vehicle id)``.
+
+Sessions hold only the online matcher's small state. They expire after ``ttl`` seconds
+without a fix, their number is capped (memory stays bounded), and each has its own lock so
+one vehicle's fixes are processed one at a time, in order, while other vehicles proceed.
+The store is thread-safe. State can be exported as bytes and imported on another server.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from collections import OrderedDict
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
+from dataclasses import dataclass, field
+from typing import Any
+
+from mapmatch.errors import MatchError
+
+SessionKey = tuple[str, str]
+
+
+class SessionLimitError(MatchError):
+    """The server holds its maximum number of sessions (gRPC RESOURCE_EXHAUSTED)."""
+
+
+class SessionExistsError(MatchError):
+    """An imported session would replace a live one (gRPC ALREADY_EXISTS)."""
+
+
+class SessionNotFoundError(MatchError, LookupError):
+    """No live session for that vehicle (gRPC NOT_FOUND)."""
+
+    field = "vehicle_id"
+
+
+@dataclass(eq=False, slots=True)
+class Session:
+    """One vehicle's matcher state; hold ``lock`` while using ``state``."""
+
+    key: SessionKey
+    state: Any
+    last_used: float
+    lock: threading.Lock = field(default_factory=threading.Lock)
+
+
+class SessionStore:
+    """Bounded, expiring, thread-safe store of sessions.
+
+    Parameters
+    ----------
+    max_sessions
+        Cap on live sessions; creating one more raises :class:`SessionLimitError`.
+    ttl
+        Seconds a session lives without being used.
+    clock
+        Monotonic clock in seconds (injectable for tests).
+    """
+
+    def __init__(self, *, max_sessions: int, ttl: float, clock: Callable[[], float] = time.monotonic) -> None:
+        self.max_sessions = max_sessions
+        self.ttl = ttl
+        self._clock = clock
+        self._lock = threading.Lock()
+        # least recently used first: expiry pops from the front
+        self._sessions: OrderedDict[SessionKey, Session] = OrderedDict()
+        self.expired_total = 0
+
+    # ------------------------------------------------------------------ internal
+    def _expire_locked(self, now: float) -> int:
+        n = 0
+        limit = now - self.ttl
+        while self._sessions:
+            key, s = next(iter(self._sessions.items()))
+            if s.last_used > limit:
+                break
+            del self._sessions[key]
+            n += 1
+        self.expired_total += n
+        return n
+
+    def _get_locked(self, key: SessionKey, now: float) -> Session | None:
+        s = self._sessions.get(key)
+        if s is None:
+            return None
+        if s.last_used <= now - self.ttl:
+            del self._sessions[key]
+            self.expired_total += 1
+            return None
+        return s
+
+    # ------------------------------------------------------------------ API
+    @contextmanager
+    def use(self, map_id: str, vehicle_id: str, factory: Callable[[], Any]) -> Iterator[Session]:
+        """The vehicle's session (created with ``factory()`` when absent), locked for the block.
+
+        Raises
+        ------
+        SessionLimitError
+            When a new session is needed and the store is full of live sessions.
+        """
+        key = (map_id, vehicle_id)
+        now = self._clock()
+        with self._lock:
+            s = self._get_locked(key, now)
+            if s is None:
+                self._expire_locked(now)
+                if len(self._sessions) >= self.max_sessions:
+                    raise SessionLimitError(
+                        f"session limit reached ({self.max_sessions} vehicles); retry later or end sessions"
+                    )
+                s = Session(key=key, state=factory(), last_used=now)
+                self._sessions[key] = s
+            else:
+                s.last_used = now
+                self._sessions.move_to_end(key)
+        with s.lock:
+            yield s
+
+    def drop(self, map_id: str, vehicle_id: str) -> bool:
+        """End a session; returns whether it existed (and was live)."""
+        now = self._clock()
+        with self._lock:
+            s = self._get_locked((map_id, vehicle_id), now)
+            if s is None:
+                return False
+            del self._sessions[s.key]
+            return True
+
+    def drop_map(self, map_id: str) -> int:
+        """End every session on a map; returns how many."""
+        with self._lock:
+            keys = [k for k in self._sessions if k[0] == map_id]
+            for k in keys:
+                del self._sessions[k]
+            return len(keys)
+
+    def export(self, map_id: str, vehicle_id: str, *, remove: bool = False) -> bytes:
+        """The session's state as bytes (``state.to_bytes()``); optionally end it here."""
+        now = self._clock()
+        with self._lock:
+            s = self._get_locked((map_id, vehicle_id), now)
+            if s is None:
+                raise SessionNotFoundError(
+                    f"vehicle_id: no live session for vehicle {vehicle_id!r} on map {map_id!r}"
+                )
+            if remove:
+                del self._sessions[s.key]
+        with s.lock:
+            return bytes(s.state.to_bytes())
+
+    def put(self, map_id: str, vehicle_id: str, state: Any, *, replace: bool = False) -> None:
+        """Install a session (e.g. an imported one)."""
+        key = (map_id, vehicle_id)
+        now = self._clock()
+        with self._lock:
+            old = self._get_locked(key, now)
+            if old is not None and not replace:
+                raise SessionExistsError(f"vehicle {vehicle_id!r} already has a session on map {map_id!r}")
+            if old is None:
+                self._expire_locked(now)
+                if len(self._sessions) >= self.max_sessions:
+                    raise SessionLimitError(f"session limit reached ({self.max_sessions} vehicles)")
+            self._sessions[key] = Session(key=key, state=state, last_used=now)
+            self._sessions.move_to_end(key)
+
+    def sweep(self) -> int:
+        """Remove expired sessions now; returns how many."""
+        with self._lock:
+            return self._expire_locked(self._clock())
+
+    def count(self, map_id: str | None = None) -> int:
+        """Live sessions (on one map, or all)."""
+        with self._lock:
+            self._expire_locked(self._clock())
+            if map_id is None:
+                return len(self._sessions)
+            return sum(1 for k in self._sessions if k[0] == map_id)
+
+    def __len__(self) -> int:
+        return self.count()

@@ -1,0 +1,185 @@
+"""Batch matching on tiny ASCII maps: one drawing per situation."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from graph.ascii import AsciiMap, parse_ascii_map
+from mapmatch.batch import BatchMatcher
+from mapmatch.config import DEFAULT_CONFIG
+from mapmatch.routing import shortest_route
+from mapmatch.types import PointStatus, Track
+
+
+def track_from_xy(amap: AsciiMap, xy: list[tuple[float, float]], *, dt: float = 5.0, tid: str = "t") -> Track:
+    """A track through points given in metres relative to the map's origin node positions."""
+    ll = np.array([amap.lonlat(x, y) for x, y in xy])
+    return Track(tid, np.arange(len(xy)) * dt, ll[:, 1], ll[:, 0])
+
+
+def at(amap: AsciiMap, node: str, dx: float = 0.0, dy: float = 0.0) -> tuple[float, float]:
+    x, y = amap.xy(node)
+    return float(x + dx), float(y + dy)
+
+
+def names(amap: AsciiMap, edges: list[int]) -> list[str]:
+    inv = {v: k for k, v in amap.nodes.items()}
+    g = amap.graph
+    return [inv[int(g.edge_u[e])] + inv[int(g.edge_v[e])] for e in edges]
+
+
+def test_straight_drive_through_junctions() -> None:
+    m = parse_ascii_map(
+        """
+        a-----b-----c
+              |
+              d-----e
+        """,
+        scale=20,
+    )
+    pts = [at(m, "a", 10, 3), at(m, "a", 60, -2), at(m, "b", 2, -15), at(m, "b", -3, -30), at(m, "d", 40, 4)]
+    r = BatchMatcher(m.graph).match(track_from_xy(m, pts))
+    assert [names(m, piece) for piece in r.routes] == [["ab", "bd", "de"]]
+    assert r.splits == []
+    assert all(p.status == PointStatus.MATCHED for p in r.points)
+    assert r.length_m == pytest.approx(110 + 80 + 40, abs=1.0)
+    assert 0 < r.confidence <= 1
+    assert len(r.route_lonlat) == 1 and len(r.route_lonlat[0]) >= 4
+
+
+def test_uturn_in_the_middle_of_a_road() -> None:
+    m = parse_ascii_map("a--------------b-----c", scale=10)
+    xs = [10, 30, 50, 70, 90, 100, 85, 65, 45, 25]
+    pts = [at(m, "a", x, 2) for x in xs]
+    r = BatchMatcher(m.graph).match(track_from_xy(m, pts))
+    assert [names(m, piece) for piece in r.routes] == [["ab", "ba"]]
+    assert r.splits == []
+    # from x = 10 out to the turn (~100 m) and back to x = 25
+    assert r.length_m == pytest.approx(90 + 75, abs=8.0)
+    assert names(m, [r.points[-1].edge]) == ["ba"]
+
+
+def test_uturn_is_penalised_when_noise_alone_explains_the_fixes() -> None:
+    m = parse_ascii_map("a--------------b-----c", scale=10)
+    xs = [10, 30, 50, 48, 70, 90]  # one fix 2 m behind the previous: noise, not a U-turn
+    r = BatchMatcher(m.graph).match(track_from_xy(m, [at(m, "a", x, 1) for x in xs]))
+    assert [names(m, piece) for piece in r.routes] == [["ab"]]
+
+
+def test_parallel_roads_stay_on_one_road() -> None:
+    # two parallel roads 40 m apart, joined only at the ends
+    m = parse_ascii_map(
+        """
+        a----------b
+        |          |
+        |          |
+        c----------d
+        """,
+        scale=10,
+    )
+    # driving along a-b, with two fixes pulled 22 m south (closer to c-d than to a-b)
+    offs = [-3, 2, -22, -23, 1, -2, 0]
+    pts = [at(m, "a", 10 + 14 * i, off) for i, off in enumerate(offs)]
+    r = BatchMatcher(m.graph).match(track_from_xy(m, pts, dt=2.0))
+    assert [names(m, piece) for piece in r.routes] == [["ab"]]
+
+
+def test_one_way_road_is_not_driven_backwards() -> None:
+    # the north road is one-way eastbound; a westbound car closer to it must be on the south road
+    m = parse_ascii_map(
+        """
+        a>>>>>>>>>>>>>>>>>>>b
+        |                   |
+        c-------------------d
+        """,
+        scale=5,
+    )  # the roads are 20 m apart
+    pts = [at(m, "b", -10 - 12 * i, -7) for i in range(7)]
+    r = BatchMatcher(m.graph).match(track_from_xy(m, pts, dt=2.0))
+    assert [names(m, piece) for piece in r.routes] == [["dc"]]
+    # driving east on the same fixes uses the one-way road
+    r2 = BatchMatcher(m.graph).match(track_from_xy(m, pts[::-1], dt=2.0))
+    assert [names(m, piece) for piece in r2.routes] == [["ab"]]
+
+
+def test_turn_restriction_is_respected() -> None:
+    drawing = """
+        a---b---c
+            |   |
+            d---e
+        """
+    free = parse_ascii_map(drawing, scale=10)
+    banned = parse_ascii_map(drawing, scale=10, restrictions=[("a", "b", "d", "no")])
+    ab, bd = banned.edge("a", "b"), banned.edge("b", "d")
+    assert shortest_route(free.graph, ab, 5.0, bd, 10.0) is not None
+    assert shortest_route(banned.graph, ab, 5.0, bd, 10.0) is None
+    only = parse_ascii_map(drawing, scale=10, restrictions=[("a", "b", "c", "only")])
+    assert shortest_route(only.graph, ab, 5.0, only.edge("b", "d"), 10.0) is None
+    assert shortest_route(only.graph, ab, 5.0, only.edge("b", "c"), 10.0) is not None
+    # a car turning a -> b -> d: with the turn banned, the matched route never makes that turn
+    pts = [at(banned, "a", 10, 1), at(banned, "a", 30, -1), at(banned, "b", 1, -15), at(banned, "b", -1, -30)]
+    r = BatchMatcher(banned.graph).match(track_from_xy(banned, pts))
+    for piece in r.routes:
+        seq = names(banned, piece)
+        assert not any(x == "ab" and y == "bd" for x, y in zip(seq, seq[1:], strict=False))
+
+
+def test_gap_splits_the_track_and_is_reported() -> None:
+    m = parse_ascii_map("a-----------------------------b", scale=10)
+    xs = [10, 30, 50, 230, 250, 270]
+    cfg = DEFAULT_CONFIG.replace(gap_distance=100.0)
+    r = BatchMatcher(m.graph).match(track_from_xy(m, [at(m, "a", x, 1) for x in xs]), cfg)
+    assert r.splits == [3]
+    assert len(r.routes) == 2 and len(r.route_lonlat) == 2
+    assert all(p.status == PointStatus.MATCHED for p in r.points)
+    assert r.length_m == pytest.approx(40 + 40, abs=1.0)
+
+
+def test_outlier_is_unmatched_and_does_not_break_the_route() -> None:
+    m = parse_ascii_map("a--------------b", scale=10)
+    pts = [at(m, "a", x, 2) for x in (10, 30, 50)] + [at(m, "a", 70, 300)] + [at(m, "a", x, 2) for x in (90, 110)]
+    r = BatchMatcher(m.graph).match(track_from_xy(m, pts))
+    assert [p.status for p in r.points].count(PointStatus.UNMATCHED) == 1
+    assert r.points[3].status == PointStatus.UNMATCHED and r.points[3].edge == -1
+    assert math.isnan(r.points[3].lat)
+    assert r.splits == [] and [names(m, piece) for piece in r.routes] == [["ab"]]
+
+
+def test_points_closer_than_the_noise_are_interpolated() -> None:
+    m = parse_ascii_map("a--------------b", scale=10)
+    xs = np.arange(5.0, 120.0, 3.0)
+    cfg = DEFAULT_CONFIG.replace(interpolate_distance=10.0)
+    r = BatchMatcher(m.graph).match(track_from_xy(m, [at(m, "a", float(x), 2) for x in xs], dt=1.0), cfg)
+    st = [p.status for p in r.points]
+    assert st.count(PointStatus.INTERPOLATED) > len(xs) // 2
+    assert st[0] == st[-1] == PointStatus.MATCHED
+    for p, x in zip(r.points, xs, strict=True):
+        assert p.edge == m.edge("a", "b")
+        assert p.offset == pytest.approx(x, abs=0.5)
+        assert p.dist == pytest.approx(2.0, abs=0.01)
+    assert [names(m, piece) for piece in r.routes] == [["ab"]]
+
+
+def test_track_partly_outside_the_map_and_bad_points() -> None:
+    m = parse_ascii_map("a--------------b", scale=10)
+    pts = [at(m, "a", x, 1) for x in (10, 40, 70)] + [at(m, "b", 500 + 100 * i, 0) for i in range(3)]
+    t = track_from_xy(m, pts)
+    t.lat[1] = np.nan  # a broken fix
+    r = BatchMatcher(m.graph).match(t)
+    st = [p.status for p in r.points]
+    assert st == ["matched", "unmatched", "matched", "unmatched", "unmatched", "unmatched"]
+    assert [names(m, piece) for piece in r.routes] == [["ab"]]
+
+
+def test_empty_and_hopeless_tracks_do_not_fail() -> None:
+    m = parse_ascii_map("a-----b", scale=10)
+    bm = BatchMatcher(m.graph)
+    empty = bm.match(Track("e", np.empty(0), np.empty(0), np.empty(0)))
+    assert empty.points == [] and empty.routes == []
+    nan = bm.match(Track("n", np.array([0.0, 1.0]), np.array([np.nan, 91.0]), np.array([0.0, 0.0])))
+    assert [p.status for p in nan.points] == ["unmatched", "unmatched"] and nan.routes == []
+    one = bm.match(track_from_xy(m, [at(m, "a", 20, 1)]))
+    assert [p.status for p in one.points] == ["matched"] and len(one.routes) == 1

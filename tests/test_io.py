@@ -1,0 +1,147 @@
+"""Track files in and results out: CSV, GPX, Parquet/GeoParquet round trips."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import pytest
+import shapely
+
+from graph.ascii import parse_ascii_map
+from mapmatch.batch import BatchMatcher
+from mapmatch.io import (
+    Columns,
+    TrackInputError,
+    points_frame,
+    read_results,
+    read_tracks,
+    results_table,
+    write_results,
+    write_tracks,
+)
+from mapmatch.types import Track
+
+
+def sample_tracks() -> list[Track]:
+    rng = np.random.default_rng(1)
+    a = Track(
+        "car-1",
+        time=np.arange(5, dtype=float) + 1_700_000_000,
+        lat=60.1 + rng.random(5) * 1e-3,
+        lon=24.9 + rng.random(5) * 1e-3,
+        heading=np.array([0.0, 10.0, np.nan, 350.0, 90.0]),
+        speed=np.array([1.0, 2.0, 3.0, np.nan, 5.0]),
+    )
+    b = Track("car-2", time=np.arange(3, dtype=float), lat=np.full(3, 60.2), lon=np.array([24.0, 24.001, 24.002]))
+    return [a, b]
+
+
+def same(a: Track, b: Track, *, optional: bool = True) -> None:
+    assert a.track_id == b.track_id
+    for k in ("time", "lat", "lon") + (("heading", "speed") if optional else ()):
+        x, y = getattr(a, k), getattr(b, k)
+        if x is None:
+            assert y is None or np.isnan(y).all()
+        else:
+            np.testing.assert_allclose(x, y, rtol=0, atol=1e-9)
+
+
+@pytest.mark.parametrize("suffix", [".csv", ".parquet"])
+def test_tabular_round_trip(tmp_path: Path, suffix: str) -> None:
+    tracks = sample_tracks()
+    p = tmp_path / f"tracks{suffix}"
+    write_tracks(p, tracks)
+    back = read_tracks(p)
+    assert [t.track_id for t in back] == ["car-1", "car-2"]
+    for a, b in zip(tracks, back, strict=True):
+        same(a, b)
+
+
+def test_gpx_round_trip(tmp_path: Path) -> None:
+    tracks = sample_tracks()
+    p = tmp_path / "tracks.gpx"
+    write_tracks(p, tracks)
+    back = read_tracks(p)
+    assert [t.track_id for t in back] == ["car-1", "car-2"]
+    for a, b in zip(tracks, back, strict=True):
+        same(a, b, optional=False)
+    np.testing.assert_allclose(back[0].speed, tracks[0].speed)
+
+
+def test_csv_with_custom_columns_and_iso_times(tmp_path: Path) -> None:
+    p = tmp_path / "fleet.csv"
+    p.write_text(
+        "vehicle,ts,y,x\n"
+        "7,2024-05-01T10:00:00Z,60.1,24.9\n"
+        "8,2024-05-01T10:00:00Z,60.2,24.8\n"
+        "7,2024-05-01T10:00:05Z,60.1001,24.9001\n"
+    )
+    t = read_tracks(p, columns=Columns(id="vehicle", time="ts", lat="y", lon="x"))
+    assert [x.track_id for x in t] == ["7", "8"]
+    assert t[0].time[1] - t[0].time[0] == 5.0
+    assert t[0].heading is None
+    with pytest.raises(TrackInputError, match="missing column 'lat'"):
+        read_tracks(p)
+
+
+def test_csv_without_id_is_one_track(tmp_path: Path) -> None:
+    p = tmp_path / "drive.csv"
+    p.write_text("time,lat,lon\n0,60.1,24.9\n1,60.1001,24.9\n")
+    (t,) = read_tracks(p)
+    assert t.track_id == "drive" and len(t) == 2
+
+
+def test_geoparquet_points_input(tmp_path: Path) -> None:
+    import geopandas as gpd
+
+    gdf = gpd.GeoDataFrame(
+        {"id": ["a", "a", "b"], "time": [0.0, 1.0, 0.0]},
+        geometry=gpd.points_from_xy([24.9, 24.91, 25.0], [60.1, 60.11, 60.2]),
+        crs="EPSG:4326",
+    )
+    p = tmp_path / "pts.geoparquet"
+    gdf.to_parquet(p)
+    a, b = read_tracks(p)
+    np.testing.assert_allclose(a.lon, [24.9, 24.91])
+    np.testing.assert_allclose(b.lat, [60.2])
+
+
+def test_unknown_format_is_a_clear_error(tmp_path: Path) -> None:
+    p = tmp_path / "x.txt"
+    p.write_text("hello")
+    with pytest.raises(TrackInputError, match="unknown track format"):
+        read_tracks(p)
+
+
+def test_results_written_as_geojson_csv_and_geoparquet(tmp_path: Path) -> None:
+    m = parse_ascii_map("a-----------b-----c", scale=10)
+    ll = np.array([m.lonlat(*(m.xy("a") + [x, 2.0])) for x in (10, 50, 90, 150)])
+    t = Track("t1", np.arange(4.0) * 5, ll[:, 1], ll[:, 0])
+    r = BatchMatcher(m.graph).match(t)
+    table = results_table([r], m.graph)
+    gj = tmp_path / "out.geojson"
+    write_results(gj, table)
+    fc = json.loads(gj.read_text())
+    (f,) = fc["features"]
+    assert f["geometry"]["type"] == "LineString"
+    assert f["properties"]["track_id"] == "t1"
+    assert f["properties"]["edges"] == [m.edge("a", "b"), m.edge("b", "c")]
+    assert f["properties"]["way_ids"] == [int(m.graph.edge_way_id[e]) for e in f["properties"]["edges"]]
+    assert f["properties"]["length_m"] == pytest.approx(140, abs=0.5)
+    csv = tmp_path / "out.csv"
+    write_results(csv, table)
+    pts = pd.read_csv(csv)
+    assert list(pts["status"]) == ["matched"] * 4
+    np.testing.assert_allclose(pts["dist"], 2.0, atol=1e-6)
+    pq = tmp_path / "out.parquet"
+    write_results(pq, table)
+    back = read_results(pq)
+    pd.testing.assert_frame_equal(points_frame(back), points_frame(table))
+    import geopandas as gpd
+
+    g = gpd.read_parquet(pq)
+    assert g.crs.to_epsg() == 4326
+    assert shapely.equals(g.geometry.iloc[0], shapely.from_wkb(table["route_wkb"].iloc[0]))

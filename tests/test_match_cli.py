@@ -1,0 +1,112 @@
+"""`mapmatch match` end to end: real map file, real track files, real worker processes."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from graph.artifact import save_map
+from graph.ascii import AsciiMap, parse_ascii_map
+from mapmatch.cli import main
+from mapmatch.io import read_results, write_tracks
+from mapmatch.parallel import parts_dir_for, run_batch
+from mapmatch.types import Track
+
+DRAWING = """
+a-----------b-----------c
+|           |           |
+d-----------e-----------f
+"""
+
+
+def make_tracks(m: AsciiMap, n: int) -> list[Track]:
+    rng = np.random.default_rng(7)
+    routes = [("a", "c", 0.0), ("d", "f", 0.0), ("a", "c", 0.0)]
+    out = []
+    for i in range(n):
+        s, e, _ = routes[i % len(routes)]
+        x0, y0 = m.xy(s)
+        x1, _ = m.xy(e)
+        xs = np.linspace(x0 + 5, x1 - 5, 12)
+        ys = y0 + rng.normal(0, 2, len(xs))
+        ll = np.array([m.lonlat(x, y) for x, y in zip(xs, ys, strict=True)])
+        out.append(Track(f"v{i:02d}", np.arange(len(xs)) * 3.0, ll[:, 1], ll[:, 0]))
+    return out
+
+
+@pytest.fixture()
+def setup(tmp_path: Path) -> tuple[Path, Path, AsciiMap]:
+    m = parse_ascii_map(DRAWING, scale=10)
+    map_path = tmp_path / "city.map"
+    save_map(m.graph, map_path)
+    tracks_path = tmp_path / "fleet.csv"
+    write_tracks(tracks_path, make_tracks(m, 7))
+    return map_path, tracks_path, m
+
+
+def test_match_command_writes_geojson(setup: tuple[Path, Path, AsciiMap], tmp_path: Path, capsys) -> None:
+    map_path, tracks_path, m = setup
+    out = tmp_path / "routes.geojson"
+    rc = main(["match", "--map", str(map_path), str(tracks_path), "-o", str(out), "--workers", "1"])
+    assert rc == 0
+    assert "matched 7 track(s)" in capsys.readouterr().out
+    fc = json.loads(out.read_text())
+    assert [f["properties"]["track_id"] for f in fc["features"]] == [f"v{i:02d}" for i in range(7)]
+    f0 = fc["features"][0]
+    assert f0["geometry"]["type"] == "LineString"
+    assert f0["properties"]["edges"] == [m.edge("a", "b"), m.edge("b", "c")]
+    assert not parts_dir_for(out).exists()
+
+
+def test_match_command_in_worker_processes_equals_in_process(
+    setup: tuple[Path, Path, AsciiMap], tmp_path: Path
+) -> None:
+    map_path, tracks_path, _ = setup
+    one, two = tmp_path / "one.csv", tmp_path / "two.csv"
+    assert main(["match", "--map", str(map_path), str(tracks_path), "-o", str(one), "--workers", "1",
+                 "--partition-size", "2", "--no-progress"]) == 0  # fmt: skip
+    assert main(["match", "--map", str(map_path), str(tracks_path), "-o", str(two), "--workers", "2",
+                 "--partition-size", "2", "--no-progress"]) == 0  # fmt: skip
+    a, b = pd.read_csv(one), pd.read_csv(two)
+    assert len(a) == 7 * 12 and set(a["status"]) == {"matched"}
+    pd.testing.assert_frame_equal(a, b)
+
+
+def test_resumed_run_equals_uninterrupted_run(setup: tuple[Path, Path, AsciiMap], tmp_path: Path) -> None:
+    map_path, tracks_path, _ = setup
+    full = tmp_path / "full.parquet"
+    run_batch([tracks_path], map_path, full, workers=1, partition_size=2)
+    # interrupted run: stop after the second partition has been written
+    out = tmp_path / "resumed.parquet"
+    calls = {"n": 0}
+
+    def boom(points: int, tracks: int) -> None:
+        calls["n"] += 1
+        if calls["n"] == 2:
+            raise KeyboardInterrupt
+
+    with pytest.raises(KeyboardInterrupt):
+        run_batch([tracks_path], map_path, out, workers=1, partition_size=2, progress=boom)
+    parts = sorted(parts_dir_for(out).glob("part-*.parquet"))
+    assert len(parts) == 2 and not out.exists()
+    s = run_batch([tracks_path], map_path, out, workers=1, partition_size=2)
+    # only the 3 tracks of the 2 missing partitions were matched again
+    assert s.skipped == 2 and s.partitions == 4 and s.tracks == 3
+    assert not parts_dir_for(out).exists()
+    pd.testing.assert_frame_equal(read_results(out), read_results(full))
+    assert len(read_results(out)) == 7
+
+
+def test_match_command_errors_are_one_line(setup: tuple[Path, Path, AsciiMap], tmp_path: Path, capsys) -> None:
+    map_path, tracks_path, _ = setup
+    assert main(["match", "--map", str(tmp_path / "nope.map"), str(tracks_path), "-o", str(tmp_path / "o.csv")]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("mapmatch match: error:") and err.count("\n") == 1
+    assert main(["match", "--map", str(map_path), str(tmp_path / "none.csv"), "-o", str(tmp_path / "o.csv")]) == 2
+    assert "no such input" in capsys.readouterr().err
+    assert main(["match", "--map", str(map_path), str(tracks_path), "-o", str(tmp_path / "o.txt")]) == 2
+    assert "unknown output format" in capsys.readouterr().err

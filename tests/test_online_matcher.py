@@ -1,0 +1,340 @@
+"""Online matcher on tiny ASCII maps: one map per situation."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from graph.ascii import AsciiMap, parse_ascii_map
+from graph.index import project_to_edge
+from graph.projection import to_lonlat
+from mapmatch.errors import ValidationError
+from mapmatch.online import OnlineMatcher, SessionState
+from mapmatch.types import Fix, SnapResult, State, Turn
+from tests.online_helpers import drive
+
+CROSS = """
+        n
+        |
+        |
+a-------b-------c
+        |
+        |
+        s
+"""
+
+
+def run(matcher: OnlineMatcher, fixes: list[Fix], state: SessionState | None = None) -> list[SnapResult]:
+    st = state if state is not None else matcher.new_session()
+    return [matcher.update(st, f) for f in fixes]
+
+
+def edges_of(results: list[SnapResult]) -> list[int]:
+    out: list[int] = []
+    for r in results:
+        if r.edge >= 0 and (not out or out[-1] != r.edge):
+            out.append(r.edge)
+    return out
+
+
+def committed_edges(results: list[SnapResult]) -> list[int]:
+    """Reported edges with corrections applied (what the matcher finally believes)."""
+    seq = [(r.time, r.edge) for r in results]
+    for r in results:
+        c = r.correction
+        if c is None:
+            continue
+        for i, (t, e) in enumerate(seq):
+            if c.time_from <= t <= c.time_to and e in c.replaced_edges:
+                seq[i] = (t, c.edges[0] if len(c.edges) == 1 else e)
+    out: list[int] = []
+    for _, e in seq:
+        if e >= 0 and (not out or out[-1] != e):
+            out.append(e)
+    return out
+
+
+def test_startup_without_heading_settles_on_the_direction_of_travel() -> None:
+    m = parse_ascii_map("a-----------b", scale=20)
+    matcher = OnlineMatcher(m.graph)
+    fixes = [
+        Fix(time=f.time, lat=f.lat, lon=f.lon, distance=f.distance, speed=f.speed)
+        for f in drive(m, "ab", speed=8)
+    ]
+    res = run(matcher, fixes)
+    assert res[0].state is State.INITIALISING
+    assert {c.edge for c in res[0].candidates} == {m.edge("a", "b"), m.edge("b", "a")}
+    assert math.isclose(sum(c.probability for c in res[0].candidates), 1.0)
+    assert res[5].state is State.ON_ROAD
+    assert all(r.edge == m.edge("a", "b") for r in res[3:])
+    # external ids: node ids of the ASCII map are the letters' code points
+    assert (res[5].u, res[5].v) == (ord("a"), ord("b"))
+    assert res[5].way_id == m.graph.edge_way_id[m.edge("a", "b")]
+
+
+def test_startup_with_heading_is_on_road_at_once() -> None:
+    m = parse_ascii_map(CROSS, scale=10)
+    matcher = OnlineMatcher(m.graph)
+    res = run(matcher, drive(m, "cb", speed=10)[:3])
+    assert res[0].state is State.ON_ROAD
+    assert res[0].edge == m.edge("c", "b")
+    assert res[0].bearing == pytest.approx(270.0)
+
+
+def test_between_intersections_projects_onto_the_current_edge_only() -> None:
+    m = parse_ascii_map("a---------------------------------b", scale=10)
+    matcher = OnlineMatcher(m.graph)
+    fixes = drive(m, "ab", speed=10, noise=3.0, seed=3)
+    st = matcher.new_session()
+    first = matcher.update(st, fixes[0])
+    assert first.edge == m.edge("a", "b")
+
+    def no_search(*args: object, **kw: object) -> None:
+        raise AssertionError("searched the index between intersections")
+
+    matcher.index.query = no_search  # type: ignore[method-assign]
+    for f in fixes[1:-3]:
+        r = matcher.update(st, f)
+        assert r.state is State.ON_ROAD and r.edge == m.edge("a", "b")
+        assert r.candidates == ()
+    xy = np.array(m.graph.edge_xy(m.edge("a", "b")))
+    assert 0.0 <= r.offset <= np.hypot(*(xy[-1] - xy[0]))
+
+
+@pytest.mark.parametrize(
+    ("route", "turn"),
+    [("abc", Turn.STRAIGHT), ("abn", Turn.LEFT), ("abs", Turn.RIGHT), ("cbs", Turn.LEFT), ("nbc", Turn.LEFT)],
+)
+def test_turns_at_a_crossing(route: str, turn: Turn) -> None:
+    m = parse_ascii_map(CROSS, scale=10)
+    matcher = OnlineMatcher(m.graph)
+    res = run(matcher, drive(m, route, speed=8, noise=2.0, seed=7, heading_noise=3.0))
+    assert committed_edges(res) == [m.edge(route[0], route[1]), m.edge(route[1], route[2])]
+    turns = [r.turn for r in res if r.turn is not Turn.NONE]
+    assert turns == [turn]
+    assert any(r.state is State.AMBIGUOUS and len(r.candidates) >= 1 for r in res)
+
+
+def test_ambiguous_then_corrected_on_leaving() -> None:
+    # a fork: the vehicle drives a-b-c, but the first fix after b lies on the branch to d
+    m = parse_ascii_map(
+        """
+        a-----b-----------c
+               \\
+                d
+        """,
+        scale=10,
+    )
+    matcher = OnlineMatcher(m.graph)
+    b, c, d = m.xy("b"), m.xy("c"), m.xy("d")
+    east = (c - b) / np.linalg.norm(c - b)
+    diag = (d - b) / np.linalg.norm(d - b)
+    fixes = drive(m, "ab", speed=8)
+    t = fixes[-1].time
+    pts = [(b + 8 * diag, 153.4)] + [(b + s * east, 90.0) for s in (16, 24, 32, 40)]
+    for i, (p, hd) in enumerate(pts):
+        lon, lat = to_lonlat(m.graph.crs, [p[0]], [p[1]])[0]
+        fixes.append(Fix(time=t + i + 1, lat=lat, lon=lon, heading=hd, speed=8, distance=8, gps_valid=True))
+    res = run(matcher, fixes)
+    wrong = [r for r in res if r.edge == m.edge("b", "d")]
+    assert len(wrong) == 1 and wrong[0].state is State.AMBIGUOUS
+    assert {c.edge for c in wrong[0].candidates} >= {m.edge("b", "d"), m.edge("b", "c")}
+    corrections = [r.correction for r in res if r.correction is not None]
+    assert len(corrections) == 1
+    corr = corrections[0]
+    assert corr.edges == (m.edge("b", "c"),)
+    assert corr.replaced_edges == (m.edge("b", "d"),)
+    assert corr.time_from == corr.time_to == wrong[0].time
+    assert res[-1].edge == m.edge("b", "c") and res[-1].state is State.ON_ROAD
+
+
+def test_reinitialises_when_the_fix_stays_off_the_road() -> None:
+    m = parse_ascii_map(
+        """
+        a-----------------------b
+
+        c-----------------------d
+        """,
+        scale=10,
+    )
+    matcher = OnlineMatcher(m.graph)
+    on_ab = drive(m, "ab", speed=10)[:8]
+    # from t=8 the fixes run along c-d (40 m away): far beyond 4 sigma of a-b
+    start = on_ab[-1].time + 1
+    on_cd = drive(m, "cd", speed=10, t0=start, start_offset=80.0)
+    res = run(matcher, on_ab + on_cd)
+    assert all(r.edge == m.edge("a", "b") and r.state is State.ON_ROAD for r in res[:8])
+    states = [r.state for r in res[8:]]
+    assert states[0] is State.OFF_ROAD
+    k = states.index(State.REINITIALISED)
+    assert 5 <= k <= 11  # reinit_time 10 s or reinit_distance 100 m
+    assert all(r.edge == m.edge("c", "d") for r in res[8 + k :])
+    assert res[-1].state is State.ON_ROAD
+
+
+def test_one_way_is_never_matched_against_its_direction() -> None:
+    # a>b is one-way eastbound; the vehicle drives west exactly on it: it must be on d->c
+    m = parse_ascii_map(
+        """
+        a>>>>>>>>>>>>>>>>>>>>>>b
+
+        c----------------------d
+        """,
+        scale=10,
+    )
+    matcher = OnlineMatcher(m.graph)
+    fixes = drive(m, "ba", speed=10, sigma=10.0)
+    res = run(matcher, fixes)
+    assert all(r.edge != m.edge("a", "b") for r in res)
+    assert all(r.edge == m.edge("d", "c") for r in res)
+    with pytest.raises(KeyError):
+        m.edge("b", "a")
+
+
+@pytest.mark.parametrize(("kind", "expected"), [("no", "c"), ("only", "d")])
+def test_turn_restriction_decides_an_even_fork(kind: str, expected: str) -> None:
+    # the vehicle drives exactly between b-c (east) and b-d (north) without heading
+    drawing = """
+          d
+          |
+    a-----b-----c
+    """
+    m = parse_ascii_map(drawing, scale=10, restrictions=[("a", "b", "d", kind)])
+    matcher = OnlineMatcher(m.graph)
+    b = m.xy("b")
+    pts = [tuple(m.xy("a")), tuple(b), tuple(b + np.array([14.0, 14.0]))]
+    fixes = [
+        Fix(time=f.time, lat=f.lat, lon=f.lon, distance=f.distance, speed=f.speed)
+        for f in drive(m, "", points=pts, speed=5)  # type: ignore[arg-type]
+    ]
+    res = run(matcher, fixes)
+    after = [r.edge for r in res if r.edge not in (m.edge("a", "b"), m.edge("b", "a"))]
+    assert after and set(after) == {m.edge("b", expected)}
+
+
+def test_u_turn_at_a_dead_end_and_at_a_crossing() -> None:
+    m = parse_ascii_map(
+        """
+        a-------b-------c
+                |
+                d
+        """,
+        scale=10,
+    )
+    matcher = OnlineMatcher(m.graph)
+    res = run(matcher, drive(m, "abcba", speed=8, noise=1.5, seed=2))
+    seq = committed_edges(res)
+    assert seq == [m.edge("a", "b"), m.edge("b", "c"), m.edge("c", "b"), m.edge("b", "a")]
+    assert [r.turn for r in res if r.turn is not Turn.NONE] == [Turn.STRAIGHT, Turn.U_TURN, Turn.STRAIGHT]
+    # U-turn at the crossing b itself (legal, penalised)
+    res = run(matcher, drive(m, "aba", speed=6, noise=1.0, seed=4))
+    assert committed_edges(res) == [m.edge("a", "b"), m.edge("b", "a")]
+    assert [r.turn for r in res if r.turn is not Turn.NONE] == [Turn.U_TURN]
+
+
+def test_gps_outage_carries_the_vehicle_by_distance() -> None:
+    m = parse_ascii_map(
+        """
+        a-----------------------------------------b
+                                                  |
+                                                  |
+                                                  |
+                                                  |
+                                                  |
+                                                  c
+        """,
+        scale=10,
+    )
+    matcher = OnlineMatcher(m.graph)
+    truth = drive(m, "abc", speed=10)
+    ahead = drive(m, "abc", speed=11.5)  # dead reckoning runs 15 % ahead ...
+    ab = m.edge("a", "b")
+    fixes = truth[:5]
+    for i in range(5, len(ahead)):
+        f = ahead[i]
+        x, y = to_xy_one(m, f)
+        lon, lat = to_lonlat(m.graph.crs, [x], [y + 1.0 * (i - 5)])[0]  # ... and drifts 1 m/s north
+        fixes.append(Fix(time=i, lat=lat, lon=lon, heading=f.heading, speed=10, distance=10, gps_valid=False))
+    res = run(matcher, fixes)
+    on_ab = [(i, r) for i, r in enumerate(res) if r.edge == ab]
+    assert len(on_ab) >= 40
+    for i, r in on_ab[5:]:
+        assert r.offset == pytest.approx(10.0 * i, abs=3.0), i
+        raw_x, _ = to_xy_one(m, fixes[i])
+        if 11.5 * i < 415.0:
+            assert raw_x - m.xy("a")[0] > 10.0 * i + 0.1 * 10.0 * i - 1.0  # the raw fix is well ahead
+    assert committed_edges(res) == [ab, m.edge("b", "c")]
+    assert all(r.state in (State.ON_ROAD, State.AMBIGUOUS) for r in res)
+
+
+def to_xy_one(m: AsciiMap, f: Fix) -> tuple[float, float]:
+    from graph.projection import point_to_xy
+
+    return point_to_xy(m.graph.crs, f.lon, f.lat)
+
+
+def test_far_off_fix_is_off_road_and_keeps_tracking() -> None:
+    m = parse_ascii_map(CROSS, scale=10)
+    matcher = OnlineMatcher(m.graph)
+    st = matcher.new_session()
+    fixes = drive(m, "abc", speed=10)
+    matcher.update(st, fixes[0])
+    r = matcher.update(st, Fix(time=fixes[1].time, lat=10.0, lon=10.0))
+    assert r.state is State.OFF_ROAD and r.edge == -1
+    assert matcher.update(st, fixes[2]).edge == m.edge("a", "b")
+
+
+def test_validation_errors_leave_the_state_unchanged() -> None:
+    m = parse_ascii_map(CROSS, scale=10)
+    matcher = OnlineMatcher(m.graph)
+    st = matcher.new_session()
+    fixes = drive(m, "abc", speed=10)
+    matcher.update(st, fixes[0])
+    matcher.update(st, fixes[1])
+    before = st.to_bytes()
+    bad = [
+        Fix(time=fixes[1].time, lat=fixes[2].lat, lon=fixes[2].lon),  # repeated time
+        Fix(time=fixes[0].time, lat=fixes[2].lat, lon=fixes[2].lon),  # backwards
+        Fix(time=5.0, lat=math.nan, lon=fixes[2].lon),
+        Fix(time=5.0, lat=91.0, lon=0.0),
+        Fix(time=5.0, lat=0.0, lon=math.inf),
+        Fix(time=5.0, lat=fixes[2].lat, lon=fixes[2].lon, heading=361.0),
+        Fix(time=5.0, lat=fixes[2].lat, lon=fixes[2].lon, heading=-1.0),
+        Fix(time=math.inf, lat=fixes[2].lat, lon=fixes[2].lon),
+        Fix(time=5.0, lat=fixes[2].lat, lon=fixes[2].lon, speed=-3.0),
+    ]
+    for f in bad:
+        with pytest.raises(ValidationError):
+            matcher.update(st, f)
+        assert st.to_bytes() == before
+
+
+def test_state_round_trips_and_moves_between_matchers() -> None:
+    m = parse_ascii_map(CROSS, scale=10)
+    fixes = drive(m, "abn", speed=8, noise=2.0, seed=11)
+    one = OnlineMatcher(m.graph)
+    ref = run(one, fixes)
+    st = one.new_session()
+    out = []
+    for f in fixes:
+        st = SessionState.from_bytes(st.to_bytes())
+        out.append(OnlineMatcher(m.graph).update(st, f))
+    assert [(r.edge, r.state, r.turn) for r in out] == [(r.edge, r.state, r.turn) for r in ref]
+    assert len(st.to_bytes()) < 2000
+    with pytest.raises(ValidationError):
+        SessionState.from_bytes(b"not json")
+    with pytest.raises(ValidationError):
+        SessionState.from_bytes(b'{"v": 1}')
+
+
+def test_scalar_projection_agrees_with_project_to_edge() -> None:
+    m: AsciiMap = parse_ascii_map(CROSS, scale=10)
+    matcher = OnlineMatcher(m.graph)
+    rng = np.random.default_rng(0)
+    for e in range(m.graph.n_edges):
+        for x, y in rng.normal(m.xy("b"), 60.0, size=(20, 2)):
+            off, dist, px, py, _ = matcher._project(e, float(x), float(y))
+            ref = project_to_edge(m.graph, e, float(x), float(y))
+            assert (off, dist, px, py) == pytest.approx(ref, abs=1e-9)

@@ -1,0 +1,182 @@
+"""Map preparation from GIS road centre lines: tiny committed GeoJSON, generated Shapefile and
+GeoPackage, and Kubicka roads.geojson files."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import geopandas as gpd
+import networkx as nx
+import numpy as np
+import pytest
+import shapely
+from prep_checks import check_map, to_nx
+
+from graph.build import build_map
+from graph.errors import InputError
+from graph.gis import BOTH, FORWARD, REVERSE, GisOptions, OnewayConvention, lines_to_graph
+from graph.road_graph import RoadGraph
+
+DATA = Path(__file__).parent / "data"
+FT_TF = DATA / "roads_ft_tf.geojson"
+ORIGIN = (14.42, 50.08)  # origin of the tiny map; one unit is 0.001 degree
+
+
+def _node(g: RoadGraph, x: float, y: float) -> int:
+    ll = np.array([ORIGIN[0] + x * 0.001, ORIGIN[1] + y * 0.001])
+    d = np.hypot(*(g.node_lonlat - ll).T)
+    i = int(np.argmin(d))
+    assert d[i] < 1e-7, (x, y)
+    return i
+
+
+def _edges(g: RoadGraph, a: tuple[float, float], b: tuple[float, float]) -> list[int]:
+    u, v = _node(g, *a), _node(g, *b)
+    return [int(e) for e in g.out_of(u) if g.edge_v[e] == v]
+
+
+def test_ft_tf_oneways_and_fields() -> None:
+    g = build_map(FT_TF)
+    assert g.n_nodes == 8 and g.n_edges == 10
+    # DIR=FT: only in digitised direction; DIR=TF: only against it
+    assert len(_edges(g, (2, 0), (3, 0))) == 1 and _edges(g, (3, 0), (2, 0)) == []
+    assert len(_edges(g, (2, 0), (2, 1))) == 1 and _edges(g, (2, 1), (2, 0)) == []
+    (ft,) = _edges(g, (2, 0), (3, 0))
+    assert g.edge_reverse[ft] == -1 and g.edge_name(ft) == "Main" and g.edge_speed_kph[ft] == 50
+    (tf,) = _edges(g, (2, 0), (2, 1))
+    assert g.edge_speed_kph[tf] == pytest.approx(30 * 1.609344, rel=1e-6)
+    # B, and a null value, are two-way; the MultiLineString's two parts become one bent edge
+    (bend,) = _edges(g, (3, 0), (4, -1))
+    assert g.edge_reverse[bend] >= 0 and len(g.edge_xy(bend)) == 3 and g.edge_way_id[bend] == 4
+    assert len(_edges(g, (3, 1), (3, 0))) == 1
+    # the first line's middle vertex is simplified away
+    (main,) = _edges(g, (0, 0), (2, 0))
+    assert len(g.edge_xy(main)) == 3
+    # the bridge crosses Main without a shared vertex: not connected by default
+    assert nx.number_weakly_connected_components(to_nx(g)) == 2
+    rep = g.meta["report"]
+    assert rep["dropped"] == {"not a line": 1}
+    assert rep["fields"]["oneway_field"] == "DIR" and rep["fields"]["name_field"] == "NAME"
+    raw, _, _, _ = lines_to_graph(FT_TF, GisOptions())
+    check_map(g, raw)
+
+
+def test_noding_at_crossings_is_an_option() -> None:
+    g = build_map(FT_TF, node_crossings=True)
+    assert nx.number_weakly_connected_components(to_nx(g)) == 1
+    assert g.n_nodes == 9 and g.n_edges == 14
+    raw, _, _, _ = lines_to_graph(FT_TF, GisOptions(node_crossings=True))
+    check_map(g, raw)
+    # one-way pieces keep their direction after noding
+    assert _edges(g, (3, 0), (2, 0)) == []
+
+
+def test_oneway_conventions() -> None:
+    c = OnewayConvention()
+    assert [c.code(v) for v in (True, "yes", 1, "FT", "T")] == [FORWARD] * 5
+    assert [c.code(v) for v in (-1, "-1", "TF", "reverse")] == [REVERSE] * 4
+    assert [c.code(v) for v in (False, "no", 0, "B", None, float("nan"), "F")] == [BOTH] * 7
+    assert c.code("sometimes") is None
+    custom = OnewayConvention.parse("forward=N;reverse=S;both=NS")
+    assert (custom.code("n"), custom.code("S"), custom.code("ns")) == (FORWARD, REVERSE, BOTH)
+    with pytest.raises(InputError, match="unknown group"):
+        OnewayConvention.parse("up=1")
+    # a convention that reads FT as two-way and B as one-way changes the graph
+    g = build_map(FT_TF, oneway_convention="forward=B;both=FT,TF")
+    assert len(_edges(g, (3, 0), (2, 0))) == 1 and _edges(g, (4, -1), (3, 0)) == []
+
+
+def test_missing_field_is_an_error() -> None:
+    with pytest.raises(InputError, match="one-way field 'ONEWAY'"):
+        build_map(FT_TF, oneway_field="ONEWAY")
+
+
+def _frame() -> gpd.GeoDataFrame:
+    df = gpd.read_file(FT_TF)
+    return df[df.geometry.geom_type != "Point"]
+
+
+def test_shapefile_in_projected_crs_matches_geojson(tmp_path: Path) -> None:
+    shp = tmp_path / "roads.shp"
+    _frame().to_crs("EPSG:3035").to_file(shp)
+    g = build_map(shp)
+    ref = build_map(FT_TF)
+    assert (g.n_nodes, g.n_edges) == (ref.n_nodes, ref.n_edges)
+    assert g.crs == ref.crs
+    assert np.sort(g.edge_len) == pytest.approx(np.sort(ref.edge_len), abs=1e-3)
+    assert int((g.edge_reverse < 0).sum()) == int((ref.edge_reverse < 0).sum()) == 2
+
+
+@pytest.mark.filterwarnings("ignore:.crs. was not provided")
+def test_geopackage_without_crs(tmp_path: Path) -> None:
+    projected = _frame().to_crs("EPSG:3035").set_crs(None, allow_override=True)
+    p = tmp_path / "nocrs.gpkg"
+    projected.to_file(p, driver="GPKG")
+    with pytest.raises(InputError, match="no readable CRS"):
+        build_map(p)
+    assert build_map(p, crs="EPSG:3035").n_edges == 10
+    with pytest.raises(InputError, match="unreadable CRS"):
+        build_map(p, crs="EPSG:not-a-crs")
+    lonlat = tmp_path / "lonlat.gpkg"
+    _frame().set_crs(None, allow_override=True).to_file(lonlat, driver="GPKG")
+    assert build_map(lonlat).n_edges == 10  # coordinates fit lon/lat: assumed WGS84
+
+
+def test_snap_tolerance(tmp_path: Path) -> None:
+    # two lines whose ends are ~0.4 m apart
+    a = shapely.LineString([(14.42, 50.08), (14.421, 50.08)])
+    b = shapely.LineString([(14.421005, 50.08), (14.422, 50.08)])
+    p = tmp_path / "gap.geojson"
+    gpd.GeoDataFrame({"oneway": [False, False]}, geometry=[a, b], crs="EPSG:4326").to_file(p)
+    assert build_map(p).n_nodes == 4
+    g = build_map(p, snap_tolerance=1.0)
+    assert g.n_nodes == 2 and g.n_edges == 2  # joined, and the joint simplified away
+    assert g.meta["report"]["fields"]["snapped_endpoints"] == 1
+
+
+def test_no_line_features(tmp_path: Path) -> None:
+    p = tmp_path / "points.geojson"
+    p.write_text(
+        json.dumps(
+            {
+                "type": "FeatureCollection",
+                "features": [
+                    {
+                        "type": "Feature",
+                        "properties": {},
+                        "geometry": {"type": "Point", "coordinates": [1, 2]},
+                    }
+                ],
+            }
+        )
+    )
+    with pytest.raises(InputError, match="no line features"):
+        build_map(p)
+
+
+@pytest.mark.parametrize("track", ["00000021", "00000070", "00000007"])
+def test_kubicka_maps(kubicka_dir: Path, track: str) -> None:
+    src = kubicka_dir / track / "roads.geojson"
+    meta = json.loads((kubicka_dir / track / "meta.json").read_text())
+    g = build_map(src)
+    raw, _, _, _ = lines_to_graph(src, GisOptions())
+    assert raw.number_of_nodes() == meta["nodes"] and raw.number_of_edges() == meta["arcs"]
+    check_map(g, raw)
+    G = to_nx(g)
+    assert nx.number_weakly_connected_components(G) == meta["weak_components"]
+    assert nx.number_strongly_connected_components(G) == meta["strong_components"]
+    # one-way length: every one-way feature, and nothing else, has no reverse
+    feats = gpd.read_file(src).to_crs(g.crs)
+    oneway_len = float(feats.length[feats["oneway"].astype(bool)].sum())
+    assert float(g.edge_len[g.edge_reverse < 0].sum()) == pytest.approx(oneway_len, rel=1e-6)
+    assert (g.edge_way_id >= 0).all()
+    # node ids are the source's node indices (the u/v fields)
+    assert g.meta["report"]["fields"]["node_ids"] == "u/v fields"
+    assert set(g.node_id.tolist()) <= set(feats["u"]) | set(feats["v"])
+    ll = gpd.read_file(src)
+    for _, f in ll.iloc[:50].iterrows():
+        hit = np.nonzero(g.node_id == f["u"])[0]
+        if len(hit):
+            x, y = f.geometry.coords[0]
+            assert g.node_lonlat[hit[0]] == pytest.approx([x, y], abs=1e-9)

@@ -1,0 +1,179 @@
+"""TLS, mutual TLS and the bearer token, with a throwaway CA made in the test (``cryptography``)."""
+
+from __future__ import annotations
+
+import datetime as dt
+import ipaddress
+from pathlib import Path
+
+import grpc
+import pytest
+from cryptography import x509
+from cryptography.hazmat.primitives import hashes, serialization
+from cryptography.hazmat.primitives.asymmetric import ec
+from cryptography.x509.oid import NameOID
+from grpc_health.v1 import health_pb2, health_pb2_grpc
+from online_helpers import drive
+from service_util import city, local_config, running
+
+from mapmatch.errors import ConfigError
+from service.client import MapMatchClient
+from service.gen.mapmatch.v1 import mapmatch_pb2 as pb
+from service.gen.mapmatch.v1 import mapmatch_pb2_grpc as pb_grpc
+
+AMAP = city()
+
+
+def _key() -> ec.EllipticCurvePrivateKey:
+    return ec.generate_private_key(ec.SECP256R1())
+
+
+def _cert(
+    subject: str, key: ec.EllipticCurvePrivateKey, issuer: x509.Certificate | None, issuer_key, *, ca: bool
+) -> x509.Certificate:
+    now = dt.datetime.now(dt.UTC)
+    name = x509.Name([x509.NameAttribute(NameOID.COMMON_NAME, subject)])
+    b = (
+        x509.CertificateBuilder()
+        .subject_name(name)
+        .issuer_name(issuer.subject if issuer else name)
+        .public_key(key.public_key())
+        .serial_number(x509.random_serial_number())
+        .not_valid_before(now - dt.timedelta(minutes=5))
+        .not_valid_after(now + dt.timedelta(hours=1))
+        .add_extension(x509.BasicConstraints(ca=ca, path_length=None), critical=True)
+    )
+    if not ca:
+        b = b.add_extension(
+            x509.SubjectAlternativeName(
+                [x509.DNSName("localhost"), x509.IPAddress(ipaddress.ip_address("127.0.0.1"))]
+            ),
+            critical=False,
+        )
+    return b.sign(issuer_key, hashes.SHA256())
+
+
+def _write(path: Path, cert: x509.Certificate, key: ec.EllipticCurvePrivateKey) -> tuple[Path, Path]:
+    c, k = path.with_suffix(".crt"), path.with_suffix(".key")
+    c.write_bytes(cert.public_bytes(serialization.Encoding.PEM))
+    k.write_bytes(
+        key.private_bytes(
+            serialization.Encoding.PEM, serialization.PrivateFormat.PKCS8, serialization.NoEncryption()
+        )
+    )
+    return c, k
+
+
+@pytest.fixture(scope="module")
+def pki(tmp_path_factory) -> dict[str, Path]:
+    d = tmp_path_factory.mktemp("pki")
+    ca_key = _key()
+    ca = _cert("test CA", ca_key, None, ca_key, ca=True)
+    other_key = _key()
+    other_ca = _cert("other CA", other_key, None, other_key, ca=True)
+    out: dict[str, Path] = {}
+    out["ca"], _ = _write(d / "ca", ca, ca_key)
+    out["other_ca"], _ = _write(d / "other_ca", other_ca, other_key)
+    sk, ck, rk = _key(), _key(), _key()
+    out["server_crt"], out["server_key"] = _write(
+        d / "server", _cert("localhost", sk, ca, ca_key, ca=False), sk
+    )
+    out["client_crt"], out["client_key"] = _write(
+        d / "client", _cert("vehicle-node-1", ck, ca, ca_key, ca=False), ck
+    )
+    out["rogue_crt"], out["rogue_key"] = _write(
+        d / "rogue", _cert("rogue", rk, other_ca, other_key, ca=False), rk
+    )
+    return out
+
+
+def _fix_req() -> pb.FixRequest:
+    from service import convert
+
+    return pb.FixRequest(vehicle_id="v", fix=convert.fix_to_proto(drive(AMAP, "ab")[0]))
+
+
+def test_tls_serves_verified_clients_and_refuses_plain_ones(pki):
+    cfg = local_config(tls_cert=pki["server_crt"], tls_key=pki["server_key"])
+    with running(cfg, {"city": AMAP.graph}) as (_, port):
+        with MapMatchClient(f"localhost:{port}", tls_ca=pki["ca"]) as client:
+            assert client.list_maps(timeout=10).maps[0].map_id == "city"
+            assert client.snap("v", drive(AMAP, "ab")[0]).time == 0.0
+        # a plain-text client cannot talk to a TLS server
+        ch = grpc.insecure_channel(f"127.0.0.1:{port}")
+        with pytest.raises(grpc.RpcError) as ei:
+            pb_grpc.MapMatchStub(ch).ListMaps(pb.ListMapsRequest(), timeout=3)
+        assert ei.value.code() == grpc.StatusCode.UNAVAILABLE
+        ch.close()
+        # a client trusting another CA refuses the server
+        with (
+            MapMatchClient(f"localhost:{port}", tls_ca=pki["other_ca"]) as client,
+            pytest.raises(grpc.RpcError),
+        ):
+            client.list_maps(timeout=3)
+
+
+def test_mutual_tls_needs_a_client_certificate_from_the_ca(pki):
+    cfg = local_config(tls_cert=pki["server_crt"], tls_key=pki["server_key"], client_ca=pki["ca"])
+    with running(cfg, {"city": AMAP.graph}) as (_, port):
+        with MapMatchClient(
+            f"localhost:{port}", tls_ca=pki["ca"], client_cert=pki["client_crt"], client_key=pki["client_key"]
+        ) as client:
+            assert client.list_maps(timeout=10).maps
+        with (
+            MapMatchClient(f"localhost:{port}", tls_ca=pki["ca"]) as client,
+            pytest.raises(grpc.RpcError) as ei,
+        ):
+            client.list_maps(timeout=3)
+        assert ei.value.code() == grpc.StatusCode.UNAVAILABLE
+        with (
+            MapMatchClient(
+                f"localhost:{port}",
+                tls_ca=pki["ca"],
+                client_cert=pki["rogue_crt"],
+                client_key=pki["rogue_key"],
+            ) as client,
+            pytest.raises(grpc.RpcError) as ei,
+        ):
+            client.list_maps(timeout=3)
+        assert ei.value.code() == grpc.StatusCode.UNAVAILABLE
+
+
+def test_bearer_token_is_checked_on_every_call_but_health(pki):
+    with running(local_config(token="s3cret"), {"city": AMAP.graph}) as (_, port):
+        ch = grpc.insecure_channel(f"127.0.0.1:{port}")
+        api = pb_grpc.MapMatchStub(ch)
+        for md in [(), (("authorization", "Bearer wrong"),), (("authorization", "s3cret"),)]:
+            with pytest.raises(grpc.RpcError) as ei:
+                api.SnapFix(_fix_req(), timeout=5, metadata=md)
+            assert ei.value.code() == grpc.StatusCode.UNAUTHENTICATED
+            with pytest.raises(grpc.RpcError) as ei:
+                list(api.StreamFixes(iter([_fix_req()]), timeout=5, metadata=md))
+            assert ei.value.code() == grpc.StatusCode.UNAUTHENTICATED
+            with pytest.raises(grpc.RpcError) as ei:
+                list(api.MatchTracks(pb.MatchTracksRequest(), timeout=5, metadata=md))
+            assert ei.value.code() == grpc.StatusCode.UNAUTHENTICATED
+        good = (("authorization", "Bearer s3cret"),)
+        assert api.SnapFix(_fix_req(), timeout=5, metadata=good).result.time == 0.0
+        assert next(api.StreamFixes(iter([_fix_req()]), timeout=5, metadata=good)).result
+        # probes need no token
+        health = health_pb2_grpc.HealthStub(ch)
+        st = health.Check(health_pb2.HealthCheckRequest(service=""), timeout=5).status
+        assert st == health_pb2.HealthCheckResponse.SERVING
+        ch.close()
+        with MapMatchClient(f"127.0.0.1:{port}", token="s3cret") as client:
+            assert client.list_maps().maps
+
+
+def test_tls_config_must_be_complete_and_readable(tmp_path, pki):
+    with pytest.raises(ConfigError):
+        local_config(tls_cert=pki["server_crt"])
+    with pytest.raises(ConfigError):
+        local_config(client_ca=pki["ca"])
+    with (
+        pytest.raises(ConfigError, match="cannot read TLS file"),
+        running(
+            local_config(tls_cert=tmp_path / "nope.crt", tls_key=pki["server_key"]), {"city": AMAP.graph}
+        ),
+    ):
+        pass
