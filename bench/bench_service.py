@@ -397,6 +397,13 @@ def main() -> int:
                 print(
                     f"  sent {a:4.0f}-{b:<4.0f} s   p50 {q[0]:.2f} ms, p99 {q[1]:.2f} ms ({len(sel)} fixes)"
                 )
+        sec = np.floor(r["at"][steady]).astype(int)
+        per_s = [np.percentile(lat[steady][sec == k], 99) for k in np.unique(sec)]
+        if per_s:
+            print(
+                f"  per-second p99: median {np.median(per_s):.2f} ms, "
+                f"{sum(p > 10.0 for p in per_s)} of {len(per_s)} seconds above 10 ms"
+            )
         print(f"server RSS start / end    {rss0 / 2**20:.1f} / {rss1 / 2**20:.1f} MiB")
         print(f"server CPU                {r['cpu']:.0f} % of one core")
 

@@ -77,6 +77,7 @@ def build_map(
     highway_field: str | None = None,
     id_field: str | None = None,
     node_id_fields: tuple[str, str] | None = None,
+    topology: str = "auto",
     crs: str | None = None,
     layer: str | None = None,
     network_type: str = "drive",
@@ -96,7 +97,7 @@ def build_map(
         Merge complex intersections whose nodes lie within this many metres
         (:func:`osmnx.consolidate_intersections`); ``None`` (default) keeps every node.
     snap_tolerance, node_crossings, oneway_field, oneway_convention, name_field, speed_field,
-    highway_field, id_field, node_id_fields, crs, layer
+    highway_field, id_field, node_id_fields, topology, crs, layer
         GIS options, see :class:`graph.gis.GisOptions`.
     network_type
         osmnx network type for OSM input: ``"drive"`` (default) or ``"drive_service"``.
@@ -169,6 +170,7 @@ def build_map(
                 highway_field=highway_field,
                 id_field=id_field,
                 node_id_fields=node_id_fields,
+                topology=topology,
                 snap_tolerance=snap_tolerance,
                 node_crossings=node_crossings,
                 crs=crs,
@@ -186,6 +188,7 @@ def build_map(
                     "highway_field": highway_field,
                     "id_field": id_field,
                     "node_id_fields": list(node_id_fields) if node_id_fields else None,
+                    "topology": topology,
                     "crs": crs,
                     "layer": layer,
                 }

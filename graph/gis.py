@@ -103,7 +103,13 @@ class GisOptions:
         ``(west, south, east, north)`` in degrees: keep only lines that intersect it.
     node_id_fields
         Integer fields with the ids of each line's first and last node; ``None`` uses ``u``
-        and ``v`` when present and consistent (osmnx exports, Kubicka data).
+        and ``v`` when present (osmnx exports, Kubicka data).
+    topology
+        ``"auto"`` (default): nodes from the node id fields when present and each id sits at
+        one place, else from shared endpoints; ``"endpoints"``: always from shared endpoints
+        (the ids are kept as node ids only if they agree); ``"ids"``: from the id fields, or
+        an error. With ids, distinct nodes at the same position (grade-separated crossings)
+        stay apart.
     """
 
     oneway_field: str | None = None
@@ -118,6 +124,7 @@ class GisOptions:
     layer: str | None = None
     bbox: tuple[float, float, float, float] | None = None
     node_id_fields: tuple[str, str] | None = None
+    topology: str = "auto"
 
 
 def _pick(columns: Iterable[str], wanted: str | None, candidates: tuple[str, ...], what: str) -> str | None:
@@ -220,6 +227,9 @@ def read_lines(path: Path, opts: GisOptions) -> tuple[Any, dict[str, int]]:
     return gdf, dropped
 
 
+TOPOLOGIES = ("auto", "endpoints", "ids")
+
+
 def lines_to_graph(
     path: Path, opts: GisOptions
 ) -> tuple[nx.MultiDiGraph, str, dict[str, int], dict[str, Any]]:
@@ -233,6 +243,8 @@ def lines_to_graph(
     """
     from graph.projection import to_xy
 
+    if opts.topology not in TOPOLOGIES:
+        raise InputError(f"unknown topology {opts.topology!r} (use {', '.join(TOPOLOGIES)})")
     gdf, dropped = read_lines(path, opts)
     cols = [c for c in gdf.columns if c != gdf.geometry.name]
     oneway_f = _pick(cols, opts.oneway_field, ("oneway", "one_way", "dir", "direction"), "one-way")
@@ -285,27 +297,25 @@ def lines_to_graph(
     start = np.zeros(n_feat + 1, dtype=np.int64)
     np.cumsum(counts, out=start[1:])
     first, last = start[:-1], start[1:] - 1
-    # endpoints -> nodes: exact duplicates first, then snapping within the tolerance
     ends = np.concatenate([first, last])
     end_xy = xy[ends]
-    uniq, inv = np.unique(np.round(end_xy, 6), axis=0, return_inverse=True)
-    inv = inv.ravel()
-    if opts.snap_tolerance > 0 and len(uniq) > 1:
-        tree = shapely.STRtree(shapely.points(uniq))
-        pa, pb = tree.query(shapely.points(uniq), predicate="dwithin", distance=opts.snap_tolerance)
-        keep = pa < pb
-        lab = union_find(len(uniq), pa[keep].astype(np.int64), pb[keep].astype(np.int64))
-        _, lab = np.unique(lab, return_inverse=True)
+    src_ids = _endpoint_id_values(gdf, opts, n_feat)
+    node_of_end, end_ids = None, None
+    if opts.topology == "ids" or (opts.topology == "auto" and src_ids is not None):
+        node_of_end, end_ids = _nodes_from_ids(src_ids, end_xy, opts)
+    if node_of_end is None:
+        node_of_end = _nodes_from_coords(end_xy, opts.snap_tolerance)
+        end_ids = _consistent_ids(src_ids, node_of_end)
+        info["topology"] = "shared endpoints"
     else:
-        lab = np.arange(len(uniq))
-    n_end_nodes = int(lab.max()) + 1 if len(lab) else 0
-    node_of_end = lab[inv]
+        info["topology"] = "node id fields"
+    n_end_nodes = int(node_of_end.max()) + 1 if len(node_of_end) else 0
     # node position: mean of its endpoints
     node_xy = np.zeros((n_end_nodes, 2))
     np.add.at(node_xy, node_of_end, end_xy)
     node_xy /= np.bincount(node_of_end, minlength=n_end_nodes)[:, None]
     node_ll = ll[ends][np.unique(node_of_end, return_index=True)[1]]
-    info["snapped_endpoints"] = int(len(uniq) - n_end_nodes)
+    info["merged_endpoints"] = int(len(np.unique(np.round(end_xy, 6), axis=0)) - n_end_nodes)
 
     # every vertex is a node: endpoints shared, interior vertices private to their feature
     vnode = np.empty(len(xy), dtype=np.int64)
@@ -317,7 +327,6 @@ def lines_to_graph(
     all_ll = np.vstack([node_ll, ll[interior]])
     # node keys are the source ids: u/v fields when they name the endpoints consistently,
     # else 0..N-1; interior vertices get negative keys
-    end_ids = _endpoint_ids(gdf, opts, node_of_end, n_end_nodes, n_feat)
     info["node_ids"] = "u/v fields" if end_ids is not None else "generated"
     keys = np.concatenate(
         [
@@ -370,13 +379,11 @@ def lines_to_graph(
     return G, crs, dropped, info
 
 
-def _endpoint_ids(
-    gdf: Any, opts: GisOptions, node_of_end: NDArray[np.int64], n_nodes: int, n_feat: int
-) -> NDArray[np.int64] | None:
-    """Endpoint node ids from the u/v fields (as in osmnx's exports and the Kubicka data).
+def _endpoint_id_values(gdf: Any, opts: GisOptions, n_feat: int) -> NDArray[np.int64] | None:
+    """Ids of every line's first then last node from the u/v fields, or None when unusable.
 
-    Used only when every node gets exactly one non-negative id and no two nodes share one;
-    otherwise ``None`` (ids are generated).
+    Unusable: fields absent, not integers, negative, or lines split into parts or pieces
+    (multi-part lines, noding), which have no ids of their own.
     """
     fields = opts.node_id_fields
     if fields is None:
@@ -385,19 +392,68 @@ def _endpoint_ids(
             return None
         fields = (cols["u"], cols["v"])
     elif any(f not in gdf.columns for f in fields):
-        raise InputError(f"node id fields {fields} are not in the data")
+        raise InputError(f"node id fields {', '.join(fields)} are not in the data")
     if opts.node_crossings or gdf.index.has_duplicates or len(gdf) != n_feat:
-        return None  # parts of multi-part lines or noded pieces have no ids of their own
+        return None
     try:
-        u = np.asarray(gdf[fields[0]], dtype=np.int64)
-        v = np.asarray(gdf[fields[1]], dtype=np.int64)
+        ids = np.concatenate(
+            [np.asarray(gdf[fields[0]], dtype=np.int64), np.asarray(gdf[fields[1]], dtype=np.int64)]
+        )
     except (TypeError, ValueError):
         return None
-    ids = np.concatenate([u, v])
-    out = np.full(n_nodes, -1, dtype=np.int64)
+    return ids if (ids >= 0).all() else None
+
+
+def _nodes_from_ids(
+    ids: NDArray[np.int64] | None, end_xy: NDArray[np.float64], opts: GisOptions
+) -> tuple[NDArray[np.int64] | None, NDArray[np.int64] | None]:
+    """Endpoint -> node from the id fields, if every id sits at one place (within 1 m or the
+    snap tolerance). Returns ``(None, None)`` for ``topology="auto"`` when that fails."""
+    if ids is None:
+        if opts.topology == "ids":
+            raise InputError("topology from node ids needs integer u/v fields (see --node-id-fields)")
+        return None, None
+    uniq, inv = np.unique(ids, return_inverse=True)
+    inv = inv.ravel()
+    n = len(uniq)
+    mean = np.zeros((n, 2))
+    np.add.at(mean, inv, end_xy)
+    mean /= np.bincount(inv, minlength=n)[:, None]
+    spread = float(np.hypot(*(end_xy - mean[inv]).T).max()) if len(inv) else 0.0
+    if spread > max(1.0, opts.snap_tolerance):
+        if opts.topology == "ids":
+            raise InputError(f"node id fields name line ends up to {spread:.1f} m apart: not node ids")
+        log.warning("u/v fields name line ends up to %.1f m apart; using shared endpoints instead", spread)
+        return None, None
+    return inv.astype(np.int64), uniq.astype(np.int64)
+
+
+def _nodes_from_coords(end_xy: NDArray[np.float64], tol: float) -> NDArray[np.int64]:
+    """Endpoint -> node: identical positions first, then snapping within ``tol`` metres."""
+    uniq, inv = np.unique(np.round(end_xy, 6), axis=0, return_inverse=True)
+    inv = inv.ravel()
+    if tol > 0 and len(uniq) > 1:
+        tree = shapely.STRtree(shapely.points(uniq))
+        pa, pb = tree.query(shapely.points(uniq), predicate="dwithin", distance=tol)
+        keep = pa < pb
+        lab = union_find(len(uniq), pa[keep].astype(np.int64), pb[keep].astype(np.int64))
+        _, lab = np.unique(lab, return_inverse=True)
+    else:
+        lab = np.arange(len(uniq))
+    return np.asarray(lab, dtype=np.int64).ravel()[inv]
+
+
+def _consistent_ids(
+    ids: NDArray[np.int64] | None, node_of_end: NDArray[np.int64]
+) -> NDArray[np.int64] | None:
+    """One id per node when the u/v fields agree with the coordinate topology, else None."""
+    if ids is None or not len(node_of_end):
+        return None
+    n = int(node_of_end.max()) + 1
+    out = np.full(n, -1, dtype=np.int64)
     out[node_of_end] = ids
-    if (out < 0).any() or not np.array_equal(out[node_of_end], ids) or len(np.unique(out)) != n_nodes:
-        log.info("u/v fields do not name the line endpoints consistently; generating node ids")
+    if (out < 0).any() or not np.array_equal(out[node_of_end], ids) or len(np.unique(out)) != n:
+        log.info("u/v fields do not match the shared endpoints; generating node ids")
         return None
     return out
 

@@ -21,7 +21,7 @@ from graph.road_graph import RoadGraph
 from mapmatch import model
 from mapmatch.config import DEFAULT_CONFIG, MatchConfig
 from mapmatch.model import transition_logp_one
-from mapmatch.routing import RoutingArrays, Workspace, path_edges, route_block, search_args
+from mapmatch.routing import RoutingArrays, Workspace, _reset, _search, path_edges, search_args
 from mapmatch.types import MatchedPoint, PointStatus, Track, TrackMatch
 
 NEG_INF = -np.inf
@@ -268,6 +268,132 @@ def _thin(xy, valid, min_dist):  # type: ignore[no-untyped-def]
 
 
 @njit(cache=True)
+def _step(  # type: ignore[no-untyped-def]
+    a0,
+    a1,
+    b0,
+    b1,
+    cedge,
+    coff,
+    emis,
+    score,
+    bp,
+    bpu,
+    order,
+    best,
+    params,
+    trav,
+    dt,
+    bound,
+    reverse_tol,
+    out_ptr,
+    out_edges,
+    edge_v,
+    edge_len,
+    edge_rev,
+    r_ptr,
+    r_to,
+    r_kind,
+    dist,
+    pred,
+    done,
+    tgt,
+    touched,
+    heap_k,
+    heap_v,
+):
+    """One Viterbi step from candidates ``a0:a1`` to ``b0:b1``, routing as needed.
+
+    Sources are taken best score first. As every transition log-probability is <= 0, a source
+    can only improve target ``j`` when its score beats ``best[j]``, and only through a route
+    shorter than ``trav + beta * (score - best[j])``: the search bound shrinks accordingly and
+    the result stays exact. Returns whether any target was reached.
+    """
+    ka = a1 - a0
+    kb = b1 - b0
+    beta = params[0]
+    for i in range(ka):
+        order[i] = a0 + i
+    # insertion sort by descending score (k is small)
+    for i in range(1, ka):
+        x = order[i]
+        q = i - 1
+        while q >= 0 and score[order[q]] < score[x]:
+            order[q + 1] = order[q]
+            q -= 1
+        order[q + 1] = x
+    for j in range(kb):
+        best[j] = -np.inf
+        bp[b0 + j] = -1
+        bpu[b0 + j] = False
+    nuniq = 0
+    for j in range(b0, b1):
+        if tgt[cedge[j]] == 0:
+            tgt[cedge[j]] = 1
+            nuniq += 1
+    for oi in range(ka):
+        i = order[oi]
+        si = score[i]
+        if si == -np.inf:
+            break
+        worst = np.inf
+        for j in range(kb):
+            worst = min(worst, best[j])
+        if worst >= si:
+            break  # no remaining source can improve any target
+        lim = bound
+        if worst > -np.inf:
+            lim = min(bound, trav + beta * (si - worst))
+        e = cedge[i]
+        o = coff[i]
+        need = False
+        for j in range(b0, b1):
+            f = cedge[j]
+            if f == e and coff[j] >= o - reverse_tol:
+                lp = transition_logp_one(max(coff[j] - o, 0.0), trav, dt, params, False)
+                if si + lp > best[j - b0]:
+                    best[j - b0] = si + lp
+                    bp[j] = i
+                    bpu[j] = False
+            else:
+                need = True
+                if f == edge_rev[e]:
+                    lp = transition_logp_one(abs(edge_len[e] - coff[j] - o), trav, dt, params, True)
+                    if si + lp > best[j - b0]:
+                        best[j - b0] = si + lp
+                        bp[j] = i
+                        bpu[j] = True
+        if not need or edge_len[e] - o > lim:
+            continue
+        nt = _search(
+            e, edge_len[e] - o, lim, nuniq, out_ptr, out_edges, edge_v, edge_len, edge_rev,
+            r_ptr, r_to, r_kind, dist, pred, done, tgt, touched, heap_k, heap_v,
+        )  # fmt: skip
+        for j in range(b0, b1):
+            f = cedge[j]
+            if f == e and coff[j] >= o - reverse_tol:
+                continue
+            r = dist[f] + coff[j]
+            if r <= lim:
+                lp = transition_logp_one(r, trav, dt, params, False)
+                if si + lp > best[j - b0]:
+                    best[j - b0] = si + lp
+                    bp[j] = i
+                    bpu[j] = False
+        _reset(nt, touched, dist, pred, done)
+    for j in range(b0, b1):
+        tgt[cedge[j]] = 0
+    reached = False
+    for j in range(kb):
+        if best[j] > -np.inf:
+            reached = True
+            score[b0 + j] = best[j] + emis[b0 + j]
+        else:
+            score[b0 + j] = -np.inf
+    return reached
+
+
+@njit(cache=True)
 def _solve(  # type: ignore[no-untyped-def]
     cand_ptr,
     cedge,
@@ -322,8 +448,8 @@ def _solve(  # type: ignore[no-untyped-def]
     kmax = 1
     for t in range(m):
         kmax = max(kmax, cand_ptr[t + 1] - cand_ptr[t])
-    route = np.empty(kmax * kmax)
-    uturn = np.empty(kmax * kmax)
+    order = np.empty(kmax, dtype=np.int64)
+    best = np.empty(kmax)
     prev = 0
     accepted[0] = True
     seg_start[0] = True
@@ -349,40 +475,19 @@ def _solve(  # type: ignore[no-untyped-def]
             dt = ptime[t] - ptime[prev]
             bound = route_factor * trav + route_slack
             tight = min(bound, trav + lp_cut_m)
-            a0, a1, b0, b1 = cand_ptr[prev], cand_ptr[prev + 1], cand_ptr[t], cand_ptr[t + 1]
-            kb = b1 - b0
-            rb = route[: (a1 - a0) * kb]
-            ub = uturn[: (a1 - a0) * kb]
-            found = route_block(
-                a0, a1, b0, b1, cedge, coff, tight, bound, reverse_tol, rb, ub, out_ptr, out_edges,
-                edge_v, edge_len, edge_rev, r_ptr, r_to, r_kind, dist, pred, done, tgt, touched,
-                heap_k, heap_v,
-            )  # fmt: skip
             reached = False
-            if found:
-                for j in range(b0, b1):
-                    best = -np.inf
-                    arg = -1
-                    argu = False
-                    for i in range(a0, a1):
-                        if score[i] == -np.inf:
-                            continue
-                        q = (i - a0) * kb + (j - b0)
-                        lr = transition_logp_one(rb[q], trav, dt, params, False)
-                        lu = transition_logp_one(ub[q], trav, dt, params, True)
-                        u = lu > lr
-                        s = score[i] + (lu if u else lr)
-                        if s > best:
-                            best = s
-                            arg = i
-                            argu = u
-                    if arg >= 0:
-                        score[j] = best + emis[j]
-                        bp[j] = arg
-                        bpu[j] = argu
-                        reached = True
-                    else:
-                        score[j] = -np.inf
+            for npass in range(2):
+                lim = tight if npass == 0 else bound
+                if npass == 1 and lim <= tight:
+                    break
+                reached = _step(
+                    cand_ptr[prev], cand_ptr[prev + 1], cand_ptr[t], cand_ptr[t + 1], cedge, coff, emis,
+                    score, bp, bpu, order, best, params, trav, dt, lim, reverse_tol, out_ptr, out_edges,
+                    edge_v, edge_len, edge_rev, r_ptr, r_to, r_kind, dist, pred, done, tgt, touched,
+                    heap_k, heap_v,
+                )  # fmt: skip
+                if reached:
+                    break
             if reached:
                 accepted[t] = True
                 prev_pt[t] = prev

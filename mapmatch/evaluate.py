@@ -573,7 +573,10 @@ def results_frame(
 
 def read_matched_csv(path: str | os.PathLike[str], *, vehicle_id: str | None = None) -> pd.DataFrame:
     """A results CSV from ``mapmatch replay`` (one vehicle: the given one or the only one)."""
-    df = pd.read_csv(path, dtype={"correction": str, "correction_replaced": str, "candidates": str})
+    try:
+        df = pd.read_csv(path, dtype={"correction": str, "correction_replaced": str, "candidates": str})
+    except (pd.errors.ParserError, pd.errors.EmptyDataError, UnicodeDecodeError, ValueError) as exc:
+        raise ValidationError("matched", f"{path} is not a readable results CSV ({exc})") from None
     if "vehicle_id" in df.columns:
         ids = df["vehicle_id"].astype(str).unique().tolist()
         if vehicle_id is not None:

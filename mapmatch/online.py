@@ -53,6 +53,8 @@ FAR_OFF_M = 100_000.0
 DR_CARRY_TOL_M = 5.0
 INIT_MAX_HEADING_DEG = 100.0
 POS_SIGMA_FLOOR_M = 2.0
+CORRECTION_MARGIN = 2.0
+DRIFT_DECAY_S = 20.0
 HEADING_SIGMA_FLOOR_DEG = 5.0
 RESIDUAL_TIME_S = 20.0
 LIMITS = {"speed": 1_000.0, "distance": 100_000.0, "pos_sigma": 100_000.0, "heading_sigma": 360.0}
@@ -122,6 +124,7 @@ class SessionState:
     headings: list[list[float]] = field(default_factory=list)  # [odometer, heading]
     res_pos2: float = 25.0  # running mean of squared distance to the road (m²), on road
     res_head2: float = 400.0  # running mean of squared heading residual (deg²), on road
+    drift_sigma: float = 0.0  # dead-reckoning drift σ (m), decaying after GPS returns
 
     def to_bytes(self) -> bytes:
         """Compact JSON encoding (a few hundred bytes)."""
@@ -135,7 +138,7 @@ class SessionState:
             "h": [h.to_list() for h in self.hyps],
             "live": self.live,
             "hd": self.headings,
-            "res": [self.res_pos2, self.res_head2],
+            "res": [self.res_pos2, self.res_head2, self.drift_sigma],
         }
         return json.dumps(d, separators=(",", ":"), allow_nan=True).encode()
 
@@ -161,6 +164,7 @@ class SessionState:
                 headings=[[float(o), float(h)] for o, h in d["hd"]],
                 res_pos2=float(d["res"][0]),
                 res_head2=float(d["res"][1]),
+                drift_sigma=float(d["res"][2]),
             )
         except (ValueError, TypeError, KeyError, IndexError, AttributeError) as exc:
             raise ValidationError("state", f"not a valid session state ({exc})") from None
@@ -265,6 +269,7 @@ class OnlineMatcher:
             state.odo += step.travelled
         if step.gps:
             state.gps_odo = state.odo
+        state.drift_sigma = self._drift_sigma(state, step.gps, 0.0, step.dt, cfg) if step.gps else step.sigma
         state.time, state.x, state.y = step.time, step.x, step.y
         if step.kappa > 0.0:
             add_sample(state.headings, state.odo, step.heading, window=cfg.turn_window)
@@ -329,9 +334,7 @@ class OnlineMatcher:
         # reported accuracies are often optimistic: never below the floor or what the road saw
         sigma = max(sigma, POS_SIGMA_FLOOR_M, math.sqrt(state.res_pos2))
         gps = fix.gps_valid is not False
-        if not gps:
-            dr = state.odo + (travelled if not math.isnan(travelled) else 0.0) - state.gps_odo
-            sigma = max(sigma, cfg.gps_sigma + cfg.dr_sigma_growth * dr)
+        sigma = max(sigma, self._drift_sigma(state, gps, travelled, dt, cfg))
         kappa = 0.0
         if not math.isnan(heading) and (math.isnan(fix.speed) or fix.speed >= cfg.heading_min_speed):
             hs = cfg.heading_sigma if math.isnan(fix.heading_sigma) else fix.heading_sigma
@@ -352,6 +355,17 @@ class OnlineMatcher:
             weight=weight,
             r_a=self.region_radius(sigma, cfg),
         )
+
+    @staticmethod
+    def _drift_sigma(state: SessionState, gps: bool, travelled: float, dt: float, cfg: MatchConfig) -> float:
+        """σ of the dead-reckoning drift: grows with distance since the last GPS-aided fix and
+        decays over ``DRIFT_DECAY_S`` once GPS is back (the fusion filter needs time to converge)."""
+        if not gps:
+            dr = state.odo + (travelled if not math.isnan(travelled) else 0.0) - state.gps_odo
+            return max(state.drift_sigma, cfg.gps_sigma + cfg.dr_sigma_growth * dr)
+        if state.drift_sigma <= 0.0 or math.isnan(dt):
+            return 0.0
+        return state.drift_sigma * math.exp(-dt / DRIFT_DECAY_S)
 
     @staticmethod
     def _learn_residuals(state: SessionState, best: Hypothesis, step: _Step) -> None:
@@ -521,9 +535,10 @@ class OnlineMatcher:
             h.bearing,
         )
         acc = 0.0
-        for j in range(h.k):
+        j0 = max(h.k - 1, 0)  # one edge back: a fix may run ahead of the vehicle near a node
+        for j in range(j0):
             acc += self._elen[h.edges[j]]
-        for j in range(h.k, len(h.edges)):
+        for j in range(j0, len(h.edges)):
             e = h.edges[j]
             off, dist, px, py, brg = self._project(e, x, y)
             s = acc + off
@@ -563,6 +578,9 @@ class OnlineMatcher:
             )
             best = (j, rest, s_pred, dist, px, py, brg)
         j = best[0]
+        if j < h.k:
+            h.k = j
+            del h.enter[j + 1 :]
         while h.k < j:
             h.k += 1
             h.enter.append(step.time)
@@ -620,6 +638,9 @@ class OnlineMatcher:
                 turn = classify_turn(angle_diff(self._bstart[e1], self._bend[e0]), is_reverse=is_rev)
             state.live = [x for x in state.live if int(x[1]) != e0]
             for h in hyps:
+                if h.k == 0:  # still behind the committed node: place it at the node
+                    h.k, h.off, h.s = 1, 0.0, self._elen[e0]
+                    h.enter.append(step.time)
                 h.s -= self._elen[e0]
                 h.k -= 1
                 del h.edges[0]
@@ -637,10 +658,13 @@ class OnlineMatcher:
         if not state.live:
             return None
         mism: list[tuple[float, int, int]] = []
-        assigned = self._smooth(state.live, best)
-        for entry, j in zip(state.live, assigned, strict=True):
+        assigned, cost = self._smooth(state.live, best)
+        path = best.edges[: best.k + 1]
+        for entry, j, row in zip(state.live, assigned, cost, strict=True):
             t, rep = entry[0], int(entry[1])
             now = best.edges[j]
+            if now != rep and rep in path and row[path.index(rep)] - row[j] < CORRECTION_MARGIN:
+                continue  # the fix is about as likely where it was reported: keep it
             if now != rep:
                 mism.append((t, now, rep))
                 entry[1] = float(now)
@@ -653,12 +677,12 @@ class OnlineMatcher:
             replaced_edges=_dedup([m[2] for m in mism]),
         )
 
-    def _smooth(self, live: list[list[float]], best: Hypothesis) -> list[int]:
+    def _smooth(self, live: list[list[float]], best: Hypothesis) -> tuple[list[int], list[list[float]]]:
         """Fixed-lag smoothing: the most likely monotone assignment of the region's fixes to
         the committed path's edges ``edges[0..k]`` (a small Viterbi)."""
         n_j = best.k + 1
         cost: list[list[float]] = []
-        for t_, _e, x, y, hd, sg, kp in live:
+        for _t, _e, x, y, hd, sg, kp in live:
             row = []
             for j in range(n_j):
                 _, dist, _, _, brg = self._project(best.edges[j], x, y)
@@ -681,7 +705,7 @@ class OnlineMatcher:
         for arg in reversed(back):
             j = arg[j]
             out.append(j)
-        return out[::-1]
+        return out[::-1], cost
 
     # ------------------------------------------------------------------ result
     def _result(

@@ -14,11 +14,10 @@ from collections.abc import Iterable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from types import TracebackType
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import grpc
 
-from mapmatch.types import Fix, SnapResult, Track
 from service import convert
 from service.gen.mapmatch.v1 import mapmatch_pb2 as pb
 from service.gen.mapmatch.v1 import mapmatch_pb2_grpc as pb_grpc
@@ -44,6 +43,9 @@ class Answer:
 
 
 _CODES = {c.value[0]: c for c in grpc.StatusCode}
+
+if TYPE_CHECKING:  # conversions go through service.convert; the types are for annotations
+    from mapmatch.types import Fix, SnapResult, Track
 
 
 class MapMatchClient:

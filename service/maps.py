@@ -16,6 +16,7 @@ from typing import Any
 
 import numpy as np
 
+from graph.errors import GraphError
 from graph.index import EdgeIndex
 from graph.road_graph import ARRAY_FIELDS, RoadGraph
 from mapmatch.config import DEFAULT_CONFIG, MatchConfig
@@ -141,7 +142,14 @@ class MapRegistry:
 
     def load(self, map_id: str, path: Path) -> MapEntry:
         """Load a map file (or source) from disk and register it."""
-        graph = load_graph(Path(path))
+        try:
+            graph = load_graph(Path(path))
+        except (GraphError, MatchError, OSError):
+            raise
+        except Exception as exc:  # e.g. a corrupt file the loader did not recognise
+            raise ValidationError(
+                "path", f"cannot load map {map_id!r} from {path} ({type(exc).__name__})"
+            ) from exc
         return self.add(map_id, graph, source=str(path))
 
     def unload(self, map_id: str) -> int:

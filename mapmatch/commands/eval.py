@@ -47,9 +47,9 @@ def run(args: argparse.Namespace) -> int:
     if not csv_path.exists():
         raise CommandError(f"no per-fix truth {csv_path} (mapmatch simulate --truth writes it)")
     graph = load_any_map(args.map)
-    truth = pd.read_csv(csv_path)
+    truth = _read_csv(csv_path)
     matched = read_matched_csv(args.matched, vehicle_id=args.vehicle_id)
-    fixes = pd.read_csv(args.fixes) if args.fixes else None
+    fixes = _read_csv(Path(args.fixes)) if args.fixes else None
     if args.vehicle_id is not None:
         truth = truth[truth["vehicle_id"].astype(str) == args.vehicle_id].reset_index(drop=True)
         if fixes is not None and "vehicle_id" in fixes.columns:
@@ -102,6 +102,13 @@ def run(args: argparse.Namespace) -> int:
             draw_html(graph, data, args.html, title=title)
             print(f"wrote {args.html}")
     return 0
+
+
+def _read_csv(path: Path) -> pd.DataFrame:
+    try:
+        return pd.read_csv(path)
+    except (pd.errors.ParserError, pd.errors.EmptyDataError, UnicodeDecodeError) as exc:
+        raise CommandError(f"{path} is not a readable CSV ({exc})") from None
 
 
 def _fixes_from_results(matched: pd.DataFrame, truth: pd.DataFrame) -> pd.DataFrame:

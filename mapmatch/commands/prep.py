@@ -114,6 +114,14 @@ def register(subparsers: Any) -> None:
         "(default: u,v when present and consistent, as in osmnx exports; else ids are generated)",
     )
     gis.add_argument(
+        "--topology",
+        choices=("auto", "endpoints", "ids"),
+        default="auto",
+        help="how line ends become nodes: 'ids' from the node id fields (distinct nodes at one "
+        "position stay apart, e.g. at bridges), 'endpoints' from shared positions; 'auto' "
+        "(default) uses ids when the fields exist and each id sits at one place",
+    )
+    gis.add_argument(
         "--crs",
         metavar="CRS",
         help="CRS of the input when the file has none (e.g. EPSG:3067); lon/lat is assumed if it fits",
@@ -186,6 +194,7 @@ def run(args: argparse.Namespace) -> int:
         highway_field=args.highway_field,
         id_field=args.id_field,
         node_id_fields=_parse_fields(args.node_id_fields) if args.node_id_fields else None,
+        topology=args.topology,
         crs=args.crs,
         layer=args.layer,
         network_type=args.network_type,
@@ -227,6 +236,14 @@ def summary(graph: Any, output: Path, export: Path | None = None) -> str:
             f"turn restrictions: {rep['restrictions_read']:,} read, {st['restrictions']:,} rows on edges, "
             f"{rep.get('restrictions_unmapped', 0):,} not on the graph"
         )
+    fields = rep.get("fields") or {}
+    if fields.get("topology"):
+        used = ", ".join(
+            f"{k.removesuffix('_field')} from {v!r}"
+            for k, v in fields.items()
+            if k.endswith("_field") and v is not None
+        )
+        lines.append(f"GIS: nodes from {fields['topology']}; {used or 'no attribute fields used'}")
     if rep.get("self_loops_split"):
         lines.append(f"loops split into two edges: {rep['self_loops_split']:,}")
     dropped = dict(rep.get("dropped", {}))

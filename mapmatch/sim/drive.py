@@ -211,6 +211,9 @@ def _atomic_write(path: Path, write: Any) -> None:
     os.close(fd)
     try:
         write(tmp)
+        umask = os.umask(0)
+        os.umask(umask)
+        os.chmod(tmp, 0o666 & ~umask)
         os.replace(tmp, path)
     except BaseException:
         Path(tmp).unlink(missing_ok=True)
@@ -268,7 +271,10 @@ def read_route(graph: RoadGraph, path: str | os.PathLike[str]) -> Route:
     A simulator truth whose edges do not fit ``graph`` (another map build) falls back to its
     geometry.
     """
-    data = json.loads(Path(path).read_text())
+    try:
+        data = json.loads(Path(path).read_text())
+    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+        raise ValidationError("route", f"{path} is not GeoJSON ({exc})") from None
     feats = data.get("features", [data]) if isinstance(data, dict) else []
     for f in feats:
         props = f.get("properties") or {}
