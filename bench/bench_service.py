@@ -390,7 +390,7 @@ def main() -> int:
         print(f"errors                    {r['errors']}")
         print(f"updates/s                 {ups:.0f}  (offered {args.vehicles * args.rate:.0f})")
         print(f"latency p50 / p99 / max   {p50:.2f} / {p99:.2f} / {pmax:.2f} ms  (target p99 <= 10 ms)")
-        for a, b in ((0.0, args.warmup), (args.warmup, total)):
+        for a, b in ((0.0, 1.0), (1.0, args.warmup), (args.warmup, total)):
             sel = lat[(r["at"] >= a) & (r["at"] < b)]
             if len(sel):
                 q = np.percentile(sel, [50, 99])

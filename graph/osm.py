@@ -38,6 +38,7 @@ _DRIVE_FALLBACK = (
     '["motor_vehicle"!~"no"]["motorcar"!~"no"]'
     '["service"!~"alley|driveway|emergency_access|parking|parking_aisle|private"]'
 )
+_NOT_FOR_CARS = '["highway"!~"^(trail|bus_stop|via_ferrata|busway)$"]'
 _CLAUSE = re.compile(r'\["([^"]+)"(?:(!~|~|!=|=)"([^"]*)")?\]')
 
 
@@ -91,6 +92,9 @@ def network_filter(network_type: str) -> TagFilter:
         text = _DRIVE_FALLBACK
     except ValueError as exc:
         raise InputError(f"unsupported network type {network_type!r}") from exc
+    if network_type.startswith("drive"):
+        # osmnx lets non-standard highway=trail through; it is never a road for cars
+        text += _NOT_FOR_CARS
     return TagFilter.from_overpass(text)
 
 

@@ -55,7 +55,8 @@ INIT_MAX_HEADING_DEG = 100.0
 POS_SIGMA_FLOOR_M = 2.0
 CORRECTION_MARGIN = 2.0
 DRIFT_DECAY_S = 20.0
-HEADING_SIGMA_FLOOR_DEG = 5.0
+HEADING_SIGMA_FLOOR_DEG = 10.0
+HEADING_SIGMA_FLOOR_DR_DEG = 15.0  # in dead reckoning the position along the road is uncertain
 RESIDUAL_TIME_S = 20.0
 LIMITS = {"speed": 1_000.0, "distance": 100_000.0, "pos_sigma": 100_000.0, "heading_sigma": 360.0}
 
@@ -119,7 +120,7 @@ class SessionState:
     init_pending: bool = True
     init_odo: float = 0.0
     hyps: list[Hypothesis] = field(default_factory=list)
-    # while ambiguous: [time, reported edge, x, y, heading, sigma, kappa] per fix
+    # while ambiguous: [time, reported edge, x, y, heading, sigma, kappa, gps] per fix
     live: list[list[float]] = field(default_factory=list)
     headings: list[list[float]] = field(default_factory=list)  # [odometer, heading]
     res_pos2: float = 25.0  # running mean of squared distance to the road (m²), on road
@@ -160,7 +161,7 @@ class SessionState:
                 bad_odo=float(d["bad"][1]),
                 init_pending=bool(d["init"]),
                 hyps=[Hypothesis.from_list(a) for a in d["h"]],
-                live=[[float(v) for v in entry[:7]] for entry in d["live"] if len(entry) == 7],
+                live=[[float(v) for v in entry] for entry in d["live"] if len(entry) == 8],
                 headings=[[float(o), float(h)] for o, h in d["hd"]],
                 res_pos2=float(d["res"][0]),
                 res_head2=float(d["res"][1]),
@@ -338,7 +339,8 @@ class OnlineMatcher:
         kappa = 0.0
         if not math.isnan(heading) and (math.isnan(fix.speed) or fix.speed >= cfg.heading_min_speed):
             hs = cfg.heading_sigma if math.isnan(fix.heading_sigma) else fix.heading_sigma
-            hs = max(hs, HEADING_SIGMA_FLOOR_DEG, math.sqrt(state.res_head2))
+            floor = HEADING_SIGMA_FLOOR_DEG if fix.gps_valid is not False else HEADING_SIGMA_FLOOR_DR_DEG
+            hs = max(hs, floor, math.sqrt(state.res_head2))
             kappa = 1.0 / math.radians(hs) ** 2
         weight = 1.0 if math.isnan(dt) else min(1.0, dt / EVIDENCE_TIME_S)
         return _Step(
@@ -663,8 +665,12 @@ class OnlineMatcher:
         for entry, j, row in zip(state.live, assigned, cost, strict=True):
             t, rep = entry[0], int(entry[1])
             now = best.edges[j]
-            if now != rep and rep in path and row[path.index(rep)] - row[j] < CORRECTION_MARGIN:
-                continue  # the fix is about as likely where it was reported: keep it
+            if (
+                now != rep
+                and rep in path
+                and (entry[7] == 0.0 or row[path.index(rep)] - row[j] < CORRECTION_MARGIN)
+            ):
+                continue  # dead reckoning, or about as likely where it was reported: keep it
             if now != rep:
                 mism.append((t, now, rep))
                 entry[1] = float(now)
@@ -682,7 +688,7 @@ class OnlineMatcher:
         the committed path's edges ``edges[0..k]`` (a small Viterbi)."""
         n_j = best.k + 1
         cost: list[list[float]] = []
-        for _t, _e, x, y, hd, sg, kp in live:
+        for _t, _e, x, y, hd, sg, kp, _g in live:
             row = []
             for j in range(n_j):
                 _, dist, _, _, brg = self._project(best.edges[j], x, y)
@@ -723,7 +729,18 @@ class OnlineMatcher:
         candidates: tuple[Candidate, ...] = ()
         if len(hyps) > 1:
             if len(state.live) < MAX_LIVE:
-                state.live.append([step.time, float(e), step.x, step.y, step.heading, step.sigma, step.kappa])
+                state.live.append(
+                    [
+                        step.time,
+                        float(e),
+                        step.x,
+                        step.y,
+                        step.heading,
+                        step.sigma,
+                        step.kappa,
+                        float(step.gps),
+                    ]
+                )
             total = 0.0
             agg: dict[int, list[float]] = {}
             for h in hyps:
