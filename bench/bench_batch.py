@@ -45,7 +45,8 @@ def summarise(paths: list[Path]) -> None:
     for r in recs:
         by[(r["engine"], int(r["S"]))].append(r)
     print(
-        f"\n{'engine':10s} {'S':>3s} {'tracks':>6s} {'fail':>4s} {'mean RMF':>9s} {'points':>8s} {'pts/s':>10s}"
+        f"\n{'engine':10s} {'S':>3s} {'tracks':>6s} {'fail':>4s} {'mean RMF':>9s} "
+        f"{'points':>8s} {'pts/s':>10s}"
     )
     rate: dict[tuple[str, int], float] = {}
     for (eng, s), g in sorted(by.items(), key=lambda kv: (kv[0][0] != "custom", kv[0][0], kv[0][1])):
@@ -56,7 +57,8 @@ def summarise(paths: list[Path]) -> None:
         rate[(eng, s)] = pts / secs if secs else 0.0
         fails = sum(1 for r in g if r.get("failed"))
         print(
-            f"{eng:10s} {s:3d} {len(g):6d} {fails:4d} {sum(rmf) / len(rmf):9.4f} {pts:8d} {rate[(eng, s)]:10.0f}"
+            f"{eng:10s} {s:3d} {len(g):6d} {fails:4d} {sum(rmf) / len(rmf):9.4f} "
+            f"{pts:8d} {rate[(eng, s)]:10.0f}"
         )
     for s in sorted({s for _, s in by}):
         ours, fm = rate.get(("custom", s)), rate.get(("fastmm", s))

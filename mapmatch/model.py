@@ -124,11 +124,15 @@ def normalise_log(lp: ArrayLike) -> NDArray[np.float64]:
 
 def transition_params(config: MatchConfig) -> NDArray[np.float64]:
     """The transition parameters as an array for :func:`transition_logp_one`."""
-    return np.array([config.beta, config.max_speed, config.speed_penalty, config.uturn_penalty], dtype=np.float64)
+    return np.array(
+        [config.beta, config.max_speed, config.speed_penalty, config.uturn_penalty], dtype=np.float64
+    )
 
 
 @njit(cache=True)
-def transition_logp_one(route_dist: float, travelled: float, dt: float, params: NDArray[np.float64], uturn: bool) -> float:
+def transition_logp_one(
+    route_dist: float, travelled: float, dt: float, params: NDArray[np.float64], uturn: bool
+) -> float:
     """:func:`transition_logp` for one pair, compiled (for loops that route and score together).
 
     ``params`` comes from :func:`transition_params`; the result equals :func:`transition_logp`.

@@ -47,7 +47,9 @@ PRUNE_LOGP = -25.0
 INIT_COMMIT_P = 0.99
 TURN_SIGMA_DEG = 20.0
 EVIDENCE_TIME_S = 1.0
-MAX_LIVE = 512
+MAX_LIVE = 48
+LIVE_SPACING_S = 0.5  # fixes remembered for corrections: at most two per second, or on edge change
+INIT_MAX_RADIUS_M = 200.0
 STATE_VERSION = 1
 FAR_OFF_M = 100_000.0
 DR_CARRY_TOL_M = 5.0
@@ -55,9 +57,14 @@ INIT_MAX_HEADING_DEG = 100.0
 POS_SIGMA_FLOOR_M = 2.0
 CORRECTION_MARGIN = 2.0
 DRIFT_DECAY_S = 20.0
+SOFT_REINIT_SIGMAS = 3.0
+SEARCH_EVERY_S = 1.0
+SWITCH_PENALTY = 8.0
 HEADING_SIGMA_FLOOR_DEG = 10.0
 HEADING_SIGMA_FLOOR_DR_DEG = 15.0  # in dead reckoning the position along the road is uncertain
 RESIDUAL_TIME_S = 20.0
+LEARNED_POS_SIGMA_MAX_M = 10.0
+LEARNED_HEADING_SIGMA_MAX_DEG = 30.0
 LIMITS = {"speed": 1_000.0, "distance": 100_000.0, "pos_sigma": 100_000.0, "heading_sigma": 360.0}
 
 
@@ -126,6 +133,7 @@ class SessionState:
     res_pos2: float = 25.0  # running mean of squared distance to the road (m²), on road
     res_head2: float = 400.0  # running mean of squared heading residual (deg²), on road
     drift_sigma: float = 0.0  # dead-reckoning drift σ (m), decaying after GPS returns
+    search_time: float = math.nan  # time of the last soft re-initialisation search
 
     def to_bytes(self) -> bytes:
         """Compact JSON encoding (a few hundred bytes)."""
@@ -139,7 +147,7 @@ class SessionState:
             "h": [h.to_list() for h in self.hyps],
             "live": self.live,
             "hd": self.headings,
-            "res": [self.res_pos2, self.res_head2, self.drift_sigma],
+            "res": [self.res_pos2, self.res_head2, self.drift_sigma, self.search_time],
         }
         return json.dumps(d, separators=(",", ":"), allow_nan=True).encode()
 
@@ -166,6 +174,7 @@ class SessionState:
                 res_pos2=float(d["res"][0]),
                 res_head2=float(d["res"][1]),
                 drift_sigma=float(d["res"][2]),
+                search_time=float(d["res"][3]),
             )
         except (ValueError, TypeError, KeyError, IndexError, AttributeError) as exc:
             raise ValidationError("state", f"not a valid session state ({exc})") from None
@@ -279,6 +288,14 @@ class OnlineMatcher:
         if state.hyps:
             self._advance(state, step, cfg)
             best = self._best(state.hyps)
+            if (
+                step.gps
+                and best.dist > SOFT_REINIT_SIGMAS * step.sigma
+                and not (step.time - state.search_time < SEARCH_EVERY_S)
+            ):
+                state.search_time = step.time
+                self._add_alternatives(state, step, cfg, best)
+                best = self._best(state.hyps)
             if best.dist > cfg.reinit_sigmas * step.sigma:
                 if math.isnan(state.bad_time):
                     state.bad_time, state.bad_odo = step.time, state.odo
@@ -373,11 +390,15 @@ class OnlineMatcher:
     def _learn_residuals(state: SessionState, best: Hypothesis, step: _Step) -> None:
         """Running estimate of the real position and heading error, from on-road fixes."""
         a = 1.0 if math.isnan(step.dt) else min(1.0, step.dt / RESIDUAL_TIME_S)
+        # clipped (robust) and bounded, so that a wrong road cannot teach a large σ
         if step.gps:
-            state.res_pos2 += a * (min(best.dist, 50.0) ** 2 - state.res_pos2)
+            d = min(best.dist, 2.5 * math.sqrt(state.res_pos2))
+            state.res_pos2 = min(state.res_pos2 + a * (d * d - state.res_pos2), LEARNED_POS_SIGMA_MAX_M**2)
         if step.kappa > 0.0:
-            dh = angle_diff(step.heading, best.bearing)
-            state.res_head2 += a * (min(dh * dh, 90.0**2) - state.res_head2)
+            dh = min(abs(angle_diff(step.heading, best.bearing)), 2.5 * math.sqrt(state.res_head2))
+            state.res_head2 = min(
+                state.res_head2 + a * (dh * dh - state.res_head2), LEARNED_HEADING_SIGMA_MAX_DEG**2
+            )
 
     def _far_off(self, x: float, y: float) -> bool:
         b = self._bounds
@@ -466,7 +487,9 @@ class OnlineMatcher:
     # ------------------------------------------------------------------ filter steps
     def _initialise(self, state: SessionState, step: _Step, cfg: MatchConfig) -> None:
         """Start again from a spatial-index search around the fix."""
-        radius = max(cfg.search_radius, cfg.reinit_sigmas * step.sigma)
+        radius = min(
+            max(cfg.search_radius, cfg.reinit_sigmas * step.sigma), max(INIT_MAX_RADIUS_M, cfg.search_radius)
+        )
         cand = self.index.query([[step.x, step.y]], radius, k=cfg.max_candidates)
         hyps = []
         for e in cand.edge.tolist():
@@ -481,6 +504,32 @@ class OnlineMatcher:
         state.live = []
         state.bad_time = state.bad_odo = math.nan
 
+    def _add_alternatives(self, state: SessionState, step: _Step, cfg: MatchConfig, best: Hypothesis) -> None:
+        """Soft re-initialisation: the fix has left the road believed, so nearby roads found by
+        the spatial index join the filter with a switching penalty; evidence decides."""
+        radius = min(max(cfg.search_radius, cfg.reinit_sigmas * step.sigma), INIT_MAX_RADIUS_M)
+        cand = self.index.query([[step.x, step.y]], radius, k=cfg.max_candidates)
+        have = {h.edges[h.k] for h in state.hyps}
+        base = emission_scalar(best.dist, step.sigma, step.heading, best.bearing, step.kappa)
+        for e in cand.edge.tolist():
+            if e in have:
+                continue
+            off, dist, px, py, brg = self._project(e, step.x, step.y)
+            if dist >= best.dist or (
+                step.kappa > 0.0 and abs(angle_diff(step.heading, brg)) > INIT_MAX_HEADING_DEG
+            ):
+                continue
+            lp = (
+                best.logp
+                - SWITCH_PENALTY
+                + step.weight * (emission_scalar(dist, step.sigma, step.heading, brg, step.kappa) - base)
+            )
+            state.hyps.append(Hypothesis([e], 0, off, off, lp, [step.time], dist, px, py, brg))
+        state.hyps = self._normalise(state.hyps)
+        if len(state.hyps) > MAX_HYPOTHESES:
+            state.hyps.sort(key=lambda h: -h.logp)
+            del state.hyps[MAX_HYPOTHESES:]
+
     def _advance(self, state: SessionState, step: _Step, cfg: MatchConfig) -> None:
         """Extend paths near their end node, place the fix on each path and score it."""
         d = step.travelled
@@ -494,9 +543,10 @@ class OnlineMatcher:
         turn_obs, covered = (math.nan, 0.0)
         if len(hyps) > 1 and step.kappa > 0.0:
             turn_obs, covered = heading_change(state.headings, state.odo, window=cfg.turn_window)
+        cache: dict[int, tuple[float, float, float, float, float]] = {}
         for h in hyps:
             s_prev = h.s
-            score = self._place(h, step, cfg)
+            score = self._place(h, step, cfg, cache)
             if covered >= 0.5 * cfg.turn_window and not math.isnan(turn_obs):
                 expect = angle_diff(h.bearing, self._bearing_on_path(h, h.s - covered))
                 miss = angle_diff(turn_obs, expect) / TURN_SIGMA_DEG
@@ -522,7 +572,13 @@ class OnlineMatcher:
             )
             self._extend(g, reach, cfg, out)
 
-    def _place(self, h: Hypothesis, step: _Step, cfg: MatchConfig) -> float:
+    def _place(
+        self,
+        h: Hypothesis,
+        step: _Step,
+        cfg: MatchConfig,
+        cache: dict[int, tuple[float, float, float, float, float]],
+    ) -> float:
         """Move ``h`` to its best position for this fix; return that position's log-score."""
         x, y, sigma = step.x, step.y, step.sigma
         d = step.travelled
@@ -542,7 +598,10 @@ class OnlineMatcher:
             acc += self._elen[h.edges[j]]
         for j in range(j0, len(h.edges)):
             e = h.edges[j]
-            off, dist, px, py, brg = self._project(e, x, y)
+            pr = cache.get(e)
+            if pr is None:
+                pr = cache[e] = self._project(e, x, y)
+            off, dist, px, py, brg = pr
             s = acc + off
             sc = emission_scalar(dist, sigma, step.heading, brg, step.kappa)
             if not math.isnan(d):
@@ -728,7 +787,10 @@ class OnlineMatcher:
         e = best.edges[best.k]
         candidates: tuple[Candidate, ...] = ()
         if len(hyps) > 1:
-            if len(state.live) < MAX_LIVE:
+            last = state.live[-1] if state.live else None
+            if last is None or (
+                len(state.live) < MAX_LIVE and (int(last[1]) != e or step.time - last[0] >= LIVE_SPACING_S)
+            ):
                 state.live.append(
                     [
                         step.time,

@@ -27,7 +27,7 @@ from typing import Any
 
 import pandas as pd
 
-from mapmatch.config import DEFAULT_CONFIG, MatchConfig
+from mapmatch.config import MatchConfig
 from mapmatch.errors import MatchError
 from mapmatch.io import (
     DEFAULT_COLUMNS,
@@ -75,19 +75,22 @@ class RunSummary:
 
 
 # ---------------------------------------------------------------------- worker side
-_CACHE: dict[tuple[str, float], Any] = {}
+_CACHE: dict[tuple[str, float, float], Any] = {}
 
 
-def _matcher(map_path: str) -> Any:
-    """The process's matcher for a map file, loaded once."""
+def _matcher(map_path: str, ubodt_delta: float | None = None) -> Any:
+    """The process's matcher for a map file (and optional route table), loaded once."""
     from graph.artifact import load_map
     from mapmatch.batch import BatchMatcher
+    from mapmatch.routing import Ubodt
 
-    key = (os.path.abspath(map_path), os.path.getmtime(map_path))
+    key = (os.path.abspath(map_path), os.path.getmtime(map_path), float(ubodt_delta or 0.0))
     m = _CACHE.get(key)
     if m is None:
         _CACHE.clear()
-        m = _CACHE[key] = BatchMatcher(load_map(map_path))
+        graph = load_map(map_path)
+        table = Ubodt.build(graph, ubodt_delta) if ubodt_delta else None
+        m = _CACHE[key] = BatchMatcher(graph, ubodt=table)
     return m
 
 
@@ -95,11 +98,12 @@ def match_partition(
     map_path: str,
     part: Partition,
     out_file: str,
-    config: MatchConfig = DEFAULT_CONFIG,
+    config: MatchConfig | None = None,
     columns: Columns = DEFAULT_COLUMNS,
+    ubodt_delta: float | None = None,
 ) -> tuple[int, int]:
     """Match one partition and write its results file atomically: ``(tracks, points)``."""
-    matcher = _matcher(map_path)
+    matcher = _matcher(map_path, ubodt_delta)
     tracks = list(part.tracks) if part.source is None else read_tracks(part.source, columns=columns)
     results = [matcher.match(t, config) for t in tracks]
     write_geoparquet(out_file, results_table(results, matcher.graph))
@@ -137,7 +141,11 @@ def _parquet_rows(path: Path) -> int:
 
 
 def _fingerprint(
-    inputs: Sequence[str | os.PathLike[str]], map_path: str, config: MatchConfig, columns: Columns, size: int
+    inputs: Sequence[str | os.PathLike[str]],
+    map_path: str,
+    config: MatchConfig | None,
+    columns: Columns,
+    size: int,
 ) -> str:
     h = hashlib.sha256()
     for p in [*inputs, map_path]:
@@ -146,7 +154,9 @@ def _fingerprint(
         for f in files:
             st = f.stat()
             h.update(f"{f.resolve()}:{st.st_size}:{st.st_mtime_ns}\n".encode())
-    h.update(json.dumps([config.to_dict(), asdict(columns), size], sort_keys=True).encode())
+    h.update(
+        json.dumps([config.to_dict() if config else None, asdict(columns), size], sort_keys=True).encode()
+    )
     return h.hexdigest()
 
 
@@ -165,11 +175,12 @@ def run_batch(
     map_path: str | os.PathLike[str],
     out: str | os.PathLike[str],
     *,
-    config: MatchConfig = DEFAULT_CONFIG,
+    config: MatchConfig | None = None,
     columns: Columns = DEFAULT_COLUMNS,
     workers: int | None = None,
     scheduler: str | Any | None = None,
     partition_size: int = 64,
+    ubodt_delta: float | None = None,
     progress: Callable[[int, int], None] | None = None,
     on_total: Callable[[int], None] | None = None,
 ) -> RunSummary:
@@ -191,6 +202,9 @@ def run_batch(
         ``tcp://host:port`` of a dask.distributed scheduler, or a ``distributed.Client``.
     partition_size
         Tracks per partition for non-Parquet inputs.
+    ubodt_delta
+        When given, each worker precomputes a route table (:class:`mapmatch.routing.Ubodt`)
+        of this bound in metres: faster matching for more memory and start-up time.
     progress
         Called with ``(points, tracks)`` as partitions finish (after resumed ones).
     on_total
@@ -216,11 +230,11 @@ def run_batch(
         on_total(sum(p.n_points for p in todo))
     done: Iterable[tuple[int, int]]
     if scheduler is not None:
-        done = _run_dask(scheduler, map_s, todo, files, config, columns)
+        done = _run_dask(scheduler, map_s, todo, files, config, columns, ubodt_delta)
     elif workers == 1 or len(todo) <= 1:
-        done = (match_partition(map_s, p, str(files[p.index]), config, columns) for p in todo)
+        done = (match_partition(map_s, p, str(files[p.index]), config, columns, ubodt_delta) for p in todo)
     else:
-        done = _run_pool(workers, map_s, todo, files, config, columns)
+        done = _run_pool(workers, map_s, todo, files, config, columns, ubodt_delta)
     for ntr, npts in done:
         summary.tracks += ntr
         summary.points += npts
@@ -262,8 +276,9 @@ def _run_pool(
     map_s: str,
     todo: list[Partition],
     files: list[Path],
-    config: MatchConfig,
+    config: MatchConfig | None,
     columns: Columns,
+    ubodt_delta: float | None,
 ) -> Iterable[tuple[int, int]]:
     import multiprocessing as mp
 
@@ -271,7 +286,8 @@ def _run_pool(
     ctx = mp.get_context("spawn")  # no fork of a process holding threads
     with ProcessPoolExecutor(max_workers=min(n, len(todo)), mp_context=ctx) as ex:
         futs: list[Future[tuple[int, int]]] = [
-            ex.submit(match_partition, map_s, p, str(files[p.index]), config, columns) for p in todo
+            ex.submit(match_partition, map_s, p, str(files[p.index]), config, columns, ubodt_delta)
+            for p in todo
         ]
         for f in as_completed(futs):
             yield f.result()
@@ -282,17 +298,26 @@ def _run_dask(
     map_s: str,
     todo: list[Partition],
     files: list[Path],
-    config: MatchConfig,
+    config: MatchConfig | None,
     columns: Columns,
+    ubodt_delta: float | None,
 ) -> Iterable[tuple[int, int]]:
-    from distributed import Client, as_completed as dask_completed
+    from distributed import Client
+    from distributed import as_completed as dask_completed
 
     own = isinstance(scheduler, str)
-    client = Client(scheduler) if own else scheduler
+    client: Any = Client(scheduler) if own else scheduler
     try:
         futs = [
             client.submit(
-                match_partition, map_s, p, str(files[p.index]), config, columns, key=f"mapmatch-part-{p.index}-{id(p)}"
+                match_partition,
+                map_s,
+                p,
+                str(files[p.index]),
+                config,
+                columns,
+                ubodt_delta,
+                key=f"mapmatch-part-{p.index}-{id(p)}",
             )
             for p in todo
         ]
@@ -301,4 +326,3 @@ def _run_dask(
     finally:
         if own:
             client.close()
-

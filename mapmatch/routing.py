@@ -166,7 +166,11 @@ def _search(  # type: ignore[no-untyped-def]
     v = edge_v[src]
     for i in range(out_ptr[v], out_ptr[v + 1]):
         f = out_edges[i]
-        if base <= bound and base < dist[f] and _allowed(src, f, out_ptr, out_edges, edge_v, edge_rev, r_ptr, r_to, r_kind):
+        if (
+            base <= bound
+            and base < dist[f]
+            and _allowed(src, f, out_ptr, out_edges, edge_v, edge_rev, r_ptr, r_to, r_kind)
+        ):
             if dist[f] == INF:
                 touched[nt] = f
                 nt += 1
@@ -174,7 +178,7 @@ def _search(  # type: ignore[no-untyped-def]
             pred[f] = src
             nh = _push(heap_k, heap_v, nh, base, f)
     left = n_targets
-    while nh > 0 and left > 0:
+    while nh > 0 and left != 0:
         d = heap_k[0]
         e = heap_v[0]
         nh = _pop(heap_k, heap_v, nh)
@@ -189,7 +193,11 @@ def _search(  # type: ignore[no-untyped-def]
         w = edge_v[e]
         for i in range(out_ptr[w], out_ptr[w + 1]):
             f = out_edges[i]
-            if nd < dist[f] and not done[f] and _allowed(e, f, out_ptr, out_edges, edge_v, edge_rev, r_ptr, r_to, r_kind):
+            if (
+                nd < dist[f]
+                and not done[f]
+                and _allowed(e, f, out_ptr, out_edges, edge_v, edge_rev, r_ptr, r_to, r_kind)
+            ):
                 if dist[f] == INF:
                     touched[nt] = f
                     nt += 1
@@ -389,3 +397,100 @@ def shortest_route(
     edges = [src, *(int(e) for e in mid), dst]
     metres = float(graph.edge_len[src] - src_off + graph.edge_len[edges[1:-1]].sum() + dst_off)
     return metres, edges
+
+
+@dataclass(frozen=True)
+class Ubodt:
+    """Upper-bounded origin-destination table (FMM's UBODT, edge-based).
+
+    For every edge ``e``, the edges ``f`` whose start is within ``delta`` metres of the end of
+    ``e`` (turn rules applied), sorted by ``f``: ``tgt[ptr[e]:ptr[e+1]]`` with the distances in
+    ``dist``. A route query within the bound is then a binary search instead of a search.
+    """
+
+    delta: float
+    ptr: NDArray[np.int64]
+    tgt: NDArray[np.int32]
+    dist: NDArray[np.float64]
+
+    @classmethod
+    def build(cls, graph: RoadGraph, delta: float) -> Ubodt:
+        """Precompute the table for ``delta`` metres (time and memory grow fast with it)."""
+        ra = RoutingArrays.from_graph(graph)
+        ws = Workspace(graph.n_edges)
+        ptr, tgt, dist = _build_ubodt(float(delta), graph.n_edges, *search_args(ra, ws))
+        return cls(delta=float(delta), ptr=ptr, tgt=tgt, dist=dist)
+
+    @property
+    def nbytes(self) -> int:
+        return int(self.ptr.nbytes + self.tgt.nbytes + self.dist.nbytes)
+
+
+@njit(cache=True)
+def _build_ubodt(  # type: ignore[no-untyped-def]
+    delta,
+    n_edges,
+    out_ptr,
+    out_edges,
+    edge_v,
+    edge_len,
+    edge_rev,
+    r_ptr,
+    r_to,
+    r_kind,
+    dist,
+    pred,
+    done,
+    tgt,
+    touched,
+    heap_k,
+    heap_v,
+):
+    ptr = np.zeros(n_edges + 1, dtype=np.int64)
+    cap = 16 * n_edges + 16
+    out_t = np.empty(cap, dtype=np.int32)
+    out_d = np.empty(cap)
+    m = 0
+    for e in range(n_edges):
+        nt = _search(
+            e, 0.0, delta, -1, out_ptr, out_edges, edge_v, edge_len, edge_rev, r_ptr, r_to, r_kind,
+            dist, pred, done, tgt, touched, heap_k, heap_v,
+        )  # fmt: skip
+        if m + nt > cap:
+            cap = 2 * (m + nt)
+            t2 = np.empty(cap, dtype=np.int32)
+            t2[:m] = out_t[:m]
+            d2 = np.empty(cap)
+            d2[:m] = out_d[:m]
+            out_t, out_d = t2, d2
+        start = m
+        for i in range(nt):
+            f = touched[i]
+            if done[f] and dist[f] <= delta:
+                out_t[m] = f
+                out_d[m] = dist[f]
+                m += 1
+        order = np.argsort(out_t[start:m])
+        st = out_t[start:m][order].copy()
+        sd = out_d[start:m][order].copy()
+        out_t[start:m] = st
+        out_d[start:m] = sd
+        ptr[e + 1] = m
+        _reset(nt, touched, dist, pred, done)
+    return ptr, out_t[:m].copy(), out_d[:m].copy()
+
+
+@njit(cache=True, inline="always")
+def ubodt_lookup(ptr, tgt, dist, e: int, f: int) -> float:  # type: ignore[no-untyped-def]
+    """Distance from the end of ``e`` to the start of ``f`` if within the table, else inf."""
+    lo = ptr[e]
+    hi = ptr[e + 1]
+    while lo < hi:
+        mid = (lo + hi) >> 1
+        if tgt[mid] < f:
+            lo = mid + 1
+        else:
+            hi = mid
+    if lo < ptr[e + 1] and tgt[lo] == f:
+        return dist[lo]
+    return INF

@@ -115,6 +115,16 @@ def test_truncated_and_missing(tiny: RoadGraph, tmp_path: Path) -> None:
         load_map(tmp_path / "absent.map")
 
 
+def test_manifest_length_beyond_file_end(tiny: RoadGraph, tmp_path: Path) -> None:
+    p = tmp_path / "m.map"
+    save_map(tiny, p)
+    raw = bytearray(p.read_bytes())
+    raw[8:16] = np.array([2**62], dtype="<u8").tobytes()
+    p.write_bytes(bytes(raw))
+    with pytest.raises(ArtifactError, match="truncated or corrupt"):
+        load_map(p)
+
+
 def test_newer_format_version_rejected(tiny: RoadGraph, tmp_path: Path) -> None:
     p = tmp_path / "m.map"
     save_map(tiny, p)

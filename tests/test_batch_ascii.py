@@ -2,14 +2,15 @@
 
 from __future__ import annotations
 
+import itertools
 import math
 
 import numpy as np
 import pytest
 
 from graph.ascii import AsciiMap, parse_ascii_map
+from mapmatch.batch import BATCH_CONFIG as DEFAULT_CONFIG
 from mapmatch.batch import BatchMatcher
-from mapmatch.config import DEFAULT_CONFIG
 from mapmatch.routing import shortest_route
 from mapmatch.types import PointStatus, Track
 
@@ -124,7 +125,7 @@ def test_turn_restriction_is_respected() -> None:
     r = BatchMatcher(banned.graph).match(track_from_xy(banned, pts))
     for piece in r.routes:
         seq = names(banned, piece)
-        assert not any(x == "ab" and y == "bd" for x, y in zip(seq, seq[1:], strict=False))
+        assert not any(x == "ab" and y == "bd" for x, y in itertools.pairwise(seq))
 
 
 def test_gap_splits_the_track_and_is_reported() -> None:
@@ -140,7 +141,11 @@ def test_gap_splits_the_track_and_is_reported() -> None:
 
 def test_outlier_is_unmatched_and_does_not_break_the_route() -> None:
     m = parse_ascii_map("a--------------b", scale=10)
-    pts = [at(m, "a", x, 2) for x in (10, 30, 50)] + [at(m, "a", 70, 300)] + [at(m, "a", x, 2) for x in (90, 110)]
+    pts = (
+        [at(m, "a", x, 2) for x in (10, 30, 50)]
+        + [at(m, "a", 70, 300)]
+        + [at(m, "a", x, 2) for x in (90, 110)]
+    )
     r = BatchMatcher(m.graph).match(track_from_xy(m, pts))
     assert [p.status for p in r.points].count(PointStatus.UNMATCHED) == 1
     assert r.points[3].status == PointStatus.UNMATCHED and r.points[3].edge == -1

@@ -29,7 +29,9 @@ def test_local_cluster_equals_local_run_on_partitioned_parquet(tmp_path: Path) -
     run_batch([src], map_path, local, workers=1)
     out_dir = tmp_path / "out"
     with (
-        distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=False, dashboard_address=":0") as cl,
+        distributed.LocalCluster(
+            n_workers=2, threads_per_worker=1, processes=False, dashboard_address=":0"
+        ) as cl,
         distributed.Client(cl) as client,
     ):
         s = run_batch([src], map_path, out_dir, scheduler=client)
@@ -52,7 +54,18 @@ def test_match_command_with_scheduler_address(tmp_path: Path) -> None:
     write_tracks(tracks, make_tracks(m, 4))
     local, remote = tmp_path / "local.csv", tmp_path / "remote.csv"
     assert main(["match", "--map", str(map_path), str(tracks), "-o", str(local), "--workers", "1"]) == 0
-    with distributed.LocalCluster(n_workers=1, threads_per_worker=1, processes=False, dashboard_address=":0") as cl:
-        argv = ["match", "--map", str(map_path), str(tracks), "-o", str(remote), "--scheduler", cl.scheduler_address]
+    with distributed.LocalCluster(
+        n_workers=1, threads_per_worker=1, processes=False, dashboard_address=":0"
+    ) as cl:
+        argv = [
+            "match",
+            "--map",
+            str(map_path),
+            str(tracks),
+            "-o",
+            str(remote),
+            "--scheduler",
+            cl.scheduler_address,
+        ]
         assert main([*argv, "--no-progress"]) == 0
     pd.testing.assert_frame_equal(pd.read_csv(local), pd.read_csv(remote))

@@ -35,7 +35,9 @@ def sample_tracks() -> list[Track]:
         heading=np.array([0.0, 10.0, np.nan, 350.0, 90.0]),
         speed=np.array([1.0, 2.0, 3.0, np.nan, 5.0]),
     )
-    b = Track("car-2", time=np.arange(3, dtype=float), lat=np.full(3, 60.2), lon=np.array([24.0, 24.001, 24.002]))
+    b = Track(
+        "car-2", time=np.arange(3, dtype=float), lat=np.full(3, 60.2), lon=np.array([24.0, 24.001, 24.002])
+    )
     return [a, b]
 
 

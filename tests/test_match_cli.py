@@ -79,7 +79,7 @@ def test_match_command_in_worker_processes_equals_in_process(
 def test_resumed_run_equals_uninterrupted_run(setup: tuple[Path, Path, AsciiMap], tmp_path: Path) -> None:
     map_path, tracks_path, _ = setup
     full = tmp_path / "full.parquet"
-    run_batch([tracks_path], map_path, full, workers=1, partition_size=2)
+    run_batch([tracks_path], map_path, full, workers=1, partition_size=2, ubodt_delta=300.0)
     # interrupted run: stop after the second partition has been written
     out = tmp_path / "resumed.parquet"
     calls = {"n": 0}
@@ -101,12 +101,20 @@ def test_resumed_run_equals_uninterrupted_run(setup: tuple[Path, Path, AsciiMap]
     assert len(read_results(out)) == 7
 
 
-def test_match_command_errors_are_one_line(setup: tuple[Path, Path, AsciiMap], tmp_path: Path, capsys) -> None:
+def test_match_command_errors_are_one_line(
+    setup: tuple[Path, Path, AsciiMap], tmp_path: Path, capsys
+) -> None:
     map_path, tracks_path, _ = setup
-    assert main(["match", "--map", str(tmp_path / "nope.map"), str(tracks_path), "-o", str(tmp_path / "o.csv")]) == 2
+    assert (
+        main(["match", "--map", str(tmp_path / "nope.map"), str(tracks_path), "-o", str(tmp_path / "o.csv")])
+        == 2
+    )
     err = capsys.readouterr().err
     assert err.startswith("mapmatch match: error:") and err.count("\n") == 1
-    assert main(["match", "--map", str(map_path), str(tmp_path / "none.csv"), "-o", str(tmp_path / "o.csv")]) == 2
+    assert (
+        main(["match", "--map", str(map_path), str(tmp_path / "none.csv"), "-o", str(tmp_path / "o.csv")])
+        == 2
+    )
     assert "no such input" in capsys.readouterr().err
     assert main(["match", "--map", str(map_path), str(tracks_path), "-o", str(tmp_path / "o.txt")]) == 2
     assert "unknown output format" in capsys.readouterr().err

@@ -150,28 +150,46 @@ def test_ambiguous_then_corrected_on_leaving() -> None:
     assert res[-1].edge == m.edge("b", "c") and res[-1].state is State.ON_ROAD
 
 
-def test_reinitialises_when_the_fix_stays_off_the_road() -> None:
-    m = parse_ascii_map(
-        """
-        a-----------------------b
+PARALLEL = """
+a-----------------------b
 
-        c-----------------------d
-        """,
-        scale=10,
-    )
-    matcher = OnlineMatcher(m.graph)
+c-----------------------d
+"""
+
+
+def _jump_to_cd(m: AsciiMap) -> list[Fix]:
     on_ab = drive(m, "ab", speed=10)[:8]
     # from t=8 the fixes run along c-d (40 m away): far beyond 4 sigma of a-b
-    start = on_ab[-1].time + 1
-    on_cd = drive(m, "cd", speed=10, t0=start, start_offset=80.0)
-    res = run(matcher, on_ab + on_cd)
+    return on_ab + drive(m, "cd", speed=10, t0=on_ab[-1].time + 1, start_offset=80.0)
+
+
+def test_reinitialises_when_the_fix_stays_off_the_road(monkeypatch: pytest.MonkeyPatch) -> None:
+    import mapmatch.online
+
+    monkeypatch.setattr(mapmatch.online, "SOFT_REINIT_SIGMAS", math.inf)  # the hard rule alone
+    m = parse_ascii_map(PARALLEL, scale=10)
+    matcher = OnlineMatcher(m.graph)
+    res = run(matcher, _jump_to_cd(m))
     assert all(r.edge == m.edge("a", "b") and r.state is State.ON_ROAD for r in res[:8])
     states = [r.state for r in res[8:]]
     assert states[0] is State.OFF_ROAD
     k = states.index(State.REINITIALISED)
     assert 5 <= k <= 11  # reinit_time 10 s or reinit_distance 100 m
+    assert all(s is State.OFF_ROAD for s in states[:k])
     assert all(r.edge == m.edge("c", "d") for r in res[8 + k :])
     assert res[-1].state is State.ON_ROAD
+
+
+def test_soft_reinitialisation_switches_road_with_a_correction() -> None:
+    m = parse_ascii_map(PARALLEL, scale=10)
+    matcher = OnlineMatcher(m.graph)
+    res = run(matcher, _jump_to_cd(m))
+    after = res[8:]
+    k = next(i for i, r in enumerate(after) if r.edge == m.edge("c", "d"))
+    assert k <= 5
+    assert all(r.edge == m.edge("c", "d") for r in after[k:])
+    assert after[k].state in (State.AMBIGUOUS, State.OFF_ROAD, State.ON_ROAD)
+    assert after[-1].state is State.ON_ROAD
 
 
 def test_one_way_is_never_matched_against_its_direction() -> None:

@@ -475,3 +475,26 @@ def test_access_log_is_structured_with_counts_and_latency(api, caplog):
     assert s["in"] == s["out"] == len(drive(AMAP, "ab")) and s["msg_p50_ms"] <= s["msg_max_ms"]
     assert by["GetMapInfo"]["code"] == "NOT_FOUND"
     assert all("peer" in r for r in recs)
+
+
+def test_a_matcher_failure_is_internal_for_that_fix_only():
+    with running(local_config(), {"city": AMAP.graph}) as (srv, port):
+        entry = srv.maps.get("city")
+        real = entry.online.update
+
+        def flaky(state, fix, **kw):
+            if fix.time == 3.0 and fix.heading == 90.0:  # only vehicle "a" drives east at t=3
+                raise RuntimeError("boom")
+            return real(state, fix, **kw)
+
+        entry.online.update = flaky
+        ch, api = stub(port)
+        a = requests(drive(AMAP, "abc"), "a")
+        b = requests(drive(AMAP, "adg"), "b")
+        reqs = [r for pair in zip(a, b, strict=False) for r in pair]
+        out = list(api.StreamFixes(iter(reqs), timeout=30))
+        errs = [(r.vehicle_id, r.seq, r.error.code) for r in out if r.HasField("error")]
+        assert errs == [("a", 3, grpc.StatusCode.INTERNAL.value[0])]
+        assert "boom" not in out[6].error.message  # internals stay in the server log
+        assert out[-1].result.edge == AMAP.edge("d", "g") and out[-2].result.edge >= 0
+        ch.close()

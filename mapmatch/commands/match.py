@@ -41,17 +41,26 @@ def register(subparsers: Any) -> None:
     p.add_argument("--map", required=True, type=Path, metavar="MAP", help="map file from `mapmatch prep`")
     p.add_argument("-o", "--output", required=True, type=Path, metavar="OUT", help="output file or folder")
     cols = p.add_argument_group("input columns (CSV and Parquet)")
-    for name, default in (("id", "id"), ("time", "time"), ("lat", "lat"), ("lon", "lon"), ("heading", "heading"),
-                          ("speed", "speed")):  # fmt: skip
-        cols.add_argument(f"--{name}-col", default=default, metavar="NAME", help=f"default: {default}")
+    for name in ("id", "time", "lat", "lon", "heading", "speed"):
+        cols.add_argument(f"--{name}-col", default=name, metavar="NAME", help=f"default: {name}")
     run = p.add_argument_group("execution")
-    run.add_argument("--workers", type=int, default=None, metavar="N", help="local processes (default: all cores)")
+    run.add_argument(
+        "--workers", type=int, default=None, metavar="N", help="local processes (default: all cores)"
+    )
     run.add_argument("--scheduler", metavar="tcp://HOST:PORT", help="run on this dask.distributed scheduler")
     run.add_argument("--partition-size", type=int, default=64, metavar="N", help="tracks per partition (64)")
     run.add_argument("--no-progress", action="store_true", help="no progress bar")
+    run.add_argument(
+        "--ubodt", type=float, default=None, metavar="METRES",
+        help="precompute a route table up to this many metres per worker (faster; more memory)",
+    )  # fmt: skip
     model = p.add_argument_group("model")
-    model.add_argument("--gps-sigma", type=float, default=None, metavar="M", help="position error σ in metres")
-    model.add_argument("--search-radius", type=float, default=None, metavar="M", help="candidate radius in metres")
+    model.add_argument(
+        "--gps-sigma", type=float, default=None, metavar="M", help="position error σ in metres"
+    )
+    model.add_argument(
+        "--search-radius", type=float, default=None, metavar="M", help="candidate radius in metres"
+    )
     model.add_argument("--interpolate-distance", type=float, default=None, metavar="M",
                        help="points closer than this to the previous one are interpolated")  # fmt: skip
     p.set_defaults(func=run_match)
@@ -60,8 +69,8 @@ def register(subparsers: Any) -> None:
 def run_match(args: argparse.Namespace) -> int:
     from tqdm import tqdm
 
+    from mapmatch.batch import BATCH_CONFIG
     from mapmatch.cli import CommandError
-    from mapmatch.config import DEFAULT_CONFIG
     from mapmatch.io import Columns
     from mapmatch.parallel import run_batch
 
@@ -72,6 +81,8 @@ def run_match(args: argparse.Namespace) -> int:
         raise CommandError("--workers must be at least 1")
     if args.partition_size < 1:
         raise CommandError("--partition-size must be at least 1")
+    if args.ubodt is not None and not args.ubodt > 0:
+        raise CommandError("--ubodt must be a positive number of metres")
     over = {
         k: v
         for k, v in (
@@ -81,7 +92,7 @@ def run_match(args: argparse.Namespace) -> int:
         )
         if v is not None
     }
-    config = DEFAULT_CONFIG.replace(**over)
+    config = BATCH_CONFIG.replace(**over)
     columns = Columns(
         id=args.id_col, time=args.time_col, lat=args.lat_col, lon=args.lon_col, heading=args.heading_col,
         speed=args.speed_col,
@@ -101,6 +112,7 @@ def run_match(args: argparse.Namespace) -> int:
         s = run_batch(
             [str(i) for i in args.inputs], args.map, args.output, config=config, columns=columns,
             workers=args.workers, scheduler=args.scheduler, partition_size=args.partition_size,
+            ubodt_delta=args.ubodt,
             progress=progress, on_total=on_total,
         )  # fmt: skip
     finally:

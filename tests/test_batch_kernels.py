@@ -1,0 +1,86 @@
+"""The compiled kernels agree with their reference: grid candidate search vs EdgeIndex.query,
+the compiled transition vs the shared model's vectorised one."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from graph.ascii import parse_ascii_map
+from graph.index import EdgeIndex
+from mapmatch import model
+from mapmatch.batch import BATCH_CONFIG
+from mapmatch.gridindex import GridIndex
+
+DRAWING = """
+a-----b-----c---------d
+|    / \\    |         |
+|   /   \\   |         |
+e--f-----g--h>>>>>>>>>i
+   |        |
+   j--------k
+"""
+
+
+@pytest.mark.parametrize(("radius", "k"), [(15.0, 2), (50.0, 8), (120.0, None)])
+def test_grid_index_equals_edge_index(radius: float, k: int | None) -> None:
+    m = parse_ascii_map(DRAWING, scale=7)
+    ix = EdgeIndex(m.graph)
+    grid = GridIndex(ix, cell=40.0)
+    rng = np.random.default_rng(3)
+    lo, hi = m.graph.node_xy.min(axis=0) - 80, m.graph.node_xy.max(axis=0) + 80
+    pts = lo + rng.random((600, 2)) * (hi - lo)
+    pts[::7] = m.graph.node_xy[rng.integers(0, m.graph.n_nodes, len(pts[::7]))]  # exact ties at nodes
+    pts[5] = np.nan
+    for _ in range(2):  # a second query on the same index gives the same answer
+        a, b = ix.query(pts[np.isfinite(pts).all(axis=1)], radius, k=k), grid.query(pts, radius, k=k)
+        keep = np.flatnonzero(np.isfinite(pts).all(axis=1))
+        np.testing.assert_array_equal(keep[a.point], b.point)
+        np.testing.assert_array_equal(a.edge, b.edge)
+        np.testing.assert_allclose(a.dist, b.dist, atol=1e-9)
+        np.testing.assert_allclose(a.offset, b.offset, atol=1e-6)
+        np.testing.assert_allclose(a.xy, b.xy, atol=1e-9)
+    assert len(b) > 100
+
+
+def test_compiled_transition_equals_the_shared_model() -> None:
+    rng = np.random.default_rng(5)
+    route = np.r_[rng.random(200) * 500, np.inf, 0.0]
+    trav = rng.random(len(route)) * 400
+    dt = np.r_[rng.random(len(route) - 3) * 30, np.nan, 0.0, 2.0]
+    params = model.transition_params(BATCH_CONFIG)
+    for uturn in (False, True):
+        ref = model.transition_logp(route, trav, dt, BATCH_CONFIG, uturn=uturn)
+        got = [model.transition_logp_one(r, d, t, params, uturn) for r, d, t in zip(route, trav, dt, strict=True)]
+        np.testing.assert_allclose(got, ref)
+
+
+def test_ubodt_gives_the_same_matches_as_the_search() -> None:
+    from mapmatch.batch import BatchMatcher
+    from mapmatch.routing import Ubodt
+    from mapmatch.types import Track
+
+    m = parse_ascii_map(DRAWING, scale=7, restrictions=[("b", "c", "h", "no")])
+    table = Ubodt.build(m.graph, 400.0)
+    assert table.nbytes > 0 and len(table.ptr) == m.graph.n_edges + 1
+    plain, fast = BatchMatcher(m.graph), BatchMatcher(m.graph, ubodt=table)
+    rng = np.random.default_rng(11)
+    for _ in range(10):  # random walks through the map, noisy fixes
+        node = int(rng.integers(m.graph.n_nodes))
+        xy = [m.graph.node_xy[node]]
+        for _ in range(6):
+            out = m.graph.out_of(node)
+            if not len(out):
+                break
+            e = int(rng.choice(out))
+            node = int(m.graph.edge_v[e])
+            xy.append(m.graph.node_xy[node])
+        pts = np.array([a + (b - a) * f for a, b in zip(xy, xy[1:], strict=False) for f in (0.3, 0.7)])
+        if not len(pts):
+            continue
+        pts = pts + rng.normal(0, 3, pts.shape)
+        ll = np.array([m.lonlat(x, y) for x, y in pts])
+        t = Track("w", np.arange(len(pts)) * 3.0, ll[:, 1], ll[:, 0])
+        a, b = plain.match(t), fast.match(t)
+        assert a.routes == b.routes and a.splits == b.splits
+        assert [p.edge for p in a.points] == [p.edge for p in b.points]

@@ -1,0 +1,46 @@
+"""A real Kubicka et al. (2015) track, matched end to end and scored against its true route."""
+
+from __future__ import annotations
+
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from mapmatch.batch import BatchMatcher
+from mapmatch.io import Columns, read_tracks
+
+pytestmark = pytest.mark.slow
+
+
+def _score_module(shared: Path):  # the peers' scorer, used in place (never copied)
+    peers = shared / "peers"
+    if not (peers / "score.py").exists():
+        pytest.skip(f"needs {peers / 'score.py'}")
+    sys.path.insert(0, str(peers))
+    import score  # type: ignore[import-not-found]
+
+    return score
+
+
+@pytest.mark.parametrize(("track", "S"), [("00000021", 1), ("00000021", 10), ("00000007", 30)])
+def test_kubicka_track_matches_its_true_route(
+    kubicka_dir: Path, shared_dir: Path, track: str, S: int
+) -> None:
+    from graph.build import build_map
+
+    score = _score_module(shared_dir)
+    d = kubicka_dir / track
+    graph = build_map(d / "roads.geojson")
+    (t,) = read_tracks(d / "track.csv", columns=Columns(time="t"))
+    idx = np.r_[np.arange(0, len(t), S), len(t) - 1] if (len(t) - 1) % S else np.arange(0, len(t), S)
+    t.time, t.lat, t.lon = t.time[idx], t.lat[idx], t.lon[idx]
+    r = BatchMatcher(graph).match(t)
+    assert len(r.routes) == 1 and r.splits == []
+    truth = json.loads((d / "truth.geojson").read_text())
+    first_last = ((t.lon[0], t.lat[0]), (t.lon[-1], t.lat[-1]))
+    sc = score.score(truth, [[list(p) for p in piece] for piece in r.route_lonlat], first_last)
+    assert sc["rmf"] < 0.01, sc
+    assert sum(p.status == "matched" for p in r.points) >= 0.95 * len(idx)
