@@ -8,6 +8,7 @@ the ratio of our points/s to fastmm's, and our time per point on the largest vs 
     python bench/bench_batch.py                       # all 15 tracks, S = 1, 10, 30
     python bench/bench_batch.py --ids 0,21 --engines custom,fastmm     # a quick check
     python bench/bench_batch.py --summary ~/.cache/mapmatch-peers/results/batch.jsonl
+    python bench/bench_batch.py --routing --ids 0,28      # bounded search vs UBODT, in process
 """
 
 from __future__ import annotations
@@ -79,6 +80,56 @@ def summarise(paths: list[Path]) -> None:
                 )
 
 
+def compare_routing(ids: str, S: str, deltas: str) -> None:
+    """Bounded Dijkstra vs UBODT tables: build time, size, points/s (best of 5), same routes."""
+    import time
+
+    import numpy as np
+
+    sys.path.insert(0, str(ROOT / "bench"))
+    import peers_adapter  # type: ignore[import-not-found]
+
+    from mapmatch.batch import BatchMatcher
+    from mapmatch.io import Columns, read_tracks
+    from mapmatch.routing import Ubodt
+
+    data = ROOT.parent / "shared" / "data" / "kubicka"
+    names = sorted(p.name for p in data.iterdir() if p.is_dir())
+    if ids != "all":
+        names = [n for n in names if int(n) in {int(x) for x in ids.split(",")}]
+    for name in names:
+        graph = peers_adapter.load_graph(data / name)
+        (track,) = read_tracks(data / name / "track.csv", columns=Columns(time="t"))
+        variants: list[tuple[str, BatchMatcher]] = [("search", BatchMatcher(graph))]
+        for d in (float(x) for x in deltas.split(",")):
+            t0 = time.perf_counter()
+            table = Ubodt.build(graph, d)
+            build = time.perf_counter() - t0
+            print(
+                f"{name} edges={graph.n_edges} UBODT {d:.0f} m: "
+                f"build {build:.2f} s, {table.nbytes / 1e6:.0f} MB"
+            )
+            variants.append((f"ubodt{d:.0f}", BatchMatcher(graph, ubodt=table)))
+        for s in (int(x) for x in S.split(",")):
+            idx = np.arange(0, len(track), s)
+            sub = type(track)(track.track_id, track.time[idx], track.lat[idx], track.lon[idx])
+            ref = variants[0][1].match(sub).routes
+            row = []
+            for label, m in variants:
+                best = min(_timed(m, sub) for _ in range(5))
+                same = m.match(sub).routes == ref
+                row.append(f"{label} {len(idx) / best:9.0f} pts/s{'' if same else ' (DIFFERENT ROUTE)'}")
+            print(f"  S={s:2d}: " + " | ".join(row))
+
+
+def _timed(m: object, track: object) -> float:
+    import time
+
+    t0 = time.perf_counter()
+    m.match(track)  # type: ignore[attr-defined]
+    return time.perf_counter() - t0
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--ids", default="all", help="all, or comma-separated track numbers")
@@ -86,7 +137,12 @@ def main() -> int:
     ap.add_argument("--S", default="1,10,30")
     ap.add_argument("--tag", default="batch")
     ap.add_argument("--summary", nargs="+", type=Path, help="only summarise these result files")
+    ap.add_argument("--routing", action="store_true", help="compare bounded search and UBODT in process")
+    ap.add_argument("--deltas", default="1000,2000,3000", help="UBODT bounds in metres for --routing")
     a = ap.parse_args()
+    if a.routing:
+        compare_routing(a.ids, a.S, a.deltas)
+        return 0
     if not PEERS.is_dir():
         print(f"needs the peers folder {PEERS}", file=sys.stderr)
         return 2

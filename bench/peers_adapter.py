@@ -21,6 +21,7 @@ if str(ROOT) not in sys.path:
 
 from graph.road_graph import RoadGraph  # noqa: E402
 from mapmatch.batch import BatchMatcher  # noqa: E402
+from mapmatch.routing import Ubodt  # noqa: E402
 from mapmatch.types import Track  # noqa: E402
 
 
@@ -74,8 +75,13 @@ def load_graph(work: Path) -> RoadGraph:
     return build_map(work / "roads.geojson")
 
 
+UBODT_DELTA = 2000.0
+"""Route table bound in metres built at load time (fastmm's adapter uses a 3000 m UBODT)."""
+
+
 def load(work: Path) -> BatchMatcher:
-    matcher = BatchMatcher(load_graph(Path(work)))
+    graph = load_graph(Path(work))
+    matcher = BatchMatcher(graph, ubodt=Ubodt.build(graph, UBODT_DELTA) if UBODT_DELTA else None)
     # warm up: loads the numba cache before the timed calls
     lon, lat = matcher.graph.node_lonlat[0]
     matcher.match(Track("warmup", np.array([0.0, 1.0]), np.array([lat, lat]), np.array([lon, lon])))

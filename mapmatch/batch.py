@@ -147,7 +147,7 @@ class BatchMatcher:
             odo = np.asarray(track.distance, dtype=np.float64)
             csum = np.cumsum(np.where(np.isfinite(odo), odo, 0.0))
             podo = np.where(np.isfinite(odo[pts]), csum[pts], np.nan)
-        choice, seg_start, via_u, used_bound = _solve(
+        choice, seg_start, via_u, used_bound = _solve(  # type: ignore[call-arg]
             cand_ptr, cedge, coff, emis, pxy, ptime, podo, model.transition_params(cfg),
             float(cfg.max_route_factor), float(cfg.route_slack), float(cfg.beta * ROUTE_LP_CUT),
             float(cfg.gap_distance), MAX_SKIP, REVERSE_TOLERANCE, *search_args(self._ra, self._ws),

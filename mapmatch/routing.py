@@ -4,10 +4,11 @@ The search is edge-based (a state is a directed edge, its key the distance to th
 start), so turn restrictions and U-turn rules apply exactly. Two ways to get the distances
 the batch matcher needs between the candidates of consecutive fixes:
 
-* :func:`step_route_distances`: one bounded Dijkstra per source candidate, stopped as soon
-  as every target edge is settled or the bound is passed (no precomputation);
+* :func:`_search`: a bounded Dijkstra from one source candidate, stopped as soon as every
+  target edge is settled or the bound is passed (no precomputation; the matcher shrinks the
+  bound per source, see ``mapmatch.batch``);
 * :class:`Ubodt`: an FMM-style upper-bounded origin-destination table, precomputed once per
-  map for a bound in metres, then looked up (``bench/bench_batch.py`` measures both).
+  map for a bound in metres, then looked up (``bench/bench_batch.py --routing`` measures both).
 
 U-turns at a node are allowed only at dead ends; a U-turn along the road is a separate,
 penalised move the matcher scores itself.
@@ -215,91 +216,6 @@ def _reset(nt: int, touched, dist, pred, done) -> None:  # type: ignore[no-untyp
         dist[f] = INF
         pred[f] = -1
         done[f] = 0
-
-
-@njit(cache=True)
-def route_block(  # type: ignore[no-untyped-def]
-    a0,
-    a1,
-    b0,
-    b1,
-    cand_edge,
-    cand_off,
-    bound_tight,
-    bound,
-    reverse_tol,
-    route,
-    uturn,
-    out_ptr,
-    out_edges,
-    edge_v,
-    edge_len,
-    edge_rev,
-    r_ptr,
-    r_to,
-    r_kind,
-    dist,
-    pred,
-    done,
-    tgt,
-    touched,
-    heap_k,
-    heap_v,
-) -> bool:
-    """Route distances from candidates ``a0:a1`` to candidates ``b0:b1`` into ``route`` (row-major).
-
-    ``route`` gets the network distance (inf = not reachable within the bound), ``uturn`` the
-    along-road U-turn distance (inf where the pair is not the two directions of one road).
-    Searches stop at ``bound_tight``; only when nothing is reachable they go on to ``bound``.
-    Returns whether any pair is connected.
-    """
-    kb = b1 - b0
-    for q in range(len(route)):
-        route[q] = INF
-        uturn[q] = INF
-    nuniq = 0
-    for j in range(b0, b1):
-        if tgt[cand_edge[j]] == 0:
-            tgt[cand_edge[j]] = 1
-            nuniq += 1
-    found = False
-    for npass in range(2):
-        lim = bound_tight if npass == 0 else bound
-        if npass == 1 and (lim <= bound_tight or found):
-            break
-        for i in range(a0, a1):
-            e = cand_edge[i]
-            o = cand_off[i]
-            row = (i - a0) * kb
-            need = 0
-            for j in range(b0, b1):
-                f = cand_edge[j]
-                if f == e and cand_off[j] >= o - reverse_tol:
-                    route[row + j - b0] = max(cand_off[j] - o, 0.0)
-                    found = True
-                else:
-                    need += 1
-                    if f == edge_rev[e]:
-                        uturn[row + j - b0] = abs(edge_len[e] - cand_off[j] - o)
-                        found = True
-            if need == 0:
-                continue
-            nt = _search(
-                e, edge_len[e] - o, lim, nuniq, out_ptr, out_edges, edge_v, edge_len, edge_rev,
-                r_ptr, r_to, r_kind, dist, pred, done, tgt, touched, heap_k, heap_v,
-            )  # fmt: skip
-            for j in range(b0, b1):
-                f = cand_edge[j]
-                if f == e and cand_off[j] >= o - reverse_tol:
-                    continue
-                r = dist[f] + cand_off[j]
-                if r <= lim:
-                    route[row + j - b0] = r
-                    found = True
-            _reset(nt, touched, dist, pred, done)
-    for j in range(b0, b1):
-        tgt[cand_edge[j]] = 0
-    return found
 
 
 @njit(cache=True)

@@ -3,6 +3,8 @@ the compiled transition vs the shared model's vectorised one."""
 
 from __future__ import annotations
 
+import itertools
+
 import numpy as np
 import pytest
 
@@ -51,7 +53,9 @@ def test_compiled_transition_equals_the_shared_model() -> None:
     params = model.transition_params(BATCH_CONFIG)
     for uturn in (False, True):
         ref = model.transition_logp(route, trav, dt, BATCH_CONFIG, uturn=uturn)
-        got = [model.transition_logp_one(r, d, t, params, uturn) for r, d, t in zip(route, trav, dt, strict=True)]
+        got = [
+            model.transition_logp_one(r, d, t, params, uturn) for r, d, t in zip(route, trav, dt, strict=True)
+        ]
         np.testing.assert_allclose(got, ref)
 
 
@@ -75,7 +79,7 @@ def test_ubodt_gives_the_same_matches_as_the_search() -> None:
             e = int(rng.choice(out))
             node = int(m.graph.edge_v[e])
             xy.append(m.graph.node_xy[node])
-        pts = np.array([a + (b - a) * f for a, b in zip(xy, xy[1:], strict=False) for f in (0.3, 0.7)])
+        pts = np.array([a + (b - a) * f for a, b in itertools.pairwise(xy) for f in (0.3, 0.7)])
         if not len(pts):
             continue
         pts = pts + rng.normal(0, 3, pts.shape)
