@@ -241,3 +241,23 @@ def file_sha256(path: str | os.PathLike[str], *, chunk: int = 1 << 22) -> str:
         while block := f.read(chunk):
             h.update(block)
     return h.hexdigest()
+
+
+def open_map(path: str | os.PathLike[str]) -> RoadGraph:
+    """A prepared map file (fast, memory-mapped), or else an OSM/GIS source built on the fly.
+
+    The source case imports the builder (osmnx) only when it is needed.
+    """
+    p = Path(path)
+    try:
+        with open(p, "rb") as f:
+            head = f.read(len(MAGIC))
+    except FileNotFoundError:
+        raise ArtifactError(f"no such map file: {p}") from None
+    except OSError as exc:
+        raise ArtifactError(f"cannot read map file {p}: {exc.strerror}") from exc
+    if head[:-1] == MAGIC[:-1]:  # any format version: load_map reports a mismatch
+        return load_map(p)
+    from graph.build import build_map
+
+    return build_map(p)

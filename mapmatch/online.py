@@ -60,6 +60,7 @@ DRIFT_DECAY_S = 20.0
 SOFT_REINIT_SIGMAS = 3.0
 SEARCH_EVERY_S = 1.0
 SWITCH_PENALTY = 8.0
+AGAINST_HEADING_DEG = 100.0  # driving against the road believed also triggers the search
 HEADING_SIGMA_FLOOR_DEG = 10.0
 HEADING_SIGMA_FLOOR_DR_DEG = 15.0  # in dead reckoning the position along the road is uncertain
 RESIDUAL_TIME_S = 20.0
@@ -288,9 +289,10 @@ class OnlineMatcher:
         if state.hyps:
             self._advance(state, step, cfg)
             best = self._best(state.hyps)
+            against = step.kappa > 0.0 and abs(angle_diff(step.heading, best.bearing)) > AGAINST_HEADING_DEG
             if (
                 step.gps
-                and best.dist > SOFT_REINIT_SIGMAS * step.sigma
+                and (best.dist > SOFT_REINIT_SIGMAS * step.sigma or against)
                 and not (step.time - state.search_time < SEARCH_EVERY_S)
             ):
                 state.search_time = step.time
@@ -515,7 +517,7 @@ class OnlineMatcher:
             if e in have:
                 continue
             off, dist, px, py, brg = self._project(e, step.x, step.y)
-            if dist >= best.dist or (
+            if dist > best.dist + step.sigma or (
                 step.kappa > 0.0 and abs(angle_diff(step.heading, brg)) > INIT_MAX_HEADING_DEG
             ):
                 continue

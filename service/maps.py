@@ -16,6 +16,7 @@ from typing import Any
 
 import numpy as np
 
+from graph.artifact import open_map
 from graph.errors import GraphError
 from graph.index import EdgeIndex
 from graph.road_graph import ARRAY_FIELDS, RoadGraph
@@ -43,19 +44,6 @@ def graph_checksum(graph: RoadGraph) -> str:
         h.update(f"{name}:{a.dtype.str}:{a.shape}".encode())
         h.update(np.ascontiguousarray(a).tobytes())
     return h.hexdigest()
-
-
-def load_graph(path: Path) -> RoadGraph:
-    """A prepared map file (``graph.artifact``), or an OSM/GIS source built on the fly."""
-    from graph.artifact import MAGIC, load_map
-
-    with open(path, "rb") as f:
-        head = f.read(len(MAGIC))
-    if head[:-1] == MAGIC[:-1]:
-        return load_map(path)
-    from graph.build import build_map  # heavy (osmnx); only for raw sources
-
-    return build_map(path)
 
 
 @dataclass(eq=False)
@@ -143,7 +131,7 @@ class MapRegistry:
     def load(self, map_id: str, path: Path) -> MapEntry:
         """Load a map file (or source) from disk and register it."""
         try:
-            graph = load_graph(Path(path))
+            graph = open_map(Path(path))
         except (GraphError, MatchError, OSError):
             raise
         except Exception as exc:  # e.g. a corrupt file the loader did not recognise

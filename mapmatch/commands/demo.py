@@ -10,6 +10,7 @@ from __future__ import annotations
 import argparse
 import sys
 import time
+from collections.abc import Sequence
 from pathlib import Path
 
 from mapmatch.cli import CommandError
@@ -66,7 +67,7 @@ def run(args: argparse.Namespace) -> int:
     try:
         _step(f"gRPC server on 127.0.0.1:{port} is SERVING; streaming {len(drive.fixes)} fixes", t0)
 
-        def snap(fixes: list[Fix]) -> list[SnapResult | None]:
+        def snap(fixes: Sequence[Fix]) -> list[SnapResult | None]:
             with MapMatchClient(f"127.0.0.1:{port}") as client:
                 answers = list(client.stream((("demo-1", f) for f in fixes), map_id="helsinki", timeout=120))
             bad = [a for a in answers if a.error is not None]

@@ -34,8 +34,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[ty
 
 
 def run(args: argparse.Namespace) -> int:
+    from graph.artifact import open_map
     from graph.projection import to_xy
-    from mapmatch.commands._maps import load_any_map
     from mapmatch.evaluate import evaluate, read_matched_csv
     from mapmatch.plots import draw_html, draw_png, plot_data
     from mapmatch.sim.demo import title_for
@@ -46,7 +46,7 @@ def run(args: argparse.Namespace) -> int:
     csv_path, gj_path = truth_paths(args.truth)
     if not csv_path.exists():
         raise CommandError(f"no per-fix truth {csv_path} (mapmatch simulate --truth writes it)")
-    graph = load_any_map(args.map)
+    graph = open_map(args.map)
     truth = _read_csv(csv_path)
     matched = read_matched_csv(args.matched, vehicle_id=args.vehicle_id)
     fixes = _read_csv(Path(args.fixes)) if args.fixes else None

@@ -56,7 +56,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[ty
 
 
 def run(args: argparse.Namespace) -> int:
-    from mapmatch.commands._maps import load_any_map
+    from graph.artifact import open_map
     from mapmatch.sim.drive import position_error, read_route, simulate_drive, write_fixes_csv, write_truth
     from mapmatch.sim.routes import random_route
     from mapmatch.sim.sensors import parse_outages
@@ -66,7 +66,7 @@ def run(args: argparse.Namespace) -> int:
     if args.speedup <= 0:
         raise CommandError("--speedup must be positive")
     outages = parse_outages(args.outages)
-    graph = load_any_map(args.map)
+    graph = open_map(args.map)
     if args.route:
         route = read_route(graph, args.route)
     else:
