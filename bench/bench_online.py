@@ -106,19 +106,31 @@ def run_drive(matcher: OnlineMatcher, drive: Drive) -> tuple[list[SnapResult], n
     return out, times * 1e-9
 
 
-def corrected_edges(results: list[SnapResult]) -> np.ndarray:
-    """Per-fix edges with the matcher's corrections applied (its final belief)."""
+def corrected_edges(graph: RoadGraph, results: list[SnapResult]) -> np.ndarray:
+    """Per-fix edges with the matcher's corrections applied (its final belief).
+
+    A correction says that over ``[time_from, time_to]`` the vehicle drove ``edges`` in order;
+    each replaced fix in the span gets the nearest of those edges, in order (monotone).
+    """
+    from graph.index import project_to_edge
+    from graph.projection import point_to_xy
+
     t = np.array([r.time for r in results])
     e = np.array([r.edge for r in results], dtype=np.int64)
     for r in results:
         c = r.correction
         if c is None:
             continue
-        span = (t >= c.time_from) & (t <= c.time_to)
-        for i in np.flatnonzero(span):
-            if e[i] in c.replaced_edges:
-                k = c.replaced_edges.index(int(e[i]))
-                e[i] = c.edges[min(k, len(c.edges) - 1)]
+        span = np.flatnonzero((t >= c.time_from) & (t <= c.time_to))
+        j = 0
+        for i in span:
+            if e[i] not in c.replaced_edges:
+                continue
+            if len(c.edges) > 1:
+                x, y = point_to_xy(graph.crs, results[i].raw_lon, results[i].raw_lat)
+                d = [project_to_edge(graph, ce, x, y)[1] for ce in c.edges]
+                j = max(j, int(np.argmin(d)))
+            e[i] = c.edges[j]
     return e
 
 
@@ -134,7 +146,7 @@ def score(graph: RoadGraph, drive: Drive, results: list[SnapResult]) -> dict[str
     )
     truth_path = drive.route.edges.tolist()
     live = evaluate(graph, truth=drive.truth, matched=matched, truth_path=truth_path)
-    matched2 = matched.assign(edge=corrected_edges(results))
+    matched2 = matched.assign(edge=corrected_edges(graph, results))
     fin = evaluate(graph, truth=drive.truth, matched=matched2, truth_path=truth_path)
     true_nodes = path_nodes(graph, truth_path)
     return {

@@ -31,6 +31,7 @@ from mapmatch.routing import (
     path_edges,
     search_args,
     ubodt_lookup,
+    ubodt_path,
 )
 from mapmatch.types import MatchedPoint, PointStatus, Track, TrackMatch
 
@@ -79,9 +80,9 @@ class BatchMatcher:
         self.graph = graph
         self.ubodt = ubodt
         self._ubodt_args = (
-            (ubodt.delta, ubodt.ptr, ubodt.tgt, ubodt.dist)
+            (ubodt.delta, ubodt.ptr, ubodt.tgt, ubodt.dist, ubodt.pred)
             if ubodt is not None
-            else (-1.0, np.zeros(1, np.int64), np.zeros(0, np.int32), np.zeros(0))
+            else (-1.0, np.zeros(1, np.int64), np.zeros(0, np.int32), np.zeros(0), np.zeros(0, np.int32))
         )
         self.index = index or EdgeIndex(graph)
         self.config = config or BATCH_CONFIG
@@ -202,12 +203,13 @@ class BatchMatcher:
             kind[seg_start[acc]] = STEP_SPLIT
             kind[0] = STEP_SPLIT
             bound = used_bound[acc]
-            pe, ps, pend, pseg, bad = _pieces(ch_edge, ch_off, kind, bound, *search_args(self._ra, self._ws))
+            pe, ps, pend, pseg, bad = _pieces(  # type: ignore[call-arg]
+                ch_edge, ch_off, kind, bound, *search_args(self._ra, self._ws), *self._ubodt_args
+            )
             # a failed path (should not happen: Viterbi chose a reachable pair) becomes a split
             starts = np.flatnonzero((kind == STEP_SPLIT) | bad)
             res.splits = [int(pts[i]) for i in starts[1:]]
             xy_all, xptr = _pieces_xy(pe, ps, pend, self._seg_xy, self._seg_ptr)
-            ll = to_lonlat(g.crs, xy_all[:, 0], xy_all[:, 1]) if len(xy_all) else np.empty((0, 2))
             nseg = int(pseg.max()) + 1 if len(pseg) else 0
             piece_bounds = np.searchsorted(pseg, np.arange(nseg + 1))
             for s in range(nseg):
@@ -215,11 +217,7 @@ class BatchMatcher:
                 edges = pe[a:b]
                 keep_e = np.ones(len(edges), dtype=bool)
                 keep_e[1:] = edges[1:] != edges[:-1]
-                res.routes.append([int(e) for e in edges[keep_e]])
-                seg_ll = ll[xptr[a] : xptr[b]]
-                if len(seg_ll) == 1:
-                    seg_ll = np.vstack([seg_ll, seg_ll])
-                res.route_lonlat.append([(float(x), float(y)) for x, y in seg_ll])
+                res.routes.append(edges[keep_e].tolist())
             res.length_m = float(np.sum(pend - ps))
             p_edge[pts] = ch_edge
             p_off[pts] = ch_off
@@ -250,8 +248,17 @@ class BatchMatcher:
                 status[ii] = 2
         ok = status > 0
         p_ll = np.full((n, 2), np.nan)
-        if ok.any():
-            p_ll[ok] = to_lonlat(g.crs, p_xy[ok, 0], p_xy[ok, 1])
+        nok = int(ok.sum())
+        if nok:  # one projection call for the points and the route
+            both = np.concatenate([p_xy[ok], xy_all]) if m else p_xy[ok]
+            ll_all = to_lonlat(g.crs, both[:, 0], both[:, 1])
+            p_ll[ok] = ll_all[:nok]
+            ll = ll_all[nok:]
+            for s in range(len(res.routes)):
+                seg_ll = ll[xptr[piece_bounds[s]] : xptr[piece_bounds[s + 1]]]
+                if len(seg_ll) == 1:
+                    seg_ll = np.vstack([seg_ll, seg_ll])
+                res.route_lonlat.append(list(map(tuple, seg_ll.tolist())))
         stat = (PointStatus.UNMATCHED, PointStatus.MATCHED, PointStatus.INTERPOLATED)
         res.points = [
             MatchedPoint(i, stat[s], int(e), float(o), float(la), float(lo), float(d))
@@ -358,6 +365,7 @@ def _step(  # type: ignore[no-untyped-def]
     u_ptr,
     u_tgt,
     u_dist,
+    u_pred,
 ):
     """One Viterbi step from candidates ``a0:a1`` to ``b0:b1``, routing as needed.
 
@@ -498,6 +506,7 @@ def _solve(  # type: ignore[no-untyped-def]
     u_ptr,
     u_tgt,
     u_dist,
+    u_pred,
 ):
     """Exact Viterbi over the lattice, routing each step as it goes.
 
@@ -558,7 +567,7 @@ def _solve(  # type: ignore[no-untyped-def]
                     cand_ptr[prev], cand_ptr[prev + 1], cand_ptr[t], cand_ptr[t + 1], cedge, coff, emis,
                     score, bp, bpu, order, best, params, trav, dt, lim, reverse_tol, out_ptr, out_edges,
                     edge_v, edge_len, edge_rev, r_ptr, r_to, r_kind, dist, pred, done, tgt, touched,
-                    heap_k, heap_v, u_delta, u_ptr, u_tgt, u_dist,
+                    heap_k, heap_v, u_delta, u_ptr, u_tgt, u_dist, u_pred,
                 )  # fmt: skip
                 if reached:
                     break
@@ -628,6 +637,11 @@ def _pieces(  # type: ignore[no-untyped-def]
     touched,
     heap_k,
     heap_v,
+    u_delta,
+    u_ptr,
+    u_tgt,
+    u_dist,
+    u_pred,
 ):
     """The route as pieces ``(edge, start offset, end offset, segment)`` along the chosen candidates."""
     m = len(ch_edge)
@@ -664,10 +678,14 @@ def _pieces(  # type: ignore[no-untyped-def]
             n += 1
             continue
         if k == 2:
-            mid = path_edges(
-                ch_edge[t - 1], ch_off[t - 1], e, bound[t] + 1.0, out_ptr, out_edges, edge_v, edge_len,
-                edge_rev, r_ptr, r_to, r_kind, dist, pred, done, tgt, touched, heap_k, heap_v,
-            )  # fmt: skip
+            mid = None
+            if u_delta > 0:
+                mid = ubodt_path(u_ptr, u_tgt, u_dist, u_pred, ch_edge[t - 1], e)
+            if mid is None:
+                mid = path_edges(
+                    ch_edge[t - 1], ch_off[t - 1], e, bound[t] + 1.0, out_ptr, out_edges, edge_v, edge_len,
+                    edge_rev, r_ptr, r_to, r_kind, dist, pred, done, tgt, touched, heap_k, heap_v,
+                )  # fmt: skip
             if mid is None:
                 bad[t] = True
                 k = 3

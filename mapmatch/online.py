@@ -3,8 +3,9 @@
 The filter holds a few *path hypotheses*. A hypothesis is a short sequence of directed edges
 the vehicle may be driving (the committed edge first), its position along that path and a
 log-probability. Between intersections there is one hypothesis on one edge: each fix is
-projected onto that edge and nothing else is searched. When the vehicle comes within the
-ambiguous-region radius ``r_a`` of the edge's end node, the path is extended with every legal
+projected onto that edge and nothing else is searched (unless the fix leaves that road by
+more than 3 σ or runs against it: then the spatial index proposes alternatives). When the
+vehicle comes within the ambiguous-region radius ``r_a`` of the edge's end node, the path is extended with every legal
 outgoing edge (one-ways, turn restrictions, a penalised U-turn; two hops where junctions are
 closer than ``r_a``). Each fix then adds to every hypothesis the shared model's emission
 (distance and heading), the transition (along-path progress against odometer distance) and
@@ -718,6 +719,8 @@ class OnlineMatcher:
 
     def _correction(self, state: SessionState, best: Hypothesis, step: _Step) -> Correction | None:
         """Compare what was reported live with the committed path's timeline."""
+        # fixes from before the committed path began cannot be judged by it: they stay as reported
+        state.live = [x for x in state.live if x[0] >= best.enter[0]]
         if not state.live:
             return None
         mism: list[tuple[float, int, int]] = []
@@ -731,7 +734,8 @@ class OnlineMatcher:
                 and rep in path
                 and (entry[7] == 0.0 or row[path.index(rep)] - row[j] < CORRECTION_MARGIN)
             ):
-                continue  # dead reckoning, or about as likely where it was reported: keep it
+                # dead reckoning, or about as likely where it was reported on the committed path: keep it
+                continue
             if now != rep:
                 mism.append((t, now, rep))
                 entry[1] = float(now)

@@ -321,25 +321,27 @@ class Ubodt:
 
     For every edge ``e``, the edges ``f`` whose start is within ``delta`` metres of the end of
     ``e`` (turn rules applied), sorted by ``f``: ``tgt[ptr[e]:ptr[e+1]]`` with the distances in
-    ``dist``. A route query within the bound is then a binary search instead of a search.
+    ``dist`` and the edge before ``f`` on the route in ``pred`` (``e`` itself for a neighbour).
+    A route query within the bound is then a binary search instead of a search.
     """
 
     delta: float
     ptr: NDArray[np.int64]
     tgt: NDArray[np.int32]
     dist: NDArray[np.float64]
+    pred: NDArray[np.int32]
 
     @classmethod
     def build(cls, graph: RoadGraph, delta: float) -> Ubodt:
         """Precompute the table for ``delta`` metres (time and memory grow fast with it)."""
         ra = RoutingArrays.from_graph(graph)
         ws = Workspace(graph.n_edges)
-        ptr, tgt, dist = _build_ubodt(float(delta), graph.n_edges, *search_args(ra, ws))
-        return cls(delta=float(delta), ptr=ptr, tgt=tgt, dist=dist)
+        ptr, tgt, dist, pred = _build_ubodt(float(delta), graph.n_edges, *search_args(ra, ws))
+        return cls(delta=float(delta), ptr=ptr, tgt=tgt, dist=dist, pred=pred)
 
     @property
     def nbytes(self) -> int:
-        return int(self.ptr.nbytes + self.tgt.nbytes + self.dist.nbytes)
+        return int(self.ptr.nbytes + self.tgt.nbytes + self.dist.nbytes + self.pred.nbytes)
 
 
 @njit(cache=True)
@@ -366,6 +368,7 @@ def _build_ubodt(  # type: ignore[no-untyped-def]
     cap = 16 * n_edges + 16
     out_t = np.empty(cap, dtype=np.int32)
     out_d = np.empty(cap)
+    out_p = np.empty(cap, dtype=np.int32)
     m = 0
     for e in range(n_edges):
         nt = _search(
@@ -378,22 +381,27 @@ def _build_ubodt(  # type: ignore[no-untyped-def]
             t2[:m] = out_t[:m]
             d2 = np.empty(cap)
             d2[:m] = out_d[:m]
-            out_t, out_d = t2, d2
+            p2 = np.empty(cap, dtype=np.int32)
+            p2[:m] = out_p[:m]
+            out_t, out_d, out_p = t2, d2, p2
         start = m
         for i in range(nt):
             f = touched[i]
             if done[f] and dist[f] <= delta:
                 out_t[m] = f
                 out_d[m] = dist[f]
+                out_p[m] = pred[f]
                 m += 1
         order = np.argsort(out_t[start:m])
         st = out_t[start:m][order].copy()
         sd = out_d[start:m][order].copy()
+        sp = out_p[start:m][order].copy()
         out_t[start:m] = st
         out_d[start:m] = sd
+        out_p[start:m] = sp
         ptr[e + 1] = m
         _reset(nt, touched, dist, pred, done)
-    return ptr, out_t[:m].copy(), out_d[:m].copy()
+    return ptr, out_t[:m].copy(), out_d[:m].copy(), out_p[:m].copy()
 
 
 @njit(cache=True, inline="always")
@@ -410,3 +418,41 @@ def ubodt_lookup(ptr, tgt, dist, e: int, f: int) -> float:  # type: ignore[no-un
     if lo < ptr[e + 1] and tgt[lo] == f:
         return dist[lo]
     return INF
+
+
+@njit(cache=True)
+def ubodt_path(ptr, tgt, dist, upred, src: int, dst: int):  # type: ignore[no-untyped-def]
+    """The edges strictly between ``src`` and ``dst`` from the table (None if not in it)."""
+    if ubodt_lookup(ptr, tgt, dist, src, dst) == INF:
+        return None
+    m = 0
+    f = dst
+    while True:
+        p = _ubodt_pred(ptr, tgt, upred, src, f)
+        if p == src or p < 0:
+            break
+        m += 1
+        f = p
+    out = np.empty(m, dtype=np.int32)
+    f = dst
+    while m > 0:
+        p = _ubodt_pred(ptr, tgt, upred, src, f)
+        m -= 1
+        out[m] = p
+        f = p
+    return out
+
+
+@njit(cache=True, inline="always")
+def _ubodt_pred(ptr, tgt, upred, e: int, f: int) -> int:  # type: ignore[no-untyped-def]
+    lo = ptr[e]
+    hi = ptr[e + 1]
+    while lo < hi:
+        mid = (lo + hi) >> 1
+        if tgt[mid] < f:
+            lo = mid + 1
+        else:
+            hi = mid
+    if lo < ptr[e + 1] and tgt[lo] == f:
+        return upred[lo]
+    return -1

@@ -356,3 +356,41 @@ def test_scalar_projection_agrees_with_project_to_edge() -> None:
             off, dist, px, py, _ = matcher._project(e, float(x), float(y))
             ref = project_to_edge(m.graph, e, float(x), float(y))
             assert (off, dist, px, py) == pytest.approx(ref, abs=1e-9)
+
+
+def test_one_matcher_serves_many_threads() -> None:
+    from concurrent.futures import ThreadPoolExecutor
+
+    m = parse_ascii_map(CROSS, scale=10)
+    matcher = OnlineMatcher(m.graph)
+    routes = ["abc", "abn", "abs", "cba", "nbs", "sba", "nbc", "cbs"]
+    drives = [drive(m, r, speed=8, noise=2.0, seed=i) for i, r in enumerate(routes)]
+    expected = [[(x.edge, x.state, x.turn) for x in run(OnlineMatcher(m.graph), d)] for d in drives]
+
+    def go(d: list[Fix]) -> list[tuple[int, State, Turn]]:
+        return [(x.edge, x.state, x.turn) for x in run(matcher, d)]
+
+    with ThreadPoolExecutor(max_workers=4) as pool:
+        got = list(pool.map(go, drives * 4))
+    assert got == expected * 4
+
+
+def test_scalar_model_twins_agree_with_the_shared_model() -> None:
+    from mapmatch.config import DEFAULT_CONFIG as C
+    from mapmatch.model import emission_logp, transition_logp
+    from mapmatch.turns import emission_scalar, transition_scalar
+
+    rng = np.random.default_rng(1)
+    for _ in range(200):
+        d, s, h, b, k = (
+            rng.uniform(0, 50),
+            rng.uniform(0.5, 20),
+            rng.uniform(0, 360),
+            rng.uniform(0, 360),
+            8.0,
+        )
+        assert emission_scalar(d, s, h, b, k) == pytest.approx(float(emission_logp(d, s, h, b, k)))
+        r, t, dt = rng.uniform(-20, 200), rng.uniform(0, 100), rng.uniform(0.1, 2)
+        ref = float(transition_logp(r, t, dt, C))
+        got = transition_scalar(r, t, dt, beta=C.beta, max_speed=C.max_speed, speed_penalty=C.speed_penalty)
+        assert got == pytest.approx(ref)
