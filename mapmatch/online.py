@@ -2,15 +2,15 @@
 
 The filter holds a few *path hypotheses*. A hypothesis is a short sequence of directed edges
 the vehicle may be driving (the committed edge first), its position along that path and a
-log-probability. Between intersections there is one hypothesis on one edge: each fix is
-projected onto that edge and nothing else is searched (unless the fix leaves that road by
-more than 3 σ or runs against it: then the spatial index proposes alternatives). When the
-vehicle comes within the ambiguous-region radius ``r_a`` of the edge's end node, the path is extended with every legal
-outgoing edge (one-ways, turn restrictions, a penalised U-turn; two hops where junctions are
-closer than ``r_a``). Each fix then adds to every hypothesis the shared model's emission
-(distance and heading), the transition (along-path progress against odometer distance) and
-turn evidence (heading change over the last ``turn_window`` metres against the path's bearing
-change). The most probable hypothesis is reported; when it has left the circle it is
+log-probability. Between intersections there is one hypothesis on one edge: each fix is projected
+onto that edge and nothing else is searched (unless the fix leaves that road by more than 3 σ
+or runs against it: then the spatial index proposes alternatives). When the vehicle comes
+within the ambiguous-region radius ``r_a`` of the edge's end node, the path is extended with
+every legal outgoing edge (one-ways, turn restrictions, a penalised U-turn; two hops where
+junctions are closer than ``r_a``). Each fix then adds to every hypothesis the shared model's
+emission (distance and heading), the transition (along-path progress against odometer distance)
+and turn evidence (heading change over the last ``turn_window`` metres against the path's
+bearing change). The most probable hypothesis is reported; when it has left the circle it is
 committed, the turn at the intersection is classified and, when the committed path disagrees
 with what was reported live, a :class:`~mapmatch.types.Correction` is returned.
 
