@@ -46,8 +46,10 @@ def test_fused_stream_columns_and_accuracy(drive) -> None:  # type: ignore[no-un
     assert not valid[121:180].any() and valid[185:200].all()
     err = position_error(drive)
     assert 1.0 < err[valid].mean() < 5.0
-    # dead-reckoning error at the end of the outage exceeds the error at its start
-    assert err[170:180].mean() > err[121:126].mean()
+    # dead reckoning through the outage: the error stays within its start plus 3 % of the
+    # distance driven (whether it grows in one drive is chance: see tests/test_kalman.py)
+    driven = f["distance"].to_numpy()[121:180].sum()
+    assert err[121:180].max() < err[116:121].mean() + 0.03 * driven + 1.0
     t = drive.truth
     assert set(t["gps_outage"].unique()) == {0, 1}
     # the true edge at each fix contains the true position (within corner rounding)
@@ -55,6 +57,21 @@ def test_fused_stream_columns_and_accuracy(drive) -> None:  # type: ignore[no-un
     assert set(t["edge"]) <= set(g.edges.tolist())
     assert len(drive.node_index) == len(drive.route.edges) - 1
     assert np.all(np.diff(drive.node_time) >= 0)
+
+
+def test_reported_sigma_is_honest_on_a_drive_with_turns_and_an_outage(drive) -> None:  # type: ignore[no-untyped-def]
+    f, t = drive.fixes, drive.truth
+    z = position_error(drive) / f["pos_sigma"].to_numpy()
+    head = np.abs((f["heading"].to_numpy() - t["heading"].to_numpy() + 180.0) % 360.0 - 180.0)
+    hz = head / f["heading_sigma"].to_numpy()
+    ok = f["time"].to_numpy() > 30.0
+    # a fair σ: 39 % of fixes within 1σ (2-D), 86 % within 2σ; heading 68 % and 95 %
+    assert 0.15 < np.mean(z[ok] <= 1.0) < 0.75 and np.mean(z[ok] <= 2.0) > 0.6
+    assert 0.45 < np.mean(hz[ok] <= 1.0) < 0.95 and np.mean(hz[ok] <= 2.0) > 0.8
+    out = t["gps_outage"].to_numpy() > 0
+    assert np.mean(z[out] <= 2.0) > 0.6
+    sig = f["pos_sigma"].to_numpy()
+    assert sig[179] > 1.5 * sig[120]
 
 
 def test_ten_hz_output(grid) -> None:  # type: ignore[no-untyped-def]
@@ -122,7 +139,7 @@ def test_command_errors_are_one_line(tmp_path: Path, capsys) -> None:  # type: i
     )
     assert rc == 2
     err = capsys.readouterr().err.strip().splitlines()
-    assert len(err) == 1 and "no such file" in err[0]
+    assert len(err) == 1 and "no such" in err[0] and "file" in err[0]
     rc = main(["simulate", "--map", "x", "--random-route", "--outages", "bad", "-o", str(tmp_path / "f.csv")])
     assert rc == 2 and "outages" in capsys.readouterr().err
     assert not (tmp_path / "f.csv").exists()

@@ -1,15 +1,21 @@
 """Loosely coupled DR/GPS Kalman filter, as in a fusion node.
 
-State ``[x, y, ψ, b, k]``: position (m), heading (rad, clockwise from north), gyro bias
-(rad/s) and odometer scale correction (true distance = measured · (1 + k)).
+State ``[x, y, ψ, b, k, ex, ey, c]``: position (m), heading (rad, clockwise from north), gyro
+bias (rad/s), odometer scale correction (true distance = measured · (1 + k)), the GPS receiver's
+time-correlated position error (m; first-order Gauss-Markov) and the compass error (rad;
+Gauss-Markov: offset plus slowly passing magnetic disturbances).
 
 * Prediction every ``1/rate`` s: ψ += Δθ_gyro − b·dt; position += d·(sin ψ, cos ψ) at the
   mid-step heading, with d the odometer increment times (1 + k).
-* The heading and the gyro bias are corrected by the compass and, when moving, by the GPS
-  course; position (and through the cross-covariances heading, bias and scale) by the GPS fix
-  when there is one. Each update is gated on its innovation (χ²), so multipath outliers and
-  magnetic disturbances are mostly rejected; after ``max_rejects`` rejected fixes in a row the
-  GPS is trusted again (the filter, not the GPS, is then the one that is wrong).
+* The heading and the gyro bias are corrected by the compass (which measures ψ + c) and, when
+  moving, by the GPS course; position by the GPS fix (which measures position + e) when there
+  is one. The fix's noise comes from the receiver's reported 1-σ: a share ``gps_corr_share`` of
+  its variance is the correlated error e, the rest white. Modelling the correlation keeps the
+  covariance honest: averaging many fixes does not average away the slowly varying error.
+* Every update is gated on its innovation with its covariance (χ², 2 dof for the fix), so
+  multipath outliers and magnetic disturbances are rejected. When fixes (or GPS courses) have
+  been rejected for ``reject_reset_s`` seconds in a row the filter, not the GPS, is wrong: the
+  position (heading) is reset to the fix (course).
 
 The loop runs at the filter rate in compiled code (numba).
 """
@@ -25,28 +31,48 @@ from numpy.typing import NDArray
 
 from mapmatch.sim.sensors import SensorData
 
+N_STATE = 8
+
 
 @dataclass(frozen=True)
 class KalmanConfig:
     """Noise the filter assumes (1-σ), gates and initial uncertainty.
 
     ``gyro_noise`` deg/s/√Hz, ``gyro_bias_walk`` deg/s/√s, ``odo_noise`` fraction of distance,
-    ``pos_noise`` m/√s, ``scale_walk`` 1/√s, ``compass_sigma`` deg, ``course_sigma`` deg floor,
-    ``course_min_speed`` m/s, ``gate_pos`` χ² (2 dof), ``gate_angle`` σ.
+    ``pos_noise`` m/√s, ``scale_walk`` 1/√s, ``compass_sigma`` deg white compass noise,
+    ``compass_bias_sigma`` deg and ``compass_bias_time`` s the compass error process,
+    ``course_sigma`` deg floor and ``course_speed_noise`` m/s Doppler velocity noise of the
+    GPS course (σ = hypot(noise / speed, floor)), ``course_min_speed`` m/s;
+    ``gps_corr_share`` share of the reported GPS variance that is correlated over
+    ``gps_corr_time`` s (the rest over ``gps_white_time`` s: faster fixes get a larger R), and
+    which follows the reported σ smoothed over ``gps_sigma_smooth`` s;
+    ``gate_pos`` χ² (2 dof) on the fix's innovation, whose covariance counts at least
+    ``gate_gps_share`` of the reported variance; ``gate_angle`` σ; ``reject_reset_s`` seconds
+    of rejected fixes before the position is reset to the fix
+    (``max_rejects``, if set, also resets after that many rejected fixes in a row).
     """
 
     rate: float = 10.0
-    gyro_noise: float = 0.07
-    gyro_bias_walk: float = 0.005
+    gyro_noise: float = 0.06
+    gyro_bias_walk: float = 0.003
     odo_noise: float = 0.01
     pos_noise: float = 0.05
     scale_walk: float = 1e-5
-    compass_sigma: float = 5.0
-    course_sigma: float = 1.5
+    compass_sigma: float = 4.0
+    compass_bias_sigma: float = 6.0
+    compass_bias_time: float = 20.0
+    course_sigma: float = 0.3
+    course_speed_noise: float = 0.2
     course_min_speed: float = 3.0
+    gps_corr_share: float = 0.8
+    gps_corr_time: float = 60.0
+    gps_white_time: float = 1.0
+    gps_sigma_smooth: float = 10.0
     gate_pos: float = 16.0
+    gate_gps_share: float = 0.5
     gate_angle: float = 3.0
-    max_rejects: int = 5
+    reject_reset_s: float = 12.0
+    max_rejects: int = 0
     init_pos_sigma: float = 5.0
     init_heading_sigma: float = 10.0
     init_bias_sigma: float = 0.5
@@ -60,8 +86,9 @@ DEFAULT_KALMAN = KalmanConfig()
 class FilterResult:
     """Filter states at every step ``t`` (the filter rate).
 
-    ``state`` (K, 5) and ``var`` (K, 5) (diagonal of P); ``gps_used`` where a GPS fix was
-    accepted at that step; ``dodo`` the raw odometer increment of each step.
+    ``state`` (K, 8) and ``var`` (K, 8) (diagonal of P), ``cov_xy`` the x-y covariance;
+    ``gps_used`` / ``gps_rejected`` where a GPS fix was accepted / rejected at that step;
+    ``dodo`` the raw odometer increment of each step.
     """
 
     t: NDArray[np.float64]
@@ -79,31 +106,90 @@ def _wrap(a):  # type: ignore[no-untyped-def]
 
 
 @njit(cache=True)
-def _update1(X, P, i, nu, r):  # type: ignore[no-untyped-def]
-    s = P[i, i] + r
-    kg = P[:, i] / s
-    row = P[i, :].copy()
-    for a in range(5):
+def _matvec(P, h):  # type: ignore[no-untyped-def]
+    n = len(h)
+    out = np.zeros(n)
+    for a in range(n):
+        acc = 0.0
+        for b in range(n):
+            acc += P[a, b] * h[b]
+        out[a] = acc
+    return out
+
+
+@njit(cache=True)
+def _quad(g, P, h):  # type: ignore[no-untyped-def]
+    """g' P h."""
+    ph = _matvec(P, h)
+    acc = 0.0
+    for a in range(len(g)):
+        acc += g[a] * ph[a]
+    return acc
+
+
+@njit(cache=True)
+def _fpft(F, P, FP):  # type: ignore[no-untyped-def]
+    """P ← F P Fᵀ (FP is scratch)."""
+    n = P.shape[0]
+    for a in range(n):
+        for b in range(n):
+            acc = 0.0
+            for c in range(n):
+                acc += F[a, c] * P[c, b]
+            FP[a, b] = acc
+    for a in range(n):
+        for b in range(n):
+            acc = 0.0
+            for c in range(n):
+                acc += FP[a, c] * F[b, c]
+            P[a, b] = acc
+
+
+@njit(cache=True)
+def _update(X, P, h, nu, r):  # type: ignore[no-untyped-def]
+    """Scalar measurement update with row ``h``."""
+    n = len(X)
+    ph = _matvec(P, h)
+    s = _quad(h, P, h) + r
+    kg = ph / s
+    for a in range(n):
         X[a] += kg[a] * nu
-        for b in range(5):
-            P[a, b] -= kg[a] * row[b]
+        for b in range(n):
+            P[a, b] -= kg[a] * ph[b]
 
 
 @njit(cache=True)
 def _ekf(
-    dtheta, dodo, comp, gx, gy, gsig, gcourse, gcsig, dt, x0, p0, q, r_comp, gate_pos, gate_ang, max_rej
-):  # type: ignore[no-untyped-def]
+    dtheta, dodo, comp, gx, gy, gsig, gcourse, gcsig, dt, x0, p0, q, r_comp, a_comp, q_comp,
+    share, a_gps, white_steps, smooth_steps, gate_share, gate_pos, gate_ang, reset_steps, max_rej
+):  # type: ignore[no-untyped-def]  # fmt: skip
     n = len(dtheta)
+    ns = len(x0)
     X = x0.copy()
     P = p0.copy()
-    out = np.empty((n, 5))
-    var = np.empty((n, 5))
+    out = np.empty((n, ns))
+    var = np.empty((n, ns))
     cxy = np.empty(n)
     used = np.zeros(n, dtype=np.bool_)
     rejected = np.zeros(n, dtype=np.bool_)
-    F = np.eye(5)
-    FP = np.zeros((5, 5))
+    F = np.eye(ns)
+    FP = np.zeros((ns, ns))
+    h_pos = np.zeros((2, ns))
+    h_pos[0, 0] = 1.0
+    h_pos[0, 5] = 1.0
+    h_pos[1, 1] = 1.0
+    h_pos[1, 6] = 1.0
+    h_comp = np.zeros(ns)
+    h_comp[2] = 1.0
+    h_comp[7] = 1.0
+    h_head = np.zeros(ns)
+    h_head[2] = 1.0
+    rej_start = -1
+    crej_start = -1
     rejects = 0
+    k_fix = -1
+    var_corr = -1.0
+    sig_s = 1.0
     for k in range(n):
         if k > 0:
             d0 = dodo[k]
@@ -114,8 +200,11 @@ def _ekf(
             X[0] += d * sn
             X[1] += d * cs
             X[2] += dpsi
+            X[5] *= a_gps
+            X[6] *= a_gps
+            X[7] *= a_comp
             F[:, :] = 0.0
-            for a in range(5):
+            for a in range(ns):
                 F[a, a] = 1.0
             F[0, 2] = d * cs
             F[0, 3] = -0.5 * dt * d * cs
@@ -124,57 +213,107 @@ def _ekf(
             F[1, 3] = 0.5 * dt * d * sn
             F[1, 4] = d0 * cs
             F[2, 3] = -dt
-            for a in range(5):
-                for b in range(5):
-                    acc = 0.0
-                    for c in range(5):
-                        acc += F[a, c] * P[c, b]
-                    FP[a, b] = acc
-            for a in range(5):
-                for b in range(5):
-                    acc = 0.0
-                    for c in range(5):
-                        acc += FP[a, c] * F[b, c]
-                    P[a, b] = acc
+            F[5, 5] = a_gps
+            F[6, 6] = a_gps
+            F[7, 7] = a_comp
+            _fpft(F, P, FP)
             qpos = (q[0] * d0) ** 2 + q[1] ** 2 * dt
             P[0, 0] += qpos
             P[1, 1] += qpos
             P[2, 2] += q[2] ** 2 * dt
             P[3, 3] += q[3] ** 2 * dt
             P[4, 4] += q[4] ** 2 * dt
+            if var_corr > 0.0:
+                qg = var_corr * (1.0 - a_gps * a_gps)
+                P[5, 5] += qg
+                P[6, 6] += qg
+            P[7, 7] += q_comp
         if not math.isnan(comp[k]):
-            nu = _wrap(comp[k] - X[2])
-            if nu * nu <= gate_ang * gate_ang * (P[2, 2] + r_comp):
-                _update1(X, P, 2, nu, r_comp)
+            nu = _wrap(comp[k] - X[2] - X[7])
+            s = _quad(h_comp, P, h_comp) + r_comp
+            if nu * nu <= gate_ang * gate_ang * s:
+                _update(X, P, h_comp, nu, r_comp)
         if not math.isnan(gcourse[k]):
             r = gcsig[k] ** 2
             nu = _wrap(gcourse[k] - X[2])
             if nu * nu <= gate_ang * gate_ang * (P[2, 2] + r):
-                _update1(X, P, 2, nu, r)
+                _update(X, P, h_head, nu, r)
+                crej_start = -1
+            elif crej_start < 0:
+                crej_start = k
+            elif k - crej_start >= reset_steps:  # the heading has lost it: restart at the course
+                for a in range(ns):
+                    P[2, a] = 0.0
+                    P[a, 2] = 0.0
+                P[2, 2] = r
+                X[2] += nu
+                crej_start = -1
         if not math.isnan(gx[k]):
-            r = gsig[k] ** 2
-            s00 = P[0, 0] + r
-            s11 = P[1, 1] + r
-            s01 = P[0, 1]
+            sig2 = gsig[k] ** 2
+            # fixes closer than the white error's correlation time are not independent
+            gap = white_steps if k_fix < 0 else min(k - k_fix, white_steps)
+            r = (1.0 - share) * sig2 * white_steps / max(gap, 1)
+            if var_corr < 0.0:  # first fix: the correlated error's prior
+                sig_s = gsig[k]
+                P[5, 5] = share * sig2
+                P[6, 6] = share * sig2
+            else:
+                # the dilution of precision scales the correlated error too: follow the
+                # (smoothed) reported σ by scaling the error states and their covariance
+                w = min(1.0, (k - k_fix) / smooth_steps)
+                ratio = (sig_s + w * (gsig[k] - sig_s)) / sig_s
+                sig_s *= ratio
+                for a in (5, 6):
+                    X[a] *= ratio
+                    for b in range(ns):
+                        P[a, b] *= ratio
+                        P[b, a] *= ratio
+            k_fix = k
+            var_corr = share * sig_s * sig_s
+            hx = h_pos[0]
+            hy = h_pos[1]
+            # gate with at least a share of the receiver's whole variance: robust when its
+            # error is whiter than assumed
+            rg = max(1.0 - share, gate_share) * sig2
+            s00 = _quad(hx, P, hx) + rg
+            s11 = _quad(hy, P, hy) + rg
+            s01 = _quad(hx, P, hy)
+            nx = gx[k] - X[0] - X[5]
+            ny = gy[k] - X[1] - X[6]
             det = s00 * s11 - s01 * s01
-            nx = gx[k] - X[0]
-            ny = gy[k] - X[1]
             d2 = (s11 * nx * nx - 2.0 * s01 * nx * ny + s00 * ny * ny) / det
-            if d2 <= gate_pos or rejects >= max_rej:
-                _update1(X, P, 0, gx[k] - X[0], r)
-                _update1(X, P, 1, gy[k] - X[1], r)
+            too_long = (rej_start >= 0 and k - rej_start >= reset_steps) or (
+                max_rej > 0 and rejects >= max_rej
+            )
+            if d2 <= gate_pos or too_long:
+                if d2 > gate_pos:  # the filter has lost it: restart the position at the fix
+                    for a in range(ns):
+                        P[0, a] = 0.0
+                        P[1, a] = 0.0
+                        P[a, 0] = 0.0
+                        P[a, 1] = 0.0
+                    P[0, 0] = sig2
+                    P[1, 1] = sig2
+                    X[0] = gx[k] - X[5]
+                    X[1] = gy[k] - X[6]
+                else:
+                    _update(X, P, hx, gx[k] - X[0] - X[5], r)
+                    _update(X, P, hy, gy[k] - X[1] - X[6], r)
                 used[k] = True
+                rej_start = -1
                 rejects = 0
             else:
                 rejected[k] = True
                 rejects += 1
-        for a in range(5):
-            for b in range(a + 1, 5):
+                if rej_start < 0:
+                    rej_start = k
+        for a in range(ns):
+            for b in range(a + 1, ns):
                 m = 0.5 * (P[a, b] + P[b, a])
                 P[a, b] = m
                 P[b, a] = m
         out[k, :] = X
-        for a in range(5):
+        for a in range(ns):
             var[k, a] = P[a, a]
         cxy[k] = P[0, 1]
     return out, var, cxy, used, rejected
@@ -214,10 +353,10 @@ def run_filter(sensors: SensorData, *, config: KalmanConfig = DEFAULT_KALMAN) ->
     gcourse = np.radians(_at_grid(t, sensors.gps_t, sensors.gps_course))
     gcourse[~(gspeed >= config.course_min_speed)] = np.nan
     with np.errstate(divide="ignore", invalid="ignore"):
-        gcsig = np.hypot(0.3 / np.maximum(gspeed, 0.1), np.radians(config.course_sigma))
+        gcsig = np.hypot(config.course_speed_noise / np.maximum(gspeed, 0.1), np.radians(config.course_sigma))
     # initial state: first GPS fix, first compass heading
     first = np.flatnonzero(~np.isnan(gx))
-    x0 = np.zeros(5)
+    x0 = np.zeros(N_STATE)
     if len(first):
         x0[0], x0[1] = gx[first[0]], gy[first[0]]
     fc = np.flatnonzero(~np.isnan(comp))
@@ -229,8 +368,14 @@ def run_filter(sensors: SensorData, *, config: KalmanConfig = DEFAULT_KALMAN) ->
             np.radians(config.init_heading_sigma) ** 2,
             np.radians(config.init_bias_sigma) ** 2,
             config.init_scale_sigma**2,
+            0.0,
+            0.0,
+            np.radians(config.compass_bias_sigma) ** 2,
         ]
     )
+    if len(first):
+        p0[0, 0] = p0[1, 1] = max(config.init_pos_sigma, float(gsig[first[0]])) ** 2
+    a_comp = float(np.exp(-dt / config.compass_bias_time))
     q = np.array(
         [
             config.odo_noise,
@@ -254,8 +399,16 @@ def run_filter(sensors: SensorData, *, config: KalmanConfig = DEFAULT_KALMAN) ->
         p0,
         q,
         np.radians(config.compass_sigma) ** 2,
+        a_comp,
+        np.radians(config.compass_bias_sigma) ** 2 * (1.0 - a_comp**2),
+        config.gps_corr_share,
+        float(np.exp(-dt / config.gps_corr_time)),
+        max(1, round(config.gps_white_time * config.rate)),
+        max(1.0, config.gps_sigma_smooth * config.rate),
+        config.gate_gps_share,
         config.gate_pos,
         config.gate_angle,
+        max(1, round(config.reject_reset_s * config.rate)),
         config.max_rejects,
     )
     return FilterResult(

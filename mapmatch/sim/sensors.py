@@ -1,7 +1,9 @@
 """Raw sensors of a fusion node, simulated from the true motion (vectorised).
 
-* GPS at 1 Hz: correlated (first-order Gauss-Markov) plus white position noise, multipath
-  outliers lasting a few seconds, Doppler speed and course, and outages with no fix at all;
+* GPS at 1 Hz: correlated (first-order Gauss-Markov) plus white position noise scaled by a
+  slowly varying dilution of precision, multipath outliers lasting a few seconds, Doppler speed
+  and course, and outages with no fix at all. Like a real receiver it reports its 1-σ accuracy
+  per fix (from the dilution, with some estimation error); it does not know about multipath;
 * gyro at 100 Hz: yaw rate with a constant bias, a bias random walk and white noise;
 * odometer: cumulative distance with a scale-factor error and pulse quantisation;
 * compass: heading with white noise, a constant offset and magnetic disturbance zones along
@@ -64,8 +66,12 @@ class SensorConfig:
     """Error model of the raw sensors (1-σ values unless stated).
 
     GPS: ``gps_white`` and ``gps_corr`` metres per axis, ``gps_corr_time`` s;
-    ``multipath_rate`` outlier events per fix, ``multipath_m`` (min, max) jump, lasting
-    ``multipath_s`` (min, max) seconds; ``gps_speed_sigma`` m/s Doppler noise.
+    ``multipath_rate`` outlier events per second, ``multipath_m`` (min, max) jump, lasting
+    ``multipath_s`` (min, max) seconds; ``gps_speed_sigma`` m/s Doppler noise. The dilution of
+    precision scales both position errors by ``exp(g)``, g Gauss-Markov with σ ``gps_dop_var``
+    and correlation time ``gps_dop_time`` s; the reported σ per axis is
+    ``hypot(gps_white, gps_corr) · exp(g)`` times a log-normal estimation error of σ
+    ``gps_sigma_error``.
     Gyro: ``gyro_bias`` deg/s σ of the turn-on bias, ``gyro_bias_walk`` deg/s/√s,
     ``gyro_noise`` deg/s/√Hz.
     Odometer: ``odo_scale`` σ of the scale-factor error, ``odo_quantum`` metres per pulse.
@@ -81,6 +87,9 @@ class SensorConfig:
     multipath_m: tuple[float, float] = (10.0, 40.0)
     multipath_s: tuple[float, float] = (1.0, 5.0)
     gps_speed_sigma: float = 0.2
+    gps_dop_var: float = 0.25
+    gps_dop_time: float = 120.0
+    gps_sigma_error: float = 0.1
     gyro_rate: float = 100.0
     gyro_bias: float = 0.3
     gyro_bias_walk: float = 0.002
@@ -176,8 +185,11 @@ def simulate_sensors(
     ey = _gauss_markov(len(gt), dtg, config.gps_corr_time, config.gps_corr, rng)
     ex += rng.normal(0.0, config.gps_white, len(gt))
     ey += rng.normal(0.0, config.gps_white, len(gt))
+    dop = np.exp(_gauss_markov(len(gt), dtg, config.gps_dop_time, config.gps_dop_var, rng))
+    ex *= dop
+    ey *= dop
     outlier = np.zeros(len(gt), dtype=bool)
-    events = np.flatnonzero(rng.random(len(gt)) < config.multipath_rate)
+    events = np.flatnonzero(rng.random(len(gt)) < config.multipath_rate * dtg)
     for k in events:
         n = max(1, round(rng.uniform(*config.multipath_s) * config.gps_rate))
         mag = rng.uniform(*config.multipath_m)
@@ -185,8 +197,8 @@ def simulate_sensors(
         ex[k : k + n] += mag * np.sin(ang)
         ey[k : k + n] += mag * np.cos(ang)
         outlier[k : k + n] = True
-    sigma = np.full(len(gt), np.hypot(config.gps_white, config.gps_corr) * 1.2)
-    sigma *= rng.uniform(0.8, 1.3, len(gt))
+    sigma = np.hypot(config.gps_white, config.gps_corr) * dop
+    sigma *= np.exp(rng.normal(0.0, config.gps_sigma_error, len(gt)))
     gspeed = np.maximum(v + rng.normal(0.0, config.gps_speed_sigma, len(gt)), 0.0)
     ve = v * np.sin(psi) + rng.normal(0.0, config.gps_speed_sigma, len(gt))
     vn = v * np.cos(psi) + rng.normal(0.0, config.gps_speed_sigma, len(gt))
