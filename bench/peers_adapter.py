@@ -21,7 +21,7 @@ if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
 from graph.road_graph import RoadGraph  # noqa: E402
-from mapmatch.batch import BatchMatcher  # noqa: E402
+from mapmatch.batch import BatchMatcher, fill_route_lonlat  # noqa: E402
 from mapmatch.routing import Ubodt  # noqa: E402
 from mapmatch.types import Track  # noqa: E402
 
@@ -93,10 +93,13 @@ def load(work: Path) -> BatchMatcher:
 
 
 def call(obj: BatchMatcher, t: list[float], lat: list[float], lon: list[float]) -> Any:
-    return obj.match(Track("track", np.asarray(t, float), np.asarray(lat, float), np.asarray(lon, float)))
+    # the route stays in the map's projected CRS here, as fastmm's does; convert() projects it
+    track = Track("track", np.asarray(t, float), np.asarray(lat, float), np.asarray(lon, float))
+    return obj.match(track, lonlat=False)
 
 
 def convert(obj: BatchMatcher, raw: Any) -> tuple[list[list[list[float]]], dict[str, Any]]:
+    fill_route_lonlat(raw, obj.graph.crs)
     lines = [[[x, y] for x, y in piece] for piece in raw.route_lonlat if len(piece) >= 2]
     n_matched = sum(1 for p in raw.points if p.status != "unmatched")
     info = {

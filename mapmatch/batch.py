@@ -36,8 +36,9 @@ from mapmatch.routing import (
 from mapmatch.types import MatchedPoint, PointStatus, Track, TrackMatch
 
 NEG_INF = -np.inf
-BATCH_CONFIG = DEFAULT_CONFIG.replace(gps_sigma=8.0, uturn_penalty=20.0)
-"""Batch defaults: the shared model with σ and the U-turn penalty set for raw GPS tracks."""
+BATCH_CONFIG = DEFAULT_CONFIG.replace(gps_sigma=8.0, uturn_penalty=20.0, interpolate_distance=8.0)
+"""Batch defaults: the shared model with σ and the U-turn penalty set for raw GPS tracks, and
+points closer than σ to the previous kept point interpolated."""
 EMISSION_PRUNE = 12.5
 """Candidates whose emission log-probability is this far below the point's best are dropped."""
 REVERSE_TOLERANCE = 10.0
@@ -92,8 +93,12 @@ class BatchMatcher:
         self._seg_xy = np.ascontiguousarray(graph.seg_xy, dtype=np.float64)
         self._seg_ptr = np.ascontiguousarray(graph.edge_seg_ptr, dtype=np.int64)
 
-    def match(self, track: Track, config: MatchConfig | None = None) -> TrackMatch:
-        """Match one track; bad points become unmatched, never an exception for the track."""
+    def match(self, track: Track, config: MatchConfig | None = None, *, lonlat: bool = True) -> TrackMatch:
+        """Match one track; bad points become unmatched, never an exception for the track.
+
+        With ``lonlat=False`` the route geometry is left in the map's CRS (``route_xy``) and
+        ``route_lonlat`` is filled later by :func:`fill_route_lonlat`.
+        """
         cfg = config or self.config
         g = self.graph
         n = len(track)
@@ -154,10 +159,13 @@ class BatchMatcher:
             float(cfg.gap_distance), MAX_SKIP, REVERSE_TOLERANCE, *search_args(self._ra, self._ws),
             *self._ubodt_args,
         )  # fmt: skip
-        return self._assemble(
+        res = self._assemble(
             track, n, valid, kept, xy, pts, cand_ptr, cedge, coff, cxy, cdist, emis, choice, seg_start,
             via_u, used_bound,
         )  # fmt: skip
+        if lonlat:
+            fill_route_lonlat(res, g.crs)
+        return res
 
     # ------------------------------------------------------------------ output
     def _assemble(
@@ -224,10 +232,17 @@ class BatchMatcher:
             p_xy[pts] = cxy[choice]
             p_dist[pts] = cdist[choice]
             status[pts] = 1
-            # confidence: matched fraction x mean normalised emission of the chosen candidates
+            # confidence: matched fraction x mean normalised emission of the chosen road (both
+            # directions of a two-way road count as one) among the point's candidates
             w = np.exp(emis - np.repeat(np.maximum.reduceat(emis, cand_ptr[:-1]), np.diff(cand_ptr)))
             tot = np.add.reduceat(w, cand_ptr[:-1])
-            post = w[choice] / tot[acc]
+            rev = g.edge_reverse[cedge]
+            road = np.where(rev >= 0, np.minimum(cedge, rev), cedge).astype(np.int64)
+            lp = np.repeat(np.arange(len(cand_ptr) - 1), np.diff(cand_ptr))
+            key = lp * (g.n_edges + 1) + road
+            uk, inv = np.unique(key, return_inverse=True)
+            road_w = np.bincount(inv, weights=w, minlength=len(uk))[inv]
+            post = road_w[choice] / tot[acc]
             res.confidence = float(np.mean(post) * m / max(int(valid.sum()), 1))
             # interpolated points: projected onto the chosen edge of the nearer kept neighbour
             interp = valid & ~kept
@@ -248,17 +263,12 @@ class BatchMatcher:
                 status[ii] = 2
         ok = status > 0
         p_ll = np.full((n, 2), np.nan)
-        nok = int(ok.sum())
-        if nok:  # one projection call for the points and the route
-            both = np.concatenate([p_xy[ok], xy_all]) if m else p_xy[ok]
-            ll_all = to_lonlat(g.crs, both[:, 0], both[:, 1])
-            p_ll[ok] = ll_all[:nok]
-            ll = ll_all[nok:]
+        if ok.any():
+            p_ll[ok] = to_lonlat(g.crs, p_xy[ok, 0], p_xy[ok, 1])
+        if m:
             for s in range(len(res.routes)):
-                seg_ll = ll[xptr[piece_bounds[s]] : xptr[piece_bounds[s + 1]]]
-                if len(seg_ll) == 1:
-                    seg_ll = np.vstack([seg_ll, seg_ll])
-                res.route_lonlat.append(list(map(tuple, seg_ll.tolist())))
+                seg = xy_all[xptr[piece_bounds[s]] : xptr[piece_bounds[s + 1]]]
+                res.route_xy.append(np.vstack([seg, seg]) if len(seg) == 1 else seg)
         stat = (PointStatus.UNMATCHED, PointStatus.MATCHED, PointStatus.INTERPOLATED)
         res.points = [
             MatchedPoint(i, stat[s], int(e), float(o), float(la), float(lo), float(d))
@@ -274,6 +284,22 @@ class BatchMatcher:
             )
         ]
         return res
+
+
+def fill_route_lonlat(result: TrackMatch, crs: str) -> TrackMatch:
+    """Fill ``route_lonlat`` from ``route_xy`` (one projection call for all pieces)."""
+    if not result.route_xy:
+        result.route_lonlat = []
+        return result
+    allxy = np.concatenate(result.route_xy)
+    ll = to_lonlat(crs, allxy[:, 0], allxy[:, 1]).tolist()
+    out: list[list[tuple[float, float]]] = []
+    i = 0
+    for piece in result.route_xy:
+        out.append(list(map(tuple, ll[i : i + len(piece)])))
+        i += len(piece)
+    result.route_lonlat = out
+    return result
 
 
 def match_track(

@@ -15,6 +15,9 @@ from numpy.typing import ArrayLike
 
 from graph.index import Candidates, EdgeIndex
 
+DENSE_MAX_CELLS = 1 << 23
+"""Up to this many cells the grid keeps a dense cell table (8 bytes a cell)."""
+
 
 class GridIndex:
     """Candidate search over an :class:`EdgeIndex`'s segments with a uniform grid.
@@ -39,7 +42,15 @@ class GridIndex:
             self.origin = np.zeros(2)
             hi = np.ones(2)
         self.ny = math.ceil((hi[1] - self.origin[1]) / self.cell) + 1
+        self.nx = math.ceil((hi[0] - self.origin[0]) / self.cell) + 1
         self.cell_ids, self.cell_seg = _bucket(a, b, self.origin, self.cell, self.ny)
+        # a dense cell table when it is small enough, else a binary search in cell_ids
+        ncell = self.nx * self.ny
+        if ncell <= DENSE_MAX_CELLS:
+            self.cell_ptr = np.zeros(ncell + 1, dtype=np.int64)
+            np.cumsum(np.bincount(self.cell_ids, minlength=ncell), out=self.cell_ptr[1:])
+        else:
+            self.cell_ptr = np.zeros(0, dtype=np.int64)
         self._stamp_seg = np.full(len(a), -1, dtype=np.int64)
         self._stamp_edge = np.full(self.graph.n_edges, -1, dtype=np.int64)
         self._best = np.zeros(self.graph.n_edges, dtype=np.int64)
@@ -49,13 +60,12 @@ class GridIndex:
         """As :meth:`EdgeIndex.query` (scalar radius): directed edges within ``radius`` of each point."""
         pts = np.ascontiguousarray(np.asarray(xy, dtype=np.float64).reshape(-1, 2))
         ix = self.index
-        p, e, d, o, q = _query(
-            pts, float(radius), -1 if k is None else int(k), self._stamp, self.origin, self.cell, self.ny,
-            self.cell_ids,
+        p, e, d, o, q, self._stamp = _query(
+            pts, float(radius), -1 if k is None else int(k), self._stamp, self.origin, self.cell, self.nx,
+            self.ny, self.cell_ptr, self.cell_ids,
             self.cell_seg, ix.seg_a, ix.seg_b, ix.seg_len, ix.seg_off, ix.seg_edge, self._stamp_seg,
             self._stamp_edge, self._best, self.graph.edge_reverse, self.graph.edge_len,
         )  # fmt: skip
-        self._stamp += len(pts)
         return Candidates(point=p, edge=e, dist=d, offset=o, xy=q)
 
 
@@ -95,7 +105,9 @@ def _query(  # type: ignore[no-untyped-def]
     stamp0,
     origin,
     cell,
+    nx,
     ny,
+    cell_ptr,
     cell_ids,
     cell_seg,
     seg_a,
@@ -124,19 +136,35 @@ def _query(  # type: ignore[no-untyped-def]
     loc_x = np.empty(64)
     loc_y = np.empty(64)
     sel = np.empty(64, dtype=np.int64)
-    for p in range(n):
+    p = -1
+    redo = False
+    while True:
+        if not redo:
+            p += 1
+        redo = False
+        if p >= n:
+            break
         px, py = pts[p, 0], pts[p, 1]
         if not (math.isfinite(px) and math.isfinite(py)):
             continue
-        stamp = stamp0 + p
+        stamp = stamp0
+        stamp0 += 1  # a fresh mark for every attempt at a point
+        overflow = False
         cx0 = int((px - origin[0]) // cell)
         cy0 = int((py - origin[1]) // cell)
         nl = 0
         for cx in range(cx0 - r, cx0 + r + 1):
             for cy in range(cy0 - r, cy0 + r + 1):
+                if cx < 0 or cy < 0 or cx >= nx or cy >= ny:
+                    continue
                 cid = cx * ny + cy
-                lo = np.searchsorted(cell_ids, cid)
-                while lo < len(cell_ids) and cell_ids[lo] == cid:
+                if len(cell_ptr):
+                    lo = cell_ptr[cid]
+                    end = cell_ptr[cid + 1]
+                else:
+                    lo = np.searchsorted(cell_ids, cid)
+                    end = np.searchsorted(cell_ids, cid, side="right")
+                while lo < end:
                     s = cell_seg[lo]
                     lo += 1
                     if stamp_seg[s] == stamp:
@@ -164,11 +192,8 @@ def _query(  # type: ignore[no-untyped-def]
                         continue
                     stamp_edge[e] = stamp
                     if nl == len(loc_e):
-                        loc_e = _grow_i(loc_e)
-                        loc_d = _grow_f(loc_d)
-                        loc_o = _grow_f(loc_o)
-                        loc_x = _grow_f(loc_x)
-                        loc_y = _grow_f(loc_y)
+                        overflow = True  # grown below, then this point is done again
+                        continue
                     best[e] = nl
                     loc_e[nl] = e
                     loc_d[nl] = d
@@ -176,6 +201,14 @@ def _query(  # type: ignore[no-untyped-def]
                     loc_x[nl] = qx
                     loc_y[nl] = qy
                     nl += 1
+        if overflow:
+            loc_e = _grow_i(loc_e)
+            loc_d = _grow_f(loc_d)
+            loc_o = _grow_f(loc_o)
+            loc_x = _grow_f(loc_x)
+            loc_y = _grow_f(loc_y)
+            redo = True
+            continue
         if nl == 0:
             continue
         # nearest first (ties by edge), keep k roads, add reverse directions
@@ -232,7 +265,7 @@ def _query(  # type: ignore[no-untyped-def]
                 b -= 1
             od[b + 1], oe[b + 1], oo[b + 1] = d0, e0, o0
             oq[b + 1, 0], oq[b + 1, 1] = x0, y0
-    return op[:m].copy(), oe[:m].copy(), od[:m].copy(), oo[:m].copy(), oq[:m].copy()
+    return op[:m].copy(), oe[:m].copy(), od[:m].copy(), oo[:m].copy(), oq[:m].copy(), stamp0
 
 
 @njit(cache=True)

@@ -168,6 +168,7 @@ class TrackMatch:
 
     ``routes`` holds one edge sequence per connected piece; a new piece starts where the
     track was split (``splits`` lists the point indices where a piece starts, after the first).
+    ``route_xy`` holds the same pieces' geometry as (k, 2) arrays in the map's CRS.
     """
 
     track_id: str
@@ -177,6 +178,7 @@ class TrackMatch:
     splits: list[int] = field(default_factory=list)
     length_m: float = 0.0
     confidence: float = 0.0
+    route_xy: list[NDArray[np.float64]] = field(default_factory=list)
 
 
 @dataclass(slots=True)

@@ -137,6 +137,8 @@ def test_gap_splits_the_track_and_is_reported() -> None:
     assert len(r.routes) == 2 and len(r.route_lonlat) == 2
     assert all(p.status == PointStatus.MATCHED for p in r.points)
     assert r.length_m == pytest.approx(40 + 40, abs=1.0)
+    # one road, every fix on it: full confidence (both directions count as one road)
+    assert r.confidence > 0.99
 
 
 def test_outlier_is_unmatched_and_does_not_break_the_route() -> None:
@@ -149,6 +151,7 @@ def test_outlier_is_unmatched_and_does_not_break_the_route() -> None:
     r = BatchMatcher(m.graph).match(track_from_xy(m, pts))
     assert [p.status for p in r.points].count(PointStatus.UNMATCHED) == 1
     assert r.points[3].status == PointStatus.UNMATCHED and r.points[3].edge == -1
+    assert r.confidence == pytest.approx(5 / 6, abs=0.01)  # the matched fraction
     assert math.isnan(r.points[3].lat)
     assert r.splits == [] and [names(m, piece) for piece in r.routes] == [["ab"]]
 

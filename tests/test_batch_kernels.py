@@ -24,11 +24,19 @@ e--f-----g--h>>>>>>>>>i
 """
 
 
+@pytest.mark.parametrize("dense", [True, False])
 @pytest.mark.parametrize(("radius", "k"), [(15.0, 2), (50.0, 8), (120.0, None)])
-def test_grid_index_equals_edge_index(radius: float, k: int | None) -> None:
+def test_grid_index_equals_edge_index(
+    radius: float, k: int | None, dense: bool, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    import mapmatch.gridindex as gridindex
+
+    if not dense:  # the binary-search layout used for very large maps
+        monkeypatch.setattr(gridindex, "DENSE_MAX_CELLS", 0)
     m = parse_ascii_map(DRAWING, scale=7)
     ix = EdgeIndex(m.graph)
     grid = GridIndex(ix, cell=40.0)
+    assert (len(grid.cell_ptr) > 0) == dense
     rng = np.random.default_rng(3)
     lo, hi = m.graph.node_xy.min(axis=0) - 80, m.graph.node_xy.max(axis=0) + 80
     pts = lo + rng.random((600, 2)) * (hi - lo)
@@ -88,3 +96,27 @@ def test_ubodt_gives_the_same_matches_as_the_search() -> None:
         a, b = plain.match(t), fast.match(t)
         assert a.routes == b.routes and a.splits == b.splits
         assert [p.edge for p in a.points] == [p.edge for p in b.points]
+
+
+def test_grid_index_with_many_roads_near_one_point() -> None:
+    from graph.road_graph import RoadGraph
+
+    # 150 short one-way spokes around the origin: more roads near a point than the first buffer
+    ang = np.linspace(0, 2 * np.pi, 150, endpoint=False)
+    inner = np.column_stack([np.cos(ang), np.sin(ang)]) * 5 + [385_000.0, 6_672_000.0]
+    outer = np.column_stack([np.cos(ang), np.sin(ang)]) * 30 + [385_000.0, 6_672_000.0]
+    g = RoadGraph.from_edges(
+        crs="EPSG:32635",
+        node_xy=np.vstack([inner, outer]),
+        edge_u=np.arange(150),
+        edge_v=np.arange(150) + 150,
+    )
+    ix = EdgeIndex(g)
+    grid = GridIndex(ix, cell=10.0)
+    pts = np.array([[385_000.0, 6_672_000.0], [385_003.0, 6_672_001.0], [385_100.0, 6_672_000.0]])
+    for _ in range(2):
+        a, b = ix.query(pts, 40.0), grid.query(pts, 40.0)
+        np.testing.assert_array_equal(a.point, b.point)
+        np.testing.assert_array_equal(a.edge, b.edge)
+        np.testing.assert_allclose(a.offset, b.offset, atol=1e-6)
+    assert np.sum(b.point == 0) == 150

@@ -43,4 +43,4 @@ def test_kubicka_track_matches_its_true_route(
     first_last = ((t.lon[0], t.lat[0]), (t.lon[-1], t.lat[-1]))
     sc = score.score(truth, [[list(p) for p in piece] for piece in r.route_lonlat], first_last)
     assert sc["rmf"] < 0.01, sc
-    assert sum(p.status == "matched" for p in r.points) >= 0.95 * len(idx)
+    assert sum(p.status != "unmatched" for p in r.points) >= 0.95 * len(idx)
