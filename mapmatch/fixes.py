@@ -11,13 +11,12 @@ from __future__ import annotations
 import csv
 import math
 import os
-import tempfile
 from collections.abc import Iterable
-from pathlib import Path
 
 import numpy as np
 import pandas as pd
 
+from graph.files import atomic_path
 from graph.road_graph import RoadGraph
 from mapmatch.errors import ValidationError
 from mapmatch.types import Fix, SnapResult
@@ -180,21 +179,13 @@ def write_results_csv(
     rejected fix. ``graph`` is accepted for the shared signature; results already carry
     external ids.
     """
-    p = Path(path)
-    p.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{p.name}.", dir=p.parent)
     n = 0
-    try:
-        with os.fdopen(fd, "w", newline="") as fh:
-            w = csv.writer(fh)
-            w.writerow(RESULT_COLUMNS)
-            for row in rows:
-                vid, fix, res = row[0], row[1], row[2]
-                err = row[3] if len(row) > 3 else ""  # type: ignore[misc]
-                w.writerow(result_row(vid, fix, res, err))
-                n += 1
-        os.replace(tmp, p)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
+    with atomic_path(path) as tmp, open(tmp, "w", newline="") as fh:
+        w = csv.writer(fh)
+        w.writerow(RESULT_COLUMNS)
+        for row in rows:
+            vid, fix, res = row[0], row[1], row[2]
+            err = row[3] if len(row) > 3 else ""  # type: ignore[misc]
+            w.writerow(result_row(vid, fix, res, err))
+            n += 1
     return n

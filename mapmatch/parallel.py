@@ -27,13 +27,13 @@ from typing import Any
 
 import pandas as pd
 
+from graph.files import atomic_path
 from mapmatch.config import MatchConfig
 from mapmatch.errors import MatchError
 from mapmatch.io import (
     DEFAULT_COLUMNS,
     RESULT_COLUMNS,
     Columns,
-    atomic_path,
     read_results,
     read_tracks,
     results_table,

@@ -9,15 +9,14 @@ leaving one, and the fixes that carried a correction.
 from __future__ import annotations
 
 import os
-import tempfile
 from dataclasses import dataclass
-from pathlib import Path
 from typing import Any
 
 import numpy as np
 import pandas as pd
 from numpy.typing import ArrayLike, NDArray
 
+from graph.files import atomic_path
 from graph.projection import to_lonlat, to_xy
 from graph.road_graph import RoadGraph
 from mapmatch.evaluate import align_by_time, matched_edges_dense
@@ -122,22 +121,6 @@ def plot_data(
         corrected=cor,
         outages=runs,
     )
-
-
-def _atomic(path: Path, write: object) -> None:
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=path.suffix, dir=path.parent)
-    os.close(fd)
-    try:
-        write(tmp)  # type: ignore[operator]
-        umask = os.umask(0)
-        os.umask(umask)
-        os.chmod(tmp, 0o666 & ~umask)
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
 
 
 def _layers(
@@ -262,7 +245,8 @@ def draw_png(
     handles, labels = ax.get_legend_handles_labels()
     fig.legend(handles, labels, loc="lower center", ncol=5, fontsize=8, frameon=False)
     fig.tight_layout(rect=(0, 0.06, 1, 0.96))
-    _atomic(Path(path), lambda p: fig.savefig(p, format="png"))
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, format="png")
     plt.close(fig)
 
 
@@ -324,4 +308,5 @@ def draw_html(
     points("decisions", s[data.decided], "#9467bd", 5)
     points("corrections", s[data.corrected], "#e377c2", 7)
     folium.LayerControl(collapsed=False).add_to(m)
-    _atomic(Path(path), lambda p: m.save(p))
+    with atomic_path(path) as tmp:
+        m.save(str(tmp))

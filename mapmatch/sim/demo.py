@@ -16,6 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
+from graph.files import atomic_path
 from graph.road_graph import RoadGraph
 from mapmatch.evaluate import Metrics, evaluate, results_frame
 from mapmatch.plots import draw_html, draw_png, plot_data
@@ -95,9 +96,8 @@ def evaluate_and_draw(
     write_fixes_csv(drive, fixes_csv)
     truth_csv, truth_gj = write_truth(graph, drive, out / "truth.csv")
     matched_csv = out / "matched.csv"
-    tmp = matched_csv.with_name(f".{matched_csv.name}.tmp")
-    matched.to_csv(tmp, index=False)
-    os.replace(tmp, matched_csv)
+    with atomic_path(matched_csv) as tmp:
+        matched.to_csv(tmp, index=False)
     metrics = evaluate(
         graph,
         truth=drive.truth,

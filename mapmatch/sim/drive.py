@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import json
 import os
-import tempfile
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -18,6 +17,7 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
+from graph.files import atomic_path
 from graph.projection import to_lonlat, to_xy
 from graph.road_graph import RoadGraph
 from mapmatch.errors import ValidationError
@@ -204,25 +204,10 @@ def simulate_drive(
 
 
 # --------------------------------------------------------------------------- files
-def _atomic_write(path: Path, write: Any) -> None:
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", dir=path.parent)
-    os.close(fd)
-    try:
-        write(tmp)
-        umask = os.umask(0)
-        os.umask(umask)
-        os.chmod(tmp, 0o666 & ~umask)
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-
-
 def write_fixes_csv(drive: Drive, path: str | os.PathLike[str]) -> None:
     """Write the fused fixes (atomic) with the columns :data:`FIX_COLUMNS`."""
-    _atomic_write(Path(path), lambda p: drive.fixes.to_csv(p, index=False, float_format="%.7f"))
+    with atomic_path(path) as tmp:
+        drive.fixes.to_csv(tmp, index=False, float_format="%.7f")
 
 
 def truth_paths(path: str | os.PathLike[str]) -> tuple[Path, Path]:
@@ -259,9 +244,11 @@ def route_geojson(graph: RoadGraph, drive: Drive) -> dict[str, Any]:
 def write_truth(graph: RoadGraph, drive: Drive, path: str | os.PathLike[str]) -> tuple[Path, Path]:
     """Write the per-fix truth CSV and the route GeoJSON (both atomic); return their paths."""
     csv_path, gj_path = truth_paths(path)
-    _atomic_write(csv_path, lambda p: drive.truth.to_csv(p, index=False, float_format="%.7f"))
+    with atomic_path(csv_path) as tmp:
+        drive.truth.to_csv(tmp, index=False, float_format="%.7f")
     text = json.dumps(route_geojson(graph, drive))
-    _atomic_write(gj_path, lambda p: Path(p).write_text(text))
+    with atomic_path(gj_path) as tmp:
+        tmp.write_text(text)
     return csv_path, gj_path
 
 
