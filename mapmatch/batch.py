@@ -21,7 +21,7 @@ from graph.road_graph import RoadGraph
 from mapmatch import model
 from mapmatch.config import DEFAULT_CONFIG, MatchConfig
 from mapmatch.gridindex import GridIndex
-from mapmatch.model import transition_logp_one
+from mapmatch.model import emission_logp_one, transition_logp_one
 from mapmatch.routing import (
     RoutingArrays,
     Ubodt,
@@ -49,6 +49,14 @@ ROUTE_LP_CUT = 30.0
 
 MAX_SKIP = 8
 """Points in a row that may be left out as unreachable outliers before the track is split."""
+
+STOP_SPEED = 1.0
+"""m/s; a step slower than this on average (over at least ``STOP_TIME``) spans a stop."""
+STOP_TIME = 5.0
+"""Seconds a step must last to count as a stop."""
+STOP_UTURN_PENALTY = 1.0
+"""U-turn penalty at a junction across a stop (turning round there, e.g. in a yard off the
+mapped road, is common; mid-road U-turns keep the full penalty)."""
 
 STEP_SAME, STEP_UTURN, STEP_ROUTE, STEP_SPLIT = 0, 1, 2, 3
 
@@ -92,12 +100,15 @@ class BatchMatcher:
         self._ws = Workspace(graph.n_edges)
         self._seg_xy = np.ascontiguousarray(graph.seg_xy, dtype=np.float64)
         self._seg_ptr = np.ascontiguousarray(graph.edge_seg_ptr, dtype=np.int64)
+        # the compiled kernels' trailing arguments, built once
+        self._kargs = (*search_args(self._ra, self._ws), *self._ubodt_args)
 
     def match(self, track: Track, config: MatchConfig | None = None, *, lonlat: bool = True) -> TrackMatch:
         """Match one track; bad points become unmatched, never an exception for the track.
 
-        With ``lonlat=False`` the route geometry is left in the map's CRS (``route_xy``) and
-        ``route_lonlat`` is filled later by :func:`fill_route_lonlat`.
+        With ``lonlat=False`` the route geometry is left in the map's CRS (``route_xy``) and the
+        per-point results in arrays (``point_arrays``); :func:`fill_route_lonlat` later fills
+        ``route_lonlat`` and ``points`` from them.
         """
         cfg = config or self.config
         g = self.graph
@@ -106,9 +117,12 @@ class BatchMatcher:
         lon = np.asarray(track.lon, dtype=np.float64)
         tim = _opt(track.time, n)
         valid = np.isfinite(lat) & np.isfinite(lon) & (np.abs(lat) <= 90) & (np.abs(lon) <= 180)
-        xy = np.full((n, 2), np.nan)
-        if valid.any():
-            xy[valid] = to_xy(g.crs, lon[valid], lat[valid])
+        if valid.all():
+            xy = to_xy(g.crs, lon, lat)
+        else:
+            xy = np.full((n, 2), np.nan)
+            if valid.any():
+                xy[valid] = to_xy(g.crs, lon[valid], lat[valid])
         # points closer than the noise to the previous kept point are interpolated afterwards
         kept = _thin(xy, valid, float(cfg.interpolate_distance))
         kidx = np.flatnonzero(kept)
@@ -119,186 +133,97 @@ class BatchMatcher:
             more = self._grid.query(xy[kidx[lonely]], cfg.outlier_distance, k=cfg.max_candidates)
             cands = _merge_candidates(cands, more, lonely)
         # emissions (shared model), then pruning of hopeless candidates
-        sigma = model.position_sigma(_opt(track.pos_sigma, n)[kidx], cfg)[cands.point]
-        heading = _opt(track.heading, n)[kidx]
-        if np.isfinite(heading).any():
+        sigma: float | NDArray[np.float64] = float(model.position_sigma(np.nan, cfg))
+        if track.pos_sigma is not None:
+            sigma = model.position_sigma(np.asarray(track.pos_sigma, dtype=np.float64)[kidx], cfg)[
+                cands.point
+            ]
+        heading = None if track.heading is None else np.asarray(track.heading, dtype=np.float64)[kidx]
+        if heading is not None and np.isfinite(heading).any():
             kappa = model.heading_kappa(heading, np.nan, _opt(track.speed, n)[kidx], cfg)[cands.point]
             bearing = _bearing_at(cands.edge, cands.offset, self._seg_xy, self._seg_ptr)
             emis = model.emission_logp(cands.dist, sigma, heading[cands.point], bearing, kappa)
-        else:
+        elif np.ndim(sigma):
             emis = model.emission_logp(cands.dist, sigma, np.nan, 0.0, 0.0)
-        best = np.full(len(kidx), NEG_INF)
-        np.maximum.at(best, cands.point, emis)
-        keep = (emis >= best[cands.point] - EMISSION_PRUNE) & (cands.dist <= cfg.outlier_distance)
-        cpoint, cedge, coff, cxy, cdist, emis = (
-            cands.point[keep],
-            cands.edge[keep],
-            cands.offset[keep],
-            cands.xy[keep],
-            cands.dist[keep],
-            emis[keep],
-        )
-        # points without candidates are unmatched (off the map or outliers)
-        counts = np.bincount(cpoint, minlength=len(kidx))
-        has = counts > 0
-        pts = kidx[has]  # track indices of the lattice's points
-        counts = counts[has]
-        m = len(pts)
-        cand_ptr = np.zeros(m + 1, dtype=np.int64)
-        np.cumsum(counts, out=cand_ptr[1:])
-        pxy = np.ascontiguousarray(xy[pts])
-        ptime = np.ascontiguousarray(tim[pts])
-        podo = np.full(m, np.nan)
+        else:
+            emis = np.zeros(0)  # one σ, no heading: computed in the compiled kernel
+        odo_cum = np.zeros(0)
         if track.distance is not None:
             odo = np.asarray(track.distance, dtype=np.float64)
-            csum = np.cumsum(np.where(np.isfinite(odo), odo, 0.0))
-            podo = np.where(np.isfinite(odo[pts]), csum[pts], np.nan)
-        choice, seg_start, via_u, used_bound = _solve(  # type: ignore[call-arg]
-            cand_ptr, cedge, coff, emis, pxy, ptime, podo, model.transition_params(cfg),
+            odo_cum = np.where(np.isfinite(odo), np.cumsum(np.where(np.isfinite(odo), odo, 0.0)), np.nan)
+        # one compiled call: pruning, Viterbi, route pieces and per-point results
+        out = _run(  # type: ignore[call-arg]
+            n, valid, kept, xy, tim, odo_cum, kidx, cands.point, cands.edge, cands.offset, cands.xy,
+            cands.dist, emis, sigma if isinstance(sigma, float) else 0.0, EMISSION_PRUNE,
+            float(cfg.outlier_distance), model.transition_params(cfg),
+            np.array([STOP_SPEED, STOP_TIME, STOP_UTURN_PENALTY]),
             float(cfg.max_route_factor), float(cfg.route_slack), float(cfg.beta * ROUTE_LP_CUT),
-            float(cfg.gap_distance), MAX_SKIP, REVERSE_TOLERANCE, *search_args(self._ra, self._ws),
-            *self._ubodt_args,
+            float(cfg.gap_distance), MAX_SKIP, REVERSE_TOLERANCE, self._seg_xy, self._seg_ptr, *self._kargs,
         )  # fmt: skip
-        res = self._assemble(
-            track, n, valid, kept, xy, pts, cand_ptr, cedge, coff, cxy, cdist, emis, choice, seg_start,
-            via_u, used_bound,
-        )  # fmt: skip
+        res = _result(str(track.track_id), *out)
         if lonlat:
             fill_route_lonlat(res, g.crs)
         return res
 
-    # ------------------------------------------------------------------ output
-    def _assemble(
-        self,
-        track: Track,
-        n: int,
-        valid: NDArray[np.bool_],
-        kept: NDArray[np.bool_],
-        xy: NDArray[np.float64],
-        pts: NDArray[np.int64],
-        cand_ptr: NDArray[np.int64],
-        cedge: NDArray[np.int32],
-        coff: NDArray[np.float64],
-        cxy: NDArray[np.float64],
-        cdist: NDArray[np.float64],
-        emis: NDArray[np.float64],
-        choice_all: NDArray[np.int64],
-        seg_start: NDArray[np.bool_],
-        via_u: NDArray[np.bool_],
-        used_bound: NDArray[np.float64],
-    ) -> TrackMatch:
-        g = self.graph
-        res = TrackMatch(track_id=str(track.track_id))
-        p_edge = np.full(n, -1, dtype=np.int64)
-        p_off = np.full(n, np.nan)
-        p_xy = np.full((n, 2), np.nan)
-        p_dist = np.full(n, np.nan)
-        status = np.zeros(n, dtype=np.int8)  # 0 unmatched, 1 matched, 2 interpolated
-        # lattice points left out as unreachable outliers are unmatched
-        acc = np.flatnonzero(choice_all >= 0)
-        choice = choice_all[acc]
-        pts = pts[acc]
-        m = len(pts)
-        if m:
-            ch_edge = cedge[choice]
-            ch_off = coff[choice]
-            kind = np.full(m, STEP_ROUTE, dtype=np.int64)
-            prev_e = np.r_[-1, ch_edge[:-1]]
-            prev_o = np.r_[np.nan, ch_off[:-1]]
-            same = (ch_edge == prev_e) & (ch_off >= prev_o - REVERSE_TOLERANCE)
-            kind[same] = STEP_SAME
-            kind[via_u[acc] & ~same] = STEP_UTURN
-            kind[seg_start[acc]] = STEP_SPLIT
-            kind[0] = STEP_SPLIT
-            bound = used_bound[acc]
-            pe, ps, pend, pseg, bad = _pieces(  # type: ignore[call-arg]
-                ch_edge, ch_off, kind, bound, *search_args(self._ra, self._ws), *self._ubodt_args
-            )
-            # a failed path (should not happen: Viterbi chose a reachable pair) becomes a split
-            starts = np.flatnonzero((kind == STEP_SPLIT) | bad)
-            res.splits = [int(pts[i]) for i in starts[1:]]
-            xy_all, xptr = _pieces_xy(pe, ps, pend, self._seg_xy, self._seg_ptr)
-            nseg = int(pseg.max()) + 1 if len(pseg) else 0
-            piece_bounds = np.searchsorted(pseg, np.arange(nseg + 1))
-            for s in range(nseg):
-                a, b = piece_bounds[s], piece_bounds[s + 1]
-                edges = pe[a:b]
-                keep_e = np.ones(len(edges), dtype=bool)
-                keep_e[1:] = edges[1:] != edges[:-1]
-                res.routes.append(edges[keep_e].tolist())
-            res.length_m = float(np.sum(pend - ps))
-            p_edge[pts] = ch_edge
-            p_off[pts] = ch_off
-            p_xy[pts] = cxy[choice]
-            p_dist[pts] = cdist[choice]
-            status[pts] = 1
-            # confidence: matched fraction x mean normalised emission of the chosen road (both
-            # directions of a two-way road count as one) among the point's candidates
-            w = np.exp(emis - np.repeat(np.maximum.reduceat(emis, cand_ptr[:-1]), np.diff(cand_ptr)))
-            tot = np.add.reduceat(w, cand_ptr[:-1])
-            rev = g.edge_reverse[cedge]
-            road = np.where(rev >= 0, np.minimum(cedge, rev), cedge).astype(np.int64)
-            lp = np.repeat(np.arange(len(cand_ptr) - 1), np.diff(cand_ptr))
-            key = lp * (g.n_edges + 1) + road
-            uk, inv = np.unique(key, return_inverse=True)
-            road_w = np.bincount(inv, weights=w, minlength=len(uk))[inv]
-            post = road_w[choice] / tot[acc]
-            res.confidence = float(np.mean(post) * m / max(int(valid.sum()), 1))
-            # interpolated points: projected onto the chosen edge of the nearer kept neighbour
-            interp = valid & ~kept
-            if interp.any():
-                ii = np.flatnonzero(interp)
-                k = np.searchsorted(pts, ii) - 1
-                nxt = np.minimum(k + 1, m - 1)
-                prv = np.maximum(k, 0)
-                e1 = ch_edge[prv]
-                e2 = ch_edge[nxt]
-                o1, d1, x1 = _project_on_edges(xy[ii], e1, self._seg_xy, self._seg_ptr)
-                o2, d2, x2 = _project_on_edges(xy[ii], e2, self._seg_xy, self._seg_ptr)
-                use2 = d2 < d1
-                p_edge[ii] = np.where(use2, e2, e1)
-                p_off[ii] = np.where(use2, o2, o1)
-                p_xy[ii] = np.where(use2[:, None], x2, x1)
-                p_dist[ii] = np.where(use2, d2, d1)
-                status[ii] = 2
-        ok = status > 0
-        p_ll = np.full((n, 2), np.nan)
-        if ok.any():
-            p_ll[ok] = to_lonlat(g.crs, p_xy[ok, 0], p_xy[ok, 1])
-        if m:
-            for s in range(len(res.routes)):
-                seg = xy_all[xptr[piece_bounds[s]] : xptr[piece_bounds[s + 1]]]
-                res.route_xy.append(np.vstack([seg, seg]) if len(seg) == 1 else seg)
-        stat = (PointStatus.UNMATCHED, PointStatus.MATCHED, PointStatus.INTERPOLATED)
-        res.points = [
-            MatchedPoint(i, stat[s], int(e), float(o), float(la), float(lo), float(d))
-            for i, s, e, o, la, lo, d in zip(
-                range(n),
-                status.tolist(),
-                p_edge.tolist(),
-                p_off.tolist(),
-                p_ll[:, 1].tolist(),
-                p_ll[:, 0].tolist(),
-                p_dist.tolist(),
-                strict=True,
-            )
-        ]
-        return res
+
+def _result(
+    track_id: str,
+    p_edge: NDArray[np.int64],
+    p_off: NDArray[np.float64],
+    p_xy: NDArray[np.float64],
+    p_dist: NDArray[np.float64],
+    status: NDArray[np.int8],
+    splits: NDArray[np.int64],
+    route_e: NDArray[np.int64],
+    route_ptr: NDArray[np.int64],
+    xy_all: NDArray[np.float64],
+    rxy_ptr: NDArray[np.int64],
+    length: float,
+    conf: float,
+) -> TrackMatch:
+    """A :class:`TrackMatch` from the compiled kernel's arrays (points still as arrays)."""
+    res = TrackMatch(
+        track_id=track_id, splits=splits.tolist(), length_m=float(length), confidence=float(conf)
+    )
+    for s in range(len(route_ptr) - 1):
+        res.routes.append(route_e[route_ptr[s] : route_ptr[s + 1]].tolist())
+        seg = xy_all[rxy_ptr[s] : rxy_ptr[s + 1]]
+        res.route_xy.append(np.vstack([seg, seg]) if len(seg) == 1 else seg)
+    res.point_arrays = (status, p_edge, p_off, p_xy, p_dist)
+    return res
 
 
 def fill_route_lonlat(result: TrackMatch, crs: str) -> TrackMatch:
-    """Fill ``route_lonlat`` from ``route_xy`` (one projection call for all pieces)."""
-    if not result.route_xy:
-        result.route_lonlat = []
-        return result
-    allxy = np.concatenate(result.route_xy)
-    ll = to_lonlat(crs, allxy[:, 0], allxy[:, 1]).tolist()
+    """Fill ``route_lonlat`` from ``route_xy`` and ``points`` from ``point_arrays`` (one projection)."""
+    pa = result.point_arrays
+    ok = np.zeros(0, dtype=bool)
+    parts = list(result.route_xy)
+    if pa is not None:
+        ok = pa[0] > 0
+        parts.append(pa[3][ok])
+    ll = to_lonlat(crs, *np.concatenate(parts).T) if parts else np.zeros((0, 2))
     out: list[list[tuple[float, float]]] = []
     i = 0
     for piece in result.route_xy:
-        out.append(list(map(tuple, ll[i : i + len(piece)])))
+        out.append(list(map(tuple, ll[i : i + len(piece)].tolist())))
         i += len(piece)
     result.route_lonlat = out
+    if pa is not None:
+        status, p_edge, p_off, _, p_dist = pa
+        p_ll = np.full((len(status), 2), np.nan)
+        p_ll[ok] = ll[i:]
+        stat = (PointStatus.UNMATCHED, PointStatus.MATCHED, PointStatus.INTERPOLATED)
+        lat, lon = p_ll[:, 1].tolist(), p_ll[:, 0].tolist()
+        result.points = [
+            MatchedPoint(i, stat[s], e, o, la, lo, d)
+            for i, (s, e, o, la, lo, d) in enumerate(
+                zip(
+                    status.tolist(), p_edge.tolist(), p_off.tolist(), lat, lon,
+                    p_dist.tolist(), strict=True,
+                )
+            )
+        ]  # fmt: skip
+        result.point_arrays = None
     return result
 
 
@@ -323,7 +248,7 @@ def _merge_candidates(a: Candidates, b: Candidates, b_points: NDArray[np.int64])
 
 
 def _opt(a: NDArray[np.float64] | None, n: int) -> NDArray[np.float64]:
-    return np.full(n, np.nan) if a is None else np.asarray(a, dtype=np.float64)
+    return np.full(n, np.nan) if a is None else np.ascontiguousarray(a, dtype=np.float64)
 
 
 # ---------------------------------------------------------------------- compiled kernels
@@ -368,6 +293,7 @@ def _step(  # type: ignore[no-untyped-def]
     order,
     best,
     params,
+    node_uturn,
     trav,
     dt,
     bound,
@@ -450,6 +376,9 @@ def _step(  # type: ignore[no-untyped-def]
                 need = True
                 if f == edge_rev[e]:
                     lp = transition_logp_one(abs(edge_len[e] - coff[j] - o), trav, dt, params, True)
+                    if node_uturn < params[3] and edge_len[e] - o <= reverse_tol and coff[j] <= reverse_tol:
+                        # turning round at the junction (within reverse_tol) after a stop
+                        lp += params[3] - node_uturn
                     if si + lp > best[j - b0]:
                         best[j - b0] = si + lp
                         bp[j] = i
@@ -507,6 +436,7 @@ def _solve(  # type: ignore[no-untyped-def]
     ptime,
     podo,
     params,
+    stop_params,
     route_factor,
     route_slack,
     lp_cut_m,
@@ -577,26 +507,12 @@ def _solve(  # type: ignore[no-untyped-def]
             if d > gap_distance:
                 restart = s0 if nskip > 0 else t
         if restart < 0:
-            trav = d
-            od = podo[t] - podo[prev]
-            if np.isfinite(od) and od > 0:
-                trav = od
-            dt = ptime[t] - ptime[prev]
-            bound = route_factor * trav + route_slack
-            tight = min(bound, trav + lp_cut_m)
-            reached = False
-            for npass in range(2):
-                lim = tight if npass == 0 else bound
-                if npass == 1 and lim <= tight:
-                    break
-                reached = _step(
-                    cand_ptr[prev], cand_ptr[prev + 1], cand_ptr[t], cand_ptr[t + 1], cedge, coff, emis,
-                    score, bp, bpu, order, best, params, trav, dt, lim, reverse_tol, out_ptr, out_edges,
-                    edge_v, edge_len, edge_rev, r_ptr, r_to, r_kind, dist, pred, done, tgt, touched,
-                    heap_k, heap_v, u_delta, u_ptr, u_tgt, u_dist, u_pred,
-                )  # fmt: skip
-                if reached:
-                    break
+            reached, bound = _try_step(
+                prev, t, d, cand_ptr, cedge, coff, emis, pxy, ptime, podo, score, bp, bpu, order, best,
+                params, stop_params, route_factor, route_slack, lp_cut_m, reverse_tol, out_ptr, out_edges,
+                edge_v, edge_len, edge_rev, r_ptr, r_to, r_kind, dist, pred, done, tgt, touched, heap_k,
+                heap_v, u_delta, u_ptr, u_tgt, u_dist, u_pred,
+            )  # fmt: skip
             if reached:
                 accepted[t] = True
                 prev_pt[t] = prev
@@ -612,6 +528,35 @@ def _solve(  # type: ignore[no-untyped-def]
                 t += 1
                 continue
             restart = s0
+            # before splitting: maybe the last accepted points were the outliers (a drift onto a
+            # road that does not lead on); reach s0 from up to max_skip points before them
+            q = prev_pt[prev]
+            back = 0
+            while q >= 0 and back < max_skip:
+                dq = math.hypot(pxy[s0, 0] - pxy[q, 0], pxy[s0, 1] - pxy[q, 1])
+                if dq > gap_distance:
+                    break
+                reached, bound = _try_step(
+                    q, s0, dq, cand_ptr, cedge, coff, emis, pxy, ptime, podo, score, bp, bpu, order, best,
+                    params, stop_params, route_factor, route_slack, lp_cut_m, reverse_tol, out_ptr, out_edges,
+                    edge_v, edge_len, edge_rev, r_ptr, r_to, r_kind, dist, pred, done, tgt, touched, heap_k,
+                    heap_v, u_delta, u_ptr, u_tgt, u_dist, u_pred,
+                )  # fmt: skip
+                if reached:
+                    for r in range(q + 1, s0):
+                        accepted[r] = False
+                    accepted[s0] = True
+                    prev_pt[s0] = q
+                    used_bound[s0] = bound
+                    restart = -1
+                    break
+                q = prev_pt[q]
+                back += 1
+            if restart < 0:
+                prev = s0
+                nskip = 0
+                t = s0 + 1
+                continue
         # a new piece starts at ``restart``
         accepted[restart] = True
         seg_start[restart] = True
@@ -821,33 +766,401 @@ def _bearing_at(edges, offs, seg_xy, seg_ptr):  # type: ignore[no-untyped-def]
 
 
 @njit(cache=True)
-def _project_on_edges(xy, edges, seg_xy, seg_ptr):  # type: ignore[no-untyped-def]
-    """Project each point onto its given edge: offsets, distances and positions."""
-    n = len(edges)
-    off = np.empty(n)
-    dist = np.empty(n)
-    pos = np.empty((n, 2))
+def _prune(nk, cpoint, cedge, coff, cxy, cdist, emis, prune, outlier):  # type: ignore[no-untyped-def]
+    """Drop candidates far below their point's best emission or beyond ``outlier`` metres.
+
+    Candidates come sorted by point. Returns the kept ones with their per-point pointer (over
+    the points that keep any) and which of the ``nk`` points keep any.
+    """
+    nc = len(cpoint)
+    best = np.full(nk, -np.inf)
+    for c in range(nc):
+        if emis[c] > best[cpoint[c]]:
+            best[cpoint[c]] = emis[c]
+    keep = np.zeros(nc, dtype=np.bool_)
+    counts = np.zeros(nk, dtype=np.int64)
+    nkeep = 0
+    for c in range(nc):
+        if emis[c] >= best[cpoint[c]] - prune and cdist[c] <= outlier:
+            keep[c] = True
+            counts[cpoint[c]] += 1
+            nkeep += 1
+    has = counts > 0
+    m = 0
+    for p in range(nk):
+        if has[p]:
+            m += 1
+    ptr = np.zeros(m + 1, dtype=np.int64)
+    q = 0
+    for p in range(nk):
+        if has[p]:
+            ptr[q + 1] = ptr[q] + counts[p]
+            q += 1
+    oe = np.empty(nkeep, dtype=cedge.dtype)
+    oo = np.empty(nkeep)
+    ox = np.empty((nkeep, 2))
+    od = np.empty(nkeep)
+    om = np.empty(nkeep)
+    k = 0
+    for c in range(nc):
+        if keep[c]:
+            oe[k] = cedge[c]
+            oo[k] = coff[c]
+            ox[k, 0] = cxy[c, 0]
+            ox[k, 1] = cxy[c, 1]
+            od[k] = cdist[c]
+            om[k] = emis[c]
+            k += 1
+    return ptr, oe, oo, ox, od, om, has
+
+
+@njit(cache=True)
+def _project_one(x, y, e, seg_xy, seg_ptr):  # type: ignore[no-untyped-def]
+    """Offset, distance and position of point ``(x, y)`` projected onto edge ``e``."""
+    a0 = seg_ptr[e]
+    a1 = seg_ptr[e + 1]
+    best = np.inf
+    off = 0.0
+    px_b = np.nan
+    py_b = np.nan
+    acc = 0.0
+    for q in range(a0, a1 - 1):
+        x0, y0 = seg_xy[q, 0], seg_xy[q, 1]
+        dx = seg_xy[q + 1, 0] - x0
+        dy = seg_xy[q + 1, 1] - y0
+        L2 = dx * dx + dy * dy
+        f = 0.0
+        if L2 > 0:
+            f = min(max(((x - x0) * dx + (y - y0) * dy) / L2, 0.0), 1.0)
+        px = x0 + f * dx
+        py = y0 + f * dy
+        d = math.hypot(x - px, y - py)
+        if d < best:
+            best = d
+            off = acc + f * math.sqrt(L2)
+            px_b = px
+            py_b = py
+        acc += math.sqrt(L2)
+    return off, best, px_b, py_b
+
+
+@njit(cache=True)
+def _finish(  # type: ignore[no-untyped-def]
+    n,
+    valid,
+    kept,
+    xy,
+    pts_all,
+    choice_all,
+    seg_start,
+    via_u,
+    used_bound,
+    cand_ptr,
+    cedge,
+    coff,
+    cxy,
+    cdist,
+    emis,
+    seg_xy,
+    seg_ptr,
+    reverse_tol,
+    out_ptr,
+    out_edges,
+    edge_v,
+    edge_len,
+    edge_rev,
+    r_ptr,
+    r_to,
+    r_kind,
+    dist,
+    pred,
+    done,
+    tgt,
+    touched,
+    heap_k,
+    heap_v,
+    u_delta,
+    u_ptr,
+    u_tgt,
+    u_dist,
+    u_pred,
+):
+    """Per-point results, route pieces (edges and geometry), splits, length and confidence."""
+    p_edge = np.full(n, -1, dtype=np.int64)
+    p_off = np.full(n, np.nan)
+    p_xy = np.full((n, 2), np.nan)
+    p_dist = np.full(n, np.nan)
+    status = np.zeros(n, dtype=np.int8)  # 0 unmatched, 1 matched, 2 interpolated
+    # lattice points left out as unreachable outliers are unmatched
+    m = 0
+    for t in range(len(choice_all)):
+        if choice_all[t] >= 0:
+            m += 1
+    acc = np.empty(m, dtype=np.int64)
+    q = 0
+    for t in range(len(choice_all)):
+        if choice_all[t] >= 0:
+            acc[q] = t
+            q += 1
+    nvalid = 0
     for i in range(n):
-        a0 = seg_ptr[edges[i]]
-        a1 = seg_ptr[edges[i] + 1]
-        best = np.inf
-        acc = 0.0
-        for q in range(a0, a1 - 1):
-            x0, y0 = seg_xy[q, 0], seg_xy[q, 1]
-            dx = seg_xy[q + 1, 0] - x0
-            dy = seg_xy[q + 1, 1] - y0
-            L2 = dx * dx + dy * dy
-            f = 0.0
-            if L2 > 0:
-                f = min(max(((xy[i, 0] - x0) * dx + (xy[i, 1] - y0) * dy) / L2, 0.0), 1.0)
-            px = x0 + f * dx
-            py = y0 + f * dy
-            d = math.hypot(xy[i, 0] - px, xy[i, 1] - py)
-            if d < best:
-                best = d
-                off[i] = acc + f * math.sqrt(L2)
-                pos[i, 0] = px
-                pos[i, 1] = py
-            acc += math.sqrt(L2)
-        dist[i] = best
-    return off, dist, pos
+        if valid[i]:
+            nvalid += 1
+    if m == 0:
+        return (
+            p_edge, p_off, p_xy, p_dist, status, np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64),
+            np.zeros(1, dtype=np.int64), np.zeros((0, 2)), np.zeros(1, dtype=np.int64), 0.0, 0.0,
+        )  # fmt: skip
+    ch_edge = np.empty(m, dtype=np.int64)
+    ch_off = np.empty(m)
+    kind = np.empty(m, dtype=np.int64)
+    bound = np.empty(m)
+    pts = np.empty(m, dtype=np.int64)
+    post = 0.0
+    for i in range(m):
+        t = acc[i]
+        j = choice_all[t]
+        e = cedge[j]
+        ch_edge[i] = e
+        ch_off[i] = coff[j]
+        pts[i] = pts_all[t]
+        bound[i] = used_bound[t]
+        same = i > 0 and e == ch_edge[i - 1] and coff[j] >= ch_off[i - 1] - reverse_tol
+        if i == 0 or seg_start[t]:
+            kind[i] = STEP_SPLIT
+        elif same:
+            kind[i] = STEP_SAME
+        elif via_u[t]:
+            kind[i] = STEP_UTURN
+        else:
+            kind[i] = STEP_ROUTE
+        p = pts[i]
+        p_edge[p] = e
+        p_off[p] = coff[j]
+        p_xy[p, 0] = cxy[j, 0]
+        p_xy[p, 1] = cxy[j, 1]
+        p_dist[p] = cdist[j]
+        status[p] = 1
+        # confidence: normalised emission of the chosen road (both directions of a two-way
+        # road count as one) among the point's candidates
+        c0 = cand_ptr[t]
+        c1 = cand_ptr[t + 1]
+        mx = -np.inf
+        for c in range(c0, c1):
+            mx = max(mx, emis[c])
+        road = min(e, edge_rev[e]) if edge_rev[e] >= 0 else e
+        tot = 0.0
+        mine = 0.0
+        for c in range(c0, c1):
+            w = math.exp(emis[c] - mx)
+            tot += w
+            f = cedge[c]
+            rf = min(f, edge_rev[f]) if edge_rev[f] >= 0 else f
+            if rf == road:
+                mine += w
+        post += mine / tot
+    pe, ps, pend, pseg, bad = _pieces(
+        ch_edge, ch_off, kind, bound, out_ptr, out_edges, edge_v, edge_len, edge_rev, r_ptr, r_to, r_kind,
+        dist, pred, done, tgt, touched, heap_k, heap_v, u_delta, u_ptr, u_tgt, u_dist, u_pred,
+    )  # fmt: skip
+    # a failed path (should not happen: Viterbi chose a reachable pair) becomes a split
+    nsplit = 0
+    for i in range(1, m):
+        if kind[i] == STEP_SPLIT or bad[i]:
+            nsplit += 1
+    splits = np.empty(nsplit, dtype=np.int64)
+    q = 0
+    for i in range(1, m):
+        if kind[i] == STEP_SPLIT or bad[i]:
+            splits[q] = pts[i]
+            q += 1
+    xy_all, xptr = _pieces_xy(pe, ps, pend, seg_xy, seg_ptr)
+    npc = len(pe)
+    nseg = pseg[npc - 1] + 1 if npc else 0
+    route_e = np.empty(npc, dtype=np.int64)
+    route_ptr = np.zeros(nseg + 1, dtype=np.int64)
+    rxy_ptr = np.zeros(nseg + 1, dtype=np.int64)
+    length = 0.0
+    k = 0
+    for i in range(npc):
+        length += pend[i] - ps[i]
+        s = pseg[i]
+        if i == 0 or pseg[i - 1] != s or pe[i] != pe[i - 1]:
+            route_e[k] = pe[i]
+            k += 1
+        route_ptr[s + 1] = k
+        rxy_ptr[s + 1] = xptr[i + 1]
+    # interpolated points: projected onto the chosen edge of the nearer kept neighbour
+    q = 0
+    for i in range(n):
+        if not valid[i] or kept[i]:
+            continue
+        while q < m and pts[q] < i:
+            q += 1
+        prv = max(q - 1, 0)
+        nxt = min(q, m - 1)
+        o1, d1, x1, y1 = _project_one(xy[i, 0], xy[i, 1], ch_edge[prv], seg_xy, seg_ptr)
+        o2, d2, x2, y2 = _project_one(xy[i, 0], xy[i, 1], ch_edge[nxt], seg_xy, seg_ptr)
+        if d2 < d1:
+            p_edge[i], p_off[i], p_xy[i, 0], p_xy[i, 1], p_dist[i] = ch_edge[nxt], o2, x2, y2, d2
+        else:
+            p_edge[i], p_off[i], p_xy[i, 0], p_xy[i, 1], p_dist[i] = ch_edge[prv], o1, x1, y1, d1
+        status[i] = 2
+    conf = post / max(nvalid, 1)
+    return p_edge, p_off, p_xy, p_dist, status, splits, route_e[:k], route_ptr, xy_all, rxy_ptr, length, conf
+
+
+@njit(cache=True)
+def _run(  # type: ignore[no-untyped-def]
+    n,
+    valid,
+    kept,
+    xy,
+    tim,
+    odo_cum,
+    kidx,
+    cpoint,
+    cedge,
+    coff,
+    cxy,
+    cdist,
+    emis,
+    sigma,
+    prune,
+    outlier,
+    params,
+    stop_params,
+    route_factor,
+    route_slack,
+    lp_cut_m,
+    gap_distance,
+    max_skip,
+    reverse_tol,
+    seg_xy,
+    seg_ptr,
+    out_ptr,
+    out_edges,
+    edge_v,
+    edge_len,
+    edge_rev,
+    r_ptr,
+    r_to,
+    r_kind,
+    dist,
+    pred,
+    done,
+    tgt,
+    touched,
+    heap_k,
+    heap_v,
+    u_delta,
+    u_ptr,
+    u_tgt,
+    u_dist,
+    u_pred,
+):
+    """Pruning (:func:`_prune`), Viterbi (:func:`_solve`) and results (:func:`_finish`) in one call.
+
+    An empty ``emis`` means distance-only emissions with one ``sigma``, computed here.
+    """
+    if len(emis) != len(cdist):
+        emis = np.empty(len(cdist))
+        for c in range(len(cdist)):
+            emis[c] = emission_logp_one(cdist[c], sigma, 0.0, 0.0, 0.0)
+    cand_ptr, ce, co, cx, cd, em, has = _prune(
+        len(kidx), cpoint, cedge, coff, cxy, cdist, emis, prune, outlier
+    )
+    pts = kidx[has]  # track indices of the lattice's points (those with candidates)
+    m = len(pts)
+    pxy = np.empty((m, 2))
+    ptime = np.empty(m)
+    podo = np.full(m, np.nan)
+    for i in range(m):
+        pxy[i, 0] = xy[pts[i], 0]
+        pxy[i, 1] = xy[pts[i], 1]
+        ptime[i] = tim[pts[i]]
+        if len(odo_cum):
+            podo[i] = odo_cum[pts[i]]
+    choice, seg_start, via_u, used_bound = _solve(
+        cand_ptr, ce, co, em, pxy, ptime, podo, params, stop_params, route_factor, route_slack, lp_cut_m,
+        gap_distance, max_skip, reverse_tol, out_ptr, out_edges, edge_v, edge_len, edge_rev, r_ptr, r_to,
+        r_kind, dist, pred, done, tgt, touched, heap_k, heap_v, u_delta, u_ptr, u_tgt, u_dist, u_pred,
+    )  # fmt: skip
+    return _finish(
+        n, valid, kept, xy, pts, choice, seg_start, via_u, used_bound, cand_ptr, ce, co, cx, cd, em, seg_xy,
+        seg_ptr, reverse_tol, out_ptr, out_edges, edge_v, edge_len, edge_rev, r_ptr, r_to, r_kind, dist, pred,
+        done, tgt, touched, heap_k, heap_v, u_delta, u_ptr, u_tgt, u_dist, u_pred,
+    )  # fmt: skip
+
+
+@njit(cache=True)
+def _try_step(  # type: ignore[no-untyped-def]
+    prev,
+    t,
+    d,
+    cand_ptr,
+    cedge,
+    coff,
+    emis,
+    pxy,
+    ptime,
+    podo,
+    score,
+    bp,
+    bpu,
+    order,
+    best,
+    params,
+    stop_params,
+    route_factor,
+    route_slack,
+    lp_cut_m,
+    reverse_tol,
+    out_ptr,
+    out_edges,
+    edge_v,
+    edge_len,
+    edge_rev,
+    r_ptr,
+    r_to,
+    r_kind,
+    dist,
+    pred,
+    done,
+    tgt,
+    touched,
+    heap_k,
+    heap_v,
+    u_delta,
+    u_ptr,
+    u_tgt,
+    u_dist,
+    u_pred,
+):
+    """The Viterbi step from lattice point ``prev`` to ``t`` (``d`` metres apart): a tight search
+    bound first, the full bound only if nothing is reached. Returns (reached, full bound)."""
+    trav = d
+    od = podo[t] - podo[prev]
+    if np.isfinite(od) and od > 0:
+        trav = od
+    dt = ptime[t] - ptime[prev]
+    bound = route_factor * trav + route_slack
+    tight = min(bound, trav + lp_cut_m)
+    # ``stop_params`` = (stop speed, stop time, U-turn penalty across a stop)
+    node_uturn = params[3]
+    if dt >= stop_params[1] and d < stop_params[0] * dt:
+        node_uturn = min(node_uturn, stop_params[2])
+    reached = False
+    for npass in range(2):
+        lim = tight if npass == 0 else bound
+        if npass == 1 and lim <= tight:
+            break
+        reached = _step(
+            cand_ptr[prev], cand_ptr[prev + 1], cand_ptr[t], cand_ptr[t + 1], cedge, coff, emis, score, bp,
+            bpu, order, best, params, node_uturn, trav, dt, lim, reverse_tol, out_ptr, out_edges, edge_v,
+            edge_len, edge_rev, r_ptr, r_to, r_kind, dist, pred, done, tgt, touched, heap_k, heap_v, u_delta,
+            u_ptr, u_tgt, u_dist, u_pred,
+        )  # fmt: skip
+        if reached:
+            break
+    return reached, bound

@@ -5,6 +5,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, field
 from enum import StrEnum
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -169,6 +170,8 @@ class TrackMatch:
     ``routes`` holds one edge sequence per connected piece; a new piece starts where the
     track was split (``splits`` lists the point indices where a piece starts, after the first).
     ``route_xy`` holds the same pieces' geometry as (k, 2) arrays in the map's CRS.
+    ``point_arrays`` (status, edge, offset, xy, dist per point) is set only while ``points``
+    awaits :func:`mapmatch.batch.fill_route_lonlat` (``BatchMatcher.match(lonlat=False)``).
     """
 
     track_id: str
@@ -179,6 +182,7 @@ class TrackMatch:
     length_m: float = 0.0
     confidence: float = 0.0
     route_xy: list[NDArray[np.float64]] = field(default_factory=list)
+    point_arrays: tuple[NDArray[Any], ...] | None = None
 
 
 @dataclass(slots=True)

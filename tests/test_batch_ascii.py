@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 
 from graph.ascii import AsciiMap, parse_ascii_map
+from mapmatch import batch
 from mapmatch.batch import BATCH_CONFIG as DEFAULT_CONFIG
 from mapmatch.batch import BatchMatcher
 from mapmatch.routing import shortest_route
@@ -191,3 +192,71 @@ def test_empty_and_hopeless_tracks_do_not_fail() -> None:
     assert [p.status for p in nan.points] == ["unmatched", "unmatched"] and nan.routes == []
     one = bm.match(track_from_xy(m, [at(m, "a", 20, 1)]))
     assert [p.status for p in one.points] == ["matched"] and len(one.routes) == 1
+
+
+def test_turning_round_at_a_junction_after_a_stop(monkeypatch: pytest.MonkeyPatch) -> None:
+    # along ab, a stop in a yard off the road just past b (next to bd), then back along ba:
+    # the stop makes turning round at b likelier than a loop b-c-e-d-b
+    m = parse_ascii_map(
+        """
+        a-------b-c
+                | |
+                d-e
+        """,
+        scale=10,
+    )
+    go = [at(m, "a", x, 1) for x in (5, 20, 35, 50, 65, 78)]
+    stop = [at(m, "b", dx, -10) for dx in (1, 2, 1, 1.5, 2, 1)]
+    back = [at(m, "a", x, -1) for x in (78, 65, 50, 35, 20, 5)]
+    track = track_from_xy(m, go + stop + back)
+    r = BatchMatcher(m.graph).match(track)
+    assert [names(m, piece) for piece in r.routes] == [["ab", "ba"]]
+    assert r.length_m == pytest.approx(150, abs=12)
+    # without the stop rule the full U-turn penalty makes the loop win
+    monkeypatch.setattr(batch, "STOP_UTURN_PENALTY", DEFAULT_CONFIG.uturn_penalty)
+    r = BatchMatcher(m.graph).match(track)
+    assert [names(m, piece) for piece in r.routes] == [["ab", "bc", "ce", "ed", "db", "ba"]]
+
+
+def test_drift_onto_a_dead_end_is_left_out_rather_than_splitting() -> None:
+    # a few fixes drift onto the one-way dead end bd, from which the rest of the track (on bc)
+    # cannot be reached: they are the outliers, not the many fixes after them
+    m = parse_ascii_map(
+        """
+        a-----b-------------c
+              v
+              v
+              v
+              d
+        """,
+        scale=10,
+    )
+    pts = [at(m, "a", x, 1) for x in (5, 20, 35)]
+    drift = [at(m, "b", 3, -55), at(m, "b", -3, -64), at(m, "b", 2, -73)]
+    on = [at(m, "b", 15 + 12 * k, 1) for k in range(10)]
+    r = BatchMatcher(m.graph).match(track_from_xy(m, pts + drift + on))
+    assert [names(m, piece) for piece in r.routes] == [["ab", "bc"]]
+    assert r.splits == []
+    status = [p.status for p in r.points]
+    assert status[3:6] == [PointStatus.UNMATCHED] * 3
+    assert all(s == PointStatus.MATCHED for s in status[:3] + status[6:])
+
+
+def test_deferred_lonlat_gives_the_same_result() -> None:
+    m = parse_ascii_map(
+        """
+        a-----b-----c
+              |
+              d-----e
+        """,
+        scale=20,
+    )
+    pts = [at(m, "a", 10, 3), at(m, "a", 12, 2), at(m, "a", 60, -2), at(m, "b", -3, -30), at(m, "d", 40, 4)]
+    matcher = BatchMatcher(m.graph)
+    full = matcher.match(track_from_xy(m, pts))
+    late = matcher.match(track_from_xy(m, pts), lonlat=False)
+    assert late.points == [] and late.route_lonlat == [] and late.point_arrays is not None
+    batch.fill_route_lonlat(late, m.graph.crs)
+    assert late.point_arrays is None
+    assert late.points == full.points and late.route_lonlat == full.route_lonlat
+    assert [p.status for p in full.points].count(PointStatus.INTERPOLATED) == 1
