@@ -10,6 +10,7 @@ as reported live and after applying the matcher's corrections.
 
     python bench/bench_online.py                 # everything (~15 min on 2 cores)
     python bench/bench_online.py --quick         # one map, 1 Hz, σ 5 m
+    python bench/bench_online.py --quick --breakdown   # also classify the wrong-edge fixes
 """
 
 from __future__ import annotations
@@ -134,6 +135,63 @@ def corrected_edges(graph: RoadGraph, results: list[SnapResult]) -> np.ndarray:
     return e
 
 
+def error_breakdown(
+    graph: RoadGraph, drive: Drive, edges: np.ndarray, *, near_m: float = 15.0
+) -> dict[str, int]:
+    """Count the wrong-edge fixes by kind.
+
+    The key joins: ``gps``/``outage``; what was matched (``lag``: an earlier edge of the true
+    route, up to three back; ``lead``: a later one; ``reverse``: the true edge's reverse twin;
+    ``route-far``, ``off-route``, ``unmatched``); ``node`` when the true position is within
+    ``near_m`` of a junction passed (else ``mid``), with ``straight`` or ``turn`` for the
+    bearing change there; ``stopped`` below 0.5 m/s; and whether the fused fix lay ``ahead``
+    of or ``behind`` the true position along the direction of travel.
+    """
+    tr = drive.truth
+    te = tr["edge"].to_numpy()
+    route = drive.route
+    rs = tr["route_s"].to_numpy()
+    nd = route.node_distance()
+    pos = {int(e): i for i, e in enumerate(route.edges.tolist())}
+    re_ = route.edges
+    turn = np.abs(
+        (graph.edge_bearing_start[re_[1:]] - graph.edge_bearing_end[re_[:-1]] + 180.0) % 360.0 - 180.0
+    )
+    th = np.radians(tr["heading"].to_numpy())
+    along = (drive.fused.x - tr["x"].to_numpy()) * np.sin(th) + (drive.fused.y - tr["y"].to_numpy()) * np.cos(
+        th
+    )
+    out: dict[str, int] = {}
+    for i in np.flatnonzero(edges != te).tolist():
+        e, t = int(edges[i]), int(te[i])
+        if e < 0:
+            kind = "unmatched"
+        elif int(graph.edge_reverse[t]) == e:
+            kind = "reverse"
+        elif e in pos and t in pos and 0 < pos[t] - pos[e] <= 3:
+            kind = "lag"
+        elif e in pos and t in pos and 0 < pos[e] - pos[t] <= 3:
+            kind = "lead"
+        else:
+            kind = "route-far" if e in pos else "off-route"
+        where = "mid"
+        if len(nd):
+            k = int(np.argmin(np.abs(nd - rs[i])))
+            if abs(nd[k] - rs[i]) <= near_m:
+                where = "node " + ("straight" if turn[min(k, len(turn) - 1)] <= 30.0 else "turn")
+        key = " ".join(
+            [
+                "outage" if tr["gps_outage"].iloc[i] else "gps",
+                kind,
+                where,
+                "stopped" if tr["speed"].iloc[i] < 0.5 else "moving",
+                "ahead" if along[i] > 0 else "behind",
+            ]
+        )
+        out[key] = out.get(key, 0) + 1
+    return out
+
+
 def score(graph: RoadGraph, drive: Drive, results: list[SnapResult]) -> dict[str, float]:
     matched = pd.DataFrame(
         {
@@ -197,7 +255,14 @@ def speed_bench(name: str, graph: RoadGraph, *, seed: int = 1) -> dict[str, floa
 
 
 def accuracy_runs(
-    name: str, graph: RoadGraph, *, rates: list[float], sigmas: list[float], n_random: int, km: float
+    name: str,
+    graph: RoadGraph,
+    *,
+    rates: list[float],
+    sigmas: list[float],
+    n_random: int,
+    km: float,
+    breakdown: dict[str, int] | None = None,
 ) -> list[dict[str, object]]:
     routes: list[tuple[str, Route]] = []
     if name.isdigit():
@@ -223,6 +288,9 @@ def accuracy_runs(
                         "outages": len(drive.outages),
                     }
                     row.update(score(graph, drive, res))
+                    if breakdown is not None:
+                        for k, v in error_breakdown(graph, drive, corrected_edges(graph, res)).items():
+                            breakdown[k] = breakdown.get(k, 0) + v
                     rows.append(row)
                     print(
                         f"{name:>9} {rname:>8} {row['km']:5.1f} km {rate:4.0f} Hz σ {sigma:4.1f} "
@@ -243,6 +311,7 @@ def main() -> int:
     ap.add_argument("--no-accuracy", action="store_true")
     ap.add_argument("--maps", nargs="*", default=None)
     ap.add_argument("--json", type=Path, default=None, help="also write all rows here")
+    ap.add_argument("--breakdown", action="store_true", help="classify the wrong-edge fixes")
     args = ap.parse_args()
     out: dict[str, object] = {}
     if not args.no_speed:
@@ -271,8 +340,11 @@ def main() -> int:
                 (n, [1.0, 10.0], [3.0, 10.0], 1 if n in ("helsinki", "monaco") else 0, 12.0) for n in names
             ]
         rows2: list[dict[str, object]] = []
+        kinds: dict[str, int] | None = {} if args.breakdown else None
         for name, rates, sigmas, n_random, km in plan:
-            rows2 += accuracy_runs(name, load(name), rates=rates, sigmas=sigmas, n_random=n_random, km=km)
+            rows2 += accuracy_runs(
+                name, load(name), rates=rates, sigmas=sigmas, n_random=n_random, km=km, breakdown=kinds
+            )
         df = pd.DataFrame(rows2)
         for col in ("ix", "ix_live", "edge", "edge_live", "edge_outage"):
             df[col] = df[col].astype(float)
@@ -283,6 +355,12 @@ def main() -> int:
         print("\n## by rate")
         print((100 * df.groupby(["hz", df["outages"] > 0])[["ix", "edge"]].mean()).round(2).to_string())
         out["accuracy"] = rows2
+        if kinds is not None:
+            n = int(df["fixes"].astype(int).sum())
+            print(f"\n## wrong-edge fixes by kind (after corrections), of {n} fixes")
+            for k, v in sorted(kinds.items(), key=lambda kv: -kv[1])[:25]:
+                print(f"{v:7d} {100.0 * v / n:5.2f} %  {k}")
+            out["breakdown"] = kinds
     if args.json:
         args.json.write_text(json.dumps(out, indent=1, default=str))
     return 0

@@ -41,6 +41,22 @@ class MatchConfig:
     reinit_distance : metres travelled while inconsistent before re-initialising.
     reinit_sigmas : a fix is inconsistent when further than this many σ from the road.
     dr_sigma_growth : fraction of distance travelled since the last GPS-aided fix added to σ.
+    max_hypotheses : most path hypotheses the online filter keeps.
+    turn_sigma : degrees; spread of the observed heading change around a path's predicted one.
+    evidence_time : seconds of fixes that count as one independent observation (the fused
+        position's error is correlated in time, so 10 Hz fixes must not count ten times).
+    evidence_distance : metres travelled that count as one independent observation, when the
+        distance travelled is known (a stopped vehicle's repeated fixes add no evidence).
+    stop_speed : m/s; below this (from the odometer) the vehicle is stopped: its position may
+        move back along the path but never on across a node (no flicker at a stop line).
+    node_hold_sigmas : a fix past the end node of the edge held is kept at that node while it
+        lies within this many σ along the next edge (along-track error); further on, the
+        next edge holds it.
+    switch_penalty : log-probability penalty of jumping to a road the filter did not follow.
+    init_commit_probability : probability at which the start-up road is committed.
+    drift_decay_time : seconds over which the dead-reckoning drift σ decays once GPS is back.
+    soft_reinit_sigmas : the index is searched for other roads when the fix is further than this
+        many σ from the road believed.
 
     Batch
     -----
@@ -73,6 +89,16 @@ class MatchConfig:
     reinit_distance: float = 100.0
     reinit_sigmas: float = 4.0
     dr_sigma_growth: float = 0.04
+    max_hypotheses: int = 32
+    turn_sigma: float = 20.0
+    evidence_time: float = 1.0
+    evidence_distance: float = 5.0
+    stop_speed: float = 0.5
+    node_hold_sigmas: float = 1.0
+    switch_penalty: float = 8.0
+    init_commit_probability: float = 0.99
+    drift_decay_time: float = 20.0
+    soft_reinit_sigmas: float = 3.0
 
     max_route_factor: float = 3.0
     route_slack: float = 100.0
@@ -88,6 +114,14 @@ class MatchConfig:
                 raise ConfigError(f"{f.name} must be a finite non-negative number, got {v!r}")
         if self.max_candidates < 1:
             raise ConfigError("max_candidates must be at least 1")
+        if self.max_hypotheses < 1 or self.max_hypotheses != int(self.max_hypotheses):
+            raise ConfigError("max_hypotheses must be a whole number, at least 1")
+        if self.init_commit_probability > 1:
+            raise ConfigError("init_commit_probability must be at most 1")
+        if min(self.turn_sigma, self.evidence_time, self.evidence_distance, self.drift_decay_time) <= 0:
+            raise ConfigError(
+                "turn_sigma, evidence_time, evidence_distance and drift_decay_time must be positive"
+            )
         if self.gps_sigma <= 0 or self.beta <= 0 or self.heading_sigma <= 0:
             raise ConfigError("gps_sigma, beta and heading_sigma must be positive")
 

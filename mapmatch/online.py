@@ -10,9 +10,18 @@ every legal outgoing edge (one-ways, turn restrictions, a penalised U-turn; two 
 junctions are closer than ``r_a``). Each fix then adds to every hypothesis the shared model's
 emission (distance and heading), the transition (along-path progress against odometer distance)
 and turn evidence (heading change over the last ``turn_window`` metres against the path's
-bearing change). The most probable hypothesis is reported; when it has left the circle it is
-committed, the turn at the intersection is classified and, when the committed path disagrees
+bearing change). The edge of highest total probability is reported (the most probable
+hypothesis on it gives the position); when the most probable hypothesis has left the circle it
+is committed, the turn at the intersection is classified and, when the committed path disagrees
 with what was reported live, a :class:`~mapmatch.types.Correction` is returned.
+
+Along a path the position follows the fix, with hysteresis at nodes against the fused
+position's along-track error: a fix just past the end node of the edge held stays at that node
+(within ``node_hold_sigmas`` σ), the vehicle goes back across a node only when the fix is
+clearly behind it, and a stopped vehicle (odometer below ``stop_speed``) never moves on across
+a node. Evidence accrues per ``evidence_time`` seconds and ``evidence_distance`` metres, so
+that repeated fixes of a slow or stopped vehicle (with the same correlated error) do not
+outvote the path.
 
 Fixes far off the map are not errors: they return ``State.OFF_ROAD`` with ``edge == -1``.
 Invalid input raises :class:`~mapmatch.errors.ValidationError` and leaves the state unchanged.
@@ -42,12 +51,8 @@ from mapmatch.turns import (
 )
 from mapmatch.types import Candidate, Correction, Fix, SnapResult, State, Turn
 
-MAX_HYPOTHESES = 32
 MAX_HOPS = 4
 PRUNE_LOGP = -25.0
-INIT_COMMIT_P = 0.99
-TURN_SIGMA_DEG = 20.0
-EVIDENCE_TIME_S = 1.0
 MAX_LIVE = 48
 LIVE_SPACING_S = 0.5  # fixes remembered for corrections: at most two per second, or on edge change
 INIT_MAX_RADIUS_M = 200.0
@@ -57,10 +62,8 @@ DR_CARRY_TOL_M = 5.0
 INIT_MAX_HEADING_DEG = 100.0
 POS_SIGMA_FLOOR_M = 2.0
 CORRECTION_MARGIN = 2.0
-DRIFT_DECAY_S = 20.0
-SOFT_REINIT_SIGMAS = 3.0
 SEARCH_EVERY_S = 1.0
-SWITCH_PENALTY = 8.0
+REPORT_BACK_RATIO = 3.0  # reporting an edge behind the one reported needs this much more mass
 AGAINST_HEADING_DEG = 100.0  # driving against the road believed also triggers the search
 HEADING_SIGMA_FLOOR_DEG = 10.0
 HEADING_SIGMA_FLOOR_DR_DEG = 15.0  # in dead reckoning the position along the road is uncertain
@@ -136,6 +139,7 @@ class SessionState:
     res_head2: float = 400.0  # running mean of squared heading residual (deg²), on road
     drift_sigma: float = 0.0  # dead-reckoning drift σ (m), decaying after GPS returns
     search_time: float = math.nan  # time of the last soft re-initialisation search
+    shown: int = -1  # the edge reported last
 
     def to_bytes(self) -> bytes:
         """Compact JSON encoding (a few hundred bytes)."""
@@ -150,6 +154,7 @@ class SessionState:
             "live": self.live,
             "hd": self.headings,
             "res": [self.res_pos2, self.res_head2, self.drift_sigma, self.search_time],
+            "sh": self.shown,
         }
         return json.dumps(d, separators=(",", ":"), allow_nan=True).encode()
 
@@ -177,6 +182,7 @@ class SessionState:
                 res_head2=float(d["res"][1]),
                 drift_sigma=float(d["res"][2]),
                 search_time=float(d["res"][3]),
+                shown=int(d.get("sh", -1)),
             )
         except (ValueError, TypeError, KeyError, IndexError, AttributeError) as exc:
             raise ValidationError("state", f"not a valid session state ({exc})") from None
@@ -201,6 +207,7 @@ class _Step:
     dt: float
     gps: bool
     weight: float
+    stopped: bool  # slower than ``stop_speed`` by the odometer
     r_a: float
 
 
@@ -293,7 +300,7 @@ class OnlineMatcher:
             against = step.kappa > 0.0 and abs(angle_diff(step.heading, best.bearing)) > AGAINST_HEADING_DEG
             if (
                 step.gps
-                and (best.dist > SOFT_REINIT_SIGMAS * step.sigma or against)
+                and (best.dist > cfg.soft_reinit_sigmas * step.sigma or against)
                 and not (step.time - state.search_time < SEARCH_EVERY_S)
             ):
                 state.search_time = step.time
@@ -362,7 +369,12 @@ class OnlineMatcher:
             floor = HEADING_SIGMA_FLOOR_DEG if fix.gps_valid is not False else HEADING_SIGMA_FLOOR_DR_DEG
             hs = max(hs, floor, math.sqrt(state.res_head2))
             kappa = 1.0 / math.radians(hs) ** 2
-        weight = 1.0 if math.isnan(dt) else min(1.0, dt / EVIDENCE_TIME_S)
+        # the fused error is correlated: evidence accrues with time and, when known, distance
+        weight = 1.0 if math.isnan(dt) else min(1.0, dt / cfg.evidence_time)
+        stopped = False
+        if odo_known and not math.isnan(dt):
+            weight = min(weight, travelled / cfg.evidence_distance)
+            stopped = travelled < cfg.stop_speed * dt
         return _Step(
             time=fix.time,
             x=x,
@@ -375,19 +387,20 @@ class OnlineMatcher:
             dt=dt,
             gps=gps,
             weight=weight,
+            stopped=stopped,
             r_a=self.region_radius(sigma, cfg),
         )
 
     @staticmethod
     def _drift_sigma(state: SessionState, gps: bool, travelled: float, dt: float, cfg: MatchConfig) -> float:
         """σ of the dead-reckoning drift: grows with distance since the last GPS-aided fix and
-        decays over ``DRIFT_DECAY_S`` once GPS is back (the fusion filter needs time to converge)."""
+        decays over ``drift_decay_time`` once GPS is back (the fusion filter needs time to converge)."""
         if not gps:
             dr = state.odo + (travelled if not math.isnan(travelled) else 0.0) - state.gps_odo
             return max(state.drift_sigma, cfg.gps_sigma + cfg.dr_sigma_growth * dr)
         if state.drift_sigma <= 0.0 or math.isnan(dt):
             return 0.0
-        return state.drift_sigma * math.exp(-dt / DRIFT_DECAY_S)
+        return state.drift_sigma * math.exp(-dt / cfg.drift_decay_time)
 
     @staticmethod
     def _learn_residuals(state: SessionState, best: Hypothesis, step: _Step) -> None:
@@ -524,14 +537,14 @@ class OnlineMatcher:
                 continue
             lp = (
                 best.logp
-                - SWITCH_PENALTY
+                - cfg.switch_penalty
                 + step.weight * (emission_scalar(dist, step.sigma, step.heading, brg, step.kappa) - base)
             )
             state.hyps.append(Hypothesis([e], 0, off, off, lp, [step.time], dist, px, py, brg))
         state.hyps = self._normalise(state.hyps)
-        if len(state.hyps) > MAX_HYPOTHESES:
+        if len(state.hyps) > cfg.max_hypotheses:
             state.hyps.sort(key=lambda h: -h.logp)
-            del state.hyps[MAX_HYPOTHESES:]
+            del state.hyps[int(cfg.max_hypotheses) :]
 
     def _advance(self, state: SessionState, step: _Step, cfg: MatchConfig) -> None:
         """Extend paths near their end node, place the fix on each path and score it."""
@@ -540,9 +553,9 @@ class OnlineMatcher:
         hyps: list[Hypothesis] = []
         for h in state.hyps:
             self._extend(h, h.s + ahead, cfg, hyps)
-        if len(hyps) > MAX_HYPOTHESES:
+        if len(hyps) > cfg.max_hypotheses:
             hyps.sort(key=lambda h: -h.logp)
-            del hyps[MAX_HYPOTHESES:]
+            del hyps[int(cfg.max_hypotheses) :]
         turn_obs, covered = (math.nan, 0.0)
         if len(hyps) > 1 and step.kappa > 0.0:
             turn_obs, covered = heading_change(state.headings, state.odo, window=cfg.turn_window)
@@ -552,7 +565,7 @@ class OnlineMatcher:
             score = self._place(h, step, cfg, cache)
             if covered >= 0.5 * cfg.turn_window and not math.isnan(turn_obs):
                 expect = angle_diff(h.bearing, self._bearing_on_path(h, h.s - covered))
-                miss = angle_diff(turn_obs, expect) / TURN_SIGMA_DEG
+                miss = angle_diff(turn_obs, expect) / cfg.turn_sigma
                 frac = min(1.0, max(h.s - s_prev, 0.0) / cfg.turn_window)
                 score -= 0.5 * miss * miss * frac
             h.logp += step.weight * score if len(hyps) > 1 else 0.0
@@ -599,13 +612,30 @@ class OnlineMatcher:
         j0 = max(h.k - 1, 0)  # one edge back: a fix may run ahead of the vehicle near a node
         for j in range(j0):
             acc += self._elen[h.edges[j]]
-        for j in range(j0, len(h.edges)):
+        # stopped: the fix's noise may move the vehicle back but not on across a node
+        jmax = h.k + 1 if step.stopped else len(h.edges)
+        for j in range(j0, jmax):
             e = h.edges[j]
             pr = cache.get(e)
             if pr is None:
                 pr = cache[e] = self._project(e, x, y)
             off, dist, px, py, brg = pr
             s = acc + off
+            if j < h.k and self._elen[e] - off < cfg.node_hold_sigmas * sigma:
+                # back across the node only when the fix is clearly behind it (no flicker)
+                acc += self._elen[e]
+                continue
+            if j < jmax - 1 and off >= self._elen[e] - 1e-6:
+                # the fix is past the end of an edge the path continues on: held at the node
+                # only within a margin (stop line, along-track error); further on the next edge
+                # holds that place (else the hypothesis would lag ever further behind)
+                e2 = h.edges[j + 1]
+                pr2 = cache.get(e2)
+                if pr2 is None:
+                    pr2 = cache[e2] = self._project(e2, x, y)
+                if pr2[0] > cfg.node_hold_sigmas * sigma:
+                    acc += self._elen[e]
+                    continue
             sc = emission_scalar(dist, sigma, step.heading, brg, step.kappa)
             if not math.isnan(d):
                 sc += transition_scalar(
@@ -684,7 +714,9 @@ class OnlineMatcher:
         if state.init_pending:
             total = sum(math.exp(h.logp) for h in hyps)
             group = sum(math.exp(h.logp) for h in hyps if h.edges[0] == best.edges[0]) / total
-            if group >= INIT_COMMIT_P or state.odo - state.init_odo >= max(2.0 * step.r_a, cfg.turn_window):
+            if group >= cfg.init_commit_probability or state.odo - state.init_odo >= max(
+                2.0 * step.r_a, cfg.turn_window
+            ):
                 correction = self._correction(state, best, step)
                 state.hyps = hyps = [h for h in hyps if h.edges[0] == best.edges[0]]
                 state.init_pending = False
@@ -790,7 +822,24 @@ class OnlineMatcher:
     ) -> SnapResult:
         hyps = state.hyps
         best = self._best(hyps)
+        if len(hyps) > 1:
+            # report the edge of highest total probability (best for the per-fix edge), at
+            # the position of its most probable hypothesis
+            mass: dict[int, float] = {}
+            for h in hyps:
+                he = h.edges[h.k]
+                mass[he] = mass.get(he, 0.0) + math.exp(h.logp)
+            top = max(mass, key=mass.__getitem__)
+            shown = state.shown
+            if top != shown and shown in mass and mass[top] < REPORT_BACK_RATIO * mass[shown]:
+                # no flicker: back to an edge behind the one reported only on clear evidence
+                hs = self._best([h for h in hyps if h.edges[h.k] == shown])
+                if top in hs.edges[: hs.k]:
+                    top = shown
+            if top != best.edges[best.k]:
+                best = self._best([h for h in hyps if h.edges[h.k] == top])
         e = best.edges[best.k]
+        state.shown = e
         candidates: tuple[Candidate, ...] = ()
         if len(hyps) > 1:
             last = state.live[-1] if state.live else None

@@ -10,6 +10,7 @@ import pytest
 from graph.ascii import AsciiMap, parse_ascii_map
 from graph.index import project_to_edge
 from graph.projection import to_lonlat
+from mapmatch.config import DEFAULT_CONFIG
 from mapmatch.errors import ValidationError
 from mapmatch.online import OnlineMatcher, SessionState
 from mapmatch.types import Fix, SnapResult, State, Turn
@@ -163,12 +164,11 @@ def _jump_to_cd(m: AsciiMap) -> list[Fix]:
     return on_ab + drive(m, "cd", speed=10, t0=on_ab[-1].time + 1, start_offset=80.0)
 
 
-def test_reinitialises_when_the_fix_stays_off_the_road(monkeypatch: pytest.MonkeyPatch) -> None:
-    import mapmatch.online
-
-    monkeypatch.setattr(mapmatch.online, "SOFT_REINIT_SIGMAS", math.inf)  # the hard rule alone
+def test_reinitialises_when_the_fix_stays_off_the_road() -> None:
     m = parse_ascii_map(PARALLEL, scale=10)
-    matcher = OnlineMatcher(m.graph)
+    matcher = OnlineMatcher(
+        m.graph, config=DEFAULT_CONFIG.replace(soft_reinit_sigmas=1e9)
+    )  # the hard rule alone
     res = run(matcher, _jump_to_cd(m))
     assert all(r.edge == m.edge("a", "b") and r.state is State.ON_ROAD for r in res[:8])
     states = [r.state for r in res[8:]]
@@ -394,3 +394,105 @@ def test_scalar_model_twins_agree_with_the_shared_model() -> None:
         ref = float(transition_logp(r, t, dt, C))
         got = transition_scalar(r, t, dt, beta=C.beta, max_speed=C.max_speed, speed_penalty=C.speed_penalty)
         assert got == pytest.approx(ref)
+
+
+def _fix_at(m: AsciiMap, xy: np.ndarray, t: float, heading: float, **kw: float) -> Fix:
+    lon, lat = to_lonlat(m.graph.crs, [xy[0]], [xy[1]])[0]
+    return Fix(time=t, lat=float(lat), lon=float(lon), heading=heading, gps_valid=True, **kw)
+
+
+def test_stopped_vehicle_near_a_node_does_not_flip_edges() -> None:
+    # the vehicle stops 3 m before the crossing b; its fixes scatter along the road and
+    # several lie past b: a stopped vehicle must stay where it stopped
+    m = parse_ascii_map(CROSS, scale=10)
+    matcher = OnlineMatcher(m.graph)
+    a, b = m.xy("a"), m.xy("b")
+    east = (b - a) / np.linalg.norm(b - a)
+    fixes = [f for f in drive(m, "ab", speed=5) if np.dot(m.xy("b") - to_xy_arr(m, f), east) > 8.0]
+    t = fixes[-1].time
+    stop = b - 3.0 * east
+    for i, jitter in enumerate([2.0, 5.0, -1.0, 6.0, 4.5, 0.5, 5.5, 3.5, -0.5, 6.5] * 2):
+        fixes.append(_fix_at(m, stop + jitter * east, t + 1 + i, 90.0, speed=0.0, distance=0.0))
+    res = run(matcher, fixes)
+    stopped = res[-20:]
+    assert {r.edge for r in stopped} == {m.edge("a", "b")}
+    # without the stop rule the scattered fixes would carry it past the node
+    loose = run(OnlineMatcher(m.graph, config=DEFAULT_CONFIG.replace(stop_speed=0.0)), fixes)
+    assert len({r.edge for r in loose[-20:]}) > 1
+    # and it drives on through the crossing afterwards
+    go = drive(m, "bc", speed=5, t0=fixes[-1].time + 1, start_offset=0.0)
+    st = matcher.new_session()
+    out = run(matcher, fixes + go, st)
+    assert committed_edges(out) == [m.edge("a", "b"), m.edge("b", "c")]
+
+
+def to_xy_arr(m: AsciiMap, f: Fix) -> np.ndarray:
+    return np.array(to_xy_one(m, f))
+
+
+def test_fix_past_a_bend_is_not_held_back_at_the_node() -> None:
+    # a bend a-b-c (not a junction); the fused heading lags the bend by several seconds and the
+    # fixes are loose (σ 6 m): the vehicle must not be kept at b while it drives on along b-c
+    m = parse_ascii_map(
+        """
+        c
+        |
+        |
+        |
+        |
+        b-----------------a
+        """,
+        scale=10,
+    )
+    matcher = OnlineMatcher(m.graph)
+    fixes = [
+        Fix(
+            time=f.time,
+            lat=f.lat,
+            lon=f.lon,
+            heading=f.heading,
+            pos_sigma=6.0,
+            speed=f.speed,
+            distance=f.distance,
+        )
+        for f in drive(m, "ab", speed=5)
+    ]
+    b, c = m.xy("b"), m.xy("c")
+    north = (c - b) / np.linalg.norm(c - b)
+    t = fixes[-1].time
+    for i in range(1, 9):  # heading turns from west (270) to north (360) only slowly
+        hd = min(270.0 + 6.0 * i, 359.0)
+        fixes.append(_fix_at(m, b + 5.0 * i * north, t + i, hd, pos_sigma=6.0, speed=5.0, distance=5.0))
+    res = run(matcher, fixes)
+    bc = m.edge("b", "c")
+    far = [r for r, f in zip(res, fixes, strict=True) if np.dot(to_xy_arr(m, f) - b, north) > 12.0]
+    assert far and all(r.edge == bc for r in far)
+    held = run(OnlineMatcher(m.graph, config=DEFAULT_CONFIG.replace(node_hold_sigmas=1e6)), fixes)
+    assert any(
+        r.edge != bc for r, f in zip(held, fixes, strict=True) if np.dot(to_xy_arr(m, f) - b, north) > 12.0
+    )
+
+
+def test_crossing_at_10_hz_is_committed_without_flicker() -> None:
+    m = parse_ascii_map(CROSS, scale=10)
+    matcher = OnlineMatcher(m.graph)
+    for seed in range(4):
+        res = run(matcher, drive(m, "abc", speed=10, dt=0.1, noise=2.0, seed=seed, heading_noise=2.0))
+        assert edges_of(res) == [m.edge("a", "b"), m.edge("b", "c")], seed
+        assert committed_edges(res) == [m.edge("a", "b"), m.edge("b", "c")]
+
+
+def test_online_tuning_constants_are_validated_config_fields() -> None:
+    from mapmatch.errors import ConfigError
+
+    cfg = DEFAULT_CONFIG.replace(max_hypotheses=8, stop_speed=0.3, node_hold_sigmas=2.0)
+    assert (cfg.max_hypotheses, cfg.stop_speed, cfg.node_hold_sigmas) == (8, 0.3, 2.0)
+    for bad in (
+        {"max_hypotheses": 0},
+        {"max_hypotheses": 2.5},
+        {"turn_sigma": 0.0},
+        {"drift_decay_time": 0.0},
+        {"init_commit_probability": 1.5},
+    ):
+        with pytest.raises(ConfigError):
+            DEFAULT_CONFIG.replace(**bad)
