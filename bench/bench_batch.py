@@ -1,8 +1,8 @@
 """Batch matching against the peers (Valhalla, OSRM, fastmm) on the shared Kubicka tracks.
 
-Runs ``/work/shared/peers/run_peers.py`` with our matcher as the custom engine
-(``bench/peers_adapter.py``), so every engine is timed the same way (the match call only, map
-loaded) and scored by the peers' ``score.py``. Prints mean RMF and points/s per engine and S,
+Runs ``../shared/peers/run_peers.py`` (or ``$MAPMATCH_PEERS/run_peers.py``) with our matcher as the
+custom engine (``bench/peers_adapter.py``), so every engine is timed the same way (the match call
+only, map loaded) and scored by the peers' ``score.py``. Prints mean RMF and points/s per engine and S,
 the ratio of our points/s to fastmm's, and our time per point on the largest vs the smallest map.
 
     python bench/bench_batch.py                       # all 15 tracks, S = 1, 10, 30

@@ -1,4 +1,4 @@
-"""Our batch matcher behind the peers' custom-engine hook (``/work/shared/peers/README.md``).
+"""Our batch matcher behind the peers' custom-engine hook (``../shared/peers/README.md``).
 
 ``load`` prepares the map (not timed); ``call`` is the timed match of one sub-sampled track;
 ``convert`` returns the matched route as lon/lat polylines, one per connected piece.
@@ -9,7 +9,6 @@ bench-only loader of ``roads.geojson`` (degree-2 chains contracted, as for fastm
 from __future__ import annotations
 
 import gc
-import json
 import sys
 from pathlib import Path
 from typing import Any
@@ -36,43 +35,10 @@ def version() -> str:
         return "mapmatch (source tree)"
 
 
-def _fallback_map(work: Path) -> RoadGraph:
-    """Bench-only loader: roads.geojson -> contracted directed polylines in the track's UTM zone."""
-    peers = Path("/work/shared/peers")
-    sys.path.insert(0, str(peers))
-    from roadgraph import directed_edges, read_roads  # type: ignore[import-not-found]
-
-    from graph.projection import to_xy
-
-    feats, coords = read_roads(work / "roads.geojson")
-    chains = directed_edges(feats)
-    ends = sorted({c[0] for c in chains} | {c[-1] for c in chains})
-    pos = {n: i for i, n in enumerate(ends)}
-    epsg = json.loads((work / "meta.json").read_text())["utm_epsg"]
-    crs = f"EPSG:{epsg}"
-    ids = np.array(sorted(coords))
-    ll = np.array([coords[i] for i in ids])
-    xy_all = to_xy(crs, ll[:, 0], ll[:, 1])
-    xy_of = {int(i): xy_all[k] for k, i in enumerate(ids)}
-    node_xy = np.array([xy_of[n] for n in ends])
-    node_ll = np.array([coords[n] for n in ends])
-    geoms = [np.array([xy_of[n] for n in c]) for c in chains]
-    return RoadGraph.from_edges(
-        crs=crs,
-        node_xy=node_xy,
-        node_lonlat=node_ll,
-        node_id=np.array(ends, dtype=np.int64),
-        edge_u=[pos[c[0]] for c in chains],
-        edge_v=[pos[c[-1]] for c in chains],
-        edge_geoms=geoms,
-    )
-
-
 def load_graph(work: Path) -> RoadGraph:
-    try:
-        from graph.build import build_map  # type: ignore[import-not-found]
-    except ImportError:
-        return _fallback_map(work)
+    """The track's map, prepared from its roads.geojson as ``mapmatch prep`` would (not timed)."""
+    from graph.build import build_map
+
     return build_map(work / "roads.geojson")
 
 
