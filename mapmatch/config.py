@@ -57,6 +57,12 @@ class MatchConfig:
     drift_decay_time : seconds over which the dead-reckoning drift σ decays once GPS is back.
     soft_reinit_sigmas : the index is searched for other roads when the fix is further than this
         many σ from the road believed.
+    turn_anchor_sigma : metres; σ of the along-path position a detected turn gives (the vehicle
+        is at the node where the fused heading is half-way through the turn); 0 disables the anchor.
+    odo_scale_sigma : σ of the odometer's relative distance error: the turn anchor is carried
+        along the path by the odometer and its σ grows by this fraction of the distance.
+    bias_time : seconds; correlation time of the fix's position error, learnt across roads
+        of different directions to correct the along-track position (0 disables it).
 
     Batch
     -----
@@ -94,11 +100,14 @@ class MatchConfig:
     evidence_time: float = 1.0
     evidence_distance: float = 5.0
     stop_speed: float = 0.5
-    node_hold_sigmas: float = 1.0
+    node_hold_sigmas: float = 0.5
     switch_penalty: float = 8.0
     init_commit_probability: float = 0.99
     drift_decay_time: float = 20.0
     soft_reinit_sigmas: float = 3.0
+    turn_anchor_sigma: float = 3.0
+    odo_scale_sigma: float = 0.02
+    bias_time: float = 30.0
 
     max_route_factor: float = 3.0
     route_slack: float = 100.0

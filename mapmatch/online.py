@@ -23,6 +23,17 @@ a node. Evidence accrues per ``evidence_time`` seconds and ``evidence_distance``
 that repeated fixes of a slow or stopped vehicle (with the same correlated error) do not
 outvote the path.
 
+On a straight road the map cannot show the fix's along-track error, yet it decides which side
+of a straight crossing the vehicle is. Two other sources correct the position along the path
+(GPS-aided fixes only; in dead reckoning the odometer carry above decides): the fix's slowly
+varying error vector, learnt by a small Kalman filter from its offsets *across* roads of other
+directions (``bias_time``), and a turn anchor: when a turn is committed, the odometer reading
+at which the fused heading was half-way round puts the vehicle at the node, and the odometer
+carries that position on (σ ``turn_anchor_sigma`` plus ``odo_scale_sigma`` of the distance).
+Both are fused with the projection by their variances; the corrected position crosses a node
+only where the path goes straight on, and a path whose turn holds it short of the estimate
+pays for the miss.
+
 Fixes far off the map are not errors: they return ``State.OFF_ROAD`` with ``edge == -1``.
 Invalid input raises :class:`~mapmatch.errors.ValidationError` and leaves the state unchanged.
 """
@@ -42,12 +53,14 @@ from graph.road_graph import RESTRICTION_ONLY, RoadGraph
 from mapmatch.config import DEFAULT_CONFIG, MatchConfig
 from mapmatch.errors import ValidationError
 from mapmatch.turns import (
+    STRAIGHT_MAX_DEG,
     add_sample,
     angle_diff,
     classify_turn,
     emission_scalar,
     heading_change,
     transition_scalar,
+    turn_midpoint,
 )
 from mapmatch.types import Candidate, Correction, Fix, SnapResult, State, Turn
 
@@ -59,6 +72,9 @@ INIT_MAX_RADIUS_M = 200.0
 STATE_VERSION = 1
 FAR_OFF_M = 100_000.0
 DR_CARRY_TOL_M = 5.0
+BIAS_WHITE_FRAC = 0.5  # the share of the fix's σ that is white (not learnt as bias)
+TURN_SPAN_SIGMA = 0.3  # anchor σ per metre of odometer over which the heading turned
+ANCHOR_GATE = 3.0  # a turn anchor further than this many σ from the fix is dropped
 INIT_MAX_HEADING_DEG = 100.0
 POS_SIGMA_FLOOR_M = 2.0
 CORRECTION_MARGIN = 2.0
@@ -87,6 +103,8 @@ class Hypothesis:
     px: float = math.nan
     py: float = math.nan
     bearing: float = math.nan
+    anc: float = math.nan  # along-path anchor: estimated ``s - odometer`` (from a turn's heading step)
+    anc_sd: float = math.nan  # its σ in metres (grows with the odometer distance carried)
 
     def to_list(self) -> list[Any]:
         return [
@@ -100,6 +118,8 @@ class Hypothesis:
             self.px,
             self.py,
             self.bearing,
+            self.anc,
+            self.anc_sd,
         ]
 
     @classmethod
@@ -115,6 +135,8 @@ class Hypothesis:
             px=float(a[7]),
             py=float(a[8]),
             bearing=float(a[9]),
+            anc=float(a[10]) if len(a) > 11 else math.nan,
+            anc_sd=float(a[11]) if len(a) > 11 else math.nan,
         )
 
 
@@ -140,6 +162,10 @@ class SessionState:
     drift_sigma: float = 0.0  # dead-reckoning drift σ (m), decaying after GPS returns
     search_time: float = math.nan  # time of the last soft re-initialisation search
     shown: int = -1  # the edge reported last
+    # the fix's slowly varying position error, learnt from its offsets across roads of other
+    # directions: [bx, by, Pxx, Pxy, Pyy] (m, m²); along a road it is invisible, so this is
+    # what tells the along-track error after a turn
+    bias: list[float] = field(default_factory=lambda: [0.0, 0.0, math.nan, 0.0, math.nan])
 
     def to_bytes(self) -> bytes:
         """Compact JSON encoding (a few hundred bytes)."""
@@ -155,6 +181,7 @@ class SessionState:
             "hd": self.headings,
             "res": [self.res_pos2, self.res_head2, self.drift_sigma, self.search_time],
             "sh": self.shown,
+            "b": self.bias,
         }
         return json.dumps(d, separators=(",", ":"), allow_nan=True).encode()
 
@@ -183,9 +210,12 @@ class SessionState:
                 drift_sigma=float(d["res"][2]),
                 search_time=float(d["res"][3]),
                 shown=int(d.get("sh", -1)),
+                bias=[float(v) for v in d.get("b", [0.0, 0.0, math.nan, 0.0, math.nan])],
             )
         except (ValueError, TypeError, KeyError, IndexError, AttributeError) as exc:
             raise ValidationError("state", f"not a valid session state ({exc})") from None
+        if len(st.bias) != 5:
+            raise ValidationError("state", "not a valid session state (bad bias)")
         for h in st.hyps:
             if not h.edges or not 0 <= h.k < len(h.edges) or len(h.enter) != h.k + 1:
                 raise ValidationError("state", "not a valid session state (bad hypothesis)")
@@ -203,12 +233,14 @@ class _Step:
     heading: float
     kappa: float
     travelled: float  # metres since the previous fix (nan when unknown)
+    odo: float  # the session's odometer after this fix
     odo_known: bool
     dt: float
     gps: bool
     weight: float
     stopped: bool  # slower than ``stop_speed`` by the odometer
     r_a: float
+    bias: tuple[float, float, float, float, float]  # predicted fix bias [bx, by, Pxx, Pxy, Pyy]
 
 
 class OnlineMatcher:
@@ -290,6 +322,7 @@ class OnlineMatcher:
             state.gps_odo = state.odo
         state.drift_sigma = self._drift_sigma(state, step.gps, 0.0, step.dt, cfg) if step.gps else step.sigma
         state.time, state.x, state.y = step.time, step.x, step.y
+        state.bias = list(step.bias)
         if step.kappa > 0.0:
             add_sample(state.headings, state.odo, step.heading, window=cfg.turn_window)
 
@@ -319,6 +352,7 @@ class OnlineMatcher:
                 state.bad_time = state.bad_odo = math.nan
                 if len(state.hyps) == 1 and not state.init_pending:
                     self._learn_residuals(state, best, step)
+                    self._learn_bias(state, best, step)
         else:
             self._initialise(state, step, cfg)
         if not state.hyps:
@@ -383,12 +417,14 @@ class OnlineMatcher:
             heading=heading,
             kappa=kappa,
             travelled=travelled,
+            odo=state.odo + (travelled if not math.isnan(travelled) else 0.0),
             odo_known=odo_known,
             dt=dt,
             gps=gps,
             weight=weight,
             stopped=stopped,
             r_a=self.region_radius(sigma, cfg),
+            bias=self._predict_bias(state.bias, sigma, dt, cfg),
         )
 
     @staticmethod
@@ -401,6 +437,42 @@ class OnlineMatcher:
         if state.drift_sigma <= 0.0 or math.isnan(dt):
             return 0.0
         return state.drift_sigma * math.exp(-dt / cfg.drift_decay_time)
+
+    @staticmethod
+    def _predict_bias(
+        b: list[float], sigma: float, dt: float, cfg: MatchConfig
+    ) -> tuple[float, float, float, float, float]:
+        """The fix bias a step on: it decays towards zero, its covariance towards σ²."""
+        bx, by, pxx, pxy, pyy = b
+        if cfg.bias_time <= 0.0 or math.isnan(pxx) or math.isnan(dt):
+            return 0.0, 0.0, sigma * sigma, 0.0, sigma * sigma
+        a = math.exp(-dt / cfg.bias_time)
+        q = sigma * sigma * (1.0 - a * a)
+        return a * bx, a * by, a * a * pxx + q, a * a * pxy, a * a * pyy + q
+
+    @staticmethod
+    def _learn_bias(state: SessionState, best: Hypothesis, step: _Step) -> None:
+        """Kalman update of the fix bias with its offset across the road (a 1-D view of it)."""
+        if step.weight <= 0.0 or math.isnan(best.bearing) or not step.gps:
+            return
+        bx, by, pxx, pxy, pyy = state.bias
+        rad = math.radians(best.bearing)
+        nx, ny = math.cos(rad), -math.sin(rad)  # normal to the road (bearing clockwise from north)
+        z = (step.x - best.px) * nx + (step.y - best.py) * ny
+        pnx, pny = pxx * nx + pxy * ny, pxy * nx + pyy * ny
+        r = (BIAS_WHITE_FRAC * step.sigma) ** 2 / step.weight
+        sv = nx * pnx + ny * pny + r
+        nu = z - (bx * nx + by * ny)
+        lim = 3.0 * math.sqrt(sv)
+        nu = min(max(nu, -lim), lim)  # robust: a wrong road must not teach a large bias
+        kx, ky = pnx / sv, pny / sv
+        state.bias = [
+            bx + kx * nu,
+            by + ky * nu,
+            pxx - kx * pnx,
+            pxy - kx * pny,
+            pyy - ky * pny,
+        ]
 
     @staticmethod
     def _learn_residuals(state: SessionState, best: Hypothesis, step: _Step) -> None:
@@ -464,6 +536,10 @@ class OnlineMatcher:
             acc += seg
             ax, ay = bx, by
         return ax, ay, self._bend[e]
+
+    def _straight(self, e: int, e2: int) -> bool:
+        """Whether ``e2`` continues ``e`` straight on at their shared node."""
+        return abs(angle_diff(self._bstart[e2], self._bend[e])) <= STRAIGHT_MAX_DEG
 
     def _bearing_on_path(self, h: Hypothesis, s: float) -> float:
         if s <= 0.0:
@@ -551,7 +627,12 @@ class OnlineMatcher:
         d = step.travelled
         ahead = (d if not math.isnan(d) else 0.0) + step.r_a
         hyps: list[Hypothesis] = []
+        grow = cfg.odo_scale_sigma * d if step.odo_known and not math.isnan(d) else math.nan
         for h in state.hyps:
+            if not math.isnan(h.anc_sd):
+                h.anc_sd += grow  # nan (no odometer) drops the anchor
+                if math.isnan(grow):
+                    h.anc = math.nan
             self._extend(h, h.s + ahead, cfg, hyps)
         if len(hyps) > cfg.max_hypotheses:
             hyps.sort(key=lambda h: -h.logp)
@@ -584,7 +665,18 @@ class OnlineMatcher:
             return
         for e2, pen in kids:
             g = Hypothesis(
-                [*h.edges, e2], h.k, h.off, h.s, h.logp + pen, list(h.enter), h.dist, h.px, h.py, h.bearing
+                [*h.edges, e2],
+                h.k,
+                h.off,
+                h.s,
+                h.logp + pen,
+                list(h.enter),
+                h.dist,
+                h.px,
+                h.py,
+                h.bearing,
+                h.anc,
+                h.anc_sd,
             )
             self._extend(g, reach, cfg, out)
 
@@ -650,7 +742,10 @@ class OnlineMatcher:
                 best_sc = sc
                 best = (j, off, s, dist, px, py, brg)
             acc += self._elen[e]
-        if not step.gps and step.odo_known and abs(best[2] - (h.s + d)) > DR_CARRY_TOL_M:
+        if step.gps:
+            best, miss = self._along_track(h, step, best, acc)
+            best_sc -= miss
+        elif step.odo_known and abs(best[2] - (h.s + d)) > DR_CARRY_TOL_M:
             # dead reckoning: the drifting fix and the odometer disagree, carry by distance
             s_pred = min(h.s + d, acc)
             j, rest = h.k, s_pred
@@ -680,6 +775,55 @@ class OnlineMatcher:
             h.enter.append(step.time)
         h.off, h.s, h.dist, h.px, h.py, h.bearing = best[1], best[2], best[3], best[4], best[5], best[6]
         return best_sc
+
+    def _along_track(
+        self,
+        h: Hypothesis,
+        step: _Step,
+        best: tuple[int, float, float, float, float, float, float],
+        acc: float,
+    ) -> tuple[tuple[int, float, float, float, float, float, float], float]:
+        """Correct the position along ``h``'s path: the fix's projection less its learnt
+        along-track bias, fused with the turn anchor carried by the odometer (on a straight
+        road the map cannot tell the fix's along-track error). ``best`` is ``(j, off, s, dist,
+        px, py, bearing)``; ``acc`` the furthest ``s`` allowed. Returns the corrected ``best``
+        and a log-penalty when the path's turn stops the position short of the estimate."""
+        bx, by, pxx, pxy, pyy = step.bias
+        rad = math.radians(best[6])
+        tx, ty = math.sin(rad), math.cos(rad)
+        s_f = s_m = best[2] - (bx * tx + by * ty)
+        va = 0.0
+        vf = tx * tx * pxx + 2.0 * tx * ty * pxy + ty * ty * pyy + (BIAS_WHITE_FRAC * step.sigma) ** 2
+        if not math.isnan(h.anc_sd) and step.odo_known:
+            va = h.anc_sd * h.anc_sd
+            innov = h.anc + step.odo - s_m
+            if innov * innov > ANCHOR_GATE**2 * (va + vf):
+                h.anc = h.anc_sd = math.nan  # inconsistent: forget it
+            else:
+                s_f = s_m + innov * vf / (va + vf)
+        if abs(s_f - best[2]) <= 0.01:
+            return best, 0.0
+        s_f = min(max(s_f, 0.0), acc)
+        want, miss = s_f, 0.0
+        # across a node only where the path goes straight on: at a turn the fix shows it
+        j, start = best[0], best[2] - best[1]
+        while s_f > start + self._elen[h.edges[j]] and j < len(h.edges) - 1:
+            if not self._straight(h.edges[j], h.edges[j + 1]):
+                s_f = start + self._elen[h.edges[j]]
+                break
+            start += self._elen[h.edges[j]]
+            j += 1
+        while s_f < start and j > 0:
+            if not self._straight(h.edges[j - 1], h.edges[j]):
+                s_f = start
+                break
+            j -= 1
+            start -= self._elen[h.edges[j]]
+        if s_f != want:  # the along-track estimate is past a turn this path has not taken yet
+            miss = 0.5 * (want - s_f) ** 2 * (1.0 / vf + (1.0 / va if va > 0.0 else 0.0))
+        rest = min(max(s_f - start, 0.0), self._elen[h.edges[j]])
+        px, py, brg = self._locate(h.edges[j], rest)
+        return (j, rest, s_f, math.hypot(px - step.x, py - step.y), px, py, brg), miss
 
     @staticmethod
     def _normalise(hyps: list[Hypothesis]) -> list[Hypothesis]:
@@ -730,14 +874,25 @@ class OnlineMatcher:
             hyps = [h for h in hyps if len(h.edges) > 1 and h.edges[1] == e1]
             v = self._ev[e0]
             is_rev = e1 == self._rev[e0]
+            anchor_odo = anchor_sd = math.nan
             if self._branching[v] or is_rev:
-                turn = classify_turn(angle_diff(self._bstart[e1], self._bend[e0]), is_reverse=is_rev)
+                angle = angle_diff(self._bstart[e1], self._bend[e0])
+                turn = classify_turn(angle, is_reverse=is_rev)
+                if turn in (Turn.LEFT, Turn.RIGHT) and cfg.turn_anchor_sigma > 0.0 and step.odo_known:
+                    anchor_odo, span = turn_midpoint(state.headings, self._bend[e0], angle)
+                    # a bend spreads the heading change: the anchor is only as sharp as the turn
+                    anchor_sd = math.hypot(cfg.turn_anchor_sigma, TURN_SPAN_SIGMA * span)
             state.live = [x for x in state.live if int(x[1]) != e0]
             for h in hyps:
                 if h.k == 0:  # still behind the committed node: place it at the node
                     h.k, h.off, h.s = 1, 0.0, self._elen[e0]
                     h.enter.append(step.time)
                 h.s -= self._elen[e0]
+                if math.isnan(anchor_odo):
+                    h.anc -= self._elen[e0]
+                else:  # the vehicle was at the node (s = 0 now) when the heading was half-way round
+                    h.anc = -anchor_odo
+                    h.anc_sd = anchor_sd + cfg.odo_scale_sigma * (step.odo - anchor_odo)
                 h.k -= 1
                 del h.edges[0]
                 del h.enter[0]

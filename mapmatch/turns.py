@@ -54,6 +54,29 @@ def heading_change(samples: list[list[float]], odo: float, *, window: float) -> 
     return angle_diff(samples[-1][1], ref[1]), odo - ref[0]
 
 
+def turn_midpoint(samples: list[list[float]], heading_in: float, angle: float) -> tuple[float, float]:
+    """Where a turn of ``angle`` degrees from ``heading_in`` happened, by the heading samples.
+
+    Returns ``(odo, span)``: the odometer reading at which the heading was half-way round
+    (interpolated) and the odometer metres between the last sample within 10 % of the turn
+    and the first within 10 % of its end (a sharp turn is short; a bend is long). ``(nan,
+    nan)`` when the samples do not cover the turn's start.
+    """
+    if angle == 0.0:
+        return math.nan, math.nan
+    p = [(odo, angle_diff(heading, heading_in) / angle) for odo, heading in samples]
+    for i, (odo, q) in enumerate(p):
+        if q >= 0.5:
+            if i == 0:
+                return math.nan, math.nan
+            o0, q0 = p[i - 1]
+            mid = o0 + (odo - o0) * (0.5 - q0) / (q - q0)
+            start = next((o for o, r in reversed(p[:i]) if r <= 0.1), p[0][0])
+            end = next((o for o, r in p[i:] if r >= 0.9), p[-1][0])
+            return mid, end - start
+    return math.nan, math.nan
+
+
 def classify_turn(turn_angle: float, *, is_reverse: bool = False) -> Turn:
     """Classify a turn angle (exit bearing minus entry bearing, degrees; positive = right)."""
     if is_reverse or abs(turn_angle) >= UTURN_MIN_DEG:

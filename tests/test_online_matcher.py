@@ -496,3 +496,79 @@ def test_online_tuning_constants_are_validated_config_fields() -> None:
     ):
         with pytest.raises(ConfigError):
             DEFAULT_CONFIG.replace(**bad)
+
+
+TURN_THEN_CROSS = """
+    d       n
+    |       |
+    |       |
+e---a-------b-------c
+            |
+            s
+"""
+
+
+def biased_drive(
+    amap: AsciiMap, route: str, *, bias_x: float, speed: float, dt: float
+) -> tuple[list[Fix], np.ndarray]:
+    """Exact odometer and heading; every fix ``bias_x`` metres east of the true position (a
+    slowly varying GPS error). Returns the fixes and the true distance along the route."""
+    pts = np.array([amap.xy(n) for n in route], dtype=float)
+    seg = np.diff(pts, axis=0)
+    cum = np.concatenate([[0.0], np.cumsum(np.hypot(seg[:, 0], seg[:, 1]))])
+    true_s = np.arange(10.0, cum[-1], speed * dt)
+    fixes = []
+    for i, s in enumerate(true_s):
+        j = min(int(np.searchsorted(cum, s, side="right")) - 1, len(seg) - 1)
+        x, y = pts[j] + (s - cum[j]) / (cum[j + 1] - cum[j]) * seg[j]
+        lon, lat = to_lonlat(amap.graph.crs, [x + bias_x], [y])[0]
+        fixes.append(
+            Fix(
+                time=i * dt,
+                lat=float(lat),
+                lon=float(lon),
+                heading=math.degrees(math.atan2(seg[j, 0], seg[j, 1])) % 360.0,
+                pos_sigma=3.0,
+                speed=speed,
+                distance=speed * dt if i else math.nan,
+                gps_valid=True,
+            )
+        )
+    return fixes, true_s
+
+
+def test_along_track_error_learnt_before_a_turn_times_a_straight_crossing() -> None:
+    # 8 m west: across the road going south (the map shows it), then along the road going
+    # east after the left turn at a, where only the learnt bias and the turn's anchor carried
+    # by the odometer can tell that the fix lags; the edge must switch at b on time
+    m = parse_ascii_map(TURN_THEN_CROSS, scale=10)
+    b = 60.0 + 80.0  # route distance of node b
+    late = {}
+    for name, cfg in (
+        ("along", DEFAULT_CONFIG),
+        ("off", DEFAULT_CONFIG.replace(turn_anchor_sigma=0.0, bias_time=0.0)),
+    ):
+        for bias in (0.0, -8.0):
+            fixes, true_s = biased_drive(m, "dabc", bias_x=bias, speed=8.0, dt=0.25)
+            res = run(OnlineMatcher(m.graph, config=cfg), fixes)
+            assert edges_of(res) == [m.edge("d", "a"), m.edge("a", "b"), m.edge("b", "c")]
+            assert [r.turn for r in res if r.turn != Turn.NONE] == [Turn.LEFT, Turn.STRAIGHT]
+            e = np.array([r.edge for r in res])
+            late[name, bias] = float(true_s[int(np.argmax(e == m.edge("b", "c")))] - b)
+    # without a bias the switch waits for the node hold; with it, the lag adds to that wait
+    # unless the along-track position is corrected
+    assert late["along", -8.0] <= late["along", 0.0] + 5.0
+    assert late["off", -8.0] >= late["off", 0.0] + 8.0
+    assert late["along", -8.0] < late["off", -8.0]
+
+
+def test_turn_midpoint_from_heading_samples() -> None:
+    from mapmatch.turns import turn_midpoint
+
+    # heading 180 until odometer 100, then a left turn to 90 over 10 m
+    samples = [[o, 180.0] for o in range(60, 101, 5)] + [[105.0, 135.0], [110.0, 90.0], [115.0, 90.0]]
+    mid, span = turn_midpoint(samples, 180.0, -90.0)
+    assert mid == pytest.approx(105.0)
+    assert span == pytest.approx(10.0)
+    # the turn began before the samples: no anchor
+    assert math.isnan(turn_midpoint([[0.0, 120.0], [5.0, 90.0]], 180.0, -90.0)[0])
