@@ -20,7 +20,7 @@ from graph.projection import to_lonlat, to_xy
 from graph.road_graph import RoadGraph
 from mapmatch import model
 from mapmatch.config import DEFAULT_CONFIG, MatchConfig
-from mapmatch.gridindex import GridIndex
+from mapmatch.gridindex import GridIndex, grow_array
 from mapmatch.model import emission_logp_one, transition_logp_one
 from mapmatch.routing import (
     RoutingArrays,
@@ -630,10 +630,10 @@ def _pieces(  # type: ignore[no-untyped-def]
         k = kind[t]
         if n + 4 >= cap:
             cap *= 2
-            pe = _grow_i(pe, cap)
-            ps = _grow_f(ps, cap)
-            pend = _grow_f(pend, cap)
-            pseg = _grow_i(pseg, cap)
+            pe = grow_array(pe, cap)
+            ps = grow_array(ps, cap)
+            pend = grow_array(pend, cap)
+            pseg = grow_array(pseg, cap)
         if k == 0:
             if o > pend[n - 1]:
                 pend[n - 1] = o
@@ -664,10 +664,10 @@ def _pieces(  # type: ignore[no-untyped-def]
                 pend[n - 1] = edge_len[ch_edge[t - 1]]
                 if n + len(mid) + 4 >= cap:
                     cap = 2 * (n + len(mid) + 4)
-                    pe = _grow_i(pe, cap)
-                    ps = _grow_f(ps, cap)
-                    pend = _grow_f(pend, cap)
-                    pseg = _grow_i(pseg, cap)
+                    pe = grow_array(pe, cap)
+                    ps = grow_array(ps, cap)
+                    pend = grow_array(pend, cap)
+                    pseg = grow_array(pseg, cap)
                 for x in mid:
                     pe[n] = x
                     ps[n] = 0.0
@@ -688,20 +688,6 @@ def _pieces(  # type: ignore[no-untyped-def]
         pseg[n] = seg
         n += 1
     return pe[:n], ps[:n], pend[:n], pseg[:n], bad
-
-
-@njit(cache=True)
-def _grow_i(a, cap):  # type: ignore[no-untyped-def]
-    b = np.empty(cap, dtype=a.dtype)
-    b[: len(a)] = a
-    return b
-
-
-@njit(cache=True)
-def _grow_f(a, cap):  # type: ignore[no-untyped-def]
-    b = np.empty(cap, dtype=a.dtype)
-    b[: len(a)] = a
-    return b
 
 
 @njit(cache=True)

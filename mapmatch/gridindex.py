@@ -202,11 +202,11 @@ def _query(  # type: ignore[no-untyped-def]
                     loc_y[nl] = qy
                     nl += 1
         if overflow:
-            loc_e = _grow_i(loc_e)
-            loc_d = _grow_f(loc_d)
-            loc_o = _grow_f(loc_o)
-            loc_x = _grow_f(loc_x)
-            loc_y = _grow_f(loc_y)
+            loc_e = grow_array(loc_e, 2 * len(loc_e))
+            loc_d = grow_array(loc_d, 2 * len(loc_d))
+            loc_o = grow_array(loc_o, 2 * len(loc_o))
+            loc_x = grow_array(loc_x, 2 * len(loc_x))
+            loc_y = grow_array(loc_y, 2 * len(loc_y))
             redo = True
             continue
         if nl == 0:
@@ -227,10 +227,10 @@ def _query(  # type: ignore[no-untyped-def]
         need = 2 * kk
         if m + need > cap:
             cap = 2 * (m + need)
-            op = _grow_i_to(op, cap)
-            oe = _grow_i32_to(oe, cap)
-            od = _grow_f_to(od, cap)
-            oo = _grow_f_to(oo, cap)
+            op = grow_array(op, cap)
+            oe = grow_array(oe, cap)
+            od = grow_array(od, cap)
+            oo = grow_array(oo, cap)
             oq2 = np.empty((cap, 2))
             oq2[:m] = oq[:m]
             oq = oq2
@@ -269,35 +269,8 @@ def _query(  # type: ignore[no-untyped-def]
 
 
 @njit(cache=True)
-def _grow_i(a):  # type: ignore[no-untyped-def]
-    b = np.empty(2 * len(a), dtype=a.dtype)
-    b[: len(a)] = a
-    return b
-
-
-@njit(cache=True)
-def _grow_f(a):  # type: ignore[no-untyped-def]
-    b = np.empty(2 * len(a), dtype=a.dtype)
-    b[: len(a)] = a
-    return b
-
-
-@njit(cache=True)
-def _grow_i_to(a, cap):  # type: ignore[no-untyped-def]
-    b = np.empty(cap, dtype=a.dtype)
-    b[: len(a)] = a
-    return b
-
-
-@njit(cache=True)
-def _grow_i32_to(a, cap):  # type: ignore[no-untyped-def]
-    b = np.empty(cap, dtype=a.dtype)
-    b[: len(a)] = a
-    return b
-
-
-@njit(cache=True)
-def _grow_f_to(a, cap):  # type: ignore[no-untyped-def]
+def grow_array(a, cap):  # type: ignore[no-untyped-def]
+    """A copy of ``a`` with room for ``cap`` items (compiled once per dtype)."""
     b = np.empty(cap, dtype=a.dtype)
     b[: len(a)] = a
     return b
