@@ -10,6 +10,8 @@ has a time/distance gap or no route exists between consecutive points (both repo
 from __future__ import annotations
 
 import math
+import threading
+from typing import Any
 
 import numpy as np
 from numba import njit
@@ -62,7 +64,7 @@ STEP_SAME, STEP_UTURN, STEP_ROUTE, STEP_SPLIT = 0, 1, 2, 3
 
 
 class BatchMatcher:
-    """Matches whole tracks against one road graph (read-only, reusable, one per thread).
+    """Matches whole tracks against one road graph (read-only, reusable, thread-safe).
 
     Parameters
     ----------
@@ -97,11 +99,19 @@ class BatchMatcher:
         self.config = config or BATCH_CONFIG
         self._grid = GridIndex(self.index, cell=self.config.search_radius)
         self._ra = RoutingArrays.from_graph(graph)
-        self._ws = Workspace(graph.n_edges)
         self._seg_xy = np.ascontiguousarray(graph.seg_xy, dtype=np.float64)
         self._seg_ptr = np.ascontiguousarray(graph.edge_seg_ptr, dtype=np.int64)
-        # the compiled kernels' trailing arguments, built once
-        self._kargs = (*search_args(self._ra, self._ws), *self._ubodt_args)
+        self._local = threading.local()
+
+    @property
+    def _kargs(self) -> tuple[Any, ...]:
+        """The compiled kernels' trailing arguments, with this thread's routing workspace
+        (built once per thread, so one matcher serves many threads)."""
+        args: tuple[Any, ...] | None = getattr(self._local, "kargs", None)
+        if args is None:
+            ws = Workspace(self.graph.n_edges)
+            args = self._local.kargs = (*search_args(self._ra, ws), *self._ubodt_args)
+        return args
 
     def match(self, track: Track, config: MatchConfig | None = None, *, lonlat: bool = True) -> TrackMatch:
         """Match one track; bad points become unmatched, never an exception for the track.

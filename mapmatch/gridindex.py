@@ -2,12 +2,14 @@
 
 Same segments, same answer (tests check it against ``EdgeIndex.query``), several times faster
 on many points: the segments are bucketed in square cells kept as a sorted cell-id array,
-and a point looks only at the cells within its radius. Built once per matcher.
+and a point looks only at the cells within its radius. Built once per matcher; the grid is
+read-only and each thread has its own scratch arrays.
 """
 
 from __future__ import annotations
 
 import math
+import threading
 
 import numpy as np
 from numba import njit
@@ -17,6 +19,16 @@ from graph.index import Candidates, EdgeIndex
 
 DENSE_MAX_CELLS = 1 << 23
 """Up to this many cells the grid keeps a dense cell table (8 bytes a cell)."""
+
+
+class _Scratch:
+    """One thread's stamp arrays; per-point marks never repeat, so they are never cleared."""
+
+    def __init__(self, n_segments: int, n_edges: int) -> None:
+        self.stamp_seg = np.full(n_segments, -1, dtype=np.int64)
+        self.stamp_edge = np.full(n_edges, -1, dtype=np.int64)
+        self.best = np.zeros(n_edges, dtype=np.int64)
+        self.stamp = 0
 
 
 class GridIndex:
@@ -51,20 +63,25 @@ class GridIndex:
             np.cumsum(np.bincount(self.cell_ids, minlength=ncell), out=self.cell_ptr[1:])
         else:
             self.cell_ptr = np.zeros(0, dtype=np.int64)
-        self._stamp_seg = np.full(len(a), -1, dtype=np.int64)
-        self._stamp_edge = np.full(self.graph.n_edges, -1, dtype=np.int64)
-        self._best = np.zeros(self.graph.n_edges, dtype=np.int64)
-        self._stamp = 0  # per-point marks in the two stamp arrays never repeat
+        self._local = threading.local()
+
+    def _scratch(self) -> _Scratch:
+        """This thread's marks and buffers (the grid itself is read-only and shared)."""
+        sc: _Scratch | None = getattr(self._local, "scratch", None)
+        if sc is None:
+            sc = self._local.scratch = _Scratch(len(self.index.seg_a), self.graph.n_edges)
+        return sc
 
     def query(self, xy: ArrayLike, radius: float, *, k: int | None = None) -> Candidates:
         """As :meth:`EdgeIndex.query` (scalar radius): directed edges within ``radius`` of each point."""
         pts = np.ascontiguousarray(np.asarray(xy, dtype=np.float64).reshape(-1, 2))
         ix = self.index
-        p, e, d, o, q, self._stamp = _query(
-            pts, float(radius), -1 if k is None else int(k), self._stamp, self.origin, self.cell, self.nx,
+        sc = self._scratch()
+        p, e, d, o, q, sc.stamp = _query(
+            pts, float(radius), -1 if k is None else int(k), sc.stamp, self.origin, self.cell, self.nx,
             self.ny, self.cell_ptr, self.cell_ids,
-            self.cell_seg, ix.seg_a, ix.seg_b, ix.seg_len, ix.seg_off, ix.seg_edge, self._stamp_seg,
-            self._stamp_edge, self._best, self.graph.edge_reverse, self.graph.edge_len,
+            self.cell_seg, ix.seg_a, ix.seg_b, ix.seg_len, ix.seg_off, ix.seg_edge, sc.stamp_seg,
+            sc.stamp_edge, sc.best, self.graph.edge_reverse, self.graph.edge_len,
         )  # fmt: skip
         return Candidates(point=p, edge=e, dist=d, offset=o, xy=q)
 

@@ -57,18 +57,18 @@ class MapEntry:
     index: EdgeIndex
     online: Any
     config: MatchConfig = DEFAULT_CONFIG
-    _local: threading.local = field(default_factory=threading.local, repr=False)
+    _batch: Any = field(default=None, repr=False)
+    _lock: threading.Lock = field(default_factory=threading.Lock, repr=False)
 
     @property
     def batch(self) -> Any:
-        """This thread's batch matcher (it keeps a routing workspace, so one per thread),
-        built on first use."""
-        m = getattr(self._local, "batch", None)
-        if m is None:
-            from mapmatch.batch import BatchMatcher
+        """The map's batch matcher (thread-safe, with the batch defaults), built on first use."""
+        with self._lock:
+            if self._batch is None:
+                from mapmatch.batch import BatchMatcher
 
-            m = self._local.batch = BatchMatcher(self.graph, index=self.index, config=self.config)
-        return m
+                self._batch = BatchMatcher(self.graph, index=self.index)
+            return self._batch
 
     @property
     def version(self) -> str:

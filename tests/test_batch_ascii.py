@@ -260,3 +260,36 @@ def test_deferred_lonlat_gives_the_same_result() -> None:
     assert late.point_arrays is None
     assert late.points == full.points and late.route_lonlat == full.route_lonlat
     assert [p.status for p in full.points].count(PointStatus.INTERPOLATED) == 1
+
+
+def test_one_matcher_serves_many_threads() -> None:
+    from concurrent.futures import ThreadPoolExecutor
+
+    m = parse_ascii_map(
+        """
+        a-----b-----c
+        |     |     |
+        d-----e-----f
+        """,
+        scale=20,
+    )
+    rng = np.random.default_rng(3)
+    routes = [["a", "b", "c", "f", "e", "d"], ["d", "e", "b", "c"], ["c", "b", "a", "d", "e", "f"]]
+    tracks = []
+    for i, nodes in enumerate(routes * 4):
+        pts = []
+        for u, v in itertools.pairwise(nodes):
+            (x0, y0), (x1, y1) = at(m, u), at(m, v)
+            for t in np.linspace(0.1, 0.9, 5):
+                pts.append((x0 + t * (x1 - x0) + rng.normal(0, 3), y0 + t * (y1 - y0) + rng.normal(0, 3)))
+        tracks.append(track_from_xy(m, pts, dt=2.0, tid=str(i)))
+    matcher = BatchMatcher(m.graph)
+    alone = [BatchMatcher(m.graph).match(t).routes for t in tracks]
+    with ThreadPoolExecutor(4) as pool:
+        shared = list(pool.map(lambda t: matcher.match(t).routes, tracks * 5))
+    assert shared == alone * 5
+    assert [names(m, r[0]) for r in alone[:3]] == [
+        ["ab", "bc", "cf", "fe", "ed"],
+        ["de", "eb", "bc"],
+        ["cb", "ba", "ad", "de", "ef"],
+    ]

@@ -9,6 +9,7 @@ from service_util import local_config, running, stub
 
 from graph.artifact import save_map
 from graph.projection import to_lonlat
+from graph.road_graph import RESTRICTION_NO, RESTRICTION_ONLY
 from service.gen.mapmatch.v1 import mapmatch_pb2 as pb
 
 
@@ -23,11 +24,17 @@ def helsinki(tmp_path_factory):
 
 
 def _walk(g, n_edges: int, seed: int) -> list[int]:
+    """A legal drive: no U-turns, OSM turn restrictions respected."""
     rng = np.random.default_rng(seed)
     e = int(np.argmax(g.edge_len))
     walk = [e]
     while len(walk) < n_edges:
+        rules = g.restrictions[g.restrictions[:, 0] == e]
         outs = [int(x) for x in g.out_of(int(g.edge_v[e])) if int(x) != int(g.edge_reverse[e])]
+        outs = [x for x in outs if x not in rules[rules[:, 3] == RESTRICTION_NO, 2]]
+        only = rules[rules[:, 3] == RESTRICTION_ONLY, 2]
+        if len(only):
+            outs = [x for x in outs if x in only]
         if not outs:
             break
         e = int(rng.choice(outs))
