@@ -71,7 +71,6 @@ LIVE_SPACING_S = 0.5  # fixes remembered for corrections: at most two per second
 INIT_MAX_RADIUS_M = 200.0
 STATE_VERSION = 1
 FAR_OFF_M = 100_000.0
-DR_CARRY_TOL_M = 5.0
 BIAS_WHITE_FRAC = 0.5  # the share of the fix's σ that is white (not learnt as bias)
 TURN_SPAN_SIGMA = 0.3  # anchor σ per metre of odometer over which the heading turned
 ANCHOR_GATE = 3.0  # a turn anchor further than this many σ from the fix is dropped
@@ -745,8 +744,9 @@ class OnlineMatcher:
         if step.gps:
             best, miss = self._along_track(h, step, best, acc)
             best_sc -= miss
-        elif step.odo_known and abs(best[2] - (h.s + d)) > DR_CARRY_TOL_M:
-            # dead reckoning: the drifting fix and the odometer disagree, carry by distance
+        elif step.odo_known:
+            # dead reckoning: the fix drifts, the odometer does not; the vehicle is carried along
+            # its path by the distance travelled (the fix still weighs the paths against each other)
             s_pred = min(h.s + d, acc)
             j, rest = h.k, s_pred
             for i in range(h.k):
