@@ -742,8 +742,22 @@ class OnlineMatcher:
                 best = (j, off, s, dist, px, py, brg)
             acc += self._elen[e]
         if step.gps:
-            best, miss = self._along_track(h, step, best, acc)
-            best_sc -= miss
+            moved, miss = self._along_track(h, step, best, acc)
+            if moved is not best:
+                # scored where the vehicle is now believed to be: its heading against the road
+                # there (the distance stays the fix's offset from the road, which the correction
+                # along the road does not change)
+                best_sc = emission_scalar(best[3], sigma, step.heading, moved[6], step.kappa) - miss
+                if not math.isnan(d):
+                    best_sc += transition_scalar(
+                        moved[2] - h.s,
+                        d,
+                        step.dt,
+                        beta=cfg.beta,
+                        max_speed=cfg.max_speed,
+                        speed_penalty=cfg.speed_penalty,
+                    )
+                best = moved
         elif step.odo_known:
             # dead reckoning: the fix drifts, the odometer does not; the vehicle is carried along
             # its path by the distance travelled (the fix still weighs the paths against each other)
@@ -896,6 +910,10 @@ class OnlineMatcher:
                 h.k -= 1
                 del h.edges[0]
                 del h.enter[0]
+                if not step.gps and not math.isnan(anchor_odo):
+                    # dead reckoning: the turn tells where the vehicle is better than the
+                    # distance carried since GPS was lost
+                    self._move_to(h, step.odo - anchor_odo, step)
             state.hyps = hyps = self._normalise(hyps)
         if len(hyps) == 1 and state.live:
             # the alternatives died out: that decision is final too
@@ -903,6 +921,22 @@ class OnlineMatcher:
             correction = c if correction is None else _merge(correction, c)
             state.live = []
         return turn, correction
+
+    def _move_to(self, h: Hypothesis, s: float, step: _Step) -> None:
+        """Put ``h`` at distance ``s`` along its path (clamped to the path)."""
+        j, start = 0, 0.0
+        s = max(s, 0.0)
+        while j < len(h.edges) - 1 and s > start + self._elen[h.edges[j]]:
+            start += self._elen[h.edges[j]]
+            j += 1
+        off = min(s - start, self._elen[h.edges[j]])
+        if j < h.k:
+            del h.enter[j + 1 :]
+        while len(h.enter) < j + 1:
+            h.enter.append(step.time)
+        h.k, h.off, h.s = j, off, start + off
+        h.px, h.py, h.bearing = self._locate(h.edges[j], off)
+        h.dist = math.hypot(h.px - step.x, h.py - step.y)
 
     def _correction(self, state: SessionState, best: Hypothesis, step: _Step) -> Correction | None:
         """Compare what was reported live with the committed path's timeline."""
