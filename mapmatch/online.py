@@ -239,6 +239,7 @@ class _Step:
     weight: float
     stopped: bool  # slower than ``stop_speed`` by the odometer
     r_a: float
+    dr: float  # odometer metres since the last GPS-aided fix (0 when this one is)
     bias: tuple[float, float, float, float, float]  # predicted fix bias [bx, by, Pxx, Pxy, Pyy]
 
 
@@ -423,6 +424,7 @@ class OnlineMatcher:
             weight=weight,
             stopped=stopped,
             r_a=self.region_radius(sigma, cfg),
+            dr=0.0 if gps else state.odo + (travelled if not math.isnan(travelled) else 0.0) - state.gps_odo,
             bias=self._predict_bias(state.bias, sigma, dt, cfg),
         )
 
@@ -771,7 +773,16 @@ class OnlineMatcher:
             rest = min(max(rest, 0.0), self._elen[h.edges[j]])
             px, py, brg = self._locate(h.edges[j], rest)
             dist = math.hypot(px - x, py - y)
-            best_sc = emission_scalar(dist, sigma, step.heading, brg, step.kappa) + transition_scalar(
+            # the distance carried is uncertain (odometer scale): near a node the heading is
+            # compared with the road anywhere within that uncertainty, not just at one point
+            head = brg
+            spread = POS_SIGMA_FLOOR_M + cfg.odo_scale_sigma * step.dr
+            if step.kappa > 0.0 and not math.isnan(step.heading):
+                for k in (-2, -1, 1, 2):
+                    b = self._bearing_on_path(h, s_pred + 0.5 * k * spread)
+                    if abs(angle_diff(step.heading, b)) < abs(angle_diff(step.heading, head)):
+                        head = b
+            best_sc = emission_scalar(dist, sigma, step.heading, head, step.kappa) + transition_scalar(
                 s_pred - h.s,
                 d,
                 step.dt,

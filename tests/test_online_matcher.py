@@ -287,6 +287,55 @@ def test_gps_outage_carries_the_vehicle_by_distance() -> None:
     assert all(r.state in (State.ON_ROAD, State.AMBIGUOUS) for r in res)
 
 
+def test_dead_reckoning_at_10_hz_follows_the_odometer_not_a_lagging_fix() -> None:
+    m = parse_ascii_map("a----------------------------------------b", scale=10)
+    matcher = OnlineMatcher(m.graph)
+    truth = drive(m, "ab", speed=10, dt=0.1)
+    fixes = truth[:50]
+    for i in range(50, len(truth)):
+        # the dead-reckoning fix runs 10 % slow: 0.1 m a step, far below any per-step tolerance
+        x, y = to_xy_one(m, truth[i])
+        lon, lat = to_lonlat(m.graph.crs, [x - 0.1 * (i - 50)], [y])[0]
+        f = truth[i]
+        fixes.append(Fix(time=f.time, lat=lat, lon=lon, heading=f.heading, speed=10, distance=1.0, gps_valid=False))
+    res = run(matcher, fixes)
+    for i in range(100, len(res), 25):
+        assert res[i].offset == pytest.approx(1.0 * i, abs=2.0), i
+
+
+def test_dead_reckoning_turn_re_anchors_the_distance_carried() -> None:
+    m = parse_ascii_map(
+        """
+        a------------------------------b----------d
+                                       |
+                                       |
+                                       |
+                                       |
+                                       |
+                                       |
+                                       |
+                                       |
+                                       c
+        """,
+        scale=10,
+    )
+    matcher = OnlineMatcher(m.graph)
+    truth = drive(m, "abc", speed=10)
+    bc = m.edge("b", "c")
+    fixes = truth[:3]
+    for f in truth[3:]:  # GPS lost: the odometer over-reads by 8 %
+        fixes.append(Fix(time=f.time, lat=f.lat, lon=f.lon, heading=f.heading, speed=10.8, distance=10.8,
+                         gps_valid=False))
+    res = run(matcher, fixes)
+    ab_len = m.xy("b")[0] - m.xy("a")[0]
+    late = [(i, r) for i, r in enumerate(res) if r.edge == bc and 10.0 * i - ab_len > 60.0]
+    assert late, "never reached b-c"
+    for i, r in late:
+        true_off = 10.0 * i - ab_len
+        # carried from the GPS loss alone it would also lead by 8 % of the ~280 m before b
+        assert abs(r.offset - (true_off + 0.08 * true_off)) < 6.0, (i, r.offset, true_off)
+
+
 def to_xy_one(m: AsciiMap, f: Fix) -> tuple[float, float]:
     from graph.projection import point_to_xy
 
