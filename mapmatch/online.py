@@ -34,6 +34,10 @@ Both are fused with the projection by their variances; the corrected position cr
 only where the path goes straight on, and a path whose turn holds it short of the estimate
 pays for the miss.
 
+In dead reckoning every path carries the vehicle by the odometer alone (the drifting fix only
+weighs the paths against each other, its heading against the road anywhere within the
+odometer's uncertainty), and a committed turn re-places it by the turn anchor.
+
 Fixes far off the map are not errors: they return ``State.OFF_ROAD`` with ``edge == -1``.
 Invalid input raises :class:`~mapmatch.errors.ValidationError` and leaves the state unchanged.
 """

@@ -297,7 +297,9 @@ def test_dead_reckoning_at_10_hz_follows_the_odometer_not_a_lagging_fix() -> Non
         x, y = to_xy_one(m, truth[i])
         lon, lat = to_lonlat(m.graph.crs, [x - 0.1 * (i - 50)], [y])[0]
         f = truth[i]
-        fixes.append(Fix(time=f.time, lat=lat, lon=lon, heading=f.heading, speed=10, distance=1.0, gps_valid=False))
+        fixes.append(
+            Fix(time=f.time, lat=lat, lon=lon, heading=f.heading, speed=10, distance=1.0, gps_valid=False)
+        )
     res = run(matcher, fixes)
     for i in range(100, len(res), 25):
         assert res[i].offset == pytest.approx(1.0 * i, abs=2.0), i
@@ -324,8 +326,17 @@ def test_dead_reckoning_turn_re_anchors_the_distance_carried() -> None:
     bc = m.edge("b", "c")
     fixes = truth[:3]
     for f in truth[3:]:  # GPS lost: the odometer over-reads by 8 %
-        fixes.append(Fix(time=f.time, lat=f.lat, lon=f.lon, heading=f.heading, speed=10.8, distance=10.8,
-                         gps_valid=False))
+        fixes.append(
+            Fix(
+                time=f.time,
+                lat=f.lat,
+                lon=f.lon,
+                heading=f.heading,
+                speed=10.8,
+                distance=10.8,
+                gps_valid=False,
+            )
+        )
     res = run(matcher, fixes)
     ab_len = m.xy("b")[0] - m.xy("a")[0]
     late = [(i, r) for i, r in enumerate(res) if r.edge == bc and 10.0 * i - ab_len > 60.0]
