@@ -110,8 +110,9 @@ def run_drive(matcher: OnlineMatcher, drive: Drive) -> tuple[list[SnapResult], n
 def corrected_edges(graph: RoadGraph, results: list[SnapResult]) -> np.ndarray:
     """Per-fix edges with the matcher's corrections applied (its final belief).
 
-    A correction says that over ``[time_from, time_to]`` the vehicle drove ``edges`` in order;
-    each replaced fix in the span gets the nearest of those edges, in order (monotone).
+    A correction says that over ``[time_from, time_to]`` the vehicle drove ``edges`` in order,
+    each from its ``edge_times`` entry on; each replaced fix in the span gets the edge of its
+    time (without ``edge_times``: the nearest of those edges, in order).
     """
     from graph.index import project_to_edge
     from graph.projection import point_to_xy
@@ -126,6 +127,9 @@ def corrected_edges(graph: RoadGraph, results: list[SnapResult]) -> np.ndarray:
         j = 0
         for i in span:
             if e[i] not in c.replaced_edges:
+                continue
+            if len(c.edge_times) == len(c.edges):
+                e[i] = c.edge_at(float(t[i]))
                 continue
             if len(c.edges) > 1:
                 x, y = point_to_xy(graph.crs, results[i].raw_lon, results[i].raw_lat)

@@ -285,8 +285,9 @@ def apply_corrections(graph: RoadGraph, matched: pd.DataFrame) -> pd.DataFrame:
     """The matched rows as revised by the corrections the matcher emitted later.
 
     A correction says that from ``correction_from`` to ``correction_to`` the vehicle was on
-    ``correction`` (edges in order, ``;``-separated). Each row in that span is moved to the
-    nearest of those edges (to its raw position, else its snapped one) and re-snapped there.
+    ``correction`` (edges in order, ``;``-separated), each from its ``correction_times`` entry
+    on. Each row in that span is moved to the edge of its time (without ``correction_times``:
+    the nearest of those edges to its raw position, else its snapped one) and re-snapped there.
     Later corrections override earlier ones.
     """
     if "correction" not in matched.columns or "correction_from" not in matched.columns:
@@ -308,18 +309,25 @@ def apply_corrections(graph: RoadGraph, matched: pd.DataFrame) -> pd.DataFrame:
     snapped = np.full((len(out), 2), np.nan)
     touched = np.zeros(len(out), dtype=bool)
     corr = out["correction"].fillna("").astype(str)
+    starts = out["correction_times"].fillna("").astype(str) if "correction_times" in out.columns else None
     for i in np.flatnonzero(corr.str.strip() != "").tolist():
         try:
             edges = [int(e) for e in corr.iloc[i].split(";") if e.strip()]
             t0, t1 = float(out["correction_from"].iloc[i]), float(out["correction_to"].iloc[i])
+            begins = [float(v) for v in starts.iloc[i].split(";") if v.strip()] if starts is not None else []
         except ValueError:
             continue
+        if len(begins) != len(edges) or not all(0 <= e < graph.n_edges for e in edges):
+            begins = []
         edges = [e for e in edges if 0 <= e < graph.n_edges]
         if not edges:
             continue
         for j in np.flatnonzero((times >= t0 - 1e-6) & (times <= t1 + 1e-6) & ok).tolist():
+            cands = edges
+            if begins:  # the edge of this fix's time
+                cands = [edges[max(k for k, b in enumerate(begins) if b <= times[j] + 1e-6 or k == 0)]]
             best = min(
-                (project_to_edge(graph, e, float(xy[j, 0]), float(xy[j, 1])) + (e,) for e in edges),
+                (project_to_edge(graph, e, float(xy[j, 0]), float(xy[j, 1])) + (e,) for e in cands),
                 key=lambda r: r[1],
             )
             new_edge[j] = best[4]

@@ -44,6 +44,7 @@ RESULT_COLUMNS: tuple[str, ...] = (
     "correction_from",
     "correction_to",
     "correction_replaced",
+    "correction_times",
     "error",
 )
 _TRUE = {"1", "true", "t", "yes", "y"}
@@ -140,7 +141,7 @@ def result_row(vehicle_id: str, fix: Fix, result: SnapResult | None, error: str 
     """One output row (strings, in :data:`RESULT_COLUMNS` order). ``result`` None = rejected fix."""
     if result is None:
         return [vehicle_id, repr(fix.time), "rejected", "-1", "", "", "", "", "", "", "", "", "none",
-                _num(fix.lat, ".8f"), _num(fix.lon, ".8f"), "", "", "", "", "", error]  # fmt: skip
+                _num(fix.lat, ".8f"), _num(fix.lon, ".8f"), "", "", "", "", "", "", error]  # fmt: skip
     placed = result.edge >= 0
     c = result.correction
     return [
@@ -164,6 +165,7 @@ def result_row(vehicle_id: str, fix: Fix, result: SnapResult | None, error: str 
         "" if c is None else repr(c.time_from),
         "" if c is None else repr(c.time_to),
         "" if c is None else ";".join(map(str, c.replaced_edges)),
+        "" if c is None else ";".join(map(repr, c.edge_times)),
         error,
     ]
 

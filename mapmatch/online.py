@@ -977,11 +977,13 @@ class OnlineMatcher:
                 entry[1] = float(now)
         if not mism:
             return None
+        edges, times = _runs([(m[0], m[1]) for m in mism])
         return Correction(
             time_from=mism[0][0],
             time_to=mism[-1][0],
-            edges=_dedup([m[1] for m in mism]),
+            edges=edges,
             replaced_edges=_dedup([m[2] for m in mism]),
+            edge_times=times,
         )
 
     def _smooth(self, live: list[list[float]], best: Hypothesis) -> tuple[list[int], list[list[float]]]:
@@ -1128,12 +1130,26 @@ def _dedup(seq: list[int]) -> tuple[int, ...]:
     return tuple(out)
 
 
+def _runs(timeline: list[tuple[float, int]]) -> tuple[tuple[int, ...], tuple[float, ...]]:
+    """``(time, edge)`` pairs in time order as runs: each edge once per run, with its start."""
+    edges: list[int] = []
+    times: list[float] = []
+    for t, e in timeline:
+        if not edges or edges[-1] != e:
+            edges.append(e)
+            times.append(t)
+    return tuple(edges), tuple(times)
+
+
 def _merge(a: Correction, b: Correction | None) -> Correction:
     if b is None:
         return a
+    timeline = sorted([*zip(a.edge_times, a.edges, strict=True), *zip(b.edge_times, b.edges, strict=True)])
+    edges, times = _runs(timeline)
     return Correction(
         time_from=min(a.time_from, b.time_from),
         time_to=max(a.time_to, b.time_to),
-        edges=_dedup([*a.edges, *b.edges]),
+        edges=edges,
         replaced_edges=_dedup([*a.replaced_edges, *b.replaced_edges]),
+        edge_times=times,
     )

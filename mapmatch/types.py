@@ -116,12 +116,25 @@ class Candidate:
 @dataclass(frozen=True, slots=True)
 class Correction:
     """A revision of earlier reported edges: from ``time_from`` to ``time_to`` the vehicle was
-    on ``edges`` (in order), not on what was reported then."""
+    on ``edges`` (in order, each from its ``edge_times`` entry on), not on ``replaced_edges``,
+    what was reported then."""
 
     time_from: float
     time_to: float
     edges: tuple[int, ...]
     replaced_edges: tuple[int, ...]
+    edge_times: tuple[float, ...] = ()  # when each of ``edges`` begins (same length); () unknown
+
+    def edge_at(self, time: float) -> int:
+        """The revised edge at ``time`` (within the span): by ``edge_times`` when known, else
+        the first of ``edges``."""
+        if len(self.edge_times) != len(self.edges):
+            return self.edges[0]
+        j = 0
+        for k, t0 in enumerate(self.edge_times):
+            if t0 <= time:
+                j = k
+        return self.edges[j]
 
 
 @dataclass(frozen=True, slots=True)

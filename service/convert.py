@@ -119,7 +119,11 @@ def snap_result_to_proto(r: SnapResult) -> pb.SnapResult:
         c = r.correction
         msg.correction.CopyFrom(
             pb.Correction(
-                time_from=c.time_from, time_to=c.time_to, edges=c.edges, replaced_edges=c.replaced_edges
+                time_from=c.time_from,
+                time_to=c.time_to,
+                edges=c.edges,
+                replaced_edges=c.replaced_edges,
+                edge_times=c.edge_times,
             )
         )
     return msg
@@ -135,6 +139,7 @@ def snap_result_from_proto(msg: pb.SnapResult) -> SnapResult:
             time_to=c.time_to,
             edges=tuple(c.edges),
             replaced_edges=tuple(c.replaced_edges),
+            edge_times=tuple(c.edge_times),
         )
     return SnapResult(
         time=msg.time,

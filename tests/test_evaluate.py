@@ -149,3 +149,26 @@ def test_corrections_are_applied_in_the_corrected_score(amap) -> None:  # type: 
     assert m.corrected.correct_edge_rate == 1.0
     assert m.corrected.intersections.precision == 1.0
     assert "after corrections: correct edge" in m.table()
+
+
+def test_correction_times_assign_each_revised_fix_by_its_time(amap) -> None:  # type: ignore[no-untyped-def]
+    ab, bc = amap.edge("a", "b"), amap.edge("b", "c")
+    truth_edges = [ab] * 4 + [bc] * 4
+    truth, _ = _frames(amap, truth_edges, truth_edges)
+    # live: fixes 2 and 3 ran ahead onto b->c (their raw positions lie on b->c too)
+    lead = [ab, ab, bc, bc, bc, bc, bc, bc]
+    _, matched = _frames(amap, truth_edges, lead)
+    g = amap.graph
+    raw = [amap.lonlat(*g.edge_xy(e).mean(axis=0)) for e in lead]
+    matched["raw_lon"] = [r[0] for r in raw]
+    matched["raw_lat"] = [r[1] for r in raw]
+    matched["correction"] = [""] * 5 + [f"{ab};{bc}", "", ""]
+    matched["correction_from"] = [np.nan] * 5 + [2.0, np.nan, np.nan]
+    matched["correction_to"] = [np.nan] * 5 + [4.0, np.nan, np.nan]
+    # by position alone the revision cannot say which fixes were still on a->b
+    m = evaluate(g, truth=truth, matched=matched, tolerance_m=0.1)
+    assert m.corrected is not None and m.corrected.correct_edge_rate == pytest.approx(6 / 8)
+    matched["correction_times"] = [""] * 5 + ["2.0;4.0", "", ""]
+    m = evaluate(g, truth=truth, matched=matched, tolerance_m=0.1)
+    assert m.correct_edge_rate == pytest.approx(6 / 8)
+    assert m.corrected is not None and m.corrected.correct_edge_rate == 1.0

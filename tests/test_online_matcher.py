@@ -148,6 +148,7 @@ def test_ambiguous_then_corrected_on_leaving() -> None:
     assert corr.edges == (m.edge("b", "c"),)
     assert corr.replaced_edges == (m.edge("b", "d"),)
     assert corr.time_from == corr.time_to == wrong[0].time
+    assert corr.edge_times == (wrong[0].time,) and corr.edge_at(wrong[0].time) == m.edge("b", "c")
     assert res[-1].edge == m.edge("b", "c") and res[-1].state is State.ON_ROAD
 
 

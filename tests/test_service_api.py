@@ -432,7 +432,9 @@ def test_convert_round_trips_fixes_and_results():
             Candidate(edge=3, u=11, v=12, way_id=99, probability=0.7, offset=4.5, dist=1.5),
             Candidate(edge=5, u=11, v=13, way_id=98, probability=0.3, offset=4.0, dist=2.0),
         ),
-        correction=Correction(time_from=1.0, time_to=4.0, edges=(1, 3), replaced_edges=(1, 5)),
+        correction=Correction(
+            time_from=1.0, time_to=4.0, edges=(1, 3), replaced_edges=(1, 5), edge_times=(1.0, 3.0)
+        ),
         raw_lat=60.10001,
         raw_lon=24.90001,
     )

@@ -126,16 +126,18 @@ class Candidate(_message.Message):
     def __init__(self, edge: _Optional[int] = ..., u: _Optional[int] = ..., v: _Optional[int] = ..., way_id: _Optional[int] = ..., probability: _Optional[float] = ..., offset: _Optional[float] = ..., dist: _Optional[float] = ...) -> None: ...
 
 class Correction(_message.Message):
-    __slots__ = ("time_from", "time_to", "edges", "replaced_edges")
+    __slots__ = ("time_from", "time_to", "edges", "replaced_edges", "edge_times")
     TIME_FROM_FIELD_NUMBER: _ClassVar[int]
     TIME_TO_FIELD_NUMBER: _ClassVar[int]
     EDGES_FIELD_NUMBER: _ClassVar[int]
     REPLACED_EDGES_FIELD_NUMBER: _ClassVar[int]
+    EDGE_TIMES_FIELD_NUMBER: _ClassVar[int]
     time_from: float
     time_to: float
     edges: _containers.RepeatedScalarFieldContainer[int]
     replaced_edges: _containers.RepeatedScalarFieldContainer[int]
-    def __init__(self, time_from: _Optional[float] = ..., time_to: _Optional[float] = ..., edges: _Optional[_Iterable[int]] = ..., replaced_edges: _Optional[_Iterable[int]] = ...) -> None: ...
+    edge_times: _containers.RepeatedScalarFieldContainer[float]
+    def __init__(self, time_from: _Optional[float] = ..., time_to: _Optional[float] = ..., edges: _Optional[_Iterable[int]] = ..., replaced_edges: _Optional[_Iterable[int]] = ..., edge_times: _Optional[_Iterable[float]] = ...) -> None: ...
 
 class SnapResult(_message.Message):
     __slots__ = ("time", "state", "edge", "u", "v", "way_id", "offset", "lat", "lon", "bearing", "dist", "turn", "candidates", "correction", "raw_lat", "raw_lon")
