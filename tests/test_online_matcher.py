@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
@@ -327,17 +328,7 @@ def test_dead_reckoning_turn_re_anchors_the_distance_carried() -> None:
     bc = m.edge("b", "c")
     fixes = truth[:3]
     for f in truth[3:]:  # GPS lost: the odometer over-reads by 8 %
-        fixes.append(
-            Fix(
-                time=f.time,
-                lat=f.lat,
-                lon=f.lon,
-                heading=f.heading,
-                speed=10.8,
-                distance=10.8,
-                gps_valid=False,
-            )
-        )
+        fixes.append(dataclasses.replace(f, speed=10.8, distance=10.8, gps_valid=False))
     res = run(matcher, fixes)
     ab_len = m.xy("b")[0] - m.xy("a")[0]
     late = [(i, r) for i, r in enumerate(res) if r.edge == bc and 10.0 * i - ab_len > 60.0]
