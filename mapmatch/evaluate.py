@@ -35,7 +35,7 @@ from graph.projection import to_lonlat, to_xy
 from graph.road_graph import RoadGraph
 from mapmatch.errors import ValidationError
 from mapmatch.sim.routes import shortest_path
-from mapmatch.types import Fix, SnapResult
+from mapmatch.types import Correction, Fix, SnapResult
 
 # --------------------------------------------------------------------------- paths and nodes
 
@@ -325,7 +325,7 @@ def apply_corrections(graph: RoadGraph, matched: pd.DataFrame) -> pd.DataFrame:
         for j in np.flatnonzero((times >= t0 - 1e-6) & (times <= t1 + 1e-6) & ok).tolist():
             cands = edges
             if begins:  # the edge of this fix's time
-                cands = [edges[max(k for k, b in enumerate(begins) if b <= times[j] + 1e-6 or k == 0)]]
+                cands = [Correction(t0, t1, tuple(edges), (), tuple(begins)).edge_at(times[j] + 1e-6)]
             best = min(
                 (project_to_edge(graph, e, float(xy[j, 0]), float(xy[j, 1])) + (e,) for e in cands),
                 key=lambda r: r[1],

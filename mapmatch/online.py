@@ -1142,10 +1142,18 @@ def _runs(timeline: list[tuple[float, int]]) -> tuple[tuple[int, ...], tuple[flo
 
 
 def _merge(a: Correction, b: Correction | None) -> Correction:
+    """One correction for both. The merged timeline is exact only when the two spans touch:
+    across a gap it would revise fixes neither one revised, so then it carries no times."""
     if b is None:
         return a
-    timeline = sorted([*zip(a.edge_times, a.edges, strict=True), *zip(b.edge_times, b.edges, strict=True)])
-    edges, times = _runs(timeline)
+    timed = len(a.edge_times) == len(a.edges) and len(b.edge_times) == len(b.edges)
+    if timed and a.time_from <= b.time_to and b.time_from <= a.time_to:
+        edges, times = _runs(
+            sorted([*zip(a.edge_times, a.edges, strict=True), *zip(b.edge_times, b.edges, strict=True)])
+        )
+    else:
+        first, second = (a, b) if a.time_from <= b.time_from else (b, a)
+        edges, times = _dedup([*first.edges, *second.edges]), ()
     return Correction(
         time_from=min(a.time_from, b.time_from),
         time_to=max(a.time_to, b.time_to),

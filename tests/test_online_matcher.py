@@ -624,3 +624,19 @@ def test_turn_midpoint_from_heading_samples() -> None:
     assert span == pytest.approx(10.0)
     # the turn began before the samples: no anchor
     assert math.isnan(turn_midpoint([[0.0, 120.0], [5.0, 90.0]], 180.0, -90.0)[0])
+
+
+def test_merged_corrections_keep_exact_times_only_when_their_spans_touch() -> None:
+    from mapmatch.online import _merge
+    from mapmatch.types import Correction
+
+    a = Correction(time_from=1.0, time_to=3.0, edges=(4, 5), replaced_edges=(7,), edge_times=(1.0, 2.0))
+    b = Correction(time_from=3.0, time_to=5.0, edges=(5, 6), replaced_edges=(8,), edge_times=(3.0, 4.0))
+    m = _merge(a, b)
+    assert (m.time_from, m.time_to, m.edges, m.edge_times) == (1.0, 5.0, (4, 5, 6), (1.0, 2.0, 4.0))
+    assert [m.edge_at(t) for t in (1.0, 2.5, 3.5, 4.5)] == [4, 5, 5, 6]
+    # a gap between the spans: a timeline would revise fixes in the gap that neither revised
+    far = Correction(time_from=9.0, time_to=10.0, edges=(9,), replaced_edges=(8,), edge_times=(9.0,))
+    g = _merge(far, a)
+    assert (g.time_from, g.time_to, g.edges, g.edge_times) == (1.0, 10.0, (4, 5, 9), ())
+    assert set(g.replaced_edges) == {7, 8}
