@@ -105,7 +105,7 @@ class MatchConfig:
     init_commit_probability: float = 0.99
     drift_decay_time: float = 20.0
     soft_reinit_sigmas: float = 3.0
-    turn_anchor_sigma: float = 3.0
+    turn_anchor_sigma: float = 1.0
     odo_scale_sigma: float = 0.02
     bias_time: float = 30.0
 

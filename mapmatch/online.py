@@ -59,12 +59,14 @@ from mapmatch.errors import ValidationError
 from mapmatch.turns import (
     STRAIGHT_MAX_DEG,
     add_sample,
+    align_headings,
     angle_diff,
+    bearing_profile,
     classify_turn,
+    corner_cut,
     emission_scalar,
     heading_change,
     transition_scalar,
-    turn_midpoint,
 )
 from mapmatch.types import Candidate, Correction, Fix, SnapResult, State, Turn
 
@@ -76,7 +78,19 @@ INIT_MAX_RADIUS_M = 200.0
 STATE_VERSION = 1
 FAR_OFF_M = 100_000.0
 BIAS_WHITE_FRAC = 0.5  # the share of the fix's σ that is white (not learnt as bias)
-TURN_SPAN_SIGMA = 0.3  # anchor σ per metre of odometer over which the heading turned
+ALIGN_SEARCH_M = 5.0  # a turn's heading profile is searched within this plus ...
+ALIGN_SEARCH_SIGMAS = 2.5  # ... this many fix σ of the position believed, up to ...
+ALIGN_SEARCH_MAX_M = 40.0
+ALIGN_HEADING_SIGMA_MIN_DEG = 3.0
+ALIGN_RMS_MAX_DEG = 20.0  # a worse fit: the path is not what the vehicle drove, no anchor
+ODO_SCALE_FLOOR = 0.002  # relative odometer error left after learning its scale
+ODO_SCALE_MAX = 0.2
+SCALE_MIN_DISTANCE_M = 20.0  # turn anchors closer than this teach nothing about the scale; ...
+SCALE_MAX_DISTANCE_M = (
+    600.0  # ... further apart, the path between them is more likely wrong than the odometer
+)
+SCALE_PATH_ERROR = 0.005  # relative error of a path's length between turn anchors
+ALIGN_COVER_M = 3.0  # the samples must reach this far either side of the node
 ANCHOR_GATE = 3.0  # a turn anchor further than this many σ from the fix is dropped
 INIT_MAX_HEADING_DEG = 100.0
 POS_SIGMA_FLOOR_M = 2.0
@@ -169,6 +183,11 @@ class SessionState:
     # directions: [bx, by, Pxx, Pxy, Pyy] (m, m²); along a road it is invisible, so this is
     # what tells the along-track error after a turn
     bias: list[float] = field(default_factory=lambda: [0.0, 0.0, math.nan, 0.0, math.nan])
+    # the odometer's scale error learnt between turn anchors: path metres = odometer · (1 + k)
+    odo_k: float = 0.0
+    odo_kvar: float = math.nan  # its variance (nan: the configured prior)
+    anc_odo: float = math.nan  # odometer reading of the last turn anchor ...
+    anc_sd: float = math.nan  # ... and its σ (m)
 
     def to_bytes(self) -> bytes:
         """Compact JSON encoding (a few hundred bytes)."""
@@ -176,7 +195,15 @@ class SessionState:
             "v": STATE_VERSION,
             "t": self.time,
             "xy": [self.x, self.y],
-            "odo": [self.odo, self.gps_odo, self.init_odo],
+            "odo": [
+                self.odo,
+                self.gps_odo,
+                self.init_odo,
+                self.odo_k,
+                self.odo_kvar,
+                self.anc_odo,
+                self.anc_sd,
+            ],
             "bad": [self.bad_time, self.bad_odo],
             "init": self.init_pending,
             "h": [h.to_list() for h in self.hyps],
@@ -202,6 +229,10 @@ class SessionState:
                 odo=float(d["odo"][0]),
                 gps_odo=float(d["odo"][1]),
                 init_odo=float(d["odo"][2]),
+                odo_k=float(d["odo"][3]) if len(d["odo"]) > 6 else 0.0,
+                odo_kvar=float(d["odo"][4]) if len(d["odo"]) > 6 else math.nan,
+                anc_odo=float(d["odo"][5]) if len(d["odo"]) > 6 else math.nan,
+                anc_sd=float(d["odo"][6]) if len(d["odo"]) > 6 else math.nan,
                 bad_time=float(d["bad"][0]),
                 bad_odo=float(d["bad"][1]),
                 init_pending=bool(d["init"]),
@@ -245,6 +276,7 @@ class _Step:
     r_a: float
     dr: float  # odometer metres since the last GPS-aided fix (0 when this one is)
     bias: tuple[float, float, float, float, float]  # predicted fix bias [bx, by, Pxx, Pxy, Pyy]
+    odo_sigma: float  # σ of the odometer's relative error (after the learnt scale)
 
 
 class OnlineMatcher:
@@ -385,9 +417,9 @@ class OnlineMatcher:
         dt = fix.time - state.time if not math.isnan(state.time) else math.nan
         odo_known = True
         if not math.isnan(fix.distance):
-            travelled = fix.distance
+            travelled = fix.distance * (1.0 + state.odo_k)
         elif not math.isnan(fix.speed) and not math.isnan(dt):
-            travelled = fix.speed * dt
+            travelled = fix.speed * dt * (1.0 + state.odo_k)
         else:
             odo_known = False
             travelled = math.hypot(x - state.x, y - state.y) if not math.isnan(state.x) else math.nan
@@ -429,6 +461,7 @@ class OnlineMatcher:
             stopped=stopped,
             r_a=self.region_radius(sigma, cfg),
             dr=0.0 if gps else state.odo + (travelled if not math.isnan(travelled) else 0.0) - state.gps_odo,
+            odo_sigma=self._odo_sigma(state, cfg),
             bias=self._predict_bias(state.bias, sigma, dt, cfg),
         )
 
@@ -632,7 +665,7 @@ class OnlineMatcher:
         d = step.travelled
         ahead = (d if not math.isnan(d) else 0.0) + step.r_a
         hyps: list[Hypothesis] = []
-        grow = cfg.odo_scale_sigma * d if step.odo_known and not math.isnan(d) else math.nan
+        grow = step.odo_sigma * d if step.odo_known and not math.isnan(d) else math.nan
         for h in state.hyps:
             if not math.isnan(h.anc_sd):
                 h.anc_sd += grow  # nan (no odometer) drops the anchor
@@ -780,7 +813,7 @@ class OnlineMatcher:
             # the distance carried is uncertain (odometer scale): near a node the heading is
             # compared with the road anywhere within that uncertainty, not just at one point
             head = brg
-            spread = POS_SIGMA_FLOOR_M + cfg.odo_scale_sigma * step.dr
+            spread = POS_SIGMA_FLOOR_M + step.odo_sigma * step.dr
             if step.kappa > 0.0 and not math.isnan(step.heading):
                 for k in (-2, -1, 1, 2):
                     b = self._bearing_on_path(h, s_pred + 0.5 * k * spread)
@@ -908,9 +941,14 @@ class OnlineMatcher:
                 angle = angle_diff(self._bstart[e1], self._bend[e0])
                 turn = classify_turn(angle, is_reverse=is_rev)
                 if turn in (Turn.LEFT, Turn.RIGHT) and cfg.turn_anchor_sigma > 0.0 and step.odo_known:
-                    anchor_odo, span = turn_midpoint(state.headings, self._bend[e0], angle)
-                    # a bend spreads the heading change: the anchor is only as sharp as the turn
-                    anchor_sd = math.hypot(cfg.turn_anchor_sigma, TURN_SPAN_SIGMA * span)
+                    mid, anchor_sd = self._turn_anchor(state, best, step, cfg)
+                    if not math.isnan(mid):
+                        # rounding the corner, the vehicle drives less than the centre line: the
+                        # odometer reads as if it had been at the node a little later on the way
+                        # in and a little earlier on the way out
+                        cut = 0.5 * corner_cut(angle, self._elen[e0], self._elen[e1])
+                        self._learn_scale(state, best, mid + cut, mid - cut, anchor_sd, cfg)
+                        anchor_odo = mid - cut
             state.live = [x for x in state.live if int(x[1]) != e0]
             for h in hyps:
                 if h.k == 0:  # still behind the committed node: place it at the node
@@ -921,7 +959,7 @@ class OnlineMatcher:
                     h.anc -= self._elen[e0]
                 else:  # the vehicle was at the node (s = 0 now) when the heading was half-way round
                     h.anc = -anchor_odo
-                    h.anc_sd = anchor_sd + cfg.odo_scale_sigma * (step.odo - anchor_odo)
+                    h.anc_sd = anchor_sd + step.odo_sigma * (step.odo - anchor_odo)
                 h.k -= 1
                 del h.edges[0]
                 del h.enter[0]
@@ -936,6 +974,75 @@ class OnlineMatcher:
             correction = c if correction is None else _merge(correction, c)
             state.live = []
         return turn, correction
+
+    @staticmethod
+    def _odo_sigma(state: SessionState, cfg: MatchConfig) -> float:
+        kvar = cfg.odo_scale_sigma**2 if math.isnan(state.odo_kvar) else state.odo_kvar
+        return math.sqrt(kvar + ODO_SCALE_FLOOR**2)
+
+    def _learn_scale(
+        self,
+        state: SessionState,
+        best: Hypothesis,
+        odo_in: float,
+        odo_out: float,
+        anchor_sd: float,
+        cfg: MatchConfig,
+    ) -> None:
+        """Kalman update of the odometer scale: the previous turn anchor carried by the odometer
+        against this one (both at nodes of the path driven). ``odo_in`` and ``odo_out`` are the
+        odometer readings at the node for the way in and the way out."""
+        prev_odo, prev_sd = state.anc_odo, state.anc_sd
+        state.anc_odo, state.anc_sd = odo_out, anchor_sd
+        dist = odo_in - prev_odo
+        if math.isnan(best.anc) or not SCALE_MIN_DISTANCE_M <= dist <= SCALE_MAX_DISTANCE_M:
+            return
+        kvar = cfg.odo_scale_sigma**2 if math.isnan(state.odo_kvar) else state.odo_kvar
+        nu = self._elen[best.edges[0]] - (best.anc + odo_in)  # path metres the odometer missed
+        # the map's path length differs from the road's by a little too
+        r = prev_sd**2 + anchor_sd**2 + (SCALE_PATH_ERROR * dist) ** 2
+        sv = dist * dist * kvar + r
+        if nu * nu > 9.0 * sv:
+            return  # not the same path, or a bad anchor: learn nothing
+        lim = 2.0 * math.sqrt(sv)
+        nu = min(max(nu, -lim), lim)  # robust: one odd pair of anchors must not teach much
+        gain = kvar * dist / sv
+        state.odo_k = min(max(state.odo_k + gain * nu, -ODO_SCALE_MAX), ODO_SCALE_MAX)
+        state.odo_kvar = kvar * (1.0 - gain * dist)
+
+    def _turn_anchor(
+        self, state: SessionState, best: Hypothesis, step: _Step, cfg: MatchConfig
+    ) -> tuple[float, float]:
+        """The odometer reading at which the vehicle was at the end node of ``best.edges[0]``
+        and its σ: the fused headings against the odometer aligned with the path's bearing
+        profile. ``(nan, nan)`` when the samples do not cover the turn or do not fit the path."""
+        lengths: list[float] = []
+        bearings: list[float] = []
+        for e in best.edges:
+            pts = self._seg[self._ptr[e] : self._ptr[e + 1]]
+            d = np.diff(pts, axis=0)
+            seg = np.hypot(d[:, 0], d[:, 1])
+            keep = seg > 1e-6
+            lengths += seg[keep].tolist()
+            bearings += (np.degrees(np.arctan2(d[keep, 0], d[keep, 1])) % 360.0).tolist()
+        if not lengths:
+            return math.nan, math.nan
+        node = self._elen[best.edges[0]]
+        c0 = best.s - step.odo
+        samples = [x for x in state.headings if x[0] + c0 >= 0.0]
+        hs = min(max(math.sqrt(state.res_head2), ALIGN_HEADING_SIGMA_MIN_DEG), LEARNED_HEADING_SIGMA_MAX_DEG)
+        search = min(ALIGN_SEARCH_M + ALIGN_SEARCH_SIGMAS * step.sigma, ALIGN_SEARCH_MAX_M)
+        c, sd, rms = align_headings(
+            samples, bearing_profile(lengths, bearings), c0, search=search, heading_sigma=hs
+        )
+        if (
+            math.isnan(c)
+            or rms > ALIGN_RMS_MAX_DEG
+            or samples[0][0] + c > node - ALIGN_COVER_M
+            or samples[-1][0] + c < node + ALIGN_COVER_M
+        ):
+            return math.nan, math.nan
+        return node - c, math.hypot(sd, cfg.turn_anchor_sigma)
 
     def _move_to(self, h: Hypothesis, s: float, step: _Step) -> None:
         """Put ``h`` at distance ``s`` along its path (clamped to the path)."""
@@ -1028,13 +1135,11 @@ class OnlineMatcher:
     ) -> SnapResult:
         hyps = state.hyps
         best = self._best(hyps)
+        agg = _edge_mass(hyps)
         if len(hyps) > 1:
             # report the edge of highest total probability (best for the per-fix edge), at
             # the position of its most probable hypothesis
-            mass: dict[int, float] = {}
-            for h in hyps:
-                he = h.edges[h.k]
-                mass[he] = mass.get(he, 0.0) + math.exp(h.logp)
+            mass = {e: a[0] for e, a in agg.items()}
             top = max(mass, key=mass.__getitem__)
             shown = state.shown
             if top != shown and shown in mass and mass[top] < REPORT_BACK_RATIO * mass[shown]:
@@ -1064,19 +1169,7 @@ class OnlineMatcher:
                         float(step.gps),
                     ]
                 )
-            total = 0.0
-            agg: dict[int, list[float]] = {}
-            for h in hyps:
-                p = math.exp(h.logp)
-                total += p
-                he = h.edges[h.k]
-                a = agg.get(he)
-                if a is None:
-                    agg[he] = [p, h.off, h.dist]
-                else:
-                    if p > a[0]:
-                        a[1], a[2] = h.off, h.dist
-                    a[0] += p
+            total = sum(a[0] for a in agg.values())
             g = self.graph
             candidates = tuple(
                 Candidate(
@@ -1085,8 +1178,8 @@ class OnlineMatcher:
                     v=int(g.node_id[self._ev[ce]]),
                     way_id=int(g.edge_way_id[ce]),
                     probability=a[0] / total,
-                    offset=a[1],
-                    dist=a[2],
+                    offset=a[1].off,
+                    dist=a[1].dist,
                 )
                 for ce, a in sorted(agg.items(), key=lambda kv: -kv[1][0])
             )
@@ -1120,6 +1213,26 @@ class OnlineMatcher:
             raw_lat=fix.lat,
             raw_lon=fix.lon,
         )
+
+
+def _edge_mass(hyps: list[Hypothesis]) -> dict[int, tuple[float, Hypothesis]]:
+    """Probability mass per edge the vehicle may be on, with that edge's most probable
+    hypothesis. Hypotheses that differ only in edges not reached yet are one belief about
+    where the vehicle is (each carries the whole weight): they count once, not once per
+    branch ahead."""
+    groups: dict[tuple[int, ...], Hypothesis] = {}
+    for h in hyps:
+        key = tuple(h.edges[: h.k + 1])
+        g = groups.get(key)
+        if g is None or h.logp > g.logp:
+            groups[key] = h
+    out: dict[int, tuple[float, Hypothesis]] = {}
+    for h in groups.values():
+        e = h.edges[h.k]
+        p = math.exp(h.logp)
+        a = out.get(e)
+        out[e] = (p, h) if a is None else (a[0] + p, h if h.logp > a[1].logp else a[1])
+    return out
 
 
 def _dedup(seq: list[int]) -> tuple[int, ...]:

@@ -10,6 +10,9 @@ from __future__ import annotations
 
 import math
 
+import numpy as np
+from numpy.typing import NDArray
+
 from mapmatch.types import Turn
 
 STRAIGHT_MAX_DEG = 30.0
@@ -24,12 +27,10 @@ def angle_diff(a: float, b: float) -> float:
 
 
 def add_sample(samples: list[list[float]], odo: float, heading: float, *, window: float) -> None:
-    """Append ``(odo, heading)`` when the vehicle moved at least a metre; drop samples older
-    than two windows (keeping one before that horizon)."""
-    if math.isnan(heading):
-        return
-    if samples and odo - samples[-1][0] < 1.0:
-        samples[-1][1] = heading
+    """Append ``(odo, heading)`` when the vehicle moved at least a metre since the last sample
+    (a sample keeps its own reading); drop samples older than two windows (keeping one before
+    that horizon)."""
+    if math.isnan(heading) or (samples and odo - samples[-1][0] < 1.0):
         return
     samples.append([odo, heading])
     horizon = odo - 2.0 * window
@@ -54,27 +55,77 @@ def heading_change(samples: list[list[float]], odo: float, *, window: float) -> 
     return angle_diff(samples[-1][1], ref[1]), odo - ref[0]
 
 
-def turn_midpoint(samples: list[list[float]], heading_in: float, angle: float) -> tuple[float, float]:
-    """Where a turn of ``angle`` degrees from ``heading_in`` happened, by the heading samples.
+def bearing_profile(
+    lengths: list[float], bearings: list[float], *, ramp: float = 4.0
+) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """A path's bearing against distance as knots for :func:`numpy.interp`.
 
-    Returns ``(odo, span)``: the odometer reading at which the heading was half-way round
-    (interpolated) and the odometer metres between the last sample within 10 % of the turn
-    and the first within 10 % of its end (a sharp turn is short; a bend is long). ``(nan,
-    nan)`` when the samples do not cover the turn's start.
+    ``lengths`` and ``bearings`` describe the path's straight pieces in order. The bearing is
+    unwrapped (continuous) and changes linearly over ``ramp`` metres either side of each
+    vertex (at most half of each piece), as a vehicle's heading does when it rounds a corner.
     """
-    if angle == 0.0:
-        return math.nan, math.nan
-    p = [(odo, angle_diff(heading, heading_in) / angle) for odo, heading in samples]
-    for i, (odo, q) in enumerate(p):
-        if q >= 0.5:
-            if i == 0:
-                return math.nan, math.nan
-            o0, q0 = p[i - 1]
-            mid = o0 + (odo - o0) * (0.5 - q0) / (q - q0)
-            start = next((o for o, r in reversed(p[:i]) if r <= 0.1), p[0][0])
-            end = next((o for o, r in p[i:] if r >= 0.9), p[-1][0])
-            return mid, end - start
-    return math.nan, math.nan
+    s_knots: list[float] = []
+    b_knots: list[float] = []
+    start = 0.0
+    prev = bearings[0]
+    for i, (length, b) in enumerate(zip(lengths, bearings, strict=True)):
+        b = prev + angle_diff(b, prev)
+        before = min(ramp, 0.5 * length) if i > 0 else 0.0
+        after = min(ramp, 0.5 * length) if i < len(lengths) - 1 else 0.0
+        s_knots += [start + before, start + length - after]
+        b_knots += [b, b]
+        start += length
+        prev = b
+    return np.asarray(s_knots), np.asarray(b_knots)
+
+
+def corner_cut(angle: float, len_in: float, len_out: float, *, ramp: float = 4.0) -> float:
+    """Metres of centre line a vehicle saves rounding a corner of ``angle`` degrees on an arc
+    spanning ``ramp`` metres either side of the node (at most half of each adjoining edge)."""
+    r = min(ramp, 0.5 * len_in, 0.5 * len_out)
+    th = math.radians(min(abs(angle), 150.0))
+    if th < 1e-6 or r <= 0.0:
+        return 0.0
+    radius = r / math.tan(0.5 * th)  # the arc touches both legs ``r`` metres from the node
+    return 2.0 * r - radius * th
+
+
+def align_headings(
+    samples: list[list[float]],
+    knots: tuple[NDArray[np.float64], NDArray[np.float64]],
+    offset: float,
+    *,
+    search: float,
+    heading_sigma: float,
+    resolution: float = 0.5,
+    correlation: float = 5.0,
+) -> tuple[float, float, float]:
+    """Where the heading samples fit the path's bearing profile best.
+
+    ``samples`` are ``[odometer, heading]``; a sample lies at path distance ``odometer +
+    offset + shift``. The shift is searched over ``±search`` metres; the samples' heading errors
+    are σ ``heading_sigma`` degrees and correlated over ``correlation`` metres of odometer.
+    Returns ``(offset', σ, rms)``: the posterior mean of ``offset + shift`` (uniform prior), its
+    σ in metres and the rms heading residual at the best shift in degrees (a path the vehicle
+    did not drive fits badly). ``(nan, nan, nan)`` with fewer than three samples.
+    """
+    if len(samples) < 3:
+        return math.nan, math.nan, math.nan
+    a = np.asarray(samples, dtype=np.float64)
+    odo, head = a[:, 0], a[:, 1]
+    w = np.minimum(np.diff(odo, prepend=odo[0] - correlation), correlation) / correlation
+    shifts = np.arange(-search, search + 0.5 * resolution, resolution)
+    s = odo[None, :] + offset + shifts[:, None]
+    d = (head[None, :] - np.interp(s, knots[0], knots[1]) + 180.0) % 360.0 - 180.0
+    sq = d * d
+    cost = (sq * w).sum(axis=1) / (2.0 * heading_sigma**2)
+    best = int(np.argmin(cost))
+    p = np.exp(cost[best] - cost)
+    p /= p.sum()
+    mean = float((p * shifts).sum())
+    sd = math.sqrt(max(float((p * (shifts - mean) ** 2).sum()), 0.0))
+    rms = math.sqrt(float((sq[best] * w).sum() / w.sum()))
+    return offset + mean, sd, rms
 
 
 def classify_turn(turn_angle: float, *, is_reverse: bool = False) -> Turn:
