@@ -44,6 +44,7 @@ Invalid input raises :class:`~mapmatch.errors.ValidationError` and leaves the st
 
 from __future__ import annotations
 
+import itertools
 import json
 import math
 from dataclasses import dataclass, field
@@ -96,6 +97,11 @@ INIT_MAX_HEADING_DEG = 100.0
 POS_SIGMA_FLOOR_M = 2.0
 CORRECTION_MARGIN = 2.0
 SEARCH_EVERY_S = 1.0
+TRAIL_STEP_M = 2.0  # the odometer trail kept for revising crossings: a point every this many metres ...
+TRAIL_MAX = 150  # ... at most this many ...
+STILL_M = 0.05  # moving less than this, the vehicle stands
+TRAIL_MAX_M = 300.0  # ... and crossings at most this far back
+REVISE_SIGMA_FRAC = 0.35  # a crossing is revised when the anchor places it this much better than a fix
 REPORT_BACK_RATIO = 3.0  # reporting an edge behind the one reported needs this much more mass
 AGAINST_HEADING_DEG = 100.0  # driving against the road believed also triggers the search
 HEADING_SIGMA_FLOOR_DEG = 10.0
@@ -188,6 +194,10 @@ class SessionState:
     odo_kvar: float = math.nan  # its variance (nan: the configured prior)
     anc_odo: float = math.nan  # odometer reading of the last turn anchor ...
     anc_sd: float = math.nan  # ... and its σ (m)
+    # for revising straight crossings once the next turn tells where the vehicle was:
+    # [time, odometer], and the edges committed since the last turn as [edge, time entered]
+    trail: list[list[float]] = field(default_factory=list)
+    back: list[list[float]] = field(default_factory=list)
 
     def to_bytes(self) -> bytes:
         """Compact JSON encoding (a few hundred bytes)."""
@@ -212,6 +222,8 @@ class SessionState:
             "res": [self.res_pos2, self.res_head2, self.drift_sigma, self.search_time],
             "sh": self.shown,
             "b": self.bias,
+            "tr": [[round(t, 3), round(o, 2)] for t, o in self.trail],
+            "bk": self.back,
         }
         return json.dumps(d, separators=(",", ":"), allow_nan=True).encode()
 
@@ -245,6 +257,8 @@ class SessionState:
                 search_time=float(d["res"][3]),
                 shown=int(d.get("sh", -1)),
                 bias=[float(v) for v in d.get("b", [0.0, 0.0, math.nan, 0.0, math.nan])],
+                trail=[[float(t), float(o)] for t, o in d.get("tr", [])],
+                back=[[float(e), float(t)] for e, t in d.get("bk", [])],
             )
         except (ValueError, TypeError, KeyError, IndexError, AttributeError) as exc:
             raise ValidationError("state", f"not a valid session state ({exc})") from None
@@ -361,6 +375,8 @@ class OnlineMatcher:
         state.bias = list(step.bias)
         if step.kappa > 0.0:
             add_sample(state.headings, state.odo, step.heading, window=cfg.turn_window)
+        if step.odo_known:
+            self._add_trail(state.trail, step.time, state.odo, step.travelled <= STILL_M)
 
         reinit = False
         if state.hyps:
@@ -632,6 +648,7 @@ class OnlineMatcher:
         state.init_pending = len({h.edges[0] for h in state.hyps}) > 1
         state.init_odo = state.odo
         state.live = []
+        state.back = []
         state.bad_time = state.bad_odo = math.nan
 
     def _add_alternatives(self, state: SessionState, step: _Step, cfg: MatchConfig, best: Hypothesis) -> None:
@@ -949,6 +966,14 @@ class OnlineMatcher:
                         cut = 0.5 * corner_cut(angle, self._elen[e0], self._elen[e1])
                         self._learn_scale(state, best, mid + cut, mid - cut, anchor_sd, cfg)
                         anchor_odo = mid - cut
+                        if correction is None:
+                            correction = self._revise_crossings(state, best, mid + cut, anchor_sd, step)
+            if math.isnan(anchor_odo):
+                state.back.append([float(e0), best.enter[0]])
+                while sum(self._elen[int(b[0])] for b in state.back) > TRAIL_MAX_M:
+                    del state.back[0]
+            else:
+                state.back = []
             state.live = [x for x in state.live if int(x[1]) != e0]
             for h in hyps:
                 if h.k == 0:  # still behind the committed node: place it at the node
@@ -1043,6 +1068,55 @@ class OnlineMatcher:
         ):
             return math.nan, math.nan
         return node - c, math.hypot(sd, cfg.turn_anchor_sigma)
+
+    @staticmethod
+    def _add_trail(trail: list[list[float]], time: float, odo: float, standing: bool) -> None:
+        """Keep ``[time, odometer]`` every ``TRAIL_STEP_M`` metres, and both ends of a stop."""
+        if standing:
+            if len(trail) >= 2 and odo - trail[-2][1] <= STILL_M:
+                trail[-1][0] = time  # still standing: the stop goes on
+                return
+        elif trail and odo - trail[-1][1] < TRAIL_STEP_M:
+            return
+        trail.append([time, odo])
+        if len(trail) > TRAIL_MAX:
+            del trail[0]
+
+    def _revise_crossings(
+        self, state: SessionState, best: Hypothesis, odo_at_node: float, anchor_sd: float, step: _Step
+    ) -> Correction | None:
+        """The straight crossings since the previous turn, timed again from this turn's anchor
+        carried back by the odometer: a correction when they differ from what was reported."""
+        if len(state.trail) < 2:
+            return None
+        t_tr = [x[0] for x in state.trail]
+        o_tr = [x[1] for x in state.trail]
+        path = [(int(b[0]), b[1]) for b in state.back] + [(best.edges[0], best.enter[0])]
+        dist = 0.0
+        crossings: list[tuple[float, float]] = []  # (old time, new time), latest first
+        for i in range(len(path) - 1, 0, -1):
+            e, entered = path[i]
+            prev = path[i - 1][0]
+            dist += self._elen[e]
+            odo = odo_at_node - dist
+            if (
+                self._ev[prev] != self._eu[e]
+                or not self._straight(prev, e)
+                or odo < o_tr[0]
+                or math.hypot(anchor_sd, step.odo_sigma * dist) > REVISE_SIGMA_FRAC * step.sigma
+            ):
+                break
+            crossings.append((entered, float(np.interp(odo, o_tr, t_tr))))
+        if not crossings or all(abs(a - b) < 1e-3 for a, b in crossings):
+            return None
+        n = len(crossings)
+        edges = tuple(e for e, _ in path[len(path) - n - 1 :])
+        t_from = min(min(a, b) for a, b in crossings)
+        t_to = max(max(a, b) for a, b in crossings)
+        times = (t_from, *(b for _, b in reversed(crossings)))
+        if any(b < a for a, b in itertools.pairwise(times)):
+            return None  # not monotone: the odometer and the path disagree
+        return Correction(time_from=t_from, time_to=t_to, edges=edges, replaced_edges=edges, edge_times=times)
 
     def _move_to(self, h: Hypothesis, s: float, step: _Step) -> None:
         """Put ``h`` at distance ``s`` along its path (clamped to the path)."""
