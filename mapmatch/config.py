@@ -57,10 +57,11 @@ class MatchConfig:
     drift_decay_time : seconds over which the dead-reckoning drift σ decays once GPS is back.
     soft_reinit_sigmas : the index is searched for other roads when the fix is further than this
         many σ from the road believed.
-    turn_anchor_sigma : metres; σ of the along-path position a detected turn gives (the vehicle
-        is at the node where the fused heading is half-way through the turn); 0 disables the anchor.
-    odo_scale_sigma : σ of the odometer's relative distance error: the turn anchor is carried
-        along the path by the odometer and its σ grows by this fraction of the distance.
+    turn_anchor_sigma : metres; the least σ of the along-path position a turn gives (the fused
+        headings aligned with the path's bearing profile); 0 disables the anchor.
+    odo_scale_sigma : prior σ of the odometer's relative distance error. The turn anchor is
+        carried along the path by the odometer, whose scale is learnt from anchor to anchor;
+        the anchor's σ grows by the learnt scale's σ of the distance.
     bias_time : seconds; correlation time of the fix's position error, learnt across roads
         of different directions to correct the along-track position (0 disables it).
 

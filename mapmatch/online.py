@@ -27,12 +27,16 @@ On a straight road the map cannot show the fix's along-track error, yet it decid
 of a straight crossing the vehicle is. Two other sources correct the position along the path
 (GPS-aided fixes only; in dead reckoning the odometer carry above decides): the fix's slowly
 varying error vector, learnt by a small Kalman filter from its offsets *across* roads of other
-directions (``bias_time``), and a turn anchor: when a turn is committed, the odometer reading
-at which the fused heading was half-way round puts the vehicle at the node, and the odometer
-carries that position on (σ ``turn_anchor_sigma`` plus ``odo_scale_sigma`` of the distance).
-Both are fused with the projection by their variances; the corrected position crosses a node
-only where the path goes straight on, and a path whose turn holds it short of the estimate
-pays for the miss.
+directions (``bias_time``), and a turn anchor: when a turn (or a bend) is committed, the fused
+headings against the odometer are aligned with the path's bearing profile, which tells the
+odometer reading at the node (σ at least ``turn_anchor_sigma``), and the odometer carries that
+position on (less the metres the rounded corner saved; σ growing with the odometer's scale
+error, learnt anchor to anchor from prior ``odo_scale_sigma``). Both are fused with the
+projection by their variances; the corrected position crosses a node only where the path goes
+straight on, and a path whose turn holds it short of the estimate pays for the miss. Carried
+back over a trail of (time, odometer) points, the anchor also times the straight crossings
+since the previous turn again, and revises them with a correction when it is much sharper
+than a fix.
 
 In dead reckoning every path carries the vehicle by the odometer alone (the drifting fix only
 weighs the paths against each other, its heading against the road anywhere within the
@@ -954,20 +958,25 @@ class OnlineMatcher:
             v = self._ev[e0]
             is_rev = e1 == self._rev[e0]
             anchor_odo = anchor_sd = math.nan
+            angle = angle_diff(self._bstart[e1], self._bend[e0])
             if self._branching[v] or is_rev:
-                angle = angle_diff(self._bstart[e1], self._bend[e0])
                 turn = classify_turn(angle, is_reverse=is_rev)
-                if turn in (Turn.LEFT, Turn.RIGHT) and cfg.turn_anchor_sigma > 0.0 and step.odo_known:
-                    mid, anchor_sd = self._turn_anchor(state, best, step, cfg)
-                    if not math.isnan(mid):
-                        # rounding the corner, the vehicle drives less than the centre line: the
-                        # odometer reads as if it had been at the node a little later on the way
-                        # in and a little earlier on the way out
-                        cut = 0.5 * corner_cut(angle, self._elen[e0], self._elen[e1])
-                        self._learn_scale(state, best, mid + cut, mid - cut, anchor_sd, cfg)
-                        anchor_odo = mid - cut
-                        if correction is None:
-                            correction = self._revise_crossings(state, best, mid + cut, anchor_sd, step)
+            # a turn, or a bend where no other road joins, tells where the vehicle is
+            if (
+                classify_turn(angle, is_reverse=is_rev) in (Turn.LEFT, Turn.RIGHT)
+                and cfg.turn_anchor_sigma > 0.0
+                and step.odo_known
+            ):
+                mid, anchor_sd = self._turn_anchor(state, best, step, cfg)
+                if not math.isnan(mid):
+                    # rounding the corner, the vehicle drives less than the centre line: the
+                    # odometer reads as if it had been at the node a little later on the way
+                    # in and a little earlier on the way out
+                    cut = 0.5 * corner_cut(angle, self._elen[e0], self._elen[e1])
+                    self._learn_scale(state, best, mid + cut, mid - cut, anchor_sd, cfg)
+                    anchor_odo = mid - cut
+                    if correction is None:
+                        correction = self._revise_crossings(state, best, mid + cut, anchor_sd, step)
             if math.isnan(anchor_odo):
                 state.back.append([float(e0), best.enter[0]])
                 while sum(self._elen[int(b[0])] for b in state.back) > TRAIL_MAX_M:

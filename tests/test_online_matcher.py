@@ -674,3 +674,82 @@ def test_merged_corrections_keep_exact_times_only_when_their_spans_touch() -> No
     g = _merge(far, a)
     assert (g.time_from, g.time_to, g.edges, g.edge_times) == (1.0, 10.0, (4, 5, 9), ())
     assert set(g.replaced_edges) == {7, 8}
+
+
+CROSS_THEN_TURN = """
+        n
+        |
+a-------b---------c
+        |         |
+        s         |
+                  |
+                  d
+"""
+
+
+def test_next_turn_revises_a_straight_crossing_passed_late() -> None:
+    # the fixes lag 8 m along the road going east: the crossing at b is reported late; the turn
+    # at c times the vehicle there, and carried back by the odometer it times the crossing too
+    m = parse_ascii_map(CROSS_THEN_TURN, scale=10)
+    fixes, true_s = biased_drive(m, "abcd", bias_x=-8.0, speed=8.0, dt=0.5)
+    fixes = [dataclasses.replace(f, pos_sigma=10.0) for f in fixes]
+    res = run(OnlineMatcher(m.graph), fixes)
+    ab, bc = m.edge("a", "b"), m.edge("b", "c")
+    b = m.xy("b")[0] - m.xy("a")[0]
+    t_true = float(np.interp(b, true_s, [f.time for f in fixes]))
+    live = np.array([r.edge for r in res])
+    t_live = fixes[int(np.argmax(live == bc))].time
+    assert t_live - t_true > 0.5  # reported late
+    revised = [
+        r.correction
+        for r in res
+        if r.correction is not None and (ab, bc) == tuple(r.correction.edges[:2]) and r.correction.edge_times
+    ]
+    assert revised, "no correction revised the crossing at b"
+    t_new = revised[-1].edge_times[1]
+    assert abs(t_new - t_true) < 0.5 < abs(t_live - t_true)
+    assert revised[-1].edge_at(t_true - 0.6) == ab and revised[-1].edge_at(t_true + 0.6) == bc
+
+
+def test_odometer_scale_is_learnt_between_turns() -> None:
+    # a square loop of 540 m sides driven twice; the odometer under-reads by 3 % (the drive
+    # takes its corners sharp, where the matcher expects them rounded: 1.7 m per corner less)
+    m = parse_ascii_map(
+        """
+        a-----------------b
+        |                 |
+        |                 |
+        |                 |
+        |                 |
+        |                 |
+        |                 |
+        |                 |
+        d-----------------c
+        """,
+        scale=30,
+    )
+    fixes = drive(m, "abcdabcda", speed=10.0, dt=1.0)
+    fixes = [dataclasses.replace(f, distance=f.distance * 0.97, speed=9.7) for f in fixes]
+    matcher = OnlineMatcher(m.graph)
+    st = matcher.new_session()
+    for f in fixes:
+        matcher.update(st, f)
+    assert st.odo_k == pytest.approx(1.0 / 0.97 - 1.0, abs=0.01)
+    assert st.odo_kvar < DEFAULT_CONFIG.odo_scale_sigma**2 / 4.0
+    # the learnt scale survives a move to another server
+    assert SessionState.from_bytes(st.to_bytes()).odo_k == st.odo_k
+
+
+def test_odometer_trail_keeps_both_ends_of_a_stop() -> None:
+    trail: list[list[float]] = []
+    odo = 0.0
+    for t in range(40):
+        v = 0.0 if 10 <= t < 30 else 5.0  # a 20 s stop
+        odo += v
+        OnlineMatcher._add_trail(trail, float(t), odo, v == 0.0)
+    t_tr = [x[0] for x in trail]
+    o_tr = [x[1] for x in trail]
+    # the vehicle stood at odometer 50 from t = 9 to 29: just past it, the time is after the stop
+    assert float(np.interp(50.5, o_tr, t_tr)) == pytest.approx(29.1, abs=0.05)
+    assert float(np.interp(49.5, o_tr, t_tr)) == pytest.approx(8.9, abs=0.05)
+    assert len(trail) < 30
