@@ -90,10 +90,10 @@ ALIGN_HEADING_SIGMA_MIN_DEG = 3.0
 ALIGN_RMS_MAX_DEG = 20.0  # a worse fit: the path is not what the vehicle drove, no anchor
 ODO_SCALE_FLOOR = 0.002  # relative odometer error left after learning its scale
 ODO_SCALE_MAX = 0.2
-SCALE_MIN_DISTANCE_M = 20.0  # turn anchors closer than this teach nothing about the scale; ...
-SCALE_MAX_DISTANCE_M = (
-    600.0  # ... further apart, the path between them is more likely wrong than the odometer
-)
+# turn anchors closer than this teach nothing about the odometer's scale; further apart than
+# the maximum, the path between them is more likely wrong than the odometer
+SCALE_MIN_DISTANCE_M = 20.0
+SCALE_MAX_DISTANCE_M = 600.0
 SCALE_PATH_ERROR = 0.005  # relative error of a path's length between turn anchors
 ALIGN_COVER_M = 3.0  # the samples must reach this far either side of the node
 ANCHOR_GATE = 3.0  # a turn anchor further than this many σ from the fix is dropped
@@ -204,7 +204,7 @@ class SessionState:
     back: list[list[float]] = field(default_factory=list)
 
     def to_bytes(self) -> bytes:
-        """Compact JSON encoding (a few hundred bytes)."""
+        """Compact JSON encoding (a few kilobytes)."""
         d = {
             "v": STATE_VERSION,
             "t": self.time,
@@ -325,6 +325,10 @@ class OnlineMatcher:
         self._bend: list[float] = graph.edge_bearing_end.tolist()
         self._ptr: list[int] = graph.edge_seg_ptr.tolist()
         self._seg = graph.seg_xy
+        # every piece of every polyline: length and bearing (the last row of each edge is unused)
+        d = np.diff(graph.seg_xy, axis=0) if len(graph.seg_xy) else np.zeros((0, 2))
+        self._piece_len = np.hypot(d[:, 0], d[:, 1])
+        self._piece_brg = np.degrees(np.arctan2(d[:, 0], d[:, 1])) % 360.0
         self._out_ptr: list[int] = graph.out_ptr.tolist()
         self._out = graph.out_edges
         rev = graph.edge_reverse
@@ -481,7 +485,7 @@ class OnlineMatcher:
             stopped=stopped,
             r_a=self.region_radius(sigma, cfg),
             dr=0.0 if gps else state.odo + (travelled if not math.isnan(travelled) else 0.0) - state.gps_odo,
-            odo_sigma=self._odo_sigma(state, cfg),
+            odo_sigma=math.sqrt(self._odo_kvar(state, cfg) + ODO_SCALE_FLOOR**2),
             bias=self._predict_bias(state.bias, sigma, dt, cfg),
         )
 
@@ -959,14 +963,11 @@ class OnlineMatcher:
             is_rev = e1 == self._rev[e0]
             anchor_odo = anchor_sd = math.nan
             angle = angle_diff(self._bstart[e1], self._bend[e0])
+            kind = classify_turn(angle, is_reverse=is_rev)
             if self._branching[v] or is_rev:
-                turn = classify_turn(angle, is_reverse=is_rev)
+                turn = kind
             # a turn, or a bend where no other road joins, tells where the vehicle is
-            if (
-                classify_turn(angle, is_reverse=is_rev) in (Turn.LEFT, Turn.RIGHT)
-                and cfg.turn_anchor_sigma > 0.0
-                and step.odo_known
-            ):
+            if kind in (Turn.LEFT, Turn.RIGHT) and cfg.turn_anchor_sigma > 0.0 and step.odo_known:
                 mid, anchor_sd = self._turn_anchor(state, best, step, cfg)
                 if not math.isnan(mid):
                     # rounding the corner, the vehicle drives less than the centre line: the
@@ -991,7 +992,7 @@ class OnlineMatcher:
                 h.s -= self._elen[e0]
                 if math.isnan(anchor_odo):
                     h.anc -= self._elen[e0]
-                else:  # the vehicle was at the node (s = 0 now) when the heading was half-way round
+                else:  # the vehicle was at the node (s = 0 now) when the odometer read anchor_odo
                     h.anc = -anchor_odo
                     h.anc_sd = anchor_sd + step.odo_sigma * (step.odo - anchor_odo)
                 h.k -= 1
@@ -1010,9 +1011,9 @@ class OnlineMatcher:
         return turn, correction
 
     @staticmethod
-    def _odo_sigma(state: SessionState, cfg: MatchConfig) -> float:
-        kvar = cfg.odo_scale_sigma**2 if math.isnan(state.odo_kvar) else state.odo_kvar
-        return math.sqrt(kvar + ODO_SCALE_FLOOR**2)
+    def _odo_kvar(state: SessionState, cfg: MatchConfig) -> float:
+        """Variance of the learnt odometer scale (the configured prior until learnt)."""
+        return cfg.odo_scale_sigma**2 if math.isnan(state.odo_kvar) else state.odo_kvar
 
     def _learn_scale(
         self,
@@ -1031,7 +1032,7 @@ class OnlineMatcher:
         dist = odo_in - prev_odo
         if math.isnan(best.anc) or not SCALE_MIN_DISTANCE_M <= dist <= SCALE_MAX_DISTANCE_M:
             return
-        kvar = cfg.odo_scale_sigma**2 if math.isnan(state.odo_kvar) else state.odo_kvar
+        kvar = self._odo_kvar(state, cfg)
         nu = self._elen[best.edges[0]] - (best.anc + odo_in)  # path metres the odometer missed
         # the map's path length differs from the road's by a little too
         r = prev_sd**2 + anchor_sd**2 + (SCALE_PATH_ERROR * dist) ** 2
@@ -1053,12 +1054,10 @@ class OnlineMatcher:
         lengths: list[float] = []
         bearings: list[float] = []
         for e in best.edges:
-            pts = self._seg[self._ptr[e] : self._ptr[e + 1]]
-            d = np.diff(pts, axis=0)
-            seg = np.hypot(d[:, 0], d[:, 1])
-            keep = seg > 1e-6
-            lengths += seg[keep].tolist()
-            bearings += (np.degrees(np.arctan2(d[keep, 0], d[keep, 1])) % 360.0).tolist()
+            piece = slice(self._ptr[e], self._ptr[e + 1] - 1)
+            keep = self._piece_len[piece] > 1e-6
+            lengths += self._piece_len[piece][keep].tolist()
+            bearings += self._piece_brg[piece][keep].tolist()
         if not lengths:
             return math.nan, math.nan
         node = self._elen[best.edges[0]]
@@ -1218,8 +1217,8 @@ class OnlineMatcher:
     ) -> SnapResult:
         hyps = state.hyps
         best = self._best(hyps)
-        agg = _edge_mass(hyps)
-        if len(hyps) > 1:
+        agg = _edge_mass(hyps) if len(hyps) > 1 else {}
+        if agg:
             # report the edge of highest total probability (best for the per-fix edge), at
             # the position of its most probable hypothesis
             mass = {e: a[0] for e, a in agg.items()}
