@@ -49,6 +49,9 @@ class MatchConfig:
         distance travelled is known (a stopped vehicle's repeated fixes add no evidence).
     stop_speed : m/s; below this (from the odometer) the vehicle is stopped: its position may
         move back along the path but never on across a node (no flicker at a stop line).
+    stop_hold_distance : metres; a vehicle that stops less than this past a node it went
+        straight through (or has not yet turned at, by its heading) is placed before the node:
+        vehicles stop at stop lines, not in junctions.
     node_hold_sigmas : a fix past the end node of the edge held is kept at that node while it
         lies within this many σ along the next edge (along-track error); further on, the
         next edge holds it.
@@ -102,6 +105,7 @@ class MatchConfig:
     evidence_distance: float = 5.0
     stop_speed: float = 0.5
     node_hold_sigmas: float = 0.5
+    stop_hold_distance: float = 8.0
     switch_penalty: float = 8.0
     init_commit_probability: float = 0.99
     drift_decay_time: float = 20.0

@@ -387,8 +387,9 @@ class OnlineMatcher:
             self._add_trail(state.trail, step.time, state.odo, step.travelled <= STILL_M)
 
         reinit = False
+        held: dict[int, float] = {}
         if state.hyps:
-            self._advance(state, step, cfg)
+            held = self._advance(state, step, cfg)
             best = self._best(state.hyps)
             against = step.kappa > 0.0 and abs(angle_diff(step.heading, best.bearing)) > AGAINST_HEADING_DEG
             if (
@@ -419,7 +420,7 @@ class OnlineMatcher:
             return SnapResult(time=fix.time, state=State.OFF_ROAD, raw_lat=fix.lat, raw_lon=fix.lon)
 
         turn, correction = (Turn.NONE, None) if reinit else self._commit(state, step, cfg)
-        return self._result(state, step, fix, turn, correction, reinit)
+        return self._result(state, step, fix, turn, correction, reinit, held)
 
     # ------------------------------------------------------------------ per-fix preparation
     def _prepare(self, state: SessionState, fix: Fix, cfg: MatchConfig) -> _Step | None:
@@ -685,8 +686,10 @@ class OnlineMatcher:
             state.hyps.sort(key=lambda h: -h.logp)
             del state.hyps[int(cfg.max_hypotheses) :]
 
-    def _advance(self, state: SessionState, step: _Step, cfg: MatchConfig) -> None:
-        """Extend paths near their end node, place the fix on each path and score it."""
+    def _advance(self, state: SessionState, step: _Step, cfg: MatchConfig) -> dict[int, float]:
+        """Extend paths near their end node, place the fix on each path and score it. Returns
+        ``{id(h): time}`` for each hypothesis put back before the node it had crossed at that
+        time (:meth:`_hold_before_node`)."""
         d = step.travelled
         ahead = (d if not math.isnan(d) else 0.0) + step.r_a
         hyps: list[Hypothesis] = []
@@ -704,6 +707,7 @@ class OnlineMatcher:
         if len(hyps) > 1 and step.kappa > 0.0:
             turn_obs, covered = heading_change(state.headings, state.odo, window=cfg.turn_window)
         cache: dict[int, tuple[float, float, float, float, float]] = {}
+        held: dict[int, float] = {}
         for h in hyps:
             s_prev = h.s
             score = self._place(h, step, cfg, cache)
@@ -713,7 +717,43 @@ class OnlineMatcher:
                 frac = min(1.0, max(h.s - s_prev, 0.0) / cfg.turn_window)
                 score -= 0.5 * miss * miss * frac
             h.logp += step.weight * score if len(hyps) > 1 else 0.0
+            if step.stopped and h.k >= 1:
+                crossed = self._hold_before_node(h, state, step, cfg)
+                if not math.isnan(crossed):
+                    held[id(h)] = crossed
         state.hyps = self._normalise(hyps)
+        return held
+
+    def _hold_before_node(self, h: Hypothesis, state: SessionState, step: _Step, cfg: MatchConfig) -> float:
+        """Put a stopped vehicle back before the node it has just crossed: vehicles stop at
+        stop lines, not in junctions, so its fixes' along-track error put it past. Only when it
+        stopped within ``stop_hold_distance`` of driving past the node, with the next node
+        further than that, and without a turn there that its heading shows taken. Returns the
+        time it had crossed the node (nan: not put back)."""
+        hold = cfg.stop_hold_distance
+        prev, cur = h.edges[h.k - 1], h.edges[h.k]
+        if h.off >= hold or self._elen[cur] - h.off <= hold or len(state.trail) < 2:
+            return math.nan
+        crossed = h.enter[h.k]
+        t_tr = [x[0] for x in state.trail]
+        if (
+            crossed < t_tr[0]
+            or state.odo - float(np.interp(crossed, t_tr, [x[1] for x in state.trail])) >= hold
+        ):
+            return math.nan  # it has driven further since: not a stop on the way in
+        if not self._straight(prev, cur):
+            last = state.headings[-1][1] if state.headings else math.nan
+            if math.isnan(last) or abs(angle_diff(last, self._bend[prev])) >= abs(
+                angle_diff(last, self._bstart[cur])
+            ):
+                return math.nan  # the heading shows the turn taken: it is past the node
+        h.s -= h.off
+        h.k -= 1
+        del h.enter[h.k + 1 :]
+        h.off = self._elen[prev]
+        h.px, h.py, h.bearing = self._locate(prev, h.off)
+        h.dist = math.hypot(h.px - step.x, h.py - step.y)
+        return crossed
 
     def _extend(self, h: Hypothesis, reach: float, cfg: MatchConfig, out: list[Hypothesis]) -> None:
         total = 0.0
@@ -1214,6 +1254,7 @@ class OnlineMatcher:
         turn: Turn,
         correction: Correction | None,
         reinit: bool,
+        held: dict[int, float],
     ) -> SnapResult:
         hyps = state.hyps
         best = self._best(hyps)
@@ -1232,6 +1273,20 @@ class OnlineMatcher:
             if top != best.edges[best.k]:
                 best = self._best([h for h in hyps if h.edges[h.k] == top])
         e = best.edges[best.k]
+        crossed = held.get(id(best), math.nan)
+        if not math.isnan(crossed) and best.edges[best.k + 1] == state.shown:
+            # put back at the stop line: what was reported past the node since is revised
+            stop = Correction(
+                time_from=crossed,
+                time_to=step.time,
+                edges=(e,),
+                replaced_edges=(state.shown,),
+                edge_times=(crossed,),
+            )
+            correction = stop if correction is None else _merge(stop, correction)
+            for x in state.live:
+                if x[0] >= crossed and int(x[1]) == state.shown:
+                    x[1] = float(e)
         state.shown = e
         candidates: tuple[Candidate, ...] = ()
         if len(hyps) > 1:

@@ -753,3 +753,64 @@ def test_odometer_trail_keeps_both_ends_of_a_stop() -> None:
     assert float(np.interp(50.5, o_tr, t_tr)) == pytest.approx(29.1, abs=0.05)
     assert float(np.interp(49.5, o_tr, t_tr)) == pytest.approx(8.9, abs=0.05)
     assert len(trail) < 30
+
+
+def _stop_drive(m: AsciiMap, route: str, *, stop_s: float, bias_x: float, bias_y: float) -> list[Fix]:
+    """Fixes every second at 5 m/s along ``route`` up to ``stop_s`` metres, then standing
+    there for 20 s; each fix ``(bias_x, bias_y)`` metres off the true position."""
+    pts = np.array([m.xy(n) for n in route], dtype=float)
+    seg = np.diff(pts, axis=0)
+    cum = np.concatenate([[0.0], np.cumsum(np.hypot(seg[:, 0], seg[:, 1]))])
+    true_s = [*np.arange(5.0, stop_s, 5.0).tolist(), stop_s, *[stop_s] * 20]
+    fixes = []
+    for i, s in enumerate(true_s):
+        j = min(int(np.searchsorted(cum, s, side="right")) - 1, len(seg) - 1)
+        x, y = pts[j] + (s - cum[j]) / (cum[j + 1] - cum[j]) * seg[j]
+        lon, lat = to_lonlat(m.graph.crs, [x + bias_x], [y + bias_y])[0]
+        moved = s - true_s[i - 1] if i else math.nan
+        fixes.append(
+            Fix(
+                time=float(i),
+                lat=float(lat),
+                lon=float(lon),
+                heading=math.degrees(math.atan2(seg[j, 0], seg[j, 1])) % 360.0,
+                pos_sigma=3.0,
+                speed=moved if i else 5.0,
+                distance=moved,
+                gps_valid=True,
+            )
+        )
+    return fixes
+
+
+def test_vehicle_stopped_at_the_stop_line_is_before_the_crossing() -> None:
+    # the vehicle stops 3 m before the crossing b; its fixes lie 6 m ahead, past b: it stands
+    # at the stop line on a-b, not in the junction, and drives on through b afterwards
+    m = parse_ascii_map(CROSS, scale=10)
+    ab, bc = m.edge("a", "b"), m.edge("b", "c")
+    fixes = _stop_drive(m, "abc", stop_s=77.0, bias_x=6.0, bias_y=0.0)
+    res = run(OnlineMatcher(m.graph), fixes)
+    assert [r.edge for r in res[-15:]] == [ab] * 15
+    # what was reported past b before the vehicle stood is revised
+    held = [r.correction for r in res if r.correction is not None and bc in r.correction.replaced_edges]
+    assert held and held[0].edges == (ab,)
+    assert [r.edge for r in res if r.edge == bc] and committed_edges(res) == [ab]
+    # without the rule the fixes put it past the node
+    loose = run(OnlineMatcher(m.graph, config=DEFAULT_CONFIG.replace(stop_hold_distance=0.0)), fixes)
+    assert [r.edge for r in loose[-15:]] == [bc] * 15
+    st = OnlineMatcher(m.graph).new_session()
+    go = drive(m, "bc", speed=5, t0=fixes[-1].time + 1.0, start_offset=5.0)
+    go[0] = dataclasses.replace(go[0], distance=8.0)
+    out = run(OnlineMatcher(m.graph), fixes + go, st)
+    assert committed_edges(out) == [ab, bc]
+    assert out[-1].edge == bc
+
+
+def test_vehicle_stopped_after_turning_stays_past_the_node() -> None:
+    # the vehicle turned right at b and stopped 5 m down b-s: its heading shows the turn,
+    # so it is not put back before the node
+    m = parse_ascii_map(CROSS, scale=10)
+    bs = m.edge("b", "s")
+    fixes = _stop_drive(m, "abs", stop_s=85.0, bias_x=0.0, bias_y=0.0)
+    res = run(OnlineMatcher(m.graph), fixes)
+    assert [r.edge for r in res[-15:]] == [bs] * 15
