@@ -18,10 +18,11 @@ with what was reported live, a :class:`~mapmatch.types.Correction` is returned.
 Along a path the position follows the fix, with hysteresis at nodes against the fused
 position's along-track error: a fix just past the end node of the edge held stays at that node
 (within ``node_hold_sigmas`` σ), the vehicle goes back across a node only when the fix is
-clearly behind it, and a stopped vehicle (odometer below ``stop_speed``) never moves on across
-a node. Evidence accrues per ``evidence_time`` seconds and ``evidence_distance`` metres, so
-that repeated fixes of a slow or stopped vehicle (with the same correlated error) do not
-outvote the path.
+clearly behind it, a stopped vehicle (odometer below ``stop_speed``) never moves on across
+a node, and one that stops just past a node it did not turn at is put back before it (stop
+lines are before junctions). Evidence accrues per ``evidence_time`` seconds and
+``evidence_distance`` metres, so that repeated fixes of a slow or stopped vehicle (with the
+same correlated error) do not outvote the path.
 
 On a straight road the map cannot show the fix's along-track error, yet it decides which side
 of a straight crossing the vehicle is. Two other sources correct the position along the path
@@ -34,9 +35,9 @@ position on (less the metres the rounded corner saved; σ growing with the odome
 error, learnt anchor to anchor from prior ``odo_scale_sigma``). Both are fused with the
 projection by their variances; the corrected position crosses a node only where the path goes
 straight on, and a path whose turn holds it short of the estimate pays for the miss. Carried
-back over a trail of (time, odometer) points, the anchor also times the straight crossings
-since the previous turn again, and revises them with a correction when it is much sharper
-than a fix.
+back over a trail of (time, odometer) points, the anchor also times the turn and the straight
+crossings since the previous turn again, and revises them with a correction as far as it is
+sure of them.
 
 In dead reckoning every path carries the vehicle by the odometer alone (the drifting fix only
 weighs the paths against each other, its heading against the road anywhere within the
@@ -105,7 +106,7 @@ TRAIL_STEP_M = 2.0  # the odometer trail kept for revising crossings: a point ev
 TRAIL_MAX = 150  # ... at most this many ...
 STILL_M = 0.05  # moving less than this, the vehicle stands
 TRAIL_MAX_M = 300.0  # ... and crossings at most this far back
-REVISE_SIGMA_FRAC = 0.35  # a crossing is revised when the anchor places it this much better than a fix
+REVISE_SIGMAS = 1.0  # a revised crossing moves only as far as its anchor is this many σ sure
 REPORT_BACK_RATIO = 3.0  # reporting an edge behind the one reported needs this much more mass
 AGAINST_HEADING_DEG = 100.0  # driving against the road believed also triggers the search
 HEADING_SIGMA_FLOOR_DEG = 10.0
@@ -1017,7 +1018,7 @@ class OnlineMatcher:
                     self._learn_scale(state, best, mid + cut, mid - cut, anchor_sd, cfg)
                     anchor_odo = mid - cut
                     if correction is None:
-                        correction = self._revise_crossings(state, best, mid + cut, anchor_sd, step)
+                        correction = self._revise_crossings(state, best, mid, cut, anchor_sd, step)
             if math.isnan(anchor_odo):
                 state.back.append([float(e0), best.enter[0]])
                 while sum(self._elen[int(b[0])] for b in state.back) > TRAIL_MAX_M:
@@ -1131,30 +1132,39 @@ class OnlineMatcher:
             del trail[0]
 
     def _revise_crossings(
-        self, state: SessionState, best: Hypothesis, odo_at_node: float, anchor_sd: float, step: _Step
+        self,
+        state: SessionState,
+        best: Hypothesis,
+        odo_at_node: float,
+        cut: float,
+        anchor_sd: float,
+        step: _Step,
     ) -> Correction | None:
-        """The straight crossings since the previous turn, timed again from this turn's anchor
-        carried back by the odometer: a correction when they differ from what was reported."""
+        """This turn and the straight crossings since the previous one, timed again from the
+        turn's anchor (carried back by the odometer): a correction when they differ from what
+        was reported."""
         if len(state.trail) < 2:
             return None
         t_tr = [x[0] for x in state.trail]
         o_tr = [x[1] for x in state.trail]
         path = [(int(b[0]), b[1]) for b in state.back] + [(best.edges[0], best.enter[0])]
-        dist = 0.0
         crossings: list[tuple[float, float]] = []  # (old time, new time), latest first
-        for i in range(len(path) - 1, 0, -1):
+        if odo_at_node >= o_tr[0]:
+            path.append((best.edges[1], best.enter[1]))
+            crossings.append(
+                (best.enter[1], self._sure_time(best.enter[1], odo_at_node, anchor_sd, o_tr, t_tr, step.dt))
+            )
+        odo_at_node += cut
+        dist = 0.0
+        for i in range(len(path) - 1 - len(crossings), 0, -1):
             e, entered = path[i]
             prev = path[i - 1][0]
             dist += self._elen[e]
             odo = odo_at_node - dist
-            if (
-                self._ev[prev] != self._eu[e]
-                or not self._straight(prev, e)
-                or odo < o_tr[0]
-                or math.hypot(anchor_sd, step.odo_sigma * dist) > REVISE_SIGMA_FRAC * step.sigma
-            ):
+            if self._ev[prev] != self._eu[e] or not self._straight(prev, e) or odo < o_tr[0]:
                 break
-            crossings.append((entered, float(np.interp(odo, o_tr, t_tr))))
+            sd = math.hypot(anchor_sd, step.odo_sigma * dist)
+            crossings.append((entered, self._sure_time(entered, odo, sd, o_tr, t_tr, step.dt)))
         if not crossings or all(abs(a - b) < 1e-3 for a, b in crossings):
             return None
         n = len(crossings)
@@ -1165,6 +1175,19 @@ class OnlineMatcher:
         if any(b < a for a, b in itertools.pairwise(times)):
             return None  # not monotone: the odometer and the path disagree
         return Correction(time_from=t_from, time_to=t_to, edges=edges, replaced_edges=edges, edge_times=times)
+
+    @staticmethod
+    def _sure_time(
+        old: float, odo: float, sd: float, o_tr: list[float], t_tr: list[float], dt: float
+    ) -> float:
+        """A crossing's time revised from the odometer reading ``odo`` (σ ``sd``) at the node:
+        ``old`` (the time of the first fix reported past the node) moved only as far as the
+        reading is sure, so that fixes within ``REVISE_SIGMAS`` σ of the node keep what was
+        reported; not moved back by less than the fix interval ``dt`` (no fix in between)."""
+        lo = float(np.interp(odo - REVISE_SIGMAS * sd, o_tr, t_tr))
+        hi = float(np.interp(odo + REVISE_SIGMAS * sd, o_tr, t_tr))
+        new = min(max(old, lo), hi)
+        return old if old - dt < new < old else new
 
     def _move_to(self, h: Hypothesis, s: float, step: _Step) -> None:
         """Put ``h`` at distance ``s`` along its path (clamped to the path)."""

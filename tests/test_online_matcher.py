@@ -814,3 +814,34 @@ def test_vehicle_stopped_after_turning_stays_past_the_node() -> None:
     fixes = _stop_drive(m, "abs", stop_s=85.0, bias_x=0.0, bias_y=0.0)
     res = run(OnlineMatcher(m.graph), fixes)
     assert [r.edge for r in res[-15:]] == [bs] * 15
+
+
+BEND_AT_B = """
+a-----------b
+            |
+            |
+            |
+            c
+"""
+
+
+def test_turn_anchor_re_times_the_turn_after_dead_reckoning_ran_ahead() -> None:
+    # GPS is lost 80 m before the right turn at b and the odometer reads 10 % high: dead
+    # reckoning carries the vehicle round the corner early; the turn's heading step times the
+    # node, and the correction moves the fixes reported early on b-c back to a-b
+    m = parse_ascii_map(BEND_AT_B, scale=10)
+    ab, bc = m.edge("a", "b"), m.edge("b", "c")
+    fixes, true_s = biased_drive(m, "abc", bias_x=0.0, speed=8.0, dt=1.0)
+    fixes = [
+        dataclasses.replace(f, gps_valid=False, distance=1.1 * f.distance) if s > 40.0 else f
+        for f, s in zip(fixes, true_s, strict=True)
+    ]
+    res = run(OnlineMatcher(m.graph), fixes)
+    t_true = float(np.interp(m.xy("b")[0] - m.xy("a")[0], true_s, [f.time for f in fixes]))
+    early = [r.time for r in res if r.edge == bc and r.time < t_true]
+    assert early, "dead reckoning did not run ahead"
+    revised = [r.correction for r in res if r.correction is not None and r.correction.edges == (ab, bc)]
+    assert revised and revised[0].edge_times
+    c = revised[0]
+    assert min(early) < c.edge_times[1] <= t_true  # moved towards the truth, never past it
+    assert c.edge_at(max(early)) == ab and c.edge_at(t_true + 0.5) == bc
