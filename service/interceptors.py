@@ -14,6 +14,7 @@
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import hmac
 import inspect
 import json
@@ -175,6 +176,24 @@ class ServiceInterceptor(aio.ServerInterceptor):
             context.set_trailing_metadata(((FIELD_METADATA_KEY, fld),))
         await context.abort(code, msg)
 
+    @contextlib.asynccontextmanager
+    async def _guard(self, call: _CallLog, context: aio.ServicerContext) -> AsyncIterator[None]:
+        """Around a handler: map its exception to a status (:meth:`_fail`), note the status
+        of an abort or cancellation, and always write the access-log line."""
+        try:
+            yield
+        except asyncio.CancelledError:
+            call.code = grpc.StatusCode.CANCELLED.name
+            raise
+        except aio.AbortError:
+            if call.code == "OK":
+                call.code = _code_name(context)
+            raise
+        except Exception as exc:
+            await self._fail(call, context, exc)
+        finally:
+            self._finish(call, context)
+
     # ------------------------------------------------------------------ wrapping
     async def intercept_service(
         self,
@@ -225,7 +244,7 @@ class ServiceInterceptor(aio.ServerInterceptor):
     def _wrap_unary(self, method: str, inner: Any, authorised: bool, *, streaming_in: bool) -> Any:
         async def behaviour(request: Any, context: aio.ServicerContext) -> Any:
             call = _CallLog(method)
-            try:
+            async with self._guard(call, context):
                 if not authorised:
                     await self._deny(call, context)
                 if streaming_in:
@@ -237,17 +256,7 @@ class ServiceInterceptor(aio.ServerInterceptor):
                     result = await result
                 call.n_out = 1
                 return result
-            except asyncio.CancelledError:
-                call.code = grpc.StatusCode.CANCELLED.name
-                raise
-            except aio.AbortError:
-                if call.code == "OK":
-                    call.code = _code_name(context)
-                raise
-            except Exception as exc:
-                await self._fail(call, context, exc)
-            finally:
-                self._finish(call, context)
+            return None  # the guard handled an error (the call was aborted)
 
         return behaviour
 
@@ -258,23 +267,12 @@ class ServiceInterceptor(aio.ServerInterceptor):
         async def behaviour(request: Any, context: aio.ServicerContext) -> AsyncIterator[Any]:
             call = _CallLog(method)
             call.n_in = 1
-            try:
+            async with self._guard(call, context):
                 if not authorised:
                     await self._deny(call, context)
                 async for resp in inner(request, context):
                     call.n_out += 1
                     yield resp
-            except asyncio.CancelledError:
-                call.code = grpc.StatusCode.CANCELLED.name
-                raise
-            except aio.AbortError:
-                if call.code == "OK":
-                    call.code = _code_name(context)
-                raise
-            except Exception as exc:
-                await self._fail(call, context, exc)
-            finally:
-                self._finish(call, context)
 
         return behaviour
 
@@ -284,7 +282,7 @@ class ServiceInterceptor(aio.ServerInterceptor):
 
         async def behaviour(request_iterator: Any, context: aio.ServicerContext) -> AsyncIterator[Any]:
             call = _CallLog(method)
-            try:
+            async with self._guard(call, context):
                 if not authorised:
                     await self._deny(call, context)
                 async for resp in inner(self._count_in(call, request_iterator, timed=True), context):
@@ -292,17 +290,6 @@ class ServiceInterceptor(aio.ServerInterceptor):
                     if call.pending:
                         call.lat.append(time.perf_counter() - call.pending.popleft())
                     yield resp
-            except asyncio.CancelledError:
-                call.code = grpc.StatusCode.CANCELLED.name
-                raise
-            except aio.AbortError:
-                if call.code == "OK":
-                    call.code = _code_name(context)
-                raise
-            except Exception as exc:
-                await self._fail(call, context, exc)
-            finally:
-                self._finish(call, context)
 
         return behaviour
 
