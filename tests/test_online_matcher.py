@@ -806,14 +806,20 @@ def test_vehicle_stopped_at_the_stop_line_is_before_the_crossing() -> None:
     assert out[-1].edge == bc
 
 
-def test_vehicle_stopped_after_turning_stays_past_the_node() -> None:
-    # the vehicle turned right at b and stopped 5 m down b-s: its heading shows the turn,
-    # so it is not put back before the node
+@pytest.mark.parametrize(
+    ("route", "stop_s", "beyond"),
+    [
+        ("abs", 85.0, "s"),  # turned right at b, stopped 5 m on: the heading shows the turn
+        ("abc", 92.0, "c"),  # straight on, stopped 12 m past b: beyond the stop-line rule
+    ],
+)
+def test_vehicle_stopped_well_past_the_node_stays_there(route: str, stop_s: float, beyond: str) -> None:
     m = parse_ascii_map(CROSS, scale=10)
-    bs = m.edge("b", "s")
-    fixes = _stop_drive(m, "abs", stop_s=85.0, bias_x=0.0, bias_y=0.0)
+    past = m.edge("b", beyond)
+    fixes = _stop_drive(m, route, stop_s=stop_s, bias_x=0.0, bias_y=0.0)
     res = run(OnlineMatcher(m.graph), fixes)
-    assert [r.edge for r in res[-15:]] == [bs] * 15
+    assert [r.edge for r in res[-15:]] == [past] * 15
+    assert all(past not in r.correction.replaced_edges for r in res if r.correction is not None)
 
 
 BEND_AT_B = """
