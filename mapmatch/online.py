@@ -388,7 +388,7 @@ class OnlineMatcher:
             self._add_trail(state.trail, step.time, state.odo, step.travelled <= STILL_M)
 
         reinit = False
-        held: dict[int, float] = {}
+        held: list[tuple[Hypothesis, float]] = []
         if state.hyps:
             held = self._advance(state, step, cfg)
             best = self._best(state.hyps)
@@ -408,7 +408,7 @@ class OnlineMatcher:
                     step.time - state.bad_time >= cfg.reinit_time
                     or state.odo - state.bad_odo >= cfg.reinit_distance
                 ):
-                    reinit = True
+                    reinit, held = True, []
                     self._initialise(state, step, cfg)
             else:
                 state.bad_time = state.bad_odo = math.nan
@@ -687,10 +687,10 @@ class OnlineMatcher:
             state.hyps.sort(key=lambda h: -h.logp)
             del state.hyps[int(cfg.max_hypotheses) :]
 
-    def _advance(self, state: SessionState, step: _Step, cfg: MatchConfig) -> dict[int, float]:
+    def _advance(self, state: SessionState, step: _Step, cfg: MatchConfig) -> list[tuple[Hypothesis, float]]:
         """Extend paths near their end node, place the fix on each path and score it. Returns
-        ``{id(h): time}`` for each hypothesis put back before the node it had crossed at that
-        time (:meth:`_hold_before_node`)."""
+        ``(h, time)`` for each hypothesis put back before the node it had crossed at that time
+        (:meth:`_hold_before_node`)."""
         d = step.travelled
         ahead = (d if not math.isnan(d) else 0.0) + step.r_a
         hyps: list[Hypothesis] = []
@@ -708,7 +708,7 @@ class OnlineMatcher:
         if len(hyps) > 1 and step.kappa > 0.0:
             turn_obs, covered = heading_change(state.headings, state.odo, window=cfg.turn_window)
         cache: dict[int, tuple[float, float, float, float, float]] = {}
-        held: dict[int, float] = {}
+        held: list[tuple[Hypothesis, float]] = []
         for h in hyps:
             s_prev = h.s
             score = self._place(h, step, cfg, cache)
@@ -721,7 +721,7 @@ class OnlineMatcher:
             if step.stopped and h.k >= 1:
                 crossed = self._hold_before_node(h, state, step, cfg)
                 if not math.isnan(crossed):
-                    held[id(h)] = crossed
+                    held.append((h, crossed))
         state.hyps = self._normalise(hyps)
         return held
 
@@ -1277,7 +1277,7 @@ class OnlineMatcher:
         turn: Turn,
         correction: Correction | None,
         reinit: bool,
-        held: dict[int, float],
+        held: list[tuple[Hypothesis, float]],
     ) -> SnapResult:
         hyps = state.hyps
         best = self._best(hyps)
@@ -1296,8 +1296,8 @@ class OnlineMatcher:
             if top != best.edges[best.k]:
                 best = self._best([h for h in hyps if h.edges[h.k] == top])
         e = best.edges[best.k]
-        crossed = held.get(id(best), math.nan)
-        if not math.isnan(crossed) and best.edges[best.k + 1] == state.shown:
+        crossed = next((t for h, t in held if h is best), math.nan)
+        if not math.isnan(crossed) and best.k + 1 < len(best.edges) and best.edges[best.k + 1] == state.shown:
             # put back at the stop line: what was reported past the node since is revised
             stop = Correction(
                 time_from=crossed,
