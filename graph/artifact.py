@@ -8,16 +8,22 @@ Layout of a map file (little-endian)::
     ...       the arrays, raw C order, each starting on a 64-byte boundary
 
 The manifest holds the format version, CRS, bbox, counts, map statistics, the source's
-checksum, the build parameters, the lookup tables, and per array its dtype, shape, offset and
-SHA-256. Loading maps the file once (``numpy.memmap``, read-only) and verifies every checksum;
-it imports neither osmnx nor networkx.
+checksum, the build parameters, the lookup tables, per array its dtype, shape, offset and
+SHA-256, and ``manifest_sha256``: the SHA-256 of the first ``16 + H`` bytes of the file
+(magic, length, manifest and its padding) with that digest written as 64 zeros. With the
+arrays' checksums and zero padding between them, every byte of the file is checked.
+Loading maps the file once (``numpy.memmap``, read-only), verifies every checksum and
+validates every manifest field it uses before allocating anything; it imports neither osmnx
+nor networkx.
 """
 
 from __future__ import annotations
 
 import hashlib
 import json
+import math
 import os
+import re
 import tempfile
 from collections.abc import Mapping
 from pathlib import Path
@@ -33,6 +39,10 @@ MAGIC = b"RGMAP\x00\x00\x01"
 FORMAT = "mapmatch-roadgraph"
 FORMAT_VERSION = 1
 _ALIGN = 64
+MAX_MANIFEST_BYTES = 256 * 1024 * 1024
+_DIGEST_KEY = "manifest_sha256"
+_ZERO_DIGEST = "0" * 64
+_DIGEST_RE = re.compile(rb'"manifest_sha256":"([0-9a-f]{64})"')
 
 
 def _pad(n: int) -> int:
@@ -116,8 +126,11 @@ def save_map(graph: RoadGraph, path: str | os.PathLike[str]) -> None:
         offset += a.nbytes + _pad(a.nbytes)
     manifest = manifest_for(graph)
     manifest["arrays"] = table
+    manifest[_DIGEST_KEY] = _ZERO_DIGEST
     head = json.dumps(manifest, separators=(",", ":"), allow_nan=False, default=str).encode()
     head += b" " * _pad(len(MAGIC) + 8 + len(head))
+    digest = hashlib.sha256(MAGIC + np.uint64(len(head)).tobytes() + head).hexdigest()
+    head = head.replace(_digest_field(_ZERO_DIGEST), _digest_field(digest), 1)
     tmp_name = ""
     try:
         dest.parent.mkdir(parents=True, exist_ok=True)
@@ -144,6 +157,10 @@ def save_map(graph: RoadGraph, path: str | os.PathLike[str]) -> None:
         raise
 
 
+def _digest_field(digest: str) -> bytes:
+    return f'"{_DIGEST_KEY}":"{digest}"'.encode()
+
+
 def _read_head(f: Any, path: Path) -> tuple[dict[str, Any], int]:
     start = f.read(len(MAGIC) + 8)
     if len(start) < len(MAGIC) + 8 or start[: len(MAGIC) - 1] != MAGIC[:-1]:
@@ -151,8 +168,10 @@ def _read_head(f: Any, path: Path) -> tuple[dict[str, Any], int]:
     if start[len(MAGIC) - 1] != MAGIC[-1]:
         raise ArtifactError(f"{path}: unsupported map file version {start[len(MAGIC) - 1]}")
     hlen = int(np.frombuffer(start[len(MAGIC) :], dtype="<u8")[0])
-    if hlen > os.fstat(f.fileno()).st_size - len(start):
-        raise ArtifactError(f"{path} is truncated or corrupt (manifest length beyond the end of the file)")
+    if hlen > os.fstat(f.fileno()).st_size - len(start) or hlen > MAX_MANIFEST_BYTES:
+        raise ArtifactError(
+            f"{path} is truncated or corrupt (manifest length {hlen} beyond the file or the limit)"
+        )
     raw = f.read(hlen)
     if len(raw) != hlen:
         raise ArtifactError(f"{path} is truncated")
@@ -160,12 +179,87 @@ def _read_head(f: Any, path: Path) -> tuple[dict[str, Any], int]:
         manifest = json.loads(raw)
     except ValueError as exc:
         raise ArtifactError(f"{path}: corrupt manifest") from exc
+    if not isinstance(manifest, dict):
+        raise ArtifactError(f"{path}: corrupt manifest (not an object)")
     if manifest.get("format") != FORMAT or manifest.get("format_version") != FORMAT_VERSION:
         raise ArtifactError(
             f"{path}: unsupported map format {manifest.get('format')!r} "
             f"version {manifest.get('format_version')!r} (this program reads version {FORMAT_VERSION})"
         )
+    found = _DIGEST_RE.findall(raw)
+    if len(found) != 1:
+        raise ArtifactError(
+            f"{path}: the manifest has no checksum (corrupt, or written by an older version: prepare the map again)"
+        )
+    digest = found[0].decode()
+    zeroed = raw.replace(_digest_field(digest), _digest_field(_ZERO_DIGEST), 1)
+    if hashlib.sha256(start + zeroed).hexdigest() != digest:
+        raise ArtifactError(f"{path}: manifest checksum mismatch (file corrupt)")
     return manifest, len(MAGIC) + 8 + hlen
+
+
+def _is_count(v: Any) -> bool:
+    return isinstance(v, int) and not isinstance(v, bool) and v >= 0
+
+
+def _checked_table(
+    manifest: dict[str, Any], path: Path, data_start: int, size: int
+) -> dict[str, dict[str, Any]]:
+    """The manifest's array table, every entry validated against the file's size (before
+    anything is allocated), and the file's length checked to end with the last array."""
+    table = manifest.get("arrays")
+    if not isinstance(table, dict):
+        raise ArtifactError(f"{path}: corrupt manifest (no array table)")
+    missing = [k for k in ARRAY_FIELDS if k not in table]
+    if missing:
+        raise ArtifactError(f"{path}: map file lacks arrays {', '.join(missing)}")
+    end = data_start
+    for name, t in table.items():
+        bad = f"{path}: corrupt manifest entry for array {name!r}"
+        if not isinstance(t, dict):
+            raise ArtifactError(bad)
+        shape, offset, nbytes = t.get("shape"), t.get("offset"), t.get("nbytes")
+        if not (isinstance(shape, list) and all(_is_count(d) for d in shape) and _is_count(offset)):
+            raise ArtifactError(f"{bad} (shape or offset)")
+        if not (_is_count(nbytes) and isinstance(t.get("sha256"), str) and isinstance(t.get("dtype"), str)):
+            raise ArtifactError(f"{bad} (nbytes, sha256 or dtype)")
+        try:
+            dtype = np.dtype(t["dtype"])
+        except (TypeError, ValueError):
+            raise ArtifactError(f"{bad} (dtype {t['dtype']!r})") from None
+        if dtype.hasobject or math.prod(shape) * dtype.itemsize != nbytes:
+            raise ArtifactError(f"{bad} (dtype, shape and size disagree)")
+        if data_start + offset + nbytes > size:
+            raise ArtifactError(
+                f"{path} is truncated or corrupt (array {name} ends past the end of the file)"
+            )
+        end = max(end, data_start + offset + nbytes + _pad(nbytes))
+    if size != end:
+        raise ArtifactError(f"{path} is corrupt ({size} bytes, the manifest describes {end})")
+    return table
+
+
+def _check_fields(manifest: dict[str, Any], path: Path) -> None:
+    """The manifest's descriptive fields have the types the loader relies on; the CRS parses."""
+    crs = manifest.get("crs")
+    if not isinstance(crs, str) or not crs:
+        raise ArtifactError(f"{path}: corrupt manifest (crs)")
+    try:
+        from pyproj import CRS
+        from pyproj.exceptions import CRSError
+
+        try:
+            CRS.from_user_input(crs)
+        except CRSError:
+            raise ArtifactError(f"{path}: the manifest's CRS {crs[:40]!r} is not a valid CRS") from None
+    except ModuleNotFoundError:  # pragma: no cover - pyproj is a dependency
+        pass
+    for key in ("names", "highways"):
+        v = manifest.get(key, [])
+        if not isinstance(v, list) or not all(isinstance(x, str) for x in v):
+            raise ArtifactError(f"{path}: corrupt manifest ({key} must be a list of strings)")
+    if not isinstance(manifest.get("meta", {}), dict):
+        raise ArtifactError(f"{path}: corrupt manifest (meta)")
 
 
 def read_manifest(path: str | os.PathLike[str]) -> dict[str, Any]:
@@ -204,14 +298,14 @@ def load_map(path: str | os.PathLike[str], *, verify: bool = True) -> RoadGraph:
         raise ArtifactError(f"{p} is a directory, not a map file") from exc
     except OSError as exc:
         raise ArtifactError(f"cannot read map file {p}: {exc.strerror}") from exc
-    table = manifest.get("arrays", {})
-    missing = [k for k in ARRAY_FIELDS if k not in table]
-    if missing:
-        raise ArtifactError(f"{p}: map file lacks arrays {', '.join(missing)}")
-    end = data_start + max((t["offset"] + t["nbytes"] for t in table.values()), default=0)
-    if end > size:
-        raise ArtifactError(f"{p} is truncated ({size} of {end} bytes)")
+    table = _checked_table(manifest, p, data_start, size)
+    _check_fields(manifest, p)
     buf: NDArray[np.uint8] = np.memmap(p, dtype=np.uint8, mode="r") if size else np.empty(0, np.uint8)
+    for name, t in table.items():  # the padding after each array is zeros
+        lo = data_start + t["offset"] + t["nbytes"]
+        gap = buf[lo : lo + _pad(t["nbytes"])]
+        if gap.any():
+            raise ArtifactError(f"{p}: corrupt padding after array {name} (file corrupt)")
     arrays: dict[str, NDArray[Any]] = {}
     for name in ARRAY_FIELDS:
         t = table[name]
@@ -225,13 +319,16 @@ def load_map(path: str | os.PathLike[str], *, verify: bool = True) -> RoadGraph:
             raise ArtifactError(f"{p}: bad array {name}: {exc}") from exc
     meta = manifest.get("meta", {})
     meta = {**meta, "artifact": {"path": str(p), "bytes": size}}
-    return RoadGraph(
-        crs=str(manifest["crs"]),
-        names=list(manifest.get("names", [])),
-        highways=list(manifest.get("highways", [])),
-        meta=meta,
-        **arrays,
-    )
+    try:
+        return RoadGraph(
+            crs=str(manifest["crs"]),
+            names=list(manifest.get("names", [])),
+            highways=list(manifest.get("highways", [])),
+            meta=meta,
+            **arrays,
+        )
+    except (TypeError, ValueError, KeyError) as exc:  # arrays that disagree with each other
+        raise ArtifactError(f"{p}: corrupt map ({type(exc).__name__}: {str(exc)[:200]})") from None
 
 
 def file_sha256(path: str | os.PathLike[str], *, chunk: int = 1 << 22) -> str:

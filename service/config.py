@@ -1,7 +1,7 @@
-"""Server configuration from CLI flags and ``MAPMATCH_*`` environment variables.
+"""Server configuration from CLI flags, ``MAPMATCH_*`` environment variables and a TOML file.
 
-Precedence: a CLI flag, else the environment variable, else the default. Defaults are safe:
-plain (no TLS) on loopback.
+Precedence: a CLI flag, else the environment variable, else the config file (``--config``),
+else the default. Defaults are safe: plain (no TLS) on loopback, no ``LoadMap`` of paths.
 
 ==========================  ==========================  ===================================
 environment variable        flag                        meaning
@@ -18,9 +18,30 @@ MAPMATCH_SESSION_TTL        --session-ttl SECONDS       idle session lifetime (6
 MAPMATCH_MAX_MESSAGE_BYTES  --max-message-bytes N       largest request message (4 MiB)
 MAPMATCH_WORKERS            --workers N                 threads for batch matching and map loads (2)
 MAPMATCH_GRACE              --grace SECONDS             drain time on shutdown (10)
-MAPMATCH_REUSE_PORT         --reuse-port / --no-reuse-port  SO_REUSEPORT (on), for several processes
-MAPMATCH_LOG_FORMAT         --log-format json|text      access log format (json)
+MAPMATCH_REUSE_PORT         --reuse-port                SO_REUSEPORT (off), for several processes
+MAPMATCH_LOG_FORMAT         --log-format json|text      log format: JSON lines or text (json)
+MAPMATCH_MAP_DIR            --map-dir DIR               LoadMap reads files only here (off)
+MAPMATCH_MAX_BATCH_FIXES    --max-batch-fixes N         fixes per FixBatch (1000)
+MAPMATCH_MAX_TRACK_POINTS   --max-track-points N        points per track (100000)
+MAPMATCH_MAX_ANSWER_BYTES   --max-answer-bytes N        largest answer message (4 MiB)
+MAPMATCH_MAX_VEHICLE_ID     --max-vehicle-id N          vehicle_id length, UTF-8 bytes (128)
+MAPMATCH_MAX_TIME_JUMP      --max-time-jump SECONDS     larger time jumps restart a session (3600)
+MAPMATCH_ONLINE_WORKERS     --online-workers N          threads for online updates (1)
+MAPMATCH_BATCH_SLICE        --batch-slice N             fixes per slice of a batch answer (64)
+MAPMATCH_MAX_MAP_BYTES      --max-map-bytes N           largest map file LoadMap reads (4 GiB)
+MAPMATCH_LOAD_TIMEOUT       --load-timeout SECONDS      time limit of a map build from source (300)
+MAPMATCH_LOAD_MEMORY_BYTES  --load-memory-bytes N       memory limit of a map build from source (8 GiB)
+MAPMATCH_CONFIG             --config FILE               TOML file with any of the above
 ==========================  ==========================  ===================================
+
+The TOML file uses the attribute names of :class:`ServerConfig` (``-`` or ``_``), maps as a
+table of ``name = "path"``; relative paths are taken from the file's folder::
+
+    address = "0.0.0.0:50051"
+    map_dir = "/srv/maps"
+    max_time_jump = 600
+    [maps]
+    hel = "helsinki.map"
 """
 
 from __future__ import annotations
@@ -28,9 +49,11 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import os
+import tomllib
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 from mapmatch.errors import ConfigError
 
@@ -64,9 +87,32 @@ class ServerConfig:
     grace : float
         Seconds in-flight calls get to finish on shutdown.
     reuse_port : bool
-        Set SO_REUSEPORT so several processes can share one port.
+        Set SO_REUSEPORT so several processes can share one port (off: a port in use is an error).
     log_format : str
-        ``"json"`` or ``"text"`` access logs.
+        ``"json"`` (one JSON object per line) or ``"text"`` logs.
+    map_dir : Path or None
+        ``LoadMap`` reads only regular files inside this folder; None disables ``LoadMap`` of paths.
+    max_batch_fixes : int
+        Fixes in one ``FixBatch``; more give RESOURCE_EXHAUSTED naming ``max_batch_fixes``.
+    max_track_points : int
+        Points in one track; more give RESOURCE_EXHAUSTED naming ``max_track_points``.
+    max_answer_bytes : int
+        Largest answer message; a larger answer gives RESOURCE_EXHAUSTED naming ``max_answer_bytes``.
+    max_vehicle_id : int
+        Longest ``vehicle_id`` in UTF-8 bytes.
+    max_time_jump : float
+        A fix more than this many seconds away from its session's last accepted fix (either
+        way) starts the session afresh (state ``reinitialised``) instead of being rejected.
+    online_workers : int
+        Threads running online updates (off the event loop, which does only protocol work).
+    batch_slice : int
+        A ``FixBatch`` is matched in slices of this many fixes, other streams' work in between.
+    max_map_bytes : int
+        Largest file ``LoadMap`` (or a start-up map) reads.
+    load_timeout : float
+        Seconds a map build from an OSM/GIS source may take (in a child process).
+    load_memory_bytes : int
+        Address-space limit of that child process.
     """
 
     address: str = "127.0.0.1:50051"
@@ -80,8 +126,19 @@ class ServerConfig:
     max_message_bytes: int = 4 * 1024 * 1024
     workers: int = 2
     grace: float = 10.0
-    reuse_port: bool = True
+    reuse_port: bool = False
     log_format: str = "json"
+    map_dir: Path | None = None
+    max_batch_fixes: int = 1000
+    max_track_points: int = 100_000
+    max_answer_bytes: int = 4 * 1024 * 1024
+    max_vehicle_id: int = 128
+    max_time_jump: float = 3600.0
+    online_workers: int = 1
+    batch_slice: int = 64
+    max_map_bytes: int = 4 * 1024**3
+    load_timeout: float = 300.0
+    load_memory_bytes: int = 8 * 1024**3
 
     def __post_init__(self) -> None:
         if ":" not in self.address:
@@ -98,6 +155,15 @@ class ServerConfig:
             raise ConfigError(f"log_format must be json or text, got {self.log_format!r}")
         if self.token is not None and not self.token.strip():
             raise ConfigError("token must not be empty")
+        for name in ("max_batch_fixes", "max_track_points", "max_answer_bytes", "max_vehicle_id",
+                     "online_workers", "batch_slice", "max_map_bytes", "load_memory_bytes"):  # fmt: skip
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, int) or v < 1:
+                raise ConfigError(f"{name} must be a positive integer, got {v!r}")
+        for name in ("max_time_jump", "load_timeout"):
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, int | float) or not v > 0:
+                raise ConfigError(f"{name} must be a positive number of seconds, got {v!r}")
         names = [n for n, _ in self.maps]
         if len(set(names)) != len(names):
             raise ConfigError("map names must be unique")
@@ -146,9 +212,41 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--reuse-port",
         action=argparse.BooleanOptionalAction,
         default=None,
-        help="SO_REUSEPORT for several processes on one port [MAPMATCH_REUSE_PORT; on]",
+        help="SO_REUSEPORT for several processes on one port [MAPMATCH_REUSE_PORT; off]",
     )
-    parser.add_argument("--log-format", choices=("json", "text"), help="access logs [MAPMATCH_LOG_FORMAT]")
+    parser.add_argument(
+        "--log-format", choices=("json", "text"), help="JSON lines or text logs [MAPMATCH_LOG_FORMAT; json]"
+    )
+    parser.add_argument("--config", type=Path, help="TOML file with server settings [MAPMATCH_CONFIG]")
+    parser.add_argument(
+        "--map-dir", type=Path, help="LoadMap reads only files in here [MAPMATCH_MAP_DIR; off]"
+    )
+    for flag, kind, text in _LIMIT_FLAGS:
+        parser.add_argument(flag, type=kind, help=text)
+
+
+_LIMIT_FLAGS: tuple[tuple[str, type, str], ...] = (
+    ("--max-batch-fixes", int, "fixes per FixBatch [MAPMATCH_MAX_BATCH_FIXES; 1000]"),
+    ("--max-track-points", int, "points per track [MAPMATCH_MAX_TRACK_POINTS; 100000]"),
+    ("--max-answer-bytes", int, "largest answer message [MAPMATCH_MAX_ANSWER_BYTES; 4 MiB]"),
+    ("--max-vehicle-id", int, "vehicle_id length in bytes [MAPMATCH_MAX_VEHICLE_ID; 128]"),
+    ("--max-time-jump", float, "seconds; larger jumps restart a session [MAPMATCH_MAX_TIME_JUMP; 3600]"),
+    ("--online-workers", int, "threads for online updates [MAPMATCH_ONLINE_WORKERS; 1]"),
+    ("--batch-slice", int, "fixes per slice of a batch answer [MAPMATCH_BATCH_SLICE; 64]"),
+    ("--max-map-bytes", int, "largest map file read [MAPMATCH_MAX_MAP_BYTES; 4 GiB]"),
+    ("--load-timeout", float, "seconds for a map build from source [MAPMATCH_LOAD_TIMEOUT; 300]"),
+    ("--load-memory-bytes", int, "memory for a map build from source [MAPMATCH_LOAD_MEMORY_BYTES; 8 GiB]"),
+)
+_NUMBERS: dict[str, type[int] | type[float]] = {
+    "max_sessions": int,
+    "session_ttl": float,
+    "max_message_bytes": int,
+    "workers": int,
+    "grace": float,
+    **{f[2:].replace("-", "_"): k for f, k, _ in _LIMIT_FLAGS},
+}
+_PATHS = ("tls_cert", "tls_key", "client_ca", "map_dir")
+_FIELDS = {f.name for f in dataclasses.fields(ServerConfig)}
 
 
 def _bool(name: str, text: str) -> bool:
@@ -167,13 +265,66 @@ def _num(name: str, text: str, kind: type[int] | type[float]) -> int | float:
         raise ConfigError(f"{ENV_PREFIX}{name} must be a number, got {text!r}") from None
 
 
+def read_config_file(path: Path) -> dict[str, Any]:
+    """Settings from a TOML file, keyed by :class:`ServerConfig` attribute (paths resolved).
+
+    Raises
+    ------
+    ConfigError
+        Unreadable file, bad TOML, an unknown key or a value of the wrong type.
+    """
+    try:
+        data = tomllib.loads(Path(path).read_text(encoding="utf-8"))
+    except OSError as exc:
+        raise ConfigError(f"config file {path}: cannot read it ({exc.strerror})") from None
+    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
+        raise ConfigError(f"config file {path}: not valid TOML ({exc})") from None
+    base = Path(path).parent
+    out: dict[str, Any] = {}
+    for raw_key, value in data.items():
+        key = raw_key.replace("-", "_")
+        if key not in _FIELDS and key != "token_file":
+            raise ConfigError(f"config file {path}: unknown setting {raw_key!r}")
+        if key == "maps":
+            if not isinstance(value, dict) or not all(isinstance(v, str) for v in value.values()):
+                raise ConfigError(f'config file {path}: maps must be a table of name = "path"')
+            out[key] = tuple((str(n), base / v) for n, v in value.items())
+        elif key in _PATHS or key == "token_file":
+            if not isinstance(value, str):
+                raise ConfigError(f"config file {path}: {raw_key} must be a path string")
+            out[key] = base / value
+        elif key in _NUMBERS:
+            if isinstance(value, bool) or not isinstance(value, int | float):
+                raise ConfigError(f"config file {path}: {raw_key} must be a number")
+            out[key] = _NUMBERS[key](value)
+        elif key == "reuse_port":
+            if not isinstance(value, bool):
+                raise ConfigError(f"config file {path}: reuse_port must be true or false")
+            out[key] = value
+        else:
+            if not isinstance(value, str):
+                raise ConfigError(f"config file {path}: {raw_key} must be a string")
+            out[key] = value
+    return out
+
+
+def _read_token(path: Path) -> str:
+    try:
+        return Path(path).read_text().strip()
+    except OSError as exc:
+        raise ConfigError(f"token file {path}: cannot read it ({exc.strerror})") from None
+
+
 def config_from(
     args: argparse.Namespace | None = None, environ: Mapping[str, str] | None = None
 ) -> ServerConfig:
-    """Merge CLI flags (``args`` from :func:`add_arguments`) over the environment over defaults."""
+    """Merge CLI flags (``args`` from :func:`add_arguments`) over the environment over the
+    config file over defaults."""
     env = os.environ if environ is None else environ
     ns = vars(args) if args is not None else {}
-    out: dict[str, object] = {}
+    cfg_path = ns.get("config") or env.get(ENV_PREFIX + "CONFIG") or None
+    file = read_config_file(Path(cfg_path)) if cfg_path else {}
+    out: dict[str, object] = {k: v for k, v in file.items() if k != "token_file"}
 
     def pick(key: str) -> object:
         v = ns.get(key)
@@ -182,8 +333,7 @@ def config_from(
         text = env.get(ENV_PREFIX + key.upper())
         return text if text not in (None, "") else None
 
-    for key, kind in (("max_sessions", int), ("session_ttl", float), ("max_message_bytes", int),
-                      ("workers", int), ("grace", float)):  # fmt: skip
+    for key, kind in _NUMBERS.items():
         v = pick(key)
         if v is not None:
             out[key] = _num(key.upper(), v, kind) if isinstance(v, str) else v
@@ -191,20 +341,26 @@ def config_from(
         v = pick(key)
         if v is not None:
             out[key] = str(v)
-    for key in ("tls_cert", "tls_key", "client_ca"):
+    for key in _PATHS:
         v = pick(key)
         if v is not None:
             out[key] = Path(str(v))
     v = pick("reuse_port")
     if v is not None:
         out["reuse_port"] = _bool("REUSE_PORT", v) if isinstance(v, str) else bool(v)
-    if "token" not in out:
+    if pick("token") is None:
         tf = pick("token_file")
         if tf is not None:
-            out["token"] = Path(str(tf)).read_text().strip()
+            out["token"] = _read_token(Path(str(tf)))
+        elif "token" not in out and "token_file" in file:
+            out["token"] = _read_token(file["token_file"])
     specs = ns.get("maps")
     if not specs:
         text = env.get(ENV_PREFIX + "MAPS", "")
         specs = [s for s in text.split(",") if s.strip()]
-    out["maps"] = tuple(parse_map_spec(s) for s in specs)
-    return ServerConfig(**out)  # type: ignore[arg-type]
+    if specs:
+        out["maps"] = tuple(parse_map_spec(s) for s in specs)
+    try:
+        return ServerConfig(**out)  # type: ignore[arg-type]
+    except TypeError as exc:
+        raise ConfigError(f"bad setting: {exc}") from None

@@ -1,13 +1,27 @@
-"""The registry of loaded maps: several cities per server, loaded and unloaded at run time.
+"""The registry of loaded maps: several cities per server, loaded and replaced at run time.
 
 Each entry holds the read-only :class:`RoadGraph`, its :class:`EdgeIndex` and the shared,
 thread-safe online and batch matchers built on it. Requests name a map by id; an empty id
 means the only loaded map.
+
+A map is loaded and warmed up (:func:`warm_up`) before it is registered, so a replacement
+that fails leaves the map it would replace serving. Files named by clients
+(:func:`resolve_map_path`) must be regular files inside the configured map folder; a map
+built from an OSM/GIS source is built in a child process with time and memory limits
+(:func:`load_map_file`).
 """
 
 from __future__ import annotations
 
 import hashlib
+import math
+import os
+import resource
+import shutil
+import stat
+import subprocess
+import sys
+import tempfile
 import threading
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -16,23 +30,26 @@ from typing import Any
 
 import numpy as np
 
-from graph.artifact import open_map
+from graph.artifact import MAGIC, load_map, save_map
 from graph.errors import GraphError
 from graph.index import EdgeIndex
 from graph.road_graph import ARRAY_FIELDS, RoadGraph
 from mapmatch.config import DEFAULT_CONFIG, MatchConfig
-from mapmatch.errors import MatchError, ValidationError
+from mapmatch.errors import ValidationError
+from mapmatch.types import Fix, State, Track
+from service.errors import LimitError, MapLoadError, MapNotFoundError, MapPathError
 
-
-class MapNotFoundError(MatchError, LookupError):
-    """A request named a map this server has not loaded (gRPC NOT_FOUND)."""
-
-    def __init__(self, map_id: str, known: list[str]) -> None:
-        have = ", ".join(known) if known else "none"
-        msg = f"map_id: unknown map {map_id!r} (loaded: {have})" if map_id else "map_id: no map is loaded"
-        super().__init__(msg)
-        self.map_id = map_id
-        self.field = "map_id"
+__all__ = [
+    "LoadLimits",
+    "MapEntry",
+    "MapNotFoundError",
+    "MapRegistry",
+    "graph_checksum",
+    "load_map_file",
+    "make_entry",
+    "resolve_map_path",
+    "warm_up",
+]
 
 
 def graph_checksum(graph: RoadGraph) -> str:
@@ -81,8 +98,20 @@ class MapEntry:
 
     @property
     def build_parameters(self) -> dict[str, Any]:
+        """The map's build metadata, with file paths cut to their file names."""
         meta = self.graph.meta
-        return {k: v for k, v in meta.items() if k != "artifact"}
+        return {k: _no_paths(v) for k, v in meta.items() if k != "artifact"}
+
+
+def _no_paths(obj: Any) -> Any:
+    """``obj`` with every string that looks like a file path reduced to its last part."""
+    if isinstance(obj, dict):
+        return {k: _no_paths(v) for k, v in obj.items()}
+    if isinstance(obj, list | tuple):
+        return [_no_paths(v) for v in obj]
+    if isinstance(obj, str) and ("/" in obj or "\\" in obj or obj.startswith("~")):
+        return obj.replace("\\", "/").rstrip("/").rsplit("/", 1)[-1]
+    return obj
 
 
 def make_entry(
@@ -116,29 +145,41 @@ class MapRegistry:
         self.config = config
         self.on_unload: list[Callable[[str], int]] = []
 
-    def add(self, map_id: str, graph: RoadGraph, *, source: str = "") -> MapEntry:
-        """Register (or replace) a map; returns its entry."""
+    def add(self, map_id: str, graph: RoadGraph, *, source: str = "", warm: bool = True) -> MapEntry:
+        """Build, warm up (unless ``warm`` is False) and register a map, replacing one of the
+        same id only once the new one has passed; returns its entry."""
+        entry = self.prepare(map_id, graph, source=source)
+        if warm:
+            warm_up(entry)
+        return self.install(entry)
+
+    def prepare(self, map_id: str, graph: RoadGraph, *, source: str = "") -> MapEntry:
+        """A map's entry (index and matchers), not yet registered."""
         if not map_id or "/" in map_id:
-            raise ValueError("map id must be a non-empty name without '/'")
-        entry = make_entry(map_id, graph, source=source, config=self.config)
+            raise ValidationError("map_id", "must be a non-empty name without '/'")
+        return make_entry(map_id, graph, source=source, config=self.config)
+
+    def install(self, entry: MapEntry) -> MapEntry:
+        """Register a prepared (and warmed-up) entry, replacing any map of the same id."""
         with self._lock:
-            old = self._maps.get(map_id)
-            self._maps[map_id] = entry
+            old = self._maps.get(entry.map_id)
+            self._maps[entry.map_id] = entry
         if old is not None and old.checksum != entry.checksum:
-            self._dropped(map_id)  # sessions refer to the old map's edges
+            self._dropped(entry.map_id)  # sessions refer to the old map's edges
         return entry
 
-    def load(self, map_id: str, path: Path) -> MapEntry:
-        """Load a map file (or source) from disk and register it."""
-        try:
-            graph = open_map(Path(path))
-        except (GraphError, MatchError, OSError):
-            raise
-        except Exception as exc:  # e.g. a corrupt file the loader did not recognise
-            raise ValidationError(
-                "path", f"cannot load map {map_id!r} from {path} ({type(exc).__name__})"
-            ) from exc
-        return self.add(map_id, graph, source=str(path))
+    def load(
+        self, map_id: str, path: Path, *, limits: LoadLimits | None = None, source: str = ""
+    ) -> MapEntry:
+        """Load a map file (or source) from disk, warm it up and register it.
+
+        Raises
+        ------
+        MapLoadError, GraphError, LimitError
+            The file cannot be served; a map of the same id stays as it was.
+        """
+        graph = load_map_file(Path(path), limits=limits or LoadLimits(), name=source or Path(path).name)
+        return self.add(map_id, graph, source=source or Path(path).name)
 
     def unload(self, map_id: str) -> int:
         """Remove a map; returns the number of sessions dropped with it."""
@@ -182,3 +223,195 @@ class MapRegistry:
     def __contains__(self, map_id: object) -> bool:
         with self._lock:
             return map_id in self._maps
+
+
+# ---------------------------------------------------------------------------------- loading
+@dataclass(frozen=True)
+class LoadLimits:
+    """Limits of one map load.
+
+    Attributes
+    ----------
+    max_bytes : int
+        Largest file read.
+    timeout : float
+        Seconds a build from an OSM/GIS source may take.
+    memory_bytes : int
+        Address-space limit of the child process that builds from a source.
+    """
+
+    max_bytes: int = 4 * 1024**3
+    timeout: float = 300.0
+    memory_bytes: int = 8 * 1024**3
+
+
+def resolve_map_path(map_dir: Path | None, requested: str) -> Path:
+    """The real path of a client-named map file; :class:`MapPathError` (one message for
+    every reason) unless it is a regular file inside ``map_dir``.
+
+    The file is opened non-blocking and checked with ``fstat``, so a FIFO or device never
+    blocks; symlinks may point anywhere inside ``map_dir`` but not out of it.
+    """
+    if map_dir is None or not requested or "\0" in requested:
+        raise MapPathError()
+    root = os.path.realpath(map_dir)
+    real = os.path.realpath(os.path.join(root, requested))
+    if os.path.commonpath([root, real]) != root or real == root:
+        raise MapPathError()
+    try:
+        fd = os.open(real, os.O_RDONLY | os.O_NONBLOCK | getattr(os, "O_NOCTTY", 0))
+    except OSError:
+        raise MapPathError() from None
+    try:
+        if not stat.S_ISREG(os.fstat(fd).st_mode):
+            raise MapPathError()
+    finally:
+        os.close(fd)
+    return Path(real)
+
+
+def load_map_file(path: Path, *, limits: LoadLimits, name: str = "") -> RoadGraph:
+    """A map from a prepared map file, or built from an OSM/GIS source in a child process
+    limited to ``limits.timeout`` seconds and ``limits.memory_bytes`` of memory.
+
+    Errors name the file as ``name`` (never the server's path).
+    """
+    shown = name or path.name
+    try:
+        fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK)
+    except FileNotFoundError:
+        raise MapLoadError(f"path: no such map file {shown!r}") from None
+    except OSError as exc:
+        raise MapLoadError(f"path: cannot read map file {shown!r} ({exc.strerror})") from None
+    try:
+        st = os.fstat(fd)
+        if not stat.S_ISREG(st.st_mode):
+            raise MapLoadError(f"path: {shown!r} is not a regular file")
+        if st.st_size > limits.max_bytes:
+            raise LimitError(
+                "max_map_bytes",
+                f"map file {shown!r} has {st.st_size} bytes, over the limit of {limits.max_bytes}",
+            )
+        head = os.read(fd, len(MAGIC))
+    finally:
+        os.close(fd)
+    try:
+        if head[:-1] == MAGIC[:-1]:
+            return load_map(path)
+        return _build_in_child(path, limits=limits)
+    except GraphError as exc:
+        raise MapLoadError(f"path: map {shown!r}: {_hide(str(exc), path, shown)}") from None
+
+
+def _hide(text: str, path: Path, shown: str) -> str:
+    return text.replace(str(path), shown).replace(str(path.parent) + os.sep, "")
+
+
+def _build_in_child(path: Path, *, limits: LoadLimits) -> RoadGraph:
+    """Build a map from a source file in a child process with resource limits; the child
+    writes a map file that is memory-mapped here."""
+    tmp = Path(tempfile.mkdtemp(prefix="mapmatch-build-"))
+    out = tmp / "built.map"
+
+    def limit() -> None:  # in the child, before exec
+        resource.setrlimit(resource.RLIMIT_AS, (limits.memory_bytes, limits.memory_bytes))
+        cpu = max(1, math.ceil(limits.timeout))
+        resource.setrlimit(resource.RLIMIT_CPU, (cpu, cpu + 5))
+
+    try:
+        try:
+            proc = subprocess.run(
+                [sys.executable, "-m", __name__, str(path), str(out)],
+                stdin=subprocess.DEVNULL,
+                stdout=subprocess.DEVNULL,
+                stderr=subprocess.PIPE,
+                timeout=limits.timeout,
+                preexec_fn=limit,  # noqa: PLW1509 - only setrlimit, no locks taken
+                check=False,
+            )
+        except subprocess.TimeoutExpired:
+            raise LimitError("load_timeout", f"building the map took over {limits.timeout:g} s") from None
+        if proc.returncode != 0:
+            lines = proc.stderr.decode(errors="replace").strip().splitlines()
+            last = lines[-1] if lines else f"exit status {proc.returncode}"
+            if proc.returncode < 0 or "MemoryError" in last:
+                raise LimitError(
+                    "load_memory_bytes",
+                    f"building the map was stopped ({last}; limits {limits.memory_bytes} bytes, "
+                    f"{limits.timeout:g} s)",
+                )
+            raise MapLoadError(f"path: cannot build a map from it: {last}")
+        graph = load_map(out)
+        return graph
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)  # the memory map keeps the data
+
+
+def _child_main(argv: list[str]) -> int:
+    from graph.build import build_map
+
+    try:
+        save_map(build_map(Path(argv[0])), argv[1])
+    except GraphError as exc:
+        print(str(exc).splitlines()[0] if str(exc) else type(exc).__name__, file=sys.stderr)
+        return 2
+    except MemoryError:
+        print("MemoryError: over the memory limit", file=sys.stderr)
+        return 3
+    return 0
+
+
+# ---------------------------------------------------------------------------------- warm-up
+def warm_up(entry: MapEntry) -> None:
+    """One online fix on the middle of the map's longest road (and one batch match when the
+    batch matcher is available) through the matchers and converters requests use; raises
+    :class:`MapLoadError` when the map cannot serve. Leaves no session behind."""
+    from service import convert
+
+    g = entry.graph
+    if g.n_edges == 0:
+        raise MapLoadError(f"path: map {entry.map_id!r} has no roads")
+    e = int(g.edge_len.argmax())
+    u, v = int(g.edge_u[e]), int(g.edge_v[e])
+    lon0, lat0 = (float(x) for x in g.node_lonlat[u])
+    lon1, lat1 = (float(x) for x in g.node_lonlat[v])
+    lat, lon = (lat0 + lat1) / 2.0, (lon0 + lon1) / 2.0
+    fix = Fix(
+        time=0.0, lat=lat, lon=lon, heading=float(g.edge_bearing_start[e]) % 360.0, pos_sigma=5.0, speed=5.0
+    )
+    try:
+        fix.validate()
+        result = entry.online.update(entry.online.new_session(), fix)
+        convert.snap_result_to_proto(result)
+    except (ValidationError, GraphError) as exc:
+        raise MapLoadError(f"path: map {entry.map_id!r} failed its warm-up query ({exc})") from None
+    except Exception as exc:
+        raise MapLoadError(
+            f"path: map {entry.map_id!r} failed its warm-up query ({type(exc).__name__})"
+        ) from None
+    if result.state is State.OFF_ROAD or not math.isfinite(result.time):
+        raise MapLoadError(
+            f"path: map {entry.map_id!r} failed its warm-up: a fix on one of its roads came back off-road "
+            "(wrong CRS or coordinates?)"
+        )
+    try:
+        import mapmatch.batch  # noqa: F401
+    except ModuleNotFoundError:
+        return
+    try:
+        entry.batch.match(
+            Track(
+                track_id="warmup",
+                time=np.array([0.0, 1.0]),
+                lat=np.array([lat0, lat]),
+                lon=np.array([lon0, lon]),
+            )
+        )
+    except Exception as exc:
+        raise MapLoadError(
+            f"path: map {entry.map_id!r} failed its batch warm-up ({type(exc).__name__})"
+        ) from None
+
+
+if __name__ == "__main__":
+    sys.exit(_child_main(sys.argv[1:]))

@@ -16,23 +16,11 @@ from contextlib import contextmanager
 from dataclasses import dataclass, field
 from typing import Any
 
-from mapmatch.errors import MatchError
+from service.errors import SessionExistsError, SessionLimitError, SessionNotFoundError
+
+__all__ = ["Session", "SessionExistsError", "SessionLimitError", "SessionNotFoundError", "SessionStore"]
 
 SessionKey = tuple[str, str]
-
-
-class SessionLimitError(MatchError):
-    """The server holds its maximum number of sessions (gRPC RESOURCE_EXHAUSTED)."""
-
-
-class SessionExistsError(MatchError):
-    """An imported session would replace a live one (gRPC ALREADY_EXISTS)."""
-
-
-class SessionNotFoundError(MatchError, LookupError):
-    """No live session for that vehicle (gRPC NOT_FOUND)."""
-
-    field = "vehicle_id"
 
 
 @dataclass(eq=False, slots=True)
@@ -93,7 +81,11 @@ class SessionStore:
     # ------------------------------------------------------------------ API
     @contextmanager
     def use(self, map_id: str, vehicle_id: str, factory: Callable[[], Any]) -> Iterator[Session]:
-        """The vehicle's session (created with ``factory()`` when absent), locked for the block.
+        """The vehicle's session (a new one from ``factory()`` when absent), locked for the block.
+
+        Only a block that ends without an exception counts as use: it refreshes the session's
+        idle timer, and a new session is stored only then. A rejected fix (an exception out of
+        the block) neither creates a session nor keeps one alive.
 
         Raises
         ------
@@ -105,18 +97,25 @@ class SessionStore:
         with self._lock:
             s = self._get_locked(key, now)
             if s is None:
-                self._expire_locked(now)
-                if len(self._sessions) >= self.max_sessions:
-                    raise SessionLimitError(
-                        f"session limit reached ({self.max_sessions} vehicles); retry later or end sessions"
-                    )
+                self._full_check_locked(now)
                 s = Session(key=key, state=factory(), last_used=now)
-                self._sessions[key] = s
-            else:
-                s.last_used = now
-                self._sessions.move_to_end(key)
         with s.lock:
             yield s
+        with self._lock:
+            cur = self._sessions.get(key)
+            if cur is not s:
+                if cur is None:
+                    self._full_check_locked(self._clock())
+                self._sessions[key] = s
+            s.last_used = self._clock()
+            self._sessions.move_to_end(key)
+
+    def _full_check_locked(self, now: float) -> None:
+        self._expire_locked(now)
+        if len(self._sessions) >= self.max_sessions:
+            raise SessionLimitError(
+                f"session limit reached ({self.max_sessions} vehicles); retry later or end sessions"
+            )
 
     def drop(self, map_id: str, vehicle_id: str) -> bool:
         """End a session; returns whether it existed (and was live)."""
@@ -159,9 +158,7 @@ class SessionStore:
             if old is not None and not replace:
                 raise SessionExistsError(f"vehicle {vehicle_id!r} already has a session on map {map_id!r}")
             if old is None:
-                self._expire_locked(now)
-                if len(self._sessions) >= self.max_sessions:
-                    raise SessionLimitError(f"session limit reached ({self.max_sessions} vehicles)")
+                self._full_check_locked(now)
             self._sessions[key] = Session(key=key, state=state, last_used=now)
             self._sessions.move_to_end(key)
 
