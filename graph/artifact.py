@@ -189,7 +189,8 @@ def _read_head(f: Any, path: Path) -> tuple[dict[str, Any], int]:
     found = _DIGEST_RE.findall(raw)
     if len(found) != 1:
         raise ArtifactError(
-            f"{path}: the manifest has no checksum (corrupt, or written by an older version: prepare the map again)"
+            f"{path}: the manifest has no checksum (corrupt, or written by an older version: "
+            "prepare the map again)"
         )
     digest = found[0].decode()
     zeroed = raw.replace(_digest_field(digest), _digest_field(_ZERO_DIGEST), 1)

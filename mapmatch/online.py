@@ -272,6 +272,15 @@ class SessionState:
         for h in st.hyps:
             if not h.edges or not 0 <= h.k < len(h.edges) or len(h.enter) != h.k + 1:
                 raise ValidationError("state", "not a valid session state (bad hypothesis)")
+        # interim field checks (the #13 codec validates every field): no infinities, and
+        # variances / σ are non-negative or unset
+        for key, v in (("t", st.time), ("odo", st.odo), ("xy", st.x), ("xy", st.y), ("bad", st.bad_time)):
+            if math.isinf(v):
+                raise ValidationError(key, "must be finite or unset")
+        for key, v in (("res", st.res_pos2), ("res", st.res_head2), ("res", st.drift_sigma),
+                       ("odo", st.odo_kvar), ("odo", st.anc_sd), ("b", st.bias[2]), ("b", st.bias[4])):  # fmt: skip
+            if not (math.isnan(v) or (math.isfinite(v) and v >= 0.0)):
+                raise ValidationError(key, "variances and sigmas must be finite and non-negative")
         return st
 
 

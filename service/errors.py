@@ -22,10 +22,10 @@ __all__ = [
     "MapLoadError",
     "MapNotFoundError",
     "MapPathError",
+    "ServiceError",
     "SessionExistsError",
     "SessionLimitError",
     "SessionNotFoundError",
-    "ServiceError",
     "log_internal",
     "status_for",
 ]
@@ -67,7 +67,7 @@ class MapPathError(ServiceError):
 
 class MapLoadError(ServiceError):
     """A map file was read but cannot be served: corrupt, no roads, failed warm-up, or over
-    the time/memory limits of a load (FAILED_PRECONDITION). A map it would replace stays."""
+    the time/memory limits of a load (INVALID_ARGUMENT). A map it would replace stays."""
 
     field = "path"
 
@@ -106,7 +106,7 @@ _CODES: tuple[tuple[type[BaseException], grpc.StatusCode], ...] = (
     (LimitError, grpc.StatusCode.RESOURCE_EXHAUSTED),
     (SessionExistsError, grpc.StatusCode.ALREADY_EXISTS),
     (MapPathError, grpc.StatusCode.PERMISSION_DENIED),
-    (MapLoadError, grpc.StatusCode.FAILED_PRECONDITION),
+    (MapLoadError, grpc.StatusCode.INVALID_ARGUMENT),
 )
 
 
@@ -116,7 +116,7 @@ def status_for(exc: BaseException) -> tuple[grpc.StatusCode, str, str]:
         if isinstance(exc, kind):
             return code, str(getattr(exc, "field", "")), str(exc)
     if isinstance(exc, GraphError):
-        return grpc.StatusCode.FAILED_PRECONDITION, "path", f"path: {exc}"
+        return grpc.StatusCode.INVALID_ARGUMENT, "path", f"path: {exc}"
     if isinstance(exc, ConfigError | MatchError):
         return grpc.StatusCode.INVALID_ARGUMENT, "", str(exc)
     if isinstance(exc, ModuleNotFoundError | NotImplementedError):

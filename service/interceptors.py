@@ -1,14 +1,15 @@
-"""Server interceptors: bearer-token auth, error mapping and structured access logs.
+"""Server interceptors, one concern each (in the order they wrap a call, outermost first).
 
-* Auth: when a token is configured, every call but health checks needs the metadata
-  ``authorization: Bearer <token>``; otherwise UNAUTHENTICATED.
-* Errors: exceptions from the ``mapmatch``/``graph`` hierarchies become precise statuses
-  (:func:`status_for`); the offending field is named in the details and in the trailing
-  metadata key ``mapmatch-field``. Anything else is INTERNAL, logged with its traceback,
-  and never reaches the client.
-* Access log: one structured line per call on logger ``mapmatch.access`` with method, peer,
-  status, duration, message counts, the method's running call count and, for bidirectional
-  streams, per-message latency (p50/max).
+* :class:`AccessLogInterceptor`: one structured line per call on logger ``mapmatch.access``
+  with method, peer, status, duration, message counts, the method's running call count and,
+  for bidirectional streams, per-message latency (p50/max); ``json`` gives one JSON object
+  per line.
+* :class:`AuthInterceptor`: when a token is configured, every call but health checks needs
+  the metadata ``authorization: Bearer <token>``; otherwise UNAUTHENTICATED.
+* :class:`StatusInterceptor`: exceptions become precise statuses
+  (:func:`service.errors.status_for`), the offending field named in the details and in the
+  trailing metadata key ``mapmatch-field``; a request whose bytes do not decode gets
+  INVALID_ARGUMENT (not UNKNOWN or INTERNAL, and no traceback).
 """
 
 from __future__ import annotations
@@ -28,46 +29,192 @@ from typing import Any
 import grpc
 from grpc import aio
 
-from graph.errors import GraphError
-from mapmatch.errors import ConfigError, MatchError, ValidationError
-from service.maps import MapNotFoundError
-from service.sessions import SessionExistsError, SessionLimitError, SessionNotFoundError
+from mapmatch.errors import ValidationError
+from service.errors import log_internal, status_for
 
 log = logging.getLogger("mapmatch.access")
-errlog = logging.getLogger("mapmatch.service")
 
 FIELD_METADATA_KEY = "mapmatch-field"
 HEALTH_PREFIX = "/grpc.health.v1.Health/"
 
+__all__ = [
+    "FIELD_METADATA_KEY",
+    "AccessLogInterceptor",
+    "AuthInterceptor",
+    "Metrics",
+    "StatusInterceptor",
+    "log_internal",
+    "status_for",
+]
 
-def status_for(exc: BaseException) -> tuple[grpc.StatusCode, str, str]:
-    """``(status, field, message)`` for an exception raised while serving a request."""
-    if isinstance(exc, ValidationError):
-        return grpc.StatusCode.INVALID_ARGUMENT, exc.field, str(exc)
-    if isinstance(exc, MapNotFoundError):
-        return grpc.StatusCode.NOT_FOUND, "map_id", str(exc)
-    if isinstance(exc, SessionNotFoundError):
-        return grpc.StatusCode.NOT_FOUND, exc.field, str(exc)
-    if isinstance(exc, SessionLimitError):
-        return grpc.StatusCode.RESOURCE_EXHAUSTED, "", str(exc)
-    if isinstance(exc, SessionExistsError):
-        return grpc.StatusCode.ALREADY_EXISTS, "vehicle_id", str(exc)
-    if isinstance(exc, FileNotFoundError):
-        return grpc.StatusCode.NOT_FOUND, "path", f"path: no such file: {exc.filename}"
-    if isinstance(exc, GraphError):
-        return grpc.StatusCode.INVALID_ARGUMENT, "path", f"path: {exc}"
-    if isinstance(exc, ConfigError | MatchError):
-        return grpc.StatusCode.INVALID_ARGUMENT, "", str(exc)
-    if isinstance(exc, ModuleNotFoundError | NotImplementedError):
-        return grpc.StatusCode.UNIMPLEMENTED, "", "this server lacks that matcher"
-    return grpc.StatusCode.INTERNAL, "", "internal error"
+Around = Callable[[grpc.HandlerCallDetails, aio.ServicerContext], contextlib.AbstractAsyncContextManager[Any]]
 
 
-def log_internal(exc: BaseException, where: str) -> None:
-    """Log an unexpected exception with its traceback (the client sees only INTERNAL)."""
-    errlog.error("unexpected error in %s: %r", where, exc, exc_info=exc)
+class _Wrapping(aio.ServerInterceptor):
+    """Wraps every kind of handler in :meth:`around` (an async context manager per call).
+
+    Subclasses may also transform the request iterator (:meth:`requests`), each response
+    (:meth:`response`) and the request deserializer (:meth:`deserializer`).
+    """
+
+    def around(self, details: grpc.HandlerCallDetails, context: aio.ServicerContext) -> Any:
+        return contextlib.nullcontext()
+
+    def requests(self, state: Any, it: AsyncIterator[Any]) -> AsyncIterator[Any]:
+        return it
+
+    def request(self, state: Any, req: Any) -> Any:
+        return req
+
+    def response(self, state: Any, resp: Any) -> None:
+        return None
+
+    def deserializer(self, inner: Any) -> Any:
+        return inner
+
+    async def intercept_service(
+        self,
+        continuation: Callable[[grpc.HandlerCallDetails], Awaitable[grpc.RpcMethodHandler]],
+        handler_call_details: grpc.HandlerCallDetails,
+    ) -> grpc.RpcMethodHandler:
+        handler = await continuation(handler_call_details)
+        if handler is None:
+            return handler
+        d = handler_call_details
+        if handler.request_streaming and handler.response_streaming:
+            inner, factory = handler.stream_stream, grpc.stream_stream_rpc_method_handler
+            wrapped = self._stream_out(d, inner, streaming_in=True)
+        elif handler.request_streaming:
+            inner, factory = handler.stream_unary, grpc.stream_unary_rpc_method_handler
+            wrapped = self._unary_out(d, inner, streaming_in=True)
+        elif handler.response_streaming:
+            inner, factory = handler.unary_stream, grpc.unary_stream_rpc_method_handler
+            wrapped = self._stream_out(d, inner, streaming_in=False)
+        else:
+            inner, factory = handler.unary_unary, grpc.unary_unary_rpc_method_handler
+            wrapped = self._unary_out(d, inner, streaming_in=False)
+        return factory(
+            wrapped,
+            request_deserializer=self.deserializer(handler.request_deserializer),
+            response_serializer=handler.response_serializer,
+        )
+
+    def _input(self, state: Any, request: Any, streaming_in: bool) -> Any:
+        return self.requests(state, request) if streaming_in else self.request(state, request)
+
+    def _unary_out(self, d: grpc.HandlerCallDetails, inner: Any, *, streaming_in: bool) -> Any:
+        async def behaviour(request: Any, context: aio.ServicerContext) -> Any:
+            async with self.around(d, context) as state:
+                result = inner(self._input(state, request, streaming_in), context)
+                if inspect.isawaitable(result):
+                    result = await result
+                self.response(state, result)
+                return result
+            return None  # ``around`` handled an error (the call was aborted)
+
+        return behaviour
+
+    def _stream_out(self, d: grpc.HandlerCallDetails, inner: Any, *, streaming_in: bool) -> Any:
+        if not inspect.isasyncgenfunction(inner):  # reader/writer style (health Watch, reflection)
+            return self._unary_out(d, inner, streaming_in=streaming_in)
+
+        async def behaviour(request: Any, context: aio.ServicerContext) -> AsyncIterator[Any]:
+            async with self.around(d, context) as state:
+                async for resp in inner(self._input(state, request, streaming_in), context):
+                    self.response(state, resp)
+                    yield resp
+
+        return behaviour
 
 
+# ---------------------------------------------------------------------------------- auth
+class AuthInterceptor(_Wrapping):
+    """Bearer-token authentication (health checks are always allowed)."""
+
+    def __init__(self, *, token: str) -> None:
+        self._expected = f"Bearer {token}".encode()
+
+    def authorised(self, details: grpc.HandlerCallDetails) -> bool:
+        if details.method.startswith(HEALTH_PREFIX):
+            return True
+        for key, value in details.invocation_metadata or ():
+            if key == "authorization":
+                v = value.encode() if isinstance(value, str) else value
+                return hmac.compare_digest(v, self._expected)
+        return False
+
+    @contextlib.asynccontextmanager
+    async def around(
+        self, details: grpc.HandlerCallDetails, context: aio.ServicerContext
+    ) -> AsyncIterator[None]:
+        if not self.authorised(details):
+            await context.abort(grpc.StatusCode.UNAUTHENTICATED, "missing or invalid bearer token")
+        yield
+
+
+# ---------------------------------------------------------------------------------- status mapping
+class Undecodable:
+    """Stands for a request message whose bytes did not parse."""
+
+    __slots__ = ("reason",)
+
+    def __init__(self, reason: str) -> None:
+        self.reason = reason
+
+
+def _undecodable_error(msg: Undecodable) -> ValidationError:
+    return ValidationError(
+        "request", f"the message does not decode as the method's request type ({msg.reason})"
+    )
+
+
+class StatusInterceptor(_Wrapping):
+    """Maps exceptions to statuses; undecodable requests to INVALID_ARGUMENT."""
+
+    def deserializer(self, inner: Any) -> Any:
+        if inner is None:
+            return None
+
+        def parse(data: bytes) -> Any:
+            try:
+                return inner(data)
+            except Exception as exc:  # protobuf DecodeError and friends
+                return Undecodable(type(exc).__name__)
+
+        return parse
+
+    def request(self, state: Any, req: Any) -> Any:
+        if isinstance(req, Undecodable):
+            raise _undecodable_error(req)
+        return req
+
+    def requests(self, state: Any, it: AsyncIterator[Any]) -> AsyncIterator[Any]:
+        async def gen() -> AsyncIterator[Any]:
+            async for m in it:
+                if isinstance(m, Undecodable):
+                    raise _undecodable_error(m)
+                yield m
+
+        return gen()
+
+    @contextlib.asynccontextmanager
+    async def around(
+        self, details: grpc.HandlerCallDetails, context: aio.ServicerContext
+    ) -> AsyncIterator[None]:
+        try:
+            yield
+        except (asyncio.CancelledError, aio.AbortError):
+            raise
+        except Exception as exc:
+            code, fld, msg = status_for(exc)
+            if code is grpc.StatusCode.INTERNAL:
+                log_internal(exc, details.method)
+            if fld:
+                context.set_trailing_metadata(((FIELD_METADATA_KEY, fld),))
+            await context.abort(code, msg)
+
+
+# ---------------------------------------------------------------------------------- access log
 class Metrics:
     """Running call counts per method and status, and per-method latency totals (thread-safe)."""
 
@@ -102,47 +249,85 @@ class Metrics:
 class _CallLog:
     """Collects what one call's access-log line reports."""
 
-    __slots__ = ("code", "lat", "method", "n_in", "n_out", "pending", "t0")
+    __slots__ = ("code", "lat", "method", "n_in", "n_out", "pending", "t0", "timed")
 
-    def __init__(self, method: str) -> None:
+    def __init__(self, method: str, *, timed: bool) -> None:
         self.method = method
         self.t0 = time.perf_counter()
         self.code = "OK"
         self.n_in = 0
         self.n_out = 0
+        self.timed = timed
         self.pending: deque[float] = deque()
         self.lat: deque[float] = deque(maxlen=4096)  # recent per-message latencies, bounded
 
 
-class ServiceInterceptor(aio.ServerInterceptor):
-    """Auth, error mapping and access logging for every RPC of the aio server.
+class AccessLogInterceptor(_Wrapping):
+    """One access-log line per call, and the running :class:`Metrics`.
 
     Parameters
     ----------
-    token
-        Required bearer token, or None for no auth.
     metrics
         Where call counts and latencies accumulate.
     log_format
-        ``"json"`` or ``"text"``.
+        ``"json"`` (a JSON object per line) or ``"text"`` (``key=value`` pairs).
     """
 
-    def __init__(self, *, token: str | None, metrics: Metrics, log_format: str = "json") -> None:
-        self._expected = f"Bearer {token}".encode() if token else None
+    def __init__(self, *, metrics: Metrics, log_format: str = "json") -> None:
         self.metrics = metrics
         self.log_format = log_format
+        self._bidi: dict[str, bool] = {}
 
-    # ------------------------------------------------------------------ auth
-    def _authorised(self, details: grpc.HandlerCallDetails) -> bool:
-        if self._expected is None or details.method.startswith(HEALTH_PREFIX):
-            return True
-        for key, value in details.invocation_metadata or ():
-            if key == "authorization":
-                v = value.encode() if isinstance(value, str) else value
-                return hmac.compare_digest(v, self._expected)
-        return False
+    async def intercept_service(
+        self,
+        continuation: Callable[[grpc.HandlerCallDetails], Awaitable[grpc.RpcMethodHandler]],
+        handler_call_details: grpc.HandlerCallDetails,
+    ) -> grpc.RpcMethodHandler:
+        handler = await super().intercept_service(continuation, handler_call_details)
+        if handler is not None:
+            self._bidi[handler_call_details.method] = bool(
+                handler.request_streaming and handler.response_streaming
+            )
+        return handler
 
-    # ------------------------------------------------------------------ logging
+    def request(self, state: _CallLog, req: Any) -> Any:
+        state.n_in = 1
+        return req
+
+    def requests(self, state: _CallLog, it: AsyncIterator[Any]) -> AsyncIterator[Any]:
+        async def gen() -> AsyncIterator[Any]:
+            async for m in it:
+                state.n_in += 1
+                if state.timed:
+                    state.pending.append(time.perf_counter())
+                yield m
+
+        return gen()
+
+    def response(self, state: _CallLog, resp: Any) -> None:
+        state.n_out += 1
+        if state.pending:
+            state.lat.append(time.perf_counter() - state.pending.popleft())
+
+    @contextlib.asynccontextmanager
+    async def around(
+        self, details: grpc.HandlerCallDetails, context: aio.ServicerContext
+    ) -> AsyncIterator[_CallLog]:
+        call = _CallLog(details.method, timed=self._bidi.get(details.method, False))
+        try:
+            yield call
+        except asyncio.CancelledError:
+            call.code = grpc.StatusCode.CANCELLED.name
+            raise
+        except aio.AbortError:
+            call.code = _code_name(context)
+            raise
+        except Exception:
+            call.code = grpc.StatusCode.UNKNOWN.name
+            raise
+        finally:
+            self._finish(call, context)
+
     def _finish(self, call: _CallLog, context: aio.ServicerContext) -> None:
         dt = time.perf_counter() - call.t0
         n = self.metrics.record(call.method, call.code, dt, call.n_in + call.n_out)
@@ -163,135 +348,9 @@ class ServiceInterceptor(aio.ServerInterceptor):
             rec["msg_p50_ms"] = round(1000.0 * s[len(s) // 2], 3)
             rec["msg_max_ms"] = round(1000.0 * s[-1], 3)
         if self.log_format == "json":
-            log.info(json.dumps(rec))
+            log.info(json.dumps(rec), extra={"rpc": rec})
         else:
             log.info(" ".join(f"{k}={v}" for k, v in rec.items()))
-
-    async def _fail(self, call: _CallLog, context: aio.ServicerContext, exc: BaseException) -> None:
-        code, fld, msg = status_for(exc)
-        if code is grpc.StatusCode.INTERNAL:
-            log_internal(exc, call.method)
-        call.code = code.name
-        if fld:
-            context.set_trailing_metadata(((FIELD_METADATA_KEY, fld),))
-        await context.abort(code, msg)
-
-    @contextlib.asynccontextmanager
-    async def _guard(self, call: _CallLog, context: aio.ServicerContext) -> AsyncIterator[None]:
-        """Around a handler: map its exception to a status (:meth:`_fail`), note the status
-        of an abort or cancellation, and always write the access-log line."""
-        try:
-            yield
-        except asyncio.CancelledError:
-            call.code = grpc.StatusCode.CANCELLED.name
-            raise
-        except aio.AbortError:
-            if call.code == "OK":
-                call.code = _code_name(context)
-            raise
-        except Exception as exc:
-            await self._fail(call, context, exc)
-        finally:
-            self._finish(call, context)
-
-    # ------------------------------------------------------------------ wrapping
-    async def intercept_service(
-        self,
-        continuation: Callable[[grpc.HandlerCallDetails], Awaitable[grpc.RpcMethodHandler]],
-        handler_call_details: grpc.HandlerCallDetails,
-    ) -> grpc.RpcMethodHandler:
-        handler = await continuation(handler_call_details)
-        if handler is None:
-            return handler
-        method = handler_call_details.method
-        authorised = self._authorised(handler_call_details)
-        if handler.request_streaming and handler.response_streaming:
-            inner = handler.stream_stream
-            factory = grpc.stream_stream_rpc_method_handler
-            wrapped = self._wrap_stream_stream(method, inner, authorised)
-        elif handler.request_streaming:
-            inner = handler.stream_unary
-            factory = grpc.stream_unary_rpc_method_handler
-            wrapped = self._wrap_unary(method, inner, authorised, streaming_in=True)
-        elif handler.response_streaming:
-            inner = handler.unary_stream
-            factory = grpc.unary_stream_rpc_method_handler
-            wrapped = self._wrap_unary_stream(method, inner, authorised)
-        else:
-            inner = handler.unary_unary
-            factory = grpc.unary_unary_rpc_method_handler
-            wrapped = self._wrap_unary(method, inner, authorised, streaming_in=False)
-        return factory(
-            wrapped,
-            request_deserializer=handler.request_deserializer,
-            response_serializer=handler.response_serializer,
-        )
-
-    async def _deny(self, call: _CallLog, context: aio.ServicerContext) -> None:
-        call.code = grpc.StatusCode.UNAUTHENTICATED.name
-        await context.abort(grpc.StatusCode.UNAUTHENTICATED, "missing or invalid bearer token")
-
-    def _count_in(self, call: _CallLog, it: AsyncIterator[Any], *, timed: bool) -> AsyncIterator[Any]:
-        async def gen() -> AsyncIterator[Any]:
-            async for m in it:
-                call.n_in += 1
-                if timed:
-                    call.pending.append(time.perf_counter())
-                yield m
-
-        return gen()
-
-    def _wrap_unary(self, method: str, inner: Any, authorised: bool, *, streaming_in: bool) -> Any:
-        async def behaviour(request: Any, context: aio.ServicerContext) -> Any:
-            call = _CallLog(method)
-            async with self._guard(call, context):
-                if not authorised:
-                    await self._deny(call, context)
-                if streaming_in:
-                    request = self._count_in(call, request, timed=False)
-                else:
-                    call.n_in = 1
-                result = inner(request, context)
-                if asyncio.iscoroutine(result):
-                    result = await result
-                call.n_out = 1
-                return result
-            return None  # the guard handled an error (the call was aborted)
-
-        return behaviour
-
-    def _wrap_unary_stream(self, method: str, inner: Any, authorised: bool) -> Any:
-        if not inspect.isasyncgenfunction(inner):  # reader/writer style (e.g. health Watch)
-            return self._wrap_unary(method, inner, authorised, streaming_in=False)
-
-        async def behaviour(request: Any, context: aio.ServicerContext) -> AsyncIterator[Any]:
-            call = _CallLog(method)
-            call.n_in = 1
-            async with self._guard(call, context):
-                if not authorised:
-                    await self._deny(call, context)
-                async for resp in inner(request, context):
-                    call.n_out += 1
-                    yield resp
-
-        return behaviour
-
-    def _wrap_stream_stream(self, method: str, inner: Any, authorised: bool) -> Any:
-        if not inspect.isasyncgenfunction(inner):  # reader/writer style (e.g. reflection)
-            return self._wrap_unary(method, inner, authorised, streaming_in=True)
-
-        async def behaviour(request_iterator: Any, context: aio.ServicerContext) -> AsyncIterator[Any]:
-            call = _CallLog(method)
-            async with self._guard(call, context):
-                if not authorised:
-                    await self._deny(call, context)
-                async for resp in inner(self._count_in(call, request_iterator, timed=True), context):
-                    call.n_out += 1
-                    if call.pending:
-                        call.lat.append(time.perf_counter() - call.pending.popleft())
-                    yield resp
-
-        return behaviour
 
 
 def _code_name(context: aio.ServicerContext) -> str:
@@ -301,4 +360,17 @@ def _code_name(context: aio.ServicerContext) -> str:
         return "ABORTED_BY_HANDLER"
     if isinstance(code, grpc.StatusCode):
         return code.name
+    if isinstance(code, int):
+        for c in grpc.StatusCode:
+            if c.value[0] == code:
+                return c.name
     return str(code) if code is not None else "UNKNOWN"
+
+
+def interceptors(*, token: str | None, metrics: Metrics, log_format: str) -> list[aio.ServerInterceptor]:
+    """The server's interceptor chain, outermost first."""
+    chain: list[aio.ServerInterceptor] = [AccessLogInterceptor(metrics=metrics, log_format=log_format)]
+    if token:
+        chain.append(AuthInterceptor(token=token))
+    chain.append(StatusInterceptor())
+    return chain

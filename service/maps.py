@@ -326,7 +326,7 @@ def _build_in_child(path: Path, *, limits: LoadLimits) -> RoadGraph:
                 stdout=subprocess.DEVNULL,
                 stderr=subprocess.PIPE,
                 timeout=limits.timeout,
-                preexec_fn=limit,  # noqa: PLW1509 - only setrlimit, no locks taken
+                preexec_fn=limit,
                 check=False,
             )
         except subprocess.TimeoutExpired:

@@ -1,23 +1,32 @@
 """Build, run and stop the gRPC server.
 
-:func:`create_server` starts a ``grpc.aio`` server on its own event-loop thread and returns a
-:class:`Server` handle and the bound port; :func:`serve` runs one until SIGTERM/SIGINT and
-then shuts down gracefully: health goes NOT_SERVING, new calls are refused and in-flight
-calls get ``grace`` seconds to finish.
+:func:`create_server` only builds: it checks the configuration (TLS files, maps) and returns
+a :class:`ServiceRuntime`, which then starts (event-loop thread, bound port), warms up (loads
+every map and runs a warm-up query on it), sweeps idle sessions and stops: health goes
+NOT_SERVING, new calls are refused and in-flight calls get ``grace`` seconds to finish.
+:func:`start_server` does both; :func:`serve` runs a server until SIGTERM/SIGINT.
 
-Health (``grpc.health.v1``) is NOT_SERVING until at least one map is loaded and a warm-up
-query on every map has passed; server reflection is on.
+Health (``grpc.health.v1``) is NOT_SERVING for ``""`` and ``mapmatch.v1.MapMatch`` until
+at least one map is loaded and has passed its warm-up; each loaded map also has its own
+service name, ``mapmatch.v1.MapMatch/<map id>``. Server reflection is on. Every start-up
+step is logged on ``mapmatch.service``, and so is the moment the server is SERVING.
 """
 
 from __future__ import annotations
 
 import asyncio
+import errno
 import gc
+import json
 import logging
+import os
 import signal
+import socket
+import ssl
+import sys
 import threading
 from collections.abc import Mapping
-from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures import Future, ThreadPoolExecutor
 from pathlib import Path
 from typing import Any
 
@@ -32,62 +41,190 @@ from mapmatch.errors import ConfigError
 from service.config import ServerConfig
 from service.gen.mapmatch.v1 import mapmatch_pb2 as pb
 from service.gen.mapmatch.v1 import mapmatch_pb2_grpc as pb_grpc
-from service.interceptors import Metrics, ServiceInterceptor
-from service.maps import MapRegistry
-from service.servicer import SERVICE_NAME, MapMatchServicer, warm_up
+from service.interceptors import Metrics, interceptors
+from service.maps import MapRegistry, load_map_file, warm_up
+from service.servicer import SERVICE_NAME, MapMatchServicer, load_limits
 from service.sessions import SessionStore
 
 log = logging.getLogger("mapmatch.service")
 
 MapsArg = MapRegistry | Mapping[str, RoadGraph | Path | str] | None
+SERVING = health_pb2.HealthCheckResponse.SERVING
+NOT_SERVING = health_pb2.HealthCheckResponse.NOT_SERVING
+# the GIL is handed over at most this often (s): online updates wait less behind batch work
+SWITCH_INTERVAL = 0.0005
 
 
-class Server:
-    """A running server: its event loop thread, registries and health state."""
+class ServiceRuntime:
+    """A server's runtime: :meth:`start`, :meth:`warm`, the session sweeper, :meth:`stop`.
+
+    Built by :func:`create_server`; nothing runs until :meth:`start`.
+    """
 
     def __init__(
-        self,
-        *,
-        config: ServerConfig,
-        server: aio.Server,
-        loop: asyncio.AbstractEventLoop,
-        thread: threading.Thread,
-        servicer: MapMatchServicer,
-        health: health_aio.HealthServicer,
-        executor: ThreadPoolExecutor,
-        metrics: Metrics,
+        self, *, config: ServerConfig, registry: MapRegistry, to_load: list[tuple[str, Path]]
     ) -> None:
         self.config = config
-        self.aio_server = server
-        self.loop = loop
-        self.thread = thread
-        self.servicer = servicer
-        self.health = health
-        self.executor = executor
-        self.metrics = metrics
+        self.maps = registry
+        self.to_load = to_load
+        self.sessions = SessionStore(max_sessions=config.max_sessions, ttl=config.session_ttl)
+        registry.on_unload.append(self.sessions.drop_map)
+        self.executor = ThreadPoolExecutor(max_workers=config.workers, thread_name_prefix="mapmatch-batch")
+        self.online = ThreadPoolExecutor(
+            max_workers=config.online_workers, thread_name_prefix="mapmatch-online"
+        )
+        self.metrics = Metrics()
+        self.credentials = _credentials(config)
+        self.servicer = MapMatchServicer(
+            maps=registry,
+            sessions=self.sessions,
+            executor=self.executor,
+            online=self.online,
+            config=config,
+            on_maps_changed=self.update_health,
+        )
         self.port = 0
+        self.loop: asyncio.AbstractEventLoop | None = None
+        self.thread: threading.Thread | None = None
+        self.aio_server: aio.Server | None = None
+        self.health = health_aio.HealthServicer()
+        self._health_names: set[str] = set()
         self._stopped = threading.Event()
         self._stop_lock = threading.Lock()
+        self._sweeper: asyncio.Task[None] | None = None
+        self.ready: Future[None] = Future()
 
-    @property
-    def maps(self) -> MapRegistry:
-        return self.servicer.maps
-
-    @property
-    def sessions(self) -> SessionStore:
-        return self.servicer.sessions
-
+    # ------------------------------------------------------------------ start
     def call(self, coro: Any, timeout: float | None = None) -> Any:
         """Run a coroutine on the server's loop from another thread and return its result."""
+        assert self.loop is not None, "the server has not started"
         return asyncio.run_coroutine_threadsafe(coro, self.loop).result(timeout)
 
-    async def update_health(self) -> None:
-        """SERVING when maps are loaded (each has passed its warm-up), else NOT_SERVING."""
-        ok = len(self.maps) > 0 and not self._stopped.is_set()
-        status = health_pb2.HealthCheckResponse.SERVING if ok else health_pb2.HealthCheckResponse.NOT_SERVING
-        for name in ("", SERVICE_NAME):
-            await self.health.set(name, status)
+    def start(self, *, wait_ready: bool = True) -> int:
+        """Bind the port, start serving (health NOT_SERVING), then :meth:`warm` (in the
+        background unless ``wait_ready``). Returns the bound port.
 
+        Raises
+        ------
+        ConfigError
+            The address cannot be bound; with ``wait_ready``, a map that cannot be served.
+        """
+        loop = asyncio.new_event_loop()
+        started = threading.Event()
+
+        def run() -> None:
+            asyncio.set_event_loop(loop)
+            loop.call_soon(started.set)
+            loop.run_forever()
+            loop.close()
+
+        self.loop = loop
+        self.thread = threading.Thread(target=run, name="mapmatch-grpc", daemon=True)
+        self.thread.start()
+        started.wait()
+        try:
+            self.port = self.call(self._bind_and_start())
+        except BaseException:
+            loop.call_soon_threadsafe(loop.stop)
+            self.thread.join()
+            self._shutdown_pools()
+            raise
+        log.info(
+            "listening on %s (port %d, %s)",
+            self.config.address,
+            self.port,
+            "TLS" if self.credentials else "plain text",
+        )
+        fut = self.executor.submit(self.warm)
+        fut.add_done_callback(lambda f: _copy_result(f, self.ready))
+        if wait_ready:
+            try:
+                fut.result()
+            except BaseException:
+                self.stop(0)
+                raise
+        return self.port
+
+    async def _bind_and_start(self) -> int:
+        cfg = self.config
+        options = [
+            ("grpc.max_receive_message_length", cfg.max_message_bytes),
+            ("grpc.max_send_message_length", -1),
+            ("grpc.so_reuseport", 1 if cfg.reuse_port else 0),
+            ("grpc.keepalive_permit_without_calls", 1),
+            ("grpc.http2.min_ping_interval_without_data_ms", 10_000),
+        ]
+        srv = aio.server(
+            interceptors=interceptors(token=cfg.token, metrics=self.metrics, log_format=cfg.log_format),
+            options=options,
+        )
+        pb_grpc.add_MapMatchServicer_to_server(self.servicer, srv)
+        health_pb2_grpc.add_HealthServicer_to_server(self.health, srv)
+        names = (
+            pb.DESCRIPTOR.services_by_name["MapMatch"].full_name,
+            health_pb2.DESCRIPTOR.services_by_name["Health"].full_name,
+            reflection.SERVICE_NAME,
+        )
+        reflection.enable_server_reflection(names, srv)
+        if not cfg.reuse_port:
+            _check_port_free(cfg.address)
+        try:
+            if self.credentials:
+                port = srv.add_secure_port(cfg.address, self.credentials)
+            else:
+                port = srv.add_insecure_port(cfg.address)
+        except RuntimeError:
+            port = 0
+        if not port:
+            raise ConfigError(f"cannot listen on {cfg.address} (address in use or not available)")
+        for name in ("", SERVICE_NAME):
+            await self.health.set(name, NOT_SERVING)
+        await srv.start()
+        self.aio_server = srv
+        period = min(60.0, max(cfg.session_ttl / 2, 0.05))
+        self._sweeper = asyncio.get_running_loop().create_task(_sweep(self.sessions, period=period))
+        return int(port)
+
+    def warm(self) -> None:
+        """Load the maps still to be loaded, warm every map up, then report SERVING."""
+        limits = load_limits(self.config)
+        try:
+            for name, path in self.to_load:
+                log.info("loading map %s from %s", name, path.name)
+                graph = load_map_file(path, limits=limits, name=path.name)
+                log.info("warming up map %s (%d edges)", name, graph.n_edges)
+                self.maps.add(name, graph, source=path.name)
+            for entry in self.maps.entries():
+                if entry.map_id not in {n for n, _ in self.to_load}:
+                    log.info("warming up map %s (%d edges)", entry.map_id, entry.graph.n_edges)
+                    warm_up(entry)
+                log.info("map %s ready (checksum %s)", entry.map_id, entry.checksum)
+        except Exception as exc:
+            log.error("map loading or warm-up failed, health stays NOT_SERVING: %s", exc)
+            raise
+        self.to_load = []
+        self.call(self.update_health())
+
+    async def update_health(self) -> None:
+        """SERVING when maps are loaded (each has passed its warm-up), else NOT_SERVING; and
+        one service name per map."""
+        ids = {e.map_id for e in self.maps.entries()}
+        ok = bool(ids) and not self._stopped.is_set()
+        was = getattr(self, "_serving", None)
+        for name in ("", SERVICE_NAME):
+            await self.health.set(name, SERVING if ok else NOT_SERVING)
+        for map_id in ids | self._health_names:
+            await self.health.set(
+                f"{SERVICE_NAME}/{map_id}", SERVING if map_id in ids and ok else NOT_SERVING
+            )
+        self._health_names |= ids
+        self._serving = ok
+        if ok and not was:
+            log.info("SERVING %d map(s) on port %d", len(ids), self.port)
+        elif was and not ok:
+            log.info("NOT_SERVING: no map loaded")
+
+    # ------------------------------------------------------------------ stop
     def stop(self, grace: float | None = None) -> None:
         """Graceful shutdown: NOT_SERVING, refuse new calls, drain in-flight ones for ``grace`` s."""
         with self._stop_lock:
@@ -95,27 +232,74 @@ class Server:
                 return
             self._stopped.set()
         g = self.config.grace if grace is None else grace
+        if self.loop is None or self.thread is None:
+            self._shutdown_pools()
+            return
 
         async def _stop() -> None:
             await self.health.enter_graceful_shutdown()
-            await self.aio_server.stop(g)
+            if self.aio_server is not None:
+                await self.aio_server.stop(g)
             for task in asyncio.all_tasks():
                 if task is not asyncio.current_task():
                     task.cancel()
 
         try:
-            self.call(_stop())
+            self.call(_stop(), timeout=g + 10.0)
         finally:
             self.loop.call_soon_threadsafe(self.loop.stop)
             self.thread.join(timeout=g + 5.0)
-            self.executor.shutdown(wait=False, cancel_futures=True)
+            self._shutdown_pools()
+            log.info("stopped")
+
+    def _shutdown_pools(self) -> None:
+        self.executor.shutdown(wait=False, cancel_futures=True)
+        self.online.shutdown(wait=False, cancel_futures=True)
 
     def wait_for_termination(self, timeout: float | None = None) -> bool:
         """Block until :meth:`stop` has run; returns False on timeout."""
         return self._stopped.wait(timeout)
 
 
+Server = ServiceRuntime  # the name older code uses
+
+
+def _copy_result(src: Future[None], dst: Future[None]) -> None:
+    exc = src.exception()
+    if exc is not None:
+        dst.set_exception(exc)
+    else:
+        dst.set_result(None)
+
+
+def _check_port_free(address: str) -> None:
+    """A clear error when ``address`` is in use (SO_REUSEPORT off), before gRPC tries it."""
+    host, _, port_text = address.rpartition(":")
+    host = host.strip("[]")
+    try:
+        port = int(port_text)
+    except ValueError:
+        raise ConfigError(f"address must be HOST:PORT, got {address!r}") from None
+    if port == 0:
+        return
+    try:
+        infos = socket.getaddrinfo(host or None, port, type=socket.SOCK_STREAM, flags=socket.AI_PASSIVE)
+    except socket.gaierror as exc:
+        raise ConfigError(f"cannot listen on {address}: {exc.strerror}") from None
+    for family, kind, proto, _, sockaddr in infos[:1]:
+        with socket.socket(family, kind, proto) as s:
+            s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+            try:
+                s.bind(sockaddr)
+            except OSError as exc:
+                why = (
+                    "address already in use" if exc.errno == errno.EADDRINUSE else (exc.strerror or str(exc))
+                )
+                raise ConfigError(f"cannot listen on {address}: {why}") from None
+
+
 def _credentials(config: ServerConfig) -> grpc.ServerCredentials | None:
+    """Server credentials from the PEM files, each checked first (one clear line when bad)."""
     if config.tls_cert is None or config.tls_key is None:
         return None
     try:
@@ -123,7 +307,23 @@ def _credentials(config: ServerConfig) -> grpc.ServerCredentials | None:
         key = Path(config.tls_key).read_bytes()
         ca = Path(config.client_ca).read_bytes() if config.client_ca else None
     except OSError as exc:
-        raise ConfigError(f"cannot read TLS file {exc.filename}: {exc.strerror}") from exc
+        raise ConfigError(f"cannot read TLS file {exc.filename}: {exc.strerror}") from None
+    ctx = ssl.SSLContext(ssl.PROTOCOL_TLS_SERVER)
+    try:
+        ctx.load_cert_chain(config.tls_cert, config.tls_key)
+    except (ssl.SSLError, ValueError) as exc:
+        raise ConfigError(
+            f"TLS: {config.tls_cert.name} and {config.tls_key.name} are not a PEM certificate chain "
+            f"and its private key ({getattr(exc, 'reason', None) or exc})"
+        ) from None
+    if config.client_ca is not None:
+        try:
+            ctx.load_verify_locations(cafile=str(config.client_ca))
+        except (ssl.SSLError, ValueError) as exc:
+            raise ConfigError(
+                f"TLS: {config.client_ca.name} is not a PEM CA certificate "
+                f"({getattr(exc, 'reason', None) or exc})"
+            ) from None
     return grpc.ssl_server_credentials(
         [(key, cert)], root_certificates=ca, require_client_auth=ca is not None
     )
@@ -137,7 +337,7 @@ def _registry(maps: MapsArg) -> tuple[MapRegistry, list[tuple[str, Path]]]:
     to_load: list[tuple[str, Path]] = []
     for name, m in (maps or {}).items():
         if isinstance(m, RoadGraph):
-            reg.add(name, m, source="memory")
+            reg.install(reg.prepare(name, m, source="memory"))  # warmed up by ServiceRuntime.warm
         else:
             to_load.append((name, Path(m)))
     return reg, to_load
@@ -152,10 +352,9 @@ async def _sweep(sessions: SessionStore, *, period: float) -> None:
             log.info("expired %d idle session(s)", n)
 
 
-def create_server(
-    config: ServerConfig, maps: MapsArg = None, *, wait_ready: bool = True
-) -> tuple[Server, int]:
-    """Start a server; return its handle and the bound port.
+def create_server(config: ServerConfig, maps: MapsArg = None) -> ServiceRuntime:
+    """Build a server (nothing starts): check the configuration and TLS files, set up the
+    registry, the session store and the pools.
 
     Parameters
     ----------
@@ -163,126 +362,70 @@ def create_server(
         Address, security, limits.
     maps
         A :class:`MapRegistry`, or ``{name: RoadGraph | path}``; ``config.maps`` are loaded too.
-    wait_ready
-        Block until the maps are loaded and warmed up (health SERVING). Otherwise loading goes
-        on in the background while health says NOT_SERVING.
 
     Raises
     ------
     ConfigError
-        The address cannot be bound, or a TLS file is unreadable.
+        A TLS file is unreadable or not PEM, or a map name is bad.
     """
     registry, to_load = _registry(maps)
     to_load += [(n, p) for n, p in config.maps if n not in registry]
-    sessions = SessionStore(max_sessions=config.max_sessions, ttl=config.session_ttl)
-    registry.on_unload.append(sessions.drop_map)
-    executor = ThreadPoolExecutor(max_workers=config.workers, thread_name_prefix="mapmatch-worker")
-    metrics = Metrics()
-    creds = _credentials(config)
-    loop = asyncio.new_event_loop()
-    ready = threading.Event()
-    background: list[asyncio.Task[None]] = []  # the session sweeper (cancelled on stop)
+    log.info("configuration checked (%s)", "TLS" if config.tls else "plain text")
+    return ServiceRuntime(config=config, registry=registry, to_load=to_load)
 
-    def run() -> None:
-        asyncio.set_event_loop(loop)
-        loop.call_soon(ready.set)
-        loop.run_forever()
-        loop.close()
 
-    thread = threading.Thread(target=run, name="mapmatch-grpc", daemon=True)
-    thread.start()
-    ready.wait()
+def start_server(
+    config: ServerConfig, maps: MapsArg = None, *, wait_ready: bool = True
+) -> tuple[ServiceRuntime, int]:
+    """:func:`create_server`, then :meth:`ServiceRuntime.start`; returns the runtime and port."""
+    runtime = create_server(config, maps)
+    port = runtime.start(wait_ready=wait_ready)
+    return runtime, port
 
-    async def build() -> tuple[aio.Server, health_aio.HealthServicer, MapMatchServicer, int]:
-        options = [
-            ("grpc.max_receive_message_length", config.max_message_bytes),
-            ("grpc.max_send_message_length", -1),
-            ("grpc.so_reuseport", 1 if config.reuse_port else 0),
-            ("grpc.keepalive_permit_without_calls", 1),
-            ("grpc.http2.min_ping_interval_without_data_ms", 10_000),
-        ]
-        srv = aio.server(
-            interceptors=[
-                ServiceInterceptor(token=config.token, metrics=metrics, log_format=config.log_format)
-            ],
-            options=options,
-        )
-        servicer = MapMatchServicer(maps=registry, sessions=sessions, executor=executor)
-        pb_grpc.add_MapMatchServicer_to_server(servicer, srv)
-        health = health_aio.HealthServicer()
-        health_pb2_grpc.add_HealthServicer_to_server(health, srv)
-        names = (
-            pb.DESCRIPTOR.services_by_name["MapMatch"].full_name,
-            health_pb2.DESCRIPTOR.services_by_name["Health"].full_name,
-            reflection.SERVICE_NAME,
-        )
-        reflection.enable_server_reflection(names, srv)
-        try:
-            port = (
-                srv.add_secure_port(config.address, creds) if creds else srv.add_insecure_port(config.address)
-            )
-        except RuntimeError as exc:
-            raise ConfigError(f"cannot listen on {config.address}: {exc}") from None
-        if not port:
-            raise ConfigError(f"cannot listen on {config.address}")
-        for name in ("", SERVICE_NAME):
-            await health.set(name, health_pb2.HealthCheckResponse.NOT_SERVING)
-        await srv.start()
-        background.append(
-            loop.create_task(_sweep(sessions, period=min(60.0, max(config.session_ttl / 2, 0.05))))
-        )
-        return srv, health, servicer, port
 
-    try:
-        srv, health, servicer, port = asyncio.run_coroutine_threadsafe(build(), loop).result()
-    except BaseException:
-        loop.call_soon_threadsafe(loop.stop)
-        thread.join()
-        executor.shutdown(wait=False)
-        raise
-    server = Server(
-        config=config,
-        server=srv,
-        loop=loop,
-        thread=thread,
-        servicer=servicer,
-        health=health,
-        executor=executor,
-        metrics=metrics,
-    )
-    server.port = port
-    servicer.on_maps_changed = server.update_health
+class JsonLinesFormatter(logging.Formatter):
+    """One JSON object per line: time, level, logger and message (an access-log record's
+    fields are merged in)."""
 
-    def prepare() -> None:
-        try:
-            for name, path in to_load:
-                log.info("loading map %s from %s", name, path)
-                registry.load(name, path)
-            for entry in registry.entries():
-                warm_up(entry, servicer)
-        except Exception as exc:
-            log.error("map loading or warm-up failed, health stays NOT_SERVING: %s", exc)
-            raise
-        server.call(server.update_health())
-        log.info("serving %d map(s) on port %d", len(registry), port)
+    def format(self, record: logging.LogRecord) -> str:
+        out: dict[str, Any] = {
+            "time": self.formatTime(record, "%Y-%m-%dT%H:%M:%S") + f".{int(record.msecs):03d}",
+            "level": record.levelname,
+            "logger": record.name,
+        }
+        rpc = getattr(record, "rpc", None)
+        if isinstance(rpc, dict):
+            out.update(rpc)
+        else:
+            out["message"] = record.getMessage()
+        if record.exc_info:
+            out["exc"] = self.formatException(record.exc_info)
+        return json.dumps(out)
 
-    fut = executor.submit(prepare)
-    if wait_ready:
-        try:
-            fut.result()
-        except BaseException:
-            server.stop(0)
-            raise
-    return server, port
+
+def configure_logging(log_format: str, *, access: bool) -> None:
+    """Lifecycle lines always; access lines when ``access``; JSON lines for ``"json"``.
+
+    Replaces the root handlers' format for the ``mapmatch`` loggers with a handler of its own.
+    """
+    handler = logging.StreamHandler(sys.stderr)
+    if log_format == "json":
+        handler.setFormatter(JsonLinesFormatter())
+    else:
+        handler.setFormatter(logging.Formatter("%(asctime)s %(levelname)s %(name)s: %(message)s"))
+    for name, level in (
+        ("mapmatch.service", logging.INFO),
+        ("mapmatch.access", logging.INFO if access else logging.WARNING),
+    ):
+        lg = logging.getLogger(name)
+        lg.handlers = [handler]
+        lg.propagate = False
+        lg.setLevel(level)
 
 
 def serve(config: ServerConfig, maps: MapsArg = None) -> int:
     """Run a server in the foreground until SIGTERM or SIGINT, then shut down gracefully."""
-    server, port = create_server(config, maps)
-    # the maps, matchers and compiled code are long-lived: keep them out of the cyclic GC's
-    # scans so full collections stay short (they showed as latency spikes)
-    gc.collect()
-    gc.freeze()
+    sys.setswitchinterval(SWITCH_INTERVAL)
     done = threading.Event()
 
     def on_signal(signum: int, frame: Any) -> None:
@@ -290,13 +433,26 @@ def serve(config: ServerConfig, maps: MapsArg = None) -> int:
         done.set()
 
     old = {s: signal.signal(s, on_signal) for s in (signal.SIGTERM, signal.SIGINT)}
-    host = config.address.rsplit(":", 1)[0]
-    print(f"mapmatch serve: listening on {host}:{port} ({len(server.maps)} map(s))", flush=True)
     try:
+        log.info("starting (pid %d)", os.getpid())
+        runtime = create_server(config, maps)
+        port = runtime.start(wait_ready=False)
+        host = config.address.rsplit(":", 1)[0]
+        print(f"mapmatch serve: listening on {host}:{port}", flush=True)
+        while not done.wait(0.2):
+            if runtime.ready.done():
+                break
+        if runtime.ready.done() and runtime.ready.exception() is not None:
+            runtime.stop(0)
+            raise ConfigError(f"cannot serve: {runtime.ready.exception()}")
+        # the maps, matchers and compiled code are long-lived: keep them out of the cyclic GC's
+        # scans so full collections stay short (they showed as latency spikes)
+        gc.collect()
+        gc.freeze()
         while not done.wait(0.5):
             pass
+        runtime.stop()
     finally:
         for s, h in old.items():
             signal.signal(s, h)
-        server.stop()
     return 0

@@ -1,33 +1,39 @@
 """The ``mapmatch.v1.MapMatch`` servicer: validate, convert, call ``mapmatch``, convert back.
 
-No matching logic lives here. Online updates are fast and run on the server's event loop, so
-each stream is served in order and a vehicle's fixes never race; batch matching and map
-loading run on a thread pool so they never stall the live streams. Exceptions propagate to
-:class:`service.interceptors.ServiceInterceptor`, which maps them to statuses; in the live
-stream a bad fix is answered with an ``error`` for that fix and the stream goes on.
+No matching logic lives here, and no matching runs on the event loop, which does only
+protocol work. Online updates run on their own thread(s) (``online_workers``), batch
+matching and map loads on the batch pool (``workers``). A vehicle's fixes never race (each
+session has a lock); a ``FixBatch`` is matched in slices of ``batch_slice`` fixes, so other
+streams' fixes are served in between. Every message's work is bounded by the configured
+limits (fixes per batch, points per track, bytes per answer), each refused with
+RESOURCE_EXHAUSTED naming the limit. Exceptions propagate to
+:class:`service.interceptors.StatusInterceptor`, which maps them to statuses; in the live
+streams a bad fix is answered with an ``error`` for that fix and the stream goes on.
 """
 
 from __future__ import annotations
 
 import asyncio
+import dataclasses
 import functools
 import math
 import os
 import socket
-from collections.abc import AsyncIterator, Callable
+from collections.abc import AsyncIterator, Callable, Sequence
 from concurrent.futures import Executor
-from pathlib import Path
 from typing import Any, TypeVar
 
 import grpc
 from grpc import aio
 
 from mapmatch.errors import ValidationError
+from mapmatch.types import State
 from service import convert
+from service.config import ServerConfig
+from service.errors import LimitError, MapPathError, log_internal, status_for
 from service.gen.mapmatch.v1 import mapmatch_pb2 as pb
 from service.gen.mapmatch.v1 import mapmatch_pb2_grpc as pb_grpc
-from service.interceptors import log_internal, status_for
-from service.maps import MapEntry, MapRegistry
+from service.maps import LoadLimits, MapEntry, MapRegistry, resolve_map_path
 from service.sessions import SessionStore
 
 T = TypeVar("T")
@@ -36,6 +42,13 @@ SERVICE_NAME = pb.DESCRIPTOR.services_by_name["MapMatch"].full_name
 
 def _prefixed(exc: ValidationError, prefix: str) -> ValidationError:
     return ValidationError(f"{prefix}.{exc.field}", exc.reason)
+
+
+def load_limits(config: ServerConfig) -> LoadLimits:
+    """The map-load limits of a server configuration."""
+    return LoadLimits(
+        max_bytes=config.max_map_bytes, timeout=config.load_timeout, memory_bytes=config.load_memory_bytes
+    )
 
 
 class MapMatchServicer(pb_grpc.MapMatchServicer):
@@ -49,6 +62,10 @@ class MapMatchServicer(pb_grpc.MapMatchServicer):
         Per-vehicle sessions.
     executor
         Thread pool for batch matching and map loads.
+    online
+        Thread pool for online updates (one thread by default).
+    config
+        Limits (``max_*``), ``batch_slice``, ``max_time_jump`` and ``map_dir``.
     on_maps_changed
         Called (on the event loop) after a map is loaded or unloaded; the server updates health.
     """
@@ -59,27 +76,54 @@ class MapMatchServicer(pb_grpc.MapMatchServicer):
         maps: MapRegistry,
         sessions: SessionStore,
         executor: Executor,
+        online: Executor | None = None,
+        config: ServerConfig | None = None,
         on_maps_changed: Callable[[], Any] | None = None,
     ) -> None:
         self.maps = maps
         self.sessions = sessions
         self.executor = executor
+        self.online = online or executor
+        self.config = config or ServerConfig()
         self.on_maps_changed = on_maps_changed
         self.server_id = f"{socket.gethostname()}:{os.getpid()}"
 
-    async def _offload(self, context: aio.ServicerContext | None, fn: Callable[[], T]) -> T:
+    async def _offload(
+        self, context: aio.ServicerContext | None, fn: Callable[[], T], *, pool: Executor | None = None
+    ) -> T:
         if context is not None:
             left = context.time_remaining()
             if left is not None and left <= 0:
                 await context.abort(grpc.StatusCode.DEADLINE_EXCEEDED, "deadline passed before work started")
-        return await asyncio.get_running_loop().run_in_executor(self.executor, fn)
+        return await asyncio.get_running_loop().run_in_executor(pool or self.executor, fn)
+
+    def _answer_size(self, msg: Any) -> Any:
+        n = msg.ByteSize()
+        if n > self.config.max_answer_bytes:
+            raise LimitError(
+                "max_answer_bytes",
+                f"the answer would be {n} bytes, over the server's limit of {self.config.max_answer_bytes}; "
+                "send fewer fixes or points per message",
+            )
+        return msg
 
     # ------------------------------------------------------------------ online
+    def _check_vehicle(self, vehicle_id: str, field: str = "vehicle_id") -> None:
+        if not vehicle_id:
+            raise ValidationError(field, "is required")
+        n = len(vehicle_id.encode())
+        if n > self.config.max_vehicle_id:
+            raise ValidationError(field, f"is {n} bytes long, over the limit of {self.config.max_vehicle_id}")
+
     def snap(self, req: pb.FixRequest) -> pb.SnapResponse:
-        """One fix through the vehicle's session (raises domain errors)."""
+        """One fix through the vehicle's session (raises domain errors; runs off the loop).
+
+        A fix more than ``max_time_jump`` seconds from the session's last accepted fix
+        (either way) starts the session afresh and is answered ``reinitialised``; a rejected
+        fix leaves the session as it was (no new session, no refreshed idle timer).
+        """
         entry = self.maps.get(req.map_id)
-        if not req.vehicle_id:
-            raise ValidationError("vehicle_id", "is required")
+        self._check_vehicle(req.vehicle_id)
         if not req.HasField("fix"):
             raise ValidationError("fix", "is required")
         fix = convert.fix_from_proto(req.fix)
@@ -87,15 +131,22 @@ class MapMatchServicer(pb_grpc.MapMatchServicer):
             fix.validate()
         except ValidationError as exc:
             raise _prefixed(exc, "fix") from None
-        with self.sessions.use(entry.map_id, req.vehicle_id, entry.online.new_session) as s:
+        online = entry.online
+        with self.sessions.use(entry.map_id, req.vehicle_id, online.new_session) as s:
+            last = s.state.time
+            jumped = math.isfinite(last) and abs(fix.time - last) > self.config.max_time_jump
+            state = online.new_session() if jumped else s.state
             try:
-                result = entry.online.update(s.state, fix)
+                result = online.update(state, fix)
             except ValidationError as exc:
                 raise _prefixed(exc, "fix") from None
             except Exception:
                 # state may be half-updated: start this vehicle afresh, keep the others
-                s.state = entry.online.new_session()
+                s.state = online.new_session()
                 raise
+            s.state = state
+        if jumped:
+            result = dataclasses.replace(result, state=State.REINITIALISED)
         return pb.SnapResponse(
             map_id=entry.map_id,
             vehicle_id=req.vehicle_id,
@@ -113,39 +164,63 @@ class MapMatchServicer(pb_grpc.MapMatchServicer):
                 log_internal(exc, "StreamFixes")
             return pb.SnapResponse(
                 map_id=req.map_id,
-                vehicle_id=req.vehicle_id,
+                vehicle_id=req.vehicle_id[: self.config.max_vehicle_id],
                 seq=req.seq,
                 error=convert.error_to_proto(code.value[0], fld, msg),
             )
 
+    def answer_all(self, reqs: Sequence[pb.FixRequest]) -> list[pb.SnapResponse]:
+        return [self.answer(r) for r in reqs]
+
     async def StreamFixes(
         self, request_iterator: AsyncIterator[pb.FixRequest], context: aio.ServicerContext
     ) -> AsyncIterator[pb.SnapResponse]:
+        loop = asyncio.get_running_loop()
         async for req in request_iterator:
-            yield self.answer(req)
+            yield await loop.run_in_executor(self.online, self.answer, req)
 
     async def StreamFixBatches(
         self, request_iterator: AsyncIterator[pb.FixBatch], context: aio.ServicerContext
     ) -> AsyncIterator[pb.SnapBatch]:
+        loop = asyncio.get_running_loop()
+        cap, step = self.config.max_batch_fixes, self.config.batch_slice
         async for batch in request_iterator:
-            yield pb.SnapBatch(responses=[self.answer(r) for r in batch.fixes])
+            fixes = batch.fixes
+            if len(fixes) > cap:
+                raise LimitError(
+                    "max_batch_fixes", f"a FixBatch has {len(fixes)} fixes, over the server's limit of {cap}"
+                )
+            out: list[pb.SnapResponse] = []
+            for i in range(0, len(fixes), step):  # a slice at a time: other streams go in between
+                out += await loop.run_in_executor(self.online, self.answer_all, fixes[i : i + step])
+            yield self._answer_size(pb.SnapBatch(responses=out))
 
     async def SnapFix(self, request: pb.FixRequest, context: aio.ServicerContext) -> pb.SnapResponse:
-        return self.snap(request)
+        return await self._offload(context, functools.partial(self.snap, request), pool=self.online)
 
     # ------------------------------------------------------------------ batch
+    def _check_track(self, msg: pb.Track) -> None:
+        n = max(len(msg.lat), len(msg.lon), len(msg.time))
+        if n > self.config.max_track_points:
+            raise LimitError(
+                "max_track_points",
+                f"a track has {n} points, over the server's limit of {self.config.max_track_points}",
+            )
+
     def _match(self, entry: MapEntry, msg: pb.Track, prefix: str) -> pb.TrackResult:
+        self._check_track(msg)
         track = convert.track_from_proto(msg, prefix=prefix)
         try:
             m = entry.batch.match(track)
         except ValidationError as exc:
             raise _prefixed(exc, prefix) from None
-        return convert.track_match_to_proto(m, entry.graph)
+        return self._answer_size(convert.track_match_to_proto(m, entry.graph))
 
     async def MatchTrack(self, request: pb.MatchTrackRequest, context: aio.ServicerContext) -> pb.TrackResult:
         entry = self.maps.get(request.map_id)
         if not request.HasField("track"):
             raise ValidationError("track", "is required")
+        self._check_track(request.track)
         return await self._offload(context, lambda: self._match(entry, request.track, "track"))
 
     async def MatchTracks(
@@ -188,17 +263,18 @@ class MapMatchServicer(pb_grpc.MapMatchServicer):
             raise ValidationError("map_id", "is required (a name without '/')")
         if not request.path:
             raise ValidationError("path", "is required")
-        path = Path(request.path)
+        map_dir = self.config.map_dir
+        limits = load_limits(self.config)
 
         def load() -> MapEntry:
-            entry = self.maps.load(request.map_id, path)
-            try:
-                warm_up(entry, self)
-            except Exception:
-                self.maps.unload(request.map_id)
-                raise
-            return entry
+            path = resolve_map_path(map_dir, request.path)  # MapPathError for everything else
+            assert map_dir is not None
+            shown = os.path.relpath(path, os.path.realpath(map_dir))
+            # loaded and warmed up before it replaces a map of the same id
+            return self.maps.load(request.map_id, path, limits=limits, source=shown)
 
+        if map_dir is None:
+            raise MapPathError()
         entry = await self._offload(context, load)
         if self.on_maps_changed is not None:
             await _maybe_await(self.on_maps_changed())
@@ -219,8 +295,7 @@ class MapMatchServicer(pb_grpc.MapMatchServicer):
         self, request: pb.ExportSessionRequest, context: aio.ServicerContext
     ) -> pb.SessionBlob:
         entry = self.maps.get(request.map_id)
-        if not request.vehicle_id:
-            raise ValidationError("vehicle_id", "is required")
+        self._check_vehicle(request.vehicle_id)
         state = self.sessions.export(entry.map_id, request.vehicle_id, remove=request.remove)
         return pb.SessionBlob(
             map_id=entry.map_id, vehicle_id=request.vehicle_id, map_checksum=entry.checksum, state=state
@@ -232,10 +307,13 @@ class MapMatchServicer(pb_grpc.MapMatchServicer):
         blob = request.session
         if not request.HasField("session"):
             raise ValidationError("session", "is required")
-        if not blob.vehicle_id:
-            raise ValidationError("session.vehicle_id", "is required")
+        self._check_vehicle(blob.vehicle_id, "session.vehicle_id")
         entry = self.maps.get(blob.map_id)
-        if blob.map_checksum and blob.map_checksum != entry.checksum:
+        if not blob.map_checksum:
+            raise ValidationError(
+                "session.map_checksum", "is required (the checksum of the map the session was made on)"
+            )
+        if blob.map_checksum != entry.checksum:
             raise ValidationError(
                 "session.map_checksum",
                 f"session was made on another version of map {entry.map_id!r} "
@@ -245,8 +323,12 @@ class MapMatchServicer(pb_grpc.MapMatchServicer):
 
         try:
             state = SessionState.from_bytes(blob.state)
+        except ValidationError as exc:
+            raise _prefixed(exc, "session.state") from None
         except Exception as exc:
-            raise ValidationError("session.state", f"not a valid session state ({exc})") from None
+            raise ValidationError(
+                "session.state", f"not a valid session state ({type(exc).__name__})"
+            ) from None
         self.sessions.put(entry.map_id, blob.vehicle_id, state, replace=request.replace)
         return pb.ImportSessionResponse()
 
@@ -254,8 +336,7 @@ class MapMatchServicer(pb_grpc.MapMatchServicer):
         self, request: pb.EndSessionRequest, context: aio.ServicerContext
     ) -> pb.EndSessionResponse:
         entry = self.maps.get(request.map_id)
-        if not request.vehicle_id:
-            raise ValidationError("vehicle_id", "is required")
+        self._check_vehicle(request.vehicle_id)
         return pb.EndSessionResponse(existed=self.sessions.drop(entry.map_id, request.vehicle_id))
 
 
@@ -264,35 +345,17 @@ async def _maybe_await(x: Any) -> None:
         await x
 
 
-def warm_up(entry: MapEntry, servicer: MapMatchServicer) -> None:
-    """One online query (and one batch match when available) on a map, through the same code
-    path as requests; raises when the map cannot serve. Leaves no session behind."""
-    g = entry.graph
-    if g.n_edges == 0:
-        raise ValidationError("path", f"map {entry.map_id!r} has no roads")
-    e = int(g.edge_len.argmax())
-    u, v = int(g.edge_u[e]), int(g.edge_v[e])
-    lon0, lat0 = g.node_lonlat[u]
-    lon1, lat1 = g.node_lonlat[v]
-    lat, lon = (lat0 + lat1) / 2.0, (lon0 + lon1) / 2.0
-    vid = f"__warmup__{os.getpid()}"
-    bearing = float(g.edge_bearing_start[e])
-    req = pb.FixRequest(
-        map_id=entry.map_id,
-        vehicle_id=vid,
-        fix=pb.Fix(time=0.0, lat=float(lat), lon=float(lon), heading=bearing, pos_sigma=5.0, speed=5.0),
-    )
-    try:
-        resp = servicer.snap(req)
-    finally:
-        servicer.sessions.drop(entry.map_id, vid)
-    if not math.isfinite(resp.result.time):
-        raise RuntimeError(f"warm-up query on map {entry.map_id!r} failed")
-    try:
-        import mapmatch.batch  # noqa: F401
-    except ModuleNotFoundError:
-        return
-    track = pb.Track(
-        track_id="warmup", time=[0.0, 1.0], lat=[float(lat0), float(lat)], lon=[float(lon0), float(lon)]
-    )
-    servicer._match(entry, track, "track")
+def _check_edges(state: Any, n_edges: int) -> None:
+    """Every edge an imported state refers to exists on the map."""
+
+    def ok(e: float) -> bool:
+        return math.isfinite(e) and e == int(e) and 0 <= e < n_edges
+
+    for key, edges in (
+        ("h", [e for h in state.hyps for e in h.edges]),
+        ("live", [row[1] for row in state.live if row[1] >= 0]),
+        ("bk", [row[0] for row in state.back]),
+        ("sh", [state.shown] if state.shown != -1 else []),
+    ):
+        if not all(ok(float(e)) for e in edges):
+            raise ValidationError(f"session.state.{key}", f"edge ids must be in [0, {n_edges})")

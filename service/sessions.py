@@ -31,6 +31,7 @@ class Session:
     state: Any
     last_used: float
     lock: threading.Lock = field(default_factory=threading.Lock)
+    waiting: int = 0  # users of a provisional session (not yet stored)
 
 
 class SessionStore:
@@ -53,6 +54,8 @@ class SessionStore:
         self._lock = threading.Lock()
         # least recently used first: expiry pops from the front
         self._sessions: OrderedDict[SessionKey, Session] = OrderedDict()
+        # new sessions whose first fix is being matched: stored only once one is accepted
+        self._pending: dict[SessionKey, Session] = {}
         self.expired_total = 0
 
     # ------------------------------------------------------------------ internal
@@ -96,19 +99,30 @@ class SessionStore:
         now = self._clock()
         with self._lock:
             s = self._get_locked(key, now)
-            if s is None:
-                self._full_check_locked(now)
-                s = Session(key=key, state=factory(), last_used=now)
-        with s.lock:
-            yield s
-        with self._lock:
-            cur = self._sessions.get(key)
-            if cur is not s:
-                if cur is None:
-                    self._full_check_locked(self._clock())
-                self._sessions[key] = s
-            s.last_used = self._clock()
-            self._sessions.move_to_end(key)
+            if s is None:  # a provisional session, shared by concurrent first fixes
+                s = self._pending.get(key)
+                if s is None:
+                    self._full_check_locked(now)
+                    s = self._pending[key] = Session(key=key, state=factory(), last_used=now)
+                s.waiting += 1
+        accepted = False
+        try:
+            with s.lock:
+                yield s
+            accepted = True
+        finally:
+            with self._lock:
+                if self._pending.get(key) is s:
+                    s.waiting -= 1
+                    if accepted or s.waiting == 0:
+                        del self._pending[key]
+                    if accepted:
+                        if key not in self._sessions:
+                            self._full_check_locked(self._clock())
+                        self._sessions[key] = s
+                if accepted and self._sessions.get(key) is s:
+                    s.last_used = self._clock()
+                    self._sessions.move_to_end(key)
 
     def _full_check_locked(self, now: float) -> None:
         self._expire_locked(now)

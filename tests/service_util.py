@@ -14,7 +14,7 @@ from service import convert
 from service.config import ServerConfig
 from service.gen.mapmatch.v1 import mapmatch_pb2 as pb
 from service.gen.mapmatch.v1 import mapmatch_pb2_grpc as pb_grpc
-from service.server import Server, create_server
+from service.server import Server, start_server
 
 CITY = """
     a-----------b-----------c
@@ -40,7 +40,7 @@ def local_config(**kw: Any) -> ServerConfig:
 
 @contextlib.contextmanager
 def running(config: ServerConfig | None = None, maps: Any = None, **kw: Any) -> Iterator[tuple[Server, int]]:
-    server, port = create_server(config or local_config(), maps, **kw)
+    server, port = start_server(config or local_config(), maps, **kw)
     try:
         yield server, port
     finally:

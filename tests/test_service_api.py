@@ -231,10 +231,10 @@ def test_load_and_unload_maps_at_run_time(tmp_path):
     other = city(scale=12.0)
     path = tmp_path / "other.map"
     save_map(other.graph, path)
-    with running(local_config(), {"city": AMAP.graph}) as (_, port):
+    with running(local_config(map_dir=tmp_path), {"city": AMAP.graph}) as (_, port):
         ch, api = stub(port)
-        info = api.LoadMap(pb.LoadMapRequest(map_id="other", path=str(path)), timeout=60)
-        assert info.edge_count == other.graph.n_edges and info.version and info.source == str(path)
+        info = api.LoadMap(pb.LoadMapRequest(map_id="other", path="other.map"), timeout=60)
+        assert info.edge_count == other.graph.n_edges and info.version and info.source == "other.map"
         listed = api.ListMaps(pb.ListMapsRequest(), timeout=5)
         assert sorted(m.map_id for m in listed.maps) == ["city", "other"] and listed.default_map_id == ""
         # with two maps a request must name one
@@ -247,7 +247,7 @@ def test_load_and_unload_maps_at_run_time(tmp_path):
         assert api.UnloadMap(pb.UnloadMapRequest(map_id="other"), timeout=5).sessions_dropped == 1
         assert api.ListMaps(pb.ListMapsRequest(), timeout=5).default_map_id == "city"
         for bad, code, fld in [
-            (pb.LoadMapRequest(map_id="x", path=str(tmp_path / "missing.map")), None, "path"),
+            (pb.LoadMapRequest(map_id="x", path="missing.map"), grpc.StatusCode.PERMISSION_DENIED, "path"),
             (pb.LoadMapRequest(map_id="", path=str(path)), grpc.StatusCode.INVALID_ARGUMENT, "map_id"),
         ]:
             with pytest.raises(grpc.RpcError) as ei:
@@ -255,7 +255,7 @@ def test_load_and_unload_maps_at_run_time(tmp_path):
             assert _field(ei.value) == fld and (code is None or ei.value.code() == code)
         (tmp_path / "junk.map").write_bytes(b"RGMAP\x00\x00\x01garbage")
         with pytest.raises(grpc.RpcError) as ei:
-            api.LoadMap(pb.LoadMapRequest(map_id="junk", path=str(tmp_path / "junk.map")), timeout=30)
+            api.LoadMap(pb.LoadMapRequest(map_id="junk", path="junk.map"), timeout=30)
         assert ei.value.code() == grpc.StatusCode.INVALID_ARGUMENT and _field(ei.value) == "path"
         with pytest.raises(grpc.RpcError) as ei:
             api.UnloadMap(pb.UnloadMapRequest(map_id="other"), timeout=5)
@@ -267,7 +267,7 @@ def test_load_and_unload_maps_at_run_time(tmp_path):
 def test_health_not_serving_until_a_map_is_loaded_and_warmed(tmp_path):
     path = tmp_path / "city.map"
     save_map(AMAP.graph, path)
-    with running(local_config(), None) as (_, port):
+    with running(local_config(map_dir=tmp_path), None) as (_, port):
         ch = grpc.insecure_channel(f"127.0.0.1:{port}")
         health = health_pb2_grpc.HealthStub(ch)
         for svc in ("", "mapmatch.v1.MapMatch"):
@@ -275,7 +275,7 @@ def test_health_not_serving_until_a_map_is_loaded_and_warmed(tmp_path):
             assert st == health_pb2.HealthCheckResponse.NOT_SERVING
         from service.gen.mapmatch.v1 import mapmatch_pb2_grpc as pb_grpc
 
-        pb_grpc.MapMatchStub(ch).LoadMap(pb.LoadMapRequest(map_id="city", path=str(path)), timeout=60)
+        pb_grpc.MapMatchStub(ch).LoadMap(pb.LoadMapRequest(map_id="city", path="city.map"), timeout=60)
         st = health.Check(health_pb2.HealthCheckRequest(service="mapmatch.v1.MapMatch"), timeout=5).status
         assert st == health_pb2.HealthCheckResponse.SERVING
         pb_grpc.MapMatchStub(ch).UnloadMap(pb.UnloadMapRequest(map_id="city"), timeout=60)
@@ -366,10 +366,14 @@ def test_session_moves_between_two_servers_and_continues_identically():
         with pytest.raises(grpc.RpcError) as ei:
             a2.ImportSession(pb.ImportSessionRequest(session=bad), timeout=5)
         assert _field(ei.value) == "session.map_checksum"
-        bad = pb.SessionBlob(map_id="city", vehicle_id="x", state=b"not a state")
+        bad = pb.SessionBlob(
+            map_id="city", vehicle_id="x", map_checksum=blob.map_checksum, state=b"not a state"
+        )
         with pytest.raises(grpc.RpcError) as ei:
             a2.ImportSession(pb.ImportSessionRequest(session=bad), timeout=5)
-        assert ei.value.code() == grpc.StatusCode.INVALID_ARGUMENT and _field(ei.value) == "session.state"
+        assert (
+            ei.value.code() == grpc.StatusCode.INVALID_ARGUMENT and _field(ei.value) == "session.state.state"
+        )
         for c in (c1, c2, c3):
             c.close()
 

@@ -147,10 +147,10 @@ def test_command_errors_are_one_line(tmp_path: Path, capsys) -> None:  # type: i
 
 def test_simulate_replays_to_a_running_server(tmp_path: Path, grid, capsys) -> None:  # type: ignore[no-untyped-def]
     from service.config import ServerConfig
-    from service.server import create_server
+    from service.server import start_server
 
     save_map(grid.graph, tmp_path / "grid.map")
-    server, port = create_server(
+    server, port = start_server(
         ServerConfig(address="127.0.0.1:0", grace=1.0, reuse_port=False), {"grid": grid.graph}
     )
     try:

@@ -47,7 +47,7 @@ def run(args: argparse.Namespace) -> int:
     from mapmatch.types import Fix, SnapResult
     from service.client import MapMatchClient
     from service.config import ServerConfig
-    from service.server import create_server
+    from service.server import start_server
 
     if args.length_km <= 0:
         raise CommandError("--length-km must be positive")
@@ -63,7 +63,7 @@ def run(args: argparse.Namespace) -> int:
     _step(f"simulating a {args.length_km:g} km fused drive with GPS outage(s) {args.outage}", t0)
     drive = demo_drive(graph, seed=args.seed, length_km=args.length_km, outages=args.outage, rate=args.rate)
 
-    server, port = create_server(ServerConfig(address="127.0.0.1:0"), {"helsinki": map_path})
+    server, port = start_server(ServerConfig(address="127.0.0.1:0"), {"helsinki": map_path})
     try:
         _step(f"gRPC server on 127.0.0.1:{port} is SERVING; streaming {len(drive.fixes)} fixes", t0)
 
