@@ -363,7 +363,7 @@ def _child_main(argv: list[str]) -> int:
 
 # ---------------------------------------------------------------------------------- warm-up
 def warm_up(entry: MapEntry) -> None:
-    """One online fix on the middle of the map's longest road (and one batch match when the
+    """One online fix at the start of the map's longest road (and one batch match when the
     batch matcher is available) through the matchers and converters requests use; raises
     :class:`MapLoadError` when the map cannot serve. Leaves no session behind."""
     from service import convert
@@ -375,10 +375,10 @@ def warm_up(entry: MapEntry) -> None:
     u, v = int(g.edge_u[e]), int(g.edge_v[e])
     lon0, lat0 = (float(x) for x in g.node_lonlat[u])
     lon1, lat1 = (float(x) for x in g.node_lonlat[v])
-    lat, lon = (lat0 + lat1) / 2.0, (lon0 + lon1) / 2.0
-    fix = Fix(
-        time=0.0, lat=lat, lon=lon, heading=float(g.edge_bearing_start[e]) % 360.0, pos_sigma=5.0, speed=5.0
-    )
+    # at the road's start node: on the road whatever its shape
+    heading = float(g.edge_bearing_start[e]) % 360.0
+    fix = Fix(time=0.0, lat=lat0, lon=lon0, heading=heading, pos_sigma=5.0, speed=5.0)
+    lat, lon = lat1, lon1
     try:
         fix.validate()
         result = entry.online.update(entry.online.new_session(), fix)

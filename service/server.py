@@ -437,14 +437,15 @@ def serve(config: ServerConfig, maps: MapsArg = None) -> int:
         log.info("starting (pid %d)", os.getpid())
         runtime = create_server(config, maps)
         port = runtime.start(wait_ready=False)
-        host = config.address.rsplit(":", 1)[0]
-        print(f"mapmatch serve: listening on {host}:{port}", flush=True)
         while not done.wait(0.2):
             if runtime.ready.done():
                 break
         if runtime.ready.done() and runtime.ready.exception() is not None:
             runtime.stop(0)
             raise ConfigError(f"cannot serve: {runtime.ready.exception()}")
+        if runtime.ready.done():
+            host = config.address.rsplit(":", 1)[0]
+            print(f"mapmatch serve: listening on {host}:{port} ({len(runtime.maps)} map(s))", flush=True)
         # the maps, matchers and compiled code are long-lived: keep them out of the cyclic GC's
         # scans so full collections stay short (they showed as latency spikes)
         gc.collect()

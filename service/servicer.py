@@ -324,7 +324,8 @@ class MapMatchServicer(pb_grpc.MapMatchServicer):
         try:
             state = SessionState.from_bytes(blob.state)
         except ValidationError as exc:
-            raise _prefixed(exc, "session.state") from None
+            fld = "session.state" if exc.field == "state" else f"session.state.{exc.field}"
+            raise ValidationError(fld, exc.reason) from None
         except Exception as exc:
             raise ValidationError(
                 "session.state", f"not a valid session state ({type(exc).__name__})"

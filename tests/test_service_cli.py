@@ -24,7 +24,7 @@ from mapmatch.errors import ConfigError
 from service import gen_proto
 from service.config import ServerConfig, add_arguments, config_from
 from service.gen.mapmatch.v1 import mapmatch_pb2 as pb
-from service.server import create_server
+from service.server import start_server
 
 ROOT = Path(__file__).resolve().parents[1]
 AMAP = city()
@@ -81,7 +81,7 @@ def test_unbindable_address_is_a_config_error():
         running(local_config(), {"city": AMAP.graph}) as (_, port),
         pytest.raises(ConfigError, match="cannot listen"),
     ):
-        create_server(local_config(address=f"127.0.0.1:{port}"), {"city": AMAP.graph})
+        start_server(local_config(address=f"127.0.0.1:{port}"), {"city": AMAP.graph})
 
 
 # ---------------------------------------------------------------------------------- shutdown

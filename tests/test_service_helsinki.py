@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 from conftest import helsinki_pbf
@@ -52,9 +54,9 @@ def test_stream_and_track_on_helsinki(helsinki):
     s = np.arange(0.0, d[-1], 5.0)
     pts = np.column_stack([np.interp(s, d, xy[:, 0]), np.interp(s, d, xy[:, 1])])
     ll = to_lonlat(g.crs, pts[:, 0], pts[:, 1])
-    with running(local_config(), None) as (_, port):
+    with running(local_config(map_dir=Path(path).parent), None) as (_, port):
         ch, api = stub(port)
-        info = api.LoadMap(pb.LoadMapRequest(map_id="helsinki", path=str(path)), timeout=120)
+        info = api.LoadMap(pb.LoadMapRequest(map_id="helsinki", path=Path(path).name), timeout=120)
         assert info.edge_count == g.n_edges and info.checksum
         reqs = [
             pb.FixRequest(
