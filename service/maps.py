@@ -18,6 +18,7 @@ import math
 import os
 import resource
 import shutil
+import signal
 import stat
 import subprocess
 import sys
@@ -313,20 +314,22 @@ def _build_in_child(path: Path, *, limits: LoadLimits) -> RoadGraph:
     tmp = Path(tempfile.mkdtemp(prefix="mapmatch-build-"))
     out = tmp / "built.map"
 
-    def limit() -> None:  # in the child, before exec
-        resource.setrlimit(resource.RLIMIT_AS, (limits.memory_bytes, limits.memory_bytes))
-        cpu = max(1, math.ceil(limits.timeout))
-        resource.setrlimit(resource.RLIMIT_CPU, (cpu, cpu + 5))
-
     try:
         try:
             proc = subprocess.run(
-                [sys.executable, "-m", __name__, str(path), str(out)],
+                [
+                    sys.executable,
+                    "-m",
+                    __name__,
+                    str(path),
+                    str(out),
+                    str(limits.memory_bytes),
+                    str(max(1, math.ceil(limits.timeout))),
+                ],
                 stdin=subprocess.DEVNULL,
                 stdout=subprocess.DEVNULL,
                 stderr=subprocess.PIPE,
                 timeout=limits.timeout,
-                preexec_fn=limit,
                 check=False,
             )
         except subprocess.TimeoutExpired:
@@ -334,6 +337,8 @@ def _build_in_child(path: Path, *, limits: LoadLimits) -> RoadGraph:
         if proc.returncode != 0:
             lines = proc.stderr.decode(errors="replace").strip().splitlines()
             last = lines[-1] if lines else f"exit status {proc.returncode}"
+            if proc.returncode == -signal.SIGXCPU:
+                raise LimitError("load_timeout", f"building the map took over {limits.timeout:g} s of CPU")
             if proc.returncode < 0 or "MemoryError" in last:
                 raise LimitError(
                     "load_memory_bytes",
@@ -348,6 +353,10 @@ def _build_in_child(path: Path, *, limits: LoadLimits) -> RoadGraph:
 
 
 def _child_main(argv: list[str]) -> int:
+    """``SOURCE OUT MEMORY_BYTES CPU_SECONDS``: limit this process, build, save."""
+    memory, cpu = int(argv[2]), int(argv[3])
+    resource.setrlimit(resource.RLIMIT_AS, (memory, memory))
+    resource.setrlimit(resource.RLIMIT_CPU, (cpu, cpu + 5))
     from graph.build import build_map
 
     try:

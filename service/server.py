@@ -403,12 +403,24 @@ class JsonLinesFormatter(logging.Formatter):
         return json.dumps(out)
 
 
+class _StderrHandler(logging.StreamHandler):  # type: ignore[type-arg]
+    """Writes to whatever ``sys.stderr`` is at the time of each record."""
+
+    @property  # type: ignore[override]
+    def stream(self) -> Any:
+        return sys.stderr
+
+    @stream.setter
+    def stream(self, value: Any) -> None:
+        pass
+
+
 def configure_logging(log_format: str, *, access: bool) -> None:
     """Lifecycle lines always; access lines when ``access``; JSON lines for ``"json"``.
 
     Replaces the root handlers' format for the ``mapmatch`` loggers with a handler of its own.
     """
-    handler = logging.StreamHandler(sys.stderr)
+    handler: logging.Handler = _StderrHandler()
     if log_format == "json":
         handler.setFormatter(JsonLinesFormatter())
     else:

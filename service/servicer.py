@@ -330,6 +330,7 @@ class MapMatchServicer(pb_grpc.MapMatchServicer):
             raise ValidationError(
                 "session.state", f"not a valid session state ({type(exc).__name__})"
             ) from None
+        _check_edges(state, entry.graph.n_edges)
         self.sessions.put(entry.map_id, blob.vehicle_id, state, replace=request.replace)
         return pb.ImportSessionResponse()
 
