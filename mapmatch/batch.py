@@ -262,7 +262,7 @@ def _opt(a: NDArray[np.float64] | None, n: int) -> NDArray[np.float64]:
 
 
 # ---------------------------------------------------------------------- compiled kernels
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _thin(xy, valid, min_dist):  # type: ignore[no-untyped-def]
     """Keep valid points at least ``min_dist`` from the previously kept one (always the last)."""
     n = len(valid)
@@ -288,7 +288,7 @@ def _thin(xy, valid, min_dist):  # type: ignore[no-untyped-def]
     return kept
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _step(  # type: ignore[no-untyped-def]
     a0,
     a1,
@@ -436,7 +436,7 @@ def _step(  # type: ignore[no-untyped-def]
     return reached
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _solve(  # type: ignore[no-untyped-def]
     cand_ptr,
     cedge,
@@ -597,7 +597,7 @@ def _solve(  # type: ignore[no-untyped-def]
     return choice, seg_start, via_u, used_bound
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _pieces(  # type: ignore[no-untyped-def]
     ch_edge,
     ch_off,
@@ -700,7 +700,7 @@ def _pieces(  # type: ignore[no-untyped-def]
     return pe[:n], ps[:n], pend[:n], pseg[:n], bad
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _pieces_xy(pe, ps, pend, seg_xy, seg_ptr):  # type: ignore[no-untyped-def]
     """Polyline coordinates of each piece (consecutive duplicates dropped); ``ptr`` per piece."""
     n = len(pe)
@@ -739,7 +739,7 @@ def _pieces_xy(pe, ps, pend, seg_xy, seg_ptr):  # type: ignore[no-untyped-def]
     return out[:c], ptr
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _bearing_at(edges, offs, seg_xy, seg_ptr):  # type: ignore[no-untyped-def]
     """Compass bearing (degrees) of the edge polyline segment at each offset."""
     out = np.empty(len(edges))
@@ -761,7 +761,7 @@ def _bearing_at(edges, offs, seg_xy, seg_ptr):  # type: ignore[no-untyped-def]
     return out
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _prune(nk, cpoint, cedge, coff, cxy, cdist, emis, prune, outlier):  # type: ignore[no-untyped-def]
     """Drop candidates far below their point's best emission or beyond ``outlier`` metres.
 
@@ -810,7 +810,7 @@ def _prune(nk, cpoint, cedge, coff, cxy, cdist, emis, prune, outlier):  # type: 
     return ptr, oe, oo, ox, od, om, has
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _project_one(x, y, e, seg_xy, seg_ptr):  # type: ignore[no-untyped-def]
     """Offset, distance and position of point ``(x, y)`` projected onto edge ``e``."""
     a0 = seg_ptr[e]
@@ -840,7 +840,7 @@ def _project_one(x, y, e, seg_xy, seg_ptr):  # type: ignore[no-untyped-def]
     return off, best, px_b, py_b
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _finish(  # type: ignore[no-untyped-def]
     n,
     valid,
@@ -1006,7 +1006,7 @@ def _finish(  # type: ignore[no-untyped-def]
     return p_edge, p_off, p_xy, p_dist, status, splits, route_e[:k], route_ptr, xy_all, rxy_ptr, length, conf
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _run(  # type: ignore[no-untyped-def]
     n,
     valid,
@@ -1089,7 +1089,7 @@ def _run(  # type: ignore[no-untyped-def]
     )  # fmt: skip
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _try_step(  # type: ignore[no-untyped-def]
     prev,
     t,

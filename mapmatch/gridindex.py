@@ -86,7 +86,7 @@ class GridIndex:
         return Candidates(point=p, edge=e, dist=d, offset=o, xy=q)
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _bucket(a, b, origin, cell, ny):  # type: ignore[no-untyped-def]
     """Cell ids (sorted) and the segment in each, for every cell a segment's box touches."""
     n = len(a)
@@ -114,7 +114,7 @@ def _bucket(a, b, origin, cell, ny):  # type: ignore[no-untyped-def]
     return ids[order], seg[order]
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _query(  # type: ignore[no-untyped-def]
     pts,
     radius,
@@ -285,7 +285,7 @@ def _query(  # type: ignore[no-untyped-def]
     return op[:m].copy(), oe[:m].copy(), od[:m].copy(), oo[:m].copy(), oq[:m].copy(), stamp0
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def grow_array(a, cap):  # type: ignore[no-untyped-def]
     """A copy of ``a`` with room for ``cap`` items (compiled once per dtype)."""
     b = np.empty(cap, dtype=a.dtype)

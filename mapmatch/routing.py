@@ -77,7 +77,7 @@ class Workspace:
         self.heap_v = np.empty(n_edges + 16, dtype=np.int32)
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True, nogil=True, inline="always")
 def _allowed(e: int, f: int, out_ptr, out_edges, edge_v, edge_rev, r_ptr, r_to, r_kind) -> bool:  # type: ignore[no-untyped-def]
     if f == edge_rev[e]:
         v = edge_v[e]
@@ -98,7 +98,7 @@ def _allowed(e: int, f: int, out_ptr, out_edges, edge_v, edge_rev, r_ptr, r_to, 
     return not has_only or found_only
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True, nogil=True, inline="always")
 def _push(heap_k, heap_v, n: int, k: float, v: int) -> int:  # type: ignore[no-untyped-def]
     i = n
     heap_k[i] = k
@@ -113,7 +113,7 @@ def _push(heap_k, heap_v, n: int, k: float, v: int) -> int:  # type: ignore[no-u
     return n + 1
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True, nogil=True, inline="always")
 def _pop(heap_k, heap_v, n: int) -> int:  # type: ignore[no-untyped-def]
     n -= 1
     heap_k[0] = heap_k[n]
@@ -134,7 +134,7 @@ def _pop(heap_k, heap_v, n: int) -> int:  # type: ignore[no-untyped-def]
     return n
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _search(  # type: ignore[no-untyped-def]
     src: int,
     base: float,
@@ -209,7 +209,7 @@ def _search(  # type: ignore[no-untyped-def]
     return nt
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True, nogil=True, inline="always")
 def _reset(nt: int, touched, dist, pred, done) -> None:  # type: ignore[no-untyped-def]
     for i in range(nt):
         f = touched[i]
@@ -218,7 +218,7 @@ def _reset(nt: int, touched, dist, pred, done) -> None:  # type: ignore[no-untyp
         done[f] = 0
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def path_edges(  # type: ignore[no-untyped-def]
     src: int,
     src_off: float,
@@ -344,7 +344,7 @@ class Ubodt:
         return int(self.ptr.nbytes + self.tgt.nbytes + self.dist.nbytes + self.pred.nbytes)
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _build_ubodt(  # type: ignore[no-untyped-def]
     delta,
     n_edges,
@@ -404,7 +404,7 @@ def _build_ubodt(  # type: ignore[no-untyped-def]
     return ptr, out_t[:m].copy(), out_d[:m].copy(), out_p[:m].copy()
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True, nogil=True, inline="always")
 def ubodt_lookup(ptr, tgt, dist, e: int, f: int) -> float:  # type: ignore[no-untyped-def]
     """Distance from the end of ``e`` to the start of ``f`` if within the table, else inf."""
     lo = ptr[e]
@@ -420,7 +420,7 @@ def ubodt_lookup(ptr, tgt, dist, e: int, f: int) -> float:  # type: ignore[no-un
     return INF
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def ubodt_path(ptr, tgt, dist, upred, src: int, dst: int):  # type: ignore[no-untyped-def]
     """The edges strictly between ``src`` and ``dst`` from the table (None if not in it)."""
     if ubodt_lookup(ptr, tgt, dist, src, dst) == INF:
@@ -443,7 +443,7 @@ def ubodt_path(ptr, tgt, dist, upred, src: int, dst: int):  # type: ignore[no-un
     return out
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True, nogil=True, inline="always")
 def _ubodt_pred(ptr, tgt, upred, e: int, f: int) -> int:  # type: ignore[no-untyped-def]
     lo = ptr[e]
     hi = ptr[e + 1]
