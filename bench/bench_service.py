@@ -15,6 +15,10 @@ the updates/s one server process sustains. Phase 3 does the same through ``Strea
 (gateways of ``--batch`` vehicles, one message per tick). The server's CPU is reported for
 each phase: below 100 % the clients, not the server, were the limit.
 
+Phase 4 (big match): phase 1 again while another client process keeps a ``--big-points``
+(1M) point ``MatchTrack`` in flight the whole time (the server runs with limits raised for
+it); reports the paced streams' latency during the big match, and the match's duration.
+
 Run::
 
     python bench/bench_service.py                    # 200 vehicles, 10 Hz, 60 s + 20 s peak
@@ -347,11 +351,55 @@ def run_phase(
     }
 
 
+def big_match_process(args: tuple[Any, ...]) -> None:
+    """Keep one ``n``-point MatchTrack in flight until ``stop`` is set; report durations."""
+    port, track_bytes, stop, started, queue = args
+    import grpc
+
+    from service.gen.mapmatch.v1 import mapmatch_pb2 as pb
+    from service.gen.mapmatch.v1 import mapmatch_pb2_grpc as pb_grpc
+
+    big = [("grpc.max_receive_message_length", -1), ("grpc.max_send_message_length", -1)]
+    req = pb.MatchTrackRequest(track=pb.Track.FromString(track_bytes))
+    out: dict[str, Any] = {"durations": [], "errors": 0, "points": 0}
+    with grpc.insecure_channel(f"127.0.0.1:{port}", options=big) as ch:
+        api = pb_grpc.MapMatchStub(ch)
+        started.set()
+        while not stop.is_set():
+            t = time.perf_counter()
+            try:
+                res = api.MatchTrack(req, timeout=600)
+                out["points"] = len(res.points)
+            except grpc.RpcError as exc:
+                out["errors"] += 1
+                print(f"# big match failed: {exc.code().name} {exc.details()}"[:300], flush=True)
+                time.sleep(1.0)
+            out["durations"].append(time.perf_counter() - t)
+    queue.put(out)
+
+
+def big_track(vehicles: list[list[Any]], n: int) -> bytes:
+    """An ``n``-point track: the phase-1 drives one after another, re-timed at 1 Hz."""
+    from service.gen.mapmatch.v1 import mapmatch_pb2 as pb
+
+    lat = [f.lat for fx in vehicles for f in fx]
+    lon = [f.lon for fx in vehicles for f in fx]
+    k = len(lat)
+    reps = math.ceil(n / k)
+    la = np.tile(np.asarray(lat), reps)[:n]
+    lo = np.tile(np.asarray(lon), reps)[:n]
+    return pb.Track(
+        track_id="big", time=np.arange(n, dtype=float).tolist(), lat=la.tolist(), lon=lo.tolist()
+    ).SerializeToString()
+
+
 # ---------------------------------------------------------------------------------- server
-def start_server(map_path: Path, max_sessions: int) -> tuple[subprocess.Popen, int]:
+def start_server(map_path: Path, max_sessions: int, big_points: int) -> tuple[subprocess.Popen, int]:
     cmd = [
         sys.executable, "-m", "mapmatch", "serve", "--map", f"helsinki={map_path}",
         "--address", "127.0.0.1:0", "--max-sessions", str(max_sessions), "--no-reuse-port",
+        "--max-track-points", str(big_points), "--max-message-bytes", str(64 << 20),
+        "--max-answer-bytes", str(1 << 30),
     ]  # fmt: skip
     env = {**os.environ, "PYTHONPATH": str(ROOT)}
     proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, text=True, env=env, cwd=ROOT)
@@ -362,6 +410,42 @@ def start_server(map_path: Path, max_sessions: int) -> tuple[subprocess.Popen, i
         raise SystemExit(f"server failed to start: {line!r}")
     port = int(line.split("listening on ")[1].split()[0].rsplit(":", 1)[1])
     return proc, port
+
+
+def phase4(args: argparse.Namespace, port: int, sp: Any, paced: list[list[Any]]) -> None:
+    """Phase 1 again, with a 1M-point MatchTrack in flight all along."""
+    ctx = mp.get_context("spawn")
+    stop, started, queue = ctx.Event(), ctx.Event(), ctx.Queue()
+    t = time.perf_counter()
+    track = big_track(paced, args.big_points)
+    print(f"\n# phase 4: {args.big_points} point track made in {time.perf_counter() - t:.1f} s "
+          f"({len(track) / 2**20:.0f} MiB)", flush=True)  # fmt: skip
+    big = ctx.Process(target=big_match_process, args=((port, track, stop, started, queue),))
+    big.start()
+    started.wait(60)
+    time.sleep(2.0)  # the first match is under way
+    rss0 = sp.memory_info().rss
+    total = args.warmup + args.seconds
+    r = run_phase(
+        port, paced, rate=args.rate, window=1, seconds=total, clients=args.clients, tag="m", server=sp
+    )
+    rss1 = sp.memory_info().rss
+    stop.set()
+    out = queue.get()
+    big.join()
+    lat = r["lat"] * 1000.0
+    steady = (r["at"] >= args.warmup) & (r["at"] < total)
+    p50, p99, pmax = np.percentile(lat[steady], [50, 99, 100]) if steady.any() else [math.nan] * 3
+    d = out["durations"]
+    print("## phase 4: paced load during a concurrent big MatchTrack")
+    print(f"big MatchTrack            {args.big_points} points, {len(d)} call(s), {out['errors']} failed, "
+          f"durations {', '.join(f'{x:.1f}' for x in d)} s, {out['points']} points answered")  # fmt: skip
+    print(f"updates answered          {r['n']} ({int(steady.sum())} in the measured window)")
+    print(f"errors                    {r['errors']}")
+    print(f"latency p50 / p99 / max   {p50:.2f} / {p99:.2f} / {pmax:.2f} ms  (target p99 <= 20 ms)")
+    print(f"server RSS start / end    {rss0 / 2**20:.1f} / {rss1 / 2**20:.1f} MiB (during the big match)")
+    print(f"server CPU                {r['cpu']:.0f} % of one core")
+    print(f"load average              {os.getloadavg()[0]:.2f}")
 
 
 def main() -> int:
@@ -375,6 +459,8 @@ def main() -> int:
     ap.add_argument("--peak-clients", type=int, default=2, help="client processes in the peak phase")
     ap.add_argument("--window", type=int, default=4, help="fixes in flight per stream in the peak phase")
     ap.add_argument("--batch", type=int, default=20, help="vehicles per gateway in the batched peak phase")
+    ap.add_argument("--big-points", type=int, default=1_000_000, help="points of the phase-4 MatchTrack")
+    ap.add_argument("--skip", default="", help="phases to skip, e.g. 23")
     args = ap.parse_args()
 
     import psutil
@@ -387,7 +473,7 @@ def main() -> int:
     peak = drives(map_path, args.vehicles, peak_steps, rate=args.rate, seed=2)
     print(f"# generated {args.vehicles} drives in {time.perf_counter() - t:.1f} s", flush=True)
 
-    proc, port = start_server(map_path, max_sessions=4 * args.vehicles)
+    proc, port = start_server(map_path, max_sessions=6 * args.vehicles, big_points=args.big_points)
     sp = psutil.Process(proc.pid)
     try:
         rss0 = sp.memory_info().rss
@@ -428,8 +514,15 @@ def main() -> int:
                 f"  per-second p99: median {np.median(per_s):.2f} ms, "
                 f"{sum(p > 10.0 for p in per_s)} of {len(per_s)} seconds above 10 ms"
             )
-        print(f"server RSS start / end    {rss0 / 2**20:.1f} / {rss1 / 2**20:.1f} MiB")
+        print(
+            f"server RSS start / end    {rss0 / 2**20:.1f} / {rss1 / 2**20:.1f} MiB "
+            f"({100.0 * (rss1 - rss0) / rss0:+.1f} %, target <= 5 %)"
+        )
         print(f"server CPU                {r['cpu']:.0f} % of one core")
+        if "4" not in args.skip:
+            phase4(args, port, sp, paced)
+        if "2" in args.skip and "3" in args.skip:
+            return 0
 
         r2 = run_phase(
             port,

@@ -27,7 +27,7 @@ import re
 import tempfile
 from collections.abc import Mapping
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeGuard
 
 import numpy as np
 from numpy.typing import NDArray
@@ -199,7 +199,7 @@ def _read_head(f: Any, path: Path) -> tuple[dict[str, Any], int]:
     return manifest, len(MAGIC) + 8 + hlen
 
 
-def _is_count(v: Any) -> bool:
+def _is_count(v: Any) -> TypeGuard[int]:
     return isinstance(v, int) and not isinstance(v, bool) and v >= 0
 
 
@@ -219,7 +219,7 @@ def _checked_table(
         bad = f"{path}: corrupt manifest entry for array {name!r}"
         if not isinstance(t, dict):
             raise ArtifactError(bad)
-        shape, offset, nbytes = t.get("shape"), t.get("offset"), t.get("nbytes")
+        shape, offset, nbytes = t.get("shape"), t.get("offset", -1), t.get("nbytes", -1)
         if not (isinstance(shape, list) and all(_is_count(d) for d in shape) and _is_count(offset)):
             raise ArtifactError(f"{bad} (shape or offset)")
         if not (_is_count(nbytes) and isinstance(t.get("sha256"), str) and isinstance(t.get("dtype"), str)):
