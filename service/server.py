@@ -43,7 +43,7 @@ from service.gen.mapmatch.v1 import mapmatch_pb2 as pb
 from service.gen.mapmatch.v1 import mapmatch_pb2_grpc as pb_grpc
 from service.interceptors import Metrics, interceptors
 from service.maps import MapRegistry, load_map_file, warm_up
-from service.servicer import SERVICE_NAME, MapMatchServicer, load_limits
+from service.servicer import SERVICE_NAME, MapMatchServicer, OnlineQueue, load_limits
 from service.sessions import SessionStore
 
 log = logging.getLogger("mapmatch.service")
@@ -70,9 +70,7 @@ class ServiceRuntime:
         self.sessions = SessionStore(max_sessions=config.max_sessions, ttl=config.session_ttl)
         registry.on_unload.append(self.sessions.drop_map)
         self.executor = ThreadPoolExecutor(max_workers=config.workers, thread_name_prefix="mapmatch-batch")
-        self.online = ThreadPoolExecutor(
-            max_workers=config.online_workers, thread_name_prefix="mapmatch-online"
-        )
+        self.online = OnlineQueue(workers=config.online_workers)
         self.metrics = Metrics()
         self.credentials = _credentials(config)
         self.servicer = MapMatchServicer(
@@ -122,6 +120,7 @@ class ServiceRuntime:
         self.thread = threading.Thread(target=run, name="mapmatch-grpc", daemon=True)
         self.thread.start()
         started.wait()
+        self.online.start()
         try:
             self.port = self.call(self._bind_and_start())
         except BaseException:
@@ -254,7 +253,7 @@ class ServiceRuntime:
 
     def _shutdown_pools(self) -> None:
         self.executor.shutdown(wait=False, cancel_futures=True)
-        self.online.shutdown(wait=False, cancel_futures=True)
+        self.online.shutdown()
 
     def wait_for_termination(self, timeout: float | None = None) -> bool:
         """Block until :meth:`stop` has run; returns False on timeout."""

@@ -14,11 +14,14 @@ streams a bad fix is answered with an ``error`` for that fix and the stream goes
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import dataclasses
 import functools
 import math
 import os
+import queue
 import socket
+import threading
 from collections.abc import AsyncIterator, Callable, Sequence
 from concurrent.futures import Executor
 from typing import Any, TypeVar
@@ -44,6 +47,85 @@ def _prefixed(exc: ValidationError, prefix: str) -> ValidationError:
     return ValidationError(f"{prefix}.{exc.field}", exc.reason)
 
 
+class OnlineQueue:
+    """Online updates on their own thread(s), off the event loop.
+
+    Jobs from every stream go into one FIFO queue, so a stream's slice waits behind the fixes
+    other streams sent before it. A worker takes every job waiting (up to ``drain``) at once
+    and hands the answers back to the loop in one call, so at high rates the threads wake
+    each other once per group of fixes, not once per fix.
+    """
+
+    def __init__(self, *, workers: int = 1, drain: int = 256, name: str = "mapmatch-online") -> None:
+        self._q: queue.SimpleQueue[Any] = queue.SimpleQueue()
+        self._drain = drain
+        self._threads = [
+            threading.Thread(target=self._run, name=f"{name}-{i}", daemon=True) for i in range(workers)
+        ]
+        self._started = False
+        self._lock = threading.Lock()
+
+    def start(self) -> None:
+        """Start the worker threads (once)."""
+        with self._lock:
+            if not self._started:
+                self._started = True
+                for t in self._threads:
+                    t.start()
+
+    def submit(self, fn: Callable[[], T]) -> asyncio.Future[T]:
+        """Run ``fn`` on a worker; the future resolves on the calling event loop."""
+        if not self._started:
+            self.start()
+        loop = asyncio.get_running_loop()
+        fut: asyncio.Future[T] = loop.create_future()
+        self._q.put((loop, fut, fn))
+        return fut
+
+    def shutdown(self) -> None:
+        if not self._started:
+            return
+        for _ in self._threads:
+            self._q.put(None)
+
+    def _run(self) -> None:
+        while True:
+            job = self._q.get()
+            jobs = [job]
+            while job is not None and len(jobs) < self._drain:
+                try:
+                    job = self._q.get_nowait()
+                except queue.Empty:
+                    break
+                jobs.append(job)
+            done: dict[Any, list[tuple[Any, Any, BaseException | None]]] = {}
+            stop = False
+            for j in jobs:
+                if j is None:
+                    stop = True
+                    continue
+                loop, fut, fn = j
+                try:
+                    done.setdefault(loop, []).append((fut, fn(), None))
+                except BaseException as exc:  # handed to the awaiting coroutine
+                    done.setdefault(loop, []).append((fut, None, exc))
+            for loop, results in done.items():
+                with contextlib.suppress(RuntimeError):  # the loop has closed
+                    loop.call_soon_threadsafe(_deliver, results)
+            if stop:
+                return
+
+
+def _deliver(results: list[tuple[asyncio.Future[Any], Any, BaseException | None]]) -> None:
+    for fut, value, exc in results:
+        if fut.cancelled():
+            continue
+        if exc is not None:
+            fut.set_exception(exc)
+        else:
+            fut.set_result(value)
+
+
 def load_limits(config: ServerConfig) -> LoadLimits:
     """The map-load limits of a server configuration."""
     return LoadLimits(
@@ -63,7 +145,7 @@ class MapMatchServicer(pb_grpc.MapMatchServicer):
     executor
         Thread pool for batch matching and map loads.
     online
-        Thread pool for online updates (one thread by default).
+        Where online updates run (one thread of their own by default).
     config
         Limits (``max_*``), ``batch_slice``, ``max_time_jump`` and ``map_dir``.
     on_maps_changed
@@ -76,26 +158,24 @@ class MapMatchServicer(pb_grpc.MapMatchServicer):
         maps: MapRegistry,
         sessions: SessionStore,
         executor: Executor,
-        online: Executor | None = None,
+        online: OnlineQueue | None = None,
         config: ServerConfig | None = None,
         on_maps_changed: Callable[[], Any] | None = None,
     ) -> None:
         self.maps = maps
         self.sessions = sessions
         self.executor = executor
-        self.online = online or executor
+        self.online = online or OnlineQueue()
         self.config = config or ServerConfig()
         self.on_maps_changed = on_maps_changed
         self.server_id = f"{socket.gethostname()}:{os.getpid()}"
 
-    async def _offload(
-        self, context: aio.ServicerContext | None, fn: Callable[[], T], *, pool: Executor | None = None
-    ) -> T:
+    async def _offload(self, context: aio.ServicerContext | None, fn: Callable[[], T]) -> T:
         if context is not None:
             left = context.time_remaining()
             if left is not None and left <= 0:
                 await context.abort(grpc.StatusCode.DEADLINE_EXCEEDED, "deadline passed before work started")
-        return await asyncio.get_running_loop().run_in_executor(pool or self.executor, fn)
+        return await asyncio.get_running_loop().run_in_executor(self.executor, fn)
 
     def _answer_size(self, msg: Any) -> Any:
         n = msg.ByteSize()
@@ -175,14 +255,12 @@ class MapMatchServicer(pb_grpc.MapMatchServicer):
     async def StreamFixes(
         self, request_iterator: AsyncIterator[pb.FixRequest], context: aio.ServicerContext
     ) -> AsyncIterator[pb.SnapResponse]:
-        loop = asyncio.get_running_loop()
         async for req in request_iterator:
-            yield await loop.run_in_executor(self.online, self.answer, req)
+            yield await self.online.submit(functools.partial(self.answer, req))
 
     async def StreamFixBatches(
         self, request_iterator: AsyncIterator[pb.FixBatch], context: aio.ServicerContext
     ) -> AsyncIterator[pb.SnapBatch]:
-        loop = asyncio.get_running_loop()
         cap, step = self.config.max_batch_fixes, self.config.batch_slice
         async for batch in request_iterator:
             fixes = batch.fixes
@@ -192,11 +270,14 @@ class MapMatchServicer(pb_grpc.MapMatchServicer):
                 )
             out: list[pb.SnapResponse] = []
             for i in range(0, len(fixes), step):  # a slice at a time: other streams go in between
-                out += await loop.run_in_executor(self.online, self.answer_all, fixes[i : i + step])
+                out += await self.online.submit(functools.partial(self.answer_all, fixes[i : i + step]))
             yield self._answer_size(pb.SnapBatch(responses=out))
 
     async def SnapFix(self, request: pb.FixRequest, context: aio.ServicerContext) -> pb.SnapResponse:
-        return await self._offload(context, functools.partial(self.snap, request), pool=self.online)
+        left = context.time_remaining()
+        if left is not None and left <= 0:
+            await context.abort(grpc.StatusCode.DEADLINE_EXCEEDED, "deadline passed before work started")
+        return await self.online.submit(functools.partial(self.snap, request))
 
     # ------------------------------------------------------------------ batch
     def _check_track(self, msg: pb.Track) -> None:
