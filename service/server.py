@@ -52,7 +52,7 @@ MapsArg = MapRegistry | Mapping[str, RoadGraph | Path | str] | None
 SERVING = health_pb2.HealthCheckResponse.SERVING
 NOT_SERVING = health_pb2.HealthCheckResponse.NOT_SERVING
 # the GIL is handed over at most this often (s): online updates wait less behind batch work
-SWITCH_INTERVAL = 0.0005
+SWITCH_INTERVAL = 0.001
 
 
 class ServiceRuntime:
