@@ -278,7 +278,8 @@ class SessionState:
             if math.isinf(v):
                 raise ValidationError(key, "must be finite or unset")
         for key, v in (("res", st.res_pos2), ("res", st.res_head2), ("res", st.drift_sigma),
-                       ("odo", st.odo_kvar), ("odo", st.anc_sd), ("b", st.bias[2]), ("b", st.bias[4])):  # fmt: skip
+                       ("odo", st.odo_kvar), ("odo", st.anc_sd),
+                       ("b", st.bias[2]), ("b", st.bias[4])):  # fmt: skip
             if not (math.isnan(v) or (math.isfinite(v) and v >= 0.0)):
                 raise ValidationError(key, "variances and sigmas must be finite and non-negative")
         return st

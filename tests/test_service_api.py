@@ -371,9 +371,7 @@ def test_session_moves_between_two_servers_and_continues_identically():
         )
         with pytest.raises(grpc.RpcError) as ei:
             a2.ImportSession(pb.ImportSessionRequest(session=bad), timeout=5)
-        assert (
-            ei.value.code() == grpc.StatusCode.INVALID_ARGUMENT and _field(ei.value) == "session.state"
-        )
+        assert ei.value.code() == grpc.StatusCode.INVALID_ARGUMENT and _field(ei.value) == "session.state"
         for c in (c1, c2, c3):
             c.close()
 

@@ -149,7 +149,9 @@ def test_fuzzed_session_blobs(api, blob, data):
     state = json.dumps(d).encode()
     vid = data.draw(st.sampled_from(["fz1", "fz2"]))
     session = pb.SessionBlob(map_id="city", vehicle_id=vid, map_checksum=blob.map_checksum, state=state)
-    code = _code(lambda: api.ImportSession(pb.ImportSessionRequest(session=session, replace=True), timeout=10))
+    code = _code(
+        lambda: api.ImportSession(pb.ImportSessionRequest(session=session, replace=True), timeout=10)
+    )
     if code is grpc.StatusCode.OK:  # an accepted state must serve the next fixes
         for r in requests(drive(AMAP, "abc", t0=1000.0)[:3], vid):
             _code(lambda r=r: api.SnapFix(r, timeout=10))

@@ -103,7 +103,9 @@ def test_a_good_stream_keeps_its_latency_during_the_largest_batch_and_track():
         busy: list[float] = []
         t = threading.Thread(target=_stream_latencies, args=(port, "busy", stop, busy))
         fixes = drive(AMAP, "abcfedghd" * 8, speed=5.0, dt=0.5)
-        batch = pb.FixBatch(fixes=[r for k in range(1000 // len(fixes) + 1) for r in requests(fixes, f"b{k}")][:1000])
+        batch = pb.FixBatch(
+            fixes=[r for k in range(1000 // len(fixes) + 1) for r in requests(fixes, f"b{k}")][:1000]
+        )
         t.start()
         t0 = time.perf_counter()
         answers = list(api.StreamFixBatches(iter([batch] * 3), timeout=300))
@@ -158,7 +160,7 @@ def test_a_failed_replacement_keeps_the_live_map(tmp_path):
         bad_files = ["flipped.map", "noroads.map"]
     except Exception:  # the graph type refuses an empty map: the corrupt file alone
         bad_files = ["flipped.map"]
-    with running(local_config(map_dir=tmp_path), None) as (srv, port):
+    with running(local_config(map_dir=tmp_path), None) as (_, port):
         ch, api = stub(port)
         health = health_pb2_grpc.HealthStub(ch)
         api.LoadMap(pb.LoadMapRequest(map_id="hel", path="good.map"), timeout=60)
@@ -218,7 +220,9 @@ def _rewrite_manifest(raw: bytes, edit) -> bytes:
     text = text.ljust(hlen)
     start = MAGIC + np.uint64(hlen).tobytes()
     digest = hashlib.sha256(start + text).hexdigest()
-    text = text.replace(b'"manifest_sha256":"' + b"0" * 64 + b'"', b'"manifest_sha256":"' + digest.encode() + b'"')
+    text = text.replace(
+        b'"manifest_sha256":"' + b"0" * 64 + b'"', b'"manifest_sha256":"' + digest.encode() + b'"'
+    )
     return start + text + raw[end:]
 
 
@@ -392,7 +396,10 @@ def test_imported_blobs_are_validated_and_need_the_map_checksum():
             d = json.loads(blob.state)
             fn(d)
             return pb.SessionBlob(
-                map_id="city", vehicle_id=f"imp-{key}", map_checksum=blob.map_checksum, state=json.dumps(d).encode()
+                map_id="city",
+                vehicle_id=f"imp-{key}",
+                map_checksum=blob.map_checksum,
+                state=json.dumps(d).encode(),
             )
 
         cases = [
@@ -406,11 +413,15 @@ def test_imported_blobs_are_validated_and_need_the_map_checksum():
                 continue
             req = pb.ImportSessionRequest(session=edited(key, fn))
             err = _err(api.ImportSession, req, timeout=5)
-            assert err.code() == grpc.StatusCode.INVALID_ARGUMENT and _field(err) == f"session.state.{key}", key
+            assert err.code() == grpc.StatusCode.INVALID_ARGUMENT and _field(err) == f"session.state.{key}", (
+                key
+            )
         empty = pb.SessionBlob(map_id="city", vehicle_id="imp", state=blob.state)
         err = _err(api.ImportSession, pb.ImportSessionRequest(session=empty), timeout=5)
         assert err.code() == grpc.StatusCode.INVALID_ARGUMENT and _field(err) == "session.map_checksum"
-        good = pb.SessionBlob(map_id="city", vehicle_id="imp", map_checksum=blob.map_checksum, state=blob.state)
+        good = pb.SessionBlob(
+            map_id="city", vehicle_id="imp", map_checksum=blob.map_checksum, state=blob.state
+        )
         api.ImportSession(pb.ImportSessionRequest(session=good), timeout=5)
         ch.close()
 
@@ -488,8 +499,21 @@ def test_serve_logs_start_up_steps_and_json_lines(tmp_path):
     save_map(AMAP.graph, tmp_path / "c.map")
     env = {**os.environ, "PYTHONPATH": str(ROOT)}
     proc = subprocess.Popen(
-        [sys.executable, "-m", "mapmatch", "-v", "serve", "--map", f"c={tmp_path / 'c.map'}",
-         "--address", "127.0.0.1:0", "--log-format", "json", "--grace", "1"],  # fmt: skip
+        [
+            sys.executable,
+            "-m",
+            "mapmatch",
+            "-v",
+            "serve",
+            "--map",
+            f"c={tmp_path / 'c.map'}",
+            "--address",
+            "127.0.0.1:0",
+            "--log-format",
+            "json",
+            "--grace",
+            "1",
+        ],
         stdout=subprocess.PIPE,
         stderr=subprocess.PIPE,
         text=True,
