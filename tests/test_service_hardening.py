@@ -542,3 +542,17 @@ def test_serve_logs_start_up_steps_and_json_lines(tmp_path):
     rpc = [r for r in records if r.get("event") == "rpc"]
     assert rpc and rpc[0]["method"].endswith("ListMaps") and rpc[0]["code"] == "OK"
     assert str(tmp_path) not in err
+
+
+def test_a_start_up_map_that_cannot_be_served_exits_3_with_one_line(tmp_path, capsys):
+    save_map(AMAP.graph, tmp_path / "c.map")
+    raw = bytearray((tmp_path / "c.map").read_bytes())
+    raw[40] ^= 0x04  # a flipped bit in the manifest
+    (tmp_path / "c.map").write_bytes(bytes(raw))
+    rc = main(
+        ["serve", "--map", f"c={tmp_path / 'c.map'}", "--address", "127.0.0.1:0", "--log-format", "text"]
+    )
+    text = capsys.readouterr()
+    err = [ln for ln in text.err.strip().splitlines() if ": error: " in ln]
+    assert rc == 3 and len(err) == 1 and "cannot serve" in err[0] and "c.map" in err[0]
+    assert "Traceback" not in text.err and "listening on" not in text.out
