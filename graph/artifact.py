@@ -27,7 +27,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from graph.errors import ArtifactError
-from graph.road_graph import ARRAY_FIELDS, RoadGraph
+from graph.road_graph import ARRAY_FIELDS, PIECE_FIELDS, RoadGraph
 
 MAGIC = b"RGMAP\x00\x00\x01"
 FORMAT = "mapmatch-roadgraph"
@@ -205,7 +205,8 @@ def load_map(path: str | os.PathLike[str], *, verify: bool = True) -> RoadGraph:
     except OSError as exc:
         raise ArtifactError(f"cannot read map file {p}: {exc.strerror}") from exc
     table = manifest.get("arrays", {})
-    missing = [k for k in ARRAY_FIELDS if k not in table]
+    # maps written before way pieces get one piece per edge (RoadGraph fills them in)
+    missing = [k for k in ARRAY_FIELDS if k not in table and k not in PIECE_FIELDS]
     if missing:
         raise ArtifactError(f"{p}: map file lacks arrays {', '.join(missing)}")
     end = data_start + max((t["offset"] + t["nbytes"] for t in table.values()), default=0)
@@ -213,7 +214,7 @@ def load_map(path: str | os.PathLike[str], *, verify: bool = True) -> RoadGraph:
         raise ArtifactError(f"{p} is truncated ({size} of {end} bytes)")
     buf: NDArray[np.uint8] = np.memmap(p, dtype=np.uint8, mode="r") if size else np.empty(0, np.uint8)
     arrays: dict[str, NDArray[Any]] = {}
-    for name in ARRAY_FIELDS:
+    for name in (k for k in ARRAY_FIELDS if k in table):
         t = table[name]
         lo = data_start + int(t["offset"])
         raw = buf[lo : lo + int(t["nbytes"])]

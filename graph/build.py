@@ -212,6 +212,7 @@ def build_map(
 
     t1 = time.perf_counter()
     say(f"simplifying {report.raw_nodes:,} nodes / {report.raw_edges:,} edges to intersections")
+    raw = G
     G = simplify(G)
     if consolidate_tolerance is not None and consolidate_tolerance > 0:
         say(f"consolidating intersections within {consolidate_tolerance:g} m")
@@ -227,7 +228,8 @@ def build_map(
     t2 = time.perf_counter()
     say(f"converting {G.number_of_nodes():,} nodes / {G.number_of_edges():,} edges to arrays")
     meta = {"source": src_meta, "build": params}
-    rg, info = to_road_graph(G, crs=crs_out, restrictions=restrictions, meta=meta)
+    rg, info = to_road_graph(G, crs=crs_out, restrictions=restrictions, meta=meta, raw=raw)
+    del raw
     report.restrictions_unmapped = int(info["restrictions_unmapped"])
     report.self_loops_split = int(info["self_loops_split"])
     report.self_loops_dropped = int(info["self_loops_dropped"])

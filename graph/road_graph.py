@@ -12,7 +12,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 from numpy.typing import NDArray
@@ -43,7 +43,36 @@ ARRAY_FIELDS: tuple[str, ...] = (
     "in_ptr",
     "in_edges",
     "restrictions",
+    "piece_ptr",
+    "piece_start",
+    "piece_way_id",
+    "piece_name_idx",
+    "piece_highway_idx",
+    "piece_speed_kph",
 )
+PIECE_FIELDS: tuple[str, ...] = ARRAY_FIELDS[-6:]
+"""Way-piece arrays; map files written before they existed get one piece per edge on load."""
+
+
+class Pieces(NamedTuple):
+    """The ways (or GIS features) an edge is made of, one row per piece, ordered by edge and
+    then by ``start`` (metres along the edge in travel direction; each edge's first is 0)."""
+
+    edge: NDArray[np.int64]
+    start: NDArray[np.float64]
+    way_id: NDArray[np.int64]
+    name: Sequence[str | None]
+    highway: Sequence[str | None]
+    speed_kph: NDArray[np.float32]
+
+
+def merge_repeats(values: Sequence[Any]) -> list[Any]:
+    """``values`` with runs of equal consecutive items merged into one."""
+    out: list[Any] = []
+    for v in values:
+        if not out or out[-1] != v:
+            out.append(v)
+    return out
 
 
 def bearing_deg(dx: NDArray[np.float64], dy: NDArray[np.float64]) -> NDArray[np.float64]:
@@ -96,6 +125,16 @@ class RoadGraph:
         Lookup tables.
     meta : dict
         Free-form build metadata (source, parameters); stored in the artifact manifest.
+    piece_ptr : (E+1,) int64
+        Way pieces: edge ``e`` is made of pieces ``piece_ptr[e]:piece_ptr[e+1]`` in travel
+        order (at least one). ``edge_way_id`` and the other edge attributes are those of the
+        edge's longest piece; answers about a point use :meth:`piece_at`.
+    piece_start : (P,) float64
+        Offset in metres along its edge where each piece begins (the next piece's start, or
+        the edge length, is where it ends).
+    piece_way_id, piece_name_idx, piece_highway_idx, piece_speed_kph : (P,)
+        Each piece's way id (or GIS feature id), name and road class (indices into
+        ``names`` and ``highways``, -1 unknown) and speed (NaN unknown).
     """
 
     crs: str
@@ -122,6 +161,30 @@ class RoadGraph:
     names: list[str] = field(default_factory=list)
     highways: list[str] = field(default_factory=list)
     meta: dict[str, Any] = field(default_factory=dict)
+    piece_ptr: NDArray[np.int64] = None  # type: ignore[assignment]
+    piece_start: NDArray[np.float64] = None  # type: ignore[assignment]
+    piece_way_id: NDArray[np.int64] = None  # type: ignore[assignment]
+    piece_name_idx: NDArray[np.int32] = None  # type: ignore[assignment]
+    piece_highway_idx: NDArray[np.int32] = None  # type: ignore[assignment]
+    piece_speed_kph: NDArray[np.float32] = None  # type: ignore[assignment]
+
+    def __post_init__(self) -> None:
+        given = [getattr(self, k) is not None for k in PIECE_FIELDS]
+        if any(given) and not all(given):
+            raise GraphError("give all way-piece arrays or none")
+        if not any(given):  # one piece per edge, from the edge attributes
+            e = len(self.edge_u)
+            for k, v in (
+                ("piece_ptr", np.arange(e + 1, dtype=np.int64)),
+                ("piece_start", np.zeros(e, dtype=np.float64)),
+                ("piece_way_id", self.edge_way_id),
+                ("piece_name_idx", self.edge_name_idx),
+                ("piece_highway_idx", self.edge_highway_idx),
+                ("piece_speed_kph", self.edge_speed_kph),
+            ):
+                object.__setattr__(self, k, v)
+        elif len(self.piece_ptr) != len(self.edge_u) + 1:
+            raise GraphError("piece_ptr must have E+1 entries")
 
     # ------------------------------------------------------------------ construction
     @classmethod
@@ -140,6 +203,7 @@ class RoadGraph:
         edge_highways: Sequence[str | None] | None = None,
         edge_speed_kph: NDArray[np.floating] | Sequence[float] | None = None,
         restrictions: NDArray[np.integer] | Sequence[Sequence[int]] | None = None,
+        pieces: Pieces | None = None,
         meta: dict[str, Any] | None = None,
     ) -> RoadGraph:
         """Build a graph from directed edges, deriving lengths, bearings, CSR and reverses.
@@ -162,6 +226,8 @@ class RoadGraph:
             Optional attributes per edge.
         restrictions
             Rows ``(from_edge, via_node, to_edge, kind)``.
+        pieces
+            The ways each edge is made of; one piece per edge (its own attributes) when omitted.
         meta
             Build metadata.
         """
@@ -216,18 +282,47 @@ class RoadGraph:
         elen = cum[ptr[1:] - 1] - cum[ptr[:-1]] if e else np.empty(0)
         b_start, b_end = _end_bearings(seg, ptr)
 
-        def _lookup(vals: Sequence[str | None] | None) -> tuple[NDArray[np.int32], list[str]]:
+        name_table: dict[str, int] = {}
+        hw_table: dict[str, int] = {}
+
+        def _lookup(vals: Sequence[str | None] | None, table: dict[str, int], k: int) -> NDArray[np.int32]:
+            idx = np.full(k, -1, dtype=np.int32)
             if vals is None:
-                return np.full(e, -1, dtype=np.int32), []
-            table: dict[str, int] = {}
-            idx = np.full(e, -1, dtype=np.int32)
+                return idx
+            if len(vals) != k:
+                raise GraphError("an attribute list has the wrong length")
             for i, s in enumerate(vals):
                 if s:
                     idx[i] = table.setdefault(str(s), len(table))
-            return idx, list(table)
+            return idx
 
-        name_idx, names = _lookup(edge_names)
-        hw_idx, highways = _lookup(edge_highways)
+        name_idx = _lookup(edge_names, name_table, e)
+        hw_idx = _lookup(edge_highways, hw_table, e)
+        piece_arrays: dict[str, Any] = {}
+        if pieces is not None:
+            pe = np.asarray(pieces.edge, dtype=np.int64)
+            ps = np.asarray(pieces.start, dtype=np.float64)
+            p = len(pe)
+            if len(ps) != p or len(pieces.way_id) != p or len(pieces.speed_kph) != p:
+                raise GraphError("piece arrays differ in length")
+            if p and (np.any(np.diff(pe) < 0) or pe.min() < 0 or pe.max() >= e):
+                raise GraphError("pieces must be ordered by edge index in 0..E-1")
+            pptr = np.zeros(e + 1, dtype=np.int64)
+            np.cumsum(np.bincount(pe, minlength=e), out=pptr[1:])
+            if e and (np.diff(pptr) == 0).any():
+                raise GraphError("every edge needs at least one piece")
+            firsts = pptr[:-1]
+            if p and (np.abs(ps[firsts]) > 1e-9).any():
+                raise GraphError("each edge's first piece must start at offset 0")
+            piece_arrays = {
+                "piece_ptr": pptr,
+                "piece_start": ps,
+                "piece_way_id": np.asarray(pieces.way_id, dtype=np.int64),
+                "piece_name_idx": _lookup(pieces.name, name_table, p),
+                "piece_highway_idx": _lookup(pieces.highway, hw_table, p),
+                "piece_speed_kph": np.asarray(pieces.speed_kph, dtype=np.float32),
+            }
+        names, highways = list(name_table), list(hw_table)
         way = np.full(e, -1, dtype=np.int64) if edge_way_id is None else np.asarray(edge_way_id, np.int64)
         speed = (
             np.full(e, np.nan, dtype=np.float32)
@@ -267,6 +362,7 @@ class RoadGraph:
             names=names,
             highways=highways,
             meta=dict(meta or {}),
+            **piece_arrays,
         )
 
     # ------------------------------------------------------------------ sizes and lookups
@@ -297,6 +393,92 @@ class RoadGraph:
     def edge_highway(self, edge: int) -> str:
         i = int(self.edge_highway_idx[edge])
         return self.highways[i] if i >= 0 else ""
+
+    @property
+    def n_pieces(self) -> int:
+        return len(self.piece_start)
+
+    def piece_at(self, edges: Any, offsets: Any) -> NDArray[np.int64]:
+        """The way piece under each point ``(edge, offset)`` (vectorised; -1 where edge < 0).
+
+        A point exactly at a boundary belongs to the piece that begins there; offsets before
+        0 or past the edge's end fall on its first or last piece.
+        """
+        e = np.asarray(edges, dtype=np.int64)
+        off = np.asarray(offsets, dtype=np.float64)
+        e, off = np.broadcast_arrays(e, off)
+        shape = e.shape
+        e, off = e.ravel(), off.ravel()
+        ok = (e >= 0) & (e < self.n_edges)
+        ec = np.where(ok, e, 0)
+        if not self.n_edges:
+            return np.full(shape, -1, dtype=np.int64)
+        lo = self.piece_ptr[ec]
+        n = self.piece_ptr[ec + 1] - lo
+        out = lo.copy()
+        for j in range(1, int(n.max()) if n.size else 0):  # few pieces per edge: loop over rank
+            at = np.where(n > j, lo + j, 0)
+            past = (n > j) & (self.piece_start[at] <= off)
+            out[past] = at[past]
+        return np.where(ok, out, -1).reshape(shape)
+
+    def piece_end(self, piece: Any) -> NDArray[np.float64]:
+        """Offset in metres where each piece ends (the next piece's start, or the edge end)."""
+        p = np.asarray(piece, dtype=np.int64)
+        edge = np.searchsorted(self.piece_ptr, p, side="right") - 1
+        last = p + 1 >= self.piece_ptr[edge + 1]
+        nxt = self.piece_start[np.minimum(p + 1, max(self.n_pieces - 1, 0))]
+        return np.where(last, self.edge_len[edge], nxt)
+
+    def way_id_at(self, edge: int, offset: float) -> int:
+        """Way id of the piece under ``(edge, offset)``; -1 for no edge."""
+        p = int(self.piece_at(edge, offset))
+        return int(self.piece_way_id[p]) if p >= 0 else -1
+
+    def name_at(self, edge: int, offset: float) -> str:
+        """Name of the piece under ``(edge, offset)``; ``""`` when unknown."""
+        p = int(self.piece_at(edge, offset))
+        i = int(self.piece_name_idx[p]) if p >= 0 else -1
+        return self.names[i] if i >= 0 else ""
+
+    def highway_at(self, edge: int, offset: float) -> str:
+        """Road class of the piece under ``(edge, offset)``; ``""`` when unknown."""
+        p = int(self.piece_at(edge, offset))
+        i = int(self.piece_highway_idx[p]) if p >= 0 else -1
+        return self.highways[i] if i >= 0 else ""
+
+    def speed_at(self, edge: int, offset: float) -> float:
+        """Speed in km/h of the piece under ``(edge, offset)``; NaN when unknown."""
+        p = int(self.piece_at(edge, offset))
+        return float(self.piece_speed_kph[p]) if p >= 0 else float("nan")
+
+    def route_pieces(
+        self, edges: Sequence[int] | NDArray[np.integer], *, start: float = 0.0, end: float = np.inf
+    ) -> NDArray[np.int64]:
+        """The pieces a route runs through, in order: from the piece at ``start`` on its first
+        edge to the piece at ``end`` on its last (whole edges in between)."""
+        e = np.asarray(edges, dtype=np.int64)
+        if not len(e):
+            return np.zeros(0, dtype=np.int64)
+        lo, hi = self.piece_ptr[e], self.piece_ptr[e + 1]
+        lo = lo.copy()
+        hi = hi.copy()
+        lo[0] = self.piece_at(e[0], start)
+        hi[-1] = self.piece_at(e[-1], min(end, float(self.edge_len[e[-1]]))) + 1
+        if len(e) == 1:
+            hi[0] = max(hi[0], lo[0] + 1)
+        counts = np.maximum(hi - lo, 0)
+        base = np.repeat(lo - np.concatenate([[0], np.cumsum(counts)[:-1]]), counts)
+        return base + np.arange(int(counts.sum()), dtype=np.int64)
+
+    def route_ways(
+        self, edges: Sequence[int] | NDArray[np.integer], *, start: float = 0.0, end: float = np.inf
+    ) -> tuple[list[int], list[str]]:
+        """A route's way ids and names in order, consecutive repeats merged (see :meth:`route_pieces`)."""
+        p = self.route_pieces(edges, start=start, end=end)
+        return merge_repeats(self.piece_way_id[p].tolist()), merge_repeats(
+            [self.names[i] if i >= 0 else "" for i in self.piece_name_idx[p].tolist()]
+        )
 
     @property
     def bbox(self) -> tuple[float, float, float, float]:

@@ -9,6 +9,7 @@ expects before :func:`osmnx.simplify_graph`.
 
 from __future__ import annotations
 
+import itertools
 import logging
 from collections.abc import Iterable, Sequence
 from typing import Any
@@ -18,7 +19,7 @@ import numpy as np
 import osmnx as ox
 from numpy.typing import NDArray
 
-from graph.road_graph import RoadGraph
+from graph.road_graph import Pieces, RoadGraph
 
 log = logging.getLogger(__name__)
 
@@ -128,12 +129,70 @@ def _split_loop(
     return int(inner[int(np.argmin(dist))])
 
 
+def _speed(v: Any) -> float:
+    if isinstance(v, list | tuple | set):
+        vals = [float(x) for x in v if x is not None and x == x]
+        v = min(vals) if vals else None
+    return float(v) if v is not None else np.nan
+
+
+def _text(v: Any) -> str | None:
+    """A name or class as text; None for missing values (None, NaN, empty)."""
+    if v is None or (isinstance(v, float) and v != v):
+        return None
+    return str(v) or None
+
+
+SegAttrs = tuple[int, str | None, str | None, float]
+"""Attributes of one straight piece: way id, name, road class, speed (km/h)."""
+
+
+def _seg_attrs(
+    d: dict[str, Any], path: list[Any] | None, n_seg: int, raw: nx.MultiDiGraph | None
+) -> tuple[list[SegAttrs], bool]:
+    """Per straight piece of a simplified edge, the attributes of the raw edge it came from.
+
+    Returns the list and whether it is exact (read from the raw graph); otherwise every piece
+    gets the simplified edge's merged attributes (their first value).
+    """
+    w = d.get("osmid")
+    mine = {x for x in (w if isinstance(w, list | tuple | set) else [w]) if x is not None}
+    if raw is not None and path is not None and len(path) == n_seg + 1:
+        out: list[SegAttrs] = []
+        for a, b in itertools.pairwise(path):
+            kd = raw.get_edge_data(a, b)
+            if not kd:
+                break
+            # parallel raw edges: the one of this edge's ways
+            r = next((x for _, x in sorted(kd.items()) if x.get("osmid") in mine), kd[min(kd)])
+            rw = r.get("osmid")
+            out.append(
+                (
+                    int(rw) if rw is not None else -1,
+                    _text(r.get("name")),
+                    _text(r.get("highway")),
+                    _speed(r.get("speed_kph")),
+                )
+            )
+        else:
+            return out, True
+    way = _first(w)
+    one = (
+        int(way) if way is not None else -1,
+        _text(_first(d.get("name"))),
+        _text(_first(d.get("highway"))),
+        _speed(d.get("speed_kph")),
+    )
+    return [one] * n_seg, False
+
+
 def to_road_graph(
     G: nx.MultiDiGraph,
     *,
     crs: str,
     restrictions: Iterable[tuple[int, int, int, int]] = (),
     meta: dict[str, Any] | None = None,
+    raw: nx.MultiDiGraph | None = None,
 ) -> tuple[RoadGraph, dict[str, Any]]:
     """Convert a simplified graph into a :class:`RoadGraph`.
 
@@ -150,6 +209,9 @@ def to_road_graph(
         Rows ``(from_way, via_osm_node, to_way, kind)`` in source ids; mapped onto edges.
     meta
         Build metadata stored with the graph.
+    raw
+        The graph before simplification; with it (and ``merged_edges`` on the simplified
+        edges) every edge keeps the ways it is made of as way pieces.
 
     Returns
     -------
@@ -170,23 +232,40 @@ def to_road_graph(
     names: list[str | None] = []
     hws: list[str | None] = []
     speeds: list[float] = []
-    way_sets: list[set[int]] = []
+    end_ways: list[tuple[set[int], set[int]]] = []  # ways touching u, ways touching v
+    p_edge: list[int] = []
+    p_start: list[float] = []
+    p_attrs: list[SegAttrs] = []
 
-    def _add(u: int, v: int, g: NDArray[np.float64], d: dict[str, Any], path: list[Any] | None) -> None:
+    def _add(
+        u: int, v: int, g: NDArray[np.float64], segs: list[SegAttrs], exact: bool, d: dict[str, Any]
+    ) -> None:
+        e = len(us)
         us.append(u)
         vs.append(v)
         geoms.append(g)
-        way = _first(d.get("osmid"))
-        ways.append(int(way) if way is not None else -1)
-        names.append(_first(d.get("name")))
-        hws.append(_first(d.get("highway")))
-        sp = d.get("speed_kph")
-        if isinstance(sp, list | tuple | set):
-            vals = [float(x) for x in sp if x is not None and x == x]
-            sp = min(vals) if vals else None
-        speeds.append(float(sp) if sp is not None else np.nan)
-        w = d.get("osmid")
-        way_sets.append({int(x) for x in (w if isinstance(w, list | tuple | set) else [w]) if x is not None})
+        cum = np.concatenate([[0.0], np.cumsum(np.hypot(*np.diff(g, axis=0).T))])
+        starts = [i for i in range(len(segs)) if i == 0 or segs[i] != segs[i - 1]]
+        bounds = [*starts, len(segs)]
+        best, best_len = 0, -1.0
+        for k, i in enumerate(starts):
+            p_edge.append(e)
+            p_start.append(float(cum[i]))
+            p_attrs.append(segs[i])
+            length = float(cum[bounds[k + 1]] - cum[i])
+            if length > best_len:
+                best, best_len = k, length
+        way, name, hw, sp = segs[starts[best]]
+        ways.append(way)
+        names.append(name)
+        hws.append(hw)
+        speeds.append(sp)
+        if exact:
+            end_ways.append(({segs[0][0]}, {segs[-1][0]}))
+        else:
+            w = d.get("osmid")
+            allw = {int(x) for x in (w if isinstance(w, list | tuple | set) else [w]) if x is not None}
+            end_ways.append((allw, allw))
 
     for u, v, d in G.edges(data=True):
         geom = d.get("geometry")
@@ -195,9 +274,14 @@ def to_road_graph(
         else:
             coords = np.array([xy[node_order[u]], xy[node_order[v]]], dtype=np.float64)
         path = _path_nodes(u, d)
+        if path is None and geom is None:
+            path = [u, v]
+        if path is not None and "u_original" in d:  # consolidated: ends renamed, raw keys kept
+            path = [d["u_original"], *path[1:-1], d.get("v_original", path[-1])]
+        segs, exact = _seg_attrs(d, path, len(coords) - 1, raw)
         iu, iv = node_order[u], node_order[v]
         if u != v:
-            _add(iu, iv, coords, d, path)
+            _add(iu, iv, coords, segs, exact, d)
             continue
         k = _split_loop(coords, path, node_order)
         if k is None:
@@ -211,10 +295,8 @@ def to_road_graph(
             lonlat.append([np.nan, np.nan])
             ids.append(int(mid_key) if isinstance(mid_key, int | np.integer) else -len(extra_nodes))
         m = extra_nodes[mid_key]
-        p1 = path[: k + 1] if path is not None and len(path) == len(coords) else None
-        p2 = path[k:] if path is not None and len(path) == len(coords) else None
-        _add(iu, m, coords[: k + 1], d, p1)
-        _add(m, iv, coords[k:], d, p2)
+        _add(iu, m, coords[: k + 1], segs[:k], exact, d)
+        _add(m, iv, coords[k:], segs[k:], exact, d)
         info["self_loops_split"] += 1
 
     node_xy = np.asarray(xy, dtype=np.float64).reshape(-1, 2)
@@ -225,7 +307,15 @@ def to_road_graph(
         bad = np.isnan(node_ll).any(axis=1)
         node_ll[bad] = to_lonlat(crs, node_xy[bad, 0], node_xy[bad, 1])
     rrows, info["restrictions_unmapped"] = map_restrictions(
-        restrictions, us=us, vs=vs, way_sets=way_sets, node_keys=node_keys, node_ids=ids, G=G
+        restrictions, us=us, vs=vs, end_ways=end_ways, node_keys=node_keys, node_ids=ids, G=G
+    )
+    pieces = Pieces(
+        edge=np.asarray(p_edge, dtype=np.int64),
+        start=np.asarray(p_start, dtype=np.float64),
+        way_id=np.asarray([a[0] for a in p_attrs], dtype=np.int64),
+        name=[a[1] for a in p_attrs],
+        highway=[a[2] for a in p_attrs],
+        speed_kph=np.asarray([a[3] for a in p_attrs], dtype=np.float32),
     )
     rg = RoadGraph.from_edges(
         crs=crs,
@@ -240,6 +330,7 @@ def to_road_graph(
         edge_highways=hws,
         edge_speed_kph=np.asarray(speeds, dtype=np.float32),
         restrictions=rrows,
+        pieces=pieces,
         meta=meta,
     )
     return rg, info
@@ -250,7 +341,7 @@ def map_restrictions(
     *,
     us: Sequence[int],
     vs: Sequence[int],
-    way_sets: Sequence[set[int]],
+    end_ways: Sequence[tuple[set[int], set[int]]],
     node_keys: Sequence[Any],
     node_ids: Sequence[int],
     G: nx.MultiDiGraph,
@@ -258,9 +349,10 @@ def map_restrictions(
     """Map ``(from_way, via_node_id, to_way, kind)`` onto ``(from_edge, via_node, to_edge, kind)``.
 
     The via node must be a node of the simplified graph (an intersection). ``from_edge`` is
-    an edge entering it that runs along ``from_way`` (a way touching the via node is the last
-    piece of any simplified edge that contains it); ``to_edge`` one leaving it along
-    ``to_way``. Returns the rows and how many could not be mapped.
+    an edge entering it whose last way piece (the one touching the via node) is
+    ``from_way``; ``to_edge`` one leaving it whose first piece is ``to_way``. ``end_ways``
+    holds per edge the ways at its start and at its end. Returns the rows and how many
+    could not be mapped.
     """
     rows: list[tuple[int, int, int, int]] = []
     unmapped = 0
@@ -286,8 +378,8 @@ def map_restrictions(
         if via is None:
             unmapped += 1
             continue
-        froms = [e for e in into.get(via, []) if from_way in way_sets[e]]
-        tos = [e for e in outof.get(via, []) if to_way in way_sets[e]]
+        froms = [e for e in into.get(via, []) if from_way in end_ways[e][1]]
+        tos = [e for e in outof.get(via, []) if to_way in end_ways[e][0]]
         if not froms or not tos:
             unmapped += 1
             continue
