@@ -38,7 +38,8 @@ def source_format(path: Path) -> str:
     if name.endswith(GIS_SUFFIXES):
         return "gis"
     raise InputError(
-        f"unknown input format: {path.name} (expected .osm.pbf, .osm, .osm.bz2, .geojson, .gpkg or .shp)"
+        f"unknown input format: {path.name} "
+        "(expected .osm.pbf, .osm, .osm.bz2, .geojson, .gpkg, .shp, .fgb or .parquet)"
     )
 
 

@@ -26,7 +26,7 @@ from graph.projection import utm_crs
 
 log = logging.getLogger(__name__)
 
-GIS_SUFFIXES = (".geojson", ".json", ".gpkg", ".shp", ".fgb")
+GIS_SUFFIXES = (".geojson", ".json", ".gpkg", ".shp", ".fgb", ".parquet", ".geoparquet")
 
 FORWARD = 1
 BOTH = 0
@@ -171,7 +171,17 @@ def read_lines(path: Path, opts: GisOptions) -> tuple[Any, dict[str, int]]:
     from pyproj.exceptions import CRSError
 
     try:
-        gdf = pyogrio.read_dataframe(path, layer=opts.layer)
+        if path.suffix.lower() in (".parquet", ".geoparquet"):  # GeoParquet (GDAL here lacks the driver)
+            import geopandas as gpd
+
+            gdf = gpd.read_parquet(path)
+        else:
+            layer = opts.layer
+            if layer is None and path.suffix.lower() == ".gpkg":
+                layers = pyogrio.list_layers(path)
+                names = [str(n) for n in layers[:, 0]]
+                layer = "roads" if "roads" in names else names[0] if names else None
+            gdf = pyogrio.read_dataframe(path, layer=layer)
     except Exception as exc:  # pyogrio raises several unrelated types for unreadable files
         msg = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
         raise InputError(f"cannot read {path.name} as GIS data: {msg}") from exc
@@ -251,7 +261,7 @@ def lines_to_graph(
     name_f = _pick(cols, opts.name_field, ("name",), "name")
     speed_f = _pick(cols, opts.speed_field, ("maxspeed", "speed", "speed_kph"), "speed")
     hw_f = _pick(cols, opts.highway_field, ("highway", "class", "fclass"), "highway")
-    id_f = _pick(cols, opts.id_field, ("id", "osm_id", "fid"), "id")
+    id_f = _pick(cols, opts.id_field, ("id", "way_id", "osm_id", "fid"), "id")
     info: dict[str, Any] = {
         "oneway_field": oneway_f,
         "name_field": name_f,
