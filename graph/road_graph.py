@@ -448,9 +448,10 @@ class RoadGraph:
         return self.highways[i] if i >= 0 else ""
 
     def speed_at(self, edge: int, offset: float) -> float:
-        """Speed in km/h of the piece under ``(edge, offset)``; NaN when unknown."""
+        """Speed in km/h of the piece under ``(edge, offset)``; 0.0 when unknown."""
         p = int(self.piece_at(edge, offset))
-        return float(self.piece_speed_kph[p]) if p >= 0 else float("nan")
+        v = float(self.piece_speed_kph[p]) if p >= 0 else 0.0
+        return v if v == v else 0.0
 
     def route_pieces(
         self, edges: Sequence[int] | NDArray[np.integer], *, start: float = 0.0, end: float = np.inf

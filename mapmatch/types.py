@@ -165,7 +165,7 @@ class SnapResult:
     raw_lon: float = math.nan
     name: str = ""
     road_class: str = ""
-    speed_kph: float = math.nan
+    speed_kph: float = 0.0  # 0: unknown
 
 
 @dataclass(slots=True)
