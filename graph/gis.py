@@ -23,6 +23,7 @@ from numpy.typing import NDArray
 from graph.components import union_find
 from graph.errors import InputError
 from graph.projection import utm_crs
+from graph.simplify import RawNetwork, _text, compact_raw
 
 log = logging.getLogger(__name__)
 
@@ -243,13 +244,21 @@ TOPOLOGIES = ("auto", "endpoints", "ids")
 def lines_to_graph(
     path: Path, opts: GisOptions
 ) -> tuple[nx.MultiDiGraph, str, dict[str, int], dict[str, Any]]:
-    """Read GIS road lines into a raw MultiDiGraph in the local UTM CRS.
+    """Read GIS road lines into a raw MultiDiGraph in the local UTM CRS (see :func:`lines_to_raw`)."""
+    from graph.simplify import raw_to_nx
+
+    raw, dropped, info = lines_to_raw(path, opts)
+    return raw_to_nx(raw), raw.crs, dropped, info
+
+
+def lines_to_raw(path: Path, opts: GisOptions) -> tuple[RawNetwork, dict[str, int], dict[str, Any]]:
+    """Read GIS road lines into a raw network (arrays) in the local UTM CRS.
 
     Returns
     -------
-    G, crs, dropped, info
-        The raw graph (every vertex a node), its CRS, dropped features by reason, and the
-        fields that were used.
+    raw, dropped, info
+        The raw network (every vertex a node), dropped features by reason, and the fields
+        that were used.
     """
     from graph.projection import to_xy
 
@@ -344,49 +353,43 @@ def lines_to_graph(
             -1 - np.arange(int(interior.sum()), dtype=np.int64),
         ]
     )
-    vnode = keys[vnode]
 
-    G = nx.MultiDiGraph(crs=crs)
-    G.add_nodes_from(
-        (k, {"x": float(p[0]), "y": float(p[1]), "lon": float(q[0]), "lat": float(q[1]), "osmid": k})
-        for k, p, q in zip(keys.tolist(), all_xy.tolist(), all_ll.tolist(), strict=True)
-    )
     seg_a = np.arange(len(xy) - 1)
     seg_a = seg_a[owner[seg_a] == owner[seg_a + 1]]
     a_n, b_n = vnode[seg_a], vnode[seg_a + 1]
     f = owner[seg_a]
     d = xy[seg_a + 1] - xy[seg_a]
     seg_len = np.hypot(d[:, 0], d[:, 1])
-    zero_len = a_n == b_n
-    edges = []
-    for a, bb, fi, L in zip(
-        a_n[~zero_len].tolist(),
-        b_n[~zero_len].tolist(),
-        f[~zero_len].tolist(),
-        seg_len[~zero_len].tolist(),
-        strict=True,
-    ):
-        attrs = {
-            "osmid": int(fid[fi]),
-            "length": L,
-            "name": names[fi],
-            "highway": hws[fi],
-            "speed_kph": speeds[fi],
-            "oneway": bool(direction[fi] != BOTH),
-        }
-        dirn = direction[fi]
-        if dirn in (BOTH, FORWARD):
-            edges.append((a, bb, attrs))
-        if dirn in (BOTH, REVERSE):
-            edges.append((bb, a, dict(attrs)))
-    G.add_edges_from(edges)
+    ok = a_n != b_n
+    a_n, b_n, fo = a_n[ok], b_n[ok], f[ok]
+    dirn = direction[fo]
+    fwd = (dirn == BOTH) | (dirn == FORWARD)
+    bwd = (dirn == BOTH) | (dirn == REVERSE)
+    # per segment: forward then backward, as the segments come
+    src = np.stack([np.where(fwd, a_n, -1), np.where(bwd, b_n, -1)], axis=1).ravel()
+    dst = np.stack([b_n, a_n], axis=1).ravel()
+    feat = np.repeat(fo, 2)
+    use = src >= 0
+    raw = RawNetwork(
+        crs=crs,
+        node_key=keys,
+        node_xy=all_xy,
+        node_lonlat=all_ll,
+        edge_src=src[use].astype(np.int64),
+        edge_dst=dst[use].astype(np.int64),
+        edge_feat=feat[use].astype(np.int64),
+        edge_oneway=(direction[feat[use]] != BOTH),
+        feat_way_id=fid.astype(np.int64),
+        feat_name=[_text(x) for x in names],
+        feat_highway=[_text(x) for x in hws],
+        feat_speed_kph=np.asarray(speeds, dtype=np.float64),
+    )
     # features that collapsed to one point
     flen = np.bincount(f, weights=seg_len, minlength=n_feat)
     collapsed = int((flen <= opts.snap_tolerance).sum())
     if collapsed:
         dropped["zero length after snapping"] = collapsed
-    G.remove_nodes_from([n for n, deg in G.degree() if deg == 0])
-    return G, crs, dropped, info
+    return compact_raw(raw), dropped, info
 
 
 def _endpoint_id_values(gdf: Any, opts: GisOptions, n_feat: int) -> NDArray[np.int64] | None:

@@ -13,7 +13,6 @@ import logging
 import re
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
 
 import networkx as nx
 import numpy as np
@@ -22,6 +21,7 @@ from graph.errors import InputError
 from graph.gis import _parse_speed
 from graph.projection import to_xy, utm_crs
 from graph.road_graph import RESTRICTION_NO, RESTRICTION_ONLY
+from graph.simplify import RawNetwork, compact_raw
 
 log = logging.getLogger(__name__)
 
@@ -176,20 +176,33 @@ def read_osm(
         ``name``, ``highway``, ``speed_kph``, ``oneway``), the CRS, dropped items by reason,
         and restrictions as ``(from_way, via_node_id, to_way, kind)``.
     """
+    raw, dropped, restrictions = read_osm_raw(path, network_type=network_type, bbox=bbox)
+    from graph.simplify import raw_to_nx
+
+    return raw_to_nx(raw), raw.crs, dropped, restrictions
+
+
+def read_osm_raw(
+    path: Path,
+    *,
+    network_type: str = "drive",
+    bbox: tuple[float, float, float, float] | None = None,
+) -> tuple[RawNetwork, dict[str, int], list[tuple[int, int, int, int]]]:
+    """Read drivable ways of an OSM file into a raw network (arrays; see :func:`read_osm`)."""
     keep = network_filter(network_type)
     dropped: dict[str, int] = {}
     ways, relations = scan_osm(path, keep, dropped)
-    G, crs = _ways_to_graph(ways, bbox=bbox, dropped=dropped)
+    raw = _ways_to_raw(ways, bbox=bbox, dropped=dropped)
     restrictions = _restrictions(relations, dropped)
-    return G, crs, dropped, restrictions
+    return raw, dropped, restrictions
 
 
-def _ways_to_graph(
+def _ways_to_raw(
     ways: list[Way],
     *,
     bbox: tuple[float, float, float, float] | None,
     dropped: dict[str, int],
-) -> tuple[nx.MultiDiGraph, str]:
+) -> RawNetwork:
     coords: dict[int, tuple[float, float]] = {}
     pieces: list[tuple[int, dict[str, str], list[int]]] = []
     n_dangling = 0
@@ -225,32 +238,68 @@ def _ways_to_graph(
     ids = np.fromiter(coords.keys(), dtype=np.int64, count=len(coords))
     ll = np.array(list(coords.values()), dtype=np.float64).reshape(-1, 2)
     if len(ids) == 0:
-        return nx.MultiDiGraph(crs="EPSG:4326"), "EPSG:4326"
+        return _empty_raw()
     crs = utm_crs(float(np.median(ll[:, 0])), float(np.median(ll[:, 1])))
     xy = to_xy(crs, ll[:, 0], ll[:, 1])
-    G = nx.MultiDiGraph(crs=crs)
-    G.add_nodes_from(
-        (int(i), {"x": p[0], "y": p[1], "lon": q[0], "lat": q[1], "osmid": int(i)})
-        for i, p, q in zip(ids.tolist(), xy.tolist(), ll.tolist(), strict=True)
-    )
-    edges: list[tuple[int, int, dict[str, Any]]] = []
-    for wid, tags, run in pieces:
+    index = {int(i): k for k, i in enumerate(ids.tolist())}
+    src: list[int] = []
+    dst: list[int] = []
+    feat: list[int] = []
+    oneways: list[bool] = []
+    way_ids: list[int] = []
+    names: list[str | None] = []
+    hws: list[str | None] = []
+    speeds: list[float] = []
+    for fi, (wid, tags, run) in enumerate(pieces):
         oneway = is_oneway(tags)
-        nodes = run[::-1] if tags.get("oneway") in REVERSED_VALUES else run
-        attrs = {
-            "osmid": wid,
-            "name": tags.get("name"),
-            "highway": tags.get("highway"),
-            "speed_kph": _maxspeed(tags.get("maxspeed")),
-            "oneway": oneway,
-        }
+        nodes = [index[r] for r in (run[::-1] if tags.get("oneway") in REVERSED_VALUES else run)]
+        way_ids.append(wid)
+        names.append(tags.get("name"))
+        hws.append(tags.get("highway"))
+        speeds.append(_maxspeed(tags.get("maxspeed")))
         for a, b in itertools.pairwise(nodes):
-            edges.append((a, b, attrs))
+            src.append(a)
+            dst.append(b)
+            feat.append(fi)
+            oneways.append(oneway)
             if not oneway:
-                edges.append((b, a, attrs))
-    G.add_edges_from(edges)
-    G.remove_nodes_from([n for n, d in G.degree() if d == 0])
-    return G, crs
+                src.append(b)
+                dst.append(a)
+                feat.append(fi)
+                oneways.append(oneway)
+    raw = RawNetwork(
+        crs=crs,
+        node_key=ids,
+        node_xy=xy,
+        node_lonlat=ll,
+        edge_src=np.asarray(src, dtype=np.int64),
+        edge_dst=np.asarray(dst, dtype=np.int64),
+        edge_feat=np.asarray(feat, dtype=np.int64),
+        edge_oneway=np.asarray(oneways, dtype=bool),
+        feat_way_id=np.asarray(way_ids, dtype=np.int64),
+        feat_name=names,
+        feat_highway=hws,
+        feat_speed_kph=np.asarray(speeds, dtype=np.float64),
+    )
+    return compact_raw(raw)
+
+
+def _empty_raw() -> RawNetwork:
+    z = np.zeros(0, dtype=np.int64)
+    return RawNetwork(
+        crs="EPSG:4326",
+        node_key=z,
+        node_xy=np.zeros((0, 2)),
+        node_lonlat=np.zeros((0, 2)),
+        edge_src=z,
+        edge_dst=z,
+        edge_feat=z,
+        edge_oneway=np.zeros(0, dtype=bool),
+        feat_way_id=z,
+        feat_name=[],
+        feat_highway=[],
+        feat_speed_kph=np.zeros(0),
+    )
 
 
 def _maxspeed(value: str | None) -> float:

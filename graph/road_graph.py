@@ -15,6 +15,7 @@ from dataclasses import dataclass, field
 from typing import Any, NamedTuple
 
 import numpy as np
+from numba import njit
 from numpy.typing import NDArray
 
 from graph.errors import GraphError
@@ -198,6 +199,8 @@ class RoadGraph:
         edge_u: NDArray[np.integer] | Sequence[int],
         edge_v: NDArray[np.integer] | Sequence[int],
         edge_geoms: Sequence[NDArray[np.float64]] | None = None,
+        seg_xy: NDArray[np.float64] | None = None,
+        edge_seg_ptr: NDArray[np.int64] | None = None,
         edge_way_id: NDArray[np.int64] | Sequence[int] | None = None,
         edge_names: Sequence[str | None] | None = None,
         edge_highways: Sequence[str | None] | None = None,
@@ -222,6 +225,9 @@ class RoadGraph:
             Directed edges as node indices. A two-way road is two edges.
         edge_geoms
             Per edge an (k, 2) polyline from ``u`` to ``v`` in metres; straight when omitted.
+        seg_xy, edge_seg_ptr
+            The same as one ragged array (each polyline at least 2 points), instead of
+            ``edge_geoms``.
         edge_way_id, edge_names, edge_highways, edge_speed_kph
             Optional attributes per edge.
         restrictions
@@ -251,7 +257,15 @@ class RoadGraph:
         ids = np.arange(n, dtype=np.int64) if node_id is None else np.asarray(node_id, dtype=np.int64)
 
         # polylines, forcing exact node positions at both ends
-        if edge_geoms is None:
+        if seg_xy is not None and edge_seg_ptr is not None:
+            ptr = np.asarray(edge_seg_ptr, dtype=np.int64)
+            if len(ptr) != e + 1 or (e and np.diff(ptr).min() < 2):
+                raise GraphError("edge_seg_ptr must have E+1 entries and every polyline 2 points")
+            seg = np.array(seg_xy, dtype=np.float64).reshape(-1, 2)
+            if e:
+                seg[ptr[:-1]] = xy[u]
+                seg[ptr[1:] - 1] = xy[v]
+        elif edge_geoms is None:
             seg = np.empty((2 * e, 2), dtype=np.float64)
             seg[0::2] = xy[u]
             seg[1::2] = xy[v]
@@ -550,23 +564,42 @@ def _end_bearings(
 def _reverse_edges(
     u: NDArray[np.int32], v: NDArray[np.int32], seg: NDArray[np.float64], ptr: NDArray[np.int64]
 ) -> NDArray[np.int32]:
-    """For each edge, the edge running v -> u along the same polyline reversed, or -1."""
+    """For each edge, the edge running v -> u along the same polyline reversed (within 1 cm), or -1.
+
+    Edges are paired in index order, each with the first free candidate.
+    """
+    e = len(u)
+    if e == 0:
+        return np.full(0, -1, dtype=np.int32)
+    n = int(max(u.max(), v.max())) + 1
+    key = u.astype(np.int64) * n + v.astype(np.int64)
+    order = np.argsort(key, kind="stable")
+    return _pair_reverses(key[order], order, u.astype(np.int64), v.astype(np.int64), n, seg, ptr)
+
+
+@njit(cache=True)
+def _pair_reverses(skey, order, u, v, n, seg, ptr):  # type: ignore[no-untyped-def]
     e = len(u)
     rev = np.full(e, -1, dtype=np.int32)
-    if e == 0:
-        return rev
-    by_uv: dict[tuple[int, int], list[int]] = {}
-    for i in range(e):
-        by_uv.setdefault((int(u[i]), int(v[i])), []).append(i)
     for i in range(e):
         if rev[i] >= 0:
             continue
-        for j in by_uv.get((int(v[i]), int(u[i])), ()):
-            if j == i or rev[j] >= 0:
+        want = v[i] * n + u[i]
+        k = np.searchsorted(skey, want)
+        li = ptr[i + 1] - ptr[i]
+        while k < e and skey[k] == want:
+            j = order[k]
+            k += 1
+            if j == i or rev[j] >= 0 or ptr[j + 1] - ptr[j] != li:
                 continue
-            gi = seg[ptr[i] : ptr[i + 1]]
-            gj = seg[ptr[j] : ptr[j + 1]]
-            if len(gi) == len(gj) and np.allclose(gi, gj[::-1], rtol=0.0, atol=0.01):
+            ok = True
+            for t in range(li):
+                a = ptr[i] + t
+                b = ptr[j + 1] - 1 - t
+                if abs(seg[a, 0] - seg[b, 0]) > 0.01 or abs(seg[a, 1] - seg[b, 1]) > 0.01:
+                    ok = False
+                    break
+            if ok:
                 rev[i] = j
                 rev[j] = i
                 break

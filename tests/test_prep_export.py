@@ -3,12 +3,12 @@ map (each two-way road once, with its one-way flag; way pieces kept), and ``mapm
 
 from __future__ import annotations
 
-from collections import Counter
 from pathlib import Path
 
 import numpy as np
 import pyogrio
 import pytest
+from prep_checks import assert_same_map
 
 from graph.artifact import load_map, save_map
 from graph.build import build_map
@@ -18,40 +18,6 @@ from mapmatch.cli import main
 
 DATA = Path(__file__).parent / "data"
 FORMATS = (".gpkg", ".geojson", ".parquet", ".fgb")
-
-
-def _edge_keys(g: RoadGraph) -> Counter[tuple[int, int, float, tuple[int, ...], tuple[str, ...], bool]]:
-    out: Counter[tuple[int, int, float, tuple[int, ...], tuple[str, ...], bool]] = Counter()
-    for e in range(g.n_edges):
-        p = range(int(g.piece_ptr[e]), int(g.piece_ptr[e + 1]))
-        out[
-            (
-                int(g.node_id[g.edge_u[e]]),
-                int(g.node_id[g.edge_v[e]]),
-                round(float(g.edge_len[e]), 2),
-                tuple(int(g.piece_way_id[i]) for i in p),
-                tuple(g.names[g.piece_name_idx[i]] if g.piece_name_idx[i] >= 0 else "" for i in p),
-                bool(g.edge_reverse[e] >= 0),
-            )
-        ] += 1
-    return out
-
-
-def assert_same_map(a: RoadGraph, b: RoadGraph) -> None:
-    """Same nodes (ids and places), same directed edges (ends, length, ways, names, two-way)."""
-    assert (a.n_nodes, a.n_edges, a.n_pieces) == (b.n_nodes, b.n_edges, b.n_pieces)
-    pa = {int(i): xy for i, xy in zip(a.node_id.tolist(), a.node_lonlat, strict=True)}
-    pb = {int(i): xy for i, xy in zip(b.node_id.tolist(), b.node_lonlat, strict=True)}
-    assert pa.keys() == pb.keys()
-    for k, xy in pa.items():
-        np.testing.assert_allclose(xy, pb[k], atol=1e-7)
-    assert _edge_keys(a) == _edge_keys(b)
-    np.testing.assert_allclose(np.sort(a.edge_len), np.sort(b.edge_len), rtol=1e-6)
-    assert a.stats()["road_km"] == pytest.approx(b.stats()["road_km"], rel=1e-6)
-    assert int((a.edge_reverse < 0).sum()) == int((b.edge_reverse < 0).sum())
-    sa = np.sort(a.piece_speed_kph[np.isfinite(a.piece_speed_kph)])
-    sb = np.sort(b.piece_speed_kph[np.isfinite(b.piece_speed_kph)])
-    np.testing.assert_allclose(sa, sb, rtol=1e-5)
 
 
 @pytest.fixture(scope="module")
@@ -117,7 +83,7 @@ def test_round_trip_keeps_way_pieces(tmp_path: Path) -> None:
 
 
 def test_andorra_round_trips(osm_dir: Path, tmp_path: Path) -> None:
-    pbf = osm_dir / "andorra-latest.osm.pbf"
+    pbf = osm_dir / "andorra.osm.pbf"
     if not pbf.exists():
         pytest.skip(f"needs {pbf}")
     g = build_map(pbf)
