@@ -443,8 +443,14 @@ def _nodes_from_ids(
 
 def _nodes_from_coords(end_xy: NDArray[np.float64], tol: float) -> NDArray[np.int64]:
     """Endpoint -> node: identical positions first, then snapping within ``tol`` metres."""
-    uniq, inv = np.unique(np.round(end_xy, 6), axis=0, return_inverse=True)
-    inv = inv.ravel()
+    r = np.round(end_xy, 6)
+    order = np.lexsort((r[:, 1], r[:, 0]))  # as np.unique(axis=0) orders them, much faster
+    rs = r[order]
+    new = np.ones(len(rs), dtype=bool)
+    new[1:] = (rs[1:] != rs[:-1]).any(axis=1)
+    uniq = rs[new]
+    inv = np.empty(len(r), dtype=np.int64)
+    inv[order] = np.cumsum(new) - 1
     if tol > 0 and len(uniq) > 1:
         tree = shapely.STRtree(shapely.points(uniq))
         pa, pb = tree.query(shapely.points(uniq), predicate="dwithin", distance=tol)

@@ -491,6 +491,19 @@ def from_osmnx(G: nx.MultiDiGraph, *, meta: dict[str, Any] | None = None) -> Roa
 
 
 # ---------------------------------------------------------------------- array pipeline
+class _EndWays(Sequence[tuple[set[int], set[int]]]):
+    """``end_ways`` for :func:`_map_restrictions` from two lists, without building the sets."""
+
+    def __init__(self, first: list[int], last: list[int]) -> None:
+        self.first, self.last = first, last
+
+    def __len__(self) -> int:
+        return len(self.first)
+
+    def __getitem__(self, e: Any) -> Any:
+        return ({self.first[e]}, {self.last[e]})
+
+
 class RawNetwork(NamedTuple):
     """A raw road network as arrays: every vertex a node, one directed edge per straight piece.
 
@@ -881,18 +894,17 @@ def raw_to_road_graph(
         [raw.node_lonlat[kept], raw.node_lonlat[np.asarray(list(extra), dtype=np.int64)].reshape(-1, 2)]
     )
     node_id = np.concatenate([raw.node_key[kept], raw.node_key[np.asarray(list(extra), dtype=np.int64)]])
-    end_ways = [
-        ({int(a)}, {int(b)})
-        for a, b in zip(
-            raw.feat_way_id[step_feat[edge_first_step]].tolist(),
-            raw.feat_way_id[step_feat[np.r_[edge_first_step[1:], len(step_feat)] - 1]].tolist(),
-            strict=True,
+    restr = list(restrictions)
+    if restr:  # per edge the way at its start and at its end (only where restrictions need them)
+        first_w = raw.feat_way_id[step_feat[edge_first_step]].tolist()
+        last_w = raw.feat_way_id[step_feat[np.r_[edge_first_step[1:], len(step_feat)] - 1]].tolist()
+        end_ways = _EndWays(first_w, last_w)
+        by_id = {int(k): i for i, k in enumerate(node_id.tolist())}
+        rrows, info["restrictions_unmapped"] = _map_restrictions(
+            restr, us=eu.tolist(), vs=ev.tolist(), end_ways=end_ways, by_id=by_id
         )
-    ]
-    by_id = {int(k): i for i, k in enumerate(node_id.tolist())}
-    rrows, info["restrictions_unmapped"] = _map_restrictions(
-        list(restrictions), us=eu.tolist(), vs=ev.tolist(), end_ways=end_ways, by_id=by_id
-    )
+    else:
+        rrows, info["restrictions_unmapped"] = [], 0
     names = raw.feat_name
     hws = raw.feat_highway
     pieces = Pieces(
