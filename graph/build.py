@@ -7,6 +7,7 @@ Pipeline: read -> raw MultiDiGraph (every vertex a node, projected to local UTM)
 
 from __future__ import annotations
 
+import functools
 import gc
 import logging
 import time
@@ -64,6 +65,24 @@ class BuildReport:
     seconds: dict[str, float] = field(default_factory=dict)
 
 
+def _without_gc(fn: Callable[..., RoadGraph]) -> Callable[..., RoadGraph]:
+    """Run ``fn`` with the cyclic garbage collector off: a build makes millions of small
+    objects and no cycles, so the collector only costs time there."""
+
+    @functools.wraps(fn)
+    def run(*args: Any, **kwargs: Any) -> RoadGraph:
+        was = gc.isenabled()
+        gc.disable()
+        try:
+            return fn(*args, **kwargs)
+        finally:
+            if was:
+                gc.enable()
+
+    return run
+
+
+@_without_gc
 def build_map(
     source: str | Path | None,
     *,
@@ -122,57 +141,6 @@ def build_map(
     InputError
         Missing file, unknown format, corrupt data, no drivable roads, unreadable CRS.
     """
-    gc_was = gc.isenabled()
-    gc.disable()  # millions of small objects and no cycles: the collector only costs time here
-    try:
-        return _build(
-            source,
-            place=place,
-            bbox=bbox,
-            consolidate_tolerance=consolidate_tolerance,
-            snap_tolerance=snap_tolerance,
-            node_crossings=node_crossings,
-            oneway_field=oneway_field,
-            oneway_convention=oneway_convention,
-            name_field=name_field,
-            speed_field=speed_field,
-            highway_field=highway_field,
-            id_field=id_field,
-            node_id_fields=node_id_fields,
-            topology=topology,
-            crs=crs,
-            layer=layer,
-            network_type=network_type,
-            progress=progress,
-            engine=engine,
-        )
-    finally:
-        if gc_was:
-            gc.enable()
-
-
-def _build(
-    source: str | Path | None,
-    *,
-    place: str | None,
-    bbox: tuple[float, float, float, float] | None,
-    consolidate_tolerance: float | None,
-    snap_tolerance: float,
-    node_crossings: bool,
-    oneway_field: str | None,
-    oneway_convention: OnewayConvention | str | None,
-    name_field: str | None,
-    speed_field: str | None,
-    highway_field: str | None,
-    id_field: str | None,
-    node_id_fields: tuple[str, str] | None,
-    topology: str,
-    crs: str | None,
-    layer: str | None,
-    network_type: str,
-    progress: Progress | None,
-    engine: str,
-) -> RoadGraph:
     from graph.artifact import file_sha256
     from graph.components import component_counts
     from graph.simplify import (
