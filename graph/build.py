@@ -14,13 +14,14 @@ import time
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Any
-
-import networkx as nx
+from typing import TYPE_CHECKING, Any
 
 from graph.errors import InputError
 from graph.gis import GIS_SUFFIXES, GisOptions, OnewayConvention
 from graph.road_graph import RoadGraph
+
+if TYPE_CHECKING:
+    import networkx as nx
 
 log = logging.getLogger(__name__)
 
@@ -271,6 +272,8 @@ def build_map(
         report.weak_components, report.strong_components = component_counts(rg.n_nodes, rg.edge_u, rg.edge_v)
     else:
         assert G is not None
+        import networkx as nx
+
         report.source_weak_components = nx.number_weakly_connected_components(G)
         report.source_strong_components = nx.number_strongly_connected_components(G)
         t1 = time.perf_counter()

@@ -12,14 +12,16 @@ from __future__ import annotations
 import itertools
 import logging
 from collections.abc import Iterable, Sequence
-from typing import Any, NamedTuple
+from typing import TYPE_CHECKING, Any, NamedTuple
 
-import networkx as nx
 import numpy as np
 from numba import njit
 from numpy.typing import NDArray
 
 from graph.road_graph import Pieces, RoadGraph
+
+if TYPE_CHECKING:
+    import networkx as nx
 
 log = logging.getLogger(__name__)
 
@@ -41,6 +43,8 @@ def mark_rings(G: nx.MultiDiGraph) -> int:
     unsimplified; keeping two nodes turns each ring into two edges (no self-loop).
     Returns the number of rings found.
     """
+    import networkx as nx
+
     rings = 0
     for comp in nx.weakly_connected_components(G):
         if len(comp) < 3 or any(_is_endpoint(G, n) for n in comp):
@@ -434,6 +438,7 @@ def to_osmnx(graph: RoadGraph) -> nx.MultiDiGraph:
     ``piece_start``, ``piece_osmid``, ``piece_name``, ``piece_highway``, ``piece_speed_kph``
     (the way pieces, so :func:`from_osmnx` gives the same graph back).
     """
+    import networkx as nx
     import shapely
 
     G = nx.MultiDiGraph(crs=graph.crs, simplified=True)
@@ -551,6 +556,8 @@ def compact_raw(raw: RawNetwork) -> RawNetwork:
 
 def raw_to_nx(raw: RawNetwork) -> nx.MultiDiGraph:
     """The raw network as the osmnx-style MultiDiGraph (for osmnx, the reference path)."""
+    import networkx as nx
+
     G = nx.MultiDiGraph(crs=raw.crs)
     keys = raw.node_key.tolist()
     G.add_nodes_from(

@@ -107,6 +107,15 @@ def _real_ids(raw: nx.MultiDiGraph) -> list[int]:
     return [int(n) for n in raw.nodes]
 
 
+def test_filters_are_osmnx_own() -> None:
+    from osmnx import _overpass
+
+    from graph.osm import _DRIVE_FILTERS
+
+    for kind, text in _DRIVE_FILTERS.items():
+        assert text == _overpass._get_network_filter(kind), kind
+
+
 def test_osmnx_filter_and_oneway_rules() -> None:
     drive = network_filter("drive")
     assert drive({"highway": "residential"})
