@@ -288,16 +288,21 @@ def lines_to_raw(path: Path, opts: GisOptions) -> tuple[RawNetwork, dict[str, in
         else np.arange(n_feat, dtype=np.int64)
     )
     if oneway_f is not None:
-        codes = [opts.oneway_convention.code(v) for v in gdf[oneway_f].tolist()]
-        bad = sum(c is None for c in codes)
+        inv, uniq = _factorize(gdf[oneway_f])
+        ucodes = [opts.oneway_convention.code(v) for v in uniq]
+        bad = sum(int((inv == i).sum()) for i, c in enumerate(ucodes) if c is None)
         if bad:
             dropped["unrecognised one-way value (read as two-way)"] = bad
-        direction = np.array([BOTH if c is None else c for c in codes], dtype=np.int8)
+        direction = np.array([BOTH if c is None else c for c in ucodes], dtype=np.int8)[inv]
     else:
         direction = np.zeros(n_feat, dtype=np.int8)
     names = gdf[name_f].tolist() if name_f else [None] * n_feat
     hws = gdf[hw_f].tolist() if hw_f else [None] * n_feat
-    speeds = [_parse_speed(v) for v in gdf[speed_f].tolist()] if speed_f else [math.nan] * n_feat
+    if speed_f:
+        inv, uniq = _factorize(gdf[speed_f])
+        speeds = np.array([_parse_speed(v) for v in uniq], dtype=np.float64)[inv].tolist()
+    else:
+        speeds = [math.nan] * n_feat
 
     b = shapely.bounds(lines)
     lon0 = float((np.nanmin(b[:, 0]) + np.nanmax(b[:, 2])) / 2)
@@ -392,6 +397,15 @@ def lines_to_raw(path: Path, opts: GisOptions) -> tuple[RawNetwork, dict[str, in
     if collapsed:
         dropped["zero length after snapping"] = collapsed
     return compact_raw(raw), dropped, info
+
+
+def _factorize(column: Any) -> tuple[NDArray[np.int64], list[Any]]:
+    """Codes into the distinct values of a column (missing values, NaN included, kept as one)."""
+    import pandas as pd
+
+    codes, uniq = pd.factorize(column, use_na_sentinel=False)
+    vals = [None if (isinstance(v, float) and v != v) or v is pd.NA else v for v in list(uniq)]
+    return np.asarray(codes, dtype=np.int64), vals
 
 
 def _endpoint_id_values(gdf: Any, opts: GisOptions, n_feat: int) -> NDArray[np.int64] | None:

@@ -305,10 +305,9 @@ class RoadGraph:
                 return idx
             if len(vals) != k:
                 raise GraphError("an attribute list has the wrong length")
-            for i, s in enumerate(vals):
-                if s:
-                    idx[i] = table.setdefault(str(s), len(table))
-            return idx
+            put = table.setdefault
+            codes = [put(s if type(s) is str else str(s), len(table)) if s else -1 for s in vals]
+            return np.asarray(codes, dtype=np.int32) if k else idx
 
         name_idx = _lookup(edge_names, name_table, e)
         hw_idx = _lookup(edge_highways, hw_table, e)
