@@ -11,9 +11,10 @@ from __future__ import annotations
 import logging
 import re
 from array import array
+from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING, NamedTuple
+from typing import TYPE_CHECKING, Any, NamedTuple
 
 import numpy as np
 from numpy.typing import NDArray
@@ -75,7 +76,8 @@ class TagFilter:
                 out.append((key, op, val))
         return cls(tuple(out))
 
-    def __call__(self, tags: dict[str, str]) -> bool:
+    def __call__(self, tags: Mapping[str, str] | Any) -> bool:
+        """True when ``tags`` (a dict or pyosmium's TagList: ``get`` is all it needs) pass."""
         for key, op, val in self.clauses:
             v = tags.get(key)
             if op is None:

@@ -282,7 +282,6 @@ def results_table(results: Iterable[TrackMatch], graph: RoadGraph) -> pd.DataFra
     rows: list[dict[str, Any]] = []
     for r in results:
         edges = [e for piece in r.routes for e in piece]
-        e_arr = np.asarray(edges, dtype=np.int64)
         ways, names = route_ways(r, graph)
         pt_way, pt_name = point_ways(r, graph)
         lines = [np.asarray(p, dtype=np.float64) for p in r.route_lonlat if len(p) >= 2]
