@@ -241,3 +241,28 @@ def test_lonlat_helpers_agree(three_ways: RoadGraph) -> None:
     xy = g.edge_xy(e)
     ll = to_lonlat(g.crs, xy[:, 0], xy[:, 1])
     assert ll[0, 0] == pytest.approx(LON0, abs=1e-7) and ll[-1, 0] == pytest.approx(LON0 + 3 * DLON, abs=1e-7)
+
+
+def test_kubicka_way_ids_name_the_feature_under_the_point(kubicka_dir: Path) -> None:
+    """REAL GPS: on Kubicka track 00000014 (448 fixes) every matched point's way id is a GIS
+    feature within 1 m of the snapped point (the edge's own way id is not, for many)."""
+    import geopandas as gpd
+    import pandas as pd
+    import shapely
+
+    from graph.projection import to_xy
+
+    d = kubicka_dir / "00000014"
+    g = build_map(d / "roads.geojson")
+    feats = gpd.read_file(d / "roads.geojson").to_crs(g.crs).set_index("id")
+    tr = pd.read_csv(d / "track.csv")
+    r = BatchMatcher(g).match(Track("k", tr.t.to_numpy(), tr.lat.to_numpy(), tr.lon.to_numpy()))
+    ways, _ = point_ways(r, g)
+    placed = [(p, w) for p, w in zip(r.points, ways, strict=True) if p.edge >= 0]
+    assert len(placed) > 400
+    ll = np.array([[p.lon, p.lat] for p, _ in placed])
+    pts = shapely.points(to_xy(g.crs, ll[:, 0], ll[:, 1]))
+    dist = shapely.distance(pts, feats.geometry.loc[[w for _, w in placed]].values)
+    assert float(dist.max()) < 1.0
+    edge_way = g.edge_way_id[[p.edge for p, _ in placed]]
+    assert (shapely.distance(pts, feats.geometry.loc[edge_way].values) > 1.0).sum() > 50
