@@ -220,7 +220,8 @@ def read_lines(path: Path, opts: GisOptions) -> tuple[Any, dict[str, int]]:
                 f"{path.name} has no readable CRS and its coordinates are not lon/lat; give the CRS (--crs)"
             )
     try:
-        gdf = gdf.to_crs("EPSG:4326")
+        if not CRS.from_user_input(gdf.crs).equals(CRS.from_epsg(4326)):
+            gdf = gdf.to_crs("EPSG:4326")
     except Exception as exc:
         raise InputError(f"{path.name}: cannot transform from its CRS to lon/lat: {exc}") from exc
     if opts.bbox is not None:
@@ -230,7 +231,8 @@ def read_lines(path: Path, opts: GisOptions) -> tuple[Any, dict[str, int]]:
         gdf = gdf[inside]
         if len(gdf) == 0:
             raise InputError(f"{path.name} has no line features inside the bbox")
-    gdf = gdf.explode(index_parts=False)
+    if (shapely.get_type_id(gdf.geometry.values) != 1).any():  # MultiLineStrings: one row per part
+        gdf = gdf.explode(index_parts=False)
     geom = gdf.geometry.values
     ncoords = shapely.get_num_coordinates(geom)
     short = ncoords < 2
@@ -326,6 +328,7 @@ def lines_to_raw(path: Path, opts: GisOptions) -> tuple[RawNetwork, dict[str, in
     ends = np.concatenate([first, last])
     end_xy = xy[ends]
     src_ids = _endpoint_id_values(gdf, opts, n_feat)
+    del gdf, lines  # the geometry objects: the coordinates are all that is needed now
     node_of_end, end_ids = None, None
     if opts.topology == "ids" or (opts.topology == "auto" and src_ids is not None):
         node_of_end, end_ids = _nodes_from_ids(src_ids, end_xy, opts)
@@ -341,7 +344,9 @@ def lines_to_raw(path: Path, opts: GisOptions) -> tuple[RawNetwork, dict[str, in
     np.add.at(node_xy, node_of_end, end_xy)
     node_xy /= np.bincount(node_of_end, minlength=n_end_nodes)[:, None]
     node_ll = ll[ends][np.unique(node_of_end, return_index=True)[1]]
-    info["merged_endpoints"] = int(len(np.unique(np.round(end_xy, 6), axis=0)) - n_end_nodes)
+    r = np.round(end_xy, 6)[np.lexsort((np.round(end_xy[:, 1], 6), np.round(end_xy[:, 0], 6)))]
+    n_places = int(len(r) and 1 + (r[1:] != r[:-1]).any(axis=1).sum())
+    info["merged_endpoints"] = n_places - n_end_nodes
 
     # every vertex is a node: endpoints shared, interior vertices private to their feature
     vnode = np.empty(len(xy), dtype=np.int64)
