@@ -33,7 +33,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from graph.errors import ArtifactError
-from graph.road_graph import ARRAY_FIELDS, RoadGraph
+from graph.road_graph import ARRAY_FIELDS, PIECE_FIELDS, RoadGraph
 
 MAGIC = b"RGMAP\x00\x00\x01"
 FORMAT = "mapmatch-roadgraph"
@@ -211,7 +211,8 @@ def _checked_table(
     table = manifest.get("arrays")
     if not isinstance(table, dict):
         raise ArtifactError(f"{path}: corrupt manifest (no array table)")
-    missing = [k for k in ARRAY_FIELDS if k not in table]
+    # maps written before way pieces get one piece per edge (RoadGraph fills them in)
+    missing = [k for k in ARRAY_FIELDS if k not in table and k not in PIECE_FIELDS]
     if missing:
         raise ArtifactError(f"{path}: map file lacks arrays {', '.join(missing)}")
     end = data_start
@@ -308,7 +309,7 @@ def load_map(path: str | os.PathLike[str], *, verify: bool = True) -> RoadGraph:
         if gap.any():
             raise ArtifactError(f"{p}: corrupt padding after array {name} (file corrupt)")
     arrays: dict[str, NDArray[Any]] = {}
-    for name in ARRAY_FIELDS:
+    for name in (k for k in ARRAY_FIELDS if k in table):
         t = table[name]
         lo = data_start + int(t["offset"])
         raw = buf[lo : lo + int(t["nbytes"])]

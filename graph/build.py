@@ -7,18 +7,21 @@ Pipeline: read -> raw MultiDiGraph (every vertex a node, projected to local UTM)
 
 from __future__ import annotations
 
+import functools
+import gc
 import logging
 import time
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Any
-
-import networkx as nx
+from typing import TYPE_CHECKING, Any
 
 from graph.errors import InputError
 from graph.gis import GIS_SUFFIXES, GisOptions, OnewayConvention
 from graph.road_graph import RoadGraph
+
+if TYPE_CHECKING:
+    import networkx as nx
 
 log = logging.getLogger(__name__)
 
@@ -38,7 +41,8 @@ def source_format(path: Path) -> str:
     if name.endswith(GIS_SUFFIXES):
         return "gis"
     raise InputError(
-        f"unknown input format: {path.name} (expected .osm.pbf, .osm, .osm.bz2, .geojson, .gpkg or .shp)"
+        f"unknown input format: {path.name} "
+        "(expected .osm.pbf, .osm, .osm.bz2, .geojson, .gpkg, .shp, .fgb or .parquet)"
     )
 
 
@@ -62,6 +66,24 @@ class BuildReport:
     seconds: dict[str, float] = field(default_factory=dict)
 
 
+def _without_gc(fn: Callable[..., RoadGraph]) -> Callable[..., RoadGraph]:
+    """Run ``fn`` with the cyclic garbage collector off: a build makes millions of small
+    objects and no cycles, so the collector only costs time there."""
+
+    @functools.wraps(fn)
+    def run(*args: Any, **kwargs: Any) -> RoadGraph:
+        was = gc.isenabled()
+        gc.disable()
+        try:
+            return fn(*args, **kwargs)
+        finally:
+            if was:
+                gc.enable()
+
+    return run
+
+
+@_without_gc
 def build_map(
     source: str | Path | None,
     *,
@@ -82,6 +104,7 @@ def build_map(
     layer: str | None = None,
     network_type: str = "drive",
     progress: Progress | None = None,
+    engine: str = "arrays",
 ) -> RoadGraph:
     """Build a prepared road graph.
 
@@ -103,6 +126,10 @@ def build_map(
         osmnx network type for OSM input: ``"drive"`` (default) or ``"drive_service"``.
     progress
         Called with a short message at the start of each step.
+    engine
+        ``"arrays"`` (default): read into arrays and simplify with compiled kernels;
+        ``"osmnx"``: the reference, a networkx graph simplified by :func:`osmnx.simplify_graph`
+        (always used for downloads and with ``consolidate_tolerance``). Both give the same map.
 
     Returns
     -------
@@ -116,7 +143,19 @@ def build_map(
         Missing file, unknown format, corrupt data, no drivable roads, unreadable CRS.
     """
     from graph.artifact import file_sha256
-    from graph.simplify import consolidate, simplify, to_road_graph
+    from graph.components import component_counts
+    from graph.simplify import (
+        RawNetwork,
+        consolidate,
+        raw_to_nx,
+        raw_to_road_graph,
+        simplify,
+        simplify_arrays,
+        to_road_graph,
+    )
+
+    if engine not in ("arrays", "osmnx"):
+        raise InputError(f"unknown build engine {engine!r} (use arrays or osmnx)")
 
     say = progress or (lambda msg: log.info("%s", msg))
     report = BuildReport()
@@ -129,6 +168,8 @@ def build_map(
     t0 = time.perf_counter()
     restrictions: list[tuple[int, int, int, int]] = []
     src_meta: dict[str, Any]
+    raw_net: RawNetwork | None = None
+    G: nx.MultiDiGraph | None = None
     if source is None:
         if place is None and bbox is None:
             raise InputError("give a source file, a place name or a bounding box")
@@ -155,7 +196,7 @@ def build_map(
             "sha256": file_sha256(path),
         }
         if fmt == "gis":
-            from graph.gis import lines_to_graph
+            from graph.gis import lines_to_raw
 
             conv = (
                 OnewayConvention.parse(oneway_convention)
@@ -194,40 +235,65 @@ def build_map(
                 }
             )
             say(f"reading GIS lines from {path.name}")
-            G, crs_out, dropped, fields = lines_to_graph(path, opts)
+            raw_net, dropped, fields = lines_to_raw(path, opts)
             report.fields = fields
         else:
-            from graph.osm import read_osm
+            from graph.osm import read_osm_raw
 
             say(f"reading OSM {'PBF' if fmt == 'osm-pbf' else 'XML'} from {path.name}")
-            G, crs_out, dropped, restrictions = read_osm(path, network_type=network_type, bbox=bbox)
+            raw_net, dropped, restrictions = read_osm_raw(path, network_type=network_type, bbox=bbox)
             report.restrictions_read = len(restrictions)
     report.dropped = dropped
     report.seconds["read"] = time.perf_counter() - t0
-    if G.number_of_edges() == 0:
-        raise InputError(f"{src_meta.get('name', 'the source')} has no drivable roads")
-    report.raw_nodes, report.raw_edges = G.number_of_nodes(), G.number_of_edges()
-    report.source_weak_components = nx.number_weakly_connected_components(G)
-    report.source_strong_components = nx.number_strongly_connected_components(G)
-
-    t1 = time.perf_counter()
-    say(f"simplifying {report.raw_nodes:,} nodes / {report.raw_edges:,} edges to intersections")
-    G = simplify(G)
-    if consolidate_tolerance is not None and consolidate_tolerance > 0:
-        say(f"consolidating intersections within {consolidate_tolerance:g} m")
-        G = consolidate(G, consolidate_tolerance)
-        if G.number_of_edges() == 0:
-            raise InputError(
-                f"no roads left after consolidating intersections within {consolidate_tolerance:g} m"
-            )
-    report.seconds["simplify"] = time.perf_counter() - t1
-    report.weak_components = nx.number_weakly_connected_components(G)
-    report.strong_components = nx.number_strongly_connected_components(G)
-
-    t2 = time.perf_counter()
-    say(f"converting {G.number_of_nodes():,} nodes / {G.number_of_edges():,} edges to arrays")
     meta = {"source": src_meta, "build": params}
-    rg, info = to_road_graph(G, crs=crs_out, restrictions=restrictions, meta=meta)
+    use_nx = G is not None or engine == "osmnx" or bool(consolidate_tolerance and consolidate_tolerance > 0)
+    if raw_net is not None:
+        crs_out = raw_net.crs
+        report.raw_nodes, report.raw_edges = raw_net.n_nodes, raw_net.n_edges
+        if use_nx:
+            G = raw_to_nx(raw_net)
+    else:
+        assert G is not None
+        report.raw_nodes, report.raw_edges = G.number_of_nodes(), G.number_of_edges()
+    if report.raw_edges == 0:
+        raise InputError(f"{src_meta.get('name', 'the source')} has no drivable roads")
+    if not use_nx:
+        assert raw_net is not None
+        w, st = component_counts(raw_net.n_nodes, raw_net.edge_src, raw_net.edge_dst)
+        report.source_weak_components, report.source_strong_components = w, st
+        t1 = time.perf_counter()
+        say(f"simplifying {report.raw_nodes:,} nodes / {report.raw_edges:,} edges to intersections")
+        simp = simplify_arrays(raw_net)
+        report.seconds["simplify"] = time.perf_counter() - t1
+        t2 = time.perf_counter()
+        say(f"building {len(simp.ptr) - 1:,} edges with their way pieces")
+        rg, info = raw_to_road_graph(raw_net, simp, restrictions=restrictions, meta=meta)
+        del raw_net, simp
+        report.weak_components, report.strong_components = component_counts(rg.n_nodes, rg.edge_u, rg.edge_v)
+    else:
+        assert G is not None
+        import networkx as nx
+
+        report.source_weak_components = nx.number_weakly_connected_components(G)
+        report.source_strong_components = nx.number_strongly_connected_components(G)
+        t1 = time.perf_counter()
+        say(f"simplifying {report.raw_nodes:,} nodes / {report.raw_edges:,} edges to intersections (osmnx)")
+        raw = G
+        G = simplify(G)
+        if consolidate_tolerance is not None and consolidate_tolerance > 0:
+            say(f"consolidating intersections within {consolidate_tolerance:g} m")
+            G = consolidate(G, consolidate_tolerance)
+            if G.number_of_edges() == 0:
+                raise InputError(
+                    f"no roads left after consolidating intersections within {consolidate_tolerance:g} m"
+                )
+        report.seconds["simplify"] = time.perf_counter() - t1
+        report.weak_components = nx.number_weakly_connected_components(G)
+        report.strong_components = nx.number_strongly_connected_components(G)
+        t2 = time.perf_counter()
+        say(f"converting {G.number_of_nodes():,} nodes / {G.number_of_edges():,} edges to arrays")
+        rg, info = to_road_graph(G, crs=crs_out, restrictions=restrictions, meta=meta, raw=raw)
+        del raw, G
     report.restrictions_unmapped = int(info["restrictions_unmapped"])
     report.self_loops_split = int(info["self_loops_split"])
     report.self_loops_dropped = int(info["self_loops_dropped"])

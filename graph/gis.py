@@ -13,9 +13,8 @@ import re
 from collections.abc import Iterable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
-import networkx as nx
 import numpy as np
 import shapely
 from numpy.typing import NDArray
@@ -23,10 +22,14 @@ from numpy.typing import NDArray
 from graph.components import union_find
 from graph.errors import InputError
 from graph.projection import utm_crs
+from graph.simplify import RawNetwork, _text, compact_raw
+
+if TYPE_CHECKING:
+    import networkx as nx
 
 log = logging.getLogger(__name__)
 
-GIS_SUFFIXES = (".geojson", ".json", ".gpkg", ".shp", ".fgb")
+GIS_SUFFIXES = (".geojson", ".json", ".gpkg", ".shp", ".fgb", ".parquet", ".geoparquet")
 
 FORWARD = 1
 BOTH = 0
@@ -171,7 +174,17 @@ def read_lines(path: Path, opts: GisOptions) -> tuple[Any, dict[str, int]]:
     from pyproj.exceptions import CRSError
 
     try:
-        gdf = pyogrio.read_dataframe(path, layer=opts.layer)
+        if path.suffix.lower() in (".parquet", ".geoparquet"):  # GeoParquet (GDAL here lacks the driver)
+            import geopandas as gpd
+
+            gdf = gpd.read_parquet(path)
+        else:
+            layer = opts.layer
+            if layer is None and path.suffix.lower() == ".gpkg":
+                layers = pyogrio.list_layers(path)
+                names = [str(n) for n in layers[:, 0]]
+                layer = "roads" if "roads" in names else names[0] if names else None
+            gdf = pyogrio.read_dataframe(path, layer=layer)
     except Exception as exc:  # pyogrio raises several unrelated types for unreadable files
         msg = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
         raise InputError(f"cannot read {path.name} as GIS data: {msg}") from exc
@@ -207,7 +220,8 @@ def read_lines(path: Path, opts: GisOptions) -> tuple[Any, dict[str, int]]:
                 f"{path.name} has no readable CRS and its coordinates are not lon/lat; give the CRS (--crs)"
             )
     try:
-        gdf = gdf.to_crs("EPSG:4326")
+        if not CRS.from_user_input(gdf.crs).equals(CRS.from_epsg(4326)):
+            gdf = gdf.to_crs("EPSG:4326")
     except Exception as exc:
         raise InputError(f"{path.name}: cannot transform from its CRS to lon/lat: {exc}") from exc
     if opts.bbox is not None:
@@ -217,7 +231,8 @@ def read_lines(path: Path, opts: GisOptions) -> tuple[Any, dict[str, int]]:
         gdf = gdf[inside]
         if len(gdf) == 0:
             raise InputError(f"{path.name} has no line features inside the bbox")
-    gdf = gdf.explode(index_parts=False)
+    if (shapely.get_type_id(gdf.geometry.values) != 1).any():  # MultiLineStrings: one row per part
+        gdf = gdf.explode(index_parts=False)
     geom = gdf.geometry.values
     ncoords = shapely.get_num_coordinates(geom)
     short = ncoords < 2
@@ -233,13 +248,21 @@ TOPOLOGIES = ("auto", "endpoints", "ids")
 def lines_to_graph(
     path: Path, opts: GisOptions
 ) -> tuple[nx.MultiDiGraph, str, dict[str, int], dict[str, Any]]:
-    """Read GIS road lines into a raw MultiDiGraph in the local UTM CRS.
+    """Read GIS road lines into a raw MultiDiGraph in the local UTM CRS (see :func:`lines_to_raw`)."""
+    from graph.simplify import raw_to_nx
+
+    raw, dropped, info = lines_to_raw(path, opts)
+    return raw_to_nx(raw), raw.crs, dropped, info
+
+
+def lines_to_raw(path: Path, opts: GisOptions) -> tuple[RawNetwork, dict[str, int], dict[str, Any]]:
+    """Read GIS road lines into a raw network (arrays) in the local UTM CRS.
 
     Returns
     -------
-    G, crs, dropped, info
-        The raw graph (every vertex a node), its CRS, dropped features by reason, and the
-        fields that were used.
+    raw, dropped, info
+        The raw network (every vertex a node), dropped features by reason, and the fields
+        that were used.
     """
     from graph.projection import to_xy
 
@@ -251,7 +274,7 @@ def lines_to_graph(
     name_f = _pick(cols, opts.name_field, ("name",), "name")
     speed_f = _pick(cols, opts.speed_field, ("maxspeed", "speed", "speed_kph"), "speed")
     hw_f = _pick(cols, opts.highway_field, ("highway", "class", "fclass"), "highway")
-    id_f = _pick(cols, opts.id_field, ("id", "osm_id", "fid"), "id")
+    id_f = _pick(cols, opts.id_field, ("id", "way_id", "osm_id", "fid"), "id")
     info: dict[str, Any] = {
         "oneway_field": oneway_f,
         "name_field": name_f,
@@ -267,16 +290,21 @@ def lines_to_graph(
         else np.arange(n_feat, dtype=np.int64)
     )
     if oneway_f is not None:
-        codes = [opts.oneway_convention.code(v) for v in gdf[oneway_f].tolist()]
-        bad = sum(c is None for c in codes)
+        inv, uniq = _factorize(gdf[oneway_f])
+        ucodes = [opts.oneway_convention.code(v) for v in uniq]
+        bad = sum(int((inv == i).sum()) for i, c in enumerate(ucodes) if c is None)
         if bad:
             dropped["unrecognised one-way value (read as two-way)"] = bad
-        direction = np.array([BOTH if c is None else c for c in codes], dtype=np.int8)
+        direction = np.array([BOTH if c is None else c for c in ucodes], dtype=np.int8)[inv]
     else:
         direction = np.zeros(n_feat, dtype=np.int8)
     names = gdf[name_f].tolist() if name_f else [None] * n_feat
     hws = gdf[hw_f].tolist() if hw_f else [None] * n_feat
-    speeds = [_parse_speed(v) for v in gdf[speed_f].tolist()] if speed_f else [math.nan] * n_feat
+    if speed_f:
+        inv, uniq = _factorize(gdf[speed_f])
+        speeds = np.array([_parse_speed(v) for v in uniq], dtype=np.float64)[inv].tolist()
+    else:
+        speeds = [math.nan] * n_feat
 
     b = shapely.bounds(lines)
     lon0 = float((np.nanmin(b[:, 0]) + np.nanmax(b[:, 2])) / 2)
@@ -300,6 +328,7 @@ def lines_to_graph(
     ends = np.concatenate([first, last])
     end_xy = xy[ends]
     src_ids = _endpoint_id_values(gdf, opts, n_feat)
+    del gdf, lines  # the geometry objects: the coordinates are all that is needed now
     node_of_end, end_ids = None, None
     if opts.topology == "ids" or (opts.topology == "auto" and src_ids is not None):
         node_of_end, end_ids = _nodes_from_ids(src_ids, end_xy, opts)
@@ -315,7 +344,9 @@ def lines_to_graph(
     np.add.at(node_xy, node_of_end, end_xy)
     node_xy /= np.bincount(node_of_end, minlength=n_end_nodes)[:, None]
     node_ll = ll[ends][np.unique(node_of_end, return_index=True)[1]]
-    info["merged_endpoints"] = int(len(np.unique(np.round(end_xy, 6), axis=0)) - n_end_nodes)
+    r = np.round(end_xy, 6)[np.lexsort((np.round(end_xy[:, 1], 6), np.round(end_xy[:, 0], 6)))]
+    n_places = int(len(r) and 1 + (r[1:] != r[:-1]).any(axis=1).sum())
+    info["merged_endpoints"] = n_places - n_end_nodes
 
     # every vertex is a node: endpoints shared, interior vertices private to their feature
     vnode = np.empty(len(xy), dtype=np.int64)
@@ -334,49 +365,52 @@ def lines_to_graph(
             -1 - np.arange(int(interior.sum()), dtype=np.int64),
         ]
     )
-    vnode = keys[vnode]
 
-    G = nx.MultiDiGraph(crs=crs)
-    G.add_nodes_from(
-        (k, {"x": float(p[0]), "y": float(p[1]), "lon": float(q[0]), "lat": float(q[1]), "osmid": k})
-        for k, p, q in zip(keys.tolist(), all_xy.tolist(), all_ll.tolist(), strict=True)
-    )
     seg_a = np.arange(len(xy) - 1)
     seg_a = seg_a[owner[seg_a] == owner[seg_a + 1]]
     a_n, b_n = vnode[seg_a], vnode[seg_a + 1]
     f = owner[seg_a]
     d = xy[seg_a + 1] - xy[seg_a]
     seg_len = np.hypot(d[:, 0], d[:, 1])
-    zero_len = a_n == b_n
-    edges = []
-    for a, bb, fi, L in zip(
-        a_n[~zero_len].tolist(),
-        b_n[~zero_len].tolist(),
-        f[~zero_len].tolist(),
-        seg_len[~zero_len].tolist(),
-        strict=True,
-    ):
-        attrs = {
-            "osmid": int(fid[fi]),
-            "length": L,
-            "name": names[fi],
-            "highway": hws[fi],
-            "speed_kph": speeds[fi],
-            "oneway": bool(direction[fi] != BOTH),
-        }
-        dirn = direction[fi]
-        if dirn in (BOTH, FORWARD):
-            edges.append((a, bb, attrs))
-        if dirn in (BOTH, REVERSE):
-            edges.append((bb, a, dict(attrs)))
-    G.add_edges_from(edges)
+    ok = a_n != b_n
+    a_n, b_n, fo = a_n[ok], b_n[ok], f[ok]
+    dirn = direction[fo]
+    fwd = (dirn == BOTH) | (dirn == FORWARD)
+    bwd = (dirn == BOTH) | (dirn == REVERSE)
+    # per segment: forward then backward, as the segments come
+    src = np.stack([np.where(fwd, a_n, -1), np.where(bwd, b_n, -1)], axis=1).ravel()
+    dst = np.stack([b_n, a_n], axis=1).ravel()
+    feat = np.repeat(fo, 2)
+    use = src >= 0
+    raw = RawNetwork(
+        crs=crs,
+        node_key=keys,
+        node_xy=all_xy,
+        node_lonlat=all_ll,
+        edge_src=src[use].astype(np.int64),
+        edge_dst=dst[use].astype(np.int64),
+        edge_feat=feat[use].astype(np.int64),
+        edge_oneway=(direction[feat[use]] != BOTH),
+        feat_way_id=fid.astype(np.int64),
+        feat_name=[_text(x) for x in names],
+        feat_highway=[_text(x) for x in hws],
+        feat_speed_kph=np.asarray(speeds, dtype=np.float64),
+    )
     # features that collapsed to one point
     flen = np.bincount(f, weights=seg_len, minlength=n_feat)
     collapsed = int((flen <= opts.snap_tolerance).sum())
     if collapsed:
         dropped["zero length after snapping"] = collapsed
-    G.remove_nodes_from([n for n, deg in G.degree() if deg == 0])
-    return G, crs, dropped, info
+    return compact_raw(raw), dropped, info
+
+
+def _factorize(column: Any) -> tuple[NDArray[np.int64], list[Any]]:
+    """Codes into the distinct values of a column (missing values, NaN included, kept as one)."""
+    import pandas as pd
+
+    codes, uniq = pd.factorize(column, use_na_sentinel=False)
+    vals = [None if (isinstance(v, float) and v != v) or v is pd.NA else v for v in list(uniq)]
+    return np.asarray(codes, dtype=np.int64), vals
 
 
 def _endpoint_id_values(gdf: Any, opts: GisOptions, n_feat: int) -> NDArray[np.int64] | None:
@@ -430,8 +464,14 @@ def _nodes_from_ids(
 
 def _nodes_from_coords(end_xy: NDArray[np.float64], tol: float) -> NDArray[np.int64]:
     """Endpoint -> node: identical positions first, then snapping within ``tol`` metres."""
-    uniq, inv = np.unique(np.round(end_xy, 6), axis=0, return_inverse=True)
-    inv = inv.ravel()
+    r = np.round(end_xy, 6)
+    order = np.lexsort((r[:, 1], r[:, 0]))  # as np.unique(axis=0) orders them, much faster
+    rs = r[order]
+    new = np.ones(len(rs), dtype=bool)
+    new[1:] = (rs[1:] != rs[:-1]).any(axis=1)
+    uniq = rs[new]
+    inv = np.empty(len(r), dtype=np.int64)
+    inv[order] = np.cumsum(new) - 1
     if tol > 0 and len(uniq) > 1:
         tree = shapely.STRtree(shapely.points(uniq))
         pa, pb = tree.query(shapely.points(uniq), predicate="dwithin", distance=tol)

@@ -8,20 +8,25 @@ missing from a clipped extract split the way there instead of failing.
 
 from __future__ import annotations
 
-import itertools
 import logging
 import re
+from array import array
+from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any, NamedTuple
 
-import networkx as nx
 import numpy as np
+from numpy.typing import NDArray
 
 from graph.errors import InputError
 from graph.gis import _parse_speed
 from graph.projection import to_xy, utm_crs
 from graph.road_graph import RESTRICTION_NO, RESTRICTION_ONLY
+from graph.simplify import RawNetwork, compact_raw
+
+if TYPE_CHECKING:
+    import networkx as nx
 
 log = logging.getLogger(__name__)
 
@@ -29,15 +34,26 @@ log = logging.getLogger(__name__)
 ONEWAY_VALUES = frozenset({"yes", "true", "1", "-1", "reverse", "T", "F"})
 REVERSED_VALUES = frozenset({"-1", "reverse", "T"})
 
-# copy of osmnx 2.0's "drive" filter, used only if osmnx's private helper moves
-_DRIVE_FALLBACK = (
-    '["highway"]["area"!~"yes"]["access"!~"private"]'
-    '["highway"!~"abandoned|bridleway|bus_guideway|construction|corridor|'
-    "cycleway|elevator|escalator|footway|no|path|pedestrian|planned|platform|"
-    'proposed|raceway|razed|rest_area|service|services|steps|track"]'
-    '["motor_vehicle"!~"no"]["motorcar"!~"no"]'
-    '["service"!~"alley|driveway|emergency_access|parking|parking_aisle|private"]'
-)
+# copies of osmnx 2.x's "drive" and "drive_service" filters (osmnx._overpass._get_network_filter;
+# a test checks they still match): importing osmnx costs seconds and ~50 MB in every build
+_DRIVE_FILTERS = {
+    "drive": (
+        '["highway"]["area"!~"yes"]["access"!~"private"]'
+        '["highway"!~"abandoned|bridleway|bus_guideway|construction|corridor|'
+        "cycleway|elevator|escalator|footway|no|path|pedestrian|planned|platform|"
+        'proposed|raceway|razed|rest_area|service|services|steps|track"]'
+        '["motor_vehicle"!~"no"]["motorcar"!~"no"]'
+        '["service"!~"alley|driveway|emergency_access|parking|parking_aisle|private"]'
+    ),
+    "drive_service": (
+        '["highway"]["area"!~"yes"]["access"!~"private"]'
+        '["highway"!~"abandoned|bridleway|bus_guideway|construction|corridor|'
+        "cycleway|elevator|escalator|footway|no|path|pedestrian|planned|platform|"
+        'proposed|raceway|razed|rest_area|services|steps|track"]'
+        '["motor_vehicle"!~"no"]["motorcar"!~"no"]'
+        '["service"!~"emergency_access|parking|parking_aisle|private"]'
+    ),
+}
 _NOT_FOR_CARS = '["highway"!~"^(trail|bus_stop|via_ferrata|busway)$"]'
 _CLAUSE = re.compile(r'\["([^"]+)"(?:(!~|~|!=|=)"([^"]*)")?\]')
 
@@ -60,7 +76,8 @@ class TagFilter:
                 out.append((key, op, val))
         return cls(tuple(out))
 
-    def __call__(self, tags: dict[str, str]) -> bool:
+    def __call__(self, tags: Mapping[str, str] | Any) -> bool:
+        """True when ``tags`` (a dict or pyosmium's TagList: ``get`` is all it needs) pass."""
         for key, op, val in self.clauses:
             v = tags.get(key)
             if op is None:
@@ -82,16 +99,14 @@ class TagFilter:
 
 def network_filter(network_type: str) -> TagFilter:
     """osmnx's way filter for ``network_type`` (``"drive"``, ``"drive_service"``, ...)."""
-    try:
-        from osmnx import _overpass
+    text = _DRIVE_FILTERS.get(network_type)
+    if text is None:
+        try:
+            from osmnx import _overpass
 
-        text = _overpass._get_network_filter(network_type)
-    except (ImportError, AttributeError):
-        if network_type != "drive":
-            raise InputError(f"unsupported network type {network_type!r}") from None
-        text = _DRIVE_FALLBACK
-    except ValueError as exc:
-        raise InputError(f"unsupported network type {network_type!r}") from exc
+            text = _overpass._get_network_filter(network_type)
+        except (ImportError, AttributeError, ValueError) as exc:
+            raise InputError(f"unsupported network type {network_type!r}") from exc
     if network_type.startswith("drive"):
         # osmnx lets non-standard highway=trail through; it is never a road for cars
         text += _NOT_FOR_CARS
@@ -103,18 +118,37 @@ def is_oneway(tags: dict[str, str]) -> bool:
     return tags.get("oneway") in ONEWAY_VALUES or tags.get("junction") == "roundabout"
 
 
-Way = tuple[int, dict[str, str], list[tuple[int, float, float, bool]]]
 Relation = tuple[dict[str, str], list[tuple[str, str, int]]]
+WAY_KEYS = ("highway", "name", "oneway", "junction", "maxspeed")
+"""The tags of a kept way that the build reads."""
 
 
-def scan_osm(path: Path, keep: TagFilter, dropped: dict[str, int]) -> tuple[list[Way], list[Relation]]:
-    """One pyosmium pass: ways passing ``keep`` with node refs and locations, and restrictions.
+class Ways(NamedTuple):
+    """Kept ways: ``ids`` and ``tags`` per way; their node refs flattened, way ``i`` owning
+    ``ref[ptr[i]:ptr[i+1]]`` with each node's location (``ok`` false when missing)."""
 
-    A node reference whose node is missing from the file has ``valid=False``.
+    ids: list[int]
+    tags: list[dict[str, str]]
+    ptr: NDArray[np.int64]
+    ref: NDArray[np.int64]
+    lon: NDArray[np.float64]
+    lat: NDArray[np.float64]
+    ok: NDArray[np.bool_]
+
+
+def scan_osm(path: Path, keep: TagFilter, dropped: dict[str, int]) -> tuple[Ways, list[Relation]]:
+    """One pyosmium pass: ways passing ``keep`` with node refs and locations (flat arrays),
+    and restrictions. A node reference whose node is missing from the file has ``ok`` false.
     """
     import osmium
 
-    ways: list[Way] = []
+    ids: list[int] = []
+    tags_out: list[dict[str, str]] = []
+    counts: list[int] = []
+    refs = array("q")
+    lons = array("d")
+    lats = array("d")
+    oks = array("b")
     relations: list[Relation] = []
 
     def _drop(reason: str, n: int = 1) -> None:
@@ -129,26 +163,46 @@ def scan_osm(path: Path, keep: TagFilter, dropped: dict[str, int]) -> tuple[list
         )
         for obj in fp:
             if isinstance(obj, osmium.osm.Way):
-                tags = dict(obj.tags)
+                tags = obj.tags
                 if "highway" not in tags:
                     continue
                 if not keep(tags):
                     _drop("way not drivable (osmnx network filter)")
                     continue
-                refs = [
-                    (n.ref, n.location.lon, n.location.lat, True)
-                    if n.location.valid()
-                    else (n.ref, 0.0, 0.0, False)
-                    for n in obj.nodes
-                ]
-                ways.append((obj.id, tags, refs))
+                n = 0
+                for nd in obj.nodes:
+                    loc = nd.location
+                    refs.append(nd.ref)
+                    if loc.valid():
+                        lons.append(loc.lon)
+                        lats.append(loc.lat)
+                        oks.append(1)
+                    else:
+                        lons.append(0.0)
+                        lats.append(0.0)
+                        oks.append(0)
+                    n += 1
+                ids.append(obj.id)
+                tags_out.append({k: tags[k] for k in WAY_KEYS if k in tags})
+                counts.append(n)
             elif isinstance(obj, osmium.osm.Relation):
-                tags = dict(obj.tags)
-                if tags.get("type") != "restriction":
+                rtags = dict(obj.tags)
+                if rtags.get("type") != "restriction":
                     continue
-                relations.append((tags, [(m.role, m.type, m.ref) for m in obj.members]))
+                relations.append((rtags, [(m.role, m.type, m.ref) for m in obj.members]))
     except RuntimeError as exc:
         raise InputError(f"corrupt or unreadable OSM file {path.name}: {exc}") from exc
+    ptr = np.zeros(len(counts) + 1, dtype=np.int64)
+    np.cumsum(np.asarray(counts, dtype=np.int64), out=ptr[1:])
+    ways = Ways(
+        ids=ids,
+        tags=tags_out,
+        ptr=ptr,
+        ref=np.frombuffer(refs, dtype=np.int64).copy() if len(refs) else np.zeros(0, np.int64),
+        lon=np.frombuffer(lons, dtype=np.float64).copy() if len(lons) else np.zeros(0),
+        lat=np.frombuffer(lats, dtype=np.float64).copy() if len(lats) else np.zeros(0),
+        ok=np.frombuffer(oks, dtype=np.int8).astype(bool),
+    )
     return ways, relations
 
 
@@ -176,81 +230,143 @@ def read_osm(
         ``name``, ``highway``, ``speed_kph``, ``oneway``), the CRS, dropped items by reason,
         and restrictions as ``(from_way, via_node_id, to_way, kind)``.
     """
+    raw, dropped, restrictions = read_osm_raw(path, network_type=network_type, bbox=bbox)
+    from graph.simplify import raw_to_nx
+
+    return raw_to_nx(raw), raw.crs, dropped, restrictions
+
+
+def read_osm_raw(
+    path: Path,
+    *,
+    network_type: str = "drive",
+    bbox: tuple[float, float, float, float] | None = None,
+) -> tuple[RawNetwork, dict[str, int], list[tuple[int, int, int, int]]]:
+    """Read drivable ways of an OSM file into a raw network (arrays; see :func:`read_osm`)."""
     keep = network_filter(network_type)
     dropped: dict[str, int] = {}
     ways, relations = scan_osm(path, keep, dropped)
-    G, crs = _ways_to_graph(ways, bbox=bbox, dropped=dropped)
+    raw = _ways_to_raw(ways, bbox=bbox, dropped=dropped)
     restrictions = _restrictions(relations, dropped)
-    return G, crs, dropped, restrictions
+    return raw, dropped, restrictions
 
 
-def _ways_to_graph(
-    ways: list[Way],
+def _ways_to_raw(
+    ways: Ways,
     *,
     bbox: tuple[float, float, float, float] | None,
     dropped: dict[str, int],
-) -> tuple[nx.MultiDiGraph, str]:
-    coords: dict[int, tuple[float, float]] = {}
-    pieces: list[tuple[int, dict[str, str], list[int]]] = []
-    n_dangling = 0
+) -> RawNetwork:
+    """Ways -> raw network: each way cut at missing (or, with ``bbox``, outside) nodes into
+    runs of at least two nodes; a run is one feature, its consecutive node pairs its edges
+    (both directions unless one-way; reversed ways run backwards)."""
+    n_ref = len(ways.ref)
+    n_way = len(ways.ids)
+    way_of = np.repeat(np.arange(n_way), np.diff(ways.ptr))
+    ok = ways.ok.copy()
+    n_dangling = int((~ok).sum())
     n_outside = 0
-    for wid, tags, refs in ways:
-        run: list[int] = []
-        runs: list[list[int]] = []
-        for ref, lon, lat, ok in refs:
-            if ok and bbox is not None and not (bbox[0] <= lon <= bbox[2] and bbox[1] <= lat <= bbox[3]):
-                ok = False
-                n_outside += 1
-            elif not ok:
-                n_dangling += 1
-            if ok:
-                coords[ref] = (lon, lat)
-                if not run or run[-1] != ref:
-                    run.append(ref)
-            else:
-                if len(run) >= 2:
-                    runs.append(run)
-                run = []
-        if len(run) >= 2:
-            runs.append(run)
-        if not runs:
-            dropped["way with fewer than 2 known nodes"] = (
-                dropped.get("way with fewer than 2 known nodes", 0) + 1
-            )
-        pieces.extend((wid, tags, r) for r in runs)
+    if bbox is not None:
+        inside = (bbox[0] <= ways.lon) & (ways.lon <= bbox[2]) & (bbox[1] <= ways.lat) & (ways.lat <= bbox[3])
+        n_outside = int((ok & ~inside).sum())
+        ok &= inside
     if n_dangling:
         dropped["dangling node references (missing from the extract)"] = n_dangling
     if n_outside:
         dropped["node references outside the bbox"] = n_outside
-    ids = np.fromiter(coords.keys(), dtype=np.int64, count=len(coords))
-    ll = np.array(list(coords.values()), dtype=np.float64).reshape(-1, 2)
+    # runs: a new one at each way start and after each unusable node
+    start = np.zeros(n_ref, dtype=bool)
+    start[ways.ptr[:-1][np.diff(ways.ptr) > 0]] = True
+    start[1:] |= ~ok[:-1]
+    grp = np.cumsum(start) - 1
+    pos = np.nonzero(ok)[0]
+    g = grp[pos]
+    r = ways.ref[pos]
+    dup = np.zeros(len(pos), dtype=bool)
+    dup[1:] = (g[1:] == g[:-1]) & (r[1:] == r[:-1])  # a node repeated in a row
+    pos, g = pos[~dup], g[~dup]
+    run_len = np.bincount(g, minlength=int(grp.max()) + 1 if n_ref else 0)
+    long_run = run_len >= 2
+    # ways with no run of two known nodes
+    run_way = np.full(len(run_len), -1, dtype=np.int64)
+    run_way[grp[start]] = way_of[start]
+    has = np.zeros(n_way, dtype=bool)
+    has[run_way[long_run]] = True
+    if (~has).any():
+        dropped["way with fewer than 2 known nodes"] = dropped.get(
+            "way with fewer than 2 known nodes", 0
+        ) + int((~has).sum())
+    # nodes: every usable reference, in order of first appearance (its last location wins)
+    ok_pos = np.nonzero(ok)[0]
+    ids, first, inv = np.unique(ways.ref[ok_pos], return_index=True, return_inverse=True)
     if len(ids) == 0:
-        return nx.MultiDiGraph(crs="EPSG:4326"), "EPSG:4326"
+        return _empty_raw()
+    order = np.argsort(first, kind="stable")
+    rank = np.empty(len(ids), dtype=np.int64)
+    rank[order] = np.arange(len(ids))
+    last = np.zeros(len(ids), dtype=np.int64)
+    last[inv.ravel()] = ok_pos  # later positions overwrite earlier ones
+    ll = np.column_stack([ways.lon[last], ways.lat[last]])[order]
+    node_ids = ids[order]
     crs = utm_crs(float(np.median(ll[:, 0])), float(np.median(ll[:, 1])))
     xy = to_xy(crs, ll[:, 0], ll[:, 1])
-    G = nx.MultiDiGraph(crs=crs)
-    G.add_nodes_from(
-        (int(i), {"x": p[0], "y": p[1], "lon": q[0], "lat": q[1], "osmid": int(i)})
-        for i, p, q in zip(ids.tolist(), xy.tolist(), ll.tolist(), strict=True)
+    node_of_ref = np.searchsorted(ids, ways.ref[pos])
+    node = rank[node_of_ref]
+    # features: the long runs
+    keep_pos = long_run[g]
+    node, g = node[keep_pos], g[keep_pos]
+    feat_runs = np.nonzero(long_run)[0]
+    feat_of_run = np.full(len(run_len), -1, dtype=np.int64)
+    feat_of_run[feat_runs] = np.arange(len(feat_runs))
+    f = feat_of_run[g]
+    fw = run_way[feat_runs]
+    tags = [ways.tags[i] for i in fw.tolist()]
+    oneway = np.array([is_oneway(t) for t in tags], dtype=bool)
+    backwards = np.array([t.get("oneway") in REVERSED_VALUES for t in tags], dtype=bool)
+    # reversed ways run from their last node to their first
+    k = np.arange(len(node))
+    order_k = np.lexsort((np.where(backwards[f], -k, k), f))
+    node, f = node[order_k], f[order_k]
+    same = f[1:] == f[:-1]
+    a, b, fe = node[:-1][same], node[1:][same], f[:-1][same]
+    two = ~oneway[fe]
+    src = np.stack([a, np.where(two, b, -1)], axis=1).ravel()
+    dst = np.stack([b, a], axis=1).ravel()
+    feat = np.repeat(fe, 2)
+    use = src >= 0
+    raw = RawNetwork(
+        crs=crs,
+        node_key=node_ids.astype(np.int64),
+        node_xy=xy,
+        node_lonlat=ll,
+        edge_src=src[use].astype(np.int64),
+        edge_dst=dst[use].astype(np.int64),
+        edge_feat=feat[use].astype(np.int64),
+        edge_oneway=oneway[feat[use]],
+        feat_way_id=np.asarray(ways.ids, dtype=np.int64)[fw],
+        feat_name=[t.get("name") for t in tags],
+        feat_highway=[t.get("highway") for t in tags],
+        feat_speed_kph=np.array([_maxspeed(t.get("maxspeed")) for t in tags], dtype=np.float64),
     )
-    edges: list[tuple[int, int, dict[str, Any]]] = []
-    for wid, tags, run in pieces:
-        oneway = is_oneway(tags)
-        nodes = run[::-1] if tags.get("oneway") in REVERSED_VALUES else run
-        attrs = {
-            "osmid": wid,
-            "name": tags.get("name"),
-            "highway": tags.get("highway"),
-            "speed_kph": _maxspeed(tags.get("maxspeed")),
-            "oneway": oneway,
-        }
-        for a, b in itertools.pairwise(nodes):
-            edges.append((a, b, attrs))
-            if not oneway:
-                edges.append((b, a, attrs))
-    G.add_edges_from(edges)
-    G.remove_nodes_from([n for n, d in G.degree() if d == 0])
-    return G, crs
+    return compact_raw(raw)
+
+
+def _empty_raw() -> RawNetwork:
+    z = np.zeros(0, dtype=np.int64)
+    return RawNetwork(
+        crs="EPSG:4326",
+        node_key=z,
+        node_xy=np.zeros((0, 2)),
+        node_lonlat=np.zeros((0, 2)),
+        edge_src=z,
+        edge_dst=z,
+        edge_feat=z,
+        edge_oneway=np.zeros(0, dtype=bool),
+        feat_way_id=z,
+        feat_name=[],
+        feat_highway=[],
+        feat_speed_kph=np.zeros(0),
+    )
 
 
 def _maxspeed(value: str | None) -> float:
@@ -314,6 +430,8 @@ def download_graph(
         raise InputError("the download has no drivable roads")
     crs = utm_crs(float(np.median(ll[:, 0])), float(np.median(ll[:, 1])))
     xy = to_xy(crs, ll[:, 0], ll[:, 1])
+    import networkx as nx
+
     G = nx.MultiDiGraph(crs=crs)
     G.add_nodes_from(
         (n, {"x": p[0], "y": p[1], "lon": q[0], "lat": q[1], "osmid": int(n)})

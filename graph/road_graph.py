@@ -12,9 +12,10 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
+from numba import njit
 from numpy.typing import NDArray
 
 from graph.errors import GraphError
@@ -43,7 +44,36 @@ ARRAY_FIELDS: tuple[str, ...] = (
     "in_ptr",
     "in_edges",
     "restrictions",
+    "piece_ptr",
+    "piece_start",
+    "piece_way_id",
+    "piece_name_idx",
+    "piece_highway_idx",
+    "piece_speed_kph",
 )
+PIECE_FIELDS: tuple[str, ...] = ARRAY_FIELDS[-6:]
+"""Way-piece arrays; map files written before they existed get one piece per edge on load."""
+
+
+class Pieces(NamedTuple):
+    """The ways (or GIS features) an edge is made of, one row per piece, ordered by edge and
+    then by ``start`` (metres along the edge in travel direction; each edge's first is 0)."""
+
+    edge: NDArray[np.int64]
+    start: NDArray[np.float64]
+    way_id: NDArray[np.int64]
+    name: Sequence[str | None]
+    highway: Sequence[str | None]
+    speed_kph: NDArray[np.float32]
+
+
+def merge_repeats(values: Sequence[Any]) -> list[Any]:
+    """``values`` with runs of equal consecutive items merged into one."""
+    out: list[Any] = []
+    for v in values:
+        if not out or out[-1] != v:
+            out.append(v)
+    return out
 
 
 def bearing_deg(dx: NDArray[np.float64], dy: NDArray[np.float64]) -> NDArray[np.float64]:
@@ -96,6 +126,16 @@ class RoadGraph:
         Lookup tables.
     meta : dict
         Free-form build metadata (source, parameters); stored in the artifact manifest.
+    piece_ptr : (E+1,) int64
+        Way pieces: edge ``e`` is made of pieces ``piece_ptr[e]:piece_ptr[e+1]`` in travel
+        order (at least one). ``edge_way_id`` and the other edge attributes are those of the
+        edge's longest piece; answers about a point use :meth:`piece_at`.
+    piece_start : (P,) float64
+        Offset in metres along its edge where each piece begins (the next piece's start, or
+        the edge length, is where it ends).
+    piece_way_id, piece_name_idx, piece_highway_idx, piece_speed_kph : (P,)
+        Each piece's way id (or GIS feature id), name and road class (indices into
+        ``names`` and ``highways``, -1 unknown) and speed (NaN unknown).
     """
 
     crs: str
@@ -122,6 +162,30 @@ class RoadGraph:
     names: list[str] = field(default_factory=list)
     highways: list[str] = field(default_factory=list)
     meta: dict[str, Any] = field(default_factory=dict)
+    piece_ptr: NDArray[np.int64] = None  # type: ignore[assignment]
+    piece_start: NDArray[np.float64] = None  # type: ignore[assignment]
+    piece_way_id: NDArray[np.int64] = None  # type: ignore[assignment]
+    piece_name_idx: NDArray[np.int32] = None  # type: ignore[assignment]
+    piece_highway_idx: NDArray[np.int32] = None  # type: ignore[assignment]
+    piece_speed_kph: NDArray[np.float32] = None  # type: ignore[assignment]
+
+    def __post_init__(self) -> None:
+        given = [getattr(self, k) is not None for k in PIECE_FIELDS]
+        if any(given) and not all(given):
+            raise GraphError("give all way-piece arrays or none")
+        if not any(given):  # one piece per edge, from the edge attributes
+            e = len(self.edge_u)
+            for k, v in (
+                ("piece_ptr", np.arange(e + 1, dtype=np.int64)),
+                ("piece_start", np.zeros(e, dtype=np.float64)),
+                ("piece_way_id", self.edge_way_id),
+                ("piece_name_idx", self.edge_name_idx),
+                ("piece_highway_idx", self.edge_highway_idx),
+                ("piece_speed_kph", self.edge_speed_kph),
+            ):
+                object.__setattr__(self, k, v)
+        elif len(self.piece_ptr) != len(self.edge_u) + 1:
+            raise GraphError("piece_ptr must have E+1 entries")
 
     # ------------------------------------------------------------------ construction
     @classmethod
@@ -135,11 +199,14 @@ class RoadGraph:
         edge_u: NDArray[np.integer] | Sequence[int],
         edge_v: NDArray[np.integer] | Sequence[int],
         edge_geoms: Sequence[NDArray[np.float64]] | None = None,
+        seg_xy: NDArray[np.float64] | None = None,
+        edge_seg_ptr: NDArray[np.int64] | None = None,
         edge_way_id: NDArray[np.int64] | Sequence[int] | None = None,
         edge_names: Sequence[str | None] | None = None,
         edge_highways: Sequence[str | None] | None = None,
         edge_speed_kph: NDArray[np.floating] | Sequence[float] | None = None,
         restrictions: NDArray[np.integer] | Sequence[Sequence[int]] | None = None,
+        pieces: Pieces | None = None,
         meta: dict[str, Any] | None = None,
     ) -> RoadGraph:
         """Build a graph from directed edges, deriving lengths, bearings, CSR and reverses.
@@ -158,10 +225,15 @@ class RoadGraph:
             Directed edges as node indices. A two-way road is two edges.
         edge_geoms
             Per edge an (k, 2) polyline from ``u`` to ``v`` in metres; straight when omitted.
+        seg_xy, edge_seg_ptr
+            The same as one ragged array (each polyline at least 2 points), instead of
+            ``edge_geoms``.
         edge_way_id, edge_names, edge_highways, edge_speed_kph
             Optional attributes per edge.
         restrictions
             Rows ``(from_edge, via_node, to_edge, kind)``.
+        pieces
+            The ways each edge is made of; one piece per edge (its own attributes) when omitted.
         meta
             Build metadata.
         """
@@ -185,7 +257,15 @@ class RoadGraph:
         ids = np.arange(n, dtype=np.int64) if node_id is None else np.asarray(node_id, dtype=np.int64)
 
         # polylines, forcing exact node positions at both ends
-        if edge_geoms is None:
+        if seg_xy is not None and edge_seg_ptr is not None:
+            ptr = np.asarray(edge_seg_ptr, dtype=np.int64)
+            if len(ptr) != e + 1 or (e and np.diff(ptr).min() < 2):
+                raise GraphError("edge_seg_ptr must have E+1 entries and every polyline 2 points")
+            seg = np.array(seg_xy, dtype=np.float64).reshape(-1, 2)
+            if e:
+                seg[ptr[:-1]] = xy[u]
+                seg[ptr[1:] - 1] = xy[v]
+        elif edge_geoms is None:
             seg = np.empty((2 * e, 2), dtype=np.float64)
             seg[0::2] = xy[u]
             seg[1::2] = xy[v]
@@ -216,18 +296,46 @@ class RoadGraph:
         elen = cum[ptr[1:] - 1] - cum[ptr[:-1]] if e else np.empty(0)
         b_start, b_end = _end_bearings(seg, ptr)
 
-        def _lookup(vals: Sequence[str | None] | None) -> tuple[NDArray[np.int32], list[str]]:
-            if vals is None:
-                return np.full(e, -1, dtype=np.int32), []
-            table: dict[str, int] = {}
-            idx = np.full(e, -1, dtype=np.int32)
-            for i, s in enumerate(vals):
-                if s:
-                    idx[i] = table.setdefault(str(s), len(table))
-            return idx, list(table)
+        name_table: dict[str, int] = {}
+        hw_table: dict[str, int] = {}
 
-        name_idx, names = _lookup(edge_names)
-        hw_idx, highways = _lookup(edge_highways)
+        def _lookup(vals: Sequence[str | None] | None, table: dict[str, int], k: int) -> NDArray[np.int32]:
+            idx = np.full(k, -1, dtype=np.int32)
+            if vals is None:
+                return idx
+            if len(vals) != k:
+                raise GraphError("an attribute list has the wrong length")
+            put = table.setdefault
+            codes = [put(s if type(s) is str else str(s), len(table)) if s else -1 for s in vals]
+            return np.asarray(codes, dtype=np.int32) if k else idx
+
+        name_idx = _lookup(edge_names, name_table, e)
+        hw_idx = _lookup(edge_highways, hw_table, e)
+        piece_arrays: dict[str, Any] = {}
+        if pieces is not None:
+            pe = np.asarray(pieces.edge, dtype=np.int64)
+            ps = np.asarray(pieces.start, dtype=np.float64)
+            p = len(pe)
+            if len(ps) != p or len(pieces.way_id) != p or len(pieces.speed_kph) != p:
+                raise GraphError("piece arrays differ in length")
+            if p and (np.any(np.diff(pe) < 0) or pe.min() < 0 or pe.max() >= e):
+                raise GraphError("pieces must be ordered by edge index in 0..E-1")
+            pptr = np.zeros(e + 1, dtype=np.int64)
+            np.cumsum(np.bincount(pe, minlength=e), out=pptr[1:])
+            if e and (np.diff(pptr) == 0).any():
+                raise GraphError("every edge needs at least one piece")
+            firsts = pptr[:-1]
+            if p and (np.abs(ps[firsts]) > 1e-9).any():
+                raise GraphError("each edge's first piece must start at offset 0")
+            piece_arrays = {
+                "piece_ptr": pptr,
+                "piece_start": ps,
+                "piece_way_id": np.asarray(pieces.way_id, dtype=np.int64),
+                "piece_name_idx": _lookup(pieces.name, name_table, p),
+                "piece_highway_idx": _lookup(pieces.highway, hw_table, p),
+                "piece_speed_kph": np.asarray(pieces.speed_kph, dtype=np.float32),
+            }
+        names, highways = list(name_table), list(hw_table)
         way = np.full(e, -1, dtype=np.int64) if edge_way_id is None else np.asarray(edge_way_id, np.int64)
         speed = (
             np.full(e, np.nan, dtype=np.float32)
@@ -267,6 +375,7 @@ class RoadGraph:
             names=names,
             highways=highways,
             meta=dict(meta or {}),
+            **piece_arrays,
         )
 
     # ------------------------------------------------------------------ sizes and lookups
@@ -297,6 +406,93 @@ class RoadGraph:
     def edge_highway(self, edge: int) -> str:
         i = int(self.edge_highway_idx[edge])
         return self.highways[i] if i >= 0 else ""
+
+    @property
+    def n_pieces(self) -> int:
+        return len(self.piece_start)
+
+    def piece_at(self, edges: Any, offsets: Any) -> NDArray[np.int64]:
+        """The way piece under each point ``(edge, offset)`` (vectorised; -1 where edge < 0).
+
+        A point exactly at a boundary belongs to the piece that begins there; offsets before
+        0 or past the edge's end fall on its first or last piece.
+        """
+        e = np.asarray(edges, dtype=np.int64)
+        off = np.asarray(offsets, dtype=np.float64)
+        e, off = np.broadcast_arrays(e, off)
+        shape = e.shape
+        e, off = e.ravel(), off.ravel()
+        ok = (e >= 0) & (e < self.n_edges)
+        ec = np.where(ok, e, 0)
+        if not self.n_edges:
+            return np.full(shape, -1, dtype=np.int64)
+        lo = self.piece_ptr[ec]
+        n = self.piece_ptr[ec + 1] - lo
+        out = lo.copy()
+        for j in range(1, int(n.max()) if n.size else 0):  # few pieces per edge: loop over rank
+            at = np.where(n > j, lo + j, 0)
+            past = (n > j) & (self.piece_start[at] <= off)
+            out[past] = at[past]
+        return np.where(ok, out, -1).reshape(shape)
+
+    def piece_end(self, piece: Any) -> NDArray[np.float64]:
+        """Offset in metres where each piece ends (the next piece's start, or the edge end)."""
+        p = np.asarray(piece, dtype=np.int64)
+        edge = np.searchsorted(self.piece_ptr, p, side="right") - 1
+        last = p + 1 >= self.piece_ptr[edge + 1]
+        nxt = self.piece_start[np.minimum(p + 1, max(self.n_pieces - 1, 0))]
+        return np.where(last, self.edge_len[edge], nxt)
+
+    def way_id_at(self, edge: int, offset: float) -> int:
+        """Way id of the piece under ``(edge, offset)``; -1 for no edge."""
+        p = int(self.piece_at(edge, offset))
+        return int(self.piece_way_id[p]) if p >= 0 else -1
+
+    def name_at(self, edge: int, offset: float) -> str:
+        """Name of the piece under ``(edge, offset)``; ``""`` when unknown."""
+        p = int(self.piece_at(edge, offset))
+        i = int(self.piece_name_idx[p]) if p >= 0 else -1
+        return self.names[i] if i >= 0 else ""
+
+    def highway_at(self, edge: int, offset: float) -> str:
+        """Road class of the piece under ``(edge, offset)``; ``""`` when unknown."""
+        p = int(self.piece_at(edge, offset))
+        i = int(self.piece_highway_idx[p]) if p >= 0 else -1
+        return self.highways[i] if i >= 0 else ""
+
+    def speed_at(self, edge: int, offset: float) -> float:
+        """Speed in km/h of the piece under ``(edge, offset)``; 0.0 when unknown."""
+        p = int(self.piece_at(edge, offset))
+        v = float(self.piece_speed_kph[p]) if p >= 0 else 0.0
+        return v if v == v else 0.0
+
+    def route_pieces(
+        self, edges: Sequence[int] | NDArray[np.integer], *, start: float = 0.0, end: float = np.inf
+    ) -> NDArray[np.int64]:
+        """The pieces a route runs through, in order: from the piece at ``start`` on its first
+        edge to the piece at ``end`` on its last (whole edges in between)."""
+        e = np.asarray(edges, dtype=np.int64)
+        if not len(e):
+            return np.zeros(0, dtype=np.int64)
+        lo, hi = self.piece_ptr[e], self.piece_ptr[e + 1]
+        lo = lo.copy()
+        hi = hi.copy()
+        lo[0] = self.piece_at(e[0], start)
+        hi[-1] = self.piece_at(e[-1], min(end, float(self.edge_len[e[-1]]))) + 1
+        if len(e) == 1:
+            hi[0] = max(hi[0], lo[0] + 1)
+        counts = np.maximum(hi - lo, 0)
+        base = np.repeat(lo - np.concatenate([[0], np.cumsum(counts)[:-1]]), counts)
+        return base + np.arange(int(counts.sum()), dtype=np.int64)
+
+    def route_ways(
+        self, edges: Sequence[int] | NDArray[np.integer], *, start: float = 0.0, end: float = np.inf
+    ) -> tuple[list[int], list[str]]:
+        """A route's way ids and names in order, consecutive repeats merged (see :meth:`route_pieces`)."""
+        p = self.route_pieces(edges, start=start, end=end)
+        return merge_repeats(self.piece_way_id[p].tolist()), merge_repeats(
+            [self.names[i] if i >= 0 else "" for i in self.piece_name_idx[p].tolist()]
+        )
 
     @property
     def bbox(self) -> tuple[float, float, float, float]:
@@ -367,23 +563,42 @@ def _end_bearings(
 def _reverse_edges(
     u: NDArray[np.int32], v: NDArray[np.int32], seg: NDArray[np.float64], ptr: NDArray[np.int64]
 ) -> NDArray[np.int32]:
-    """For each edge, the edge running v -> u along the same polyline reversed, or -1."""
+    """For each edge, the edge running v -> u along the same polyline reversed (within 1 cm), or -1.
+
+    Edges are paired in index order, each with the first free candidate.
+    """
+    e = len(u)
+    if e == 0:
+        return np.full(0, -1, dtype=np.int32)
+    n = int(max(u.max(), v.max())) + 1
+    key = u.astype(np.int64) * n + v.astype(np.int64)
+    order = np.argsort(key, kind="stable")
+    return _pair_reverses(key[order], order, u.astype(np.int64), v.astype(np.int64), n, seg, ptr)
+
+
+@njit(cache=True)
+def _pair_reverses(skey, order, u, v, n, seg, ptr):  # type: ignore[no-untyped-def]
     e = len(u)
     rev = np.full(e, -1, dtype=np.int32)
-    if e == 0:
-        return rev
-    by_uv: dict[tuple[int, int], list[int]] = {}
-    for i in range(e):
-        by_uv.setdefault((int(u[i]), int(v[i])), []).append(i)
     for i in range(e):
         if rev[i] >= 0:
             continue
-        for j in by_uv.get((int(v[i]), int(u[i])), ()):
-            if j == i or rev[j] >= 0:
+        want = v[i] * n + u[i]
+        k = np.searchsorted(skey, want)
+        li = ptr[i + 1] - ptr[i]
+        while k < e and skey[k] == want:
+            j = order[k]
+            k += 1
+            if j == i or rev[j] >= 0 or ptr[j + 1] - ptr[j] != li:
                 continue
-            gi = seg[ptr[i] : ptr[i + 1]]
-            gj = seg[ptr[j] : ptr[j + 1]]
-            if len(gi) == len(gj) and np.allclose(gi, gj[::-1], rtol=0.0, atol=0.01):
+            ok = True
+            for t in range(li):
+                a = ptr[i] + t
+                b = ptr[j + 1] - 1 - t
+                if abs(seg[a, 0] - seg[b, 0]) > 0.01 or abs(seg[a, 1] - seg[b, 1]) > 0.01:
+                    ok = False
+                    break
+            if ok:
                 rev[i] = j
                 rev[j] = i
                 break

@@ -9,16 +9,19 @@ expects before :func:`osmnx.simplify_graph`.
 
 from __future__ import annotations
 
+import itertools
 import logging
 from collections.abc import Iterable, Sequence
-from typing import Any
+from typing import TYPE_CHECKING, Any, NamedTuple
 
-import networkx as nx
 import numpy as np
-import osmnx as ox
+from numba import njit
 from numpy.typing import NDArray
 
-from graph.road_graph import RoadGraph
+from graph.road_graph import Pieces, RoadGraph
+
+if TYPE_CHECKING:
+    import networkx as nx
 
 log = logging.getLogger(__name__)
 
@@ -40,6 +43,8 @@ def mark_rings(G: nx.MultiDiGraph) -> int:
     unsimplified; keeping two nodes turns each ring into two edges (no self-loop).
     Returns the number of rings found.
     """
+    import networkx as nx
+
     rings = 0
     for comp in nx.weakly_connected_components(G):
         if len(comp) < 3 or any(_is_endpoint(G, n) for n in comp):
@@ -67,6 +72,8 @@ def simplify(G: nx.MultiDiGraph) -> nx.MultiDiGraph:
     isolated rings are kept as two edges (see :func:`mark_rings`) instead of being dropped.
     Simplified edges get ``geometry`` and ``merged_edges`` (the original vertex pairs).
     """
+    import osmnx as ox
+
     G = G.copy()
     n_rings = mark_rings(G)
     if n_rings:
@@ -81,6 +88,8 @@ def consolidate(G: nx.MultiDiGraph, tolerance: float) -> nx.MultiDiGraph:
     Node ``osmid`` becomes the smallest of the merged nodes' ids (raw node keys are source
     ids); the merged ids are kept in ``osmid_original``.
     """
+    import osmnx as ox
+
     G = G.copy()
     for _, d in G.nodes(data=True):
         d.pop("osmid", None)  # osmnx uses the node key as "osmid" itself
@@ -128,12 +137,85 @@ def _split_loop(
     return int(inner[int(np.argmin(dist))])
 
 
+def _speed(v: Any) -> float:
+    if isinstance(v, list | tuple | set):
+        vals = [float(x) for x in v if x is not None and x == x]
+        v = min(vals) if vals else None
+    return float(v) if v is not None else np.nan
+
+
+def _text(v: Any) -> str | None:
+    """A name or class as text; None for missing values (None, NaN, empty)."""
+    if v is None or (isinstance(v, float) and v != v):
+        return None
+    return str(v) or None
+
+
+SegAttrs = tuple[int, str | None, str | None, float]
+"""Attributes of one straight piece: way id, name, road class, speed (km/h)."""
+
+
+def _seg_attrs(
+    d: dict[str, Any],
+    path: list[Any] | None,
+    n_seg: int,
+    raw: nx.MultiDiGraph | None,
+    coords: NDArray[np.float64] | None = None,
+) -> tuple[list[SegAttrs], bool]:
+    """Per straight piece of a simplified edge, the attributes of the raw edge it came from.
+
+    Returns the list and whether it is exact (read from the raw graph, or from the
+    ``piece_*`` lists :func:`to_osmnx` writes); otherwise every piece gets the simplified
+    edge's merged attributes (their first value).
+    """
+    if "piece_start" in d and coords is not None and len(coords) == n_seg + 1:
+        cum = np.concatenate([[0.0], np.cumsum(np.hypot(*np.diff(coords, axis=0).T))])
+        at = (
+            np.searchsorted(np.asarray(d["piece_start"], dtype=np.float64), cum[:-1] + 1e-6, side="right") - 1
+        )
+        at = np.clip(at, 0, len(d["piece_start"]) - 1).tolist()
+        rows = list(
+            zip(d["piece_osmid"], d["piece_name"], d["piece_highway"], d["piece_speed_kph"], strict=True)
+        )
+        return [(int(rows[i][0]), _text(rows[i][1]), _text(rows[i][2]), _speed(rows[i][3])) for i in at], True
+    w = d.get("osmid")
+    mine = {x for x in (w if isinstance(w, list | tuple | set) else [w]) if x is not None}
+    if raw is not None and path is not None and len(path) == n_seg + 1:
+        out: list[SegAttrs] = []
+        for a, b in itertools.pairwise(path):
+            kd = raw.get_edge_data(a, b)
+            if not kd:
+                break
+            # parallel raw edges: the one of this edge's ways
+            r = next((x for _, x in sorted(kd.items()) if x.get("osmid") in mine), kd[min(kd)])
+            rw = r.get("osmid")
+            out.append(
+                (
+                    int(rw) if rw is not None else -1,
+                    _text(r.get("name")),
+                    _text(r.get("highway")),
+                    _speed(r.get("speed_kph")),
+                )
+            )
+        else:
+            return out, True
+    way = _first(w)
+    one = (
+        int(way) if way is not None else -1,
+        _text(_first(d.get("name"))),
+        _text(_first(d.get("highway"))),
+        _speed(d.get("speed_kph")),
+    )
+    return [one] * n_seg, False
+
+
 def to_road_graph(
     G: nx.MultiDiGraph,
     *,
     crs: str,
     restrictions: Iterable[tuple[int, int, int, int]] = (),
     meta: dict[str, Any] | None = None,
+    raw: nx.MultiDiGraph | None = None,
 ) -> tuple[RoadGraph, dict[str, Any]]:
     """Convert a simplified graph into a :class:`RoadGraph`.
 
@@ -150,6 +232,9 @@ def to_road_graph(
         Rows ``(from_way, via_osm_node, to_way, kind)`` in source ids; mapped onto edges.
     meta
         Build metadata stored with the graph.
+    raw
+        The graph before simplification; with it (and ``merged_edges`` on the simplified
+        edges) every edge keeps the ways it is made of as way pieces.
 
     Returns
     -------
@@ -170,23 +255,41 @@ def to_road_graph(
     names: list[str | None] = []
     hws: list[str | None] = []
     speeds: list[float] = []
-    way_sets: list[set[int]] = []
+    end_ways: list[tuple[set[int], set[int]]] = []  # ways touching u, ways touching v
+    p_edge: list[int] = []
+    p_start: list[float] = []
+    p_attrs: list[SegAttrs] = []
 
-    def _add(u: int, v: int, g: NDArray[np.float64], d: dict[str, Any], path: list[Any] | None) -> None:
+    def _add(
+        u: int, v: int, g: NDArray[np.float64], segs: list[SegAttrs], exact: bool, d: dict[str, Any]
+    ) -> None:
+        e = len(us)
         us.append(u)
         vs.append(v)
         geoms.append(g)
-        way = _first(d.get("osmid"))
-        ways.append(int(way) if way is not None else -1)
-        names.append(_first(d.get("name")))
-        hws.append(_first(d.get("highway")))
-        sp = d.get("speed_kph")
-        if isinstance(sp, list | tuple | set):
-            vals = [float(x) for x in sp if x is not None and x == x]
-            sp = min(vals) if vals else None
-        speeds.append(float(sp) if sp is not None else np.nan)
-        w = d.get("osmid")
-        way_sets.append({int(x) for x in (w if isinstance(w, list | tuple | set) else [w]) if x is not None})
+        cum = np.concatenate([[0.0], np.cumsum(np.hypot(*np.diff(g, axis=0).T))])
+        keys = [(w, n, h, sp if sp == sp else -1.0) for w, n, h, sp in segs]  # NaN == NaN here
+        starts = [i for i in range(len(segs)) if i == 0 or keys[i] != keys[i - 1]]
+        bounds = [*starts, len(segs)]
+        best, best_len = 0, -1.0
+        for k, i in enumerate(starts):
+            p_edge.append(e)
+            p_start.append(float(cum[i]))
+            p_attrs.append(segs[i])
+            length = float(cum[bounds[k + 1]] - cum[i])
+            if length > best_len:
+                best, best_len = k, length
+        way, name, hw, sp = segs[starts[best]]
+        ways.append(way)
+        names.append(name)
+        hws.append(hw)
+        speeds.append(sp)
+        if exact:
+            end_ways.append(({segs[0][0]}, {segs[-1][0]}))
+        else:
+            w = d.get("osmid")
+            allw = {int(x) for x in (w if isinstance(w, list | tuple | set) else [w]) if x is not None}
+            end_ways.append((allw, allw))
 
     for u, v, d in G.edges(data=True):
         geom = d.get("geometry")
@@ -195,9 +298,14 @@ def to_road_graph(
         else:
             coords = np.array([xy[node_order[u]], xy[node_order[v]]], dtype=np.float64)
         path = _path_nodes(u, d)
+        if path is None and geom is None:
+            path = [u, v]
+        if path is not None and "u_original" in d:  # consolidated: ends renamed, raw keys kept
+            path = [d["u_original"], *path[1:-1], d.get("v_original", path[-1])]
+        segs, exact = _seg_attrs(d, path, len(coords) - 1, raw, coords)
         iu, iv = node_order[u], node_order[v]
         if u != v:
-            _add(iu, iv, coords, d, path)
+            _add(iu, iv, coords, segs, exact, d)
             continue
         k = _split_loop(coords, path, node_order)
         if k is None:
@@ -211,10 +319,8 @@ def to_road_graph(
             lonlat.append([np.nan, np.nan])
             ids.append(int(mid_key) if isinstance(mid_key, int | np.integer) else -len(extra_nodes))
         m = extra_nodes[mid_key]
-        p1 = path[: k + 1] if path is not None and len(path) == len(coords) else None
-        p2 = path[k:] if path is not None and len(path) == len(coords) else None
-        _add(iu, m, coords[: k + 1], d, p1)
-        _add(m, iv, coords[k:], d, p2)
+        _add(iu, m, coords[: k + 1], segs[:k], exact, d)
+        _add(m, iv, coords[k:], segs[k:], exact, d)
         info["self_loops_split"] += 1
 
     node_xy = np.asarray(xy, dtype=np.float64).reshape(-1, 2)
@@ -225,7 +331,15 @@ def to_road_graph(
         bad = np.isnan(node_ll).any(axis=1)
         node_ll[bad] = to_lonlat(crs, node_xy[bad, 0], node_xy[bad, 1])
     rrows, info["restrictions_unmapped"] = map_restrictions(
-        restrictions, us=us, vs=vs, way_sets=way_sets, node_keys=node_keys, node_ids=ids, G=G
+        restrictions, us=us, vs=vs, end_ways=end_ways, node_keys=node_keys, node_ids=ids, G=G
+    )
+    pieces = Pieces(
+        edge=np.asarray(p_edge, dtype=np.int64),
+        start=np.asarray(p_start, dtype=np.float64),
+        way_id=np.asarray([a[0] for a in p_attrs], dtype=np.int64),
+        name=[a[1] for a in p_attrs],
+        highway=[a[2] for a in p_attrs],
+        speed_kph=np.asarray([a[3] for a in p_attrs], dtype=np.float32),
     )
     rg = RoadGraph.from_edges(
         crs=crs,
@@ -240,6 +354,7 @@ def to_road_graph(
         edge_highways=hws,
         edge_speed_kph=np.asarray(speeds, dtype=np.float32),
         restrictions=rrows,
+        pieces=pieces,
         meta=meta,
     )
     return rg, info
@@ -250,24 +365,17 @@ def map_restrictions(
     *,
     us: Sequence[int],
     vs: Sequence[int],
-    way_sets: Sequence[set[int]],
+    end_ways: Sequence[tuple[set[int], set[int]]],
     node_keys: Sequence[Any],
     node_ids: Sequence[int],
     G: nx.MultiDiGraph,
 ) -> tuple[list[tuple[int, int, int, int]], int]:
-    """Map ``(from_way, via_node_id, to_way, kind)`` onto ``(from_edge, via_node, to_edge, kind)``.
-
-    The via node must be a node of the simplified graph (an intersection). ``from_edge`` is
-    an edge entering it that runs along ``from_way`` (a way touching the via node is the last
-    piece of any simplified edge that contains it); ``to_edge`` one leaving it along
-    ``to_way``. Returns the rows and how many could not be mapped.
-    """
-    rows: list[tuple[int, int, int, int]] = []
-    unmapped = 0
+    """Map ``(from_way, via_node_id, to_way, kind)`` onto ``(from_edge, via_node, to_edge, kind)``
+    for a graph converted from osmnx (node ids merged by consolidation included); see
+    :func:`_map_restrictions`."""
     restr = list(restrictions)
     if not restr:
-        return rows, 0
-    # node id -> node index, including ids merged by consolidation
+        return [], 0
     by_id: dict[int, int] = {}
     for i, key in enumerate(node_keys):
         orig = G.nodes[key].get("osmid_original", G.nodes[key].get("osmid", key))
@@ -275,7 +383,29 @@ def map_restrictions(
             by_id[int(o)] = i
     for i, nid in enumerate(node_ids[len(node_keys) :]):
         by_id.setdefault(int(nid), len(node_keys) + i)
+    return _map_restrictions(restr, us=us, vs=vs, end_ways=end_ways, by_id=by_id)
 
+
+def _map_restrictions(
+    restr: list[tuple[int, int, int, int]],
+    *,
+    us: Sequence[int],
+    vs: Sequence[int],
+    end_ways: Sequence[tuple[set[int], set[int]]],
+    by_id: dict[int, int],
+) -> tuple[list[tuple[int, int, int, int]], int]:
+    """Map ``(from_way, via_node_id, to_way, kind)`` onto ``(from_edge, via_node, to_edge, kind)``.
+
+    The via node must be a node of the simplified graph (an intersection). ``from_edge`` is
+    an edge entering it whose last way piece (the one touching the via node) is
+    ``from_way``; ``to_edge`` one leaving it whose first piece is ``to_way``. ``end_ways``
+    holds per edge the ways at its start and at its end. Returns the rows and how many
+    could not be mapped.
+    """
+    rows: list[tuple[int, int, int, int]] = []
+    unmapped = 0
+    if not restr:
+        return rows, 0
     into: dict[int, list[int]] = {}
     outof: dict[int, list[int]] = {}
     for e, (u, v) in enumerate(zip(us, vs, strict=True)):
@@ -286,8 +416,8 @@ def map_restrictions(
         if via is None:
             unmapped += 1
             continue
-        froms = [e for e in into.get(via, []) if from_way in way_sets[e]]
-        tos = [e for e in outof.get(via, []) if to_way in way_sets[e]]
+        froms = [e for e in into.get(via, []) if from_way in end_ways[e][1]]
+        tos = [e for e in outof.get(via, []) if to_way in end_ways[e][0]]
         if not froms or not tos:
             unmapped += 1
             continue
@@ -296,3 +426,527 @@ def map_restrictions(
             pairs = [(fe, te) for fe, te in pairs if vs[te] == us[fe]]
         rows.extend((fe, via, te, kind) for fe, te in pairs)
     return rows, unmapped
+
+
+def to_osmnx(graph: RoadGraph) -> nx.MultiDiGraph:
+    """The graph as an osmnx-style simplified MultiDiGraph in its projected CRS.
+
+    Nodes are keyed by ``node_id`` with ``x``, ``y`` (metres), ``lon``, ``lat`` and
+    ``street_count``; edges carry osmnx's names: ``osmid`` (the way id, or the list of way ids
+    of its pieces), ``name``, ``highway``, ``speed_kph``, ``oneway``, ``reversed``,
+    ``length`` and ``geometry`` (a shapely LineString), plus ``edge`` (the edge index) and
+    ``piece_start``, ``piece_osmid``, ``piece_name``, ``piece_highway``, ``piece_speed_kph``
+    (the way pieces, so :func:`from_osmnx` gives the same graph back).
+    """
+    import networkx as nx
+    import shapely
+
+    G = nx.MultiDiGraph(crs=graph.crs, simplified=True)
+    keys = graph.node_id.tolist()
+    deg = np.diff(graph.out_ptr) + np.diff(graph.in_ptr)
+    G.add_nodes_from(
+        (k, {"x": p[0], "y": p[1], "lon": q[0], "lat": q[1], "street_count": int(c)})
+        for k, p, q, c in zip(
+            keys, graph.node_xy.tolist(), graph.node_lonlat.tolist(), deg.tolist(), strict=True
+        )
+    )
+    names = [*graph.names, None]
+    hws = [*graph.highways, None]
+    for e in range(graph.n_edges):
+        p = range(int(graph.piece_ptr[e]), int(graph.piece_ptr[e + 1]))
+        ways = [int(graph.piece_way_id[i]) for i in p]
+        uniq = list(dict.fromkeys(ways))
+        pname = [names[graph.piece_name_idx[i]] for i in p]
+        phw = [hws[graph.piece_highway_idx[i]] for i in p]
+        G.add_edge(
+            keys[int(graph.edge_u[e])],
+            keys[int(graph.edge_v[e])],
+            edge=e,
+            osmid=uniq[0] if len(uniq) == 1 else uniq,
+            name=graph.edge_name(e) or None,
+            highway=graph.edge_highway(e) or None,
+            speed_kph=float(graph.edge_speed_kph[e]),
+            oneway=bool(graph.edge_reverse[e] < 0),
+            reversed=False,
+            length=float(graph.edge_len[e]),
+            geometry=shapely.LineString(graph.edge_xy(e)),
+            piece_start=[float(graph.piece_start[i]) for i in p],
+            piece_osmid=ways,
+            piece_name=pname,
+            piece_highway=phw,
+            piece_speed_kph=[float(graph.piece_speed_kph[i]) for i in p],
+        )
+    return G
+
+
+def from_osmnx(G: nx.MultiDiGraph, *, meta: dict[str, Any] | None = None) -> RoadGraph:
+    """A :class:`RoadGraph` from an osmnx MultiDiGraph (simplified or not; unprojected graphs
+    are projected to their UTM zone). Way pieces come from the ``piece_*`` lists
+    :func:`to_osmnx` writes, else one piece per edge."""
+    crs = str(G.graph.get("crs", "EPSG:4326"))
+    from pyproj import CRS
+
+    if CRS.from_user_input(crs).is_geographic:
+        import osmnx as ox
+
+        G = ox.project_graph(G)
+        crs = str(G.graph["crs"])
+    rg, _ = to_road_graph(G, crs=crs, meta=meta)
+    return rg
+
+
+# ---------------------------------------------------------------------- array pipeline
+class _EndWays(Sequence[tuple[set[int], set[int]]]):
+    """``end_ways`` for :func:`_map_restrictions` from two lists, without building the sets."""
+
+    def __init__(self, first: list[int], last: list[int]) -> None:
+        self.first, self.last = first, last
+
+    def __len__(self) -> int:
+        return len(self.first)
+
+    def __getitem__(self, e: Any) -> Any:
+        return ({self.first[e]}, {self.last[e]})
+
+
+class RawNetwork(NamedTuple):
+    """A raw road network as arrays: every vertex a node, one directed edge per straight piece.
+
+    ``edge_feat`` indexes the feature tables (one row per OSM way or GIS feature run).
+    """
+
+    crs: str
+    node_key: NDArray[np.int64]  # source node id (negative: generated)
+    node_xy: NDArray[np.float64]  # (N, 2) metres
+    node_lonlat: NDArray[np.float64]  # (N, 2)
+    edge_src: NDArray[np.int64]  # (M,) node index
+    edge_dst: NDArray[np.int64]
+    edge_feat: NDArray[np.int64]
+    edge_oneway: NDArray[np.bool_]
+    feat_way_id: NDArray[np.int64]  # (F,)
+    feat_name: list[str | None]
+    feat_highway: list[str | None]
+    feat_speed_kph: NDArray[np.float64]
+
+    @property
+    def n_nodes(self) -> int:
+        return len(self.node_key)
+
+    @property
+    def n_edges(self) -> int:
+        return len(self.edge_src)
+
+
+def compact_raw(raw: RawNetwork) -> RawNetwork:
+    """Drop nodes without edges (renumbering the rest in order)."""
+    used = np.zeros(raw.n_nodes, dtype=bool)
+    used[raw.edge_src] = True
+    used[raw.edge_dst] = True
+    if used.all():
+        return raw
+    new = np.cumsum(used) - 1
+    return raw._replace(
+        node_key=raw.node_key[used],
+        node_xy=raw.node_xy[used],
+        node_lonlat=raw.node_lonlat[used],
+        edge_src=new[raw.edge_src],
+        edge_dst=new[raw.edge_dst],
+    )
+
+
+def raw_to_nx(raw: RawNetwork) -> nx.MultiDiGraph:
+    """The raw network as the osmnx-style MultiDiGraph (for osmnx, the reference path)."""
+    import networkx as nx
+
+    G = nx.MultiDiGraph(crs=raw.crs)
+    keys = raw.node_key.tolist()
+    G.add_nodes_from(
+        (k, {"x": p[0], "y": p[1], "lon": q[0], "lat": q[1], "osmid": k})
+        for k, p, q in zip(keys, raw.node_xy.tolist(), raw.node_lonlat.tolist(), strict=True)
+    )
+    d = raw.node_xy[raw.edge_dst] - raw.node_xy[raw.edge_src]
+    seg_len = np.hypot(d[:, 0], d[:, 1]).tolist()
+    feats = [
+        {
+            "osmid": int(w),
+            "name": n,
+            "highway": h,
+            "speed_kph": float(s),
+        }
+        for w, n, h, s in zip(
+            raw.feat_way_id.tolist(),
+            raw.feat_name,
+            raw.feat_highway,
+            raw.feat_speed_kph.tolist(),
+            strict=True,
+        )
+    ]
+    G.add_edges_from(
+        (keys[a], keys[b], {**feats[f], "oneway": bool(o), "length": L})
+        for a, b, f, o, L in zip(
+            raw.edge_src.tolist(),
+            raw.edge_dst.tolist(),
+            raw.edge_feat.tolist(),
+            raw.edge_oneway.tolist(),
+            seg_len,
+            strict=True,
+        )
+    )
+    return G
+
+
+@njit(cache=True)
+def _endpoints(n, src, dst, out_ptr, out_e, in_ptr, in_e):  # type: ignore[no-untyped-def]
+    """osmnx's endpoint rules 1-3 per node: self-loop, no in or no out edge, or not exactly
+    two neighbours with degree 2 or 4."""
+    end = np.zeros(n, dtype=np.bool_)
+    mark = np.full(n, -1, dtype=np.int64)
+    for u in range(n):
+        cnt = 0
+        loop = False
+        for k in range(out_ptr[u], out_ptr[u + 1]):
+            w = dst[out_e[k]]
+            loop = loop or w == u
+            if mark[w] != u:
+                mark[w] = u
+                cnt += 1
+        for k in range(in_ptr[u], in_ptr[u + 1]):
+            w = src[in_e[k]]
+            loop = loop or w == u
+            if mark[w] != u:
+                mark[w] = u
+                cnt += 1
+        nout = out_ptr[u + 1] - out_ptr[u]
+        nin = in_ptr[u + 1] - in_ptr[u]
+        d = nout + nin
+        end[u] = loop or nout == 0 or nin == 0 or not (cnt == 2 and (d == 2 or d == 4))
+    return end
+
+
+@njit(cache=True)
+def _paths(n, dst, out_ptr, out_e, end):  # type: ignore[no-untyped-def]
+    """osmnx's ``_build_path`` from every endpoint through each successor that is not one.
+
+    Returns ``(path_ptr, path_nodes, path_edges, status)``: the nodes of each path, and per
+    step the first raw edge between its two nodes; status -1 on a pattern osmnx rejects.
+    """
+    m = len(dst)
+    path_ptr = np.zeros(m + 1, dtype=np.int64)
+    nodes = np.empty(2 * m + 2, dtype=np.int64)
+    walk = np.full(n, -1, dtype=np.int64)  # path id of the path a node is on
+    useen = np.full(n, -1, dtype=np.int64)  # successors of endpoint u already started: u
+    seen = np.full(n, -1, dtype=np.int64)  # successors of the walk's current node: tick
+    tick = 0
+    n_paths = 0
+    nn = 0
+    for u in range(n):
+        if not end[u]:
+            continue
+        for k in range(out_ptr[u], out_ptr[u + 1]):
+            v = dst[out_e[k]]
+            if useen[v] == u or end[v]:
+                useen[v] = u
+                continue
+            useen[v] = u
+            if nn + 3 > len(nodes):
+                return path_ptr[:1], nodes[:0], nodes[:0], -1
+            pid = n_paths
+            nodes[nn] = u
+            nodes[nn + 1] = v
+            nn += 2
+            walk[u] = pid
+            walk[v] = pid
+            s = -1
+            for k2 in range(out_ptr[v], out_ptr[v + 1]):
+                if walk[dst[out_e[k2]]] != pid:
+                    s = dst[out_e[k2]]
+                    break
+            if s >= 0:
+                nodes[nn] = s
+                nn += 1
+                walk[s] = pid
+                cur = s
+                while not end[cur]:
+                    tick += 1
+                    c = 0
+                    nxt = -1
+                    back = False
+                    for k3 in range(out_ptr[cur], out_ptr[cur + 1]):
+                        w = dst[out_e[k3]]
+                        back = back or w == u
+                        if walk[w] != pid and seen[w] != tick:
+                            seen[w] = tick
+                            c += 1
+                            nxt = w
+                    if nn + 2 > len(nodes):
+                        return path_ptr[:1], nodes[:0], nodes[:0], -1
+                    if c == 1:
+                        nodes[nn] = nxt
+                        nn += 1
+                        walk[nxt] = pid
+                        cur = nxt
+                    elif c == 0:
+                        if back:
+                            nodes[nn] = u
+                            nn += 1
+                        break
+                    else:
+                        return path_ptr[:1], nodes[:0], nodes[:0], -1
+            n_paths += 1
+            path_ptr[n_paths] = nn
+    path_ptr = path_ptr[: n_paths + 1]
+    nodes = nodes[:nn]
+    # the first raw edge of each step (osmnx takes the first of parallel edges)
+    edges = np.empty(max(nn - n_paths, 0), dtype=np.int64)
+    j = 0
+    for p in range(n_paths):
+        for i in range(path_ptr[p], path_ptr[p + 1] - 1):
+            a = nodes[i]
+            b = nodes[i + 1]
+            edges[j] = -1
+            for k in range(out_ptr[a], out_ptr[a + 1]):
+                if dst[out_e[k]] == b:
+                    edges[j] = out_e[k]
+                    break
+            j += 1
+    return path_ptr, nodes, edges, 0
+
+
+def _csr_by(keys: NDArray[np.int64], n: int) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
+    order = np.argsort(keys, kind="stable").astype(np.int64)
+    ptr = np.zeros(n + 1, dtype=np.int64)
+    np.cumsum(np.bincount(keys, minlength=n), out=ptr[1:])
+    return ptr, order
+
+
+def ring_keep(raw: RawNetwork, end: NDArray[np.bool_]) -> NDArray[np.bool_]:
+    """Two opposite nodes of every isolated ring (a component without endpoints), as
+    :func:`mark_rings` picks them: walk from the smallest node id, preferring the smaller."""
+    from graph.components import union_find
+
+    keep = np.zeros(raw.n_nodes, dtype=bool)
+    lab = union_find(raw.n_nodes, raw.edge_src, raw.edge_dst)
+    has_end = np.zeros(raw.n_nodes, dtype=bool)
+    has_end[lab[end]] = True
+    size = np.bincount(lab, minlength=raw.n_nodes)
+    ring_nodes = np.nonzero(~has_end[lab] & (size[lab] >= 3))[0]
+    if not len(ring_nodes):
+        return keep
+    nbrs: dict[int, set[int]] = {}
+    for a, b in zip(raw.edge_src.tolist(), raw.edge_dst.tolist(), strict=True):
+        if not has_end[lab[a]] and size[lab[a]] >= 3:
+            nbrs.setdefault(a, set()).add(b)
+            nbrs.setdefault(b, set()).add(a)
+    key = raw.node_key
+    by_key = {int(key[i]): int(i) for i in ring_nodes}
+    for comp in np.unique(lab[ring_nodes]):
+        members = ring_nodes[lab[ring_nodes] == comp]
+        start = int(members[np.argmin(key[members])])
+        order = [start]
+        prev, cur = -1, start
+        while True:
+            nxt = [int(key[n]) for n in nbrs[cur] if n != prev]
+            if not nxt or by_key[min(nxt)] == start:
+                break
+            prev, cur = cur, by_key[min(nxt)]
+            order.append(cur)
+        keep[order[0]] = True
+        keep[order[len(order) // 2]] = True
+    return keep
+
+
+class Simplified(NamedTuple):
+    """Edges after simplification: each a node path through the raw network.
+
+    Edge ``i`` runs through raw nodes ``nodes[ptr[i]:ptr[i+1]]`` along raw edges
+    ``raw_edges[ptr[i]-i : ptr[i+1]-i-1]``; ``kept`` marks the raw nodes that remain.
+    """
+
+    ptr: NDArray[np.int64]
+    nodes: NDArray[np.int64]
+    raw_edges: NDArray[np.int64]
+    kept: NDArray[np.bool_]
+
+
+def simplify_arrays(raw: RawNetwork) -> Simplified:
+    """Simplify to intersections and dead ends exactly as :func:`simplify` (osmnx) does,
+    with compiled kernels on arrays.
+
+    Raises
+    ------
+    GraphError
+        On a pattern osmnx cannot simplify either.
+    """
+    from graph.errors import GraphError
+
+    n = raw.n_nodes
+    out_ptr, out_e = _csr_by(raw.edge_src, n)
+    in_ptr, in_e = _csr_by(raw.edge_dst, n)
+    end = _endpoints(n, raw.edge_src, raw.edge_dst, out_ptr, out_e, in_ptr, in_e)
+    keep = ring_keep(raw, end)
+    if keep.any():
+        log.info("kept %d isolated rings as two edges each", int(keep.sum()) // 2)
+    end = end | keep
+    pptr, pnodes, pedges, status = _paths(n, raw.edge_dst, out_ptr, out_e, end)
+    if status < 0:
+        raise GraphError("the road network has a pattern that cannot be simplified")
+    # interior nodes go; raw edges between remaining nodes stay as they are
+    removed = np.zeros(n, dtype=bool)
+    inner = np.ones(len(pnodes), dtype=bool)
+    if len(pptr) > 1:
+        inner[pptr[:-1]] = False
+        inner[pptr[1:] - 1] = False
+    removed[pnodes[inner]] = True
+    stay = np.nonzero(~removed[raw.edge_src] & ~removed[raw.edge_dst])[0]
+    n_stay = len(stay)
+    lens = np.concatenate([np.full(n_stay, 2, dtype=np.int64), np.diff(pptr)])
+    ptr = np.zeros(len(lens) + 1, dtype=np.int64)
+    np.cumsum(lens, out=ptr[1:])
+    nodes = np.empty(int(ptr[-1]), dtype=np.int64)
+    nodes[0 : 2 * n_stay : 2] = raw.edge_src[stay]
+    nodes[1 : 2 * n_stay : 2] = raw.edge_dst[stay]
+    nodes[2 * n_stay :] = pnodes
+    raw_edges = np.concatenate([stay, pedges]).astype(np.int64)
+    return Simplified(ptr=ptr, nodes=nodes, raw_edges=raw_edges, kept=~removed)
+
+
+def raw_to_road_graph(
+    raw: RawNetwork,
+    simp: Simplified,
+    *,
+    restrictions: Iterable[tuple[int, int, int, int]] = (),
+    meta: dict[str, Any] | None = None,
+) -> tuple[RoadGraph, dict[str, Any]]:
+    """The :class:`RoadGraph` of a simplified raw network (as :func:`to_road_graph` makes it
+    from osmnx's result): loops split, way pieces from the raw edges, restrictions mapped."""
+    info: dict[str, Any] = {"self_loops_split": 0, "self_loops_dropped": 0}
+    kept = np.nonzero(simp.kept)[0]
+    index = np.full(raw.n_nodes, -1, dtype=np.int64)
+    index[kept] = np.arange(len(kept))
+    ptr, nodes = simp.ptr, simp.nodes
+    u_raw, v_raw = nodes[ptr[:-1]], nodes[ptr[1:] - 1]
+    # loops: split at the vertex nearest half length (ties by node order), as to_road_graph
+    loops = np.nonzero(u_raw == v_raw)[0]
+    extra: dict[int, int] = {}
+    split_u: list[int] = []
+    split_v: list[int] = []
+    split_a: list[int] = []
+    split_b: list[int] = []
+    drop = np.zeros(len(u_raw), dtype=bool)
+    n_nodes = len(kept)
+    order_key = {int(k): int(i) for i, k in enumerate(kept.tolist())}
+    for e in loops.tolist():
+        a, b = int(ptr[e]), int(ptr[e + 1])
+        path = nodes[a:b]
+        coords = raw.node_xy[path]
+        k = _split_loop(coords, path.tolist(), order_key)
+        drop[e] = True
+        if k is None:
+            info["self_loops_dropped"] += 1
+            continue
+        mid = int(path[k])
+        if mid not in extra:
+            extra[mid] = n_nodes + len(extra)
+        m = extra[mid]
+        iu = int(index[path[0]])
+        split_u += [iu, m]
+        split_v += [m, iu]
+        split_a += [a, a + k]
+        split_b += [a + k + 1, b]
+        info["self_loops_split"] += 1
+    keep_e = np.nonzero(~drop)[0]
+    # vertex ranges of every final edge (into simp.nodes)
+    va = np.concatenate([ptr[keep_e], np.asarray(split_a, dtype=np.int64)])
+    vb = np.concatenate([ptr[keep_e + 1], np.asarray(split_b, dtype=np.int64)])
+    eu = np.concatenate([index[u_raw[keep_e]], np.asarray(split_u, dtype=np.int64)])
+    ev = np.concatenate([index[v_raw[keep_e]], np.asarray(split_v, dtype=np.int64)])
+    counts = vb - va
+    flat_v = np.repeat(va - np.r_[0, np.cumsum(counts)[:-1]], counts) + np.arange(int(counts.sum()))
+    seg_xy = raw.node_xy[nodes[flat_v]]
+    edge_seg_ptr = np.zeros(len(va) + 1, dtype=np.int64)
+    np.cumsum(counts, out=edge_seg_ptr[1:])
+    # steps: vertex i (not the last of its edge) -> raw edge raw_edges[i - (edge index in simp)]
+    simp_edge_of_vertex = np.repeat(np.arange(len(ptr) - 1), np.diff(ptr))
+    last = np.zeros(len(flat_v), dtype=bool)
+    last[edge_seg_ptr[1:] - 1] = True
+    step_v = flat_v[~last]
+    step_raw = simp.raw_edges[step_v - simp_edge_of_vertex[step_v]]
+    step_feat = raw.edge_feat[step_raw]
+    # pieces: runs of equal feature attributes along each edge
+    fkey = _feature_keys(raw)
+    step_key = fkey[step_feat]
+    step_edge = np.repeat(np.arange(len(va)), counts - 1)
+    new_piece = np.ones(len(step_key), dtype=bool)
+    if len(step_key) > 1:
+        new_piece[1:] = (step_key[1:] != step_key[:-1]) | (step_edge[1:] != step_edge[:-1])
+    d = np.diff(seg_xy, axis=0)
+    seg_len = np.hypot(d[:, 0], d[:, 1]) if len(seg_xy) > 1 else np.zeros(0)
+    step_len = seg_len[np.nonzero(~last)[0]] if len(seg_len) else np.zeros(0)
+    cum = np.concatenate([[0.0], np.cumsum(step_len)])
+    edge_first_step = np.r_[0, np.cumsum(counts - 1)[:-1]]
+    p_idx = np.nonzero(new_piece)[0]
+    p_edge = step_edge[p_idx]
+    p_start = cum[p_idx] - cum[edge_first_step[p_edge]]
+    p_feat = step_feat[p_idx]
+    p_end_step = np.r_[p_idx[1:], len(step_key)]
+    p_len = cum[p_end_step] - cum[p_idx]
+    # edge attributes: its longest piece (first on ties)
+    order = np.lexsort((np.arange(len(p_idx)), -p_len, p_edge))
+    first_of_edge = order[np.r_[True, p_edge[order][1:] != p_edge[order][:-1]]] if len(order) else order
+    best_feat = p_feat[first_of_edge]
+    node_xy = np.vstack(
+        [raw.node_xy[kept], raw.node_xy[np.asarray(list(extra), dtype=np.int64)].reshape(-1, 2)]
+    )
+    node_ll = np.vstack(
+        [raw.node_lonlat[kept], raw.node_lonlat[np.asarray(list(extra), dtype=np.int64)].reshape(-1, 2)]
+    )
+    node_id = np.concatenate([raw.node_key[kept], raw.node_key[np.asarray(list(extra), dtype=np.int64)]])
+    restr = list(restrictions)
+    if restr:  # per edge the way at its start and at its end (only where restrictions need them)
+        first_w = raw.feat_way_id[step_feat[edge_first_step]].tolist()
+        last_w = raw.feat_way_id[step_feat[np.r_[edge_first_step[1:], len(step_feat)] - 1]].tolist()
+        end_ways = _EndWays(first_w, last_w)
+        by_id = {int(k): i for i, k in enumerate(node_id.tolist())}
+        rrows, info["restrictions_unmapped"] = _map_restrictions(
+            restr, us=eu.tolist(), vs=ev.tolist(), end_ways=end_ways, by_id=by_id
+        )
+    else:
+        rrows, info["restrictions_unmapped"] = [], 0
+    names = raw.feat_name
+    hws = raw.feat_highway
+    pieces = Pieces(
+        edge=p_edge.astype(np.int64),
+        start=p_start,
+        way_id=raw.feat_way_id[p_feat],
+        name=[names[i] for i in p_feat.tolist()],
+        highway=[hws[i] for i in p_feat.tolist()],
+        speed_kph=raw.feat_speed_kph[p_feat].astype(np.float32),
+    )
+    rg = RoadGraph.from_edges(
+        crs=raw.crs,
+        node_xy=node_xy,
+        node_lonlat=node_ll,
+        node_id=node_id,
+        edge_u=eu.astype(np.int32),
+        edge_v=ev.astype(np.int32),
+        seg_xy=seg_xy,
+        edge_seg_ptr=edge_seg_ptr,
+        edge_way_id=raw.feat_way_id[best_feat],
+        edge_names=[names[i] for i in best_feat.tolist()],
+        edge_highways=[hws[i] for i in best_feat.tolist()],
+        edge_speed_kph=raw.feat_speed_kph[best_feat].astype(np.float32),
+        restrictions=rrows,
+        pieces=pieces,
+        meta=meta,
+    )
+    return rg, info
+
+
+def _feature_keys(raw: RawNetwork) -> NDArray[np.int64]:
+    """One id per distinct ``(way id, name, class, speed)`` of the feature table."""
+    table: dict[tuple[Any, ...], int] = {}
+    out = np.empty(len(raw.feat_way_id), dtype=np.int64)
+    sp = np.where(np.isfinite(raw.feat_speed_kph), raw.feat_speed_kph, -1.0).tolist()
+    for i, key in enumerate(zip(raw.feat_way_id.tolist(), raw.feat_name, raw.feat_highway, sp, strict=True)):
+        out[i] = table.setdefault(key, len(table))
+    return out

@@ -19,7 +19,7 @@ from numpy.typing import NDArray
 
 from graph.index import Candidates, EdgeIndex
 from graph.projection import to_lonlat, to_xy
-from graph.road_graph import RoadGraph
+from graph.road_graph import RoadGraph, merge_repeats
 from mapmatch import model
 from mapmatch.config import DEFAULT_CONFIG, MatchConfig
 from mapmatch.gridindex import GridIndex, grow_array
@@ -235,6 +235,42 @@ def fill_route_lonlat(result: TrackMatch, crs: str) -> TrackMatch:
         ]  # fmt: skip
         result.point_arrays = None
     return result
+
+
+def route_ways(result: TrackMatch, graph: RoadGraph) -> tuple[list[int], list[str]]:
+    """The way ids and names the matched route runs along, in order, consecutive repeats merged.
+
+    Each connected part of the route starts at the way piece under its first placed point
+    and ends at the piece under its last one (an edge can be made of several ways).
+    """
+    bounds = [0, *result.splits, len(result.points)]
+    ways: list[int] = []
+    names: list[str] = []
+    for s, edges in enumerate(result.routes):
+        if not edges:
+            continue
+        pts = (
+            [p for p in result.points[bounds[s] : bounds[s + 1]] if p.edge >= 0]
+            if s + 1 < len(bounds)
+            else []
+        )
+        start = pts[0].offset if pts and pts[0].edge == edges[0] else 0.0
+        end = pts[-1].offset if pts and pts[-1].edge == edges[-1] else math.inf
+        w, n = graph.route_ways(edges, start=start, end=end)
+        ways += w
+        names += n
+    return merge_repeats(ways), merge_repeats(names)
+
+
+def point_ways(result: TrackMatch, graph: RoadGraph) -> tuple[list[int], list[str]]:
+    """Per point, the way id and name of the way piece under it (-1 and "" when unplaced)."""
+    e = np.array([p.edge for p in result.points], dtype=np.int64)
+    off = np.array([p.offset for p in result.points], dtype=np.float64)
+    piece = graph.piece_at(e, np.nan_to_num(off))
+    ok = piece >= 0
+    way = np.where(ok, graph.piece_way_id[np.maximum(piece, 0)] if graph.n_pieces else -1, -1)
+    name_idx = np.where(ok, graph.piece_name_idx[np.maximum(piece, 0)] if graph.n_pieces else -1, -1)
+    return way.tolist(), [graph.names[i] if i >= 0 else "" for i in name_idx.tolist()]
 
 
 def match_track(

@@ -16,7 +16,7 @@ from collections.abc import Sequence
 from graph.errors import GraphError
 from mapmatch.errors import MatchError
 
-SUBCOMMANDS = ("prep", "replay", "match", "serve", "send", "simulate", "eval", "demo")
+SUBCOMMANDS = ("prep", "export", "info", "replay", "match", "serve", "send", "simulate", "eval", "demo")
 
 
 class CommandError(Exception):

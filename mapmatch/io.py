@@ -265,20 +265,25 @@ def write_tracks(
 RESULT_COLUMNS = (
     "track_id", "n_points", "n_matched", "n_interpolated", "n_unmatched", "length_m", "confidence",
     "splits", "edges", "way_ids", "names", "route_wkb",
-    "pt_status", "pt_edge", "pt_way_id", "pt_offset", "pt_lat", "pt_lon", "pt_dist",
+    "pt_status", "pt_edge", "pt_way_id", "pt_offset", "pt_lat", "pt_lon", "pt_dist", "pt_name",
 )  # fmt: skip
 
 
 def results_table(results: Iterable[TrackMatch], graph: RoadGraph) -> pd.DataFrame:
-    """One row per track: route (WKB, lon/lat), edge sequence, way ids, names, and point lists."""
+    """One row per track: route (WKB, lon/lat), edge sequence, way ids, names, and point lists.
+
+    ``way_ids`` and ``names`` follow the way pieces the route runs along (consecutive repeats
+    merged); ``pt_way_id`` and ``pt_name`` are those of the piece under each point.
+    """
     import shapely
+
+    from mapmatch.batch import point_ways, route_ways
 
     rows: list[dict[str, Any]] = []
     for r in results:
         edges = [e for piece in r.routes for e in piece]
-        e_arr = np.asarray(edges, dtype=np.int64)
-        ways = graph.edge_way_id[e_arr].tolist() if len(e_arr) else []
-        names = [graph.edge_name(int(e)) for e in e_arr]
+        ways, names = route_ways(r, graph)
+        pt_way, pt_name = point_ways(r, graph)
         lines = [np.asarray(p, dtype=np.float64) for p in r.route_lonlat if len(p) >= 2]
         if len(lines) == 1:
             geom = shapely.linestrings(lines[0])
@@ -304,13 +309,12 @@ def results_table(results: Iterable[TrackMatch], graph: RoadGraph) -> pd.DataFra
                 "route_wkb": shapely.to_wkb(geom),
                 "pt_status": st,
                 "pt_edge": pe.tolist(),
-                "pt_way_id": np.where(pe >= 0, graph.edge_way_id[np.maximum(pe, 0)], -1).tolist()
-                if len(pe)
-                else [],
+                "pt_way_id": pt_way,
                 "pt_offset": [p.offset for p in r.points],
                 "pt_lat": [p.lat for p in r.points],
                 "pt_lon": [p.lon for p in r.points],
                 "pt_dist": [p.dist for p in r.points],
+                "pt_name": pt_name,
             }
         )
     if not rows:
@@ -321,7 +325,7 @@ def results_table(results: Iterable[TrackMatch], graph: RoadGraph) -> pd.DataFra
 def points_frame(table: pd.DataFrame) -> pd.DataFrame:
     """The per-point rows of a results table (one row per input point)."""
     if len(table) == 0:
-        cols = ["track_id", "index", "status", "edge", "way_id", "offset", "lat", "lon", "dist"]
+        cols = ["track_id", "index", "status", "edge", "way_id", "name", "offset", "lat", "lon", "dist"]
         return pd.DataFrame({c: [] for c in cols})
     n = table["n_points"].to_numpy(dtype=np.int64)
 
@@ -335,6 +339,7 @@ def points_frame(table: pd.DataFrame) -> pd.DataFrame:
             "status": flat("pt_status"),
             "edge": flat("pt_edge").astype(np.int64),
             "way_id": flat("pt_way_id").astype(np.int64),
+            "name": flat("pt_name").astype(object) if "pt_name" in table.columns else "",
             "offset": flat("pt_offset"),
             "lat": flat("pt_lat"),
             "lon": flat("pt_lon"),
@@ -423,7 +428,9 @@ def read_results(path: str | os.PathLike[str]) -> pd.DataFrame:
     """A results table back from GeoParquet written by :func:`write_geoparquet`."""
     df = pd.read_parquet(path)
     df = df.rename(columns={"geometry": "route_wkb"})
-    for c in ("splits", "edges", "way_ids", "names", "pt_status", "pt_edge", "pt_way_id"):
+    if "pt_name" not in df.columns:  # written before per-point names
+        df["pt_name"] = [[""] * len(v) for v in df["pt_edge"]]
+    for c in ("splits", "edges", "way_ids", "names", "pt_status", "pt_edge", "pt_way_id", "pt_name"):
         df[c] = [list(v) for v in df[c]]
     for c in ("pt_offset", "pt_lat", "pt_lon", "pt_dist"):
         df[c] = [np.asarray(v, dtype=np.float64).tolist() for v in df[c]]

@@ -142,7 +142,9 @@ class SnapResult:
     """The online matcher's answer for one fix.
 
     ``edge`` is -1 (and the position fields NaN) when the vehicle is not placed on a road.
-    Node ids ``u``/``v`` and ``way_id`` are the map's external ids (OSM ids).
+    Node ids ``u``/``v`` and ``way_id`` are the map's external ids (OSM ids). ``way_id``,
+    ``name``, ``road_class`` and ``speed_kph`` describe the way piece under the snapped point
+    (an edge can be made of several ways).
     """
 
     time: float
@@ -161,6 +163,9 @@ class SnapResult:
     correction: Correction | None = None
     raw_lat: float = math.nan
     raw_lon: float = math.nan
+    name: str = ""
+    road_class: str = ""
+    speed_kph: float = 0.0  # 0: unknown
 
 
 @dataclass(slots=True)

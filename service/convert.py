@@ -114,6 +114,9 @@ def snap_result_to_proto(r: SnapResult) -> pb.SnapResult:
         candidates=[_candidate_to_proto(c) for c in r.candidates],
         raw_lat=r.raw_lat,
         raw_lon=r.raw_lon,
+        name=r.name,
+        road_class=r.road_class,
+        speed_kph=r.speed_kph,
     )
     if r.correction is not None:
         c = r.correction
@@ -169,6 +172,9 @@ def snap_result_from_proto(msg: pb.SnapResult) -> SnapResult:
         correction=corr,
         raw_lat=msg.raw_lat,
         raw_lon=msg.raw_lon,
+        name=msg.name,
+        road_class=msg.road_class,
+        speed_kph=msg.speed_kph,
     )
 
 
@@ -239,12 +245,21 @@ def _point_to_proto(p: MatchedPoint) -> pb.MatchedPoint:
     )
 
 
+def _part_points(m: TrackMatch, part: int) -> list[MatchedPoint]:
+    bounds = [0, *m.splits, len(m.points)]
+    return m.points[bounds[part] : bounds[part + 1]] if part + 1 < len(bounds) else []
+
+
 def track_match_to_proto(m: TrackMatch, graph: RoadGraph) -> pb.TrackResult:
-    """The proto of a batch :class:`TrackMatch` (way ids looked up in ``graph``)."""
+    """The proto of a batch :class:`TrackMatch` (way ids of the way pieces each route part
+    runs along, consecutive repeats merged)."""
+    from mapmatch.batch import route_ways
+
     routes = []
     for i, edges in enumerate(m.routes):
         e = np.asarray(edges, dtype=np.int64)
-        ways = graph.edge_way_id[e].tolist() if len(e) else []
+        part = TrackMatch(m.track_id, points=_part_points(m, i), routes=[list(edges)])
+        ways = route_ways(part, graph)[0] if len(e) else []
         ll = m.route_lonlat[i] if i < len(m.route_lonlat) else []
         routes.append(
             pb.Route(edges=e.tolist(), way_ids=ways, lon=[p[0] for p in ll], lat=[p[1] for p in ll])

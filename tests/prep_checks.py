@@ -2,10 +2,12 @@
 
 from __future__ import annotations
 
+from collections import Counter
 from typing import Any
 
 import networkx as nx
 import numpy as np
+import pytest
 
 from graph.road_graph import RoadGraph
 
@@ -101,3 +103,37 @@ def check_map(g: RoadGraph, raw: nx.MultiDiGraph) -> None:
     assert np.array_equal(g.edge_reverse[r], np.nonzero(has)[0])
     assert np.array_equal(g.edge_u[r], g.edge_v[has])
     assert np.allclose(g.edge_len[r], g.edge_len[has])
+
+
+def _edge_keys(g: RoadGraph) -> Counter[tuple[int, int, float, tuple[int, ...], tuple[str, ...], bool]]:
+    out: Counter[tuple[int, int, float, tuple[int, ...], tuple[str, ...], bool]] = Counter()
+    for e in range(g.n_edges):
+        p = range(int(g.piece_ptr[e]), int(g.piece_ptr[e + 1]))
+        out[
+            (
+                int(g.node_id[g.edge_u[e]]),
+                int(g.node_id[g.edge_v[e]]),
+                round(float(g.edge_len[e]), 2),
+                tuple(int(g.piece_way_id[i]) for i in p),
+                tuple(g.names[g.piece_name_idx[i]] if g.piece_name_idx[i] >= 0 else "" for i in p),
+                bool(g.edge_reverse[e] >= 0),
+            )
+        ] += 1
+    return out
+
+
+def assert_same_map(a: RoadGraph, b: RoadGraph) -> None:
+    """Same nodes (ids and places), same directed edges (ends, length, ways, names, two-way)."""
+    assert (a.n_nodes, a.n_edges, a.n_pieces) == (b.n_nodes, b.n_edges, b.n_pieces)
+    pa = {int(i): xy for i, xy in zip(a.node_id.tolist(), a.node_lonlat, strict=True)}
+    pb = {int(i): xy for i, xy in zip(b.node_id.tolist(), b.node_lonlat, strict=True)}
+    assert pa.keys() == pb.keys()
+    for k, xy in pa.items():
+        np.testing.assert_allclose(xy, pb[k], atol=1e-7)
+    assert _edge_keys(a) == _edge_keys(b)
+    np.testing.assert_allclose(np.sort(a.edge_len), np.sort(b.edge_len), rtol=1e-6)
+    assert a.stats()["road_km"] == pytest.approx(b.stats()["road_km"], rel=1e-6)
+    assert int((a.edge_reverse < 0).sum()) == int((b.edge_reverse < 0).sum())
+    sa = np.sort(a.piece_speed_kph[np.isfinite(a.piece_speed_kph)])
+    sb = np.sort(b.piece_speed_kph[np.isfinite(b.piece_speed_kph)])
+    np.testing.assert_allclose(sa, sb, rtol=1e-5)

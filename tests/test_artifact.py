@@ -150,3 +150,31 @@ def test_loading_imports_neither_osmnx_nor_networkx(tiny: RoadGraph, tmp_path: P
         [sys.executable, "-c", code, str(p)], cwd=ROOT, capture_output=True, text=True, check=True
     )
     assert out.stdout.split() == [str(tiny.n_edges), "False", "False"]
+
+
+def test_map_files_from_before_way_pieces_still_load(
+    tiny: RoadGraph, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A file written without the piece arrays (as before they existed) loads with one piece
+    per edge, taken from the edge attributes."""
+    import graph.artifact as artifact
+    from graph.road_graph import ARRAY_FIELDS, PIECE_FIELDS
+
+    old = tuple(k for k in ARRAY_FIELDS if k not in PIECE_FIELDS)
+    monkeypatch.setattr(artifact, "ARRAY_FIELDS", old)
+    p = tmp_path / "old.map"
+    save_map(tiny, p)
+    assert not set(PIECE_FIELDS) & set(read_manifest(p)["arrays"])
+    monkeypatch.undo()
+    g = load_map(p)
+    assert g.equals(tiny)
+    assert g.n_pieces == g.n_edges and np.array_equal(g.piece_way_id, g.edge_way_id)
+    assert g.way_id_at(0, 1.0) == int(g.edge_way_id[0])
+
+
+def test_pieces_round_trip_through_the_file(tmp_path: Path) -> None:
+    g = build_map(DATA / "prep_tiny.osm")
+    assert g.n_pieces > g.n_edges  # the one-way chain is made of two ways
+    save_map(g, tmp_path / "t.map")
+    h = load_map(tmp_path / "t.map")
+    assert h.equals(g) and np.array_equal(h.piece_ptr, g.piece_ptr)

@@ -14,6 +14,7 @@ import pytest
 from conftest import helsinki_pbf
 
 from graph.artifact import load_map
+from graph.export import ROAD_COLUMNS
 from mapmatch.cli import build_parser, main
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -40,15 +41,20 @@ def test_prep_osm_with_summary_and_gpkg_export(tmp_path: Path) -> None:
     assert "1 dangling node references" in r.stdout
     assert "reading OSM XML" in r.stderr  # progress
     g = load_map(out)
-    edges = pyogrio.read_dataframe(exp, layer="edges")
+    roads = pyogrio.read_dataframe(exp, layer="roads")
     nodes = pyogrio.read_dataframe(exp, layer="nodes")
-    assert len(edges) == g.n_edges and len(nodes) == g.n_nodes
-    assert edges["edge"].tolist() == list(range(g.n_edges))
-    assert edges["u_osm"].tolist() == g.node_id[g.edge_u].tolist()
-    assert edges["way_id"].tolist() == g.edge_way_id.tolist()
-    assert edges["oneway"].tolist() == (g.edge_reverse < 0).tolist()
+    assert len(nodes) == g.n_nodes
+    # every road once: a two-way road along its lower-numbered edge, a one-way in its direction
+    e = roads["edge"].to_numpy()
+    assert sorted(set(e.tolist())) == [
+        i for i in range(g.n_edges) if g.edge_reverse[i] < 0 or i < g.edge_reverse[i]
+    ]
+    first = roads[roads["piece"] == 0]
+    assert first["u"].tolist() == g.node_id[g.edge_u[first["edge"]]].tolist()
+    assert roads["way_id"].tolist() == g.piece_way_id[g.piece_ptr[e] + roads["piece"].to_numpy()].tolist()
+    assert roads["oneway"].tolist() == (g.edge_reverse[e] < 0).tolist()
     assert sorted(nodes["osm_id"]) == [1, 3, 4, 5, 6]
-    assert set(edges["name"]) >= {"West Street", "North Road"}
+    assert set(roads["name"]) >= {"West Street", "North Road"}
 
 
 def test_prep_gis_with_options_and_geojson_export(tmp_path: Path) -> None:
@@ -65,20 +71,10 @@ def test_prep_gis_with_options_and_geojson_export(tmp_path: Path) -> None:
     g = load_map(out)
     assert g.n_edges == 14 and g.meta["build"]["node_crossings"] is True
     fc = json.loads(exp.read_text())
-    kinds = [f["properties"]["kind"] for f in fc["features"]]
-    assert kinds.count("edge") == g.n_edges and kinds.count("node") == g.n_nodes
-    e0 = next(f for f in fc["features"] if f["properties"]["kind"] == "edge")
-    assert set(e0["properties"]) >= {
-        "edge",
-        "u",
-        "v",
-        "u_osm",
-        "v_osm",
-        "way_id",
-        "name",
-        "length_m",
-        "oneway",
-    }
+    two_way = int((g.edge_reverse >= 0).sum())
+    assert len({f["properties"]["edge"] for f in fc["features"]}) == two_way // 2 + g.n_edges - two_way
+    e0 = fc["features"][0]
+    assert set(e0["properties"]) == set(ROAD_COLUMNS)
     assert gpd.read_file(exp).crs.to_epsg() == 4326
 
 

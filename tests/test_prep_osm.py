@@ -9,7 +9,7 @@ import networkx as nx
 import numpy as np
 import pytest
 from conftest import helsinki_pbf
-from prep_checks import check_map
+from prep_checks import assert_same_map, check_map
 
 from graph.build import build_map
 from graph.errors import InputError
@@ -98,13 +98,22 @@ def test_consolidation(helsinki: tuple[RoadGraph, nx.MultiDiGraph]) -> None:
     # merged nodes keep one of their OSM ids
     assert set(g.node_id.tolist()) <= set(_real_ids(helsinki[1]))
     # the tiny map has no nodes closer than 111 m: 40 m changes nothing, 60 m merges everything
-    assert build_map(TINY, consolidate_tolerance=40.0).equals(build_map(TINY))
+    assert_same_map(build_map(TINY, consolidate_tolerance=40.0), build_map(TINY))
     with pytest.raises(InputError, match="no roads left"):
         build_map(TINY, consolidate_tolerance=60.0)
 
 
 def _real_ids(raw: nx.MultiDiGraph) -> list[int]:
     return [int(n) for n in raw.nodes]
+
+
+def test_filters_are_osmnx_own() -> None:
+    from osmnx import _overpass
+
+    from graph.osm import _DRIVE_FILTERS
+
+    for kind, text in _DRIVE_FILTERS.items():
+        assert text == _overpass._get_network_filter(kind), kind
 
 
 def test_osmnx_filter_and_oneway_rules() -> None:

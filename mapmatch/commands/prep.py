@@ -132,7 +132,7 @@ def register(subparsers: Any) -> None:
         "--export",
         type=Path,
         metavar="FILE",
-        help="also write nodes and edges with their ids to FILE.geojson or FILE.gpkg (for QGIS)",
+        help="also write the roads (see mapmatch export) to FILE.gpkg, .geojson, .fgb or .parquet",
     )
     out.add_argument("-q", "--quiet", action="store_true", help="no progress lines on stderr")
     p.set_defaults(func=run)
@@ -170,7 +170,7 @@ def run(args: argparse.Namespace) -> int:
     if args.source is not None and args.place is not None:
         raise CommandError("give either SOURCE or --place, not both")
     if args.export is not None and args.export.suffix.lower() not in EXPORT_SUFFIXES:
-        raise CommandError(f"--export: unknown format {args.export.name} (use .geojson or .gpkg)")
+        raise CommandError(f"--export: unknown format {args.export.name} (use {', '.join(EXPORT_SUFFIXES)})")
     if args.output.is_dir():
         raise CommandError(f"output {args.output} is a directory")
     bbox = _parse_bbox(args.bbox) if args.bbox else None
