@@ -268,8 +268,8 @@ def new_outputs(n: int) -> Outputs:
 
 def no_map_aid(n: int) -> MapAid:
     """No map-aided measurement at any of ``n`` steps."""
-    nan = np.full(n, np.nan)
-    return MapAid(np.zeros(n, dtype=np.int64), np.zeros(n, dtype=np.int64), nan, nan, nan, nan, nan, nan, nan, nan)
+    nan = [np.full(n, np.nan) for _ in range(8)]
+    return MapAid(np.zeros(n, dtype=np.int64), np.zeros(n, dtype=np.int64), *nan)
 
 
 @njit(cache=True)

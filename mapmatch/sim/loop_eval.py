@@ -1,0 +1,136 @@
+"""Open loop against closed loop on the same drive: fused error, outages, heading, matching.
+
+For one drive (same route, same raw sensors) the open loop is the drive's own fused fixes
+matched as they are; the closed loop re-fuses the sensors with the matcher's answers fed back
+(:mod:`mapmatch.sim.closed_loop`). Both are scored the same way (:func:`loop_metrics`).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+import pandas as pd
+
+from graph.road_graph import RoadGraph
+from mapmatch.evaluate import evaluate, results_frame
+from mapmatch.sim.closed_loop import ClosedLoop, MatchFn, closed_loop_drive
+from mapmatch.sim.drive import Drive, position_error
+from mapmatch.sim.kalman import DEFAULT_KALMAN, KalmanConfig
+from mapmatch.types import SnapResult
+
+
+@dataclass(frozen=True)
+class LoopMetrics:
+    """How one run (open or closed loop) did.
+
+    ``error_gps_mean`` / ``error_gps_p90`` fused position error (m) at fixes outside the GPS
+    outages; ``outage_end`` (m) the error at the last fix of each outage, ``outage_max`` (m) the
+    largest during it; ``heading_mean`` mean absolute heading error (deg), ``heading_outage``
+    the same within outages; ``intersections`` and ``correct_edge`` the matcher's intersection
+    traversal accuracy and correct-edge rate (after its corrections); ``fed`` share of fixes
+    whose measurement was fed back, ``gated`` share of those the filter's χ² gate rejected.
+    """
+
+    error_gps_mean: float
+    error_gps_p90: float
+    outage_end: list[float] = field(default_factory=list)
+    outage_max: list[float] = field(default_factory=list)
+    heading_mean: float = float("nan")
+    heading_outage: float = float("nan")
+    intersections: float = float("nan")
+    correct_edge: float = float("nan")
+    fed: float = 0.0
+    gated: float = 0.0
+
+
+def outage_errors(drive: Drive) -> tuple[list[float], list[float]]:
+    """Error at the last fix of each GPS outage within the drive, and the maximum during it."""
+    err = position_error(drive)
+    t = drive.fused.time
+    end, top = [], []
+    for a, d in drive.outages:
+        inside = np.flatnonzero((t >= a) & (t < a + d))
+        if len(inside):
+            end.append(float(err[inside[-1]]))
+            top.append(float(err[inside].max()))
+    return end, top
+
+
+def loop_metrics(
+    graph: RoadGraph, drive: Drive, results: Sequence[SnapResult | None], *, closed: ClosedLoop | None = None
+) -> LoopMetrics:
+    """Score one run of ``drive`` (its fused fixes) and the matcher's ``results`` for them."""
+    err = position_error(drive)
+    outage = drive.truth["gps_outage"].to_numpy() > 0
+    dh = np.abs((drive.fused.heading - drive.truth["heading"].to_numpy() + 180.0) % 360.0 - 180.0)
+    end, top = outage_errors(drive)
+    vid = str(drive.fixes["vehicle_id"].iloc[0]) if len(drive.fixes) else ""
+    frame = results_frame(vid, drive.fix_objects(), list(results))
+    m = evaluate(graph, truth=drive.truth, matched=frame, truth_path=drive.route.edges.tolist())
+    fin = m.corrected or m
+    fed = float(closed.fed.mean()) if closed is not None and len(closed.fed) else 0.0
+    gated = float(closed.rejected.sum() / max(closed.fed.sum(), 1)) if closed is not None else 0.0
+    return LoopMetrics(
+        error_gps_mean=float(err[~outage].mean()) if (~outage).any() else float("nan"),
+        error_gps_p90=float(np.percentile(err[~outage], 90)) if (~outage).any() else float("nan"),
+        outage_end=end,
+        outage_max=top,
+        heading_mean=float(dh.mean()),
+        heading_outage=float(dh[outage].mean()) if outage.any() else float("nan"),
+        intersections=fin.intersections.accuracy,
+        correct_edge=fin.correct_edge_rate,
+        fed=fed,
+        gated=gated,
+    )
+
+
+def compare_loops(
+    graph: RoadGraph,
+    drive: Drive,
+    new_match: Callable[[], MatchFn],
+    *,
+    kalman: KalmanConfig = DEFAULT_KALMAN,
+) -> tuple[LoopMetrics, LoopMetrics, ClosedLoop]:
+    """Open and closed loop on ``drive``; ``new_match()`` gives a matcher on a fresh session
+    (called once per loop). Returns (open, closed, the closed-loop run)."""
+    match = new_match()
+    open_results = [match(f) for f in drive.fix_objects()]
+    open_m = loop_metrics(graph, drive, open_results)
+    run = closed_loop_drive(graph, drive, new_match(), kalman=kalman)
+    closed_m = loop_metrics(graph, run.drive, run.results, closed=run)
+    return open_m, closed_m, run
+
+
+def summary_table(rows: Sequence[dict[str, object]]) -> pd.DataFrame:
+    """Open against closed loop per group of drives (``rows``: one per drive and loop, with
+    ``group``, ``loop`` and the :class:`LoopMetrics` fields): medians and p90s of the outage
+    errors over all outages, mean errors with GPS, heading, intersections and correct road."""
+    out = []
+    df = pd.DataFrame(rows)
+    for (group, loop), g in df.groupby(["group", "loop"], sort=False):
+        ends = np.concatenate([np.asarray(v, dtype=float) for v in g["outage_end"]] or [np.zeros(0)])
+        tops = np.concatenate([np.asarray(v, dtype=float) for v in g["outage_max"]] or [np.zeros(0)])
+        pct = (lambda a, q: float(np.percentile(a, q)) if len(a) else float("nan"))  # noqa: E731
+        out.append(
+            {
+                "group": group,
+                "loop": loop,
+                "drives": len(g),
+                "outages": len(ends),
+                "end_median_m": pct(ends, 50),
+                "end_p90_m": pct(ends, 90),
+                "max_median_m": pct(tops, 50),
+                "max_p90_m": pct(tops, 90),
+                "gps_mean_m": float(g["error_gps_mean"].mean()),
+                "gps_p90_m": float(g["error_gps_p90"].mean()),
+                "heading_deg": float(g["heading_mean"].mean()),
+                "heading_outage_deg": float(g["heading_outage"].mean()),
+                "intersections": float(g["intersections"].mean()),
+                "correct_edge": float(g["correct_edge"].mean()),
+                "fed": float(g["fed"].mean()),
+                "gated": float(g["gated"].mean()),
+            }
+        )
+    return pd.DataFrame(out)
