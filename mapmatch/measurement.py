@@ -62,6 +62,22 @@ ROAD_WIDTH_M: tuple[tuple[str, float], ...] = (
     ("tertiary_link", 4.0),
 )
 
+# the measurement's columns in a results CSV (``mapmatch replay``), appended to its others
+AIDED_COLUMNS: tuple[str, ...] = (
+    "aided_usable",
+    "aided_reason",
+    "aided_lat",
+    "aided_lon",
+    "aided_var_e",
+    "aided_cov_en",
+    "aided_var_n",
+    "aided_along_sigma",
+    "aided_cross_sigma",
+    "aided_heading",
+    "aided_heading_sigma",
+    "aided_probability",
+)
+
 
 @dataclass(frozen=True)
 class MeasurementConfig:
@@ -304,3 +320,25 @@ def map_aided_measurement(
         usable=reason == "",
         reason=reason,
     )
+
+
+def aided_cells(m: MapAidedMeasurement) -> list[str]:
+    """The measurement as results-CSV cells (:data:`AIDED_COLUMNS`; empty for NaN)."""
+
+    def num(x: float, fmt: str) -> str:
+        return "" if math.isnan(x) else format(x, fmt)
+
+    return [
+        "1" if m.usable else "0",
+        m.reason,
+        num(m.lat, ".8f"),
+        num(m.lon, ".8f"),
+        num(m.var_e, ".4f"),
+        num(m.cov_en, ".4f"),
+        num(m.var_n, ".4f"),
+        num(m.along_sigma, ".3f"),
+        num(m.cross_sigma, ".3f"),
+        num(m.heading, ".2f"),
+        num(m.heading_sigma, ".2f"),
+        num(m.probability, ".4f"),
+    ]

@@ -15,7 +15,7 @@ import pandas as pd
 
 from graph.road_graph import RoadGraph
 from mapmatch.evaluate import evaluate, results_frame
-from mapmatch.sim.closed_loop import ClosedLoop, MatchFn, closed_loop_drive
+from mapmatch.sim.closed_loop import ClosedLoop, MatchFn, ServerMatcher, closed_loop_drive, in_process
 from mapmatch.sim.drive import Drive, position_error
 from mapmatch.sim.kalman import DEFAULT_KALMAN, KalmanConfig
 from mapmatch.types import SnapResult
@@ -101,6 +101,25 @@ def compare_loops(
     run = closed_loop_drive(graph, drive, new_match(), kalman=kalman)
     closed_m = loop_metrics(graph, run.drive, run.results, closed=run)
     return open_m, closed_m, run
+
+
+def run_map_aided(
+    graph: RoadGraph,
+    drive: Drive,
+    *,
+    server: str | None = None,
+    vehicle_id: str = "sim-1",
+    map_id: str = "",
+    kalman: KalmanConfig = DEFAULT_KALMAN,
+) -> ClosedLoop:
+    """The closed loop of ``drive`` with the matcher in process or, given ``server``
+    (``HOST:PORT``), on that server (``grpc.RpcError`` propagates)."""
+    if server is None:
+        from mapmatch.online import OnlineMatcher
+
+        return closed_loop_drive(graph, drive, in_process(OnlineMatcher(graph)), kalman=kalman)
+    with ServerMatcher(server, vehicle_id=vehicle_id, map_id=map_id) as match:
+        return closed_loop_drive(graph, drive, match, kalman=kalman)
 
 
 def summary_table(rows: Sequence[dict[str, object]]) -> pd.DataFrame:
