@@ -131,6 +131,7 @@ def closed_loop_drive(
     match: MatchFn,
     *,
     kalman: KalmanConfig = DEFAULT_KALMAN,
+    feed: str = "usable",
 ) -> ClosedLoop:
     """Fuse ``drive``'s raw sensors again with the matcher's answers fed back.
 
@@ -145,7 +146,13 @@ def closed_loop_drive(
         The matcher: :func:`in_process` or a :class:`ServerMatcher`.
     kalman
         The filter's configuration (the open loop's, for a fair comparison).
+    feed
+        ``"usable"``: feed back the answers whose measurement is usable; ``"none"``: the open
+        loop, fix by fix (the same filter, the matcher only listens); ``"all"``: every answer
+        on a road, ignoring ``usable`` (to show what the flag guards against).
     """
+    if feed not in ("usable", "none", "all"):
+        raise ValidationError("feed", "must be 'usable', 'none' or 'all'")
     rate = fused_rate(drive)
     setup = filter_setup(drive.sensors, config=kalman)
     t = setup.t
@@ -192,7 +199,9 @@ def closed_loop_drive(
         results.append(res)
         k_prev = k
         m = res.map_aided if res is not None else None
-        if m is None or not m.usable or i + 1 >= len(idx):
+        if m is None or i + 1 >= len(idx) or feed == "none" or not (m.usable or feed == "all"):
+            continue
+        if not math.isfinite(m.lat):
             continue
         fed[i] = True
         kn = int(idx[i + 1])

@@ -7,6 +7,7 @@ matched as they are; the closed loop re-fuses the sensors with the matcher's ans
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 
@@ -18,6 +19,7 @@ from mapmatch.evaluate import evaluate, results_frame
 from mapmatch.sim.closed_loop import ClosedLoop, MatchFn, ServerMatcher, closed_loop_drive, in_process
 from mapmatch.sim.drive import Drive, position_error
 from mapmatch.sim.kalman import DEFAULT_KALMAN, KalmanConfig
+from mapmatch.sim.sensors import SensorData
 from mapmatch.types import SnapResult
 
 
@@ -86,6 +88,23 @@ def loop_metrics(
     )
 
 
+def real_sensors(drive: Drive) -> SensorData:
+    """The sensors a Kalman filter needs for a real-GPS drive (:mod:`mapmatch.sim.realgps`).
+
+    Its GPS is the real receiver's fixes and its gyro and odometer the modelled
+    dead-reckoning sensors; it has no compass and no GPS course. The fused heading it models
+    where GPS is valid (the true heading lagged, with bias and noise) stands in as the heading
+    aid: it is given as compass readings at the fused fixes with GPS (none in outages, where the
+    gyro alone carries the heading). Open and closed loop both run
+    :mod:`mapmatch.sim.kalman` on these sensors.
+    """
+    s = drive.sensors
+    have = drive.fused.gps_valid
+    return dataclasses.replace(
+        s, compass_t=drive.fused.time[have].astype(np.float64), compass=drive.fused.heading[have].astype(np.float64)
+    )
+
+
 def compare_loops(
     graph: RoadGraph,
     drive: Drive,
@@ -94,10 +113,11 @@ def compare_loops(
     kalman: KalmanConfig = DEFAULT_KALMAN,
 ) -> tuple[LoopMetrics, LoopMetrics, ClosedLoop]:
     """Open and closed loop on ``drive``; ``new_match()`` gives a matcher on a fresh session
-    (called once per loop). Returns (open, closed, the closed-loop run)."""
-    match = new_match()
-    open_results = [match(f) for f in drive.fix_objects()]
-    open_m = loop_metrics(graph, drive, open_results)
+    (called once per loop). Both loops run the filter on the drive's raw sensors fix by fix,
+    the open one without feeding anything back (for a simulated drive its fixes are the
+    drive's own). Returns (open, closed, the closed-loop run)."""
+    opened = closed_loop_drive(graph, drive, new_match(), kalman=kalman, feed="none")
+    open_m = loop_metrics(graph, opened.drive, opened.results)
     run = closed_loop_drive(graph, drive, new_match(), kalman=kalman)
     closed_m = loop_metrics(graph, run.drive, run.results, closed=run)
     return open_m, closed_m, run
