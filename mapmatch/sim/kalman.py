@@ -58,7 +58,10 @@ class KalmanConfig:
     of rejected fixes before the position is reset to the fix
     (``max_rejects``, if set, also resets after that many rejected fixes in a row);
     ``gate_map_cross`` χ² (1 dof) on a map-aided cross-track innovation, ``gate_map_pos`` χ²
-    (2 dof) on a map-aided position innovation (its heading is gated by ``gate_angle`` σ).
+    (2 dof) on a map-aided position innovation (its heading is gated by ``gate_angle`` σ);
+    ``map_corr_distance`` metres over which the map-aided measurement's error is correlated
+    (lane offset, map drawing): measurements closer together count as one (their variance is
+    scaled up by the ratio; 0: every one independent).
     """
 
     rate: float = 10.0
@@ -82,6 +85,7 @@ class KalmanConfig:
     gate_angle: float = 3.0
     gate_map_cross: float = 9.0
     gate_map_pos: float = 11.8
+    map_corr_distance: float = 20.0
     reject_reset_s: float = 12.0
     max_rejects: int = 0
     init_pos_sigma: float = 5.0
@@ -204,6 +208,7 @@ class Params(NamedTuple):
     max_rej: int
     gate_map_cross: float
     gate_map_pos: float
+    map_corr_distance: float
 
 
 class MapAid(NamedTuple):
@@ -239,7 +244,7 @@ class Outputs(NamedTuple):
 
 class Carry(NamedTuple):
     """The filter's state between kernel calls (``scalars``: rej_start, crej_start, rejects,
-    k_fix, var_corr, sig_s)."""
+    k_fix, var_corr, sig_s, distance at the last map-aided update, distance driven)."""
 
     X: NDArray[np.float64]
     P: NDArray[np.float64]
@@ -248,7 +253,7 @@ class Carry(NamedTuple):
 
 def new_carry(x0: NDArray[np.float64], p0: NDArray[np.float64]) -> Carry:
     """The carry before the first step."""
-    return Carry(x0.copy(), p0.copy(), np.array([-1.0, -1.0, 0.0, -1.0, -1.0, 1.0]))
+    return Carry(x0.copy(), p0.copy(), np.array([-1.0, -1.0, 0.0, -1.0, -1.0, 1.0, -1e9, 0.0]))
 
 
 def new_outputs(n: int) -> Outputs:
@@ -273,8 +278,9 @@ def no_map_aid(n: int) -> MapAid:
 
 
 @njit(cache=True)
-def _map_update(X, P, k, m, out, gate_cross, gate_pos, gate_ang):  # type: ignore[no-untyped-def]
-    """Apply the map-aided measurement of step ``k`` (see :class:`MapAid`); True when accepted."""
+def _map_update(X, P, k, m, out, gate_cross, gate_pos, gate_ang, inflate):  # type: ignore[no-untyped-def]
+    """Apply the map-aided measurement of step ``k`` (see :class:`MapAid`), its variances times
+    ``inflate`` (its error is correlated along the road); True when accepted."""
     ns = len(X)
     # move the measurement on by the dead reckoning since its fix
     dx = dy = dpsi = 0.0
@@ -301,7 +307,7 @@ def _map_update(X, P, k, m, out, gate_cross, gate_pos, gate_ang):  # type: ignor
         s = _quad(hn, P, hn) + m.cross_var[k]
         if nu * nu > gate_cross * s:
             return False
-        _update(X, P, hn, nu, m.cross_var[k])
+        _update(X, P, hn, nu, m.cross_var[k] * inflate)
     else:  # dead reckoning: the whole position
         r00, r01, r11 = m.vee[k], m.ven[k], m.vnn[k]
         s00 = P[0, 0] + r00
@@ -311,6 +317,7 @@ def _map_update(X, P, k, m, out, gate_cross, gate_pos, gate_ang):  # type: ignor
         det = s00 * s11 - s01 * s01
         if det <= 0.0 or (s11 * nx * nx - 2.0 * s01 * nx * ny + s00 * ny * ny) / det > gate_pos:
             return False
+        r00, r01, r11 = r00 * inflate, r01 * inflate, r11 * inflate
         # decorrelate R: x first, then y given x (sequential scalar updates)
         _update(X, P, hx, nx, r00)
         # y's innovation with its part explained by x's removed
@@ -320,7 +327,7 @@ def _map_update(X, P, k, m, out, gate_cross, gate_pos, gate_ang):  # type: ignor
         nyc = (zy - X[1]) - (r01 / r00 if r00 > 0.0 else 0.0) * (zx - X[0])
         _update(X, P, hyc, nyc, max(ry, 1e-6))
     if head_ok:
-        _update(X, P, hh, _wrap(b - X[2]), m.head_var[k])
+        _update(X, P, hh, _wrap(b - X[2]), m.head_var[k] * inflate)
     return True
 
 
@@ -474,9 +481,15 @@ def _ekf(k0, k1, c, st, p, m, o):  # type: ignore[no-untyped-def]
                 rejects += 1
                 if rej_start < 0:
                     rej_start = k
+        if k > 0:
+            c.scalars[7] += dodo[k] * (1.0 + X[4])
         if m.mode[k] > 0:
-            if _map_update(X, P, k, m, o, p.gate_map_cross, p.gate_map_pos, gate_ang):
+            # measurements closer than the map error's correlation distance are not independent
+            gap = c.scalars[7] - c.scalars[6]
+            inflate = min(p.map_corr_distance / max(gap, 1e-3), 1e6) if p.map_corr_distance > 0.0 else 1.0
+            if _map_update(X, P, k, m, o, p.gate_map_cross, p.gate_map_pos, gate_ang, max(inflate, 1.0)):
                 o.map_used[k] = True
+                c.scalars[6] = c.scalars[7]
             else:
                 o.map_rejected[k] = True
         for a in range(ns):
@@ -589,6 +602,7 @@ def filter_setup(sensors: SensorData, *, config: KalmanConfig = DEFAULT_KALMAN) 
         config.max_rejects,
         config.gate_map_cross,
         config.gate_map_pos,
+        config.map_corr_distance,
     )
     streams = Streams(dtheta, dodo, comp, gx, gy, gsig, gcourse, gcsig)
     return FilterSetup(t, streams, params, x0, p0)
