@@ -115,7 +115,8 @@ class ServerMatcher:
     ) -> None:
         if exc_type is None:
             self.close()
-        else:
+        else:  # end the request stream too, then drop the channel
+            self._queue.put(None)
             self._client.close()
 
 

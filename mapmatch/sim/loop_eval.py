@@ -14,10 +14,12 @@ from dataclasses import dataclass, field
 import numpy as np
 import pandas as pd
 
+from graph.projection import to_xy
 from graph.road_graph import RoadGraph
+from mapmatch.errors import ValidationError
 from mapmatch.evaluate import evaluate, results_frame
 from mapmatch.sim.closed_loop import ClosedLoop, MatchFn, ServerMatcher, closed_loop_drive, in_process
-from mapmatch.sim.drive import Drive, position_error
+from mapmatch.sim.drive import Drive
 from mapmatch.sim.kalman import DEFAULT_KALMAN, KalmanConfig
 from mapmatch.sim.sensors import SensorData
 from mapmatch.types import SnapResult
@@ -47,45 +49,97 @@ class LoopMetrics:
     gated: float = 0.0
 
 
-def outage_errors(drive: Drive) -> tuple[list[float], list[float]]:
-    """Error at the last fix of each GPS outage within the drive, and the maximum during it."""
-    err = position_error(drive)
-    t = drive.fused.time
-    end, top = [], []
-    for a, d in drive.outages:
-        inside = np.flatnonzero((t >= a) & (t < a + d))
-        if len(inside):
-            end.append(float(err[inside[-1]]))
-            top.append(float(err[inside].max()))
-    return end, top
+def outage_runs(outage: np.ndarray) -> list[np.ndarray]:
+    """The fix indices of each GPS outage (each run of ``outage`` true), in order."""
+    idx = np.flatnonzero(outage)
+    if len(idx) == 0:
+        return []
+    breaks = np.flatnonzero(np.diff(idx) > 1) + 1
+    return np.split(idx, breaks)
+
+
+def frame_metrics(
+    graph: RoadGraph,
+    *,
+    truth: pd.DataFrame,
+    x: np.ndarray,
+    y: np.ndarray,
+    heading: np.ndarray,
+    matched: pd.DataFrame,
+    truth_path: Sequence[int] | None = None,
+) -> LoopMetrics:
+    """Score one run from its fused positions ``x``/``y`` (map metres) and ``heading`` (deg) per
+    truth row, and the matcher's results (``matched``, a results frame) against ``truth``
+    (columns ``x``, ``y``, ``heading``, ``gps_outage``, ``edge``, ``time``)."""
+    err = np.hypot(x - truth["x"].to_numpy(), y - truth["y"].to_numpy())
+    outage = truth["gps_outage"].to_numpy() > 0
+    dh = np.abs((heading - truth["heading"].to_numpy() + 180.0) % 360.0 - 180.0)
+    runs = outage_runs(outage)
+    m = evaluate(graph, truth=truth, matched=matched, truth_path=truth_path)
+    fin = m.corrected or m
+    gps = ~outage
+    return LoopMetrics(
+        error_gps_mean=float(err[gps].mean()) if gps.any() else float("nan"),
+        error_gps_p90=float(np.percentile(err[gps], 90)) if gps.any() else float("nan"),
+        outage_end=[float(err[r[-1]]) for r in runs],
+        outage_max=[float(err[r].max()) for r in runs],
+        heading_mean=float(dh.mean()),
+        heading_outage=float(dh[outage].mean()) if outage.any() else float("nan"),
+        intersections=fin.intersections.accuracy,
+        correct_edge=fin.correct_edge_rate,
+    )
 
 
 def loop_metrics(
     graph: RoadGraph, drive: Drive, results: Sequence[SnapResult | None], *, closed: ClosedLoop | None = None
 ) -> LoopMetrics:
     """Score one run of ``drive`` (its fused fixes) and the matcher's ``results`` for them."""
-    err = position_error(drive)
-    outage = drive.truth["gps_outage"].to_numpy() > 0
-    dh = np.abs((drive.fused.heading - drive.truth["heading"].to_numpy() + 180.0) % 360.0 - 180.0)
-    end, top = outage_errors(drive)
     vid = str(drive.fixes["vehicle_id"].iloc[0]) if len(drive.fixes) else ""
     frame = results_frame(vid, drive.fix_objects(), list(results))
-    m = evaluate(graph, truth=drive.truth, matched=frame, truth_path=drive.route.edges.tolist())
-    fin = m.corrected or m
-    fed = float(closed.fed.mean()) if closed is not None and len(closed.fed) else 0.0
-    gated = float(closed.rejected.sum() / max(closed.fed.sum(), 1)) if closed is not None else 0.0
-    return LoopMetrics(
-        error_gps_mean=float(err[~outage].mean()) if (~outage).any() else float("nan"),
-        error_gps_p90=float(np.percentile(err[~outage], 90)) if (~outage).any() else float("nan"),
-        outage_end=end,
-        outage_max=top,
-        heading_mean=float(dh.mean()),
-        heading_outage=float(dh[outage].mean()) if outage.any() else float("nan"),
-        intersections=fin.intersections.accuracy,
-        correct_edge=fin.correct_edge_rate,
-        fed=fed,
-        gated=gated,
+    m = frame_metrics(
+        graph,
+        truth=drive.truth,
+        x=drive.fused.x,
+        y=drive.fused.y,
+        heading=drive.fused.heading,
+        matched=frame,
+        truth_path=drive.route.edges.tolist(),
     )
+    if closed is None or not len(closed.fed):
+        return m
+    fed = float(closed.fed.mean())
+    gated = float(closed.rejected.sum() / max(closed.fed.sum(), 1))
+    return dataclasses.replace(m, fed=fed, gated=gated)
+
+
+def compare_runs(
+    graph: RoadGraph,
+    *,
+    truth: pd.DataFrame,
+    open_fixes: pd.DataFrame,
+    open_matched: pd.DataFrame,
+    closed_fixes: pd.DataFrame,
+    closed_matched: pd.DataFrame,
+    truth_path: Sequence[int] | None = None,
+) -> pd.DataFrame:
+    """Open against closed loop from files (``mapmatch eval --closed``): the fused fixes and
+    results of each run, one truth (the same drive). One row per loop."""
+    rows = []
+    for loop, fixes, matched in (("open", open_fixes, open_matched), ("closed", closed_fixes, closed_matched)):
+        if len(fixes) != len(truth):
+            raise ValidationError("fixes", f"the {loop}-loop fixes have {len(fixes)} rows, the truth {len(truth)}")
+        xy = to_xy(graph.crs, fixes["lon"].to_numpy(float), fixes["lat"].to_numpy(float))
+        m = frame_metrics(
+            graph,
+            truth=truth,
+            x=xy[:, 0],
+            y=xy[:, 1],
+            heading=fixes["heading"].to_numpy(float),
+            matched=matched,
+            truth_path=truth_path,
+        )
+        rows.append({"group": "drive", "loop": loop, **dataclasses.asdict(m)})
+    return summary_table(rows).drop(columns=["group", "drives", "fed", "gated"])
 
 
 def real_sensors(drive: Drive) -> SensorData:
