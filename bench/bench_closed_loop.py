@@ -37,7 +37,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "bench"))
 
-from bench_online import simulate, sensors_for  # noqa: E402
+from bench_online import sensors_for, simulate  # noqa: E402
 
 from graph.ascii import parse_ascii_map  # noqa: E402
 from graph.build import build_map  # noqa: E402
@@ -73,7 +73,7 @@ def loops(tracks: list[str], rates: list[float], kinds: list[str]) -> list[dict[
                     drive = simulate(g, route, rate=rate, sigma=5.0, seed=int(50 + rate), outages=True)
                 else:
                     drive = real(g, folder, rate, seed=int(rate))
-                op, cl, _ = compare_loops(g, drive, lambda: in_process(matcher))
+                op, cl, _ = compare_loops(g, drive, lambda m=matcher: in_process(m))
                 group = f"{kind} {rate:g} Hz"
                 for loop, m in (("open", op), ("closed", cl)):
                     rows.append({"group": group, "loop": loop, "track": name, **dataclasses.asdict(m)})
@@ -81,7 +81,8 @@ def loops(tracks: list[str], rates: list[float], kinds: list[str]) -> list[dict[
                     f"{group:>16} {name}: outage end open {np.round(op.outage_end, 1).tolist()} "
                     f"closed {np.round(cl.outage_end, 1).tolist()} m; with GPS {op.error_gps_mean:.2f} -> "
                     f"{cl.error_gps_mean:.2f} m; ix {op.intersections:.3f} -> {cl.intersections:.3f}, "
-                    f"edge {op.correct_edge:.3f} -> {cl.correct_edge:.3f}; fed {cl.fed:.2f} gated {cl.gated:.3f} "
+                    f"edge {op.correct_edge:.3f} -> {cl.correct_edge:.3f}; "
+                    f"fed {cl.fed:.2f} gated {cl.gated:.3f} "
                     f"({time.perf_counter() - t0:.0f} s)",
                     flush=True,
                 )
@@ -136,7 +137,8 @@ def guard_drives(seeds: int) -> list[tuple[str, object, list[Drive]]]:
     rp = route_from_edges(par.graph, [par.edge("a", "b")], start_offset=10.0)
     sens = dataclasses.replace(sensors_for(10.0), gyro_bias=0.6)
     drives = [
-        simulate_drive(par.graph, rp, rate=1.0, outages=[(40.0, 40.0)], seed=s, sensors=sens) for s in range(seeds)
+        simulate_drive(par.graph, rp, rate=1.0, outages=[(40.0, 40.0)], seed=s, sensors=sens)
+        for s in range(seeds)
     ]
     out.append(("parallel roads 15 m apart, GPS σ 10 m, a 40 s outage", par, drives))
     fk = parse_ascii_map(FORK, scale=10)
@@ -146,13 +148,24 @@ def guard_drives(seeds: int) -> list[tuple[str, object, list[Drive]]]:
         r = route_from_edges(fk.graph, [fk.edge("a", "b"), fk.edge("b", end)], start_offset=5.0)
         # the outage starts ~150 m before the fork and ends ~40 m past it
         probe = simulate_drive(fk.graph, r, rate=1.0, outages="none", seed=s)
-        t_fork = float(np.interp(fk.graph.edge_len[fk.edge("a", "b")] - 5.0, probe.trajectory.s, probe.trajectory.t))
-        t_a = float(np.interp(fk.graph.edge_len[fk.edge("a", "b")] - 155.0, probe.trajectory.s, probe.trajectory.t))
-        t_b = float(np.interp(fk.graph.edge_len[fk.edge("a", "b")] + 35.0, probe.trajectory.s, probe.trajectory.t))
+        t_fork = float(
+            np.interp(fk.graph.edge_len[fk.edge("a", "b")] - 5.0, probe.trajectory.s, probe.trajectory.t)
+        )
+        t_a = float(
+            np.interp(fk.graph.edge_len[fk.edge("a", "b")] - 155.0, probe.trajectory.s, probe.trajectory.t)
+        )
+        t_b = float(
+            np.interp(fk.graph.edge_len[fk.edge("a", "b")] + 35.0, probe.trajectory.s, probe.trajectory.t)
+        )
         assert t_a < t_fork < t_b
         drives.append(
             simulate_drive(
-                fk.graph, r, rate=1.0, outages=[(t_a, t_b - t_a)], seed=s, sensors=dataclasses.replace(sens, gyro_bias=1.0)
+                fk.graph,
+                r,
+                rate=1.0,
+                outages=[(t_a, t_b - t_a)],
+                seed=s,
+                sensors=dataclasses.replace(sens, gyro_bias=1.0),
             )
         )
     out.append(("an outage ending 40 m past a fork (60° branch or straight on)", fk, drives))
@@ -218,7 +231,9 @@ def main() -> int:
     ap.add_argument("--quick", action="store_true", help="one track, 1 Hz, both kinds; 4 guard drives")
     ap.add_argument("--tracks", nargs="*", default=None, help="Kubicka track ids, or 'all'")
     ap.add_argument("--rates", nargs="*", type=float, default=None)
-    ap.add_argument("--kinds", nargs="*", default=["SIMULATED", "REAL GPS"], choices=["SIMULATED", "REAL GPS"])
+    ap.add_argument(
+        "--kinds", nargs="*", default=["SIMULATED", "REAL GPS"], choices=["SIMULATED", "REAL GPS"]
+    )
     ap.add_argument("--no-guard", action="store_true")
     ap.add_argument("--guard-seeds", type=int, default=10)
     ap.add_argument("--json", type=Path, default=None, help="also write all rows here")

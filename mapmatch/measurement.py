@@ -127,7 +127,11 @@ DEFAULT_MEASUREMENT = MeasurementConfig()
 
 
 def road_width(
-    highway: str, *, width: float = math.nan, lanes: float = math.nan, config: MeasurementConfig = DEFAULT_MEASUREMENT
+    highway: str,
+    *,
+    width: float = math.nan,
+    lanes: float = math.nan,
+    config: MeasurementConfig = DEFAULT_MEASUREMENT,
 ) -> float:
     """Carriageway width in metres: the ``width`` tag, else ``lanes`` lanes, else the class default."""
     if math.isfinite(width) and width > 0:
@@ -221,7 +225,12 @@ def _angle(a: float, b: float) -> float:
 
 
 def heading_sigma(
-    graph: RoadGraph, edge: int, offset: float, along_sigma: float, *, config: MeasurementConfig = DEFAULT_MEASUREMENT
+    graph: RoadGraph,
+    edge: int,
+    offset: float,
+    along_sigma: float,
+    *,
+    config: MeasurementConfig = DEFAULT_MEASUREMENT,
 ) -> float:
     """1-σ of the road heading at ``offset`` on ``edge``, degrees: the floor, the bearing's
     change within one along-track σ, and ``node_heading_sigma`` when that reaches past the end."""

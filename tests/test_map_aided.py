@@ -10,7 +10,6 @@ import numpy as np
 import pytest
 
 from graph.ascii import parse_ascii_map
-from graph.projection import point_to_xy
 from mapmatch.measurement import DEFAULT_MEASUREMENT, cross_track_sigma, road_width
 from mapmatch.online import OnlineMatcher
 from mapmatch.sim.closed_loop import closed_loop_drive, in_process
@@ -66,7 +65,12 @@ def test_a_wrong_road_is_not_fed_back_or_is_gated_and_does_not_pull_the_filter(a
     assert truth_map.xy("a")[1] - wrong_map.xy("c")[1] == pytest.approx(apart)
     route = route_from_edges(truth_map.graph, [truth_map.edge("a", "b")], start_offset=10.0)
     drive = simulate_drive(
-        truth_map.graph, route, rate=1.0, outages="none", seed=2, sensors=replace(DEFAULT_SENSORS, multipath_rate=0.0)
+        truth_map.graph,
+        route,
+        rate=1.0,
+        outages="none",
+        seed=2,
+        sensors=replace(DEFAULT_SENSORS, multipath_rate=0.0),
     )
     matcher = OnlineMatcher(wrong_map.graph)
     # the matcher's answers are on c-d (in the truth map's CRS both maps coincide)
@@ -93,7 +97,6 @@ def test_measurement_fields_and_usable_gating_on_a_drive() -> None:
     assert all(r.map_aided.reason == "initialising" for r in res if r.state == State.INITIALISING)
     assert all(r.map_aided.usable for r in res if r.state == State.ON_ROAD)
     a = res[-1].map_aided
-    x, y = point_to_xy(m.graph.crs, a.lon, a.lat)
     r = res[-1]
     assert (a.lat, a.lon, a.heading) == (r.lat, r.lon, r.bearing)
     # east-running road: var_e is the along-track variance, var_n the cross-track one
@@ -150,5 +153,7 @@ def test_proto_round_trip_of_the_measurement() -> None:
     back = convert.snap_result_from_proto(type(msg).FromString(msg.SerializeToString()))
     assert back.map_aided == aided
     # an answer without a road: not usable, NaN position, survives the trip too
-    off = convert.snap_result_from_proto(convert.snap_result_to_proto(SnapResult(time=1.0, state=State.OFF_ROAD)))
+    off = convert.snap_result_from_proto(
+        convert.snap_result_to_proto(SnapResult(time=1.0, state=State.OFF_ROAD))
+    )
     assert not off.map_aided.usable and off.map_aided.reason == "off_road" and math.isnan(off.map_aided.lat)

@@ -28,11 +28,32 @@ def test_map_aided_simulation_in_process_and_on_a_server_and_its_evaluation(tmp_
     grid = parse_ascii_map(GRID, scale=25.0)
     mp = str(tmp_path / "grid.map")
     save_map(grid.graph, mp)
-    common = ["simulate", "--map", mp, "--random-route", "--length-km", "3", "--outages", "60:45", "--seed", "5"]
+    common = [
+        "simulate",
+        "--map",
+        mp,
+        "--random-route",
+        "--length-km",
+        "3",
+        "--outages",
+        "60:45",
+        "--seed",
+        "5",
+    ]
     assert main([*common, "-o", str(tmp_path / "open.csv"), "--truth", str(tmp_path / "truth.csv")]) == 0
-    assert main(["replay", "--map", mp, str(tmp_path / "open.csv"), "-o", str(tmp_path / "open.matched.csv")]) == 0
+    assert (
+        main(["replay", "--map", mp, str(tmp_path / "open.csv"), "-o", str(tmp_path / "open.matched.csv")])
+        == 0
+    )
     rc = main(
-        [*common, "--map-aided", "-o", str(tmp_path / "closed.csv"), "--matched", str(tmp_path / "closed.matched.csv")]
+        [
+            *common,
+            "--map-aided",
+            "-o",
+            str(tmp_path / "closed.csv"),
+            "--matched",
+            str(tmp_path / "closed.matched.csv"),
+        ]
     )
     out = capsys.readouterr().out
     assert rc == 0, out
@@ -53,7 +74,9 @@ def test_map_aided_simulation_in_process_and_on_a_server_and_its_evaluation(tmp_
     remote = pd.read_csv(tmp_path / "remote.csv")
     # the same loop whether the matcher runs in process or on the server; not the open loop
     assert list(closed.columns) == list(opened.columns) and len(closed) == len(opened)
-    np.testing.assert_allclose(remote[["lat", "lon"]].to_numpy(), closed[["lat", "lon"]].to_numpy(), atol=1e-9)
+    np.testing.assert_allclose(
+        remote[["lat", "lon"]].to_numpy(), closed[["lat", "lon"]].to_numpy(), atol=1e-9
+    )
     assert np.abs(closed["lat"] - opened["lat"]).max() > 1e-6
     matched = pd.read_csv(tmp_path / "remote.matched.csv")
     assert set(AIDED_COLUMNS) <= set(matched.columns)

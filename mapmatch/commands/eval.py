@@ -90,9 +90,14 @@ def run(args: argparse.Namespace) -> int:
         if fixes is None:
             raise CommandError("--closed needs --fixes (the open loop's fused fixes)")
         table = compare_runs(
-            graph, truth=truth, open_fixes=fixes, open_matched=matched, closed_fixes=_read_csv(Path(args.closed[0])),
-            closed_matched=read_matched_csv(args.closed[1], vehicle_id=args.vehicle_id), truth_path=truth_path,
-        )  # fmt: skip
+            graph,
+            truth=truth,
+            open_fixes=fixes,
+            open_matched=matched,
+            closed_fixes=_read_csv(Path(args.closed[0])),
+            closed_matched=read_matched_csv(args.closed[1], vehicle_id=args.vehicle_id),
+            truth_path=truth_path,
+        )
         print("\nopen vs closed loop (outage figures over the drive's outages, metres; heading degrees)")
         print(table.round(3).to_string(index=False))
     if args.png or args.html:

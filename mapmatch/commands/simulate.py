@@ -56,7 +56,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[ty
     p.add_argument(
         "--server",
         metavar="HOST:PORT",
-        help="also replay the fixes to a running server (with --map-aided: the server is the matcher in the loop)",
+        help="also replay the fixes to a running server "
+        "(with --map-aided: the server is the matcher in the loop)",
     )
     p.add_argument("--realtime", action="store_true", help="with --server: send at the fixes' own pace")
     p.add_argument("--speedup", type=float, default=1.0, help="with --realtime: pace this many times faster")
@@ -101,7 +102,9 @@ def run(args: argparse.Namespace) -> int:
 
         open_err = position_error(drive)
         try:
-            loop = run_map_aided(graph, drive, server=args.server, vehicle_id=args.vehicle_id, map_id=args.map_id)
+            loop = run_map_aided(
+                graph, drive, server=args.server, vehicle_id=args.vehicle_id, map_id=args.map_id
+            )
         except grpc.RpcError as exc:
             raise CommandError(f"server {args.server}: {exc.code().name}: {exc.details()}", code=3) from None
         drive = loop.drive

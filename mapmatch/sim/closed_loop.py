@@ -29,9 +29,9 @@ from mapmatch.sim.drive import Drive
 from mapmatch.sim.kalman import (
     DEFAULT_KALMAN,
     KalmanConfig,
-    fused_stream,
     filter_result,
     filter_setup,
+    fused_stream,
     new_carry,
     new_outputs,
     no_map_aid,

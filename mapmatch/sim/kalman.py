@@ -23,7 +23,8 @@ Gauss-Markov: offset plus slowly passing magnetic disturbances).
   covariance) and its heading. It is gated like GPS (χ² on the innovation) and never resets
   the filter.
 
-The loop runs in chunks (:func:`run_steps`, so that a closed loop can run it fix by fix) at the filter rate in compiled code (numba).
+The loop runs in chunks (:func:`run_steps`, so that a closed loop can run it fix by fix) at the
+filter rate in compiled code (numba).
 """
 
 from __future__ import annotations

@@ -67,14 +67,16 @@ def frame_metrics(
     heading: np.ndarray,
     matched: pd.DataFrame,
     truth_path: Sequence[int] | None = None,
+    outages: list[np.ndarray] | None = None,
 ) -> LoopMetrics:
     """Score one run from its fused positions ``x``/``y`` (map metres) and ``heading`` (deg) per
     truth row, and the matcher's results (``matched``, a results frame) against ``truth``
-    (columns ``x``, ``y``, ``heading``, ``gps_outage``, ``edge``, ``time``)."""
+    (columns ``x``, ``y``, ``heading``, ``gps_outage``, ``edge``, ``time``). ``outages`` the
+    row indices of each outage scored (default: each run of ``gps_outage``)."""
     err = np.hypot(x - truth["x"].to_numpy(), y - truth["y"].to_numpy())
     outage = truth["gps_outage"].to_numpy() > 0
     dh = np.abs((heading - truth["heading"].to_numpy() + 180.0) % 360.0 - 180.0)
-    runs = outage_runs(outage)
+    runs = outage_runs(outage) if outages is None else outages
     m = evaluate(graph, truth=truth, matched=matched, truth_path=truth_path)
     fin = m.corrected or m
     gps = ~outage
@@ -96,6 +98,9 @@ def loop_metrics(
     """Score one run of ``drive`` (its fused fixes) and the matcher's ``results`` for them."""
     vid = str(drive.fixes["vehicle_id"].iloc[0]) if len(drive.fixes) else ""
     frame = results_frame(vid, drive.fix_objects(), list(results))
+    t = drive.fused.time
+    # the outages put in (a real track's own gaps also lack GPS, but are not scored as outages)
+    runs = [np.flatnonzero((t >= a) & (t < a + d)) for a, d in drive.outages]
     m = frame_metrics(
         graph,
         truth=drive.truth,
@@ -104,6 +109,7 @@ def loop_metrics(
         heading=drive.fused.heading,
         matched=frame,
         truth_path=drive.route.edges.tolist(),
+        outages=[r for r in runs if len(r)],
     )
     if closed is None or not len(closed.fed):
         return m
@@ -125,9 +131,14 @@ def compare_runs(
     """Open against closed loop from files (``mapmatch eval --closed``): the fused fixes and
     results of each run, one truth (the same drive). One row per loop."""
     rows = []
-    for loop, fixes, matched in (("open", open_fixes, open_matched), ("closed", closed_fixes, closed_matched)):
+    for loop, fixes, matched in (
+        ("open", open_fixes, open_matched),
+        ("closed", closed_fixes, closed_matched),
+    ):
         if len(fixes) != len(truth):
-            raise ValidationError("fixes", f"the {loop}-loop fixes have {len(fixes)} rows, the truth {len(truth)}")
+            raise ValidationError(
+                "fixes", f"the {loop}-loop fixes have {len(fixes)} rows, the truth {len(truth)}"
+            )
         xy = to_xy(graph.crs, fixes["lon"].to_numpy(float), fixes["lat"].to_numpy(float))
         m = frame_metrics(
             graph,
@@ -155,7 +166,9 @@ def real_sensors(drive: Drive) -> SensorData:
     s = drive.sensors
     have = drive.fused.gps_valid
     return dataclasses.replace(
-        s, compass_t=drive.fused.time[have].astype(np.float64), compass=drive.fused.heading[have].astype(np.float64)
+        s,
+        compass_t=drive.fused.time[have].astype(np.float64),
+        compass=drive.fused.heading[have].astype(np.float64),
     )
 
 
@@ -205,7 +218,7 @@ def summary_table(rows: Sequence[dict[str, object]]) -> pd.DataFrame:
     for (group, loop), g in df.groupby(["group", "loop"], sort=False):
         ends = np.concatenate([np.asarray(v, dtype=float) for v in g["outage_end"]] or [np.zeros(0)])
         tops = np.concatenate([np.asarray(v, dtype=float) for v in g["outage_max"]] or [np.zeros(0)])
-        pct = (lambda a, q: float(np.percentile(a, q)) if len(a) else float("nan"))  # noqa: E731
+        pct = lambda a, q: float(np.percentile(a, q)) if len(a) else float("nan")  # noqa: E731
         out.append(
             {
                 "group": group,
