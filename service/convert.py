@@ -115,8 +115,9 @@ def snap_result_to_proto(r: SnapResult) -> pb.SnapResult:
         candidates=[_candidate_to_proto(c) for c in r.candidates],
         raw_lat=r.raw_lat,
         raw_lon=r.raw_lon,
-        map_aided=_aided_to_proto(r.map_aided),
     )
+    if r.map_aided != _NO_AID:  # unset: no road (the receiver gets the same default back)
+        msg.map_aided.CopyFrom(_aided_to_proto(r.map_aided))
     if r.correction is not None:
         c = r.correction
         msg.correction.CopyFrom(
@@ -173,6 +174,9 @@ def snap_result_from_proto(msg: pb.SnapResult) -> SnapResult:
         raw_lon=msg.raw_lon,
         map_aided=_aided_from_proto(msg.map_aided) if msg.HasField("map_aided") else MapAidedMeasurement(),
     )
+
+
+_NO_AID = MapAidedMeasurement()
 
 
 def _aided_to_proto(m: MapAidedMeasurement) -> pb.MapAidedMeasurement:
