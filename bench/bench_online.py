@@ -35,14 +35,13 @@ from mapmatch.evaluate import evaluate, path_nodes  # noqa: E402
 from mapmatch.online import OnlineMatcher  # noqa: E402
 from mapmatch.sim.drive import Drive, read_route, simulate_drive  # noqa: E402
 from mapmatch.sim.routes import Route, random_route  # noqa: E402
-from mapmatch.sim.sensors import DEFAULT_SENSORS, PAPER_OUTAGES  # noqa: E402
+from mapmatch.sim.sensors import DEFAULT_SENSORS, spread_outages  # noqa: E402
 from mapmatch.types import SnapResult  # noqa: E402
 
 SHARED = ROOT.parent / "shared" / "data"
 KUBICKA = SHARED / "kubicka"
 KUBICKA_ACCURACY = ("00000000", "00000007", "00000014", "00000063")
 KUBICKA_LARGEST = "00000028"
-OUTAGE_DURATIONS = tuple(d for _, d in PAPER_OUTAGES)
 
 
 def helsinki_pbf() -> Path:
@@ -69,27 +68,6 @@ def sensors_for(sigma: float):  # type: ignore[no-untyped-def]
     white = sigma / 3.0
     corr = float(np.sqrt(sigma**2 - white**2))
     return replace(DEFAULT_SENSORS, gps_white=white, gps_corr=corr)
-
-
-def spread_outages(duration: float) -> list[tuple[float, float]]:
-    """The paper's outages when they fit, else the same five durations spread over the drive."""
-    if PAPER_OUTAGES[-1][0] + PAPER_OUTAGES[-1][1] + 30.0 <= duration:
-        return list(PAPER_OUTAGES)
-    total = sum(OUTAGE_DURATIONS)
-    gap = (duration - total) / (len(OUTAGE_DURATIONS) + 1)
-    if gap < 20.0:  # too short for all five: as many as fit with 20 s of GPS between them
-        out, t = [], 20.0
-        for d in OUTAGE_DURATIONS:
-            if t + d + 20.0 > duration:
-                break
-            out.append((t, d))
-            t += d + 20.0
-        return out
-    out, t = [], gap
-    for d in OUTAGE_DURATIONS:
-        out.append((t, d))
-        t += d + gap
-    return out
 
 
 def run_drive(matcher: OnlineMatcher, drive: Drive) -> tuple[list[SnapResult], np.ndarray]:

@@ -19,6 +19,7 @@ import pandas as pd
 from graph.files import atomic_path
 from graph.road_graph import RoadGraph
 from mapmatch.errors import ValidationError
+from mapmatch.measurement import AIDED_COLUMNS, aided_cells
 from mapmatch.types import Fix, SnapResult
 
 REQUIRED_COLUMNS: tuple[str, ...] = ("vehicle_id", "time", "lat", "lon", "heading")
@@ -46,6 +47,7 @@ RESULT_COLUMNS: tuple[str, ...] = (
     "correction_replaced",
     "correction_times",
     "error",
+    *AIDED_COLUMNS,
 )
 _TRUE = {"1", "true", "t", "yes", "y"}
 _FALSE = {"0", "false", "f", "no", "n"}
@@ -141,7 +143,8 @@ def result_row(vehicle_id: str, fix: Fix, result: SnapResult | None, error: str 
     """One output row (strings, in :data:`RESULT_COLUMNS` order). ``result`` None = rejected fix."""
     if result is None:
         return [vehicle_id, repr(fix.time), "rejected", "-1", "", "", "", "", "", "", "", "", "none",
-                _num(fix.lat, ".8f"), _num(fix.lon, ".8f"), "", "", "", "", "", "", error]  # fmt: skip
+                _num(fix.lat, ".8f"), _num(fix.lon, ".8f"), "", "", "", "", "", "", error,
+                *[""] * len(AIDED_COLUMNS)]  # fmt: skip
     placed = result.edge >= 0
     c = result.correction
     return [
@@ -167,6 +170,7 @@ def result_row(vehicle_id: str, fix: Fix, result: SnapResult | None, error: str 
         "" if c is None else ";".join(map(str, c.replaced_edges)),
         "" if c is None else ";".join(map(repr, c.edge_times)),
         error,
+        *aided_cells(result.map_aided),
     ]
 
 

@@ -62,6 +62,7 @@ from graph.projection import point_to_lonlat, point_to_xy
 from graph.road_graph import RESTRICTION_ONLY, RoadGraph
 from mapmatch.config import DEFAULT_CONFIG, MatchConfig
 from mapmatch.errors import ValidationError
+from mapmatch.measurement import DEFAULT_MEASUREMENT, MeasurementConfig, map_aided_measurement
 from mapmatch.turns import (
     STRAIGHT_MAX_DEG,
     add_sample,
@@ -319,14 +320,21 @@ class OnlineMatcher:
         Its spatial index (built when omitted).
     config
         Default parameters; :meth:`update` accepts a per-call override.
+    measurement
+        How each answer's map-aided measurement is built (:mod:`mapmatch.measurement`).
     """
 
     def __init__(
-        self, graph: RoadGraph, index: EdgeIndex | None = None, config: MatchConfig = DEFAULT_CONFIG
+        self,
+        graph: RoadGraph,
+        index: EdgeIndex | None = None,
+        config: MatchConfig = DEFAULT_CONFIG,
+        measurement: MeasurementConfig = DEFAULT_MEASUREMENT,
     ):
         self.graph = graph
         self.index = index if index is not None else EdgeIndex(graph)
         self.config = config
+        self.measurement = measurement
         e = graph.n_edges
         self._elen: list[float] = graph.edge_len.tolist()
         self._ev: list[int] = graph.edge_v.tolist()
@@ -1365,6 +1373,26 @@ class OnlineMatcher:
             st = State.ON_ROAD
         lon, lat = point_to_lonlat(self.graph.crs, best.px, best.py)
         g = self.graph
+        aided = map_aided_measurement(
+            g,
+            state=st,
+            edge=e,
+            offset=best.off,
+            lat=lat,
+            lon=lon,
+            bearing=best.bearing,
+            probability=next((c.probability for c in candidates if c.edge == e), 1.0),
+            gps=step.gps,
+            fix_sigma=step.sigma,
+            bias_cov=(step.bias[2], step.bias[3], step.bias[4]),
+            white_share=BIAS_WHITE_FRAC,
+            anchor_sd=best.anc_sd,
+            odo_sigma=step.odo_sigma,
+            dr_distance=step.dr,
+            gps_sigma=self.config.gps_sigma,
+            since_init=state.odo - state.init_odo,
+            config=self.measurement,
+        )
         return SnapResult(
             time=fix.time,
             state=st,
@@ -1385,6 +1413,7 @@ class OnlineMatcher:
             correction=correction,
             raw_lat=fix.lat,
             raw_lon=fix.lon,
+            map_aided=aided,
         )
 
 

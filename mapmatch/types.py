@@ -138,6 +138,47 @@ class Correction:
 
 
 @dataclass(frozen=True, slots=True)
+class MapAidedMeasurement:
+    """What a fusion node may feed back into its filter: the position on the road believed.
+
+    See README, "For fusion-node developers: the map-aided measurement" (built by
+    :func:`mapmatch.measurement.map_aided_measurement`).
+
+    Attributes
+    ----------
+    lat, lon : float
+        Position on the road (the snapped point), WGS84 degrees; NaN when off road.
+    var_e, cov_en, var_n : float
+        Its 2x2 east/north covariance, m² (from ``along_sigma`` and ``cross_sigma``).
+    along_sigma, cross_sigma : float
+        1-σ along and across the road, metres.
+    heading, heading_sigma : float
+        Road heading at that point in the direction of travel, degrees clockwise from north,
+        and its 1-σ in degrees.
+    probability : float
+        Probability that the reported road is the right one, in [0, 1].
+    usable : bool
+        False when the answer must not be fed back (``reason`` says why).
+    reason : str
+        Empty when usable; else ``off_road``, ``initialising``, ``settling``, ``ambiguous``
+        or ``low_probability``.
+    """
+
+    lat: float = math.nan
+    lon: float = math.nan
+    var_e: float = math.nan
+    cov_en: float = math.nan
+    var_n: float = math.nan
+    along_sigma: float = math.nan
+    cross_sigma: float = math.nan
+    heading: float = math.nan
+    heading_sigma: float = math.nan
+    probability: float = 0.0
+    usable: bool = False
+    reason: str = "off_road"
+
+
+@dataclass(frozen=True, slots=True)
 class SnapResult:
     """The online matcher's answer for one fix.
 
@@ -166,6 +207,7 @@ class SnapResult:
     name: str = ""
     road_class: str = ""
     speed_kph: float = 0.0  # 0: unknown
+    map_aided: MapAidedMeasurement = field(default_factory=MapAidedMeasurement)
 
 
 @dataclass(slots=True)

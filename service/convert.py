@@ -18,6 +18,7 @@ from mapmatch.types import (
     Candidate,
     Correction,
     Fix,
+    MapAidedMeasurement,
     MatchedPoint,
     PointStatus,
     SnapResult,
@@ -118,6 +119,8 @@ def snap_result_to_proto(r: SnapResult) -> pb.SnapResult:
         road_class=r.road_class,
         speed_kph=r.speed_kph,
     )
+    if r.map_aided != _NO_AID:  # unset: no road (the receiver gets the same default back)
+        msg.map_aided.CopyFrom(_aided_to_proto(r.map_aided))
     if r.correction is not None:
         c = r.correction
         msg.correction.CopyFrom(
@@ -175,7 +178,28 @@ def snap_result_from_proto(msg: pb.SnapResult) -> SnapResult:
         name=msg.name,
         road_class=msg.road_class,
         speed_kph=msg.speed_kph,
+        map_aided=_aided_from_proto(msg.map_aided) if msg.HasField("map_aided") else MapAidedMeasurement(),
     )
+
+
+_NO_AID = MapAidedMeasurement()
+
+
+def _aided_to_proto(m: MapAidedMeasurement) -> pb.MapAidedMeasurement:
+    return pb.MapAidedMeasurement(
+        lat=m.lat, lon=m.lon, cov=[m.var_e, m.cov_en, m.var_n], along_sigma=m.along_sigma,
+        cross_sigma=m.cross_sigma, heading=m.heading, heading_sigma=m.heading_sigma,
+        probability=m.probability, usable=m.usable, reason=m.reason,
+    )  # fmt: skip
+
+
+def _aided_from_proto(msg: pb.MapAidedMeasurement) -> MapAidedMeasurement:
+    cov = list(msg.cov) if len(msg.cov) == 3 else [math.nan] * 3
+    return MapAidedMeasurement(
+        lat=msg.lat, lon=msg.lon, var_e=cov[0], cov_en=cov[1], var_n=cov[2], along_sigma=msg.along_sigma,
+        cross_sigma=msg.cross_sigma, heading=msg.heading, heading_sigma=msg.heading_sigma,
+        probability=msg.probability, usable=msg.usable, reason=msg.reason,
+    )  # fmt: skip
 
 
 def error_to_proto(code: int, field: str, message: str) -> pb.Error:

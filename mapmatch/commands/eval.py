@@ -28,6 +28,13 @@ def register(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[ty
     p.add_argument("--vehicle-id", help="the vehicle to score when the files hold several")
     p.add_argument("--tolerance", type=float, default=2.0, help="route mismatch tolerance, m (default 2)")
     p.add_argument("--all-nodes", action="store_true", help="count every node, not only junctions")
+    p.add_argument(
+        "--closed",
+        nargs=2,
+        metavar=("FIXES", "MATCHED"),
+        help="compare open loop (--fixes, --matched) with a closed-loop run of the same drive: its fixes "
+        "and results CSVs (mapmatch simulate --map-aided --matched)",
+    )
     p.add_argument("--png", help="write a PNG map")
     p.add_argument("--html", help="write an interactive HTML map")
     p.set_defaults(func=run)
@@ -77,6 +84,22 @@ def run(args: argparse.Namespace) -> int:
         junctions_only=not args.all_nodes,
     )
     print(metrics.table())
+    if args.closed:
+        from mapmatch.sim.loop_eval import compare_runs
+
+        if fixes is None:
+            raise CommandError("--closed needs --fixes (the open loop's fused fixes)")
+        table = compare_runs(
+            graph,
+            truth=truth,
+            open_fixes=fixes,
+            open_matched=matched,
+            closed_fixes=_read_csv(Path(args.closed[0])),
+            closed_matched=read_matched_csv(args.closed[1], vehicle_id=args.vehicle_id),
+            truth_path=truth_path,
+        )
+        print("\nopen vs closed loop (outage figures over the drive's outages, metres; heading degrees)")
+        print(table.round(3).to_string(index=False))
     if args.png or args.html:
         from mapmatch.evaluate import edge_path, path_geometry
 

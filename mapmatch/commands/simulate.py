@@ -47,11 +47,25 @@ def register(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[ty
         "--truth",
         help="truth to write: per-fix CSV and route GeoJSON with the same stem (give either name)",
     )
-    p.add_argument("--server", metavar="HOST:PORT", help="also replay the fixes to a running server")
+    p.add_argument(
+        "--map-aided",
+        action="store_true",
+        help="close the loop: feed each answer's map-aided measurement back into the fusion filter "
+        "at the next fix (matcher in process, or the --server); the fixes written are the closed loop's",
+    )
+    p.add_argument(
+        "--server",
+        metavar="HOST:PORT",
+        help="also replay the fixes to a running server "
+        "(with --map-aided: the server is the matcher in the loop)",
+    )
     p.add_argument("--realtime", action="store_true", help="with --server: send at the fixes' own pace")
     p.add_argument("--speedup", type=float, default=1.0, help="with --realtime: pace this many times faster")
     p.add_argument("--map-id", default="", help="with --server: the server's map id (default: its only map)")
-    p.add_argument("--matched", help="with --server: results CSV to write (default OUTPUT.matched.csv)")
+    p.add_argument(
+        "--matched",
+        help="with --server or --map-aided: results CSV to write (default with --server: OUTPUT.matched.csv)",
+    )
     p.set_defaults(func=run)
 
 
@@ -80,6 +94,20 @@ def run(args: argparse.Namespace) -> int:
         vehicle_id=args.vehicle_id,
         time0=args.time0,
     )
+    loop = None
+    if args.map_aided:
+        import grpc
+
+        from mapmatch.sim.loop_eval import run_map_aided
+
+        open_err = position_error(drive)
+        try:
+            loop = run_map_aided(
+                graph, drive, server=args.server, vehicle_id=args.vehicle_id, map_id=args.map_id
+            )
+        except grpc.RpcError as exc:
+            raise CommandError(f"server {args.server}: {exc.code().name}: {exc.details()}", code=3) from None
+        drive = loop.drive
     write_fixes_csv(drive, args.output)
     written = [args.output]
     if args.truth:
@@ -95,7 +123,22 @@ def run(args: argparse.Namespace) -> int:
         f"fused position error: {err[valid].mean():.1f} m mean with GPS"
         + (f", {err[~valid].max():.1f} m max without" if (~valid).any() else "")
     )
+    if loop is not None:
+        print(
+            f"map-aided: {int(loop.fed.sum())} of {len(loop.fed)} answers fed back, "
+            f"{int(loop.rejected.sum())} rejected by the filter's gate; open loop "
+            f"{open_err[valid].mean():.1f} m mean with GPS"
+            + (f", {open_err[~valid].max():.1f} m max without" if (~valid).any() else "")
+        )
+        if args.matched:
+            from mapmatch.fixes import write_results_csv
+
+            rows = [(args.vehicle_id, f, r) for f, r in zip(drive.fix_objects(), loop.results, strict=True)]
+            write_results_csv(args.matched, rows)
+            written.append(args.matched)
     print("wrote " + ", ".join(written))
+    if loop is not None:
+        return 0 if all(r is not None for r in loop.results) else 1
     if args.server:
         return _replay(args, drive)
     return 0

@@ -16,14 +16,22 @@ Gauss-Markov: offset plus slowly passing magnetic disturbances).
   multipath outliers and magnetic disturbances are rejected. When fixes (or GPS courses) have
   been rejected for ``reject_reset_s`` seconds in a row the filter, not the GPS, is wrong: the
   position (heading) is reset to the fix (course).
+* A map-aided measurement (:mod:`mapmatch.measurement`; the closed loop of
+  :mod:`mapmatch.sim.closed_loop`) refers to the state at its fix and is moved on by the dead
+  reckoning since. It is not independent of that fix: while GPS is valid only its cross-track
+  position and its heading are used, in dead reckoning its whole position (with its 2x2
+  covariance) and its heading. It is gated like GPS (χ² on the innovation) and never resets
+  the filter.
 
-The loop runs at the filter rate in compiled code (numba).
+The loop runs in chunks (:func:`run_steps`, so that a closed loop can run it fix by fix) at the
+filter rate in compiled code (numba).
 """
 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
+from typing import NamedTuple
 
 import numpy as np
 from numba import njit
@@ -49,7 +57,12 @@ class KalmanConfig:
     ``gate_pos`` χ² (2 dof) on the fix's innovation, whose covariance counts at least
     ``gate_gps_share`` of the reported variance; ``gate_angle`` σ; ``reject_reset_s`` seconds
     of rejected fixes before the position is reset to the fix
-    (``max_rejects``, if set, also resets after that many rejected fixes in a row).
+    (``max_rejects``, if set, also resets after that many rejected fixes in a row);
+    ``gate_map_cross`` χ² (1 dof) on a map-aided cross-track innovation, ``gate_map_pos`` χ²
+    (2 dof) on a map-aided position innovation (its heading is gated by ``gate_angle`` σ);
+    ``map_corr_distance`` metres over which the map-aided measurement's error is correlated
+    (lane offset, map drawing): measurements closer together count as one (their variance is
+    scaled up by the ratio; 0: every one independent).
     """
 
     rate: float = 10.0
@@ -71,6 +84,9 @@ class KalmanConfig:
     gate_pos: float = 16.0
     gate_gps_share: float = 0.5
     gate_angle: float = 3.0
+    gate_map_cross: float = 9.0
+    gate_map_pos: float = 11.8
+    map_corr_distance: float = 20.0
     reject_reset_s: float = 12.0
     max_rejects: int = 0
     init_pos_sigma: float = 5.0
@@ -88,7 +104,8 @@ class FilterResult:
 
     ``state`` (K, 8) and ``var`` (K, 8) (diagonal of P), ``cov_xy`` the x-y covariance;
     ``gps_used`` / ``gps_rejected`` where a GPS fix was accepted / rejected at that step;
-    ``dodo`` the raw odometer increment of each step.
+    ``dodo`` the raw odometer increment of each step; ``map_used`` / ``map_rejected`` where a
+    map-aided measurement was accepted / rejected by its χ² gate.
     """
 
     t: NDArray[np.float64]
@@ -98,6 +115,8 @@ class FilterResult:
     gps_used: NDArray[np.bool_]
     gps_rejected: NDArray[np.bool_]
     dodo: NDArray[np.float64]
+    map_used: NDArray[np.bool_] = field(default_factory=lambda: np.zeros(0, dtype=np.bool_))
+    map_rejected: NDArray[np.bool_] = field(default_factory=lambda: np.zeros(0, dtype=np.bool_))
 
 
 @njit(cache=True)
@@ -158,20 +177,173 @@ def _update(X, P, h, nu, r):  # type: ignore[no-untyped-def]
             P[a, b] -= kg[a] * ph[b]
 
 
+class Streams(NamedTuple):
+    """The sensor streams at the filter grid (NaN: no reading at that step)."""
+
+    dtheta: NDArray[np.float64]
+    dodo: NDArray[np.float64]
+    comp: NDArray[np.float64]
+    gx: NDArray[np.float64]
+    gy: NDArray[np.float64]
+    gsig: NDArray[np.float64]
+    gcourse: NDArray[np.float64]
+    gcsig: NDArray[np.float64]
+
+
+class Params(NamedTuple):
+    """The filter's constants in the units of the kernel (per step, radians)."""
+
+    dt: float
+    q: NDArray[np.float64]
+    r_comp: float
+    a_comp: float
+    q_comp: float
+    share: float
+    a_gps: float
+    white_steps: int
+    smooth_steps: float
+    gate_share: float
+    gate_pos: float
+    gate_ang: float
+    reset_steps: int
+    max_rej: int
+    gate_map_cross: float
+    gate_map_pos: float
+    map_corr_distance: float
+
+
+class MapAid(NamedTuple):
+    """Map-aided measurements per filter step (``mode`` 0 none, 1 cross-track and heading
+    constraint, 2 full position and heading). Each refers to the state at step ``ref`` (its
+    fix) and is moved on by the dead reckoning since: ``x``/``y`` m, covariance ``vee``/``ven``/
+    ``vnn`` m², ``cross_var`` m², ``bearing`` rad, ``head_var`` rad²."""
+
+    mode: NDArray[np.int64]
+    ref: NDArray[np.int64]
+    x: NDArray[np.float64]
+    y: NDArray[np.float64]
+    vee: NDArray[np.float64]
+    ven: NDArray[np.float64]
+    vnn: NDArray[np.float64]
+    cross_var: NDArray[np.float64]
+    bearing: NDArray[np.float64]
+    head_var: NDArray[np.float64]
+
+
+class Outputs(NamedTuple):
+    """What the kernel writes per step; ``inc`` the dead-reckoning move (dx, dy, dψ) of it."""
+
+    state: NDArray[np.float64]
+    var: NDArray[np.float64]
+    cxy: NDArray[np.float64]
+    used: NDArray[np.bool_]
+    rejected: NDArray[np.bool_]
+    map_used: NDArray[np.bool_]
+    map_rejected: NDArray[np.bool_]
+    inc: NDArray[np.float64]
+
+
+class Carry(NamedTuple):
+    """The filter's state between kernel calls (``scalars``: rej_start, crej_start, rejects,
+    k_fix, var_corr, sig_s, distance at the last map-aided update, distance driven)."""
+
+    X: NDArray[np.float64]
+    P: NDArray[np.float64]
+    scalars: NDArray[np.float64]
+
+
+def new_carry(x0: NDArray[np.float64], p0: NDArray[np.float64]) -> Carry:
+    """The carry before the first step."""
+    return Carry(x0.copy(), p0.copy(), np.array([-1.0, -1.0, 0.0, -1.0, -1.0, 1.0, -1e9, 0.0]))
+
+
+def new_outputs(n: int) -> Outputs:
+    """Empty per-step outputs for ``n`` steps."""
+    z = np.zeros
+    return Outputs(
+        np.empty((n, N_STATE)),
+        np.empty((n, N_STATE)),
+        np.empty(n),
+        z(n, dtype=np.bool_),
+        z(n, dtype=np.bool_),
+        z(n, dtype=np.bool_),
+        z(n, dtype=np.bool_),
+        z((n, 3)),
+    )
+
+
+def no_map_aid(n: int) -> MapAid:
+    """No map-aided measurement at any of ``n`` steps."""
+    nan = [np.full(n, np.nan) for _ in range(8)]
+    return MapAid(np.zeros(n, dtype=np.int64), np.zeros(n, dtype=np.int64), *nan)
+
+
 @njit(cache=True)
-def _ekf(
-    dtheta, dodo, comp, gx, gy, gsig, gcourse, gcsig, dt, x0, p0, q, r_comp, a_comp, q_comp,
-    share, a_gps, white_steps, smooth_steps, gate_share, gate_pos, gate_ang, reset_steps, max_rej
-):  # type: ignore[no-untyped-def]  # fmt: skip
-    n = len(dtheta)
-    ns = len(x0)
-    X = x0.copy()
-    P = p0.copy()
-    out = np.empty((n, ns))
-    var = np.empty((n, ns))
-    cxy = np.empty(n)
-    used = np.zeros(n, dtype=np.bool_)
-    rejected = np.zeros(n, dtype=np.bool_)
+def _map_update(X, P, k, m, out, gate_cross, gate_pos, gate_ang, inflate):  # type: ignore[no-untyped-def]
+    """Apply the map-aided measurement of step ``k`` (see :class:`MapAid`), its variances times
+    ``inflate`` (its error is correlated along the road); True when accepted."""
+    ns = len(X)
+    # move the measurement on by the dead reckoning since its fix
+    dx = dy = dpsi = 0.0
+    for j in range(m.ref[k] + 1, k + 1):
+        dx += out.inc[j, 0]
+        dy += out.inc[j, 1]
+        dpsi += out.inc[j, 2]
+    zx, zy = m.x[k] + dx, m.y[k] + dy
+    b = m.bearing[k] + dpsi
+    hx = np.zeros(ns)
+    hx[0] = 1.0
+    hy = np.zeros(ns)
+    hy[1] = 1.0
+    hh = np.zeros(ns)
+    hh[2] = 1.0
+    nh = _wrap(b - X[2])
+    sh = P[2, 2] + m.head_var[k]
+    head_ok = nh * nh <= gate_ang * gate_ang * sh
+    if m.mode[k] == 1:  # with GPS: across the road only (along, it is the fix's own projection)
+        hn = np.zeros(ns)
+        hn[0] = math.cos(b)
+        hn[1] = -math.sin(b)
+        nu = hn[0] * (zx - X[0]) + hn[1] * (zy - X[1])
+        s = _quad(hn, P, hn) + m.cross_var[k]
+        if nu * nu > gate_cross * s:
+            return False
+        _update(X, P, hn, nu, m.cross_var[k] * inflate)
+    else:  # dead reckoning: the whole position
+        r00, r01, r11 = m.vee[k], m.ven[k], m.vnn[k]
+        s00 = P[0, 0] + r00
+        s11 = P[1, 1] + r11
+        s01 = P[0, 1] + r01
+        nx, ny = zx - X[0], zy - X[1]
+        det = s00 * s11 - s01 * s01
+        if det <= 0.0 or (s11 * nx * nx - 2.0 * s01 * nx * ny + s00 * ny * ny) / det > gate_pos:
+            return False
+        r00, r01, r11 = r00 * inflate, r01 * inflate, r11 * inflate
+        # decorrelate R: x first, then y given x (sequential scalar updates)
+        _update(X, P, hx, nx, r00)
+        # y's innovation with its part explained by x's removed
+        ry = r11 - r01 * r01 / r00 if r00 > 0.0 else r11
+        hyc = hy.copy()
+        hyc[0] = -r01 / r00 if r00 > 0.0 else 0.0
+        nyc = (zy - X[1]) - (r01 / r00 if r00 > 0.0 else 0.0) * (zx - X[0])
+        _update(X, P, hyc, nyc, max(ry, 1e-6))
+    if head_ok:
+        _update(X, P, hh, _wrap(b - X[2]), m.head_var[k] * inflate)
+    return True
+
+
+@njit(cache=True)
+def _ekf(k0, k1, c, st, p, m, o):  # type: ignore[no-untyped-def]
+    """Run the filter over steps ``k0 .. k1 - 1`` from carry ``c`` (updated in place), writing
+    ``o`` (:class:`Outputs`); ``st`` :class:`Streams`, ``p`` :class:`Params`, ``m`` :class:`MapAid`."""
+    dtheta, dodo, comp, gx, gy, gsig, gcourse, gcsig = st
+    dt, q, r_comp, a_comp, q_comp, share, a_gps = p.dt, p.q, p.r_comp, p.a_comp, p.q_comp, p.share, p.a_gps
+    white_steps, smooth_steps, gate_share, gate_pos = p.white_steps, p.smooth_steps, p.gate_share, p.gate_pos
+    gate_ang, reset_steps, max_rej = p.gate_ang, p.reset_steps, p.max_rej
+    X = c.X
+    P = c.P
+    ns = len(X)
+    out, var, cxy, used, rejected = o.state, o.var, o.cxy, o.used, o.rejected
     F = np.eye(ns)
     FP = np.zeros((ns, ns))
     h_pos = np.zeros((2, ns))
@@ -184,13 +356,13 @@ def _ekf(
     h_comp[7] = 1.0
     h_head = np.zeros(ns)
     h_head[2] = 1.0
-    rej_start = -1
-    crej_start = -1
-    rejects = 0
-    k_fix = -1
-    var_corr = -1.0
-    sig_s = 1.0
-    for k in range(n):
+    rej_start = int(c.scalars[0])
+    crej_start = int(c.scalars[1])
+    rejects = int(c.scalars[2])
+    k_fix = int(c.scalars[3])
+    var_corr = c.scalars[4]
+    sig_s = c.scalars[5]
+    for k in range(k0, k1):
         if k > 0:
             d0 = dodo[k]
             dpsi = dtheta[k] - X[3] * dt
@@ -200,6 +372,9 @@ def _ekf(
             X[0] += d * sn
             X[1] += d * cs
             X[2] += dpsi
+            o.inc[k, 0] = d * sn
+            o.inc[k, 1] = d * cs
+            o.inc[k, 2] = dpsi
             X[5] *= a_gps
             X[6] *= a_gps
             X[7] *= a_comp
@@ -307,16 +482,32 @@ def _ekf(
                 rejects += 1
                 if rej_start < 0:
                     rej_start = k
+        if k > 0:
+            c.scalars[7] += dodo[k] * (1.0 + X[4])
+        if m.mode[k] > 0:
+            # measurements closer than the map error's correlation distance are not independent
+            gap = c.scalars[7] - c.scalars[6]
+            inflate = min(p.map_corr_distance / max(gap, 1e-3), 1e6) if p.map_corr_distance > 0.0 else 1.0
+            if _map_update(X, P, k, m, o, p.gate_map_cross, p.gate_map_pos, gate_ang, max(inflate, 1.0)):
+                o.map_used[k] = True
+                c.scalars[6] = c.scalars[7]
+            else:
+                o.map_rejected[k] = True
         for a in range(ns):
             for b in range(a + 1, ns):
-                m = 0.5 * (P[a, b] + P[b, a])
-                P[a, b] = m
-                P[b, a] = m
+                m_ = 0.5 * (P[a, b] + P[b, a])
+                P[a, b] = m_
+                P[b, a] = m_
         out[k, :] = X
         for a in range(ns):
             var[k, a] = P[a, a]
         cxy[k] = P[0, 1]
-    return out, var, cxy, used, rejected
+    c.scalars[0] = rej_start
+    c.scalars[1] = crej_start
+    c.scalars[2] = rejects
+    c.scalars[3] = k_fix
+    c.scalars[4] = var_corr
+    c.scalars[5] = sig_s
 
 
 def _at_grid(
@@ -332,8 +523,18 @@ def _at_grid(
     return out
 
 
-def run_filter(sensors: SensorData, *, config: KalmanConfig = DEFAULT_KALMAN) -> FilterResult:
-    """Fuse raw sensor streams; one state per filter step (``config.rate`` Hz)."""
+class FilterSetup(NamedTuple):
+    """Everything the kernel needs: the grid ``t``, the streams, the constants, the prior."""
+
+    t: NDArray[np.float64]
+    streams: Streams
+    params: Params
+    x0: NDArray[np.float64]
+    p0: NDArray[np.float64]
+
+
+def filter_setup(sensors: SensorData, *, config: KalmanConfig = DEFAULT_KALMAN) -> FilterSetup:
+    """The sensor streams on the filter grid (``config.rate`` Hz), the constants and the prior."""
     dt = 1.0 / config.rate
     T = float(max(sensors.odo_t[-1], sensors.gps_t[-1])) if len(sensors.odo_t) else 0.0
     t = np.arange(0.0, T + 1e-9, dt)
@@ -385,22 +586,12 @@ def run_filter(sensors: SensorData, *, config: KalmanConfig = DEFAULT_KALMAN) ->
             config.scale_walk,
         ]
     )
-    state, var, cxy, used, rejected = _ekf(
-        dtheta,
-        dodo,
-        comp,
-        gx,
-        gy,
-        gsig,
-        gcourse,
-        gcsig,
+    params = Params(
         dt,
-        x0,
-        p0,
         q,
-        np.radians(config.compass_sigma) ** 2,
+        float(np.radians(config.compass_sigma) ** 2),
         a_comp,
-        np.radians(config.compass_bias_sigma) ** 2 * (1.0 - a_comp**2),
+        float(np.radians(config.compass_bias_sigma) ** 2 * (1.0 - a_comp**2)),
         config.gps_corr_share,
         float(np.exp(-dt / config.gps_corr_time)),
         max(1, round(config.gps_white_time * config.rate)),
@@ -410,10 +601,41 @@ def run_filter(sensors: SensorData, *, config: KalmanConfig = DEFAULT_KALMAN) ->
         config.gate_angle,
         max(1, round(config.reject_reset_s * config.rate)),
         config.max_rejects,
+        config.gate_map_cross,
+        config.gate_map_pos,
+        config.map_corr_distance,
     )
+    streams = Streams(dtheta, dodo, comp, gx, gy, gsig, gcourse, gcsig)
+    return FilterSetup(t, streams, params, x0, p0)
+
+
+def run_steps(setup: FilterSetup, carry: Carry, aid: MapAid, out: Outputs, k0: int, k1: int) -> None:
+    """Run the filter over steps ``k0 .. k1 - 1`` (carry and outputs updated in place)."""
+    _ekf(k0, k1, carry, setup.streams, setup.params, aid, out)
+
+
+def filter_result(setup: FilterSetup, out: Outputs) -> FilterResult:
+    """The :class:`FilterResult` of a finished run."""
     return FilterResult(
-        t=t, state=state, var=var, cov_xy=cxy, gps_used=used, gps_rejected=rejected, dodo=dodo
+        t=setup.t,
+        state=out.state,
+        var=out.var,
+        cov_xy=out.cxy,
+        gps_used=out.used,
+        gps_rejected=out.rejected,
+        dodo=setup.streams.dodo,
+        map_used=out.map_used,
+        map_rejected=out.map_rejected,
     )
+
+
+def run_filter(sensors: SensorData, *, config: KalmanConfig = DEFAULT_KALMAN) -> FilterResult:
+    """Fuse raw sensor streams; one state per filter step (``config.rate`` Hz)."""
+    setup = filter_setup(sensors, config=config)
+    n = len(setup.t)
+    out = new_outputs(n)
+    run_steps(setup, new_carry(setup.x0, setup.p0), no_map_aid(n), out, 0, n)
+    return filter_result(setup, out)
 
 
 @dataclass(frozen=True)

@@ -31,6 +31,32 @@ PAPER_OUTAGES: tuple[tuple[float, float], ...] = (
 )
 
 
+def spread_outages(duration: float) -> list[tuple[float, float]]:
+    """The paper's outages when they fit in ``duration`` s, else the same five durations spread over it.
+
+    When even spread there would be less than 20 s of GPS between them, as many as fit with
+    20 s of GPS before each.
+    """
+    if PAPER_OUTAGES[-1][0] + PAPER_OUTAGES[-1][1] + 30.0 <= duration:
+        return list(PAPER_OUTAGES)
+    durations = tuple(d for _, d in PAPER_OUTAGES)
+    total = sum(durations)
+    gap = (duration - total) / (len(durations) + 1)
+    if gap < 20.0:  # too short for all five: as many as fit with 20 s of GPS between them
+        out, t = [], 20.0
+        for d in durations:
+            if t + d + 20.0 > duration:
+                break
+            out.append((t, d))
+            t += d + 20.0
+        return out
+    out, t = [], gap
+    for d in durations:
+        out.append((t, d))
+        t += d + gap
+    return out
+
+
 def parse_outages(spec: str | Sequence[tuple[float, float]] | None) -> list[tuple[float, float]]:
     """Outages from a preset name (``"paper"``, ``"none"``) or ``"START:DUR,START:DUR"``.
 

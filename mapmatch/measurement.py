@@ -1,0 +1,353 @@
+"""The map-aided measurement: the online matcher's answer as something a Kalman filter can weigh.
+
+Each answer of :class:`~mapmatch.online.OnlineMatcher` carries a
+:class:`~mapmatch.types.MapAidedMeasurement`: the position on the road with its east/north
+covariance, the road heading with its σ, the probability of the road and whether feeding it
+back is safe (``usable``).
+
+* **Along the road** the σ is what the matcher knows of the position along the road. With GPS
+  it is the fix's projection less its learnt along-track bias (variance: the bias's along-track
+  variance plus the white share of the fix's variance), fused with the turn anchor carried by
+  the odometer. In dead reckoning it is the odometer's carry: the turn anchor's σ (grown with
+  the odometer's scale σ) or, without one, the last GPS-aided σ grown by the scale σ of the
+  distance driven since.
+* **Across the road** the σ is the vehicle's spread about the centre line plus the map's
+  drawing error ``map_sigma``: uniform over its half of a two-way road (rms offset
+  ``(W/2)/√3``) or over the whole width of a one-way one (``W/√12``). ``W`` is the road width:
+  from the map's ``width`` tag, else ``lanes · lane_width``, else the default of the road
+  class (:data:`ROAD_WIDTH_M`, the ``road_width`` config field).
+* **Heading**: the road bearing at the point, σ ``heading_sigma`` plus how much the bearing
+  changes within one along-track σ (bends), plus ``node_heading_sigma`` when that reach
+  crosses the end of the edge (the next road is not known yet).
+* **usable** is false off road, while (re)initialising, for the first ``settle_distance``
+  metres after a (re)initialisation, inside an unresolved ambiguous region (the reported
+  road's probability below ``resolved_probability``) and whenever the probability is below
+  ``min_probability``.
+
+Consistency: the measurement is not independent of the fix it came from (with GPS its
+along-track position is the fix's own projection). A filter should use it, while GPS is valid,
+as a constraint on the cross-track position and the heading only, and in dead reckoning as a
+full position measurement (covariance as given) plus the heading; and gate it on its
+innovation (χ²) as it gates GPS. :mod:`mapmatch.sim.kalman` implements that rule.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, fields
+
+import numpy as np
+
+from graph.road_graph import RoadGraph
+from mapmatch.errors import ConfigError
+from mapmatch.types import MapAidedMeasurement, State
+
+# default carriageway width in metres per OSM highway class (all lanes, both directions on a
+# two-way road; one carriageway of a dual road drawn as one-way); unknown classes: 6 m
+ROAD_WIDTH_M: tuple[tuple[str, float], ...] = (
+    ("motorway", 7.5),
+    ("trunk", 7.5),
+    ("primary", 7.0),
+    ("secondary", 6.5),
+    ("tertiary", 6.0),
+    ("unclassified", 5.0),
+    ("residential", 5.5),
+    ("living_street", 4.5),
+    ("service", 3.5),
+    ("track", 3.0),
+    ("motorway_link", 4.0),
+    ("trunk_link", 4.0),
+    ("primary_link", 4.0),
+    ("secondary_link", 4.0),
+    ("tertiary_link", 4.0),
+)
+
+# the measurement's columns in a results CSV (``mapmatch replay``), appended to its others
+AIDED_COLUMNS: tuple[str, ...] = (
+    "aided_usable",
+    "aided_reason",
+    "aided_lat",
+    "aided_lon",
+    "aided_var_e",
+    "aided_cov_en",
+    "aided_var_n",
+    "aided_along_sigma",
+    "aided_cross_sigma",
+    "aided_heading",
+    "aided_heading_sigma",
+    "aided_probability",
+)
+
+
+@dataclass(frozen=True)
+class MeasurementConfig:
+    """How the map-aided measurement is built and when it is usable.
+
+    min_probability : the reported road's probability below which the measurement is not usable.
+    resolved_probability : in an ambiguous region, the probability the reported road needs for
+        the region to count as resolved (usable).
+    settle_distance : metres driven after a (re)initialisation before the measurement is usable.
+    map_sigma : metres; 1-σ error of the map's centre line.
+    lane_width : metres per lane, for a road with a ``lanes`` tag but no ``width``.
+    default_width : metres; the road width for a class not in ``road_width``.
+    road_width : (class, metres) default carriageway width per OSM highway class.
+    heading_sigma : degrees; least σ of the road heading (lane changes, drawing).
+    node_heading_sigma : degrees added when one along-track σ reaches past the edge's end.
+    along_sigma_max : metres; the along-track σ is capped here (a very uncertain position is
+        as good as none, and keeps the covariance finite).
+    """
+
+    min_probability: float = 0.9
+    resolved_probability: float = 0.99
+    settle_distance: float = 100.0
+    map_sigma: float = 1.0
+    lane_width: float = 3.25
+    default_width: float = 6.0
+    road_width: tuple[tuple[str, float], ...] = ROAD_WIDTH_M
+    heading_sigma: float = 2.0
+    node_heading_sigma: float = 5.0
+    along_sigma_max: float = 1000.0
+
+    def __post_init__(self) -> None:
+        for f in fields(self):
+            v = getattr(self, f.name)
+            if f.name == "road_width":
+                if not all(isinstance(c, str) and math.isfinite(w) and w > 0 for c, w in v):
+                    raise ConfigError("road_width must be (class, positive metres) pairs")
+                continue
+            if isinstance(v, bool) or not isinstance(v, int | float) or not math.isfinite(v) or v < 0:
+                raise ConfigError(f"{f.name} must be a finite non-negative number, got {v!r}")
+        if self.min_probability > 1 or self.resolved_probability > 1:
+            raise ConfigError("min_probability and resolved_probability must be at most 1")
+        if min(self.map_sigma, self.lane_width, self.default_width, self.heading_sigma) <= 0:
+            raise ConfigError("map_sigma, lane_width, default_width and heading_sigma must be positive")
+
+
+DEFAULT_MEASUREMENT = MeasurementConfig()
+
+
+def road_width(
+    highway: str,
+    *,
+    width: float = math.nan,
+    lanes: float = math.nan,
+    config: MeasurementConfig = DEFAULT_MEASUREMENT,
+) -> float:
+    """Carriageway width in metres: the ``width`` tag, else ``lanes`` lanes, else the class default."""
+    if math.isfinite(width) and width > 0:
+        return width
+    if math.isfinite(lanes) and lanes > 0:
+        return lanes * config.lane_width
+    return dict(config.road_width).get(highway, config.default_width)
+
+
+def cross_track_sigma(
+    highway: str,
+    *,
+    one_way: bool,
+    width: float = math.nan,
+    lanes: float = math.nan,
+    config: MeasurementConfig = DEFAULT_MEASUREMENT,
+) -> float:
+    """1-σ of the vehicle's position across the road's centre line, metres.
+
+    On a two-way road the vehicle keeps to its half (uniform over ``[0, W/2]`` from the centre
+    line: rms ``(W/2)/√3``), on a one-way road it may be anywhere across (``W/√12``); the
+    map's drawing error ``map_sigma`` adds.
+    """
+    w = road_width(highway, width=width, lanes=lanes, config=config)
+    spread = w / math.sqrt(12.0) if one_way else 0.5 * w / math.sqrt(3.0)
+    return math.hypot(spread, config.map_sigma)
+
+
+def along_track_sigma(
+    *,
+    gps: bool,
+    fix_sigma: float,
+    bias_along_var: float,
+    white_share: float,
+    anchor_sd: float,
+    odo_sigma: float,
+    dr_distance: float,
+    gps_sigma: float,
+    config: MeasurementConfig = DEFAULT_MEASUREMENT,
+) -> float:
+    """1-σ of the matcher's position along the road, metres.
+
+    Parameters
+    ----------
+    gps
+        Whether the fix was GPS-aided.
+    fix_sigma
+        The fix's position σ as the matcher uses it (m).
+    bias_along_var
+        Variance of the learnt fix bias along the road (m²; NaN when not learnt).
+    white_share
+        The share of the fix's σ that is white (not learnt as bias).
+    anchor_sd
+        σ of the turn anchor carried by the odometer (m; NaN when none).
+    odo_sigma
+        σ of the odometer's relative distance error after its learnt scale.
+    dr_distance
+        Odometer metres since the last GPS-aided fix.
+    gps_sigma
+        The σ of the along-track position when GPS was lost (m), used in dead reckoning
+        without an anchor.
+    """
+    va = anchor_sd * anchor_sd if math.isfinite(anchor_sd) else math.inf
+    if gps:
+        vf = (
+            bias_along_var + (white_share * fix_sigma) ** 2
+            if math.isfinite(bias_along_var)
+            else fix_sigma * fix_sigma
+        )
+        v = vf if math.isinf(va) else vf * va / (vf + va)
+    else:
+        carry = gps_sigma * gps_sigma + (odo_sigma * max(dr_distance, 0.0)) ** 2
+        v = min(va, carry)
+    return min(math.sqrt(v), config.along_sigma_max)
+
+
+def _bearing_at(graph: RoadGraph, edge: int, offset: float) -> float:
+    """Bearing (degrees) of ``edge``'s polyline piece at ``offset`` metres from its start."""
+    a, b = int(graph.edge_seg_ptr[edge]), int(graph.edge_seg_ptr[edge + 1])
+    xy = graph.seg_xy[a:b]
+    d = np.diff(xy, axis=0)
+    if len(d) == 0:
+        return float(graph.edge_bearing_start[edge])
+    cum = np.cumsum(np.hypot(d[:, 0], d[:, 1]))
+    i = min(int(np.searchsorted(cum, offset)), len(d) - 1)
+    return math.degrees(math.atan2(d[i, 0], d[i, 1])) % 360.0
+
+
+def _angle(a: float, b: float) -> float:
+    return abs((a - b + 180.0) % 360.0 - 180.0)
+
+
+def heading_sigma(
+    graph: RoadGraph,
+    edge: int,
+    offset: float,
+    along_sigma: float,
+    *,
+    config: MeasurementConfig = DEFAULT_MEASUREMENT,
+) -> float:
+    """1-σ of the road heading at ``offset`` on ``edge``, degrees: the floor, the bearing's
+    change within one along-track σ, and ``node_heading_sigma`` when that reaches past the end."""
+    here = _bearing_at(graph, edge, offset)
+    length = float(graph.edge_len[edge])
+    bend = max(
+        _angle(here, _bearing_at(graph, edge, max(offset - along_sigma, 0.0))),
+        _angle(here, _bearing_at(graph, edge, min(offset + along_sigma, length))),
+    )
+    node = config.node_heading_sigma if offset + along_sigma > length else 0.0
+    return math.sqrt(config.heading_sigma**2 + bend**2 + node**2)
+
+
+def map_aided_measurement(
+    graph: RoadGraph,
+    *,
+    state: State,
+    edge: int,
+    offset: float,
+    lat: float,
+    lon: float,
+    bearing: float,
+    probability: float,
+    gps: bool,
+    fix_sigma: float,
+    bias_cov: tuple[float, float, float],
+    white_share: float,
+    anchor_sd: float,
+    odo_sigma: float,
+    dr_distance: float,
+    gps_sigma: float,
+    since_init: float,
+    width: float = math.nan,
+    lanes: float = math.nan,
+    config: MeasurementConfig = DEFAULT_MEASUREMENT,
+) -> MapAidedMeasurement:
+    """The measurement of one answer, from what the matcher knows (see the module docstring).
+
+    ``state``/``edge``/``offset``/``lat``/``lon``/``bearing`` are the answer's; ``probability``
+    that of the reported edge; ``bias_cov`` the learnt fix bias covariance ``(Pxx, Pxy, Pyy)``
+    (m²; NaN when not learnt); ``since_init`` odometer metres since the last (re)initialisation;
+    ``width``/``lanes`` the road's tags when the map has them. The rest as in
+    :func:`along_track_sigma`.
+    """
+    if edge < 0 or not math.isfinite(lat):
+        return MapAidedMeasurement()
+    rad = math.radians(bearing)
+    tx, ty = math.sin(rad), math.cos(rad)  # along the road (east, north)
+    pxx, pxy, pyy = bias_cov
+    along = along_track_sigma(
+        gps=gps,
+        fix_sigma=fix_sigma,
+        bias_along_var=tx * tx * pxx + 2.0 * tx * ty * pxy + ty * ty * pyy,
+        white_share=white_share,
+        anchor_sd=anchor_sd,
+        odo_sigma=odo_sigma,
+        dr_distance=dr_distance,
+        gps_sigma=gps_sigma,
+        config=config,
+    )
+    cross = cross_track_sigma(
+        graph.edge_highway(edge),
+        one_way=int(graph.edge_reverse[edge]) < 0,
+        width=width,
+        lanes=lanes,
+        config=config,
+    )
+    va, vc = along * along, cross * cross
+    # rotate diag(along², cross²) from (along, across) to (east, north); across = (ty, -tx)
+    var_e = va * tx * tx + vc * ty * ty
+    var_n = va * ty * ty + vc * tx * tx
+    cov_en = (va - vc) * tx * ty
+    if state == State.OFF_ROAD:
+        reason = "off_road"
+    elif state in (State.INITIALISING, State.REINITIALISED):
+        reason = "initialising"
+    elif since_init < config.settle_distance:
+        reason = "settling"
+    elif state == State.AMBIGUOUS and probability < config.resolved_probability:
+        reason = "ambiguous"
+    elif probability < config.min_probability:
+        reason = "low_probability"
+    else:
+        reason = ""
+    return MapAidedMeasurement(
+        lat=lat,
+        lon=lon,
+        var_e=var_e,
+        cov_en=cov_en,
+        var_n=var_n,
+        along_sigma=along,
+        cross_sigma=cross,
+        heading=bearing,
+        heading_sigma=heading_sigma(graph, edge, offset, along, config=config),
+        probability=probability,
+        usable=reason == "",
+        reason=reason,
+    )
+
+
+def aided_cells(m: MapAidedMeasurement) -> list[str]:
+    """The measurement as results-CSV cells (:data:`AIDED_COLUMNS`; empty for NaN)."""
+
+    def num(x: float, fmt: str) -> str:
+        return "" if math.isnan(x) else format(x, fmt)
+
+    return [
+        "1" if m.usable else "0",
+        m.reason,
+        num(m.lat, ".8f"),
+        num(m.lon, ".8f"),
+        num(m.var_e, ".4f"),
+        num(m.cov_en, ".4f"),
+        num(m.var_n, ".4f"),
+        num(m.along_sigma, ".3f"),
+        num(m.cross_sigma, ".3f"),
+        num(m.heading, ".2f"),
+        num(m.heading_sigma, ".2f"),
+        num(m.probability, ".4f"),
+    ]

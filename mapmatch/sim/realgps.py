@@ -1,0 +1,496 @@
+"""A fused drive from a real GPS track and its true route (Kubicka tracks), for benchmarks.
+
+The simulator (:func:`mapmatch.sim.drive.simulate_drive`) moves *simulated* GPS along a true
+route. Here the GPS-aided positions are a real receiver's fixes instead, with the errors of
+real receivers (biases that last minutes, multipath, lag at turns); only the dead-reckoning
+sensors are modelled. The result is the same :class:`~mapmatch.sim.drive.Drive`, so the same
+scoring, ``write_fixes_csv`` and ``mapmatch replay`` apply.
+
+Steps (:func:`real_drive`):
+
+1. The true route: ``truth.geojson`` is turned into a legal edge path on the prepared map by
+   :func:`~mapmatch.sim.routes.route_from_geometry` (the map's edges come from the same
+   ``roads.geojson``, so the truth lies on them), cut to where the first and last fixes lie.
+2. The true motion: each real fix is projected onto the route within a window ahead of the
+   previous one (at most ``max_speed_mps`` times the time step, plus a little), the route
+   distances are smoothed over ``timing_smooth_s`` and made non-decreasing. This gives the
+   true route distance at every fix time; between fixes it is interpolated linearly. The true
+   heading is the route's tangent over ±``heading_base_m``.
+3. The fused output, on a base grid of 10 Hz, subsampled to 1 Hz:
+
+   * **position with GPS**: the real fix; between two real fixes at most ``max_interp_gap_s``
+     apart (at 10 Hz, and at 1 Hz where a track has a 2 s step) interpolated linearly. After
+     a stretch without GPS, the dead-reckoned offset is blended out: a share ``blend_keep``
+     of it remains at the first fix, and it decays by that factor per second (a Kalman
+     filter whose position covariance has grown in the outage takes most of the first fix);
+   * **position without GPS** (the injected outages, and real gaps in the track longer than
+     ``max_interp_gap_s``): dead reckoning from the last output with the reported heading and
+     odometer below;
+   * **heading**: the true heading passed through a first-order lag of ``heading_lag_s``
+     (a fused heading trails the turn), plus a Gauss-Markov bias (σ ``heading_bias_deg``,
+     correlation ``heading_bias_time_s``) and white noise ``heading_noise_deg``. Without GPS
+     the gyro's residual bias is integrated: a constant per drive (σ ``gyro_bias_dps``) plus
+     a random walk (``gyro_bias_walk_dps`` per √s), so the heading drifts through an outage
+     and snaps back when GPS returns;
+   * **odometer**: the true distance times ``1 + k`` with a residual scale error k per drive
+     (σ ``odo_scale_sigma``: what is left after the fusion node learnt the scale), plus white
+     noise ``odo_noise_m`` per output interval; ``speed`` is that distance over the interval;
+   * **reported σ**: ``pos_sigma`` is ``gps_sigma_m`` (the receiver's nominal accuracy; the
+     tracks carry none) times a slowly varying log-normal factor (σ ``gps_sigma_var``), and
+     without GPS it grows as the error model predicts (scale error times distance, heading
+     error and gyro drift times distance); ``heading_sigma`` likewise.
+
+The truth (per fix: position on the route centre line, edge, offset, heading, speed, whether
+GPS was missing) and the route are built exactly as the simulator builds them.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+from collections.abc import Sequence
+from dataclasses import dataclass, fields
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+from numpy.typing import NDArray
+
+from graph.projection import to_lonlat, to_xy
+from graph.road_graph import RoadGraph
+from mapmatch.errors import ValidationError
+from mapmatch.sim.drive import FIX_COLUMNS, TRUTH_COLUMNS, Drive
+from mapmatch.sim.kalman import FusedStream
+from mapmatch.sim.profile import Trajectory
+from mapmatch.sim.routes import Route, route_from_edges, route_from_geometry
+from mapmatch.sim.sensors import SensorData, spread_outages
+
+BASE_RATE_HZ = 10.0
+
+
+@dataclass(frozen=True)
+class RealGpsConfig:
+    """Error model of the dead-reckoning side of a real-GPS fused drive (1-σ unless stated).
+
+    Timing of the true motion: ``max_speed_mps`` the fastest the vehicle moves between fixes,
+    ``timing_smooth_s`` the window smoothing the fixes' route distances, ``heading_base_m`` the
+    half-length of route over which the true heading is taken.
+    GPS: ``max_interp_gap_s`` the longest gap between real fixes still interpolated (longer
+    gaps are dead-reckoned), ``gps_sigma_m`` the receiver's nominal 1-σ, ``gps_sigma_var`` σ of
+    its slowly varying log factor over ``gps_sigma_time_s``, ``blend_keep`` the share of the
+    dead-reckoning offset left at the first fix after an outage (and per second after).
+    Heading: ``heading_noise_deg`` white, ``heading_bias_deg`` Gauss-Markov over
+    ``heading_bias_time_s``, ``heading_lag_s`` lag behind the true heading, ``gyro_bias_dps``
+    the gyro's residual bias in deg/s (constant per drive) and ``gyro_bias_walk_dps`` its
+    random walk in deg/s/√s, both integrated only without GPS.
+    Odometer: ``odo_scale_sigma`` residual scale error per drive, ``odo_noise_m`` white noise
+    per output interval.
+    """
+
+    max_speed_mps: float = 45.0
+    timing_smooth_s: float = 5.0
+    heading_base_m: float = 4.0
+    max_interp_gap_s: float = 2.5
+    gps_sigma_m: float = 5.0
+    gps_sigma_var: float = 0.2
+    gps_sigma_time_s: float = 120.0
+    blend_keep: float = 0.15
+    heading_noise_deg: float = 1.0
+    heading_bias_deg: float = 1.5
+    heading_bias_time_s: float = 30.0
+    heading_lag_s: float = 0.3
+    gyro_bias_dps: float = 0.05
+    gyro_bias_walk_dps: float = 0.002
+    odo_scale_sigma: float = 0.01
+    odo_noise_m: float = 0.02
+
+    def __post_init__(self) -> None:
+        for f in fields(self):
+            v = getattr(self, f.name)
+            if not (isinstance(v, (int, float)) and math.isfinite(v) and v >= 0):
+                raise ValidationError(f.name, f"must be a finite number >= 0, got {v!r}")
+        for name in ("max_speed_mps", "timing_smooth_s", "heading_base_m", "max_interp_gap_s", "gps_sigma_m"):
+            if getattr(self, name) <= 0:
+                raise ValidationError(name, "must be > 0")
+        for name in ("gps_sigma_time_s", "heading_bias_time_s"):
+            if getattr(self, name) <= 0:
+                raise ValidationError(name, "must be > 0")
+        if self.blend_keep >= 1.0:
+            raise ValidationError("blend_keep", "must be < 1")
+
+
+DEFAULT_REALGPS = RealGpsConfig()
+
+
+# --------------------------------------------------------------------------- reading
+def read_track(path: str | os.PathLike[str]) -> pd.DataFrame:
+    """A Kubicka ``track.csv`` (``t,lat,lon``) sorted by time, duplicate times dropped."""
+    try:
+        df = pd.read_csv(path)
+    except (OSError, pd.errors.ParserError, UnicodeDecodeError) as exc:
+        raise ValidationError("track", f"{path}: cannot read ({exc})") from None
+    if not {"t", "lat", "lon"} <= set(df.columns):
+        raise ValidationError("track", f"{path}: needs columns t, lat, lon")
+    df = df[["t", "lat", "lon"]].astype(float).dropna()
+    df = df.sort_values("t").drop_duplicates("t").reset_index(drop=True)
+    if len(df) < 2:
+        raise ValidationError("track", f"{path}: fewer than two fixes")
+    return df
+
+
+def read_truth_xy(graph: RoadGraph, path: str | os.PathLike[str]) -> NDArray[np.float64]:
+    """The true route of a ``truth.geojson`` (LineString or MultiLineString) in map metres."""
+    try:
+        data = json.loads(Path(path).read_text())
+    except (OSError, json.JSONDecodeError, UnicodeDecodeError) as exc:
+        raise ValidationError("truth", f"{path}: not GeoJSON ({exc})") from None
+    feats = data.get("features", [data]) if isinstance(data, dict) else []
+    coords: list[list[float]] = []
+    for f in feats:
+        geom = (f or {}).get("geometry") or {}
+        if geom.get("type") == "LineString":
+            coords += geom["coordinates"]
+        elif geom.get("type") == "MultiLineString":
+            coords += [c for part in geom["coordinates"] for c in part]
+    if len(coords) < 2:
+        raise ValidationError("truth", f"{path}: no route line")
+    ll = np.asarray(coords, dtype=np.float64)[:, :2]
+    keep = np.concatenate([[True], np.any(np.diff(ll, axis=0) != 0.0, axis=1)])
+    return to_xy(graph.crs, ll[keep, 0], ll[keep, 1])
+
+
+# --------------------------------------------------------------------------- true motion
+def fix_route_distance(
+    route: Route,
+    xy: NDArray[np.float64],
+    t: NDArray[np.float64],
+    *,
+    config: RealGpsConfig = DEFAULT_REALGPS,
+    first_window_m: float = 2000.0,
+    back_m: float = 10.0,
+) -> NDArray[np.float64]:
+    """Route distance of each fix: projected within a window ahead, smoothed, non-decreasing."""
+    a = route.xy[:-1]
+    d = np.diff(route.xy, axis=0)
+    s0 = route.s[:-1]
+    seg_s = np.diff(route.s)
+    l2 = np.maximum((d**2).sum(axis=1), 1e-12)
+    out = np.empty(len(xy))
+    prev = 0.0
+    for i in range(len(xy)):
+        if i == 0:
+            lo, hi = 0.0, first_window_m
+        else:
+            lo = prev - back_m
+            hi = prev + config.max_speed_mps * float(t[i] - t[i - 1]) + 20.0
+        j0 = max(int(np.searchsorted(s0, lo, side="right")) - 1, 0)
+        j1 = max(int(np.searchsorted(s0, hi, side="right")), j0 + 1)
+        pa, pd_, pl = a[j0:j1], d[j0:j1], l2[j0:j1]
+        f = np.clip(((xy[i] - pa) * pd_).sum(axis=1) / pl, 0.0, 1.0)
+        q = pa + f[:, None] * pd_
+        k = int(np.argmin(((q - xy[i]) ** 2).sum(axis=1)))
+        s = float(s0[j0 + k] + f[k] * seg_s[j0 + k])
+        out[i] = s if i == 0 else max(s, prev - back_m)
+        prev = out[i]
+    # smooth by time, then non-decreasing
+    w = config.timing_smooth_s
+    cs = np.concatenate([[0.0], np.cumsum(out)])
+    lo_i = np.searchsorted(t, t - w / 2.0, side="left")
+    hi_i = np.searchsorted(t, t + w / 2.0, side="right")
+    sm = (cs[hi_i] - cs[lo_i]) / np.maximum(hi_i - lo_i, 1)
+    return np.clip(np.maximum.accumulate(sm), 0.0, route.length)
+
+
+def _trim(graph: RoadGraph, route: Route, s_from: float, s_to: float) -> Route:
+    """The part of ``route`` between route distances ``s_from`` and ``s_to``."""
+    e0 = int(np.clip(np.searchsorted(route.edge_start, s_from, side="right") - 1, 0, len(route.edges) - 1))
+    e1 = int(np.clip(np.searchsorted(route.edge_start, s_to, side="right") - 1, e0, len(route.edges) - 1))
+    return route_from_edges(
+        graph,
+        route.edges[e0 : e1 + 1].tolist(),
+        start_offset=s_from - float(route.edge_start[e0]),
+        end_offset=s_to - float(route.edge_start[e1]),
+    )
+
+
+def _route_heading(route: Route, s: NDArray[np.float64], half_m: float) -> NDArray[np.float64]:
+    """Unwrapped heading (rad, clockwise from north) of the route at distances ``s``."""
+    p0 = route.position(np.clip(s - half_m, 0.0, route.length))
+    p1 = route.position(np.clip(s + half_m, 0.0, route.length))
+    return np.unwrap(np.arctan2(p1[:, 0] - p0[:, 0], p1[:, 1] - p0[:, 1]))
+
+
+def _gauss_markov(
+    n: int, dt: float, tau: float, sigma: float, rng: np.random.Generator
+) -> NDArray[np.float64]:
+    a = math.exp(-dt / tau)
+    w = rng.normal(0.0, sigma * math.sqrt(1.0 - a * a), n)
+    out = np.empty(n)
+    x = rng.normal(0.0, sigma)
+    for i in range(n):
+        x = a * x + w[i]
+        out[i] = x
+    return out
+
+
+# --------------------------------------------------------------------------- the drive
+def real_drive(
+    graph: RoadGraph,
+    track_dir: str | os.PathLike[str],
+    *,
+    rate_hz: float = 1.0,
+    outages: bool | Sequence[tuple[float, float]] = True,
+    seed: int = 0,
+    vehicle_id: str | None = None,
+    time0: float = 0.0,
+    config: RealGpsConfig = DEFAULT_REALGPS,
+) -> Drive:
+    """The fused drive of a real GPS track (``track.csv`` + ``truth.geojson`` in ``track_dir``).
+
+    Parameters
+    ----------
+    graph
+        The map prepared from the track's ``roads.geojson``.
+    track_dir
+        A Kubicka track folder.
+    rate_hz
+        Fused output rate: 1 or 10 Hz.
+    outages
+        True: the seed papers' five outages spread over the drive
+        (:func:`~mapmatch.sim.sensors.spread_outages`); False: none; or (start, duration)
+        pairs in seconds from the first fix.
+    seed
+        Seed of the dead-reckoning errors.
+    vehicle_id, time0
+        Vehicle id (default: the folder's name) and the time of the first fix.
+    config
+        The error model (:class:`RealGpsConfig`).
+    """
+    if rate_hz not in (1, 1.0, 10, 10.0):
+        raise ValidationError("rate_hz", "must be 1 or 10 Hz")
+    folder = Path(track_dir)
+    vid = vehicle_id if vehicle_id is not None else folder.name
+    track = read_track(folder / "track.csv")
+    t_fix = track["t"].to_numpy() - float(track["t"].iloc[0])
+    fix_xy = to_xy(graph.crs, track["lon"].to_numpy(), track["lat"].to_numpy())
+    full = route_from_geometry(graph, read_truth_xy(graph, folder / "truth.geojson"))
+    s_full = fix_route_distance(full, fix_xy, t_fix, config=config)
+    s_from, s_to = float(s_full[0]), float(s_full[-1])
+    if s_to - s_from < 1.0:
+        raise ValidationError("truth", f"{folder}: the fixes do not move along the true route")
+    route = _trim(graph, full, s_from, s_to)
+    s_fix = np.clip(s_full - s_from, 0.0, route.length)
+    duration = float(t_fix[-1])
+    outs = (
+        spread_outages(duration)
+        if outages is True
+        else []
+        if outages is False
+        else [(float(a), float(b)) for a, b in outages]
+    )
+    rng = np.random.default_rng(seed)
+    cfg = config
+
+    # ---- true motion on the base grid
+    dt = 1.0 / BASE_RATE_HZ
+    tb = np.arange(0.0, duration + 1e-9, dt)
+    n = len(tb)
+    sb = np.interp(tb, t_fix, s_fix)
+    pos = route.position(sb)
+    psi = _route_heading(route, sb, cfg.heading_base_m)
+    speed = np.gradient(sb, dt) if n > 1 else np.zeros(n)
+    yaw = np.gradient(psi, dt) if n > 1 else np.zeros(n)
+    traj = Trajectory(
+        dt=dt, t=tb, x=pos[:, 0], y=pos[:, 1], psi=psi, yaw_rate=yaw, speed=speed, dist=sb, s=sb
+    )
+
+    # ---- GPS availability and position (real fixes, interpolated between close ones)
+    k = np.clip(np.searchsorted(t_fix, tb, side="right") - 1, 0, len(t_fix) - 1)
+    k1 = np.minimum(k + 1, len(t_fix) - 1)
+    exact = np.abs(t_fix[k] - tb) < 1e-6
+    gap = t_fix[k1] - t_fix[k]
+    have = exact | ((gap <= cfg.max_interp_gap_s) & (tb > t_fix[k]) & (tb < t_fix[k1]))
+    frac = np.where(gap > 0, (tb - t_fix[k]) / np.where(gap > 0, gap, 1.0), 0.0)
+    frac = np.where(exact, 0.0, frac)
+    gps = fix_xy[k] + frac[:, None] * (fix_xy[k1] - fix_xy[k])
+    in_out = np.zeros(n, dtype=bool)
+    for a, d in outs:
+        in_out |= (tb >= a) & (tb < a + d)
+    have &= ~in_out
+
+    # ---- reported heading: lagged truth + bias + noise; gyro drift without GPS
+    lag = psi.copy()
+    if cfg.heading_lag_s > 0:
+        alpha = 1.0 - math.exp(-dt / cfg.heading_lag_s)
+        for i in range(1, n):
+            lag[i] = lag[i - 1] + alpha * (psi[i] - lag[i - 1])
+    h_err = np.radians(
+        _gauss_markov(n, dt, cfg.heading_bias_time_s, cfg.heading_bias_deg, rng)
+        + rng.normal(0.0, cfg.heading_noise_deg, n)
+    )
+    gyro_bias = np.radians(
+        rng.normal(0.0, cfg.gyro_bias_dps)
+        + np.cumsum(rng.normal(0.0, cfg.gyro_bias_walk_dps * math.sqrt(dt), n))
+    )
+    # drift integrated over each stretch without GPS, reset when GPS is back
+    drift = np.zeros(n)
+    since = np.zeros(n)  # seconds without GPS
+    for i in range(1, n):
+        if not have[i]:
+            drift[i] = drift[i - 1] + gyro_bias[i] * dt
+            since[i] = since[i - 1] + dt
+    head = lag + h_err + drift
+
+    # ---- odometer
+    scale = float(rng.normal(0.0, cfg.odo_scale_sigma))
+    step_d = np.diff(sb, prepend=sb[0]) * (1.0 + scale)
+    odo = np.cumsum(step_d)
+
+    # ---- fused position: GPS, dead reckoning without it, the offset blended out on return
+    fx = np.empty(n)
+    fy = np.empty(n)
+    off_x = off_y = 0.0
+    back_t = -1.0
+    keep_rate = math.log(cfg.blend_keep) if cfg.blend_keep > 0 else -np.inf
+    for i in range(n):
+        if have[i]:
+            if i > 0 and not have[i - 1]:  # GPS is back: remember the dead-reckoning offset
+                px = fx[i - 1] + step_d[i] * math.sin(head[i])
+                py = fy[i - 1] + step_d[i] * math.cos(head[i])
+                off_x, off_y = px - gps[i, 0], py - gps[i, 1]
+                back_t = tb[i]
+            w = math.exp(keep_rate * (1.0 + tb[i] - back_t)) if back_t >= 0 else 0.0
+            fx[i] = gps[i, 0] + w * off_x
+            fy[i] = gps[i, 1] + w * off_y
+        elif i == 0:
+            fx[i], fy[i] = gps[i, 0], gps[i, 1]
+        else:
+            hm = head[i]
+            fx[i] = fx[i - 1] + step_d[i] * math.sin(hm)
+            fy[i] = fy[i - 1] + step_d[i] * math.cos(hm)
+
+    # ---- reported σ
+    sig_gps = cfg.gps_sigma_m * np.exp(_gauss_markov(n, dt, cfg.gps_sigma_time_s, cfg.gps_sigma_var, rng))
+    dist_out = np.zeros(n)  # metres driven without GPS
+    for i in range(1, n):
+        if not have[i]:
+            dist_out[i] = dist_out[i - 1] + step_d[i]
+    h_sig0 = math.radians(math.hypot(cfg.heading_noise_deg, cfg.heading_bias_deg))
+    g_sig = math.radians(cfg.gyro_bias_dps)
+    pos_sigma = np.sqrt(
+        sig_gps**2
+        + (cfg.odo_scale_sigma * dist_out) ** 2
+        + (h_sig0 * dist_out) ** 2
+        + (g_sig * since * dist_out / 2) ** 2
+    )
+    head_sigma = np.degrees(np.hypot(h_sig0, g_sig * since))
+
+    # ---- subsample to the output rate
+    step = max(1, round(BASE_RATE_HZ / float(rate_hz)))
+    idx = np.arange(0, n, step)
+    ot = tb[idx]
+    od = odo[idx]
+    dist = np.diff(od, prepend=od[0]) + np.where(
+        np.arange(len(idx)) > 0, rng.normal(0.0, cfg.odo_noise_m, len(idx)), 0.0
+    )
+    dist = np.maximum(dist, 0.0)
+    dt_out = step * dt
+    fused = FusedStream(
+        time=ot,
+        x=fx[idx],
+        y=fy[idx],
+        heading=np.degrees(head[idx]) % 360.0,
+        pos_sigma=pos_sigma[idx],
+        heading_sigma=head_sigma[idx],
+        speed=dist / dt_out,
+        distance=dist,
+        gps_valid=have[idx],
+    )
+    ll = to_lonlat(graph.crs, fused.x, fused.y)
+    m = len(idx)
+    fixes = pd.DataFrame(
+        {
+            "vehicle_id": [vid] * m,
+            "time": ot + time0,
+            "lat": ll[:, 1],
+            "lon": ll[:, 0],
+            "heading": fused.heading,
+            "pos_sigma": fused.pos_sigma,
+            "heading_sigma": fused.heading_sigma,
+            "speed": fused.speed,
+            "distance": fused.distance,
+            "gps_valid": fused.gps_valid.astype(int),
+        },
+        columns=list(FIX_COLUMNS),
+    )
+    ts = sb[idx]
+    edge, offs = route.locate(ts)
+    tx, ty = pos[idx, 0], pos[idx, 1]
+    tll = to_lonlat(graph.crs, tx, ty)
+    truth = pd.DataFrame(
+        {
+            "vehicle_id": [vid] * m,
+            "time": ot + time0,
+            "lat": tll[:, 1],
+            "lon": tll[:, 0],
+            "x": tx,
+            "y": ty,
+            "edge": edge,
+            "offset": offs,
+            "u": graph.node_id[graph.edge_u[edge]],
+            "v": graph.node_id[graph.edge_v[edge]],
+            "way_id": graph.edge_way_id[edge],
+            "heading": np.degrees(psi[idx]) % 360.0,
+            "speed": speed[idx],
+            "route_s": ts,
+            "gps_outage": (~have[idx]).astype(int),  # injected outages and long track gaps
+        },
+        columns=list(TRUTH_COLUMNS),
+    )
+    gll = to_lonlat(graph.crs, fix_xy[:, 0], fix_xy[:, 1])
+    fix_in_out = np.zeros(len(t_fix), dtype=bool)
+    for a, d in outs:
+        fix_in_out |= (t_fix >= a) & (t_fix < a + d)
+    gps_df = pd.DataFrame(
+        {
+            "time": t_fix + time0,
+            "lat": np.where(fix_in_out, np.nan, gll[:, 1]),
+            "lon": np.where(fix_in_out, np.nan, gll[:, 0]),
+            "x": np.where(fix_in_out, np.nan, fix_xy[:, 0]),
+            "y": np.where(fix_in_out, np.nan, fix_xy[:, 1]),
+            "outlier": np.zeros(len(t_fix), dtype=int),
+        }
+    )
+    nan_fix = np.where(fix_in_out, np.nan, 1.0)
+    sensors = SensorData(
+        gps_t=t_fix,
+        gps_x=fix_xy[:, 0] * nan_fix,
+        gps_y=fix_xy[:, 1] * nan_fix,
+        gps_sigma=np.interp(t_fix, tb, sig_gps) * nan_fix,
+        gps_speed=np.interp(t_fix, tb, speed) * nan_fix,
+        gps_course=np.full(len(t_fix), np.nan),
+        gps_outlier=np.zeros(len(t_fix), dtype=bool),
+        gyro_t=tb,
+        gyro=yaw + gyro_bias,
+        odo_t=tb,
+        odo=odo,
+        compass_t=np.empty(0),
+        compass=np.empty(0),
+        true_gyro_bias=gyro_bias,
+        true_odo_scale=scale,
+        outages=tuple(outs),
+    )
+    node_t = np.interp(route.node_distance(), sb, tb) + time0
+    return Drive(
+        route=route,
+        trajectory=traj,
+        sensors=sensors,
+        fused=fused,
+        fixes=fixes,
+        truth=truth,
+        gps=gps_df,
+        node_index=route.nodes(graph),
+        node_time=node_t,
+        outages=list(outs),
+    )

@@ -1,0 +1,158 @@
+"""Real-GPS fused drives: the real fixes are the GPS-aided positions, dead reckoning in outages."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from graph.ascii import parse_ascii_map
+from graph.build import build_map
+from graph.projection import to_lonlat
+from mapmatch.errors import ValidationError
+from mapmatch.evaluate import evaluate
+from mapmatch.online import OnlineMatcher
+from mapmatch.sim.drive import position_error, write_fixes_csv
+from mapmatch.sim.realgps import RealGpsConfig, real_drive
+
+ELL = """
+a---------------b
+                |
+                |
+                |
+                c
+"""
+
+
+def _write_track(tmp: Path, amap, pts: np.ndarray, t: np.ndarray, truth_nodes: str) -> None:  # type: ignore[no-untyped-def]
+    ll = to_lonlat(amap.graph.crs, pts[:, 0], pts[:, 1])
+    pd.DataFrame({"t": t, "lat": ll[:, 1], "lon": ll[:, 0]}).to_csv(
+        tmp / "track.csv", index=False, float_format="%.8f"
+    )
+    xy = np.array([amap.xy(n) for n in truth_nodes])
+    tll = to_lonlat(amap.graph.crs, xy[:, 0], xy[:, 1])
+    feat = {
+        "type": "Feature",
+        "geometry": {"type": "MultiLineString", "coordinates": [tll.tolist()]},
+        "properties": {},
+    }
+    (tmp / "truth.geojson").write_text(json.dumps({"type": "FeatureCollection", "features": [feat]}))
+
+
+def _ell_track(tmp: Path):  # type: ignore[no-untyped-def]
+    """The L-shaped map, driven a -> b -> c at 5 m/s with fixes 3 m north of (left of) the road."""
+    amap = parse_ascii_map(ELL, scale=10.0)
+    a, b, c = amap.xy("a"), amap.xy("b"), amap.xy("c")
+    s = np.arange(0.0, 230.0, 5.0)
+    leg = float(np.hypot(*(b - a)))
+    pts = np.array(
+        [
+            a + (b - a) * min(x, leg) / leg if x <= leg else b + (c - b) * (x - leg) / np.hypot(*(c - b))
+            for x in s
+        ]
+    )
+    pts = pts + np.where(s[:, None] <= leg, [0.0, 3.0], [3.0, 0.0])
+    t = 100.0 + np.arange(len(s), dtype=float)
+    _write_track(tmp, amap, pts, t, "abc")
+    return amap, pts, t
+
+
+def test_real_fixes_are_the_gps_positions_and_dead_reckoning_covers_the_outage(tmp_path: Path) -> None:
+    amap, pts, t = _ell_track(tmp_path)
+    d = real_drive(amap.graph, tmp_path, rate_hz=1.0, outages=[(10.0, 12.0)], seed=3)
+    f = d.fixes
+    valid = f["gps_valid"].to_numpy() > 0
+    assert len(f) == len(t) and f["time"].iloc[0] == 0.0
+    # with GPS the fused position is the real fix, except while the outage's offset blends out
+    ll = to_lonlat(amap.graph.crs, pts[:, 0], pts[:, 1])
+    after = (f["time"].to_numpy() >= 22.0) & (f["time"].to_numpy() < 26.0)
+    same = valid & ~after
+    assert np.allclose(f["lat"].to_numpy()[same], ll[same, 1], atol=1e-7)
+    assert np.allclose(f["lon"].to_numpy()[same], ll[same, 0], atol=1e-7)
+    assert not valid[10:22].any() and valid[:10].all() and valid[22:].all()
+    assert (d.truth["gps_outage"].to_numpy()[10:22] == 1).all()
+    # dead reckoning from the last (biased) fix: near the road, off the held fix
+    err = position_error(d)
+    assert 1.0 < err[10:22].max() < 15.0
+    assert np.hypot(*(np.array([d.fused.x[21], d.fused.y[21]]) - pts[9])) > 40.0
+    # the truth: the route a->b->c, the turn at b, heading and odometer close to the truth
+    g = amap.graph
+    assert d.route.edges.tolist() == [amap.edge("a", "b"), amap.edge("b", "c")]
+    assert d.node_index.tolist() == [amap.nodes["b"]]
+    assert abs(f["distance"].sum() - d.route.length) < 0.05 * d.route.length
+    he = np.abs((f["heading"].to_numpy() - d.truth["heading"].to_numpy() + 180.0) % 360.0 - 180.0)
+    assert np.median(he[valid]) < 5.0
+    assert f["heading_sigma"].to_numpy()[21] > f["heading_sigma"].to_numpy()[5]
+    assert f["pos_sigma"].to_numpy()[21] > f["pos_sigma"].to_numpy()[9]
+    assert set(d.truth["edge"].tolist()) == set(d.route.edges.tolist()) and g.n_edges > 0
+
+
+def test_ten_hz_interpolates_between_real_fixes(tmp_path: Path) -> None:
+    amap, _, _ = _ell_track(tmp_path)
+    d1 = real_drive(amap.graph, tmp_path, rate_hz=1.0, outages=False, seed=1)
+    d10 = real_drive(amap.graph, tmp_path, rate_hz=10.0, outages=False, seed=1)
+    assert len(d10.fixes) == 10 * (len(d1.fixes) - 1) + 1
+    assert np.allclose(d10.fixes["lat"].to_numpy()[::10], d1.fixes["lat"].to_numpy(), atol=1e-9)
+    mid = d10.fixes.iloc[5]
+    assert d1.fixes["lon"].iloc[0] < mid["lon"] < d1.fixes["lon"].iloc[1]
+    assert np.isclose(d10.fixes["distance"].sum(), d1.fixes["distance"].sum(), rtol=0.02)
+
+
+def test_track_gaps_are_dead_reckoned(tmp_path: Path) -> None:
+    amap, pts, t = _ell_track(tmp_path)
+    keep = np.ones(len(t), dtype=bool)
+    keep[20:25] = False
+    ll = to_lonlat(amap.graph.crs, pts[keep, 0], pts[keep, 1])
+    pd.DataFrame({"t": t[keep], "lat": ll[:, 1], "lon": ll[:, 0]}).to_csv(tmp_path / "track.csv", index=False)
+    d = real_drive(amap.graph, tmp_path, rate_hz=1.0, outages=False)
+    v = d.fixes["gps_valid"].to_numpy()
+    assert len(v) == len(t) and not v[20:25].any() and v[:20].all()
+
+
+def test_bad_input_is_named(tmp_path: Path) -> None:
+    amap, _, _ = _ell_track(tmp_path)
+    with pytest.raises(ValidationError, match="rate_hz"):
+        real_drive(amap.graph, tmp_path, rate_hz=5.0)
+    with pytest.raises(ValidationError, match="blend_keep"):
+        RealGpsConfig(blend_keep=1.5)
+    with pytest.raises(ValidationError, match="gyro_bias_dps"):
+        RealGpsConfig(gyro_bias_dps=float("nan"))
+    with pytest.raises(ValidationError, match="track"):
+        real_drive(amap.graph, tmp_path / "missing")
+
+
+def test_kubicka_drive_replays_and_scores(kubicka_dir: Path, tmp_path: Path) -> None:
+    folder = kubicka_dir / "00000014"
+    g = build_map(folder / "roads.geojson")
+    d = real_drive(g, folder, rate_hz=1.0, outages=True, seed=14)
+    track = pd.read_csv(folder / "track.csv")
+    assert len(d.outages) == 5 and [b for _, b in d.outages] == [60.0, 90.0, 92.0, 83.0, 48.0]
+    v = d.fixes["gps_valid"].to_numpy() > 0
+    times = d.fixes["time"].to_numpy() + float(track["t"].iloc[0])
+    real = track.set_index("t").reindex(times)
+    blended = np.zeros(len(v), dtype=bool)
+    for a, b in d.outages:
+        blended |= (times - track["t"].iloc[0] >= a + b) & (times - track["t"].iloc[0] < a + b + 5.0)
+    exact = v & ~blended & real["lat"].notna().to_numpy()
+    assert exact.sum() > 150
+    assert np.allclose(d.fixes["lat"].to_numpy()[exact], real["lat"].to_numpy()[exact], atol=1e-6)
+    write_fixes_csv(d, tmp_path / "fixes.csv")
+    assert len(pd.read_csv(tmp_path / "fixes.csv")) == len(d.fixes)
+    m = OnlineMatcher(g)
+    st = m.new_session()
+    res = [m.update(st, f) for f in d.fix_objects()]
+    matched = pd.DataFrame(
+        {
+            "time": [r.time for r in res],
+            "edge": [r.edge for r in res],
+            "lat": [r.lat for r in res],
+            "lon": [r.lon for r in res],
+        }
+    )
+    met = evaluate(g, truth=d.truth, matched=matched, truth_path=d.route.edges.tolist())
+    # the drive is scored like a simulated one (the matcher's accuracy here is the benchmark's business)
+    assert met.intersections.true > 20 and met.intersections.correct >= 0.9 * met.intersections.true
+    assert met.correct_edge_rate > 0.6
