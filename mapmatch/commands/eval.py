@@ -5,10 +5,12 @@ from __future__ import annotations
 import argparse
 import json
 from pathlib import Path
-
-import pandas as pd
+from typing import TYPE_CHECKING
 
 from mapmatch.cli import CommandError
+
+if TYPE_CHECKING:
+    import pandas as pd
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
@@ -105,6 +107,8 @@ def run(args: argparse.Namespace) -> int:
 
 
 def _read_csv(path: Path) -> pd.DataFrame:
+    import pandas as pd
+
     try:
         return pd.read_csv(path)
     except (pd.errors.ParserError, pd.errors.EmptyDataError, UnicodeDecodeError) as exc:
@@ -113,6 +117,8 @@ def _read_csv(path: Path) -> pd.DataFrame:
 
 def _fixes_from_results(matched: pd.DataFrame, truth: pd.DataFrame) -> pd.DataFrame:
     """The matcher's input as far as the results tell it: raw positions, GPS flag from the truth."""
+    import pandas as pd
+
     lat = matched["raw_lat"] if "raw_lat" in matched.columns else matched["lat"]
     lon = matched["raw_lon"] if "raw_lon" in matched.columns else matched["lon"]
     df = pd.DataFrame({"time": matched["time"], "lat": lat, "lon": lon})

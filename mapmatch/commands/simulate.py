@@ -8,10 +8,10 @@ from collections.abc import Iterator
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-import numpy as np
-
 from mapmatch.cli import CommandError
-from mapmatch.types import Fix, SnapResult
+
+if TYPE_CHECKING:
+    from mapmatch.types import Fix, SnapResult
 
 if TYPE_CHECKING:
     from mapmatch.sim.drive import Drive
@@ -56,6 +56,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[ty
 
 
 def run(args: argparse.Namespace) -> int:
+    import numpy as np
+
     from graph.artifact import open_map
     from mapmatch.sim.drive import position_error, read_route, simulate_drive, write_fixes_csv, write_truth
     from mapmatch.sim.routes import random_route
