@@ -8,7 +8,7 @@ from collections.abc import Iterator
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from mapmatch.cli import CommandError
+from mapmatch.cli import EXIT_CONNECT, CommandError
 
 if TYPE_CHECKING:
     from mapmatch.types import Fix, SnapResult
@@ -157,7 +157,9 @@ def _replay(args: argparse.Namespace, drive: Drive) -> int:
             speedup=args.speedup,
         )
     except grpc.RpcError as exc:
-        raise CommandError(f"server {args.server}: {exc.code().name}: {exc.details()}") from None
+        raise CommandError(
+            f"server {args.server}: {exc.code().name}: {exc.details()}", EXIT_CONNECT
+        ) from None
     write_results_csv(matched, rows)
     bad = sum(1 for r in rows if r[2] is None)
     print(f"replayed {len(rows)} fixes to {args.server} ({bad} rejected); wrote {matched}")
