@@ -190,7 +190,9 @@ def draw_png(
     size_in: float = 12.0,
 ) -> None:
     """Draw the PNG map (atomic write): the whole drive, and a zoom on the longest GPS outage."""
-    import matplotlib
+    from mapmatch.extras import require
+
+    matplotlib = require("matplotlib", extra="plots", needed_for="drawing the PNG map")
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
@@ -254,7 +256,9 @@ def draw_html(
     graph: RoadGraph, data: PlotData, path: str | os.PathLike[str], *, title: str = "", max_points: int = 4000
 ) -> None:
     """Write the interactive HTML map (folium, atomic), one toggleable layer per kind."""
-    import folium
+    from mapmatch.extras import require
+
+    folium = require("folium", extra="plots", needed_for="drawing the HTML map")
 
     def ll(xy: NDArray[np.float64]) -> list[list[float]]:
         ok = ~np.isnan(xy[:, 0])

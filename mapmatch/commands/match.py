@@ -150,6 +150,10 @@ def _match(args: argparse.Namespace, inputs: list[Path], output: Path, *, out: A
         raise CommandError("--partition-size must be at least 1")
     if args.ubodt is not None and not args.ubodt > 0:
         raise CommandError("--ubodt must be a positive number of metres")
+    if args.scheduler:
+        from mapmatch.extras import require
+
+        require("distributed", extra="dask", needed_for="--scheduler (matching on a Dask cluster)")
     _check_map(args.map)
     over = {
         k: v
