@@ -77,12 +77,11 @@ _API: dict[str, str] = {
     "MissingExtraError": "mapmatch.extras",
 }
 __all__ = [
-    "__version__",
-    "ArtifactError",
     "BATCH_CONFIG",
+    "DEFAULT_CONFIG",
+    "ArtifactError",
     "BatchMatcher",
     "ConfigError",
-    "DEFAULT_CONFIG",
     "Fix",
     "GraphError",
     "InputError",
@@ -98,6 +97,7 @@ __all__ = [
     "Track",
     "TrackMatch",
     "ValidationError",
+    "__version__",
     "build_map",
     "create_server",
     "evaluate",

@@ -17,6 +17,12 @@ import sys
 from collections.abc import Sequence
 
 SUBCOMMANDS = ("prep", "replay", "match", "serve", "send", "simulate", "eval", "demo")
+KERNELS: dict[str, tuple[str, ...]] = {
+    "match": ("batch",),
+    "simulate": ("simulator",),
+    "demo": ("simulator",),
+}
+"""The compiled-kernel groups (:mod:`mapmatch.kernels`) each command compiles on a machine's first run."""
 
 EXIT_OK = 0
 """Everything asked for was done."""
@@ -128,6 +134,11 @@ def _run(args: argparse.Namespace) -> int:
 
     cmd = args.command
     try:
+        if not args.quiet and KERNELS.get(cmd):
+            from mapmatch.kernels import announce
+
+            for group in KERNELS[cmd]:
+                announce(group)
         return int(args.func(args) or 0)
     except CommandError as exc:
         return _fail(cmd, str(exc), exc.code)

@@ -254,17 +254,28 @@ def create_server(
     servicer.on_maps_changed = server.update_health
 
     def prepare() -> None:
+        from mapmatch.kernels import COMPILE_SECONDS, is_cached
+
+        # the batch kernels are warmed up only when compiled already: on a machine's first run
+        # the first MatchTrack compiles them, so live streams need not wait for that
+        batch = is_cached("batch")
         try:
             for name, path in to_load:
                 log.info("loading map %s from %s", name, path)
                 registry.load(name, path)
             for entry in registry.entries():
-                warm_up(entry, servicer)
+                log.info("warming up map %s", entry.map_id)
+                warm_up(entry, servicer, batch=batch)
         except Exception as exc:
             log.error("map loading or warm-up failed, health stays NOT_SERVING: %s", exc)
             raise
         server.call(server.update_health())
         log.info("serving %d map(s) on port %d", len(registry), port)
+        if not batch:
+            log.info(
+                "batch kernels not compiled yet: the first MatchTrack compiles them, once, about %.0f s",
+                COMPILE_SECONDS["batch"],
+            )
 
     fut = executor.submit(prepare)
     if wait_ready:

@@ -264,9 +264,9 @@ async def _maybe_await(x: Any) -> None:
         await x
 
 
-def warm_up(entry: MapEntry, servicer: MapMatchServicer) -> None:
-    """One online query (and one batch match when available) on a map, through the same code
-    path as requests; raises when the map cannot serve. Leaves no session behind."""
+def warm_up(entry: MapEntry, servicer: MapMatchServicer, *, batch: bool = True) -> None:
+    """One online query (and one batch match when available and ``batch``) on a map, through the
+    same code path as requests; raises when the map cannot serve. Leaves no session behind."""
     g = entry.graph
     if g.n_edges == 0:
         raise ValidationError("path", f"map {entry.map_id!r} has no roads")
@@ -288,6 +288,8 @@ def warm_up(entry: MapEntry, servicer: MapMatchServicer) -> None:
         servicer.sessions.drop(entry.map_id, vid)
     if not math.isfinite(resp.result.time):
         raise RuntimeError(f"warm-up query on map {entry.map_id!r} failed")
+    if not batch:
+        return
     try:
         import mapmatch.batch  # noqa: F401
     except ModuleNotFoundError:

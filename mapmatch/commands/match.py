@@ -155,6 +155,10 @@ def _match(args: argparse.Namespace, inputs: list[Path], output: Path, *, out: A
 
         require("distributed", extra="dask", needed_for="--scheduler (matching on a Dask cluster)")
     _check_map(args.map)
+    if not getattr(args, "quiet", False) and args.scheduler is None:
+        from mapmatch.kernels import announce
+
+        announce("batch")
     over = {
         k: v
         for k, v in (

@@ -312,8 +312,8 @@ def _ekf(
                 m = 0.5 * (P[a, b] + P[b, a])
                 P[a, b] = m
                 P[b, a] = m
-        out[k, :] = X
-        for a in range(ns):
+        for a in range(ns):  # element-wise: a slice assignment compiles numba's shape-error formatter
+            out[k, a] = X[a]
             var[k, a] = P[a, a]
         cxy[k] = P[0, 1]
     return out, var, cxy, used, rejected

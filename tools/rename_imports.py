@@ -1,0 +1,83 @@
+"""Rewrite ``graph.``/``service.`` module references to ``mapmatch.graph.``/``mapmatch.service.``.
+
+The folders ``graph/`` and ``service/`` are installed as ``mapmatch.graph`` and
+``mapmatch.service`` (setuptools package-dir, see pyproject.toml), so every import and every
+dotted reference to their modules names them so. Run from anywhere, as often as you like (a
+second run changes nothing)::
+
+    python tools/rename_imports.py            # rewrite in place, list the files changed
+    python tools/rename_imports.py --check    # exit 1 if any file still needs it
+
+It rewrites the Python files of the repository (code, tests, bench, tools) and README.md:
+
+- ``from graph.x import``/``import graph.x``/``"graph.x.y"`` → ``mapmatch.graph.x...`` (same for
+  service), for the modules that exist in those folders;
+- ``from graph import ...``/``from service import ...`` → ``from mapmatch.graph import ...``;
+- the generated stubs' old package ``service.gen.mapmatch.v1`` → ``mapmatch.service.gen``.
+
+Names that merely start with the words (``service_util``, ``graph_opts``, ``self.graph.x``) are
+left alone: a match needs a module name of the folder right after the dot, and no word
+character or dot before.
+"""
+
+from __future__ import annotations
+
+import argparse
+import re
+import sys
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+FOLDERS = ("graph", "service")
+SKIP = ("service/gen/", ".venv", "build/", ".git/")
+
+
+def _modules(folder: str) -> list[str]:
+    d = ROOT / folder
+    names = {p.stem for p in d.glob("*.py") if p.stem != "__init__"}
+    names |= {p.name for p in d.iterdir() if p.is_dir() and not p.name.startswith(("_", "."))}
+    return sorted(names, key=len, reverse=True)
+
+
+def rules() -> list[tuple[re.Pattern[str], str]]:
+    out = [(re.compile(r"(?<![\w.])service\.gen\.mapmatch\.v1\b"), "mapmatch.service.gen")]
+    for folder in FOLDERS:
+        mods = "|".join(map(re.escape, _modules(folder)))
+        out.append((re.compile(rf"(?<![\w.]){folder}\.(?=(?:{mods})\b)"), f"mapmatch.{folder}."))
+        out.append((re.compile(rf"^(\s*)from {folder} import\b", re.M), rf"\1from mapmatch.{folder} import"))
+        out.append((re.compile(rf"^(\s*)import {folder}$", re.M), rf"\1import mapmatch.{folder} as {folder}"))
+    return out
+
+
+def rewrite(text: str, patterns: list[tuple[re.Pattern[str], str]]) -> str:
+    for pat, repl in patterns:
+        text = pat.sub(repl, text)
+    return text
+
+
+def files() -> list[Path]:
+    found = [p for p in ROOT.rglob("*.py") if not any(s in p.relative_to(ROOT).as_posix() for s in SKIP)]
+    found = [p for p in found if p.resolve() != Path(__file__).resolve()]
+    return sorted(found) + [ROOT / "README.md"]
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--check", action="store_true", help="only report; exit 1 when a file needs rewriting")
+    args = ap.parse_args(argv)
+    patterns = rules()
+    changed = []
+    for path in files():
+        old = path.read_text(encoding="utf-8")
+        new = rewrite(old, patterns)
+        if new != old:
+            changed.append(path)
+            if not args.check:
+                path.write_text(new, encoding="utf-8")
+    for p in changed:
+        print(p.relative_to(ROOT))
+    return 1 if (args.check and changed) else 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
