@@ -88,7 +88,8 @@ def compile_group(group: str) -> float:
         x1, _ = m.xy("c")
         xs = np.linspace(x0 + 5, x1 - 5, 8)
         ll = np.array([m.lonlat(x, y0 + 1.0) for x in xs])
-        BatchMatcher(g).match(Track("warm", np.arange(len(xs)) * 2.0, ll[:, 1], ll[:, 0]))
+        t = np.arange(len(xs), dtype=np.float64) * 2.0
+        BatchMatcher(g).match(Track("warm", t, ll[:, 1].astype(np.float64), ll[:, 0].astype(np.float64)))
     elif group == "simulator":
         from mapmatch.sim.drive import simulate_drive
         from mapmatch.sim.routes import random_route
