@@ -13,7 +13,9 @@ It rewrites the Python files of the repository (code, tests, bench, tools) and R
 - ``from graph.x import``/``import graph.x``/``"graph.x.y"`` → ``mapmatch.graph.x...`` (same for
   service), for the modules that exist in those folders;
 - ``from graph import ...``/``from service import ...`` → ``from mapmatch.graph import ...``;
-- the generated stubs' old package ``service.gen.mapmatch.v1`` → ``mapmatch.service.gen``.
+- the generated stubs' old package ``service.gen.mapmatch.v1`` → ``mapmatch.service.gen``,
+  and the old stub folder ``service/gen/mapmatch/`` is removed (``python -m
+  mapmatch.service.gen_proto`` writes the stubs flat into ``service/gen/``).
 
 Names that merely start with the words (``service_util``, ``graph_opts``, ``self.graph.x``) are
 left alone: a match needs a module name of the folder right after the dot, and no word
@@ -24,6 +26,8 @@ from __future__ import annotations
 
 import argparse
 import re
+import shutil
+import subprocess
 import sys
 from pathlib import Path
 
@@ -61,9 +65,22 @@ def files() -> list[Path]:
     return sorted(found) + [ROOT / "README.md"]
 
 
+def _ruff(paths: list[Path]) -> None:
+    """Re-sort the imports of the changed files and re-wrap lines the longer names pushed over."""
+    ruff = shutil.which("ruff") or str(Path(sys.executable).with_name("ruff"))
+    if not paths or not Path(ruff).exists():
+        return
+    rel = [str(p) for p in paths]
+    subprocess.run([ruff, "check", "--select", "I", "--fix", "-q", *rel], cwd=ROOT, check=False)
+    subprocess.run([ruff, "format", "-q", *rel], cwd=ROOT, check=False)
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--check", action="store_true", help="only report; exit 1 when a file needs rewriting")
+    ap.add_argument(
+        "--no-ruff", action="store_true", help="do not re-sort imports and re-format changed files"
+    )
     args = ap.parse_args(argv)
     patterns = rules()
     changed = []
@@ -74,6 +91,13 @@ def main(argv: list[str] | None = None) -> int:
             changed.append(path)
             if not args.check:
                 path.write_text(new, encoding="utf-8")
+    old_stubs = ROOT / "service" / "gen" / "mapmatch"
+    if old_stubs.is_dir():
+        changed.append(old_stubs)
+        if not args.check:
+            shutil.rmtree(old_stubs)
+    if changed and not args.check and not args.no_ruff:
+        _ruff([p for p in changed if p.suffix == ".py" and p.exists()])
     for p in changed:
         print(p.relative_to(ROOT))
     return 1 if (args.check and changed) else 0
