@@ -437,7 +437,11 @@ def draw_html(
             {"type": "FeatureCollection", "features": feats},
             name=name,
             marker=marker,
-            tooltip=folium.GeoJsonTooltip(fields=["fix", *fields] if tip and info is not None else ["fix"]),
+            tooltip=(
+                folium.GeoJsonTooltip(fields=["fix", *fields] if info is not None else ["fix"])
+                if tip
+                else None
+            ),
         ).add_to(m)
 
     if len(data.gps_xy):

@@ -46,7 +46,10 @@ def test_html_map_has_tooltips_legend_and_grows_with_the_drive(tmp_path: Path) -
     sizes = {}
     for n in (100, 400):
         m, fixes, matched = _frames(n)
-        data = plot_data(m.graph, route_xy=np.array([m.xy("a"), m.xy("c")]), fixes=fixes, matched=matched)
+        gps = fixes[["time", "lat", "lon"]]
+        data = plot_data(
+            m.graph, route_xy=np.array([m.xy("a"), m.xy("c")]), fixes=fixes, matched=matched, gps=gps
+        )
         out = tmp_path / f"m{n}.html"
         draw_html(m.graph, data, out, title="test")
         html = out.read_text()
