@@ -48,15 +48,26 @@ def rules() -> list[tuple[re.Pattern[str], str]]:
     for folder in FOLDERS:
         mods = "|".join(map(re.escape, _modules(folder)))
         out.append((re.compile(rf"(?<![\w.]){folder}\.(?=(?:{mods})\b)"), f"mapmatch.{folder}."))
-        out.append((re.compile(rf"^(\s*)from {folder} import\b", re.M), rf"\1from mapmatch.{folder} import"))
-        out.append((re.compile(rf"^(\s*)import {folder}$", re.M), rf"\1import mapmatch.{folder} as {folder}"))
+        out.append((re.compile(rf"^(\s*)from {folder} import\b"), rf"\1from mapmatch.{folder} import"))
+        out.append((re.compile(rf"^(\s*)import {folder}$"), rf"\1import mapmatch.{folder} as {folder}"))
     return out
 
 
+LINE_LENGTH = 110  # ruff's line-length (pyproject.toml)
+
+
 def rewrite(text: str, patterns: list[tuple[re.Pattern[str], str]]) -> str:
-    for pat, repl in patterns:
-        text = pat.sub(repl, text)
-    return text
+    """The text with every reference rewritten; a line of prose or a string that the longer name
+    would push over the line length keeps its old wording (imports are re-wrapped by ruff)."""
+    out = []
+    for line in text.splitlines(keepends=True):
+        new = line
+        for pat, repl in patterns:
+            new = pat.sub(repl, new)
+        code = new.lstrip().startswith(("from ", "import "))
+        too_long = len(new.rstrip("\n")) > LINE_LENGTH >= len(line.rstrip("\n"))
+        out.append(line if (too_long and not code) else new)
+    return "".join(out)
 
 
 def files() -> list[Path]:
