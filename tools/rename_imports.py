@@ -13,6 +13,8 @@ It rewrites the Python files of the repository (code, tests, bench, tools) and R
 - ``from graph.x import``/``import graph.x``/``"graph.x.y"`` → ``mapmatch.graph.x...`` (same for
   service), for the modules that exist in those folders;
 - ``from graph import ...``/``from service import ...`` → ``from mapmatch.graph import ...``;
+- symbolic links ``mapmatch/graph -> ../graph`` and ``mapmatch/service -> ../service``, so
+  a source tree has the installed layout too (type checkers, plain ``PYTHONPATH``);
 - the generated stubs' old package ``service.gen.mapmatch.v1`` → ``mapmatch.service.gen``,
   and the old stub folder ``service/gen/mapmatch/`` is removed (``python -m
   mapmatch.service.gen_proto`` writes the stubs flat into ``service/gen/``).
@@ -102,6 +104,12 @@ def main(argv: list[str] | None = None) -> int:
             changed.append(path)
             if not args.check:
                 path.write_text(new, encoding="utf-8")
+    for folder in FOLDERS:  # the source tree's mapmatch/graph, mapmatch/service (mypy, plain imports)
+        link = ROOT / "mapmatch" / folder
+        if not link.exists() and not link.is_symlink():
+            changed.append(link)
+            if not args.check:
+                link.symlink_to(Path("..") / folder, target_is_directory=True)
     old_stubs = ROOT / "service" / "gen" / "mapmatch"
     if old_stubs.is_dir():
         changed.append(old_stubs)
