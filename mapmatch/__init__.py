@@ -27,18 +27,11 @@ Errors
 from __future__ import annotations
 
 import importlib
-import importlib.abc
 import importlib.machinery
+import os
 import sys
-from importlib.metadata import PackageNotFoundError, version
-from pathlib import Path
 from types import ModuleType
 from typing import TYPE_CHECKING, Any
-
-try:
-    __version__ = version("mapmatch")
-except PackageNotFoundError:  # a source tree that was never installed
-    __version__ = "0+unknown"
 
 _API: dict[str, str] = {
     "RoadGraph": "graph.road_graph",
@@ -115,7 +108,21 @@ __all__ = [
 ]
 
 
+def _version() -> str:
+    from importlib.metadata import PackageNotFoundError, version
+
+    try:
+        return version("mapmatch")
+    except PackageNotFoundError:  # a source tree that was never installed
+        return "0+unknown"
+
+
 def __getattr__(name: str) -> Any:
+    # everything is loaded on first use, so importing the package (as `python -m mapmatch`
+    # does before any handler runs) takes no time and a Ctrl-C finds the CLI's handler
+    if name == "__version__":
+        globals()[name] = value = _version()
+        return value
     module = _API.get(name)
     if module is None:
         raise AttributeError(f"module 'mapmatch' has no attribute {name!r}")
@@ -129,6 +136,7 @@ def __dir__() -> list[str]:
 
 
 if TYPE_CHECKING:
+    __version__: str
     from graph.artifact import load_map, open_map, save_map
     from graph.build import build_map
     from graph.errors import ArtifactError, GraphError, InputError
@@ -147,26 +155,28 @@ if TYPE_CHECKING:
     from service.server import create_server
 
 
-# In a source tree (a clone on PYTHONPATH, not installed), graph/ and service/ sit next to
-# mapmatch/ rather than inside it: find them as mapmatch.graph and mapmatch.service there, as
-# the installed package (setuptools package-dir) has them.
-_ROOT = Path(__file__).resolve().parent.parent
+# In a source tree, graph/ and service/ sit next to mapmatch/ (linked into it where the checkout
+# keeps symbolic links): find them as mapmatch.graph and mapmatch.service there too, as the
+# installed package (setuptools package-dir) has them.
+_ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 _MAPPED = {"mapmatch.graph": "graph", "mapmatch.service": "service"}
 
 
-class _SourceTreeFinder(importlib.abc.MetaPathFinder):
+class _SourceTreeFinder:
+    """A meta-path finder for mapmatch.graph and mapmatch.service in an uninstalled source tree."""
+
     def find_spec(
         self, fullname: str, path: Any = None, target: ModuleType | None = None
     ) -> importlib.machinery.ModuleSpec | None:
         if fullname not in _MAPPED:
             return None
-        return importlib.machinery.PathFinder.find_spec(fullname, [str(_ROOT)])
+        return importlib.machinery.PathFinder.find_spec(fullname, [_ROOT])
 
 
 if (
-    not (Path(__file__).parent / "graph").is_dir()
-    and (_ROOT / "graph" / "__init__.py").is_file()
-    and (_ROOT / "pyproject.toml").is_file()
-    and not any(isinstance(f, _SourceTreeFinder) for f in sys.meta_path)
+    not os.path.isdir(os.path.join(os.path.dirname(__file__), "graph"))
+    and os.path.isfile(os.path.join(_ROOT, "graph", "__init__.py"))
+    and os.path.isfile(os.path.join(_ROOT, "pyproject.toml"))
+    and not any(type(f).__name__ == "_SourceTreeFinder" for f in sys.meta_path)
 ):
     sys.meta_path.append(_SourceTreeFinder())
