@@ -1,5 +1,11 @@
+"""``python -m mapmatch``: the ``mapmatch`` command."""
+
 import sys
 
-from mapmatch.cli import main
+try:
+    from mapmatch.cli import main
+except KeyboardInterrupt:  # Ctrl-C while starting up
+    print("mapmatch: interrupted", file=sys.stderr)
+    sys.exit(130)
 
 sys.exit(main())

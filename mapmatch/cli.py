@@ -1,8 +1,11 @@
 """The ``mapmatch`` command: one entry point, one module per subcommand in ``mapmatch.commands``.
 
 Every subcommand module defines ``register(subparsers)``, which adds its parser and sets
-``func(args) -> int``. Errors from the documented hierarchies become a one-line message and a
-non-zero exit, never a traceback.
+``func(args) -> int``; every subparser then gets the shared ``-q``/``-v`` options
+(:func:`add_common_options`) and the exit statuses in its ``--help``. Errors become
+a one-line message and one of the documented exit statuses (:data:`EXIT_STATUSES`), never a
+traceback. Module-level imports stay light, so ``--help``, ``--version`` and a Ctrl-C during
+start-up are instant and clean.
 """
 
 from __future__ import annotations
@@ -13,26 +16,82 @@ import logging
 import sys
 from collections.abc import Sequence
 
-from graph.errors import GraphError
-from mapmatch.errors import MatchError
-
 SUBCOMMANDS = ("prep", "export", "info", "replay", "match", "serve", "send", "simulate", "eval", "demo")
+KERNELS: dict[str, tuple[str, ...]] = {
+    "match": ("batch",),
+    "simulate": ("simulator",),
+    "demo": ("simulator",),
+}
+"""The compiled-kernel groups (:mod:`mapmatch.kernels`) each command compiles on a machine's first run."""
+
+EXIT_OK = 0
+"""Everything asked for was done."""
+EXIT_PARTIAL = 1
+"""Done, with failures: some inputs rejected or unmatched beyond the command's threshold."""
+EXIT_USAGE = 2
+"""Usage error or bad input (missing file, bad column, corrupt map...); nothing was written."""
+EXIT_CONNECT = 3
+"""Cannot connect to a server, or cannot serve (port in use, TLS files unusable)."""
+EXIT_INTERRUPTED = 130
+"""Interrupted by Ctrl-C (SIGINT)."""
+
+EXIT_STATUSES = f"""\
+exit status:
+  {EXIT_OK}  all done
+  {EXIT_PARTIAL}  done with failures: replay, send and simulate when any fix was rejected; match when
+     more than --max-unmatched (default 5 %) of the points, or every point of a track, is unmatched
+  {EXIT_USAGE}  usage error or bad input (nothing is written)
+  {EXIT_CONNECT}  cannot connect to the server, or cannot serve
+  {EXIT_INTERRUPTED}  interrupted (Ctrl-C)
+a failure is summed up in one line on stderr: "mapmatch COMMAND: error: ..." """
 
 
 class CommandError(Exception):
     """A subcommand's user-facing failure: printed as one line, exit status ``code``."""
 
-    def __init__(self, message: str, code: int = 2) -> None:
+    def __init__(self, message: str, code: int = EXIT_USAGE) -> None:
         super().__init__(message)
         self.code = code
+
+
+def version() -> str:
+    """The installed distribution's version (``0+unknown`` in a source tree never installed)."""
+    from importlib.metadata import PackageNotFoundError
+    from importlib.metadata import version as dist_version
+
+    try:
+        return dist_version("mapmatch")
+    except PackageNotFoundError:
+        return "0+unknown"
+
+
+def add_common_options(p: argparse.ArgumentParser) -> None:
+    """Add the options every subcommand takes (``-q``, ``-v``) unless it defines them itself.
+
+    Their defaults are suppressed, so ``mapmatch -v match`` and ``mapmatch match -v`` both work.
+    """
+    have = p._option_string_actions
+    if "-v" not in have:
+        p.add_argument(
+            "-v", "--verbose", action="count", default=argparse.SUPPRESS, help="more log output (-vv: debug)"
+        )
+    if "-q" not in have:
+        p.add_argument(
+            "-q", "--quiet", action="store_true", default=argparse.SUPPRESS,
+            help="only warnings and errors: no progress, no summary",
+        )  # fmt: skip
 
 
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="mapmatch",
         description="Map preparation, online and batch map matching, and the gRPC service.",
+        epilog=EXIT_STATUSES,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
     )
-    parser.add_argument("-v", "--verbose", action="count", default=0, help="more log output (-vv for debug)")
+    parser.add_argument("--version", action="version", version=f"mapmatch {version()}")
+    parser.add_argument("-v", "--verbose", action="count", default=0, help="more log output (-vv: debug)")
+    parser.add_argument("-q", "--quiet", action="store_true", default=False, help="only warnings and errors")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
     for name in SUBCOMMANDS:
         try:
@@ -42,31 +101,64 @@ def build_parser() -> argparse.ArgumentParser:
                 raise
             continue
         mod.register(sub)
+    for p in sub.choices.values():
+        add_common_options(p)
+        if p.epilog is None or "exit status:" not in p.epilog:
+            p.epilog = (p.epilog + "\n\n" if p.epilog else "") + EXIT_STATUSES
+            p.formatter_class = argparse.RawDescriptionHelpFormatter
     return parser
 
 
+def _fail(command: str, message: str, code: int) -> int:
+    print(f"mapmatch {command}: error: {message}", file=sys.stderr)
+    return code
+
+
 def main(argv: Sequence[str] | None = None) -> int:
-    parser = build_parser()
-    args = parser.parse_args(argv)
-    level = logging.WARNING - 10 * min(args.verbose, 2)
-    logging.basicConfig(level=level, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    command = "?"
     try:
+        parser = build_parser()
+        args = parser.parse_args(argv)
+        command = args.command
+        level = logging.WARNING - 10 * min(0 if args.quiet else args.verbose, 2)
+        logging.basicConfig(level=level, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+        return _run(args)
+    except KeyboardInterrupt:
+        print(f"mapmatch {command}: interrupted", file=sys.stderr)
+        return EXIT_INTERRUPTED
+
+
+def _run(args: argparse.Namespace) -> int:
+    from graph.errors import GraphError
+    from mapmatch.errors import MatchError
+
+    cmd = args.command
+    try:
+        if not args.quiet and KERNELS.get(cmd):
+            from mapmatch.kernels import announce
+
+            for group in KERNELS[cmd]:
+                announce(group)
         return int(args.func(args) or 0)
     except CommandError as exc:
-        print(f"mapmatch {args.command}: error: {exc}", file=sys.stderr)
-        return exc.code
+        return _fail(cmd, str(exc), exc.code)
     except (GraphError, MatchError) as exc:
-        print(f"mapmatch {args.command}: error: {exc}", file=sys.stderr)
-        return 2
+        return _fail(cmd, str(exc), EXIT_USAGE)
     except FileNotFoundError as exc:
-        print(f"mapmatch {args.command}: error: no such file: {exc.filename}", file=sys.stderr)
-        return 2
-    except (PermissionError, IsADirectoryError) as exc:
-        print(f"mapmatch {args.command}: error: {exc.strerror}: {exc.filename}", file=sys.stderr)
-        return 2
+        return _fail(cmd, f"no such file: {exc.filename}", EXIT_USAGE)
+    except (PermissionError, IsADirectoryError, NotADirectoryError, FileExistsError) as exc:
+        where = exc.filename if exc.filename2 is None else f"{exc.filename} -> {exc.filename2}"
+        return _fail(cmd, f"{exc.strerror}: {where}", EXIT_USAGE)
+    except OSError as exc:
+        return _fail(cmd, f"{exc.strerror or exc}: {exc.filename or ''}".rstrip(": "), EXIT_USAGE)
     except KeyboardInterrupt:
-        print(f"mapmatch {args.command}: interrupted", file=sys.stderr)
-        return 130
+        raise
+    except Exception as exc:  # a library's error the command did not translate: still one line
+        logging.getLogger("mapmatch").debug("traceback", exc_info=True)
+        kind = type(exc).__name__
+        return _fail(
+            cmd, f"{kind}: {exc} (a bug unless the input is bad; -vv shows the traceback)", EXIT_USAGE
+        )
 
 
 if __name__ == "__main__":

@@ -594,3 +594,149 @@ def read_matched_csv(path: str | os.PathLike[str], *, vehicle_id: str | None = N
     if "time" not in df.columns:
         raise ValidationError("matched", f"{path}: missing column 'time'")
     return df.reset_index(drop=True)
+
+
+# --------------------------------------------------------------------------- scoring against a true route
+
+
+@dataclass(frozen=True)
+class RouteScore:
+    """Route mismatch of one matched route against a true route (``mapmatch eval --route``)."""
+
+    track_id: str
+    crs: str
+    truth_m: float
+    matched_m: float
+    rmf: RouteMismatch
+    tolerance_m: float
+    unmatched_points: int = 0
+    points: int = 0
+
+    def table(self) -> str:
+        """The score as aligned text rows."""
+        r = self.rmf
+        rows = [
+            ("track", self.track_id),
+            ("true route length", f"{r.truth_m:,.0f} m"),
+            ("matched route length", f"{self.matched_m:,.0f} m"),
+            (
+                f"route mismatch fraction (tol {self.tolerance_m:g} m)",
+                f"{100 * r.fraction:.2f} % (missing {r.missing_m:,.0f} m, extra {r.extra_m:,.0f} m)",
+            ),
+        ]
+        if self.points:
+            rows.append(("unmatched points", f"{self.unmatched_points} of {self.points}"))
+        rows.append(("scored in", self.crs))
+        w = max(len(k) for k, _ in rows)
+        return "\n".join(f"{k:<{w}}  {v}" for k, v in rows)
+
+
+def _lonlat_parts(geometry: dict[str, Any] | None) -> list[NDArray[np.float64]]:
+    """lon/lat polylines of a GeoJSON (Multi)LineString geometry (other types: none)."""
+    if not geometry:
+        return []
+    kind, coords = geometry.get("type"), geometry.get("coordinates") or []
+    lines = [coords] if kind == "LineString" else coords if kind == "MultiLineString" else []
+    return [np.asarray(c, dtype=np.float64)[:, :2] for c in lines if len(c) >= 2]
+
+
+def read_route_geojson(
+    path: str | os.PathLike[str], *, track_id: str | None = None
+) -> tuple[str, list[NDArray[np.float64]], dict[str, Any]]:
+    """One route from a GeoJSON file: ``(track id, lon/lat parts, properties)``.
+
+    The file is a Feature (a true route such as Kubicka's ``truth.geojson``) or a
+    FeatureCollection (``mapmatch match`` output: one feature per track, chosen by ``track_id``
+    (property ``track_id`` or ``track``) when there are several).
+
+    Raises
+    ------
+    ValidationError
+        Not GeoJSON, no such track, several tracks and none named, or no line geometry.
+    """
+    import json
+
+    try:
+        with open(path, encoding="utf-8") as f:
+            doc = json.load(f)
+    except (ValueError, UnicodeDecodeError) as exc:
+        raise ValidationError("route", f"{path} is not GeoJSON ({exc})") from None
+    if not isinstance(doc, dict):
+        raise ValidationError("route", f"{path} is not a GeoJSON object")
+    if doc.get("type") == "FeatureCollection":
+        feats = [f for f in doc.get("features") or [] if isinstance(f, dict)]
+    elif doc.get("type") == "Feature":
+        feats = [doc]
+    else:
+        feats = [{"type": "Feature", "geometry": doc, "properties": {}}]
+
+    def fid(f: dict[str, Any]) -> str:
+        p = f.get("properties") or {}
+        return str(p.get("track_id", p.get("track", "")))
+
+    if track_id is not None:
+        feats = [f for f in feats if fid(f) == track_id]
+        if not feats:
+            raise ValidationError("track_id", f"{path} has no track {track_id!r}")
+    elif len(feats) > 1:
+        ids = ", ".join(fid(f) for f in feats[:5])
+        raise ValidationError("track_id", f"{path} holds {len(feats)} tracks ({ids}, ...); name one")
+    if not feats:
+        raise ValidationError("route", f"{path} holds no feature")
+    feat = feats[0]
+    parts = _lonlat_parts(feat.get("geometry"))
+    props = dict(feat.get("properties") or {})
+    return fid(feat), parts, props
+
+
+def route_lonlat_from_results(graph: RoadGraph, matched: pd.DataFrame) -> list[NDArray[np.float64]]:
+    """The route driven according to online results (``mapmatch replay``/``send`` rows), lon/lat.
+
+    The per-fix edges are joined by :func:`edge_path` (gaps closed by the shortest legal path
+    drivable in the time between the fixes); corrections are applied first.
+    """
+    df = apply_corrections(graph, matched) if "correction" in matched.columns else matched
+    edges = matched_edges_dense(graph, df)
+    path = edge_path(graph, edges, times=df["time"].to_numpy(dtype=np.float64))
+    xy = path_geometry(graph, path)
+    return [to_lonlat(graph.crs, p[:, 0], p[:, 1]) for p in _split(xy) if len(p) >= 2]
+
+
+def score_route(
+    truth_lonlat: Sequence[ArrayLike],
+    matched_lonlat: Sequence[ArrayLike],
+    *,
+    tolerance_m: float = 2.0,
+    crs: str | None = None,
+    track_id: str = "",
+    points: int = 0,
+    unmatched_points: int = 0,
+) -> RouteScore:
+    """Route mismatch fraction of a matched route (lon/lat parts) against the true one.
+
+    Both are projected to ``crs`` (default: the UTM zone of the true route's first vertex) and
+    compared by :func:`route_mismatch`; separate parts stay separate.
+    """
+    from graph.projection import utm_crs
+
+    truth = [np.asarray(p, dtype=np.float64).reshape(-1, 2) for p in truth_lonlat]
+    truth = [p for p in truth if len(p)]
+    if not truth:
+        raise ValidationError("route", "the true route has no line geometry")
+    crs = crs or utm_crs(float(truth[0][0, 0]), float(truth[0][0, 1]))
+
+    def xy(parts: Sequence[ArrayLike]) -> NDArray[np.float64]:
+        out: list[NDArray[np.float64]] = []
+        for p in parts:
+            a = np.asarray(p, dtype=np.float64).reshape(-1, 2)
+            if len(a):
+                out += [to_xy(crs, a[:, 0], a[:, 1]), np.full((1, 2), np.nan)]
+        return np.vstack(out[:-1]) if out else np.empty((0, 2))
+
+    t, m = xy(truth), xy(matched_lonlat)
+    _, ml = _pieces(m, 1.0)
+    rmf = route_mismatch(t, m, tolerance_m=tolerance_m)
+    return RouteScore(
+        track_id=track_id, crs=crs, truth_m=rmf.truth_m, matched_m=float(ml.sum()), rmf=rmf,
+        tolerance_m=tolerance_m, points=points, unmatched_points=unmatched_points,
+    )  # fmt: skip

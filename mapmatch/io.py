@@ -50,6 +50,86 @@ TRACK_SUFFIXES = (".csv", ".csv.gz", ".gpx", ".parquet", ".geoparquet", ".pq")
 OUTPUT_SUFFIXES = (".geojson", ".json", ".csv", ".parquet", ".geoparquet")
 
 
+STDIO = "-"
+"""The file name that means standard input (when read) or standard output (when written)."""
+
+
+# ---------------------------------------------------------------------- fused fixes
+@dataclass(frozen=True)
+class FixColumns:
+    """Column names of a fused-fix file (``mapmatch replay``, ``mapmatch send``).
+
+    The defaults are the documented names (:data:`mapmatch.fixes.REQUIRED_COLUMNS` and
+    ``OPTIONAL_COLUMNS``). Without the vehicle column the file is one vehicle (``default_vehicle``);
+    without the heading column every heading is unknown. lat, lon and time are required.
+    """
+
+    vehicle_id: str = "vehicle_id"
+    time: str = "time"
+    lat: str = "lat"
+    lon: str = "lon"
+    heading: str = "heading"
+    pos_sigma: str = "pos_sigma"
+    heading_sigma: str = "heading_sigma"
+    speed: str = "speed"
+    distance: str = "distance"
+    gps_valid: str = "gps_valid"
+
+
+def read_fixes(
+    source: str | os.PathLike[str], *, columns: FixColumns = FixColumns(), default_vehicle: str = ""
+) -> dict[str, list[Any]]:
+    """Fused fixes per vehicle from a CSV file (``"-"``: standard input), with renamed columns.
+
+    Raises
+    ------
+    mapmatch.errors.ValidationError
+        A required column is missing (named, with the file's columns) or a cell is not a number.
+    """
+    import io
+    import sys
+
+    from mapmatch.errors import ValidationError
+    from mapmatch.fixes import read_fixes_csv
+
+    name = "standard input" if str(source) == STDIO else str(source)
+    try:
+        df = pd.read_csv(
+            sys.stdin if str(source) == STDIO else source, dtype=str, keep_default_na=False,
+            skipinitialspace=True,
+        )  # fmt: skip
+    except pd.errors.EmptyDataError:
+        raise ValidationError("file", f"{name} is empty") from None
+    except (pd.errors.ParserError, UnicodeDecodeError) as exc:
+        raise ValidationError("file", f"{name} is not a readable CSV ({exc})") from None
+    df.columns = [str(c).strip() for c in df.columns]
+    for need in (columns.time, columns.lat, columns.lon):
+        if need not in df.columns:
+            raise ValidationError(
+                "columns", f"missing column {need!r} (columns are: {', '.join(df.columns) or 'none'})"
+            )
+    wanted = {getattr(columns, f): f for f in FixColumns.__dataclass_fields__}
+    df = df[[c for c in df.columns if c in wanted]].rename(columns=wanted)
+    if "vehicle_id" not in df.columns:
+        df["vehicle_id"] = default_vehicle or (Path(str(source)).stem if name != "standard input" else "1")
+    if "heading" not in df.columns:
+        df["heading"] = ""
+    buf = io.StringIO()
+    df.to_csv(buf, index=False)
+    buf.seek(0)
+    return read_fixes_csv(buf)  # type: ignore[arg-type]
+
+
+def copy_to_stdout(path: str | os.PathLike[str]) -> None:
+    """Write a finished output file to standard output (for ``-o -``)."""
+    import shutil
+    import sys
+
+    with open(path, "rb") as f:
+        shutil.copyfileobj(f, sys.stdout.buffer)
+    sys.stdout.flush()
+
+
 # ---------------------------------------------------------------------- reading
 def read_tracks(path: str | os.PathLike[str], *, columns: Columns = DEFAULT_COLUMNS) -> list[Track]:
     """Read every track of a CSV, GPX or (Geo)Parquet file, or of a folder of Parquet parts."""
@@ -141,13 +221,20 @@ def _gpx_track(name: str, pts: Sequence[Any]) -> Track:
 def tracks_from_frame(
     df: pd.DataFrame, *, columns: Columns = DEFAULT_COLUMNS, default_id: str
 ) -> list[Track]:
-    """Split a point table into tracks by the id column, in order of first appearance."""
-    for need in (columns.lat, columns.lon):
-        if need not in df.columns:
-            raise TrackInputError(f"missing column {need!r} (columns are: {', '.join(map(str, df.columns))})")
+    """Split a point table into tracks by the id column, in order of first appearance.
+
+    The lat, lon and time columns are required (``columns.time == ""`` reads tracks without
+    times); without the id column the table is one track named ``default_id``.
+    """
+    for need in (columns.lat, columns.lon, columns.time):
+        if need and need not in df.columns:
+            hint = " (or an empty --time-col for tracks without times)" if need == columns.time else ""
+            raise TrackInputError(
+                f"missing column {need!r}{hint} (columns are: {', '.join(map(str, df.columns))})"
+            )
     n = len(df)
     ids = df[columns.id].astype(str).to_numpy() if columns.id in df.columns else np.full(n, default_id)
-    time = _time_seconds(df[columns.time]) if columns.time in df.columns else np.full(n, np.nan)
+    time = _time_seconds(df[columns.time]) if columns.time else np.full(n, np.nan)
 
     def num(col: str) -> NDArray[np.float64] | None:
         if col not in df.columns:

@@ -36,6 +36,8 @@ class PlotData:
     decided: NDArray[np.bool_]
     corrected: NDArray[np.bool_]
     outages: list[tuple[int, int]]
+    info: pd.DataFrame | None = None
+    """Per fix (aligned with ``fix_xy``): time, state, edge, way_id, probability, correction."""
 
 
 def _xy(graph: RoadGraph, df: pd.DataFrame | None) -> NDArray[np.float64]:
@@ -101,6 +103,7 @@ def plot_data(
             medge[idx[have]] = matched_edges_dense(graph, matched)[have]
             tedge = np.where(ti >= 0, truth["edge"].to_numpy(np.int64)[np.maximum(ti, 0)], -2)
             ok = (medge == tedge) | (medge < 0)
+    info = _fix_info(fixes, matched)
     gxy = _xy(graph, gps)
     # outages: the simulator's truth knows them; otherwise runs of >= 5 fixes without GPS
     if truth is not None and "gps_outage" in truth.columns:
@@ -120,6 +123,52 @@ def plot_data(
         decided=dec,
         corrected=cor,
         outages=runs,
+        info=info,
+    )
+
+
+def _reported_probability(candidates: Any, edge: Any) -> float:
+    """The probability the matcher gave the edge it reported ("edge:p;edge:p" cells)."""
+    if not isinstance(candidates, str) or not candidates:
+        return float("nan")
+    for item in candidates.split(";"):
+        e, _, p = item.partition(":")
+        if e.strip() == str(edge):
+            try:
+                return float(p)
+            except ValueError:
+                return float("nan")
+    return float("nan")
+
+
+def _fix_info(fixes: pd.DataFrame, matched: pd.DataFrame | None) -> pd.DataFrame:
+    """The tooltip fields per fix: time, state, edge, way, reported probability, correction."""
+    n = len(fixes)
+    time = pd.to_numeric(fixes["time"], errors="coerce").to_numpy(float)
+    state = [""] * n
+    edge = np.full(n, -1, dtype=np.int64)
+    way = [""] * n
+    prob = np.full(n, np.nan)
+    corr = [""] * n
+    if matched is not None and len(matched):
+        idx = align_by_time(time, matched["time"].to_numpy(float))
+
+        def cells(name: str) -> list[Any]:
+            return matched[name].tolist() if name in matched.columns else [None] * len(matched)
+
+        m_state, m_way, m_cand, m_corr = (cells(c) for c in ("state", "way_id", "candidates", "correction"))
+        m_edge = pd.to_numeric(pd.Series(cells("edge")), errors="coerce").fillna(-1).to_numpy(np.int64)
+        for i in np.flatnonzero(idx >= 0).tolist():
+            j = int(idx[i])
+            state[i] = "" if m_state[j] is None else str(m_state[j])
+            edge[i] = m_edge[j]
+            w = pd.to_numeric(m_way[j], errors="coerce")
+            way[i] = "" if pd.isna(w) else str(int(w))
+            prob[i] = _reported_probability(m_cand[j], m_edge[j])
+            c = m_corr[j]
+            corr[i] = f"edges {c}" if isinstance(c, str) and c.strip() else ""
+    return pd.DataFrame(
+        {"time": time, "state": state, "edge": edge, "way_id": way, "probability": prob, "correction": corr}
     )
 
 
@@ -190,7 +239,9 @@ def draw_png(
     size_in: float = 12.0,
 ) -> None:
     """Draw the PNG map (atomic write): the whole drive, and a zoom on the longest GPS outage."""
-    import matplotlib
+    from mapmatch.extras import require
+
+    matplotlib = require("matplotlib", extra="plots", needed_for="drawing the PNG map")
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
@@ -250,63 +301,160 @@ def draw_png(
     plt.close(fig)
 
 
+LEGEND = (
+    ("true route", "#2ca02c", "line"),
+    ("road graph", "#888888", "line"),
+    ("raw GPS", "#555555", "dot"),
+    ("fused fix, GPS valid", "#1f77b4", "dot"),
+    ("fused fix, no GPS (dead reckoning)", "#d62728", "dot"),
+    ("snapped", "#ff7f0e", "dot"),
+    ("snapped on the wrong edge", "#d62728", "ring"),
+    ("ambiguous region", "#9467bd", "ring"),
+    ("decision on leaving a region", "#9467bd", "dot"),
+    ("correction", "#e377c2", "dot"),
+)
+
+
+def _legend_html() -> str:
+    items = []
+    shape = {
+        "line": "width:18px;height:4px;background:{c};vertical-align:middle",
+        "ring": "width:9px;height:9px;border:2px solid {c};border-radius:50%",
+        "dot": "width:11px;height:11px;background:{c};border-radius:50%",
+    }
+    for label, color, kind in LEGEND:
+        style = shape[kind].format(c=color)
+        mark = f"<span style='display:inline-block;{style}'></span>"
+        items.append(f"<div>{mark}&nbsp;{label}</div>")
+    return (
+        "<div style='position:fixed;bottom:24px;left:12px;z-index:9999;background:rgba(255,255,255,.9);"
+        "padding:6px 9px;border:1px solid #999;border-radius:4px;font:12px sans-serif;line-height:17px'>"
+        + "".join(items)
+        + "</div>"
+    )
+
+
 def draw_html(
-    graph: RoadGraph, data: PlotData, path: str | os.PathLike[str], *, title: str = "", max_points: int = 4000
+    graph: RoadGraph,
+    data: PlotData,
+    path: str | os.PathLike[str],
+    *,
+    title: str = "",
+    max_points: int = 20000,
 ) -> None:
-    """Write the interactive HTML map (folium, atomic), one toggleable layer per kind."""
-    import folium
+    """Write the interactive HTML map (folium, atomic): one toggleable GeoJSON layer per kind.
 
-    def ll(xy: NDArray[np.float64]) -> list[list[float]]:
-        ok = ~np.isnan(xy[:, 0])
-        if not ok.any():
-            return []
-        g = to_lonlat(graph.crs, xy[ok, 0], xy[ok, 1])
-        return np.round(g[:, ::-1], 7).tolist()
+    Every fix is a point of its layer's FeatureCollection (not a marker of its own), so the file
+    grows with the drive only by its coordinates and tooltip fields (time, state, edge, way,
+    probability, correction). A legend names the colours. Layers of more than ``max_points``
+    points are thinned evenly.
+    """
+    from mapmatch.extras import require
 
-    def thin(xy: NDArray[np.float64]) -> NDArray[np.float64]:
-        step = max(1, len(xy) // max_points)
-        return xy[::step]
+    folium = require("folium", extra="plots", needed_for="drawing the HTML map")
 
-    route = ll(data.route_xy)
-    centre = np.mean(route, axis=0).tolist() if route else [0.0, 0.0]
+    def lonlat(xy: NDArray[np.float64]) -> NDArray[np.float64]:
+        return np.round(to_lonlat(graph.crs, xy[:, 0], xy[:, 1]), 7) if len(xy) else np.empty((0, 2))
+
+    route_ll = lonlat(data.route_xy[~np.isnan(data.route_xy[:, 0])])
+    centre = route_ll.mean(axis=0)[::-1].tolist() if len(route_ll) else [0.0, 0.0]
     m = folium.Map(location=centre, zoom_start=15, tiles="OpenStreetMap", control_scale=True)
     if title:
         m.get_root().html.add_child(  # type: ignore[attr-defined]
             folium.Element(f"<div style='font:12px monospace;white-space:pre'>{title}</div>")
         )
+    m.get_root().html.add_child(folium.Element(_legend_html()))  # type: ignore[attr-defined]
     lo = data.route_xy.min(axis=0) - 300
     hi = data.route_xy.max(axis=0) + 300
-    roads = folium.FeatureGroup(name="road graph")
+    road_feats = []
     for e in range(graph.n_edges):
         if graph.edge_reverse[e] >= 0 and graph.edge_reverse[e] < e:
             continue
-        s = graph.edge_xy(e)
-        if (s.max(0) >= lo).all() and (s.min(0) <= hi).all():
-            folium.PolyLine(ll(s), color="#888888", weight=2, opacity=0.6).add_to(roads)
-    roads.add_to(m)
-    fg = folium.FeatureGroup(name="true route")
-    folium.PolyLine(route, color="#2ca02c", weight=7, opacity=0.5).add_to(fg)
-    fg.add_to(m)
+        seg = graph.edge_xy(e)
+        if (seg.max(0) >= lo).all() and (seg.min(0) <= hi).all():
+            road_feats.append(
+                {
+                    "type": "Feature",
+                    "geometry": {"type": "LineString", "coordinates": lonlat(seg).tolist()},
+                    "properties": {
+                        "edge": int(e),
+                        "way": int(graph.edge_way_id[e]),
+                        "name": graph.edge_name(e),
+                    },
+                }
+            )
 
-    def points(name: str, xy: NDArray[np.float64], color: str, radius: float, fill: bool = True) -> None:
-        g = folium.FeatureGroup(name=name)
-        for lat, lon in ll(thin(xy)):
-            folium.CircleMarker(
-                [lat, lon], radius=radius, color=color, fill=fill, weight=1, fill_opacity=0.8
-            ).add_to(g)
-        g.add_to(m)
+    def lines(
+        name: str, feats: list[dict[str, Any]], color: str, weight: float, opacity: float, tip: list[str]
+    ) -> None:
+        if not feats:
+            return
+        folium.GeoJson(
+            {"type": "FeatureCollection", "features": feats},
+            name=name,
+            style_function=lambda _f, c=color, w=weight, o=opacity: {"color": c, "weight": w, "opacity": o},
+            tooltip=folium.GeoJsonTooltip(fields=tip) if tip else None,
+        ).add_to(m)
+
+    lines("road graph", road_feats, "#888888", 2, 0.6, ["edge", "way", "name"])
+    if len(route_ll) >= 2:
+        lines("true route", [{"type": "Feature", "geometry": {"type": "LineString",
+              "coordinates": route_ll.tolist()}, "properties": {}}], "#2ca02c", 7, 0.5, [])  # fmt: skip
+    info = data.info
+    fields = ["time", "state", "edge", "way_id", "probability", "correction"]
+
+    def props(i: int) -> dict[str, Any]:
+        if info is None:
+            return {"fix": i}
+        r = info.iloc[i]
+        p = float(r["probability"])
+        return {
+            "fix": i,
+            "time": float(r["time"]),
+            "state": str(r["state"]),
+            "edge": int(r["edge"]),
+            "way_id": str(r["way_id"]),
+            "probability": "" if np.isnan(p) else round(p, 4),
+            "correction": str(r["correction"]),
+        }
+
+    def points(name: str, xy: NDArray[np.float64], mask: NDArray[np.bool_] | None, color: str, radius: float,
+               fill: bool = True, tip: bool = True) -> None:  # fmt: skip
+        rows = np.flatnonzero(~np.isnan(xy[:, 0]) & (True if mask is None else mask))
+        if not len(rows):
+            return
+        rows = rows[:: max(1, len(rows) // max_points)]
+        ll = lonlat(xy[rows])
+        feats = [
+            {"type": "Feature", "geometry": {"type": "Point", "coordinates": c},
+             "properties": props(int(i)) if tip else {}}
+            for i, c in zip(rows.tolist(), ll.tolist(), strict=True)
+        ]  # fmt: skip
+        marker = folium.CircleMarker(
+            radius=radius, color=color, fill=fill, fill_color=color, weight=1, fill_opacity=0.8
+        )
+        folium.GeoJson(
+            {"type": "FeatureCollection", "features": feats},
+            name=name,
+            marker=marker,
+            tooltip=(
+                folium.GeoJsonTooltip(fields=["fix", *fields] if info is not None else ["fix"])
+                if tip
+                else None
+            ),
+        ).add_to(m)
 
     if len(data.gps_xy):
-        points("raw GPS", data.gps_xy, "#555555", 1.5)
+        points("raw GPS", data.gps_xy, None, "#555555", 1.5, tip=False)
     if len(data.fix_xy):
-        points("fused fixes (GPS valid)", data.fix_xy[data.fix_valid], "#1f77b4", 2)
-        points("fused fixes in GPS outage", data.fix_xy[~data.fix_valid], "#d62728", 2.5)
+        points("fused fixes (GPS valid)", data.fix_xy, data.fix_valid, "#1f77b4", 2)
+        points("fused fixes in GPS outage", data.fix_xy, ~data.fix_valid, "#d62728", 2.5)
     s = data.snap_xy
-    points("snapped", s[data.snap_ok], "#ff7f0e", 2)
-    points("snapped on wrong edge", s[~data.snap_ok], "#d62728", 4)
-    points("ambiguous region", s[data.ambiguous], "#9467bd", 5, fill=False)
-    points("decisions", s[data.decided], "#9467bd", 5)
-    points("corrections", s[data.corrected], "#e377c2", 7)
+    points("snapped", s, data.snap_ok, "#ff7f0e", 2.5)
+    points("snapped on wrong edge", s, ~data.snap_ok, "#d62728", 5, fill=False)
+    points("ambiguous region", s, data.ambiguous, "#9467bd", 6, fill=False)
+    points("decisions", s, data.decided, "#9467bd", 5)
+    points("corrections", s, data.corrected, "#e377c2", 7)
     folium.LayerControl(collapsed=False).add_to(m)
     with atomic_path(path) as tmp:
         m.save(str(tmp))

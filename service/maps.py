@@ -403,9 +403,11 @@ def warm_up(entry: MapEntry) -> None:
             f"path: map {entry.map_id!r} failed its warm-up: a fix on one of its roads came back off-road "
             "(wrong CRS or coordinates?)"
         )
-    try:
-        import mapmatch.batch  # noqa: F401
-    except ModuleNotFoundError:
+    from mapmatch.kernels import is_cached
+
+    if not is_cached("batch"):
+        # on a machine's first run the first MatchTrack compiles the batch kernels (about a
+        # minute), so serving need not wait for them
         return
     try:
         entry.batch.match(

@@ -203,6 +203,13 @@ class ServiceRuntime:
             raise
         self.to_load = []
         self.call(self.update_health())
+        from mapmatch.kernels import COMPILE_SECONDS, is_cached
+
+        if not is_cached("batch"):
+            log.info(
+                "batch kernels not compiled yet: the first MatchTrack compiles them, once, about %.0f s",
+                COMPILE_SECONDS["batch"],
+            )
 
     async def update_health(self) -> None:
         """SERVING when maps are loaded (each has passed its warm-up), else NOT_SERVING; and

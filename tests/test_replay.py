@@ -61,8 +61,9 @@ def test_replay_two_vehicles(tmp_path: Path, capsys: pytest.CaptureFixture[str])
 
     rc = main(["replay", "--map", str(tmp_path / "cross.map"), str(tmp_path / "fixes.csv"),
                "-o", str(tmp_path / "out.csv")])  # fmt: skip
-    assert rc == 0
-    assert "2 vehicle(s)" in capsys.readouterr().out
+    assert rc == 1  # done, with one fix rejected (exit status 1)
+    cap = capsys.readouterr()
+    assert "2 vehicle(s)" in cap.out and "1 of" in cap.err
     with open(tmp_path / "out.csv") as fh:
         out = list(csv.DictReader(fh))
     assert tuple(out[0]) == RESULT_COLUMNS

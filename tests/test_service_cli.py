@@ -193,10 +193,10 @@ def test_send_writes_the_same_rows_as_replay(tmp_path, capsys):
     proc, port = _serve_process(tmp_path)
     try:
         out = tmp_path / "sent.csv"
-        assert main(["send", "--server", f"127.0.0.1:{port}", str(fixes), "-o", str(out)]) == 0
+        assert main(["send", "--server", f"127.0.0.1:{port}", str(fixes), "-o", str(out)]) == 1  # 1 rejected
         assert "matched by" in capsys.readouterr().out
         ref = tmp_path / "replayed.csv"
-        assert main(["replay", "--map", str(tmp_path / "city.map"), str(fixes), "-o", str(ref)]) == 0
+        assert main(["replay", "--map", str(tmp_path / "city.map"), str(fixes), "-o", str(ref)]) == 1
         assert out.read_text().count("\n") == fixes.read_text().count("\n")
         assert filecmp.cmp(out, ref, shallow=False), "send and replay disagree"
         assert ",rejected," in out.read_text()
@@ -218,6 +218,6 @@ def test_send_errors_are_one_line(tmp_path, capsys):
         ["send", "--server", f"127.0.0.1:{port}", "--timeout", "2", str(fixes), "-o", str(tmp_path / "o.csv")]
     )
     err = capsys.readouterr().err
-    assert code != 0 and err.count("\n") == 1 and "UNAVAILABLE" in err
+    assert code == 3 and err.count("\n") == 1 and "UNAVAILABLE" in err
     assert not (tmp_path / "o.csv").exists()
     assert main(["send", str(tmp_path / "missing.csv"), "-o", str(tmp_path / "o.csv")]) != 0

@@ -51,6 +51,10 @@ def run(args: argparse.Namespace) -> int:
 
     if args.length_km <= 0:
         raise CommandError("--length-km must be positive")
+    from mapmatch.extras import require
+
+    for module in ("pyrosm", "matplotlib", "folium"):
+        require(module, extra="demo", needed_for="mapmatch demo")
     t0 = time.perf_counter()
     out: Path = args.out
     out.mkdir(parents=True, exist_ok=True)

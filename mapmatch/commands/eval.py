@@ -5,27 +5,51 @@ from __future__ import annotations
 import argparse
 import json
 from pathlib import Path
-
-import pandas as pd
+from typing import TYPE_CHECKING, Any
 
 from mapmatch.cli import CommandError
+
+if TYPE_CHECKING:
+    import pandas as pd
+
+
+DESCRIPTION = """\
+Score matched results against the truth.
+
+With --truth (from mapmatch simulate): intersection traversal accuracy, per-fix correct-edge
+rate, route mismatch fraction and snapped position error of a results CSV (mapmatch replay or
+send), with optional PNG and HTML maps.
+
+With --route (a true route as GeoJSON (Multi)LineString, e.g. Kubicka's truth.geojson): the
+route mismatch fraction of a matched route, from batch output (mapmatch match: .geojson,
+.parquet, or its per-point .csv with --map) or online output (replay/send CSV, with --map)."""
+
+EPILOG = """\
+examples:
+  mapmatch eval --map city.map --truth truth.csv --matched out.csv --png m.png --html m.html
+  mapmatch match --map k.map track.csv -o routes.geojson
+  mapmatch eval --route truth.geojson --matched routes.geojson
+  mapmatch eval --route truth.geojson --matched replayed.csv --map k.map"""
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
     p = subparsers.add_parser(
         "eval",
-        help="score matched results against the truth (table, PNG and HTML maps)",
-        description=(
-            "Intersection traversal accuracy, per-fix correct-edge rate, route mismatch fraction and "
-            "snapped position error of a results CSV (mapmatch replay) against a truth written by "
-            "mapmatch simulate."
-        ),
+        help="score matched results against the truth or a true route (table, PNG and HTML maps)",
+        description=DESCRIPTION,
+        epilog=EPILOG,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
     )
-    p.add_argument("--map", required=True, help="the map the results and the truth refer to")
-    p.add_argument("--truth", required=True, help="truth CSV or GeoJSON from mapmatch simulate")
-    p.add_argument("--matched", required=True, help="results CSV from mapmatch replay")
+    p.add_argument("--map", help="the map the results refer to (needed with --truth, and for CSV results)")
+    what = p.add_mutually_exclusive_group(required=True)
+    what.add_argument("--truth", help="truth CSV or GeoJSON from mapmatch simulate")
+    what.add_argument("--route", help="true route, GeoJSON (Multi)LineString in lon/lat (e.g. truth.geojson)")
+    p.add_argument(
+        "--matched", required=True, help="results: replay/send CSV, or match output (with --route)"
+    )
     p.add_argument("--fixes", help="the fused fixes CSV (to draw them and report their error)")
-    p.add_argument("--vehicle-id", help="the vehicle to score when the files hold several")
+    p.add_argument("--vehicle-id", "--track-id", dest="vehicle_id",
+                   help="the vehicle or track to score when the files hold several")  # fmt: skip
     p.add_argument("--tolerance", type=float, default=2.0, help="route mismatch tolerance, m (default 2)")
     p.add_argument("--all-nodes", action="store_true", help="count every node, not only junctions")
     p.add_argument(
@@ -40,6 +64,85 @@ def register(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[ty
     p.set_defaults(func=run)
 
 
+def run_route(args: argparse.Namespace) -> int:
+    """``--route``: the route mismatch fraction of a matched route against a true route."""
+    from mapmatch.evaluate import read_route_geojson, route_lonlat_from_results, score_route
+
+    for name in ("route", "matched"):
+        if not Path(getattr(args, name)).is_file():
+            raise CommandError(f"--{name}: no such file: {getattr(args, name)}")
+    _, truth, props = read_route_geojson(args.route)
+    crs = f"EPSG:{props['utm_epsg']}" if isinstance(props.get("utm_epsg"), int) else None
+    matched_path = Path(args.matched)
+    name = matched_path.name.lower()
+    points = unmatched = 0
+    if name.endswith((".geojson", ".json")):
+        track, parts, mprops = read_route_geojson(matched_path, track_id=args.vehicle_id)
+        points, unmatched = int(mprops.get("n_points", 0)), int(mprops.get("n_unmatched", 0))
+    elif name.endswith((".parquet", ".geoparquet")):
+        track, parts, points, unmatched = _parquet_route(matched_path, args.vehicle_id)
+    elif name.endswith(".csv"):
+        if not args.map:
+            raise CommandError("--map is needed to rebuild the route of CSV results")
+        track, parts, points, unmatched = _csv_route(args, matched_path, route_lonlat_from_results)
+    else:
+        raise CommandError(f"--matched {matched_path}: unknown format (use .geojson, .parquet or .csv)")
+    score = score_route(
+        truth, parts, tolerance_m=args.tolerance, crs=crs, track_id=track, points=points,
+        unmatched_points=unmatched,
+    )  # fmt: skip
+    print(score.table())
+    return 0
+
+
+def _parquet_route(path: Path, track_id: str | None) -> tuple[str, list[Any], int, int]:
+    import shapely
+
+    from mapmatch.io import read_results
+
+    try:
+        table = read_results(path)
+    except Exception as exc:  # pyarrow raises several types for a bad file
+        raise CommandError(f"--matched {path}: not a mapmatch match GeoParquet file ({exc})") from None
+    if track_id is not None:
+        table = table[table["track_id"].astype(str) == track_id]
+    if len(table) != 1:
+        raise CommandError(f"--matched {path}: {len(table)} track(s) match; name one with --track-id")
+    row = table.iloc[0]
+    geom = shapely.from_wkb(row["route_wkb"])
+    lines = list(getattr(geom, "geoms", [geom])) if not geom.is_empty else []
+    parts = [shapely.get_coordinates(g) for g in lines]
+    return str(row["track_id"]), parts, int(row["n_points"]), int(row["n_unmatched"])
+
+
+def _csv_route(args: argparse.Namespace, path: Path, rebuild: Any) -> tuple[str, list[Any], int, int]:
+    import numpy as np
+    import pandas as pd
+
+    from graph.artifact import open_map
+    from graph.projection import to_lonlat
+    from mapmatch.evaluate import edge_path, path_geometry, read_matched_csv
+
+    graph = open_map(args.map)
+    head = pd.read_csv(path, nrows=0).columns
+    if "track_id" in head and "status" in head:  # per-point CSV of mapmatch match
+        df = pd.read_csv(path, dtype={"track_id": str})
+        ids = df["track_id"].unique().tolist()
+        tid = args.vehicle_id if args.vehicle_id is not None else (ids[0] if len(ids) == 1 else None)
+        if tid is None:
+            raise CommandError(f"--matched {path} holds {len(ids)} tracks; name one with --track-id")
+        df = df[df["track_id"] == tid]
+        from mapmatch.evaluate import _split
+
+        xy = path_geometry(graph, edge_path(graph, df["edge"].to_numpy(dtype=np.int64)))
+        parts = [to_lonlat(graph.crs, p[:, 0], p[:, 1]) for p in _split(xy) if len(p) >= 2]
+        return str(tid), parts, len(df), int((df["status"] == "unmatched").sum())
+    df = read_matched_csv(path, vehicle_id=args.vehicle_id)
+    vid = str(df["vehicle_id"].iloc[0]) if "vehicle_id" in df.columns and len(df) else ""
+    placed = df["edge"].fillna(-1).to_numpy() >= 0 if "edge" in df.columns else np.zeros(len(df), bool)
+    return vid, rebuild(graph, df), len(df), int((~placed).sum())
+
+
 def run(args: argparse.Namespace) -> int:
     from graph.artifact import open_map
     from graph.projection import to_xy
@@ -50,6 +153,10 @@ def run(args: argparse.Namespace) -> int:
 
     if args.tolerance < 0:
         raise CommandError("--tolerance must be >= 0")
+    if args.route:
+        return run_route(args)
+    if not args.map:
+        raise CommandError("--map is needed with --truth")
     csv_path, gj_path = truth_paths(args.truth)
     if not csv_path.exists():
         raise CommandError(f"no per-fix truth {csv_path} (mapmatch simulate --truth writes it)")
@@ -128,6 +235,8 @@ def run(args: argparse.Namespace) -> int:
 
 
 def _read_csv(path: Path) -> pd.DataFrame:
+    import pandas as pd
+
     try:
         return pd.read_csv(path)
     except (pd.errors.ParserError, pd.errors.EmptyDataError, UnicodeDecodeError) as exc:
@@ -136,6 +245,8 @@ def _read_csv(path: Path) -> pd.DataFrame:
 
 def _fixes_from_results(matched: pd.DataFrame, truth: pd.DataFrame) -> pd.DataFrame:
     """The matcher's input as far as the results tell it: raw positions, GPS flag from the truth."""
+    import pandas as pd
+
     lat = matched["raw_lat"] if "raw_lat" in matched.columns else matched["lat"]
     lon = matched["raw_lon"] if "raw_lon" in matched.columns else matched["lon"]
     df = pd.DataFrame({"time": matched["time"], "lat": lat, "lon": lon})

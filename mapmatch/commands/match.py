@@ -11,12 +11,17 @@ DESCRIPTION = """\
 Match historic tracks to the road network of a prepared map (Viterbi over each whole track).
 
 INPUT files are CSV (columns id,time,lat,lon plus heading and speed when present; names set
-with --id-col etc.; time as seconds or ISO-8601), GPX (one track per <trk>), Parquet or
-GeoParquet (lat/lon columns, or point geometry), or folders of Parquet parts.
+with --id-col etc.; time as seconds or ISO-8601; "-" reads CSV from standard input), GPX
+(one track per <trk>), Parquet or GeoParquet (lat/lon columns, or point geometry), or
+folders of Parquet parts.
 OUT by suffix: .geojson (one feature per track: route, track id, length, confidence, edge
 sequence with OSM way ids and names), .csv (one row per input point: matched edge, offset,
 snapped lat/lon, distance, status matched/interpolated/unmatched), .parquet/.geoparquet (one
-row per track, route geometry plus the per-point lists), or a folder (partitioned GeoParquet).
+row per track, route geometry plus the per-point lists), or a folder (partitioned GeoParquet);
+"-o -" writes the per-point CSV to standard output (and the summary to stderr).
+
+The run exits 1 (done with failures) when more than --max-unmatched of all points, or every
+point of some track, is unmatched (or there is no point at all), with a one-line summary.
 
 Tracks run in parallel on the local cores, or on a Dask cluster with --scheduler. An
 interrupted run, started again with the same arguments, resumes: finished partitions
@@ -37,19 +42,38 @@ def register(subparsers: Any) -> None:
         epilog=EPILOG,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
-    p.add_argument("inputs", nargs="+", type=Path, metavar="INPUT", help="track files or Parquet folders")
+    p.add_argument(
+        "inputs",
+        nargs="+",
+        type=Path,
+        metavar="INPUT",
+        help="track files or Parquet folders ('-': stdin)",
+    )
     p.add_argument("--map", required=True, type=Path, metavar="MAP", help="map file from `mapmatch prep`")
-    p.add_argument("-o", "--output", required=True, type=Path, metavar="OUT", help="output file or folder")
+    p.add_argument(
+        "-o",
+        "--output",
+        required=True,
+        type=Path,
+        metavar="OUT",
+        help="output file or folder ('-': stdout)",
+    )
     cols = p.add_argument_group("input columns (CSV and Parquet)")
     for name in ("id", "time", "lat", "lon", "heading", "speed"):
         cols.add_argument(f"--{name}-col", default=name, metavar="NAME", help=f"default: {name}")
+    cols.add_argument(
+        "--max-unmatched", type=float, default=0.05, metavar="FRACTION",
+        help="exit 1 when more than this fraction of the points is unmatched (default 0.05)",
+    )  # fmt: skip
     run = p.add_argument_group("execution")
     run.add_argument(
         "--workers", type=int, default=None, metavar="N", help="local processes (default: all cores)"
     )
     run.add_argument("--scheduler", metavar="tcp://HOST:PORT", help="run on this dask.distributed scheduler")
     run.add_argument("--partition-size", type=int, default=64, metavar="N", help="tracks per partition (64)")
-    run.add_argument("--no-progress", action="store_true", help="no progress bar")
+    run.add_argument(
+        "--no-progress", action="store_true", help="no progress bar (as -q, which also drops the summary)"
+    )
     run.add_argument(
         "--ubodt", type=float, default=None, metavar="METRES",
         help="precompute a route table up to this many metres per worker (faster; more memory)",
@@ -67,14 +91,57 @@ def register(subparsers: Any) -> None:
 
 
 def run_match(args: argparse.Namespace) -> int:
+    import tempfile
+
+    from mapmatch.cli import CommandError
+
+    if not 0.0 <= args.max_unmatched <= 1.0:
+        raise CommandError("--max-unmatched must be a fraction between 0 and 1")
+    stdin = [i for i in args.inputs if str(i) == "-"]
+    if len(stdin) > 1:
+        raise CommandError("standard input ('-') can be read only once")
+    to_stdout = str(args.output) == "-"
+    if not stdin and not to_stdout:
+        return _match(args, args.inputs, args.output, out=sys.stdout)
+    with tempfile.TemporaryDirectory(prefix="mapmatch-match-") as tmp:
+        inputs = list(args.inputs)
+        if stdin:
+            src = Path(tmp) / "stdin.csv"
+            src.write_bytes(sys.stdin.buffer.read())
+            inputs = [src if str(i) == "-" else i for i in inputs]
+        output = Path(tmp) / "stdout.csv" if to_stdout else args.output
+        rc = _match(args, inputs, output, out=sys.stderr if to_stdout else sys.stdout)
+        if to_stdout:
+            from mapmatch.io import copy_to_stdout
+
+            copy_to_stdout(output)
+        return rc
+
+
+def _check_map(path: Path) -> None:
+    """Fail before anything is written when the map cannot be opened (no parts folder left behind)."""
+    from pyproj import CRS
+
+    from graph.artifact import load_map
+    from mapmatch.cli import CommandError
+
+    if not path.is_file():
+        raise CommandError(f"no such map file: {path}")
+    try:
+        CRS.from_user_input(load_map(path).crs)
+    except Exception as exc:  # corrupt manifest or arrays, bad CRS, not a map file: one line
+        raise CommandError(f"map {path}: {type(exc).__name__}: {exc}") from None
+
+
+def _match(args: argparse.Namespace, inputs: list[Path], output: Path, *, out: Any) -> int:
     from tqdm import tqdm
 
     from mapmatch.batch import BATCH_CONFIG
-    from mapmatch.cli import CommandError
+    from mapmatch.cli import EXIT_OK, EXIT_PARTIAL, CommandError
     from mapmatch.io import Columns
     from mapmatch.parallel import run_batch
 
-    for inp in args.inputs:
+    for inp in inputs:
         if not inp.exists():
             raise CommandError(f"no such input: {inp}")
     if args.workers is not None and args.workers < 1:
@@ -83,6 +150,15 @@ def run_match(args: argparse.Namespace) -> int:
         raise CommandError("--partition-size must be at least 1")
     if args.ubodt is not None and not args.ubodt > 0:
         raise CommandError("--ubodt must be a positive number of metres")
+    if args.scheduler:
+        from mapmatch.extras import require
+
+        require("distributed", extra="dask", needed_for="--scheduler (matching on a Dask cluster)")
+    _check_map(args.map)
+    if not getattr(args, "quiet", False) and args.scheduler is None:
+        from mapmatch.kernels import announce
+
+        announce("batch")
     over = {
         k: v
         for k, v in (
@@ -97,11 +173,12 @@ def run_match(args: argparse.Namespace) -> int:
         id=args.id_col, time=args.time_col, lat=args.lat_col, lon=args.lon_col, heading=args.heading_col,
         speed=args.speed_col,
     )  # fmt: skip
+    quiet = getattr(args, "quiet", False)
     bar: Any = None
 
     def on_total(n: int) -> None:
         nonlocal bar
-        if not args.no_progress:
+        if not (args.no_progress or quiet):
             bar = tqdm(total=n, unit="pt", unit_scale=True, desc="matching", file=sys.stderr)
 
     def progress(points: int, tracks: int) -> None:
@@ -110,7 +187,7 @@ def run_match(args: argparse.Namespace) -> int:
 
     try:
         s = run_batch(
-            [str(i) for i in args.inputs], args.map, args.output, config=config, columns=columns,
+            [str(i) for i in inputs], args.map, output, config=config, columns=columns,
             workers=args.workers, scheduler=args.scheduler, partition_size=args.partition_size,
             ubodt_delta=args.ubodt,
             progress=progress, on_total=on_total,
@@ -118,6 +195,54 @@ def run_match(args: argparse.Namespace) -> int:
     finally:
         if bar is not None:
             bar.close()
+    counts = unmatched_counts(output)
     resumed = f", {s.skipped} partition(s) resumed" if s.skipped else ""
-    print(f"matched {s.tracks} track(s), {s.points} point(s) in {s.seconds:.1f} s{resumed} -> {s.output}")
-    return 0
+    dest = "standard output" if str(args.output) == "-" else s.output
+    if not quiet:
+        print(
+            f"matched {s.tracks} track(s), {s.points} point(s) in {s.seconds:.1f} s{resumed} -> {dest}",
+            file=out,
+        )
+    failed = _failure(counts, args.max_unmatched)
+    if failed:
+        print(f"mapmatch match: error: {failed}", file=sys.stderr)
+        return EXIT_PARTIAL
+    return EXIT_OK
+
+
+def unmatched_counts(output: Path) -> list[tuple[str, int, int]]:
+    """``(track_id, points, unmatched points)`` per track of a finished ``match`` output."""
+    import json
+
+    import pandas as pd
+    import pyarrow.parquet as pq
+
+    name = output.name.lower()
+    if output.is_dir() or name.endswith((".parquet", ".geoparquet")):
+        files = sorted(output.glob("part-*.parquet")) if output.is_dir() else [output]
+        cols = ["track_id", "n_points", "n_unmatched"]
+        rows = [r for f in files for r in pq.read_table(f, columns=cols).to_pylist()]
+        return [(str(r["track_id"]), int(r["n_points"]), int(r["n_unmatched"])) for r in rows]
+    if name.endswith(".csv"):
+        df = pd.read_csv(output, usecols=["track_id", "status"], dtype={"track_id": str})
+        g = df.groupby("track_id", sort=False)["status"]
+        return [(str(k), len(v), int((v == "unmatched").sum())) for k, v in g]
+    feats = json.loads(output.read_text())["features"]
+    return [(str(f["properties"]["track_id"]), int(f["properties"]["n_points"]),
+             int(f["properties"]["n_unmatched"])) for f in feats]  # fmt: skip
+
+
+def _failure(counts: list[tuple[str, int, int]], max_unmatched: float) -> str:
+    """The one-line failure summary of a run, or "" when it counts as all done."""
+    points = sum(n for _, n, _ in counts)
+    if points == 0:
+        return "nothing matched: the inputs hold no track points"
+    bad = sum(u for _, _, u in counts)
+    lost = [t for t, n, u in counts if n > 0 and u == n]
+    if bad / points > max_unmatched or lost:
+        first = f" (first: {lost[0]})" if lost else ""
+        return (
+            f"{bad:,} of {points:,} point(s) unmatched ({100 * bad / points:.1f} %, threshold "
+            f"{100 * max_unmatched:g} %); {len(lost)} of {len(counts)} track(s) entirely unmatched{first}"
+        )
+    return ""

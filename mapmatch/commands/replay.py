@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import sys
 import time
 from collections.abc import Iterator
 from pathlib import Path
@@ -14,10 +15,12 @@ service would see them, and write one result row per fix.
 
 FIXES.csv columns: vehicle_id, time (seconds or ISO 8601), lat, lon, heading (degrees, empty
 when unknown) and optional pos_sigma (m), heading_sigma (deg), speed (m/s), distance (odometer
-metres since the previous fix), gps_valid (1/0). OUT.csv columns are listed in README
-("Online matching and mapmatch replay"). A fix the matcher rejects (NaN, time going
+metres since the previous fix), gps_valid (1/0); other names with --time-col etc. Without a
+vehicle_id column the file is one vehicle; without heading, headings are unknown. "-" reads
+the fixes from standard input; "-o -" writes the results to standard output. OUT.csv columns are listed
+in README ("Online matching and mapmatch replay"). A fix the matcher rejects (NaN, time going
 backwards, ...) gets a row with state "rejected" and the reason in "error"; the vehicle's
-session continues with its next fix."""
+session continues with its next fix; the run then exits 1 with a one-line summary."""
 
 EPILOG = """\
 examples:
@@ -33,10 +36,11 @@ def register(subparsers: Any) -> None:
         epilog=EPILOG,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
-    p.add_argument("fixes", type=Path, metavar="FIXES.csv", help="fused fixes")
+    from mapmatch.commands._fixio import add_fix_options
+
     p.add_argument("--map", required=True, type=Path, metavar="MAP",
                    help="map file from `mapmatch prep` (or an OSM/GIS source, built first)")  # fmt: skip
-    p.add_argument("-o", "--output", required=True, type=Path, metavar="OUT.csv", help="result rows")
+    add_fix_options(p)
     model = p.add_argument_group("model")
     model.add_argument("--gps-sigma", type=float, default=None, metavar="M", help="default position σ (m)")
     model.add_argument(
@@ -62,15 +66,14 @@ def load_map_any(path: Path) -> Any:
 
 
 def run_replay(args: argparse.Namespace) -> int:
-    from mapmatch.cli import CommandError
+    from mapmatch.cli import EXIT_OK, EXIT_PARTIAL, CommandError
+    from mapmatch.commands._fixio import output_path, read_fixes_arg, rejected_failure, summary_stream
     from mapmatch.config import DEFAULT_CONFIG
     from mapmatch.errors import ValidationError
-    from mapmatch.fixes import read_fixes_csv, write_results_csv
+    from mapmatch.fixes import write_results_csv
     from mapmatch.online import OnlineMatcher
     from mapmatch.types import Fix, SnapResult
 
-    if not args.fixes.is_file():
-        raise CommandError(f"no such file: {args.fixes}")
     if not args.map.is_file():
         raise CommandError(f"no such map: {args.map}")
     over = {
@@ -83,13 +86,11 @@ def run_replay(args: argparse.Namespace) -> int:
         if v is not None
     }
     config = DEFAULT_CONFIG.replace(**over)
-    try:
-        vehicles = read_fixes_csv(args.fixes)
-    except ValidationError as exc:
-        raise CommandError(f"{args.fixes}: {exc}") from None
+    vehicles = read_fixes_arg(args)
     graph = load_map_any(args.map)
     matcher = OnlineMatcher(graph, config=config)
     counts: dict[str, int] = {}
+    first_error = [""]
     t0 = time.perf_counter()
 
     def rows() -> Iterator[tuple[str, Fix, SnapResult | None, str]]:
@@ -100,6 +101,7 @@ def run_replay(args: argparse.Namespace) -> int:
                     res = matcher.update(state, fix)
                 except ValidationError as exc:
                     counts["rejected"] = counts.get("rejected", 0) + 1
+                    first_error[0] = first_error[0] or f"vehicle {vid} at time {fix.time!r}: {exc}"
                     yield vid, fix, None, str(exc)
                     continue
                 counts[str(res.state)] = counts.get(str(res.state), 0) + 1
@@ -107,8 +109,17 @@ def run_replay(args: argparse.Namespace) -> int:
                     counts["corrections"] = counts.get("corrections", 0) + 1
                 yield vid, fix, res, ""
 
-    n = write_results_csv(args.output, rows(), graph)
+    with output_path(args.output) as out:
+        n = write_results_csv(out, rows(), graph)
     dt = time.perf_counter() - t0
     summary = ", ".join(f"{k} {v}" for k, v in sorted(counts.items()))
-    print(f"{n} fixes of {len(vehicles)} vehicle(s) matched in {dt:.2f} s -> {args.output} ({summary})")
-    return 0
+    if not getattr(args, "quiet", False):
+        print(
+            f"{n} fixes of {len(vehicles)} vehicle(s) matched in {dt:.2f} s -> {args.output} ({summary})",
+            file=summary_stream(args),
+        )
+    failed = rejected_failure(counts, n, first_error[0])
+    if failed:
+        print(f"mapmatch replay: error: {failed}", file=sys.stderr)
+        return EXIT_PARTIAL
+    return EXIT_OK

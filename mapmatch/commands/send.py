@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import sys
 import time
 from pathlib import Path
 from typing import Any
@@ -11,7 +12,9 @@ DESCRIPTION = """\
 Stream fused fixes to a running `mapmatch serve` (all vehicles on one stream, merged by
 time, as a fusion node sends them) and write one result row per fix, with the same input
 and output columns as `mapmatch replay`. A fix the server rejects gets a row with state
-"rejected" and the reason in "error"."""
+"rejected" and the reason in "error", and the run exits 1. "-" reads the fixes from standard
+input, "-o -" writes the results to standard output. A server that cannot be reached (or
+fails the stream) exits 3."""
 
 EPILOG = """\
 examples:
@@ -27,8 +30,9 @@ def register(subparsers: Any) -> None:
         epilog=EPILOG,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
-    p.add_argument("fixes", type=Path, metavar="FIXES.csv", help="fused fixes (columns as for replay)")
-    p.add_argument("-o", "--output", required=True, type=Path, metavar="OUT.csv", help="result rows")
+    from mapmatch.commands._fixio import add_fix_options
+
+    add_fix_options(p)
     p.add_argument(
         "--server", default="127.0.0.1:50051", metavar="HOST:PORT", help="server (127.0.0.1:50051)"
     )
@@ -49,22 +53,21 @@ def run_send(args: argparse.Namespace) -> int:
 
     import grpc
 
-    from mapmatch.cli import CommandError
-    from mapmatch.errors import ValidationError
-    from mapmatch.fixes import read_fixes_csv, write_results_csv
+    from mapmatch.cli import EXIT_CONNECT, EXIT_OK, EXIT_PARTIAL, EXIT_USAGE, CommandError
+    from mapmatch.commands._fixio import output_path, read_fixes_arg, rejected_failure, summary_stream
+    from mapmatch.fixes import write_results_csv
     from service.client import MapMatchClient, interleave_by_time
 
-    if not args.fixes.is_file():
-        raise CommandError(f"no such file: {args.fixes}")
-    token = args.token or (args.token_file.read_text().strip() if args.token_file else None)
-    token = token or os.environ.get("MAPMATCH_TOKEN") or None
     try:
-        vehicles = read_fixes_csv(args.fixes)
-    except ValidationError as exc:
-        raise CommandError(f"{args.fixes}: {exc}") from None
+        token = args.token or (args.token_file.read_text().strip() if args.token_file else None)
+    except OSError as exc:
+        raise CommandError(f"cannot read {exc.filename}: {exc.strerror}") from None
+    token = token or os.environ.get("MAPMATCH_TOKEN") or None
+    vehicles = read_fixes_arg(args)
     t0 = time.perf_counter()
     answers: dict[str, list[Any]] = {vid: [] for vid in vehicles}
     counts: dict[str, int] = {}
+    first_error = ""
     try:
         with MapMatchClient(
             args.server,
@@ -77,22 +80,37 @@ def run_send(args: argparse.Namespace) -> int:
                 if a.error is not None:
                     counts["rejected"] = counts.get("rejected", 0) + 1
                     # same wording as `mapmatch replay` (fields relative to the fix)
-                    answers[a.vehicle_id].append(
-                        (a.vehicle_id, a.fix, None, a.error.message.removeprefix("fix."))
-                    )
+                    msg = a.error.message.removeprefix("fix.")
+                    first_error = first_error or f"vehicle {a.vehicle_id} at time {a.fix.time!r}: {msg}"
+                    answers[a.vehicle_id].append((a.vehicle_id, a.fix, None, msg))
                     if a.error.code is not grpc.StatusCode.INVALID_ARGUMENT:
-                        raise CommandError(f"server: {a.error.code.name}: {a.error.message}")
+                        raise CommandError(f"server: {a.error.code.name}: {a.error.message}", EXIT_CONNECT)
                 else:
                     assert a.result is not None
                     counts[str(a.result.state)] = counts.get(str(a.result.state), 0) + 1
                     answers[a.vehicle_id].append((a.vehicle_id, a.fix, a.result))
     except grpc.RpcError as exc:
-        raise CommandError(f"{args.server}: {exc.code().name}: {exc.details()}") from None
+        code = exc.code()
+        # a request the server refuses as such (bad token, unknown map...) is bad input, not a
+        # connection failure
+        usage = code in (
+            grpc.StatusCode.INVALID_ARGUMENT, grpc.StatusCode.NOT_FOUND, grpc.StatusCode.UNAUTHENTICATED,
+            grpc.StatusCode.PERMISSION_DENIED, grpc.StatusCode.FAILED_PRECONDITION,
+        )  # fmt: skip
+        raise CommandError(
+            f"{args.server}: {code.name}: {exc.details()}", EXIT_USAGE if usage else EXIT_CONNECT
+        ) from None
     except OSError as exc:
         raise CommandError(f"cannot read {exc.filename}: {exc.strerror}") from None
-    n = write_results_csv(args.output, (row for rows in answers.values() for row in rows))
+    with output_path(args.output) as out:
+        n = write_results_csv(out, (row for rows in answers.values() for row in rows))
     dt = time.perf_counter() - t0
     summary = ", ".join(f"{k} {v}" for k, v in sorted(counts.items()))
     where = f"{len(vehicles)} vehicle(s) matched by {args.server} in {dt:.2f} s"
-    print(f"{n} fixes of {where} -> {args.output} ({summary})")
-    return 0
+    if not getattr(args, "quiet", False):
+        print(f"{n} fixes of {where} -> {args.output} ({summary})", file=summary_stream(args))
+    failed = rejected_failure(counts, n, first_error)
+    if failed:
+        print(f"mapmatch send: error: {failed}", file=sys.stderr)
+        return EXIT_PARTIAL
+    return EXIT_OK

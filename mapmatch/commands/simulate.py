@@ -8,10 +8,10 @@ from collections.abc import Iterator
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-import numpy as np
+from mapmatch.cli import EXIT_CONNECT, CommandError
 
-from mapmatch.cli import CommandError
-from mapmatch.types import Fix, SnapResult
+if TYPE_CHECKING:
+    from mapmatch.types import Fix, SnapResult
 
 if TYPE_CHECKING:
     from mapmatch.sim.drive import Drive
@@ -70,6 +70,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[ty
 
 
 def run(args: argparse.Namespace) -> int:
+    import numpy as np
+
     from graph.artifact import open_map
     from mapmatch.sim.drive import position_error, read_route, simulate_drive, write_fixes_csv, write_truth
     from mapmatch.sim.routes import random_route
@@ -198,7 +200,9 @@ def _replay(args: argparse.Namespace, drive: Drive) -> int:
             speedup=args.speedup,
         )
     except grpc.RpcError as exc:
-        raise CommandError(f"server {args.server}: {exc.code().name}: {exc.details()}") from None
+        raise CommandError(
+            f"server {args.server}: {exc.code().name}: {exc.details()}", EXIT_CONNECT
+        ) from None
     write_results_csv(matched, rows)
     bad = sum(1 for r in rows if r[2] is None)
     print(f"replayed {len(rows)} fixes to {args.server} ({bad} rejected); wrote {matched}")

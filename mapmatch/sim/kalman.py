@@ -498,8 +498,8 @@ def _ekf(k0, k1, c, st, p, m, o):  # type: ignore[no-untyped-def]
                 m_ = 0.5 * (P[a, b] + P[b, a])
                 P[a, b] = m_
                 P[b, a] = m_
-        out[k, :] = X
-        for a in range(ns):
+        for a in range(ns):  # element-wise: a slice assignment compiles numba's shape-error formatter
+            out[k, a] = X[a]
             var[k, a] = P[a, a]
         cxy[k] = P[0, 1]
     c.scalars[0] = rej_start

@@ -1,0 +1,28 @@
+# mapmatch gRPC service. Builds from a clone with nothing but pip:
+#   docker build -t mapmatch .
+#   docker run -p 50051:50051 -v "$PWD/maps:/maps:ro" -e MAPMATCH_MAPS=city=/maps/city.map mapmatch
+# (README, "Deployment"). Stage 1 installs the package into a venv; stage 2 copies only that
+# venv, runs as an unprivileged user, compiles the batch kernels once at build time (so the
+# first MatchTrack is fast) and checks health through grpc.health.v1.
+
+FROM python:3.11-slim AS build
+WORKDIR /src
+COPY . .
+RUN python -m venv /opt/mapmatch \
+ && /opt/mapmatch/bin/python -m pip install --no-cache-dir .
+
+FROM python:3.11-slim
+RUN useradd --create-home --uid 10001 mapmatch
+COPY --from=build --chown=mapmatch:mapmatch /opt/mapmatch /opt/mapmatch
+ENV PATH=/opt/mapmatch/bin:$PATH \
+    PYTHONUNBUFFERED=1 \
+    MAPMATCH_ADDRESS=0.0.0.0:50051 \
+    MAPMATCH_LOG_FORMAT=json
+USER mapmatch
+WORKDIR /home/mapmatch
+RUN python -m mapmatch.kernels batch
+EXPOSE 50051
+HEALTHCHECK --interval=10s --timeout=5s --start-period=60s --retries=3 \
+  CMD ["python", "-m", "mapmatch.healthcheck", "127.0.0.1:50051"]
+ENTRYPOINT ["mapmatch"]
+CMD ["serve"]

@@ -1,0 +1,97 @@
+"""What ``replay`` and ``send`` share: fused-fix column options, ``-`` for stdin/stdout, summaries."""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import sys
+import tempfile
+from collections.abc import Iterator
+from pathlib import Path
+from typing import TYPE_CHECKING, Any, TextIO
+
+if TYPE_CHECKING:
+    from mapmatch.io import FixColumns
+
+STDIO = "-"  # as mapmatch.io.STDIO (not imported here: --help stays instant)
+
+
+def add_fix_options(p: argparse.ArgumentParser) -> None:
+    """The input/output arguments and the column-name options (as ``match`` has them)."""
+    p.add_argument("fixes", type=Path, metavar="FIXES.csv", help="fused fixes ('-': standard input)")
+    p.add_argument(
+        "-o",
+        "--output",
+        required=True,
+        type=Path,
+        metavar="OUT.csv",
+        help="result rows ('-': stdout)",
+    )
+    cols = p.add_argument_group("input columns (vehicle and heading are optional)")
+    for name, help_ in (
+        ("vehicle-id", "without it the file is one vehicle, named after the file"),
+        ("time", "required"),
+        ("lat", "required"),
+        ("lon", "required"),
+        ("heading", "without it every heading is unknown"),
+        ("pos-sigma", ""),
+        ("heading-sigma", ""),
+        ("speed", ""),
+        ("distance", ""),
+        ("gps-valid", ""),
+    ):
+        field = name.replace("-", "_")
+        cols.add_argument(
+            f"--{name}-col", dest=f"{field}_col", default=field, metavar="NAME",
+            help=f"default: {field}" + (f"; {help_}" if help_ else ""),
+        )  # fmt: skip
+
+
+def fix_columns(args: argparse.Namespace) -> FixColumns:
+    from mapmatch.io import FixColumns
+
+    return FixColumns(**{f: getattr(args, f"{f}_col") for f in FixColumns.__dataclass_fields__})
+
+
+def read_fixes_arg(args: argparse.Namespace) -> dict[str, list[Any]]:
+    """The fixes per vehicle from ``args.fixes`` (a file or ``-``); bad input is a CommandError."""
+    from mapmatch.cli import CommandError
+    from mapmatch.errors import ValidationError
+    from mapmatch.io import read_fixes
+
+    src = args.fixes
+    if str(src) != STDIO and not src.is_file():
+        raise CommandError(f"no such file: {src}")
+    try:
+        return read_fixes(src, columns=fix_columns(args))
+    except ValidationError as exc:
+        raise CommandError(f"{'standard input' if str(src) == STDIO else src}: {exc}") from None
+
+
+@contextlib.contextmanager
+def output_path(out: Path) -> Iterator[Path]:
+    """The real file to write: ``out`` itself, or a temporary file copied to stdout for ``-``."""
+    if str(out) != STDIO:
+        yield out
+        return
+    from mapmatch.io import copy_to_stdout
+
+    with tempfile.TemporaryDirectory(prefix="mapmatch-") as tmp:
+        path = Path(tmp) / "out.csv"
+        yield path
+        copy_to_stdout(path)
+
+
+def summary_stream(args: argparse.Namespace) -> TextIO:
+    """Where the human summary goes: stderr when the results go to stdout."""
+    return sys.stderr if str(args.output) == STDIO else sys.stdout
+
+
+def rejected_failure(counts: dict[str, int], n: int, first_error: str) -> str:
+    """The one-line failure summary when any fix was rejected, else ""."""
+    bad = counts.get("rejected", 0)
+    if n == 0:
+        return "nothing matched: the file holds no fixes"
+    if bad == 0:
+        return ""
+    return f"{bad:,} of {n:,} fix(es) rejected (first: {first_error})"

@@ -1,0 +1,67 @@
+"""The wheel: one top-level package (`mapmatch`), the .proto inside, and `mapmatch.__version__`."""
+
+from __future__ import annotations
+
+import os
+import shutil
+import subprocess
+import sys
+import zipfile
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+@pytest.fixture(scope="module")
+def wheel(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    tmp = tmp_path_factory.mktemp("wheel")
+    src = tmp / "src"  # a copy: building writes build/ and *.egg-info next to the sources
+    shutil.copytree(
+        ROOT, src, ignore=shutil.ignore_patterns(".git", ".venv", "__pycache__", "build", "*.egg-info", "out")
+    )
+    subprocess.run(
+        [sys.executable, "-m", "pip", "wheel", "--no-deps", "--no-build-isolation", "-q",
+         "-w", str(tmp), str(src)],
+        check=True, capture_output=True,
+    )  # fmt: skip
+    (whl,) = tmp.glob("mapmatch-*.whl")
+    return whl
+
+
+def test_wheel_has_one_top_level_package_and_the_proto(wheel: Path) -> None:
+    names = zipfile.ZipFile(wheel).namelist()
+    tops = {n.split("/", 1)[0] for n in names}
+    assert {t for t in tops if not t.endswith(".dist-info")} == {"mapmatch"}, tops
+    assert not any(n.startswith(("graph/", "service/")) for n in names)
+    for need in (
+        "mapmatch/graph/artifact.py",
+        "mapmatch/service/server.py",
+        "mapmatch/service/gen/mapmatch_pb2.py",
+        "mapmatch/service/gen/mapmatch_pb2_grpc.py",
+        "mapmatch/proto/mapmatch/v1/mapmatch.proto",
+        "mapmatch/py.typed",
+    ):
+        assert need in names, need
+    assert not any("/gen/mapmatch/" in n for n in names), "stubs in a package named mapmatch"
+    entry = next(n for n in names if n.endswith("entry_points.txt"))
+    assert "mapmatch = mapmatch.cli:main" in zipfile.ZipFile(wheel).read(entry).decode()
+
+
+def test_installed_wheel_imports_and_has_a_version(wheel: Path, tmp_path: Path) -> None:
+    site = tmp_path / "site"
+    zipfile.ZipFile(wheel).extractall(site)  # a pure-Python wheel installs by unpacking
+    code = (
+        "import importlib.util, mapmatch, mapmatch.graph.artifact, mapmatch.service.gen.mapmatch_pb2 as pb;"
+        "print(mapmatch.__version__); print(mapmatch.__file__); print(mapmatch.graph.artifact.__file__);"
+        "print(pb.DESCRIPTOR.name); print(mapmatch.load_map.__module__)"
+    )
+    env = dict(os.environ, PYTHONPATH=str(site))
+    out = subprocess.run(
+        [sys.executable, "-c", code], cwd=tmp_path, env=env, capture_output=True, text=True, check=True
+    ).stdout.split()
+    version = wheel.name.split("-")[1]
+    assert out[0] == version
+    assert out[1].startswith(str(site)) and out[2].startswith(str(site / "mapmatch" / "graph"))
+    assert out[3] == "mapmatch/v1/mapmatch.proto" and out[4] == "mapmatch.graph.artifact"
