@@ -8,9 +8,12 @@ scoring, ``write_fixes_csv`` and ``mapmatch replay`` apply.
 
 Steps (:func:`real_drive`):
 
-1. The true route: ``truth.geojson`` is turned into a legal edge path on the prepared map by
-   :func:`~mapmatch.sim.routes.route_from_geometry` (the map's edges come from the same
-   ``roads.geojson``, so the truth lies on them), cut to where the first and last fixes lie.
+1. The true route: ``truth.geojson`` is turned into an edge path on the prepared map
+   geometrically: the map's edges come from the same ``roads.geojson``, so the truth's vertices
+   at map nodes give the node sequence and the edges between them the path (U-turns allowed,
+   as real drives turn round; :func:`route_from_truth`), else the geometry is followed by
+   :func:`~mapmatch.sim.routes.route_from_geometry`. The path is cut to where the first and
+   last fixes lie.
 2. The true motion: each real fix is projected onto the route within a window ahead of the
    previous one (at most ``max_speed_mps`` times the time step, plus a little), the route
    distances are smoothed over ``timing_smooth_s`` and made non-decreasing. This gives the
@@ -46,6 +49,7 @@ GPS was missing) and the route are built exactly as the simulator builds them.
 
 from __future__ import annotations
 
+import itertools
 import json
 import math
 import os
@@ -63,7 +67,7 @@ from mapmatch.errors import ValidationError
 from mapmatch.sim.drive import FIX_COLUMNS, TRUTH_COLUMNS, Drive
 from mapmatch.sim.kalman import FusedStream
 from mapmatch.sim.profile import Trajectory
-from mapmatch.sim.routes import Route, route_from_edges, route_from_geometry
+from mapmatch.sim.routes import Route, RouteError, route_from_edges, route_from_geometry
 from mapmatch.sim.sensors import SensorData, spread_outages
 
 BASE_RATE_HZ = 10.0
@@ -177,7 +181,7 @@ def fix_route_distance(
     seg_s = np.diff(route.s)
     l2 = np.maximum((d**2).sum(axis=1), 1e-12)
     out = np.empty(len(xy))
-    prev = 0.0
+    prev = speed = 0.0
     for i in range(len(xy)):
         if i == 0:
             lo, hi = 0.0, first_window_m
@@ -187,11 +191,21 @@ def fix_route_distance(
         j0 = max(int(np.searchsorted(s0, lo, side="right")) - 1, 0)
         j1 = max(int(np.searchsorted(s0, hi, side="right")), j0 + 1)
         pa, pd_, pl = a[j0:j1], d[j0:j1], l2[j0:j1]
-        f = np.clip(((xy[i] - pa) * pd_).sum(axis=1) / pl, 0.0, 1.0)
+        # the projection onto each segment, kept within the window (a route that comes back
+        # along the same road must not be projected onto its earlier pass)
+        ss = np.maximum(seg_s[j0:j1], 1e-9)
+        f_lo = np.clip((lo - s0[j0:j1]) / ss, 0.0, 1.0)
+        f_hi = np.clip((hi - s0[j0:j1]) / ss, 0.0, 1.0)
+        f = np.clip(((xy[i] - pa) * pd_).sum(axis=1) / pl, f_lo, f_hi)
         q = pa + f[:, None] * pd_
-        k = int(np.argmin(((q - xy[i]) ** 2).sum(axis=1)))
-        s = float(s0[j0 + k] + f[k] * seg_s[j0 + k])
+        sc = s0[j0:j1] + f * seg_s[j0:j1]
+        # nearest, ties (a road driven there and back) going to the distance the motion predicts
+        pred = prev + speed * float(t[i] - t[i - 1]) if i > 0 else 0.0
+        k = int(np.argmin(((q - xy[i]) ** 2).sum(axis=1) + 0.01 * (sc - pred) ** 2))
+        s = float(sc[k])
         out[i] = s if i == 0 else max(s, prev - back_m)
+        if i > 0 and t[i] > t[i - 1]:
+            speed = 0.7 * speed + 0.3 * max(out[i] - prev, 0.0) / float(t[i] - t[i - 1])
         prev = out[i]
     # smooth by time, then non-decreasing
     w = config.timing_smooth_s
@@ -200,6 +214,42 @@ def fix_route_distance(
     hi_i = np.searchsorted(t, t + w / 2.0, side="right")
     sm = (cs[hi_i] - cs[lo_i]) / np.maximum(hi_i - lo_i, 1)
     return np.clip(np.maximum.accumulate(sm), 0.0, route.length)
+
+
+def route_from_truth(graph: RoadGraph, xy: NDArray[np.float64], *, tol_m: float = 1.0) -> Route:
+    """The edge path of a true route drawn through the map's own nodes (U-turns allowed).
+
+    The route's vertices that lie within ``tol_m`` of a map node give the node sequence; each
+    consecutive pair is joined by the edge between them (of the length closest to the route's
+    between them). Raises :class:`RouteError` when two consecutive nodes share no edge.
+    """
+    cell: dict[tuple[int, int], int] = {}
+    for i, (x, y) in enumerate(graph.node_xy.tolist()):
+        cell.setdefault((int(x // tol_m), int(y // tol_m)), i)
+    seg = np.hypot(*np.diff(xy, axis=0).T)
+    cum = np.concatenate([[0.0], np.cumsum(seg)])
+    seq: list[tuple[int, float]] = []
+    for (x, y), s in zip(xy.tolist(), cum.tolist(), strict=True):
+        cx, cy = int(x // tol_m), int(y // tol_m)
+        best, bd = -1, tol_m
+        for dx in (-1, 0, 1):
+            for dy in (-1, 0, 1):
+                n = cell.get((cx + dx, cy + dy), -1)
+                if n >= 0:
+                    d = math.hypot(graph.node_xy[n, 0] - x, graph.node_xy[n, 1] - y)
+                    if d <= bd:
+                        best, bd = n, d
+        if best >= 0 and (not seq or seq[-1][0] != best):
+            seq.append((best, s))
+    path: list[int] = []
+    for (a, sa), (b, sb) in itertools.pairwise(seq):
+        out = [int(e) for e in graph.out_of(a).tolist() if int(graph.edge_v[e]) == b]
+        if not out:
+            raise RouteError(f"no edge joins map nodes {a} and {b} of the true route")
+        path.append(min(out, key=lambda e: abs(float(graph.edge_len[e]) - (sb - sa))))
+    if not path:
+        raise RouteError("the true route passes fewer than two map nodes")
+    return route_from_edges(graph, path, allow_uturns=True)
 
 
 def _trim(graph: RoadGraph, route: Route, s_from: float, s_to: float) -> Route:
@@ -211,6 +261,7 @@ def _trim(graph: RoadGraph, route: Route, s_from: float, s_to: float) -> Route:
         route.edges[e0 : e1 + 1].tolist(),
         start_offset=s_from - float(route.edge_start[e0]),
         end_offset=s_to - float(route.edge_start[e1]),
+        allow_uturns=True,
     )
 
 
@@ -274,7 +325,11 @@ def real_drive(
     track = read_track(folder / "track.csv")
     t_fix = track["t"].to_numpy() - float(track["t"].iloc[0])
     fix_xy = to_xy(graph.crs, track["lon"].to_numpy(), track["lat"].to_numpy())
-    full = route_from_geometry(graph, read_truth_xy(graph, folder / "truth.geojson"))
+    truth_xy = read_truth_xy(graph, folder / "truth.geojson")
+    try:
+        full = route_from_truth(graph, truth_xy)
+    except RouteError:  # the truth is not drawn through this map's nodes: follow its geometry
+        full = route_from_geometry(graph, truth_xy)
     s_full = fix_route_distance(full, fix_xy, t_fix, config=config)
     s_from, s_to = float(s_full[0]), float(s_full[-1])
     if s_to - s_from < 1.0:
