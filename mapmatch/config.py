@@ -67,6 +67,14 @@ class MatchConfig:
         the anchor's σ grows by the learnt scale's σ of the distance.
     bias_time : seconds; correlation time of the fix's position error, learnt across roads
         of different directions to correct the along-track position (0 disables it).
+    neighbour_band : metres; roads this close to an edge at a similar bearing (parallel roads,
+        fork branches) are its neighbours, tabled once per map (read when the matcher is made).
+    neighbour_sigmas : the neighbours of the road believed join the filter when a GPS-aided fix
+        is further than this many σ from it (0 disables it).
+    return_sigmas : on the first GPS-aided fix with a heading after dead reckoning, when it is
+        further than this many of its own σ from the road believed, the roads near it join the
+        filter at once, weighed at its own σ (not the drift's): it is the truth, not an outlier
+        (0 disables it).
 
     Batch
     -----
@@ -113,6 +121,9 @@ class MatchConfig:
     turn_anchor_sigma: float = 1.0
     odo_scale_sigma: float = 0.02
     bias_time: float = 30.0
+    neighbour_band: float = 40.0
+    neighbour_sigmas: float = 0.0
+    return_sigmas: float = 2.0
 
     max_route_factor: float = 3.0
     route_slack: float = 100.0

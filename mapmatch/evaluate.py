@@ -122,6 +122,15 @@ def intersection_score(true_nodes: Sequence[int], matched_nodes: Sequence[int]) 
     return IntersectionScore(true=len(true_nodes), matched=len(matched_nodes), correct=correct)
 
 
+def matched_junctions(true_nodes: Sequence[int], matched_nodes: Sequence[int]) -> NDArray[np.bool_]:
+    """Which of the true junctions the aligned matched sequence found (as :func:`intersection_score`)."""
+    sm = difflib.SequenceMatcher(None, list(true_nodes), list(matched_nodes), autojunk=False)
+    found = np.zeros(len(true_nodes), dtype=bool)
+    for b in sm.get_matching_blocks():
+        found[b.a : b.a + b.size] = True
+    return found
+
+
 # --------------------------------------------------------------------------- geometry
 
 

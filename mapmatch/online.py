@@ -49,6 +49,7 @@ Invalid input raises :class:`~mapmatch.errors.ValidationError` and leaves the st
 
 from __future__ import annotations
 
+import dataclasses
 import itertools
 import json
 import math
@@ -58,6 +59,7 @@ from typing import Any
 import numpy as np
 
 from graph.index import EdgeIndex
+from graph.neighbours import Neighbours, edge_neighbours
 from graph.projection import point_to_lonlat, point_to_xy
 from graph.road_graph import RESTRICTION_ONLY, RoadGraph
 from mapmatch.config import DEFAULT_CONFIG, MatchConfig
@@ -307,6 +309,7 @@ class _Step:
     dr: float  # odometer metres since the last GPS-aided fix (0 when this one is)
     bias: tuple[float, float, float, float, float]  # predicted fix bias [bx, by, Pxx, Pxy, Pyy]
     odo_sigma: float  # σ of the odometer's relative error (after the learnt scale)
+    fix_sigma: float = math.nan  # σ of the fix itself, without the dead-reckoning drift
 
 
 class OnlineMatcher:
@@ -335,6 +338,12 @@ class OnlineMatcher:
         self.index = index if index is not None else EdgeIndex(graph)
         self.config = config
         self.measurement = measurement
+        # parallel roads and slowly separating fork branches of every edge, looked up per fix
+        self._nbr: Neighbours | None = (
+            edge_neighbours(graph, band_m=config.neighbour_band, index=self.index)
+            if config.neighbour_sigmas > 0.0 and config.neighbour_band > 0.0
+            else None
+        )
         e = graph.n_edges
         self._elen: list[float] = graph.edge_len.tolist()
         self._ev: list[int] = graph.edge_v.tolist()
@@ -393,6 +402,10 @@ class OnlineMatcher:
             state.time = fix.time
             return SnapResult(time=fix.time, state=State.OFF_ROAD, raw_lat=fix.lat, raw_lon=fix.lon)
         # --- accepted: mutate the state from here on
+        # the first GPS-aided fix after dead reckoning: it is the truth, not an outlier
+        returned = (
+            step.gps and step.kappa > 0.0 and state.odo - state.gps_odo > 0.0 and cfg.return_sigmas > 0.0
+        )
         if not math.isnan(step.travelled):
             state.odo += step.travelled
         if step.gps:
@@ -411,7 +424,12 @@ class OnlineMatcher:
             held = self._advance(state, step, cfg)
             best = self._best(state.hyps)
             against = step.kappa > 0.0 and abs(angle_diff(step.heading, best.bearing)) > AGAINST_HEADING_DEG
-            if (
+            if returned and best.dist > cfg.return_sigmas * step.fix_sigma:
+                # weigh the roads near the returning fix against it at its own σ, at once
+                state.search_time = step.time
+                self._add_alternatives(state, dataclasses.replace(step, sigma=step.fix_sigma), cfg, best)
+                best = self._best(state.hyps)
+            elif (
                 step.gps
                 and (best.dist > cfg.soft_reinit_sigmas * step.sigma or against)
                 and not (step.time - state.search_time < SEARCH_EVERY_S)
@@ -419,6 +437,18 @@ class OnlineMatcher:
                 state.search_time = step.time
                 self._add_alternatives(state, step, cfg, best)
                 best = self._best(state.hyps)
+            elif (
+                step.gps
+                and self._nbr is not None
+                and cfg.neighbour_sigmas > 0.0
+                and best.dist > cfg.neighbour_sigmas * step.sigma
+                and not (step.time - state.search_time < SEARCH_EVERY_S)
+            ):  # a parallel road or a fork branch may fit the fix better: a table look-up
+                nb = self._nbr.of(best.edges[best.k])
+                if len(nb):
+                    state.search_time = step.time
+                    self._add_alternatives(state, step, cfg, best, nb.tolist())
+                    best = self._best(state.hyps)
             if best.dist > cfg.reinit_sigmas * step.sigma:
                 if math.isnan(state.bad_time):
                     state.bad_time, state.bad_odo = step.time, state.odo
@@ -475,6 +505,7 @@ class OnlineMatcher:
             sigma = fix.pos_sigma
         # reported accuracies are often optimistic: never below the floor or what the road saw
         sigma = max(sigma, POS_SIGMA_FLOOR_M, math.sqrt(state.res_pos2))
+        fix_sigma = sigma
         gps = fix.gps_valid is not False
         sigma = max(sigma, self._drift_sigma(state, gps, travelled, dt, cfg))
         kappa = 0.0
@@ -507,6 +538,7 @@ class OnlineMatcher:
             dr=0.0 if gps else state.odo + (travelled if not math.isnan(travelled) else 0.0) - state.gps_odo,
             odo_sigma=math.sqrt(self._odo_kvar(state, cfg) + ODO_SCALE_FLOOR**2),
             bias=self._predict_bias(state.bias, sigma, dt, cfg),
+            fix_sigma=fix_sigma,
         )
 
     @staticmethod
@@ -679,14 +711,23 @@ class OnlineMatcher:
         state.back = []
         state.bad_time = state.bad_odo = math.nan
 
-    def _add_alternatives(self, state: SessionState, step: _Step, cfg: MatchConfig, best: Hypothesis) -> None:
+    def _add_alternatives(
+        self,
+        state: SessionState,
+        step: _Step,
+        cfg: MatchConfig,
+        best: Hypothesis,
+        edges: list[int] | None = None,
+    ) -> None:
         """Soft re-initialisation: the fix has left the road believed, so nearby roads found by
-        the spatial index join the filter with a switching penalty; evidence decides."""
-        radius = min(max(cfg.search_radius, cfg.reinit_sigmas * step.sigma), INIT_MAX_RADIUS_M)
-        cand = self.index.query([[step.x, step.y]], radius, k=cfg.max_candidates)
+        the spatial index (or the given ``edges``) join the filter with a switching penalty;
+        evidence decides."""
+        if edges is None:
+            radius = min(max(cfg.search_radius, cfg.reinit_sigmas * step.sigma), INIT_MAX_RADIUS_M)
+            edges = self.index.query([[step.x, step.y]], radius, k=cfg.max_candidates).edge.tolist()
         have = {h.edges[h.k] for h in state.hyps}
         base = emission_scalar(best.dist, step.sigma, step.heading, best.bearing, step.kappa)
-        for e in cand.edge.tolist():
+        for e in edges:
             if e in have:
                 continue
             off, dist, px, py, brg = self._project(e, step.x, step.y)

@@ -156,3 +156,24 @@ def test_kubicka_drive_replays_and_scores(kubicka_dir: Path, tmp_path: Path) -> 
     # the drive is scored like a simulated one (the matcher's accuracy here is the benchmark's business)
     assert met.intersections.true > 20 and met.intersections.correct >= 0.9 * met.intersections.true
     assert met.correct_edge_rate > 0.6
+
+
+def test_truth_through_map_nodes_keeps_a_u_turn(tmp_path: Path) -> None:
+    """A real drive may turn round at a dead end: the truth's nodes give the path, U-turn and all."""
+    amap = parse_ascii_map(ELL, scale=10.0)
+    a, b, c = amap.xy("a"), amap.xy("b"), amap.xy("c")
+    leg1, leg2 = float(np.hypot(*(b - a))), float(np.hypot(*(c - b)))
+    s = np.arange(0.0, leg1 + 2 * leg2 - 20.0, 5.0)
+
+    def at(x: float) -> np.ndarray:
+        if x <= leg1:
+            return a + (b - a) * x / leg1
+        if x <= leg1 + leg2:
+            return b + (c - b) * (x - leg1) / leg2
+        return c + (b - c) * (x - leg1 - leg2) / leg2
+
+    pts = np.array([at(x) for x in s])
+    _write_track(tmp_path, amap, pts, np.arange(len(s), dtype=float), "abcb")
+    d = real_drive(amap.graph, tmp_path, outages=False)
+    assert d.route.edges.tolist() == [amap.edge("a", "b"), amap.edge("b", "c"), amap.edge("c", "b")]
+    assert d.truth["edge"].iloc[-1] == amap.edge("c", "b")

@@ -8,9 +8,12 @@ scoring, ``write_fixes_csv`` and ``mapmatch replay`` apply.
 
 Steps (:func:`real_drive`):
 
-1. The true route: ``truth.geojson`` is turned into a legal edge path on the prepared map by
-   :func:`~mapmatch.sim.routes.route_from_geometry` (the map's edges come from the same
-   ``roads.geojson``, so the truth lies on them), cut to where the first and last fixes lie.
+1. The true route: ``truth.geojson`` is turned into an edge path on the prepared map
+   geometrically: the map's edges come from the same ``roads.geojson``, so the truth's vertices
+   at map nodes give the node sequence and the edges between them the path (U-turns allowed,
+   as real drives turn round; :func:`route_from_truth`), else the geometry is followed by
+   :func:`~mapmatch.sim.routes.route_from_geometry`. The path is cut to where the first and
+   last fixes lie.
 2. The true motion: each real fix is projected onto the route within a window ahead of the
    previous one (at most ``max_speed_mps`` times the time step, plus a little), the route
    distances are smoothed over ``timing_smooth_s`` and made non-decreasing. This gives the
@@ -46,6 +49,7 @@ GPS was missing) and the route are built exactly as the simulator builds them.
 
 from __future__ import annotations
 
+import itertools
 import json
 import math
 import os
@@ -55,15 +59,17 @@ from pathlib import Path
 
 import numpy as np
 import pandas as pd
+import shapely
 from numpy.typing import NDArray
 
+from graph.index import project_to_edge
 from graph.projection import to_lonlat, to_xy
 from graph.road_graph import RoadGraph
 from mapmatch.errors import ValidationError
 from mapmatch.sim.drive import FIX_COLUMNS, TRUTH_COLUMNS, Drive
 from mapmatch.sim.kalman import FusedStream
 from mapmatch.sim.profile import Trajectory
-from mapmatch.sim.routes import Route, route_from_edges, route_from_geometry
+from mapmatch.sim.routes import Route, RouteError, route_from_edges, route_from_geometry
 from mapmatch.sim.sensors import SensorData, spread_outages
 
 BASE_RATE_HZ = 10.0
@@ -167,32 +173,71 @@ def fix_route_distance(
     t: NDArray[np.float64],
     *,
     config: RealGpsConfig = DEFAULT_REALGPS,
-    first_window_m: float = 2000.0,
+    radius_m: float = 60.0,
+    sigma_m: float = 10.0,
     back_m: float = 10.0,
+    jump_cost: float = 0.002,
+    back_cost: float = 0.2,
+    bin_m: float = 30.0,
 ) -> NDArray[np.float64]:
-    """Route distance of each fix: projected within a window ahead, smoothed, non-decreasing."""
-    a = route.xy[:-1]
-    d = np.diff(route.xy, axis=0)
-    s0 = route.s[:-1]
-    seg_s = np.diff(route.s)
-    l2 = np.maximum((d**2).sum(axis=1), 1e-12)
-    out = np.empty(len(xy))
-    prev = 0.0
+    """Route distance of each fix: a small Viterbi over its projections onto the route.
+
+    Candidates are the fix's projections within ``radius_m`` (the best per ``bin_m`` of route
+    distance, so each pass of a route that comes back is one candidate), scored by distance
+    (σ ``sigma_m``); a step may go back at most ``back_m`` and forward at most
+    ``max_speed_mps`` times the time step (plus 30 m), and costs ``jump_cost`` per metre (and
+    ``back_cost`` per metre back), so a later pass of the same place is not taken early and an
+    earlier one is not walked back along. Fixes with no candidate are interpolated
+    in time. The result is smoothed over ``timing_smooth_s`` and made non-decreasing.
+    """
+    segs = shapely.linestrings(np.stack([route.xy[:-1], route.xy[1:]], axis=1))
+    pi, si = shapely.STRtree(segs).query(shapely.points(xy), predicate="dwithin", distance=radius_m)
+    a0 = route.xy[si]
+    dv = route.xy[si + 1] - a0
+    f = np.clip(((xy[pi] - a0) * dv).sum(axis=1) / np.maximum((dv**2).sum(axis=1), 1e-12), 0.0, 1.0)
+    dist = np.hypot(*(a0 + f[:, None] * dv - xy[pi]).T)
+    sc = route.s[si] + f * (route.s[si + 1] - route.s[si])
+    # best candidate per (fix, bin of route distance)
+    key = np.floor(sc / bin_m).astype(np.int64)
+    order = np.lexsort((dist, key, pi))
+    pi, sc, dist, key = pi[order], sc[order], dist[order], key[order]
+    first = np.ones(len(pi), dtype=bool)
+    first[1:] = (pi[1:] != pi[:-1]) | (key[1:] != key[:-1])
+    pi, sc, dist = pi[first], sc[first], dist[first]
+    starts = np.searchsorted(pi, np.arange(len(xy) + 1))
+    layers: list[tuple[int, NDArray[np.float64], NDArray[np.int64]]] = []
+    prev_s: NDArray[np.float64] | None = None
+    prev_score: NDArray[np.float64] | None = None
+    prev_t = 0.0
     for i in range(len(xy)):
-        if i == 0:
-            lo, hi = 0.0, first_window_m
+        lo, hi = starts[i], starts[i + 1]
+        if lo == hi:
+            continue
+        s_i = sc[lo:hi]
+        emis = -0.5 * (dist[lo:hi] / sigma_m) ** 2
+        if prev_s is None or prev_score is None:
+            score = emis - jump_cost * s_i
+            bp = np.full(len(s_i), -1, dtype=np.int64)
         else:
-            lo = prev - back_m
-            hi = prev + config.max_speed_mps * float(t[i] - t[i - 1]) + 20.0
-        j0 = max(int(np.searchsorted(s0, lo, side="right")) - 1, 0)
-        j1 = max(int(np.searchsorted(s0, hi, side="right")), j0 + 1)
-        pa, pd_, pl = a[j0:j1], d[j0:j1], l2[j0:j1]
-        f = np.clip(((xy[i] - pa) * pd_).sum(axis=1) / pl, 0.0, 1.0)
-        q = pa + f[:, None] * pd_
-        k = int(np.argmin(((q - xy[i]) ** 2).sum(axis=1)))
-        s = float(s0[j0 + k] + f[k] * seg_s[j0 + k])
-        out[i] = s if i == 0 else max(s, prev - back_m)
-        prev = out[i]
+            ds = s_i[None, :] - prev_s[:, None]
+            ok = (ds >= -back_m) & (ds <= config.max_speed_mps * float(t[i] - prev_t) + 30.0)
+            cost = jump_cost * np.abs(ds) + back_cost * np.maximum(-ds, 0.0)
+            trans = np.where(ok, -cost, -50.0 - cost)
+            tot = prev_score[:, None] + trans
+            bp = np.argmax(tot, axis=0)
+            score = tot[bp, np.arange(len(s_i))] + emis
+        layers.append((i, s_i, bp))
+        prev_s, prev_score, prev_t = s_i, score, float(t[i])
+    if prev_score is None:
+        raise RouteError("no fix lies near the true route")
+    k = int(np.argmax(prev_score))
+    idx_known = np.empty(len(layers), dtype=np.int64)
+    s_known = np.empty(len(layers))
+    for li in range(len(layers) - 1, -1, -1):
+        i, s_i, bp = layers[li]
+        idx_known[li], s_known[li] = i, s_i[k]
+        k = int(bp[k])
+    out = np.interp(t, t[idx_known], s_known)
     # smooth by time, then non-decreasing
     w = config.timing_smooth_s
     cs = np.concatenate([[0.0], np.cumsum(out)])
@@ -200,6 +245,49 @@ def fix_route_distance(
     hi_i = np.searchsorted(t, t + w / 2.0, side="right")
     sm = (cs[hi_i] - cs[lo_i]) / np.maximum(hi_i - lo_i, 1)
     return np.clip(np.maximum.accumulate(sm), 0.0, route.length)
+
+
+def route_from_truth(graph: RoadGraph, xy: NDArray[np.float64], *, tol_m: float = 1.0) -> Route:
+    """The edge path of a true route drawn through the map's own nodes (U-turns allowed).
+
+    The route's vertices that lie within ``tol_m`` of a map node give the node sequence; each
+    consecutive pair is joined by the edge between them (of the length closest to the route's
+    between them). Raises :class:`RouteError` when two consecutive nodes share no edge.
+    """
+    cell: dict[tuple[int, int], int] = {}
+    for i, (x, y) in enumerate(graph.node_xy.tolist()):
+        cell.setdefault((int(x // tol_m), int(y // tol_m)), i)
+    seg = np.hypot(*np.diff(xy, axis=0).T)
+    cum = np.concatenate([[0.0], np.cumsum(seg)])
+    seq: list[tuple[int, float, int]] = []
+    for v, ((x, y), s) in enumerate(zip(xy.tolist(), cum.tolist(), strict=True)):
+        cx, cy = int(x // tol_m), int(y // tol_m)
+        best, bd = -1, tol_m
+        for dx in (-1, 0, 1):
+            for dy in (-1, 0, 1):
+                n = cell.get((cx + dx, cy + dy), -1)
+                if n >= 0:
+                    d = math.hypot(graph.node_xy[n, 0] - x, graph.node_xy[n, 1] - y)
+                    if d <= bd:
+                        best, bd = n, d
+        if best >= 0 and (not seq or seq[-1][0] != best or s - seq[-1][1] > 4.0 * tol_m):
+            seq.append((best, s, v))  # the same node again further on: a loop or a turn
+    path: list[int] = []
+    for (a, sa, va), (b, sb, vb) in itertools.pairwise(seq):
+        out = [int(e) for e in graph.out_of(a).tolist() if int(graph.edge_v[e]) == b]
+        if not out and a == b:  # turned round on an edge: along it to its end and back
+            far = xy[va + int(np.argmax(np.hypot(*(xy[va : vb + 1] - graph.node_xy[a]).T)))]
+            cand = [int(e) for e in graph.out_of(a).tolist() if int(graph.edge_reverse[e]) >= 0]
+            if cand:
+                e = min(cand, key=lambda e: project_to_edge(graph, e, float(far[0]), float(far[1]))[1])
+                path += [e, int(graph.edge_reverse[e])]
+            continue
+        if not out:
+            raise RouteError(f"no edge joins map nodes {a} and {b} of the true route")
+        path.append(min(out, key=lambda e: abs(float(graph.edge_len[e]) - (sb - sa))))
+    if not path:
+        raise RouteError("the true route passes fewer than two map nodes")
+    return route_from_edges(graph, path, allow_uturns=True)
 
 
 def _trim(graph: RoadGraph, route: Route, s_from: float, s_to: float) -> Route:
@@ -211,6 +299,7 @@ def _trim(graph: RoadGraph, route: Route, s_from: float, s_to: float) -> Route:
         route.edges[e0 : e1 + 1].tolist(),
         start_offset=s_from - float(route.edge_start[e0]),
         end_offset=s_to - float(route.edge_start[e1]),
+        allow_uturns=True,
     )
 
 
@@ -274,7 +363,11 @@ def real_drive(
     track = read_track(folder / "track.csv")
     t_fix = track["t"].to_numpy() - float(track["t"].iloc[0])
     fix_xy = to_xy(graph.crs, track["lon"].to_numpy(), track["lat"].to_numpy())
-    full = route_from_geometry(graph, read_truth_xy(graph, folder / "truth.geojson"))
+    truth_xy = read_truth_xy(graph, folder / "truth.geojson")
+    try:
+        full = route_from_truth(graph, truth_xy)
+    except RouteError:  # the truth is not drawn through this map's nodes: follow its geometry
+        full = route_from_geometry(graph, truth_xy)
     s_full = fix_route_distance(full, fix_xy, t_fix, config=config)
     s_from, s_to = float(s_full[0]), float(s_full[-1])
     if s_to - s_from < 1.0:

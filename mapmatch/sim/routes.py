@@ -179,13 +179,23 @@ def shortest_path(
 
 # --------------------------------------------------------------------------- construction
 def route_from_edges(
-    graph: RoadGraph, edges: Sequence[int], *, start_offset: float = 0.0, end_offset: float | None = None
+    graph: RoadGraph,
+    edges: Sequence[int],
+    *,
+    start_offset: float = 0.0,
+    end_offset: float | None = None,
+    allow_uturns: bool = False,
 ) -> Route:
-    """A :class:`Route` along ``edges`` (checked for legality)."""
+    """A :class:`Route` along ``edges`` (checked for legality; with ``allow_uturns`` only that
+    the edges join, as a real drive may turn round)."""
     ed = np.asarray(edges, dtype=np.int32)
     if len(ed) == 0:
         raise RouteError("a route needs at least one edge")
-    check_route(graph, ed.tolist())
+    if allow_uturns:
+        if (graph.edge_v[ed[:-1]] != graph.edge_u[ed[1:]]).any():
+            raise RouteError("consecutive route edges do not join")
+    else:
+        check_route(graph, ed.tolist())
     lens = graph.edge_len[ed]
     end = float(lens[-1]) if end_offset is None else float(end_offset)
     start = float(np.clip(start_offset, 0.0, lens[0]))

@@ -1,0 +1,336 @@
+"""Online matcher on REAL GPS: the 15 shared Kubicka tracks as fused drives (``mapmatch.sim.realgps``).
+
+Each track's real 1 Hz fixes are the GPS-aided positions; heading and odometer come from the true
+path with noise, bias and scale error; the seed papers' five outages (60, 90, 92, 83, 48 s,
+spread over the drive) are dead-reckoned with a gyro bias. Each drive runs at 1 Hz and 10 Hz,
+with the outages and GPS-only, through ``OnlineMatcher.update`` in-process. Scored, summed over
+drives (as the held-out test sums fixes and intersections):
+
+* intersections traversed: true junctions found in the matched junction sequence, split by
+  whether the vehicle passed them with GPS or in an outage;
+* correct road per fix: all fixes and fixes without GPS;
+* error at outage end: distance from the snapped position to the true one at the last fix of
+  each outage (and 5 s after GPS returns), median and p90;
+
+each as reported live and after applying the matcher's corrections. ``--breakdown`` classifies
+every wrong-road fix: start-up, outage drift, along-track (a route edge just before or after
+the true one) at a straight crossing or at a turn, fork (a branch leaving the true route at a
+node near the vehicle), parallel road (a road off the route within 40 m at a similar bearing),
+reverse, other.
+
+    python bench/bench_online_real.py                    # all 15 tracks, 1 + 10 Hz
+    python bench/bench_online_real.py --rates 1 --breakdown
+    python bench/bench_online_real.py --tracks 00000007 00000014 --rates 1
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from dataclasses import replace
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pandas as pd
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(ROOT / "bench"))
+
+from bench_online import corrected_edges, run_drive  # noqa: E402
+
+from graph.artifact import load_map, save_map  # noqa: E402
+from graph.build import build_map  # noqa: E402
+from graph.index import project_to_edge  # noqa: E402
+from graph.projection import to_xy  # noqa: E402
+from graph.road_graph import RoadGraph  # noqa: E402
+from mapmatch.config import DEFAULT_CONFIG  # noqa: E402
+from mapmatch.errors import ConfigError  # noqa: E402
+from mapmatch.evaluate import edge_path, is_junction, matched_junctions, path_nodes  # noqa: E402
+from mapmatch.online import OnlineMatcher  # noqa: E402
+from mapmatch.sim.drive import Drive  # noqa: E402
+from mapmatch.sim.realgps import real_drive  # noqa: E402
+from mapmatch.types import SnapResult  # noqa: E402
+
+KUBICKA = ROOT.parent / "shared" / "data" / "kubicka"
+STARTUP_S = 30.0
+RECOVERY_S = 10.0
+PARALLEL_M = 40.0
+PARALLEL_DEG = 30.0
+FORK_DEG = 45.0
+
+
+def _angle(a: float, b: float) -> float:
+    return abs((a - b + 180.0) % 360.0 - 180.0)
+
+
+def true_junctions(graph: RoadGraph, drive: Drive) -> tuple[list[int], np.ndarray]:
+    """The true junction sequence and the time each is passed."""
+    nodes = drive.node_index
+    keep = is_junction(graph)[nodes] if len(nodes) else np.zeros(0, dtype=bool)
+    return nodes[keep].tolist(), drive.node_time[keep]
+
+
+def snapped_xy(graph: RoadGraph, results: list[SnapResult]) -> np.ndarray:
+    lon = np.array([r.lon for r in results], dtype=float)
+    lat = np.array([r.lat for r in results], dtype=float)
+    out = np.full((len(results), 2), np.nan)
+    ok = ~np.isnan(lon) & ~np.isnan(lat)
+    if ok.any():
+        out[ok] = to_xy(graph.crs, lon[ok], lat[ok])
+    return out
+
+
+def corrected_xy(
+    graph: RoadGraph, results: list[SnapResult], edges: np.ndarray, xy: np.ndarray
+) -> np.ndarray:
+    """Snapped positions moved onto the corrected edge where a correction changed it."""
+    out = xy.copy()
+    for i, r in enumerate(results):
+        if edges[i] >= 0 and edges[i] != r.edge and not np.isnan(xy[i, 0]):
+            _, _, px, py = project_to_edge(graph, int(edges[i]), float(xy[i, 0]), float(xy[i, 1]))
+            out[i] = (px, py)
+    return out
+
+
+def outage_end_errors(drive: Drive, xy: np.ndarray, *, after_s: float = 0.0) -> list[float]:
+    """Snapped-position error at the last fix of each outage (or ``after_s`` after its end)."""
+    t = drive.truth["time"].to_numpy() - float(drive.truth["time"].iloc[0])
+    txy = drive.truth[["x", "y"]].to_numpy()
+    out = []
+    for a, d in drive.outages:
+        if a + d > t[-1]:
+            continue
+        i = (
+            int(np.searchsorted(t, a + d - 1e-6)) - 1
+            if after_s == 0
+            else int(np.searchsorted(t, a + d + after_s))
+        )
+        if 0 <= i < len(t) and not np.isnan(xy[i, 0]):
+            out.append(float(np.hypot(*(xy[i] - txy[i]))))
+    return out
+
+
+def junction_hits(
+    graph: RoadGraph, drive: Drive, edges: np.ndarray, times: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """(found, in_outage) per true junction."""
+    tn, tt = true_junctions(graph, drive)
+    mnodes = path_nodes(graph, edge_path(graph, edges, times=times))
+    found = matched_junctions(tn, mnodes)
+    ft = drive.truth["time"].to_numpy()
+    gout = drive.truth["gps_outage"].to_numpy() > 0
+    k = np.clip(np.searchsorted(ft, tt), 0, len(ft) - 1)
+    return found, gout[k]
+
+
+def classify(graph: RoadGraph, drive: Drive, edges: np.ndarray) -> dict[str, int]:
+    """Wrong-road fixes by class (see the module docstring)."""
+    tr = drive.truth
+    te = tr["edge"].to_numpy()
+    t = tr["time"].to_numpy() - float(tr["time"].iloc[0])
+    gout = tr["gps_outage"].to_numpy() > 0
+    out_end = np.full(len(t), -np.inf)
+    last = -np.inf
+    for i in range(len(t)):
+        if gout[i]:
+            last = t[i]
+        out_end[i] = last
+    route = drive.route.edges
+    pos: dict[int, list[int]] = {}
+    for i, e in enumerate(route.tolist()):
+        pos.setdefault(e, []).append(i)
+    route_s = tr["route_s"].to_numpy()
+    ridx = np.clip(np.searchsorted(drive.route.edge_start, route_s, side="right") - 1, 0, len(route) - 1)
+    turn = np.abs(
+        (graph.edge_bearing_start[route[1:]] - graph.edge_bearing_end[route[:-1]] + 180.0) % 360.0 - 180.0
+    )
+    res: dict[str, int] = {}
+    for i in np.flatnonzero(edges != te).tolist():
+        e, k = int(edges[i]), int(ridx[i])
+        gps = "outage" if gout[i] else "gps"
+        if t[i] < STARTUP_S:
+            kind = "start-up"
+        elif gout[i] or t[i] - out_end[i] <= RECOVERY_S:
+            kind = "outage drift" if gout[i] else "outage recovery"
+        elif e < 0:
+            kind = "unmatched"
+        elif e in pos and any(abs(j - k) <= 3 for j in pos[e]):
+            j = min(pos[e], key=lambda j: abs(j - k))
+            node = min(j, k)  # the crossing between them
+            straight = turn[min(node, len(turn) - 1)] <= 30.0 if len(turn) else True
+            kind = "along-track " + ("straight" if straight else "turn")
+        elif int(graph.edge_reverse[te[i]]) == e:
+            kind = "reverse"
+        else:
+            u = int(graph.edge_u[e])
+            near = route[max(0, k - 3) : k + 2]
+            fork = [r for r in near.tolist() if int(graph.edge_u[r]) == u]
+            if (
+                fork
+                and _angle(float(graph.edge_bearing_start[e]), float(graph.edge_bearing_start[fork[0]]))
+                <= FORK_DEG
+            ):
+                kind = "fork"
+            else:
+                x, y = float(tr["x"].iloc[i]), float(tr["y"].iloc[i])
+                _, dist, _, _ = project_to_edge(graph, e, x, y)
+                b = float(tr["heading"].iloc[i])
+                be = float(graph.edge_bearing_start[e])
+                kind = "parallel" if dist <= PARALLEL_M and _angle(b, be) <= PARALLEL_DEG else "other"
+        key = f"{gps:6} {kind}"
+        res[key] = res.get(key, 0) + 1
+    return res
+
+
+def run_one(
+    graph: RoadGraph, matcher: OnlineMatcher, folder: Path, *, rate: float, outages: bool, seed: int
+) -> dict[str, object]:
+    drive = real_drive(graph, folder, rate_hz=rate, outages=outages, seed=seed)
+    res, dt = run_drive(matcher, drive)
+    t = np.array([r.time for r in res])
+    live = np.array([r.edge for r in res], dtype=np.int64)
+    fin = corrected_edges(graph, res)
+    te = drive.truth["edge"].to_numpy()
+    gout = drive.truth["gps_outage"].to_numpy() > 0
+    xy = snapped_xy(graph, res)
+    xy2 = corrected_xy(graph, res, fin, xy)
+    row: dict[str, object] = {
+        "track": folder.name,
+        "hz": rate,
+        "outages": len(drive.outages),
+        "fixes": len(res),
+    }
+    row["fixes_out"] = int(gout.sum())
+    for tag, ed, pxy in (("live", live, xy), ("fin", fin, xy2)):
+        found, in_out = junction_hits(graph, drive, ed, t)
+        row[f"jn_gps_{tag}"] = int(found[~in_out].sum())
+        row[f"jn_out_{tag}"] = int(found[in_out].sum())
+        row[f"ok_{tag}"] = int((ed == te).sum())
+        row[f"ok_out_{tag}"] = int((ed == te)[gout].sum())
+        row[f"end_{tag}"] = outage_end_errors(drive, pxy)
+        row[f"end5_{tag}"] = outage_end_errors(drive, pxy, after_s=5.0)
+    found, in_out = junction_hits(graph, drive, live, t)
+    row["jn_gps"] = int((~in_out).sum())
+    row["jn_out"] = int(in_out.sum())
+    row["us"] = (dt * 1e6).tolist()
+    row["breakdown_live"] = classify(graph, drive, live)
+    row["breakdown_fin"] = classify(graph, drive, fin)
+    return row
+
+
+def _pct(a: float, b: float) -> str:
+    return f"{100.0 * a / b:6.2f} %" if b else "    - "
+
+
+def _q(v: list[float]) -> str:
+    return f"{np.median(v):5.1f} m / {np.percentile(v, 90):5.1f} m" if v else "-"
+
+
+def table(rows: list[dict[str, object]]) -> str:
+    df = pd.DataFrame(rows)
+    lines = [
+        "| rate | outages | | intersections, with GPS / in outages | correct road per fix, all / in outages "
+        "| error at outage end, median / p90 | 5 s after GPS returns |",
+        "|---|---|---|---|---|---|---|",
+    ]
+    for (hz, no), g in df.groupby(["hz", df["outages"] > 0]):
+        for tag, name in (("live", "live"), ("fin", "corrections applied")):
+            s = g.sum(numeric_only=True)
+            ends = [x for v in g[f"end_{tag}"] for x in v]
+            ends5 = [x for v in g[f"end5_{tag}"] for x in v]
+            lines.append(
+                f"| {hz:g} Hz | {'yes' if no else 'no'} | {name} | "
+                f"{_pct(s[f'jn_gps_{tag}'], s['jn_gps'])} / {_pct(s[f'jn_out_{tag}'], s['jn_out'])} | "
+                f"{_pct(s[f'ok_{tag}'], s['fixes'])} / {_pct(s[f'ok_out_{tag}'], s['fixes_out'])} | "
+                f"{_q(ends)} | {_q(ends5)} |"
+            )
+    return "\n".join(lines)
+
+
+def load_graph(folder: Path, cache: Path | None) -> RoadGraph:
+    """The map of a track, built from its ``roads.geojson`` (saved in and read from ``cache``)."""
+    if cache is not None and (cache / f"{folder.name}.map").is_file():
+        return load_map(cache / f"{folder.name}.map")
+    graph = build_map(folder / "roads.geojson")
+    if cache is not None:
+        cache.mkdir(parents=True, exist_ok=True)
+        save_map(graph, cache / f"{folder.name}.map")
+    return graph
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--tracks", nargs="*", default=None, help="track folder names (default: all)")
+    ap.add_argument("--rates", nargs="*", type=float, default=[1.0, 10.0])
+    ap.add_argument("--no-gps-only", action="store_true", help="skip the drives without outages")
+    ap.add_argument("--breakdown", action="store_true", help="classify the wrong-road fixes")
+    ap.add_argument("--json", type=Path, default=None, help="also write all rows here")
+    ap.add_argument("--map-cache", type=Path, default=None, help="keep the prepared maps in this folder")
+    ap.add_argument("--set", nargs="*", default=[], metavar="NAME=VALUE", help="matcher config overrides")
+    args = ap.parse_args()
+    try:
+        over: dict[str, Any] = {k: float(v) for k, v in (kv.split("=", 1) for kv in args.set)}
+        cfg = replace(DEFAULT_CONFIG, **over)
+    except (ValueError, TypeError, ConfigError) as exc:
+        print(f"error: --set: {exc}", file=sys.stderr)
+        return 2
+    if not KUBICKA.is_dir():
+        print(f"error: needs the shared Kubicka tracks in {KUBICKA}", file=sys.stderr)
+        return 2
+    names = args.tracks or sorted(p.name for p in KUBICKA.iterdir() if (p / "track.csv").is_file())
+    rows: list[dict[str, object]] = []
+    for name in names:
+        folder = KUBICKA / name
+        t0 = time.perf_counter()
+        graph = load_graph(folder, args.map_cache)
+        matcher = OnlineMatcher(graph, config=cfg)
+        if not rows:  # warm-up: compile the kernels before anything is timed
+            run_drive(matcher, real_drive(graph, folder, rate_hz=1.0, outages=True, seed=0))
+        print(f"# {name}: {graph.n_edges} edges, built in {time.perf_counter() - t0:.1f} s", flush=True)
+        for rate in args.rates:
+            for outages in (False, True) if not args.no_gps_only else (True,):
+                row = run_one(graph, matcher, folder, rate=rate, outages=outages, seed=int(name))
+                rows.append(row)
+                print(
+                    f"{name} {rate:4.0f} Hz outages {row['outages']}: fixes {row['fixes']}, "
+                    f"junctions {row['jn_gps_live']}/{row['jn_gps']} gps, "
+                    f"{row['jn_out_live']}/{row['jn_out']} "
+                    f"outage (live); correct road {_pct(row['ok_live'], row['fixes'])} live, "  # type: ignore[arg-type]
+                    f"{_pct(row['ok_fin'], row['fixes'])} corrected; outage end {_q(row['end_live'])}",  # type: ignore[arg-type]
+                    flush=True,
+                )
+    print("\n## REAL GPS (Kubicka), summed over drives\n")
+    print(table(rows))
+    us = np.concatenate([np.asarray(r["us"]) for r in rows])
+    print(
+        f"\nper-fix update time (in-process, not the speed benchmark): median {np.median(us):.1f} µs, "
+        f"p99 {np.percentile(us, 99):.1f} µs, {len(us)} fixes"
+    )
+    if args.breakdown:
+        for tag in ("live", "fin"):
+            for hz, with_out in sorted({(float(r["hz"]), bool(r["outages"])) for r in rows}):  # type: ignore[arg-type]
+                kinds: dict[str, int] = {}
+                n = 0
+                for r in rows:
+                    if r["hz"] != hz or bool(r["outages"]) != with_out:
+                        continue
+                    n += int(r["fixes"])  # type: ignore[call-overload]
+                    for k, v in r[f"breakdown_{tag}"].items():  # type: ignore[attr-defined]
+                        kinds[k] = kinds.get(k, 0) + v
+                what = "with outages" if with_out else "GPS only"
+                print(f"\n## wrong-road fixes by class, {hz:g} Hz {what}, {tag}, of {n} fixes")
+                for k, v in sorted(kinds.items(), key=lambda kv: -kv[1]):
+                    print(f"{v:7d} {100.0 * v / max(n, 1):5.2f} %  {k}")
+    if args.json:
+        for r in rows:
+            r.pop("us")
+        args.json.write_text(json.dumps(rows, indent=1, default=str))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

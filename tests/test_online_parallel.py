@@ -1,0 +1,186 @@
+"""Online matcher where real GPS goes wrong: parallel roads, small-angle forks, outage ends.
+
+Each map is drawn (or, for a 10° exit that ASCII cannot draw, laid out in metres) and the fixes
+are drawn along it with the bias a real receiver has: minutes long, towards the wrong road.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import numpy as np
+import pytest
+
+from graph.ascii import ASCII_CRS, AsciiMap, parse_ascii_map
+from graph.neighbours import edge_neighbours
+from graph.projection import to_lonlat
+from graph.road_graph import RoadGraph
+from mapmatch.config import DEFAULT_CONFIG, MatchConfig
+from mapmatch.online import OnlineMatcher
+from mapmatch.types import Fix, SnapResult
+from tests.online_helpers import drive
+
+# a divided road: two one-way carriageways 20 m apart, with a median opening e-f
+DIVIDED = """
+a>>>>>>>>>>>>>>>>>>>>>>>>>>>>>>e>>>>>>>>>>>>>>>>>>>>>>>>>>>>>>b
+                               |
+c<<<<<<<<<<<<<<<<<<<<<<<<<<<<<<f<<<<<<<<<<<<<<<<<<<<<<<<<<<<<<d
+"""
+# a main road a-b with a frontage road c-d 20 m beside it (scale 5: lines are 10 m apart)
+FRONTAGE = """
+a-----------------------------------------------------------------b
+ \\                                                               /
+  c-------------------------------------------------------------d
+"""
+
+
+@pytest.fixture(
+    params=[DEFAULT_CONFIG, dataclasses.replace(DEFAULT_CONFIG, neighbour_sigmas=1.5, return_sigmas=2.0)],
+    ids=["default", "neighbours+return"],
+)
+def cfg(request: pytest.FixtureRequest) -> MatchConfig:
+    """The matcher as shipped, and with the parallel-road and GPS-return rules on."""
+    return request.param  # type: ignore[no-any-return]
+
+
+def run(m: OnlineMatcher, fixes: list[Fix]) -> list[SnapResult]:
+    st = m.new_session()
+    return [m.update(st, f) for f in fixes]
+
+
+def shifted(amap: AsciiMap, route: str, dx: float, dy: float, **kw: object) -> list[Fix]:
+    """Fixes along ``route`` with a constant GPS bias (dx, dy) metres."""
+    pts = [tuple(amap.xy(n) + (dx, dy)) for n in route]
+    return drive(amap, route, points=pts, **kw)  # type: ignore[arg-type]
+
+
+def final_edges(results: list[SnapResult]) -> list[int]:
+    """Reported edges, corrections applied, in order without repeats."""
+    t = [r.time for r in results]
+    e = [r.edge for r in results]
+    for r in results:
+        c = r.correction
+        if c is None:
+            continue
+        for i, ti in enumerate(t):
+            if c.time_from <= ti <= c.time_to and e[i] in c.replaced_edges:
+                e[i] = c.edge_at(ti) if len(c.edge_times) == len(c.edges) else c.edges[0]
+    out: list[int] = []
+    for x in e:
+        if x >= 0 and (not out or out[-1] != x):
+            out.append(x)
+    return out
+
+
+def test_neighbour_table_holds_parallel_roads_not_continuations() -> None:
+    amap = parse_ascii_map(FRONTAGE, scale=5.0)
+    nb = edge_neighbours(amap.graph, band_m=40.0)
+    ab, cd, ac = amap.edge("a", "b"), amap.edge("c", "d"), amap.edge("a", "c")
+    assert cd in nb.of(ab).tolist() and ab in nb.of(cd).tolist()
+    assert amap.edge("d", "c") not in nb.of(ab).tolist()  # the other direction is not parallel
+    assert amap.edge("c", "a") not in nb.of(ac).tolist()  # nor the reverse twin
+    assert amap.edge("c", "d") not in nb.of(ac).tolist()  # nor a continuation
+    amap2 = parse_ascii_map(DIVIDED, scale=10.0)
+    nb2 = edge_neighbours(amap2.graph, band_m=40.0)
+    assert nb2.of(amap2.edge("a", "e")).tolist() == []  # the other carriageway runs the other way
+
+
+def test_divided_road_with_gps_biased_towards_the_other_carriageway(cfg: MatchConfig) -> None:
+    amap = parse_ascii_map(DIVIDED, scale=10.0)
+    m = OnlineMatcher(amap.graph, config=cfg)
+    res = run(m, shifted(amap, "aeb", 0.0, -9.0, speed=15.0, sigma=5.0, noise=1.0, seed=2))
+    good = {amap.edge("a", "e"), amap.edge("e", "b")}
+    assert all(r.edge in good for r in res[3:])
+
+
+def test_u_turn_across_the_median_opening(cfg: MatchConfig) -> None:
+    amap = parse_ascii_map(DIVIDED, scale=10.0)
+    m = OnlineMatcher(amap.graph, config=cfg)
+    res = run(m, drive(amap, "aefc", speed=8.0, sigma=4.0, noise=1.5, seed=4))
+    assert final_edges(res)[-2:] == [amap.edge("e", "f"), amap.edge("f", "c")]
+    assert res[-1].edge == amap.edge("f", "c")
+
+
+@pytest.mark.parametrize("bias", [6.0, 9.0])
+def test_main_road_with_gps_biased_towards_the_frontage_road(bias: float, cfg: MatchConfig) -> None:
+    amap = parse_ascii_map(FRONTAGE, scale=5.0)
+    m = OnlineMatcher(amap.graph, config=cfg)
+    res = run(m, shifted(amap, "ab", 0.0, -bias, speed=12.0, sigma=5.0, noise=1.0, seed=1))
+    assert all(r.edge == amap.edge("a", "b") for r in res[3:-2])
+
+
+def test_frontage_road_with_gps_biased_towards_the_main_road(cfg: MatchConfig) -> None:
+    amap = parse_ascii_map(FRONTAGE, scale=5.0)
+    m = OnlineMatcher(amap.graph, config=cfg)
+    res = run(m, shifted(amap, "acdb", 0.0, 6.0, speed=10.0, sigma=5.0, noise=1.0, seed=3))
+    c, d = amap.xy("c"), amap.xy("d")
+    x = np.array([to_xy(amap, r) for r in res])
+    mid = (x[:, 0] > c[0] + 60.0) & (x[:, 0] < d[0] - 60.0)
+    cd = amap.edge("c", "d")
+    assert mid.sum() > 10
+    assert np.mean([r.edge == cd for r, k in zip(res, mid, strict=True) if k]) >= 0.9
+    assert cd in final_edges(res)
+
+
+def to_xy(amap: AsciiMap, r: SnapResult) -> tuple[float, float]:
+    from graph.projection import point_to_xy
+
+    return point_to_xy(amap.graph.crs, r.raw_lon, r.raw_lat)
+
+
+def _exit_map() -> tuple[RoadGraph, dict[str, int]]:
+    """A straight road a-b-c and a 10° exit b-d, in metres."""
+    x0, y0 = 385_000.0, 6_672_000.0
+    ang = math.radians(10.0)
+    xy = [
+        (x0, y0),
+        (x0 + 300.0, y0),
+        (x0 + 800.0, y0),
+        (x0 + 300.0 + 500.0 * math.cos(ang), y0 - 500.0 * math.sin(ang)),
+    ]
+    uv = [(0, 1), (1, 0), (1, 2), (2, 1), (1, 3), (3, 1)]
+    g = RoadGraph.from_edges(crs=ASCII_CRS, node_xy=xy, edge_u=[a for a, _ in uv], edge_v=[b for _, b in uv])
+    return g, {"ab": 0, "bc": 2, "bd": 4}
+
+
+@pytest.mark.parametrize("taken", [False, True])
+def test_ten_degree_exit(taken: bool, cfg: MatchConfig) -> None:
+    g, e = _exit_map()
+    amap = AsciiMap(graph=g, nodes={"a": 0, "b": 1, "c": 2, "d": 3}, scale=1.0)
+    route = "abd" if taken else "abc"
+    res = run(
+        OnlineMatcher(g, config=cfg),
+        drive(amap, route, speed=25.0, sigma=4.0, noise=2.0, seed=5, heading_noise=1.0),
+    )
+    want = [e["ab"], e["bd"] if taken else e["bc"]]
+    assert final_edges(res) == want
+    assert res[-1].edge == want[-1]
+
+
+def test_outage_ending_beside_a_parallel_road(cfg: MatchConfig) -> None:
+    """Dead reckoning drifts onto the frontage road; the returning fix is on the main road."""
+    amap = parse_ascii_map(FRONTAGE, scale=5.0)
+    m = OnlineMatcher(amap.graph, config=cfg)
+    fixes = drive(amap, "ab", speed=10.0, sigma=4.0, noise=1.0, seed=6)
+    n = len(fixes)
+    i0, i1 = n // 4, n // 4 + 15  # 15 s of dead reckoning drifting 1.3 m/s south
+    out: list[Fix] = []
+    for i, f in enumerate(fixes):
+        if i0 <= i < i1:
+            lon, lat = to_lonlat(amap.graph.crs, *_offset(amap, f, 0.0, -1.3 * (i - i0 + 1)))[0]
+            f = dataclasses.replace(
+                f, lat=float(lat), lon=float(lon), gps_valid=False, pos_sigma=4.0 + 0.04 * 10.0 * (i - i0)
+            )
+        out.append(f)
+    res = run(m, out)
+    ab = amap.edge("a", "b")
+    assert all(r.edge == ab for r in res[i1 : i1 + 3])  # at once when GPS is back
+    assert final_edges(res) == [ab]
+
+
+def _offset(amap: AsciiMap, f: Fix, dx: float, dy: float) -> tuple[list[float], list[float]]:
+    from graph.projection import point_to_xy
+
+    x, y = point_to_xy(amap.graph.crs, f.lon, f.lat)
+    return [x + dx], [y + dy]
