@@ -6,6 +6,7 @@ points at once returns flat parallel arrays of (point, directed edge, distance, 
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -165,3 +166,35 @@ def project_to_edge(graph: RoadGraph, edge: int, x: float, y: float) -> tuple[fl
     seg = np.sqrt(L2)
     off = float(seg[:i].sum() + t[i] * seg[i])
     return off, float(d[i]), float(proj[i, 0]), float(proj[i, 1])
+
+
+def project_point(
+    seg_xy: NDArray[np.float64], lo: int, hi: int, x: float, y: float, length: float, bearing0: float
+) -> tuple[float, float, float, float, float]:
+    """Project a point onto the polyline ``seg_xy[lo:hi]`` (one edge), scalar entry.
+
+    Returns ``(offset, dist, px, py, bearing)``: metres along the polyline (at most ``length``),
+    distance, projected position and the bearing of the piece it lies on (``bearing0`` for a
+    polyline of zero length). The nearest piece wins; the first of equally near ones.
+    """
+    pts = seg_xy[lo:hi].tolist()
+    best = math.inf
+    acc = 0.0
+    res = (0.0, pts[0][0], pts[0][1], 0.0, 1.0)
+    ax, ay = pts[0]
+    for bx, by in pts[1:]:
+        dx, dy = bx - ax, by - ay
+        l2 = dx * dx + dy * dy
+        t = ((x - ax) * dx + (y - ay) * dy) / l2 if l2 > 1e-12 else 0.0
+        t = 0.0 if t < 0.0 else (1.0 if t > 1.0 else t)
+        qx, qy = ax + t * dx, ay + t * dy
+        d2 = (x - qx) ** 2 + (y - qy) ** 2
+        seg = math.sqrt(l2)
+        if d2 < best:
+            best = d2
+            res = (acc + t * seg, qx, qy, dx, dy)
+        acc += seg
+        ax, ay = bx, by
+    off = min(res[0], length)
+    brg = math.degrees(math.atan2(res[3], res[4])) % 360.0 if (res[3] or res[4]) else bearing0
+    return off, math.sqrt(best), res[1], res[2], brg

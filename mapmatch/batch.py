@@ -21,7 +21,7 @@ from graph.index import Candidates, EdgeIndex
 from graph.projection import to_lonlat, to_xy
 from graph.road_graph import RoadGraph
 from mapmatch import model
-from mapmatch.config import DEFAULT_CONFIG, MatchConfig
+from mapmatch.config import BATCH_CONFIG, MatchConfig
 from mapmatch.gridindex import GridIndex, grow_array
 from mapmatch.model import emission_logp_one, transition_logp_one
 from mapmatch.routing import (
@@ -38,9 +38,6 @@ from mapmatch.routing import (
 from mapmatch.types import MatchedPoint, PointStatus, Track, TrackMatch
 
 NEG_INF = -np.inf
-BATCH_CONFIG = DEFAULT_CONFIG.replace(gps_sigma=8.0, uturn_penalty=20.0, interpolate_distance=8.0)
-"""Batch defaults: the shared model with σ and the U-turn penalty set for raw GPS tracks, and
-points closer than σ to the previous kept point interpolated."""
 EMISSION_PRUNE = 12.5
 """Candidates whose emission log-probability is this far below the point's best are dropped."""
 REVERSE_TOLERANCE = 10.0
