@@ -97,3 +97,20 @@ def legal_moves(graph: RoadGraph, *, uturns: UTurnPolicy = "junction") -> LegalM
         uturn=np.asarray(flag, dtype=np.bool_),
         policy=uturns,
     )
+
+
+_CACHE: dict[tuple[int, str], tuple[RoadGraph, LegalMoves]] = {}
+_CACHE_SIZE = 8
+
+
+def moves_for(graph: RoadGraph, *, uturns: UTurnPolicy = "junction") -> LegalMoves:
+    """:func:`legal_moves`, built once per map and policy (the few most recent maps kept)."""
+    key = (id(graph), uturns)
+    hit = _CACHE.get(key)
+    if hit is not None and hit[0] is graph:
+        return hit[1]
+    moves = legal_moves(graph, uturns=uturns)
+    if len(_CACHE) >= _CACHE_SIZE:
+        del _CACHE[next(iter(_CACHE))]
+    _CACHE[key] = (graph, moves)
+    return moves

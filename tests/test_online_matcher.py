@@ -431,8 +431,7 @@ def test_one_matcher_serves_many_threads() -> None:
 
 def test_scalar_model_twins_agree_with_the_shared_model() -> None:
     from mapmatch.config import DEFAULT_CONFIG as C
-    from mapmatch.model import emission_logp, transition_logp
-    from mapmatch.model import emission_one, transition_one
+    from mapmatch.model import emission_logp, emission_one, transition_logp, transition_one
 
     rng = np.random.default_rng(1)
     for _ in range(200):
