@@ -401,15 +401,31 @@ def test_state_round_trips_and_moves_between_matchers() -> None:
         SessionState.from_bytes(b'{"v": 1}')
 
 
-def test_scalar_projection_agrees_with_project_to_edge() -> None:
+def test_projection_entries_agree_with_shapely() -> None:
+    import shapely
+
+    from graph.index import project_point_compiled, project_points
+
     m: AsciiMap = parse_ascii_map(CROSS, scale=10)
-    matcher = OnlineMatcher(m.graph)
+    g = m.graph
+    matcher = OnlineMatcher(g)
     rng = np.random.default_rng(0)
-    for e in range(m.graph.n_edges):
+    edges, pts, scalar = [], [], []
+    for e in range(g.n_edges):
+        line = shapely.LineString(g.edge_xy(e))
         for x, y in rng.normal(m.xy("b"), 60.0, size=(20, 2)):
-            off, dist, px, py, _ = matcher.road.project(e, float(x), float(y))
-            ref = project_to_edge(m.graph, e, float(x), float(y))
-            assert (off, dist, px, py) == pytest.approx(ref, abs=1e-9)
+            off, dist, px, py, _ = got = matcher.road.project(e, float(x), float(y))
+            p = shapely.Point(x, y)
+            assert (off, dist) == pytest.approx((line.project(p), line.distance(p)), abs=1e-9)
+            assert (px, py) == pytest.approx(line.interpolate(off).coords[0], abs=1e-9)
+            assert project_to_edge(g, e, float(x), float(y)) == pytest.approx(got[:4], abs=1e-12)
+            lo, hi = int(g.edge_seg_ptr[e]), int(g.edge_seg_ptr[e + 1])
+            comp = project_point_compiled(g.seg_xy, lo, hi, float(x), float(y), g.edge_len[e], 0.0)
+            assert comp[:4] == pytest.approx(got[:4], abs=1e-12)
+            edges.append(e)
+            pts.append((x, y))
+            scalar.append(got)
+    assert project_points(g, edges, pts) == pytest.approx(np.array(scalar), abs=1e-12)
 
 
 def test_one_matcher_serves_many_threads() -> None:

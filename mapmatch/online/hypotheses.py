@@ -147,7 +147,7 @@ def _nearest_on_path(
     x, y, sigma = step.x, step.y, step.sigma
     hold = cfg.online.node_hold_sigmas * sigma
     best_sc = -math.inf
-    best = PathPos(h.k, h.off, h.s, h.dist, h.px, h.py, h.bearing)
+    best = (h.k, h.off, h.s, h.dist, h.px, h.py, h.bearing)
     acc = 0.0
     j0 = max(h.k - 1, 0)  # one edge back: a fix may run ahead of the vehicle near a node
     for j in range(j0):
@@ -181,9 +181,9 @@ def _nearest_on_path(
             sc += road.transition(s - h.s, step, cfg)
         if sc > best_sc + 1e-9:
             best_sc = sc
-            best = PathPos(j, off, s, dist, px, py, brg)
+            best = (j, off, s, dist, px, py, brg)
         acc += road.elen[e]
-    return best_sc, best, acc
+    return best_sc, PathPos(*best), acc
 
 
 def _dead_reckon(

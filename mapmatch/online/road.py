@@ -9,8 +9,9 @@ from __future__ import annotations
 import math
 
 import numpy as np
+from numba import njit
 
-from graph.index import project_point
+from graph.index import project_point_compiled
 from graph.road_graph import RoadGraph
 from graph.rules import junctions, legal_moves
 from mapmatch.config import MatchConfig
@@ -19,6 +20,23 @@ from mapmatch.online.state import Hypothesis, Step
 from mapmatch.turns import angle_diff
 
 Projection = tuple[float, float, float, float, float]  # offset, dist, px, py, bearing
+
+
+@njit(cache=True)
+def _locate(seg_xy, lo, hi, off, bearing_end):  # type: ignore[no-untyped-def]
+    """``(x, y, bearing)`` at ``off`` metres along the polyline ``seg_xy[lo:hi]``."""
+    acc = 0.0
+    ax, ay = seg_xy[lo, 0], seg_xy[lo, 1]
+    for q in range(lo + 1, hi):
+        bx, by = seg_xy[q, 0], seg_xy[q, 1]
+        dx, dy = bx - ax, by - ay
+        seg = math.hypot(dx, dy)
+        if acc + seg >= off and seg > 0.0:
+            t = (off - acc) / seg
+            return ax + t * dx, ay + t * dy, math.degrees(math.atan2(dx, dy)) % 360.0
+        acc += seg
+        ax, ay = bx, by
+    return ax, ay, bearing_end
 
 
 class RoadModel:
@@ -33,7 +51,7 @@ class RoadModel:
         self.bstart: list[float] = graph.edge_bearing_start.tolist()
         self.bend: list[float] = graph.edge_bearing_end.tolist()
         self.ptr: list[int] = graph.edge_seg_ptr.tolist()
-        self.seg = graph.seg_xy
+        self.seg = np.ascontiguousarray(graph.seg_xy, dtype=np.float64)
         # every piece of every polyline: length and bearing (the last row of each edge is unused)
         d = np.diff(graph.seg_xy, axis=0) if len(graph.seg_xy) else np.zeros((0, 2))
         self.piece_len = np.hypot(d[:, 0], d[:, 1])
@@ -59,23 +77,13 @@ class RoadModel:
     # ------------------------------------------------------------------ geometry
     def project(self, e: int, x: float, y: float) -> Projection:
         """``(offset, dist, px, py, bearing)`` of the point's projection onto edge ``e``."""
-        return project_point(self.seg, self.ptr[e], self.ptr[e + 1], x, y, self.elen[e], self.bstart[e])
+        return project_point_compiled(  # type: ignore[no-any-return]
+            self.seg, self.ptr[e], self.ptr[e + 1], x, y, self.elen[e], self.bstart[e]
+        )
 
     def locate(self, e: int, off: float) -> tuple[float, float, float]:
         """``(x, y, bearing)`` at ``off`` metres along edge ``e``."""
-        pts = self.seg[self.ptr[e] : self.ptr[e + 1]].tolist()
-        acc = 0.0
-        ax, ay = pts[0]
-        dx = dy = 0.0
-        for bx, by in pts[1:]:
-            dx, dy = bx - ax, by - ay
-            seg = math.hypot(dx, dy)
-            if acc + seg >= off and seg > 0.0:
-                t = (off - acc) / seg
-                return ax + t * dx, ay + t * dy, math.degrees(math.atan2(dx, dy)) % 360.0
-            acc += seg
-            ax, ay = bx, by
-        return ax, ay, self.bend[e]
+        return _locate(self.seg, self.ptr[e], self.ptr[e + 1], off, self.bend[e])  # type: ignore[no-any-return]
 
     def straight(self, e: int, e2: int, cfg: MatchConfig) -> bool:
         """Whether ``e2`` continues ``e`` straight on at their shared node."""
@@ -109,10 +117,8 @@ class RoadModel:
         return [(self._mto[i], pen if self._muturn[i] else 0.0) for i in range(lo, hi)]
 
     # ------------------------------------------------------------------ scorers
-    @staticmethod
-    def emission(dist: float, sigma: float, heading: float, bearing: float, kappa: float) -> float:
-        """Log-likelihood of a fix ``dist`` from the road, heading against its bearing."""
-        return emission_one(dist, sigma, heading, bearing, kappa)
+    # log-likelihood of a fix ``dist`` from the road, heading against its bearing
+    emission = staticmethod(emission_one)
 
     @staticmethod
     def transition(route_dist: float, step: Step, cfg: MatchConfig) -> float:
