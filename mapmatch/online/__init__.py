@@ -11,6 +11,8 @@ with what was reported live, a :class:`~mapmatch.types.Correction` is returned.
 Where each mechanism lives:
 
 - :mod:`~mapmatch.online.matcher`: :class:`OnlineMatcher`; ``update`` orchestrates one fix.
+- :mod:`~mapmatch.online.step`: the per-fix step (validation, σ floors, drift, the fix in map
+  coordinates).
 - :mod:`~mapmatch.online.state`: the named records (hypotheses, live fixes, trail points,
   path positions, the fix bias) and :class:`SessionState`.
 - :mod:`~mapmatch.online.codec`: ``to_bytes``/``from_bytes`` by named keys, validated, with the
@@ -24,15 +26,16 @@ Where each mechanism lives:
 - :mod:`~mapmatch.online.anchor`: the turn anchor, the odometer scale, re-timed crossings.
 - :mod:`~mapmatch.online.bias`: the fix bias, the road residuals, the dead-reckoning drift.
 - :mod:`~mapmatch.online.stopline`: the stop line before a node.
-- :mod:`~mapmatch.online.corrections`: the fixed-lag smoother and the corrections.
+- :mod:`~mapmatch.online.correction`: the fixed-lag smoother and the corrections.
 - :mod:`~mapmatch.online.report`: the pure report (a :class:`~mapmatch.types.SnapResult`).
 
 Fixes far off the map are not errors: they return ``State.OFF_ROAD`` with ``edge == -1``.
 Invalid input raises :class:`~mapmatch.errors.ValidationError` and leaves the state unchanged.
 """
 
-from mapmatch.online.corrections import merge as _merge
-from mapmatch.online.matcher import LIMITS, OnlineMatcher
+from mapmatch.online.correction import merge as _merge
+from mapmatch.online.matcher import OnlineMatcher
 from mapmatch.online.state import Hypothesis, SessionState
+from mapmatch.online.step import LIMITS
 
 __all__ = ["LIMITS", "Hypothesis", "OnlineMatcher", "SessionState", "_merge"]

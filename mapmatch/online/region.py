@@ -8,7 +8,7 @@ import math
 
 from mapmatch.config import MatchConfig
 from mapmatch.online.anchor import learn_scale, revise_crossings, turn_anchor
-from mapmatch.online.corrections import correction, merge
+from mapmatch.online.correction import correction, merge
 from mapmatch.online.filter import best as best_of
 from mapmatch.online.filter import normalise
 from mapmatch.online.hypotheses import move_to

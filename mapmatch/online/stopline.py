@@ -9,7 +9,7 @@ import math
 import numpy as np
 
 from mapmatch.config import MatchConfig
-from mapmatch.online.corrections import merge
+from mapmatch.online.correction import merge
 from mapmatch.online.road import RoadModel
 from mapmatch.online.state import Hypothesis, SessionState, Step
 from mapmatch.turns import angle_diff
