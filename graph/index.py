@@ -6,10 +6,13 @@ points at once returns flat parallel arrays of (point, directed edge, distance, 
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 import shapely
+from numba import njit
 from numpy.typing import ArrayLike, NDArray
 
 from graph.road_graph import RoadGraph
@@ -154,14 +157,70 @@ def _empty() -> Candidates:
 
 def project_to_edge(graph: RoadGraph, edge: int, x: float, y: float) -> tuple[float, float, float, float]:
     """Project a point onto one edge: ``(offset, dist, px, py)``. Searches nothing else."""
-    g = graph.edge_xy(edge)
-    a = g[:-1]
-    ab = g[1:] - a
-    L2 = np.einsum("ij,ij->i", ab, ab)
-    t = np.clip(np.einsum("ij,ij->i", np.array([x, y]) - a, ab) / np.maximum(L2, 1e-12), 0.0, 1.0)
-    proj = a + ab * t[:, None]
-    d = np.hypot(proj[:, 0] - x, proj[:, 1] - y)
-    i = int(np.argmin(d))
-    seg = np.sqrt(L2)
-    off = float(seg[:i].sum() + t[i] * seg[i])
-    return off, float(d[i]), float(proj[i, 0]), float(proj[i, 1])
+    lo, hi = int(graph.edge_seg_ptr[edge]), int(graph.edge_seg_ptr[edge + 1])
+    off, dist, px, py, _ = project_point(graph.seg_xy[lo:hi].tolist(), 0, hi - lo, x, y, math.inf, 0.0)
+    return off, dist, px, py
+
+
+def project_point(
+    seg_xy: Any, lo: int, hi: int, x: float, y: float, length: float, bearing0: float
+) -> tuple[float, float, float, float, float]:
+    """Project a point onto the polyline ``seg_xy[lo:hi]`` (one edge): the scalar entry.
+
+    ``seg_xy`` is an (n, 2) array or a list of ``[x, y]`` rows (faster from Python);
+    :func:`project_point_compiled` is this function compiled, :func:`project_points` the
+    vectorised entry. Returns ``(offset, dist, px, py, bearing)``: metres along the polyline
+    (at most ``length``), distance, projected position and the bearing of the piece it lies
+    on (``bearing0`` on a polyline of zero length). The nearest piece wins; the first of
+    equally near ones.
+    """
+    best = math.inf
+    acc = 0.0
+    ax, ay = seg_xy[lo][0], seg_xy[lo][1]
+    r_off, r_x, r_y, r_dx, r_dy = 0.0, ax, ay, 0.0, 1.0
+    for q in range(lo + 1, hi):
+        bx, by = seg_xy[q][0], seg_xy[q][1]
+        dx, dy = bx - ax, by - ay
+        l2 = dx * dx + dy * dy
+        t = ((x - ax) * dx + (y - ay) * dy) / l2 if l2 > 1e-12 else 0.0
+        t = 0.0 if t < 0.0 else (1.0 if t > 1.0 else t)
+        qx, qy = ax + t * dx, ay + t * dy
+        d2 = (x - qx) ** 2 + (y - qy) ** 2
+        seg = math.sqrt(l2)
+        if d2 < best:
+            best = d2
+            r_off, r_x, r_y, r_dx, r_dy = acc + t * seg, qx, qy, dx, dy
+        acc += seg
+        ax, ay = bx, by
+    off = min(r_off, length)
+    brg = math.degrees(math.atan2(r_dx, r_dy)) % 360.0 if (r_dx != 0.0 or r_dy != 0.0) else bearing0
+    return off, math.sqrt(best), r_x, r_y, brg
+
+
+project_point_compiled = njit(cache=True)(project_point)
+
+
+@njit(cache=True)
+def _project_many(seg_xy, seg_ptr, edge_len, bearing0, edges, xy):  # type: ignore[no-untyped-def]
+    n = len(edges)
+    out = np.empty((n, 5))
+    for i in range(n):
+        e = edges[i]
+        r = project_point_compiled(
+            seg_xy, seg_ptr[e], seg_ptr[e + 1], xy[i, 0], xy[i, 1], edge_len[e], bearing0[e]
+        )
+        for k in range(5):
+            out[i, k] = r[k]
+    return out
+
+
+def project_points(graph: RoadGraph, edges: ArrayLike, xy: ArrayLike) -> NDArray[np.float64]:
+    """The vectorised entry: point ``xy[i]`` projected onto edge ``edges[i]``, as rows
+    ``(offset, dist, px, py, bearing)`` of an (n, 5) array."""
+    e = np.asarray(edges, dtype=np.int64)
+    p = np.asarray(xy, dtype=np.float64).reshape(-1, 2)
+    if len(e) != len(p):
+        raise ValueError("one edge per point")
+    return _project_many(  # type: ignore[no-any-return]
+        graph.seg_xy, graph.edge_seg_ptr, graph.edge_len, graph.edge_bearing_start, e, p
+    )

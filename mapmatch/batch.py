@@ -17,11 +17,11 @@ import numpy as np
 from numba import njit
 from numpy.typing import NDArray
 
-from graph.index import Candidates, EdgeIndex
+from graph.index import Candidates, EdgeIndex, project_point_compiled
 from graph.projection import to_lonlat, to_xy
 from graph.road_graph import RoadGraph, merge_repeats
 from mapmatch import model
-from mapmatch.config import DEFAULT_CONFIG, MatchConfig
+from mapmatch.config import BATCH_CONFIG, MatchConfig
 from mapmatch.gridindex import GridIndex, grow_array
 from mapmatch.model import emission_logp_one, transition_logp_one
 from mapmatch.routing import (
@@ -38,9 +38,15 @@ from mapmatch.routing import (
 from mapmatch.types import MatchedPoint, PointStatus, Track, TrackMatch
 
 NEG_INF = -np.inf
-BATCH_CONFIG = DEFAULT_CONFIG.replace(gps_sigma=8.0, uturn_penalty=20.0, interpolate_distance=8.0)
-"""Batch defaults: the shared model with σ and the U-turn penalty set for raw GPS tracks, and
-points closer than σ to the previous kept point interpolated."""
+
+
+@njit(cache=True, inline="always")
+def _project_one(seg_xy, seg_ptr, e, x, y):  # type: ignore[no-untyped-def]
+    """Offset, distance and position of point ``(x, y)`` projected onto edge ``e``."""
+    off, dist, px, py, _ = project_point_compiled(seg_xy, seg_ptr[e], seg_ptr[e + 1], x, y, np.inf, 0.0)
+    return off, dist, px, py
+
+
 EMISSION_PRUNE = 12.5
 """Candidates whose emission log-probability is this far below the point's best are dropped."""
 REVERSE_TOLERANCE = 10.0
@@ -847,36 +853,6 @@ def _prune(nk, cpoint, cedge, coff, cxy, cdist, emis, prune, outlier):  # type: 
 
 
 @njit(cache=True, nogil=True)
-def _project_one(x, y, e, seg_xy, seg_ptr):  # type: ignore[no-untyped-def]
-    """Offset, distance and position of point ``(x, y)`` projected onto edge ``e``."""
-    a0 = seg_ptr[e]
-    a1 = seg_ptr[e + 1]
-    best = np.inf
-    off = 0.0
-    px_b = np.nan
-    py_b = np.nan
-    acc = 0.0
-    for q in range(a0, a1 - 1):
-        x0, y0 = seg_xy[q, 0], seg_xy[q, 1]
-        dx = seg_xy[q + 1, 0] - x0
-        dy = seg_xy[q + 1, 1] - y0
-        L2 = dx * dx + dy * dy
-        f = 0.0
-        if L2 > 0:
-            f = min(max(((x - x0) * dx + (y - y0) * dy) / L2, 0.0), 1.0)
-        px = x0 + f * dx
-        py = y0 + f * dy
-        d = math.hypot(x - px, y - py)
-        if d < best:
-            best = d
-            off = acc + f * math.sqrt(L2)
-            px_b = px
-            py_b = py
-        acc += math.sqrt(L2)
-    return off, best, px_b, py_b
-
-
-@njit(cache=True, nogil=True)
 def _finish(  # type: ignore[no-untyped-def]
     n,
     valid,
@@ -1031,8 +1007,8 @@ def _finish(  # type: ignore[no-untyped-def]
             q += 1
         prv = max(q - 1, 0)
         nxt = min(q, m - 1)
-        o1, d1, x1, y1 = _project_one(xy[i, 0], xy[i, 1], ch_edge[prv], seg_xy, seg_ptr)
-        o2, d2, x2, y2 = _project_one(xy[i, 0], xy[i, 1], ch_edge[nxt], seg_xy, seg_ptr)
+        o1, d1, x1, y1 = _project_one(seg_xy, seg_ptr, ch_edge[prv], xy[i, 0], xy[i, 1])
+        o2, d2, x2, y2 = _project_one(seg_xy, seg_ptr, ch_edge[nxt], xy[i, 0], xy[i, 1])
         if d2 < d1:
             p_edge[i], p_off[i], p_xy[i, 0], p_xy[i, 1], p_dist[i] = ch_edge[nxt], o2, x2, y2, d2
         else:

@@ -1,21 +1,37 @@
-"""Matcher configuration: one frozen dataclass of named defaults, validated, overridable per call."""
+"""Matcher configuration: nested, named, commented and validated defaults, overridable per call.
+
+:class:`MatchConfig` has three sections: :class:`ModelConfig` (the probabilistic model both
+inference modes share), :class:`OnlineConfig` (the per-vehicle filter) and :class:`BatchConfig`
+(whole-track matching). Every number that changes a result is a field of one of them.
+
+``config.replace(gps_sigma=8.0)`` changes a field by its name (names are unique across the
+sections); ``config.model.gps_sigma`` reads it (``config.gps_sigma`` is a read-only shorthand).
+"""
 
 from __future__ import annotations
 
 import dataclasses
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 from mapmatch.errors import ConfigError
 
 
-@dataclass(frozen=True)
-class MatchConfig:
-    """Parameters of the shared probabilistic model and of both inference modes.
+def _check_numbers(section: object) -> None:
+    """Every field a finite non-negative number; whole numbers where the default is an int."""
+    for f in dataclasses.fields(section):  # type: ignore[arg-type]
+        v = getattr(section, f.name)
+        if isinstance(v, bool) or not isinstance(v, int | float) or not math.isfinite(v) or v < 0:
+            raise ConfigError(f"{f.name} must be a finite non-negative number, got {v!r}")
+        if isinstance(f.default, int) and v != int(v):
+            raise ConfigError(f"{f.name} must be a whole number, got {v!r}")
 
-    Model (shared)
-    --------------
+
+@dataclass(frozen=True)
+class ModelConfig:
+    """The shared probabilistic model (emission, transition) and the candidate search.
+
     gps_sigma : default 1-σ position error in metres when a fix gives none.
     heading_sigma : default 1-σ heading error in degrees when a fix gives a heading but no accuracy.
     heading_min_speed : m/s below which a heading is not trusted (0 disables the check).
@@ -23,67 +39,10 @@ class MatchConfig:
     uturn_penalty : log-probability penalty of a U-turn.
     max_speed : m/s; transitions needing more are penalised.
     speed_penalty : log-probability penalty per (m/s) above ``max_speed``.
-
-    Candidates
-    ----------
     search_radius : metres around a fix to search for candidate edges.
     max_candidates : nearest roads kept per fix.
-
-    Online
-    ------
-    drift_rate : expected dead-reckoning drift as a fraction of distance (thesis: 0.04).
-    ambiguous_min_radius : lower bound of the ambiguous-region radius in metres.
-    ambiguous_sigma_factor : the region grows to this many position σ.
-    ambiguous_max_radius : upper bound of the region radius in metres.
-    turn_window : odometer metres over which the heading step is measured.
-    turn_threshold : degrees of heading change that count as a turn.
-    reinit_time : seconds of inconsistency before re-initialising.
-    reinit_distance : metres travelled while inconsistent before re-initialising.
-    reinit_sigmas : a fix is inconsistent when further than this many σ from the road.
-    dr_sigma_growth : fraction of distance travelled since the last GPS-aided fix added to σ.
-    max_hypotheses : most path hypotheses the online filter keeps.
-    turn_sigma : degrees; spread of the observed heading change around a path's predicted one.
-    evidence_time : seconds of fixes that count as one independent observation (the fused
-        position's error is correlated in time, so 10 Hz fixes must not count ten times).
-    evidence_distance : metres travelled that count as one independent observation, when the
-        distance travelled is known (a stopped vehicle's repeated fixes add no evidence).
-    stop_speed : m/s; below this (from the odometer) the vehicle is stopped: its position may
-        move back along the path but never on across a node (no flicker at a stop line).
-    stop_hold_distance : metres; a vehicle that stops less than this past a node it went
-        straight through (or has not yet turned at, by its heading) is placed before the node:
-        vehicles stop at stop lines, not in junctions.
-    node_hold_sigmas : a fix past the end node of the edge held is kept at that node while it
-        lies within this many σ along the next edge (along-track error); further on, the
-        next edge holds it.
-    switch_penalty : log-probability penalty of jumping to a road the filter did not follow.
-    init_commit_probability : probability at which the start-up road is committed.
-    drift_decay_time : seconds over which the dead-reckoning drift σ decays once GPS is back.
-    soft_reinit_sigmas : the index is searched for other roads when the fix is further than this
-        many σ from the road believed.
-    turn_anchor_sigma : metres; the least σ of the along-path position a turn gives (the fused
-        headings aligned with the path's bearing profile); 0 disables the anchor.
-    odo_scale_sigma : prior σ of the odometer's relative distance error. The turn anchor is
-        carried along the path by the odometer, whose scale is learnt from anchor to anchor;
-        the anchor's σ grows by the learnt scale's σ of the distance.
-    bias_time : seconds; correlation time of the fix's position error, learnt across roads
-        of different directions to correct the along-track position (0 disables it).
-    neighbour_band : metres; roads this close to an edge at a similar bearing (parallel roads,
-        fork branches) are its neighbours, tabled once per map (read when the matcher is made).
-    neighbour_sigmas : the neighbours of the road believed join the filter when a GPS-aided fix
-        is further than this many σ from it (0 disables it).
-    return_sigmas : on the first GPS-aided fix with a heading after dead reckoning, when it is
-        further than this many of its own σ from the road believed, the roads near it join the
-        filter at once, weighed at its own σ (not the drift's): it is the truth, not an outlier
-        (0 disables it).
-
-    Batch
-    -----
-    max_route_factor : routes longer than this times the straight line (+ ``route_slack``) are cut.
-    route_slack : metres added to the bound of each routing search.
-    gap_time : seconds between fixes that split a track.
-    gap_distance : metres between fixes that split a track.
-    outlier_distance : a fix further than this from every road is unmatched.
-    interpolate_distance : fixes closer than this to the previous kept fix are interpolated.
+    straight_max_deg : a bearing change at most this is straight on (a straight crossing).
+    uturn_min_deg : a bearing change at least this is a U-turn.
     """
 
     gps_sigma: float = 5.0
@@ -93,37 +52,223 @@ class MatchConfig:
     uturn_penalty: float = 6.0
     max_speed: float = 60.0
     speed_penalty: float = 0.5
-
     search_radius: float = 50.0
     max_candidates: int = 8
+    straight_max_deg: float = 30.0
+    uturn_min_deg: float = 150.0
+
+    def __post_init__(self) -> None:
+        _check_numbers(self)
+        if self.max_candidates < 1:
+            raise ConfigError("max_candidates must be at least 1")
+        if self.gps_sigma <= 0 or self.beta <= 0 or self.heading_sigma <= 0:
+            raise ConfigError("gps_sigma, beta and heading_sigma must be positive")
+
+
+@dataclass(frozen=True)
+class OnlineConfig:
+    """The online filter (:mod:`mapmatch.online`), grouped by mechanism.
+
+    Hypotheses and the ambiguous region
+    -----------------------------------
+    drift_rate : expected dead-reckoning drift as a fraction of distance (thesis: 0.04).
+    ambiguous_min_radius : lower bound of the ambiguous-region radius in metres.
+    ambiguous_sigma_factor : the region grows to this many position σ.
+    ambiguous_max_radius : upper bound of the region radius in metres.
+    max_hypotheses : most path hypotheses the online filter keeps.
+    max_hops : most edges a path looks ahead of the vehicle's edge.
+    prune_log_ratio : hypotheses this many log units below the best are dropped.
+    init_max_radius : metres; the largest start-up search radius.
+    init_max_heading_deg : no hypothesis starts (or joins) against the fix's heading by more.
+    init_commit_probability : probability at which the start-up road is committed.
+    switch_penalty : log-probability penalty of jumping to a road the filter did not follow.
+    soft_reinit_sigmas : the index is searched for other roads when the fix is further than this
+        many σ from the road believed ...
+    against_heading_deg : ... or the fix heads against that road by more than this.
+    search_every : seconds between two such searches at least.
+    reinit_time : seconds of inconsistency before re-initialising.
+    reinit_distance : metres travelled while inconsistent before re-initialising.
+    reinit_sigmas : a fix is inconsistent when further than this many σ from the road.
+    far_off : metres; a fix further than this from the map's bounds is not placed.
+
+    Evidence
+    --------
+    turn_window : odometer metres over which the heading step is measured.
+    turn_threshold : degrees of heading change that count as a turn.
+    turn_sigma : degrees; spread of the observed heading change around a path's predicted one.
+    evidence_time : seconds of fixes that count as one independent observation (the fused
+        position's error is correlated in time, so 10 Hz fixes must not count ten times).
+    evidence_distance : metres travelled that count as one independent observation, when the
+        distance travelled is known (a stopped vehicle's repeated fixes add no evidence).
+    pos_sigma_floor : metres; the least position σ of a fix (reported ones are optimistic).
+    heading_sigma_floor_deg : the least heading σ of a GPS-aided fix ...
+    heading_sigma_floor_dr_deg : ... and of a dead-reckoning one.
+    residual_time : seconds over which the road residuals (position, heading) are averaged.
+    learned_pos_sigma_max : metres; most position σ the residuals may teach.
+    learned_heading_sigma_max_deg : most heading σ the residuals may teach.
+
+    Dead reckoning
+    --------------
+    dr_sigma_growth : fraction of distance travelled since the last GPS-aided fix added to σ.
+    drift_decay_time : seconds over which the dead-reckoning drift σ decays once GPS is back.
+
+    Stop line and nodes
+    -------------------
+    stop_speed : m/s; below this (from the odometer) the vehicle is stopped: its position may
+        move back along the path but never on across a node (no flicker at a stop line).
+    stop_hold_distance : metres; a vehicle that stops less than this past a node it went
+        straight through (or has not yet turned at, by its heading) is placed before the node:
+        vehicles stop at stop lines, not in junctions.
+    node_hold_sigmas : a fix past the end node of the edge held is kept at that node while it
+        lies within this many σ along the next edge (along-track error); further on, the
+        next edge holds it.
+    still_distance : metres; moving less than this between fixes, the vehicle stands.
+
+    Fix bias
+    --------
+    bias_time : seconds; correlation time of the fix's position error, learnt across roads
+        of different directions to correct the along-track position (0 disables it).
+    bias_white_fraction : the share of the fix's σ that is white (not learnt as bias).
+
+    Turn anchor and odometer scale
+    ------------------------------
+    turn_anchor_sigma : metres; the least σ of the along-path position a turn gives (the fused
+        headings aligned with the path's bearing profile); 0 disables the anchor.
+    anchor_gate : a turn anchor further than this many σ from the fix is dropped.
+    align_search : metres; a turn's heading profile is searched within this plus ...
+    align_search_sigmas : ... this many fix σ of the position believed, up to ...
+    align_search_max : ... this many metres.
+    align_heading_sigma_min_deg : the least heading σ the alignment assumes.
+    align_rms_max_deg : a worse fit: the path is not what the vehicle drove, no anchor.
+    align_cover : metres; the heading samples must reach this far either side of the node.
+    odo_scale_sigma : prior σ of the odometer's relative distance error. The turn anchor is
+        carried along the path by the odometer, whose scale is learnt from anchor to anchor;
+        the anchor's σ grows by the learnt scale's σ of the distance.
+    odo_scale_floor : relative odometer error left after learning its scale.
+    odo_scale_max : the largest relative scale error learnt.
+    scale_min_distance : metres; turn anchors closer than this teach nothing about the scale ...
+    scale_max_distance : ... and further apart the path between them is more likely wrong.
+    scale_path_error : relative error of a path's length between turn anchors.
+
+    Parallel roads and the return of GPS
+    ------------------------------------
+    neighbour_band : metres; roads this close to an edge at a similar bearing (parallel roads,
+        fork branches) are its neighbours, tabled once per map (read when the matcher is made).
+    neighbour_sigmas : the neighbours of the road believed join the filter when a GPS-aided fix
+        is further than this many σ from it (0 disables it).
+    return_sigmas : on the first GPS-aided fix with a heading after dead reckoning, when it is
+        further than this many of its own σ from the road believed, the roads near it join the
+        filter at once, weighed at its own σ (not the drift's): it is the truth, not an outlier
+        (0 disables it).
+
+    Corrections and the report
+    --------------------------
+    max_live : most fixes of an ambiguous region remembered for corrections ...
+    live_spacing : ... at most one per this many seconds, or on an edge change.
+    correction_margin : a fix reported on an edge of the committed path stays as reported while
+        the smoother's cost there is within this of its own choice.
+    trail_step : metres; the odometer trail for re-timing crossings keeps a point this often ...
+    trail_max : ... at most this many points ...
+    trail_max_distance : ... and crossings at most this many metres back.
+    revise_sigmas : a revised crossing moves only as far as its anchor is this many σ sure.
+    report_back_ratio : reporting an edge behind the one reported needs this much more mass.
+    """
 
     drift_rate: float = 0.04
     ambiguous_min_radius: float = 10.0
     ambiguous_sigma_factor: float = 2.0
     ambiguous_max_radius: float = 150.0
-    turn_window: float = 30.0
-    turn_threshold: float = 25.0
+    max_hypotheses: int = 32
+    max_hops: int = 4
+    prune_log_ratio: float = 25.0
+    init_max_radius: float = 200.0
+    init_max_heading_deg: float = 100.0
+    init_commit_probability: float = 0.99
+    switch_penalty: float = 8.0
+    soft_reinit_sigmas: float = 3.0
+    against_heading_deg: float = 100.0
+    search_every: float = 1.0
     reinit_time: float = 10.0
     reinit_distance: float = 100.0
     reinit_sigmas: float = 4.0
-    dr_sigma_growth: float = 0.04
-    max_hypotheses: int = 32
+    far_off: float = 100_000.0
+
+    turn_window: float = 30.0
+    turn_threshold: float = 25.0
     turn_sigma: float = 20.0
     evidence_time: float = 1.0
     evidence_distance: float = 5.0
-    stop_speed: float = 0.5
-    node_hold_sigmas: float = 0.5
-    stop_hold_distance: float = 8.0
-    switch_penalty: float = 8.0
-    init_commit_probability: float = 0.99
+    pos_sigma_floor: float = 2.0
+    heading_sigma_floor_deg: float = 10.0
+    heading_sigma_floor_dr_deg: float = 15.0
+    residual_time: float = 20.0
+    learned_pos_sigma_max: float = 10.0
+    learned_heading_sigma_max_deg: float = 30.0
+
+    dr_sigma_growth: float = 0.04
     drift_decay_time: float = 20.0
-    soft_reinit_sigmas: float = 3.0
-    turn_anchor_sigma: float = 1.0
-    odo_scale_sigma: float = 0.02
+
+    stop_speed: float = 0.5
+    stop_hold_distance: float = 8.0
+    node_hold_sigmas: float = 0.5
+    still_distance: float = 0.05
+
     bias_time: float = 30.0
+    bias_white_fraction: float = 0.5
+
+    turn_anchor_sigma: float = 1.0
+    anchor_gate: float = 3.0
+    align_search: float = 5.0
+    align_search_sigmas: float = 2.5
+    align_search_max: float = 40.0
+    align_heading_sigma_min_deg: float = 3.0
+    align_rms_max_deg: float = 20.0
+    align_cover: float = 3.0
+    odo_scale_sigma: float = 0.02
+    odo_scale_floor: float = 0.002
+    odo_scale_max: float = 0.2
+    scale_min_distance: float = 20.0
+    scale_max_distance: float = 600.0
+    scale_path_error: float = 0.005
+
     neighbour_band: float = 40.0
     neighbour_sigmas: float = 0.0
     return_sigmas: float = 2.0
+
+    max_live: int = 48
+    live_spacing: float = 0.5
+    correction_margin: float = 2.0
+    trail_step: float = 2.0
+    trail_max: int = 150
+    trail_max_distance: float = 300.0
+    revise_sigmas: float = 1.0
+    report_back_ratio: float = 3.0
+
+    def __post_init__(self) -> None:
+        _check_numbers(self)
+        if self.max_hypotheses < 1 or self.max_hops < 1 or self.max_live < 1 or self.trail_max < 2:
+            raise ConfigError("max_hypotheses, max_hops and max_live must be at least 1, trail_max 2")
+        if self.init_commit_probability > 1:
+            raise ConfigError("init_commit_probability must be at most 1")
+        if min(self.turn_sigma, self.evidence_time, self.evidence_distance, self.drift_decay_time) <= 0:
+            raise ConfigError(
+                "turn_sigma, evidence_time, evidence_distance and drift_decay_time must be positive"
+            )
+        if min(self.residual_time, self.bias_white_fraction, self.trail_step) <= 0:
+            raise ConfigError("residual_time, bias_white_fraction and trail_step must be positive")
+
+
+@dataclass(frozen=True)
+class BatchConfig:
+    """Whole-track matching (:mod:`mapmatch.batch`).
+
+    max_route_factor : routes longer than this times the straight line (+ ``route_slack``) are cut.
+    route_slack : metres added to the bound of each routing search.
+    gap_time : seconds between fixes that split a track.
+    gap_distance : metres between fixes that split a track.
+    outlier_distance : a fix further than this from every road is unmatched.
+    interpolate_distance : fixes closer than this to the previous kept fix are interpolated.
+    """
 
     max_route_factor: float = 3.0
     route_slack: float = 100.0
@@ -133,33 +278,61 @@ class MatchConfig:
     interpolate_distance: float = 0.0
 
     def __post_init__(self) -> None:
-        for f in dataclasses.fields(self):
-            v = getattr(self, f.name)
-            if isinstance(v, bool) or not isinstance(v, int | float) or not math.isfinite(v) or v < 0:
-                raise ConfigError(f"{f.name} must be a finite non-negative number, got {v!r}")
-        if self.max_candidates < 1:
-            raise ConfigError("max_candidates must be at least 1")
-        if self.max_hypotheses < 1 or self.max_hypotheses != int(self.max_hypotheses):
-            raise ConfigError("max_hypotheses must be a whole number, at least 1")
-        if self.init_commit_probability > 1:
-            raise ConfigError("init_commit_probability must be at most 1")
-        if min(self.turn_sigma, self.evidence_time, self.evidence_distance, self.drift_decay_time) <= 0:
-            raise ConfigError(
-                "turn_sigma, evidence_time, evidence_distance and drift_decay_time must be positive"
-            )
-        if self.gps_sigma <= 0 or self.beta <= 0 or self.heading_sigma <= 0:
-            raise ConfigError("gps_sigma, beta and heading_sigma must be positive")
+        _check_numbers(self)
+
+
+_SECTIONS = {"model": ModelConfig, "online": OnlineConfig, "batch": BatchConfig}
+_OWNER = {f.name: sec for sec, cls in _SECTIONS.items() for f in dataclasses.fields(cls)}
+
+
+@dataclass(frozen=True)
+class MatchConfig:
+    """Parameters of the shared model and of both inference modes, in three sections."""
+
+    model: ModelConfig = field(default_factory=ModelConfig)
+    online: OnlineConfig = field(default_factory=OnlineConfig)
+    batch: BatchConfig = field(default_factory=BatchConfig)
+
+    def __post_init__(self) -> None:
+        for name, cls in _SECTIONS.items():
+            if not isinstance(getattr(self, name), cls):
+                raise ConfigError(f"{name} must be a {cls.__name__}")
+
+    def __getattr__(self, name: str) -> Any:
+        """Read-only shorthand: ``config.gps_sigma`` is ``config.model.gps_sigma``."""
+        sec = _OWNER.get(name)
+        if sec is None or name.startswith("__"):
+            raise AttributeError(f"{type(self).__name__} has no parameter {name!r}")
+        return getattr(object.__getattribute__(self, sec), name)
 
     def replace(self, **overrides: Any) -> MatchConfig:
-        """A copy with some parameters changed (validated)."""
-        names = {f.name for f in dataclasses.fields(self)}
-        unknown = set(overrides) - names
+        """A copy with some parameters changed (validated): by field name, or a whole section
+        (a section instance or a mapping of its fields)."""
+        unknown = set(overrides) - set(_OWNER) - set(_SECTIONS)
         if unknown:
             raise ConfigError(f"unknown parameter(s): {', '.join(sorted(unknown))}")
-        return dataclasses.replace(self, **overrides)
+        parts: dict[str, Any] = {}
+        for sec in _SECTIONS:
+            cur = overrides.get(sec, getattr(self, sec))
+            if isinstance(cur, dict):
+                cur = _replace_section(getattr(self, sec), cur)
+            flat = {k: v for k, v in overrides.items() if _OWNER.get(k) == sec}
+            parts[sec] = _replace_section(cur, flat) if flat else cur
+        return MatchConfig(**parts)
 
     def to_dict(self) -> dict[str, Any]:
+        """Nested plain values, one mapping per section."""
         return dataclasses.asdict(self)
 
 
+def _replace_section(section: Any, changes: dict[str, Any]) -> Any:
+    names = {f.name for f in dataclasses.fields(section)}
+    unknown = set(changes) - names
+    if unknown:
+        raise ConfigError(f"unknown parameter(s): {', '.join(sorted(unknown))}")
+    return dataclasses.replace(section, **changes)
+
+
 DEFAULT_CONFIG = MatchConfig()
+# batch matching fits whole tracks of plain GPS: a wider default σ, costlier U-turns, thinned fixes
+BATCH_CONFIG = DEFAULT_CONFIG.replace(gps_sigma=8.0, uturn_penalty=20.0, interpolate_distance=8.0)

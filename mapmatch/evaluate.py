@@ -34,7 +34,7 @@ from graph.index import project_to_edge
 from graph.projection import to_lonlat, to_xy
 from graph.road_graph import RoadGraph
 from mapmatch.errors import ValidationError
-from mapmatch.sim.routes import shortest_path
+from mapmatch.routing import shortest_path
 from mapmatch.types import Correction, Fix, SnapResult
 
 # --------------------------------------------------------------------------- paths and nodes

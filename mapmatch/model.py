@@ -12,6 +12,8 @@ candidates online and a whole track's lattice in batch.
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 from numba import njit
 from numpy.typing import ArrayLike, NDArray
@@ -26,18 +28,20 @@ def heading_kappa(
 ) -> NDArray[np.float64]:
     """Concentration κ of the heading term per fix: 0 where the heading is missing or not trusted."""
     h = np.asarray(heading, dtype=np.float64)
-    s = np.where(np.isnan(heading_sigma), config.heading_sigma, np.asarray(heading_sigma, dtype=np.float64))
+    s = np.where(
+        np.isnan(heading_sigma), config.model.heading_sigma, np.asarray(heading_sigma, dtype=np.float64)
+    )
     s = np.maximum(s, 1.0)
     k = 1.0 / np.radians(s) ** 2
     v = np.asarray(speed, dtype=np.float64)
-    slow = ~np.isnan(v) & (v < config.heading_min_speed)
+    slow = ~np.isnan(v) & (v < config.model.heading_min_speed)
     return np.where(np.isnan(h) | slow, 0.0, k)
 
 
 def position_sigma(pos_sigma: ArrayLike, config: MatchConfig) -> NDArray[np.float64]:
     """σ in metres per fix: the fix's own accuracy, or the configured default."""
     s = np.asarray(pos_sigma, dtype=np.float64)
-    return np.where(np.isnan(s) | (s <= 0), config.gps_sigma, np.maximum(s, 0.5))
+    return np.where(np.isnan(s) | (s <= 0), config.model.gps_sigma, np.maximum(s, 0.5))
 
 
 def emission_logp(
@@ -70,15 +74,30 @@ def emission_logp(
     return -0.5 * (d / s) ** 2 - np.log(s) + np.nan_to_num(head, nan=0.0)
 
 
-@njit(cache=True)
-def emission_logp_one(dist: float, sigma: float, heading: float, bearing: float, kappa: float) -> float:
-    """:func:`emission_logp` for one candidate, compiled (same formula and result)."""
-    lp = -0.5 * (dist / sigma) ** 2 - np.log(sigma)
-    if kappa > 0:
-        head = kappa * (np.cos(np.radians(heading - bearing)) - 1.0)
-        if not np.isnan(head):
-            lp += head
+def emission_one(dist: float, sigma: float, heading: float, bearing: float, kappa: float) -> float:
+    """:func:`emission_logp` for one candidate in plain float math (the online hot path);
+    :func:`emission_logp_one` is the same function compiled."""
+    head = 0.0
+    if kappa > 0.0 and not math.isnan(heading):
+        head = kappa * (math.cos(math.radians(heading - bearing)) - 1.0)
+    return -0.5 * (dist / sigma) ** 2 - math.log(sigma) + head
+
+
+emission_logp_one = njit(cache=True)(emission_one)
+
+
+def transition_one(
+    route_dist: float, travelled: float, dt: float, beta: float, max_speed: float, speed_penalty: float
+) -> float:
+    """:func:`transition_logp` for one pair without the U-turn term, in plain float math (the
+    online hot path); :func:`transition_logp_one` compiles the same function."""
+    lp = -abs(route_dist - travelled) / beta
+    if dt > 0.0:
+        lp -= speed_penalty * max(route_dist / dt - max_speed, 0.0)
     return lp
+
+
+_transition_one = njit(cache=True)(transition_one)
 
 
 def transition_logp(
@@ -106,19 +125,13 @@ def transition_logp(
     """
     r = np.asarray(route_dist, dtype=np.float64)
     d = np.asarray(travelled, dtype=np.float64)
-    lp = -np.abs(r - d) / config.beta
+    lp = -np.abs(r - d) / config.model.beta
     t = np.asarray(dt, dtype=np.float64)
     with np.errstate(divide="ignore", invalid="ignore"):
         v = np.where((t > 0) & np.isfinite(r), r / np.where(t > 0, t, 1.0), 0.0)
-    lp = lp - config.speed_penalty * np.maximum(v - config.max_speed, 0.0)
-    lp = lp - config.uturn_penalty * np.asarray(uturn, dtype=np.float64)
+    lp = lp - config.model.speed_penalty * np.maximum(v - config.model.max_speed, 0.0)
+    lp = lp - config.model.uturn_penalty * np.asarray(uturn, dtype=np.float64)
     return np.where(np.isfinite(r), lp, NEG_INF)
-
-
-def angle_diff(a: ArrayLike, b: ArrayLike) -> NDArray[np.float64]:
-    """Signed smallest difference ``a - b`` of angles in degrees, in (-180, 180]."""
-    d = (np.asarray(a, dtype=np.float64) - np.asarray(b, dtype=np.float64) + 180.0) % 360.0 - 180.0
-    return np.where(d == -180.0, 180.0, d)
 
 
 def normalise_log(lp: ArrayLike) -> NDArray[np.float64]:
@@ -136,7 +149,8 @@ def normalise_log(lp: ArrayLike) -> NDArray[np.float64]:
 def transition_params(config: MatchConfig) -> NDArray[np.float64]:
     """The transition parameters as an array for :func:`transition_logp_one`."""
     return np.array(
-        [config.beta, config.max_speed, config.speed_penalty, config.uturn_penalty], dtype=np.float64
+        [config.model.beta, config.model.max_speed, config.model.speed_penalty, config.model.uturn_penalty],
+        dtype=np.float64,
     )
 
 
@@ -150,9 +164,7 @@ def transition_logp_one(
     """
     if not np.isfinite(route_dist):
         return -np.inf
-    lp = -abs(route_dist - travelled) / params[0]
-    if dt > 0:
-        lp -= params[2] * max(route_dist / dt - params[1], 0.0)
+    lp = _transition_one(route_dist, travelled, dt, params[0], params[1], params[2])
     if uturn:
         lp -= params[3]
     return lp

@@ -16,6 +16,7 @@ penalised move the matcher scores itself.
 
 from __future__ import annotations
 
+import heapq
 from dataclasses import dataclass
 
 import numpy as np
@@ -23,6 +24,7 @@ from numba import njit
 from numpy.typing import NDArray
 
 from graph.road_graph import RoadGraph
+from graph.rules import moves_for
 
 INF = np.inf
 
@@ -313,6 +315,47 @@ def shortest_route(
     edges = [src, *(int(e) for e in mid), dst]
     metres = float(graph.edge_len[src] - src_off + graph.edge_len[edges[1:-1]].sum() + dst_off)
     return metres, edges
+
+
+def shortest_path(
+    graph: RoadGraph,
+    from_edge: int,
+    to_node: int,
+    *,
+    weight: NDArray[np.float64] | None = None,
+    max_cost: float = np.inf,
+    to_edge: int | None = None,
+) -> list[int] | None:
+    """Cheapest legal edge path from the end of ``from_edge`` to ``to_node`` (no U-turns onto
+    a reverse twin, turn restrictions kept: :func:`graph.rules.legal_moves` ``"never"``).
+
+    Returns the edges after ``from_edge`` (empty when ``from_edge`` already ends there), or
+    None when unreachable within ``max_cost``. ``weight`` is the cost of each edge (default:
+    its length). With ``to_edge`` the path ends with that edge (which must leave ``to_node``).
+    """
+    if to_edge is None and int(graph.edge_v[from_edge]) == to_node:
+        return []
+    w = graph.edge_len if weight is None else weight
+    moves = moves_for(graph, uturns="never")
+    best = {from_edge: 0.0}
+    pred: dict[int, int] = {}
+    heap = [(0.0, from_edge)]
+    while heap:
+        c, e = heapq.heappop(heap)
+        if c > best.get(e, np.inf) or c > max_cost:
+            continue
+        if e != from_edge and (e == to_edge if to_edge is not None else int(graph.edge_v[e]) == to_node):
+            path = [e]
+            while path[-1] in pred and pred[path[-1]] != from_edge:
+                path.append(pred[path[-1]])
+            return path[::-1]
+        for f in moves.after(e):
+            cf = c + float(w[f])
+            if cf < best.get(f, np.inf):
+                best[f] = cf
+                pred[f] = e
+                heapq.heappush(heap, (cf, f))
+    return None
 
 
 @dataclass(frozen=True)

@@ -15,9 +15,7 @@ from numpy.typing import NDArray
 
 from mapmatch.types import Turn
 
-STRAIGHT_MAX_DEG = 30.0
-UTURN_MIN_DEG = 150.0
-MAX_SAMPLES = 48
+MAX_SAMPLES = 48  # heading samples kept (a memory bound: two windows hold fewer)
 
 
 def angle_diff(a: float, b: float) -> float:
@@ -128,28 +126,13 @@ def align_headings(
     return offset + mean, sd, rms
 
 
-def classify_turn(turn_angle: float, *, is_reverse: bool = False) -> Turn:
-    """Classify a turn angle (exit bearing minus entry bearing, degrees; positive = right)."""
-    if is_reverse or abs(turn_angle) >= UTURN_MIN_DEG:
+def classify_turn(
+    turn_angle: float, *, is_reverse: bool = False, straight_max_deg: float, uturn_min_deg: float
+) -> Turn:
+    """Classify a turn angle (exit bearing minus entry bearing, degrees; positive = right):
+    straight up to ``straight_max_deg``, a U-turn from ``uturn_min_deg`` on (or onto the reverse)."""
+    if is_reverse or abs(turn_angle) >= uturn_min_deg:
         return Turn.U_TURN
-    if abs(turn_angle) <= STRAIGHT_MAX_DEG:
+    if abs(turn_angle) <= straight_max_deg:
         return Turn.STRAIGHT
     return Turn.RIGHT if turn_angle > 0 else Turn.LEFT
-
-
-def emission_scalar(dist: float, sigma: float, heading: float, bearing: float, kappa: float) -> float:
-    """Scalar twin of :func:`mapmatch.model.emission_logp` (plain float math for the hot path)."""
-    head = 0.0
-    if kappa > 0.0 and not math.isnan(heading):
-        head = kappa * (math.cos(math.radians(heading - bearing)) - 1.0)
-    return -0.5 * (dist / sigma) ** 2 - math.log(sigma) + head
-
-
-def transition_scalar(
-    route_dist: float, travelled: float, dt: float, *, beta: float, max_speed: float, speed_penalty: float
-) -> float:
-    """Scalar twin of :func:`mapmatch.model.transition_logp` without the U-turn term."""
-    lp = -abs(route_dist - travelled) / beta
-    if dt > 0.0:
-        lp -= speed_penalty * max(route_dist / dt - max_speed, 0.0)
-    return lp

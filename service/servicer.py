@@ -400,18 +400,17 @@ class MapMatchServicer(pb_grpc.MapMatchServicer):
                 f"session was made on another version of map {entry.map_id!r} "
                 f"({blob.map_checksum}, this server has {entry.checksum})",
             )
-        from mapmatch.online import SessionState
+        from mapmatch.online.codec import from_bytes
 
         try:
-            state = SessionState.from_bytes(blob.state)
+            state = from_bytes(blob.state, n_edges=entry.graph.n_edges)
         except ValidationError as exc:
-            fld = "session.state" if exc.field == "state" else f"session.state.{exc.field}"
+            fld = f"session.{exc.field}" if exc.field.startswith("state") else f"session.state.{exc.field}"
             raise ValidationError(fld, exc.reason) from None
         except Exception as exc:
             raise ValidationError(
                 "session.state", f"not a valid session state ({type(exc).__name__})"
             ) from None
-        _check_edges(state, entry.graph.n_edges)
         self.sessions.put(entry.map_id, blob.vehicle_id, state, replace=request.replace)
         return pb.ImportSessionResponse()
 
@@ -426,19 +425,3 @@ class MapMatchServicer(pb_grpc.MapMatchServicer):
 async def _maybe_await(x: Any) -> None:
     if asyncio.iscoroutine(x):
         await x
-
-
-def _check_edges(state: Any, n_edges: int) -> None:
-    """Every edge an imported state refers to exists on the map."""
-
-    def ok(e: float) -> bool:
-        return math.isfinite(e) and e == int(e) and 0 <= e < n_edges
-
-    for key, edges in (
-        ("h", [e for h in state.hyps for e in h.edges]),
-        ("live", [row[1] for row in state.live if row[1] >= 0]),
-        ("bk", [row[0] for row in state.back]),
-        ("sh", [state.shown] if state.shown != -1 else []),
-    ):
-        if not all(ok(float(e)) for e in edges):
-            raise ValidationError(f"session.state.{key}", f"edge ids must be in [0, {n_edges})")

@@ -401,15 +401,31 @@ def test_state_round_trips_and_moves_between_matchers() -> None:
         SessionState.from_bytes(b'{"v": 1}')
 
 
-def test_scalar_projection_agrees_with_project_to_edge() -> None:
+def test_projection_entries_agree_with_shapely() -> None:
+    import shapely
+
+    from graph.index import project_point_compiled, project_points
+
     m: AsciiMap = parse_ascii_map(CROSS, scale=10)
-    matcher = OnlineMatcher(m.graph)
+    g = m.graph
+    matcher = OnlineMatcher(g)
     rng = np.random.default_rng(0)
-    for e in range(m.graph.n_edges):
+    edges, pts, scalar = [], [], []
+    for e in range(g.n_edges):
+        line = shapely.LineString(g.edge_xy(e))
         for x, y in rng.normal(m.xy("b"), 60.0, size=(20, 2)):
-            off, dist, px, py, _ = matcher._project(e, float(x), float(y))
-            ref = project_to_edge(m.graph, e, float(x), float(y))
-            assert (off, dist, px, py) == pytest.approx(ref, abs=1e-9)
+            off, dist, px, py, _ = got = matcher.road.project(e, float(x), float(y))
+            p = shapely.Point(x, y)
+            assert (off, dist) == pytest.approx((line.project(p), line.distance(p)), abs=1e-9)
+            assert (px, py) == pytest.approx(line.interpolate(off).coords[0], abs=1e-9)
+            assert project_to_edge(g, e, float(x), float(y)) == pytest.approx(got[:4], abs=1e-12)
+            lo, hi = int(g.edge_seg_ptr[e]), int(g.edge_seg_ptr[e + 1])
+            comp = project_point_compiled(g.seg_xy, lo, hi, float(x), float(y), g.edge_len[e], 0.0)
+            assert comp[:4] == pytest.approx(got[:4], abs=1e-12)
+            edges.append(e)
+            pts.append((x, y))
+            scalar.append(got)
+    assert project_points(g, edges, pts) == pytest.approx(np.array(scalar), abs=1e-12)
 
 
 def test_one_matcher_serves_many_threads() -> None:
@@ -431,8 +447,7 @@ def test_one_matcher_serves_many_threads() -> None:
 
 def test_scalar_model_twins_agree_with_the_shared_model() -> None:
     from mapmatch.config import DEFAULT_CONFIG as C
-    from mapmatch.model import emission_logp, transition_logp
-    from mapmatch.turns import emission_scalar, transition_scalar
+    from mapmatch.model import emission_logp, emission_one, transition_logp, transition_one
 
     rng = np.random.default_rng(1)
     for _ in range(200):
@@ -443,10 +458,10 @@ def test_scalar_model_twins_agree_with_the_shared_model() -> None:
             rng.uniform(0, 360),
             8.0,
         )
-        assert emission_scalar(d, s, h, b, k) == pytest.approx(float(emission_logp(d, s, h, b, k)))
+        assert emission_one(d, s, h, b, k) == pytest.approx(float(emission_logp(d, s, h, b, k)))
         r, t, dt = rng.uniform(-20, 200), rng.uniform(0, 100), rng.uniform(0.1, 2)
         ref = float(transition_logp(r, t, dt, C))
-        got = transition_scalar(r, t, dt, beta=C.beta, max_speed=C.max_speed, speed_penalty=C.speed_penalty)
+        got = transition_one(r, t, dt, C.model.beta, C.model.max_speed, C.model.speed_penalty)
         assert got == pytest.approx(ref)
 
 
@@ -741,14 +756,17 @@ def test_odometer_scale_is_learnt_between_turns() -> None:
 
 
 def test_odometer_trail_keeps_both_ends_of_a_stop() -> None:
-    trail: list[list[float]] = []
+    from mapmatch.online.anchor import add_trail
+    from mapmatch.online.state import TrailPoint
+
+    trail: list[TrailPoint] = []
     odo = 0.0
     for t in range(40):
         v = 0.0 if 10 <= t < 30 else 5.0  # a 20 s stop
         odo += v
-        OnlineMatcher._add_trail(trail, float(t), odo, v == 0.0)
-    t_tr = [x[0] for x in trail]
-    o_tr = [x[1] for x in trail]
+        add_trail(trail, float(t), odo, v == 0.0, DEFAULT_CONFIG)
+    t_tr = [x.time for x in trail]
+    o_tr = [x.odo for x in trail]
     # the vehicle stood at odometer 50 from t = 9 to 29: just past it, the time is after the stop
     assert float(np.interp(50.5, o_tr, t_tr)) == pytest.approx(29.1, abs=0.05)
     assert float(np.interp(49.5, o_tr, t_tr)) == pytest.approx(8.9, abs=0.05)

@@ -9,7 +9,6 @@ A given geometry (e.g. a truth GeoJSON) is turned into an edge path by a small V
 
 from __future__ import annotations
 
-import heapq
 import itertools
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -18,8 +17,10 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from graph.index import EdgeIndex
-from graph.road_graph import RESTRICTION_NO, RESTRICTION_ONLY, RoadGraph
+from graph.road_graph import RoadGraph
+from graph.rules import moves_for
 from mapmatch.errors import MatchError
+from mapmatch.routing import shortest_path
 
 # default speeds in km/h by OSM highway class, when an edge has none
 DEFAULT_SPEED_KPH: dict[str, float] = {
@@ -96,34 +97,13 @@ class Route:
 
 
 # --------------------------------------------------------------------------- legality
-def _restriction_tables(graph: RoadGraph) -> tuple[dict[int, set[int]], dict[int, set[int]]]:
-    no: dict[int, set[int]] = {}
-    only: dict[int, set[int]] = {}
-    for f, _via, t, kind in graph.restrictions.tolist():
-        if kind == RESTRICTION_NO:
-            no.setdefault(f, set()).add(t)
-        elif kind == RESTRICTION_ONLY:
-            only.setdefault(f, set()).add(t)
-    return no, only
-
-
-def _successors(graph: RoadGraph, e: int, no: dict[int, set[int]], only: dict[int, set[int]]) -> list[int]:
-    """Legal next edges after ``e``: restrictions applied, no U-turn onto the reverse twin."""
-    out = graph.out_of(int(graph.edge_v[e])).tolist()
-    rev = int(graph.edge_reverse[e])
-    res = [f for f in out if f != rev and f not in no.get(e, ())]
-    if e in only:
-        res = [f for f in res if f in only[e]]
-    return res
-
-
 def check_route(graph: RoadGraph, edges: Sequence[int]) -> None:
     """Raise :class:`RouteError` unless consecutive edges join legally without a U-turn."""
-    no, only = _restriction_tables(graph)
+    moves = moves_for(graph, uturns="never")
     for a, b in itertools.pairwise(edges):
         if int(graph.edge_v[a]) != int(graph.edge_u[b]):
             raise RouteError(f"edges {a} and {b} do not join")
-        if b not in _successors(graph, int(a), no, only):
+        if b not in moves.after(int(a)):
             raise RouteError(f"turn {a} -> {b} is a U-turn or restricted")
 
 
@@ -135,46 +115,6 @@ def edge_speed_mps(graph: RoadGraph) -> NDArray[np.float64]:
     default = hw[graph.edge_highway_idx]  # index -1 picks the fallback
     kph = np.where(np.isfinite(graph.edge_speed_kph), graph.edge_speed_kph, default)
     return np.clip(kph, 5.0, 130.0) / 3.6
-
-
-def shortest_path(
-    graph: RoadGraph,
-    from_edge: int,
-    to_node: int,
-    *,
-    weight: NDArray[np.float64] | None = None,
-    max_cost: float = np.inf,
-    to_edge: int | None = None,
-) -> list[int] | None:
-    """Cheapest legal edge path from the end of ``from_edge`` to ``to_node``.
-
-    Returns the edges after ``from_edge`` (empty when ``from_edge`` already ends there), or
-    None when unreachable within ``max_cost``. ``weight`` is the cost of each edge (default:
-    its length). With ``to_edge`` the path ends with that edge (which must leave ``to_node``).
-    """
-    if to_edge is None and int(graph.edge_v[from_edge]) == to_node:
-        return []
-    w = graph.edge_len if weight is None else weight
-    no, only = _restriction_tables(graph)
-    best = {from_edge: 0.0}
-    pred: dict[int, int] = {}
-    heap = [(0.0, from_edge)]
-    while heap:
-        c, e = heapq.heappop(heap)
-        if c > best.get(e, np.inf) or c > max_cost:
-            continue
-        if e != from_edge and (e == to_edge if to_edge is not None else int(graph.edge_v[e]) == to_node):
-            path = [e]
-            while path[-1] in pred and pred[path[-1]] != from_edge:
-                path.append(pred[path[-1]])
-            return path[::-1]
-        for f in _successors(graph, e, no, only):
-            cf = c + float(w[f])
-            if cf < best.get(f, np.inf):
-                best[f] = cf
-                pred[f] = e
-                heapq.heappush(heap, (cf, f))
-    return None
 
 
 # --------------------------------------------------------------------------- construction
@@ -237,8 +177,8 @@ def _strong_edges(graph: RoadGraph, rng: np.random.Generator, tries: int = 8) ->
     From any of these edges every other one is reachable, so a random walk between them
     never gets stuck in a dead end or a one-way trap.
     """
-    no, only = _restriction_tables(graph)
-    succ = [_successors(graph, e, no, only) for e in range(graph.n_edges)]
+    moves = moves_for(graph, uturns="never")
+    succ = [moves.after(e) for e in range(graph.n_edges)]
     pred: list[list[int]] = [[] for _ in range(graph.n_edges)]
     for e, fs in enumerate(succ):
         for f in fs:
@@ -342,7 +282,7 @@ def route_from_geometry(
     c = idx.query(p, radius_m, k=6)
     if len(c) == 0:
         raise RouteError("the route geometry is not near any road")
-    no, only = _restriction_tables(graph)
+    moves = moves_for(graph, uturns="never")
     n = len(p)
     starts = np.searchsorted(c.point, np.arange(n + 1))
     prev_e: NDArray[np.int32] | None = None
@@ -362,7 +302,7 @@ def route_from_geometry(
         else:
             trans = np.full((len(prev_e), len(e)), -50.0)
             for j, pe in enumerate(prev_e.tolist()):
-                succ = _successors(graph, pe, no, only)
+                succ = moves.after(pe)
                 for k, ce in enumerate(e.tolist()):
                     if ce == pe:
                         back_m = prev_off[j] - off[k]
@@ -387,15 +327,13 @@ def route_from_geometry(
     for ce, _ in chosen[1:]:
         if ce == path[-1]:
             continue
-        if int(graph.edge_v[path[-1]]) == int(graph.edge_u[ce]) and ce in _successors(
-            graph, path[-1], no, only
-        ):
+        if int(graph.edge_v[path[-1]]) == int(graph.edge_u[ce]) and ce in moves.after(path[-1]):
             path.append(ce)
             continue
         gap = shortest_path(graph, path[-1], int(graph.edge_u[ce]), max_cost=5000.0)
-        if gap is None or (gap and ce not in _successors(graph, gap[-1], no, only)):
+        if gap is None or (gap and ce not in moves.after(gap[-1])):
             raise RouteError("the route geometry does not follow legal roads")
-        if not gap and ce not in _successors(graph, path[-1], no, only):
+        if not gap and ce not in moves.after(path[-1]):
             raise RouteError("the route geometry does not follow legal roads")
         path.extend(gap)
         path.append(ce)

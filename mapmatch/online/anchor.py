@@ -1,0 +1,159 @@
+"""The turn anchor and the odometer scale: where a committed turn says the vehicle was, the
+odometer's scale error learnt from anchor to anchor, and the crossings since the previous turn
+timed again from the anchor (over the odometer trail)."""
+
+from __future__ import annotations
+
+import itertools
+import math
+
+import numpy as np
+
+from mapmatch.config import MatchConfig
+from mapmatch.online.road import RoadModel
+from mapmatch.online.state import Hypothesis, SessionState, Step, TrailPoint
+from mapmatch.turns import align_headings, bearing_profile
+from mapmatch.types import Correction
+
+
+def odo_kvar(state: SessionState, cfg: MatchConfig) -> float:
+    """Variance of the learnt odometer scale (the configured prior until learnt)."""
+    return cfg.online.odo_scale_sigma**2 if math.isnan(state.odo_kvar) else state.odo_kvar
+
+
+def turn_anchor(
+    road: RoadModel, state: SessionState, best: Hypothesis, step: Step, cfg: MatchConfig
+) -> tuple[float, float]:
+    """The odometer reading at which the vehicle was at the end node of ``best.edges[0]``
+    and its σ: the fused headings against the odometer aligned with the path's bearing
+    profile. ``(nan, nan)`` when the samples do not cover the turn or do not fit the path."""
+    o = cfg.online
+    lengths: list[float] = []
+    bearings: list[float] = []
+    for e in best.edges:
+        piece = slice(road.ptr[e], road.ptr[e + 1] - 1)
+        keep = road.piece_len[piece] > 1e-6
+        lengths += road.piece_len[piece][keep].tolist()
+        bearings += road.piece_brg[piece][keep].tolist()
+    if not lengths:
+        return math.nan, math.nan
+    node = road.elen[best.edges[0]]
+    c0 = best.s - step.odo
+    samples = [x for x in state.headings if x[0] + c0 >= 0.0]
+    hs = min(max(math.sqrt(state.res_head2), o.align_heading_sigma_min_deg), o.learned_heading_sigma_max_deg)
+    search = min(o.align_search + o.align_search_sigmas * step.sigma, o.align_search_max)
+    c, sd, rms = align_headings(
+        samples, bearing_profile(lengths, bearings), c0, search=search, heading_sigma=hs
+    )
+    if (
+        math.isnan(c)
+        or rms > o.align_rms_max_deg
+        or samples[0][0] + c > node - o.align_cover
+        or samples[-1][0] + c < node + o.align_cover
+    ):
+        return math.nan, math.nan
+    return node - c, math.hypot(sd, o.turn_anchor_sigma)
+
+
+def learn_scale(
+    road: RoadModel,
+    state: SessionState,
+    best: Hypothesis,
+    odo_in: float,
+    odo_out: float,
+    anchor_sd: float,
+    cfg: MatchConfig,
+) -> None:
+    """Kalman update of the odometer scale: the previous turn anchor carried by the odometer
+    against this one (both at nodes of the path driven). ``odo_in`` and ``odo_out`` are the
+    odometer readings at the node for the way in and the way out."""
+    o = cfg.online
+    prev_odo, prev_sd = state.anc_odo, state.anc_sd
+    state.anc_odo, state.anc_sd = odo_out, anchor_sd
+    dist = odo_in - prev_odo
+    if math.isnan(best.anc) or not o.scale_min_distance <= dist <= o.scale_max_distance:
+        return
+    kvar = odo_kvar(state, cfg)
+    nu = road.elen[best.edges[0]] - (best.anc + odo_in)  # path metres the odometer missed
+    # the map's path length differs from the road's by a little too
+    r = prev_sd**2 + anchor_sd**2 + (o.scale_path_error * dist) ** 2
+    sv = dist * dist * kvar + r
+    if nu * nu > 9.0 * sv:
+        return  # not the same path, or a bad anchor: learn nothing
+    lim = 2.0 * math.sqrt(sv)
+    nu = min(max(nu, -lim), lim)  # robust: one odd pair of anchors must not teach much
+    gain = kvar * dist / sv
+    state.odo_k = min(max(state.odo_k + gain * nu, -o.odo_scale_max), o.odo_scale_max)
+    state.odo_kvar = kvar * (1.0 - gain * dist)
+
+
+def add_trail(trail: list[TrailPoint], time: float, odo: float, standing: bool, cfg: MatchConfig) -> None:
+    """Keep the odometer every ``trail_step`` metres, and both ends of a stop."""
+    if standing:
+        if len(trail) >= 2 and odo - trail[-2].odo <= cfg.online.still_distance:
+            trail[-1].time = time  # still standing: the stop goes on
+            return
+    elif trail and odo - trail[-1].odo < cfg.online.trail_step:
+        return
+    trail.append(TrailPoint(time, odo))
+    if len(trail) > cfg.online.trail_max:
+        del trail[0]
+
+
+def revise_crossings(
+    road: RoadModel,
+    state: SessionState,
+    best: Hypothesis,
+    anchor: tuple[float, float, float],
+    step: Step,
+    cfg: MatchConfig,
+) -> Correction | None:
+    """This turn and the straight crossings since the previous one, timed again from the
+    turn's ``anchor`` (odometer at the node, corner cut, σ) carried back by the odometer: a
+    correction when they differ from what was reported."""
+    if len(state.trail) < 2:
+        return None
+    odo_at_node, cut, anchor_sd = anchor
+    t_tr = [x.time for x in state.trail]
+    o_tr = [x.odo for x in state.trail]
+    path = [(b.edge, b.time) for b in state.back] + [(best.edges[0], best.enter[0])]
+    crossings: list[tuple[float, float]] = []  # (old time, new time), latest first
+    if odo_at_node >= o_tr[0]:
+        path.append((best.edges[1], best.enter[1]))
+        new = sure_time(best.enter[1], odo_at_node, anchor_sd, o_tr, t_tr, step.dt, cfg)
+        crossings.append((best.enter[1], new))
+    odo_at_node += cut
+    dist = 0.0
+    for i in range(len(path) - 1 - len(crossings), 0, -1):
+        e, entered = path[i]
+        prev = path[i - 1][0]
+        dist += road.elen[e]
+        odo = odo_at_node - dist
+        if road.ev[prev] != road.eu[e] or not road.straight(prev, e, cfg) or odo < o_tr[0]:
+            break
+        sd = math.hypot(anchor_sd, step.odo_sigma * dist)
+        crossings.append((entered, sure_time(entered, odo, sd, o_tr, t_tr, step.dt, cfg)))
+    if not crossings or all(abs(a - b) < 1e-3 for a, b in crossings):
+        return None
+    n = len(crossings)
+    edges = tuple(e for e, _ in path[len(path) - n - 1 :])
+    t_from = min(min(a, b) for a, b in crossings)
+    t_to = max(max(a, b) for a, b in crossings)
+    times = (t_from, *(b for _, b in reversed(crossings)))
+    if any(b < a for a, b in itertools.pairwise(times)):
+        return None  # not monotone: the odometer and the path disagree
+    return Correction(time_from=t_from, time_to=t_to, edges=edges, replaced_edges=edges, edge_times=times)
+
+
+def sure_time(
+    old: float, odo: float, sd: float, o_tr: list[float], t_tr: list[float], dt: float, cfg: MatchConfig
+) -> float:
+    """A crossing's time revised from the odometer reading ``odo`` (σ ``sd``) at the node:
+    ``old`` (the time of the first fix reported past the node) moved only as far as the
+    reading is sure, so that fixes within ``revise_sigmas`` σ of the node keep what was
+    reported; not moved back by less than the fix interval ``dt`` (no fix in between)."""
+    k = cfg.online.revise_sigmas
+    lo = float(np.interp(odo - k * sd, o_tr, t_tr))
+    hi = float(np.interp(odo + k * sd, o_tr, t_tr))
+    new = min(max(old, lo), hi)
+    return old if old - dt < new < old else new

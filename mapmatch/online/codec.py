@@ -1,0 +1,299 @@
+"""A session's state as bytes: JSON by named keys with a version, validated field by field.
+
+Version 2 names every field. Version 1 (positional lists, the format before the online
+package) is migrated explicitly on reading. :func:`from_bytes` checks every value (types,
+lengths, finite numbers, non-negative variances and σ, edge indices) and raises
+:class:`~mapmatch.errors.ValidationError` naming the offending key, e.g. ``state.hyps[0].k``.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from typing import Any
+
+from mapmatch.errors import ValidationError
+from mapmatch.online.state import BackEdge, FixBias, Hypothesis, LiveFix, SessionState, TrailPoint
+
+VERSION = 2
+_NAN = math.nan
+_HYP = ("edges", "k", "off", "s", "logp", "enter", "dist", "px", "py", "bearing", "anc", "anc_sd")
+_LIVE = ("time", "edge", "x", "y", "heading", "sigma", "kappa", "gps")
+
+
+def to_bytes(st: SessionState) -> bytes:
+    """Compact JSON (a few kilobytes); the trail is rounded to ms and cm."""
+    d = {
+        "version": VERSION,
+        "time": st.time,
+        "x": st.x,
+        "y": st.y,
+        "odo": st.odo,
+        "gps_odo": st.gps_odo,
+        "bad_time": st.bad_time,
+        "bad_odo": st.bad_odo,
+        "init_pending": st.init_pending,
+        "init_odo": st.init_odo,
+        "hyps": [{k: getattr(h, k) for k in _HYP} for h in st.hyps],
+        "live": [[getattr(f, k) for k in _LIVE] for f in st.live],
+        "live_fields": list(_LIVE),
+        "headings": st.headings,
+        "res_pos2": st.res_pos2,
+        "res_head2": st.res_head2,
+        "drift_sigma": st.drift_sigma,
+        "search_time": st.search_time,
+        "shown": st.shown,
+        "bias": st.bias._asdict(),
+        "odo_k": st.odo_k,
+        "odo_kvar": st.odo_kvar,
+        "anc_odo": st.anc_odo,
+        "anc_sd": st.anc_sd,
+        "trail": [[round(p.time, 3), round(p.odo, 2)] for p in st.trail],
+        "back": [[b.edge, b.time] for b in st.back],
+    }
+    return json.dumps(d, separators=(",", ":"), allow_nan=True).encode()
+
+
+def from_bytes(data: bytes, *, n_edges: int | None = None) -> SessionState:
+    """Decode :func:`to_bytes` (version 2) or version 1; edges must be below ``n_edges`` when
+    given. Raises :class:`ValidationError` naming the key on anything else."""
+    try:
+        d = json.loads(data)
+    except (ValueError, TypeError) as exc:
+        raise ValidationError("state", f"not a valid session state ({exc})") from None
+    if not isinstance(d, dict):
+        raise ValidationError("state", "not a valid session state (not an object)")
+    version = d.get("version", d.get("v"))
+    if version == 1:
+        d = migrate_v1(d)
+    elif version != VERSION:
+        raise ValidationError("state.version", f"unknown session state version {version!r}")
+    return _decode(_Reader(d, "state"), n_edges)
+
+
+def migrate_v1(d: dict[str, Any]) -> dict[str, Any]:
+    """Version 1 (positional lists) as version 2; older layouts of v1 get its defaults."""
+
+    def at(key: str, i: int, default: Any = _NAN) -> Any:
+        seq = d.get(key)
+        if not isinstance(seq, list) or i >= len(seq):
+            if default is _MISSING:
+                raise ValidationError(f"state.{key}", "missing or too short")
+            return default
+        return seq[i]
+
+    try:
+        odo = d["odo"]
+        full = isinstance(odo, list) and len(odo) > 6
+        hyps = []
+        for i, a in enumerate(d["h"]):
+            if not isinstance(a, list) or len(a) < 10:
+                raise ValidationError(f"state.hyps[{i}]", "not a hypothesis")
+            h = dict(zip(_HYP[:10], a[:10], strict=True))
+            h["anc"], h["anc_sd"] = (a[10], a[11]) if len(a) > 11 else (_NAN, _NAN)
+            hyps.append(h)
+        b = d.get("b", [0.0, 0.0, _NAN, 0.0, _NAN])
+        return {
+            "version": 1,
+            "time": d["t"],
+            "x": at("xy", 0, _MISSING),
+            "y": at("xy", 1, _MISSING),
+            "odo": at("odo", 0, _MISSING),
+            "gps_odo": at("odo", 1, _MISSING),
+            "init_odo": at("odo", 2, _MISSING),
+            "odo_k": at("odo", 3) if full else 0.0,
+            "odo_kvar": at("odo", 4) if full else _NAN,
+            "anc_odo": at("odo", 5) if full else _NAN,
+            "anc_sd": at("odo", 6) if full else _NAN,
+            "bad_time": at("bad", 0, _MISSING),
+            "bad_odo": at("bad", 1, _MISSING),
+            "init_pending": d["init"],
+            "hyps": hyps,
+            # rows of older layouts (not 8 values) are dropped, as version 1 did
+            "live": [r for r in d["live"] if isinstance(r, list) and len(r) == 8],
+            "live_fields": list(_LIVE),
+            "headings": d["hd"],
+            "res_pos2": at("res", 0, _MISSING),
+            "res_head2": at("res", 1, _MISSING),
+            "drift_sigma": at("res", 2, _MISSING),
+            "search_time": at("res", 3, _MISSING),
+            "shown": d.get("sh", -1),
+            "bias": dict(zip(FixBias._fields, b, strict=False)) if isinstance(b, list) and len(b) == 5 else b,
+            "trail": d.get("tr", []),
+            "back": d.get("bk", []),
+        }
+    except KeyError as exc:
+        raise ValidationError(f"state.{exc.args[0]}", "missing") from None
+    except TypeError as exc:
+        raise ValidationError("state", f"not a valid session state ({exc})") from None
+
+
+_MISSING: Any = object()
+
+
+class _Reader:
+    """Typed access to one JSON object, naming ``path.key`` in every error."""
+
+    def __init__(self, d: Any, path: str) -> None:
+        if not isinstance(d, dict):
+            raise ValidationError(path, "must be an object")
+        self.d, self.path = d, path
+
+    def name(self, key: str) -> str:
+        return f"{self.path}.{key}"
+
+    def get(self, key: str) -> Any:
+        if key not in self.d:
+            raise ValidationError(self.name(key), "missing")
+        return self.d[key]
+
+    def num(self, key: str, *, nan: bool = False, low: float | None = None) -> float:
+        return _num(self.get(key), self.name(key), nan=nan, low=low)
+
+    def int_(self, key: str, *, low: int, high: int | None = None) -> int:
+        return _int(self.get(key), self.name(key), low=low, high=high)
+
+    def list_(self, key: str) -> list[Any]:
+        v = self.get(key)
+        if not isinstance(v, list):
+            raise ValidationError(self.name(key), "must be a list")
+        return v
+
+
+def _num(v: Any, name: str, *, nan: bool = False, low: float | None = None) -> float:
+    if isinstance(v, bool) or not isinstance(v, int | float):
+        raise ValidationError(name, f"must be a number, got {type(v).__name__}")
+    f = float(v)
+    if math.isnan(f):
+        if not nan:
+            raise ValidationError(name, "must be a finite number")
+        return f
+    if not math.isfinite(f):
+        raise ValidationError(name, "must be a finite number")
+    if low is not None and f < low:
+        raise ValidationError(name, f"must be at least {low:g}")
+    return f
+
+
+def _int(v: Any, name: str, *, low: int, high: int | None = None) -> int:
+    if isinstance(v, bool) or not isinstance(v, int | float) or v != v or v != int(v):
+        raise ValidationError(name, "must be a whole number")
+    i = int(v)
+    if i < low or (high is not None and i >= high):
+        raise ValidationError(name, f"must be in [{low}, {high if high is not None else 'inf'})")
+    return i
+
+
+def _pairs(seq: list[Any], name: str) -> list[tuple[Any, Any]]:
+    out = []
+    for i, p in enumerate(seq):
+        if not isinstance(p, list) or len(p) != 2:
+            raise ValidationError(f"{name}[{i}]", "must be a pair")
+        out.append((p[0], p[1]))
+    return out
+
+
+def _decode(r: _Reader, n_edges: int | None) -> SessionState:
+    bias = _Reader(r.get("bias"), r.name("bias"))
+    st = SessionState(
+        time=r.num("time", nan=True),
+        x=r.num("x", nan=True),
+        y=r.num("y", nan=True),
+        odo=r.num("odo"),
+        gps_odo=r.num("gps_odo"),
+        bad_time=r.num("bad_time", nan=True),
+        bad_odo=r.num("bad_odo", nan=True),
+        init_pending=_bool(r.get("init_pending"), r.name("init_pending")),
+        init_odo=r.num("init_odo"),
+        hyps=[_hyp(_Reader(a, f"{r.name('hyps')}[{i}]"), n_edges) for i, a in enumerate(r.list_("hyps"))],
+        live=_live(r, n_edges),
+        headings=[
+            [_num(o, f"{r.name('headings')}[{i}]"), _num(h, f"{r.name('headings')}[{i}]")]
+            for i, (o, h) in enumerate(_pairs(r.list_("headings"), r.name("headings")))
+        ],
+        res_pos2=r.num("res_pos2", low=0.0),
+        res_head2=r.num("res_head2", low=0.0),
+        drift_sigma=r.num("drift_sigma", low=0.0),
+        search_time=r.num("search_time", nan=True),
+        shown=r.int_("shown", low=-1, high=n_edges),
+        bias=FixBias(
+            bias.num("bx"),
+            bias.num("by"),
+            bias.num("pxx", nan=True, low=0.0),
+            bias.num("pxy"),
+            bias.num("pyy", nan=True, low=0.0),
+        ),
+        odo_k=r.num("odo_k"),
+        odo_kvar=r.num("odo_kvar", nan=True, low=0.0),
+        anc_odo=r.num("anc_odo", nan=True),
+        anc_sd=r.num("anc_sd", nan=True, low=0.0),
+        trail=[
+            TrailPoint(_num(t, f"{r.name('trail')}[{i}]"), _num(o, f"{r.name('trail')}[{i}]"))
+            for i, (t, o) in enumerate(_pairs(r.list_("trail"), r.name("trail")))
+        ],
+        back=[
+            BackEdge(
+                _int(e, f"{r.name('back')}[{i}]", low=0, high=n_edges), _num(t, f"{r.name('back')}[{i}]")
+            )
+            for i, (e, t) in enumerate(_pairs(r.list_("back"), r.name("back")))
+        ],
+    )
+    return st
+
+
+def _bool(v: Any, name: str) -> bool:
+    if not isinstance(v, bool):
+        raise ValidationError(name, "must be true or false")
+    return v
+
+
+def _hyp(r: _Reader, n_edges: int | None) -> Hypothesis:
+    edges = [_int(e, f"{r.name('edges')}[{i}]", low=0, high=n_edges) for i, e in enumerate(r.list_("edges"))]
+    if not edges:
+        raise ValidationError(r.name("edges"), "must not be empty")
+    k = r.int_("k", low=0, high=len(edges))
+    enter = [_num(t, f"{r.name('enter')}[{i}]") for i, t in enumerate(r.list_("enter"))]
+    if len(enter) != k + 1:
+        raise ValidationError(r.name("enter"), f"must hold k + 1 = {k + 1} times")
+    return Hypothesis(
+        edges=edges,
+        k=k,
+        off=r.num("off"),
+        s=r.num("s"),
+        logp=r.num("logp"),
+        enter=enter,
+        dist=r.num("dist", nan=True, low=0.0),
+        px=r.num("px", nan=True),
+        py=r.num("py", nan=True),
+        bearing=r.num("bearing", nan=True),
+        anc=r.num("anc", nan=True),
+        anc_sd=r.num("anc_sd", nan=True, low=0.0),
+    )
+
+
+def _live(r: _Reader, n_edges: int | None) -> list[LiveFix]:
+    fields = r.list_("live_fields")
+    if tuple(fields) != _LIVE:
+        raise ValidationError(r.name("live_fields"), f"must be {list(_LIVE)}")
+    out = []
+    for i, row in enumerate(r.list_("live")):
+        name = f"{r.name('live')}[{i}]"
+        if not isinstance(row, list) or len(row) != len(_LIVE):
+            raise ValidationError(name, f"must hold {len(_LIVE)} values")
+        row_r = _Reader(dict(zip(_LIVE, row, strict=True)), name)
+        gps = row_r.get("gps")
+        if not isinstance(gps, bool):  # version 1 stored it as 0.0 / 1.0
+            gps = _num(gps, row_r.name("gps")) != 0.0
+        out.append(
+            LiveFix(
+                time=row_r.num("time"),
+                edge=_int(row_r.get("edge"), row_r.name("edge"), low=0, high=n_edges),
+                x=row_r.num("x"),
+                y=row_r.num("y"),
+                heading=row_r.num("heading", nan=True),
+                sigma=row_r.num("sigma", low=0.0),
+                kappa=row_r.num("kappa", low=0.0),
+                gps=gps,
+            )
+        )
+    return out

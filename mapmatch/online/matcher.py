@@ -1,0 +1,176 @@
+"""The online matcher: one read-only road model shared by every vehicle, and ``update``, which
+orchestrates the mechanisms for one fix (see :mod:`mapmatch.online`)."""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+from graph.index import EdgeIndex
+from graph.neighbours import Neighbours, edge_neighbours
+from graph.road_graph import RoadGraph
+from mapmatch.config import DEFAULT_CONFIG, MatchConfig
+from mapmatch.measurement import DEFAULT_MEASUREMENT, MeasurementConfig
+from mapmatch.online import anchor, bias, hypotheses, region, report, stopline
+from mapmatch.online.correction import remember_live
+from mapmatch.online.filter import best as best_of
+from mapmatch.online.filter import normalise
+from mapmatch.online.road import RoadModel
+from mapmatch.online.state import Hypothesis, SessionState, Step
+from mapmatch.online.step import prepare
+from mapmatch.turns import add_sample, angle_diff
+from mapmatch.types import Fix, SnapResult, Turn
+
+
+class OnlineMatcher:
+    """Per-vehicle online matcher over one read-only road graph (thread-safe, shared).
+
+    Parameters
+    ----------
+    graph
+        The road graph.
+    index
+        Its spatial index (built when omitted).
+    config
+        Default parameters; :meth:`update` accepts a per-call override.
+    measurement
+        How each answer's map-aided measurement is built (:mod:`mapmatch.measurement`).
+    """
+
+    def __init__(
+        self,
+        graph: RoadGraph,
+        index: EdgeIndex | None = None,
+        config: MatchConfig = DEFAULT_CONFIG,
+        measurement: MeasurementConfig = DEFAULT_MEASUREMENT,
+    ):
+        self.graph = graph
+        self.index = index if index is not None else EdgeIndex(graph)
+        self.config = config
+        self.measurement = measurement
+        self.road = RoadModel(graph)
+        o = config.online
+        # parallel roads and slowly separating fork branches of every edge, looked up per fix
+        self.neighbours: Neighbours | None = (
+            edge_neighbours(graph, band_m=o.neighbour_band, index=self.index)
+            if o.neighbour_sigmas > 0.0 and o.neighbour_band > 0.0
+            else None
+        )
+        self.edge_len_ref = self.road.edge_len_ref
+
+    def new_session(self) -> SessionState:
+        """A fresh vehicle state."""
+        return SessionState()
+
+    def region_radius(self, sigma: float, config: MatchConfig | None = None) -> float:
+        """Ambiguous-region radius in metres for a fix of position σ (DR growth included)."""
+        return region.region_radius(self.road, sigma, config or self.config)
+
+    def update(self, state: SessionState, fix: Fix, *, config: MatchConfig | None = None) -> SnapResult:
+        """Match one fix; mutates ``state``. Raises :class:`ValidationError` (state unchanged)."""
+        cfg = config or self.config
+        step = prepare(self.road, state, fix, cfg)
+        if step is None:  # far off the map: accepted, but nowhere to put it
+            state.time = fix.time
+            return report.off_road(fix)
+        # the first GPS-aided fix after dead reckoning: it is the truth, not an outlier
+        returned = step.gps and step.kappa > 0.0 and state.odo - state.gps_odo > 0.0
+        self._take(state, step, cfg)
+        held: list[tuple[Hypothesis, float]] = []
+        reinit = False
+        if state.hyps:
+            held = self._filter(state, step, cfg, returned=returned)
+            reinit = self._check_road(state, step, cfg)
+            if reinit:
+                held = []
+        else:
+            hypotheses.initialise(self.road, self.index, state, step, cfg)
+        if not state.hyps:
+            return report.off_road(fix)
+        turn, corr = (Turn.NONE, None) if reinit else region.commit(self.road, state, step, cfg)
+        shown, agg = report.shown_hypothesis(state, cfg)
+        corr = stopline.back_at_stop_line(state, shown, held, step, corr)
+        state.shown = shown.edges[shown.k]
+        if len(state.hyps) > 1:
+            remember_live(state, state.shown, step, cfg)
+        return report.report(
+            self.road,
+            state,
+            fix,
+            step,
+            shown,
+            agg,
+            cfg,
+            turn=turn,
+            correction=corr,
+            reinit=reinit,
+            measurement=self.measurement,
+        )
+
+    # ------------------------------------------------------------------ steps of update
+    def _take(self, state: SessionState, step: Step, cfg: MatchConfig) -> None:
+        """The fix is accepted: the odometer, drift, bias, heading samples and trail move on."""
+        if not math.isnan(step.travelled):
+            state.odo += step.travelled
+        if step.gps:
+            state.gps_odo = state.odo
+        state.drift_sigma = bias.drift_sigma(state, step.gps, 0.0, step.dt, cfg) if step.gps else step.sigma
+        state.time, state.x, state.y = step.time, step.x, step.y
+        state.bias = step.bias
+        if step.kappa > 0.0:
+            add_sample(state.headings, state.odo, step.heading, window=cfg.online.turn_window)
+        if step.odo_known:
+            anchor.add_trail(
+                state.trail, step.time, state.odo, step.travelled <= cfg.online.still_distance, cfg
+            )
+
+    def _filter(
+        self, state: SessionState, step: Step, cfg: MatchConfig, *, returned: bool
+    ) -> list[tuple[Hypothesis, float]]:
+        """The filter step, the stop line and, when the fix has left the road believed (or GPS
+        has just returned away from it), the search for other roads."""
+        hyps = hypotheses.advance(self.road, state, step, cfg)
+        held = stopline.hold_stopped(self.road, hyps, state, step, cfg)
+        state.hyps = normalise(hyps, prune_log_ratio=cfg.online.prune_log_ratio)
+        best = best_of(state.hyps)
+        o = cfg.online
+        against = step.kappa > 0.0 and abs(angle_diff(step.heading, best.bearing)) > o.against_heading_deg
+        searched = step.time - state.search_time < o.search_every
+        if returned and o.return_sigmas > 0.0 and best.dist > o.return_sigmas * step.fix_sigma:
+            # weigh the roads near the returning fix against it at its own σ, at once
+            state.search_time = step.time
+            own = dataclasses.replace(step, sigma=step.fix_sigma)
+            hypotheses.add_alternatives(self.road, self.index, state, own, best, cfg)
+        elif step.gps and (best.dist > o.soft_reinit_sigmas * step.sigma or against) and not searched:
+            state.search_time = step.time
+            hypotheses.add_alternatives(self.road, self.index, state, step, best, cfg)
+        elif (
+            step.gps
+            and self.neighbours is not None
+            and o.neighbour_sigmas > 0.0
+            and best.dist > o.neighbour_sigmas * step.sigma
+            and not searched
+        ):  # a parallel road or a fork branch may fit the fix better: a table look-up
+            nb = self.neighbours.of(best.edges[best.k])
+            if len(nb):
+                state.search_time = step.time
+                hypotheses.add_alternatives(self.road, self.index, state, step, best, cfg, edges=nb.tolist())
+        return held
+
+    def _check_road(self, state: SessionState, step: Step, cfg: MatchConfig) -> bool:
+        """Re-initialise after the fixes have been off the road long enough (returns whether it
+        did); learn the fix's residuals and bias while on one road."""
+        o = cfg.online
+        best = best_of(state.hyps)
+        if best.dist > o.reinit_sigmas * step.sigma:
+            if math.isnan(state.bad_time):
+                state.bad_time, state.bad_odo = step.time, state.odo
+            if step.time - state.bad_time >= o.reinit_time or state.odo - state.bad_odo >= o.reinit_distance:
+                hypotheses.initialise(self.road, self.index, state, step, cfg)
+                return True
+            return False
+        state.bad_time = state.bad_odo = math.nan
+        if len(state.hyps) == 1 and not state.init_pending:
+            bias.learn_residuals(state, best, step, cfg)
+            bias.learn_bias(state, best, step, cfg)
+        return False

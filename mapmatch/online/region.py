@@ -1,0 +1,135 @@
+"""The ambiguous region and its commit: the region radius around the node ahead, the start-up
+commit, and each node the most probable hypothesis has left behind by ``r_a``: the turn there
+is classified, anchored, and the committed path's corrections are made."""
+
+from __future__ import annotations
+
+import math
+
+from mapmatch.config import MatchConfig
+from mapmatch.online.anchor import learn_scale, revise_crossings, turn_anchor
+from mapmatch.online.correction import correction, merge
+from mapmatch.online.filter import best as best_of
+from mapmatch.online.filter import normalise
+from mapmatch.online.hypotheses import move_to
+from mapmatch.online.road import RoadModel
+from mapmatch.online.state import BackEdge, Hypothesis, SessionState, Step
+from mapmatch.turns import angle_diff, classify_turn, corner_cut
+from mapmatch.types import Correction, Turn
+
+
+def region_radius(road: RoadModel, sigma: float, cfg: MatchConfig) -> float:
+    """Ambiguous-region radius in metres for a fix of position σ (DR growth included)."""
+    o = cfg.online
+    r = max(o.ambiguous_min_radius, o.drift_rate * road.edge_len_ref, o.ambiguous_sigma_factor * sigma)
+    return min(r, max(o.ambiguous_max_radius, o.ambiguous_min_radius))
+
+
+def commit(
+    road: RoadModel, state: SessionState, step: Step, cfg: MatchConfig
+) -> tuple[Turn, Correction | None]:
+    """Commit what is sure: the start-up road, then every node the best hypothesis is ``r_a``
+    past. Returns the last turn committed and the corrections it brings."""
+    best = best_of(state.hyps)
+    corr: Correction | None = None
+    turn = Turn.NONE
+    if state.init_pending:
+        if not _commit_start(road, state, best, step, cfg):
+            return turn, None
+        corr = correction(road, state, best, cfg)
+        state.hyps = [h for h in state.hyps if h.edges[0] == best.edges[0]]
+        state.init_pending = False
+    while best.k >= 1 and best.s - road.elen[best.edges[0]] >= step.r_a:
+        if state.live:
+            c = correction(road, state, best, cfg)
+            corr = c if corr is None else merge(corr, c)
+        turn, corr = _commit_node(road, state, best, step, cfg, turn, corr)
+    if len(state.hyps) == 1 and state.live:
+        # the alternatives died out: that decision is final too
+        c = correction(road, state, state.hyps[0], cfg)
+        corr = c if corr is None else merge(corr, c)
+        state.live = []
+    return turn, corr
+
+
+def _commit_start(
+    road: RoadModel, state: SessionState, best: Hypothesis, step: Step, cfg: MatchConfig
+) -> bool:
+    """Whether the start-up road is sure enough (or enough was driven) to commit."""
+    total = sum(math.exp(h.logp) for h in state.hyps)
+    group = sum(math.exp(h.logp) for h in state.hyps if h.edges[0] == best.edges[0]) / total
+    return group >= cfg.online.init_commit_probability or state.odo - state.init_odo >= max(
+        2.0 * step.r_a, cfg.online.turn_window
+    )
+
+
+def _commit_node(
+    road: RoadModel,
+    state: SessionState,
+    best: Hypothesis,
+    step: Step,
+    cfg: MatchConfig,
+    turn: Turn,
+    corr: Correction | None,
+) -> tuple[Turn, Correction | None]:
+    """Commit the node at the end of ``best.edges[0]``: keep the hypotheses through it, classify
+    the turn, anchor the position by it, and drop the edge behind from every path."""
+    e0, e1 = best.edges[0], best.edges[1]
+    hyps = [h for h in state.hyps if len(h.edges) > 1 and h.edges[1] == e1]
+    is_rev = e1 == road.rev[e0]
+    anchor_odo = anchor_sd = math.nan
+    angle = angle_diff(road.bstart[e1], road.bend[e0])
+    kind = classify_turn(
+        angle,
+        is_reverse=is_rev,
+        straight_max_deg=cfg.model.straight_max_deg,
+        uturn_min_deg=cfg.model.uturn_min_deg,
+    )
+    if road.branching[road.ev[e0]] or is_rev:
+        turn = kind
+    # a turn, or a bend where no other road joins, tells where the vehicle is
+    if kind in (Turn.LEFT, Turn.RIGHT) and cfg.online.turn_anchor_sigma > 0.0 and step.odo_known:
+        mid, anchor_sd = turn_anchor(road, state, best, step, cfg)
+        if not math.isnan(mid):
+            # rounding the corner, the vehicle drives less than the centre line: the
+            # odometer reads as if it had been at the node a little later on the way
+            # in and a little earlier on the way out
+            cut = 0.5 * corner_cut(angle, road.elen[e0], road.elen[e1])
+            learn_scale(road, state, best, mid + cut, mid - cut, anchor_sd, cfg)
+            anchor_odo = mid - cut
+            if corr is None:
+                corr = revise_crossings(road, state, best, (mid, cut, anchor_sd), step, cfg)
+    if math.isnan(anchor_odo):
+        state.back.append(BackEdge(e0, best.enter[0]))
+        while sum(road.elen[b.edge] for b in state.back) > cfg.online.trail_max_distance:
+            del state.back[0]
+    else:
+        state.back = []
+    state.live = [x for x in state.live if x.edge != e0]
+    for h in hyps:
+        _drop_first_edge(road, h, road.elen[e0], step, anchor_odo, anchor_sd)
+    state.hyps = normalise(hyps, prune_log_ratio=cfg.online.prune_log_ratio)
+    return turn, corr
+
+
+def _drop_first_edge(
+    road: RoadModel, h: Hypothesis, length: float, step: Step, anchor_odo: float, anchor_sd: float
+) -> None:
+    """``h`` without its first edge, the committed one of ``length`` metres (re-anchored when
+    the node gave an anchor)."""
+    if h.k == 0:  # still behind the committed node: place it at the node
+        h.k, h.off, h.s = 1, 0.0, length
+        h.enter.append(step.time)
+    h.s -= length
+    if math.isnan(anchor_odo):
+        h.anc -= length
+    else:  # the vehicle was at the node (s = 0 now) when the odometer read anchor_odo
+        h.anc = -anchor_odo
+        h.anc_sd = anchor_sd + step.odo_sigma * (step.odo - anchor_odo)
+    h.k -= 1
+    del h.edges[0]
+    del h.enter[0]
+    if not step.gps and not math.isnan(anchor_odo):
+        # dead reckoning: the turn tells where the vehicle is better than the distance
+        # carried since GPS was lost
+        move_to(road, h, step.odo - anchor_odo, step)

@@ -1,0 +1,155 @@
+"""The report: which hypothesis is shown for a fix, and the :class:`SnapResult` built from the
+state. Pure: nothing here writes the state."""
+
+from __future__ import annotations
+
+import math
+
+from graph.projection import point_to_lonlat
+from mapmatch.config import MatchConfig
+from mapmatch.measurement import DEFAULT_MEASUREMENT, MeasurementConfig, map_aided_measurement
+from mapmatch.online.filter import best as best_of
+from mapmatch.online.road import RoadModel
+from mapmatch.online.state import Hypothesis, SessionState, Step
+from mapmatch.types import Candidate, Correction, Fix, SnapResult, State, Turn
+
+EdgeMass = dict[int, tuple[float, Hypothesis]]
+
+
+def edge_mass(hyps: list[Hypothesis]) -> EdgeMass:
+    """Probability mass per edge the vehicle may be on, with that edge's most probable
+    hypothesis. Hypotheses that differ only in edges not reached yet are one belief about
+    where the vehicle is (each carries the whole weight): they count once, not once per
+    branch ahead."""
+    groups: dict[tuple[int, ...], Hypothesis] = {}
+    for h in hyps:
+        key = tuple(h.edges[: h.k + 1])
+        g = groups.get(key)
+        if g is None or h.logp > g.logp:
+            groups[key] = h
+    out: EdgeMass = {}
+    for h in groups.values():
+        e = h.edges[h.k]
+        p = math.exp(h.logp)
+        a = out.get(e)
+        out[e] = (p, h) if a is None else (a[0] + p, h if h.logp > a[1].logp else a[1])
+    return out
+
+
+def shown_hypothesis(state: SessionState, cfg: MatchConfig) -> tuple[Hypothesis, EdgeMass]:
+    """The hypothesis to report: on the edge of highest total probability (best for the
+    per-fix edge), its most probable one; back to an edge behind the one reported last only
+    on clear evidence (no flicker). Also the mass per edge (empty for a single hypothesis)."""
+    hyps = state.hyps
+    best = best_of(hyps)
+    agg = edge_mass(hyps) if len(hyps) > 1 else {}
+    if agg:
+        mass = {e: a[0] for e, a in agg.items()}
+        top = max(mass, key=mass.__getitem__)
+        shown = state.shown
+        if top != shown and shown in mass and mass[top] < cfg.online.report_back_ratio * mass[shown]:
+            hs = best_of([h for h in hyps if h.edges[h.k] == shown])
+            if top in hs.edges[: hs.k]:
+                top = shown
+        if top != best.edges[best.k]:
+            best = best_of([h for h in hyps if h.edges[h.k] == top])
+    return best, agg
+
+
+def state_of(state: SessionState, reinit: bool) -> State:
+    """The matcher's state for this fix."""
+    if reinit:
+        return State.REINITIALISED
+    if not math.isnan(state.bad_time):
+        return State.OFF_ROAD
+    if state.init_pending:
+        return State.INITIALISING
+    return State.AMBIGUOUS if len(state.hyps) > 1 else State.ON_ROAD
+
+
+def candidates(road: RoadModel, agg: EdgeMass) -> tuple[Candidate, ...]:
+    """The edges the vehicle may be on, most probable first."""
+    total = sum(a[0] for a in agg.values())
+    g = road.graph
+    return tuple(
+        Candidate(
+            edge=ce,
+            u=int(g.node_id[road.eu[ce]]),
+            v=int(g.node_id[road.ev[ce]]),
+            way_id=g.way_id_at(ce, a[1].off),
+            probability=a[0] / total,
+            offset=a[1].off,
+            dist=a[1].dist,
+        )
+        for ce, a in sorted(agg.items(), key=lambda kv: -kv[1][0])
+    )
+
+
+def report(
+    road: RoadModel,
+    state: SessionState,
+    fix: Fix,
+    step: Step,
+    shown: Hypothesis,
+    agg: EdgeMass,
+    cfg: MatchConfig,
+    *,
+    turn: Turn,
+    correction: Correction | None,
+    reinit: bool,
+    measurement: MeasurementConfig = DEFAULT_MEASUREMENT,
+) -> SnapResult:
+    """The result for ``fix``: ``shown``'s position, the way piece under it, the candidates,
+    the state and the map-aided measurement."""
+    g = road.graph
+    e = shown.edges[shown.k]
+    lon, lat = point_to_lonlat(g.crs, shown.px, shown.py)
+    st = state_of(state, reinit)
+    cands = candidates(road, agg) if len(state.hyps) > 1 else ()
+    aided = map_aided_measurement(
+        g,
+        state=st,
+        edge=e,
+        offset=shown.off,
+        lat=lat,
+        lon=lon,
+        bearing=shown.bearing,
+        probability=next((c.probability for c in cands if c.edge == e), 1.0),
+        gps=step.gps,
+        fix_sigma=step.sigma,
+        bias_cov=(step.bias.pxx, step.bias.pxy, step.bias.pyy),
+        white_share=cfg.online.bias_white_fraction,
+        anchor_sd=shown.anc_sd,
+        odo_sigma=step.odo_sigma,
+        dr_distance=step.dr,
+        gps_sigma=cfg.model.gps_sigma,
+        since_init=state.odo - state.init_odo,
+        config=measurement,
+    )
+    return SnapResult(
+        time=fix.time,
+        state=st,
+        edge=e,
+        u=int(g.node_id[road.eu[e]]),
+        v=int(g.node_id[road.ev[e]]),
+        way_id=g.way_id_at(e, shown.off),
+        name=g.name_at(e, shown.off),
+        road_class=g.highway_at(e, shown.off),
+        speed_kph=g.speed_at(e, shown.off),
+        offset=shown.off,
+        lat=lat,
+        lon=lon,
+        bearing=shown.bearing,
+        dist=shown.dist,
+        turn=turn,
+        candidates=cands,
+        correction=correction,
+        raw_lat=fix.lat,
+        raw_lon=fix.lon,
+        map_aided=aided,
+    )
+
+
+def off_road(fix: Fix) -> SnapResult:
+    """The result for a fix the matcher cannot place on a road."""
+    return SnapResult(time=fix.time, state=State.OFF_ROAD, raw_lat=fix.lat, raw_lon=fix.lon)

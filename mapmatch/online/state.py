@@ -1,0 +1,169 @@
+"""What the online matcher remembers about one vehicle, as named records.
+
+:class:`SessionState` is all of it (small and serialisable by :mod:`mapmatch.online.codec`);
+:class:`Step` holds the per-fix quantities every mechanism reads.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import NamedTuple
+
+
+@dataclass(slots=True)
+class Hypothesis:
+    """One candidate path: ``edges[k]`` is where the vehicle is, ``off`` metres from its start."""
+
+    edges: list[int]
+    k: int
+    off: float
+    s: float  # distance along the path from the start of edges[0]
+    logp: float
+    enter: list[float]  # time the position first lay on edges[j], j <= k
+    dist: float = math.nan  # distance of the fix from the position (m)
+    px: float = math.nan
+    py: float = math.nan
+    bearing: float = math.nan
+    anc: float = math.nan  # along-path anchor: estimated ``s - odometer`` (from a turn's heading step)
+    anc_sd: float = math.nan  # its σ in metres (grows with the odometer distance carried)
+
+    def branch(self, edge: int, penalty: float) -> Hypothesis:
+        """A copy whose path goes on along ``edge``, ``penalty`` added to its log-probability."""
+        return Hypothesis(
+            [*self.edges, edge],
+            self.k,
+            self.off,
+            self.s,
+            self.logp + penalty,
+            list(self.enter),
+            self.dist,
+            self.px,
+            self.py,
+            self.bearing,
+            self.anc,
+            self.anc_sd,
+        )
+
+
+class PathPos(NamedTuple):
+    """A position on a hypothesis's path for one fix."""
+
+    j: int  # index into the path's edges
+    off: float  # metres along edges[j]
+    s: float  # metres along the path
+    dist: float  # distance of the fix from this position (m)
+    px: float
+    py: float
+    bearing: float
+
+
+class FixBias(NamedTuple):
+    """The fix's slowly varying position error vector (m) and its covariance (m²)."""
+
+    bx: float = 0.0
+    by: float = 0.0
+    pxx: float = math.nan  # nan: not learnt yet
+    pxy: float = 0.0
+    pyy: float = math.nan
+
+
+@dataclass(slots=True)
+class LiveFix:
+    """A fix reported while the region was ambiguous (what a correction may revise)."""
+
+    time: float
+    edge: int  # the edge reported (rewritten when a correction revises it)
+    x: float
+    y: float
+    heading: float
+    sigma: float
+    kappa: float
+    gps: bool
+
+
+@dataclass(slots=True)
+class TrailPoint:
+    """The odometer reading at a time (kept for re-timing crossings)."""
+
+    time: float
+    odo: float
+
+
+class BackEdge(NamedTuple):
+    """An edge committed since the last turn anchor, with the time the vehicle entered it."""
+
+    edge: int
+    time: float
+
+
+@dataclass
+class SessionState:
+    """Everything the matcher remembers about one vehicle (small, serialisable)."""
+
+    time: float = math.nan
+    x: float = math.nan
+    y: float = math.nan
+    odo: float = 0.0
+    gps_odo: float = 0.0  # odometer at the last GPS-aided fix
+    bad_time: float = math.nan  # since when the fixes are inconsistent with the road ...
+    bad_odo: float = math.nan  # ... and the odometer then
+    init_pending: bool = True
+    init_odo: float = 0.0
+    hyps: list[Hypothesis] = field(default_factory=list)
+    live: list[LiveFix] = field(default_factory=list)  # the fixes of the ambiguous region
+    headings: list[list[float]] = field(default_factory=list)  # [odometer, heading] samples
+    res_pos2: float = 25.0  # running mean of squared distance to the road (m²), on road
+    res_head2: float = 400.0  # running mean of squared heading residual (deg²), on road
+    drift_sigma: float = 0.0  # dead-reckoning drift σ (m), decaying after GPS returns
+    search_time: float = math.nan  # time of the last soft re-initialisation search
+    shown: int = -1  # the edge reported last
+    # learnt from the fix's offsets across roads of other directions; along a road it is
+    # invisible, so this is what tells the along-track error after a turn
+    bias: FixBias = field(default_factory=FixBias)
+    # the odometer's scale error learnt between turn anchors: path metres = odometer · (1 + k)
+    odo_k: float = 0.0
+    odo_kvar: float = math.nan  # its variance (nan: the configured prior)
+    anc_odo: float = math.nan  # odometer reading of the last turn anchor ...
+    anc_sd: float = math.nan  # ... and its σ (m)
+    # for revising straight crossings once the next turn tells where the vehicle was
+    trail: list[TrailPoint] = field(default_factory=list)
+    back: list[BackEdge] = field(default_factory=list)
+
+    def to_bytes(self) -> bytes:
+        """Compact JSON encoding (a few kilobytes); see :mod:`mapmatch.online.codec`."""
+        from mapmatch.online.codec import to_bytes
+
+        return to_bytes(self)
+
+    @classmethod
+    def from_bytes(cls, data: bytes) -> SessionState:
+        """Decode :meth:`to_bytes` (or version 1); raises :class:`~mapmatch.errors.ValidationError`
+        naming the offending key on anything else."""
+        from mapmatch.online.codec import from_bytes
+
+        return from_bytes(data)
+
+
+@dataclass(frozen=True, slots=True)
+class Step:
+    """Per-fix quantities shared by all hypotheses."""
+
+    time: float
+    x: float
+    y: float
+    sigma: float
+    heading: float
+    kappa: float
+    travelled: float  # metres since the previous fix (nan when unknown)
+    odo: float  # the session's odometer after this fix
+    odo_known: bool
+    dt: float
+    gps: bool
+    weight: float
+    stopped: bool  # slower than ``stop_speed`` by the odometer
+    r_a: float
+    dr: float  # odometer metres since the last GPS-aided fix (0 when this one is)
+    bias: FixBias  # predicted fix bias
+    odo_sigma: float  # σ of the odometer's relative error (after the learnt scale)
+    fix_sigma: float = math.nan  # σ of the fix itself, without the dead-reckoning drift

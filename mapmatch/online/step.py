@@ -1,0 +1,101 @@
+"""The per-fix step: the fix validated and in map coordinates, its σ (floors, learnt residuals,
+dead-reckoning drift), heading concentration, evidence weight and odometer."""
+
+from __future__ import annotations
+
+import math
+
+from graph.projection import point_to_xy
+from mapmatch.config import MatchConfig
+from mapmatch.errors import ValidationError
+from mapmatch.online import anchor, bias
+from mapmatch.online.region import region_radius
+from mapmatch.online.road import RoadModel
+from mapmatch.online.state import SessionState, Step
+from mapmatch.types import Fix
+
+# input limits: a fix beyond them is rejected (a ValidationError naming the field)
+LIMITS = {"speed": 1_000.0, "distance": 100_000.0, "pos_sigma": 100_000.0, "heading_sigma": 360.0}
+
+
+def prepare(road: RoadModel, state: SessionState, fix: Fix, cfg: MatchConfig) -> Step | None:
+    """Validate the fix and derive the per-fix quantities (None: far off the map)."""
+    validate(road, state, fix)
+    x, y = point_to_xy(road.graph.crs, fix.lon, fix.lat)
+    if not (math.isfinite(x) and math.isfinite(y)) or road.far_off(x, y, cfg):
+        return None
+    m, o = cfg.model, cfg.online
+    dt = fix.time - state.time if not math.isnan(state.time) else math.nan
+    odo_known = True
+    if not math.isnan(fix.distance):
+        travelled = fix.distance * (1.0 + state.odo_k)
+    elif not math.isnan(fix.speed) and not math.isnan(dt):
+        travelled = fix.speed * dt * (1.0 + state.odo_k)
+    else:
+        odo_known = False
+        travelled = math.hypot(x - state.x, y - state.y) if not math.isnan(state.x) else math.nan
+    gps = fix.gps_valid is not False
+    own = own_sigma(state, fix, cfg)
+    sigma = max(own, bias.drift_sigma(state, gps, travelled, dt, cfg))
+    heading = 0.0 if fix.heading == 360.0 else fix.heading
+    kappa = 0.0
+    if not math.isnan(heading) and (math.isnan(fix.speed) or fix.speed >= m.heading_min_speed):
+        hs = m.heading_sigma if math.isnan(fix.heading_sigma) else fix.heading_sigma
+        floor = o.heading_sigma_floor_deg if fix.gps_valid is not False else o.heading_sigma_floor_dr_deg
+        hs = max(hs, floor, math.sqrt(state.res_head2))
+        kappa = 1.0 / math.radians(hs) ** 2
+    # the fused error is correlated: evidence accrues with time and, when known, distance
+    weight = 1.0 if math.isnan(dt) else min(1.0, dt / o.evidence_time)
+    stopped = False
+    if odo_known and not math.isnan(dt):
+        weight = min(weight, travelled / o.evidence_distance)
+        stopped = travelled < o.stop_speed * dt
+    odo = state.odo + (travelled if not math.isnan(travelled) else 0.0)
+    return Step(
+        time=fix.time,
+        x=x,
+        y=y,
+        sigma=sigma,
+        heading=heading,
+        kappa=kappa,
+        travelled=travelled,
+        odo=odo,
+        odo_known=odo_known,
+        dt=dt,
+        gps=gps,
+        weight=weight,
+        stopped=stopped,
+        r_a=region_radius(road, sigma, cfg),
+        dr=0.0 if gps else odo - state.gps_odo,
+        odo_sigma=math.sqrt(anchor.odo_kvar(state, cfg) + o.odo_scale_floor**2),
+        bias=bias.predict_bias(state.bias, sigma, dt, cfg),
+        fix_sigma=own,
+    )
+
+
+def own_sigma(state: SessionState, fix: Fix, cfg: MatchConfig) -> float:
+    """The fix's own position σ: as reported, but never below the floor or what the road saw
+    (reported accuracies are often optimistic); the dead-reckoning drift comes on top."""
+    if fix.pos_cov is not None:
+        sigma = math.sqrt(max(0.5 * (fix.pos_cov[0] + fix.pos_cov[2]), 0.25))
+    elif math.isnan(fix.pos_sigma) or fix.pos_sigma <= 0.0:
+        sigma = cfg.model.gps_sigma
+    else:
+        sigma = fix.pos_sigma
+    return max(sigma, cfg.online.pos_sigma_floor, math.sqrt(state.res_pos2))
+
+
+def validate(road: RoadModel, state: SessionState, fix: Fix) -> None:
+    """Reject a bad fix, or a state of another map (the state stays unchanged)."""
+    fix.validate()
+    for name, top in LIMITS.items():
+        if getattr(fix, name) > top:
+            raise ValidationError(name, f"must be at most {top:g}")
+    if fix.pos_cov is not None and max(fix.pos_cov) > LIMITS["pos_sigma"] ** 2:
+        raise ValidationError("pos_cov", "variance too large")
+    if not math.isnan(state.time) and not fix.time > state.time:
+        raise ValidationError("time", "must increase from one fix to the next within a vehicle")
+    n = len(road.elen)
+    for h in state.hyps:
+        if max(h.edges) >= n or min(h.edges) < 0:
+            raise ValidationError("state", "does not belong to this map")

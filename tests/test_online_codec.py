@@ -1,0 +1,141 @@
+"""Session state bytes: named keys with a version, every field validated, version 1 migrated."""
+
+from __future__ import annotations
+
+import json
+import math
+from typing import Any
+
+import pytest
+from online_helpers import drive
+from service_util import city
+
+from mapmatch.errors import ValidationError
+from mapmatch.online import OnlineMatcher, SessionState
+from mapmatch.online.codec import VERSION, from_bytes
+
+AMAP = city()
+
+
+def _session() -> tuple[OnlineMatcher, SessionState, list[Any]]:
+    m = OnlineMatcher(AMAP.graph)
+    st = m.new_session()
+    fixes = drive(AMAP, "abefc", speed=10.0, dt=1.0, noise=1.5, seed=7, sigma=3.0)
+    for i, f in enumerate(fixes):  # into an ambiguous region: hypotheses, live fixes, a trail
+        m.update(st, f)
+        if len(st.hyps) > 1 and len(st.live) > 1 and len(st.trail) > 2:
+            return m, st, fixes[i + 1 :]
+    raise AssertionError("the drive never became ambiguous")
+
+
+def test_named_keys_round_trip_and_go_on_identically() -> None:
+    m, st, fixes = _session()
+    d = json.loads(st.to_bytes())
+    assert d["version"] == VERSION == 2
+    assert set(d["hyps"][0]) >= {"edges", "k", "off", "s", "logp", "enter", "anc", "anc_sd"}
+    assert len(st.hyps) > 1 and st.live and st.trail
+    st2 = SessionState.from_bytes(st.to_bytes())
+    assert st2.to_bytes() == st.to_bytes()
+    a = [m.update(st, f) for f in fixes]
+    b = [m.update(st2, f) for f in fixes]
+    assert a and a == b
+
+
+def test_version_1_is_migrated() -> None:
+    _, st, _ = _session()
+    d = json.loads(st.to_bytes())
+    v1 = {
+        "v": 1,
+        "t": d["time"],
+        "xy": [d["x"], d["y"]],
+        "odo": [d["odo"], d["gps_odo"], d["init_odo"], d["odo_k"], d["odo_kvar"], d["anc_odo"], d["anc_sd"]],
+        "bad": [d["bad_time"], d["bad_odo"]],
+        "init": d["init_pending"],
+        "h": [
+            [
+                h[k]
+                for k in (
+                    "edges",
+                    "k",
+                    "off",
+                    "s",
+                    "logp",
+                    "enter",
+                    "dist",
+                    "px",
+                    "py",
+                    "bearing",
+                    "anc",
+                    "anc_sd",
+                )
+            ]
+            for h in d["hyps"]
+        ],
+        "live": [[r[0], float(r[1]), *r[2:7], 1.0 if r[7] else 0.0] for r in d["live"]],
+        "hd": d["headings"],
+        "res": [d["res_pos2"], d["res_head2"], d["drift_sigma"], d["search_time"]],
+        "sh": d["shown"],
+        "b": list(d["bias"].values()),
+        "tr": d["trail"],
+        "bk": d["back"],
+    }
+    old = SessionState.from_bytes(json.dumps(v1).encode())
+    assert old.to_bytes() == st.to_bytes()
+    # the oldest layout (10-slot hypotheses, 3 odometer values) gets the defaults
+    v1["h"] = [h[:10] for h in v1["h"]]
+    v1["odo"] = v1["odo"][:3]
+    older = SessionState.from_bytes(json.dumps(v1).encode())
+    assert all(math.isnan(h.anc) for h in older.hyps) and older.odo_k == 0.0
+
+
+@pytest.mark.parametrize(
+    ("change", "key"),
+    [
+        (lambda d: d.update(version=99), "state.version"),
+        (lambda d: d.update(time="soon"), "state.time"),
+        (lambda d: d.update(odo=math.nan), "state.odo"),
+        (lambda d: d.update(odo=math.inf), "state.odo"),
+        (lambda d: d.update(res_pos2=-1.0), "state.res_pos2"),
+        (lambda d: d.update(drift_sigma=-0.1), "state.drift_sigma"),
+        (lambda d: d.update(init_pending=1), "state.init_pending"),
+        (lambda d: d.update(shown=1.5), "state.shown"),
+        (lambda d: d["bias"].update(pxx=-4.0), "state.bias.pxx"),
+        (lambda d: d["bias"].pop("by"), "state.bias.by"),
+        (lambda d: d.update(odo_kvar=-1e-6), "state.odo_kvar"),
+        (lambda d: d["hyps"][0].update(k=7), "state.hyps[0].k"),
+        (lambda d: d["hyps"][0].update(edges=[]), "state.hyps[0].edges"),
+        (lambda d: d["hyps"][0].update(edges=[-3]), "state.hyps[0].edges[0]"),
+        (lambda d: d["hyps"][1].update(enter=[0.0, 1.0, 2.0, 3.0, 4.0]), "state.hyps[1].enter"),
+        (lambda d: d["hyps"][0].update(logp=None), "state.hyps[0].logp"),
+        (lambda d: d["hyps"][0].update(anc_sd=-1.0), "state.hyps[0].anc_sd"),
+        (lambda d: d["live"][0].__setitem__(5, -3.0), "state.live[0].sigma"),
+        (lambda d: d["live"][0].pop(), "state.live[0]"),
+        (lambda d: d["trail"].append([1.0]), "state.trail[2]"),
+        (lambda d: d["back"].append(["e", 1.0]), "state.back[0]"),
+        (lambda d: d.pop("headings"), "state.headings"),
+    ],
+)
+def test_every_field_is_validated_and_named(change: Any, key: str) -> None:
+    _, st, _ = _session()
+    d = json.loads(st.to_bytes())
+    d["back"] = []
+    d["trail"] = d["trail"][:2]
+    change(d)
+    with pytest.raises(ValidationError) as ei:
+        SessionState.from_bytes(json.dumps(d).encode())
+    assert ei.value.field == key
+
+
+def test_edges_beyond_the_map_are_rejected_when_the_map_is_known() -> None:
+    _, st, _ = _session()
+    blob = st.to_bytes()
+    assert from_bytes(blob, n_edges=AMAP.graph.n_edges).to_bytes() == blob
+    with pytest.raises(ValidationError) as ei:
+        from_bytes(blob, n_edges=2)
+    assert ei.value.field.startswith("state.")
+
+
+@pytest.mark.parametrize("blob", [b"not json", b"[1, 2]", b'{"v": 1}', b'{"version": 2}'])
+def test_not_a_state_at_all(blob: bytes) -> None:
+    with pytest.raises(ValidationError):
+        SessionState.from_bytes(blob)
