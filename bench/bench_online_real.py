@@ -29,7 +29,6 @@ import argparse
 import json
 import sys
 import time
-from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -274,7 +273,7 @@ def main() -> int:
     args = ap.parse_args()
     try:
         over: dict[str, Any] = {k: float(v) for k, v in (kv.split("=", 1) for kv in args.set)}
-        cfg = replace(DEFAULT_CONFIG, **over)
+        cfg = DEFAULT_CONFIG.replace(**over)
     except (ValueError, TypeError, ConfigError) as exc:
         print(f"error: --set: {exc}", file=sys.stderr)
         return 2

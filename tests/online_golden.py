@@ -157,11 +157,11 @@ def bench_map(name: str) -> Any:
         if name == "helsinki":
             from bench_online import helsinki_pbf
 
-            _MAPS[name] = build_map(helsinki_pbf())
+            _MAPS[name] = build_map(helsinki_pbf(), engine="osmnx")
         elif name == "monaco":
-            _MAPS[name] = build_map(SHARED / "osm" / "monaco.osm.pbf")
+            _MAPS[name] = build_map(SHARED / "osm" / "monaco.osm.pbf", engine="osmnx")
         else:
-            _MAPS[name] = build_map(SHARED / "kubicka" / name / "roads.geojson")
+            _MAPS[name] = build_map(SHARED / "kubicka" / name / "roads.geojson", engine="osmnx")
     return _MAPS[name]
 
 
@@ -289,6 +289,17 @@ def diff(a: Any, b: Any, path: str = "") -> str | None:
     return None if a == b else f"{path}: {a!r} != {b!r}"
 
 
+def without_ways(snaps: list[Any]) -> list[Any]:
+    """The records with their way ids blanked: since the map keeps its way pieces (issue #15)
+    an answer names the way under the point, where the old code named the edge's first way."""
+    out = []
+    for r in snaps:
+        if isinstance(r, list) and len(r) > 12:
+            r = [*r[:5], None, *r[6:12], [[*k[:3], None, *k[4:]] for k in r[12]], *r[13:]]
+        out.append(r)
+    return out
+
+
 def compare(which: str, golden: dict[str, Any], *, log: Callable[[str], None] = print) -> list[str]:
     """Replay every drive of ``which`` with the current code against ``golden``: the old
     session export is imported and replayed too. Returns the differences found."""
@@ -306,11 +317,17 @@ def compare(which: str, golden: dict[str, Any], *, log: Callable[[str], None] = 
         k = len(fixes) // 2
         new = replay(g, fixes, export_at=k)
         new_state = new.pop("state")
-        d = diff(old["snaps"], new["snaps"], f"{name}.snaps") or diff(
+        d = diff(without_ways(old["snaps"]), without_ways(new["snaps"]), f"{name}.snaps") or diff(
             old["errors"], new["errors"], f"{name}.errors"
         )
-        d = d or diff(old["resumed"], new["resumed"], f"{name}.resumed (own export)")
-        d = d or diff(old["resumed"], resume(g, fixes, old["state"], k), f"{name}.resumed (old export)")
+        d = d or diff(
+            without_ways(old["resumed"]), without_ways(new["resumed"]), f"{name}.resumed (own export)"
+        )
+        d = d or diff(
+            without_ways(old["resumed"]),
+            without_ways(resume(g, fixes, old["state"], k)),
+            f"{name}.resumed (old export)",
+        )
         n_fix += len(fixes) + 2 * (len(fixes) - k)
         if d:
             problems.append(d)

@@ -36,7 +36,7 @@ a-----------------------------------------------------------------b
 
 
 @pytest.fixture(
-    params=[DEFAULT_CONFIG, dataclasses.replace(DEFAULT_CONFIG, neighbour_sigmas=1.5, return_sigmas=2.0)],
+    params=[DEFAULT_CONFIG, DEFAULT_CONFIG.replace(neighbour_sigmas=1.5, return_sigmas=2.0)],
     ids=["default", "neighbours+return"],
 )
 def cfg(request: pytest.FixtureRequest) -> MatchConfig:
