@@ -2,7 +2,7 @@
 
 ``load`` prepares the map (not timed); ``call`` is the timed match of one sub-sampled track;
 ``convert`` returns the matched route as lon/lat polylines, one per connected piece.
-Map: ``graph.build.build_map(roads.geojson)`` when the project has it, else a small
+Map: ``mapmatch.graph.build.build_map(roads.geojson)`` when the project has it, else a small
 bench-only loader of ``roads.geojson`` (degree-2 chains contracted, as for fastmm).
 """
 
@@ -19,8 +19,8 @@ ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
-from graph.road_graph import RoadGraph  # noqa: E402
 from mapmatch.batch import BatchMatcher, fill_route_lonlat  # noqa: E402
+from mapmatch.graph.road_graph import RoadGraph  # noqa: E402
 from mapmatch.routing import Ubodt  # noqa: E402
 from mapmatch.types import Track  # noqa: E402
 
@@ -37,7 +37,7 @@ def version() -> str:
 
 def load_graph(work: Path) -> RoadGraph:
     """The track's map, prepared from its roads.geojson as ``mapmatch prep`` would (not timed)."""
-    from graph.build import build_map
+    from mapmatch.graph.build import build_map
 
     return build_map(work / "roads.geojson")
 

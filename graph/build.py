@@ -16,9 +16,9 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from graph.errors import InputError
-from graph.gis import GIS_SUFFIXES, GisOptions, OnewayConvention
-from graph.road_graph import RoadGraph
+from mapmatch.graph.errors import InputError
+from mapmatch.graph.gis import GIS_SUFFIXES, GisOptions, OnewayConvention
+from mapmatch.graph.road_graph import RoadGraph
 
 if TYPE_CHECKING:
     import networkx as nx
@@ -121,7 +121,7 @@ def build_map(
         (:func:`osmnx.consolidate_intersections`); ``None`` (default) keeps every node.
     snap_tolerance, node_crossings, oneway_field, oneway_convention, name_field, speed_field,
     highway_field, id_field, node_id_fields, topology, crs, layer
-        GIS options, see :class:`graph.gis.GisOptions`.
+        GIS options, see :class:`mapmatch.graph.gis.GisOptions`.
     network_type
         osmnx network type for OSM input: ``"drive"`` (default) or ``"drive_service"``.
     progress
@@ -142,9 +142,9 @@ def build_map(
     InputError
         Missing file, unknown format, corrupt data, no drivable roads, unreadable CRS.
     """
-    from graph.artifact import file_sha256
-    from graph.components import component_counts
-    from graph.simplify import (
+    from mapmatch.graph.artifact import file_sha256
+    from mapmatch.graph.components import component_counts
+    from mapmatch.graph.simplify import (
         RawNetwork,
         consolidate,
         raw_to_nx,
@@ -173,7 +173,7 @@ def build_map(
     if source is None:
         if place is None and bbox is None:
             raise InputError("give a source file, a place name or a bounding box")
-        from graph.osm import download_graph
+        from mapmatch.graph.osm import download_graph
 
         say(f"downloading the {network_type} network from OpenStreetMap")
         G, crs_out, dropped = download_graph(place=place, bbox=bbox, network_type=network_type)
@@ -196,7 +196,7 @@ def build_map(
             "sha256": file_sha256(path),
         }
         if fmt == "gis":
-            from graph.gis import lines_to_raw
+            from mapmatch.graph.gis import lines_to_raw
 
             conv = (
                 OnewayConvention.parse(oneway_convention)
@@ -238,7 +238,7 @@ def build_map(
             raw_net, dropped, fields = lines_to_raw(path, opts)
             report.fields = fields
         else:
-            from graph.osm import read_osm_raw
+            from mapmatch.graph.osm import read_osm_raw
 
             say(f"reading OSM {'PBF' if fmt == 'osm-pbf' else 'XML'} from {path.name}")
             raw_net, dropped, restrictions = read_osm_raw(path, network_type=network_type, bbox=bbox)

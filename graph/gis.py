@@ -19,10 +19,10 @@ import numpy as np
 import shapely
 from numpy.typing import NDArray
 
-from graph.components import union_find
-from graph.errors import InputError
-from graph.projection import utm_crs
-from graph.simplify import RawNetwork, _text, compact_raw
+from mapmatch.graph.components import union_find
+from mapmatch.graph.errors import InputError
+from mapmatch.graph.projection import utm_crs
+from mapmatch.graph.simplify import RawNetwork, _text, compact_raw
 
 if TYPE_CHECKING:
     import networkx as nx
@@ -249,7 +249,7 @@ def lines_to_graph(
     path: Path, opts: GisOptions
 ) -> tuple[nx.MultiDiGraph, str, dict[str, int], dict[str, Any]]:
     """Read GIS road lines into a raw MultiDiGraph in the local UTM CRS (see :func:`lines_to_raw`)."""
-    from graph.simplify import raw_to_nx
+    from mapmatch.graph.simplify import raw_to_nx
 
     raw, dropped, info = lines_to_raw(path, opts)
     return raw_to_nx(raw), raw.crs, dropped, info
@@ -264,7 +264,7 @@ def lines_to_raw(path: Path, opts: GisOptions) -> tuple[RawNetwork, dict[str, in
         The raw network (every vertex a node), dropped features by reason, and the fields
         that were used.
     """
-    from graph.projection import to_xy
+    from mapmatch.graph.projection import to_xy
 
     if opts.topology not in TOPOLOGIES:
         raise InputError(f"unknown topology {opts.topology!r} (use {', '.join(TOPOLOGIES)})")

@@ -15,7 +15,7 @@ import shapely
 from numba import njit
 from numpy.typing import ArrayLike, NDArray
 
-from graph.road_graph import RoadGraph
+from mapmatch.graph.road_graph import RoadGraph
 
 
 @dataclass(frozen=True)

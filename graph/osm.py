@@ -19,11 +19,11 @@ from typing import TYPE_CHECKING, Any, NamedTuple
 import numpy as np
 from numpy.typing import NDArray
 
-from graph.errors import InputError
-from graph.gis import _parse_speed
-from graph.projection import to_xy, utm_crs
-from graph.road_graph import RESTRICTION_NO, RESTRICTION_ONLY
-from graph.simplify import RawNetwork, compact_raw
+from mapmatch.graph.errors import InputError
+from mapmatch.graph.gis import _parse_speed
+from mapmatch.graph.projection import to_xy, utm_crs
+from mapmatch.graph.road_graph import RESTRICTION_NO, RESTRICTION_ONLY
+from mapmatch.graph.simplify import RawNetwork, compact_raw
 
 if TYPE_CHECKING:
     import networkx as nx
@@ -231,7 +231,7 @@ def read_osm(
         and restrictions as ``(from_way, via_node_id, to_way, kind)``.
     """
     raw, dropped, restrictions = read_osm_raw(path, network_type=network_type, bbox=bbox)
-    from graph.simplify import raw_to_nx
+    from mapmatch.graph.simplify import raw_to_nx
 
     return raw_to_nx(raw), raw.crs, dropped, restrictions
 

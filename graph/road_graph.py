@@ -18,7 +18,7 @@ import numpy as np
 from numba import njit
 from numpy.typing import NDArray
 
-from graph.errors import GraphError
+from mapmatch.graph.errors import GraphError
 
 RESTRICTION_NO = 0
 RESTRICTION_ONLY = 1

@@ -22,7 +22,7 @@ from typing import Literal
 import numpy as np
 from numpy.typing import NDArray
 
-from graph.road_graph import RESTRICTION_ONLY, RoadGraph
+from mapmatch.graph.road_graph import RESTRICTION_ONLY, RoadGraph
 
 UTurnPolicy = Literal["junction", "never"]
 

@@ -18,7 +18,7 @@ import numpy as np
 from numba import njit
 from numpy.typing import NDArray
 
-from graph.road_graph import Pieces, RoadGraph
+from mapmatch.graph.road_graph import Pieces, RoadGraph
 
 if TYPE_CHECKING:
     import networkx as nx
@@ -326,7 +326,7 @@ def to_road_graph(
     node_xy = np.asarray(xy, dtype=np.float64).reshape(-1, 2)
     node_ll = np.asarray(lonlat, dtype=np.float64).reshape(-1, 2)
     if np.isnan(node_ll).any():
-        from graph.projection import to_lonlat
+        from mapmatch.graph.projection import to_lonlat
 
         bad = np.isnan(node_ll).any(axis=1)
         node_ll[bad] = to_lonlat(crs, node_xy[bad, 0], node_xy[bad, 1])
@@ -722,7 +722,7 @@ def _csr_by(keys: NDArray[np.int64], n: int) -> tuple[NDArray[np.int64], NDArray
 def ring_keep(raw: RawNetwork, end: NDArray[np.bool_]) -> NDArray[np.bool_]:
     """Two opposite nodes of every isolated ring (a component without endpoints), as
     :func:`mark_rings` picks them: walk from the smallest node id, preferring the smaller."""
-    from graph.components import union_find
+    from mapmatch.graph.components import union_find
 
     keep = np.zeros(raw.n_nodes, dtype=bool)
     lab = union_find(raw.n_nodes, raw.edge_src, raw.edge_dst)
@@ -777,7 +777,7 @@ def simplify_arrays(raw: RawNetwork) -> Simplified:
     GraphError
         On a pattern osmnx cannot simplify either.
     """
-    from graph.errors import GraphError
+    from mapmatch.graph.errors import GraphError
 
     n = raw.n_nodes
     out_ptr, out_e = _csr_by(raw.edge_src, n)

@@ -34,11 +34,11 @@ from types import ModuleType
 from typing import TYPE_CHECKING, Any
 
 _API: dict[str, str] = {
-    "RoadGraph": "graph.road_graph",
-    "build_map": "graph.build",
-    "save_map": "graph.artifact",
-    "load_map": "graph.artifact",
-    "open_map": "graph.artifact",
+    "RoadGraph": "mapmatch.graph.road_graph",
+    "build_map": "mapmatch.graph.build",
+    "save_map": "mapmatch.graph.artifact",
+    "load_map": "mapmatch.graph.artifact",
+    "open_map": "mapmatch.graph.artifact",
     "OnlineMatcher": "mapmatch.online",
     "SessionState": "mapmatch.online",
     "MatchConfig": "mapmatch.config",
@@ -58,15 +58,15 @@ _API: dict[str, str] = {
     "route_mismatch": "mapmatch.evaluate",
     "read_route_geojson": "mapmatch.evaluate",
     "score_route": "mapmatch.evaluate",
-    "ServerConfig": "service.config",
-    "create_server": "service.server",
-    "MapMatchClient": "service.client",
+    "ServerConfig": "mapmatch.service.config",
+    "create_server": "mapmatch.service.server",
+    "MapMatchClient": "mapmatch.service.client",
     "MatchError": "mapmatch.errors",
     "ValidationError": "mapmatch.errors",
     "ConfigError": "mapmatch.errors",
-    "GraphError": "graph.errors",
-    "InputError": "graph.errors",
-    "ArtifactError": "graph.errors",
+    "GraphError": "mapmatch.graph.errors",
+    "InputError": "mapmatch.graph.errors",
+    "ArtifactError": "mapmatch.graph.errors",
     "MissingExtraError": "mapmatch.extras",
 }
 __all__ = [
@@ -137,22 +137,22 @@ def __dir__() -> list[str]:
 
 if TYPE_CHECKING:
     __version__: str
-    from graph.artifact import load_map, open_map, save_map
-    from graph.build import build_map
-    from graph.errors import ArtifactError, GraphError, InputError
-    from graph.road_graph import RoadGraph
     from mapmatch.batch import BATCH_CONFIG, BatchMatcher
     from mapmatch.config import DEFAULT_CONFIG, MatchConfig
     from mapmatch.errors import ConfigError, MatchError, ValidationError
     from mapmatch.evaluate import evaluate, read_route_geojson, route_mismatch, score_route
     from mapmatch.extras import MissingExtraError
+    from mapmatch.graph.artifact import load_map, open_map, save_map
+    from mapmatch.graph.build import build_map
+    from mapmatch.graph.errors import ArtifactError, GraphError, InputError
+    from mapmatch.graph.road_graph import RoadGraph
     from mapmatch.io import read_fixes, read_tracks, results_table, write_results
     from mapmatch.online import OnlineMatcher, SessionState
     from mapmatch.parallel import run_batch
+    from mapmatch.service.client import MapMatchClient
+    from mapmatch.service.config import ServerConfig
+    from mapmatch.service.server import create_server
     from mapmatch.types import Fix, SnapResult, Track, TrackMatch
-    from service.client import MapMatchClient
-    from service.config import ServerConfig
-    from service.server import create_server
 
 
 # In a source tree, graph/ and service/ sit next to mapmatch/ (linked into it where the checkout

@@ -17,11 +17,11 @@ import numpy as np
 from numba import njit
 from numpy.typing import NDArray
 
-from graph.index import Candidates, EdgeIndex, project_point_compiled
-from graph.projection import to_lonlat, to_xy
-from graph.road_graph import RoadGraph, merge_repeats
 from mapmatch import model
 from mapmatch.config import BATCH_CONFIG, MatchConfig
+from mapmatch.graph.index import Candidates, EdgeIndex, project_point_compiled
+from mapmatch.graph.projection import to_lonlat, to_xy
+from mapmatch.graph.road_graph import RoadGraph, merge_repeats
 from mapmatch.gridindex import GridIndex, grow_array
 from mapmatch.model import emission_logp_one, transition_logp_one
 from mapmatch.routing import (

@@ -30,10 +30,10 @@ import shapely
 from numpy.typing import ArrayLike, NDArray
 from shapely.ops import substring
 
-from graph.index import project_to_edge
-from graph.projection import to_lonlat, to_xy
-from graph.road_graph import RoadGraph
 from mapmatch.errors import ValidationError
+from mapmatch.graph.index import project_to_edge
+from mapmatch.graph.projection import to_lonlat, to_xy
+from mapmatch.graph.road_graph import RoadGraph
 from mapmatch.routing import shortest_path
 from mapmatch.types import Correction, Fix, SnapResult
 
@@ -726,7 +726,7 @@ def score_route(
     Both are projected to ``crs`` (default: the UTM zone of the true route's first vertex) and
     compared by :func:`route_mismatch`; separate parts stay separate.
     """
-    from graph.projection import utm_crs
+    from mapmatch.graph.projection import utm_crs
 
     truth = [np.asarray(p, dtype=np.float64).reshape(-1, 2) for p in truth_lonlat]
     truth = [p for p in truth if len(p)]

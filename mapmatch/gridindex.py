@@ -1,4 +1,4 @@
-"""A compiled uniform-grid twin of :meth:`graph.index.EdgeIndex.query` for batch candidate search.
+"""A compiled uniform-grid twin of :meth:`mapmatch.graph.index.EdgeIndex.query` for batch candidate search.
 
 Same segments, same answer (tests check it against ``EdgeIndex.query``), several times faster
 on many points: the segments are bucketed in square cells kept as a sorted cell-id array,
@@ -15,7 +15,7 @@ import numpy as np
 from numba import njit
 from numpy.typing import ArrayLike
 
-from graph.index import Candidates, EdgeIndex
+from mapmatch.graph.index import Candidates, EdgeIndex
 
 DENSE_MAX_CELLS = 1 << 23
 """Up to this many cells the grid keeps a dense cell table (8 bytes a cell)."""

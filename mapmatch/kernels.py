@@ -75,7 +75,7 @@ def compile_group(group: str) -> float:
     """Compile (or load from the cache) a group's kernels by running a tiny job; seconds taken."""
     import numpy as np
 
-    from graph.ascii import parse_ascii_map
+    from mapmatch.graph.ascii import parse_ascii_map
 
     t0 = time.perf_counter()
     m = parse_ascii_map("a-----------b-----------c\n|           |\nd-----------e", scale=10)

@@ -38,8 +38,8 @@ from dataclasses import dataclass, fields
 
 import numpy as np
 
-from graph.road_graph import RoadGraph
 from mapmatch.errors import ConfigError
+from mapmatch.graph.road_graph import RoadGraph
 from mapmatch.types import MapAidedMeasurement, State
 
 # default carriageway width in metres per OSM highway class (all lanes, both directions on a

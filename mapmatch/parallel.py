@@ -27,9 +27,9 @@ from typing import Any
 
 import pandas as pd
 
-from graph.files import atomic_path
 from mapmatch.config import MatchConfig
 from mapmatch.errors import MatchError
+from mapmatch.graph.files import atomic_path
 from mapmatch.io import (
     DEFAULT_COLUMNS,
     RESULT_COLUMNS,
@@ -80,8 +80,8 @@ _CACHE: dict[tuple[str, float, float], Any] = {}
 
 def _matcher(map_path: str, ubodt_delta: float | None = None) -> Any:
     """The process's matcher for a map file (and optional route table), loaded once."""
-    from graph.artifact import load_map
     from mapmatch.batch import BatchMatcher
+    from mapmatch.graph.artifact import load_map
     from mapmatch.routing import Ubodt
 
     key = (os.path.abspath(map_path), os.path.getmtime(map_path), float(ubodt_delta or 0.0))

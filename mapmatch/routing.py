@@ -23,8 +23,8 @@ import numpy as np
 from numba import njit
 from numpy.typing import NDArray
 
-from graph.road_graph import RoadGraph
-from graph.rules import moves_for
+from mapmatch.graph.road_graph import RoadGraph
+from mapmatch.graph.rules import moves_for
 
 INF = np.inf
 
@@ -327,7 +327,7 @@ def shortest_path(
     to_edge: int | None = None,
 ) -> list[int] | None:
     """Cheapest legal edge path from the end of ``from_edge`` to ``to_node`` (no U-turns onto
-    a reverse twin, turn restrictions kept: :func:`graph.rules.legal_moves` ``"never"``).
+    a reverse twin, turn restrictions kept: :func:`mapmatch.graph.rules.legal_moves` ``"never"``).
 
     Returns the edges after ``from_edge`` (empty when ``from_edge`` already ends there), or
     None when unreachable within ``max_cost``. ``weight`` is the cost of each edge (default:

@@ -18,9 +18,9 @@ from typing import TYPE_CHECKING, Any
 
 import grpc
 
-from service import convert
-from service.gen.mapmatch.v1 import mapmatch_pb2 as pb
-from service.gen.mapmatch.v1 import mapmatch_pb2_grpc as pb_grpc
+from mapmatch.service import convert
+from mapmatch.service.gen import mapmatch_pb2 as pb
+from mapmatch.service.gen import mapmatch_pb2_grpc as pb_grpc
 
 
 @dataclass(frozen=True, slots=True)
@@ -44,7 +44,7 @@ class Answer:
 
 _CODES = {c.value[0]: c for c in grpc.StatusCode}
 
-if TYPE_CHECKING:  # conversions go through service.convert; the types are for annotations
+if TYPE_CHECKING:  # conversions go through mapmatch.service.convert; the types are for annotations
     from mapmatch.types import Fix, SnapResult, Track
 
 

@@ -31,14 +31,14 @@ from typing import Any
 
 import numpy as np
 
-from graph.artifact import MAGIC, load_map, save_map
-from graph.errors import GraphError
-from graph.index import EdgeIndex
-from graph.road_graph import ARRAY_FIELDS, RoadGraph
 from mapmatch.config import DEFAULT_CONFIG, MatchConfig
 from mapmatch.errors import ValidationError
+from mapmatch.graph.artifact import MAGIC, load_map, save_map
+from mapmatch.graph.errors import GraphError
+from mapmatch.graph.index import EdgeIndex
+from mapmatch.graph.road_graph import ARRAY_FIELDS, RoadGraph
+from mapmatch.service.errors import LimitError, MapLoadError, MapNotFoundError, MapPathError
 from mapmatch.types import Fix, State, Track
-from service.errors import LimitError, MapLoadError, MapNotFoundError, MapPathError
 
 __all__ = [
     "LoadLimits",
@@ -93,7 +93,7 @@ class MapEntry:
         art = self.graph.meta.get("artifact")
         if not art:
             return ""
-        from graph.artifact import FORMAT, FORMAT_VERSION
+        from mapmatch.graph.artifact import FORMAT, FORMAT_VERSION
 
         return f"{FORMAT}/{FORMAT_VERSION}"
 
@@ -357,7 +357,7 @@ def _child_main(argv: list[str]) -> int:
     memory, cpu = int(argv[2]), int(argv[3])
     resource.setrlimit(resource.RLIMIT_AS, (memory, memory))
     resource.setrlimit(resource.RLIMIT_CPU, (cpu, cpu + 5))
-    from graph.build import build_map
+    from mapmatch.graph.build import build_map
 
     try:
         save_map(build_map(Path(argv[0])), argv[1])
@@ -375,7 +375,7 @@ def warm_up(entry: MapEntry) -> None:
     """One online fix at the start of the map's longest road (and one batch match when the
     batch matcher is available) through the matchers and converters requests use; raises
     :class:`MapLoadError` when the map cannot serve. Leaves no session behind."""
-    from service import convert
+    from mapmatch.service import convert
 
     g = entry.graph
     if g.n_edges == 0:

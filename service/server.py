@@ -36,15 +36,15 @@ from grpc_health.v1 import health_pb2, health_pb2_grpc
 from grpc_health.v1.health import aio as health_aio
 from grpc_reflection.v1alpha import reflection
 
-from graph.road_graph import RoadGraph
 from mapmatch.errors import ConfigError
-from service.config import ServerConfig
-from service.gen.mapmatch.v1 import mapmatch_pb2 as pb
-from service.gen.mapmatch.v1 import mapmatch_pb2_grpc as pb_grpc
-from service.interceptors import Metrics, interceptors
-from service.maps import MapRegistry, load_map_file, warm_up
-from service.servicer import SERVICE_NAME, MapMatchServicer, OnlineQueue, load_limits
-from service.sessions import SessionStore
+from mapmatch.graph.road_graph import RoadGraph
+from mapmatch.service.config import ServerConfig
+from mapmatch.service.gen import mapmatch_pb2 as pb
+from mapmatch.service.gen import mapmatch_pb2_grpc as pb_grpc
+from mapmatch.service.interceptors import Metrics, interceptors
+from mapmatch.service.maps import MapRegistry, load_map_file, warm_up
+from mapmatch.service.servicer import SERVICE_NAME, MapMatchServicer, OnlineQueue, load_limits
+from mapmatch.service.sessions import SessionStore
 
 log = logging.getLogger("mapmatch.service")
 

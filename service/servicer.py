@@ -7,7 +7,7 @@ session has a lock); a ``FixBatch`` is matched in slices of ``batch_slice`` fixe
 streams' fixes are served in between. Every message's work is bounded by the configured
 limits (fixes per batch, points per track, bytes per answer), each refused with
 RESOURCE_EXHAUSTED naming the limit. Exceptions propagate to
-:class:`service.interceptors.StatusInterceptor`, which maps them to statuses; in the live
+:class:`mapmatch.service.interceptors.StatusInterceptor`, which maps them to statuses; in the live
 streams a bad fix is answered with an ``error`` for that fix and the stream goes on.
 """
 
@@ -30,14 +30,14 @@ import grpc
 from grpc import aio
 
 from mapmatch.errors import ValidationError
+from mapmatch.service import convert
+from mapmatch.service.config import ServerConfig
+from mapmatch.service.errors import LimitError, MapPathError, log_internal, status_for
+from mapmatch.service.gen import mapmatch_pb2 as pb
+from mapmatch.service.gen import mapmatch_pb2_grpc as pb_grpc
+from mapmatch.service.maps import LoadLimits, MapEntry, MapRegistry, resolve_map_path
+from mapmatch.service.sessions import SessionStore
 from mapmatch.types import State
-from service import convert
-from service.config import ServerConfig
-from service.errors import LimitError, MapPathError, log_internal, status_for
-from service.gen.mapmatch.v1 import mapmatch_pb2 as pb
-from service.gen.mapmatch.v1 import mapmatch_pb2_grpc as pb_grpc
-from service.maps import LoadLimits, MapEntry, MapRegistry, resolve_map_path
-from service.sessions import SessionStore
 
 T = TypeVar("T")
 SERVICE_NAME = pb.DESCRIPTOR.services_by_name["MapMatch"].full_name

@@ -16,7 +16,7 @@ from contextlib import contextmanager
 from dataclasses import dataclass, field
 from typing import Any
 
-from service.errors import SessionExistsError, SessionLimitError, SessionNotFoundError
+from mapmatch.service.errors import SessionExistsError, SessionLimitError, SessionNotFoundError
 
 __all__ = ["Session", "SessionExistsError", "SessionLimitError", "SessionNotFoundError", "SessionStore"]
 

@@ -8,10 +8,10 @@ import math
 import numpy as np
 import pytest
 
-from graph.ascii import AsciiMap, parse_ascii_map
 from mapmatch import batch
 from mapmatch.batch import BATCH_CONFIG as DEFAULT_CONFIG
 from mapmatch.batch import BatchMatcher
+from mapmatch.graph.ascii import AsciiMap, parse_ascii_map
 from mapmatch.routing import shortest_route
 from mapmatch.types import PointStatus, Track
 

@@ -8,10 +8,10 @@ import itertools
 import numpy as np
 import pytest
 
-from graph.ascii import parse_ascii_map
-from graph.index import EdgeIndex
 from mapmatch import model
 from mapmatch.batch import BATCH_CONFIG
+from mapmatch.graph.ascii import parse_ascii_map
+from mapmatch.graph.index import EdgeIndex
 from mapmatch.gridindex import GridIndex
 
 DRAWING = """
@@ -99,7 +99,7 @@ def test_ubodt_gives_the_same_matches_as_the_search() -> None:
 
 
 def test_grid_index_with_many_roads_near_one_point() -> None:
-    from graph.road_graph import RoadGraph
+    from mapmatch.graph.road_graph import RoadGraph
 
     # 150 short one-way spokes around the origin: more roads near a point than the first buffer
     ang = np.linspace(0, 2 * np.pi, 150, endpoint=False)

@@ -29,7 +29,7 @@ def _score_module(shared: Path):  # the peers' scorer, used in place (never copi
 def test_kubicka_track_matches_its_true_route(
     kubicka_dir: Path, shared_dir: Path, track: str, S: int
 ) -> None:
-    from graph.build import build_map
+    from mapmatch.graph.build import build_map
 
     score = _score_module(shared_dir)
     d = kubicka_dir / track

@@ -6,7 +6,6 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from graph.ascii import parse_ascii_map
 from mapmatch.evaluate import (
     edge_path,
     evaluate,
@@ -15,6 +14,7 @@ from mapmatch.evaluate import (
     path_nodes,
     route_mismatch,
 )
+from mapmatch.graph.ascii import parse_ascii_map
 
 # b, c and f are junctions (three neighbours); e and the ends are not
 MAP = """

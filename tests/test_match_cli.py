@@ -9,9 +9,9 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from graph.artifact import save_map
-from graph.ascii import AsciiMap, parse_ascii_map
 from mapmatch.cli import main
+from mapmatch.graph.artifact import save_map
+from mapmatch.graph.ascii import AsciiMap, parse_ascii_map
 from mapmatch.io import read_results, write_tracks
 from mapmatch.parallel import parts_dir_for, run_batch
 from mapmatch.types import Track

@@ -18,13 +18,13 @@ from grpc_health.v1 import health_pb2, health_pb2_grpc
 from online_helpers import drive
 from service_util import city, local_config, requests, running, stub
 
-from graph.artifact import save_map
 from mapmatch.cli import main
 from mapmatch.errors import ConfigError
-from service import gen_proto
-from service.config import ServerConfig, add_arguments, config_from
-from service.gen.mapmatch.v1 import mapmatch_pb2 as pb
-from service.server import start_server
+from mapmatch.graph.artifact import save_map
+from mapmatch.service import gen_proto
+from mapmatch.service.config import ServerConfig, add_arguments, config_from
+from mapmatch.service.gen import mapmatch_pb2 as pb
+from mapmatch.service.server import start_server
 
 ROOT = Path(__file__).resolve().parents[1]
 AMAP = city()
@@ -36,9 +36,9 @@ def test_committed_stubs_are_current(tmp_path):
     assert any(p.name == "mapmatch_pb2_grpc.py" for p in made)
     for rel in made:
         committed = gen_proto.GEN_DIR / rel
-        assert committed.is_file(), f"{rel} missing: run `python -m service.gen_proto`"
+        assert committed.is_file(), f"{rel} missing: run `python -m mapmatch.service.gen_proto`"
         assert committed.read_text() == (tmp_path / rel).read_text(), (
-            f"{rel} stale: run `python -m service.gen_proto`"
+            f"{rel} stale: run `python -m mapmatch.service.gen_proto`"
         )
 
 

@@ -7,7 +7,12 @@ import time
 
 import pytest
 
-from service.sessions import SessionExistsError, SessionLimitError, SessionNotFoundError, SessionStore
+from mapmatch.service.sessions import (
+    SessionExistsError,
+    SessionLimitError,
+    SessionNotFoundError,
+    SessionStore,
+)
 
 
 class State:

@@ -43,11 +43,11 @@ def _step(msg: str, t0: float) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from mapmatch.service.client import MapMatchClient
+    from mapmatch.service.config import ServerConfig
+    from mapmatch.service.server import start_server
     from mapmatch.sim.demo import demo_drive, evaluate_and_draw, prepare_helsinki
     from mapmatch.types import Fix, SnapResult
-    from service.client import MapMatchClient
-    from service.config import ServerConfig
-    from service.server import start_server
 
     if args.length_km <= 0:
         raise CommandError("--length-km must be positive")

@@ -122,8 +122,8 @@ def _check_map(path: Path) -> None:
     """Fail before anything is written when the map cannot be opened (no parts folder left behind)."""
     from pyproj import CRS
 
-    from graph.artifact import load_map
     from mapmatch.cli import CommandError
+    from mapmatch.graph.artifact import load_map
 
     if not path.is_file():
         raise CommandError(f"no such map file: {path}")

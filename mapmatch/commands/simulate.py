@@ -72,7 +72,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[ty
 def run(args: argparse.Namespace) -> int:
     import numpy as np
 
-    from graph.artifact import open_map
+    from mapmatch.graph.artifact import open_map
     from mapmatch.sim.drive import position_error, read_route, simulate_drive, write_fixes_csv, write_truth
     from mapmatch.sim.routes import random_route
     from mapmatch.sim.sensors import parse_outages
@@ -171,7 +171,7 @@ def replay_to_server(
     timeout: float | None = None,
 ) -> list[tuple[str, Fix, SnapResult | None, str]]:
     """Stream the drive's fixes to a running server; one ``(vehicle, fix, result, error)`` per fix."""
-    from service.client import MapMatchClient
+    from mapmatch.service.client import MapMatchClient
 
     out: list[tuple[str, Fix, SnapResult | None, str]] = []
     pairs = [(vehicle_id, f) for f in drive.fix_objects()]

@@ -11,10 +11,10 @@ import math
 import numpy as np
 from numba import njit
 
-from graph.index import project_point_compiled
-from graph.road_graph import RoadGraph
-from graph.rules import junctions, legal_moves
 from mapmatch.config import MatchConfig
+from mapmatch.graph.index import project_point_compiled
+from mapmatch.graph.road_graph import RoadGraph
+from mapmatch.graph.rules import junctions, legal_moves
 from mapmatch.model import emission_one, transition_one
 from mapmatch.online.state import Hypothesis, Step
 from mapmatch.turns import angle_diff

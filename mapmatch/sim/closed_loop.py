@@ -21,9 +21,9 @@ from types import TracebackType
 
 import numpy as np
 
-from graph.projection import point_to_xy, to_lonlat
-from graph.road_graph import RoadGraph
 from mapmatch.errors import ValidationError
+from mapmatch.graph.projection import point_to_xy, to_lonlat
+from mapmatch.graph.road_graph import RoadGraph
 from mapmatch.online import OnlineMatcher
 from mapmatch.sim.drive import Drive
 from mapmatch.sim.kalman import (
@@ -81,7 +81,7 @@ class ServerMatcher:
     """
 
     def __init__(self, target: str, *, vehicle_id: str, map_id: str = "", timeout: float | None = None):
-        from service.client import MapMatchClient
+        from mapmatch.service.client import MapMatchClient
 
         self._client = MapMatchClient(target)
         self._queue: queue.Queue[Fix | None] = queue.Queue()

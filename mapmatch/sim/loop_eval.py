@@ -14,10 +14,10 @@ from dataclasses import dataclass, field
 import numpy as np
 import pandas as pd
 
-from graph.projection import to_xy
-from graph.road_graph import RoadGraph
 from mapmatch.errors import ValidationError
 from mapmatch.evaluate import evaluate, results_frame
+from mapmatch.graph.projection import to_xy
+from mapmatch.graph.road_graph import RoadGraph
 from mapmatch.sim.closed_loop import ClosedLoop, MatchFn, ServerMatcher, closed_loop_drive, in_process
 from mapmatch.sim.drive import Drive
 from mapmatch.sim.kalman import DEFAULT_KALMAN, KalmanConfig

@@ -15,7 +15,7 @@ import numpy as np
 from numba import njit
 from numpy.typing import NDArray
 
-from graph.road_graph import RoadGraph
+from mapmatch.graph.road_graph import RoadGraph
 from mapmatch.sim.routes import Route, edge_speed_mps
 
 

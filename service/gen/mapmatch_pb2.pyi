@@ -140,7 +140,7 @@ class Correction(_message.Message):
     def __init__(self, time_from: _Optional[float] = ..., time_to: _Optional[float] = ..., edges: _Optional[_Iterable[int]] = ..., replaced_edges: _Optional[_Iterable[int]] = ..., edge_times: _Optional[_Iterable[float]] = ...) -> None: ...
 
 class SnapResult(_message.Message):
-    __slots__ = ("time", "state", "edge", "u", "v", "way_id", "offset", "lat", "lon", "bearing", "dist", "turn", "candidates", "correction", "raw_lat", "raw_lon")
+    __slots__ = ("time", "state", "edge", "u", "v", "way_id", "offset", "lat", "lon", "bearing", "dist", "turn", "candidates", "correction", "raw_lat", "raw_lon", "name", "road_class", "speed_kph", "map_aided")
     TIME_FIELD_NUMBER: _ClassVar[int]
     STATE_FIELD_NUMBER: _ClassVar[int]
     EDGE_FIELD_NUMBER: _ClassVar[int]
@@ -157,6 +157,10 @@ class SnapResult(_message.Message):
     CORRECTION_FIELD_NUMBER: _ClassVar[int]
     RAW_LAT_FIELD_NUMBER: _ClassVar[int]
     RAW_LON_FIELD_NUMBER: _ClassVar[int]
+    NAME_FIELD_NUMBER: _ClassVar[int]
+    ROAD_CLASS_FIELD_NUMBER: _ClassVar[int]
+    SPEED_KPH_FIELD_NUMBER: _ClassVar[int]
+    MAP_AIDED_FIELD_NUMBER: _ClassVar[int]
     time: float
     state: State
     edge: int
@@ -173,7 +177,35 @@ class SnapResult(_message.Message):
     correction: Correction
     raw_lat: float
     raw_lon: float
-    def __init__(self, time: _Optional[float] = ..., state: _Optional[_Union[State, str]] = ..., edge: _Optional[int] = ..., u: _Optional[int] = ..., v: _Optional[int] = ..., way_id: _Optional[int] = ..., offset: _Optional[float] = ..., lat: _Optional[float] = ..., lon: _Optional[float] = ..., bearing: _Optional[float] = ..., dist: _Optional[float] = ..., turn: _Optional[_Union[Turn, str]] = ..., candidates: _Optional[_Iterable[_Union[Candidate, _Mapping]]] = ..., correction: _Optional[_Union[Correction, _Mapping]] = ..., raw_lat: _Optional[float] = ..., raw_lon: _Optional[float] = ...) -> None: ...
+    name: str
+    road_class: str
+    speed_kph: float
+    map_aided: MapAidedMeasurement
+    def __init__(self, time: _Optional[float] = ..., state: _Optional[_Union[State, str]] = ..., edge: _Optional[int] = ..., u: _Optional[int] = ..., v: _Optional[int] = ..., way_id: _Optional[int] = ..., offset: _Optional[float] = ..., lat: _Optional[float] = ..., lon: _Optional[float] = ..., bearing: _Optional[float] = ..., dist: _Optional[float] = ..., turn: _Optional[_Union[Turn, str]] = ..., candidates: _Optional[_Iterable[_Union[Candidate, _Mapping]]] = ..., correction: _Optional[_Union[Correction, _Mapping]] = ..., raw_lat: _Optional[float] = ..., raw_lon: _Optional[float] = ..., name: _Optional[str] = ..., road_class: _Optional[str] = ..., speed_kph: _Optional[float] = ..., map_aided: _Optional[_Union[MapAidedMeasurement, _Mapping]] = ...) -> None: ...
+
+class MapAidedMeasurement(_message.Message):
+    __slots__ = ("lat", "lon", "cov", "along_sigma", "cross_sigma", "heading", "heading_sigma", "probability", "usable", "reason")
+    LAT_FIELD_NUMBER: _ClassVar[int]
+    LON_FIELD_NUMBER: _ClassVar[int]
+    COV_FIELD_NUMBER: _ClassVar[int]
+    ALONG_SIGMA_FIELD_NUMBER: _ClassVar[int]
+    CROSS_SIGMA_FIELD_NUMBER: _ClassVar[int]
+    HEADING_FIELD_NUMBER: _ClassVar[int]
+    HEADING_SIGMA_FIELD_NUMBER: _ClassVar[int]
+    PROBABILITY_FIELD_NUMBER: _ClassVar[int]
+    USABLE_FIELD_NUMBER: _ClassVar[int]
+    REASON_FIELD_NUMBER: _ClassVar[int]
+    lat: float
+    lon: float
+    cov: _containers.RepeatedScalarFieldContainer[float]
+    along_sigma: float
+    cross_sigma: float
+    heading: float
+    heading_sigma: float
+    probability: float
+    usable: bool
+    reason: str
+    def __init__(self, lat: _Optional[float] = ..., lon: _Optional[float] = ..., cov: _Optional[_Iterable[float]] = ..., along_sigma: _Optional[float] = ..., cross_sigma: _Optional[float] = ..., heading: _Optional[float] = ..., heading_sigma: _Optional[float] = ..., probability: _Optional[float] = ..., usable: _Optional[bool] = ..., reason: _Optional[str] = ...) -> None: ...
 
 class Error(_message.Message):
     __slots__ = ("code", "field", "message")
