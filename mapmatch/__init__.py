@@ -16,7 +16,8 @@ Batch matching
 Scoring
     :func:`evaluate`, :func:`route_mismatch`, :func:`read_route_geojson`, :func:`score_route`.
 Service
-    :class:`ServerConfig`, :func:`create_server`, :class:`MapMatchClient`.
+    :class:`ServerConfig`, :func:`create_server` (builds), :func:`start_server` (builds and
+    starts), :class:`MapMatchClient`.
 Errors
     :class:`MatchError` (:class:`ValidationError`, :class:`ConfigError`), :class:`GraphError`
     (:class:`InputError`, :class:`ArtifactError`), :class:`MissingExtraError`.
@@ -60,6 +61,7 @@ _API: dict[str, str] = {
     "score_route": "mapmatch.evaluate",
     "ServerConfig": "mapmatch.service.config",
     "create_server": "mapmatch.service.server",
+    "start_server": "mapmatch.service.server",
     "MapMatchClient": "mapmatch.service.client",
     "MatchError": "mapmatch.errors",
     "ValidationError": "mapmatch.errors",
@@ -104,6 +106,7 @@ __all__ = [
     "run_batch",
     "save_map",
     "score_route",
+    "start_server",
     "write_results",
 ]
 
@@ -151,7 +154,7 @@ if TYPE_CHECKING:
     from mapmatch.parallel import run_batch
     from mapmatch.service.client import MapMatchClient
     from mapmatch.service.config import ServerConfig
-    from mapmatch.service.server import create_server
+    from mapmatch.service.server import create_server, start_server
     from mapmatch.types import Fix, SnapResult, Track, TrackMatch
 
 

@@ -14,7 +14,7 @@ from pathlib import Path
 from mapmatch.graph.ascii import parse_ascii_map
 from mapmatch.healthcheck import check, main
 from mapmatch.service.config import ServerConfig
-from mapmatch.service.server import create_server
+from mapmatch.service.server import start_server
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -63,7 +63,7 @@ def test_dockerfile_installs_and_starts_what_readme_documents() -> None:
 
 def test_health_probe_against_a_real_server() -> None:
     m = parse_ascii_map("a-----------b-----------c", scale=10)
-    server, port = create_server(ServerConfig(address="127.0.0.1:0"), {"city": m.graph})
+    server, port = start_server(ServerConfig(address="127.0.0.1:0"), {"city": m.graph})
     try:
         assert check(f"127.0.0.1:{port}") == (0, f"127.0.0.1:{port}: SERVING")
         assert main([f"127.0.0.1:{port}"]) == 0

@@ -23,7 +23,7 @@ i-------j-------k-------l
 
 def test_map_aided_simulation_in_process_and_on_a_server_and_its_evaluation(tmp_path: Path, capsys) -> None:  # type: ignore[no-untyped-def]
     from mapmatch.service.config import ServerConfig
-    from mapmatch.service.server import create_server
+    from mapmatch.service.server import start_server
 
     grid = parse_ascii_map(GRID, scale=25.0)
     mp = str(tmp_path / "grid.map")
@@ -58,7 +58,7 @@ def test_map_aided_simulation_in_process_and_on_a_server_and_its_evaluation(tmp_
     out = capsys.readouterr().out
     assert rc == 0, out
     assert "map-aided:" in out and "answers fed back" in out
-    server, port = create_server(
+    server, port = start_server(
         ServerConfig(address="127.0.0.1:0", grace=1.0, reuse_port=False), {"grid": grid.graph}
     )
     try:
