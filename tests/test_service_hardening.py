@@ -58,7 +58,7 @@ def _track(amap, n: int, track_id: str = "t") -> pb.Track:
 
 # ---------------------------------------------------------------------------------- 1. bounded work
 def test_limits_give_resource_exhausted_naming_the_limit():
-    cfg = local_config(max_batch_fixes=20, max_track_points=50, max_answer_bytes=1900)
+    cfg = local_config(max_batch_fixes=20, max_track_points=50, max_answer_bytes=8 << 10)
     with running(cfg, {"city": AMAP.graph}) as (_, port):
         ch, api = stub(port)
         reqs = requests(drive(AMAP, "abc"), "cap")
@@ -70,6 +70,12 @@ def test_limits_give_resource_exhausted_naming_the_limit():
         assert len(out[0].responses) == 20 and not any(r.HasField("error") for r in out[0].responses)
         err = _err(api.MatchTrack, pb.MatchTrackRequest(track=_track(AMAP, 51)), timeout=10)
         assert err.code() == grpc.StatusCode.RESOURCE_EXHAUSTED and _field(err) == "max_track_points"
+        size = api.MatchTrack(pb.MatchTrackRequest(track=_track(AMAP, 50)), timeout=30).ByteSize()
+        ch.close()
+    # an answer just over the byte limit is refused, one under it answered
+    cfg = local_config(max_batch_fixes=20, max_track_points=50, max_answer_bytes=size - 1)
+    with running(cfg, {"city": AMAP.graph}) as (_, port):
+        ch, api = stub(port)
         err = _err(api.MatchTrack, pb.MatchTrackRequest(track=_track(AMAP, 50)), timeout=30)
         assert err.code() == grpc.StatusCode.RESOURCE_EXHAUSTED and _field(err) == "max_answer_bytes"
         assert api.MatchTrack(pb.MatchTrackRequest(track=_track(AMAP, 5)), timeout=30).points
