@@ -353,3 +353,27 @@ def test_exit_statuses_are_in_readme() -> None:
     section = text.split("## Exit statuses", 1)[1].split("\n## ", 1)[0]
     for code in (EXIT_OK, EXIT_PARTIAL, EXIT_USAGE, EXIT_CONNECT):
         assert f"| {code} |" in section
+
+
+# ---------------------------------------------------------------------- simulate and prep
+def test_simulate_writes_fixes_to_stdout(grid: tuple[AsciiMap, Path], tmp_path: Path) -> None:
+    _, map_path = grid
+    ref = tmp_path / "ref.csv"
+    common = ("simulate", "--map", str(map_path), "--random-route", "--length-km", "0.3", "--seed", "2",
+              "--outages", "none")  # fmt: skip
+    assert run_cli(*common, "-o", str(ref)).returncode == 0
+    proc = run_cli(*common, "-o", "-")
+    assert proc.returncode == 0, proc.stderr
+    assert proc.stdout == ref.read_bytes() and proc.stdout.startswith(b"vehicle_id,time,lat,lon")
+    assert b"wrote standard output" in proc.stderr  # the summary goes to stderr
+    assert not (Path.cwd() / "-").exists()
+
+
+def test_prep_refuses_dash_with_one_line(cross: tuple[AsciiMap, Path], tmp_path: Path) -> None:
+    _, map_path = cross
+    for args in (("prep", str(map_path), "-o", "-"), ("prep", "-", "-o", str(tmp_path / "x.map"))):
+        proc = run_cli(*args)
+        assert proc.returncode == EXIT_USAGE, proc.stderr
+        one_line_error(proc.stderr.decode(), "prep")
+        assert "'-' is not accepted" in proc.stderr.decode()
+    assert not (Path.cwd() / "-").exists() and not (tmp_path / "x.map").exists()

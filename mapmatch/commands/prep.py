@@ -171,6 +171,9 @@ def run(args: argparse.Namespace) -> int:
         raise CommandError("give either SOURCE or --place, not both")
     if args.export is not None and args.export.suffix.lower() not in EXPORT_SUFFIXES:
         raise CommandError(f"--export: unknown format {args.export.name} (use {', '.join(EXPORT_SUFFIXES)})")
+    if str(args.output) == "-" or str(args.source) == "-":
+        # a map file is memory-mapped when loaded and a source is read by format (by its name)
+        raise CommandError("'-' is not accepted here: give SOURCE and -o as file paths")
     if args.output.is_dir():
         raise CommandError(f"output {args.output} is a directory")
     bbox = _parse_bbox(args.bbox) if args.bbox else None

@@ -3,12 +3,14 @@
 from __future__ import annotations
 
 import argparse
+import functools
 import time
 from collections.abc import Iterator
 from pathlib import Path
 from typing import TYPE_CHECKING
 
 from mapmatch.cli import EXIT_CONNECT, CommandError
+from mapmatch.commands._fixio import STDIO, output_path, summary_stream
 
 if TYPE_CHECKING:
     from mapmatch.types import Fix, SnapResult
@@ -42,7 +44,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[ty
     p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
     p.add_argument("--vehicle-id", default="sim-1", help="vehicle id written to the fixes (default sim-1)")
     p.add_argument("--time0", type=float, default=0.0, help="time of the first fix in seconds (default 0)")
-    p.add_argument("-o", "--output", required=True, help="fused fixes CSV to write")
+    p.add_argument("-o", "--output", required=True, help="fused fixes CSV to write ('-': stdout)")
     p.add_argument(
         "--truth",
         help="truth to write: per-fix CSV and route GeoJSON with the same stem (give either name)",
@@ -77,6 +79,8 @@ def run(args: argparse.Namespace) -> int:
     from mapmatch.sim.routes import random_route
     from mapmatch.sim.sensors import parse_outages
 
+    if args.output == STDIO and args.server and not args.matched and not args.map_aided:
+        raise CommandError("with -o - and --server, give --matched (where the server's answers go)")
     if args.length_km <= 0:
         raise CommandError("--length-km must be positive")
     if args.speedup <= 0:
@@ -110,23 +114,25 @@ def run(args: argparse.Namespace) -> int:
         except grpc.RpcError as exc:
             raise CommandError(f"server {args.server}: {exc.code().name}: {exc.details()}", code=3) from None
         drive = loop.drive
-    write_fixes_csv(drive, args.output)
-    written = [args.output]
+    with output_path(Path(args.output)) as out:
+        write_fixes_csv(drive, out)
+    written = ["standard output" if args.output == STDIO else args.output]
     if args.truth:
         written += [str(p) for p in write_truth(graph, drive, args.truth)]
     err = position_error(drive)
     valid = drive.fixes["gps_valid"].to_numpy() > 0
-    print(
+    say = functools.partial(print, file=summary_stream(args))
+    say(
         f"{len(drive.fixes)} fixes at {args.rate} Hz, {route.length / 1000:.2f} km in "
         f"{drive.trajectory.duration:.0f} s, {len(drive.node_index)} intersections, "
         f"{sum(1 for a, _ in drive.outages if a < drive.trajectory.duration)} GPS outages"
     )
-    print(
+    say(
         f"fused position error: {err[valid].mean():.1f} m mean with GPS"
         + (f", {err[~valid].max():.1f} m max without" if (~valid).any() else "")
     )
     if loop is not None:
-        print(
+        say(
             f"map-aided: {int(loop.fed.sum())} of {len(loop.fed)} answers fed back, "
             f"{int(loop.rejected.sum())} rejected by the filter's gate; open loop "
             f"{open_err[valid].mean():.1f} m mean with GPS"
@@ -138,7 +144,7 @@ def run(args: argparse.Namespace) -> int:
             rows = [(args.vehicle_id, f, r) for f, r in zip(drive.fix_objects(), loop.results, strict=True)]
             write_results_csv(args.matched, rows)
             written.append(args.matched)
-    print("wrote " + ", ".join(written))
+    say("wrote " + ", ".join(written))
     if loop is not None:
         return 0 if all(r is not None for r in loop.results) else 1
     if args.server:
@@ -205,5 +211,8 @@ def _replay(args: argparse.Namespace, drive: Drive) -> int:
         ) from None
     write_results_csv(matched, rows)
     bad = sum(1 for r in rows if r[2] is None)
-    print(f"replayed {len(rows)} fixes to {args.server} ({bad} rejected); wrote {matched}")
+    print(
+        f"replayed {len(rows)} fixes to {args.server} ({bad} rejected); wrote {matched}",
+        file=summary_stream(args),
+    )
     return 0 if bad == 0 else 1
