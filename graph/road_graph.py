@@ -443,28 +443,43 @@ class RoadGraph:
         nxt = self.piece_start[np.minimum(p + 1, max(self.n_pieces - 1, 0))]
         return np.where(last, self.edge_len[edge], nxt)
 
+    def piece_index(self, edge: int, offset: float) -> int:
+        """Scalar :meth:`piece_at`: the way piece under ``(edge, offset)``; -1 for no edge."""
+        if not 0 <= edge < self.n_edges:
+            return -1
+        lo, hi = int(self.piece_ptr[edge]), int(self.piece_ptr[edge + 1])
+        if hi - lo <= 1:
+            return lo
+        return lo + int(np.searchsorted(self.piece_start[lo + 1 : hi], offset, side="right"))
+
+    def piece_fields(self, piece: int) -> tuple[int, str, str, float]:
+        """Way id, name, road class and speed (km/h, 0.0 when unknown) of one piece (-1: none)."""
+        if piece < 0:
+            return -1, "", "", 0.0
+        n, h = int(self.piece_name_idx[piece]), int(self.piece_highway_idx[piece])
+        v = float(self.piece_speed_kph[piece])
+        return (
+            int(self.piece_way_id[piece]),
+            self.names[n] if n >= 0 else "",
+            self.highways[h] if h >= 0 else "",
+            v if v == v else 0.0,
+        )
+
     def way_id_at(self, edge: int, offset: float) -> int:
         """Way id of the piece under ``(edge, offset)``; -1 for no edge."""
-        p = int(self.piece_at(edge, offset))
-        return int(self.piece_way_id[p]) if p >= 0 else -1
+        return self.piece_fields(self.piece_index(edge, offset))[0]
 
     def name_at(self, edge: int, offset: float) -> str:
         """Name of the piece under ``(edge, offset)``; ``""`` when unknown."""
-        p = int(self.piece_at(edge, offset))
-        i = int(self.piece_name_idx[p]) if p >= 0 else -1
-        return self.names[i] if i >= 0 else ""
+        return self.piece_fields(self.piece_index(edge, offset))[1]
 
     def highway_at(self, edge: int, offset: float) -> str:
         """Road class of the piece under ``(edge, offset)``; ``""`` when unknown."""
-        p = int(self.piece_at(edge, offset))
-        i = int(self.piece_highway_idx[p]) if p >= 0 else -1
-        return self.highways[i] if i >= 0 else ""
+        return self.piece_fields(self.piece_index(edge, offset))[2]
 
     def speed_at(self, edge: int, offset: float) -> float:
         """Speed in km/h of the piece under ``(edge, offset)``; 0.0 when unknown."""
-        p = int(self.piece_at(edge, offset))
-        v = float(self.piece_speed_kph[p]) if p >= 0 else 0.0
-        return v if v == v else 0.0
+        return self.piece_fields(self.piece_index(edge, offset))[3]
 
     def route_pieces(
         self, edges: Sequence[int] | NDArray[np.integer], *, start: float = 0.0, end: float = np.inf

@@ -34,6 +34,7 @@ innovation (χ²) as it gates GPS. :mod:`mapmatch.sim.kalman` implements that ru
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass, fields
 
 import numpy as np
@@ -77,6 +78,9 @@ AIDED_COLUMNS: tuple[str, ...] = (
     "aided_heading_sigma",
     "aided_probability",
 )
+
+BearingAt = Callable[[int, float], float]
+"""``(edge, offset) -> bearing in degrees`` of the road there."""
 
 
 @dataclass(frozen=True)
@@ -231,14 +235,17 @@ def heading_sigma(
     along_sigma: float,
     *,
     config: MeasurementConfig = DEFAULT_MEASUREMENT,
+    bearing_at: BearingAt | None = None,
 ) -> float:
     """1-σ of the road heading at ``offset`` on ``edge``, degrees: the floor, the bearing's
-    change within one along-track σ, and ``node_heading_sigma`` when that reaches past the end."""
-    here = _bearing_at(graph, edge, offset)
+    change within one along-track σ, and ``node_heading_sigma`` when that reaches past the end.
+    ``bearing_at(edge, offset)`` gives the road's bearing (default: from the graph's polyline)."""
+    at = bearing_at or (lambda e, off: _bearing_at(graph, e, off))
+    here = at(edge, offset)
     length = float(graph.edge_len[edge])
     bend = max(
-        _angle(here, _bearing_at(graph, edge, max(offset - along_sigma, 0.0))),
-        _angle(here, _bearing_at(graph, edge, min(offset + along_sigma, length))),
+        _angle(here, at(edge, max(offset - along_sigma, 0.0))),
+        _angle(here, at(edge, min(offset + along_sigma, length))),
     )
     node = config.node_heading_sigma if offset + along_sigma > length else 0.0
     return math.sqrt(config.heading_sigma**2 + bend**2 + node**2)
@@ -265,6 +272,8 @@ def map_aided_measurement(
     since_init: float,
     width: float = math.nan,
     lanes: float = math.nan,
+    road_class: str | None = None,
+    bearing_at: BearingAt | None = None,
     config: MeasurementConfig = DEFAULT_MEASUREMENT,
 ) -> MapAidedMeasurement:
     """The measurement of one answer, from what the matcher knows (see the module docstring).
@@ -272,8 +281,9 @@ def map_aided_measurement(
     ``state``/``edge``/``offset``/``lat``/``lon``/``bearing`` are the answer's; ``probability``
     that of the reported edge; ``bias_cov`` the learnt fix bias covariance ``(Pxx, Pxy, Pyy)``
     (m²; NaN when not learnt); ``since_init`` odometer metres since the last (re)initialisation;
-    ``width``/``lanes`` the road's tags when the map has them. The rest as in
-    :func:`along_track_sigma`.
+    ``width``/``lanes`` the road's tags when the map has them; ``road_class`` that of the way
+    piece under the point (default: the edge's); ``bearing_at`` as in :func:`heading_sigma`.
+    The rest as in :func:`along_track_sigma`.
     """
     if edge < 0 or not math.isfinite(lat):
         return MapAidedMeasurement()
@@ -292,7 +302,7 @@ def map_aided_measurement(
         config=config,
     )
     cross = cross_track_sigma(
-        graph.edge_highway(edge),
+        graph.edge_highway(edge) if road_class is None else road_class,
         one_way=int(graph.edge_reverse[edge]) < 0,
         width=width,
         lanes=lanes,
@@ -324,7 +334,7 @@ def map_aided_measurement(
         along_sigma=along,
         cross_sigma=cross,
         heading=bearing,
-        heading_sigma=heading_sigma(graph, edge, offset, along, config=config),
+        heading_sigma=heading_sigma(graph, edge, offset, along, config=config, bearing_at=bearing_at),
         probability=probability,
         usable=reason == "",
         reason=reason,

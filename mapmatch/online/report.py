@@ -76,7 +76,7 @@ def candidates(road: RoadModel, agg: EdgeMass) -> tuple[Candidate, ...]:
             edge=ce,
             u=int(g.node_id[road.eu[ce]]),
             v=int(g.node_id[road.ev[ce]]),
-            way_id=g.way_id_at(ce, a[1].off),
+            way_id=g.piece_fields(g.piece_index(ce, a[1].off))[0],
             probability=a[0] / total,
             offset=a[1].off,
             dist=a[1].dist,
@@ -106,6 +106,7 @@ def report(
     lon, lat = point_to_lonlat(g.crs, shown.px, shown.py)
     st = state_of(state, reinit)
     cands = candidates(road, agg) if len(state.hyps) > 1 else ()
+    way_id, name, road_class, speed_kph = g.piece_fields(g.piece_index(e, shown.off))
     aided = map_aided_measurement(
         g,
         state=st,
@@ -124,6 +125,8 @@ def report(
         dr_distance=step.dr,
         gps_sigma=cfg.model.gps_sigma,
         since_init=state.odo - state.init_odo,
+        road_class=road_class,
+        bearing_at=lambda edge, off: road.locate(edge, off)[2],
         config=measurement,
     )
     return SnapResult(
@@ -132,10 +135,10 @@ def report(
         edge=e,
         u=int(g.node_id[road.eu[e]]),
         v=int(g.node_id[road.ev[e]]),
-        way_id=g.way_id_at(e, shown.off),
-        name=g.name_at(e, shown.off),
-        road_class=g.highway_at(e, shown.off),
-        speed_kph=g.speed_at(e, shown.off),
+        way_id=way_id,
+        name=name,
+        road_class=road_class,
+        speed_kph=speed_kph,
         offset=shown.off,
         lat=lat,
         lon=lon,
