@@ -264,8 +264,10 @@ def matched_edges_dense(graph: RoadGraph, matched: pd.DataFrame) -> NDArray[np.i
     lookup: dict[tuple[int, int, int], int] = {}
     uid = graph.node_id[graph.edge_u]
     vid = graph.node_id[graph.edge_v]
-    for i, (a, b, w) in enumerate(zip(uid.tolist(), vid.tolist(), graph.edge_way_id.tolist(), strict=True)):
-        lookup.setdefault((a, b, w), i)
+    ptr, ways = graph.piece_ptr.tolist(), graph.piece_way_id.tolist()
+    for i, (a, b) in enumerate(zip(uid.tolist(), vid.tolist(), strict=True)):
+        for w in ways[ptr[i] : ptr[i + 1]]:  # an answer names the way piece under the point
+            lookup.setdefault((a, b, w), i)
         lookup.setdefault((a, b, -2), i)
     way = matched["way_id"] if "way_id" in matched.columns else pd.Series(-2, index=matched.index)
     out = np.full(len(matched), -1, dtype=np.int64)

@@ -88,6 +88,46 @@ class Drive:
         ]  # fmt: skip
 
 
+def truth_frame(
+    graph: RoadGraph,
+    route: Route,
+    *,
+    vehicle_id: str,
+    time: np.ndarray,
+    x: np.ndarray,
+    y: np.ndarray,
+    route_s: np.ndarray,
+    heading: np.ndarray,
+    speed: np.ndarray,
+    gps_outage: np.ndarray,
+) -> pd.DataFrame:
+    """The truth rows (:data:`TRUTH_COLUMNS`) of true positions ``x``, ``y`` at ``route_s``
+    metres along ``route``: their place on the map, the way piece under them, heading and speed."""
+    edge, off = route.locate(route_s)
+    ll = to_lonlat(graph.crs, x, y)
+    piece = graph.piece_at(edge, off)
+    return pd.DataFrame(
+        {
+            "vehicle_id": [vehicle_id] * len(time),
+            "time": time,
+            "lat": ll[:, 1],
+            "lon": ll[:, 0],
+            "x": x,
+            "y": y,
+            "edge": edge,
+            "offset": off,
+            "u": graph.node_id[graph.edge_u[edge]],
+            "v": graph.node_id[graph.edge_v[edge]],
+            "way_id": np.where(piece >= 0, graph.piece_way_id[np.maximum(piece, 0)], -1),
+            "heading": heading,
+            "speed": speed,
+            "route_s": route_s,
+            "gps_outage": np.asarray(gps_outage).astype(int),
+        },
+        columns=list(TRUTH_COLUMNS),
+    )
+
+
 def simulate_drive(
     graph: RoadGraph,
     route: Route,
@@ -149,30 +189,20 @@ def simulate_drive(
     tx = np.interp(ft, traj.t, traj.x)
     ty = np.interp(ft, traj.t, traj.y)
     ts = np.interp(ft, traj.t, traj.s)
-    edge, off = route.locate(ts)
-    tll = to_lonlat(graph.crs, tx, ty)
     in_out = np.zeros(n, dtype=bool)
     for a, d in outs:
         in_out |= (ft >= a) & (ft < a + d)
-    truth = pd.DataFrame(
-        {
-            "vehicle_id": [vehicle_id] * n,
-            "time": ft + time0,
-            "lat": tll[:, 1],
-            "lon": tll[:, 0],
-            "x": tx,
-            "y": ty,
-            "edge": edge,
-            "offset": off,
-            "u": graph.node_id[graph.edge_u[edge]],
-            "v": graph.node_id[graph.edge_v[edge]],
-            "way_id": graph.edge_way_id[edge],
-            "heading": np.degrees(np.interp(ft, traj.t, traj.psi)) % 360.0,
-            "speed": np.interp(ft, traj.t, traj.speed),
-            "route_s": ts,
-            "gps_outage": in_out.astype(int),
-        },
-        columns=list(TRUTH_COLUMNS),
+    truth = truth_frame(
+        graph,
+        route,
+        vehicle_id=vehicle_id,
+        time=ft + time0,
+        x=tx,
+        y=ty,
+        route_s=ts,
+        heading=np.degrees(np.interp(ft, traj.t, traj.psi)) % 360.0,
+        speed=np.interp(ft, traj.t, traj.speed),
+        gps_outage=in_out,
     )
     gll = to_lonlat(graph.crs, np.nan_to_num(raw.gps_x), np.nan_to_num(raw.gps_y))
     have = ~np.isnan(raw.gps_x)

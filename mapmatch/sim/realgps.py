@@ -66,7 +66,7 @@ from mapmatch.errors import ValidationError
 from mapmatch.graph.index import project_to_edge
 from mapmatch.graph.projection import to_lonlat, to_xy
 from mapmatch.graph.road_graph import RoadGraph
-from mapmatch.sim.drive import FIX_COLUMNS, TRUTH_COLUMNS, Drive
+from mapmatch.sim.drive import FIX_COLUMNS, Drive, truth_frame
 from mapmatch.sim.kalman import FusedStream
 from mapmatch.sim.profile import Trajectory
 from mapmatch.sim.routes import Route, RouteError, route_from_edges, route_from_geometry
@@ -518,28 +518,17 @@ def real_drive(
         columns=list(FIX_COLUMNS),
     )
     ts = sb[idx]
-    edge, offs = route.locate(ts)
-    tx, ty = pos[idx, 0], pos[idx, 1]
-    tll = to_lonlat(graph.crs, tx, ty)
-    truth = pd.DataFrame(
-        {
-            "vehicle_id": [vid] * m,
-            "time": ot + time0,
-            "lat": tll[:, 1],
-            "lon": tll[:, 0],
-            "x": tx,
-            "y": ty,
-            "edge": edge,
-            "offset": offs,
-            "u": graph.node_id[graph.edge_u[edge]],
-            "v": graph.node_id[graph.edge_v[edge]],
-            "way_id": graph.edge_way_id[edge],
-            "heading": np.degrees(psi[idx]) % 360.0,
-            "speed": speed[idx],
-            "route_s": ts,
-            "gps_outage": (~have[idx]).astype(int),  # injected outages and long track gaps
-        },
-        columns=list(TRUTH_COLUMNS),
+    truth = truth_frame(
+        graph,
+        route,
+        vehicle_id=vid,
+        time=ot + time0,
+        x=pos[idx, 0],
+        y=pos[idx, 1],
+        route_s=ts,
+        heading=np.degrees(psi[idx]) % 360.0,
+        speed=speed[idx],
+        gps_outage=~have[idx],  # injected outages and long track gaps
     )
     gll = to_lonlat(graph.crs, fix_xy[:, 0], fix_xy[:, 1])
     fix_in_out = np.zeros(len(t_fix), dtype=bool)
