@@ -154,11 +154,25 @@ def _run(args: argparse.Namespace) -> int:
     except KeyboardInterrupt:
         raise
     except Exception as exc:  # a library's error the command did not translate: still one line
+        if _interrupted(exc):  # Ctrl-C inside compiled code surfaces as an error caused by it
+            raise KeyboardInterrupt from None
         logging.getLogger("mapmatch").debug("traceback", exc_info=True)
         kind = type(exc).__name__
         return _fail(
             cmd, f"{kind}: {exc} (a bug unless the input is bad; -vv shows the traceback)", EXIT_USAGE
         )
+
+
+def _interrupted(exc: BaseException) -> bool:
+    """Whether ``exc`` was caused by a KeyboardInterrupt (anywhere in its chain)."""
+    seen: set[int] = set()
+    cur: BaseException | None = exc
+    while cur is not None and id(cur) not in seen:
+        if isinstance(cur, KeyboardInterrupt):
+            return True
+        seen.add(id(cur))
+        cur = cur.__cause__ or cur.__context__
+    return False
 
 
 if __name__ == "__main__":
