@@ -47,25 +47,6 @@ def _project_one(seg_xy, seg_ptr, e, x, y):  # type: ignore[no-untyped-def]
     return off, dist, px, py
 
 
-EMISSION_PRUNE = 12.5
-"""Candidates whose emission log-probability is this far below the point's best are dropped."""
-REVERSE_TOLERANCE = 10.0
-"""Metres a candidate may fall behind the previous one on the same edge and count as standing."""
-
-ROUTE_LP_CUT = 30.0
-"""Transition log-probability below which routes are searched only as a fallback."""
-
-MAX_SKIP = 8
-"""Points in a row that may be left out as unreachable outliers before the track is split."""
-
-STOP_SPEED = 1.0
-"""m/s; a step slower than this on average (over at least ``STOP_TIME``) spans a stop."""
-STOP_TIME = 5.0
-"""Seconds a step must last to count as a stop."""
-STOP_UTURN_PENALTY = 1.0
-"""U-turn penalty at a junction across a stop (turning round there, e.g. in a yard off the
-mapped road, is common; mid-road U-turns keep the full penalty)."""
-
 STEP_SAME, STEP_UTURN, STEP_ROUTE, STEP_SPLIT = 0, 1, 2, 3
 
 
@@ -170,11 +151,12 @@ class BatchMatcher:
         # one compiled call: pruning, Viterbi, route pieces and per-point results
         out = _run(  # type: ignore[call-arg]
             n, valid, kept, xy, tim, odo_cum, kidx, cands.point, cands.edge, cands.offset, cands.xy,
-            cands.dist, emis, sigma if isinstance(sigma, float) else 0.0, EMISSION_PRUNE,
+            cands.dist, emis, sigma if isinstance(sigma, float) else 0.0, float(cfg.emission_prune),
             float(cfg.outlier_distance), model.transition_params(cfg),
-            np.array([STOP_SPEED, STOP_TIME, STOP_UTURN_PENALTY]),
-            float(cfg.max_route_factor), float(cfg.route_slack), float(cfg.beta * ROUTE_LP_CUT),
-            float(cfg.gap_distance), MAX_SKIP, REVERSE_TOLERANCE, self._seg_xy, self._seg_ptr, *self._kargs,
+            np.array([cfg.stop_uturn_speed, cfg.stop_uturn_time, cfg.stop_uturn_penalty], dtype=np.float64),
+            float(cfg.max_route_factor), float(cfg.route_slack), float(cfg.beta * cfg.route_lp_cut),
+            float(cfg.gap_distance), int(cfg.max_skip), float(cfg.reverse_tolerance), self._seg_xy,
+            self._seg_ptr, *self._kargs,
         )  # fmt: skip
         res = _result(str(track.track_id), *out)
         if lonlat:

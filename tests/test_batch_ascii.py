@@ -194,7 +194,7 @@ def test_empty_and_hopeless_tracks_do_not_fail() -> None:
     assert [p.status for p in one.points] == ["matched"] and len(one.routes) == 1
 
 
-def test_turning_round_at_a_junction_after_a_stop(monkeypatch: pytest.MonkeyPatch) -> None:
+def test_turning_round_at_a_junction_after_a_stop() -> None:
     # along ab, a stop in a yard off the road just past b (next to bd), then back along ba:
     # the stop makes turning round at b likelier than a loop b-c-e-d-b
     m = parse_ascii_map(
@@ -213,8 +213,8 @@ def test_turning_round_at_a_junction_after_a_stop(monkeypatch: pytest.MonkeyPatc
     assert [names(m, piece) for piece in r.routes] == [["ab", "ba"]]
     assert r.length_m == pytest.approx(150, abs=12)
     # without the stop rule the full U-turn penalty makes the loop win
-    monkeypatch.setattr(batch, "STOP_UTURN_PENALTY", DEFAULT_CONFIG.uturn_penalty)
-    r = BatchMatcher(m.graph).match(track)
+    full = DEFAULT_CONFIG.replace(stop_uturn_penalty=DEFAULT_CONFIG.uturn_penalty)
+    r = BatchMatcher(m.graph).match(track, full)
     assert [names(m, piece) for piece in r.routes] == [["ab", "bc", "ce", "ed", "db", "ba"]]
 
 
