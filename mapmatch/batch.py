@@ -25,12 +25,12 @@ from mapmatch.graph.road_graph import RoadGraph, merge_repeats
 from mapmatch.gridindex import GridIndex, grow_array
 from mapmatch.model import emission_logp_one, transition_logp_one
 from mapmatch.routing import (
-    RoutingArrays,
     Ubodt,
     Workspace,
     _reset,
     _search,
     path_edges,
+    route_graph,
     search_args,
     ubodt_lookup,
     ubodt_path,
@@ -85,7 +85,7 @@ class BatchMatcher:
         self.index = index or EdgeIndex(graph)
         self.config = config or BATCH_CONFIG
         self._grid = GridIndex(self.index, cell=self.config.search_radius)
-        self._ra = RoutingArrays.from_graph(graph)
+        self._rg = route_graph(graph, uturns="dead_end")
         self._seg_xy = np.ascontiguousarray(graph.seg_xy, dtype=np.float64)
         self._seg_ptr = np.ascontiguousarray(graph.edge_seg_ptr, dtype=np.int64)
         self._local = threading.local()
@@ -97,7 +97,7 @@ class BatchMatcher:
         args: tuple[Any, ...] | None = getattr(self._local, "kargs", None)
         if args is None:
             ws = Workspace(self.graph.n_edges)
-            args = self._local.kargs = (*search_args(self._ra, ws), *self._ubodt_args)
+            args = self._local.kargs = (*search_args(self._rg, ws), *self._ubodt_args)
         return args
 
     def match(self, track: Track, config: MatchConfig | None = None, *, lonlat: bool = True) -> TrackMatch:
@@ -332,14 +332,7 @@ def _step(  # type: ignore[no-untyped-def]
     dt,
     bound,
     reverse_tol,
-    out_ptr,
-    out_edges,
-    edge_v,
-    edge_len,
-    edge_rev,
-    r_ptr,
-    r_to,
-    r_kind,
+    g,
     dist,
     pred,
     done,
@@ -360,6 +353,8 @@ def _step(  # type: ignore[no-untyped-def]
     shorter than ``trav + beta * (score - best[j])``: the search bound shrinks accordingly and
     the result stays exact. Returns whether any target was reached.
     """
+    edge_len = g.edge_len
+    edge_rev = g.edge_rev
     ka = a1 - a0
     kb = b1 - b0
     beta = params[0]
@@ -433,8 +428,7 @@ def _step(  # type: ignore[no-untyped-def]
                         bpu[j] = False
             continue
         nt = _search(
-            e, edge_len[e] - o, lim, nuniq, out_ptr, out_edges, edge_v, edge_len, edge_rev,
-            r_ptr, r_to, r_kind, dist, pred, done, tgt, touched, heap_k, heap_v,
+            e, edge_len[e] - o, lim, nuniq, g, dist, pred, done, tgt, touched, heap_k, heap_v,
         )  # fmt: skip
         for j in range(b0, b1):
             f = cedge[j]
@@ -477,14 +471,7 @@ def _solve(  # type: ignore[no-untyped-def]
     gap_distance,
     max_skip,
     reverse_tol,
-    out_ptr,
-    out_edges,
-    edge_v,
-    edge_len,
-    edge_rev,
-    r_ptr,
-    r_to,
-    r_kind,
+    g,
     dist,
     pred,
     done,
@@ -543,9 +530,8 @@ def _solve(  # type: ignore[no-untyped-def]
         if restart < 0:
             reached, bound = _try_step(
                 prev, t, d, cand_ptr, cedge, coff, emis, pxy, ptime, podo, score, bp, bpu, order, best,
-                params, stop_params, route_factor, route_slack, lp_cut_m, reverse_tol, out_ptr, out_edges,
-                edge_v, edge_len, edge_rev, r_ptr, r_to, r_kind, dist, pred, done, tgt, touched, heap_k,
-                heap_v, u_delta, u_ptr, u_tgt, u_dist, u_pred,
+                params, stop_params, route_factor, route_slack, lp_cut_m, reverse_tol, g, dist, pred, done,
+                tgt, touched, heap_k, heap_v, u_delta, u_ptr, u_tgt, u_dist, u_pred,
             )  # fmt: skip
             if reached:
                 accepted[t] = True
@@ -572,9 +558,8 @@ def _solve(  # type: ignore[no-untyped-def]
                     break
                 reached, bound = _try_step(
                     q, s0, dq, cand_ptr, cedge, coff, emis, pxy, ptime, podo, score, bp, bpu, order, best,
-                    params, stop_params, route_factor, route_slack, lp_cut_m, reverse_tol, out_ptr, out_edges,
-                    edge_v, edge_len, edge_rev, r_ptr, r_to, r_kind, dist, pred, done, tgt, touched, heap_k,
-                    heap_v, u_delta, u_ptr, u_tgt, u_dist, u_pred,
+                    params, stop_params, route_factor, route_slack, lp_cut_m, reverse_tol, g, dist, pred,
+                    done, tgt, touched, heap_k, heap_v, u_delta, u_ptr, u_tgt, u_dist, u_pred,
                 )  # fmt: skip
                 if reached:
                     for r in range(q + 1, s0):
@@ -627,14 +612,7 @@ def _pieces(  # type: ignore[no-untyped-def]
     ch_off,
     kind,
     bound,
-    out_ptr,
-    out_edges,
-    edge_v,
-    edge_len,
-    edge_rev,
-    r_ptr,
-    r_to,
-    r_kind,
+    g,
     dist,
     pred,
     done,
@@ -649,6 +627,7 @@ def _pieces(  # type: ignore[no-untyped-def]
     u_pred,
 ):
     """The route as pieces ``(edge, start offset, end offset, segment)`` along the chosen candidates."""
+    edge_len = g.edge_len
     m = len(ch_edge)
     cap = 2 * m + 16
     pe = np.empty(cap, dtype=np.int64)
@@ -688,8 +667,8 @@ def _pieces(  # type: ignore[no-untyped-def]
                 mid = ubodt_path(u_ptr, u_tgt, u_dist, u_pred, ch_edge[t - 1], e)
             if mid is None:
                 mid = path_edges(
-                    ch_edge[t - 1], ch_off[t - 1], e, bound[t] + 1.0, out_ptr, out_edges, edge_v, edge_len,
-                    edge_rev, r_ptr, r_to, r_kind, dist, pred, done, tgt, touched, heap_k, heap_v,
+                    ch_edge[t - 1], ch_off[t - 1], e, bound[t] + 1.0, g, dist, pred, done, tgt, touched,
+                    heap_k, heap_v,
                 )  # fmt: skip
             if mid is None:
                 bad[t] = True
@@ -854,14 +833,7 @@ def _finish(  # type: ignore[no-untyped-def]
     seg_xy,
     seg_ptr,
     reverse_tol,
-    out_ptr,
-    out_edges,
-    edge_v,
-    edge_len,
-    edge_rev,
-    r_ptr,
-    r_to,
-    r_kind,
+    g,
     dist,
     pred,
     done,
@@ -876,6 +848,7 @@ def _finish(  # type: ignore[no-untyped-def]
     u_pred,
 ):
     """Per-point results, route pieces (edges and geometry), splits, length and confidence."""
+    edge_rev = g.edge_rev
     p_edge = np.full(n, -1, dtype=np.int64)
     p_off = np.full(n, np.nan)
     p_xy = np.full((n, 2), np.nan)
@@ -950,8 +923,8 @@ def _finish(  # type: ignore[no-untyped-def]
                 mine += w
         post += mine / tot
     pe, ps, pend, pseg, bad = _pieces(
-        ch_edge, ch_off, kind, bound, out_ptr, out_edges, edge_v, edge_len, edge_rev, r_ptr, r_to, r_kind,
-        dist, pred, done, tgt, touched, heap_k, heap_v, u_delta, u_ptr, u_tgt, u_dist, u_pred,
+        ch_edge, ch_off, kind, bound, g, dist, pred, done, tgt, touched, heap_k, heap_v, u_delta, u_ptr,
+        u_tgt, u_dist, u_pred,
     )  # fmt: skip
     # a failed path (should not happen: Viterbi chose a reachable pair) becomes a split
     nsplit = 0
@@ -1028,14 +1001,7 @@ def _run(  # type: ignore[no-untyped-def]
     reverse_tol,
     seg_xy,
     seg_ptr,
-    out_ptr,
-    out_edges,
-    edge_v,
-    edge_len,
-    edge_rev,
-    r_ptr,
-    r_to,
-    r_kind,
+    g,
     dist,
     pred,
     done,
@@ -1073,13 +1039,13 @@ def _run(  # type: ignore[no-untyped-def]
             podo[i] = odo_cum[pts[i]]
     choice, seg_start, via_u, used_bound = _solve(
         cand_ptr, ce, co, em, pxy, ptime, podo, params, stop_params, route_factor, route_slack, lp_cut_m,
-        gap_distance, max_skip, reverse_tol, out_ptr, out_edges, edge_v, edge_len, edge_rev, r_ptr, r_to,
-        r_kind, dist, pred, done, tgt, touched, heap_k, heap_v, u_delta, u_ptr, u_tgt, u_dist, u_pred,
+        gap_distance, max_skip, reverse_tol, g, dist, pred, done, tgt, touched, heap_k, heap_v, u_delta,
+        u_ptr, u_tgt, u_dist, u_pred,
     )  # fmt: skip
     return _finish(
         n, valid, kept, xy, pts, choice, seg_start, via_u, used_bound, cand_ptr, ce, co, cx, cd, em, seg_xy,
-        seg_ptr, reverse_tol, out_ptr, out_edges, edge_v, edge_len, edge_rev, r_ptr, r_to, r_kind, dist, pred,
-        done, tgt, touched, heap_k, heap_v, u_delta, u_ptr, u_tgt, u_dist, u_pred,
+        seg_ptr, reverse_tol, g, dist, pred, done, tgt, touched, heap_k, heap_v, u_delta, u_ptr, u_tgt,
+        u_dist, u_pred,
     )  # fmt: skip
 
 
@@ -1106,14 +1072,7 @@ def _try_step(  # type: ignore[no-untyped-def]
     route_slack,
     lp_cut_m,
     reverse_tol,
-    out_ptr,
-    out_edges,
-    edge_v,
-    edge_len,
-    edge_rev,
-    r_ptr,
-    r_to,
-    r_kind,
+    g,
     dist,
     pred,
     done,
@@ -1147,9 +1106,8 @@ def _try_step(  # type: ignore[no-untyped-def]
             break
         reached = _step(
             cand_ptr[prev], cand_ptr[prev + 1], cand_ptr[t], cand_ptr[t + 1], cedge, coff, emis, score, bp,
-            bpu, order, best, params, node_uturn, trav, dt, lim, reverse_tol, out_ptr, out_edges, edge_v,
-            edge_len, edge_rev, r_ptr, r_to, r_kind, dist, pred, done, tgt, touched, heap_k, heap_v, u_delta,
-            u_ptr, u_tgt, u_dist, u_pred,
+            bpu, order, best, params, node_uturn, trav, dt, lim, reverse_tol, g, dist, pred, done, tgt,
+            touched, heap_k, heap_v, u_delta, u_ptr, u_tgt, u_dist, u_pred,
         )  # fmt: skip
         if reached:
             break
