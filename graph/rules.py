@@ -9,6 +9,10 @@ and the policy for turning back:
     a junction (three or more roads), and is not a move at a node where a road just goes on.
 ``"never"``
     no move onto the edge's reverse twin (the simulator's legal drives).
+``"dead_end"``
+    the batch matcher's routes: the reverse twin is a move only at a dead end (no other edge
+    leaves the node, whatever the turn restrictions), and then a free one; the out-edges keep
+    the graph's order (the compiled searches' tie order).
 
 A move *turns back* onto the edge's reverse twin or, on a one-way without a twin, onto an
 edge that returns to the edge's start node with the same length.
@@ -24,12 +28,13 @@ from numpy.typing import NDArray
 
 from mapmatch.graph.road_graph import RESTRICTION_ONLY, RoadGraph
 
-UTurnPolicy = Literal["junction", "never"]
+UTurnPolicy = Literal["junction", "never", "dead_end"]
 
 
 @dataclass(frozen=True)
 class LegalMoves:
-    """``to[ptr[e]:ptr[e + 1]]`` are the moves after edge ``e`` (straight-ahead ones first);
+    """``to[ptr[e]:ptr[e + 1]]`` are the moves after edge ``e`` (straight-ahead ones first, but
+    in the graph's order under ``"dead_end"``);
     ``uturn`` marks those that turn back and pay the U-turn penalty."""
 
     ptr: NDArray[np.int64]
@@ -54,7 +59,7 @@ def junctions(graph: RoadGraph) -> NDArray[np.bool_]:
 
 def legal_moves(graph: RoadGraph, *, uturns: UTurnPolicy = "junction") -> LegalMoves:
     """The table of legal moves of ``graph`` under the U-turn policy ``uturns``."""
-    if uturns not in ("junction", "never"):
+    if uturns not in ("junction", "never", "dead_end"):
         raise ValueError(f"unknown U-turn policy {uturns!r}")
     ev, eu, rev = graph.edge_v.tolist(), graph.edge_u.tolist(), graph.edge_reverse.tolist()
     elen = graph.edge_len.tolist()
@@ -69,6 +74,8 @@ def legal_moves(graph: RoadGraph, *, uturns: UTurnPolicy = "junction") -> LegalM
     for e in range(graph.n_edges):
         v = ev[e]
         outs: list[int] = out[out_ptr[v] : out_ptr[v + 1]].tolist()
+        r, u = rev[e], eu[e]
+        dead_end = all(o == r for o in outs)
         rules = restr.get(e)
         if rules:
             only = {te for via, te, kind in rules if via == v and kind == RESTRICTION_ONLY}
@@ -76,12 +83,13 @@ def legal_moves(graph: RoadGraph, *, uturns: UTurnPolicy = "junction") -> LegalM
             if only:
                 outs = [o for o in outs if o in only]
             outs = [o for o in outs if o not in banned]
-        r, u = rev[e], eu[e]
         is_back = [o == r or (r < 0 and ev[o] == u and elen[o] == elen[e]) for o in outs]
         ahead = [o for o, b in zip(outs, is_back, strict=True) if not b]
         back = [o for o, b in zip(outs, is_back, strict=True) if b]
         if uturns == "never":
             moves = [(o, False) for o in outs if o != r]
+        elif uturns == "dead_end":
+            moves = [(o, False) for o in outs if o != r or dead_end]
         elif not ahead:
             moves = [(o, False) for o in back]
         elif branching[v]:

@@ -25,12 +25,12 @@ from mapmatch.graph.road_graph import RoadGraph, merge_repeats
 from mapmatch.gridindex import GridIndex, grow_array
 from mapmatch.model import emission_logp_one, transition_logp_one
 from mapmatch.routing import (
-    RoutingArrays,
     Ubodt,
     Workspace,
     _reset,
     _search,
     path_edges,
+    route_graph,
     search_args,
     ubodt_lookup,
     ubodt_path,
@@ -46,25 +46,6 @@ def _project_one(seg_xy, seg_ptr, e, x, y):  # type: ignore[no-untyped-def]
     off, dist, px, py, _ = project_point_compiled(seg_xy, seg_ptr[e], seg_ptr[e + 1], x, y, np.inf, 0.0)
     return off, dist, px, py
 
-
-EMISSION_PRUNE = 12.5
-"""Candidates whose emission log-probability is this far below the point's best are dropped."""
-REVERSE_TOLERANCE = 10.0
-"""Metres a candidate may fall behind the previous one on the same edge and count as standing."""
-
-ROUTE_LP_CUT = 30.0
-"""Transition log-probability below which routes are searched only as a fallback."""
-
-MAX_SKIP = 8
-"""Points in a row that may be left out as unreachable outliers before the track is split."""
-
-STOP_SPEED = 1.0
-"""m/s; a step slower than this on average (over at least ``STOP_TIME``) spans a stop."""
-STOP_TIME = 5.0
-"""Seconds a step must last to count as a stop."""
-STOP_UTURN_PENALTY = 1.0
-"""U-turn penalty at a junction across a stop (turning round there, e.g. in a yard off the
-mapped road, is common; mid-road U-turns keep the full penalty)."""
 
 STEP_SAME, STEP_UTURN, STEP_ROUTE, STEP_SPLIT = 0, 1, 2, 3
 
@@ -104,7 +85,7 @@ class BatchMatcher:
         self.index = index or EdgeIndex(graph)
         self.config = config or BATCH_CONFIG
         self._grid = GridIndex(self.index, cell=self.config.search_radius)
-        self._ra = RoutingArrays.from_graph(graph)
+        self._rg = route_graph(graph, uturns="dead_end")
         self._seg_xy = np.ascontiguousarray(graph.seg_xy, dtype=np.float64)
         self._seg_ptr = np.ascontiguousarray(graph.edge_seg_ptr, dtype=np.int64)
         self._local = threading.local()
@@ -116,7 +97,7 @@ class BatchMatcher:
         args: tuple[Any, ...] | None = getattr(self._local, "kargs", None)
         if args is None:
             ws = Workspace(self.graph.n_edges)
-            args = self._local.kargs = (*search_args(self._ra, ws), *self._ubodt_args)
+            args = self._local.kargs = (*search_args(self._rg, ws), *self._ubodt_args)
         return args
 
     def match(self, track: Track, config: MatchConfig | None = None, *, lonlat: bool = True) -> TrackMatch:
@@ -170,11 +151,12 @@ class BatchMatcher:
         # one compiled call: pruning, Viterbi, route pieces and per-point results
         out = _run(  # type: ignore[call-arg]
             n, valid, kept, xy, tim, odo_cum, kidx, cands.point, cands.edge, cands.offset, cands.xy,
-            cands.dist, emis, sigma if isinstance(sigma, float) else 0.0, EMISSION_PRUNE,
+            cands.dist, emis, sigma if isinstance(sigma, float) else 0.0, float(cfg.emission_prune),
             float(cfg.outlier_distance), model.transition_params(cfg),
-            np.array([STOP_SPEED, STOP_TIME, STOP_UTURN_PENALTY]),
-            float(cfg.max_route_factor), float(cfg.route_slack), float(cfg.beta * ROUTE_LP_CUT),
-            float(cfg.gap_distance), MAX_SKIP, REVERSE_TOLERANCE, self._seg_xy, self._seg_ptr, *self._kargs,
+            np.array([cfg.stop_uturn_speed, cfg.stop_uturn_time, cfg.stop_uturn_penalty], dtype=np.float64),
+            float(cfg.max_route_factor), float(cfg.route_slack), float(cfg.beta * cfg.route_lp_cut),
+            float(cfg.gap_distance), int(cfg.max_skip), float(cfg.reverse_tolerance), self._seg_xy,
+            self._seg_ptr, *self._kargs,
         )  # fmt: skip
         res = _result(str(track.track_id), *out)
         if lonlat:
@@ -350,14 +332,7 @@ def _step(  # type: ignore[no-untyped-def]
     dt,
     bound,
     reverse_tol,
-    out_ptr,
-    out_edges,
-    edge_v,
-    edge_len,
-    edge_rev,
-    r_ptr,
-    r_to,
-    r_kind,
+    g,
     dist,
     pred,
     done,
@@ -378,6 +353,8 @@ def _step(  # type: ignore[no-untyped-def]
     shorter than ``trav + beta * (score - best[j])``: the search bound shrinks accordingly and
     the result stays exact. Returns whether any target was reached.
     """
+    edge_len = g.edge_len
+    edge_rev = g.edge_rev
     ka = a1 - a0
     kb = b1 - b0
     beta = params[0]
@@ -451,8 +428,7 @@ def _step(  # type: ignore[no-untyped-def]
                         bpu[j] = False
             continue
         nt = _search(
-            e, edge_len[e] - o, lim, nuniq, out_ptr, out_edges, edge_v, edge_len, edge_rev,
-            r_ptr, r_to, r_kind, dist, pred, done, tgt, touched, heap_k, heap_v,
+            e, edge_len[e] - o, lim, nuniq, g, dist, pred, done, tgt, touched, heap_k, heap_v,
         )  # fmt: skip
         for j in range(b0, b1):
             f = cedge[j]
@@ -495,14 +471,7 @@ def _solve(  # type: ignore[no-untyped-def]
     gap_distance,
     max_skip,
     reverse_tol,
-    out_ptr,
-    out_edges,
-    edge_v,
-    edge_len,
-    edge_rev,
-    r_ptr,
-    r_to,
-    r_kind,
+    g,
     dist,
     pred,
     done,
@@ -561,9 +530,8 @@ def _solve(  # type: ignore[no-untyped-def]
         if restart < 0:
             reached, bound = _try_step(
                 prev, t, d, cand_ptr, cedge, coff, emis, pxy, ptime, podo, score, bp, bpu, order, best,
-                params, stop_params, route_factor, route_slack, lp_cut_m, reverse_tol, out_ptr, out_edges,
-                edge_v, edge_len, edge_rev, r_ptr, r_to, r_kind, dist, pred, done, tgt, touched, heap_k,
-                heap_v, u_delta, u_ptr, u_tgt, u_dist, u_pred,
+                params, stop_params, route_factor, route_slack, lp_cut_m, reverse_tol, g, dist, pred, done,
+                tgt, touched, heap_k, heap_v, u_delta, u_ptr, u_tgt, u_dist, u_pred,
             )  # fmt: skip
             if reached:
                 accepted[t] = True
@@ -590,9 +558,8 @@ def _solve(  # type: ignore[no-untyped-def]
                     break
                 reached, bound = _try_step(
                     q, s0, dq, cand_ptr, cedge, coff, emis, pxy, ptime, podo, score, bp, bpu, order, best,
-                    params, stop_params, route_factor, route_slack, lp_cut_m, reverse_tol, out_ptr, out_edges,
-                    edge_v, edge_len, edge_rev, r_ptr, r_to, r_kind, dist, pred, done, tgt, touched, heap_k,
-                    heap_v, u_delta, u_ptr, u_tgt, u_dist, u_pred,
+                    params, stop_params, route_factor, route_slack, lp_cut_m, reverse_tol, g, dist, pred,
+                    done, tgt, touched, heap_k, heap_v, u_delta, u_ptr, u_tgt, u_dist, u_pred,
                 )  # fmt: skip
                 if reached:
                     for r in range(q + 1, s0):
@@ -645,14 +612,7 @@ def _pieces(  # type: ignore[no-untyped-def]
     ch_off,
     kind,
     bound,
-    out_ptr,
-    out_edges,
-    edge_v,
-    edge_len,
-    edge_rev,
-    r_ptr,
-    r_to,
-    r_kind,
+    g,
     dist,
     pred,
     done,
@@ -667,6 +627,7 @@ def _pieces(  # type: ignore[no-untyped-def]
     u_pred,
 ):
     """The route as pieces ``(edge, start offset, end offset, segment)`` along the chosen candidates."""
+    edge_len = g.edge_len
     m = len(ch_edge)
     cap = 2 * m + 16
     pe = np.empty(cap, dtype=np.int64)
@@ -706,8 +667,8 @@ def _pieces(  # type: ignore[no-untyped-def]
                 mid = ubodt_path(u_ptr, u_tgt, u_dist, u_pred, ch_edge[t - 1], e)
             if mid is None:
                 mid = path_edges(
-                    ch_edge[t - 1], ch_off[t - 1], e, bound[t] + 1.0, out_ptr, out_edges, edge_v, edge_len,
-                    edge_rev, r_ptr, r_to, r_kind, dist, pred, done, tgt, touched, heap_k, heap_v,
+                    ch_edge[t - 1], ch_off[t - 1], e, bound[t] + 1.0, g, dist, pred, done, tgt, touched,
+                    heap_k, heap_v,
                 )  # fmt: skip
             if mid is None:
                 bad[t] = True
@@ -872,14 +833,7 @@ def _finish(  # type: ignore[no-untyped-def]
     seg_xy,
     seg_ptr,
     reverse_tol,
-    out_ptr,
-    out_edges,
-    edge_v,
-    edge_len,
-    edge_rev,
-    r_ptr,
-    r_to,
-    r_kind,
+    g,
     dist,
     pred,
     done,
@@ -894,6 +848,7 @@ def _finish(  # type: ignore[no-untyped-def]
     u_pred,
 ):
     """Per-point results, route pieces (edges and geometry), splits, length and confidence."""
+    edge_rev = g.edge_rev
     p_edge = np.full(n, -1, dtype=np.int64)
     p_off = np.full(n, np.nan)
     p_xy = np.full((n, 2), np.nan)
@@ -968,8 +923,8 @@ def _finish(  # type: ignore[no-untyped-def]
                 mine += w
         post += mine / tot
     pe, ps, pend, pseg, bad = _pieces(
-        ch_edge, ch_off, kind, bound, out_ptr, out_edges, edge_v, edge_len, edge_rev, r_ptr, r_to, r_kind,
-        dist, pred, done, tgt, touched, heap_k, heap_v, u_delta, u_ptr, u_tgt, u_dist, u_pred,
+        ch_edge, ch_off, kind, bound, g, dist, pred, done, tgt, touched, heap_k, heap_v, u_delta, u_ptr,
+        u_tgt, u_dist, u_pred,
     )  # fmt: skip
     # a failed path (should not happen: Viterbi chose a reachable pair) becomes a split
     nsplit = 0
@@ -1046,14 +1001,7 @@ def _run(  # type: ignore[no-untyped-def]
     reverse_tol,
     seg_xy,
     seg_ptr,
-    out_ptr,
-    out_edges,
-    edge_v,
-    edge_len,
-    edge_rev,
-    r_ptr,
-    r_to,
-    r_kind,
+    g,
     dist,
     pred,
     done,
@@ -1091,13 +1039,13 @@ def _run(  # type: ignore[no-untyped-def]
             podo[i] = odo_cum[pts[i]]
     choice, seg_start, via_u, used_bound = _solve(
         cand_ptr, ce, co, em, pxy, ptime, podo, params, stop_params, route_factor, route_slack, lp_cut_m,
-        gap_distance, max_skip, reverse_tol, out_ptr, out_edges, edge_v, edge_len, edge_rev, r_ptr, r_to,
-        r_kind, dist, pred, done, tgt, touched, heap_k, heap_v, u_delta, u_ptr, u_tgt, u_dist, u_pred,
+        gap_distance, max_skip, reverse_tol, g, dist, pred, done, tgt, touched, heap_k, heap_v, u_delta,
+        u_ptr, u_tgt, u_dist, u_pred,
     )  # fmt: skip
     return _finish(
         n, valid, kept, xy, pts, choice, seg_start, via_u, used_bound, cand_ptr, ce, co, cx, cd, em, seg_xy,
-        seg_ptr, reverse_tol, out_ptr, out_edges, edge_v, edge_len, edge_rev, r_ptr, r_to, r_kind, dist, pred,
-        done, tgt, touched, heap_k, heap_v, u_delta, u_ptr, u_tgt, u_dist, u_pred,
+        seg_ptr, reverse_tol, g, dist, pred, done, tgt, touched, heap_k, heap_v, u_delta, u_ptr, u_tgt,
+        u_dist, u_pred,
     )  # fmt: skip
 
 
@@ -1124,14 +1072,7 @@ def _try_step(  # type: ignore[no-untyped-def]
     route_slack,
     lp_cut_m,
     reverse_tol,
-    out_ptr,
-    out_edges,
-    edge_v,
-    edge_len,
-    edge_rev,
-    r_ptr,
-    r_to,
-    r_kind,
+    g,
     dist,
     pred,
     done,
@@ -1165,9 +1106,8 @@ def _try_step(  # type: ignore[no-untyped-def]
             break
         reached = _step(
             cand_ptr[prev], cand_ptr[prev + 1], cand_ptr[t], cand_ptr[t + 1], cedge, coff, emis, score, bp,
-            bpu, order, best, params, node_uturn, trav, dt, lim, reverse_tol, out_ptr, out_edges, edge_v,
-            edge_len, edge_rev, r_ptr, r_to, r_kind, dist, pred, done, tgt, touched, heap_k, heap_v, u_delta,
-            u_ptr, u_tgt, u_dist, u_pred,
+            bpu, order, best, params, node_uturn, trav, dt, lim, reverse_tol, g, dist, pred, done, tgt,
+            touched, heap_k, heap_v, u_delta, u_ptr, u_tgt, u_dist, u_pred,
         )  # fmt: skip
         if reached:
             break

@@ -268,6 +268,20 @@ class BatchConfig:
     gap_distance : metres between fixes that split a track.
     outlier_distance : a fix further than this from every road is unmatched.
     interpolate_distance : fixes closer than this to the previous kept fix are interpolated.
+    emission_prune : candidates whose emission log-probability is this far below their fix's
+        best are dropped.
+    reverse_tolerance : metres a candidate may fall behind the previous one on the same edge and
+        count as standing.
+    route_lp_cut : routes are searched only as a fallback beyond the travelled distance plus
+        this many β (a transition log-probability below ``-route_lp_cut``).
+    max_skip : fixes in a row that may be left out as unreachable outliers before the track is
+        split.
+    stop_uturn_speed : m/s; a step slower than this on average (over at least
+        ``stop_uturn_time``) spans a stop ...
+    stop_uturn_time : ... of at least this many seconds, ...
+    stop_uturn_penalty : ... across which turning round at a junction costs this U-turn
+        penalty (turning round there, e.g. in a yard off the mapped road, is common; mid-road
+        U-turns keep the full penalty).
     """
 
     max_route_factor: float = 3.0
@@ -276,6 +290,13 @@ class BatchConfig:
     gap_distance: float = 2000.0
     outlier_distance: float = 100.0
     interpolate_distance: float = 0.0
+    emission_prune: float = 12.5
+    reverse_tolerance: float = 10.0
+    route_lp_cut: float = 30.0
+    max_skip: int = 8
+    stop_uturn_speed: float = 1.0
+    stop_uturn_time: float = 5.0
+    stop_uturn_penalty: float = 1.0
 
     def __post_init__(self) -> None:
         _check_numbers(self)

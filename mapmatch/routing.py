@@ -10,60 +10,48 @@ the batch matcher needs between the candidates of consecutive fixes:
 * :class:`Ubodt`: an FMM-style upper-bounded origin-destination table, precomputed once per
   map for a bound in metres, then looked up (``bench/bench_batch.py --routing`` measures both).
 
-U-turns at a node are allowed only at dead ends; a U-turn along the road is a separate,
-penalised move the matcher scores itself.
+The moves come from the map's table of legal moves (:mod:`mapmatch.graph.rules`, policy
+``"dead_end"``: turning back at a node only at a dead end); a U-turn along the road is a
+separate, penalised move the matcher scores itself.
 """
 
 from __future__ import annotations
 
 import heapq
 from dataclasses import dataclass
+from typing import Any, NamedTuple
 
 import numpy as np
 from numba import njit
 from numpy.typing import NDArray
 
 from mapmatch.graph.road_graph import RoadGraph
-from mapmatch.graph.rules import moves_for
+from mapmatch.graph.rules import UTurnPolicy, moves_for
 
 INF = np.inf
 
 
-@dataclass(frozen=True)
-class RoutingArrays:
-    """The graph arrays the compiled searches read, restrictions as CSR keyed by from-edge."""
+class RouteGraph(NamedTuple):
+    """The graph arrays the compiled searches read: the legal-moves table
+    (``move_to[move_ptr[e]:move_ptr[e + 1]]`` are the edges a route may take after ``e``), the
+    edge lengths and the edges' reverse twins (-1 for none)."""
 
-    out_ptr: NDArray[np.int64]
-    out_edges: NDArray[np.int32]
-    edge_v: NDArray[np.int32]
+    move_ptr: NDArray[np.int64]
+    move_to: NDArray[np.int32]
     edge_len: NDArray[np.float64]
     edge_rev: NDArray[np.int32]
-    r_ptr: NDArray[np.int64]
-    r_to: NDArray[np.int32]
-    r_kind: NDArray[np.int32]
 
-    @classmethod
-    def from_graph(cls, graph: RoadGraph) -> RoutingArrays:
-        e = graph.n_edges
-        r = graph.restrictions
-        if len(r):
-            order = np.argsort(r[:, 0], kind="stable")
-            r = r[order]
-            counts = np.bincount(r[:, 0], minlength=e)
-        else:
-            counts = np.zeros(e, dtype=np.int64)
-        ptr = np.zeros(e + 1, dtype=np.int64)
-        np.cumsum(counts, out=ptr[1:])
-        return cls(
-            out_ptr=np.ascontiguousarray(graph.out_ptr, dtype=np.int64),
-            out_edges=np.ascontiguousarray(graph.out_edges, dtype=np.int32),
-            edge_v=np.ascontiguousarray(graph.edge_v, dtype=np.int32),
-            edge_len=np.ascontiguousarray(graph.edge_len, dtype=np.float64),
-            edge_rev=np.ascontiguousarray(graph.edge_reverse, dtype=np.int32),
-            r_ptr=ptr,
-            r_to=np.ascontiguousarray(r[:, 2] if len(r) else np.empty(0), dtype=np.int32),
-            r_kind=np.ascontiguousarray(r[:, 3] if len(r) else np.empty(0), dtype=np.int32),
-        )
+
+def route_graph(graph: RoadGraph, *, uturns: UTurnPolicy = "dead_end") -> RouteGraph:
+    """The compiled searches' arrays of ``graph``, moves by :func:`mapmatch.graph.rules.moves_for`
+    under the U-turn policy ``uturns`` (the batch matcher's: turning back only at a dead end)."""
+    moves = moves_for(graph, uturns=uturns)
+    return RouteGraph(
+        move_ptr=np.ascontiguousarray(moves.ptr, dtype=np.int64),
+        move_to=np.ascontiguousarray(moves.to, dtype=np.int32),
+        edge_len=np.ascontiguousarray(graph.edge_len, dtype=np.float64),
+        edge_rev=np.ascontiguousarray(graph.edge_reverse, dtype=np.int32),
+    )
 
 
 class Workspace:
@@ -77,27 +65,6 @@ class Workspace:
         self.touched = np.empty(n_edges + 1, dtype=np.int32)
         self.heap_k = np.empty(n_edges + 16, dtype=np.float64)
         self.heap_v = np.empty(n_edges + 16, dtype=np.int32)
-
-
-@njit(cache=True, nogil=True, inline="always")
-def _allowed(e: int, f: int, out_ptr, out_edges, edge_v, edge_rev, r_ptr, r_to, r_kind) -> bool:  # type: ignore[no-untyped-def]
-    if f == edge_rev[e]:
-        v = edge_v[e]
-        # U-turn at a node only at a dead end
-        for i in range(out_ptr[v], out_ptr[v + 1]):
-            if out_edges[i] != f:
-                return False
-    has_only = False
-    found_only = False
-    for i in range(r_ptr[e], r_ptr[e + 1]):
-        if r_kind[i] == 0:
-            if r_to[i] == f:
-                return False
-        else:
-            has_only = True
-            if r_to[i] == f:
-                found_only = True
-    return not has_only or found_only
 
 
 @njit(cache=True, nogil=True, inline="always")
@@ -142,14 +109,7 @@ def _search(  # type: ignore[no-untyped-def]
     base: float,
     bound: float,
     n_targets: int,
-    out_ptr,
-    out_edges,
-    edge_v,
-    edge_len,
-    edge_rev,
-    r_ptr,
-    r_to,
-    r_kind,
+    g,
     dist,
     pred,
     done,
@@ -166,14 +126,12 @@ def _search(  # type: ignore[no-untyped-def]
     """
     nt = 0
     nh = 0
-    v = edge_v[src]
-    for i in range(out_ptr[v], out_ptr[v + 1]):
-        f = out_edges[i]
-        if (
-            base <= bound
-            and base < dist[f]
-            and _allowed(src, f, out_ptr, out_edges, edge_v, edge_rev, r_ptr, r_to, r_kind)
-        ):
+    move_ptr = g.move_ptr
+    move_to = g.move_to
+    edge_len = g.edge_len
+    for i in range(move_ptr[src], move_ptr[src + 1]):
+        f = move_to[i]
+        if base <= bound and base < dist[f]:
             if dist[f] == INF:
                 touched[nt] = f
                 nt += 1
@@ -193,14 +151,9 @@ def _search(  # type: ignore[no-untyped-def]
         nd = d + edge_len[e]
         if nd > bound:
             continue
-        w = edge_v[e]
-        for i in range(out_ptr[w], out_ptr[w + 1]):
-            f = out_edges[i]
-            if (
-                nd < dist[f]
-                and not done[f]
-                and _allowed(e, f, out_ptr, out_edges, edge_v, edge_rev, r_ptr, r_to, r_kind)
-            ):
+        for i in range(move_ptr[e], move_ptr[e + 1]):
+            f = move_to[i]
+            if nd < dist[f] and not done[f]:
                 if dist[f] == INF:
                     touched[nt] = f
                     nt += 1
@@ -226,14 +179,7 @@ def path_edges(  # type: ignore[no-untyped-def]
     src_off: float,
     dst: int,
     bound: float,
-    out_ptr,
-    out_edges,
-    edge_v,
-    edge_len,
-    edge_rev,
-    r_ptr,
-    r_to,
-    r_kind,
+    g,
     dist,
     pred,
     done,
@@ -244,10 +190,7 @@ def path_edges(  # type: ignore[no-untyped-def]
 ):
     """The edges strictly between ``src`` and ``dst`` on the shortest route (None if none)."""
     tgt[dst] = 1
-    nt = _search(
-        src, edge_len[src] - src_off, bound, 1, out_ptr, out_edges, edge_v, edge_len, edge_rev,
-        r_ptr, r_to, r_kind, dist, pred, done, tgt, touched, heap_k, heap_v,
-    )  # fmt: skip
+    nt = _search(src, g.edge_len[src] - src_off, bound, 1, g, dist, pred, done, tgt, touched, heap_k, heap_v)
     tgt[dst] = 0
     ok = dist[dst] < INF
     out = np.empty(0, dtype=np.int32)
@@ -269,17 +212,10 @@ def path_edges(  # type: ignore[no-untyped-def]
     return out
 
 
-def search_args(ra: RoutingArrays, ws: Workspace) -> tuple[NDArray[np.generic], ...]:
+def search_args(rg: RouteGraph, ws: Workspace) -> tuple[Any, ...]:
     """The trailing positional arguments of the compiled searches, in order."""
     return (
-        ra.out_ptr,
-        ra.out_edges,
-        ra.edge_v,
-        ra.edge_len,
-        ra.edge_rev,
-        ra.r_ptr,
-        ra.r_to,
-        ra.r_kind,
+        rg,
         ws.dist,
         ws.pred,
         ws.done,
@@ -298,18 +234,18 @@ def shortest_route(
     dst_off: float,
     *,
     bound: float = 1e9,
-    ra: RoutingArrays | None = None,
+    rg: RouteGraph | None = None,
     ws: Workspace | None = None,
 ) -> tuple[float, list[int]] | None:
     """Shortest route from a position on ``src`` to one on ``dst``: ``(metres, edges)``.
 
     ``edges`` runs from ``src`` to ``dst`` inclusive. None when unreachable within ``bound``.
     """
-    ra = ra or RoutingArrays.from_graph(graph)
+    rg = rg or route_graph(graph)
     ws = ws or Workspace(graph.n_edges)
     if src == dst and dst_off >= src_off:
         return dst_off - src_off, [src]
-    mid = path_edges(src, src_off, dst, bound, *search_args(ra, ws))
+    mid = path_edges(src, src_off, dst, bound, *search_args(rg, ws))
     if mid is None:
         return None
     edges = [src, *(int(e) for e in mid), dst]
@@ -377,9 +313,8 @@ class Ubodt:
     @classmethod
     def build(cls, graph: RoadGraph, delta: float) -> Ubodt:
         """Precompute the table for ``delta`` metres (time and memory grow fast with it)."""
-        ra = RoutingArrays.from_graph(graph)
         ws = Workspace(graph.n_edges)
-        ptr, tgt, dist, pred = _build_ubodt(float(delta), graph.n_edges, *search_args(ra, ws))
+        ptr, tgt, dist, pred = _build_ubodt(float(delta), graph.n_edges, *search_args(route_graph(graph), ws))
         return cls(delta=float(delta), ptr=ptr, tgt=tgt, dist=dist, pred=pred)
 
     @property
@@ -391,14 +326,7 @@ class Ubodt:
 def _build_ubodt(  # type: ignore[no-untyped-def]
     delta,
     n_edges,
-    out_ptr,
-    out_edges,
-    edge_v,
-    edge_len,
-    edge_rev,
-    r_ptr,
-    r_to,
-    r_kind,
+    g,
     dist,
     pred,
     done,
@@ -414,10 +342,7 @@ def _build_ubodt(  # type: ignore[no-untyped-def]
     out_p = np.empty(cap, dtype=np.int32)
     m = 0
     for e in range(n_edges):
-        nt = _search(
-            e, 0.0, delta, -1, out_ptr, out_edges, edge_v, edge_len, edge_rev, r_ptr, r_to, r_kind,
-            dist, pred, done, tgt, touched, heap_k, heap_v,
-        )  # fmt: skip
+        nt = _search(e, 0.0, delta, -1, g, dist, pred, done, tgt, touched, heap_k, heap_v)
         if m + nt > cap:
             cap = 2 * (m + nt)
             t2 = np.empty(cap, dtype=np.int32)

@@ -194,7 +194,7 @@ def test_empty_and_hopeless_tracks_do_not_fail() -> None:
     assert [p.status for p in one.points] == ["matched"] and len(one.routes) == 1
 
 
-def test_turning_round_at_a_junction_after_a_stop(monkeypatch: pytest.MonkeyPatch) -> None:
+def test_turning_round_at_a_junction_after_a_stop() -> None:
     # along ab, a stop in a yard off the road just past b (next to bd), then back along ba:
     # the stop makes turning round at b likelier than a loop b-c-e-d-b
     m = parse_ascii_map(
@@ -213,8 +213,8 @@ def test_turning_round_at_a_junction_after_a_stop(monkeypatch: pytest.MonkeyPatc
     assert [names(m, piece) for piece in r.routes] == [["ab", "ba"]]
     assert r.length_m == pytest.approx(150, abs=12)
     # without the stop rule the full U-turn penalty makes the loop win
-    monkeypatch.setattr(batch, "STOP_UTURN_PENALTY", DEFAULT_CONFIG.uturn_penalty)
-    r = BatchMatcher(m.graph).match(track)
+    full = DEFAULT_CONFIG.replace(stop_uturn_penalty=DEFAULT_CONFIG.uturn_penalty)
+    r = BatchMatcher(m.graph).match(track, full)
     assert [names(m, piece) for piece in r.routes] == [["ab", "bc", "ce", "ed", "db", "ba"]]
 
 
@@ -240,6 +240,19 @@ def test_drift_onto_a_dead_end_is_left_out_rather_than_splitting() -> None:
     status = [p.status for p in r.points]
     assert status[3:6] == [PointStatus.UNMATCHED] * 3
     assert all(s == PointStatus.MATCHED for s in status[:3] + status[6:])
+    # fewer fixes may be left out (max_skip, per call) than drifted: the track splits instead
+    few = BatchMatcher(m.graph).match(track_from_xy(m, pts + drift + on), DEFAULT_CONFIG.replace(max_skip=2))
+    assert few.splits == [6] and [names(m, piece) for piece in few.routes] == [["ab", "bd"], ["bc"]]
+
+
+def test_batch_tuning_constants_are_validated_config_fields() -> None:
+    from mapmatch.errors import ConfigError
+
+    cfg = DEFAULT_CONFIG.replace(emission_prune=5.0, max_skip=3, stop_uturn_time=2.0)
+    assert (cfg.batch.emission_prune, cfg.batch.max_skip, cfg.batch.stop_uturn_time) == (5.0, 3, 2.0)
+    for bad in ({"max_skip": 2.5}, {"reverse_tolerance": -1.0}, {"route_lp_cut": math.inf}):
+        with pytest.raises(ConfigError):
+            DEFAULT_CONFIG.replace(**bad)
 
 
 def test_deferred_lonlat_gives_the_same_result() -> None:

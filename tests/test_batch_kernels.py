@@ -1,5 +1,5 @@
 """The compiled kernels agree with their reference: grid candidate search vs EdgeIndex.query,
-the compiled transition vs the shared model's vectorised one."""
+the compiled transition vs the shared model's vectorised one, the routing moves vs the old rule."""
 
 from __future__ import annotations
 
@@ -12,6 +12,7 @@ from mapmatch import model
 from mapmatch.batch import BATCH_CONFIG
 from mapmatch.graph.ascii import parse_ascii_map
 from mapmatch.graph.index import EdgeIndex
+from mapmatch.graph.road_graph import RESTRICTION_ONLY, RoadGraph
 from mapmatch.gridindex import GridIndex
 
 DRAWING = """
@@ -99,8 +100,6 @@ def test_ubodt_gives_the_same_matches_as_the_search() -> None:
 
 
 def test_grid_index_with_many_roads_near_one_point() -> None:
-    from mapmatch.graph.road_graph import RoadGraph
-
     # 150 short one-way spokes around the origin: more roads near a point than the first buffer
     ang = np.linspace(0, 2 * np.pi, 150, endpoint=False)
     inner = np.column_stack([np.cos(ang), np.sin(ang)]) * 5 + [385_000.0, 6_672_000.0]
@@ -120,3 +119,36 @@ def test_grid_index_with_many_roads_near_one_point() -> None:
         np.testing.assert_array_equal(a.edge, b.edge)
         np.testing.assert_allclose(a.offset, b.offset, atol=1e-6)
     assert np.sum(b.point == 0) == 150
+
+
+def _old_routing_rule(g: RoadGraph, e: int, f: int) -> bool:
+    """The rule the compiled routing applied before the legal-moves table (#13), written out:
+    the reverse twin only at a dead end, then the from-edge's turn restrictions."""
+    v = int(g.edge_v[e])
+    if f == g.edge_reverse[e] and any(o != f for o in g.out_of(v)):
+        return False
+    rows = [r for r in g.restrictions.tolist() if r[0] == e]
+    only = [r[2] for r in rows if r[3] == RESTRICTION_ONLY]
+    banned = [r[2] for r in rows if r[3] != RESTRICTION_ONLY]
+    return f not in banned and (not only or f in only)
+
+
+@pytest.mark.parametrize(
+    "restrictions",
+    [[], [("b", "c", "h", "no"), ("f", "b", "c", "only"), ("k", "h", "c", "no"), ("j", "f", "e", "only")]],
+)
+def test_routing_moves_are_the_old_dead_end_rule(restrictions: list[tuple[str, str, str, str]]) -> None:
+    from mapmatch.routing import route_graph
+
+    m = parse_ascii_map(DRAWING + "   |\n   l\n", scale=7, restrictions=restrictions)
+    g = m.graph
+    rg = route_graph(g)
+    dead_ends = 0
+    for e in range(g.n_edges):
+        outs = [int(f) for f in g.out_of(int(g.edge_v[e]))]
+        want = [f for f in outs if _old_routing_rule(g, e, f)]  # in the graph's order
+        assert rg.move_to[rg.move_ptr[e] : rg.move_ptr[e + 1]].tolist() == want
+        dead_ends += outs == [g.edge_reverse[e]]
+    # turning back is the only move at the spur's end l and, coming from d, at i (h>i one-way)
+    assert dead_ends == 2
+    assert len(g.restrictions) == (4 if restrictions else 0)
