@@ -97,6 +97,8 @@ def test_version_1_is_migrated() -> None:
         (lambda d: d.update(odo=math.inf), "state.odo"),
         (lambda d: d.update(res_pos2=-1.0), "state.res_pos2"),
         (lambda d: d.update(drift_sigma=-0.1), "state.drift_sigma"),
+        (lambda d: d.update(drift_sigma=1.7e175), "state.drift_sigma"),  # its square overflows
+        (lambda d: d["bias"].update(pyy=1e200), "state.bias.pyy"),
         (lambda d: d.update(init_pending=1), "state.init_pending"),
         (lambda d: d.update(shown=1.5), "state.shown"),
         (lambda d: d["bias"].update(pxx=-4.0), "state.bias.pxx"),

@@ -16,6 +16,9 @@ from mapmatch.errors import ValidationError
 from mapmatch.online.state import BackEdge, FixBias, Hypothesis, LiveFix, SessionState, TrailPoint
 
 VERSION = 2
+# no state value is larger (map coordinates, odometer metres, times in seconds, variances);
+# the bound keeps squares and products of imported values finite
+MAX_MAGNITUDE = 1e12
 _NAN = math.nan
 _HYP = ("edges", "k", "off", "s", "logp", "enter", "dist", "px", "py", "bearing", "anc", "anc_sd")
 _LIVE = ("time", "edge", "x", "y", "heading", "sigma", "kappa", "gps")
@@ -168,8 +171,8 @@ def _num(v: Any, name: str, *, nan: bool = False, low: float | None = None) -> f
         if not nan:
             raise ValidationError(name, "must be a finite number")
         return f
-    if not math.isfinite(f):
-        raise ValidationError(name, "must be a finite number")
+    if not math.isfinite(f) or abs(f) > MAX_MAGNITUDE:
+        raise ValidationError(name, f"must be a finite number of magnitude at most {MAX_MAGNITUDE:g}")
     if low is not None and f < low:
         raise ValidationError(name, f"must be at least {low:g}")
     return f
