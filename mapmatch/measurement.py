@@ -207,8 +207,9 @@ def along_track_sigma(
         )
         v = vf if math.isinf(va) else vf * va / (vf + va)
     else:
-        carry = gps_sigma * gps_sigma + (odo_sigma * max(dr_distance, 0.0)) ** 2
-        v = min(va, carry)
+        # in σ, capped before squaring: a long carry must not overflow
+        carry = min(math.hypot(gps_sigma, odo_sigma * max(dr_distance, 0.0)), config.along_sigma_max)
+        v = min(va, carry * carry)
     return min(math.sqrt(v), config.along_sigma_max)
 
 

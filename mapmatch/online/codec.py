@@ -16,9 +16,9 @@ from mapmatch.errors import ValidationError
 from mapmatch.online.state import BackEdge, FixBias, Hypothesis, LiveFix, SessionState, TrailPoint
 
 VERSION = 2
-# no state value is larger (map coordinates, odometer metres, times in seconds, variances);
-# the bound keeps squares and products of imported values finite
-MAX_MAGNITUDE = 1e12
+# the largest σ, variance or distance a state may hold: squares and products of imported
+# spreads stay finite (times, coordinates and the odometer need only be finite)
+MAX_MAGNITUDE = 1e100
 _NAN = math.nan
 _HYP = ("edges", "k", "off", "s", "logp", "enter", "dist", "px", "py", "bearing", "anc", "anc_sd")
 _LIVE = ("time", "edge", "x", "y", "heading", "sigma", "kappa", "gps")
@@ -150,8 +150,8 @@ class _Reader:
             raise ValidationError(self.name(key), "missing")
         return self.d[key]
 
-    def num(self, key: str, *, nan: bool = False, low: float | None = None) -> float:
-        return _num(self.get(key), self.name(key), nan=nan, low=low)
+    def num(self, key: str, *, nan: bool = False, low: float | None = None, spread: bool = False) -> float:
+        return _num(self.get(key), self.name(key), nan=nan, low=low, spread=spread)
 
     def int_(self, key: str, *, low: int, high: int | None = None) -> int:
         return _int(self.get(key), self.name(key), low=low, high=high)
@@ -163,7 +163,9 @@ class _Reader:
         return v
 
 
-def _num(v: Any, name: str, *, nan: bool = False, low: float | None = None) -> float:
+def _num(v: Any, name: str, *, nan: bool = False, low: float | None = None, spread: bool = False) -> float:
+    """A number; NaN only when ``nan``; at least ``low``; a spread (σ, variance, distance: every
+    field with a ``low``) at most :data:`MAX_MAGNITUDE` in magnitude."""
     if isinstance(v, bool) or not isinstance(v, int | float):
         raise ValidationError(name, f"must be a number, got {type(v).__name__}")
     f = float(v)
@@ -171,8 +173,10 @@ def _num(v: Any, name: str, *, nan: bool = False, low: float | None = None) -> f
         if not nan:
             raise ValidationError(name, "must be a finite number")
         return f
-    if not math.isfinite(f) or abs(f) > MAX_MAGNITUDE:
-        raise ValidationError(name, f"must be a finite number of magnitude at most {MAX_MAGNITUDE:g}")
+    if not math.isfinite(f):
+        raise ValidationError(name, "must be a finite number")
+    if (spread or low is not None) and abs(f) > MAX_MAGNITUDE:
+        raise ValidationError(name, f"must be at most {MAX_MAGNITUDE:g} in magnitude")
     if low is not None and f < low:
         raise ValidationError(name, f"must be at least {low:g}")
     return f
@@ -223,7 +227,7 @@ def _decode(r: _Reader, n_edges: int | None) -> SessionState:
             bias.num("bx"),
             bias.num("by"),
             bias.num("pxx", nan=True, low=0.0),
-            bias.num("pxy"),
+            bias.num("pxy", spread=True),
             bias.num("pyy", nan=True, low=0.0),
         ),
         odo_k=r.num("odo_k"),
