@@ -88,6 +88,26 @@ class Drive:
         ]  # fmt: skip
 
 
+def fixes_frame(graph: RoadGraph, fused: FusedStream, *, vehicle_id: str, time0: float) -> pd.DataFrame:
+    """The fused-fix rows (:data:`FIX_COLUMNS`) of a fusion filter's output stream."""
+    ll = to_lonlat(graph.crs, fused.x, fused.y)
+    return pd.DataFrame(
+        {
+            "vehicle_id": [vehicle_id] * len(fused.time),
+            "time": fused.time + time0,
+            "lat": ll[:, 1],
+            "lon": ll[:, 0],
+            "heading": fused.heading,
+            "pos_sigma": fused.pos_sigma,
+            "heading_sigma": fused.heading_sigma,
+            "speed": fused.speed,
+            "distance": fused.distance,
+            "gps_valid": fused.gps_valid.astype(int),
+        },
+        columns=list(FIX_COLUMNS),
+    )
+
+
 def truth_frame(
     graph: RoadGraph,
     route: Route,
@@ -167,23 +187,8 @@ def simulate_drive(
     raw = simulate_sensors(traj, rng=rng, outages=outs, config=sensors)
     res = run_filter(raw, config=kalman)
     fused = fused_stream(res, rate=float(rate))
-    ll = to_lonlat(graph.crs, fused.x, fused.y)
     n = len(fused.time)
-    fixes = pd.DataFrame(
-        {
-            "vehicle_id": [vehicle_id] * n,
-            "time": fused.time + time0,
-            "lat": ll[:, 1],
-            "lon": ll[:, 0],
-            "heading": fused.heading,
-            "pos_sigma": fused.pos_sigma,
-            "heading_sigma": fused.heading_sigma,
-            "speed": fused.speed,
-            "distance": fused.distance,
-            "gps_valid": fused.gps_valid.astype(int),
-        },
-        columns=list(FIX_COLUMNS),
-    )
+    fixes = fixes_frame(graph, fused, vehicle_id=vehicle_id, time0=time0)
     # truth at the fix times
     ft = fused.time
     tx = np.interp(ft, traj.t, traj.x)

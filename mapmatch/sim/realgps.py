@@ -66,7 +66,7 @@ from mapmatch.errors import ValidationError
 from mapmatch.graph.index import project_to_edge
 from mapmatch.graph.projection import to_lonlat, to_xy
 from mapmatch.graph.road_graph import RoadGraph
-from mapmatch.sim.drive import FIX_COLUMNS, Drive, truth_frame
+from mapmatch.sim.drive import Drive, fixes_frame, truth_frame
 from mapmatch.sim.kalman import FusedStream
 from mapmatch.sim.profile import Trajectory
 from mapmatch.sim.routes import Route, RouteError, route_from_edges, route_from_geometry
@@ -500,23 +500,7 @@ def real_drive(
         distance=dist,
         gps_valid=have[idx],
     )
-    ll = to_lonlat(graph.crs, fused.x, fused.y)
-    m = len(idx)
-    fixes = pd.DataFrame(
-        {
-            "vehicle_id": [vid] * m,
-            "time": ot + time0,
-            "lat": ll[:, 1],
-            "lon": ll[:, 0],
-            "heading": fused.heading,
-            "pos_sigma": fused.pos_sigma,
-            "heading_sigma": fused.heading_sigma,
-            "speed": fused.speed,
-            "distance": fused.distance,
-            "gps_valid": fused.gps_valid.astype(int),
-        },
-        columns=list(FIX_COLUMNS),
-    )
+    fixes = fixes_frame(graph, fused, vehicle_id=vid, time0=time0)
     ts = sb[idx]
     truth = truth_frame(
         graph,
