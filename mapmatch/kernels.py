@@ -20,7 +20,15 @@ from typing import Any, TextIO
 
 GROUPS: dict[str, tuple[str, ...]] = {
     "simulator": ("mapmatch.sim.kalman", "mapmatch.sim.profile"),
-    "batch": ("mapmatch.batch", "mapmatch.routing", "mapmatch.gridindex", "mapmatch.model"),
+    "batch": (
+        "mapmatch.batch.lattice",
+        "mapmatch.batch.viterbi",
+        "mapmatch.batch.route",
+        "mapmatch.batch.run",
+        "mapmatch.routing",
+        "mapmatch.gridindex",
+        "mapmatch.model",
+    ),
 }
 """Kernel groups: the modules whose compiled functions a kind of job uses."""
 

@@ -19,7 +19,7 @@ from __future__ import annotations
 
 import heapq
 from dataclasses import dataclass
-from typing import Any, NamedTuple
+from typing import NamedTuple
 
 import numpy as np
 from numba import njit
@@ -54,17 +54,51 @@ def route_graph(graph: RoadGraph, *, uturns: UTurnPolicy = "dead_end") -> RouteG
     )
 
 
-class Workspace:
+class Workspace(NamedTuple):
     """Per-thread scratch arrays sized to the graph (reset after each search, never reallocated)."""
 
-    def __init__(self, n_edges: int) -> None:
-        self.dist = np.full(n_edges, INF)
-        self.pred = np.full(n_edges, -1, dtype=np.int32)
-        self.done = np.zeros(n_edges, dtype=np.uint8)
-        self.tgt = np.zeros(n_edges, dtype=np.uint8)
-        self.touched = np.empty(n_edges + 1, dtype=np.int32)
-        self.heap_k = np.empty(n_edges + 16, dtype=np.float64)
-        self.heap_v = np.empty(n_edges + 16, dtype=np.int32)
+    dist: NDArray[np.float64]
+    pred: NDArray[np.int32]
+    done: NDArray[np.uint8]
+    tgt: NDArray[np.uint8]
+    touched: NDArray[np.int32]
+    heap_k: NDArray[np.float64]
+    heap_v: NDArray[np.int32]
+
+    @classmethod
+    def new(cls, n_edges: int) -> Workspace:
+        """A clean workspace for a graph of ``n_edges`` edges."""
+        return cls(
+            dist=np.full(n_edges, INF),
+            pred=np.full(n_edges, -1, dtype=np.int32),
+            done=np.zeros(n_edges, dtype=np.uint8),
+            tgt=np.zeros(n_edges, dtype=np.uint8),
+            touched=np.empty(n_edges + 1, dtype=np.int32),
+            heap_k=np.empty(n_edges + 16, dtype=np.float64),
+            heap_v=np.empty(n_edges + 16, dtype=np.int32),
+        )
+
+
+class RouteTable(NamedTuple):
+    """A :class:`Ubodt`'s arrays as the compiled kernels read them (``delta < 0``: no table)."""
+
+    delta: float
+    ptr: NDArray[np.int64]
+    tgt: NDArray[np.int32]
+    dist: NDArray[np.float64]
+    pred: NDArray[np.int32]
+
+
+NO_TABLE = RouteTable(-1.0, np.zeros(1, np.int64), np.zeros(0, np.int32), np.zeros(0), np.zeros(0, np.int32))
+"""The empty table: every route is searched."""
+
+
+class Router(NamedTuple):
+    """Everything a compiled route query reads: the moves, one thread's workspace and the table."""
+
+    g: RouteGraph
+    ws: Workspace
+    table: RouteTable
 
 
 @njit(cache=True, nogil=True, inline="always")
@@ -110,13 +144,7 @@ def _search(  # type: ignore[no-untyped-def]
     bound: float,
     n_targets: int,
     g,
-    dist,
-    pred,
-    done,
-    tgt,
-    touched,
-    heap_k,
-    heap_v,
+    ws,
 ) -> int:
     """Dijkstra from the end of edge ``src`` (``base`` metres ahead of the start point).
 
@@ -124,6 +152,7 @@ def _search(  # type: ignore[no-untyped-def]
     edges flagged in ``tgt`` are settled or keys pass ``bound``. Returns the number of
     touched edges (listed in ``touched``; the caller resets them with :func:`_reset`).
     """
+    dist, pred, done, tgt, touched, heap_k, heap_v = ws
     nt = 0
     nh = 0
     move_ptr = g.move_ptr
@@ -165,12 +194,12 @@ def _search(  # type: ignore[no-untyped-def]
 
 
 @njit(cache=True, nogil=True, inline="always")
-def _reset(nt: int, touched, dist, pred, done) -> None:  # type: ignore[no-untyped-def]
+def _reset(nt: int, ws) -> None:  # type: ignore[no-untyped-def]
     for i in range(nt):
-        f = touched[i]
-        dist[f] = INF
-        pred[f] = -1
-        done[f] = 0
+        f = ws.touched[i]
+        ws.dist[f] = INF
+        ws.pred[f] = -1
+        ws.done[f] = 0
 
 
 @njit(cache=True, nogil=True)
@@ -180,17 +209,12 @@ def path_edges(  # type: ignore[no-untyped-def]
     dst: int,
     bound: float,
     g,
-    dist,
-    pred,
-    done,
-    tgt,
-    touched,
-    heap_k,
-    heap_v,
+    ws,
 ):
     """The edges strictly between ``src`` and ``dst`` on the shortest route (None if none)."""
+    dist, pred, tgt = ws.dist, ws.pred, ws.tgt
     tgt[dst] = 1
-    nt = _search(src, g.edge_len[src] - src_off, bound, 1, g, dist, pred, done, tgt, touched, heap_k, heap_v)
+    nt = _search(src, g.edge_len[src] - src_off, bound, 1, g, ws)
     tgt[dst] = 0
     ok = dist[dst] < INF
     out = np.empty(0, dtype=np.int32)
@@ -206,24 +230,10 @@ def path_edges(  # type: ignore[no-untyped-def]
             m -= 1
             out[m] = e
             e = pred[e]
-    _reset(nt, touched, dist, pred, done)
+    _reset(nt, ws)
     if not ok:
         return None
     return out
-
-
-def search_args(rg: RouteGraph, ws: Workspace) -> tuple[Any, ...]:
-    """The trailing positional arguments of the compiled searches, in order."""
-    return (
-        rg,
-        ws.dist,
-        ws.pred,
-        ws.done,
-        ws.tgt,
-        ws.touched,
-        ws.heap_k,
-        ws.heap_v,
-    )
 
 
 def shortest_route(
@@ -242,10 +252,10 @@ def shortest_route(
     ``edges`` runs from ``src`` to ``dst`` inclusive. None when unreachable within ``bound``.
     """
     rg = rg or route_graph(graph)
-    ws = ws or Workspace(graph.n_edges)
+    ws = ws or Workspace.new(graph.n_edges)
     if src == dst and dst_off >= src_off:
         return dst_off - src_off, [src]
-    mid = path_edges(src, src_off, dst, bound, *search_args(rg, ws))
+    mid = path_edges(src, src_off, dst, bound, rg, ws)
     if mid is None:
         return None
     edges = [src, *(int(e) for e in mid), dst]
@@ -313,9 +323,14 @@ class Ubodt:
     @classmethod
     def build(cls, graph: RoadGraph, delta: float) -> Ubodt:
         """Precompute the table for ``delta`` metres (time and memory grow fast with it)."""
-        ws = Workspace(graph.n_edges)
-        ptr, tgt, dist, pred = _build_ubodt(float(delta), graph.n_edges, *search_args(route_graph(graph), ws))
+        ws = Workspace.new(graph.n_edges)
+        ptr, tgt, dist, pred = _build_ubodt(float(delta), graph.n_edges, route_graph(graph), ws)
         return cls(delta=float(delta), ptr=ptr, tgt=tgt, dist=dist, pred=pred)
+
+    @property
+    def table(self) -> RouteTable:
+        """The arrays as the compiled kernels read them."""
+        return RouteTable(self.delta, self.ptr, self.tgt, self.dist, self.pred)
 
     @property
     def nbytes(self) -> int:
@@ -327,14 +342,9 @@ def _build_ubodt(  # type: ignore[no-untyped-def]
     delta,
     n_edges,
     g,
-    dist,
-    pred,
-    done,
-    tgt,
-    touched,
-    heap_k,
-    heap_v,
+    ws,
 ):
+    dist, pred, done, touched = ws.dist, ws.pred, ws.done, ws.touched
     ptr = np.zeros(n_edges + 1, dtype=np.int64)
     cap = 16 * n_edges + 16
     out_t = np.empty(cap, dtype=np.int32)
@@ -342,7 +352,7 @@ def _build_ubodt(  # type: ignore[no-untyped-def]
     out_p = np.empty(cap, dtype=np.int32)
     m = 0
     for e in range(n_edges):
-        nt = _search(e, 0.0, delta, -1, g, dist, pred, done, tgt, touched, heap_k, heap_v)
+        nt = _search(e, 0.0, delta, -1, g, ws)
         if m + nt > cap:
             cap = 2 * (m + nt)
             t2 = np.empty(cap, dtype=np.int32)
@@ -368,13 +378,14 @@ def _build_ubodt(  # type: ignore[no-untyped-def]
         out_d[start:m] = sd
         out_p[start:m] = sp
         ptr[e + 1] = m
-        _reset(nt, touched, dist, pred, done)
+        _reset(nt, ws)
     return ptr, out_t[:m].copy(), out_d[:m].copy(), out_p[:m].copy()
 
 
 @njit(cache=True, nogil=True, inline="always")
-def ubodt_lookup(ptr, tgt, dist, e: int, f: int) -> float:  # type: ignore[no-untyped-def]
+def ubodt_lookup(table, e: int, f: int) -> float:  # type: ignore[no-untyped-def]
     """Distance from the end of ``e`` to the start of ``f`` if within the table, else inf."""
+    ptr, tgt, dist = table.ptr, table.tgt, table.dist
     lo = ptr[e]
     hi = ptr[e + 1]
     while lo < hi:
@@ -389,9 +400,10 @@ def ubodt_lookup(ptr, tgt, dist, e: int, f: int) -> float:  # type: ignore[no-un
 
 
 @njit(cache=True, nogil=True)
-def ubodt_path(ptr, tgt, dist, upred, src: int, dst: int):  # type: ignore[no-untyped-def]
+def ubodt_path(table, src: int, dst: int):  # type: ignore[no-untyped-def]
     """The edges strictly between ``src`` and ``dst`` from the table (None if not in it)."""
-    if ubodt_lookup(ptr, tgt, dist, src, dst) == INF:
+    ptr, tgt, upred = table.ptr, table.tgt, table.pred
+    if ubodt_lookup(table, src, dst) == INF:
         return None
     m = 0
     f = dst

@@ -152,3 +152,50 @@ def test_routing_moves_are_the_old_dead_end_rule(restrictions: list[tuple[str, s
     # turning back is the only move at the spur's end l and, coming from d, at i (h>i one-way)
     assert dead_ends == 2
     assert len(g.restrictions) == (4 if restrictions else 0)
+
+
+def test_compiled_entry_point_sees_the_types_it_was_compiled_for() -> None:
+    """The batch kernel is called through its entry point, which does not check types: every
+    kind of input (read-only arrays, integer coordinates, headings, σ, odometer, no time) must
+    reach it with the types of the first call."""
+    import numba
+
+    from mapmatch.batch import BatchMatcher
+    from mapmatch.batch.arrays import CandidateArrays, KernelParams, TrackPoints
+    from mapmatch.types import Track
+
+    m = parse_ascii_map(DRAWING, scale=7)
+    matcher = BatchMatcher(m.graph)
+    ll = np.array([m.lonlat(*m.xy(c)) for c in "abcd"])
+    seen: list[tuple[object, ...]] = []
+    run = matcher._run
+    inner = type(run).__call__
+
+    def spy(self, pt: TrackPoints, cands: CandidateArrays, p: KernelParams, geom, router):  # type: ignore[no-untyped-def]
+        seen.append(tuple(numba.typeof(a) for a in (pt, cands, p, geom, router)))
+        return inner(self, pt, cands, p, geom, router)
+
+    frozen = ll.copy()
+    frozen.flags.writeable = False
+    tracks = [
+        Track("plain", np.arange(4.0), ll[:, 1], ll[:, 0]),
+        Track("frozen", np.arange(4), frozen[:, 1], frozen[:, 0]),
+        Track("no time", None, ll[:, 1].tolist(), ll[:, 0].tolist()),  # type: ignore[arg-type]
+        Track(
+            "rich",
+            np.arange(4.0),
+            ll[:, 1],
+            ll[:, 0],
+            heading=np.array([90.0, 90, 180, 180]),
+            speed=np.full(4, 5.0),
+            pos_sigma=np.full(4, 4.0),
+            distance=np.full(4, 10.0),
+        ),
+    ]
+    import unittest.mock
+
+    with unittest.mock.patch.object(type(run), "__call__", spy):
+        for t in tracks:
+            assert matcher.match(t).routes
+    assert len(seen) == len(tracks) and all(s == seen[0] for s in seen), seen
+    assert run.signature == seen[0]

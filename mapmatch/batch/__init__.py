@@ -1,0 +1,23 @@
+"""Batch map matching of historic tracks: exact Viterbi over the whole track (Newson & Krumm 2009).
+
+The pipeline, one module a stage:
+
+- :mod:`~mapmatch.batch.matcher`: measurements → candidates (one index query) → emissions
+  (the shared :mod:`mapmatch.model`);
+- :mod:`~mapmatch.batch.lattice`: thinning, pruning, the lattice (compiled);
+- :mod:`~mapmatch.batch.viterbi`: the Viterbi search, routing each step (compiled);
+- :mod:`~mapmatch.batch.route`: route assembly, the route's edges, geometry and per-point
+  results (compiled);
+- :mod:`~mapmatch.batch.run`: the compiled stages as one call;
+- :mod:`~mapmatch.batch.results`: the :class:`~mapmatch.types.TrackMatch`, way ids and names.
+
+The compiled kernels take the named tuples of :mod:`~mapmatch.batch.arrays`. The matched route
+is always connected through the network; it is split only where the track has a time/distance
+gap or no route exists between consecutive points (both reported).
+"""
+
+from mapmatch.batch.matcher import BatchMatcher, match_track
+from mapmatch.batch.results import fill_route_lonlat, point_ways, route_ways
+from mapmatch.config import BATCH_CONFIG
+
+__all__ = ["BATCH_CONFIG", "BatchMatcher", "fill_route_lonlat", "match_track", "point_ways", "route_ways"]

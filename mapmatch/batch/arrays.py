@@ -1,0 +1,120 @@
+"""The named tuples the batch matcher's compiled kernels take and return.
+
+Dense integer indices inside (edge, candidate, lattice point), track indices only at the edges.
+Each tuple groups arrays that travel together, so a kernel takes five arguments, not forty.
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import numpy as np
+from numpy.typing import NDArray
+
+from mapmatch import model
+from mapmatch.config import MatchConfig
+
+
+class TrackPoints(NamedTuple):
+    """The track in the map's CRS, one row per input point."""
+
+    valid: NDArray[np.bool_]
+    """Finite, in-range coordinates."""
+    kept: NDArray[np.bool_]
+    """Points in the lattice (the rest are interpolated afterwards)."""
+    xy: NDArray[np.float64]
+    time: NDArray[np.float64]
+    """Seconds, NaN when unknown."""
+    odo: NDArray[np.float64]
+    """Cumulative odometer distance (metres), or empty when the track has none."""
+    kidx: NDArray[np.int64]
+    """Track indices of the kept points."""
+
+
+class CandidateArrays(NamedTuple):
+    """Road candidates of the kept points, sorted by point (``point`` indexes ``kidx``)."""
+
+    point: NDArray[np.int64]
+    edge: NDArray[np.int64]
+    offset: NDArray[np.float64]
+    xy: NDArray[np.float64]
+    dist: NDArray[np.float64]
+    emis: NDArray[np.float64]
+    """Emission log-probabilities; empty: distance-only with :attr:`KernelParams.sigma`."""
+
+
+class Lattice(NamedTuple):
+    """The pruned candidates by lattice point (``ptr``) and the lattice points' measurements."""
+
+    ptr: NDArray[np.int64]
+    edge: NDArray[np.int64]
+    offset: NDArray[np.float64]
+    xy: NDArray[np.float64]
+    dist: NDArray[np.float64]
+    emis: NDArray[np.float64]
+    pts: NDArray[np.int64]
+    """Track index of each lattice point."""
+    pxy: NDArray[np.float64]
+    ptime: NDArray[np.float64]
+    podo: NDArray[np.float64]
+
+
+class EdgeGeometry(NamedTuple):
+    """Edge polylines: ``seg_xy[seg_ptr[e]:seg_ptr[e + 1]]`` is edge ``e``."""
+
+    seg_xy: NDArray[np.float64]
+    seg_ptr: NDArray[np.int64]
+
+
+class KernelParams(NamedTuple):
+    """The batch section of :class:`mapmatch.config.MatchConfig`, as the kernels read it."""
+
+    sigma: float
+    """GPS σ (metres) for distance-only emissions computed in the kernel."""
+    prune: float
+    outlier: float
+    transition: NDArray[np.float64]
+    """:func:`mapmatch.model.transition_params`."""
+    stop: NDArray[np.float64]
+    """(stop speed, stop time, U-turn penalty across a stop)."""
+    route_factor: float
+    route_slack: float
+    lp_cut_m: float
+    gap_distance: float
+    max_skip: int
+    reverse_tol: float
+
+
+class Assembly(NamedTuple):
+    """The matched route and per-point results, as arrays (see :mod:`mapmatch.batch.results`)."""
+
+    p_edge: NDArray[np.int64]
+    p_off: NDArray[np.float64]
+    p_xy: NDArray[np.float64]
+    p_dist: NDArray[np.float64]
+    status: NDArray[np.int8]
+    """0 unmatched, 1 matched, 2 interpolated."""
+    splits: NDArray[np.int64]
+    route_e: NDArray[np.int64]
+    route_ptr: NDArray[np.int64]
+    xy_all: NDArray[np.float64]
+    rxy_ptr: NDArray[np.int64]
+    length: float
+    conf: float
+
+
+def kernel_params(cfg: MatchConfig, sigma: float) -> KernelParams:
+    """The kernels' parameters from a config (``sigma``: the one GPS σ, when it is one)."""
+    return KernelParams(
+        sigma=float(sigma),
+        prune=float(cfg.emission_prune),
+        outlier=float(cfg.outlier_distance),
+        transition=model.transition_params(cfg),
+        stop=np.array([cfg.stop_uturn_speed, cfg.stop_uturn_time, cfg.stop_uturn_penalty], dtype=np.float64),
+        route_factor=float(cfg.max_route_factor),
+        route_slack=float(cfg.route_slack),
+        lp_cut_m=float(cfg.beta * cfg.route_lp_cut),
+        gap_distance=float(cfg.gap_distance),
+        max_skip=int(cfg.max_skip),
+        reverse_tol=float(cfg.reverse_tolerance),
+    )

@@ -1,0 +1,165 @@
+"""The batch matcher: measurements to candidates and emissions in numpy, then one compiled call.
+
+Candidates for all points come from one vectorised index query; emissions and transitions
+from the shared :mod:`mapmatch.model`; route distances from bounded edge-based Dijkstra
+(:mod:`mapmatch.routing`); lattice (:mod:`~mapmatch.batch.lattice`), Viterbi
+(:mod:`~mapmatch.batch.viterbi`) and route assembly (:mod:`~mapmatch.batch.route`) are
+compiled with numba and run as one call (:mod:`~mapmatch.batch.run`).
+"""
+
+from __future__ import annotations
+
+import threading
+
+import numpy as np
+from numpy.typing import NDArray
+
+from mapmatch import model
+from mapmatch.batch.arrays import CandidateArrays, EdgeGeometry, TrackPoints, kernel_params
+from mapmatch.batch.lattice import bearing_at, thin
+from mapmatch.batch.results import fill_route_lonlat, track_match
+from mapmatch.batch.run import CompiledRun, fresh
+from mapmatch.config import BATCH_CONFIG, MatchConfig
+from mapmatch.graph.index import Candidates, EdgeIndex
+from mapmatch.graph.projection import to_xy
+from mapmatch.graph.road_graph import RoadGraph
+from mapmatch.gridindex import GridIndex
+from mapmatch.routing import NO_TABLE, Router, Ubodt, Workspace, route_graph
+from mapmatch.types import Track, TrackMatch
+
+F8, I8 = np.float64, np.int64
+
+
+class BatchMatcher:
+    """Matches whole tracks against one road graph (read-only, reusable, thread-safe).
+
+    Parameters
+    ----------
+    graph
+        The road graph.
+    index
+        Its spatial index; built when omitted.
+    config
+        Default parameters (:data:`BATCH_CONFIG` when omitted); :meth:`match` takes a per-call
+        override.
+    ubodt
+        Optional precomputed route table (:class:`mapmatch.routing.Ubodt`); routes within its
+        bound are looked up instead of searched. Without it every route is a bounded search.
+    """
+
+    def __init__(
+        self,
+        graph: RoadGraph,
+        index: EdgeIndex | None = None,
+        config: MatchConfig | None = None,
+        *,
+        ubodt: Ubodt | None = None,
+    ) -> None:
+        self.graph = graph
+        self.ubodt = ubodt
+        self._table = ubodt.table if ubodt is not None else NO_TABLE
+        self.index = index or EdgeIndex(graph)
+        self.config = config or BATCH_CONFIG
+        self._grid = GridIndex(self.index, cell=self.config.search_radius)
+        self._rg = route_graph(graph, uturns="dead_end")
+        self._geom = EdgeGeometry(
+            np.ascontiguousarray(graph.seg_xy, dtype=F8), np.ascontiguousarray(graph.edge_seg_ptr, dtype=I8)
+        )
+        self._run = CompiledRun()
+        self._local = threading.local()
+
+    @property
+    def _router(self) -> Router:
+        """The route queries' arrays, with this thread's workspace (built once per thread, so
+        one matcher serves many threads)."""
+        router: Router | None = getattr(self._local, "router", None)
+        if router is None:
+            router = self._local.router = Router(self._rg, Workspace.new(self.graph.n_edges), self._table)
+        return router
+
+    def match(self, track: Track, config: MatchConfig | None = None, *, lonlat: bool = True) -> TrackMatch:
+        """Match one track; bad points become unmatched, never an exception for the track.
+
+        With ``lonlat=False`` the route geometry is left in the map's CRS (``route_xy``) and the
+        per-point results in arrays (``point_arrays``); :func:`fill_route_lonlat` later fills
+        ``route_lonlat`` and ``points`` from them.
+        """
+        cfg = config or self.config
+        g = self.graph
+        n = len(track)
+        lat = np.asarray(track.lat, dtype=F8)
+        lon = np.asarray(track.lon, dtype=F8)
+        valid = np.isfinite(lat) & np.isfinite(lon) & (np.abs(lat) <= 90) & (np.abs(lon) <= 180)
+        if valid.all():
+            xy = to_xy(g.crs, lon, lat)
+        else:
+            xy = np.full((n, 2), np.nan)
+            if valid.any():
+                xy[valid] = to_xy(g.crs, lon[valid], lat[valid])
+        xy = fresh(xy, F8)
+        # points closer than the noise to the previous kept point are interpolated afterwards
+        kept = thin(xy, valid, float(cfg.interpolate_distance))
+        kidx = np.flatnonzero(kept)
+        cands = self._grid.query(xy[kidx], cfg.search_radius, k=cfg.max_candidates)
+        # points with no road within the search radius look again up to the outlier distance
+        lonely = np.flatnonzero(np.bincount(cands.point, minlength=len(kidx)) == 0)
+        if len(lonely) and cfg.outlier_distance > cfg.search_radius:
+            more = self._grid.query(xy[kidx[lonely]], cfg.outlier_distance, k=cfg.max_candidates)
+            cands = _merge_candidates(cands, more, lonely)
+        # emissions (shared model); pruning of hopeless candidates happens in the kernel
+        sigma: float | NDArray[np.float64] = float(model.position_sigma(np.nan, cfg))
+        if track.pos_sigma is not None:
+            sigma = model.position_sigma(np.asarray(track.pos_sigma, dtype=F8)[kidx], cfg)[cands.point]
+        heading = None if track.heading is None else np.asarray(track.heading, dtype=F8)[kidx]
+        if heading is not None and np.isfinite(heading).any():
+            kappa = model.heading_kappa(heading, np.nan, _opt(track.speed, n)[kidx], cfg)[cands.point]
+            bearing = bearing_at(cands.edge, cands.offset, *self._geom)
+            emis = model.emission_logp(cands.dist, sigma, heading[cands.point], bearing, kappa)
+        elif np.ndim(sigma):
+            emis = model.emission_logp(cands.dist, sigma, np.nan, 0.0, 0.0)
+        else:
+            emis = np.zeros(0)  # one σ, no heading: computed in the compiled kernel
+        odo = np.zeros(0)
+        if track.distance is not None:
+            d = np.asarray(track.distance, dtype=F8)
+            odo = np.where(np.isfinite(d), np.cumsum(np.where(np.isfinite(d), d, 0.0)), np.nan)
+        pt = TrackPoints(
+            valid=fresh(valid, np.bool_), kept=fresh(kept, np.bool_), xy=xy,
+            time=fresh(_opt(track.time, n), F8), odo=fresh(odo, F8), kidx=fresh(kidx, I8),
+        )  # fmt: skip
+        ca = CandidateArrays(
+            point=fresh(cands.point, I8), edge=fresh(cands.edge, I8), offset=fresh(cands.offset, F8),
+            xy=fresh(cands.xy, F8), dist=fresh(cands.dist, F8), emis=fresh(emis, F8),
+        )  # fmt: skip
+        params = kernel_params(cfg, sigma if isinstance(sigma, float) else 0.0)
+        res = track_match(str(track.track_id), self._run(pt, ca, params, self._geom, self._router))
+        if lonlat:
+            fill_route_lonlat(res, g.crs)
+        return res
+
+
+def match_track(
+    graph: RoadGraph, track: Track, *, index: EdgeIndex | None = None, config: MatchConfig | None = None
+) -> TrackMatch:
+    """Match one track (builds a :class:`BatchMatcher`; reuse one for many tracks)."""
+    return BatchMatcher(graph, index, config).match(track)
+
+
+def _merge_candidates(a: Candidates, b: Candidates, b_points: NDArray[np.int64]) -> Candidates:
+    """Candidates of ``a`` plus those of ``b`` (queried for the points ``b_points``), by point."""
+    point = np.concatenate([a.point, b_points[b.point]])
+    order = np.argsort(point, kind="stable")
+    return Candidates(
+        point=point[order],
+        edge=np.concatenate([a.edge, b.edge])[order],
+        dist=np.concatenate([a.dist, b.dist])[order],
+        offset=np.concatenate([a.offset, b.offset])[order],
+        xy=np.concatenate([a.xy, b.xy])[order],
+    )
+
+
+def _opt(a: NDArray[np.float64] | None, n: int) -> NDArray[np.float64]:
+    return np.full(n, np.nan) if a is None else np.ascontiguousarray(a, dtype=F8)
+
+
+__all__ = ["BATCH_CONFIG", "BatchMatcher", "match_track"]

@@ -1,0 +1,96 @@
+"""Turning the compiled assembly into a :class:`~mapmatch.types.TrackMatch`, and the way ids
+and names under the matched route and points."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from mapmatch.batch.arrays import Assembly
+from mapmatch.graph.projection import to_lonlat
+from mapmatch.graph.road_graph import RoadGraph, merge_repeats
+from mapmatch.types import MatchedPoint, PointStatus, TrackMatch
+
+
+def track_match(track_id: str, a: Assembly) -> TrackMatch:
+    """A :class:`TrackMatch` from the compiled kernel's arrays (points still as arrays)."""
+    res = TrackMatch(
+        track_id=track_id, splits=a.splits.tolist(), length_m=float(a.length), confidence=float(a.conf)
+    )
+    for s in range(len(a.route_ptr) - 1):
+        res.routes.append(a.route_e[a.route_ptr[s] : a.route_ptr[s + 1]].tolist())
+        seg = a.xy_all[a.rxy_ptr[s] : a.rxy_ptr[s + 1]]
+        res.route_xy.append(np.vstack([seg, seg]) if len(seg) == 1 else seg)
+    res.point_arrays = (a.status, a.p_edge, a.p_off, a.p_xy, a.p_dist)
+    return res
+
+
+def fill_route_lonlat(result: TrackMatch, crs: str) -> TrackMatch:
+    """Fill ``route_lonlat`` from ``route_xy`` and ``points`` from ``point_arrays`` (one projection)."""
+    pa = result.point_arrays
+    ok = np.zeros(0, dtype=bool)
+    parts = list(result.route_xy)
+    if pa is not None:
+        ok = pa[0] > 0
+        parts.append(pa[3][ok])
+    ll = to_lonlat(crs, *np.concatenate(parts).T) if parts else np.zeros((0, 2))
+    out: list[list[tuple[float, float]]] = []
+    i = 0
+    for piece in result.route_xy:
+        out.append(list(map(tuple, ll[i : i + len(piece)].tolist())))
+        i += len(piece)
+    result.route_lonlat = out
+    if pa is not None:
+        status, p_edge, p_off, _, p_dist = pa
+        p_ll = np.full((len(status), 2), np.nan)
+        p_ll[ok] = ll[i:]
+        stat = (PointStatus.UNMATCHED, PointStatus.MATCHED, PointStatus.INTERPOLATED)
+        lat, lon = p_ll[:, 1].tolist(), p_ll[:, 0].tolist()
+        result.points = [
+            MatchedPoint(i, stat[s], e, o, la, lo, d)
+            for i, (s, e, o, la, lo, d) in enumerate(
+                zip(
+                    status.tolist(), p_edge.tolist(), p_off.tolist(), lat, lon,
+                    p_dist.tolist(), strict=True,
+                )
+            )
+        ]  # fmt: skip
+        result.point_arrays = None
+    return result
+
+
+def route_ways(result: TrackMatch, graph: RoadGraph) -> tuple[list[int], list[str]]:
+    """The way ids and names the matched route runs along, in order, consecutive repeats merged.
+
+    Each connected part of the route starts at the way piece under its first placed point
+    and ends at the piece under its last one (an edge can be made of several ways).
+    """
+    bounds = [0, *result.splits, len(result.points)]
+    ways: list[int] = []
+    names: list[str] = []
+    for s, edges in enumerate(result.routes):
+        if not edges:
+            continue
+        pts = (
+            [p for p in result.points[bounds[s] : bounds[s + 1]] if p.edge >= 0]
+            if s + 1 < len(bounds)
+            else []
+        )
+        start = pts[0].offset if pts and pts[0].edge == edges[0] else 0.0
+        end = pts[-1].offset if pts and pts[-1].edge == edges[-1] else math.inf
+        w, n = graph.route_ways(edges, start=start, end=end)
+        ways += w
+        names += n
+    return merge_repeats(ways), merge_repeats(names)
+
+
+def point_ways(result: TrackMatch, graph: RoadGraph) -> tuple[list[int], list[str]]:
+    """Per point, the way id and name of the way piece under it (-1 and "" when unplaced)."""
+    e = np.array([p.edge for p in result.points], dtype=np.int64)
+    off = np.array([p.offset for p in result.points], dtype=np.float64)
+    piece = graph.piece_at(e, np.nan_to_num(off))
+    ok = piece >= 0
+    way = np.where(ok, graph.piece_way_id[np.maximum(piece, 0)] if graph.n_pieces else -1, -1)
+    name_idx = np.where(ok, graph.piece_name_idx[np.maximum(piece, 0)] if graph.n_pieces else -1, -1)
+    return way.tolist(), [graph.names[i] if i >= 0 else "" for i in name_idx.tolist()]

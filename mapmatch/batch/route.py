@@ -1,0 +1,296 @@
+"""Route assembly: from the chosen candidates to the route's edges, geometry and per-point
+results (compiled).
+
+Each lattice point is reached from the previous one by one of four kinds of step: along the
+same edge, a U-turn along the road, a routed path, or a split (a new piece of route). Points
+thinned out before the match are projected onto the chosen edge of the nearer kept neighbour.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit
+
+from mapmatch.batch.arrays import Assembly, EdgeGeometry, KernelParams, Lattice, TrackPoints
+from mapmatch.graph.index import project_point_compiled
+from mapmatch.gridindex import grow_array
+from mapmatch.routing import path_edges, ubodt_path
+
+STEP_SAME, STEP_UTURN, STEP_ROUTE, STEP_SPLIT = 0, 1, 2, 3
+
+
+@njit(cache=True, inline="always")
+def _project_one(seg_xy, seg_ptr, e, x, y):  # type: ignore[no-untyped-def]
+    """Offset, distance and position of point ``(x, y)`` projected onto edge ``e``."""
+    off, dist, px, py, _ = project_point_compiled(seg_xy, seg_ptr[e], seg_ptr[e + 1], x, y, np.inf, 0.0)
+    return off, dist, px, py
+
+
+@njit(cache=True, nogil=True)
+def route_pieces(ch_edge, ch_off, kind, bound, router):  # type: ignore[no-untyped-def]
+    """The route as pieces ``(edge, start offset, end offset, segment)`` along the chosen candidates."""
+    edge_len = router.g.edge_len
+    m = len(ch_edge)
+    cap = 2 * m + 16
+    pe = np.empty(cap, dtype=np.int64)
+    ps = np.empty(cap)
+    pend = np.empty(cap)
+    pseg = np.empty(cap, dtype=np.int64)
+    bad = np.zeros(m, dtype=np.bool_)
+    n = 0
+    seg = -1
+    for t in range(m):
+        e = ch_edge[t]
+        o = ch_off[t]
+        k = kind[t]
+        if n + 4 >= cap:
+            cap *= 2
+            pe = grow_array(pe, cap)
+            ps = grow_array(ps, cap)
+            pend = grow_array(pend, cap)
+            pseg = grow_array(pseg, cap)
+        if k == STEP_SAME:
+            if o > pend[n - 1]:
+                pend[n - 1] = o
+            continue
+        if k == STEP_UTURN:
+            L = edge_len[e]
+            turn = max(pend[n - 1], L - o)
+            pend[n - 1] = turn
+            pe[n] = e
+            ps[n] = L - turn
+            pend[n] = max(o, L - turn)
+            pseg[n] = seg
+            n += 1
+            continue
+        if k == STEP_ROUTE:
+            mid = None
+            if router.table.delta > 0:
+                mid = ubodt_path(router.table, ch_edge[t - 1], e)
+            if mid is None:
+                mid = path_edges(ch_edge[t - 1], ch_off[t - 1], e, bound[t] + 1.0, router.g, router.ws)
+            if mid is None:
+                bad[t] = True
+                k = STEP_SPLIT
+            else:
+                pend[n - 1] = edge_len[ch_edge[t - 1]]
+                if n + len(mid) + 4 >= cap:
+                    cap = 2 * (n + len(mid) + 4)
+                    pe = grow_array(pe, cap)
+                    ps = grow_array(ps, cap)
+                    pend = grow_array(pend, cap)
+                    pseg = grow_array(pseg, cap)
+                for x in mid:
+                    pe[n] = x
+                    ps[n] = 0.0
+                    pend[n] = edge_len[x]
+                    pseg[n] = seg
+                    n += 1
+                pe[n] = e
+                ps[n] = 0.0
+                pend[n] = o
+                pseg[n] = seg
+                n += 1
+                continue
+        # STEP_SPLIT: a new piece of route
+        seg += 1
+        pe[n] = e
+        ps[n] = o
+        pend[n] = o
+        pseg[n] = seg
+        n += 1
+    return pe[:n], ps[:n], pend[:n], pseg[:n], bad
+
+
+@njit(cache=True, nogil=True)
+def pieces_xy(pe, ps, pend, geom):  # type: ignore[no-untyped-def]
+    """Polyline coordinates of each piece (consecutive duplicates dropped); ``ptr`` per piece."""
+    seg_xy = geom.seg_xy
+    seg_ptr = geom.seg_ptr
+    n = len(pe)
+    total = 0
+    for i in range(n):
+        total += seg_ptr[pe[i] + 1] - seg_ptr[pe[i]] + 2
+    out = np.empty((total, 2))
+    ptr = np.zeros(n + 1, dtype=np.int64)
+    c = 0
+    for i in range(n):
+        a0 = seg_ptr[pe[i]]
+        a1 = seg_ptr[pe[i] + 1]
+        s = ps[i]
+        e = pend[i]
+        acc = 0.0
+        for q in range(a0, a1 - 1):
+            x0, y0 = seg_xy[q, 0], seg_xy[q, 1]
+            x1, y1 = seg_xy[q + 1, 0], seg_xy[q + 1, 1]
+            L = math.hypot(x1 - x0, y1 - y0)
+            lo = max(s, acc)
+            hi = min(e, acc + L)
+            if hi >= lo and (L > 0 or q == a0):
+                f0 = (lo - acc) / L if L > 0 else 0.0
+                f1 = (hi - acc) / L if L > 0 else 0.0
+                for f in (f0, f1):
+                    x = x0 + f * (x1 - x0)
+                    y = y0 + f * (y1 - y0)
+                    if c == 0 or abs(out[c - 1, 0] - x) > 1e-9 or abs(out[c - 1, 1] - y) > 1e-9:
+                        out[c, 0] = x
+                        out[c, 1] = y
+                        c += 1
+            acc += L
+            if acc > e:
+                break
+        ptr[i + 1] = c
+    return out[:c], ptr
+
+
+@njit(cache=True, nogil=True)
+def assemble(  # type: ignore[no-untyped-def]
+    pt: TrackPoints,
+    lat: Lattice,
+    choice_all,
+    seg_start,
+    via_u,
+    used_bound,
+    p: KernelParams,
+    geom: EdgeGeometry,
+    router,
+) -> Assembly:
+    """Per-point results, route pieces (edges and geometry), splits, length and confidence."""
+    valid = pt.valid
+    kept = pt.kept
+    xy = pt.xy
+    n = len(valid)
+    cand_ptr = lat.ptr
+    cedge = lat.edge
+    coff = lat.offset
+    cxy = lat.xy
+    cdist = lat.dist
+    emis = lat.emis
+    pts_all = lat.pts
+    seg_xy = geom.seg_xy
+    seg_ptr = geom.seg_ptr
+    reverse_tol = p.reverse_tol
+    edge_rev = router.g.edge_rev
+    p_edge = np.full(n, -1, dtype=np.int64)
+    p_off = np.full(n, np.nan)
+    p_xy = np.full((n, 2), np.nan)
+    p_dist = np.full(n, np.nan)
+    status = np.zeros(n, dtype=np.int8)  # 0 unmatched, 1 matched, 2 interpolated
+    # lattice points left out as unreachable outliers are unmatched
+    m = 0
+    for t in range(len(choice_all)):
+        if choice_all[t] >= 0:
+            m += 1
+    acc = np.empty(m, dtype=np.int64)
+    q = 0
+    for t in range(len(choice_all)):
+        if choice_all[t] >= 0:
+            acc[q] = t
+            q += 1
+    nvalid = 0
+    for i in range(n):
+        if valid[i]:
+            nvalid += 1
+    if m == 0:
+        return Assembly(
+            p_edge, p_off, p_xy, p_dist, status, np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64),
+            np.zeros(1, dtype=np.int64), np.zeros((0, 2)), np.zeros(1, dtype=np.int64), 0.0, 0.0,
+        )  # fmt: skip
+    ch_edge = np.empty(m, dtype=np.int64)
+    ch_off = np.empty(m)
+    kind = np.empty(m, dtype=np.int64)
+    bound = np.empty(m)
+    pts = np.empty(m, dtype=np.int64)
+    post = 0.0
+    for i in range(m):
+        t = acc[i]
+        j = choice_all[t]
+        e = cedge[j]
+        ch_edge[i] = e
+        ch_off[i] = coff[j]
+        pts[i] = pts_all[t]
+        bound[i] = used_bound[t]
+        same = i > 0 and e == ch_edge[i - 1] and coff[j] >= ch_off[i - 1] - reverse_tol
+        if i == 0 or seg_start[t]:
+            kind[i] = STEP_SPLIT
+        elif same:
+            kind[i] = STEP_SAME
+        elif via_u[t]:
+            kind[i] = STEP_UTURN
+        else:
+            kind[i] = STEP_ROUTE
+        pi = pts[i]
+        p_edge[pi] = e
+        p_off[pi] = coff[j]
+        p_xy[pi, 0] = cxy[j, 0]
+        p_xy[pi, 1] = cxy[j, 1]
+        p_dist[pi] = cdist[j]
+        status[pi] = 1
+        # confidence: normalised emission of the chosen road (both directions of a two-way
+        # road count as one) among the point's candidates
+        c0 = cand_ptr[t]
+        c1 = cand_ptr[t + 1]
+        mx = -np.inf
+        for c in range(c0, c1):
+            mx = max(mx, emis[c])
+        road = min(e, edge_rev[e]) if edge_rev[e] >= 0 else e
+        tot = 0.0
+        mine = 0.0
+        for c in range(c0, c1):
+            w = math.exp(emis[c] - mx)
+            tot += w
+            f = cedge[c]
+            rf = min(f, edge_rev[f]) if edge_rev[f] >= 0 else f
+            if rf == road:
+                mine += w
+        post += mine / tot
+    pe, ps, pend, pseg, bad = route_pieces(ch_edge, ch_off, kind, bound, router)
+    # a failed path (should not happen: Viterbi chose a reachable pair) becomes a split
+    nsplit = 0
+    for i in range(1, m):
+        if kind[i] == STEP_SPLIT or bad[i]:
+            nsplit += 1
+    splits = np.empty(nsplit, dtype=np.int64)
+    q = 0
+    for i in range(1, m):
+        if kind[i] == STEP_SPLIT or bad[i]:
+            splits[q] = pts[i]
+            q += 1
+    xy_all, xptr = pieces_xy(pe, ps, pend, geom)
+    npc = len(pe)
+    nseg = pseg[npc - 1] + 1 if npc else 0
+    route_e = np.empty(npc, dtype=np.int64)
+    route_ptr = np.zeros(nseg + 1, dtype=np.int64)
+    rxy_ptr = np.zeros(nseg + 1, dtype=np.int64)
+    length = 0.0
+    k = 0
+    for i in range(npc):
+        length += pend[i] - ps[i]
+        s = pseg[i]
+        if i == 0 or pseg[i - 1] != s or pe[i] != pe[i - 1]:
+            route_e[k] = pe[i]
+            k += 1
+        route_ptr[s + 1] = k
+        rxy_ptr[s + 1] = xptr[i + 1]
+    # interpolated points: projected onto the chosen edge of the nearer kept neighbour
+    q = 0
+    for i in range(n):
+        if not valid[i] or kept[i]:
+            continue
+        while q < m and pts[q] < i:
+            q += 1
+        prv = max(q - 1, 0)
+        nxt = min(q, m - 1)
+        o1, d1, x1, y1 = _project_one(seg_xy, seg_ptr, ch_edge[prv], xy[i, 0], xy[i, 1])
+        o2, d2, x2, y2 = _project_one(seg_xy, seg_ptr, ch_edge[nxt], xy[i, 0], xy[i, 1])
+        if d2 < d1:
+            p_edge[i], p_off[i], p_xy[i, 0], p_xy[i, 1], p_dist[i] = ch_edge[nxt], o2, x2, y2, d2
+        else:
+            p_edge[i], p_off[i], p_xy[i, 0], p_xy[i, 1], p_dist[i] = ch_edge[prv], o1, x1, y1, d1
+        status[i] = 2
+    conf = post / max(nvalid, 1)
+    return Assembly(
+        p_edge, p_off, p_xy, p_dist, status, splits, route_e[:k], route_ptr, xy_all, rxy_ptr, length, conf
+    )

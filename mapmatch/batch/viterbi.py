@@ -1,0 +1,302 @@
+"""Exact Viterbi over the lattice, routing each step as it goes (compiled).
+
+A step scores every pair of candidates of two consecutive lattice points with the shared
+transition model (:func:`mapmatch.model.transition_logp_one`) over the route distance
+between them. Routes come from :mod:`mapmatch.routing` (a table look-up within its bound,
+else a bounded search whose bound shrinks as the targets' best scores rise). A point no
+candidate of the previous point can reach is left out; a run of them splits the match.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import NamedTuple
+
+import numpy as np
+from numba import njit
+from numpy.typing import NDArray
+
+from mapmatch.batch.arrays import KernelParams, Lattice
+from mapmatch.model import transition_logp_one
+from mapmatch.routing import _reset, _search, ubodt_lookup
+
+
+class Trellis(NamedTuple):
+    """The Viterbi scores and back-pointers per candidate, and one step's scratch."""
+
+    score: NDArray[np.float64]
+    bp: NDArray[np.int64]
+    """Best predecessor candidate (-1: none)."""
+    bpu: NDArray[np.bool_]
+    """Whether the step from ``bp`` is a U-turn along the road."""
+    order: NDArray[np.int64]
+    best: NDArray[np.float64]
+
+
+@njit(cache=True, nogil=True)
+def _step(a0, a1, b0, b1, lat, tr, params, node_uturn, trav, dt, bound, reverse_tol, router):  # type: ignore[no-untyped-def]
+    """One Viterbi step from candidates ``a0:a1`` to ``b0:b1``, routing as needed.
+
+    Sources are taken best score first. As every transition log-probability is <= 0, a source
+    can only improve target ``j`` when its score beats ``best[j]``, and only through a route
+    shorter than ``trav + beta * (score - best[j])``: the search bound shrinks accordingly and
+    the result stays exact. Returns whether any target was reached.
+    """
+    g = router.g
+    ws = router.ws
+    table = router.table
+    cedge = lat.edge
+    coff = lat.offset
+    score, bp, bpu, order, best = tr
+    edge_len = g.edge_len
+    edge_rev = g.edge_rev
+    ka = a1 - a0
+    kb = b1 - b0
+    beta = params[0]
+    for i in range(ka):
+        order[i] = a0 + i
+    # insertion sort by descending score (k is small)
+    for i in range(1, ka):
+        x = order[i]
+        q = i - 1
+        while q >= 0 and score[order[q]] < score[x]:
+            order[q + 1] = order[q]
+            q -= 1
+        order[q + 1] = x
+    for j in range(kb):
+        best[j] = -np.inf
+        bp[b0 + j] = -1
+        bpu[b0 + j] = False
+    nuniq = 0
+    for j in range(b0, b1):
+        if ws.tgt[cedge[j]] == 0:
+            ws.tgt[cedge[j]] = 1
+            nuniq += 1
+    for oi in range(ka):
+        i = order[oi]
+        si = score[i]
+        if si == -np.inf:
+            break
+        worst = np.inf
+        for j in range(kb):
+            worst = min(worst, best[j])
+        if worst >= si:
+            break  # no remaining source can improve any target
+        lim = bound
+        if worst > -np.inf:
+            lim = min(bound, trav + beta * (si - worst))
+        e = cedge[i]
+        o = coff[i]
+        need = False
+        for j in range(b0, b1):
+            f = cedge[j]
+            if f == e and coff[j] >= o - reverse_tol:
+                lp = transition_logp_one(max(coff[j] - o, 0.0), trav, dt, params, False)
+                if si + lp > best[j - b0]:
+                    best[j - b0] = si + lp
+                    bp[j] = i
+                    bpu[j] = False
+            else:
+                need = True
+                if f == edge_rev[e]:
+                    lp = transition_logp_one(abs(edge_len[e] - coff[j] - o), trav, dt, params, True)
+                    if node_uturn < params[3] and edge_len[e] - o <= reverse_tol and coff[j] <= reverse_tol:
+                        # turning round at the junction (within reverse_tol) after a stop
+                        lp += params[3] - node_uturn
+                    if si + lp > best[j - b0]:
+                        best[j - b0] = si + lp
+                        bp[j] = i
+                        bpu[j] = True
+        if not need or edge_len[e] - o > lim:
+            continue
+        if lim <= table.delta:  # the table holds every route within the bound
+            for j in range(b0, b1):
+                f = cedge[j]
+                if f == e and coff[j] >= o - reverse_tol:
+                    continue
+                r = edge_len[e] - o + ubodt_lookup(table, e, f) + coff[j]
+                if r <= lim:
+                    lp = transition_logp_one(r, trav, dt, params, False)
+                    if si + lp > best[j - b0]:
+                        best[j - b0] = si + lp
+                        bp[j] = i
+                        bpu[j] = False
+            continue
+        nt = _search(e, edge_len[e] - o, lim, nuniq, g, ws)
+        for j in range(b0, b1):
+            f = cedge[j]
+            if f == e and coff[j] >= o - reverse_tol:
+                continue
+            r = ws.dist[f] + coff[j]
+            if r <= lim:
+                lp = transition_logp_one(r, trav, dt, params, False)
+                if si + lp > best[j - b0]:
+                    best[j - b0] = si + lp
+                    bp[j] = i
+                    bpu[j] = False
+        _reset(nt, ws)
+    for j in range(b0, b1):
+        ws.tgt[cedge[j]] = 0
+    reached = False
+    for j in range(kb):
+        if best[j] > -np.inf:
+            reached = True
+            score[b0 + j] = best[j] + lat.emis[b0 + j]
+        else:
+            score[b0 + j] = -np.inf
+    return reached
+
+
+@njit(cache=True, nogil=True)
+def _try_step(prev, t, d, lat, tr, p, router):  # type: ignore[no-untyped-def]
+    """The Viterbi step from lattice point ``prev`` to ``t`` (``d`` metres apart): a tight search
+    bound first, the full bound only if nothing is reached. Returns (reached, full bound)."""
+    trav = d
+    od = lat.podo[t] - lat.podo[prev]
+    if np.isfinite(od) and od > 0:
+        trav = od
+    dt = lat.ptime[t] - lat.ptime[prev]
+    bound = p.route_factor * trav + p.route_slack
+    tight = min(bound, trav + p.lp_cut_m)
+    stop = p.stop  # (stop speed, stop time, U-turn penalty across a stop)
+    node_uturn = p.transition[3]
+    if dt >= stop[1] and d < stop[0] * dt:
+        node_uturn = min(node_uturn, stop[2])
+    reached = False
+    ptr = lat.ptr
+    for npass in range(2):
+        lim = tight if npass == 0 else bound
+        if npass == 1 and lim <= tight:
+            break
+        reached = _step(
+            ptr[prev], ptr[prev + 1], ptr[t], ptr[t + 1], lat, tr, p.transition, node_uturn, trav, dt, lim,
+            p.reverse_tol, router,
+        )  # fmt: skip
+        if reached:
+            break
+    return reached, bound
+
+
+@njit(cache=True, nogil=True)
+def solve(lat: Lattice, p: KernelParams, router):  # type: ignore[no-untyped-def]
+    """Exact Viterbi over the lattice, routing each step as it goes.
+
+    A point no candidate of the previous accepted point can reach is left out (an outlier);
+    after ``max_skip`` such points in a row, or across a distance gap, a new piece starts at
+    the first of them. Returns per lattice point the chosen candidate (-1 = left out), whether a
+    piece starts there, whether the step into it is an along-road U-turn, and its route bound.
+    """
+    cand_ptr = lat.ptr
+    emis = lat.emis
+    pxy = lat.pxy
+    gap_distance = p.gap_distance
+    max_skip = p.max_skip
+    m = len(cand_ptr) - 1
+    nc = len(emis)
+    prev_pt = np.full(m, -1, dtype=np.int64)
+    accepted = np.zeros(m, dtype=np.bool_)
+    seg_start = np.zeros(m, dtype=np.bool_)
+    used_bound = np.zeros(m)
+    choice = np.full(m, -1, dtype=np.int64)
+    via_u = np.zeros(m, dtype=np.bool_)
+    if m == 0:
+        return choice, seg_start, via_u, used_bound
+    kmax = 1
+    for t in range(m):
+        kmax = max(kmax, cand_ptr[t + 1] - cand_ptr[t])
+    tr = Trellis(
+        np.full(nc, -np.inf),
+        np.full(nc, -1, dtype=np.int64),
+        np.zeros(nc, dtype=np.bool_),
+        np.empty(kmax, dtype=np.int64),
+        np.empty(kmax),
+    )
+    score = tr.score
+    bp = tr.bp
+    bpu = tr.bpu
+    prev = 0
+    accepted[0] = True
+    seg_start[0] = True
+    for j in range(cand_ptr[0], cand_ptr[1]):
+        score[j] = emis[j]
+    nskip = 0
+    s0 = -1
+    t = 1
+    d = 0.0
+    while t < m or nskip > 1:
+        restart = -1
+        if t >= m:
+            restart = s0  # several trailing points unreachable: they form their own piece
+        else:
+            d = math.hypot(pxy[t, 0] - pxy[prev, 0], pxy[t, 1] - pxy[prev, 1])
+            if d > gap_distance:
+                restart = s0 if nskip > 0 else t
+        if restart < 0:
+            reached, bound = _try_step(prev, t, d, lat, tr, p, router)
+            if reached:
+                accepted[t] = True
+                prev_pt[t] = prev
+                used_bound[t] = bound
+                prev = t
+                nskip = 0
+                t += 1
+                continue
+            if nskip == 0:
+                s0 = t
+            nskip += 1
+            if nskip <= max_skip:
+                t += 1
+                continue
+            restart = s0
+            # before splitting: maybe the last accepted points were the outliers (a drift onto a
+            # road that does not lead on); reach s0 from up to max_skip points before them
+            q = prev_pt[prev]
+            back = 0
+            while q >= 0 and back < max_skip:
+                dq = math.hypot(pxy[s0, 0] - pxy[q, 0], pxy[s0, 1] - pxy[q, 1])
+                if dq > gap_distance:
+                    break
+                reached, bound = _try_step(q, s0, dq, lat, tr, p, router)
+                if reached:
+                    for r in range(q + 1, s0):
+                        accepted[r] = False
+                    accepted[s0] = True
+                    prev_pt[s0] = q
+                    used_bound[s0] = bound
+                    restart = -1
+                    break
+                q = prev_pt[q]
+                back += 1
+            if restart < 0:
+                prev = s0
+                nskip = 0
+                t = s0 + 1
+                continue
+        # a new piece starts at ``restart``
+        accepted[restart] = True
+        seg_start[restart] = True
+        for j in range(cand_ptr[restart], cand_ptr[restart + 1]):
+            score[j] = emis[j]
+        prev = restart
+        nskip = 0
+        t = restart + 1
+    # backtrack
+    t = m - 1
+    while not accepted[t]:
+        t -= 1
+    j = cand_ptr[t] + np.argmax(score[cand_ptr[t] : cand_ptr[t + 1]])
+    while True:
+        choice[t] = j
+        if seg_start[t]:
+            q = t - 1
+            while q >= 0 and not accepted[q]:
+                q -= 1
+            if q < 0:
+                break
+            t = q
+            j = cand_ptr[t] + np.argmax(score[cand_ptr[t] : cand_ptr[t + 1]])
+        else:
+            via_u[t] = bpu[j]
+            j = bp[j]
+            t = prev_pt[t]
+    return choice, seg_start, via_u, used_bound
