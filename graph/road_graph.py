@@ -15,7 +15,6 @@ from dataclasses import dataclass, field
 from typing import Any, NamedTuple
 
 import numpy as np
-from numba import njit
 from numpy.typing import NDArray
 
 from mapmatch.graph.errors import GraphError
@@ -580,41 +579,53 @@ def _reverse_edges(
 ) -> NDArray[np.int32]:
     """For each edge, the edge running v -> u along the same polyline reversed (within 1 cm), or -1.
 
-    Edges are paired in index order, each with the first free candidate.
+    Edges are paired in index order, each with the first free candidate. A pair of ends
+    with one edge each way (nearly all) is settled with whole-array steps; ends with
+    parallel edges or a loop go through the rule one edge at a time.
     """
     e = len(u)
-    if e == 0:
-        return np.full(0, -1, dtype=np.int32)
-    n = int(max(u.max(), v.max())) + 1
-    key = u.astype(np.int64) * n + v.astype(np.int64)
-    order = np.argsort(key, kind="stable")
-    return _pair_reverses(key[order], order, u.astype(np.int64), v.astype(np.int64), n, seg, ptr)
-
-
-@njit(cache=True)
-def _pair_reverses(skey, order, u, v, n, seg, ptr):  # type: ignore[no-untyped-def]
-    e = len(u)
     rev = np.full(e, -1, dtype=np.int32)
-    for i in range(e):
-        if rev[i] >= 0:
-            continue
-        want = v[i] * n + u[i]
-        k = np.searchsorted(skey, want)
-        li = ptr[i + 1] - ptr[i]
-        while k < e and skey[k] == want:
-            j = order[k]
-            k += 1
-            if j == i or rev[j] >= 0 or ptr[j + 1] - ptr[j] != li:
+    if e == 0:
+        return rev
+    n = int(max(u.max(), v.max())) + 1
+    a, b = u.astype(np.int64), v.astype(np.int64)
+    lo, hi = np.minimum(a, b), np.maximum(a, b)
+    group = lo * n + hi  # the unordered pair of ends
+    order = np.lexsort((np.arange(e), a != lo, group))  # per group: lo -> hi first, each by index
+    g = group[order]
+    new = np.ones(e, dtype=bool)
+    new[1:] = g[1:] != g[:-1]
+    gstart = np.nonzero(new)[0]
+    gsize = np.diff(np.append(gstart, e))
+    n_fwd = np.add.reduceat((a[order] == lo[order]).astype(np.int64), gstart)
+    simple = (gsize == 2) & (n_fwd == 1) & (lo[order[gstart]] != hi[order[gstart]])
+    i, j = order[gstart[simple]], order[gstart[simple] + 1]
+    same_len = (ptr[i + 1] - ptr[i]) == (ptr[j + 1] - ptr[j])
+    i, j = i[same_len], j[same_len]
+    if len(i):
+        k = ptr[i + 1] - ptr[i]
+        t = np.arange(int(k.sum())) - np.repeat(np.cumsum(k) - k, k)
+        pa = np.repeat(ptr[i], k) + t
+        pb = np.repeat(ptr[j + 1] - 1, k) - t
+        bad = (np.abs(seg[pa] - seg[pb]) > 0.01).any(axis=1)
+        ok = np.bincount(np.repeat(np.arange(len(i)), k), weights=bad, minlength=len(i)) == 0
+        rev[i[ok]] = j[ok]
+        rev[j[ok]] = i[ok]
+    for s0, sz in zip(gstart[~simple].tolist(), gsize[~simple].tolist(), strict=True):
+        members = np.sort(order[s0 : s0 + sz]).tolist()
+        for x in members:
+            if rev[x] >= 0:
                 continue
-            ok = True
-            for t in range(li):
-                a = ptr[i] + t
-                b = ptr[j + 1] - 1 - t
-                if abs(seg[a, 0] - seg[b, 0]) > 0.01 or abs(seg[a, 1] - seg[b, 1]) > 0.01:
-                    ok = False
+            for y in members:
+                if y == x or rev[y] >= 0 or a[y] != b[x] or b[y] != a[x]:
+                    continue
+                lx = ptr[x + 1] - ptr[x]
+                if ptr[y + 1] - ptr[y] != lx:
+                    continue
+                fx = seg[ptr[x] : ptr[x + 1]]
+                fy = seg[ptr[y] : ptr[y + 1]][::-1]
+                if (np.abs(fx - fy) <= 0.01).all():
+                    rev[x] = y
+                    rev[y] = x
                     break
-            if ok:
-                rev[i] = j
-                rev[j] = i
-                break
     return rev

@@ -11,11 +11,10 @@ from __future__ import annotations
 
 import itertools
 import logging
-from collections.abc import Iterable, Sequence
+from collections.abc import Callable, Iterable, Sequence
 from typing import TYPE_CHECKING, Any, NamedTuple
 
 import numpy as np
-from numba import njit
 from numpy.typing import NDArray
 
 from mapmatch.graph.road_graph import Pieces, RoadGraph
@@ -595,128 +594,106 @@ def raw_to_nx(raw: RawNetwork) -> nx.MultiDiGraph:
     return G
 
 
-@njit(cache=True)
-def _endpoints(n, src, dst, out_ptr, out_e, in_ptr, in_e):  # type: ignore[no-untyped-def]
+def _neighbour_keys(n: int, src: NDArray[np.int64], dst: NDArray[np.int64]) -> NDArray[np.int64]:
+    """Sorted distinct ``node * n + neighbour`` over both directions of every edge (a
+    self-loop makes a node its own neighbour)."""
+    key = np.concatenate([src * n + dst, dst * n + src])
+    return np.unique(key)
+
+
+def _endpoints(
+    n: int, src: NDArray[np.int64], dst: NDArray[np.int64], nbr_key: NDArray[np.int64]
+) -> NDArray[np.bool_]:
     """osmnx's endpoint rules 1-3 per node: self-loop, no in or no out edge, or not exactly
     two neighbours with degree 2 or 4."""
-    end = np.zeros(n, dtype=np.bool_)
-    mark = np.full(n, -1, dtype=np.int64)
-    for u in range(n):
-        cnt = 0
-        loop = False
-        for k in range(out_ptr[u], out_ptr[u + 1]):
-            w = dst[out_e[k]]
-            loop = loop or w == u
-            if mark[w] != u:
-                mark[w] = u
-                cnt += 1
-        for k in range(in_ptr[u], in_ptr[u + 1]):
-            w = src[in_e[k]]
-            loop = loop or w == u
-            if mark[w] != u:
-                mark[w] = u
-                cnt += 1
-        nout = out_ptr[u + 1] - out_ptr[u]
-        nin = in_ptr[u + 1] - in_ptr[u]
-        d = nout + nin
-        end[u] = loop or nout == 0 or nin == 0 or not (cnt == 2 and (d == 2 or d == 4))
-    return end
+    nout = np.bincount(src, minlength=n)
+    nin = np.bincount(dst, minlength=n)
+    loop = np.zeros(n, dtype=bool)
+    loop[src[src == dst]] = True
+    cnt = np.bincount(nbr_key // n, minlength=n)
+    d = nout + nin
+    return loop | (nout == 0) | (nin == 0) | ~((cnt == 2) & ((d == 2) | (d == 4)))
 
 
-@njit(cache=True)
-def _paths(n, dst, out_ptr, out_e, end):  # type: ignore[no-untyped-def]
-    """osmnx's ``_build_path`` from every endpoint through each successor that is not one.
+class _Arcs(NamedTuple):
+    """Distinct directed node pairs of the raw edges: ``key = a * n + b`` sorted, and the
+    first raw edge (lowest index) of each."""
 
-    Returns ``(path_ptr, path_nodes, path_edges, status)``: the nodes of each path, and per
-    step the first raw edge between its two nodes; status -1 on a pattern osmnx rejects.
+    key: NDArray[np.int64]
+    first: NDArray[np.int64]
+
+    def find(self, keys: NDArray[np.int64]) -> NDArray[np.int64]:
+        """Position of each key in ``key``, -1 when absent."""
+        at = np.searchsorted(self.key, keys)
+        at = np.minimum(at, max(len(self.key) - 1, 0))
+        ok = self.key[at] == keys if len(self.key) else np.zeros(len(keys), dtype=bool)
+        return np.where(ok, at, -1)
+
+
+def _arcs(n: int, src: NDArray[np.int64], dst: NDArray[np.int64]) -> _Arcs:
+    key = src * n + dst
+    order = np.argsort(key, kind="stable")
+    sk = key[order]
+    new = np.ones(len(sk), dtype=bool)
+    new[1:] = sk[1:] != sk[:-1]
+    return _Arcs(key=sk[new], first=order[new].astype(np.int64))
+
+
+def _paths(
+    n: int,
+    src: NDArray[np.int64],
+    dst: NDArray[np.int64],
+    end: NDArray[np.bool_],
+    nbr_key: NDArray[np.int64],
+    *,
+    on_step: Callable[[int], None] | None = None,
+) -> tuple[NDArray[np.int64], NDArray[np.int64], NDArray[np.int64]]:
+    """osmnx's ``_build_path`` from every endpoint through each successor that is not one,
+    all paths at once (one numpy step per path position).
+
+    A path from endpoint ``u`` through successor ``v`` goes on through non-endpoints: each
+    has exactly two neighbours, and the path moves to the one it did not come from while an
+    edge leads there; it stops after reaching an endpoint (``u`` itself included), or where
+    no edge goes on. Paths come in osmnx's order: by ``u``, then by ``u``'s first raw edge to
+    ``v``. Returns ``(path_ptr, path_nodes, path_edges)``: the nodes of each path, and per step
+    the first raw edge between its two nodes (osmnx takes the first of parallel edges).
     """
-    m = len(dst)
-    path_ptr = np.zeros(m + 1, dtype=np.int64)
-    nodes = np.empty(2 * m + 2, dtype=np.int64)
-    walk = np.full(n, -1, dtype=np.int64)  # path id of the path a node is on
-    useen = np.full(n, -1, dtype=np.int64)  # successors of endpoint u already started: u
-    seen = np.full(n, -1, dtype=np.int64)  # successors of the walk's current node: tick
-    tick = 0
-    n_paths = 0
-    nn = 0
-    for u in range(n):
-        if not end[u]:
-            continue
-        for k in range(out_ptr[u], out_ptr[u + 1]):
-            v = dst[out_e[k]]
-            if useen[v] == u or end[v]:
-                useen[v] = u
-                continue
-            useen[v] = u
-            if nn + 3 > len(nodes):
-                return path_ptr[:1], nodes[:0], nodes[:0], -1
-            pid = n_paths
-            nodes[nn] = u
-            nodes[nn + 1] = v
-            nn += 2
-            walk[u] = pid
-            walk[v] = pid
-            s = -1
-            for k2 in range(out_ptr[v], out_ptr[v + 1]):
-                if walk[dst[out_e[k2]]] != pid:
-                    s = dst[out_e[k2]]
-                    break
-            if s >= 0:
-                nodes[nn] = s
-                nn += 1
-                walk[s] = pid
-                cur = s
-                while not end[cur]:
-                    tick += 1
-                    c = 0
-                    nxt = -1
-                    back = False
-                    for k3 in range(out_ptr[cur], out_ptr[cur + 1]):
-                        w = dst[out_e[k3]]
-                        back = back or w == u
-                        if walk[w] != pid and seen[w] != tick:
-                            seen[w] = tick
-                            c += 1
-                            nxt = w
-                    if nn + 2 > len(nodes):
-                        return path_ptr[:1], nodes[:0], nodes[:0], -1
-                    if c == 1:
-                        nodes[nn] = nxt
-                        nn += 1
-                        walk[nxt] = pid
-                        cur = nxt
-                    elif c == 0:
-                        if back:
-                            nodes[nn] = u
-                            nn += 1
-                        break
-                    else:
-                        return path_ptr[:1], nodes[:0], nodes[:0], -1
-            n_paths += 1
-            path_ptr[n_paths] = nn
-    path_ptr = path_ptr[: n_paths + 1]
-    nodes = nodes[:nn]
-    # the first raw edge of each step (osmnx takes the first of parallel edges)
-    edges = np.empty(max(nn - n_paths, 0), dtype=np.int64)
-    j = 0
-    for p in range(n_paths):
-        for i in range(path_ptr[p], path_ptr[p + 1] - 1):
-            a = nodes[i]
-            b = nodes[i + 1]
-            edges[j] = -1
-            for k in range(out_ptr[a], out_ptr[a + 1]):
-                if dst[out_e[k]] == b:
-                    edges[j] = out_e[k]
-                    break
-            j += 1
-    return path_ptr, nodes, edges, 0
-
-
-def _csr_by(keys: NDArray[np.int64], n: int) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
-    order = np.argsort(keys, kind="stable").astype(np.int64)
-    ptr = np.zeros(n + 1, dtype=np.int64)
-    np.cumsum(np.bincount(keys, minlength=n), out=ptr[1:])
-    return ptr, order
+    arcs = _arcs(n, src, dst)
+    a_from, a_to = arcs.key // n, arcs.key % n
+    # paths start on the arcs from an endpoint to a non-endpoint, in osmnx's order
+    st = np.nonzero(end[a_from] & ~end[a_to])[0]
+    st = st[np.lexsort((arcs.first[st], a_from[st]))]
+    # the two neighbours of a non-endpoint sum to this: the other one is the sum minus one
+    nb_node = nbr_key // n
+    nbr_sum = np.bincount(nb_node, weights=(nbr_key % n).astype(np.float64), minlength=n).astype(np.int64)
+    pid = np.arange(len(st), dtype=np.int64)
+    prev, cur = a_from[st], a_to[st]
+    rec_pid = [pid, pid]
+    rec_node = [prev, cur]
+    steps = 0
+    while len(pid):
+        go = ~end[cur]
+        pid, prev, cur = pid[go], prev[go], cur[go]
+        nxt = nbr_sum[cur] - prev
+        ok = arcs.find(cur * n + nxt) >= 0
+        pid, prev, cur = pid[ok], cur[ok], nxt[ok]
+        rec_pid.append(pid)
+        rec_node.append(cur)
+        steps += 1
+        if on_step is not None and steps % 64 == 0:
+            on_step(len(pid))
+    all_pid = np.concatenate(rec_pid)
+    order = np.argsort(all_pid, kind="stable")  # path by path, each in walk order
+    nodes = np.concatenate(rec_node)[order]
+    counts = np.bincount(all_pid, minlength=len(st))
+    path_ptr = np.zeros(len(st) + 1, dtype=np.int64)
+    np.cumsum(counts, out=path_ptr[1:])
+    # per step (every node but each path's last) the first raw edge to the next node
+    step = np.ones(len(nodes), dtype=bool)
+    step[path_ptr[1:] - 1] = False
+    at = np.nonzero(step)[0]
+    edges = arcs.first[arcs.find(nodes[at] * n + nodes[at + 1])]
+    return path_ptr, nodes, edges
 
 
 def ring_keep(raw: RawNetwork, end: NDArray[np.bool_]) -> NDArray[np.bool_]:
@@ -768,28 +745,22 @@ class Simplified(NamedTuple):
     kept: NDArray[np.bool_]
 
 
-def simplify_arrays(raw: RawNetwork) -> Simplified:
+def simplify_arrays(raw: RawNetwork, *, on_step: Callable[[int], None] | None = None) -> Simplified:
     """Simplify to intersections and dead ends exactly as :func:`simplify` (osmnx) does,
-    with compiled kernels on arrays.
+    with whole-array numpy steps (no per-node Python).
 
-    Raises
-    ------
-    GraphError
-        On a pattern osmnx cannot simplify either.
+    ``on_step`` is called now and then during the path walk with the number of paths
+    still growing.
     """
-    from mapmatch.graph.errors import GraphError
-
     n = raw.n_nodes
-    out_ptr, out_e = _csr_by(raw.edge_src, n)
-    in_ptr, in_e = _csr_by(raw.edge_dst, n)
-    end = _endpoints(n, raw.edge_src, raw.edge_dst, out_ptr, out_e, in_ptr, in_e)
+    nbr_key = _neighbour_keys(n, raw.edge_src, raw.edge_dst)
+    end = _endpoints(n, raw.edge_src, raw.edge_dst, nbr_key)
     keep = ring_keep(raw, end)
     if keep.any():
         log.info("kept %d isolated rings as two edges each", int(keep.sum()) // 2)
     end = end | keep
-    pptr, pnodes, pedges, status = _paths(n, raw.edge_dst, out_ptr, out_e, end)
-    if status < 0:
-        raise GraphError("the road network has a pattern that cannot be simplified")
+    pptr, pnodes, pedges = _paths(n, raw.edge_src, raw.edge_dst, end, nbr_key, on_step=on_step)
+    del nbr_key
     # interior nodes go; raw edges between remaining nodes stay as they are
     removed = np.zeros(n, dtype=bool)
     inner = np.ones(len(pnodes), dtype=bool)
