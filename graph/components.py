@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import NDArray
 
+from mapmatch.graph.keys import dense_labels, isin, unique
 from mapmatch.graph.road_graph import RoadGraph
 
 
@@ -27,7 +28,8 @@ def union_find(n: int, a: NDArray[np.int64], b: NDArray[np.int64]) -> NDArray[np
 def weak_components(graph: RoadGraph) -> NDArray[np.int64]:
     """Weakly connected component index ``0..C-1`` of every node, largest component first."""
     lab = union_find(graph.n_nodes, graph.edge_u.astype(np.int64), graph.edge_v.astype(np.int64))
-    _, inv, counts = np.unique(lab, return_inverse=True, return_counts=True)
+    _, inv = dense_labels(lab, graph.n_nodes)
+    counts = np.bincount(inv)
     rank = np.empty(len(counts), dtype=np.int64)
     rank[np.argsort(-counts, kind="stable")] = np.arange(len(counts))
     return rank[inv.ravel()]
@@ -49,16 +51,16 @@ def component_counts(n: int, src: NDArray[np.integer], dst: NDArray[np.integer])
     if n == 0:
         return 0, 0
     a, b = np.asarray(src, dtype=np.int64), np.asarray(dst, dtype=np.int64)
-    weak = len(np.unique(union_find(n, a, b)))
+    weak = len(dense_labels(union_find(n, a, b), n)[0])
     key = a * n + b
-    two_way = np.isin(key, b * n + a)
+    two_way = isin(key, b * n + a)
     lab = union_find(n, a[two_way], b[two_way])
-    uniq, inv = np.unique(lab, return_inverse=True)
+    uniq, inv = dense_labels(lab, n)
     del key, two_way, lab
     k = len(uniq)
     ca, cb = inv.ravel()[a], inv.ravel()[b]
     keep = ca != cb
-    pair = np.unique(ca[keep] * k + cb[keep])
+    pair = unique(ca[keep] * k + cb[keep])
     ca, cb = pair // k, pair % k
     alive = np.ones(k, dtype=bool)
     while True:  # a node without an edge in or out (among the living) is a component alone

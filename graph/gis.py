@@ -10,10 +10,10 @@ from __future__ import annotations
 import logging
 import math
 import re
-from collections.abc import Iterable
+from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, NamedTuple
 
 import numpy as np
 import shapely
@@ -21,6 +21,7 @@ from numpy.typing import NDArray
 
 from mapmatch.graph.components import union_find
 from mapmatch.graph.errors import InputError
+from mapmatch.graph.keys import dense_labels, unique, unique_inverse
 from mapmatch.graph.projection import utm_crs
 from mapmatch.graph.simplify import RawNetwork, _text, compact_raw
 
@@ -164,82 +165,233 @@ def _parse_speed(value: Any) -> float:
     return v if v > 0 else math.nan
 
 
-def read_lines(path: Path, opts: GisOptions) -> tuple[Any, dict[str, int]]:
-    """Read line features into a GeoDataFrame (exploded to LineStrings, in WGS84).
+class Lines(NamedTuple):
+    """Line features as arrays (multi-part lines split into one line per part, in WGS84).
 
-    Returns the frame and counts of dropped features by reason.
+    Line ``i`` runs through ``lonlat[ptr[i]:ptr[i+1]]`` and came from source row ``row[i]``;
+    ``columns`` holds the attribute columns that were read, one value per source row.
     """
+
+    lonlat: NDArray[np.float64]
+    ptr: NDArray[np.int64]
+    row: NDArray[np.int64]
+    columns: dict[str, Any]
+    fields: list[str]
+
+    @property
+    def n_lines(self) -> int:
+        return len(self.row)
+
+    def column(self, name: str) -> Any:
+        """The values of one attribute column per line (a pyarrow array)."""
+        return self.columns[name].take(self.row)
+
+
+ReadProgress = Callable[[int, int], None]
+"""Called with (features read so far, features in the source; 0 when unknown)."""
+
+
+def _source_fields(path: Path, layer: str | None) -> tuple[list[str], Any, int]:
+    """Field names, CRS (text or None) and feature count (0 when unknown) of a source."""
+    if path.suffix.lower() in (".parquet", ".geoparquet"):
+        import pyarrow.parquet as pq
+
+        pf = pq.ParquetFile(path)
+        geo = _geoparquet_meta(pf, path)
+        cols = [c for c in pf.schema_arrow.names if c != geo["primary_column"]]
+        return cols, _geoparquet_crs(geo), pf.metadata.num_rows
     import pyogrio
+
+    info = pyogrio.read_info(path, layer=layer)
+    n = int(info.get("features") or 0)
+    return [str(f) for f in info["fields"]], info.get("crs"), max(n, 0)
+
+
+def _geoparquet_meta(pf: Any, path: Path) -> dict[str, Any]:
+    import json
+
+    raw = (pf.schema_arrow.metadata or {}).get(b"geo")
+    if raw is None:
+        raise InputError(f"{path.name} is a Parquet file without GeoParquet metadata")
+    geo: dict[str, Any] = json.loads(raw)
+    col = geo["columns"][geo["primary_column"]]
+    if str(col.get("encoding", "WKB")).upper() != "WKB":
+        raise InputError(f"{path.name}: GeoParquet encoding {col.get('encoding')!r} is not read (only WKB)")
+    return geo
+
+
+def _geoparquet_crs(geo: dict[str, Any]) -> Any:
+    """The primary column's CRS: PROJJSON, or lon/lat when the key is absent (the spec's default)."""
+    col = geo["columns"][geo["primary_column"]]
+    if "crs" not in col:
+        return "OGC:CRS84"
+    return col["crs"]
+
+
+def _record_batches(
+    path: Path, layer: str | None, columns: list[str]
+) -> Iterator[tuple[dict[str, Any], NDArray[Any]]]:
+    """The source in batches: (attribute columns as pyarrow arrays, WKB geometry as objects)."""
+    if path.suffix.lower() in (".parquet", ".geoparquet"):
+        import pyarrow.parquet as pq
+
+        pf = pq.ParquetFile(path)
+        gcol = _geoparquet_meta(pf, path)["primary_column"]
+        for batch in pf.iter_batches(batch_size=BATCH_ROWS, columns=[*columns, gcol]):
+            yield {c: batch.column(c) for c in columns}, batch.column(gcol).to_numpy(zero_copy_only=False)
+        return
+    import pyogrio
+
+    with pyogrio.open_arrow(path, layer=layer, columns=columns, use_pyarrow=True, batch_size=BATCH_ROWS) as (
+        meta,
+        reader,
+    ):
+        gcol = meta.get("geometry_name") or "wkb_geometry"
+        for batch in reader:
+            yield {c: batch.column(c) for c in columns}, batch.column(gcol).to_numpy(zero_copy_only=False)
+
+
+BATCH_ROWS = 65_536
+"""Features per batch read: the geometry objects of one batch at a time exist."""
+
+
+def read_lines(
+    src: Source, opts: GisOptions, *, want: Iterable[str | None] = (), progress: ReadProgress | None = None
+) -> tuple[Lines, dict[str, int]]:
+    """Read line features into arrays, batch by batch through pyogrio's Arrow reader (pyarrow
+    for GeoParquet): each batch's WKB becomes coordinates and is dropped.
+
+    ``want`` names the attribute fields to read (the others are not). Returns the lines
+    and counts of dropped features by reason.
+    """
+    import shapely
     from pyproj import CRS
     from pyproj.exceptions import CRSError
 
-    try:
-        if path.suffix.lower() in (".parquet", ".geoparquet"):  # GeoParquet (GDAL here lacks the driver)
-            import geopandas as gpd
+    path, layer, fields, src_crs, total = src
+    cols = [c for c in dict.fromkeys(w for w in want if w is not None) if c in fields]
+    counts_by: dict[str, int] = {}
+    parts_ll: list[NDArray[np.float64]] = []
+    parts_n: list[NDArray[np.int64]] = []
+    parts_row: list[NDArray[np.int64]] = []
+    col_parts: dict[str, list[Any]] = {c: [] for c in cols}
+    n_rows = 0
+    n_lines_in = 0
 
-            gdf = gpd.read_parquet(path)
-        else:
-            layer = opts.layer
-            if layer is None and path.suffix.lower() == ".gpkg":
-                layers = pyogrio.list_layers(path)
-                names = [str(n) for n in layers[:, 0]]
-                layer = "roads" if "roads" in names else names[0] if names else None
-            gdf = pyogrio.read_dataframe(path, layer=layer)
-    except Exception as exc:  # pyogrio raises several unrelated types for unreadable files
+    def _drop(reason: str, n: int) -> None:
+        counts_by[reason] = counts_by.get(reason, 0) + n
+
+    try:
+        for attrs, wkb in _record_batches(path, layer, cols):
+            for c in cols:
+                col_parts[c].append(attrs[c])
+            geom = shapely.from_wkb(wkb)
+            del wkb
+            types = shapely.get_type_id(geom)
+            is_line = (types == 1) | (types == 5)  # LineString, MultiLineString
+            missing = shapely.is_missing(geom)
+            _drop("no geometry", int(missing.sum()))
+            _drop("not a line", int((~is_line & ~missing).sum()))
+            n_lines_in += int(is_line.sum())
+            rows = np.nonzero(is_line)[0]
+            geom = geom[rows]
+            lines, part_of = shapely.get_parts(geom, return_index=True)
+            del geom
+            ll, owner = shapely.get_coordinates(lines, return_index=True)
+            del lines
+            parts_ll.append(ll)
+            parts_n.append(np.bincount(owner, minlength=len(part_of)).astype(np.int64))
+            parts_row.append(n_rows + rows[part_of])
+            n_rows += len(types)
+            if progress is not None:
+                progress(n_rows, total)
+    except InputError:
+        raise
+    except Exception as exc:
         msg = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
         raise InputError(f"cannot read {path.name} as GIS data: {msg}") from exc
-    dropped: dict[str, int] = {}
-    if gdf.geometry is None or len(gdf) == 0:
-        raise InputError(f"{path.name} has no line features")
-    geom = gdf.geometry.values
-    types = shapely.get_type_id(geom)
-    is_line = np.isin(types, [1, 5])  # LineString, MultiLineString
-    n_null = int(shapely.is_missing(geom).sum())
-    if n_null:
-        dropped["no geometry"] = n_null
-    n_other = int((~is_line).sum()) - n_null
-    if n_other:
-        dropped["not a line"] = n_other
-    if not is_line.any():
+    if n_lines_in == 0:
         raise InputError(f"{path.name} has no line features (LineString or MultiLineString)")
-    gdf = gdf[is_line]
-    crs = gdf.crs
+    lonlat = np.concatenate(parts_ll) if parts_ll else np.zeros((0, 2))
+    counts = np.concatenate(parts_n) if parts_n else np.zeros(0, dtype=np.int64)
+    row = np.concatenate(parts_row) if parts_row else np.zeros(0, dtype=np.int64)
+    del parts_ll, parts_n, parts_row
+    import pyarrow as pa
+
+    columns = {
+        c: pa.concat_arrays([_chunk(x) for x in v]) if v else pa.array([]) for c, v in col_parts.items()
+    }
+    # CRS: the source's, the one given, or lon/lat when the coordinates fit
+    crs: Any = src_crs
     if opts.crs is not None:
         try:
             crs = CRS.from_user_input(opts.crs)
         except CRSError as exc:
             raise InputError(f"unreadable CRS {opts.crs!r}: {exc}") from exc
-        gdf = gdf.set_crs(crs, allow_override=True)
     if crs is None:
-        x0, y0, x1, y1 = gdf.total_bounds
+        x0, y0 = np.nanmin(lonlat, axis=0) if len(lonlat) else (0.0, 0.0)
+        x1, y1 = np.nanmax(lonlat, axis=0) if len(lonlat) else (0.0, 0.0)
         if -180 <= x0 <= x1 <= 180 and -90 <= y0 <= y1 <= 90:
             log.warning("%s has no CRS; its coordinates look like lon/lat, assuming EPSG:4326", path.name)
-            gdf = gdf.set_crs("EPSG:4326")
+            crs = "EPSG:4326"
         else:
             raise InputError(
                 f"{path.name} has no readable CRS and its coordinates are not lon/lat; give the CRS (--crs)"
             )
     try:
-        if not CRS.from_user_input(gdf.crs).equals(CRS.from_epsg(4326)):
-            gdf = gdf.to_crs("EPSG:4326")
+        crs = CRS.from_user_input(crs)
+        if not crs.equals(CRS.from_epsg(4326)):
+            from pyproj import Transformer
+
+            tf = Transformer.from_crs(crs, "EPSG:4326", always_xy=True)
+            lon, lat = tf.transform(lonlat[:, 0], lonlat[:, 1])
+            lonlat = np.column_stack([lon, lat])
     except Exception as exc:
         raise InputError(f"{path.name}: cannot transform from its CRS to lon/lat: {exc}") from exc
-    if opts.bbox is not None:
-        inside = gdf.intersects(shapely.box(*opts.bbox))
-        if not inside.all():
-            dropped["outside the bbox"] = int((~inside).sum())
-        gdf = gdf[inside]
-        if len(gdf) == 0:
+    short = counts < 2
+    if opts.bbox is not None:  # keep the features with a part that meets the box
+        ok = ~short
+        part_lines = shapely.linestrings(
+            lonlat[np.repeat(ok, counts)], indices=np.repeat(np.arange(int(ok.sum())), counts[ok])
+        )
+        hit = np.zeros(n_rows, dtype=bool)
+        hit[row[ok][shapely.intersects(part_lines, shapely.box(*opts.bbox))]] = True
+        hit[row[short]] |= ~np.isin(row[short], row[ok])
+        del part_lines
+        had = np.zeros(n_rows, dtype=bool)
+        had[row] = True
+        _drop("outside the bbox", int((had & ~hit).sum()))
+        inside = hit[row]
+        if not inside.any():
             raise InputError(f"{path.name} has no line features inside the bbox")
-    if (shapely.get_type_id(gdf.geometry.values) != 1).any():  # MultiLineStrings: one row per part
-        gdf = gdf.explode(index_parts=False)
-    geom = gdf.geometry.values
-    ncoords = shapely.get_num_coordinates(geom)
-    short = ncoords < 2
+        lonlat, counts, row, short = (
+            lonlat[np.repeat(inside, counts)],
+            counts[inside],
+            row[inside],
+            short[inside],
+        )
     if short.any():
-        dropped["fewer than 2 points"] = int(short.sum())
-        gdf = gdf[~short]
-    return gdf, dropped
+        _drop("fewer than 2 points", int(short.sum()))
+        keep_pt = np.repeat(~short, counts)
+        lonlat, counts, row = lonlat[keep_pt], counts[~short], row[~short]
+    ptr = np.zeros(len(counts) + 1, dtype=np.int64)
+    np.cumsum(counts, out=ptr[1:])
+    reasons = ("no geometry", "not a line", "outside the bbox", "fewer than 2 points")
+    dropped = {k: counts_by[k] for k in reasons if counts_by.get(k)}
+    return Lines(
+        lonlat=np.ascontiguousarray(lonlat, dtype=np.float64),
+        ptr=ptr,
+        row=row,
+        columns=columns,
+        fields=fields,
+    ), dropped
+
+
+def _chunk(a: Any) -> Any:
+    """One pyarrow Array from an Array or ChunkedArray."""
+    import pyarrow as pa
+
+    return a.combine_chunks() if isinstance(a, pa.ChunkedArray) else a
 
 
 TOPOLOGIES = ("auto", "endpoints", "ids")
@@ -255,7 +407,9 @@ def lines_to_graph(
     return raw_to_nx(raw), raw.crs, dropped, info
 
 
-def lines_to_raw(path: Path, opts: GisOptions) -> tuple[RawNetwork, dict[str, int], dict[str, Any]]:
+def lines_to_raw(
+    path: Path, opts: GisOptions, *, progress: ReadProgress | None = None
+) -> tuple[RawNetwork, dict[str, int], dict[str, Any]]:
     """Read GIS road lines into a raw network (arrays) in the local UTM CRS.
 
     Returns
@@ -268,29 +422,29 @@ def lines_to_raw(path: Path, opts: GisOptions) -> tuple[RawNetwork, dict[str, in
 
     if opts.topology not in TOPOLOGIES:
         raise InputError(f"unknown topology {opts.topology!r} (use {', '.join(TOPOLOGIES)})")
-    gdf, dropped = read_lines(path, opts)
-    cols = [c for c in gdf.columns if c != gdf.geometry.name]
-    oneway_f = _pick(cols, opts.oneway_field, ("oneway", "one_way", "dir", "direction"), "one-way")
-    name_f = _pick(cols, opts.name_field, ("name",), "name")
-    speed_f = _pick(cols, opts.speed_field, ("maxspeed", "speed", "speed_kph"), "speed")
-    hw_f = _pick(cols, opts.highway_field, ("highway", "class", "fclass"), "highway")
-    id_f = _pick(cols, opts.id_field, ("id", "way_id", "osm_id", "fid"), "id")
+    source = open_source(path, opts)
+    fields = source.fields
+    oneway_f = _pick(fields, opts.oneway_field, ("oneway", "one_way", "dir", "direction"), "one-way")
+    name_f = _pick(fields, opts.name_field, ("name",), "name")
+    speed_f = _pick(fields, opts.speed_field, ("maxspeed", "speed", "speed_kph"), "speed")
+    hw_f = _pick(fields, opts.highway_field, ("highway", "class", "fclass"), "highway")
+    id_f = _pick(fields, opts.id_field, ("id", "way_id", "osm_id", "fid"), "id")
+    uv_f = _node_id_fields(fields, opts)
     info: dict[str, Any] = {
         "oneway_field": oneway_f,
         "name_field": name_f,
         "speed_field": speed_f,
         "highway_field": hw_f,
     }
-
-    lines = np.asarray(gdf.geometry.values)
-    n_feat = len(lines)
-    fid = (
-        np.asarray(gdf[id_f], dtype=np.int64)
-        if id_f is not None and np.issubdtype(np.asarray(gdf[id_f]).dtype, np.integer)
-        else np.arange(n_feat, dtype=np.int64)
+    lines, dropped = read_lines(
+        source, opts, want=(oneway_f, name_f, speed_f, hw_f, id_f, *(uv_f or ())), progress=progress
     )
+    n_feat = lines.n_lines
+    fid = _int_column(lines, id_f) if id_f is not None else None
+    if fid is None:
+        fid = np.arange(n_feat, dtype=np.int64)
     if oneway_f is not None:
-        inv, uniq = _factorize(gdf[oneway_f])
+        inv, uniq = _factorize(lines.column(oneway_f))
         ucodes = [opts.oneway_convention.code(v) for v in uniq]
         bad = sum(int((inv == i).sum()) for i, c in enumerate(ucodes) if c is None)
         if bad:
@@ -298,28 +452,35 @@ def lines_to_raw(path: Path, opts: GisOptions) -> tuple[RawNetwork, dict[str, in
         direction = np.array([BOTH if c is None else c for c in ucodes], dtype=np.int8)[inv]
     else:
         direction = np.zeros(n_feat, dtype=np.int8)
-    names = gdf[name_f].tolist() if name_f else [None] * n_feat
-    hws = gdf[hw_f].tolist() if hw_f else [None] * n_feat
+    names = lines.column(name_f).to_pylist() if name_f else [None] * n_feat
+    hws = lines.column(hw_f).to_pylist() if hw_f else [None] * n_feat
     if speed_f:
-        inv, uniq = _factorize(gdf[speed_f])
-        speeds = np.array([_parse_speed(v) for v in uniq], dtype=np.float64)[inv].tolist()
+        inv, uniq = _factorize(lines.column(speed_f))
+        speeds = np.array([_parse_speed(v) for v in uniq], dtype=np.float64)[inv]
     else:
-        speeds = [math.nan] * n_feat
+        speeds = np.full(n_feat, math.nan)
 
-    b = shapely.bounds(lines)
-    lon0 = float((np.nanmin(b[:, 0]) + np.nanmax(b[:, 2])) / 2)
-    lat0 = float((np.nanmin(b[:, 1]) + np.nanmax(b[:, 3])) / 2)
-    crs = utm_crs(lon0, lat0)
+    lo, hi = np.nanmin(lines.lonlat, axis=0), np.nanmax(lines.lonlat, axis=0)
+    crs = utm_crs(float((lo[0] + hi[0]) / 2), float((lo[1] + hi[1]) / 2))
 
+    src_ids = None
+    if uv_f is not None and not opts.node_crossings and len(unique(lines.row)) == n_feat:
+        src_ids = _endpoint_id_values(lines, uv_f)
     if opts.node_crossings:
-        lines, src = _node_lines(lines)
-        fid, direction = fid[src], direction[src]
-        names = [names[i] for i in src]
-        hws = [hws[i] for i in src]
-        speeds = [speeds[i] for i in src]
-        n_feat = len(lines)
+        import shapely
 
-    ll, owner = shapely.get_coordinates(lines, return_index=True)
+        owner0 = np.repeat(np.arange(n_feat), np.diff(lines.ptr))
+        geoms, src = _node_lines(shapely.linestrings(lines.lonlat, indices=owner0))
+        fid, direction, speeds = fid[src], direction[src], speeds[src]
+        names = [names[i] for i in src.tolist()]
+        hws = [hws[i] for i in src.tolist()]
+        n_feat = len(geoms)
+        ll, owner = shapely.get_coordinates(geoms, return_index=True)
+        del geoms
+    else:
+        ll = lines.lonlat
+        owner = np.repeat(np.arange(n_feat), np.diff(lines.ptr))
+    del lines
     xy = to_xy(crs, ll[:, 0], ll[:, 1])
     counts = np.bincount(owner, minlength=n_feat)
     start = np.zeros(n_feat + 1, dtype=np.int64)
@@ -327,8 +488,6 @@ def lines_to_raw(path: Path, opts: GisOptions) -> tuple[RawNetwork, dict[str, in
     first, last = start[:-1], start[1:] - 1
     ends = np.concatenate([first, last])
     end_xy = xy[ends]
-    src_ids = _endpoint_id_values(gdf, opts, n_feat)
-    del gdf, lines  # the geometry objects: the coordinates are all that is needed now
     node_of_end, end_ids = None, None
     if opts.topology == "ids" or (opts.topology == "auto" and src_ids is not None):
         node_of_end, end_ids = _nodes_from_ids(src_ids, end_xy, opts)
@@ -343,7 +502,7 @@ def lines_to_raw(path: Path, opts: GisOptions) -> tuple[RawNetwork, dict[str, in
     node_xy = np.zeros((n_end_nodes, 2))
     np.add.at(node_xy, node_of_end, end_xy)
     node_xy /= np.bincount(node_of_end, minlength=n_end_nodes)[:, None]
-    node_ll = ll[ends][np.unique(node_of_end, return_index=True)[1]]
+    node_ll = ll[ends][unique_inverse(node_of_end)[1]]
     r = np.round(end_xy, 6)[np.lexsort((np.round(end_xy[:, 1], 6), np.round(end_xy[:, 0], 6)))]
     n_places = int(len(r) and 1 + (r[1:] != r[:-1]).any(axis=1).sum())
     info["merged_endpoints"] = n_places - n_end_nodes
@@ -394,7 +553,7 @@ def lines_to_raw(path: Path, opts: GisOptions) -> tuple[RawNetwork, dict[str, in
         feat_way_id=fid.astype(np.int64),
         feat_name=[_text(x) for x in names],
         feat_highway=[_text(x) for x in hws],
-        feat_speed_kph=np.asarray(speeds, dtype=np.float64),
+        feat_speed_kph=speeds.astype(np.float64),
     )
     # features that collapsed to one point
     flen = np.bincount(f, weights=seg_len, minlength=n_feat)
@@ -405,36 +564,94 @@ def lines_to_raw(path: Path, opts: GisOptions) -> tuple[RawNetwork, dict[str, in
 
 
 def _factorize(column: Any) -> tuple[NDArray[np.int64], list[Any]]:
-    """Codes into the distinct values of a column (missing values, NaN included, kept as one)."""
-    import pandas as pd
+    """Codes into the distinct values of a pyarrow column (missing values, NaN included, one value)."""
+    import pyarrow.compute as pc
 
-    codes, uniq = pd.factorize(column, use_na_sentinel=False)
-    vals = [None if (isinstance(v, float) and v != v) or v is pd.NA else v for v in list(uniq)]
-    return np.asarray(codes, dtype=np.int64), vals
+    enc = pc.dictionary_encode(column, null_encoding="encode")
+    codes = np.asarray(enc.indices.to_numpy(zero_copy_only=False), dtype=np.int64)
+    vals = [None if isinstance(v, float) and v != v else v for v in enc.dictionary.to_pylist()]
+    # NaN and null read alike: give them one code
+    first: dict[Any, int] = {}
+    remap = np.array(
+        [
+            first.setdefault(("<missing>",) if v is None else (type(v) is bool, v), i)
+            for i, v in enumerate(vals)
+        ],
+        dtype=np.int64,
+    )
+    if len(remap) and (remap != np.arange(len(remap))).any():
+        codes = remap[codes]
+    return codes, vals
 
 
-def _endpoint_id_values(gdf: Any, opts: GisOptions, n_feat: int) -> NDArray[np.int64] | None:
-    """Ids of every line's first then last node from the u/v fields, or None when unusable.
+class Source(NamedTuple):
+    """A GIS source opened for reading: its layer, fields, CRS and feature count (0: unknown)."""
 
-    Unusable: fields absent, not integers, negative, or lines split into parts or pieces
-    (multi-part lines, noding), which have no ids of their own.
-    """
-    fields = opts.node_id_fields
-    if fields is None:
-        cols = {c.lower(): c for c in gdf.columns}
-        if "u" not in cols or "v" not in cols:
-            return None
-        fields = (cols["u"], cols["v"])
-    elif any(f not in gdf.columns for f in fields):
-        raise InputError(f"node id fields {', '.join(fields)} are not in the data")
-    if opts.node_crossings or gdf.index.has_duplicates or len(gdf) != n_feat:
-        return None
+    path: Path
+    layer: str | None
+    fields: list[str]
+    crs: Any
+    total: int
+
+
+def open_source(path: Path, opts: GisOptions) -> Source:
+    """The layer to read (a GeoPackage's ``roads`` or first layer unless given) and what it
+    holds; an unreadable source is an InputError."""
     try:
-        ids = np.concatenate(
-            [np.asarray(gdf[fields[0]], dtype=np.int64), np.asarray(gdf[fields[1]], dtype=np.int64)]
-        )
-    except (TypeError, ValueError):
+        layer = opts.layer
+        if layer is None and path.suffix.lower() == ".gpkg":
+            import pyogrio
+
+            names = [str(n) for n in pyogrio.list_layers(path)[:, 0]]
+            layer = "roads" if "roads" in names else names[0] if names else None
+        fields, crs, total = _source_fields(path, layer)
+    except InputError:
+        raise
+    except Exception as exc:  # pyogrio and pyarrow raise several unrelated types for unreadable files
+        msg = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+        raise InputError(f"cannot read {path.name} as GIS data: {msg}") from exc
+    return Source(path, layer, fields, crs, total)
+
+
+def _node_id_fields(fields: list[str], opts: GisOptions) -> tuple[str, str] | None:
+    """The fields with each line's first and last node id: given, or ``u`` and ``v``."""
+    if opts.node_id_fields is not None:
+        if any(f not in fields for f in opts.node_id_fields):
+            raise InputError(f"node id fields {', '.join(opts.node_id_fields)} are not in the data")
+        return opts.node_id_fields
+    cols = {c.lower(): c for c in fields}
+    return (cols["u"], cols["v"]) if "u" in cols and "v" in cols else None
+
+
+def _int_column(lines: Lines, name: str) -> NDArray[np.int64] | None:
+    """An integer column per line as int64; None when it is not integers or has nulls."""
+    import pyarrow as pa
+
+    col = lines.columns[name]
+    if not pa.types.is_integer(col.type) or col.null_count:
         return None
+    return np.asarray(col.to_numpy(), dtype=np.int64)[lines.row]
+
+
+def _endpoint_id_values(lines: Lines, fields: tuple[str, str]) -> NDArray[np.int64] | None:
+    """Ids of every line's first then last node from the u/v fields, or None when unusable
+    (not integers, nulls, or negative)."""
+    import pyarrow as pa
+
+    out = []
+    for f in fields:
+        col = lines.columns[f]
+        if col.null_count:
+            return None
+        if pa.types.is_integer(col.type) or pa.types.is_floating(col.type):
+            vals = np.asarray(col.to_numpy(), dtype=np.int64)
+        else:
+            try:
+                vals = np.asarray(col.to_pylist(), dtype=np.int64)
+            except (TypeError, ValueError, OverflowError):
+                return None
+        out.append(vals[lines.row])
+    ids = np.concatenate(out)
     return ids if (ids >= 0).all() else None
 
 
@@ -447,8 +664,7 @@ def _nodes_from_ids(
         if opts.topology == "ids":
             raise InputError("topology from node ids needs integer u/v fields (see --node-id-fields)")
         return None, None
-    uniq, inv = np.unique(ids, return_inverse=True)
-    inv = inv.ravel()
+    uniq, _, inv = unique_inverse(ids)
     n = len(uniq)
     mean = np.zeros((n, 2))
     np.add.at(mean, inv, end_xy)
@@ -477,7 +693,7 @@ def _nodes_from_coords(end_xy: NDArray[np.float64], tol: float) -> NDArray[np.in
         pa, pb = tree.query(shapely.points(uniq), predicate="dwithin", distance=tol)
         keep = pa < pb
         lab = union_find(len(uniq), pa[keep].astype(np.int64), pb[keep].astype(np.int64))
-        _, lab = np.unique(lab, return_inverse=True)
+        _, lab = dense_labels(lab, len(uniq))
     else:
         lab = np.arange(len(uniq))
     return np.asarray(lab, dtype=np.int64).ravel()[inv]
@@ -492,7 +708,7 @@ def _consistent_ids(
     n = int(node_of_end.max()) + 1
     out = np.full(n, -1, dtype=np.int64)
     out[node_of_end] = ids
-    if (out < 0).any() or not np.array_equal(out[node_of_end], ids) or len(np.unique(out)) != n:
+    if (out < 0).any() or not np.array_equal(out[node_of_end], ids) or len(unique(out)) != n:
         log.info("u/v fields do not match the shared endpoints; generating node ids")
         return None
     return out

@@ -21,6 +21,7 @@ from numpy.typing import NDArray
 
 from mapmatch.graph.errors import InputError
 from mapmatch.graph.gis import _parse_speed
+from mapmatch.graph.keys import unique_inverse
 from mapmatch.graph.projection import to_xy, utm_crs
 from mapmatch.graph.road_graph import RESTRICTION_NO, RESTRICTION_ONLY
 from mapmatch.graph.simplify import RawNetwork, compact_raw
@@ -298,7 +299,7 @@ def _ways_to_raw(
         ) + int((~has).sum())
     # nodes: every usable reference, in order of first appearance (its last location wins)
     ok_pos = np.nonzero(ok)[0]
-    ids, first, inv = np.unique(ways.ref[ok_pos], return_index=True, return_inverse=True)
+    ids, first, inv = unique_inverse(ways.ref[ok_pos])
     if len(ids) == 0:
         return _empty_raw()
     order = np.argsort(first, kind="stable")

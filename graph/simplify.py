@@ -17,6 +17,7 @@ from typing import TYPE_CHECKING, Any, NamedTuple
 import numpy as np
 from numpy.typing import NDArray
 
+from mapmatch.graph.keys import unique
 from mapmatch.graph.road_graph import Pieces, RoadGraph
 
 if TYPE_CHECKING:
@@ -598,7 +599,7 @@ def _neighbour_keys(n: int, src: NDArray[np.int64], dst: NDArray[np.int64]) -> N
     """Sorted distinct ``node * n + neighbour`` over both directions of every edge (a
     self-loop makes a node its own neighbour)."""
     key = np.concatenate([src * n + dst, dst * n + src])
-    return np.unique(key)
+    return unique(key)
 
 
 def _endpoints(
