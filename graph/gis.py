@@ -23,6 +23,7 @@ from mapmatch.graph.components import union_find
 from mapmatch.graph.errors import InputError
 from mapmatch.graph.keys import dense_labels, unique, unique_inverse
 from mapmatch.graph.projection import utm_crs
+from mapmatch.graph.road_graph import Labels
 from mapmatch.graph.simplify import RawNetwork, _text, compact_raw
 
 if TYPE_CHECKING:
@@ -452,8 +453,8 @@ def lines_to_raw(
         direction = np.array([BOTH if c is None else c for c in ucodes], dtype=np.int8)[inv]
     else:
         direction = np.zeros(n_feat, dtype=np.int8)
-    names = lines.column(name_f).to_pylist() if name_f else [None] * n_feat
-    hws = lines.column(hw_f).to_pylist() if hw_f else [None] * n_feat
+    names = _labels(lines, name_f)
+    hws = _labels(lines, hw_f)
     if speed_f:
         inv, uniq = _factorize(lines.column(speed_f))
         speeds = np.array([_parse_speed(v) for v in uniq], dtype=np.float64)[inv]
@@ -472,8 +473,7 @@ def lines_to_raw(
         owner0 = np.repeat(np.arange(n_feat), np.diff(lines.ptr))
         geoms, src = _node_lines(shapely.linestrings(lines.lonlat, indices=owner0))
         fid, direction, speeds = fid[src], direction[src], speeds[src]
-        names = [names[i] for i in src.tolist()]
-        hws = [hws[i] for i in src.tolist()]
+        names, hws = names.take(src), hws.take(src)
         n_feat = len(geoms)
         ll, owner = shapely.get_coordinates(geoms, return_index=True)
         del geoms
@@ -551,8 +551,8 @@ def lines_to_raw(
         edge_feat=feat[use].astype(np.int64),
         edge_oneway=(direction[feat[use]] != BOTH),
         feat_way_id=fid.astype(np.int64),
-        feat_name=[_text(x) for x in names],
-        feat_highway=[_text(x) for x in hws],
+        feat_name=names,
+        feat_highway=hws,
         feat_speed_kph=speeds.astype(np.float64),
     )
     # features that collapsed to one point
@@ -582,6 +582,22 @@ def _factorize(column: Any) -> tuple[NDArray[np.int64], list[Any]]:
     if len(remap) and (remap != np.arange(len(remap))).any():
         codes = remap[codes]
     return codes, vals
+
+
+def _labels(lines: Lines, name: str | None) -> Labels:
+    """A text column per line as :class:`Labels` (each distinct value read as text once)."""
+    if name is None:
+        return Labels(np.full(lines.n_lines, -1, dtype=np.int32), [])
+    import pyarrow.compute as pc
+
+    enc = pc.dictionary_encode(lines.columns[name])
+    table: dict[str, int] = {}
+    texts = [_text(v) for v in enc.dictionary.to_pylist()]
+    code_of = np.array(
+        [-1 if t is None else table.setdefault(t, len(table)) for t in texts] + [-1], dtype=np.int32
+    )
+    idx = np.asarray(enc.indices.fill_null(-1).to_numpy(zero_copy_only=False), dtype=np.int64)
+    return Labels(code_of[idx][lines.row], list(table))
 
 
 class Source(NamedTuple):

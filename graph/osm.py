@@ -23,7 +23,7 @@ from mapmatch.graph.errors import InputError
 from mapmatch.graph.gis import _parse_speed
 from mapmatch.graph.keys import unique_inverse
 from mapmatch.graph.projection import to_xy, utm_crs
-from mapmatch.graph.road_graph import RESTRICTION_NO, RESTRICTION_ONLY
+from mapmatch.graph.road_graph import RESTRICTION_NO, RESTRICTION_ONLY, Labels
 from mapmatch.graph.simplify import RawNetwork, compact_raw
 
 if TYPE_CHECKING:
@@ -345,8 +345,8 @@ def _ways_to_raw(
         edge_feat=feat[use].astype(np.int64),
         edge_oneway=oneway[feat[use]],
         feat_way_id=np.asarray(ways.ids, dtype=np.int64)[fw],
-        feat_name=[t.get("name") for t in tags],
-        feat_highway=[t.get("highway") for t in tags],
+        feat_name=Labels.of([t.get("name") for t in tags]),
+        feat_highway=Labels.of([t.get("highway") for t in tags]),
         feat_speed_kph=np.array([_maxspeed(t.get("maxspeed")) for t in tags], dtype=np.float64),
     )
     return compact_raw(raw)
@@ -364,8 +364,8 @@ def _empty_raw() -> RawNetwork:
         edge_feat=z,
         edge_oneway=np.zeros(0, dtype=bool),
         feat_way_id=z,
-        feat_name=[],
-        feat_highway=[],
+        feat_name=Labels.of([]),
+        feat_highway=Labels.of([]),
         feat_speed_kph=np.zeros(0),
     )
 

@@ -18,6 +18,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from mapmatch.graph.errors import GraphError
+from mapmatch.graph.keys import unique_inverse
 
 RESTRICTION_NO = 0
 RESTRICTION_ONLY = 1
@@ -54,6 +55,31 @@ PIECE_FIELDS: tuple[str, ...] = ARRAY_FIELDS[-6:]
 """Way-piece arrays; map files written before they existed get one piece per edge on load."""
 
 
+class Labels(NamedTuple):
+    """A text column as codes into a table of distinct non-empty strings (-1: none)."""
+
+    codes: NDArray[np.int32]
+    table: list[str]
+
+    @classmethod
+    def of(cls, values: Sequence[Any]) -> Labels:
+        """Codes of ``values`` in order of first appearance; false values (None, "") are none,
+        others are read as text."""
+        table: dict[str, int] = {}
+        put = table.setdefault
+        codes = [put(v if type(v) is str else str(v), len(table)) if v else -1 for v in values]
+        return cls(np.asarray(codes, dtype=np.int32).reshape(-1), list(table))
+
+    def take(self, index: NDArray[np.integer]) -> Labels:
+        """The labels of rows ``index`` (same table)."""
+        return Labels(self.codes[index], self.table)
+
+    def values(self) -> list[str | None]:
+        """The column as strings (None for none)."""
+        t: list[str | None] = [*self.table, None]
+        return [t[c] for c in self.codes.tolist()]
+
+
 class Pieces(NamedTuple):
     """The ways (or GIS features) an edge is made of, one row per piece, ordered by edge and
     then by ``start`` (metres along the edge in travel direction; each edge's first is 0)."""
@@ -61,8 +87,8 @@ class Pieces(NamedTuple):
     edge: NDArray[np.int64]
     start: NDArray[np.float64]
     way_id: NDArray[np.int64]
-    name: Sequence[str | None]
-    highway: Sequence[str | None]
+    name: Sequence[str | None] | Labels
+    highway: Sequence[str | None] | Labels
     speed_kph: NDArray[np.float32]
 
 
@@ -201,8 +227,8 @@ class RoadGraph:
         seg_xy: NDArray[np.float64] | None = None,
         edge_seg_ptr: NDArray[np.int64] | None = None,
         edge_way_id: NDArray[np.int64] | Sequence[int] | None = None,
-        edge_names: Sequence[str | None] | None = None,
-        edge_highways: Sequence[str | None] | None = None,
+        edge_names: Sequence[str | None] | Labels | None = None,
+        edge_highways: Sequence[str | None] | Labels | None = None,
         edge_speed_kph: NDArray[np.floating] | Sequence[float] | None = None,
         restrictions: NDArray[np.integer] | Sequence[Sequence[int]] | None = None,
         pieces: Pieces | None = None,
@@ -228,7 +254,7 @@ class RoadGraph:
             The same as one ragged array (each polyline at least 2 points), instead of
             ``edge_geoms``.
         edge_way_id, edge_names, edge_highways, edge_speed_kph
-            Optional attributes per edge.
+            Optional attributes per edge (names and classes as strings or :class:`Labels`).
         restrictions
             Rows ``(from_edge, via_node, to_edge, kind)``.
         pieces
@@ -295,22 +321,8 @@ class RoadGraph:
         elen = cum[ptr[1:] - 1] - cum[ptr[:-1]] if e else np.empty(0)
         b_start, b_end = _end_bearings(seg, ptr)
 
-        name_table: dict[str, int] = {}
-        hw_table: dict[str, int] = {}
-
-        def _lookup(vals: Sequence[str | None] | None, table: dict[str, int], k: int) -> NDArray[np.int32]:
-            idx = np.full(k, -1, dtype=np.int32)
-            if vals is None:
-                return idx
-            if len(vals) != k:
-                raise GraphError("an attribute list has the wrong length")
-            put = table.setdefault
-            codes = [put(s if type(s) is str else str(s), len(table)) if s else -1 for s in vals]
-            return np.asarray(codes, dtype=np.int32) if k else idx
-
-        name_idx = _lookup(edge_names, name_table, e)
-        hw_idx = _lookup(edge_highways, hw_table, e)
         piece_arrays: dict[str, Any] = {}
+        p = 0
         if pieces is not None:
             pe = np.asarray(pieces.edge, dtype=np.int64)
             ps = np.asarray(pieces.start, dtype=np.float64)
@@ -330,11 +342,14 @@ class RoadGraph:
                 "piece_ptr": pptr,
                 "piece_start": ps,
                 "piece_way_id": np.asarray(pieces.way_id, dtype=np.int64),
-                "piece_name_idx": _lookup(pieces.name, name_table, p),
-                "piece_highway_idx": _lookup(pieces.highway, hw_table, p),
                 "piece_speed_kph": np.asarray(pieces.speed_kph, dtype=np.float32),
             }
-        names, highways = list(name_table), list(hw_table)
+        # one table each for names and classes, in order of first use: edges, then pieces
+        name_idx, p_name, names = _tables(edge_names, e, pieces.name if pieces is not None else None, p)
+        hw_idx, p_hw, highways = _tables(edge_highways, e, pieces.highway if pieces is not None else None, p)
+        if pieces is not None:
+            piece_arrays["piece_name_idx"] = p_name
+            piece_arrays["piece_highway_idx"] = p_hw
         way = np.full(e, -1, dtype=np.int64) if edge_way_id is None else np.asarray(edge_way_id, np.int64)
         speed = (
             np.full(e, np.nan, dtype=np.float32)
@@ -547,6 +562,44 @@ class RoadGraph:
             if a.shape != b.shape or a.dtype != b.dtype or not np.array_equal(a, b, equal_nan=True):
                 return False
         return True
+
+
+def _labels(vals: Sequence[str | None] | Labels | None, k: int) -> Labels:
+    if vals is None:
+        return Labels(np.full(k, -1, dtype=np.int32), [])
+    lab = vals if isinstance(vals, Labels) else Labels.of(vals)
+    if len(lab.codes) != k:
+        raise GraphError("an attribute list has the wrong length")
+    return lab
+
+
+def _tables(
+    edge_vals: Sequence[str | None] | Labels | None,
+    e: int,
+    piece_vals: Sequence[str | None] | Labels | None,
+    p: int,
+) -> tuple[NDArray[np.int32], NDArray[np.int32], list[str]]:
+    """Edge and piece codes into one table of the strings in order of first use (edges first)."""
+    a, b = _labels(edge_vals, e), _labels(piece_vals, p)
+    # one code space: the pieces' table after the edges'
+    both = np.concatenate(
+        [a.codes.astype(np.int64), np.where(b.codes >= 0, b.codes.astype(np.int64) + len(a.table), -1)]
+    )
+    text = [*a.table, *b.table]
+    used = both >= 0
+    key, first, inv = unique_inverse(both[used])
+    # the same string from both tables is one entry: keep its first use
+    s_of = [text[i] for i in key.tolist()]
+    first_use: dict[str, int] = {}
+    for s, f in zip(s_of, first.tolist(), strict=True):
+        if s not in first_use or f < first_use[s]:
+            first_use[s] = f
+    table = sorted(first_use, key=first_use.__getitem__)
+    rank = {s: i for i, s in enumerate(table)}
+    code_of_key = np.asarray([rank[s] for s in s_of], dtype=np.int32)
+    out = np.full(len(both), -1, dtype=np.int32)
+    out[used] = code_of_key[inv]
+    return out[:e], out[e:], table
 
 
 def _end_bearings(

@@ -18,7 +18,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from mapmatch.graph.keys import unique
-from mapmatch.graph.road_graph import Pieces, RoadGraph
+from mapmatch.graph.road_graph import Labels, Pieces, RoadGraph
 
 if TYPE_CHECKING:
     import networkx as nx
@@ -524,8 +524,8 @@ class RawNetwork(NamedTuple):
     edge_feat: NDArray[np.int64]
     edge_oneway: NDArray[np.bool_]
     feat_way_id: NDArray[np.int64]  # (F,)
-    feat_name: list[str | None]
-    feat_highway: list[str | None]
+    feat_name: Labels
+    feat_highway: Labels
     feat_speed_kph: NDArray[np.float64]
 
     @property
@@ -575,8 +575,8 @@ def raw_to_nx(raw: RawNetwork) -> nx.MultiDiGraph:
         }
         for w, n, h, s in zip(
             raw.feat_way_id.tolist(),
-            raw.feat_name,
-            raw.feat_highway,
+            raw.feat_name.values(),
+            raw.feat_highway.values(),
             raw.feat_speed_kph.tolist(),
             strict=True,
         )
@@ -884,14 +884,12 @@ def raw_to_road_graph(
         )
     else:
         rrows, info["restrictions_unmapped"] = [], 0
-    names = raw.feat_name
-    hws = raw.feat_highway
     pieces = Pieces(
         edge=p_edge.astype(np.int64),
         start=p_start,
         way_id=raw.feat_way_id[p_feat],
-        name=[names[i] for i in p_feat.tolist()],
-        highway=[hws[i] for i in p_feat.tolist()],
+        name=raw.feat_name.take(p_feat),
+        highway=raw.feat_highway.take(p_feat),
         speed_kph=raw.feat_speed_kph[p_feat].astype(np.float32),
     )
     rg = RoadGraph.from_edges(
@@ -904,8 +902,8 @@ def raw_to_road_graph(
         seg_xy=seg_xy,
         edge_seg_ptr=edge_seg_ptr,
         edge_way_id=raw.feat_way_id[best_feat],
-        edge_names=[names[i] for i in best_feat.tolist()],
-        edge_highways=[hws[i] for i in best_feat.tolist()],
+        edge_names=raw.feat_name.take(best_feat),
+        edge_highways=raw.feat_highway.take(best_feat),
         edge_speed_kph=raw.feat_speed_kph[best_feat].astype(np.float32),
         restrictions=rrows,
         pieces=pieces,
@@ -916,9 +914,12 @@ def raw_to_road_graph(
 
 def _feature_keys(raw: RawNetwork) -> NDArray[np.int64]:
     """One id per distinct ``(way id, name, class, speed)`` of the feature table."""
-    table: dict[tuple[Any, ...], int] = {}
-    out = np.empty(len(raw.feat_way_id), dtype=np.int64)
-    sp = np.where(np.isfinite(raw.feat_speed_kph), raw.feat_speed_kph, -1.0).tolist()
-    for i, key in enumerate(zip(raw.feat_way_id.tolist(), raw.feat_name, raw.feat_highway, sp, strict=True)):
-        out[i] = table.setdefault(key, len(table))
+    sp = np.where(np.isfinite(raw.feat_speed_kph), raw.feat_speed_kph, -1.0)
+    cols = (sp, raw.feat_highway.codes, raw.feat_name.codes, raw.feat_way_id)
+    order = np.lexsort(cols)
+    new = np.ones(len(order), dtype=bool)
+    if len(order) > 1:
+        new[1:] = np.any([c[order][1:] != c[order][:-1] for c in cols], axis=0)
+    out = np.empty(len(order), dtype=np.int64)
+    out[order] = np.cumsum(new) - 1
     return out
