@@ -148,7 +148,7 @@ def build_map(
         RawNetwork,
         consolidate,
         raw_to_nx,
-        raw_to_road_graph,
+        road_graph_arrays,
         simplify,
         simplify_arrays,
         to_road_graph,
@@ -267,8 +267,10 @@ def build_map(
         report.seconds["simplify"] = time.perf_counter() - t1
         t2 = time.perf_counter()
         say(f"building {len(simp.ptr) - 1:,} edges with their way pieces")
-        rg, info = raw_to_road_graph(raw_net, simp, restrictions=restrictions, meta=meta)
-        del raw_net, simp
+        kw, info = road_graph_arrays(raw_net, simp, restrictions=restrictions, meta=meta)
+        del raw_net, simp  # the raw network goes before the graph's own arrays are made
+        rg = RoadGraph.from_edges(**kw)
+        del kw
         report.weak_components, report.strong_components = component_counts(rg.n_nodes, rg.edge_u, rg.edge_v)
     else:
         assert G is not None

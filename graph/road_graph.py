@@ -233,6 +233,7 @@ class RoadGraph:
         restrictions: NDArray[np.integer] | Sequence[Sequence[int]] | None = None,
         pieces: Pieces | None = None,
         meta: dict[str, Any] | None = None,
+        copy: bool = True,
     ) -> RoadGraph:
         """Build a graph from directed edges, deriving lengths, bearings, CSR and reverses.
 
@@ -261,6 +262,8 @@ class RoadGraph:
             The ways each edge is made of; one piece per edge (its own attributes) when omitted.
         meta
             Build metadata.
+        copy
+            False: ``seg_xy`` (float64, C order) is taken over and may be changed in place.
         """
         xy = np.ascontiguousarray(node_xy, dtype=np.float64).reshape(-1, 2)
         n = len(xy)
@@ -286,7 +289,7 @@ class RoadGraph:
             ptr = np.asarray(edge_seg_ptr, dtype=np.int64)
             if len(ptr) != e + 1 or (e and np.diff(ptr).min() < 2):
                 raise GraphError("edge_seg_ptr must have E+1 entries and every polyline 2 points")
-            seg = np.array(seg_xy, dtype=np.float64).reshape(-1, 2)
+            seg = np.array(seg_xy, dtype=np.float64, copy=copy or None).reshape(-1, 2)
             if e:
                 seg[ptr[:-1]] = xy[u]
                 seg[ptr[1:] - 1] = xy[v]
@@ -312,13 +315,14 @@ class RoadGraph:
             ptr = np.zeros(e + 1, dtype=np.int64)
             np.cumsum(lens, out=ptr[1:])
             seg = np.vstack(parts) if parts else np.empty((0, 2), dtype=np.float64)
-        d = np.diff(seg, axis=0)
-        seglen = np.hypot(d[:, 0], d[:, 1])
-        # lengths: sum of segment lengths inside each edge (exclude the joins between edges)
-        within = np.ones(max(len(seg) - 1, 0), dtype=bool)
-        within[ptr[1:-1] - 1] = False
-        cum = np.concatenate([[0.0], np.cumsum(np.where(within, seglen, 0.0))])
+        # lengths: sum of segment lengths inside each edge (the joins between edges count 0)
+        seglen = np.hypot(seg[1:, 0] - seg[:-1, 0], seg[1:, 1] - seg[:-1, 1])
+        seglen[ptr[1:-1] - 1] = 0.0
+        cum = np.zeros(len(seglen) + 1)
+        np.cumsum(seglen, out=cum[1:])
+        del seglen
         elen = cum[ptr[1:] - 1] - cum[ptr[:-1]] if e else np.empty(0)
+        del cum
         b_start, b_end = _end_bearings(seg, ptr)
 
         piece_arrays: dict[str, Any] = {}
@@ -612,12 +616,9 @@ def _end_bearings(
     if e == 0:
         return start, end
     # first and last segment; fall back to chord when the segment is degenerate
-    a0, a1 = seg[ptr[:-1]], seg[ptr[:-1] + 1]
-    b0, b1 = seg[ptr[1:] - 2], seg[ptr[1:] - 1]
-    c0, c1 = seg[ptr[:-1]], seg[ptr[1:] - 1]
-    ds = a1 - a0
-    de = b1 - b0
-    dc = c1 - c0
+    ds = seg[ptr[:-1] + 1] - seg[ptr[:-1]]
+    de = seg[ptr[1:] - 1] - seg[ptr[1:] - 2]
+    dc = seg[ptr[1:] - 1] - seg[ptr[:-1]]
     bad_s = np.hypot(ds[:, 0], ds[:, 1]) < 1e-9
     bad_e = np.hypot(de[:, 0], de[:, 1]) < 1e-9
     ds[bad_s] = dc[bad_s]
@@ -625,6 +626,10 @@ def _end_bearings(
     start[:] = bearing_deg(ds[:, 0], ds[:, 1])
     end[:] = bearing_deg(de[:, 0], de[:, 1])
     return start, end
+
+
+_PAIR_CHUNK = 100_000
+"""Edge pairs whose polylines are compared at once."""
 
 
 def _reverse_edges(
@@ -655,15 +660,17 @@ def _reverse_edges(
     i, j = order[gstart[simple]], order[gstart[simple] + 1]
     same_len = (ptr[i + 1] - ptr[i]) == (ptr[j + 1] - ptr[j])
     i, j = i[same_len], j[same_len]
-    if len(i):
-        k = ptr[i + 1] - ptr[i]
+    for c in range(0, len(i), _PAIR_CHUNK):  # in chunks: a few vertex arrays per chunk
+        ic, jc = i[c : c + _PAIR_CHUNK], j[c : c + _PAIR_CHUNK]
+        k = ptr[ic + 1] - ptr[ic]
         t = np.arange(int(k.sum())) - np.repeat(np.cumsum(k) - k, k)
-        pa = np.repeat(ptr[i], k) + t
-        pb = np.repeat(ptr[j + 1] - 1, k) - t
-        bad = (np.abs(seg[pa] - seg[pb]) > 0.01).any(axis=1)
-        ok = np.bincount(np.repeat(np.arange(len(i)), k), weights=bad, minlength=len(i)) == 0
-        rev[i[ok]] = j[ok]
-        rev[j[ok]] = i[ok]
+        pa = np.repeat(ptr[ic], k) + t
+        pb = np.repeat(ptr[jc + 1] - 1, k) - t
+        del t
+        bad = (np.abs(seg[pa, 0] - seg[pb, 0]) > 0.01) | (np.abs(seg[pa, 1] - seg[pb, 1]) > 0.01)
+        ok = np.bincount(np.repeat(np.arange(len(ic)), k), weights=bad, minlength=len(ic)) == 0
+        rev[ic[ok]] = jc[ok]
+        rev[jc[ok]] = ic[ok]
     for s0, sz in zip(gstart[~simple].tolist(), gsize[~simple].tolist(), strict=True):
         members = np.sort(order[s0 : s0 + sz]).tolist()
         for x in members:

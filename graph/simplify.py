@@ -791,6 +791,19 @@ def raw_to_road_graph(
 ) -> tuple[RoadGraph, dict[str, Any]]:
     """The :class:`RoadGraph` of a simplified raw network (as :func:`to_road_graph` makes it
     from osmnx's result): loops split, way pieces from the raw edges, restrictions mapped."""
+    kw, info = road_graph_arrays(raw, simp, restrictions=restrictions, meta=meta)
+    return RoadGraph.from_edges(**kw), info
+
+
+def road_graph_arrays(
+    raw: RawNetwork,
+    simp: Simplified,
+    *,
+    restrictions: Iterable[tuple[int, int, int, int]] = (),
+    meta: dict[str, Any] | None = None,
+) -> tuple[dict[str, Any], dict[str, Any]]:
+    """:func:`raw_to_road_graph`'s arguments for :meth:`RoadGraph.from_edges` (so that a caller
+    can let go of ``raw`` and ``simp`` before the graph is built), and the info counts."""
     info: dict[str, Any] = {"self_loops_split": 0, "self_loops_dropped": 0}
     kept = np.nonzero(simp.kept)[0]
     index = np.full(raw.n_nodes, -1, dtype=np.int64)
@@ -833,50 +846,23 @@ def raw_to_road_graph(
     eu = np.concatenate([index[u_raw[keep_e]], np.asarray(split_u, dtype=np.int64)])
     ev = np.concatenate([index[v_raw[keep_e]], np.asarray(split_v, dtype=np.int64)])
     counts = vb - va
-    flat_v = np.repeat(va - np.r_[0, np.cumsum(counts)[:-1]], counts) + np.arange(int(counts.sum()))
-    seg_xy = raw.node_xy[nodes[flat_v]]
+    del ptr, u_raw, v_raw, drop, keep_e
     edge_seg_ptr = np.zeros(len(va) + 1, dtype=np.int64)
     np.cumsum(counts, out=edge_seg_ptr[1:])
-    # steps: vertex i (not the last of its edge) -> raw edge raw_edges[i - (edge index in simp)]
-    simp_edge_of_vertex = np.repeat(np.arange(len(ptr) - 1), np.diff(ptr))
-    last = np.zeros(len(flat_v), dtype=bool)
-    last[edge_seg_ptr[1:] - 1] = True
-    step_v = flat_v[~last]
-    step_raw = simp.raw_edges[step_v - simp_edge_of_vertex[step_v]]
-    step_feat = raw.edge_feat[step_raw]
-    # pieces: runs of equal feature attributes along each edge
-    fkey = _feature_keys(raw)
-    step_key = fkey[step_feat]
-    step_edge = np.repeat(np.arange(len(va)), counts - 1)
-    new_piece = np.ones(len(step_key), dtype=bool)
-    if len(step_key) > 1:
-        new_piece[1:] = (step_key[1:] != step_key[:-1]) | (step_edge[1:] != step_edge[:-1])
-    d = np.diff(seg_xy, axis=0)
-    seg_len = np.hypot(d[:, 0], d[:, 1]) if len(seg_xy) > 1 else np.zeros(0)
-    step_len = seg_len[np.nonzero(~last)[0]] if len(seg_len) else np.zeros(0)
-    cum = np.concatenate([[0.0], np.cumsum(step_len)])
-    edge_first_step = np.r_[0, np.cumsum(counts - 1)[:-1]]
-    p_idx = np.nonzero(new_piece)[0]
-    p_edge = step_edge[p_idx]
-    p_start = cum[p_idx] - cum[edge_first_step[p_edge]]
-    p_feat = step_feat[p_idx]
-    p_end_step = np.r_[p_idx[1:], len(step_key)]
-    p_len = cum[p_end_step] - cum[p_idx]
-    # edge attributes: its longest piece (first on ties)
-    order = np.lexsort((np.arange(len(p_idx)), -p_len, p_edge))
-    first_of_edge = order[np.r_[True, p_edge[order][1:] != p_edge[order][:-1]]] if len(order) else order
-    best_feat = p_feat[first_of_edge]
-    node_xy = np.vstack(
-        [raw.node_xy[kept], raw.node_xy[np.asarray(list(extra), dtype=np.int64)].reshape(-1, 2)]
-    )
-    node_ll = np.vstack(
-        [raw.node_lonlat[kept], raw.node_lonlat[np.asarray(list(extra), dtype=np.int64)].reshape(-1, 2)]
-    )
-    node_id = np.concatenate([raw.node_key[kept], raw.node_key[np.asarray(list(extra), dtype=np.int64)]])
+    flat_v = np.repeat(va - edge_seg_ptr[:-1], counts) + np.arange(int(edge_seg_ptr[-1]))
+    del va, vb
+    seg_xy = raw.node_xy[nodes[flat_v]]
+    pieces, best_feat, end_feat = _edge_pieces(raw, simp, flat_v, edge_seg_ptr, seg_xy)
+    del flat_v
+    extra_nodes = np.asarray(list(extra), dtype=np.int64)
+    node_xy = np.vstack([raw.node_xy[kept], raw.node_xy[extra_nodes].reshape(-1, 2)])
+    node_ll = np.vstack([raw.node_lonlat[kept], raw.node_lonlat[extra_nodes].reshape(-1, 2)])
+    node_id = np.concatenate([raw.node_key[kept], raw.node_key[extra_nodes]])
+    del kept, index
     restr = list(restrictions)
     if restr:  # per edge the way at its start and at its end (only where restrictions need them)
-        first_w = raw.feat_way_id[step_feat[edge_first_step]].tolist()
-        last_w = raw.feat_way_id[step_feat[np.r_[edge_first_step[1:], len(step_feat)] - 1]].tolist()
+        first_w = raw.feat_way_id[end_feat[0]].tolist()
+        last_w = raw.feat_way_id[end_feat[1]].tolist()
         end_ways = _EndWays(first_w, last_w)
         by_id = {int(k): i for i, k in enumerate(node_id.tolist())}
         rrows, info["restrictions_unmapped"] = _map_restrictions(
@@ -884,32 +870,86 @@ def raw_to_road_graph(
         )
     else:
         rrows, info["restrictions_unmapped"] = [], 0
+    kw = {
+        "crs": raw.crs,
+        "node_xy": node_xy,
+        "node_lonlat": node_ll,
+        "node_id": node_id,
+        "edge_u": eu.astype(np.int32),
+        "edge_v": ev.astype(np.int32),
+        "seg_xy": seg_xy,
+        "edge_seg_ptr": edge_seg_ptr,
+        "edge_way_id": raw.feat_way_id[best_feat],
+        "edge_names": raw.feat_name.take(best_feat),
+        "edge_highways": raw.feat_highway.take(best_feat),
+        "edge_speed_kph": raw.feat_speed_kph[best_feat].astype(np.float32),
+        "restrictions": rrows,
+        "pieces": pieces,
+        "meta": meta,
+        "copy": False,
+    }
+    return kw, info
+
+
+def _edge_pieces(
+    raw: RawNetwork,
+    simp: Simplified,
+    flat_v: NDArray[np.int64],
+    edge_seg_ptr: NDArray[np.int64],
+    seg_xy: NDArray[np.float64],
+) -> tuple[Pieces, NDArray[np.int64], tuple[NDArray[np.int64], NDArray[np.int64]]]:
+    """The way pieces of the final edges (vertex ``i`` of the edges is ``simp.nodes[flat_v[i]]``):
+    runs of equal feature attributes along each edge. Returns the pieces, each edge's
+    longest piece's feature (the first on ties), and each edge's first and last step's feature."""
+    e = len(edge_seg_ptr) - 1
+    counts = np.diff(edge_seg_ptr)
+    last = np.zeros(len(flat_v), dtype=bool)
+    last[edge_seg_ptr[1:] - 1] = True
+    step_at = np.nonzero(~last)[0]  # vertex -> the step to the next vertex
+    del last
+    # step from simp vertex i (not the last of its simp edge) -> raw edge raw_edges[i - its simp edge]
+    step_v = flat_v[step_at]
+    step_v -= np.searchsorted(simp.ptr, step_v, side="right") - 1
+    step_feat = raw.edge_feat[simp.raw_edges[step_v]]
+    del step_v
+    step_key = _feature_keys(raw)[step_feat]
+    step_edge = np.repeat(np.arange(e, dtype=np.int64), counts - 1)
+    new_piece = np.ones(len(step_key), dtype=bool)
+    if len(step_key) > 1:
+        new_piece[1:] = (step_key[1:] != step_key[:-1]) | (step_edge[1:] != step_edge[:-1])
+    del step_key
+    dx = seg_xy[step_at + 1, 0] - seg_xy[step_at, 0]
+    dy = seg_xy[step_at + 1, 1] - seg_xy[step_at, 1]
+    del step_at
+    cum = np.zeros(len(dx) + 1)
+    np.cumsum(np.hypot(dx, dy), out=cum[1:])
+    del dx, dy
+    edge_first_step = edge_seg_ptr[:-1] - np.arange(e)
+    edge_last_step = np.r_[edge_first_step[1:], len(step_feat)] - 1 if e else edge_first_step
+    end_feat = (step_feat[edge_first_step], step_feat[edge_last_step])
+    p_idx = np.nonzero(new_piece)[0]
+    del new_piece
+    p_edge = step_edge[p_idx]
+    del step_edge
+    p_start = cum[p_idx] - cum[edge_first_step[p_edge]]
+    p_feat = step_feat[p_idx]
+    del step_feat
+    p_end_step = np.r_[p_idx[1:], len(cum) - 1]
+    p_len = cum[p_end_step] - cum[p_idx]
+    del cum, p_end_step
+    # edge attributes: its longest piece (first on ties)
+    order = np.lexsort((np.arange(len(p_idx)), -p_len, p_edge))
+    first_of_edge = order[np.r_[True, p_edge[order][1:] != p_edge[order][:-1]]] if len(order) else order
+    best_feat = p_feat[first_of_edge]
     pieces = Pieces(
-        edge=p_edge.astype(np.int64),
+        edge=p_edge,
         start=p_start,
         way_id=raw.feat_way_id[p_feat],
         name=raw.feat_name.take(p_feat),
         highway=raw.feat_highway.take(p_feat),
         speed_kph=raw.feat_speed_kph[p_feat].astype(np.float32),
     )
-    rg = RoadGraph.from_edges(
-        crs=raw.crs,
-        node_xy=node_xy,
-        node_lonlat=node_ll,
-        node_id=node_id,
-        edge_u=eu.astype(np.int32),
-        edge_v=ev.astype(np.int32),
-        seg_xy=seg_xy,
-        edge_seg_ptr=edge_seg_ptr,
-        edge_way_id=raw.feat_way_id[best_feat],
-        edge_names=raw.feat_name.take(best_feat),
-        edge_highways=raw.feat_highway.take(best_feat),
-        edge_speed_kph=raw.feat_speed_kph[best_feat].astype(np.float32),
-        restrictions=rrows,
-        pieces=pieces,
-        meta=meta,
-    )
-    return rg, info
+    return pieces, best_feat, end_feat
 
 
 def _feature_keys(raw: RawNetwork) -> NDArray[np.int64]:
