@@ -231,15 +231,15 @@ def _geoparquet_crs(geo: dict[str, Any]) -> Any:
 
 def _record_batches(
     path: Path, layer: str | None, columns: list[str]
-) -> Iterator[tuple[dict[str, Any], NDArray[Any]]]:
-    """The source in batches: (attribute columns as pyarrow arrays, WKB geometry as objects)."""
+) -> Iterator[tuple[dict[str, Any], Any]]:
+    """The source in batches: (attribute columns, WKB geometry column), as pyarrow arrays."""
     if path.suffix.lower() in (".parquet", ".geoparquet"):
         import pyarrow.parquet as pq
 
         pf = pq.ParquetFile(path)
         gcol = _geoparquet_meta(pf, path)["primary_column"]
         for batch in pf.iter_batches(batch_size=BATCH_ROWS, columns=[*columns, gcol]):
-            yield {c: batch.column(c) for c in columns}, batch.column(gcol).to_numpy(zero_copy_only=False)
+            yield {c: batch.column(c) for c in columns}, batch.column(gcol)
         return
     import pyogrio
 
@@ -249,7 +249,7 @@ def _record_batches(
     ):
         gcol = meta.get("geometry_name") or "wkb_geometry"
         for batch in reader:
-            yield {c: batch.column(c) for c in columns}, batch.column(gcol).to_numpy(zero_copy_only=False)
+            yield {c: batch.column(c) for c in columns}, batch.column(gcol)
 
 
 BATCH_ROWS = 65_536
@@ -286,7 +286,19 @@ def read_lines(
         for attrs, wkb in _record_batches(path, layer, cols):
             for c in cols:
                 col_parts[c].append(attrs[c])
-            geom = shapely.from_wkb(wkb)
+            n_batch = len(wkb)
+            fast = _plain_linestrings(wkb)
+            if fast is not None:  # every feature a 2D LineString: no geometry objects
+                ll, n_pts = fast
+                parts_ll.append(ll)
+                parts_n.append(n_pts)
+                parts_row.append(n_rows + np.arange(n_batch, dtype=np.int64))
+                n_lines_in += n_batch
+                n_rows += n_batch
+                if progress is not None:
+                    progress(n_rows, total)
+                continue
+            geom = shapely.from_wkb(wkb.to_numpy(zero_copy_only=False))
             del wkb
             types = shapely.get_type_id(geom)
             is_line = (types == 1) | (types == 5)  # LineString, MultiLineString
@@ -386,6 +398,44 @@ def read_lines(
         columns=columns,
         fields=fields,
     ), dropped
+
+
+def _plain_linestrings(wkb: Any) -> tuple[NDArray[np.float64], NDArray[np.int64]] | None:
+    """Coordinates and point counts straight from a WKB column whose features are all
+    little-endian 2D LineStrings (GDAL's and GeoParquet's usual output); None otherwise.
+
+    Such a WKB is a 9-byte header (byte order, type 2, point count) and the points as float64
+    pairs, so the column's data without the headers is the coordinate array.
+    """
+    import pyarrow as pa
+
+    if isinstance(wkb, pa.ChunkedArray):
+        wkb = wkb.combine_chunks()
+    if (
+        wkb.null_count
+        or not len(wkb)
+        or not (pa.types.is_binary(wkb.type) or pa.types.is_large_binary(wkb.type))
+    ):
+        return None
+    _, off_buf, data_buf = wkb.buffers()
+    off_type = np.int64 if pa.types.is_large_binary(wkb.type) else np.int32
+    off = np.frombuffer(off_buf, dtype=off_type)[wkb.offset : wkb.offset + len(wkb) + 1].astype(np.int64)
+    data = np.frombuffer(data_buf, dtype=np.uint8)
+    size = np.diff(off)
+    if (size < 9).any():
+        return None
+    head = off[:-1]
+    le = data[head] == 1
+    kind = data[head + 1].astype(np.uint32) | data[head + 2].astype(np.uint32) << 8
+    kind |= data[head + 3].astype(np.uint32) << 16 | data[head + 4].astype(np.uint32) << 24
+    n = data[head + 5].astype(np.int64) | data[head + 6].astype(np.int64) << 8
+    n |= data[head + 7].astype(np.int64) << 16 | data[head + 8].astype(np.int64) << 24
+    if not (le.all() and (kind == 2).all() and (size == 9 + 16 * n).all()):
+        return None
+    keep = np.ones(int(off[-1] - off[0]), dtype=bool)
+    keep[(head - off[0])[:, None] + np.arange(9)] = False
+    coords = data[off[0] : off[-1]][keep].view(np.float64).reshape(-1, 2)
+    return coords, n
 
 
 def _chunk(a: Any) -> Any:
@@ -515,6 +565,7 @@ def lines_to_raw(
     vnode[interior] = n_end_nodes + np.arange(int(interior.sum()))
     all_xy = np.vstack([node_xy, xy[interior]])
     all_ll = np.vstack([node_ll, ll[interior]])
+    del ll, node_ll, node_xy, end_xy
     # node keys are the source ids: u/v fields when they name the endpoints consistently,
     # else 0..N-1; interior vertices get negative keys
     info["node_ids"] = "u/v fields" if end_ids is not None else "generated"
@@ -531,6 +582,7 @@ def lines_to_raw(
     f = owner[seg_a]
     d = xy[seg_a + 1] - xy[seg_a]
     seg_len = np.hypot(d[:, 0], d[:, 1])
+    del d, xy, vnode, interior
     ok = a_n != b_n
     a_n, b_n, fo = a_n[ok], b_n[ok], f[ok]
     dirn = direction[fo]
@@ -546,11 +598,11 @@ def lines_to_raw(
         node_key=keys,
         node_xy=all_xy,
         node_lonlat=all_ll,
-        edge_src=src[use].astype(np.int64),
-        edge_dst=dst[use].astype(np.int64),
-        edge_feat=feat[use].astype(np.int64),
+        edge_src=src[use].astype(np.int64, copy=False),
+        edge_dst=dst[use].astype(np.int64, copy=False),
+        edge_feat=feat[use].astype(np.int64, copy=False),
         edge_oneway=(direction[feat[use]] != BOTH),
-        feat_way_id=fid.astype(np.int64),
+        feat_way_id=fid.astype(np.int64, copy=False),
         feat_name=names,
         feat_highway=hws,
         feat_speed_kph=speeds.astype(np.float64),
@@ -705,14 +757,44 @@ def _nodes_from_coords(end_xy: NDArray[np.float64], tol: float) -> NDArray[np.in
     inv = np.empty(len(r), dtype=np.int64)
     inv[order] = np.cumsum(new) - 1
     if tol > 0 and len(uniq) > 1:
-        tree = shapely.STRtree(shapely.points(uniq))
-        pa, pb = tree.query(shapely.points(uniq), predicate="dwithin", distance=tol)
-        keep = pa < pb
-        lab = union_find(len(uniq), pa[keep].astype(np.int64), pb[keep].astype(np.int64))
+        pa, pb = _pairs_within(uniq, tol)
+        lab = union_find(len(uniq), pa, pb)
         _, lab = dense_labels(lab, len(uniq))
     else:
         lab = np.arange(len(uniq))
     return np.asarray(lab, dtype=np.int64).ravel()[inv]
+
+
+def _pairs_within(xy: NDArray[np.float64], tol: float) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
+    """All pairs ``a < b`` of points at most ``tol`` apart: points hashed to cells of side
+    ``tol``, each cell compared with itself and the neighbours ahead of it (an STRtree when
+    the cells would not fit 64-bit keys)."""
+    lo = xy.min(axis=0)
+    cell = np.floor((xy - lo) / tol).astype(np.int64)
+    width = int(cell[:, 1].max()) + 3
+    if (int(cell[:, 0].max()) + 3) * width >= 2**62:
+        tree = shapely.STRtree(shapely.points(xy))
+        pa, pb = tree.query(shapely.points(xy), predicate="dwithin", distance=tol)
+        keep = pa < pb
+        return pa[keep].astype(np.int64), pb[keep].astype(np.int64)
+    key = cell[:, 0] * width + cell[:, 1] + 1
+    del cell
+    order = np.argsort(key, kind="stable")
+    skey = key[order]
+    out_a, out_b = [], []
+    for dx, dy in ((0, 0), (0, 1), (1, -1), (1, 0), (1, 1)):
+        want = key + dx * width + dy
+        first = np.searchsorted(skey, want, side="left")
+        n = np.searchsorted(skey, want, side="right") - first
+        a = np.repeat(np.arange(len(xy), dtype=np.int64), n)
+        b = order[np.repeat(first, n) + np.arange(int(n.sum())) - np.repeat(np.cumsum(n) - n, n)]
+        near = np.hypot(xy[a, 0] - xy[b, 0], xy[a, 1] - xy[b, 1]) <= tol
+        a, b = a[near], b[near]
+        out_a.append(np.minimum(a, b)[a != b])
+        out_b.append(np.maximum(a, b)[a != b])
+    pa, pb = np.concatenate(out_a), np.concatenate(out_b)
+    pair = unique(pa * len(xy) + pb)
+    return pair // len(xy), pair % len(xy)
 
 
 def _consistent_ids(

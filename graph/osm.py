@@ -337,12 +337,12 @@ def _ways_to_raw(
     use = src >= 0
     raw = RawNetwork(
         crs=crs,
-        node_key=node_ids.astype(np.int64),
+        node_key=node_ids.astype(np.int64, copy=False),
         node_xy=xy,
         node_lonlat=ll,
-        edge_src=src[use].astype(np.int64),
-        edge_dst=dst[use].astype(np.int64),
-        edge_feat=feat[use].astype(np.int64),
+        edge_src=src[use].astype(np.int64, copy=False),
+        edge_dst=dst[use].astype(np.int64, copy=False),
+        edge_feat=feat[use].astype(np.int64, copy=False),
         edge_oneway=oneway[feat[use]],
         feat_way_id=np.asarray(ways.ids, dtype=np.int64)[fw],
         feat_name=Labels.of([t.get("name") for t in tags]),
