@@ -11,6 +11,7 @@ import logging
 import math
 import re
 from collections.abc import Callable, Iterable, Iterator
+from contextlib import ExitStack, contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, NamedTuple
@@ -192,22 +193,6 @@ ReadProgress = Callable[[int, int], None]
 """Called with (features read so far, features in the source; 0 when unknown)."""
 
 
-def _source_fields(path: Path, layer: str | None) -> tuple[list[str], Any, int]:
-    """Field names, CRS (text or None) and feature count (0 when unknown) of a source."""
-    if path.suffix.lower() in (".parquet", ".geoparquet"):
-        import pyarrow.parquet as pq
-
-        pf = pq.ParquetFile(path)
-        geo = _geoparquet_meta(pf, path)
-        cols = [c for c in pf.schema_arrow.names if c != geo["primary_column"]]
-        return cols, _geoparquet_crs(geo), pf.metadata.num_rows
-    import pyogrio
-
-    info = pyogrio.read_info(path, layer=layer)
-    n = int(info.get("features") or 0)
-    return [str(f) for f in info["fields"]], info.get("crs"), max(n, 0)
-
-
 def _geoparquet_meta(pf: Any, path: Path) -> dict[str, Any]:
     import json
 
@@ -229,29 +214,6 @@ def _geoparquet_crs(geo: dict[str, Any]) -> Any:
     return col["crs"]
 
 
-def _record_batches(
-    path: Path, layer: str | None, columns: list[str]
-) -> Iterator[tuple[dict[str, Any], Any]]:
-    """The source in batches: (attribute columns, WKB geometry column), as pyarrow arrays."""
-    if path.suffix.lower() in (".parquet", ".geoparquet"):
-        import pyarrow.parquet as pq
-
-        pf = pq.ParquetFile(path)
-        gcol = _geoparquet_meta(pf, path)["primary_column"]
-        for batch in pf.iter_batches(batch_size=BATCH_ROWS, columns=[*columns, gcol]):
-            yield {c: batch.column(c) for c in columns}, batch.column(gcol)
-        return
-    import pyogrio
-
-    with pyogrio.open_arrow(path, layer=layer, columns=columns, use_pyarrow=True, batch_size=BATCH_ROWS) as (
-        meta,
-        reader,
-    ):
-        gcol = meta.get("geometry_name") or "wkb_geometry"
-        for batch in reader:
-            yield {c: batch.column(c) for c in columns}, batch.column(gcol)
-
-
 BATCH_ROWS = 65_536
 """Features per batch read: the geometry objects of one batch at a time exist."""
 
@@ -269,7 +231,7 @@ def read_lines(
     from pyproj import CRS
     from pyproj.exceptions import CRSError
 
-    path, layer, fields, src_crs, total = src
+    path, fields, src_crs, total, batches = src
     cols = [c for c in dict.fromkeys(w for w in want if w is not None) if c in fields]
     counts_by: dict[str, int] = {}
     parts_ll: list[NDArray[np.float64]] = []
@@ -283,7 +245,7 @@ def read_lines(
         counts_by[reason] = counts_by.get(reason, 0) + n
 
     try:
-        for attrs, wkb in _record_batches(path, layer, cols):
+        for attrs, wkb in batches(cols):
             for c in cols:
                 col_parts[c].append(attrs[c])
             n_batch = len(wkb)
@@ -469,27 +431,42 @@ def lines_to_raw(
         The raw network (every vertex a node), dropped features by reason, and the fields
         that were used.
     """
-    from mapmatch.graph.projection import to_xy
-
     if opts.topology not in TOPOLOGIES:
         raise InputError(f"unknown topology {opts.topology!r} (use {', '.join(TOPOLOGIES)})")
-    source = open_source(path, opts)
-    fields = source.fields
-    oneway_f = _pick(fields, opts.oneway_field, ("oneway", "one_way", "dir", "direction"), "one-way")
-    name_f = _pick(fields, opts.name_field, ("name",), "name")
-    speed_f = _pick(fields, opts.speed_field, ("maxspeed", "speed", "speed_kph"), "speed")
-    hw_f = _pick(fields, opts.highway_field, ("highway", "class", "fclass"), "highway")
-    id_f = _pick(fields, opts.id_field, ("id", "way_id", "osm_id", "fid"), "id")
-    uv_f = _node_id_fields(fields, opts)
-    info: dict[str, Any] = {
-        "oneway_field": oneway_f,
-        "name_field": name_f,
-        "speed_field": speed_f,
-        "highway_field": hw_f,
-    }
-    lines, dropped = read_lines(
-        source, opts, want=(oneway_f, name_f, speed_f, hw_f, id_f, *(uv_f or ())), progress=progress
-    )
+    with open_source(path, opts) as source:
+        fields = source.fields
+        oneway_f = _pick(fields, opts.oneway_field, ("oneway", "one_way", "dir", "direction"), "one-way")
+        name_f = _pick(fields, opts.name_field, ("name",), "name")
+        speed_f = _pick(fields, opts.speed_field, ("maxspeed", "speed", "speed_kph"), "speed")
+        hw_f = _pick(fields, opts.highway_field, ("highway", "class", "fclass"), "highway")
+        id_f = _pick(fields, opts.id_field, ("id", "way_id", "osm_id", "fid"), "id")
+        uv_f = _node_id_fields(fields, opts)
+        info: dict[str, Any] = {
+            "oneway_field": oneway_f,
+            "name_field": name_f,
+            "speed_field": speed_f,
+            "highway_field": hw_f,
+        }
+        lines, dropped = read_lines(
+            source, opts, want=(oneway_f, name_f, speed_f, hw_f, id_f, *(uv_f or ())), progress=progress
+        )
+    return _lines_to_raw(lines, dropped, info, (oneway_f, name_f, speed_f, hw_f, id_f), uv_f, opts)
+
+
+def _lines_to_raw(
+    lines: Lines,
+    dropped: dict[str, int],
+    info: dict[str, Any],
+    picked: tuple[str | None, ...],
+    uv_f: tuple[str, str] | None,
+    opts: GisOptions,
+) -> tuple[RawNetwork, dict[str, int], dict[str, Any]]:
+    """:func:`lines_to_raw` once the lines are read (``picked``: the one-way, name, speed,
+    class and id fields)."""
+    from mapmatch.graph.projection import to_xy
+
+    oneway_f, name_f, speed_f, hw_f, id_f = picked
+
     n_feat = lines.n_lines
     fid = _int_column(lines, id_f) if id_f is not None else None
     if fid is None:
@@ -653,32 +630,71 @@ def _labels(lines: Lines, name: str | None) -> Labels:
 
 
 class Source(NamedTuple):
-    """A GIS source opened for reading: its layer, fields, CRS and feature count (0: unknown)."""
+    """A GIS source open for reading: its fields, CRS (None: none given), feature count
+    (0: unknown) and its batches: ``batches(columns)`` yields (attribute columns, WKB
+    geometry column) as pyarrow arrays."""
 
     path: Path
-    layer: str | None
     fields: list[str]
     crs: Any
     total: int
+    batches: Callable[[list[str]], Iterator[tuple[dict[str, Any], Any]]]
 
 
-def open_source(path: Path, opts: GisOptions) -> Source:
-    """The layer to read (a GeoPackage's ``roads`` or first layer unless given) and what it
-    holds; an unreadable source is an InputError."""
-    try:
-        layer = opts.layer
-        if layer is None and path.suffix.lower() == ".gpkg":
-            import pyogrio
+@contextmanager
+def open_source(path: Path, opts: GisOptions) -> Iterator[Source]:
+    """Open the layer to read (a GeoPackage's ``roads`` or first layer unless given) as one
+    Arrow stream (pyogrio; pyarrow for GeoParquet, which this GDAL cannot read); an
+    unreadable source is an InputError."""
+    with ExitStack() as stack:
+        try:
+            if path.suffix.lower() in (".parquet", ".geoparquet"):
+                src = _parquet_source(path)
+            else:
+                src = _ogr_source(path, opts, stack)
+        except InputError:
+            raise
+        except Exception as exc:  # pyogrio and pyarrow raise several unrelated types for unreadable files
+            msg = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+            raise InputError(f"cannot read {path.name} as GIS data: {msg}") from exc
+        yield src
 
-            names = [str(n) for n in pyogrio.list_layers(path)[:, 0]]
-            layer = "roads" if "roads" in names else names[0] if names else None
-        fields, crs, total = _source_fields(path, layer)
-    except InputError:
-        raise
-    except Exception as exc:  # pyogrio and pyarrow raise several unrelated types for unreadable files
-        msg = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
-        raise InputError(f"cannot read {path.name} as GIS data: {msg}") from exc
-    return Source(path, layer, fields, crs, total)
+
+def _parquet_source(path: Path) -> Source:
+    import pyarrow.parquet as pq
+
+    pf = pq.ParquetFile(path)
+    geo = _geoparquet_meta(pf, path)
+    gcol = geo["primary_column"]
+
+    def batches(columns: list[str]) -> Iterator[tuple[dict[str, Any], Any]]:
+        for batch in pf.iter_batches(batch_size=BATCH_ROWS, columns=[*columns, gcol]):
+            yield {c: batch.column(c) for c in columns}, batch.column(gcol)
+
+    fields = [c for c in pf.schema_arrow.names if c != gcol]
+    return Source(path, fields, _geoparquet_crs(geo), pf.metadata.num_rows, batches)
+
+
+def _ogr_source(path: Path, opts: GisOptions, stack: ExitStack) -> Source:
+    import pyogrio
+
+    layer = opts.layer
+    if layer is None and path.suffix.lower() == ".gpkg":
+        names = [str(n) for n in pyogrio.list_layers(path)[:, 0]]
+        layer = "roads" if "roads" in names else names[0] if names else None
+    total = 0
+    if path.suffix.lower() not in (".geojson", ".json"):  # GeoJSON would be parsed twice
+        total = max(int(pyogrio.read_info(path, layer=layer).get("features") or 0), 0)
+    meta, reader = stack.enter_context(
+        pyogrio.open_arrow(path, layer=layer, use_pyarrow=True, batch_size=BATCH_ROWS)
+    )
+    gcol = meta.get("geometry_name") or "wkb_geometry"
+
+    def batches(columns: list[str]) -> Iterator[tuple[dict[str, Any], Any]]:
+        for batch in reader:
+            yield {c: batch.column(c) for c in columns}, batch.column(gcol)
+
+    return Source(path, [str(f) for f in meta["fields"]], meta.get("crs"), total, batches)
 
 
 def _node_id_fields(fields: list[str], opts: GisOptions) -> tuple[str, str] | None:
