@@ -11,7 +11,7 @@ from __future__ import annotations
 import logging
 import re
 from array import array
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, NamedTuple
@@ -137,9 +137,12 @@ class Ways(NamedTuple):
     ok: NDArray[np.bool_]
 
 
-def scan_osm(path: Path, keep: TagFilter, dropped: dict[str, int]) -> tuple[Ways, list[Relation]]:
+def scan_osm(
+    path: Path, keep: TagFilter, dropped: dict[str, int], *, progress: Callable[[int], None] | None = None
+) -> tuple[Ways, list[Relation]]:
     """One pyosmium pass: ways passing ``keep`` with node refs and locations (flat arrays),
     and restrictions. A node reference whose node is missing from the file has ``ok`` false.
+    ``progress`` is called now and then with the number of ways kept so far.
     """
     import osmium
 
@@ -186,6 +189,8 @@ def scan_osm(path: Path, keep: TagFilter, dropped: dict[str, int]) -> tuple[Ways
                 ids.append(obj.id)
                 tags_out.append({k: tags[k] for k in WAY_KEYS if k in tags})
                 counts.append(n)
+                if progress is not None and not len(ids) % 4096:
+                    progress(len(ids))
             elif isinstance(obj, osmium.osm.Relation):
                 rtags = dict(obj.tags)
                 if rtags.get("type") != "restriction":
@@ -242,11 +247,13 @@ def read_osm_raw(
     *,
     network_type: str = "drive",
     bbox: tuple[float, float, float, float] | None = None,
+    progress: Callable[[int], None] | None = None,
 ) -> tuple[RawNetwork, dict[str, int], list[tuple[int, int, int, int]]]:
-    """Read drivable ways of an OSM file into a raw network (arrays; see :func:`read_osm`)."""
+    """Read drivable ways of an OSM file into a raw network (arrays; see :func:`read_osm`);
+    ``progress`` gets the number of ways kept so far, now and then."""
     keep = network_filter(network_type)
     dropped: dict[str, int] = {}
-    ways, relations = scan_osm(path, keep, dropped)
+    ways, relations = scan_osm(path, keep, dropped, progress=progress)
     raw = _ways_to_raw(ways, bbox=bbox, dropped=dropped)
     restrictions = _restrictions(relations, dropped)
     return raw, dropped, restrictions

@@ -681,7 +681,7 @@ def _paths(
         rec_pid.append(pid)
         rec_node.append(cur)
         steps += 1
-        if on_step is not None and steps % 64 == 0:
+        if on_step is not None:
             on_step(len(pid))
     all_pid = np.concatenate(rec_pid)
     order = np.argsort(all_pid, kind="stable")  # path by path, each in walk order
