@@ -125,11 +125,12 @@ WAY_KEYS = ("highway", "name", "oneway", "junction", "maxspeed")
 
 
 class Ways(NamedTuple):
-    """Kept ways: ``ids`` and ``tags`` per way; their node refs flattened, way ``i`` owning
-    ``ref[ptr[i]:ptr[i+1]]`` with each node's location (``ok`` false when missing)."""
+    """Kept ways: ``ids``, and ``tags`` by key of :data:`WAY_KEYS` as one code per way into
+    that key's table of values (-1: absent or empty); their node refs flattened, way ``i``
+    owning ``ref[ptr[i]:ptr[i+1]]`` with each node's location (``ok`` false when missing)."""
 
     ids: list[int]
-    tags: list[dict[str, str]]
+    tags: dict[str, Labels]
     ptr: NDArray[np.int64]
     ref: NDArray[np.int64]
     lon: NDArray[np.float64]
@@ -147,7 +148,9 @@ def scan_osm(
     import osmium
 
     ids: list[int] = []
-    tags_out: list[dict[str, str]] = []
+    tables: dict[str, dict[str, int]] = {k: {} for k in WAY_KEYS}
+    codes: dict[str, array[int]] = {k: array("i") for k in WAY_KEYS}
+    key_tables = [(k, tables[k].setdefault, codes[k].append) for k in WAY_KEYS]
     counts: list[int] = []
     refs = array("q")
     lons = array("d")
@@ -187,7 +190,9 @@ def scan_osm(
                         oks.append(0)
                     n += 1
                 ids.append(obj.id)
-                tags_out.append({k: tags[k] for k in WAY_KEYS if k in tags})
+                for k, put, add in key_tables:
+                    v = tags.get(k)
+                    add(put(v, len(tables[k])) if v else -1)
                 counts.append(n)
                 if progress is not None and not len(ids) % 4096:
                     progress(len(ids))
@@ -202,7 +207,7 @@ def scan_osm(
     np.cumsum(np.asarray(counts, dtype=np.int64), out=ptr[1:])
     ways = Ways(
         ids=ids,
-        tags=tags_out,
+        tags={k: Labels(np.frombuffer(codes[k], dtype=np.int32).copy(), list(tables[k])) for k in WAY_KEYS},
         ptr=ptr,
         ref=np.frombuffer(refs, dtype=np.int64).copy() if len(refs) else np.zeros(0, np.int64),
         lon=np.frombuffer(lons, dtype=np.float64).copy() if len(lons) else np.zeros(0),
@@ -328,9 +333,10 @@ def _ways_to_raw(
     feat_of_run[feat_runs] = np.arange(len(feat_runs))
     f = feat_of_run[g]
     fw = run_way[feat_runs]
-    tags = [ways.tags[i] for i in fw.tolist()]
-    oneway = np.array([is_oneway(t) for t in tags], dtype=bool)
-    backwards = np.array([t.get("oneway") in REVERSED_VALUES for t in tags], dtype=bool)
+    tags = {k: v.take(fw) for k, v in ways.tags.items()}
+    ow, junction = tags["oneway"], tags["junction"]
+    oneway = _flag(ow, ONEWAY_VALUES) | _flag(junction, {"roundabout"})  # osmnx's rule, see is_oneway
+    backwards = _flag(ow, REVERSED_VALUES)
     # reversed ways run from their last node to their first
     k = np.arange(len(node))
     order_k = np.lexsort((np.where(backwards[f], -k, k), f))
@@ -352,11 +358,23 @@ def _ways_to_raw(
         edge_feat=feat[use].astype(np.int64, copy=False),
         edge_oneway=oneway[feat[use]],
         feat_way_id=np.asarray(ways.ids, dtype=np.int64)[fw],
-        feat_name=Labels.of([t.get("name") for t in tags]),
-        feat_highway=Labels.of([t.get("highway") for t in tags]),
-        feat_speed_kph=np.array([_maxspeed(t.get("maxspeed")) for t in tags], dtype=np.float64),
+        feat_name=tags["name"],
+        feat_highway=tags["highway"],
+        feat_speed_kph=_per_value(tags["maxspeed"], _maxspeed),
     )
     return compact_raw(raw)
+
+
+def _flag(labels: Labels, values: frozenset[str] | set[str]) -> NDArray[np.bool_]:
+    """Whether each row's value is one of ``values``."""
+    hit = np.array([t in values for t in labels.table] + [False], dtype=bool)
+    return hit[labels.codes]
+
+
+def _per_value(labels: Labels, fn: Callable[[str | None], float]) -> NDArray[np.float64]:
+    """``fn`` of each row's value, computed once per distinct value (None for none)."""
+    vals = np.array([fn(t) for t in labels.table] + [fn(None)], dtype=np.float64)
+    return vals[labels.codes]
 
 
 def _empty_raw() -> RawNetwork:
