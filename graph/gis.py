@@ -1,6 +1,8 @@
-"""GIS road centre lines (GeoJSON, GeoPackage, Shapefile) -> raw MultiDiGraph.
+"""GIS road centre lines (GeoJSON, GeoPackage, Shapefile, FlatGeobuf, GeoParquet) -> raw network.
 
-Topology comes from shared line endpoints (within a snap tolerance); crossings without a
+The lines are read batch by batch from pyogrio's Arrow stream (pyarrow's for GeoParquet)
+straight into coordinate arrays; only the attribute fields the build uses are kept, and no
+GeoDataFrame is made. Topology comes from shared line endpoints (within a snap tolerance); crossings without a
 shared vertex stay unconnected (bridges) unless noding is asked for. One-way comes from a
 configurable field and value convention.
 """
@@ -227,7 +229,6 @@ def read_lines(
     ``want`` names the attribute fields to read (the others are not). Returns the lines
     and counts of dropped features by reason.
     """
-    import shapely
     from pyproj import CRS
     from pyproj.exceptions import CRSError
 
