@@ -1,8 +1,12 @@
 """Build a RoadGraph from a source file (OSM PBF/XML or GIS lines) or an osmnx download.
 
-Pipeline: read -> raw MultiDiGraph (every vertex a node, projected to local UTM) ->
-:func:`osmnx.simplify_graph` -> optional :func:`osmnx.consolidate_intersections` ->
-:class:`RoadGraph` (turn restrictions mapped onto the simplified edges).
+Pipeline (``engine="arrays"``, the default): read into a raw network of arrays (every vertex
+a node, projected to local UTM; pyosmium for OSM, pyogrio's Arrow stream for GIS) ->
+simplify to intersections and dead ends as :func:`osmnx.simplify_graph` does, with
+whole-array numpy steps -> :class:`RoadGraph` (way pieces kept, turn restrictions mapped
+onto the simplified edges). The reference (``engine="osmnx"``, and downloads or
+``consolidate_tolerance``) goes through a networkx graph, :func:`osmnx.simplify_graph` and
+:func:`osmnx.consolidate_intersections`; tests assert both give the same map.
 """
 
 from __future__ import annotations
