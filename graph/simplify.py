@@ -17,7 +17,7 @@ from typing import TYPE_CHECKING, Any, NamedTuple
 import numpy as np
 from numpy.typing import NDArray
 
-from mapmatch.graph.keys import unique
+from mapmatch.graph.keys import unique, unique_inverse
 from mapmatch.graph.road_graph import Labels, Pieces, RoadGraph
 
 if TYPE_CHECKING:
@@ -632,12 +632,8 @@ class _Arcs(NamedTuple):
 
 
 def _arcs(n: int, src: NDArray[np.int64], dst: NDArray[np.int64]) -> _Arcs:
-    key = src * n + dst
-    order = np.argsort(key, kind="stable")
-    sk = key[order]
-    new = np.ones(len(sk), dtype=bool)
-    new[1:] = sk[1:] != sk[:-1]
-    return _Arcs(key=sk[new], first=order[new].astype(np.int64))
+    key, first, _ = unique_inverse(src * n + dst)
+    return _Arcs(key=key, first=first)
 
 
 def _paths(
