@@ -516,11 +516,12 @@ def _lines_to_raw(
     first, last = start[:-1], start[1:] - 1
     ends = np.concatenate([first, last])
     end_xy = xy[ends]
+    place_of_end, places = _places(end_xy)
     node_of_end, end_ids = None, None
     if opts.topology == "ids" or (opts.topology == "auto" and src_ids is not None):
         node_of_end, end_ids = _nodes_from_ids(src_ids, end_xy, opts)
     if node_of_end is None:
-        node_of_end = _nodes_from_coords(end_xy, opts.snap_tolerance)
+        node_of_end = _nodes_from_coords(places, place_of_end, opts.snap_tolerance)
         end_ids = _consistent_ids(src_ids, node_of_end)
         info["topology"] = "shared endpoints"
     else:
@@ -531,9 +532,8 @@ def _lines_to_raw(
     np.add.at(node_xy, node_of_end, end_xy)
     node_xy /= np.bincount(node_of_end, minlength=n_end_nodes)[:, None]
     node_ll = ll[ends][unique_inverse(node_of_end)[1]]
-    r = np.round(end_xy, 6)[np.lexsort((np.round(end_xy[:, 1], 6), np.round(end_xy[:, 0], 6)))]
-    n_places = int(len(r) and 1 + (r[1:] != r[:-1]).any(axis=1).sum())
-    info["merged_endpoints"] = n_places - n_end_nodes
+    info["merged_endpoints"] = len(places) - n_end_nodes
+    del place_of_end, places
 
     # every vertex is a node: endpoints shared, interior vertices private to their feature
     vnode = np.empty(len(xy), dtype=np.int64)
@@ -763,16 +763,22 @@ def _nodes_from_ids(
     return inv.astype(np.int64), uniq.astype(np.int64)
 
 
-def _nodes_from_coords(end_xy: NDArray[np.float64], tol: float) -> NDArray[np.int64]:
-    """Endpoint -> node: identical positions first, then snapping within ``tol`` metres."""
+def _places(end_xy: NDArray[np.float64]) -> tuple[NDArray[np.int64], NDArray[np.float64]]:
+    """Distinct endpoint positions (rounded to the micrometre, sorted by x then y) and the
+    place of each endpoint."""
     r = np.round(end_xy, 6)
     order = np.lexsort((r[:, 1], r[:, 0]))  # as np.unique(axis=0) orders them, much faster
     rs = r[order]
     new = np.ones(len(rs), dtype=bool)
     new[1:] = (rs[1:] != rs[:-1]).any(axis=1)
-    uniq = rs[new]
     inv = np.empty(len(r), dtype=np.int64)
     inv[order] = np.cumsum(new) - 1
+    return inv, rs[new]
+
+
+def _nodes_from_coords(uniq: NDArray[np.float64], inv: NDArray[np.int64], tol: float) -> NDArray[np.int64]:
+    """Endpoint -> node: identical positions (``uniq[inv]``) first, then snapping within
+    ``tol`` metres."""
     if tol > 0 and len(uniq) > 1:
         pa, pb = _pairs_within(uniq, tol)
         lab = union_find(len(uniq), pa, pb)
