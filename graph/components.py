@@ -10,19 +10,30 @@ from mapmatch.graph.road_graph import RoadGraph
 
 
 def union_find(n: int, a: NDArray[np.int64], b: NDArray[np.int64]) -> NDArray[np.int64]:
-    """Component label (smallest member) of each of ``n`` items linked by pairs ``(a, b)``."""
+    """Component label (smallest member) of each of ``n`` items linked by pairs ``(a, b)``.
+
+    Hook and compress: each round every link's larger root is hooked onto its smaller one,
+    then every item is pointed at its root; the number of roots linked to others at least
+    halves per round.
+    """
     label = np.arange(n, dtype=np.int64)
     if len(a) == 0:
         return label
+    a, b = np.asarray(a, dtype=np.int64), np.asarray(b, dtype=np.int64)
     while True:
-        m = np.minimum(label[a], label[b])
-        new = label.copy()
-        np.minimum.at(new, a, m)
-        np.minimum.at(new, b, m)
-        new = new[new]
-        if np.array_equal(new, label):
+        la, lb = label[a], label[b]
+        cross = la != lb
+        if not cross.any():
             return label
-        label = new
+        la, lb = la[cross], lb[cross]
+        np.minimum.at(label, np.maximum(la, lb), np.minimum(la, lb))
+        while True:  # point every item at its root
+            up = label[label]
+            if np.array_equal(up, label):
+                break
+            label = up
+        keep = cross  # links inside one component stay so for good
+        a, b = a[keep], b[keep]
 
 
 def weak_components(graph: RoadGraph) -> NDArray[np.int64]:
