@@ -667,7 +667,6 @@ def _paths(
     prev, cur = a_from[st], a_to[st]
     rec_pid = [pid, pid]
     rec_node = [prev, cur]
-    steps = 0
     while len(pid):
         go = ~end[cur]
         pid, prev, cur = pid[go], prev[go], cur[go]
@@ -676,7 +675,6 @@ def _paths(
         pid, prev, cur = pid[ok], cur[ok], nxt[ok]
         rec_pid.append(pid)
         rec_node.append(cur)
-        steps += 1
         if on_step is not None:
             on_step(len(pid))
     all_pid = np.concatenate(rec_pid)
