@@ -29,19 +29,36 @@ sys.path.insert(0, str(ROOT))
 PEER_VENVS = Path(os.environ.get("MM_PEERS_VENVS", Path.home() / ".cache" / "mapmatch-peers" / "venvs"))
 
 BUILD = r"""
-import json, sys, time
+import json, sys, threading, time
 t = time.perf_counter()
 from mapmatch.graph.build import build_map
 from mapmatch.graph.artifact import save_map
 t_imp = time.perf_counter() - t
+
+def rss_mb():
+    with open("/proc/self/statm") as f:
+        return int(f.read().split()[1]) * 4096 / 1e6
+
+# peak RSS per step, sampled every 2 ms; steps told apart by the build's progress messages
+step, peaks, base = ["imports"], {}, rss_mb()
+def sample():
+    while True:
+        peaks[step[0]] = max(peaks.get(step[0], 0.0), rss_mb())
+        time.sleep(0.002)
+threading.Thread(target=sample, daemon=True).start()
+STEPS = {"reading": "read", "simplifying": "simplify", "building": "convert", "deriving": "convert"}
+def progress(msg):
+    step[0] = STEPS.get(msg.split()[0].rstrip(":"), step[0])
 t = time.perf_counter()
-g = build_map(sys.argv[1])
+g = build_map(sys.argv[1], progress=progress)
 t_build = time.perf_counter() - t
+time.sleep(0.01)
 save_map(g, sys.argv[2])
 sec = g.meta["report"]["seconds"]
 print(json.dumps({"build_s": t_build, "import_s": t_imp, "edges": g.n_edges, "nodes": g.n_nodes,
-                  "pieces": g.n_pieces, "km": g.stats()["road_km"],
-                  "steps": {k: round(v, 2) for k, v in sec.items()}}))
+                  "pieces": g.n_pieces, "km": g.stats()["road_km"], "import_mb": base,
+                  "steps": {k: round(v, 2) for k, v in sec.items()},
+                  "step_mb": {k: round(v) for k, v in peaks.items() if k != "imports"}}))
 """
 
 GRID = r"""
@@ -192,8 +209,8 @@ def main() -> None:
             env=dict(os.environ, NUMBA_CACHE_DIR=str(cache)),
         )
         print(
-            f"first build (kernels compiled, empty cache): {c.get('first_build_s', float('nan')):.1f} s; "
-            f"with the cache: {w.get('first_build_s', float('nan')):.2f} s (tiny map)"
+            f"first build with an empty numba cache: {c.get('first_build_s', float('nan')):.1f} s; "
+            f"again: {w.get('first_build_s', float('nan')):.2f} s (tiny map; the build compiles no kernels)"
         )
         if "--skip-grid" not in sys.argv:
             for n, label in ((275, "grid 300k"), (500, "grid 1M")):
@@ -218,7 +235,12 @@ def main() -> None:
                 print(f"{name:<24} load failed: {ld['error']}")
                 continue
             rows[name] = b
-            steps = " ".join(f"{k} {v}" for k, v in dict(b["steps"]).items() if k != "total")  # type: ignore[call-overload]
+            mb = dict(b.get("step_mb", {}))  # type: ignore[call-overload]
+            steps = " ".join(
+                f"{k} {v} s/{mb.get(k, 0)} MB"
+                for k, v in dict(b["steps"]).items()  # type: ignore[call-overload]
+                if k != "total"
+            )
             print(
                 f"{name:<24} {src.stat().st_size / 1e6:9.2f} {b['build_s']:7.2f} {b['rss_mb']:7.0f} "
                 f"{out.stat().st_size / 1e6:6.2f} {ld['load_s']:7.3f} {ld['index_s']:7.3f} "
@@ -247,7 +269,8 @@ def main() -> None:
         shutil.rmtree(cache, ignore_errors=True)
     load = os.getloadavg()
     print(f"load average at end: {load[0]:.1f} {load[1]:.1f} {load[2]:.1f}")
-    print("build s: build_map in a fresh process (imports excluded, kernels cached); peak MB: that process;")
+    print("build s: build_map in a fresh process (imports excluded); peak MB: that process (ru_maxrss);")
+    print("steps: seconds and peak RSS (sampled every 2 ms) of each build step, imports included;")
     print("load s: load_map in a fresh process, all checksums verified; index s: EdgeIndex(graph) after it;")
     print("peers: wall time and peak RSS of their preparation commands, same file, same run.")
     print(f"load needs neither osmnx nor networkx. Python {sys.version.split()[0]}.")

@@ -1,8 +1,12 @@
 """Build a RoadGraph from a source file (OSM PBF/XML or GIS lines) or an osmnx download.
 
-Pipeline: read -> raw MultiDiGraph (every vertex a node, projected to local UTM) ->
-:func:`osmnx.simplify_graph` -> optional :func:`osmnx.consolidate_intersections` ->
-:class:`RoadGraph` (turn restrictions mapped onto the simplified edges).
+Pipeline (``engine="arrays"``, the default): read into a raw network of arrays (every vertex
+a node, projected to local UTM; pyosmium for OSM, pyogrio's Arrow stream for GIS) ->
+simplify to intersections and dead ends as :func:`osmnx.simplify_graph` does, with
+whole-array numpy steps -> :class:`RoadGraph` (way pieces kept, turn restrictions mapped
+onto the simplified edges). The reference (``engine="osmnx"``, and downloads or
+``consolidate_tolerance``) goes through a networkx graph, :func:`osmnx.simplify_graph` and
+:func:`osmnx.consolidate_intersections`; tests assert both give the same map.
 """
 
 from __future__ import annotations
@@ -29,6 +33,25 @@ OSM_PBF_SUFFIXES = (".pbf",)
 OSM_XML_SUFFIXES = (".osm", ".osm.bz2", ".osm.gz", ".xml", ".osm.xml")
 
 Progress = Callable[[str], None]
+"""Called with one line of text: at the start of each step, and within a long step."""
+
+
+class StepProgress:
+    """Progress within one step: ``update(done, total)`` says ``"<label>: 1,234 of 5,678 <unit> (22%)"``
+    through ``say``, at most once per ``interval`` seconds (so a short step says nothing)."""
+
+    def __init__(self, say: Progress, label: str, unit: str, *, interval: float = 1.0) -> None:
+        self.say, self.label, self.unit, self.interval = say, label, unit, interval
+        self.last = time.perf_counter()
+
+    def update(self, done: int, total: int = 0) -> None:
+        now = time.perf_counter()
+        if now - self.last < self.interval:
+            return
+        self.last = now
+        of = f" of {total:,}" if total > 0 else ""
+        pct = f" ({100.0 * done / total:.0f}%)" if total > 0 else ""
+        self.say(f"{self.label}: {done:,}{of} {self.unit}{pct}")
 
 
 def source_format(path: Path) -> str:
@@ -104,6 +127,7 @@ def build_map(
     layer: str | None = None,
     network_type: str = "drive",
     progress: Progress | None = None,
+    progress_interval: float = 1.0,
     engine: str = "arrays",
 ) -> RoadGraph:
     """Build a prepared road graph.
@@ -125,7 +149,10 @@ def build_map(
     network_type
         osmnx network type for OSM input: ``"drive"`` (default) or ``"drive_service"``.
     progress
-        Called with a short message at the start of each step.
+        Called with a short message at the start of each step, and within the long ones
+        (reading, simplifying, building) with how far they are.
+    progress_interval
+        Seconds between two messages within a step.
     engine
         ``"arrays"`` (default): read into arrays and simplify with compiled kernels;
         ``"osmnx"``: the reference, a networkx graph simplified by :func:`osmnx.simplify_graph`
@@ -148,7 +175,7 @@ def build_map(
         RawNetwork,
         consolidate,
         raw_to_nx,
-        raw_to_road_graph,
+        road_graph_arrays,
         simplify,
         simplify_arrays,
         to_road_graph,
@@ -235,13 +262,17 @@ def build_map(
                 }
             )
             say(f"reading GIS lines from {path.name}")
-            raw_net, dropped, fields = lines_to_raw(path, opts)
+            step = StepProgress(say, f"reading {path.name}", "features", interval=progress_interval)
+            raw_net, dropped, fields = lines_to_raw(path, opts, progress=step.update)
             report.fields = fields
         else:
             from mapmatch.graph.osm import read_osm_raw
 
             say(f"reading OSM {'PBF' if fmt == 'osm-pbf' else 'XML'} from {path.name}")
-            raw_net, dropped, restrictions = read_osm_raw(path, network_type=network_type, bbox=bbox)
+            step = StepProgress(say, f"reading {path.name}", "roads kept", interval=progress_interval)
+            raw_net, dropped, restrictions = read_osm_raw(
+                path, network_type=network_type, bbox=bbox, progress=step.update
+            )
             report.restrictions_read = len(restrictions)
     report.dropped = dropped
     report.seconds["read"] = time.perf_counter() - t0
@@ -263,12 +294,16 @@ def build_map(
         report.source_weak_components, report.source_strong_components = w, st
         t1 = time.perf_counter()
         say(f"simplifying {report.raw_nodes:,} nodes / {report.raw_edges:,} edges to intersections")
-        simp = simplify_arrays(raw_net)
+        step = StepProgress(say, "simplifying", "paths still growing", interval=progress_interval)
+        simp = simplify_arrays(raw_net, on_step=step.update)
         report.seconds["simplify"] = time.perf_counter() - t1
         t2 = time.perf_counter()
         say(f"building {len(simp.ptr) - 1:,} edges with their way pieces")
-        rg, info = raw_to_road_graph(raw_net, simp, restrictions=restrictions, meta=meta)
-        del raw_net, simp
+        kw, info = road_graph_arrays(raw_net, simp, restrictions=restrictions, meta=meta)
+        del raw_net, simp  # the raw network goes before the graph's own arrays are made
+        say(f"deriving lengths, bearings, reverse edges and adjacency of {len(kw['edge_u']):,} edges")
+        rg = RoadGraph.from_edges(**kw)
+        del kw
         report.weak_components, report.strong_components = component_counts(rg.n_nodes, rg.edge_u, rg.edge_v)
     else:
         assert G is not None

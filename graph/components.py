@@ -3,32 +3,44 @@
 from __future__ import annotations
 
 import numpy as np
-from numba import njit
 from numpy.typing import NDArray
 
+from mapmatch.graph.keys import dense_labels, isin, unique
 from mapmatch.graph.road_graph import RoadGraph
 
 
 def union_find(n: int, a: NDArray[np.int64], b: NDArray[np.int64]) -> NDArray[np.int64]:
-    """Component label (smallest member) of each of ``n`` items linked by pairs ``(a, b)``."""
+    """Component label (smallest member) of each of ``n`` items linked by pairs ``(a, b)``.
+
+    Hook and compress: each round every link's larger root is hooked onto its smaller one,
+    then every item is pointed at its root; the number of roots linked to others at least
+    halves per round.
+    """
     label = np.arange(n, dtype=np.int64)
     if len(a) == 0:
         return label
+    a, b = np.asarray(a, dtype=np.int64), np.asarray(b, dtype=np.int64)
     while True:
-        m = np.minimum(label[a], label[b])
-        new = label.copy()
-        np.minimum.at(new, a, m)
-        np.minimum.at(new, b, m)
-        new = new[new]
-        if np.array_equal(new, label):
+        la, lb = label[a], label[b]
+        cross = la != lb
+        if not cross.any():
             return label
-        label = new
+        la, lb = la[cross], lb[cross]
+        np.minimum.at(label, np.maximum(la, lb), np.minimum(la, lb))
+        while True:  # point every item at its root
+            up = label[label]
+            if np.array_equal(up, label):
+                break
+            label = up
+        keep = cross  # links inside one component stay so for good
+        a, b = a[keep], b[keep]
 
 
 def weak_components(graph: RoadGraph) -> NDArray[np.int64]:
     """Weakly connected component index ``0..C-1`` of every node, largest component first."""
     lab = union_find(graph.n_nodes, graph.edge_u.astype(np.int64), graph.edge_v.astype(np.int64))
-    _, inv, counts = np.unique(lab, return_inverse=True, return_counts=True)
+    _, inv = dense_labels(lab, graph.n_nodes)
+    counts = np.bincount(inv)
     rank = np.empty(len(counts), dtype=np.int64)
     rank[np.argsort(-counts, kind="stable")] = np.arange(len(counts))
     return rank[inv.ravel()]
@@ -41,65 +53,92 @@ def strong_component_count(graph: RoadGraph) -> int:
 
 def component_counts(n: int, src: NDArray[np.integer], dst: NDArray[np.integer]) -> tuple[int, int]:
     """Numbers of weakly and strongly connected components of ``n`` nodes joined by directed
-    edges ``src -> dst`` (an iterative Kosaraju for the strong ones)."""
+    edges ``src -> dst``.
+
+    The strong ones: nodes joined by edges both ways are merged first (on a road map that is
+    most of them), nodes left without an edge in or out are counted off as their own
+    component, and Tarjan's algorithm runs on what remains.
+    """
     if n == 0:
         return 0, 0
     a, b = np.asarray(src, dtype=np.int64), np.asarray(dst, dtype=np.int64)
-    weak = len(np.unique(union_find(n, a, b)))
-    o_order = np.argsort(a, kind="stable")
-    i_order = np.argsort(b, kind="stable")
-    o_ptr = np.zeros(n + 1, dtype=np.int64)
-    i_ptr = np.zeros(n + 1, dtype=np.int64)
-    np.cumsum(np.bincount(a, minlength=n), out=o_ptr[1:])
-    np.cumsum(np.bincount(b, minlength=n), out=i_ptr[1:])
-    return weak, int(_kosaraju(n, o_ptr, b[o_order], i_ptr, a[i_order]))
+    weak = len(dense_labels(union_find(n, a, b), n)[0])
+    key = a * n + b
+    two_way = isin(key, b * n + a)
+    lab = union_find(n, a[two_way], b[two_way])
+    uniq, inv = dense_labels(lab, n)
+    del key, two_way, lab
+    k = len(uniq)
+    ca, cb = inv.ravel()[a], inv.ravel()[b]
+    keep = ca != cb
+    pair = unique(ca[keep] * k + cb[keep])
+    ca, cb = pair // k, pair % k
+    alive = np.ones(k, dtype=bool)
+    while True:  # a node without an edge in or out (among the living) is a component alone
+        live = alive[ca] & alive[cb]
+        ca, cb = ca[live], cb[live]
+        has = np.zeros(k, dtype=bool)
+        has[ca] = True
+        has_in = np.zeros(k, dtype=bool)
+        has_in[cb] = True
+        dead = alive & ~(has & has_in)
+        if not dead.any():
+            break
+        alive &= ~dead
+    rest = np.nonzero(alive)[0]
+    strong = k - len(rest)
+    if len(rest):
+        index = np.full(k, -1, dtype=np.int64)
+        index[rest] = np.arange(len(rest))
+        strong += _tarjan_count(len(rest), index[ca], index[cb])
+    return weak, strong
 
 
-@njit(cache=True)
-def _kosaraju(n, out_ptr, out_to, in_ptr, in_from):  # type: ignore[no-untyped-def]
-    seen = np.zeros(n, dtype=np.bool_)
-    finish = np.empty(n, dtype=np.int64)
-    nf = 0
-    stack = np.empty(n, dtype=np.int64)
-    pos = np.empty(n, dtype=np.int64)
-    for s in range(n):
-        if seen[s]:
+def _tarjan_count(n: int, src: NDArray[np.int64], dst: NDArray[np.int64]) -> int:
+    """Number of strongly connected components (iterative Tarjan over a CSR)."""
+    order = np.argsort(src, kind="stable")
+    ptr = np.zeros(n + 1, dtype=np.int64)
+    np.cumsum(np.bincount(src, minlength=n), out=ptr[1:])
+    to = dst[order].tolist()
+    start = ptr.tolist()
+    index = [-1] * n
+    low = [0] * n
+    on = [False] * n
+    stack: list[int] = []
+    count = 0
+    nxt = 0
+    for root in range(n):
+        if index[root] >= 0:
             continue
-        top = 0
-        stack[0] = s
-        pos[0] = out_ptr[s]
-        seen[s] = True
-        while top >= 0:
-            x = stack[top]
-            if pos[top] < out_ptr[x + 1]:
-                y = out_to[pos[top]]
-                pos[top] += 1
-                if not seen[y]:
-                    seen[y] = True
-                    top += 1
-                    stack[top] = y
-                    pos[top] = out_ptr[y]
-            else:
-                finish[nf] = x
-                nf += 1
-                top -= 1
-    comp = np.full(n, -1, dtype=np.int64)
-    c = 0
-    for i in range(n - 1, -1, -1):
-        s = finish[i]
-        if comp[s] >= 0:
-            continue
-        top = 0
-        stack[0] = s
-        comp[s] = c
-        while top >= 0:
-            x = stack[top]
-            top -= 1
-            for k in range(in_ptr[x], in_ptr[x + 1]):
-                y = in_from[k]
-                if comp[y] < 0:
-                    comp[y] = c
-                    top += 1
-                    stack[top] = y
-        c += 1
-    return c
+        work = [(root, start[root])]
+        index[root] = low[root] = nxt
+        nxt += 1
+        stack.append(root)
+        on[root] = True
+        while work:
+            x, i = work[-1]
+            if i < start[x + 1]:
+                work[-1] = (x, i + 1)
+                y = to[i]
+                if index[y] < 0:
+                    index[y] = low[y] = nxt
+                    nxt += 1
+                    stack.append(y)
+                    on[y] = True
+                    work.append((y, start[y]))
+                elif on[y] and index[y] < low[x]:
+                    low[x] = index[y]
+                continue
+            work.pop()
+            if work:
+                p = work[-1][0]
+                if low[x] < low[p]:
+                    low[p] = low[x]
+            if low[x] == index[x]:
+                count += 1
+                while True:
+                    y = stack.pop()
+                    on[y] = False
+                    if y == x:
+                        break
+    return count

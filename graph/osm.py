@@ -11,7 +11,7 @@ from __future__ import annotations
 import logging
 import re
 from array import array
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, NamedTuple
@@ -21,8 +21,9 @@ from numpy.typing import NDArray
 
 from mapmatch.graph.errors import InputError
 from mapmatch.graph.gis import _parse_speed
+from mapmatch.graph.keys import unique_inverse
 from mapmatch.graph.projection import to_xy, utm_crs
-from mapmatch.graph.road_graph import RESTRICTION_NO, RESTRICTION_ONLY
+from mapmatch.graph.road_graph import RESTRICTION_NO, RESTRICTION_ONLY, Labels
 from mapmatch.graph.simplify import RawNetwork, compact_raw
 
 if TYPE_CHECKING:
@@ -124,11 +125,12 @@ WAY_KEYS = ("highway", "name", "oneway", "junction", "maxspeed")
 
 
 class Ways(NamedTuple):
-    """Kept ways: ``ids`` and ``tags`` per way; their node refs flattened, way ``i`` owning
-    ``ref[ptr[i]:ptr[i+1]]`` with each node's location (``ok`` false when missing)."""
+    """Kept ways: ``ids``, and ``tags`` by key of :data:`WAY_KEYS` as one code per way into
+    that key's table of values (-1: absent or empty); their node refs flattened, way ``i``
+    owning ``ref[ptr[i]:ptr[i+1]]`` with each node's location (``ok`` false when missing)."""
 
     ids: list[int]
-    tags: list[dict[str, str]]
+    tags: dict[str, Labels]
     ptr: NDArray[np.int64]
     ref: NDArray[np.int64]
     lon: NDArray[np.float64]
@@ -136,14 +138,19 @@ class Ways(NamedTuple):
     ok: NDArray[np.bool_]
 
 
-def scan_osm(path: Path, keep: TagFilter, dropped: dict[str, int]) -> tuple[Ways, list[Relation]]:
+def scan_osm(
+    path: Path, keep: TagFilter, dropped: dict[str, int], *, progress: Callable[[int], None] | None = None
+) -> tuple[Ways, list[Relation]]:
     """One pyosmium pass: ways passing ``keep`` with node refs and locations (flat arrays),
     and restrictions. A node reference whose node is missing from the file has ``ok`` false.
+    ``progress`` is called now and then with the number of ways kept so far.
     """
     import osmium
 
     ids: list[int] = []
-    tags_out: list[dict[str, str]] = []
+    tables: dict[str, dict[str, int]] = {k: {} for k in WAY_KEYS}
+    codes: dict[str, array[int]] = {k: array("i") for k in WAY_KEYS}
+    key_tables = [(k, tables[k].setdefault, codes[k].append) for k in WAY_KEYS]
     counts: list[int] = []
     refs = array("q")
     lons = array("d")
@@ -183,8 +190,12 @@ def scan_osm(path: Path, keep: TagFilter, dropped: dict[str, int]) -> tuple[Ways
                         oks.append(0)
                     n += 1
                 ids.append(obj.id)
-                tags_out.append({k: tags[k] for k in WAY_KEYS if k in tags})
+                for k, put, add in key_tables:
+                    v = tags.get(k)
+                    add(put(v, len(tables[k])) if v else -1)
                 counts.append(n)
+                if progress is not None and not len(ids) % 4096:
+                    progress(len(ids))
             elif isinstance(obj, osmium.osm.Relation):
                 rtags = dict(obj.tags)
                 if rtags.get("type") != "restriction":
@@ -196,7 +207,7 @@ def scan_osm(path: Path, keep: TagFilter, dropped: dict[str, int]) -> tuple[Ways
     np.cumsum(np.asarray(counts, dtype=np.int64), out=ptr[1:])
     ways = Ways(
         ids=ids,
-        tags=tags_out,
+        tags={k: Labels(np.frombuffer(codes[k], dtype=np.int32).copy(), list(tables[k])) for k in WAY_KEYS},
         ptr=ptr,
         ref=np.frombuffer(refs, dtype=np.int64).copy() if len(refs) else np.zeros(0, np.int64),
         lon=np.frombuffer(lons, dtype=np.float64).copy() if len(lons) else np.zeros(0),
@@ -241,11 +252,13 @@ def read_osm_raw(
     *,
     network_type: str = "drive",
     bbox: tuple[float, float, float, float] | None = None,
+    progress: Callable[[int], None] | None = None,
 ) -> tuple[RawNetwork, dict[str, int], list[tuple[int, int, int, int]]]:
-    """Read drivable ways of an OSM file into a raw network (arrays; see :func:`read_osm`)."""
+    """Read drivable ways of an OSM file into a raw network (arrays; see :func:`read_osm`);
+    ``progress`` gets the number of ways kept so far, now and then."""
     keep = network_filter(network_type)
     dropped: dict[str, int] = {}
-    ways, relations = scan_osm(path, keep, dropped)
+    ways, relations = scan_osm(path, keep, dropped, progress=progress)
     raw = _ways_to_raw(ways, bbox=bbox, dropped=dropped)
     restrictions = _restrictions(relations, dropped)
     return raw, dropped, restrictions
@@ -298,7 +311,7 @@ def _ways_to_raw(
         ) + int((~has).sum())
     # nodes: every usable reference, in order of first appearance (its last location wins)
     ok_pos = np.nonzero(ok)[0]
-    ids, first, inv = np.unique(ways.ref[ok_pos], return_index=True, return_inverse=True)
+    ids, first, inv = unique_inverse(ways.ref[ok_pos])
     if len(ids) == 0:
         return _empty_raw()
     order = np.argsort(first, kind="stable")
@@ -320,9 +333,10 @@ def _ways_to_raw(
     feat_of_run[feat_runs] = np.arange(len(feat_runs))
     f = feat_of_run[g]
     fw = run_way[feat_runs]
-    tags = [ways.tags[i] for i in fw.tolist()]
-    oneway = np.array([is_oneway(t) for t in tags], dtype=bool)
-    backwards = np.array([t.get("oneway") in REVERSED_VALUES for t in tags], dtype=bool)
+    tags = {k: v.take(fw) for k, v in ways.tags.items()}
+    ow, junction = tags["oneway"], tags["junction"]
+    oneway = _flag(ow, ONEWAY_VALUES) | _flag(junction, {"roundabout"})  # osmnx's rule, see is_oneway
+    backwards = _flag(ow, REVERSED_VALUES)
     # reversed ways run from their last node to their first
     k = np.arange(len(node))
     order_k = np.lexsort((np.where(backwards[f], -k, k), f))
@@ -336,19 +350,31 @@ def _ways_to_raw(
     use = src >= 0
     raw = RawNetwork(
         crs=crs,
-        node_key=node_ids.astype(np.int64),
+        node_key=node_ids.astype(np.int64, copy=False),
         node_xy=xy,
         node_lonlat=ll,
-        edge_src=src[use].astype(np.int64),
-        edge_dst=dst[use].astype(np.int64),
-        edge_feat=feat[use].astype(np.int64),
+        edge_src=src[use].astype(np.int64, copy=False),
+        edge_dst=dst[use].astype(np.int64, copy=False),
+        edge_feat=feat[use].astype(np.int64, copy=False),
         edge_oneway=oneway[feat[use]],
         feat_way_id=np.asarray(ways.ids, dtype=np.int64)[fw],
-        feat_name=[t.get("name") for t in tags],
-        feat_highway=[t.get("highway") for t in tags],
-        feat_speed_kph=np.array([_maxspeed(t.get("maxspeed")) for t in tags], dtype=np.float64),
+        feat_name=tags["name"],
+        feat_highway=tags["highway"],
+        feat_speed_kph=_per_value(tags["maxspeed"], _maxspeed),
     )
     return compact_raw(raw)
+
+
+def _flag(labels: Labels, values: frozenset[str] | set[str]) -> NDArray[np.bool_]:
+    """Whether each row's value is one of ``values``."""
+    hit = np.array([t in values for t in labels.table] + [False], dtype=bool)
+    return hit[labels.codes]
+
+
+def _per_value(labels: Labels, fn: Callable[[str | None], float]) -> NDArray[np.float64]:
+    """``fn`` of each row's value, computed once per distinct value (None for none)."""
+    vals = np.array([fn(t) for t in labels.table] + [fn(None)], dtype=np.float64)
+    return vals[labels.codes]
 
 
 def _empty_raw() -> RawNetwork:
@@ -363,8 +389,8 @@ def _empty_raw() -> RawNetwork:
         edge_feat=z,
         edge_oneway=np.zeros(0, dtype=bool),
         feat_way_id=z,
-        feat_name=[],
-        feat_highway=[],
+        feat_name=Labels.of([]),
+        feat_highway=Labels.of([]),
         feat_speed_kph=np.zeros(0),
     )
 

@@ -15,10 +15,10 @@ from dataclasses import dataclass, field
 from typing import Any, NamedTuple
 
 import numpy as np
-from numba import njit
 from numpy.typing import NDArray
 
 from mapmatch.graph.errors import GraphError
+from mapmatch.graph.keys import unique_inverse
 
 RESTRICTION_NO = 0
 RESTRICTION_ONLY = 1
@@ -55,6 +55,31 @@ PIECE_FIELDS: tuple[str, ...] = ARRAY_FIELDS[-6:]
 """Way-piece arrays; map files written before they existed get one piece per edge on load."""
 
 
+class Labels(NamedTuple):
+    """A text column as codes into a table of distinct non-empty strings (-1: none)."""
+
+    codes: NDArray[np.int32]
+    table: list[str]
+
+    @classmethod
+    def of(cls, values: Sequence[Any]) -> Labels:
+        """Codes of ``values`` in order of first appearance; false values (None, "") are none,
+        others are read as text."""
+        table: dict[str, int] = {}
+        put = table.setdefault
+        codes = [put(v if type(v) is str else str(v), len(table)) if v else -1 for v in values]
+        return cls(np.asarray(codes, dtype=np.int32).reshape(-1), list(table))
+
+    def take(self, index: NDArray[np.integer]) -> Labels:
+        """The labels of rows ``index`` (same table)."""
+        return Labels(self.codes[index], self.table)
+
+    def values(self) -> list[str | None]:
+        """The column as strings (None for none)."""
+        t: list[str | None] = [*self.table, None]
+        return [t[c] for c in self.codes.tolist()]
+
+
 class Pieces(NamedTuple):
     """The ways (or GIS features) an edge is made of, one row per piece, ordered by edge and
     then by ``start`` (metres along the edge in travel direction; each edge's first is 0)."""
@@ -62,8 +87,8 @@ class Pieces(NamedTuple):
     edge: NDArray[np.int64]
     start: NDArray[np.float64]
     way_id: NDArray[np.int64]
-    name: Sequence[str | None]
-    highway: Sequence[str | None]
+    name: Sequence[str | None] | Labels
+    highway: Sequence[str | None] | Labels
     speed_kph: NDArray[np.float32]
 
 
@@ -202,12 +227,13 @@ class RoadGraph:
         seg_xy: NDArray[np.float64] | None = None,
         edge_seg_ptr: NDArray[np.int64] | None = None,
         edge_way_id: NDArray[np.int64] | Sequence[int] | None = None,
-        edge_names: Sequence[str | None] | None = None,
-        edge_highways: Sequence[str | None] | None = None,
+        edge_names: Sequence[str | None] | Labels | None = None,
+        edge_highways: Sequence[str | None] | Labels | None = None,
         edge_speed_kph: NDArray[np.floating] | Sequence[float] | None = None,
         restrictions: NDArray[np.integer] | Sequence[Sequence[int]] | None = None,
         pieces: Pieces | None = None,
         meta: dict[str, Any] | None = None,
+        copy: bool = True,
     ) -> RoadGraph:
         """Build a graph from directed edges, deriving lengths, bearings, CSR and reverses.
 
@@ -229,13 +255,15 @@ class RoadGraph:
             The same as one ragged array (each polyline at least 2 points), instead of
             ``edge_geoms``.
         edge_way_id, edge_names, edge_highways, edge_speed_kph
-            Optional attributes per edge.
+            Optional attributes per edge (names and classes as strings or :class:`Labels`).
         restrictions
             Rows ``(from_edge, via_node, to_edge, kind)``.
         pieces
             The ways each edge is made of; one piece per edge (its own attributes) when omitted.
         meta
             Build metadata.
+        copy
+            False: ``seg_xy`` (float64, C order) is taken over and may be changed in place.
         """
         xy = np.ascontiguousarray(node_xy, dtype=np.float64).reshape(-1, 2)
         n = len(xy)
@@ -261,7 +289,7 @@ class RoadGraph:
             ptr = np.asarray(edge_seg_ptr, dtype=np.int64)
             if len(ptr) != e + 1 or (e and np.diff(ptr).min() < 2):
                 raise GraphError("edge_seg_ptr must have E+1 entries and every polyline 2 points")
-            seg = np.array(seg_xy, dtype=np.float64).reshape(-1, 2)
+            seg = np.array(seg_xy, dtype=np.float64, copy=copy or None).reshape(-1, 2)
             if e:
                 seg[ptr[:-1]] = xy[u]
                 seg[ptr[1:] - 1] = xy[v]
@@ -287,31 +315,18 @@ class RoadGraph:
             ptr = np.zeros(e + 1, dtype=np.int64)
             np.cumsum(lens, out=ptr[1:])
             seg = np.vstack(parts) if parts else np.empty((0, 2), dtype=np.float64)
-        d = np.diff(seg, axis=0)
-        seglen = np.hypot(d[:, 0], d[:, 1])
-        # lengths: sum of segment lengths inside each edge (exclude the joins between edges)
-        within = np.ones(max(len(seg) - 1, 0), dtype=bool)
-        within[ptr[1:-1] - 1] = False
-        cum = np.concatenate([[0.0], np.cumsum(np.where(within, seglen, 0.0))])
+        # lengths: sum of segment lengths inside each edge (the joins between edges count 0)
+        seglen = np.hypot(seg[1:, 0] - seg[:-1, 0], seg[1:, 1] - seg[:-1, 1])
+        seglen[ptr[1:-1] - 1] = 0.0
+        cum = np.zeros(len(seglen) + 1)
+        np.cumsum(seglen, out=cum[1:])
+        del seglen
         elen = cum[ptr[1:] - 1] - cum[ptr[:-1]] if e else np.empty(0)
+        del cum
         b_start, b_end = _end_bearings(seg, ptr)
 
-        name_table: dict[str, int] = {}
-        hw_table: dict[str, int] = {}
-
-        def _lookup(vals: Sequence[str | None] | None, table: dict[str, int], k: int) -> NDArray[np.int32]:
-            idx = np.full(k, -1, dtype=np.int32)
-            if vals is None:
-                return idx
-            if len(vals) != k:
-                raise GraphError("an attribute list has the wrong length")
-            put = table.setdefault
-            codes = [put(s if type(s) is str else str(s), len(table)) if s else -1 for s in vals]
-            return np.asarray(codes, dtype=np.int32) if k else idx
-
-        name_idx = _lookup(edge_names, name_table, e)
-        hw_idx = _lookup(edge_highways, hw_table, e)
         piece_arrays: dict[str, Any] = {}
+        p = 0
         if pieces is not None:
             pe = np.asarray(pieces.edge, dtype=np.int64)
             ps = np.asarray(pieces.start, dtype=np.float64)
@@ -331,11 +346,14 @@ class RoadGraph:
                 "piece_ptr": pptr,
                 "piece_start": ps,
                 "piece_way_id": np.asarray(pieces.way_id, dtype=np.int64),
-                "piece_name_idx": _lookup(pieces.name, name_table, p),
-                "piece_highway_idx": _lookup(pieces.highway, hw_table, p),
                 "piece_speed_kph": np.asarray(pieces.speed_kph, dtype=np.float32),
             }
-        names, highways = list(name_table), list(hw_table)
+        # one table each for names and classes, in order of first use: edges, then pieces
+        name_idx, p_name, names = _tables(edge_names, e, pieces.name if pieces is not None else None, p)
+        hw_idx, p_hw, highways = _tables(edge_highways, e, pieces.highway if pieces is not None else None, p)
+        if pieces is not None:
+            piece_arrays["piece_name_idx"] = p_name
+            piece_arrays["piece_highway_idx"] = p_hw
         way = np.full(e, -1, dtype=np.int64) if edge_way_id is None else np.asarray(edge_way_id, np.int64)
         speed = (
             np.full(e, np.nan, dtype=np.float32)
@@ -550,6 +568,44 @@ class RoadGraph:
         return True
 
 
+def _labels(vals: Sequence[str | None] | Labels | None, k: int) -> Labels:
+    if vals is None:
+        return Labels(np.full(k, -1, dtype=np.int32), [])
+    lab = vals if isinstance(vals, Labels) else Labels.of(vals)
+    if len(lab.codes) != k:
+        raise GraphError("an attribute list has the wrong length")
+    return lab
+
+
+def _tables(
+    edge_vals: Sequence[str | None] | Labels | None,
+    e: int,
+    piece_vals: Sequence[str | None] | Labels | None,
+    p: int,
+) -> tuple[NDArray[np.int32], NDArray[np.int32], list[str]]:
+    """Edge and piece codes into one table of the strings in order of first use (edges first)."""
+    a, b = _labels(edge_vals, e), _labels(piece_vals, p)
+    # one code space: the pieces' table after the edges'
+    both = np.concatenate(
+        [a.codes.astype(np.int64), np.where(b.codes >= 0, b.codes.astype(np.int64) + len(a.table), -1)]
+    )
+    text = [*a.table, *b.table]
+    used = both >= 0
+    key, first, inv = unique_inverse(both[used])
+    # the same string from both tables is one entry: keep its first use
+    s_of = [text[i] for i in key.tolist()]
+    first_use: dict[str, int] = {}
+    for s, f in zip(s_of, first.tolist(), strict=True):
+        if s not in first_use or f < first_use[s]:
+            first_use[s] = f
+    table = sorted(first_use, key=first_use.__getitem__)
+    rank = {s: i for i, s in enumerate(table)}
+    code_of_key = np.asarray([rank[s] for s in s_of], dtype=np.int32)
+    out = np.full(len(both), -1, dtype=np.int32)
+    out[used] = code_of_key[inv]
+    return out[:e], out[e:], table
+
+
 def _end_bearings(
     seg: NDArray[np.float64], ptr: NDArray[np.int64]
 ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
@@ -560,12 +616,9 @@ def _end_bearings(
     if e == 0:
         return start, end
     # first and last segment; fall back to chord when the segment is degenerate
-    a0, a1 = seg[ptr[:-1]], seg[ptr[:-1] + 1]
-    b0, b1 = seg[ptr[1:] - 2], seg[ptr[1:] - 1]
-    c0, c1 = seg[ptr[:-1]], seg[ptr[1:] - 1]
-    ds = a1 - a0
-    de = b1 - b0
-    dc = c1 - c0
+    ds = seg[ptr[:-1] + 1] - seg[ptr[:-1]]
+    de = seg[ptr[1:] - 1] - seg[ptr[1:] - 2]
+    dc = seg[ptr[1:] - 1] - seg[ptr[:-1]]
     bad_s = np.hypot(ds[:, 0], ds[:, 1]) < 1e-9
     bad_e = np.hypot(de[:, 0], de[:, 1]) < 1e-9
     ds[bad_s] = dc[bad_s]
@@ -575,46 +628,64 @@ def _end_bearings(
     return start, end
 
 
+_PAIR_CHUNK = 100_000
+"""Edge pairs whose polylines are compared at once."""
+
+
 def _reverse_edges(
     u: NDArray[np.int32], v: NDArray[np.int32], seg: NDArray[np.float64], ptr: NDArray[np.int64]
 ) -> NDArray[np.int32]:
     """For each edge, the edge running v -> u along the same polyline reversed (within 1 cm), or -1.
 
-    Edges are paired in index order, each with the first free candidate.
+    Edges are paired in index order, each with the first free candidate. A pair of ends
+    with one edge each way (nearly all) is settled with whole-array steps; ends with
+    parallel edges or a loop go through the rule one edge at a time.
     """
     e = len(u)
-    if e == 0:
-        return np.full(0, -1, dtype=np.int32)
-    n = int(max(u.max(), v.max())) + 1
-    key = u.astype(np.int64) * n + v.astype(np.int64)
-    order = np.argsort(key, kind="stable")
-    return _pair_reverses(key[order], order, u.astype(np.int64), v.astype(np.int64), n, seg, ptr)
-
-
-@njit(cache=True)
-def _pair_reverses(skey, order, u, v, n, seg, ptr):  # type: ignore[no-untyped-def]
-    e = len(u)
     rev = np.full(e, -1, dtype=np.int32)
-    for i in range(e):
-        if rev[i] >= 0:
-            continue
-        want = v[i] * n + u[i]
-        k = np.searchsorted(skey, want)
-        li = ptr[i + 1] - ptr[i]
-        while k < e and skey[k] == want:
-            j = order[k]
-            k += 1
-            if j == i or rev[j] >= 0 or ptr[j + 1] - ptr[j] != li:
+    if e == 0:
+        return rev
+    n = int(max(u.max(), v.max())) + 1
+    a, b = u.astype(np.int64), v.astype(np.int64)
+    lo, hi = np.minimum(a, b), np.maximum(a, b)
+    group = lo * n + hi  # the unordered pair of ends
+    order = np.lexsort((np.arange(e), a != lo, group))  # per group: lo -> hi first, each by index
+    g = group[order]
+    new = np.ones(e, dtype=bool)
+    new[1:] = g[1:] != g[:-1]
+    gstart = np.nonzero(new)[0]
+    gsize = np.diff(np.append(gstart, e))
+    n_fwd = np.add.reduceat((a[order] == lo[order]).astype(np.int64), gstart)
+    simple = (gsize == 2) & (n_fwd == 1) & (lo[order[gstart]] != hi[order[gstart]])
+    i, j = order[gstart[simple]], order[gstart[simple] + 1]
+    same_len = (ptr[i + 1] - ptr[i]) == (ptr[j + 1] - ptr[j])
+    i, j = i[same_len], j[same_len]
+    for c in range(0, len(i), _PAIR_CHUNK):  # in chunks: a few vertex arrays per chunk
+        ic, jc = i[c : c + _PAIR_CHUNK], j[c : c + _PAIR_CHUNK]
+        k = ptr[ic + 1] - ptr[ic]
+        t = np.arange(int(k.sum())) - np.repeat(np.cumsum(k) - k, k)
+        pa = np.repeat(ptr[ic], k) + t
+        pb = np.repeat(ptr[jc + 1] - 1, k) - t
+        del t
+        bad = (np.abs(seg[pa, 0] - seg[pb, 0]) > 0.01) | (np.abs(seg[pa, 1] - seg[pb, 1]) > 0.01)
+        ok = np.bincount(np.repeat(np.arange(len(ic)), k), weights=bad, minlength=len(ic)) == 0
+        rev[ic[ok]] = jc[ok]
+        rev[jc[ok]] = ic[ok]
+    for s0, sz in zip(gstart[~simple].tolist(), gsize[~simple].tolist(), strict=True):
+        members = np.sort(order[s0 : s0 + sz]).tolist()
+        for x in members:
+            if rev[x] >= 0:
                 continue
-            ok = True
-            for t in range(li):
-                a = ptr[i] + t
-                b = ptr[j + 1] - 1 - t
-                if abs(seg[a, 0] - seg[b, 0]) > 0.01 or abs(seg[a, 1] - seg[b, 1]) > 0.01:
-                    ok = False
+            for y in members:
+                if y == x or rev[y] >= 0 or a[y] != b[x] or b[y] != a[x]:
+                    continue
+                lx = ptr[x + 1] - ptr[x]
+                if ptr[y + 1] - ptr[y] != lx:
+                    continue
+                fx = seg[ptr[x] : ptr[x + 1]]
+                fy = seg[ptr[y] : ptr[y + 1]][::-1]
+                if (np.abs(fx - fy) <= 0.01).all():
+                    rev[x] = y
+                    rev[y] = x
                     break
-            if ok:
-                rev[i] = j
-                rev[j] = i
-                break
     return rev

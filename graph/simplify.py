@@ -11,14 +11,14 @@ from __future__ import annotations
 
 import itertools
 import logging
-from collections.abc import Iterable, Sequence
+from collections.abc import Callable, Iterable, Sequence
 from typing import TYPE_CHECKING, Any, NamedTuple
 
 import numpy as np
-from numba import njit
 from numpy.typing import NDArray
 
-from mapmatch.graph.road_graph import Pieces, RoadGraph
+from mapmatch.graph.keys import unique, unique_inverse
+from mapmatch.graph.road_graph import Labels, Pieces, RoadGraph
 
 if TYPE_CHECKING:
     import networkx as nx
@@ -524,8 +524,8 @@ class RawNetwork(NamedTuple):
     edge_feat: NDArray[np.int64]
     edge_oneway: NDArray[np.bool_]
     feat_way_id: NDArray[np.int64]  # (F,)
-    feat_name: list[str | None]
-    feat_highway: list[str | None]
+    feat_name: Labels
+    feat_highway: Labels
     feat_speed_kph: NDArray[np.float64]
 
     @property
@@ -575,8 +575,8 @@ def raw_to_nx(raw: RawNetwork) -> nx.MultiDiGraph:
         }
         for w, n, h, s in zip(
             raw.feat_way_id.tolist(),
-            raw.feat_name,
-            raw.feat_highway,
+            raw.feat_name.values(),
+            raw.feat_highway.values(),
             raw.feat_speed_kph.tolist(),
             strict=True,
         )
@@ -595,128 +595,100 @@ def raw_to_nx(raw: RawNetwork) -> nx.MultiDiGraph:
     return G
 
 
-@njit(cache=True)
-def _endpoints(n, src, dst, out_ptr, out_e, in_ptr, in_e):  # type: ignore[no-untyped-def]
+def _neighbour_keys(n: int, src: NDArray[np.int64], dst: NDArray[np.int64]) -> NDArray[np.int64]:
+    """Sorted distinct ``node * n + neighbour`` over both directions of every edge (a
+    self-loop makes a node its own neighbour)."""
+    key = np.concatenate([src * n + dst, dst * n + src])
+    return unique(key)
+
+
+def _endpoints(
+    n: int, src: NDArray[np.int64], dst: NDArray[np.int64], nbr_key: NDArray[np.int64]
+) -> NDArray[np.bool_]:
     """osmnx's endpoint rules 1-3 per node: self-loop, no in or no out edge, or not exactly
     two neighbours with degree 2 or 4."""
-    end = np.zeros(n, dtype=np.bool_)
-    mark = np.full(n, -1, dtype=np.int64)
-    for u in range(n):
-        cnt = 0
-        loop = False
-        for k in range(out_ptr[u], out_ptr[u + 1]):
-            w = dst[out_e[k]]
-            loop = loop or w == u
-            if mark[w] != u:
-                mark[w] = u
-                cnt += 1
-        for k in range(in_ptr[u], in_ptr[u + 1]):
-            w = src[in_e[k]]
-            loop = loop or w == u
-            if mark[w] != u:
-                mark[w] = u
-                cnt += 1
-        nout = out_ptr[u + 1] - out_ptr[u]
-        nin = in_ptr[u + 1] - in_ptr[u]
-        d = nout + nin
-        end[u] = loop or nout == 0 or nin == 0 or not (cnt == 2 and (d == 2 or d == 4))
-    return end
+    nout = np.bincount(src, minlength=n)
+    nin = np.bincount(dst, minlength=n)
+    loop = np.zeros(n, dtype=bool)
+    loop[src[src == dst]] = True
+    cnt = np.bincount(nbr_key // n, minlength=n)
+    d = nout + nin
+    return loop | (nout == 0) | (nin == 0) | ~((cnt == 2) & ((d == 2) | (d == 4)))
 
 
-@njit(cache=True)
-def _paths(n, dst, out_ptr, out_e, end):  # type: ignore[no-untyped-def]
-    """osmnx's ``_build_path`` from every endpoint through each successor that is not one.
+class _Arcs(NamedTuple):
+    """Distinct directed node pairs of the raw edges: ``key = a * n + b`` sorted, and the
+    first raw edge (lowest index) of each."""
 
-    Returns ``(path_ptr, path_nodes, path_edges, status)``: the nodes of each path, and per
-    step the first raw edge between its two nodes; status -1 on a pattern osmnx rejects.
+    key: NDArray[np.int64]
+    first: NDArray[np.int64]
+
+    def find(self, keys: NDArray[np.int64]) -> NDArray[np.int64]:
+        """Position of each key in ``key``, -1 when absent."""
+        at = np.searchsorted(self.key, keys)
+        at = np.minimum(at, max(len(self.key) - 1, 0))
+        ok = self.key[at] == keys if len(self.key) else np.zeros(len(keys), dtype=bool)
+        return np.where(ok, at, -1)
+
+
+def _arcs(n: int, src: NDArray[np.int64], dst: NDArray[np.int64]) -> _Arcs:
+    key, first, _ = unique_inverse(src * n + dst)
+    return _Arcs(key=key, first=first)
+
+
+def _paths(
+    n: int,
+    src: NDArray[np.int64],
+    dst: NDArray[np.int64],
+    end: NDArray[np.bool_],
+    nbr_key: NDArray[np.int64],
+    *,
+    on_step: Callable[[int], None] | None = None,
+) -> tuple[NDArray[np.int64], NDArray[np.int64], NDArray[np.int64]]:
+    """osmnx's ``_build_path`` from every endpoint through each successor that is not one,
+    all paths at once (one numpy step per path position).
+
+    A path from endpoint ``u`` through successor ``v`` goes on through non-endpoints: each
+    has exactly two neighbours, and the path moves to the one it did not come from while an
+    edge leads there; it stops after reaching an endpoint (``u`` itself included), or where
+    no edge goes on. Paths come in osmnx's order: by ``u``, then by ``u``'s first raw edge to
+    ``v``. Returns ``(path_ptr, path_nodes, path_edges)``: the nodes of each path, and per step
+    the first raw edge between its two nodes (osmnx takes the first of parallel edges).
     """
-    m = len(dst)
-    path_ptr = np.zeros(m + 1, dtype=np.int64)
-    nodes = np.empty(2 * m + 2, dtype=np.int64)
-    walk = np.full(n, -1, dtype=np.int64)  # path id of the path a node is on
-    useen = np.full(n, -1, dtype=np.int64)  # successors of endpoint u already started: u
-    seen = np.full(n, -1, dtype=np.int64)  # successors of the walk's current node: tick
-    tick = 0
-    n_paths = 0
-    nn = 0
-    for u in range(n):
-        if not end[u]:
-            continue
-        for k in range(out_ptr[u], out_ptr[u + 1]):
-            v = dst[out_e[k]]
-            if useen[v] == u or end[v]:
-                useen[v] = u
-                continue
-            useen[v] = u
-            if nn + 3 > len(nodes):
-                return path_ptr[:1], nodes[:0], nodes[:0], -1
-            pid = n_paths
-            nodes[nn] = u
-            nodes[nn + 1] = v
-            nn += 2
-            walk[u] = pid
-            walk[v] = pid
-            s = -1
-            for k2 in range(out_ptr[v], out_ptr[v + 1]):
-                if walk[dst[out_e[k2]]] != pid:
-                    s = dst[out_e[k2]]
-                    break
-            if s >= 0:
-                nodes[nn] = s
-                nn += 1
-                walk[s] = pid
-                cur = s
-                while not end[cur]:
-                    tick += 1
-                    c = 0
-                    nxt = -1
-                    back = False
-                    for k3 in range(out_ptr[cur], out_ptr[cur + 1]):
-                        w = dst[out_e[k3]]
-                        back = back or w == u
-                        if walk[w] != pid and seen[w] != tick:
-                            seen[w] = tick
-                            c += 1
-                            nxt = w
-                    if nn + 2 > len(nodes):
-                        return path_ptr[:1], nodes[:0], nodes[:0], -1
-                    if c == 1:
-                        nodes[nn] = nxt
-                        nn += 1
-                        walk[nxt] = pid
-                        cur = nxt
-                    elif c == 0:
-                        if back:
-                            nodes[nn] = u
-                            nn += 1
-                        break
-                    else:
-                        return path_ptr[:1], nodes[:0], nodes[:0], -1
-            n_paths += 1
-            path_ptr[n_paths] = nn
-    path_ptr = path_ptr[: n_paths + 1]
-    nodes = nodes[:nn]
-    # the first raw edge of each step (osmnx takes the first of parallel edges)
-    edges = np.empty(max(nn - n_paths, 0), dtype=np.int64)
-    j = 0
-    for p in range(n_paths):
-        for i in range(path_ptr[p], path_ptr[p + 1] - 1):
-            a = nodes[i]
-            b = nodes[i + 1]
-            edges[j] = -1
-            for k in range(out_ptr[a], out_ptr[a + 1]):
-                if dst[out_e[k]] == b:
-                    edges[j] = out_e[k]
-                    break
-            j += 1
-    return path_ptr, nodes, edges, 0
-
-
-def _csr_by(keys: NDArray[np.int64], n: int) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
-    order = np.argsort(keys, kind="stable").astype(np.int64)
-    ptr = np.zeros(n + 1, dtype=np.int64)
-    np.cumsum(np.bincount(keys, minlength=n), out=ptr[1:])
-    return ptr, order
+    arcs = _arcs(n, src, dst)
+    a_from, a_to = arcs.key // n, arcs.key % n
+    # paths start on the arcs from an endpoint to a non-endpoint, in osmnx's order
+    st = np.nonzero(end[a_from] & ~end[a_to])[0]
+    st = st[np.lexsort((arcs.first[st], a_from[st]))]
+    # the two neighbours of a non-endpoint sum to this: the other one is the sum minus one
+    nb_node = nbr_key // n
+    nbr_sum = np.bincount(nb_node, weights=(nbr_key % n).astype(np.float64), minlength=n).astype(np.int64)
+    pid = np.arange(len(st), dtype=np.int64)
+    prev, cur = a_from[st], a_to[st]
+    rec_pid = [pid, pid]
+    rec_node = [prev, cur]
+    while len(pid):
+        go = ~end[cur]
+        pid, prev, cur = pid[go], prev[go], cur[go]
+        nxt = nbr_sum[cur] - prev
+        ok = arcs.find(cur * n + nxt) >= 0
+        pid, prev, cur = pid[ok], cur[ok], nxt[ok]
+        rec_pid.append(pid)
+        rec_node.append(cur)
+        if on_step is not None:
+            on_step(len(pid))
+    all_pid = np.concatenate(rec_pid)
+    order = np.argsort(all_pid, kind="stable")  # path by path, each in walk order
+    nodes = np.concatenate(rec_node)[order]
+    counts = np.bincount(all_pid, minlength=len(st))
+    path_ptr = np.zeros(len(st) + 1, dtype=np.int64)
+    np.cumsum(counts, out=path_ptr[1:])
+    # per step (every node but each path's last) the first raw edge to the next node
+    step = np.ones(len(nodes), dtype=bool)
+    step[path_ptr[1:] - 1] = False
+    at = np.nonzero(step)[0]
+    edges = arcs.first[arcs.find(nodes[at] * n + nodes[at + 1])]
+    return path_ptr, nodes, edges
 
 
 def ring_keep(raw: RawNetwork, end: NDArray[np.bool_]) -> NDArray[np.bool_]:
@@ -768,28 +740,22 @@ class Simplified(NamedTuple):
     kept: NDArray[np.bool_]
 
 
-def simplify_arrays(raw: RawNetwork) -> Simplified:
+def simplify_arrays(raw: RawNetwork, *, on_step: Callable[[int], None] | None = None) -> Simplified:
     """Simplify to intersections and dead ends exactly as :func:`simplify` (osmnx) does,
-    with compiled kernels on arrays.
+    with whole-array numpy steps (no per-node Python).
 
-    Raises
-    ------
-    GraphError
-        On a pattern osmnx cannot simplify either.
+    ``on_step`` is called now and then during the path walk with the number of paths
+    still growing.
     """
-    from mapmatch.graph.errors import GraphError
-
     n = raw.n_nodes
-    out_ptr, out_e = _csr_by(raw.edge_src, n)
-    in_ptr, in_e = _csr_by(raw.edge_dst, n)
-    end = _endpoints(n, raw.edge_src, raw.edge_dst, out_ptr, out_e, in_ptr, in_e)
+    nbr_key = _neighbour_keys(n, raw.edge_src, raw.edge_dst)
+    end = _endpoints(n, raw.edge_src, raw.edge_dst, nbr_key)
     keep = ring_keep(raw, end)
     if keep.any():
         log.info("kept %d isolated rings as two edges each", int(keep.sum()) // 2)
     end = end | keep
-    pptr, pnodes, pedges, status = _paths(n, raw.edge_dst, out_ptr, out_e, end)
-    if status < 0:
-        raise GraphError("the road network has a pattern that cannot be simplified")
+    pptr, pnodes, pedges = _paths(n, raw.edge_src, raw.edge_dst, end, nbr_key, on_step=on_step)
+    del nbr_key
     # interior nodes go; raw edges between remaining nodes stay as they are
     removed = np.zeros(n, dtype=bool)
     inner = np.ones(len(pnodes), dtype=bool)
@@ -819,6 +785,19 @@ def raw_to_road_graph(
 ) -> tuple[RoadGraph, dict[str, Any]]:
     """The :class:`RoadGraph` of a simplified raw network (as :func:`to_road_graph` makes it
     from osmnx's result): loops split, way pieces from the raw edges, restrictions mapped."""
+    kw, info = road_graph_arrays(raw, simp, restrictions=restrictions, meta=meta)
+    return RoadGraph.from_edges(**kw), info
+
+
+def road_graph_arrays(
+    raw: RawNetwork,
+    simp: Simplified,
+    *,
+    restrictions: Iterable[tuple[int, int, int, int]] = (),
+    meta: dict[str, Any] | None = None,
+) -> tuple[dict[str, Any], dict[str, Any]]:
+    """:func:`raw_to_road_graph`'s arguments for :meth:`RoadGraph.from_edges` (so that a caller
+    can let go of ``raw`` and ``simp`` before the graph is built), and the info counts."""
     info: dict[str, Any] = {"self_loops_split": 0, "self_loops_dropped": 0}
     kept = np.nonzero(simp.kept)[0]
     index = np.full(raw.n_nodes, -1, dtype=np.int64)
@@ -861,50 +840,23 @@ def raw_to_road_graph(
     eu = np.concatenate([index[u_raw[keep_e]], np.asarray(split_u, dtype=np.int64)])
     ev = np.concatenate([index[v_raw[keep_e]], np.asarray(split_v, dtype=np.int64)])
     counts = vb - va
-    flat_v = np.repeat(va - np.r_[0, np.cumsum(counts)[:-1]], counts) + np.arange(int(counts.sum()))
-    seg_xy = raw.node_xy[nodes[flat_v]]
+    del ptr, u_raw, v_raw, drop, keep_e
     edge_seg_ptr = np.zeros(len(va) + 1, dtype=np.int64)
     np.cumsum(counts, out=edge_seg_ptr[1:])
-    # steps: vertex i (not the last of its edge) -> raw edge raw_edges[i - (edge index in simp)]
-    simp_edge_of_vertex = np.repeat(np.arange(len(ptr) - 1), np.diff(ptr))
-    last = np.zeros(len(flat_v), dtype=bool)
-    last[edge_seg_ptr[1:] - 1] = True
-    step_v = flat_v[~last]
-    step_raw = simp.raw_edges[step_v - simp_edge_of_vertex[step_v]]
-    step_feat = raw.edge_feat[step_raw]
-    # pieces: runs of equal feature attributes along each edge
-    fkey = _feature_keys(raw)
-    step_key = fkey[step_feat]
-    step_edge = np.repeat(np.arange(len(va)), counts - 1)
-    new_piece = np.ones(len(step_key), dtype=bool)
-    if len(step_key) > 1:
-        new_piece[1:] = (step_key[1:] != step_key[:-1]) | (step_edge[1:] != step_edge[:-1])
-    d = np.diff(seg_xy, axis=0)
-    seg_len = np.hypot(d[:, 0], d[:, 1]) if len(seg_xy) > 1 else np.zeros(0)
-    step_len = seg_len[np.nonzero(~last)[0]] if len(seg_len) else np.zeros(0)
-    cum = np.concatenate([[0.0], np.cumsum(step_len)])
-    edge_first_step = np.r_[0, np.cumsum(counts - 1)[:-1]]
-    p_idx = np.nonzero(new_piece)[0]
-    p_edge = step_edge[p_idx]
-    p_start = cum[p_idx] - cum[edge_first_step[p_edge]]
-    p_feat = step_feat[p_idx]
-    p_end_step = np.r_[p_idx[1:], len(step_key)]
-    p_len = cum[p_end_step] - cum[p_idx]
-    # edge attributes: its longest piece (first on ties)
-    order = np.lexsort((np.arange(len(p_idx)), -p_len, p_edge))
-    first_of_edge = order[np.r_[True, p_edge[order][1:] != p_edge[order][:-1]]] if len(order) else order
-    best_feat = p_feat[first_of_edge]
-    node_xy = np.vstack(
-        [raw.node_xy[kept], raw.node_xy[np.asarray(list(extra), dtype=np.int64)].reshape(-1, 2)]
-    )
-    node_ll = np.vstack(
-        [raw.node_lonlat[kept], raw.node_lonlat[np.asarray(list(extra), dtype=np.int64)].reshape(-1, 2)]
-    )
-    node_id = np.concatenate([raw.node_key[kept], raw.node_key[np.asarray(list(extra), dtype=np.int64)]])
+    flat_v = np.repeat(va - edge_seg_ptr[:-1], counts) + np.arange(int(edge_seg_ptr[-1]))
+    del va, vb
+    seg_xy = raw.node_xy[nodes[flat_v]]
+    pieces, best_feat, end_feat = _edge_pieces(raw, simp, flat_v, edge_seg_ptr, seg_xy)
+    del flat_v
+    extra_nodes = np.asarray(list(extra), dtype=np.int64)
+    node_xy = np.vstack([raw.node_xy[kept], raw.node_xy[extra_nodes].reshape(-1, 2)])
+    node_ll = np.vstack([raw.node_lonlat[kept], raw.node_lonlat[extra_nodes].reshape(-1, 2)])
+    node_id = np.concatenate([raw.node_key[kept], raw.node_key[extra_nodes]])
+    del kept, index
     restr = list(restrictions)
     if restr:  # per edge the way at its start and at its end (only where restrictions need them)
-        first_w = raw.feat_way_id[step_feat[edge_first_step]].tolist()
-        last_w = raw.feat_way_id[step_feat[np.r_[edge_first_step[1:], len(step_feat)] - 1]].tolist()
+        first_w = raw.feat_way_id[end_feat[0]].tolist()
+        last_w = raw.feat_way_id[end_feat[1]].tolist()
         end_ways = _EndWays(first_w, last_w)
         by_id = {int(k): i for i, k in enumerate(node_id.tolist())}
         rrows, info["restrictions_unmapped"] = _map_restrictions(
@@ -912,41 +864,96 @@ def raw_to_road_graph(
         )
     else:
         rrows, info["restrictions_unmapped"] = [], 0
-    names = raw.feat_name
-    hws = raw.feat_highway
+    kw = {
+        "crs": raw.crs,
+        "node_xy": node_xy,
+        "node_lonlat": node_ll,
+        "node_id": node_id,
+        "edge_u": eu.astype(np.int32),
+        "edge_v": ev.astype(np.int32),
+        "seg_xy": seg_xy,
+        "edge_seg_ptr": edge_seg_ptr,
+        "edge_way_id": raw.feat_way_id[best_feat],
+        "edge_names": raw.feat_name.take(best_feat),
+        "edge_highways": raw.feat_highway.take(best_feat),
+        "edge_speed_kph": raw.feat_speed_kph[best_feat].astype(np.float32),
+        "restrictions": rrows,
+        "pieces": pieces,
+        "meta": meta,
+        "copy": False,
+    }
+    return kw, info
+
+
+def _edge_pieces(
+    raw: RawNetwork,
+    simp: Simplified,
+    flat_v: NDArray[np.int64],
+    edge_seg_ptr: NDArray[np.int64],
+    seg_xy: NDArray[np.float64],
+) -> tuple[Pieces, NDArray[np.int64], tuple[NDArray[np.int64], NDArray[np.int64]]]:
+    """The way pieces of the final edges (vertex ``i`` of the edges is ``simp.nodes[flat_v[i]]``):
+    runs of equal feature attributes along each edge. Returns the pieces, each edge's
+    longest piece's feature (the first on ties), and each edge's first and last step's feature."""
+    e = len(edge_seg_ptr) - 1
+    counts = np.diff(edge_seg_ptr)
+    last = np.zeros(len(flat_v), dtype=bool)
+    last[edge_seg_ptr[1:] - 1] = True
+    step_at = np.nonzero(~last)[0]  # vertex -> the step to the next vertex
+    del last
+    # step from simp vertex i (not the last of its simp edge) -> raw edge raw_edges[i - its simp edge]
+    step_v = flat_v[step_at]
+    step_v -= np.searchsorted(simp.ptr, step_v, side="right") - 1
+    step_feat = raw.edge_feat[simp.raw_edges[step_v]]
+    del step_v
+    step_key = _feature_keys(raw)[step_feat]
+    step_edge = np.repeat(np.arange(e, dtype=np.int64), counts - 1)
+    new_piece = np.ones(len(step_key), dtype=bool)
+    if len(step_key) > 1:
+        new_piece[1:] = (step_key[1:] != step_key[:-1]) | (step_edge[1:] != step_edge[:-1])
+    del step_key
+    dx = seg_xy[step_at + 1, 0] - seg_xy[step_at, 0]
+    dy = seg_xy[step_at + 1, 1] - seg_xy[step_at, 1]
+    del step_at
+    cum = np.zeros(len(dx) + 1)
+    np.cumsum(np.hypot(dx, dy), out=cum[1:])
+    del dx, dy
+    edge_first_step = edge_seg_ptr[:-1] - np.arange(e)
+    edge_last_step = np.r_[edge_first_step[1:], len(step_feat)] - 1 if e else edge_first_step
+    end_feat = (step_feat[edge_first_step], step_feat[edge_last_step])
+    p_idx = np.nonzero(new_piece)[0]
+    del new_piece
+    p_edge = step_edge[p_idx]
+    del step_edge
+    p_start = cum[p_idx] - cum[edge_first_step[p_edge]]
+    p_feat = step_feat[p_idx]
+    del step_feat
+    p_end_step = np.r_[p_idx[1:], len(cum) - 1]
+    p_len = cum[p_end_step] - cum[p_idx]
+    del cum, p_end_step
+    # edge attributes: its longest piece (first on ties)
+    order = np.lexsort((np.arange(len(p_idx)), -p_len, p_edge))
+    first_of_edge = order[np.r_[True, p_edge[order][1:] != p_edge[order][:-1]]] if len(order) else order
+    best_feat = p_feat[first_of_edge]
     pieces = Pieces(
-        edge=p_edge.astype(np.int64),
+        edge=p_edge,
         start=p_start,
         way_id=raw.feat_way_id[p_feat],
-        name=[names[i] for i in p_feat.tolist()],
-        highway=[hws[i] for i in p_feat.tolist()],
+        name=raw.feat_name.take(p_feat),
+        highway=raw.feat_highway.take(p_feat),
         speed_kph=raw.feat_speed_kph[p_feat].astype(np.float32),
     )
-    rg = RoadGraph.from_edges(
-        crs=raw.crs,
-        node_xy=node_xy,
-        node_lonlat=node_ll,
-        node_id=node_id,
-        edge_u=eu.astype(np.int32),
-        edge_v=ev.astype(np.int32),
-        seg_xy=seg_xy,
-        edge_seg_ptr=edge_seg_ptr,
-        edge_way_id=raw.feat_way_id[best_feat],
-        edge_names=[names[i] for i in best_feat.tolist()],
-        edge_highways=[hws[i] for i in best_feat.tolist()],
-        edge_speed_kph=raw.feat_speed_kph[best_feat].astype(np.float32),
-        restrictions=rrows,
-        pieces=pieces,
-        meta=meta,
-    )
-    return rg, info
+    return pieces, best_feat, end_feat
 
 
 def _feature_keys(raw: RawNetwork) -> NDArray[np.int64]:
     """One id per distinct ``(way id, name, class, speed)`` of the feature table."""
-    table: dict[tuple[Any, ...], int] = {}
-    out = np.empty(len(raw.feat_way_id), dtype=np.int64)
-    sp = np.where(np.isfinite(raw.feat_speed_kph), raw.feat_speed_kph, -1.0).tolist()
-    for i, key in enumerate(zip(raw.feat_way_id.tolist(), raw.feat_name, raw.feat_highway, sp, strict=True)):
-        out[i] = table.setdefault(key, len(table))
+    sp = np.where(np.isfinite(raw.feat_speed_kph), raw.feat_speed_kph, -1.0)
+    cols = (sp, raw.feat_highway.codes, raw.feat_name.codes, raw.feat_way_id)
+    order = np.lexsort(cols)
+    new = np.ones(len(order), dtype=bool)
+    if len(order) > 1:
+        new[1:] = np.any([c[order][1:] != c[order][:-1] for c in cols], axis=0)
+    out = np.empty(len(order), dtype=np.int64)
+    out[order] = np.cumsum(new) - 1
     return out

@@ -178,3 +178,23 @@ def test_pieces_round_trip_through_the_file(tmp_path: Path) -> None:
     save_map(g, tmp_path / "t.map")
     h = load_map(tmp_path / "t.map")
     assert h.equals(g) and np.array_equal(h.piece_ptr, g.piece_ptr)
+
+
+def test_the_manifest_crs_is_checked_and_a_utm_zone_needs_no_pyproj(tiny: RoadGraph, tmp_path: Path) -> None:
+    import dataclasses
+
+    bad = tmp_path / "bad.map"
+    save_map(dataclasses.replace(tiny, crs="EPSG:not-a-code"), bad)
+    with pytest.raises(ArtifactError, match="not a valid CRS"):
+        load_map(bad)
+    other = tmp_path / "other.map"
+    save_map(dataclasses.replace(tiny, crs="EPSG:3035"), other)
+    assert load_map(other).crs == "EPSG:3035"
+    utm = tmp_path / "utm.map"
+    save_map(tiny, utm)
+    code = "import sys; from mapmatch.graph.artifact import load_map; g = load_map(sys.argv[1]); "
+    code += "print(g.crs, 'pyproj' in sys.modules)"
+    out = subprocess.run(
+        [sys.executable, "-c", code, str(utm)], cwd=ROOT, capture_output=True, text=True, check=True
+    )
+    assert out.stdout.split() == [tiny.crs, "False"]

@@ -200,3 +200,12 @@ def test_usage_errors(capsys: pytest.CaptureFixture[str], tmp_path: Path) -> Non
     )
     assert "--export: unknown format" in capsys.readouterr().err
     assert list(tmp_path.iterdir()) == []
+
+
+def test_quiet_prep_says_nothing_on_stderr(tmp_path: Path) -> None:
+    out = tmp_path / "tiny.map"
+    r = _run(str(DATA / "roads_ft_tf.geojson"), "-o", str(out), "-q")
+    assert r.returncode == 0 and out.exists()
+    assert r.stderr == ""
+    loud = _run(str(DATA / "roads_ft_tf.geojson"), "-o", str(out))
+    assert "reading GIS lines from roads_ft_tf.geojson" in loud.stderr

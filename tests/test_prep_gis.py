@@ -216,3 +216,16 @@ def test_kubicka_maps(kubicka_dir: Path, track: str) -> None:
         if len(hit):
             x, y = f.geometry.coords[0]
             assert g.node_lonlat[hit[0]] == pytest.approx([x, y], abs=1e-9)
+
+
+def test_progress_within_the_long_steps(tmp_path: Path) -> None:
+    # a GeoPackage knows its feature count: the reading step says how far it has come
+    p = tmp_path / "roads.gpkg"
+    _frame().to_file(p, driver="GPKG")
+    said: list[str] = []
+    g = build_map(p, progress=said.append, progress_interval=0.0)
+    assert g.n_edges == 10
+    assert "reading roads.gpkg: 6 of 6 features (100%)" in said
+    walk = [m for m in said if m.startswith("simplifying: ")]
+    assert walk and all(m.endswith(" paths still growing") for m in walk)
+    assert said.index("reading GIS lines from roads.gpkg") < said.index(walk[0])
