@@ -343,6 +343,7 @@ def run_phase(
     at = np.concatenate([r["at"] for r in results]) if results else np.empty(0)
     return {
         "cpu": 100.0 * (c1 - c0) / (w1 - w0),
+        "cpu_s": c1 - c0,
         "at": at,
         "n": sum(r["n"] for r in results),
         "errors": sum(r["errors"] for r in results),
@@ -412,6 +413,51 @@ def start_server(map_path: Path, max_sessions: int, big_points: int) -> tuple[su
     return proc, port
 
 
+def phase1(args: argparse.Namespace, port: int, sp: Any, paced: list[list[Any]], rss0: int) -> None:
+    """Paced load: every stream at ``--rate`` Hz; latency, RSS growth and CPU per update."""
+    total = args.warmup + args.seconds
+    r = run_phase(
+        port, paced, rate=args.rate, window=1, seconds=total, clients=args.clients, tag="v", server=sp
+    )
+    rss1 = sp.memory_info().rss
+    lat = r["lat"] * 1000.0
+    steady = (r["at"] >= args.warmup) & (r["at"] < total)
+    ups = int(steady.sum()) / args.seconds
+    p50, p99, pmax = np.percentile(lat[steady], [50, 99, 100]) if steady.any() else [math.nan] * 3
+    print("\n## phase 1: paced load")
+    print(f"vehicles (streams)        {args.vehicles} at {args.rate:g} Hz, {args.clients} client processes")
+    print(f"duration                  {args.warmup:g} s warm-up + {args.seconds:g} s measured")
+    print(f"updates answered          {r['n']} ({int(steady.sum())} in the measured window)")
+    print(f"errors                    {r['errors']}")
+    print(f"updates/s                 {ups:.0f}  (offered {args.vehicles * args.rate:.0f})")
+    print(f"latency p50 / p99 / max   {p50:.2f} / {p99:.2f} / {pmax:.2f} ms  (target p99 <= 10 ms)")
+    for a, b in ((0.0, 1.0), (1.0, args.warmup), (args.warmup, total)):
+        sel = lat[(r["at"] >= a) & (r["at"] < b)]
+        if len(sel):
+            q = np.percentile(sel, [50, 99])
+            print(f"  sent {a:4.0f}-{b:<4.0f} s   p50 {q[0]:.2f} ms, p99 {q[1]:.2f} ms ({len(sel)} fixes)")
+    sec = np.floor(r["at"][steady]).astype(int)
+    per_s = [np.percentile(lat[steady][sec == k], 99) for k in np.unique(sec)]
+    if per_s:
+        print(
+            f"  per-second p99: median {np.median(per_s):.2f} ms, "
+            f"{sum(p > 10.0 for p in per_s)} of {len(per_s)} seconds above 10 ms"
+        )
+    print(
+        f"server RSS start / end    {rss0 / 2**20:.1f} / {rss1 / 2**20:.1f} MiB "
+        f"({100.0 * (rss1 - rss0) / rss0:+.1f} %, target <= 5 %)"
+    )
+    _cpu_lines(r)
+
+
+def _cpu_lines(r: dict[str, Any]) -> None:
+    """Server CPU share, and CPU seconds per answered update (robust to a busy machine)."""
+    per = r["cpu_s"] / max(r["n"], 1)
+    print(f"server CPU                {r['cpu']:.0f} % of one core (all server processes)")
+    print(f"server CPU per update     {1e6 * per:.0f} us (one core: at most {1.0 / per:.0f} updates/s)")
+    print(f"load average              {os.getloadavg()[0]:.2f}")
+
+
 def phase4(args: argparse.Namespace, port: int, sp: Any, paced: list[list[Any]]) -> None:
     """Phase 1 again, with a 1M-point MatchTrack in flight all along."""
     ctx = mp.get_context("spawn")
@@ -444,8 +490,7 @@ def phase4(args: argparse.Namespace, port: int, sp: Any, paced: list[list[Any]])
     print(f"errors                    {r['errors']}")
     print(f"latency p50 / p99 / max   {p50:.2f} / {p99:.2f} / {pmax:.2f} ms  (target p99 <= 20 ms)")
     print(f"server RSS start / end    {rss0 / 2**20:.1f} / {rss1 / 2**20:.1f} MiB (during the big match)")
-    print(f"server CPU                {r['cpu']:.0f} % of one core")
-    print(f"load average              {os.getloadavg()[0]:.2f}")
+    _cpu_lines(r)
 
 
 def main() -> int:
@@ -460,7 +505,11 @@ def main() -> int:
     ap.add_argument("--window", type=int, default=4, help="fixes in flight per stream in the peak phase")
     ap.add_argument("--batch", type=int, default=20, help="vehicles per gateway in the batched peak phase")
     ap.add_argument("--big-points", type=int, default=1_000_000, help="points of the phase-4 MatchTrack")
-    ap.add_argument("--skip", default="", help="phases to skip, e.g. 23")
+    ap.add_argument(
+        "--skip",
+        default="",
+        help="phases to skip, e.g. 23 (1: paced, 2: peak, 3: batched peak, 4: big match)",
+    )
     args = ap.parse_args()
 
     import psutil
@@ -482,48 +531,12 @@ def main() -> int:
             f"shared with other jobs (load average {os.getloadavg()[0]:.2f})",
             flush=True,
         )
-        total = args.warmup + args.seconds
-        r = run_phase(
-            port, paced, rate=args.rate, window=1, seconds=total, clients=args.clients, tag="v", server=sp
-        )
-        rss1 = sp.memory_info().rss
-        lat = r["lat"] * 1000.0
-        steady = (r["at"] >= args.warmup) & (r["at"] < total)
-        ups = int(steady.sum()) / args.seconds
-        p50, p99, pmax = np.percentile(lat[steady], [50, 99, 100]) if steady.any() else [math.nan] * 3
-        print("\n## phase 1: paced load")
-        print(
-            f"vehicles (streams)        {args.vehicles} at {args.rate:g} Hz, {args.clients} client processes"
-        )
-        print(f"duration                  {args.warmup:g} s warm-up + {args.seconds:g} s measured")
-        print(f"updates answered          {r['n']} ({int(steady.sum())} in the measured window)")
-        print(f"errors                    {r['errors']}")
-        print(f"updates/s                 {ups:.0f}  (offered {args.vehicles * args.rate:.0f})")
-        print(f"latency p50 / p99 / max   {p50:.2f} / {p99:.2f} / {pmax:.2f} ms  (target p99 <= 10 ms)")
-        for a, b in ((0.0, 1.0), (1.0, args.warmup), (args.warmup, total)):
-            sel = lat[(r["at"] >= a) & (r["at"] < b)]
-            if len(sel):
-                q = np.percentile(sel, [50, 99])
-                print(
-                    f"  sent {a:4.0f}-{b:<4.0f} s   p50 {q[0]:.2f} ms, p99 {q[1]:.2f} ms ({len(sel)} fixes)"
-                )
-        sec = np.floor(r["at"][steady]).astype(int)
-        per_s = [np.percentile(lat[steady][sec == k], 99) for k in np.unique(sec)]
-        if per_s:
-            print(
-                f"  per-second p99: median {np.median(per_s):.2f} ms, "
-                f"{sum(p > 10.0 for p in per_s)} of {len(per_s)} seconds above 10 ms"
-            )
-        print(
-            f"server RSS start / end    {rss0 / 2**20:.1f} / {rss1 / 2**20:.1f} MiB "
-            f"({100.0 * (rss1 - rss0) / rss0:+.1f} %, target <= 5 %)"
-        )
-        print(f"server CPU                {r['cpu']:.0f} % of one core")
+        if "1" not in args.skip:
+            phase1(args, port, sp, paced, rss0)
         if "4" not in args.skip:
             phase4(args, port, sp, paced)
         if "2" in args.skip and "3" in args.skip:
             return 0
-
         r2 = run_phase(
             port,
             peak,
@@ -534,7 +547,6 @@ def main() -> int:
             tag="p",
             server=sp,
         )
-        cpu2 = r2["cpu"]
         lat2 = r2["lat"] * 1000.0
         print("\n## phase 2: peak (as fast as answered)")
         print(
@@ -547,7 +559,7 @@ def main() -> int:
             print(
                 f"latency p50 / p99         {np.percentile(lat2, 50):.2f} / {np.percentile(lat2, 99):.2f} ms"
             )
-        print(f"server CPU                {cpu2:.0f} % of one core")
+        _cpu_lines(r2)
         r3 = run_phase(
             port,
             peak,
@@ -559,7 +571,6 @@ def main() -> int:
             batch=args.batch,
             server=sp,
         )
-        cpu3 = r3["cpu"]
         lat3 = r3["lat"] * 1000.0
         print("\n## phase 3: peak, batched (StreamFixBatches: fleet gateways)")
         n_gw = math.ceil(args.vehicles / args.batch)
@@ -571,7 +582,7 @@ def main() -> int:
             print(
                 f"batch latency p50 / p99   {np.percentile(lat3, 50):.2f} / {np.percentile(lat3, 99):.2f} ms"
             )
-        print(f"server CPU                {cpu3:.0f} % of one core")
+        _cpu_lines(r3)
         print(f"server RSS end            {sp.memory_info().rss / 2**20:.1f} MiB")
         print(f"load average after        {os.getloadavg()[0]:.2f}")
     finally:

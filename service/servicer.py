@@ -227,12 +227,7 @@ class MapMatchServicer(pb_grpc.MapMatchServicer):
             s.state = state
         if jumped:
             result = dataclasses.replace(result, state=State.REINITIALISED)
-        return pb.SnapResponse(
-            map_id=entry.map_id,
-            vehicle_id=req.vehicle_id,
-            seq=req.seq,
-            result=convert.snap_result_to_proto(result),
-        )
+        return convert.snap_response(entry.map_id, req.vehicle_id, req.seq, result)
 
     def answer(self, req: pb.FixRequest) -> pb.SnapResponse:
         """Like :meth:`snap`, but a rejected fix becomes a response carrying its error."""
@@ -255,8 +250,14 @@ class MapMatchServicer(pb_grpc.MapMatchServicer):
     async def StreamFixes(
         self, request_iterator: AsyncIterator[pb.FixRequest], context: aio.ServicerContext
     ) -> AsyncIterator[pb.SnapResponse]:
-        async for req in request_iterator:
-            yield await self.online.submit(functools.partial(self.answer, req))
+        answer = self.answer
+        if self.config.inline_fixes:  # no thread hop: one fix is a bounded, short piece of work
+            async for req in request_iterator:
+                yield answer(req)
+        else:
+            submit = self.online.submit
+            async for req in request_iterator:
+                yield await submit(functools.partial(answer, req))
 
     async def StreamFixBatches(
         self, request_iterator: AsyncIterator[pb.FixBatch], context: aio.ServicerContext
@@ -277,6 +278,8 @@ class MapMatchServicer(pb_grpc.MapMatchServicer):
         left = context.time_remaining()
         if left is not None and left <= 0:
             await context.abort(grpc.StatusCode.DEADLINE_EXCEEDED, "deadline passed before work started")
+        if self.config.inline_fixes:
+            return self.snap(request)
         return await self.online.submit(functools.partial(self.snap, request))
 
     # ------------------------------------------------------------------ batch
