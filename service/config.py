@@ -28,6 +28,7 @@ MAPMATCH_MAX_VEHICLE_ID     --max-vehicle-id N          vehicle_id length, UTF-8
 MAPMATCH_MAX_TIME_JUMP      --max-time-jump SECONDS     larger time jumps restart a session (3600)
 MAPMATCH_ONLINE_WORKERS     --online-workers N          threads for FixBatch slices (1)
 MAPMATCH_INLINE_FIXES       --inline-fixes              single fixes on the event loop (on)
+MAPMATCH_PROCESSES          --processes N               server processes on one port (1)
 MAPMATCH_BATCH_SLICE        --batch-slice N             fixes per slice of a batch answer (64)
 MAPMATCH_MAX_MAP_BYTES      --max-map-bytes N           largest map file LoadMap reads (4 GiB)
 MAPMATCH_LOAD_TIMEOUT       --load-timeout SECONDS      time limit of a map build from source (300)
@@ -106,6 +107,10 @@ class ServerConfig:
         way) starts the session afresh (state ``reinitialised``) instead of being rejected.
     online_workers : int
         Threads matching ``FixBatch`` slices (and single fixes unless ``inline_fixes``).
+    processes : int
+        Server processes sharing the port (SO_REUSEPORT), so one host uses every core. Each
+        process has its own sessions; a stream stays on the process that accepted its
+        connection, so a vehicle should keep its connection (or export/import its session).
     inline_fixes : bool
         Match a single fix (``StreamFixes``, ``SnapFix``) on the event loop, without a hop to
         an online thread: one fix is short, bounded work, and the hop costs more than it saves.
@@ -140,6 +145,7 @@ class ServerConfig:
     max_time_jump: float = 3600.0
     online_workers: int = 1
     inline_fixes: bool = True
+    processes: int = 1
     batch_slice: int = 64
     max_map_bytes: int = 4 * 1024**3
     load_timeout: float = 300.0
@@ -161,7 +167,8 @@ class ServerConfig:
         if self.token is not None and not self.token.strip():
             raise ConfigError("token must not be empty")
         for name in ("max_batch_fixes", "max_track_points", "max_answer_bytes", "max_vehicle_id",
-                     "online_workers", "batch_slice", "max_map_bytes", "load_memory_bytes"):  # fmt: skip
+                     "online_workers", "batch_slice", "max_map_bytes", "load_memory_bytes",
+                     "processes"):  # fmt: skip
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, int) or v < 1:
                 raise ConfigError(f"{name} must be a positive integer, got {v!r}")
@@ -247,6 +254,7 @@ _LIMIT_FLAGS: tuple[tuple[str, type, str], ...] = (
     ("--max-map-bytes", int, "largest map file read [MAPMATCH_MAX_MAP_BYTES; 4 GiB]"),
     ("--load-timeout", float, "seconds for a map build from source [MAPMATCH_LOAD_TIMEOUT; 300]"),
     ("--load-memory-bytes", int, "memory for a map build from source [MAPMATCH_LOAD_MEMORY_BYTES; 8 GiB]"),
+    ("--processes", int, "server processes sharing the port, own sessions each [MAPMATCH_PROCESSES; 1]"),
 )
 _NUMBERS: dict[str, type[int] | type[float]] = {
     "max_sessions": int,
