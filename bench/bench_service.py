@@ -37,9 +37,11 @@ import multiprocessing as mp
 import os
 import subprocess
 import sys
+import threading
 import time
 from importlib import resources
 from pathlib import Path
+from types import SimpleNamespace
 from typing import Any
 
 import numpy as np
@@ -315,6 +317,7 @@ def run_phase(
     tag: str,
     batch: int = 1,
     server: Any = None,
+    rss_at: float | None = None,
 ) -> dict[str, Any]:
     """Run client processes; they connect, wait for a common start, then load the server."""
     ctx = mp.get_context("spawn")
@@ -335,6 +338,9 @@ def run_phase(
         ready.acquire()
     start.set()
     c0, w0 = (sum(server.cpu_times()[:2]) if server else 0.0), time.perf_counter()
+    mid: dict[str, int] = {}
+    if server is not None and rss_at is not None:  # RSS once the sessions exist (after warm-up)
+        threading.Timer(rss_at, lambda: mid.setdefault("rss", server.memory_info().rss)).start()
     results = [queue.get() for _ in procs]
     c1, w1 = (sum(server.cpu_times()[:2]) if server else 0.0), time.perf_counter()
     for p in procs:
@@ -344,6 +350,7 @@ def run_phase(
     return {
         "cpu": 100.0 * (c1 - c0) / (w1 - w0),
         "cpu_s": c1 - c0,
+        "rss_mid": mid.get("rss"),
         "at": at,
         "n": sum(r["n"] for r in results),
         "errors": sum(r["errors"] for r in results),
@@ -395,12 +402,33 @@ def big_track(vehicles: list[list[Any]], n: int) -> bytes:
 
 
 # ---------------------------------------------------------------------------------- server
-def start_server(map_path: Path, max_sessions: int, big_points: int) -> tuple[subprocess.Popen, int]:
+class ServerTree:
+    """CPU times and RSS summed over the server process and its children (``--processes``)."""
+
+    def __init__(self, pid: int) -> None:
+        import psutil
+
+        self.root = psutil.Process(pid)
+
+    def _all(self) -> list[Any]:
+        return [self.root, *self.root.children(recursive=True)]
+
+    def cpu_times(self) -> tuple[float, float]:
+        t = [p.cpu_times() for p in self._all()]
+        return sum(x.user for x in t), sum(x.system for x in t)
+
+    def memory_info(self) -> Any:
+        return SimpleNamespace(rss=sum(p.memory_info().rss for p in self._all()))
+
+
+def start_server(
+    map_path: Path, max_sessions: int, big_points: int, processes: int = 1
+) -> tuple[subprocess.Popen, int]:
     cmd = [
         sys.executable, "-m", "mapmatch", "serve", "--map", f"helsinki={map_path}",
         "--address", "127.0.0.1:0", "--max-sessions", str(max_sessions), "--no-reuse-port",
         "--max-track-points", str(big_points), "--max-message-bytes", str(64 << 20),
-        "--max-answer-bytes", str(1 << 30),
+        "--max-answer-bytes", str(1 << 30), "--processes", str(processes),
     ]  # fmt: skip
     env = {**os.environ, "PYTHONPATH": str(ROOT)}
     proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, text=True, env=env, cwd=ROOT)
@@ -417,8 +445,9 @@ def phase1(args: argparse.Namespace, port: int, sp: Any, paced: list[list[Any]],
     """Paced load: every stream at ``--rate`` Hz; latency, RSS growth and CPU per update."""
     total = args.warmup + args.seconds
     r = run_phase(
-        port, paced, rate=args.rate, window=1, seconds=total, clients=args.clients, tag="v", server=sp
-    )
+        port, paced, rate=args.rate, window=1, seconds=total, clients=args.clients, tag="v", server=sp,
+        rss_at=args.warmup,
+    )  # fmt: skip
     rss1 = sp.memory_info().rss
     lat = r["lat"] * 1000.0
     steady = (r["at"] >= args.warmup) & (r["at"] < total)
@@ -447,6 +476,12 @@ def phase1(args: argparse.Namespace, port: int, sp: Any, paced: list[list[Any]],
         f"server RSS start / end    {rss0 / 2**20:.1f} / {rss1 / 2**20:.1f} MiB "
         f"({100.0 * (rss1 - rss0) / rss0:+.1f} %, target <= 5 %)"
     )
+    if r["rss_mid"]:
+        m = r["rss_mid"]
+        print(
+            f"server RSS after warm-up  {m / 2**20:.1f} MiB (every session made); to the end "
+            f"{100.0 * (rss1 - m) / m:+.1f} % over {args.seconds:g} s"
+        )
     _cpu_lines(r)
 
 
@@ -504,6 +539,7 @@ def main() -> int:
     ap.add_argument("--peak-clients", type=int, default=2, help="client processes in the peak phase")
     ap.add_argument("--window", type=int, default=4, help="fixes in flight per stream in the peak phase")
     ap.add_argument("--batch", type=int, default=20, help="vehicles per gateway in the batched peak phase")
+    ap.add_argument("--processes", type=int, default=1, help="server processes (serve --processes)")
     ap.add_argument("--big-points", type=int, default=1_000_000, help="points of the phase-4 MatchTrack")
     ap.add_argument(
         "--skip",
@@ -511,8 +547,6 @@ def main() -> int:
         help="phases to skip, e.g. 23 (1: paced, 2: peak, 3: batched peak, 4: big match)",
     )
     args = ap.parse_args()
-
-    import psutil
 
     map_path = helsinki_map()
     steps = int((args.warmup + args.seconds) * args.rate) + 10
@@ -522,12 +556,15 @@ def main() -> int:
     peak = drives(map_path, args.vehicles, peak_steps, rate=args.rate, seed=2)
     print(f"# generated {args.vehicles} drives in {time.perf_counter() - t:.1f} s", flush=True)
 
-    proc, port = start_server(map_path, max_sessions=6 * args.vehicles, big_points=args.big_points)
-    sp = psutil.Process(proc.pid)
+    proc, port = start_server(
+        map_path, max_sessions=6 * args.vehicles, big_points=args.big_points, processes=args.processes
+    )
+    sp = ServerTree(proc.pid)
     try:
         rss0 = sp.memory_info().rss
         print(
-            f"# server pid {proc.pid} on port {port}; machine: {os.cpu_count()} cores, "
+            f"# server pid {proc.pid} ({args.processes} process(es)) on port {port}; "
+            f"machine: {os.cpu_count()} cores, "
             f"shared with other jobs (load average {os.getloadavg()[0]:.2f})",
             flush=True,
         )
