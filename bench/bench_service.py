@@ -428,7 +428,8 @@ def start_server(
         sys.executable, "-m", "mapmatch", "serve", "--map", f"helsinki={map_path}",
         "--address", "127.0.0.1:0", "--max-sessions", str(max_sessions), "--no-reuse-port",
         "--max-track-points", str(big_points), "--max-message-bytes", str(64 << 20),
-        "--max-answer-bytes", str(1 << 30), "--processes", str(processes),
+        "--max-answer-bytes", str(1 << 30),
+        *(["--processes", str(processes)] if processes > 1 else []),
     ]  # fmt: skip
     env = {**os.environ, "PYTHONPATH": str(ROOT)}
     proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, text=True, env=env, cwd=ROOT)

@@ -25,6 +25,7 @@ import json
 import logging
 import threading
 import time
+from array import array
 from collections import Counter, defaultdict, deque
 from collections.abc import AsyncIterator, Awaitable, Callable
 from typing import Any
@@ -39,6 +40,7 @@ log = logging.getLogger("mapmatch.access")
 
 FIELD_METADATA_KEY = "mapmatch-field"
 HEALTH_PREFIX = "/grpc.health.v1.Health/"
+LATENCY_RING = 512  # per-message latencies a stream's access-log line is drawn from
 
 __all__ = [
     "FIELD_METADATA_KEY",
@@ -291,7 +293,7 @@ class Metrics:
 class _CallLog:
     """Collects what one call's access-log line reports."""
 
-    __slots__ = ("code", "lat", "method", "n_in", "n_out", "pending", "t0", "timed")
+    __slots__ = ("code", "lat", "lat_max", "method", "n_in", "n_lat", "n_out", "pending", "t0", "timed")
 
     def __init__(self, method: str, *, timed: bool) -> None:
         self.method = method
@@ -301,7 +303,11 @@ class _CallLog:
         self.n_out = 0
         self.timed = timed
         self.pending: deque[float] = deque()
-        self.lat: deque[float] = deque(maxlen=4096)  # recent per-message latencies, bounded
+        # the last LATENCY_RING per-message latencies (a fixed-size ring: a long stream's
+        # record does not grow) and the largest of all
+        self.lat = array("d", bytes(8 * LATENCY_RING)) if timed else array("d")
+        self.lat_max = 0.0
+        self.n_lat = 0
 
 
 class AccessLogInterceptor(_Wrapping):
@@ -332,7 +338,11 @@ class AccessLogInterceptor(_Wrapping):
     def response(self, state: _CallLog, resp: Any) -> None:
         state.n_out += 1
         if state.pending:
-            state.lat.append(time.perf_counter() - state.pending.popleft())
+            dt = time.perf_counter() - state.pending.popleft()
+            state.lat[state.n_lat % LATENCY_RING] = dt
+            state.n_lat += 1
+            if dt > state.lat_max:
+                state.lat_max = dt
 
     @contextlib.asynccontextmanager
     async def around(
@@ -368,10 +378,10 @@ class AccessLogInterceptor(_Wrapping):
             "out": call.n_out,
             "calls": n,
         }
-        if call.lat:
-            s = sorted(call.lat)
+        if call.n_lat:
+            s = sorted(call.lat[: min(call.n_lat, LATENCY_RING)])
             rec["msg_p50_ms"] = round(1000.0 * s[len(s) // 2], 3)
-            rec["msg_max_ms"] = round(1000.0 * s[-1], 3)
+            rec["msg_max_ms"] = round(1000.0 * call.lat_max, 3)
         if self.log_format == "json":
             log.info(json.dumps(rec), extra={"rpc": rec})
         else:
