@@ -19,10 +19,16 @@ Phase 4 (big match): phase 1 again while another client process keeps a ``--big-
 (1M) point ``MatchTrack`` in flight the whole time (the server runs with limits raised for
 it); reports the paced streams' latency during the big match, and the match's duration.
 
+Every phase also prints the server's CPU seconds per answered update (summed over its
+processes): on a machine shared with other jobs that figure moves less than latency or
+throughput do, and one over it is what one fully available core could answer.
+``--processes N`` runs ``mapmatch serve --processes N`` (N processes on one port).
+
 Run::
 
     python bench/bench_service.py                    # 200 vehicles, 10 Hz, 60 s + 20 s peak
     python bench/bench_service.py --seconds 10 --peak-seconds 5   # quick look
+    python bench/bench_service.py --skip 14 --processes 2         # peak phases, 2 processes
 
 The map artifact is cached in ``~/.cache/mapmatch-bench/helsinki.map`` (rebuilt when
 ``graph/`` changes).
