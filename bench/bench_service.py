@@ -19,10 +19,16 @@ Phase 4 (big match): phase 1 again while another client process keeps a ``--big-
 (1M) point ``MatchTrack`` in flight the whole time (the server runs with limits raised for
 it); reports the paced streams' latency during the big match, and the match's duration.
 
+Every phase also prints the server's CPU seconds per answered update (summed over its
+processes): on a machine shared with other jobs that figure moves less than latency or
+throughput do, and one over it is what one fully available core could answer.
+``--processes N`` runs ``mapmatch serve --processes N`` (N processes on one port).
+
 Run::
 
     python bench/bench_service.py                    # 200 vehicles, 10 Hz, 60 s + 20 s peak
     python bench/bench_service.py --seconds 10 --peak-seconds 5   # quick look
+    python bench/bench_service.py --skip 14 --processes 2         # peak phases, 2 processes
 
 The map artifact is cached in ``~/.cache/mapmatch-bench/helsinki.map`` (rebuilt when
 ``graph/`` changes).
@@ -37,9 +43,11 @@ import multiprocessing as mp
 import os
 import subprocess
 import sys
+import threading
 import time
 from importlib import resources
 from pathlib import Path
+from types import SimpleNamespace
 from typing import Any
 
 import numpy as np
@@ -315,6 +323,7 @@ def run_phase(
     tag: str,
     batch: int = 1,
     server: Any = None,
+    rss_at: float | None = None,
 ) -> dict[str, Any]:
     """Run client processes; they connect, wait for a common start, then load the server."""
     ctx = mp.get_context("spawn")
@@ -335,6 +344,9 @@ def run_phase(
         ready.acquire()
     start.set()
     c0, w0 = (sum(server.cpu_times()[:2]) if server else 0.0), time.perf_counter()
+    mid: dict[str, int] = {}
+    if server is not None and rss_at is not None:  # RSS once the sessions exist (after warm-up)
+        threading.Timer(rss_at, lambda: mid.setdefault("rss", server.memory_info().rss)).start()
     results = [queue.get() for _ in procs]
     c1, w1 = (sum(server.cpu_times()[:2]) if server else 0.0), time.perf_counter()
     for p in procs:
@@ -343,6 +355,8 @@ def run_phase(
     at = np.concatenate([r["at"] for r in results]) if results else np.empty(0)
     return {
         "cpu": 100.0 * (c1 - c0) / (w1 - w0),
+        "cpu_s": c1 - c0,
+        "rss_mid": mid.get("rss"),
         "at": at,
         "n": sum(r["n"] for r in results),
         "errors": sum(r["errors"] for r in results),
@@ -394,12 +408,34 @@ def big_track(vehicles: list[list[Any]], n: int) -> bytes:
 
 
 # ---------------------------------------------------------------------------------- server
-def start_server(map_path: Path, max_sessions: int, big_points: int) -> tuple[subprocess.Popen, int]:
+class ServerTree:
+    """CPU times and RSS summed over the server process and its children (``--processes``)."""
+
+    def __init__(self, pid: int) -> None:
+        import psutil
+
+        self.root = psutil.Process(pid)
+
+    def _all(self) -> list[Any]:
+        return [self.root, *self.root.children(recursive=True)]
+
+    def cpu_times(self) -> tuple[float, float]:
+        t = [p.cpu_times() for p in self._all()]
+        return sum(x.user for x in t), sum(x.system for x in t)
+
+    def memory_info(self) -> Any:
+        return SimpleNamespace(rss=sum(p.memory_info().rss for p in self._all()))
+
+
+def start_server(
+    map_path: Path, max_sessions: int, big_points: int, processes: int = 1
+) -> tuple[subprocess.Popen, int]:
     cmd = [
         sys.executable, "-m", "mapmatch", "serve", "--map", f"helsinki={map_path}",
         "--address", "127.0.0.1:0", "--max-sessions", str(max_sessions), "--no-reuse-port",
         "--max-track-points", str(big_points), "--max-message-bytes", str(64 << 20),
         "--max-answer-bytes", str(1 << 30),
+        *(["--processes", str(processes)] if processes > 1 else []),
     ]  # fmt: skip
     env = {**os.environ, "PYTHONPATH": str(ROOT)}
     proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, text=True, env=env, cwd=ROOT)
@@ -410,6 +446,58 @@ def start_server(map_path: Path, max_sessions: int, big_points: int) -> tuple[su
         raise SystemExit(f"server failed to start: {line!r}")
     port = int(line.split("listening on ")[1].split()[0].rsplit(":", 1)[1])
     return proc, port
+
+
+def phase1(args: argparse.Namespace, port: int, sp: Any, paced: list[list[Any]], rss0: int) -> None:
+    """Paced load: every stream at ``--rate`` Hz; latency, RSS growth and CPU per update."""
+    total = args.warmup + args.seconds
+    r = run_phase(
+        port, paced, rate=args.rate, window=1, seconds=total, clients=args.clients, tag="v", server=sp,
+        rss_at=args.warmup,
+    )  # fmt: skip
+    rss1 = sp.memory_info().rss
+    lat = r["lat"] * 1000.0
+    steady = (r["at"] >= args.warmup) & (r["at"] < total)
+    ups = int(steady.sum()) / args.seconds
+    p50, p99, pmax = np.percentile(lat[steady], [50, 99, 100]) if steady.any() else [math.nan] * 3
+    print("\n## phase 1: paced load")
+    print(f"vehicles (streams)        {args.vehicles} at {args.rate:g} Hz, {args.clients} client processes")
+    print(f"duration                  {args.warmup:g} s warm-up + {args.seconds:g} s measured")
+    print(f"updates answered          {r['n']} ({int(steady.sum())} in the measured window)")
+    print(f"errors                    {r['errors']}")
+    print(f"updates/s                 {ups:.0f}  (offered {args.vehicles * args.rate:.0f})")
+    print(f"latency p50 / p99 / max   {p50:.2f} / {p99:.2f} / {pmax:.2f} ms  (target p99 <= 10 ms)")
+    for a, b in ((0.0, 1.0), (1.0, args.warmup), (args.warmup, total)):
+        sel = lat[(r["at"] >= a) & (r["at"] < b)]
+        if len(sel):
+            q = np.percentile(sel, [50, 99])
+            print(f"  sent {a:4.0f}-{b:<4.0f} s   p50 {q[0]:.2f} ms, p99 {q[1]:.2f} ms ({len(sel)} fixes)")
+    sec = np.floor(r["at"][steady]).astype(int)
+    per_s = [np.percentile(lat[steady][sec == k], 99) for k in np.unique(sec)]
+    if per_s:
+        print(
+            f"  per-second p99: median {np.median(per_s):.2f} ms, "
+            f"{sum(p > 10.0 for p in per_s)} of {len(per_s)} seconds above 10 ms"
+        )
+    print(
+        f"server RSS start / end    {rss0 / 2**20:.1f} / {rss1 / 2**20:.1f} MiB "
+        f"({100.0 * (rss1 - rss0) / rss0:+.1f} %, target <= 5 %)"
+    )
+    if r["rss_mid"]:
+        m = r["rss_mid"]
+        print(
+            f"server RSS after warm-up  {m / 2**20:.1f} MiB (every session made); to the end "
+            f"{100.0 * (rss1 - m) / m:+.1f} % over {args.seconds:g} s"
+        )
+    _cpu_lines(r)
+
+
+def _cpu_lines(r: dict[str, Any]) -> None:
+    """Server CPU share, and CPU seconds per answered update (robust to a busy machine)."""
+    per = r["cpu_s"] / max(r["n"], 1)
+    print(f"server CPU                {r['cpu']:.0f} % of one core (all server processes)")
+    print(f"server CPU per update     {1e6 * per:.0f} us (one core: at most {1.0 / per:.0f} updates/s)")
+    print(f"load average              {os.getloadavg()[0]:.2f}")
 
 
 def phase4(args: argparse.Namespace, port: int, sp: Any, paced: list[list[Any]]) -> None:
@@ -444,8 +532,7 @@ def phase4(args: argparse.Namespace, port: int, sp: Any, paced: list[list[Any]])
     print(f"errors                    {r['errors']}")
     print(f"latency p50 / p99 / max   {p50:.2f} / {p99:.2f} / {pmax:.2f} ms  (target p99 <= 20 ms)")
     print(f"server RSS start / end    {rss0 / 2**20:.1f} / {rss1 / 2**20:.1f} MiB (during the big match)")
-    print(f"server CPU                {r['cpu']:.0f} % of one core")
-    print(f"load average              {os.getloadavg()[0]:.2f}")
+    _cpu_lines(r)
 
 
 def main() -> int:
@@ -459,11 +546,14 @@ def main() -> int:
     ap.add_argument("--peak-clients", type=int, default=2, help="client processes in the peak phase")
     ap.add_argument("--window", type=int, default=4, help="fixes in flight per stream in the peak phase")
     ap.add_argument("--batch", type=int, default=20, help="vehicles per gateway in the batched peak phase")
+    ap.add_argument("--processes", type=int, default=1, help="server processes (serve --processes)")
     ap.add_argument("--big-points", type=int, default=1_000_000, help="points of the phase-4 MatchTrack")
-    ap.add_argument("--skip", default="", help="phases to skip, e.g. 23")
+    ap.add_argument(
+        "--skip",
+        default="",
+        help="phases to skip, e.g. 23 (1: paced, 2: peak, 3: batched peak, 4: big match)",
+    )
     args = ap.parse_args()
-
-    import psutil
 
     map_path = helsinki_map()
     steps = int((args.warmup + args.seconds) * args.rate) + 10
@@ -473,57 +563,24 @@ def main() -> int:
     peak = drives(map_path, args.vehicles, peak_steps, rate=args.rate, seed=2)
     print(f"# generated {args.vehicles} drives in {time.perf_counter() - t:.1f} s", flush=True)
 
-    proc, port = start_server(map_path, max_sessions=6 * args.vehicles, big_points=args.big_points)
-    sp = psutil.Process(proc.pid)
+    proc, port = start_server(
+        map_path, max_sessions=6 * args.vehicles, big_points=args.big_points, processes=args.processes
+    )
+    sp = ServerTree(proc.pid)
     try:
         rss0 = sp.memory_info().rss
         print(
-            f"# server pid {proc.pid} on port {port}; machine: {os.cpu_count()} cores, "
+            f"# server pid {proc.pid} ({args.processes} process(es)) on port {port}; "
+            f"machine: {os.cpu_count()} cores, "
             f"shared with other jobs (load average {os.getloadavg()[0]:.2f})",
             flush=True,
         )
-        total = args.warmup + args.seconds
-        r = run_phase(
-            port, paced, rate=args.rate, window=1, seconds=total, clients=args.clients, tag="v", server=sp
-        )
-        rss1 = sp.memory_info().rss
-        lat = r["lat"] * 1000.0
-        steady = (r["at"] >= args.warmup) & (r["at"] < total)
-        ups = int(steady.sum()) / args.seconds
-        p50, p99, pmax = np.percentile(lat[steady], [50, 99, 100]) if steady.any() else [math.nan] * 3
-        print("\n## phase 1: paced load")
-        print(
-            f"vehicles (streams)        {args.vehicles} at {args.rate:g} Hz, {args.clients} client processes"
-        )
-        print(f"duration                  {args.warmup:g} s warm-up + {args.seconds:g} s measured")
-        print(f"updates answered          {r['n']} ({int(steady.sum())} in the measured window)")
-        print(f"errors                    {r['errors']}")
-        print(f"updates/s                 {ups:.0f}  (offered {args.vehicles * args.rate:.0f})")
-        print(f"latency p50 / p99 / max   {p50:.2f} / {p99:.2f} / {pmax:.2f} ms  (target p99 <= 10 ms)")
-        for a, b in ((0.0, 1.0), (1.0, args.warmup), (args.warmup, total)):
-            sel = lat[(r["at"] >= a) & (r["at"] < b)]
-            if len(sel):
-                q = np.percentile(sel, [50, 99])
-                print(
-                    f"  sent {a:4.0f}-{b:<4.0f} s   p50 {q[0]:.2f} ms, p99 {q[1]:.2f} ms ({len(sel)} fixes)"
-                )
-        sec = np.floor(r["at"][steady]).astype(int)
-        per_s = [np.percentile(lat[steady][sec == k], 99) for k in np.unique(sec)]
-        if per_s:
-            print(
-                f"  per-second p99: median {np.median(per_s):.2f} ms, "
-                f"{sum(p > 10.0 for p in per_s)} of {len(per_s)} seconds above 10 ms"
-            )
-        print(
-            f"server RSS start / end    {rss0 / 2**20:.1f} / {rss1 / 2**20:.1f} MiB "
-            f"({100.0 * (rss1 - rss0) / rss0:+.1f} %, target <= 5 %)"
-        )
-        print(f"server CPU                {r['cpu']:.0f} % of one core")
+        if "1" not in args.skip:
+            phase1(args, port, sp, paced, rss0)
         if "4" not in args.skip:
             phase4(args, port, sp, paced)
         if "2" in args.skip and "3" in args.skip:
             return 0
-
         r2 = run_phase(
             port,
             peak,
@@ -534,7 +591,6 @@ def main() -> int:
             tag="p",
             server=sp,
         )
-        cpu2 = r2["cpu"]
         lat2 = r2["lat"] * 1000.0
         print("\n## phase 2: peak (as fast as answered)")
         print(
@@ -547,7 +603,7 @@ def main() -> int:
             print(
                 f"latency p50 / p99         {np.percentile(lat2, 50):.2f} / {np.percentile(lat2, 99):.2f} ms"
             )
-        print(f"server CPU                {cpu2:.0f} % of one core")
+        _cpu_lines(r2)
         r3 = run_phase(
             port,
             peak,
@@ -559,7 +615,6 @@ def main() -> int:
             batch=args.batch,
             server=sp,
         )
-        cpu3 = r3["cpu"]
         lat3 = r3["lat"] * 1000.0
         print("\n## phase 3: peak, batched (StreamFixBatches: fleet gateways)")
         n_gw = math.ceil(args.vehicles / args.batch)
@@ -571,7 +626,7 @@ def main() -> int:
             print(
                 f"batch latency p50 / p99   {np.percentile(lat3, 50):.2f} / {np.percentile(lat3, 99):.2f} ms"
             )
-        print(f"server CPU                {cpu3:.0f} % of one core")
+        _cpu_lines(r3)
         print(f"server RSS end            {sp.memory_info().rss / 2**20:.1f} MiB")
         print(f"load average after        {os.getloadavg()[0]:.2f}")
     finally:

@@ -302,7 +302,9 @@ def load_map(path: str | os.PathLike[str], *, verify: bool = True) -> RoadGraph:
         raise ArtifactError(f"cannot read map file {p}: {exc.strerror}") from exc
     table = _checked_table(manifest, p, data_start, size)
     _check_fields(manifest, p)
-    buf: NDArray[np.uint8] = np.memmap(p, dtype=np.uint8, mode="r") if size else np.empty(0, np.uint8)
+    # a plain ndarray view of the mapping: indexing a np.memmap subclass costs microseconds per scalar
+    mm = np.memmap(p, dtype=np.uint8, mode="r") if size else np.empty(0, np.uint8)
+    buf: NDArray[np.uint8] = mm.view(np.ndarray)
     for name, t in table.items():  # the padding after each array is zeros
         lo = data_start + t["offset"] + t["nbytes"]
         gap = buf[lo : lo + _pad(t["nbytes"])]

@@ -26,7 +26,9 @@ MAPMATCH_MAX_TRACK_POINTS   --max-track-points N        points per track (100000
 MAPMATCH_MAX_ANSWER_BYTES   --max-answer-bytes N        largest answer message (4 MiB)
 MAPMATCH_MAX_VEHICLE_ID     --max-vehicle-id N          vehicle_id length, UTF-8 bytes (128)
 MAPMATCH_MAX_TIME_JUMP      --max-time-jump SECONDS     larger time jumps restart a session (3600)
-MAPMATCH_ONLINE_WORKERS     --online-workers N          threads for online updates (1)
+MAPMATCH_ONLINE_WORKERS     --online-workers N          threads for FixBatch slices (1)
+MAPMATCH_INLINE_FIXES       --inline-fixes              single fixes on the event loop (on)
+MAPMATCH_PROCESSES          --processes N               server processes on one port (1)
 MAPMATCH_BATCH_SLICE        --batch-slice N             fixes per slice of a batch answer (64)
 MAPMATCH_MAX_MAP_BYTES      --max-map-bytes N           largest map file LoadMap reads (4 GiB)
 MAPMATCH_LOAD_TIMEOUT       --load-timeout SECONDS      time limit of a map build from source (300)
@@ -104,7 +106,14 @@ class ServerConfig:
         A fix more than this many seconds away from its session's last accepted fix (either
         way) starts the session afresh (state ``reinitialised``) instead of being rejected.
     online_workers : int
-        Threads running online updates (off the event loop, which does only protocol work).
+        Threads matching ``FixBatch`` slices (and single fixes unless ``inline_fixes``).
+    processes : int
+        Server processes sharing the port (SO_REUSEPORT), so one host uses every core. Each
+        process has its own sessions; a stream stays on the process that accepted its
+        connection, so a vehicle should keep its connection (or export/import its session).
+    inline_fixes : bool
+        Match a single fix (``StreamFixes``, ``SnapFix``) on the event loop, without a hop to
+        an online thread: one fix is short, bounded work, and the hop costs more than it saves.
     batch_slice : int
         A ``FixBatch`` is matched in slices of this many fixes, other streams' work in between.
     max_map_bytes : int
@@ -135,6 +144,8 @@ class ServerConfig:
     max_vehicle_id: int = 128
     max_time_jump: float = 3600.0
     online_workers: int = 1
+    inline_fixes: bool = True
+    processes: int = 1
     batch_slice: int = 64
     max_map_bytes: int = 4 * 1024**3
     load_timeout: float = 300.0
@@ -156,7 +167,8 @@ class ServerConfig:
         if self.token is not None and not self.token.strip():
             raise ConfigError("token must not be empty")
         for name in ("max_batch_fixes", "max_track_points", "max_answer_bytes", "max_vehicle_id",
-                     "online_workers", "batch_slice", "max_map_bytes", "load_memory_bytes"):  # fmt: skip
+                     "online_workers", "batch_slice", "max_map_bytes", "load_memory_bytes",
+                     "processes"):  # fmt: skip
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, int) or v < 1:
                 raise ConfigError(f"{name} must be a positive integer, got {v!r}")
@@ -217,6 +229,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--log-format", choices=("json", "text"), help="JSON lines or text logs [MAPMATCH_LOG_FORMAT; json]"
     )
+    parser.add_argument(
+        "--inline-fixes",
+        action=argparse.BooleanOptionalAction,
+        default=None,
+        help="match single fixes on the event loop, no thread hop [MAPMATCH_INLINE_FIXES; on]",
+    )
     parser.add_argument("--config", type=Path, help="TOML file with server settings [MAPMATCH_CONFIG]")
     parser.add_argument(
         "--map-dir", type=Path, help="LoadMap reads only files in here [MAPMATCH_MAP_DIR; off]"
@@ -231,11 +249,12 @@ _LIMIT_FLAGS: tuple[tuple[str, type, str], ...] = (
     ("--max-answer-bytes", int, "largest answer message [MAPMATCH_MAX_ANSWER_BYTES; 4 MiB]"),
     ("--max-vehicle-id", int, "vehicle_id length in bytes [MAPMATCH_MAX_VEHICLE_ID; 128]"),
     ("--max-time-jump", float, "seconds; larger jumps restart a session [MAPMATCH_MAX_TIME_JUMP; 3600]"),
-    ("--online-workers", int, "threads for online updates [MAPMATCH_ONLINE_WORKERS; 1]"),
+    ("--online-workers", int, "threads for FixBatch slices [MAPMATCH_ONLINE_WORKERS; 1]"),
     ("--batch-slice", int, "fixes per slice of a batch answer [MAPMATCH_BATCH_SLICE; 64]"),
     ("--max-map-bytes", int, "largest map file read [MAPMATCH_MAX_MAP_BYTES; 4 GiB]"),
     ("--load-timeout", float, "seconds for a map build from source [MAPMATCH_LOAD_TIMEOUT; 300]"),
     ("--load-memory-bytes", int, "memory for a map build from source [MAPMATCH_LOAD_MEMORY_BYTES; 8 GiB]"),
+    ("--processes", int, "server processes sharing the port, own sessions each [MAPMATCH_PROCESSES; 1]"),
 )
 _NUMBERS: dict[str, type[int] | type[float]] = {
     "max_sessions": int,
@@ -246,6 +265,7 @@ _NUMBERS: dict[str, type[int] | type[float]] = {
     **{f[2:].replace("-", "_"): k for f, k, _ in _LIMIT_FLAGS},
 }
 _PATHS = ("tls_cert", "tls_key", "client_ca", "map_dir")
+_BOOLS = ("reuse_port", "inline_fixes")
 _FIELDS = {f.name for f in dataclasses.fields(ServerConfig)}
 
 
@@ -297,9 +317,9 @@ def read_config_file(path: Path) -> dict[str, Any]:
             if isinstance(value, bool) or not isinstance(value, int | float):
                 raise ConfigError(f"config file {path}: {raw_key} must be a number")
             out[key] = _NUMBERS[key](value)
-        elif key == "reuse_port":
+        elif key in _BOOLS:
             if not isinstance(value, bool):
-                raise ConfigError(f"config file {path}: reuse_port must be true or false")
+                raise ConfigError(f"config file {path}: {raw_key} must be true or false")
             out[key] = value
         else:
             if not isinstance(value, str):
@@ -345,9 +365,10 @@ def config_from(
         v = pick(key)
         if v is not None:
             out[key] = Path(str(v))
-    v = pick("reuse_port")
-    if v is not None:
-        out["reuse_port"] = _bool("REUSE_PORT", v) if isinstance(v, str) else bool(v)
+    for key in _BOOLS:
+        v = pick(key)
+        if v is not None:
+            out[key] = _bool(key.upper(), v) if isinstance(v, str) else bool(v)
     if pick("token") is None:
         tf = pick("token_file")
         if tf is not None:

@@ -1,5 +1,8 @@
 """Server interceptors, one concern each (in the order they wrap a call, outermost first).
 
+The concerns run in one :class:`Chain` (the one gRPC interceptor): each keeps its own class
+and hooks, but a streamed message passes through one wrapper, not one per concern.
+
 * :class:`AccessLogInterceptor`: one structured line per call on logger ``mapmatch.access``
   with method, peer, status, duration, message counts, the method's running call count and,
   for bidirectional streams, per-message latency (p50/max); ``json`` gives one JSON object
@@ -22,6 +25,7 @@ import json
 import logging
 import threading
 import time
+from array import array
 from collections import Counter, defaultdict, deque
 from collections.abc import AsyncIterator, Awaitable, Callable
 from typing import Any
@@ -36,11 +40,13 @@ log = logging.getLogger("mapmatch.access")
 
 FIELD_METADATA_KEY = "mapmatch-field"
 HEALTH_PREFIX = "/grpc.health.v1.Health/"
+LATENCY_RING = 512  # per-message latencies a stream's access-log line is drawn from
 
 __all__ = [
     "FIELD_METADATA_KEY",
     "AccessLogInterceptor",
     "AuthInterceptor",
+    "Chain",
     "Metrics",
     "StatusInterceptor",
     "log_internal",
@@ -50,18 +56,18 @@ __all__ = [
 Around = Callable[[grpc.HandlerCallDetails, aio.ServicerContext], contextlib.AbstractAsyncContextManager[Any]]
 
 
-class _Wrapping(aio.ServerInterceptor):
-    """Wraps every kind of handler in :meth:`around` (an async context manager per call).
+class _Wrapping:
+    """One concern of the interceptor chain: hooks run around every call and on its messages.
 
-    Subclasses may also transform the request iterator (:meth:`requests`), each response
-    (:meth:`response`) and the request deserializer (:meth:`deserializer`).
+    :meth:`around` is an async context manager per call (its value is the call's state);
+    :meth:`request` sees each request message, :meth:`response` each response message, and
+    :meth:`deserializer` may wrap the request deserializer. :class:`Chain` runs the concerns,
+    outermost first, in one wrapper per call: a streamed message passes through one generator
+    however many concerns there are.
     """
 
     def around(self, details: grpc.HandlerCallDetails, context: aio.ServicerContext) -> Any:
         return contextlib.nullcontext()
-
-    def requests(self, state: Any, it: AsyncIterator[Any]) -> AsyncIterator[Any]:
-        return it
 
     def request(self, state: Any, req: Any) -> Any:
         return req
@@ -72,6 +78,23 @@ class _Wrapping(aio.ServerInterceptor):
     def deserializer(self, inner: Any) -> Any:
         return inner
 
+    def handler_found(self, details: grpc.HandlerCallDetails, handler: grpc.RpcMethodHandler) -> None:
+        """Called once per call with the handler it will run."""
+
+
+def _overrides(concern: _Wrapping, name: str) -> bool:
+    return getattr(type(concern), name) is not getattr(_Wrapping, name)
+
+
+class Chain(aio.ServerInterceptor):
+    """The gRPC interceptor that runs a list of concerns (:class:`_Wrapping`), outermost first."""
+
+    def __init__(self, concerns: list[_Wrapping]) -> None:
+        self.concerns = concerns
+        self._arounds = concerns
+        self._requests = [i for i, c in enumerate(concerns) if _overrides(c, "request")]
+        self._responses = [i for i, c in enumerate(concerns) if _overrides(c, "response")]
+
     async def intercept_service(
         self,
         continuation: Callable[[grpc.HandlerCallDetails], Awaitable[grpc.RpcMethodHandler]],
@@ -81,6 +104,8 @@ class _Wrapping(aio.ServerInterceptor):
         if handler is None:
             return handler
         d = handler_call_details
+        for c in self.concerns:
+            c.handler_found(d, handler)
         if handler.request_streaming and handler.response_streaming:
             inner, factory = handler.stream_stream, grpc.stream_stream_rpc_method_handler
             wrapped = self._stream_out(d, inner, streaming_in=True)
@@ -93,24 +118,49 @@ class _Wrapping(aio.ServerInterceptor):
         else:
             inner, factory = handler.unary_unary, grpc.unary_unary_rpc_method_handler
             wrapped = self._unary_out(d, inner, streaming_in=False)
+        deserializer = handler.request_deserializer
+        for c in reversed(self.concerns):  # the outermost concern sees the bytes first
+            deserializer = c.deserializer(deserializer)
         return factory(
-            wrapped,
-            request_deserializer=self.deserializer(handler.request_deserializer),
-            response_serializer=handler.response_serializer,
+            wrapped, request_deserializer=deserializer, response_serializer=handler.response_serializer
         )
 
-    def _input(self, state: Any, request: Any, streaming_in: bool) -> Any:
-        return self.requests(state, request) if streaming_in else self.request(state, request)
+    async def _enter(
+        self, stack: contextlib.AsyncExitStack, d: grpc.HandlerCallDetails, context: aio.ServicerContext
+    ) -> list[Any]:
+        return [await stack.enter_async_context(c.around(d, context)) for c in self._arounds]
+
+    def _input(self, states: list[Any], request: Any, streaming_in: bool) -> Any:
+        hooks = [(self._arounds[i].request, states[i]) for i in self._requests]
+        if not hooks:
+            return request
+        if not streaming_in:
+            for hook, st in hooks:
+                request = hook(st, request)
+            return request
+
+        async def each(it: AsyncIterator[Any]) -> AsyncIterator[Any]:
+            async for m in it:
+                for hook, st in hooks:
+                    m = hook(st, m)
+                yield m
+
+        return each(request)
+
+    def _output(self, states: list[Any]) -> list[tuple[Callable[[Any, Any], None], Any]]:
+        return [(self._arounds[i].response, states[i]) for i in reversed(self._responses)]
 
     def _unary_out(self, d: grpc.HandlerCallDetails, inner: Any, *, streaming_in: bool) -> Any:
         async def behaviour(request: Any, context: aio.ServicerContext) -> Any:
-            async with self.around(d, context) as state:
-                result = inner(self._input(state, request, streaming_in), context)
+            async with contextlib.AsyncExitStack() as stack:
+                states = await self._enter(stack, d, context)
+                result = inner(self._input(states, request, streaming_in), context)
                 if inspect.isawaitable(result):
                     result = await result
-                self.response(state, result)
+                for hook, st in self._output(states):
+                    hook(st, result)
                 return result
-            return None  # ``around`` handled an error (the call was aborted)
+            return None  # a concern handled an error (the call was aborted)
 
         return behaviour
 
@@ -119,9 +169,12 @@ class _Wrapping(aio.ServerInterceptor):
             return self._unary_out(d, inner, streaming_in=streaming_in)
 
         async def behaviour(request: Any, context: aio.ServicerContext) -> AsyncIterator[Any]:
-            async with self.around(d, context) as state:
-                async for resp in inner(self._input(state, request, streaming_in), context):
-                    self.response(state, resp)
+            async with contextlib.AsyncExitStack() as stack:
+                states = await self._enter(stack, d, context)
+                out = self._output(states)
+                async for resp in inner(self._input(states, request, streaming_in), context):
+                    for hook, st in out:
+                        hook(st, resp)
                     yield resp
 
         return behaviour
@@ -188,15 +241,6 @@ class StatusInterceptor(_Wrapping):
             raise _undecodable_error(req)
         return req
 
-    def requests(self, state: Any, it: AsyncIterator[Any]) -> AsyncIterator[Any]:
-        async def gen() -> AsyncIterator[Any]:
-            async for m in it:
-                if isinstance(m, Undecodable):
-                    raise _undecodable_error(m)
-                yield m
-
-        return gen()
-
     @contextlib.asynccontextmanager
     async def around(
         self, details: grpc.HandlerCallDetails, context: aio.ServicerContext
@@ -249,7 +293,7 @@ class Metrics:
 class _CallLog:
     """Collects what one call's access-log line reports."""
 
-    __slots__ = ("code", "lat", "method", "n_in", "n_out", "pending", "t0", "timed")
+    __slots__ = ("code", "lat", "lat_max", "method", "n_in", "n_lat", "n_out", "pending", "t0", "timed")
 
     def __init__(self, method: str, *, timed: bool) -> None:
         self.method = method
@@ -259,7 +303,11 @@ class _CallLog:
         self.n_out = 0
         self.timed = timed
         self.pending: deque[float] = deque()
-        self.lat: deque[float] = deque(maxlen=4096)  # recent per-message latencies, bounded
+        # the last LATENCY_RING per-message latencies (a fixed-size ring: a long stream's
+        # record does not grow) and the largest of all
+        self.lat = array("d", bytes(8 * LATENCY_RING)) if timed else array("d")
+        self.lat_max = 0.0
+        self.n_lat = 0
 
 
 class AccessLogInterceptor(_Wrapping):
@@ -278,36 +326,23 @@ class AccessLogInterceptor(_Wrapping):
         self.log_format = log_format
         self._bidi: dict[str, bool] = {}
 
-    async def intercept_service(
-        self,
-        continuation: Callable[[grpc.HandlerCallDetails], Awaitable[grpc.RpcMethodHandler]],
-        handler_call_details: grpc.HandlerCallDetails,
-    ) -> grpc.RpcMethodHandler:
-        handler = await super().intercept_service(continuation, handler_call_details)
-        if handler is not None:
-            self._bidi[handler_call_details.method] = bool(
-                handler.request_streaming and handler.response_streaming
-            )
-        return handler
+    def handler_found(self, details: grpc.HandlerCallDetails, handler: grpc.RpcMethodHandler) -> None:
+        self._bidi[details.method] = bool(handler.request_streaming and handler.response_streaming)
 
     def request(self, state: _CallLog, req: Any) -> Any:
-        state.n_in = 1
+        state.n_in += 1
+        if state.timed:
+            state.pending.append(time.perf_counter())
         return req
-
-    def requests(self, state: _CallLog, it: AsyncIterator[Any]) -> AsyncIterator[Any]:
-        async def gen() -> AsyncIterator[Any]:
-            async for m in it:
-                state.n_in += 1
-                if state.timed:
-                    state.pending.append(time.perf_counter())
-                yield m
-
-        return gen()
 
     def response(self, state: _CallLog, resp: Any) -> None:
         state.n_out += 1
         if state.pending:
-            state.lat.append(time.perf_counter() - state.pending.popleft())
+            dt = time.perf_counter() - state.pending.popleft()
+            state.lat[state.n_lat % LATENCY_RING] = dt
+            state.n_lat += 1
+            if dt > state.lat_max:
+                state.lat_max = dt
 
     @contextlib.asynccontextmanager
     async def around(
@@ -343,10 +378,10 @@ class AccessLogInterceptor(_Wrapping):
             "out": call.n_out,
             "calls": n,
         }
-        if call.lat:
-            s = sorted(call.lat)
+        if call.n_lat:
+            s = sorted(call.lat[: min(call.n_lat, LATENCY_RING)])
             rec["msg_p50_ms"] = round(1000.0 * s[len(s) // 2], 3)
-            rec["msg_max_ms"] = round(1000.0 * s[-1], 3)
+            rec["msg_max_ms"] = round(1000.0 * call.lat_max, 3)
         if self.log_format == "json":
             log.info(json.dumps(rec), extra={"rpc": rec})
         else:
@@ -368,9 +403,9 @@ def _code_name(context: aio.ServicerContext) -> str:
 
 
 def interceptors(*, token: str | None, metrics: Metrics, log_format: str) -> list[aio.ServerInterceptor]:
-    """The server's interceptor chain, outermost first."""
-    chain: list[aio.ServerInterceptor] = [AccessLogInterceptor(metrics=metrics, log_format=log_format)]
+    """The server's interceptors: one :class:`Chain` of the concerns, outermost first."""
+    concerns: list[_Wrapping] = [AccessLogInterceptor(metrics=metrics, log_format=log_format)]
     if token:
-        chain.append(AuthInterceptor(token=token))
-    chain.append(StatusInterceptor())
-    return chain
+        concerns.append(AuthInterceptor(token=token))
+    concerns.append(StatusInterceptor())
+    return [Chain(concerns)]

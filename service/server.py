@@ -15,6 +15,7 @@ step is logged on ``mapmatch.service``, and so is the moment the server is SERVI
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import errno
 import gc
 import json
@@ -442,7 +443,24 @@ def configure_logging(log_format: str, *, access: bool) -> None:
 
 
 def serve(config: ServerConfig, maps: MapsArg = None) -> int:
-    """Run a server in the foreground until SIGTERM or SIGINT, then shut down gracefully."""
+    """Run a server in the foreground until SIGTERM or SIGINT, then shut down gracefully.
+
+    With ``config.processes > 1`` this process starts that many server processes on one port
+    (SO_REUSEPORT; the kernel spreads connections over them) and supervises them.
+    """
+    if config.processes > 1:
+        if maps:
+            raise ConfigError("several processes load their maps from files (config.maps), not objects")
+        return _serve_processes(config)
+    return _serve_one(config, maps, on_ready=_announce)
+
+
+def _announce(address: str, port: int, n_maps: int) -> None:
+    host = address.rsplit(":", 1)[0]
+    print(f"mapmatch serve: listening on {host}:{port} ({n_maps} map(s))", flush=True)
+
+
+def _serve_one(config: ServerConfig, maps: MapsArg, *, on_ready: Any) -> int:
     sys.setswitchinterval(SWITCH_INTERVAL)
     done = threading.Event()
 
@@ -462,8 +480,7 @@ def serve(config: ServerConfig, maps: MapsArg = None) -> int:
             runtime.stop(0)
             raise ConfigError(f"cannot serve: {runtime.ready.exception()}")
         if runtime.ready.done():
-            host = config.address.rsplit(":", 1)[0]
-            print(f"mapmatch serve: listening on {host}:{port} ({len(runtime.maps)} map(s))", flush=True)
+            on_ready(config.address, port, len(runtime.maps))
         # the maps, matchers and compiled code are long-lived: keep them out of the cyclic GC's
         # scans so full collections stay short (they showed as latency spikes)
         gc.collect()
@@ -472,6 +489,94 @@ def serve(config: ServerConfig, maps: MapsArg = None) -> int:
             pass
         runtime.stop()
     finally:
+        for s, h in old.items():
+            signal.signal(s, h)
+    return 0
+
+
+def _child_main(config: ServerConfig, reports: Any, log_format: str, access: bool) -> None:
+    """A server process of :func:`_serve_processes`: serve, and report readiness or failure."""
+    configure_logging(log_format, access=access)
+    try:
+        _serve_one(config, None, on_ready=lambda address, port, n: reports.put(("ready", port, n)))
+    except ConfigError as exc:
+        reports.put(("error", str(exc), 0))
+        sys.exit(3)
+
+
+def _serve_processes(config: ServerConfig) -> int:
+    """Start ``config.processes`` servers on one port and supervise them until a signal."""
+    import multiprocessing as mp
+    import queue as queue_mod
+
+    host, _, port_text = config.address.rpartition(":")
+    if not config.reuse_port:
+        _check_port_free(config.address)  # a port in use is an error unless sharing was asked for
+    holder: socket.socket | None = None
+    port = int(port_text)
+    if port == 0:  # pick one port for all: held (bound, not listening) until every child listens
+        family = socket.AF_INET6 if ":" in host.strip("[]") else socket.AF_INET
+        holder = socket.socket(family, socket.SOCK_STREAM)
+        holder.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEPORT, 1)
+        holder.bind((host.strip("[]"), 0))
+        port = holder.getsockname()[1]
+    child = config.replace(address=f"{host}:{port}", reuse_port=True, processes=1)
+    ctx = mp.get_context("spawn")
+    reports = ctx.Queue()
+    access = logging.getLogger("mapmatch.access").isEnabledFor(logging.INFO)
+    procs = [
+        ctx.Process(
+            target=_child_main, args=(child, reports, config.log_format, access), name=f"mapmatch-serve-{i}"
+        )
+        for i in range(config.processes)
+    ]
+    done = threading.Event()
+
+    def on_signal(signum: int, frame: Any) -> None:
+        log.info("signal %d: stopping %d server processes", signum, len(procs))
+        done.set()
+
+    old = {s: signal.signal(s, on_signal) for s in (signal.SIGTERM, signal.SIGINT)}
+    try:
+        log.info("starting %d server processes on port %d", len(procs), port)
+        for p in procs:
+            p.start()
+        ready: list[tuple[str, Any, int]] = []
+        while len(ready) < len(procs) and not done.is_set():
+            try:
+                ready.append(reports.get(timeout=0.2))
+            except queue_mod.Empty:
+                if any(p.exitcode is not None for p in procs):
+                    with contextlib.suppress(queue_mod.Empty):  # its report may still be on the way
+                        ready.append(reports.get(timeout=1.0))
+                    if not any(r[0] == "error" for r in ready):
+                        break
+            failed = [r for r in ready if r[0] == "error"]
+            if failed:
+                raise ConfigError(str(failed[0][1]))
+        if not done.is_set():
+            if len(ready) < len(procs):
+                raise ConfigError("cannot serve: a server process ended during start-up")
+            if holder is not None:
+                holder.close()
+                holder = None
+            _announce(config.address, port, ready[0][2])
+            print(f"mapmatch serve: {len(procs)} server processes", flush=True)
+        while not done.wait(0.5):
+            codes = [p.exitcode for p in procs]
+            if any(c is not None for c in codes):
+                raise ConfigError(f"cannot serve: a server process ended (exit statuses {codes})")
+    finally:
+        for p in procs:
+            if p.is_alive() and p.pid is not None:
+                os.kill(p.pid, signal.SIGTERM)
+        for p in procs:
+            p.join(config.grace + 10.0)
+            if p.is_alive():
+                p.kill()
+                p.join()
+        if holder is not None:
+            holder.close()
         for s, h in old.items():
             signal.signal(s, h)
     return 0

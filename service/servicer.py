@@ -1,8 +1,10 @@
 """The ``mapmatch.v1.MapMatch`` servicer: validate, convert, call ``mapmatch``, convert back.
 
-No matching logic lives here, and no matching runs on the event loop, which does only
-protocol work. Online updates run on their own thread(s) (``online_workers``), batch
-matching and map loads on the batch pool (``workers``). A vehicle's fixes never race (each
+No matching logic lives here. A single fix (``StreamFixes``, ``SnapFix``) is matched on the
+event loop (``inline_fixes``, the default): it is short, bounded work, and a hop to another
+thread and back cost more CPU than the fix itself saves, all under one GIL. ``FixBatch``
+slices run on the online thread(s) (``online_workers``), batch matching and map loads on the
+batch pool (``workers``), so no long work holds the loop. A vehicle's fixes never race (each
 session has a lock); a ``FixBatch`` is matched in slices of ``batch_slice`` fixes, so other
 streams' fixes are served in between. Every message's work is bounded by the configured
 limits (fixes per batch, points per track, bytes per answer), each refused with
@@ -227,12 +229,7 @@ class MapMatchServicer(pb_grpc.MapMatchServicer):
             s.state = state
         if jumped:
             result = dataclasses.replace(result, state=State.REINITIALISED)
-        return pb.SnapResponse(
-            map_id=entry.map_id,
-            vehicle_id=req.vehicle_id,
-            seq=req.seq,
-            result=convert.snap_result_to_proto(result),
-        )
+        return convert.snap_response(entry.map_id, req.vehicle_id, req.seq, result)
 
     def answer(self, req: pb.FixRequest) -> pb.SnapResponse:
         """Like :meth:`snap`, but a rejected fix becomes a response carrying its error."""
@@ -255,8 +252,14 @@ class MapMatchServicer(pb_grpc.MapMatchServicer):
     async def StreamFixes(
         self, request_iterator: AsyncIterator[pb.FixRequest], context: aio.ServicerContext
     ) -> AsyncIterator[pb.SnapResponse]:
-        async for req in request_iterator:
-            yield await self.online.submit(functools.partial(self.answer, req))
+        answer = self.answer
+        if self.config.inline_fixes:  # no thread hop: one fix is a bounded, short piece of work
+            async for req in request_iterator:
+                yield answer(req)
+        else:
+            submit = self.online.submit
+            async for req in request_iterator:
+                yield await submit(functools.partial(answer, req))
 
     async def StreamFixBatches(
         self, request_iterator: AsyncIterator[pb.FixBatch], context: aio.ServicerContext
@@ -277,6 +280,8 @@ class MapMatchServicer(pb_grpc.MapMatchServicer):
         left = context.time_remaining()
         if left is not None and left <= 0:
             await context.abort(grpc.StatusCode.DEADLINE_EXCEEDED, "deadline passed before work started")
+        if self.config.inline_fixes:
+            return self.snap(request)
         return await self.online.submit(functools.partial(self.snap, request))
 
     # ------------------------------------------------------------------ batch

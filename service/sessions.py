@@ -11,8 +11,7 @@ from __future__ import annotations
 import threading
 import time
 from collections import OrderedDict
-from collections.abc import Callable, Iterator
-from contextlib import contextmanager
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -32,6 +31,33 @@ class Session:
     last_used: float
     lock: threading.Lock = field(default_factory=threading.Lock)
     waiting: int = 0  # users of a provisional session (not yet stored)
+
+
+class _Use:
+    """The context manager of :meth:`SessionStore.use` (a plain class: it runs once per fix)."""
+
+    __slots__ = ("factory", "key", "session", "store")
+
+    def __init__(self, store: SessionStore, key: SessionKey, factory: Callable[[], Any]) -> None:
+        self.store = store
+        self.key = key
+        self.factory = factory
+        self.session: Session | None = None
+
+    def __enter__(self) -> Session:
+        s = self.session = self.store._enter(self.key, self.factory)
+        try:
+            s.lock.acquire()
+        except BaseException:
+            self.store._leave(s, False)
+            raise
+        return s
+
+    def __exit__(self, kind: Any, exc: Any, tb: Any) -> None:
+        s = self.session
+        assert s is not None
+        s.lock.release()
+        self.store._leave(s, kind is None)
 
 
 class SessionStore:
@@ -82,8 +108,7 @@ class SessionStore:
         return s
 
     # ------------------------------------------------------------------ API
-    @contextmanager
-    def use(self, map_id: str, vehicle_id: str, factory: Callable[[], Any]) -> Iterator[Session]:
+    def use(self, map_id: str, vehicle_id: str, factory: Callable[[], Any]) -> _Use:
         """The vehicle's session (a new one from ``factory()`` when absent), locked for the block.
 
         Only a block that ends without an exception counts as use: it refreshes the session's
@@ -95,7 +120,9 @@ class SessionStore:
         SessionLimitError
             When a new session is needed and the store is full of live sessions.
         """
-        key = (map_id, vehicle_id)
+        return _Use(self, (map_id, vehicle_id), factory)
+
+    def _enter(self, key: SessionKey, factory: Callable[[], Any]) -> Session:
         now = self._clock()
         with self._lock:
             s = self._get_locked(key, now)
@@ -105,24 +132,22 @@ class SessionStore:
                     self._full_check_locked(now)
                     s = self._pending[key] = Session(key=key, state=factory(), last_used=now)
                 s.waiting += 1
-        accepted = False
-        try:
-            with s.lock:
-                yield s
-            accepted = True
-        finally:
-            with self._lock:
-                if self._pending.get(key) is s:
-                    s.waiting -= 1
-                    if accepted or s.waiting == 0:
-                        del self._pending[key]
-                    if accepted:
-                        if key not in self._sessions:
-                            self._full_check_locked(self._clock())
-                        self._sessions[key] = s
-                if accepted and self._sessions.get(key) is s:
-                    s.last_used = self._clock()
-                    self._sessions.move_to_end(key)
+        return s
+
+    def _leave(self, s: Session, accepted: bool) -> None:
+        key = s.key
+        with self._lock:
+            if self._pending.get(key) is s:
+                s.waiting -= 1
+                if accepted or s.waiting == 0:
+                    del self._pending[key]
+                if accepted:
+                    if key not in self._sessions:
+                        self._full_check_locked(self._clock())
+                    self._sessions[key] = s
+            if accepted and self._sessions.get(key) is s:
+                s.last_used = self._clock()
+                self._sessions.move_to_end(key)
 
     def _full_check_locked(self, now: float) -> None:
         self._expire_locked(now)

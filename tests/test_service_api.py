@@ -503,3 +503,18 @@ def test_a_matcher_failure_is_internal_for_that_fix_only():
         assert "boom" not in out[6].error.message  # internals stay in the server log
         assert out[-1].result.edge == AMAP.edge("d", "g") and out[-2].result.edge >= 0
         ch.close()
+
+
+def test_fixes_on_the_loop_and_on_the_online_thread_get_the_same_answers():
+    fixes = drive(AMAP, "abcf", speed=10.0, dt=1.0, sigma=3.0)
+    bad = Fix(time=1e9, lat=95.0, lon=0.0)  # rejected: answered with an error naming the field
+    answers = []
+    for inline in (True, False):
+        with running(local_config(inline_fixes=inline), {"city": AMAP.graph}) as (_, port):
+            ch, api = stub(port)
+            got = list(api.StreamFixes(iter(requests([*fixes, bad], "same")), timeout=30))
+            snap = api.SnapFix(requests(fixes[:1], "single")[0], timeout=10)
+            ch.close()
+        assert len(got) == len(fixes) + 1 and got[-1].error.field == "fix.lat"
+        answers.append(([g.SerializeToString(deterministic=True) for g in got], snap.result.edge))
+    assert answers[0] == answers[1]

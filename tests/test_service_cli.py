@@ -177,6 +177,44 @@ def test_sigterm_shuts_down_gracefully(tmp_path):
             proc.wait()
 
 
+def test_processes_share_one_port_each_with_its_own_sessions(tmp_path):
+    proc, port = _serve_process(tmp_path, "--processes", "2")
+    try:
+        assert proc.stdout is not None
+        assert "2 server processes" in proc.stdout.readline()
+        servers: dict[str, list[pb.SnapResponse]] = {}
+        reqs = requests(drive(AMAP, "abc"), "multi")
+        for i in range(12):  # one TCP connection each: the kernel spreads them over the processes
+            ch, api = stub(port, options=[("grpc.use_local_subchannel_pool", 1)])
+            sid = api.ListMaps(pb.ListMapsRequest(), timeout=10).server_id
+            got = list(api.StreamFixes(iter(requests(drive(AMAP, "abc"), f"v{i}")), timeout=30))
+            assert len(got) == len(reqs) and not any(g.HasField("error") for g in got)
+            servers.setdefault(sid, []).extend(got)
+            ch.close()
+        assert len(servers) == 2, servers.keys()  # both processes served (1 in 2**11 to fail by chance)
+        proc.send_signal(signal.SIGTERM)
+        assert proc.wait(30) == 0
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+
+
+def test_a_second_server_on_a_port_in_use_exits_3_also_with_processes(tmp_path):
+    proc, port = _serve_process(tmp_path)
+    try:
+        path = tmp_path / "city.map"
+        env = {**os.environ, "PYTHONPATH": str(ROOT)}
+        cmd = [sys.executable, "-m", "mapmatch", "serve", "--map", f"city={path}",
+               "--address", f"127.0.0.1:{port}", "--processes", "2"]  # fmt: skip
+        out = subprocess.run(cmd, capture_output=True, text=True, env=env, cwd=ROOT, timeout=60)
+        assert out.returncode == 3
+        assert "address already in use" in out.stderr.strip().splitlines()[-1]
+    finally:
+        proc.kill()
+        proc.wait()
+
+
 # ---------------------------------------------------------------------------------- send
 def _fixes_csv(path: Path) -> None:
     lines = ["vehicle_id,time,lat,lon,heading,pos_sigma,speed,distance,gps_valid"]
