@@ -141,6 +141,8 @@ class OnlineMatcher:
             state.search_time = step.time
             own = dataclasses.replace(step, sigma=step.fix_sigma)
             hypotheses.add_alternatives(self.road, self.index, state, own, best, cfg)
+        elif step.stopped:
+            pass  # a stopped vehicle has not left its road, however far its fixes wander
         elif step.gps and (best.dist > o.soft_reinit_sigmas * step.sigma or against) and not searched:
             state.search_time = step.time
             hypotheses.add_alternatives(self.road, self.index, state, step, best, cfg)
@@ -165,6 +167,8 @@ class OnlineMatcher:
         if best.dist > o.reinit_sigmas * step.sigma:
             if math.isnan(state.bad_time):
                 state.bad_time, state.bad_odo = step.time, state.odo
+            elif step.stopped and not math.isnan(step.dt):
+                state.bad_time += step.dt  # the clock runs only while moving: fixes wander at a stop
             if step.time - state.bad_time >= o.reinit_time or state.odo - state.bad_odo >= o.reinit_distance:
                 hypotheses.initialise(self.road, self.index, state, step, cfg)
                 return True
