@@ -149,6 +149,10 @@ class OnlineConfig:
     scale_min_distance : metres; turn anchors closer than this teach nothing about the scale ...
     scale_max_distance : ... and further apart the path between them is more likely wrong.
     scale_path_error : relative error of a path's length between turn anchors.
+    scale_baseline : metres; the odometer scale is also learnt from the GPS: the straight line
+        between two GPS-aided fixes this far apart by the odometer, on a road whose bearing
+        stays within ``scale_straight_deg`` all the way (0 disables it).
+    scale_straight_deg : see ``scale_baseline``.
 
     Parallel roads and the return of GPS
     ------------------------------------
@@ -230,6 +234,8 @@ class OnlineConfig:
     scale_min_distance: float = 20.0
     scale_max_distance: float = 600.0
     scale_path_error: float = 0.005
+    scale_baseline: float = 300.0
+    scale_straight_deg: float = 3.0
 
     neighbour_band: float = 40.0
     neighbour_sigmas: float = 0.0

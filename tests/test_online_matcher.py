@@ -902,3 +902,21 @@ c-----------------------d
     moving = [dataclasses.replace(f, speed=1.0, distance=1.0) if f.time > t else f for f in fixes]
     res = run(OnlineMatcher(m.graph), moving)
     assert res[-1].edge == cd
+
+
+def test_odometer_scale_is_learnt_from_the_gps_on_a_straight_road() -> None:
+    # a straight road 3 km long without a single turn to anchor on; the odometer reads 2 %
+    # long: over straight baselines the GPS shows it (path metres = odometer * (1 + k))
+    #
+    #   a------------------------------------------------------------b   (3 km)
+    m = parse_ascii_map("a" + "-" * 59 + "b", scale=50)
+    fixes = [
+        dataclasses.replace(f, distance=f.distance * 1.02)
+        for f in drive(m, "ab", speed=20, noise=3.0, seed=4, sigma=5.0)
+    ]
+    st = SessionState()
+    run(OnlineMatcher(m.graph), fixes, st)
+    assert abs(st.odo_k - (1.0 / 1.02 - 1.0)) < 0.005
+    off = SessionState()
+    run(OnlineMatcher(m.graph, config=DEFAULT_CONFIG.replace(scale_baseline=0.0)), fixes, off)
+    assert off.odo_k == 0.0

@@ -165,6 +165,7 @@ class OnlineMatcher:
         o = cfg.online
         best = best_of(state.hyps)
         if best.dist > o.reinit_sigmas * step.sigma:
+            state.base = (math.nan, math.nan, math.nan, math.nan)  # no scale baseline off the road
             if math.isnan(state.bad_time):
                 state.bad_time, state.bad_odo = step.time, state.odo
             elif step.stopped and not math.isnan(step.dt):
@@ -177,4 +178,5 @@ class OnlineMatcher:
         if len(state.hyps) == 1 and not state.init_pending:
             bias.learn_residuals(state, best, step, cfg)
             bias.learn_bias(state, best, step, cfg)
+        anchor.learn_scale_gps(state, best, step, cfg)
         return False
