@@ -65,11 +65,12 @@ def _branches_close(
     if sep <= 0.0 or best.s - road.elen[best.edges[0]] >= o.ambiguous_max_radius:
         return False
     e1 = best.edges[1]
-    for h in state.hyps:
-        if (len(h.edges) < 2 or h.edges[1] != e1) and h.logp > -o.commit_hold_log_ratio:
-            if math.hypot(h.px - best.px, h.py - best.py) < sep:
-                return True
-    return False
+    return any(
+        (len(h.edges) < 2 or h.edges[1] != e1)
+        and h.logp > -o.commit_hold_log_ratio
+        and math.hypot(h.px - best.px, h.py - best.py) < sep
+        for h in state.hyps
+    )
 
 
 def _commit_start(
