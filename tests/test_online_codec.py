@@ -80,6 +80,8 @@ def test_version_1_is_migrated() -> None:
         "bk": d["back"],
     }
     old = SessionState.from_bytes(json.dumps(v1).encode())
+    assert all(math.isnan(v) for v in old.base)  # version 1 had no scale baseline: none yet
+    old.base = st.base
     assert old.to_bytes() == st.to_bytes()
     # the oldest layout (10-slot hypotheses, 3 odometer values) gets the defaults
     v1["h"] = [h[:10] for h in v1["h"]]
@@ -98,6 +100,8 @@ def test_version_1_is_migrated() -> None:
         (lambda d: d.update(res_pos2=-1.0), "state.res_pos2"),
         (lambda d: d.update(drift_sigma=-0.1), "state.drift_sigma"),
         (lambda d: d.update(drift_sigma=1.7e175), "state.drift_sigma"),  # its square overflows
+        (lambda d: d.update(base=[1.0, 2.0]), "state.base"),
+        (lambda d: d.update(base=[1.0, 2.0, "x", 4.0]), "state.base[2]"),
         (lambda d: d["bias"].update(pyy=1e200), "state.bias.pyy"),
         (lambda d: d.update(init_pending=1), "state.init_pending"),
         (lambda d: d.update(shown=1.5), "state.shown"),

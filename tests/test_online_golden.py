@@ -1,11 +1,13 @@
-"""The online matcher gives the same answers, fix for fix, as before its restructuring (#13).
+"""The online matcher gives the same answers, fix for fix, as the recorded ones.
 
-The before-outputs in ``tests/data/online_golden/before.json.gz`` were recorded with main at
-7ce485e (``python tests/online_golden.py record``): every ``SnapResult`` of the service tests'
-drives and of bench_online drives on shared maps, a session exported half way by the old code
-(imported here and replayed), and a few batch matches. The maps are built by the osmnx
-reference engine, whose edge order the recording used; way ids are not compared, since answers
-now name the way piece under the point (#15).
+The outputs in ``tests/data/online_golden/before.json.gz`` were first recorded with main at
+7ce485e, before the restructuring (#13), and recorded again on branch i12 (issue #12), whose
+rules change answers on purpose: a stopped vehicle keeps its road, the odometer scale is also
+learnt from the GPS on straight roads, the stop-line hold is 4 m (``python tests/online_golden.py
+record``). They hold every ``SnapResult`` of the service tests' drives and of bench_online drives
+on shared maps, a session exported half way (imported here and replayed), and a few batch
+matches. The maps are built by the osmnx reference engine, whose edge order the recording used;
+way ids are not compared, since answers now name the way piece under the point (#15).
 """
 
 from __future__ import annotations

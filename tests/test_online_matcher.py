@@ -869,3 +869,54 @@ def test_turn_anchor_re_times_the_turn_after_dead_reckoning_ran_ahead() -> None:
     c = revised[0]
     assert min(early) < c.edge_times[1] <= t_true  # moved towards the truth, never past it
     assert c.edge_at(max(early)) == ab and c.edge_at(t_true + 0.5) == bc
+
+
+def test_stopped_vehicle_stays_on_its_road_while_its_fixes_wander_to_another() -> None:
+    # a-b and c-d 20 m apart; the vehicle stops half-way along a-b for a minute and its fixes
+    # (real receivers do this at a standstill) drift to lie on c-d: it has not left its road
+    #
+    #   a----------o------------b      o: where it stops
+    #              :  fixes drift down to c-d while stopped
+    #   c----------x------------d
+    m = parse_ascii_map(
+        """
+a-----------------------b
+c-----------------------d
+""",
+        scale=20,
+    )
+    ab, cd = m.edge("a", "b"), m.edge("c", "d")
+    a, b, c = m.xy("a"), m.xy("b"), m.xy("c")
+    east = (b - a) / np.linalg.norm(b - a)
+    fixes = [f for f in drive(m, "ab", speed=5) if np.dot(to_xy_arr(m, f) - a, east) < 200.0]
+    t = fixes[-1].time
+    stop = a + 200.0 * east
+    down = c - a
+    for i in range(60):
+        drift = min(1.0, i / 10.0)  # 10 s to drift onto c-d, then 50 s there
+        fixes.append(_fix_at(m, stop + drift * down, t + 1 + i, 90.0, speed=0.0, distance=0.0))
+    res = run(OnlineMatcher(m.graph), fixes)
+    assert all(r.edge == ab for r in res[-60:])
+    assert all(r.state is not State.REINITIALISED for r in res)
+    # the same fixes from a vehicle that moves slowly: it has left a-b for c-d
+    moving = [dataclasses.replace(f, speed=1.0, distance=1.0) if f.time > t else f for f in fixes]
+    res = run(OnlineMatcher(m.graph), moving)
+    assert res[-1].edge == cd
+
+
+def test_odometer_scale_is_learnt_from_the_gps_on_a_straight_road() -> None:
+    # a straight road 3 km long without a single turn to anchor on; the odometer reads 2 %
+    # long: over straight baselines the GPS shows it (path metres = odometer * (1 + k))
+    #
+    #   a------------------------------------------------------------b   (3 km)
+    m = parse_ascii_map("a" + "-" * 59 + "b", scale=50)
+    fixes = [
+        dataclasses.replace(f, distance=f.distance * 1.02)
+        for f in drive(m, "ab", speed=20, noise=3.0, seed=4, sigma=5.0)
+    ]
+    st = SessionState()
+    run(OnlineMatcher(m.graph), fixes, st)
+    assert abs(st.odo_k - (1.0 / 1.02 - 1.0)) < 0.005
+    off = SessionState()
+    run(OnlineMatcher(m.graph, config=DEFAULT_CONFIG.replace(scale_baseline=0.0)), fixes, off)
+    assert off.odo_k == 0.0

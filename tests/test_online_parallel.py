@@ -184,3 +184,36 @@ def _offset(amap: AsciiMap, f: Fix, dx: float, dy: float) -> tuple[list[float], 
 
     x, y = point_to_xy(amap.graph.crs, f.lon, f.lat)
     return [x + dx], [y + dy]
+
+
+def _biased(g: RoadGraph, fixes: list[Fix], dy: float) -> list[Fix]:
+    from mapmatch.graph.projection import point_to_xy
+
+    out = []
+    for f in fixes:
+        x, y = point_to_xy(g.crs, f.lon, f.lat)
+        lon, lat = to_lonlat(g.crs, [x], [y + dy])[0]
+        out.append(dataclasses.replace(f, lon=float(lon), lat=float(lat)))
+    return out
+
+
+def test_ten_degree_fork_stays_open_until_the_branches_are_apart() -> None:
+    """The 10° exit with the GPS biased 5 m towards the other branch: the node is committed
+    only once the branches lie 2 σ apart, so the evidence, not the region's circle, decides
+    the branch, and fewer answers are on the wrong one than when the circle commits."""
+    g, e = _exit_map()
+    amap = AsciiMap(graph=g, nodes={"a": 0, "b": 1, "c": 2, "d": 3}, scale=1.0)
+    wrong = {}
+    for sep in (0.0, 2.0):
+        m = OnlineMatcher(g, config=DEFAULT_CONFIG.replace(commit_separation_sigmas=sep))
+        n = 0
+        for taken in (False, True):
+            route = "abd" if taken else "abc"
+            other = e["bc"] if taken else e["bd"]
+            for seed in range(6):
+                fixes = drive(amap, route, speed=25.0, sigma=4.0, noise=2.0, seed=seed, heading_noise=1.0)
+                res = run(m, _biased(g, fixes, 5.0 if taken else -5.0))
+                n += sum(r.edge == other for r in res)
+                assert res[-1].edge == (e["bd"] if taken else e["bc"])
+        wrong[sep] = n
+    assert wrong[2.0] <= 0.6 * wrong[0.0]

@@ -16,7 +16,7 @@ from mapmatch.graph.build import build_map
 from mapmatch.graph.projection import to_lonlat
 from mapmatch.online import OnlineMatcher
 from mapmatch.sim.drive import position_error, write_fixes_csv
-from mapmatch.sim.realgps import RealGpsConfig, real_drive
+from mapmatch.sim.realgps import RealGpsConfig, isotonic, real_drive
 
 ELL = """
 a---------------b
@@ -110,6 +110,36 @@ def test_track_gaps_are_dead_reckoned(tmp_path: Path) -> None:
     d = real_drive(amap.graph, tmp_path, rate_hz=1.0, outages=False)
     v = d.fixes["gps_valid"].to_numpy()
     assert len(v) == len(t) and not v[20:25].any() and v[:20].all()
+
+
+def test_truth_is_unknown_in_long_gaps_and_off_the_route(tmp_path: Path) -> None:
+    """A stretch parked 80 m off the road and a gap of 15 s in the track (the truth only holds a
+    place on the route there): those fixes are not known; a short gap, the fixes an injected
+    outage hides and the rest are."""
+    amap, pts, t = _ell_track(tmp_path)
+    pts = pts.copy()
+    pts[5:21] += [0.0, 80.0]  # 16 s in a yard north of a-b
+    keep = np.ones(len(t), dtype=bool)
+    keep[22:25] = False  # 4 s between fixes: interpolated
+    keep[26:41] = False  # 16 s without fixes
+    ll = to_lonlat(amap.graph.crs, pts[keep, 0], pts[keep, 1])
+    pd.DataFrame({"t": t[keep], "lat": ll[:, 1], "lon": ll[:, 0]}).to_csv(tmp_path / "track.csv", index=False)
+    d = real_drive(amap.graph, tmp_path, rate_hz=1.0, outages=[(41.0, 3.0)])
+    known = d.truth["truth_known"].to_numpy()
+    assert len(known) == len(t)
+    assert known[:5].all() and not known[5:21].any() and known[21:26].all()
+    assert not known[26:41].any() and known[41:].all()
+
+
+def test_isotonic_fit_does_not_carry_a_forward_excursion() -> None:
+    """A stop whose GPS wanders 10 m forward for one fix: the running maximum would hold the
+    vehicle 10 m ahead for the whole stop; the least-squares monotone fit moves it 1 m."""
+    y = np.array([0.0, 5.0, 10.0, 20.0, 10.0, 10.0, 10.0, 10.0, 10.0, 10.0, 10.0, 10.0, 30.0])
+    fit = isotonic(y)
+    assert np.all(np.diff(fit) >= 0.0)
+    assert np.allclose(fit[:3], y[:3]) and fit[-1] == 30.0
+    assert np.allclose(fit[3:12], 11.111111, atol=1e-5)
+    assert np.allclose(isotonic(np.arange(5.0)), np.arange(5.0))
 
 
 def test_bad_input_is_named(tmp_path: Path) -> None:

@@ -12,7 +12,7 @@ import numpy as np
 from mapmatch.config import MatchConfig
 from mapmatch.online.road import RoadModel
 from mapmatch.online.state import Hypothesis, SessionState, Step, TrailPoint
-from mapmatch.turns import align_headings, bearing_profile
+from mapmatch.turns import align_headings, angle_diff, bearing_profile
 from mapmatch.types import Correction
 
 
@@ -82,6 +82,46 @@ def learn_scale(
         return  # not the same path, or a bad anchor: learn nothing
     lim = 2.0 * math.sqrt(sv)
     nu = min(max(nu, -lim), lim)  # robust: one odd pair of anchors must not teach much
+    gain = kvar * dist / sv
+    state.odo_k = min(max(state.odo_k + gain * nu, -o.odo_scale_max), o.odo_scale_max)
+    state.odo_kvar = kvar * (1.0 - gain * dist)
+
+
+def learn_scale_gps(state: SessionState, best: Hypothesis, step: Step, cfg: MatchConfig) -> None:
+    """Kalman update of the odometer scale from the GPS on a straight road: the distance the
+    odometer gives between the two ends of a baseline against the straight line between the
+    fixes there (their slowly varying error mostly cancels; on a straight road the chord is
+    the path). The baseline starts again at every bend, without GPS or while the
+    dead-reckoning drift is still blending out."""
+    o = cfg.online
+    none = (math.nan, math.nan, math.nan, math.nan)
+    if o.scale_baseline <= 0.0:
+        return
+    if (
+        not (step.gps and step.odo_known)
+        or state.drift_sigma > 0.5 * step.fix_sigma
+        or math.isnan(best.bearing)
+        or (step.kappa > 0.0 and abs(angle_diff(step.heading, best.bearing)) > 4.0 * o.scale_straight_deg)
+    ):
+        state.base = none
+        return
+    b_odo, bx, by, b_brg = state.base
+    here = (state.odo, step.x, step.y, best.bearing)
+    if math.isnan(b_odo) or abs(angle_diff(best.bearing, b_brg)) > o.scale_straight_deg:
+        state.base = here
+        return
+    dist = state.odo - b_odo
+    if dist < o.scale_baseline:
+        return
+    state.base = here
+    nu = math.hypot(step.x - bx, step.y - by) - dist  # metres the odometer missed
+    kvar = odo_kvar(state, cfg)
+    r = 2.0 * step.fix_sigma**2 + (o.scale_path_error * dist) ** 2
+    sv = dist * dist * kvar + r
+    if nu * nu > 9.0 * sv:
+        return
+    lim = 2.0 * math.sqrt(sv)
+    nu = min(max(nu, -lim), lim)
     gain = kvar * dist / sv
     state.odo_k = min(max(state.odo_k + gain * nu, -o.odo_scale_max), o.odo_scale_max)
     state.odo_kvar = kvar * (1.0 - gain * dist)

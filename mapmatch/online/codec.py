@@ -50,6 +50,7 @@ def to_bytes(st: SessionState) -> bytes:
         "odo_k": st.odo_k,
         "odo_kvar": st.odo_kvar,
         "anc_odo": st.anc_odo,
+        "base": list(st.base),
         "anc_sd": st.anc_sd,
         "trail": [[round(p.time, 3), round(p.odo, 2)] for p in st.trail],
         "back": [[b.edge, b.time] for b in st.back],
@@ -234,6 +235,7 @@ def _decode(r: _Reader, n_edges: int | None) -> SessionState:
         odo_kvar=r.num("odo_kvar", nan=True, low=0.0),
         anc_odo=r.num("anc_odo", nan=True),
         anc_sd=r.num("anc_sd", nan=True, low=0.0),
+        base=_base(r),
         trail=[
             TrailPoint(_num(t, f"{r.name('trail')}[{i}]"), _num(o, f"{r.name('trail')}[{i}]"))
             for i, (t, o) in enumerate(_pairs(r.list_("trail"), r.name("trail")))
@@ -304,3 +306,14 @@ def _live(r: _Reader, n_edges: int | None) -> list[LiveFix]:
             )
         )
     return out
+
+
+def _base(r: _Reader) -> tuple[float, float, float, float]:
+    """The straight GPS baseline's start (absent in older blobs: none)."""
+    if "base" not in r.d:
+        return (_NAN, _NAN, _NAN, _NAN)
+    v = r.list_("base")
+    if len(v) != 4:
+        raise ValidationError(r.name("base"), "must hold 4 numbers")
+    o, x, y, b = (_num(e, f"{r.name('base')}[{i}]", nan=True) for i, e in enumerate(v))
+    return (o, x, y, b)

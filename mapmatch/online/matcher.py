@@ -141,6 +141,8 @@ class OnlineMatcher:
             state.search_time = step.time
             own = dataclasses.replace(step, sigma=step.fix_sigma)
             hypotheses.add_alternatives(self.road, self.index, state, own, best, cfg)
+        elif step.stopped:
+            pass  # a stopped vehicle has not left its road, however far its fixes wander
         elif step.gps and (best.dist > o.soft_reinit_sigmas * step.sigma or against) and not searched:
             state.search_time = step.time
             hypotheses.add_alternatives(self.road, self.index, state, step, best, cfg)
@@ -163,8 +165,11 @@ class OnlineMatcher:
         o = cfg.online
         best = best_of(state.hyps)
         if best.dist > o.reinit_sigmas * step.sigma:
+            state.base = (math.nan, math.nan, math.nan, math.nan)  # no scale baseline off the road
             if math.isnan(state.bad_time):
                 state.bad_time, state.bad_odo = step.time, state.odo
+            elif step.stopped and not math.isnan(step.dt):
+                state.bad_time += step.dt  # the clock runs only while moving: fixes wander at a stop
             if step.time - state.bad_time >= o.reinit_time or state.odo - state.bad_odo >= o.reinit_distance:
                 hypotheses.initialise(self.road, self.index, state, step, cfg)
                 return True
@@ -173,4 +178,5 @@ class OnlineMatcher:
         if len(state.hyps) == 1 and not state.init_pending:
             bias.learn_residuals(state, best, step, cfg)
             bias.learn_bias(state, best, step, cfg)
+        anchor.learn_scale_gps(state, best, step, cfg)
         return False

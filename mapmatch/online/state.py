@@ -126,6 +126,9 @@ class SessionState:
     odo_kvar: float = math.nan  # its variance (nan: the configured prior)
     anc_odo: float = math.nan  # odometer reading of the last turn anchor ...
     anc_sd: float = math.nan  # ... and its σ (m)
+    # the start of the straight GPS baseline the odometer scale is also learnt on:
+    # (odometer, x, y, road bearing); nan when none
+    base: tuple[float, float, float, float] = (math.nan, math.nan, math.nan, math.nan)
     # for revising straight crossings once the next turn tells where the vehicle was
     trail: list[TrailPoint] = field(default_factory=list)
     back: list[BackEdge] = field(default_factory=list)

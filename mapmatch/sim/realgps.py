@@ -16,9 +16,16 @@ Steps (:func:`real_drive`):
    last fixes lie.
 2. The true motion: each real fix is projected onto the route within a window ahead of the
    previous one (at most ``max_speed_mps`` times the time step, plus a little), the route
-   distances are smoothed over ``timing_smooth_s`` and made non-decreasing. This gives the
-   true route distance at every fix time; between fixes it is interpolated linearly. The true
-   heading is the route's tangent over ±``heading_base_m``.
+   distances are smoothed over ``timing_smooth_s`` and made non-decreasing by an isotonic
+   (least-squares) fit: a running maximum would carry the largest forward excursion of the
+   GPS through every stop. This gives the true route distance at every fix time; between
+   fixes it is interpolated linearly. The true heading is the route's tangent over
+   ±``heading_base_m``.
+   Where no fix lies within ``truth_radius_m`` of the route for longer than
+   ``truth_max_gap_s`` (a long gap in the track, or the vehicle off the mapped roads: parked
+   in a yard, before the true route begins or after it ends), the truth only holds a place on
+   the route: its ``truth_known`` column is false there and the benchmarks do not score the
+   road of those fixes.
 3. The fused output, on a base grid of 10 Hz, subsampled to 1 Hz:
 
    * **position with GPS**: the real fix; between two real fixes at most ``max_interp_gap_s``
@@ -92,6 +99,9 @@ class RealGpsConfig:
     random walk in deg/s/√s, both integrated only without GPS.
     Odometer: ``odo_scale_sigma`` residual scale error per drive, ``odo_noise_m`` white noise
     per output interval.
+    Truth: it is known where a real fix within ``truth_radius_m`` of the true route lies at
+    most ``truth_max_gap_s`` away in time on either side (else the vehicle's place on the
+    route is a guess).
     """
 
     max_speed_mps: float = 45.0
@@ -110,13 +120,22 @@ class RealGpsConfig:
     gyro_bias_walk_dps: float = 0.002
     odo_scale_sigma: float = 0.01
     odo_noise_m: float = 0.02
+    truth_radius_m: float = 50.0
+    truth_max_gap_s: float = 10.0
 
     def __post_init__(self) -> None:
         for f in fields(self):
             v = getattr(self, f.name)
             if not (isinstance(v, (int, float)) and math.isfinite(v) and v >= 0):
                 raise ValidationError(f.name, f"must be a finite number >= 0, got {v!r}")
-        for name in ("max_speed_mps", "timing_smooth_s", "heading_base_m", "max_interp_gap_s", "gps_sigma_m"):
+        for name in (
+            "max_speed_mps",
+            "timing_smooth_s",
+            "heading_base_m",
+            "max_interp_gap_s",
+            "gps_sigma_m",
+            "truth_radius_m",
+        ):
             if getattr(self, name) <= 0:
                 raise ValidationError(name, "must be > 0")
         for name in ("gps_sigma_time_s", "heading_bias_time_s"):
@@ -188,7 +207,8 @@ def fix_route_distance(
     ``max_speed_mps`` times the time step (plus 30 m), and costs ``jump_cost`` per metre (and
     ``back_cost`` per metre back), so a later pass of the same place is not taken early and an
     earlier one is not walked back along. Fixes with no candidate are interpolated
-    in time. The result is smoothed over ``timing_smooth_s`` and made non-decreasing.
+    in time. The result is smoothed over ``timing_smooth_s`` and made non-decreasing by an
+    isotonic fit (:func:`isotonic`).
     """
     segs = shapely.linestrings(np.stack([route.xy[:-1], route.xy[1:]], axis=1))
     pi, si = shapely.STRtree(segs).query(shapely.points(xy), predicate="dwithin", distance=radius_m)
@@ -244,7 +264,48 @@ def fix_route_distance(
     lo_i = np.searchsorted(t, t - w / 2.0, side="left")
     hi_i = np.searchsorted(t, t + w / 2.0, side="right")
     sm = (cs[hi_i] - cs[lo_i]) / np.maximum(hi_i - lo_i, 1)
-    return np.clip(np.maximum.accumulate(sm), 0.0, route.length)
+    return np.clip(isotonic(sm), 0.0, route.length)
+
+
+def isotonic(y: NDArray[np.float64]) -> NDArray[np.float64]:
+    """The non-decreasing sequence closest to ``y`` in least squares (pool adjacent violators)."""
+    means: list[float] = []
+    counts: list[int] = []
+    for v in np.asarray(y, dtype=np.float64).tolist():
+        m, c = v, 1
+        while means and means[-1] > m:
+            pm, pc = means.pop(), counts.pop()
+            m, c = (pm * pc + m * c) / (pc + c), pc + c
+        means.append(m)
+        counts.append(c)
+    return np.repeat(np.asarray(means), np.asarray(counts, dtype=np.int64))
+
+
+def truth_known(
+    route: Route,
+    xy: NDArray[np.float64],
+    t: NDArray[np.float64],
+    at: NDArray[np.float64],
+    *,
+    config: RealGpsConfig = DEFAULT_REALGPS,
+) -> NDArray[np.bool_]:
+    """Whether the truth is known at times ``at``: a fix (``xy`` at ``t``) within
+    ``truth_radius_m`` of the route lies at most ``truth_max_gap_s`` before and after."""
+    segs = shapely.linestrings(np.stack([route.xy[:-1], route.xy[1:]], axis=1))
+    tree = shapely.STRtree(segs)
+    pi, _ = tree.query(shapely.points(xy), predicate="dwithin", distance=config.truth_radius_m)
+    near = np.zeros(len(xy), dtype=bool)
+    near[pi] = True
+    tk = np.asarray(t, dtype=np.float64)[near]
+    if len(tk) == 0:
+        return np.zeros(len(at), dtype=bool)
+    j = np.searchsorted(tk, at, side="right")
+    prev = tk[np.maximum(j - 1, 0)]
+    nxt = tk[np.minimum(j, len(tk) - 1)]
+    w = config.truth_max_gap_s
+    exact = np.abs(prev - at) < 1e-6
+    inside = (j > 0) & (j < len(tk)) & (nxt - prev <= w)
+    return exact | inside
 
 
 def route_from_truth(graph: RoadGraph, xy: NDArray[np.float64], *, tol_m: float = 1.0) -> Route:
@@ -514,6 +575,7 @@ def real_drive(
         speed=speed[idx],
         gps_outage=~have[idx],  # injected outages and long track gaps
     )
+    truth["truth_known"] = truth_known(route, fix_xy, t_fix, ot, config=cfg)
     gll = to_lonlat(graph.crs, fix_xy[:, 0], fix_xy[:, 1])
     fix_in_out = np.zeros(len(t_fix), dtype=bool)
     for a, d in outs:
