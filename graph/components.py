@@ -52,7 +52,10 @@ def component_counts(n: int, src: NDArray[np.integer], dst: NDArray[np.integer])
     i_ptr = np.zeros(n + 1, dtype=np.int64)
     np.cumsum(np.bincount(a, minlength=n), out=o_ptr[1:])
     np.cumsum(np.bincount(b, minlength=n), out=i_ptr[1:])
-    return weak, int(_kosaraju(n, o_ptr, b[o_order], i_ptr, a[i_order]))
+    from mapmatch.kernels import for_size
+
+    kosaraju = for_size(_kosaraju, n + len(a))
+    return weak, int(kosaraju(n, o_ptr, b[o_order], i_ptr, a[i_order]))
 
 
 @njit(cache=True)

@@ -588,7 +588,10 @@ def _reverse_edges(
     n = int(max(u.max(), v.max())) + 1
     key = u.astype(np.int64) * n + v.astype(np.int64)
     order = np.argsort(key, kind="stable")
-    return _pair_reverses(key[order], order, u.astype(np.int64), v.astype(np.int64), n, seg, ptr)
+    from mapmatch.kernels import for_size
+
+    pair = for_size(_pair_reverses, e + len(seg))
+    return pair(key[order], order, u.astype(np.int64), v.astype(np.int64), n, seg, ptr)  # type: ignore[no-any-return]
 
 
 @njit(cache=True)

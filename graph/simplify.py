@@ -778,16 +778,18 @@ def simplify_arrays(raw: RawNetwork) -> Simplified:
         On a pattern osmnx cannot simplify either.
     """
     from mapmatch.graph.errors import GraphError
+    from mapmatch.kernels import for_size
 
     n = raw.n_nodes
+    size = n + raw.n_edges
     out_ptr, out_e = _csr_by(raw.edge_src, n)
     in_ptr, in_e = _csr_by(raw.edge_dst, n)
-    end = _endpoints(n, raw.edge_src, raw.edge_dst, out_ptr, out_e, in_ptr, in_e)
+    end = for_size(_endpoints, size)(n, raw.edge_src, raw.edge_dst, out_ptr, out_e, in_ptr, in_e)
     keep = ring_keep(raw, end)
     if keep.any():
         log.info("kept %d isolated rings as two edges each", int(keep.sum()) // 2)
     end = end | keep
-    pptr, pnodes, pedges, status = _paths(n, raw.edge_dst, out_ptr, out_e, end)
+    pptr, pnodes, pedges, status = for_size(_paths, size)(n, raw.edge_dst, out_ptr, out_e, end)
     if status < 0:
         raise GraphError("the road network has a pattern that cannot be simplified")
     # interior nodes go; raw edges between remaining nodes stay as they are

@@ -8,26 +8,50 @@ cached yet. The online matcher has no compiled kernels; ``simulate`` needs the f
 
 ``python -m mapmatch.kernels [GROUP...]`` compiles groups ahead of time (a container build
 does it, so a container's first start is warm).
+
+A kernel that runs once per job on an input of a size the job chose (a map's nodes, a route's
+metres) goes through :func:`for_size`: on a small input it runs as plain Python (the same code,
+so the same results), which takes milliseconds where compiling takes seconds.
 """
 
 from __future__ import annotations
 
 import importlib
 import os
+import subprocess
 import sys
 import time
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
+from pathlib import Path
 from typing import Any, TextIO
 
 GROUPS: dict[str, tuple[str, ...]] = {
-    "simulator": ("mapmatch.sim.kalman", "mapmatch.sim.profile"),
+    "simulator": ("mapmatch.sim.kalman:_ekf",),
     "batch": ("mapmatch.batch", "mapmatch.routing", "mapmatch.gridindex", "mapmatch.model"),
 }
-"""Kernel groups: the modules whose compiled functions a kind of job uses."""
+"""Kernel groups: the compiled functions a kind of job uses, as modules (all their kernels) or
+``module:kernel`` (that kernel, with what it calls: the filter's map-aided update compiles only
+for a closed loop). Kernels called through :func:`for_size`, which compile only for large
+inputs, are in none."""
 
-COMPILE_SECONDS: dict[str, float] = {"simulator": 10.0, "batch": 60.0}
+COMPILE_SECONDS: dict[str, float] = {"simulator": 8.0, "batch": 60.0}
 """About how long (CPU seconds) a group takes to compile on the 2-core development machine."""
 
+PYTHON_MAX_ITEMS = 50_000
+"""Inputs of up to this many items run a kernel as plain Python (:func:`for_size`); about
+0.2 s at that size on the development machine, against 1-3 s to compile each kernel."""
+
 _announced: set[str] = set()
+
+
+def for_size(kernel: Any, items: int) -> Callable[..., Any]:
+    """``kernel`` (a numba dispatcher) for an input of ``items`` items: its Python function when
+    the input is small (no compile; the same code, so the same results), else the compiled kernel.
+
+    Only for kernels that call no other compiled function (those would compile anyway).
+    """
+    return kernel.py_func if items <= PYTHON_MAX_ITEMS else kernel  # type: ignore[no-any-return]
 
 
 def dispatchers(group: str) -> list[Any]:
@@ -35,9 +59,13 @@ def dispatchers(group: str) -> list[Any]:
     from numba.core.registry import CPUDispatcher
 
     out = []
-    for name in GROUPS[group]:
+    for entry in GROUPS[group]:
+        name, _, kernel = entry.partition(":")
         mod = importlib.import_module(name)
-        out += [v for v in vars(mod).values() if isinstance(v, CPUDispatcher) and v.__module__ == name]
+        if kernel:
+            out.append(getattr(mod, kernel))
+        else:
+            out += [v for v in vars(mod).values() if isinstance(v, CPUDispatcher) and v.__module__ == name]
     return out
 
 
@@ -69,6 +97,52 @@ def announce(group: str, *, stream: TextIO | None = None) -> bool:
         flush=True,
     )
     return True
+
+
+BACKGROUND_WAIT_SECONDS = 300.0
+"""How long :func:`compiling_in_background` waits for its child before compiling in process."""
+
+
+@contextmanager
+def compiling_in_background(group: str) -> Iterator[Callable[[], bool]]:
+    """Compile a group's kernels into the on-disk cache in a child process, while this one
+    does other work (the machine's second core); yields ``ready()``, to call before the first
+    use of the group: it waits for the child, whose kernels this process then loads from the
+    cache. Returns whether a child ran to the end.
+
+    Nothing starts when the group is cached already. Should the child fail, take longer than
+    :data:`BACKGROUND_WAIT_SECONDS` or not save its kernels (an unwritable cache), this process
+    compiles them on first use as it would without a child: the results are the same. The child
+    is stopped if the block is left before ``ready()``.
+    """
+    child: subprocess.Popen[bytes] | None = None
+    if not is_cached(group):
+        package_root = str(Path(__file__).resolve().parents[1])  # the child imports this mapmatch
+        path = os.pathsep.join(filter(None, [package_root, os.environ.get("PYTHONPATH")]))
+        child = subprocess.Popen(
+            [sys.executable, "-m", "mapmatch.kernels", group],
+            stdin=subprocess.DEVNULL,
+            stdout=subprocess.DEVNULL,
+            stderr=subprocess.DEVNULL,
+            env=dict(os.environ, PYTHONPATH=path),
+        )
+
+    def ready() -> bool:
+        if child is None:
+            return False
+        try:
+            return child.wait(timeout=BACKGROUND_WAIT_SECONDS) == 0
+        except subprocess.TimeoutExpired:
+            child.kill()
+            child.wait()
+            return False
+
+    try:
+        yield ready
+    finally:
+        if child is not None and child.poll() is None:
+            child.kill()
+            child.wait()
 
 
 def compile_group(group: str) -> float:

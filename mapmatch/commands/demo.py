@@ -10,7 +10,7 @@ from __future__ import annotations
 import argparse
 import sys
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from pathlib import Path
 
 from mapmatch.cli import CommandError
@@ -42,19 +42,35 @@ def _step(msg: str, t0: float) -> None:
     print(f"[{time.perf_counter() - t0:5.1f} s] {msg}", file=sys.stderr, flush=True)
 
 
+def _preload_drawing() -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot
+
+
 def run(args: argparse.Namespace) -> int:
+    from mapmatch.kernels import compiling_in_background
+
+    if args.length_km <= 0:
+        raise CommandError("--length-km must be positive")
+    # on a first run the simulator's kernels compile in a child process while this one
+    # prepares the map and starts the server
+    with compiling_in_background("simulator") as kernels_ready:
+        return _demo(args, kernels_ready)
+
+
+def _demo(args: argparse.Namespace, kernels_ready: Callable[[], bool]) -> int:
+    from mapmatch.extras import require
+
+    for module in ("pyrosm", "matplotlib", "folium"):
+        require(module, extra="demo", needed_for="mapmatch demo")
     from mapmatch.service.client import MapMatchClient
     from mapmatch.service.config import ServerConfig
     from mapmatch.service.server import start_server
     from mapmatch.sim.demo import demo_drive, evaluate_and_draw, prepare_helsinki
     from mapmatch.types import Fix, SnapResult
 
-    if args.length_km <= 0:
-        raise CommandError("--length-km must be positive")
-    from mapmatch.extras import require
-
-    for module in ("pyrosm", "matplotlib", "folium"):
-        require(module, extra="demo", needed_for="mapmatch demo")
     t0 = time.perf_counter()
     out: Path = args.out
     out.mkdir(parents=True, exist_ok=True)
@@ -64,12 +80,16 @@ def run(args: argparse.Namespace) -> int:
     size = f"{s['nodes']} intersections, {s['edges']} edges, {s['road_km']:.1f} km of road"
     _step(f"map {map_path}: {size}", t0)
 
-    _step(f"simulating a {args.length_km:g} km fused drive with GPS outage(s) {args.outage}", t0)
-    drive = demo_drive(graph, seed=args.seed, length_km=args.length_km, outages=args.outage, rate=args.rate)
-
     server, port = start_server(ServerConfig(address="127.0.0.1:0"), {"helsinki": map_path})
     try:
-        _step(f"gRPC server on 127.0.0.1:{port} is SERVING; streaming {len(drive.fixes)} fixes", t0)
+        _step(f"gRPC server on 127.0.0.1:{port} is SERVING", t0)
+        _step(f"simulating a {args.length_km:g} km fused drive with GPS outage(s) {args.outage}", t0)
+        _preload_drawing()  # while the kernels may still be compiling
+        kernels_ready()
+        drive = demo_drive(
+            graph, seed=args.seed, length_km=args.length_km, outages=args.outage, rate=args.rate
+        )
+        _step(f"streaming {len(drive.fixes)} fixes through the server", t0)
 
         def snap(fixes: Sequence[Fix]) -> list[SnapResult | None]:
             with MapMatchClient(f"127.0.0.1:{port}") as client:
