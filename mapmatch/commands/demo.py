@@ -65,6 +65,7 @@ def _demo(args: argparse.Namespace, kernels_ready: Callable[[], bool]) -> int:
 
     for module in ("pyrosm", "matplotlib", "folium"):
         require(module, extra="demo", needed_for="mapmatch demo")
+    from mapmatch.evaluate import Metrics
     from mapmatch.service.client import MapMatchClient
     from mapmatch.service.config import ServerConfig
     from mapmatch.service.server import start_server
@@ -101,11 +102,14 @@ def _demo(args: argparse.Namespace, kernels_ready: Callable[[], bool]) -> int:
                 raise CommandError(f"the server rejected {len(bad)} fix(es): {e.field}: {e.message}")
             return [a.result for a in answers]
 
-        report = evaluate_and_draw(graph, drive, snap, out, vehicle_id="demo-1")
+        def show(metrics: Metrics) -> None:
+            print(metrics.table(), flush=True)
+            _step("drawing the pictures", t0)
+
+        report = evaluate_and_draw(graph, drive, snap, out, vehicle_id="demo-1", on_metrics=show)
     finally:
         server.stop(grace=2.0)
     _step("done", t0)
-    print(report.metrics.table())
     for label, path in (
         ("picture (PNG)", report.png),
         ("interactive map (HTML)", report.html),

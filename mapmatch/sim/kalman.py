@@ -170,11 +170,11 @@ def _update(X, P, h, nu, r):  # type: ignore[no-untyped-def]
     n = len(X)
     ph = _matvec(P, h)
     s = _quad(h, P, h) + r
-    kg = ph / s
-    for a in range(n):
-        X[a] += kg[a] * nu
+    for a in range(n):  # element-wise: an array expression costs seconds to compile
+        kg = ph[a] / s
+        X[a] += kg * nu
         for b in range(n):
-            P[a, b] -= kg[a] * ph[b]
+            P[a, b] -= kg * ph[b]
 
 
 class Streams(NamedTuple):
@@ -345,7 +345,7 @@ def _ekf(k0, k1, c, st, p, m, o):  # type: ignore[no-untyped-def]
     P = c.P
     ns = len(X)
     out, var, cxy, used, rejected = o.state, o.var, o.cxy, o.used, o.rejected
-    F = np.eye(ns)
+    F = np.zeros((ns, ns))  # set at every step
     FP = np.zeros((ns, ns))
     h_pos = np.zeros((2, ns))
     h_pos[0, 0] = 1.0
@@ -379,9 +379,9 @@ def _ekf(k0, k1, c, st, p, m, o):  # type: ignore[no-untyped-def]
             X[5] *= a_gps
             X[6] *= a_gps
             X[7] *= a_comp
-            F[:, :] = 0.0
             for a in range(ns):
-                F[a, a] = 1.0
+                for b in range(ns):
+                    F[a, b] = 1.0 if a == b else 0.0
             F[0, 2] = d * cs
             F[0, 3] = -0.5 * dt * d * cs
             F[0, 4] = d0 * sn
@@ -610,9 +610,7 @@ def filter_setup(sensors: SensorData, *, config: KalmanConfig = DEFAULT_KALMAN) 
     return FilterSetup(t, streams, params, x0, p0)
 
 
-def run_steps(
-    setup: FilterSetup, carry: Carry, aid: MapAid | None, out: Outputs, k0: int, k1: int
-) -> None:
+def run_steps(setup: FilterSetup, carry: Carry, aid: MapAid | None, out: Outputs, k0: int, k1: int) -> None:
     """Run the filter over steps ``k0 .. k1 - 1`` (carry and outputs updated in place);
     ``aid`` None: no map-aided measurement at any step (the open loop)."""
     _ekf(k0, k1, carry, setup.streams, setup.params, aid, out)
