@@ -103,17 +103,45 @@ BACKGROUND_WAIT_SECONDS = 300.0
 """How long :func:`compiling_in_background` waits for its child before compiling in process."""
 
 
+class BackgroundCompile:
+    """A group's kernels compiling in a child process (see :func:`compiling_in_background`)."""
+
+    def __init__(self, child: subprocess.Popen[bytes] | None) -> None:
+        self.child = child
+
+    def running(self) -> bool:
+        """Whether the child is still compiling."""
+        return self.child is not None and self.child.poll() is None
+
+    def wait(self) -> bool:
+        """Wait for the child; whether it compiled and saved the group (False: no child ran,
+        it failed, or it took longer than :data:`BACKGROUND_WAIT_SECONDS` and was stopped)."""
+        if self.child is None:
+            return False
+        try:
+            return self.child.wait(timeout=BACKGROUND_WAIT_SECONDS) == 0
+        except subprocess.TimeoutExpired:
+            self.stop()
+            return False
+
+    def stop(self) -> None:
+        """Stop the child if it is still running."""
+        if self.running():
+            assert self.child is not None
+            self.child.kill()
+            self.child.wait()
+
+
 @contextmanager
-def compiling_in_background(group: str) -> Iterator[Callable[[], bool]]:
-    """Compile a group's kernels into the on-disk cache in a child process, while this one
-    does other work (the machine's second core); yields ``ready()``, to call before the first
-    use of the group: it waits for the child, whose kernels this process then loads from the
-    cache. Returns whether a child ran to the end.
+def compiling_in_background(group: str) -> Iterator[BackgroundCompile]:
+    """Compile a group's kernels into the on-disk cache in a child process while this one does
+    other work (on the machine's second core). Call ``wait()`` on what it yields before the
+    group's first use: this process then loads the kernels from the cache.
 
     Nothing starts when the group is cached already. Should the child fail, take longer than
     :data:`BACKGROUND_WAIT_SECONDS` or not save its kernels (an unwritable cache), this process
     compiles them on first use as it would without a child: the results are the same. The child
-    is stopped if the block is left before ``ready()``.
+    is stopped when the block is left.
     """
     child: subprocess.Popen[bytes] | None = None
     if not is_cached(group):
@@ -126,23 +154,11 @@ def compiling_in_background(group: str) -> Iterator[Callable[[], bool]]:
             stderr=subprocess.DEVNULL,
             env=dict(os.environ, PYTHONPATH=path),
         )
-
-    def ready() -> bool:
-        if child is None:
-            return False
-        try:
-            return child.wait(timeout=BACKGROUND_WAIT_SECONDS) == 0
-        except subprocess.TimeoutExpired:
-            child.kill()
-            child.wait()
-            return False
-
+    background = BackgroundCompile(child)
     try:
-        yield ready
+        yield background
     finally:
-        if child is not None and child.poll() is None:
-            child.kill()
-            child.wait()
+        background.stop()
 
 
 def compile_group(group: str) -> float:

@@ -13,6 +13,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 from conftest import helsinki_pbf
+from test_sim_demo import GRID  # the demo tests' map
 
 import mapmatch.kernels as kernels
 from mapmatch.graph.ascii import parse_ascii_map
@@ -23,13 +24,6 @@ from mapmatch.sim.kalman import filter_setup, new_carry, new_outputs, no_map_aid
 from mapmatch.sim.profile import _limit_accel
 
 ROOT = Path(__file__).resolve().parents[1]
-GRID = """
-a-------b-------c-------d
-|       |       |       |
-e-------f-------g-------h
-|       |       |       |
-i-------j-------k-------l
-"""
 
 
 def _same_graph(a: RoadGraph, b: RoadGraph) -> None:
@@ -95,8 +89,8 @@ def test_background_compile_is_loaded_from_the_cache(tmp_path: Path) -> None:
         from mapmatch.graph.ascii import parse_ascii_map
         from mapmatch.sim.demo import demo_drive
 
-        with k.compiling_in_background("simulator") as ready:
-            ran = ready()
+        with k.compiling_in_background("simulator") as background:
+            ran = background.wait()
             g = parse_ascii_map("a-------b-------c\\n|       |\\nd-------e", scale=25.0).graph
             demo_drive(g, length_km=0.3, outages="none", seed=1)
         print(ran, k.is_cached("simulator"), sum(kalman._ekf._cache_hits.values()),
@@ -121,8 +115,8 @@ def test_a_failed_background_compile_leaves_the_compile_to_the_caller(
 ) -> None:
     monkeypatch.setattr(kernels, "is_cached", lambda group: False)
     monkeypatch.setattr(sys, "executable", "/bin/false")
-    with kernels.compiling_in_background("simulator") as ready:
-        assert ready() is False
+    with kernels.compiling_in_background("simulator") as background:
+        assert background.wait() is False
 
 
 def test_the_child_is_stopped_when_the_caller_gives_up(
@@ -134,7 +128,8 @@ def test_the_child_is_stopped_when_the_caller_gives_up(
     stub.chmod(0o755)
     monkeypatch.setattr(kernels, "is_cached", lambda group: False)
     monkeypatch.setattr(sys, "executable", str(stub))
-    with pytest.raises(KeyError), kernels.compiling_in_background("simulator"):
+    with pytest.raises(KeyError), kernels.compiling_in_background("simulator") as background:
+        assert background.running()
         for _ in range(100):
             if pidfile.exists() and pidfile.read_text().strip():
                 break
@@ -143,3 +138,11 @@ def test_the_child_is_stopped_when_the_caller_gives_up(
     pid = int(pidfile.read_text())
     with pytest.raises(ProcessLookupError):
         os.kill(pid, 0)
+
+
+def test_the_demo_checks_its_extras_without_importing_them() -> None:
+    from mapmatch.extras import MissingExtraError, require_installed
+
+    require_installed("json", "pyrosm", extra="demo", needed_for="mapmatch demo")
+    with pytest.raises(MissingExtraError, match=r"needs no_such_xyz, .*pip install 'mapmatch\[demo\]'"):
+        require_installed("json", "no_such_xyz", extra="demo", needed_for="mapmatch demo")

@@ -10,10 +10,14 @@ from __future__ import annotations
 import argparse
 import sys
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from mapmatch.cli import CommandError
+
+if TYPE_CHECKING:
+    from mapmatch.kernels import BackgroundCompile
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
@@ -43,6 +47,7 @@ def _step(msg: str, t0: float) -> None:
 
 
 def _preload_drawing() -> None:
+    import folium  # noqa: F401
     import matplotlib
 
     matplotlib.use("Agg")
@@ -56,15 +61,14 @@ def run(args: argparse.Namespace) -> int:
         raise CommandError("--length-km must be positive")
     # on a first run the simulator's kernels compile in a child process while this one
     # prepares the map and starts the server
-    with compiling_in_background("simulator") as kernels_ready:
-        return _demo(args, kernels_ready)
+    from mapmatch.extras import require_installed
+
+    require_installed("pyrosm", "matplotlib", "folium", extra="demo", needed_for="mapmatch demo")
+    with compiling_in_background("simulator") as kernels:
+        return _demo(args, kernels)
 
 
-def _demo(args: argparse.Namespace, kernels_ready: Callable[[], bool]) -> int:
-    from mapmatch.extras import require
-
-    for module in ("pyrosm", "matplotlib", "folium"):
-        require(module, extra="demo", needed_for="mapmatch demo")
+def _demo(args: argparse.Namespace, kernels: BackgroundCompile) -> int:
     from mapmatch.evaluate import Metrics
     from mapmatch.service.client import MapMatchClient
     from mapmatch.service.config import ServerConfig
@@ -85,8 +89,9 @@ def _demo(args: argparse.Namespace, kernels_ready: Callable[[], bool]) -> int:
     try:
         _step(f"gRPC server on 127.0.0.1:{port} is SERVING", t0)
         _step(f"simulating a {args.length_km:g} km fused drive with GPS outage(s) {args.outage}", t0)
-        _preload_drawing()  # while the kernels may still be compiling
-        kernels_ready()
+        if kernels.running():
+            _preload_drawing()  # while waiting (else after the table)
+        kernels.wait()
         drive = demo_drive(
             graph, seed=args.seed, length_km=args.length_km, outages=args.outage, rate=args.rate
         )
