@@ -7,7 +7,8 @@ copy again. Each step runs as its own process, one after the other. The demo is 
 table (the first table line on stdout) and to its exit. Prints wall and CPU seconds and the
 machine's load average, which decides the wall times on a shared machine.
 
-    python bench/bench_first_minute.py [--monaco PATH.osm.pbf] [--skip-demo] [--skip-serve] [--repeat N]
+    python bench/bench_first_minute.py [--monaco PATH.osm.pbf] [--skip-demo] [--skip-serve] [--skip-batch]
+                                       [--repeat N]
 """
 
 from __future__ import annotations
@@ -124,6 +125,9 @@ def main() -> int:
     ap.add_argument("--monaco", type=Path, default=MONACO)
     ap.add_argument("--skip-demo", action="store_true")
     ap.add_argument("--skip-serve", action="store_true")
+    ap.add_argument(
+        "--skip-batch", action="store_true", help="no serve row with batch kernels compiled (long)"
+    )
     ap.add_argument("--repeat", type=int, default=1, help="cold/warm pairs of the demo, each on a fresh copy")
     args = ap.parse_args()
 
@@ -150,7 +154,8 @@ def main() -> int:
                 env=_env(work / "numba-prep"), check=True, stdout=subprocess.DEVNULL,
             )  # fmt: skip
             tree = fresh_tree(work / "tree-serve")
-            for label in ("cold", "warm", "warm, batch kernels compiled"):
+            labels = ("cold", "warm") if args.skip_batch else ("cold", "warm", "warm, batch kernels compiled")
+            for label in labels:
                 cache = None
                 if label.endswith("compiled"):  # a machine that has matched tracks before
                     cache = ROOT / ".bench-numba-cache"
