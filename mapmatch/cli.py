@@ -11,6 +11,7 @@ start-up are instant and clean.
 from __future__ import annotations
 
 import argparse
+import gc
 import importlib
 import logging
 import sys
@@ -115,6 +116,7 @@ def _fail(command: str, message: str, code: int) -> int:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
+    """Run the ``mapmatch`` command on ``argv`` (default: the process's arguments); the exit status."""
     command = "?"
     try:
         parser = build_parser()
@@ -126,6 +128,11 @@ def main(argv: Sequence[str] | None = None) -> int:
     except KeyboardInterrupt:
         print(f"mapmatch {command}: interrupted", file=sys.stderr)
         return EXIT_INTERRUPTED
+    finally:
+        if argv is None:
+            # the process exits next: its teardown would run full garbage collections over
+            # every object left (seconds after a demo); frozen objects are not scanned
+            gc.freeze()
 
 
 def _run(args: argparse.Namespace) -> int:

@@ -12,6 +12,7 @@ extra      installs                                       needed by
 from __future__ import annotations
 
 import importlib
+import importlib.util
 from types import ModuleType
 
 from mapmatch.errors import MatchError
@@ -32,3 +33,13 @@ def require(module: str, *, extra: str, needed_for: str) -> ModuleType:
         raise MissingExtraError(
             f"{needed_for} needs {top}, which is not installed: pip install 'mapmatch[{extra}]'"
         ) from None
+
+
+def require_installed(*modules: str, extra: str, needed_for: str) -> None:
+    """Raise :class:`MissingExtraError` as :func:`require` does when a top-level module is not
+    installed, without importing any (a quick check before a long job that imports them later)."""
+    for module in modules:
+        if importlib.util.find_spec(module) is None:
+            raise MissingExtraError(
+                f"{needed_for} needs {module}, which is not installed: pip install 'mapmatch[{extra}]'"
+            )

@@ -12,8 +12,12 @@ import sys
 import time
 from collections.abc import Sequence
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from mapmatch.cli import CommandError
+
+if TYPE_CHECKING:
+    from mapmatch.kernels import BackgroundCompile
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
@@ -42,19 +46,36 @@ def _step(msg: str, t0: float) -> None:
     print(f"[{time.perf_counter() - t0:5.1f} s] {msg}", file=sys.stderr, flush=True)
 
 
+def _preload_drawing() -> None:
+    import folium  # noqa: F401
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot
+
+
 def run(args: argparse.Namespace) -> int:
+    from mapmatch.kernels import compiling_in_background
+
+    if args.length_km <= 0:
+        raise CommandError("--length-km must be positive")
+    # on a first run the simulator's kernels compile in a child process while this one
+    # prepares the map and starts the server
+    from mapmatch.extras import require_installed
+
+    require_installed("pyrosm", "matplotlib", "folium", extra="demo", needed_for="mapmatch demo")
+    with compiling_in_background("simulator") as kernels:
+        return _demo(args, kernels)
+
+
+def _demo(args: argparse.Namespace, kernels: BackgroundCompile) -> int:
+    from mapmatch.evaluate import Metrics
     from mapmatch.service.client import MapMatchClient
     from mapmatch.service.config import ServerConfig
     from mapmatch.service.server import start_server
     from mapmatch.sim.demo import demo_drive, evaluate_and_draw, prepare_helsinki
     from mapmatch.types import Fix, SnapResult
 
-    if args.length_km <= 0:
-        raise CommandError("--length-km must be positive")
-    from mapmatch.extras import require
-
-    for module in ("pyrosm", "matplotlib", "folium"):
-        require(module, extra="demo", needed_for="mapmatch demo")
     t0 = time.perf_counter()
     out: Path = args.out
     out.mkdir(parents=True, exist_ok=True)
@@ -64,12 +85,17 @@ def run(args: argparse.Namespace) -> int:
     size = f"{s['nodes']} intersections, {s['edges']} edges, {s['road_km']:.1f} km of road"
     _step(f"map {map_path}: {size}", t0)
 
-    _step(f"simulating a {args.length_km:g} km fused drive with GPS outage(s) {args.outage}", t0)
-    drive = demo_drive(graph, seed=args.seed, length_km=args.length_km, outages=args.outage, rate=args.rate)
-
     server, port = start_server(ServerConfig(address="127.0.0.1:0"), {"helsinki": map_path})
     try:
-        _step(f"gRPC server on 127.0.0.1:{port} is SERVING; streaming {len(drive.fixes)} fixes", t0)
+        _step(f"gRPC server on 127.0.0.1:{port} is SERVING", t0)
+        _step(f"simulating a {args.length_km:g} km fused drive with GPS outage(s) {args.outage}", t0)
+        if kernels.running():
+            _preload_drawing()  # while waiting (else after the table)
+        kernels.wait()
+        drive = demo_drive(
+            graph, seed=args.seed, length_km=args.length_km, outages=args.outage, rate=args.rate
+        )
+        _step(f"streaming {len(drive.fixes)} fixes through the server", t0)
 
         def snap(fixes: Sequence[Fix]) -> list[SnapResult | None]:
             with MapMatchClient(f"127.0.0.1:{port}") as client:
@@ -81,11 +107,14 @@ def run(args: argparse.Namespace) -> int:
                 raise CommandError(f"the server rejected {len(bad)} fix(es): {e.field}: {e.message}")
             return [a.result for a in answers]
 
-        report = evaluate_and_draw(graph, drive, snap, out, vehicle_id="demo-1")
+        def show(metrics: Metrics) -> None:
+            print(metrics.table(), flush=True)
+            _step("drawing the pictures", t0)
+
+        report = evaluate_and_draw(graph, drive, snap, out, vehicle_id="demo-1", on_metrics=show)
     finally:
         server.stop(grace=2.0)
     _step("done", t0)
-    print(report.metrics.table())
     for label, path in (
         ("picture (PNG)", report.png),
         ("interactive map (HTML)", report.html),

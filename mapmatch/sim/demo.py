@@ -85,8 +85,12 @@ def evaluate_and_draw(
     *,
     tolerance_m: float = 2.0,
     vehicle_id: str = "demo-1",
+    on_metrics: Callable[[Metrics], None] | None = None,
 ) -> DemoReport:
-    """Match the drive with ``snap``, score it, and write CSVs, a PNG and an HTML map to ``out_dir``."""
+    """Match the drive with ``snap``, score it, and write CSVs, a PNG and an HTML map to ``out_dir``.
+
+    ``on_metrics`` is called with the score before the pictures are drawn (to show it sooner).
+    """
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     fixes = drive.fix_objects()
@@ -107,6 +111,8 @@ def evaluate_and_draw(
         fixes=drive.fixes,
         tolerance_m=tolerance_m,
     )
+    if on_metrics is not None:
+        on_metrics(metrics)
     data = plot_data(
         graph, route_xy=drive.route.xy, fixes=drive.fixes, matched=matched, truth=drive.truth, gps=drive.gps
     )

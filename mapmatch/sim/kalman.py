@@ -170,11 +170,11 @@ def _update(X, P, h, nu, r):  # type: ignore[no-untyped-def]
     n = len(X)
     ph = _matvec(P, h)
     s = _quad(h, P, h) + r
-    kg = ph / s
-    for a in range(n):
-        X[a] += kg[a] * nu
+    for a in range(n):  # element-wise: an array expression costs seconds to compile
+        kg = ph[a] / s
+        X[a] += kg * nu
         for b in range(n):
-            P[a, b] -= kg[a] * ph[b]
+            P[a, b] -= kg * ph[b]
 
 
 class Streams(NamedTuple):
@@ -335,7 +335,8 @@ def _map_update(X, P, k, m, out, gate_cross, gate_pos, gate_ang, inflate):  # ty
 @njit(cache=True)
 def _ekf(k0, k1, c, st, p, m, o):  # type: ignore[no-untyped-def]
     """Run the filter over steps ``k0 .. k1 - 1`` from carry ``c`` (updated in place), writing
-    ``o`` (:class:`Outputs`); ``st`` :class:`Streams`, ``p`` :class:`Params`, ``m`` :class:`MapAid`."""
+    ``o`` (:class:`Outputs`); ``st`` :class:`Streams`, ``p`` :class:`Params`, ``m`` :class:`MapAid`
+    or None (none at any step: numba then leaves the map-aided update out of this compile)."""
     dtheta, dodo, comp, gx, gy, gsig, gcourse, gcsig = st
     dt, q, r_comp, a_comp, q_comp, share, a_gps = p.dt, p.q, p.r_comp, p.a_comp, p.q_comp, p.share, p.a_gps
     white_steps, smooth_steps, gate_share, gate_pos = p.white_steps, p.smooth_steps, p.gate_share, p.gate_pos
@@ -344,7 +345,7 @@ def _ekf(k0, k1, c, st, p, m, o):  # type: ignore[no-untyped-def]
     P = c.P
     ns = len(X)
     out, var, cxy, used, rejected = o.state, o.var, o.cxy, o.used, o.rejected
-    F = np.eye(ns)
+    F = np.zeros((ns, ns))  # set at every step
     FP = np.zeros((ns, ns))
     h_pos = np.zeros((2, ns))
     h_pos[0, 0] = 1.0
@@ -378,9 +379,9 @@ def _ekf(k0, k1, c, st, p, m, o):  # type: ignore[no-untyped-def]
             X[5] *= a_gps
             X[6] *= a_gps
             X[7] *= a_comp
-            F[:, :] = 0.0
             for a in range(ns):
-                F[a, a] = 1.0
+                for b in range(ns):
+                    F[a, b] = 1.0 if a == b else 0.0
             F[0, 2] = d * cs
             F[0, 3] = -0.5 * dt * d * cs
             F[0, 4] = d0 * sn
@@ -484,7 +485,7 @@ def _ekf(k0, k1, c, st, p, m, o):  # type: ignore[no-untyped-def]
                     rej_start = k
         if k > 0:
             c.scalars[7] += dodo[k] * (1.0 + X[4])
-        if m.mode[k] > 0:
+        if m is not None and m.mode[k] > 0:
             # measurements closer than the map error's correlation distance are not independent
             gap = c.scalars[7] - c.scalars[6]
             inflate = min(p.map_corr_distance / max(gap, 1e-3), 1e6) if p.map_corr_distance > 0.0 else 1.0
@@ -609,8 +610,9 @@ def filter_setup(sensors: SensorData, *, config: KalmanConfig = DEFAULT_KALMAN) 
     return FilterSetup(t, streams, params, x0, p0)
 
 
-def run_steps(setup: FilterSetup, carry: Carry, aid: MapAid, out: Outputs, k0: int, k1: int) -> None:
-    """Run the filter over steps ``k0 .. k1 - 1`` (carry and outputs updated in place)."""
+def run_steps(setup: FilterSetup, carry: Carry, aid: MapAid | None, out: Outputs, k0: int, k1: int) -> None:
+    """Run the filter over steps ``k0 .. k1 - 1`` (carry and outputs updated in place);
+    ``aid`` None: no map-aided measurement at any step (the open loop)."""
     _ekf(k0, k1, carry, setup.streams, setup.params, aid, out)
 
 
@@ -634,7 +636,7 @@ def run_filter(sensors: SensorData, *, config: KalmanConfig = DEFAULT_KALMAN) ->
     setup = filter_setup(sensors, config=config)
     n = len(setup.t)
     out = new_outputs(n)
-    run_steps(setup, new_carry(setup.x0, setup.p0), no_map_aid(n), out, 0, n)
+    run_steps(setup, new_carry(setup.x0, setup.p0), None, out, 0, n)
     return filter_result(setup, out)
 
 

@@ -16,6 +16,7 @@ from numba import njit
 from numpy.typing import NDArray
 
 from mapmatch.graph.road_graph import RoadGraph
+from mapmatch.kernels import for_size
 from mapmatch.sim.routes import Route, edge_speed_mps
 
 
@@ -141,7 +142,7 @@ def drive_profile(
     stop_i = np.unique(np.clip(np.round(stop_at).astype(np.int64) - 3, 1, len(s) - 2))
     vlim[stop_i] = 0.0
     vlim[0] = vlim[-1] = 0.0
-    v = _limit_accel(vlim, ds, config.accel, config.brake)
+    v = for_size(_limit_accel, len(vlim))(vlim, ds, config.accel, config.brake)
     # time at each metre: trapezoid, with dwell times at stops
     vm = 0.5 * (v[1:] + v[:-1])
     dt = ds / np.maximum(vm, 0.05)
