@@ -155,32 +155,33 @@ def test_routing_moves_are_the_old_dead_end_rule(restrictions: list[tuple[str, s
 
 
 def test_compiled_entry_point_sees_the_types_it_was_compiled_for() -> None:
-    """The batch kernel is called through its entry point, which does not check types: every
-    kind of input (read-only arrays, integer coordinates, headings, σ, odometer, no time) must
-    reach it with the types of the first call."""
+    """The batch kernels are called through their entry points, which do not check types: every
+    kind of input (read-only arrays, integer coordinates, lists, headings, σ, odometer, no time)
+    must reach each kernel with the types of its first call."""
     import numba
 
     from mapmatch.batch import BatchMatcher
-    from mapmatch.batch.arrays import CandidateArrays, KernelParams, TrackPoints
+    from mapmatch.batch.run import CompiledRun
     from mapmatch.types import Track
 
     m = parse_ascii_map(DRAWING, scale=7)
     matcher = BatchMatcher(m.graph)
     ll = np.array([m.lonlat(*m.xy(c)) for c in "abcd"])
-    seen: list[tuple[object, ...]] = []
-    run = matcher._run
-    inner = type(run).__call__
+    seen: dict[int, list[tuple[object, ...]]] = {}
+    inner = CompiledRun.__call__
 
-    def spy(self, pt: TrackPoints, cands: CandidateArrays, p: KernelParams, geom, router):  # type: ignore[no-untyped-def]
-        seen.append(tuple(numba.typeof(a) for a in (pt, cands, p, geom, router)))
-        return inner(self, pt, cands, p, geom, router)
+    def spy(self, *args):  # type: ignore[no-untyped-def]
+        seen.setdefault(id(self), []).append(tuple(numba.typeof(a) for a in args))
+        return inner(self, *args)
 
     frozen = ll.copy()
     frozen.flags.writeable = False
     tracks = [
         Track("plain", np.arange(4.0), ll[:, 1], ll[:, 0]),
         Track("frozen", np.arange(4), frozen[:, 1], frozen[:, 0]),
+        Track("strided", np.arange(8.0)[::2], np.repeat(ll[:, 1], 2)[::2], np.repeat(ll[:, 0], 2)[::2]),
         Track("no time", None, ll[:, 1].tolist(), ll[:, 0].tolist()),  # type: ignore[arg-type]
+        Track("odometer", np.arange(4.0), ll[:, 1], ll[:, 0], distance=np.full(4, 10.0)),
         Track(
             "rich",
             np.arange(4.0),
@@ -191,11 +192,15 @@ def test_compiled_entry_point_sees_the_types_it_was_compiled_for() -> None:
             pos_sigma=np.full(4, 4.0),
             distance=np.full(4, 10.0),
         ),
+        Track("sigma", np.arange(4), frozen[:, 1], frozen[:, 0], pos_sigma=np.full(4, 4.0)),
     ]
     import unittest.mock
 
-    with unittest.mock.patch.object(type(run), "__call__", spy):
+    with unittest.mock.patch.object(CompiledRun, "__call__", spy):
         for t in tracks:
             assert matcher.match(t).routes
-    assert len(seen) == len(tracks) and all(s == seen[0] for s in seen), seen
-    assert run.signature == seen[0]
+    kernels = {id(matcher._run): matcher._run, id(matcher._run_track): matcher._run_track}
+    assert set(seen) == set(kernels)  # both kernels ran
+    assert sum(len(v) for v in seen.values()) == len(tracks)
+    for k, sigs in seen.items():
+        assert all(s == kernels[k].signature for s in sigs), sigs
