@@ -18,6 +18,7 @@ separate, penalised move the matcher scores itself.
 from __future__ import annotations
 
 import heapq
+import math
 from dataclasses import dataclass
 from typing import NamedTuple
 
@@ -34,12 +35,15 @@ INF = np.inf
 class RouteGraph(NamedTuple):
     """The graph arrays the compiled searches read: the legal-moves table
     (``move_to[move_ptr[e]:move_ptr[e + 1]]`` are the edges a route may take after ``e``), the
-    edge lengths and the edges' reverse twins (-1 for none)."""
+    edge lengths, the edges' reverse twins (-1 for none) and the positions of the edges' start
+    and end nodes (for the straight-line lower bound of :func:`_search_toward`)."""
 
     move_ptr: NDArray[np.int64]
     move_to: NDArray[np.int32]
     edge_len: NDArray[np.float64]
     edge_rev: NDArray[np.int32]
+    start_xy: NDArray[np.float64]
+    end_xy: NDArray[np.float64]
 
 
 def route_graph(graph: RoadGraph, *, uturns: UTurnPolicy = "dead_end") -> RouteGraph:
@@ -51,6 +55,8 @@ def route_graph(graph: RoadGraph, *, uturns: UTurnPolicy = "dead_end") -> RouteG
         move_to=np.ascontiguousarray(moves.to, dtype=np.int32),
         edge_len=np.ascontiguousarray(graph.edge_len, dtype=np.float64),
         edge_rev=np.ascontiguousarray(graph.edge_reverse, dtype=np.int32),
+        start_xy=np.ascontiguousarray(graph.node_xy[graph.edge_u], dtype=np.float64),
+        end_xy=np.ascontiguousarray(graph.node_xy[graph.edge_v], dtype=np.float64),
     )
 
 
@@ -190,6 +196,80 @@ def _search(  # type: ignore[no-untyped-def]
                 pred[f] = e
                 if nh < len(heap_k):
                     nh = _push(heap_k, heap_v, nh, nd, f)
+    return nt
+
+
+LOWER_BOUND_SCALE = 1.0 - 1e-6
+"""The straight-line lower bound of :func:`_search_toward` is scaled by this, so that rounding
+(edge lengths agree with their chords to about 1e-10 m) can never make it exceed a route."""
+
+
+@njit(cache=True, nogil=True)
+def _search_toward(  # type: ignore[no-untyped-def]
+    src: int,
+    base: float,
+    bound: float,
+    n_targets: int,
+    targets,
+    g,
+    ws,
+) -> int:
+    """:func:`_search` with the same answer for the flagged ``targets`` (an A* search).
+
+    The key of an edge is its distance plus a lower bound of the rest of the way to any target:
+    the straight line to the first target's start node less the farthest other target's start
+    from it (scaled by :data:`LOWER_BOUND_SCALE`). The bound is consistent, so each target is
+    settled at its shortest distance, and edges whose key passes ``bound`` cannot lie on a
+    route within it: the search covers an ellipse around source and targets, not a disc.
+    """
+    dist, pred, done, tgt, touched, heap_k, heap_v = ws
+    move_ptr = g.move_ptr
+    move_to = g.move_to
+    edge_len = g.edge_len
+    start_xy = g.start_xy
+    end_xy = g.end_xy
+    gx = start_xy[targets[0], 0]
+    gy = start_xy[targets[0], 1]
+    reach = 0.0
+    for i in range(1, len(targets)):
+        f = targets[i]
+        reach = max(reach, math.hypot(start_xy[f, 0] - gx, start_xy[f, 1] - gy))
+    nt = 0
+    nh = 0
+    h = max(math.hypot(end_xy[src, 0] - gx, end_xy[src, 1] - gy) - reach, 0.0) * LOWER_BOUND_SCALE
+    if base + h <= bound:
+        for i in range(move_ptr[src], move_ptr[src + 1]):
+            f = move_to[i]
+            if base < dist[f]:
+                if dist[f] == INF:
+                    touched[nt] = f
+                    nt += 1
+                dist[f] = base
+                pred[f] = src
+                nh = _push(heap_k, heap_v, nh, base + h, f)
+    left = n_targets
+    while nh > 0 and left != 0:
+        e = heap_v[0]
+        nh = _pop(heap_k, heap_v, nh)
+        if done[e]:
+            continue  # a stale entry: the first pop of an edge has its least key
+        done[e] = 1
+        if tgt[e]:
+            left -= 1
+        nd = dist[e] + edge_len[e]
+        h = max(math.hypot(end_xy[e, 0] - gx, end_xy[e, 1] - gy) - reach, 0.0) * LOWER_BOUND_SCALE
+        if nd + h > bound:
+            continue
+        for i in range(move_ptr[e], move_ptr[e + 1]):
+            f = move_to[i]
+            if nd < dist[f] and not done[f]:
+                if dist[f] == INF:
+                    touched[nt] = f
+                    nt += 1
+                dist[f] = nd
+                pred[f] = e
+                if nh < len(heap_k):
+                    nh = _push(heap_k, heap_v, nh, nd + h, f)
     return nt
 
 

@@ -204,3 +204,34 @@ def test_compiled_entry_point_sees_the_types_it_was_compiled_for() -> None:
     assert sum(len(v) for v in seen.values()) == len(tracks)
     for k, sigs in seen.items():
         assert all(s == kernels[k].signature for s in sigs), sigs
+
+
+def test_goal_directed_search_settles_the_targets_as_the_search_does() -> None:
+    """The A* search the Viterbi step runs finds every target within the bound at the distance
+    the plain bounded search finds (same edges, same floats), on a map with turn restrictions."""
+    from mapmatch.routing import INF, Workspace, _reset, _search, _search_toward, route_graph
+
+    m = parse_ascii_map(DRAWING + "   |\n   l\n", scale=9, restrictions=[("b", "c", "h", "no")])
+    g = m.graph
+    rg = route_graph(g)
+    ws = Workspace.new(g.n_edges)
+    rng = np.random.default_rng(2)
+    reached = cut = 0
+    for _ in range(400):
+        src = int(rng.integers(g.n_edges))
+        targets = rng.choice(g.n_edges, size=int(rng.integers(1, 6)), replace=False).astype(np.int64)
+        base = float(rng.random() * g.edge_len[src])
+        bound = float(rng.random() * 600.0)
+        ws.tgt[targets] = 1
+        nt = _search(src, base, bound, len(targets), rg, ws)
+        want = ws.dist[targets].copy()
+        _reset(nt, ws)
+        nt = _search_toward(src, base, bound, len(targets), targets, rg, ws)
+        got = ws.dist[targets].copy()
+        _reset(nt, ws)
+        ws.tgt[targets] = 0
+        np.testing.assert_array_equal(got, want)  # the distance within the bound, else INF
+        reached += int(np.sum(want <= bound))
+        cut += int(np.sum(want == INF))
+    assert ws.dist.min() == INF and not ws.done.any()  # the workspace is left clean
+    assert reached > 300 and cut > 100  # both cases are exercised
