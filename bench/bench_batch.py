@@ -10,6 +10,7 @@ S = 30 on the largest vs the smallest map, and one PASS/FAIL line per target of 
     python bench/bench_batch.py --ids 0,21 --engines custom,fastmm     # a quick check
     python bench/bench_batch.py --summary ~/.cache/mapmatch-peers/results/batch.jsonl
     python bench/bench_batch.py --routing --ids 0,28      # bounded search vs UBODT, in process
+    python bench/bench_batch.py --fixed --ids 14,21       # time per call on tiny tracks, in process
 """
 
 from __future__ import annotations
@@ -168,6 +169,46 @@ def compare_routing(ids: str, S: str, deltas: str) -> None:
             print(f"  S={s:2d}: " + " | ".join(row))
 
 
+def fixed_cost(ids: str, calls: int) -> None:
+    """Time per match() call on tiny tracks (first fixes of each track, 30 s apart), the map loaded:
+    the least and the median over ``calls`` calls, with and without the lon/lat fill."""
+    import gc
+    import time
+
+    import numpy as np
+
+    sys.path.insert(0, str(ROOT / "bench"))
+    import peers_adapter  # type: ignore[import-not-found]
+
+    from mapmatch.io import Columns, read_tracks
+    from mapmatch.types import Track
+
+    data = ROOT.parent / "shared" / "data" / "kubicka"
+    names = sorted(p.name for p in data.iterdir() if p.is_dir())
+    if ids != "all":
+        names = [n for n in names if int(n) in {int(x) for x in ids.split(",")}]
+    for name in names:
+        matcher = peers_adapter.load(data / name)
+        (track,) = read_tracks(data / name / "track.csv", columns=Columns(time="t"))
+        row = []
+        for npts in (1, 2, 3, 5):
+            idx = np.arange(npts) * 30
+            t, lat, lon = track.time[idx].tolist(), track.lat[idx].tolist(), track.lon[idx].tolist()
+            for lonlat in (False, True):
+                for _ in range(20):
+                    matcher.match(Track("t", np.asarray(t), np.asarray(lat), np.asarray(lon)), lonlat=lonlat)
+                gc.disable()
+                ts = []
+                for _ in range(calls):
+                    t0 = time.perf_counter()
+                    matcher.match(Track("t", np.asarray(t), np.asarray(lat), np.asarray(lon)), lonlat=lonlat)
+                    ts.append(time.perf_counter() - t0)
+                gc.enable()
+                us = np.array(ts) * 1e6
+                row.append(f"{npts} pts{' +lonlat' if lonlat else ''}: {us.min():.1f} / {np.median(us):.1f}")
+        print(f"{name} ({matcher.graph.n_edges} edges) us per call, least / median: " + "; ".join(row))
+
+
 def _timed(m: object, track: object) -> float:
     import time
 
@@ -185,9 +226,15 @@ def main() -> int:
     ap.add_argument("--summary", nargs="+", type=Path, help="only summarise these result files")
     ap.add_argument("--routing", action="store_true", help="compare bounded search and UBODT in process")
     ap.add_argument("--deltas", default="1000,2000,3000", help="UBODT bounds in metres for --routing")
+    ap.add_argument("--fixed", action="store_true", help="time per call on tiny tracks (fixed cost), in process")
+    ap.add_argument("--calls", type=int, default=2000, help="calls per tiny track for --fixed")
     a = ap.parse_args()
     if a.routing:
         compare_routing(a.ids, a.S, a.deltas)
+        return 0
+    if a.fixed:
+        print(f"load average: {' '.join(f'{x:.2f}' for x in os.getloadavg())} ({os.cpu_count()} cores)")
+        fixed_cost(a.ids, a.calls)
         return 0
     if not PEERS.is_dir():
         print(f"needs the peers folder {PEERS}", file=sys.stderr)

@@ -93,9 +93,12 @@ class RouteTable(NamedTuple):
     tgt: NDArray[np.int32]
     dist: NDArray[np.float64]
     pred: NDArray[np.int32]
+    pred_pos: NDArray[np.int32]
 
 
-NO_TABLE = RouteTable(-1.0, np.zeros(1, np.int64), np.zeros(0, np.int32), np.zeros(0), np.zeros(0, np.int32))
+NO_TABLE = RouteTable(
+    -1.0, np.zeros(1, np.int64), np.zeros(0, np.int32), np.zeros(0), np.zeros(0, np.int32), np.zeros(0, np.int32)
+)
 """The empty table: every route is searched."""
 
 
@@ -390,8 +393,10 @@ class Ubodt:
 
     For every edge ``e``, the edges ``f`` whose start is within ``delta`` metres of the end of
     ``e`` (turn rules applied), sorted by ``f``: ``tgt[ptr[e]:ptr[e+1]]`` with the distances in
-    ``dist`` and the edge before ``f`` on the route in ``pred`` (``e`` itself for a neighbour).
-    A route query within the bound is then a binary search instead of a search.
+    ``dist`` and the edge before ``f`` on the route in ``pred`` (``e`` itself for a neighbour),
+    whose place in the same row is ``pred_pos`` (-1 for a neighbour), so a route is read back
+    hop by hop without searching. A route query within the bound is then a binary search
+    instead of a search.
     """
 
     delta: float
@@ -399,22 +404,25 @@ class Ubodt:
     tgt: NDArray[np.int32]
     dist: NDArray[np.float64]
     pred: NDArray[np.int32]
+    pred_pos: NDArray[np.int32]
 
     @classmethod
     def build(cls, graph: RoadGraph, delta: float) -> Ubodt:
         """Precompute the table for ``delta`` metres (time and memory grow fast with it)."""
         ws = Workspace.new(graph.n_edges)
-        ptr, tgt, dist, pred = _build_ubodt(float(delta), graph.n_edges, route_graph(graph), ws)
-        return cls(delta=float(delta), ptr=ptr, tgt=tgt, dist=dist, pred=pred)
+        ptr, tgt, dist, pred, pos = _build_ubodt(float(delta), graph.n_edges, route_graph(graph), ws)
+        return cls(delta=float(delta), ptr=ptr, tgt=tgt, dist=dist, pred=pred, pred_pos=pos)
 
     @property
     def table(self) -> RouteTable:
         """The arrays as the compiled kernels read them."""
-        return RouteTable(self.delta, self.ptr, self.tgt, self.dist, self.pred)
+        return RouteTable(self.delta, self.ptr, self.tgt, self.dist, self.pred, self.pred_pos)
 
     @property
     def nbytes(self) -> int:
-        return int(self.ptr.nbytes + self.tgt.nbytes + self.dist.nbytes + self.pred.nbytes)
+        return int(
+            self.ptr.nbytes + self.tgt.nbytes + self.dist.nbytes + self.pred.nbytes + self.pred_pos.nbytes
+        )
 
 
 @njit(cache=True, nogil=True)
@@ -459,7 +467,17 @@ def _build_ubodt(  # type: ignore[no-untyped-def]
         out_p[start:m] = sp
         ptr[e + 1] = m
         _reset(nt, ws)
-    return ptr, out_t[:m].copy(), out_d[:m].copy(), out_p[:m].copy()
+    # each entry's predecessor as a place in its row (-1: the row's own edge)
+    pos = np.full(m, -1, dtype=np.int32)
+    for e in range(n_edges):
+        a, b = ptr[e], ptr[e + 1]
+        for k in range(a, b):
+            p = out_p[k]
+            if p != e:
+                q = np.searchsorted(out_t[a:b], p)
+                if q < b - a and out_t[a + q] == p:
+                    pos[k] = q
+    return ptr, out_t[:m].copy(), out_d[:m].copy(), out_p[:m].copy(), pos
 
 
 @njit(cache=True, nogil=True, inline="always")
@@ -482,37 +500,27 @@ def ubodt_lookup(table, e: int, f: int) -> float:  # type: ignore[no-untyped-def
 @njit(cache=True, nogil=True)
 def ubodt_path(table, src: int, dst: int):  # type: ignore[no-untyped-def]
     """The edges strictly between ``src`` and ``dst`` from the table (None if not in it)."""
-    ptr, tgt, upred = table.ptr, table.tgt, table.pred
-    if ubodt_lookup(table, src, dst) == INF:
-        return None
-    m = 0
-    f = dst
-    while True:
-        p = _ubodt_pred(ptr, tgt, upred, src, f)
-        if p == src or p < 0:
-            break
-        m += 1
-        f = p
-    out = np.empty(m, dtype=np.int32)
-    f = dst
-    while m > 0:
-        p = _ubodt_pred(ptr, tgt, upred, src, f)
-        m -= 1
-        out[m] = p
-        f = p
-    return out
-
-
-@njit(cache=True, nogil=True, inline="always")
-def _ubodt_pred(ptr, tgt, upred, e: int, f: int) -> int:  # type: ignore[no-untyped-def]
-    lo = ptr[e]
-    hi = ptr[e + 1]
+    ptr, tgt, pos = table.ptr, table.tgt, table.pred_pos
+    a = ptr[src]
+    lo = a
+    hi = ptr[src + 1]
     while lo < hi:
         mid = (lo + hi) >> 1
-        if tgt[mid] < f:
+        if tgt[mid] < dst:
             lo = mid + 1
         else:
             hi = mid
-    if lo < ptr[e + 1] and tgt[lo] == f:
-        return upred[lo]
-    return -1
+    if lo >= ptr[src + 1] or tgt[lo] != dst:
+        return None
+    m = 0
+    k = pos[lo]
+    while k >= 0:
+        m += 1
+        k = pos[a + k]
+    out = np.empty(m, dtype=np.int32)
+    k = pos[lo]
+    while k >= 0:
+        m -= 1
+        out[m] = tgt[a + k]
+        k = pos[a + k]
+    return out
