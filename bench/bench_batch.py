@@ -105,7 +105,9 @@ def summarise(paths: list[Path]) -> bool:
             f"max {max(ratios):.2f})"
         )
         speed_txt.append(f"S={s}: {gm:.2f}")
-    checks.append(("per-track geometric-mean speed at least 1.5x fastmm's at every S", speed_ok, "; ".join(speed_txt)))
+    checks.append(
+        ("per-track geometric-mean speed at least 1.5x fastmm's at every S", speed_ok, "; ".join(speed_txt))
+    )
     # time per point at 30 s: largest map over smallest map
     growth: bool | None = None
     growth_txt = "no S=30 run"
@@ -117,10 +119,13 @@ def summarise(paths: list[Path]) -> bool:
         growth = ub / us < 2.0
         growth_txt = (
             f"smallest map {small['track']} ({small['arcs']} arcs, {small['n_points']} points) {us:.2f} us, "
-            f"largest {big['track']} ({big['arcs']} arcs, {big['n_points']} points) {ub:.2f} us, ratio {ub / us:.2f}"
+            f"largest {big['track']} ({big['arcs']} arcs, {big['n_points']} points) {ub:.2f} us, "
+            f"ratio {ub / us:.2f}"
         )
         print(f"S=30: our time per point: {growth_txt}")
-    checks.append(("time per point at 30 s grows less than 2x from the smallest to the largest map", growth, growth_txt))
+    checks.append(
+        ("time per point at 30 s grows less than 2x from the smallest to the largest map", growth, growth_txt)
+    )
     print("\nissue #14, done means:")
     for label, ok, txt in checks:
         print(f"  {'PASS' if ok else 'FAIL'}  {label}: {txt}")
@@ -226,7 +231,9 @@ def main() -> int:
     ap.add_argument("--summary", nargs="+", type=Path, help="only summarise these result files")
     ap.add_argument("--routing", action="store_true", help="compare bounded search and UBODT in process")
     ap.add_argument("--deltas", default="1000,2000,3000", help="UBODT bounds in metres for --routing")
-    ap.add_argument("--fixed", action="store_true", help="time per call on tiny tracks (fixed cost), in process")
+    ap.add_argument(
+        "--fixed", action="store_true", help="time per call on tiny tracks (fixed cost), in process"
+    )
     ap.add_argument("--calls", type=int, default=2000, help="calls per tiny track for --fixed")
     a = ap.parse_args()
     if a.routing:

@@ -124,7 +124,9 @@ class GridIndex:
     def query(self, xy: ArrayLike, radius: float, *, k: int | None = None) -> Candidates:
         """As :meth:`EdgeIndex.query` (scalar radius): directed edges within ``radius`` of each point."""
         pts = np.ascontiguousarray(np.asarray(xy, dtype=np.float64).reshape(-1, 2))
-        p, e, d, o, q = query_grid(pts, float(radius), -1 if k is None else int(k), self.arrays, self.scratch())
+        p, e, d, o, q = query_grid(
+            pts, float(radius), -1 if k is None else int(k), self.arrays, self.scratch()
+        )
         return Candidates(point=p, edge=e, dist=d, offset=o, xy=q)
 
 
@@ -163,8 +165,8 @@ def query_grid(pts, radius, k, grid, sc):  # type: ignore[no-untyped-def]
     edge): ``(point, edge, dist, offset, xy)`` as :class:`~mapmatch.graph.index.Candidates`."""
     origin, cell, nx, ny = grid.origin, grid.cell, grid.nx, grid.ny
     cell_ptr, cell_ids, cell_seg = grid.cell_ptr, grid.cell_ids, grid.cell_seg
-    seg_a, seg_b, seg_len, seg_off, seg_edge = grid.seg_a, grid.seg_b, grid.seg_len, grid.seg_off, grid.seg_edge
-    edge_rev, edge_len = grid.edge_rev, grid.edge_len
+    seg_a, seg_b, seg_len, seg_off = grid.seg_a, grid.seg_b, grid.seg_len, grid.seg_off
+    seg_edge, edge_rev, edge_len = grid.seg_edge, grid.edge_rev, grid.edge_len
     stamp_seg, stamp_edge, best = sc.stamp_seg, sc.stamp_edge, sc.best
     stamp0 = sc.stamp[0]
     n = len(pts)

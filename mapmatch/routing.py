@@ -97,7 +97,12 @@ class RouteTable(NamedTuple):
 
 
 NO_TABLE = RouteTable(
-    -1.0, np.zeros(1, np.int64), np.zeros(0, np.int32), np.zeros(0), np.zeros(0, np.int32), np.zeros(0, np.int32)
+    -1.0,
+    np.zeros(1, np.int64),
+    np.zeros(0, np.int32),
+    np.zeros(0),
+    np.zeros(0, np.int32),
+    np.zeros(0, np.int32),
 )
 """The empty table: every route is searched."""
 
