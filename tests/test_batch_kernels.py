@@ -235,3 +235,38 @@ def test_goal_directed_search_settles_the_targets_as_the_search_does() -> None:
         cut += int(np.sum(want == INF))
     assert ws.dist.min() == INF and not ws.done.any()  # the workspace is left clean
     assert reached > 300 and cut > 100  # both cases are exercised
+
+
+def test_one_compiled_call_matches_as_the_python_steps_do() -> None:
+    """A track with one σ and no heading is matched in one compiled call (validity, thinning,
+    candidates with the outlier re-query): the same answer as the Python steps then ``run``,
+    with bad points, repeated fixes and fixes away from every road."""
+    from mapmatch.batch import BatchMatcher
+    from mapmatch.types import Track
+
+    m = parse_ascii_map(DRAWING, scale=7)
+    matcher = BatchMatcher(m.graph)
+    rng = np.random.default_rng(4)
+    lo, hi = m.graph.node_xy.min(axis=0) - 60, m.graph.node_xy.max(axis=0) + 60
+    lonely = 0
+    for _ in range(25):
+        n = int(rng.integers(0, 12))
+        xy = lo + rng.random((n, 2)) * (hi - lo)
+        if n > 3:
+            xy[2] = xy[1] + 1.0  # thinned out (interpolated afterwards)
+        ll = np.array([m.lonlat(x, y) for x, y in xy]).reshape(-1, 2)
+        lat, lon = ll[:, 1].copy(), ll[:, 0].copy()
+        if n > 5:
+            lat[4], lon[5] = np.nan, 200.0  # invalid fixes
+        t = Track("r", np.arange(n) * 10.0, lat, lon)
+        d = matcher.index.query(xy, BATCH_CONFIG.search_radius).point if n else np.zeros(0, dtype=int)
+        lonely += n - len(np.unique(d))
+        a, b = matcher._match_plain(t, BATCH_CONFIG), matcher._match_general(t, BATCH_CONFIG)
+        assert a.routes == b.routes and a.splits == b.splits
+        assert a.length_m == b.length_m and a.confidence == b.confidence
+        assert a.point_arrays is not None and b.point_arrays is not None
+        for u, v in zip(a.point_arrays, b.point_arrays, strict=True):
+            np.testing.assert_array_equal(u, v)
+        for u, v in zip(a.route_xy, b.route_xy, strict=True):
+            np.testing.assert_array_equal(u, v)
+    assert lonely > 10  # fixes beyond the search radius were looked for again
