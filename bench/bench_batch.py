@@ -24,6 +24,7 @@ import subprocess
 import sys
 from collections import defaultdict
 from pathlib import Path
+from typing import Any
 
 ROOT = Path(__file__).resolve().parents[1]
 PEERS = Path(os.environ.get("MAPMATCH_PEERS", ROOT.parent / "shared" / "peers"))
@@ -132,23 +133,29 @@ def summarise(paths: list[Path]) -> bool:
     return all(ok for _, ok, _ in checks)
 
 
+def _tracks(ids: str) -> tuple[Any, Path, list[str]]:
+    """The adapter module, the Kubicka folder and the chosen track folders' names."""
+    sys.path.insert(0, str(ROOT / "bench"))
+    import peers_adapter  # type: ignore[import-not-found]
+
+    data = ROOT.parent / "shared" / "data" / "kubicka"
+    names = sorted(p.name for p in data.iterdir() if p.is_dir())
+    if ids != "all":
+        names = [n for n in names if int(n) in {int(x) for x in ids.split(",")}]
+    return peers_adapter, data, names
+
+
 def compare_routing(ids: str, S: str, deltas: str) -> None:
     """Bounded Dijkstra vs UBODT tables: build time, size, points/s (best of 5), same routes."""
     import time
 
     import numpy as np
 
-    sys.path.insert(0, str(ROOT / "bench"))
-    import peers_adapter  # type: ignore[import-not-found]
-
     from mapmatch.batch import BatchMatcher
     from mapmatch.io import Columns, read_tracks
     from mapmatch.routing import Ubodt
 
-    data = ROOT.parent / "shared" / "data" / "kubicka"
-    names = sorted(p.name for p in data.iterdir() if p.is_dir())
-    if ids != "all":
-        names = [n for n in names if int(n) in {int(x) for x in ids.split(",")}]
+    peers_adapter, data, names = _tracks(ids)
     for name in names:
         graph = peers_adapter.load_graph(data / name)
         (track,) = read_tracks(data / name / "track.csv", columns=Columns(time="t"))
@@ -182,16 +189,10 @@ def fixed_cost(ids: str, calls: int) -> None:
 
     import numpy as np
 
-    sys.path.insert(0, str(ROOT / "bench"))
-    import peers_adapter  # type: ignore[import-not-found]
-
     from mapmatch.io import Columns, read_tracks
     from mapmatch.types import Track
 
-    data = ROOT.parent / "shared" / "data" / "kubicka"
-    names = sorted(p.name for p in data.iterdir() if p.is_dir())
-    if ids != "all":
-        names = [n for n in names if int(n) in {int(x) for x in ids.split(",")}]
+    peers_adapter, data, names = _tracks(ids)
     for name in names:
         matcher = peers_adapter.load(data / name)
         (track,) = read_tracks(data / name / "track.csv", columns=Columns(time="t"))

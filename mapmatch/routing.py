@@ -151,6 +151,10 @@ def _pop(heap_k, heap_v, n: int) -> int:  # type: ignore[no-untyped-def]
     return n
 
 
+NO_TARGETS = np.zeros(0, dtype=np.int64)
+"""No target positions: :func:`_search_toward` is then a plain bounded Dijkstra."""
+
+
 @njit(cache=True, nogil=True)
 def _search(  # type: ignore[no-untyped-def]
     src: int,
@@ -166,45 +170,7 @@ def _search(  # type: ignore[no-untyped-def]
     edges flagged in ``tgt`` are settled or keys pass ``bound``. Returns the number of
     touched edges (listed in ``touched``; the caller resets them with :func:`_reset`).
     """
-    dist, pred, done, tgt, touched, heap_k, heap_v = ws
-    nt = 0
-    nh = 0
-    move_ptr = g.move_ptr
-    move_to = g.move_to
-    edge_len = g.edge_len
-    for i in range(move_ptr[src], move_ptr[src + 1]):
-        f = move_to[i]
-        if base <= bound and base < dist[f]:
-            if dist[f] == INF:
-                touched[nt] = f
-                nt += 1
-            dist[f] = base
-            pred[f] = src
-            nh = _push(heap_k, heap_v, nh, base, f)
-    left = n_targets
-    while nh > 0 and left != 0:
-        d = heap_k[0]
-        e = heap_v[0]
-        nh = _pop(heap_k, heap_v, nh)
-        if done[e] or d > dist[e]:
-            continue
-        done[e] = 1
-        if tgt[e]:
-            left -= 1
-        nd = d + edge_len[e]
-        if nd > bound:
-            continue
-        for i in range(move_ptr[e], move_ptr[e + 1]):
-            f = move_to[i]
-            if nd < dist[f] and not done[f]:
-                if dist[f] == INF:
-                    touched[nt] = f
-                    nt += 1
-                dist[f] = nd
-                pred[f] = e
-                if nh < len(heap_k):
-                    nh = _push(heap_k, heap_v, nh, nd, f)
-    return nt
+    return _search_toward(src, base, bound, n_targets, NO_TARGETS, g, ws)
 
 
 LOWER_BOUND_SCALE = 1.0 - 1e-6
@@ -229,6 +195,7 @@ def _search_toward(  # type: ignore[no-untyped-def]
     from it (scaled by :data:`LOWER_BOUND_SCALE`). The bound is consistent, so each target is
     settled at its shortest distance, and edges whose key passes ``bound`` cannot lie on a
     route within it: the search covers an ellipse around source and targets, not a disc.
+    With no ``targets`` given the lower bound is 0 (plain Dijkstra, :func:`_search`).
     """
     dist, pred, done, tgt, touched, heap_k, heap_v = ws
     move_ptr = g.move_ptr
@@ -236,15 +203,19 @@ def _search_toward(  # type: ignore[no-untyped-def]
     edge_len = g.edge_len
     start_xy = g.start_xy
     end_xy = g.end_xy
-    gx = start_xy[targets[0], 0]
-    gy = start_xy[targets[0], 1]
-    reach = 0.0
+    goal = len(targets) > 0
+    gx = gy = reach = 0.0
+    if goal:
+        gx = start_xy[targets[0], 0]
+        gy = start_xy[targets[0], 1]
     for i in range(1, len(targets)):
         f = targets[i]
         reach = max(reach, math.hypot(start_xy[f, 0] - gx, start_xy[f, 1] - gy))
     nt = 0
     nh = 0
-    h = max(math.hypot(end_xy[src, 0] - gx, end_xy[src, 1] - gy) - reach, 0.0) * LOWER_BOUND_SCALE
+    h = 0.0
+    if goal:
+        h = max(math.hypot(end_xy[src, 0] - gx, end_xy[src, 1] - gy) - reach, 0.0) * LOWER_BOUND_SCALE
     if base + h <= bound:
         for i in range(move_ptr[src], move_ptr[src + 1]):
             f = move_to[i]
@@ -265,7 +236,8 @@ def _search_toward(  # type: ignore[no-untyped-def]
         if tgt[e]:
             left -= 1
         nd = dist[e] + edge_len[e]
-        h = max(math.hypot(end_xy[e, 0] - gx, end_xy[e, 1] - gy) - reach, 0.0) * LOWER_BOUND_SCALE
+        if goal:
+            h = max(math.hypot(end_xy[e, 0] - gx, end_xy[e, 1] - gy) - reach, 0.0) * LOWER_BOUND_SCALE
         if nd + h > bound:
             continue
         for i in range(move_ptr[e], move_ptr[e + 1]):
