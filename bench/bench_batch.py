@@ -2,24 +2,29 @@
 
 Runs ``../shared/peers/run_peers.py`` (or ``$MAPMATCH_PEERS/run_peers.py``) with our matcher as the
 custom engine (``bench/peers_adapter.py``), so every engine is timed the same way (the match call
-only, map loaded) and scored by the peers' ``score.py``. Prints mean RMF and points/s per engine and S,
-the ratio of our points/s to fastmm's, and our time per point on the largest vs the smallest map.
+only, map loaded) and scored by the peers' ``score.py``. Prints mean and median RMF and points/s per
+engine and S, the per-track geometric mean of our points/s over fastmm's per S, our time per point at
+S = 30 on the largest vs the smallest map, and one PASS/FAIL line per target of issue #14.
 
     python bench/bench_batch.py                       # all 15 tracks, S = 1, 10, 30
     python bench/bench_batch.py --ids 0,21 --engines custom,fastmm     # a quick check
     python bench/bench_batch.py --summary ~/.cache/mapmatch-peers/results/batch.jsonl
     python bench/bench_batch.py --routing --ids 0,28      # bounded search vs UBODT, in process
+    python bench/bench_batch.py --fixed --ids 14,21       # time per call on tiny tracks, in process
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import math
 import os
+import statistics
 import subprocess
 import sys
 from collections import defaultdict
 from pathlib import Path
+from typing import Any
 
 ROOT = Path(__file__).resolve().parents[1]
 PEERS = Path(os.environ.get("MAPMATCH_PEERS", ROOT.parent / "shared" / "peers"))
@@ -39,45 +44,105 @@ def run(ids: str, engines: str, S: str, tag: str) -> Path:
     return CACHE / "results" / f"{tag}.jsonl"
 
 
-def summarise(paths: list[Path]) -> None:
+def summarise(paths: list[Path]) -> bool:
+    """Print the table, the speed figures and one pass/fail line per "Done means" target of
+    issue #14; returns whether all pass."""
     recs = [json.loads(line) for p in paths for line in p.read_text().splitlines() if line.strip()]
     recs = [r for r in recs if not r.get("skipped")]
     by: dict[tuple[str, int], list[dict]] = defaultdict(list)
     for r in recs:
         by[(r["engine"], int(r["S"]))].append(r)
+    Ss = sorted({s for _, s in by})
     print(
-        f"\n{'engine':10s} {'S':>3s} {'tracks':>6s} {'fail':>4s} {'mean RMF':>9s} "
-        f"{'points':>8s} {'pts/s':>10s}"
+        f"\n{'engine':10s} {'S':>3s} {'tracks':>6s} {'fail':>4s} {'mean RMF':>9s} {'median RMF':>10s} "
+        f"{'points':>8s} {'match s':>8s} {'pts/s':>9s}"
     )
-    rate: dict[tuple[str, int], float] = {}
+    mean_rmf: dict[tuple[str, int], float] = {}
+    med_rmf: dict[tuple[str, int], float] = {}
     for (eng, s), g in sorted(by.items(), key=lambda kv: (kv[0][0] != "custom", kv[0][0], kv[0][1])):
-        rmf = [r["rmf"] if r.get("rmf") is not None else 1.0 for r in g]
+        rmf = [r["rmf"] if r.get("rmf") is not None else 1.0 for r in g]  # a failed match scores 1
+        mean_rmf[(eng, s)], med_rmf[(eng, s)] = statistics.fmean(rmf), statistics.median(rmf)
         timed = [r for r in g if r.get("match_s")]
         pts = sum(r["n_points"] for r in timed)
         secs = sum(r["match_s"] for r in timed)
-        rate[(eng, s)] = pts / secs if secs else 0.0
         fails = sum(1 for r in g if r.get("failed"))
         print(
-            f"{eng:10s} {s:3d} {len(g):6d} {fails:4d} {sum(rmf) / len(rmf):9.4f} "
-            f"{pts:8d} {rate[(eng, s)]:10.0f}"
+            f"{eng:10s} {s:3d} {len(g):6d} {fails:4d} {mean_rmf[(eng, s)]:9.4f} {med_rmf[(eng, s)]:10.4f} "
+            f"{pts:8d} {secs:8.3f} {pts / secs if secs else 0:9.0f}"
         )
-    for s in sorted({s for _, s in by}):
-        ours, fm = rate.get(("custom", s)), rate.get(("fastmm", s))
-        if ours and fm:
-            print(f"S={s:2d}: our points/s / fastmm points/s = {ours / fm:.2f}")
-    ours_recs = [r for r in recs if r["engine"] == "custom" and r.get("match_s")]
-    if ours_recs:
-        big = max(ours_recs, key=lambda r: r["arcs"])["arcs"]
-        small = min(ours_recs, key=lambda r: r["arcs"])["arcs"]
-        for s in sorted({r["S"] for r in ours_recs}):
-            b = [r for r in ours_recs if r["arcs"] == big and r["S"] == s]
-            m = [r for r in ours_recs if r["arcs"] == small and r["S"] == s]
-            if b and m:
-                ub, um = b[0]["match_s"] / b[0]["n_points"] * 1e6, m[0]["match_s"] / m[0]["n_points"] * 1e6
-                print(
-                    f"S={s:2d}: time per point on the largest map ({big} arcs) {ub:.2f} us, "
-                    f"smallest ({small} arcs) {um:.2f} us, ratio {ub / um:.2f}"
-                )
+    peers = sorted({e for e, _ in by} - {"custom"})
+    checks: list[tuple[str, bool | None, str]] = []
+    # RMF against the best peer at each S
+    mean_txt, med_txt, mean_ok, med_ok = [], [], True, True
+    for s in Ss:
+        if ("custom", s) not in mean_rmf or not any((e, s) in mean_rmf for e in peers):
+            mean_ok = med_ok = False
+            continue
+        bm = min(mean_rmf[(e, s)] for e in peers if (e, s) in mean_rmf)
+        bd = min(med_rmf[(e, s)] for e in peers if (e, s) in med_rmf)
+        om, od = mean_rmf[("custom", s)], med_rmf[("custom", s)]
+        mean_ok &= om <= 0.5 * bm
+        med_ok &= od <= bd
+        mean_txt.append(f"S={s}: {om:.4f} vs best peer {bm:.4f}")
+        med_txt.append(f"S={s}: {od:.4f} vs best peer {bd:.4f}")
+    checks.append(("mean RMF at most half the best peer's at every S", mean_ok, "; ".join(mean_txt)))
+    checks.append(("median RMF at or below the best peer's at every S", med_ok, "; ".join(med_txt)))
+    # speed: per track, our points/s over fastmm's (same points), geometric mean over tracks
+    speed_txt, speed_ok = [], bool(Ss)
+    for s in Ss:
+        ours = {r["track"]: r["match_s"] for r in by.get(("custom", s), []) if r.get("match_s")}
+        fm = {r["track"]: r["match_s"] for r in by.get(("fastmm", s), []) if r.get("match_s")}
+        common = sorted(set(ours) & set(fm))
+        if not common:
+            speed_ok = False
+            speed_txt.append(f"S={s}: no tracks timed by both")
+            continue
+        ratios = [fm[t] / ours[t] for t in common]
+        gm = math.exp(statistics.fmean(math.log(x) for x in ratios))
+        speed_ok &= gm >= 1.5
+        print(
+            f"S={s:2d}: per-track geometric mean of our points/s over fastmm's {gm:.2f} "
+            f"({len(common)} tracks, min {min(ratios):.2f} on {common[ratios.index(min(ratios))]}, "
+            f"max {max(ratios):.2f})"
+        )
+        speed_txt.append(f"S={s}: {gm:.2f}")
+    checks.append(
+        ("per-track geometric-mean speed at least 1.5x fastmm's at every S", speed_ok, "; ".join(speed_txt))
+    )
+    # time per point at 30 s: largest map over smallest map
+    growth: bool | None = None
+    growth_txt = "no S=30 run"
+    ours30 = [r for r in by.get(("custom", 30), []) if r.get("match_s")]
+    if ours30:
+        small = min(ours30, key=lambda r: r["arcs"])
+        big = max(ours30, key=lambda r: r["arcs"])
+        us, ub = (r["match_s"] / r["n_points"] * 1e6 for r in (small, big))
+        growth = ub / us < 2.0
+        growth_txt = (
+            f"smallest map {small['track']} ({small['arcs']} arcs, {small['n_points']} points) {us:.2f} us, "
+            f"largest {big['track']} ({big['arcs']} arcs, {big['n_points']} points) {ub:.2f} us, "
+            f"ratio {ub / us:.2f}"
+        )
+        print(f"S=30: our time per point: {growth_txt}")
+    checks.append(
+        ("time per point at 30 s grows less than 2x from the smallest to the largest map", growth, growth_txt)
+    )
+    print("\nissue #14, done means:")
+    for label, ok, txt in checks:
+        print(f"  {'PASS' if ok else 'FAIL'}  {label}: {txt}")
+    return all(ok for _, ok, _ in checks)
+
+
+def _tracks(ids: str) -> tuple[Any, Path, list[str]]:
+    """The adapter module, the Kubicka folder and the chosen track folders' names."""
+    sys.path.insert(0, str(ROOT / "bench"))
+    import peers_adapter  # type: ignore[import-not-found]
+
+    data = ROOT.parent / "shared" / "data" / "kubicka"
+    names = sorted(p.name for p in data.iterdir() if p.is_dir())
+    if ids != "all":
+        names = [n for n in names if int(n) in {int(x) for x in ids.split(",")}]
+    return peers_adapter, data, names
 
 
 def compare_routing(ids: str, S: str, deltas: str) -> None:
@@ -86,17 +151,11 @@ def compare_routing(ids: str, S: str, deltas: str) -> None:
 
     import numpy as np
 
-    sys.path.insert(0, str(ROOT / "bench"))
-    import peers_adapter  # type: ignore[import-not-found]
-
     from mapmatch.batch import BatchMatcher
     from mapmatch.io import Columns, read_tracks
     from mapmatch.routing import Ubodt
 
-    data = ROOT.parent / "shared" / "data" / "kubicka"
-    names = sorted(p.name for p in data.iterdir() if p.is_dir())
-    if ids != "all":
-        names = [n for n in names if int(n) in {int(x) for x in ids.split(",")}]
+    peers_adapter, data, names = _tracks(ids)
     for name in names:
         graph = peers_adapter.load_graph(data / name)
         (track,) = read_tracks(data / name / "track.csv", columns=Columns(time="t"))
@@ -122,6 +181,40 @@ def compare_routing(ids: str, S: str, deltas: str) -> None:
             print(f"  S={s:2d}: " + " | ".join(row))
 
 
+def fixed_cost(ids: str, calls: int) -> None:
+    """Time per match() call on tiny tracks (first fixes of each track, 30 s apart), the map loaded:
+    the least and the median over ``calls`` calls, with and without the lon/lat fill."""
+    import gc
+    import time
+
+    import numpy as np
+
+    from mapmatch.io import Columns, read_tracks
+    from mapmatch.types import Track
+
+    peers_adapter, data, names = _tracks(ids)
+    for name in names:
+        matcher = peers_adapter.load(data / name)
+        (track,) = read_tracks(data / name / "track.csv", columns=Columns(time="t"))
+        row = []
+        for npts in (1, 2, 3, 5):
+            idx = np.arange(npts) * 30
+            t, lat, lon = track.time[idx].tolist(), track.lat[idx].tolist(), track.lon[idx].tolist()
+            for lonlat in (False, True):
+                for _ in range(20):
+                    matcher.match(Track("t", np.asarray(t), np.asarray(lat), np.asarray(lon)), lonlat=lonlat)
+                gc.disable()
+                ts = []
+                for _ in range(calls):
+                    t0 = time.perf_counter()
+                    matcher.match(Track("t", np.asarray(t), np.asarray(lat), np.asarray(lon)), lonlat=lonlat)
+                    ts.append(time.perf_counter() - t0)
+                gc.enable()
+                us = np.array(ts) * 1e6
+                row.append(f"{npts} pts{' +lonlat' if lonlat else ''}: {us.min():.1f} / {np.median(us):.1f}")
+        print(f"{name} ({matcher.graph.n_edges} edges) us per call, least / median: " + "; ".join(row))
+
+
 def _timed(m: object, track: object) -> float:
     import time
 
@@ -139,14 +232,24 @@ def main() -> int:
     ap.add_argument("--summary", nargs="+", type=Path, help="only summarise these result files")
     ap.add_argument("--routing", action="store_true", help="compare bounded search and UBODT in process")
     ap.add_argument("--deltas", default="1000,2000,3000", help="UBODT bounds in metres for --routing")
+    ap.add_argument(
+        "--fixed", action="store_true", help="time per call on tiny tracks (fixed cost), in process"
+    )
+    ap.add_argument("--calls", type=int, default=2000, help="calls per tiny track for --fixed")
     a = ap.parse_args()
     if a.routing:
         compare_routing(a.ids, a.S, a.deltas)
         return 0
+    if a.fixed:
+        print(f"load average: {' '.join(f'{x:.2f}' for x in os.getloadavg())} ({os.cpu_count()} cores)")
+        fixed_cost(a.ids, a.calls)
+        return 0
     if not PEERS.is_dir():
         print(f"needs the peers folder {PEERS}", file=sys.stderr)
         return 2
+    print(f"load average before: {' '.join(f'{x:.2f}' for x in os.getloadavg())} ({os.cpu_count()} cores)")
     paths = a.summary or [run(a.ids, a.engines, a.S, a.tag)]
+    print(f"load average after: {' '.join(f'{x:.2f}' for x in os.getloadavg())}")
     summarise(paths)
     return 0
 

@@ -2,6 +2,12 @@
 
 ``load`` prepares the map (not timed); ``call`` is the timed match of one sub-sampled track;
 ``convert`` returns the matched route as lon/lat polylines, one per connected piece.
+
+Timing is the harness's, as for every peer: ``engines_kubicka.py`` times ``call`` alone (the second
+of two calls on the loaded map). ``call`` does what fastmm's does inside its timed call: the fixes
+from lon/lat lists to the map's CRS and the whole match; the route stays in the map's CRS, and its
+projection back to lon/lat happens in ``convert`` (untimed), as fastmm's does. Valhalla and OSRM
+return lon/lat from their timed call.
 Map: ``mapmatch.graph.build.build_map(roads.geojson)`` when the project has it, else a small
 bench-only loader of ``roads.geojson`` (degree-2 chains contracted, as for fastmm).
 """

@@ -10,10 +10,11 @@ from __future__ import annotations
 
 import math
 import threading
+from typing import NamedTuple
 
 import numpy as np
 from numba import njit
-from numpy.typing import ArrayLike
+from numpy.typing import ArrayLike, NDArray
 
 from mapmatch.graph.index import Candidates, EdgeIndex
 
@@ -21,14 +22,44 @@ DENSE_MAX_CELLS = 1 << 23
 """Up to this many cells the grid keeps a dense cell table (8 bytes a cell)."""
 
 
-class _Scratch:
-    """One thread's stamp arrays; per-point marks never repeat, so they are never cleared."""
+class Grid(NamedTuple):
+    """The grid's read-only arrays as the compiled query reads them (segments bucketed by cell)."""
 
-    def __init__(self, n_segments: int, n_edges: int) -> None:
-        self.stamp_seg = np.full(n_segments, -1, dtype=np.int64)
-        self.stamp_edge = np.full(n_edges, -1, dtype=np.int64)
-        self.best = np.zeros(n_edges, dtype=np.int64)
-        self.stamp = 0
+    origin: NDArray[np.float64]
+    cell: float
+    nx: int
+    ny: int
+    cell_ptr: NDArray[np.int64]
+    """Dense cell table (empty: binary search in ``cell_ids``)."""
+    cell_ids: NDArray[np.int64]
+    cell_seg: NDArray[np.int64]
+    seg_a: NDArray[np.float64]
+    seg_b: NDArray[np.float64]
+    seg_len: NDArray[np.float64]
+    seg_off: NDArray[np.float64]
+    seg_edge: NDArray[np.int64]
+    edge_rev: NDArray[np.int64]
+    edge_len: NDArray[np.float64]
+
+
+class GridScratch(NamedTuple):
+    """One thread's marks; per-point marks (``stamp[0]`` counts them) never repeat, so they
+    are never cleared."""
+
+    stamp_seg: NDArray[np.int64]
+    stamp_edge: NDArray[np.int64]
+    best: NDArray[np.int64]
+    stamp: NDArray[np.int64]
+
+    @classmethod
+    def new(cls, n_segments: int, n_edges: int) -> GridScratch:
+        """Clean marks for a grid of ``n_segments`` segments over ``n_edges`` edges."""
+        return cls(
+            np.full(n_segments, -1, dtype=np.int64),
+            np.full(n_edges, -1, dtype=np.int64),
+            np.zeros(n_edges, dtype=np.int64),
+            np.zeros(1, dtype=np.int64),
+        )
 
 
 class GridIndex:
@@ -63,26 +94,39 @@ class GridIndex:
             np.cumsum(np.bincount(self.cell_ids, minlength=ncell), out=self.cell_ptr[1:])
         else:
             self.cell_ptr = np.zeros(0, dtype=np.int64)
+        i8, f8 = np.int64, np.float64
+        self.arrays = Grid(
+            origin=np.ascontiguousarray(self.origin, dtype=f8),
+            cell=self.cell,
+            nx=int(self.nx),
+            ny=int(self.ny),
+            cell_ptr=self.cell_ptr,
+            cell_ids=np.ascontiguousarray(self.cell_ids, dtype=i8),
+            cell_seg=np.ascontiguousarray(self.cell_seg, dtype=i8),
+            seg_a=np.ascontiguousarray(a, dtype=f8),
+            seg_b=np.ascontiguousarray(b, dtype=f8),
+            seg_len=np.ascontiguousarray(index.seg_len, dtype=f8),
+            seg_off=np.ascontiguousarray(index.seg_off, dtype=f8),
+            seg_edge=np.ascontiguousarray(index.seg_edge, dtype=i8),
+            edge_rev=np.ascontiguousarray(self.graph.edge_reverse, dtype=i8),
+            edge_len=np.ascontiguousarray(self.graph.edge_len, dtype=f8),
+        )
+        """The compiled query's arrays (:class:`Grid`)."""
         self._local = threading.local()
 
-    def _scratch(self) -> _Scratch:
-        """This thread's marks and buffers (the grid itself is read-only and shared)."""
-        sc: _Scratch | None = getattr(self._local, "scratch", None)
+    def scratch(self) -> GridScratch:
+        """This thread's marks (the grid itself is read-only and shared)."""
+        sc: GridScratch | None = getattr(self._local, "scratch", None)
         if sc is None:
-            sc = self._local.scratch = _Scratch(len(self.index.seg_a), self.graph.n_edges)
+            sc = self._local.scratch = GridScratch.new(len(self.index.seg_a), self.graph.n_edges)
         return sc
 
     def query(self, xy: ArrayLike, radius: float, *, k: int | None = None) -> Candidates:
         """As :meth:`EdgeIndex.query` (scalar radius): directed edges within ``radius`` of each point."""
         pts = np.ascontiguousarray(np.asarray(xy, dtype=np.float64).reshape(-1, 2))
-        ix = self.index
-        sc = self._scratch()
-        p, e, d, o, q, sc.stamp = _query(
-            pts, float(radius), -1 if k is None else int(k), sc.stamp, self.origin, self.cell, self.nx,
-            self.ny, self.cell_ptr, self.cell_ids,
-            self.cell_seg, ix.seg_a, ix.seg_b, ix.seg_len, ix.seg_off, ix.seg_edge, sc.stamp_seg,
-            sc.stamp_edge, sc.best, self.graph.edge_reverse, self.graph.edge_len,
-        )  # fmt: skip
+        p, e, d, o, q = query_grid(
+            pts, float(radius), -1 if k is None else int(k), self.arrays, self.scratch()
+        )
         return Candidates(point=p, edge=e, dist=d, offset=o, xy=q)
 
 
@@ -115,29 +159,16 @@ def _bucket(a, b, origin, cell, ny):  # type: ignore[no-untyped-def]
 
 
 @njit(cache=True, nogil=True)
-def _query(  # type: ignore[no-untyped-def]
-    pts,
-    radius,
-    k,
-    stamp0,
-    origin,
-    cell,
-    nx,
-    ny,
-    cell_ptr,
-    cell_ids,
-    cell_seg,
-    seg_a,
-    seg_b,
-    seg_len,
-    seg_off,
-    seg_edge,
-    stamp_seg,
-    stamp_edge,
-    best,
-    edge_rev,
-    edge_len,
-):
+def query_grid(pts, radius, k, grid, sc):  # type: ignore[no-untyped-def]
+    """Directed edges within ``radius`` of each point of ``pts`` (non-finite points have none),
+    nearest ``k`` roads (``k < 0``: all) with their reverse twins, sorted by point then (distance,
+    edge): ``(point, edge, dist, offset, xy)`` as :class:`~mapmatch.graph.index.Candidates`."""
+    origin, cell, nx, ny = grid.origin, grid.cell, grid.nx, grid.ny
+    cell_ptr, cell_ids, cell_seg = grid.cell_ptr, grid.cell_ids, grid.cell_seg
+    seg_a, seg_b, seg_len, seg_off = grid.seg_a, grid.seg_b, grid.seg_len, grid.seg_off
+    seg_edge, edge_rev, edge_len = grid.seg_edge, grid.edge_rev, grid.edge_len
+    stamp_seg, stamp_edge, best = sc.stamp_seg, sc.stamp_edge, sc.best
+    stamp0 = sc.stamp[0]
     n = len(pts)
     cap = 16 * n + 16
     op = np.empty(cap, dtype=np.int64)
@@ -282,7 +313,8 @@ def _query(  # type: ignore[no-untyped-def]
                 b -= 1
             od[b + 1], oe[b + 1], oo[b + 1] = d0, e0, o0
             oq[b + 1, 0], oq[b + 1, 1] = x0, y0
-    return op[:m].copy(), oe[:m].copy(), od[:m].copy(), oo[:m].copy(), oq[:m].copy(), stamp0
+    sc.stamp[0] = stamp0
+    return op[:m].copy(), oe[:m].copy(), od[:m].copy(), oo[:m].copy(), oq[:m].copy()
 
 
 @njit(cache=True, nogil=True)

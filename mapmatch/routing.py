@@ -18,6 +18,7 @@ separate, penalised move the matcher scores itself.
 from __future__ import annotations
 
 import heapq
+import math
 from dataclasses import dataclass
 from typing import NamedTuple
 
@@ -34,12 +35,15 @@ INF = np.inf
 class RouteGraph(NamedTuple):
     """The graph arrays the compiled searches read: the legal-moves table
     (``move_to[move_ptr[e]:move_ptr[e + 1]]`` are the edges a route may take after ``e``), the
-    edge lengths and the edges' reverse twins (-1 for none)."""
+    edge lengths, the edges' reverse twins (-1 for none) and the positions of the edges' start
+    and end nodes (for the straight-line lower bound of :func:`_search_toward`)."""
 
     move_ptr: NDArray[np.int64]
     move_to: NDArray[np.int32]
     edge_len: NDArray[np.float64]
     edge_rev: NDArray[np.int32]
+    start_xy: NDArray[np.float64]
+    end_xy: NDArray[np.float64]
 
 
 def route_graph(graph: RoadGraph, *, uturns: UTurnPolicy = "dead_end") -> RouteGraph:
@@ -51,6 +55,8 @@ def route_graph(graph: RoadGraph, *, uturns: UTurnPolicy = "dead_end") -> RouteG
         move_to=np.ascontiguousarray(moves.to, dtype=np.int32),
         edge_len=np.ascontiguousarray(graph.edge_len, dtype=np.float64),
         edge_rev=np.ascontiguousarray(graph.edge_reverse, dtype=np.int32),
+        start_xy=np.ascontiguousarray(graph.node_xy[graph.edge_u], dtype=np.float64),
+        end_xy=np.ascontiguousarray(graph.node_xy[graph.edge_v], dtype=np.float64),
     )
 
 
@@ -87,9 +93,17 @@ class RouteTable(NamedTuple):
     tgt: NDArray[np.int32]
     dist: NDArray[np.float64]
     pred: NDArray[np.int32]
+    pred_pos: NDArray[np.int32]
 
 
-NO_TABLE = RouteTable(-1.0, np.zeros(1, np.int64), np.zeros(0, np.int32), np.zeros(0), np.zeros(0, np.int32))
+NO_TABLE = RouteTable(
+    -1.0,
+    np.zeros(1, np.int64),
+    np.zeros(0, np.int32),
+    np.zeros(0),
+    np.zeros(0, np.int32),
+    np.zeros(0, np.int32),
+)
 """The empty table: every route is searched."""
 
 
@@ -137,6 +151,10 @@ def _pop(heap_k, heap_v, n: int) -> int:  # type: ignore[no-untyped-def]
     return n
 
 
+NO_TARGETS = np.zeros(0, dtype=np.int64)
+"""No target positions: :func:`_search_toward` is then a plain bounded Dijkstra."""
+
+
 @njit(cache=True, nogil=True)
 def _search(  # type: ignore[no-untyped-def]
     src: int,
@@ -152,33 +170,75 @@ def _search(  # type: ignore[no-untyped-def]
     edges flagged in ``tgt`` are settled or keys pass ``bound``. Returns the number of
     touched edges (listed in ``touched``; the caller resets them with :func:`_reset`).
     """
+    return _search_toward(src, base, bound, n_targets, NO_TARGETS, g, ws)
+
+
+LOWER_BOUND_SCALE = 1.0 - 1e-6
+"""The straight-line lower bound of :func:`_search_toward` is scaled by this, so that rounding
+(edge lengths agree with their chords to about 1e-10 m) can never make it exceed a route."""
+
+
+@njit(cache=True, nogil=True)
+def _search_toward(  # type: ignore[no-untyped-def]
+    src: int,
+    base: float,
+    bound: float,
+    n_targets: int,
+    targets,
+    g,
+    ws,
+) -> int:
+    """:func:`_search` with the same answer for the flagged ``targets`` (an A* search).
+
+    The key of an edge is its distance plus a lower bound of the rest of the way to any target:
+    the straight line to the first target's start node less the farthest other target's start
+    from it (scaled by :data:`LOWER_BOUND_SCALE`). The bound is consistent, so each target is
+    settled at its shortest distance, and edges whose key passes ``bound`` cannot lie on a
+    route within it: the search covers an ellipse around source and targets, not a disc.
+    With no ``targets`` given the lower bound is 0 (plain Dijkstra, :func:`_search`).
+    """
     dist, pred, done, tgt, touched, heap_k, heap_v = ws
-    nt = 0
-    nh = 0
     move_ptr = g.move_ptr
     move_to = g.move_to
     edge_len = g.edge_len
-    for i in range(move_ptr[src], move_ptr[src + 1]):
-        f = move_to[i]
-        if base <= bound and base < dist[f]:
-            if dist[f] == INF:
-                touched[nt] = f
-                nt += 1
-            dist[f] = base
-            pred[f] = src
-            nh = _push(heap_k, heap_v, nh, base, f)
+    start_xy = g.start_xy
+    end_xy = g.end_xy
+    goal = len(targets) > 0
+    gx = gy = reach = 0.0
+    if goal:
+        gx = start_xy[targets[0], 0]
+        gy = start_xy[targets[0], 1]
+    for i in range(1, len(targets)):
+        f = targets[i]
+        reach = max(reach, math.hypot(start_xy[f, 0] - gx, start_xy[f, 1] - gy))
+    nt = 0
+    nh = 0
+    h = 0.0
+    if goal:
+        h = max(math.hypot(end_xy[src, 0] - gx, end_xy[src, 1] - gy) - reach, 0.0) * LOWER_BOUND_SCALE
+    if base + h <= bound:
+        for i in range(move_ptr[src], move_ptr[src + 1]):
+            f = move_to[i]
+            if base < dist[f]:
+                if dist[f] == INF:
+                    touched[nt] = f
+                    nt += 1
+                dist[f] = base
+                pred[f] = src
+                nh = _push(heap_k, heap_v, nh, base + h, f)
     left = n_targets
     while nh > 0 and left != 0:
-        d = heap_k[0]
         e = heap_v[0]
         nh = _pop(heap_k, heap_v, nh)
-        if done[e] or d > dist[e]:
-            continue
+        if done[e]:
+            continue  # a stale entry: the first pop of an edge has its least key
         done[e] = 1
         if tgt[e]:
             left -= 1
-        nd = d + edge_len[e]
-        if nd > bound:
+        nd = dist[e] + edge_len[e]
+        if goal:
+            h = max(math.hypot(end_xy[e, 0] - gx, end_xy[e, 1] - gy) - reach, 0.0) * LOWER_BOUND_SCALE
+        if nd + h > bound:
             continue
         for i in range(move_ptr[e], move_ptr[e + 1]):
             f = move_to[i]
@@ -189,7 +249,7 @@ def _search(  # type: ignore[no-untyped-def]
                 dist[f] = nd
                 pred[f] = e
                 if nh < len(heap_k):
-                    nh = _push(heap_k, heap_v, nh, nd, f)
+                    nh = _push(heap_k, heap_v, nh, nd + h, f)
     return nt
 
 
@@ -310,8 +370,10 @@ class Ubodt:
 
     For every edge ``e``, the edges ``f`` whose start is within ``delta`` metres of the end of
     ``e`` (turn rules applied), sorted by ``f``: ``tgt[ptr[e]:ptr[e+1]]`` with the distances in
-    ``dist`` and the edge before ``f`` on the route in ``pred`` (``e`` itself for a neighbour).
-    A route query within the bound is then a binary search instead of a search.
+    ``dist`` and the edge before ``f`` on the route in ``pred`` (``e`` itself for a neighbour),
+    whose place in the same row is ``pred_pos`` (-1 for a neighbour), so a route is read back
+    hop by hop without searching. A route query within the bound is then a binary search
+    instead of a search.
     """
 
     delta: float
@@ -319,22 +381,25 @@ class Ubodt:
     tgt: NDArray[np.int32]
     dist: NDArray[np.float64]
     pred: NDArray[np.int32]
+    pred_pos: NDArray[np.int32]
 
     @classmethod
     def build(cls, graph: RoadGraph, delta: float) -> Ubodt:
         """Precompute the table for ``delta`` metres (time and memory grow fast with it)."""
         ws = Workspace.new(graph.n_edges)
-        ptr, tgt, dist, pred = _build_ubodt(float(delta), graph.n_edges, route_graph(graph), ws)
-        return cls(delta=float(delta), ptr=ptr, tgt=tgt, dist=dist, pred=pred)
+        ptr, tgt, dist, pred, pos = _build_ubodt(float(delta), graph.n_edges, route_graph(graph), ws)
+        return cls(delta=float(delta), ptr=ptr, tgt=tgt, dist=dist, pred=pred, pred_pos=pos)
 
     @property
     def table(self) -> RouteTable:
         """The arrays as the compiled kernels read them."""
-        return RouteTable(self.delta, self.ptr, self.tgt, self.dist, self.pred)
+        return RouteTable(self.delta, self.ptr, self.tgt, self.dist, self.pred, self.pred_pos)
 
     @property
     def nbytes(self) -> int:
-        return int(self.ptr.nbytes + self.tgt.nbytes + self.dist.nbytes + self.pred.nbytes)
+        return int(
+            self.ptr.nbytes + self.tgt.nbytes + self.dist.nbytes + self.pred.nbytes + self.pred_pos.nbytes
+        )
 
 
 @njit(cache=True, nogil=True)
@@ -379,7 +444,17 @@ def _build_ubodt(  # type: ignore[no-untyped-def]
         out_p[start:m] = sp
         ptr[e + 1] = m
         _reset(nt, ws)
-    return ptr, out_t[:m].copy(), out_d[:m].copy(), out_p[:m].copy()
+    # each entry's predecessor as a place in its row (-1: the row's own edge)
+    pos = np.full(m, -1, dtype=np.int32)
+    for e in range(n_edges):
+        a, b = ptr[e], ptr[e + 1]
+        for k in range(a, b):
+            p = out_p[k]
+            if p != e:
+                q = np.searchsorted(out_t[a:b], p)
+                if q < b - a and out_t[a + q] == p:
+                    pos[k] = q
+    return ptr, out_t[:m].copy(), out_d[:m].copy(), out_p[:m].copy(), pos
 
 
 @njit(cache=True, nogil=True, inline="always")
@@ -402,37 +477,27 @@ def ubodt_lookup(table, e: int, f: int) -> float:  # type: ignore[no-untyped-def
 @njit(cache=True, nogil=True)
 def ubodt_path(table, src: int, dst: int):  # type: ignore[no-untyped-def]
     """The edges strictly between ``src`` and ``dst`` from the table (None if not in it)."""
-    ptr, tgt, upred = table.ptr, table.tgt, table.pred
-    if ubodt_lookup(table, src, dst) == INF:
-        return None
-    m = 0
-    f = dst
-    while True:
-        p = _ubodt_pred(ptr, tgt, upred, src, f)
-        if p == src or p < 0:
-            break
-        m += 1
-        f = p
-    out = np.empty(m, dtype=np.int32)
-    f = dst
-    while m > 0:
-        p = _ubodt_pred(ptr, tgt, upred, src, f)
-        m -= 1
-        out[m] = p
-        f = p
-    return out
-
-
-@njit(cache=True, nogil=True, inline="always")
-def _ubodt_pred(ptr, tgt, upred, e: int, f: int) -> int:  # type: ignore[no-untyped-def]
-    lo = ptr[e]
-    hi = ptr[e + 1]
+    ptr, tgt, pos = table.ptr, table.tgt, table.pred_pos
+    a = ptr[src]
+    lo = a
+    hi = ptr[src + 1]
     while lo < hi:
         mid = (lo + hi) >> 1
-        if tgt[mid] < f:
+        if tgt[mid] < dst:
             lo = mid + 1
         else:
             hi = mid
-    if lo < ptr[e + 1] and tgt[lo] == f:
-        return upred[lo]
-    return -1
+    if lo >= ptr[src + 1] or tgt[lo] != dst:
+        return None
+    m = 0
+    k = pos[lo]
+    while k >= 0:
+        m += 1
+        k = pos[a + k]
+    out = np.empty(m, dtype=np.int32)
+    k = pos[lo]
+    while k >= 0:
+        m -= 1
+        out[m] = tgt[a + k]
+        k = pos[a + k]
+    return out

@@ -155,32 +155,33 @@ def test_routing_moves_are_the_old_dead_end_rule(restrictions: list[tuple[str, s
 
 
 def test_compiled_entry_point_sees_the_types_it_was_compiled_for() -> None:
-    """The batch kernel is called through its entry point, which does not check types: every
-    kind of input (read-only arrays, integer coordinates, headings, σ, odometer, no time) must
-    reach it with the types of the first call."""
+    """The batch kernels are called through their entry points, which do not check types: every
+    kind of input (read-only arrays, integer coordinates, lists, headings, σ, odometer, no time)
+    must reach each kernel with the types of its first call."""
     import numba
 
     from mapmatch.batch import BatchMatcher
-    from mapmatch.batch.arrays import CandidateArrays, KernelParams, TrackPoints
+    from mapmatch.batch.run import CompiledRun
     from mapmatch.types import Track
 
     m = parse_ascii_map(DRAWING, scale=7)
     matcher = BatchMatcher(m.graph)
     ll = np.array([m.lonlat(*m.xy(c)) for c in "abcd"])
-    seen: list[tuple[object, ...]] = []
-    run = matcher._run
-    inner = type(run).__call__
+    seen: dict[int, list[tuple[object, ...]]] = {}
+    inner = CompiledRun.__call__
 
-    def spy(self, pt: TrackPoints, cands: CandidateArrays, p: KernelParams, geom, router):  # type: ignore[no-untyped-def]
-        seen.append(tuple(numba.typeof(a) for a in (pt, cands, p, geom, router)))
-        return inner(self, pt, cands, p, geom, router)
+    def spy(self, *args):  # type: ignore[no-untyped-def]
+        seen.setdefault(id(self), []).append(tuple(numba.typeof(a) for a in args))
+        return inner(self, *args)
 
     frozen = ll.copy()
     frozen.flags.writeable = False
     tracks = [
         Track("plain", np.arange(4.0), ll[:, 1], ll[:, 0]),
         Track("frozen", np.arange(4), frozen[:, 1], frozen[:, 0]),
+        Track("strided", np.arange(8.0)[::2], np.repeat(ll[:, 1], 2)[::2], np.repeat(ll[:, 0], 2)[::2]),
         Track("no time", None, ll[:, 1].tolist(), ll[:, 0].tolist()),  # type: ignore[arg-type]
+        Track("odometer", np.arange(4.0), ll[:, 1], ll[:, 0], distance=np.full(4, 10.0)),
         Track(
             "rich",
             np.arange(4.0),
@@ -191,11 +192,81 @@ def test_compiled_entry_point_sees_the_types_it_was_compiled_for() -> None:
             pos_sigma=np.full(4, 4.0),
             distance=np.full(4, 10.0),
         ),
+        Track("sigma", np.arange(4), frozen[:, 1], frozen[:, 0], pos_sigma=np.full(4, 4.0)),
     ]
     import unittest.mock
 
-    with unittest.mock.patch.object(type(run), "__call__", spy):
+    with unittest.mock.patch.object(CompiledRun, "__call__", spy):
         for t in tracks:
             assert matcher.match(t).routes
-    assert len(seen) == len(tracks) and all(s == seen[0] for s in seen), seen
-    assert run.signature == seen[0]
+    kernels = {id(matcher._run): matcher._run, id(matcher._run_track): matcher._run_track}
+    assert set(seen) == set(kernels)  # both kernels ran
+    assert sum(len(v) for v in seen.values()) == len(tracks)
+    for k, sigs in seen.items():
+        assert all(s == kernels[k].signature for s in sigs), sigs
+
+
+def test_goal_directed_search_settles_the_targets_as_the_search_does() -> None:
+    """The A* search the Viterbi step runs finds every target within the bound at the distance
+    the plain bounded search finds (same edges, same floats), on a map with turn restrictions."""
+    from mapmatch.routing import INF, Workspace, _reset, _search, _search_toward, route_graph
+
+    m = parse_ascii_map(DRAWING + "   |\n   l\n", scale=9, restrictions=[("b", "c", "h", "no")])
+    g = m.graph
+    rg = route_graph(g)
+    ws = Workspace.new(g.n_edges)
+    rng = np.random.default_rng(2)
+    reached = cut = 0
+    for _ in range(400):
+        src = int(rng.integers(g.n_edges))
+        targets = rng.choice(g.n_edges, size=int(rng.integers(1, 6)), replace=False).astype(np.int64)
+        base = float(rng.random() * g.edge_len[src])
+        bound = float(rng.random() * 600.0)
+        ws.tgt[targets] = 1
+        nt = _search(src, base, bound, len(targets), rg, ws)
+        want = ws.dist[targets].copy()
+        _reset(nt, ws)
+        nt = _search_toward(src, base, bound, len(targets), targets, rg, ws)
+        got = ws.dist[targets].copy()
+        _reset(nt, ws)
+        ws.tgt[targets] = 0
+        np.testing.assert_array_equal(got, want)  # the distance within the bound, else INF
+        reached += int(np.sum(want <= bound))
+        cut += int(np.sum(want == INF))
+    assert ws.dist.min() == INF and not ws.done.any()  # the workspace is left clean
+    assert reached > 300 and cut > 100  # both cases are exercised
+
+
+def test_one_compiled_call_matches_as_the_python_steps_do() -> None:
+    """A track with one σ and no heading is matched in one compiled call (validity, thinning,
+    candidates with the outlier re-query): the same answer as the Python steps then ``run``,
+    with bad points, repeated fixes and fixes away from every road."""
+    from mapmatch.batch import BatchMatcher
+    from mapmatch.types import Track
+
+    m = parse_ascii_map(DRAWING, scale=7)
+    matcher = BatchMatcher(m.graph)
+    rng = np.random.default_rng(4)
+    lo, hi = m.graph.node_xy.min(axis=0) - 60, m.graph.node_xy.max(axis=0) + 60
+    lonely = 0
+    for _ in range(25):
+        n = int(rng.integers(0, 12))
+        xy = lo + rng.random((n, 2)) * (hi - lo)
+        if n > 3:
+            xy[2] = xy[1] + 1.0  # thinned out (interpolated afterwards)
+        ll = np.array([m.lonlat(x, y) for x, y in xy]).reshape(-1, 2)
+        lat, lon = ll[:, 1].copy(), ll[:, 0].copy()
+        if n > 5:
+            lat[4], lon[5] = np.nan, 200.0  # invalid fixes
+        t = Track("r", np.arange(n) * 10.0, lat, lon)
+        d = matcher.index.query(xy, BATCH_CONFIG.search_radius).point if n else np.zeros(0, dtype=int)
+        lonely += n - len(np.unique(d))
+        a, b = matcher._match_plain(t, BATCH_CONFIG), matcher._match_general(t, BATCH_CONFIG)
+        assert a.routes == b.routes and a.splits == b.splits
+        assert a.length_m == b.length_m and a.confidence == b.confidence
+        assert a.point_arrays is not None and b.point_arrays is not None
+        for u, v in zip(a.point_arrays, b.point_arrays, strict=True):
+            np.testing.assert_array_equal(u, v)
+        for u, v in zip(a.route_xy, b.route_xy, strict=True):
+            np.testing.assert_array_equal(u, v)
+    assert lonely > 10  # fixes beyond the search radius were looked for again

@@ -10,24 +10,46 @@ compiled with numba and run as one call (:mod:`~mapmatch.batch.run`).
 from __future__ import annotations
 
 import threading
+from typing import NamedTuple
 
 import numpy as np
 from numpy.typing import NDArray
+from pyproj import Transformer
 
 from mapmatch import model
-from mapmatch.batch.arrays import CandidateArrays, EdgeGeometry, TrackPoints, kernel_params
+from mapmatch.batch.arrays import CandidateArrays, EdgeGeometry, KernelParams, TrackPoints, kernel_params
 from mapmatch.batch.lattice import bearing_at, thin
 from mapmatch.batch.results import fill_route_lonlat, track_match
-from mapmatch.batch.run import CompiledRun, fresh
+from mapmatch.batch.run import CompiledRun, QueryParams, TrackInput, fresh, run_track
 from mapmatch.config import BATCH_CONFIG, MatchConfig
 from mapmatch.graph.index import Candidates, EdgeIndex
 from mapmatch.graph.projection import to_xy
 from mapmatch.graph.road_graph import RoadGraph
-from mapmatch.gridindex import GridIndex
+from mapmatch.gridindex import GridIndex, GridScratch
 from mapmatch.routing import NO_TABLE, Router, Ubodt, Workspace, route_graph
 from mapmatch.types import Track, TrackMatch
 
 F8, I8 = np.float64, np.int64
+NO_ODO = np.zeros(0)
+"""The odometer readings of a track without them (read-only use)."""
+
+
+class _ThreadState(NamedTuple):
+    """One thread's scratch for one matcher: the route workspace, the grid marks and the
+    transformer to the map's CRS (pyproj transformers are not shared across threads)."""
+
+    router: Router
+    grid: GridScratch
+    to_map: Transformer
+
+
+class _Settings(NamedTuple):
+    """What a config turns into for the kernels (built once per config object)."""
+
+    config: MatchConfig
+    params: KernelParams
+    query: QueryParams
+    sigma: float
 
 
 class BatchMatcher:
@@ -66,16 +88,38 @@ class BatchMatcher:
             np.ascontiguousarray(graph.seg_xy, dtype=F8), np.ascontiguousarray(graph.edge_seg_ptr, dtype=I8)
         )
         self._run = CompiledRun()
+        self._run_track = CompiledRun(run_track)
         self._local = threading.local()
+        self._settings: dict[int, _Settings] = {}
+
+    def _state(self) -> _ThreadState:
+        """This thread's scratch (built once per thread, so one matcher serves many threads)."""
+        st: _ThreadState | None = getattr(self._local, "state", None)
+        if st is None:
+            router = Router(self._rg, Workspace.new(self.graph.n_edges), self._table)
+            to_map = Transformer.from_crs("EPSG:4326", self.graph.crs, always_xy=True)
+            st = self._local.state = _ThreadState(router, self._grid.scratch(), to_map)
+        return st
 
     @property
     def _router(self) -> Router:
-        """The route queries' arrays, with this thread's workspace (built once per thread, so
-        one matcher serves many threads)."""
-        router: Router | None = getattr(self._local, "router", None)
-        if router is None:
-            router = self._local.router = Router(self._rg, Workspace.new(self.graph.n_edges), self._table)
-        return router
+        """The route queries' arrays, with this thread's workspace."""
+        return self._state().router
+
+    def _settings_for(self, cfg: MatchConfig) -> _Settings:
+        """The kernels' parameters of ``cfg`` (a config is immutable: cached by identity)."""
+        st = self._settings.get(id(cfg))
+        if st is None or st.config is not cfg:
+            sigma = float(model.position_sigma(np.nan, cfg))
+            query = QueryParams(
+                radius=float(cfg.search_radius), outlier=float(cfg.outlier_distance),
+                k=int(cfg.max_candidates), min_dist=float(cfg.interpolate_distance),
+            )  # fmt: skip
+            st = _Settings(cfg, kernel_params(cfg, sigma), query, sigma)
+            if len(self._settings) >= 64:
+                self._settings.clear()
+            self._settings[id(cfg)] = st
+        return st
 
     def match(self, track: Track, config: MatchConfig | None = None, *, lonlat: bool = True) -> TrackMatch:
         """Match one track; bad points become unmatched, never an exception for the track.
@@ -85,6 +129,28 @@ class BatchMatcher:
         ``route_lonlat`` and ``points`` from them.
         """
         cfg = config or self.config
+        if track.pos_sigma is None and track.heading is None:
+            res = self._match_plain(track, cfg)
+        else:
+            res = self._match_general(track, cfg)
+        if lonlat:
+            fill_route_lonlat(res, self.graph.crs)
+        return res
+
+    def _match_plain(self, track: Track, cfg: MatchConfig) -> TrackMatch:
+        """One σ, no heading: the projection, then one compiled call (:func:`run_track`)."""
+        st = self._state()
+        s = self._settings_for(cfg)
+        lat = fresh(track.lat, F8)
+        lon = fresh(track.lon, F8)
+        x, y = st.to_map.transform(lon, lat)
+        odo = NO_ODO if track.distance is None else _odometer(track.distance)
+        ti = TrackInput(lat, lon, fresh(x, F8), fresh(y, F8), fresh(_opt(track.time, len(lat)), F8), odo)
+        a = self._run_track(ti, s.query, s.params, self._geom, st.router, self._grid.arrays, st.grid)
+        return track_match(str(track.track_id), a)
+
+    def _match_general(self, track: Track, cfg: MatchConfig) -> TrackMatch:
+        """Per-fix σ or headings: candidates and emissions in numpy, then :func:`run`."""
         g = self.graph
         n = len(track)
         lat = np.asarray(track.lat, dtype=F8)
@@ -119,10 +185,7 @@ class BatchMatcher:
             emis = model.emission_logp(cands.dist, sigma, np.nan, 0.0, 0.0)
         else:
             emis = np.zeros(0)  # one σ, no heading: computed in the compiled kernel
-        odo = np.zeros(0)
-        if track.distance is not None:
-            d = np.asarray(track.distance, dtype=F8)
-            odo = np.where(np.isfinite(d), np.cumsum(np.where(np.isfinite(d), d, 0.0)), np.nan)
+        odo = NO_ODO if track.distance is None else _odometer(track.distance)
         pt = TrackPoints(
             valid=fresh(valid, np.bool_), kept=fresh(kept, np.bool_), xy=xy,
             time=fresh(_opt(track.time, n), F8), odo=fresh(odo, F8), kidx=fresh(kidx, I8),
@@ -132,10 +195,7 @@ class BatchMatcher:
             xy=fresh(cands.xy, F8), dist=fresh(cands.dist, F8), emis=fresh(emis, F8),
         )  # fmt: skip
         params = kernel_params(cfg, sigma if isinstance(sigma, float) else 0.0)
-        res = track_match(str(track.track_id), self._run(pt, ca, params, self._geom, self._router))
-        if lonlat:
-            fill_route_lonlat(res, g.crs)
-        return res
+        return track_match(str(track.track_id), self._run(pt, ca, params, self._geom, self._router))
 
 
 def match_track(
@@ -156,6 +216,12 @@ def _merge_candidates(a: Candidates, b: Candidates, b_points: NDArray[np.int64])
         offset=np.concatenate([a.offset, b.offset])[order],
         xy=np.concatenate([a.xy, b.xy])[order],
     )
+
+
+def _odometer(distance: NDArray[np.float64]) -> NDArray[np.float64]:
+    """Cumulative odometer distance from per-point distances (NaN where a reading is missing)."""
+    d = np.asarray(distance, dtype=F8)
+    return np.where(np.isfinite(d), np.cumsum(np.where(np.isfinite(d), d, 0.0)), np.nan)
 
 
 def _opt(a: NDArray[np.float64] | None, n: int) -> NDArray[np.float64]:

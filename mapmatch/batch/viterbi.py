@@ -18,7 +18,7 @@ from numpy.typing import NDArray
 
 from mapmatch.batch.arrays import KernelParams, Lattice
 from mapmatch.model import transition_logp_one
-from mapmatch.routing import _reset, _search, ubodt_lookup
+from mapmatch.routing import _reset, _search_toward, ubodt_lookup
 
 
 class Trellis(NamedTuple):
@@ -122,7 +122,7 @@ def _step(a0, a1, b0, b1, lat, tr, params, node_uturn, trav, dt, bound, reverse_
                         bp[j] = i
                         bpu[j] = False
             continue
-        nt = _search(e, edge_len[e] - o, lim, nuniq, g, ws)
+        nt = _search_toward(e, edge_len[e] - o, lim, nuniq, cedge[b0:b1], g, ws)
         for j in range(b0, b1):
             f = cedge[j]
             if f == e and coff[j] >= o - reverse_tol:
