@@ -306,3 +306,93 @@ def test_one_matcher_serves_many_threads() -> None:
         ["de", "eb", "bc"],
         ["cb", "ba", "ad", "de", "ef"],
     ]
+
+
+def test_fixes_off_the_map_at_the_end_are_unmatched_not_routed_to_a_far_road() -> None:
+    # the track ends in a car park 58 m north of ae, 42 m from cd: no road explains it (5 σ
+    # is 40 m); it must not pull the route round e-d onto cd
+    m = parse_ascii_map(
+        """
+        c------------d
+        |            |
+        |            |
+        |            |
+        |            |
+        a------------e
+        """,
+        scale=10,
+    )
+    road = [at(m, "a", x, 1) for x in (10, 22, 34, 46, 58, 70)]
+    park = [at(m, "a", x, 58 + dy) for x, dy in ((76, 0), (80, 2), (78, -1), (81, 1))]
+    r = BatchMatcher(m.graph).match(track_from_xy(m, road + park))
+    assert [names(m, piece) for piece in r.routes] == [["ae"]]
+    assert [p.status for p in r.points][6:] == [PointStatus.UNMATCHED] * 4
+    assert r.length_m == pytest.approx(60, abs=2)
+    # with the σ rule off (only the fixed outlier distance) the car park is routed to cd
+    track = track_from_xy(m, road + park)
+    loose = BatchMatcher(m.graph).match(track, DEFAULT_CONFIG.replace(off_map_sigmas=0))
+    assert loose.length_m > 150
+
+
+def test_a_run_off_the_map_cuts_the_route() -> None:
+    # the track leaves ae up an unmapped lane, drives 200 m with no road within 40 m and comes
+    # back onto cd: the route is cut there, never bridged by a guess
+    m = parse_ascii_map(
+        """
+        c------------------------------d
+        |                              |
+        |                              |
+        |                              |
+        |                              |
+        a------------------------------e
+        """,
+        scale=10,
+    )
+    go = [at(m, "a", x, 1) for x in (10, 22, 34, 46)]
+    lane = [at(m, "a", x, 50) for x in (45, 89, 133, 177, 221, 265)]
+    back = [at(m, "c", x, -1) for x in (280, 265, 250, 235)]
+    track = track_from_xy(m, go + lane + back)
+    r = BatchMatcher(m.graph).match(track)
+    assert r.splits == [10]
+    assert [names(m, piece) for piece in r.routes] == [["ae"], ["dc"]]
+    assert [p.status for p in r.points][4:10] == [PointStatus.UNMATCHED] * 6
+    # a short excursion (less than off_map_cut) is bridged
+    r = BatchMatcher(m.graph).match(track, DEFAULT_CONFIG.replace(off_map_cut=1000.0))
+    assert r.splits == [] and len(r.routes) == 1
+
+
+def test_impossible_step_splits_the_match() -> None:
+    # a peer's case: b to c is 176 m of road in 1 s: the match splits rather than drive it
+    m = parse_ascii_map(
+        """
+        a-b------x
+                 |
+                 |
+                 y---c-d
+        """,
+        scale=10,
+    )
+    pts = [at(m, "a", 3, 1), at(m, "a", 17, 1), at(m, "y", 43, -1), at(m, "y", 57, -1)]
+    r = BatchMatcher(m.graph).match(track_from_xy(m, pts, dt=1.0))
+    assert r.splits == [2]
+    assert [names(m, piece) for piece in r.routes] == [["ab"], ["cd"]]
+    # at 10 s a step the same road is plausible: one piece through x and y
+    r = BatchMatcher(m.graph).match(track_from_xy(m, pts, dt=10.0))
+    assert r.splits == [] and [names(m, piece) for piece in r.routes] == [["ab", "bx", "xy", "yc", "cd"]]
+
+
+def test_a_fix_that_jumps_back_is_dropped_not_looped_round() -> None:
+    # a peer's case: 100 m back after 2 s, then on: no U-turn loop, the jump is unmatched
+    m = parse_ascii_map("a----------b----------c----------d", scale=10)
+    xs, ts = [5, 105, 5, 215, 325], [0.0, 10.0, 12.0, 20.0, 30.0]
+    ll = np.array([m.lonlat(*at(m, "a", x, 1)) for x in xs])
+    track = Track("t", np.array(ts), ll[:, 1], ll[:, 0])
+    r = BatchMatcher(m.graph).match(track)
+    assert [names(m, piece) for piece in r.routes] == [["ab", "bc", "cd"]]
+    assert r.length_m == pytest.approx(320, abs=2)
+    assert [p.status for p in r.points] == ["matched", "matched", "unmatched", "matched", "matched"]
+    # driving out and back slowly (a dead end at 30 s) is a real turn, kept
+    back = np.array([m.lonlat(*at(m, "a", x, 1)) for x in (2, 220, 150)])
+    r = BatchMatcher(m.graph).match(Track("s", np.array([0.0, 30.0, 60.0]), back[:, 1], back[:, 0]))
+    assert [p.status for p in r.points] == ["matched"] * 3
+    assert [names(m, piece) for piece in r.routes] == [["ab", "bc", "cb"]]

@@ -41,6 +41,8 @@ class CandidateArrays(NamedTuple):
     dist: NDArray[np.float64]
     emis: NDArray[np.float64]
     """Emission log-probabilities; empty: distance-only with :attr:`KernelParams.sigma`."""
+    sigma: NDArray[np.float64]
+    """Position σ per candidate; empty: :attr:`KernelParams.sigma` for all."""
 
 
 class Lattice(NamedTuple):
@@ -57,6 +59,9 @@ class Lattice(NamedTuple):
     pxy: NDArray[np.float64]
     ptime: NDArray[np.float64]
     podo: NDArray[np.float64]
+    cut: NDArray[np.bool_]
+    """A piece of route starts here: the track left the map (off-map fixes) since the
+    previous lattice point."""
 
 
 class EdgeGeometry(NamedTuple):
@@ -83,6 +88,11 @@ class KernelParams(NamedTuple):
     gap_distance: float
     max_skip: int
     reverse_tol: float
+    split_speed: float
+    """m/s; 0: no speed check on steps."""
+    split_slack: float
+    off_map_sigmas: float
+    off_map_cut: float
 
 
 class Assembly(NamedTuple):
@@ -117,4 +127,8 @@ def kernel_params(cfg: MatchConfig, sigma: float) -> KernelParams:
         gap_distance=float(cfg.gap_distance),
         max_skip=int(cfg.max_skip),
         reverse_tol=float(cfg.reverse_tolerance),
+        split_speed=float(cfg.split_speed),
+        split_slack=float(cfg.split_slack),
+        off_map_sigmas=float(cfg.off_map_sigmas),
+        off_map_cut=float(cfg.off_map_cut),
     )

@@ -65,8 +65,9 @@ def bearing_at(edges, offs, seg_xy, seg_ptr):  # type: ignore[no-untyped-def]
 
 
 @njit(cache=True, nogil=True)
-def prune(nk, c: CandidateArrays, emis, prune_lp, outlier):  # type: ignore[no-untyped-def]
-    """Drop candidates far below their point's best emission or beyond ``outlier`` metres.
+def prune(nk, c: CandidateArrays, emis, prune_lp, outlier, sigma, off_map_sigmas):  # type: ignore[no-untyped-def]
+    """Drop candidates far below their point's best emission, beyond ``outlier`` metres or
+    beyond ``off_map_sigmas`` times their σ (``c.sigma``, else ``sigma``; 0: no σ limit).
 
     Candidates come sorted by point. Returns the kept ones with their per-point pointer (over
     the points that keep any) and which of the ``nk`` points keep any.
@@ -81,7 +82,11 @@ def prune(nk, c: CandidateArrays, emis, prune_lp, outlier):  # type: ignore[no-u
     counts = np.zeros(nk, dtype=np.int64)
     nkeep = 0
     for i in range(nc):
-        if emis[i] >= best[cpoint[i]] - prune_lp and c.dist[i] <= outlier:
+        lim = outlier
+        if off_map_sigmas > 0:
+            s = c.sigma[i] if len(c.sigma) == len(cpoint) else sigma
+            lim = min(lim, off_map_sigmas * s)
+        if emis[i] >= best[cpoint[i]] - prune_lp and c.dist[i] <= lim:
             keep[i] = True
             counts[cpoint[i]] += 1
             nkeep += 1
@@ -123,7 +128,7 @@ def build_lattice(pt: TrackPoints, c: CandidateArrays, p: KernelParams) -> Latti
         emis = np.empty(len(c.dist))
         for i in range(len(c.dist)):
             emis[i] = emission_logp_one(c.dist[i], p.sigma, 0.0, 0.0, 0.0)
-    ptr, ce, co, cx, cd, em, has = prune(len(pt.kidx), c, emis, p.prune, p.outlier)
+    ptr, ce, co, cx, cd, em, has = prune(len(pt.kidx), c, emis, p.prune, p.outlier, p.sigma, p.off_map_sigmas)
     pts = pt.kidx[has]
     m = len(pts)
     pxy = np.empty((m, 2))
@@ -135,4 +140,68 @@ def build_lattice(pt: TrackPoints, c: CandidateArrays, p: KernelParams) -> Latti
         ptime[i] = pt.time[pts[i]]
         if len(pt.odo):
             podo[i] = pt.odo[pts[i]]
-    return Lattice(ptr, ce, co, cx, cd, em, pts, pxy, ptime, podo)
+    cut = off_map_cuts(pt, has, p.off_map_cut)
+    return Lattice(ptr, ce, co, cx, cd, em, pts, pxy, ptime, podo, cut)
+
+
+@njit(cache=True, nogil=True)
+def off_map_cuts(pt: TrackPoints, has, min_run):  # type: ignore[no-untyped-def]
+    """Per lattice point: whether the kept points just before it that have no road within the
+    off-map distance travel at least ``min_run`` metres among themselves (the track left the
+    map and came back: the route is cut there; 0 never cuts)."""
+    m = 0
+    for q in range(len(has)):
+        if has[q]:
+            m += 1
+    cut = np.zeros(m, dtype=np.bool_)
+    if min_run <= 0:
+        return cut
+    t = -1
+    run = 0.0
+    off = 0
+    for q in range(len(has)):
+        if q > 0 and t >= 0 and not has[q] and not has[q - 1]:
+            a = pt.kidx[q - 1]
+            b = pt.kidx[q]
+            run += math.hypot(pt.xy[b, 0] - pt.xy[a, 0], pt.xy[b, 1] - pt.xy[a, 1])
+        if has[q]:
+            if t >= 0 and off > 0 and run >= min_run:
+                cut[t + 1] = True
+            t += 1
+            run = 0.0
+            off = 0
+        else:
+            off += 1
+    return cut
+
+
+@njit(cache=True, nogil=True)
+def drop_spikes(xy, time, kept, valid, sigma, min_sigmas, max_speed):  # type: ignore[no-untyped-def]
+    """Valid flags with jumps cleared: kept points the track reaches and leaves in opposite
+    directions (legs longer than ``min_sigmas * sigma``) where visiting them needs more than
+    ``max_speed`` m/s on average between the kept neighbours (0 disables it)."""
+    out = valid.copy()
+    if max_speed <= 0:
+        return out
+    kidx = np.flatnonzero(kept)
+    a = -1
+    for q in range(len(kidx) - 1):
+        b = kidx[q]
+        c = kidx[q + 1]
+        if a < 0:
+            a = b
+            continue
+        ux = xy[b, 0] - xy[a, 0]
+        uy = xy[b, 1] - xy[a, 1]
+        vx = xy[c, 0] - xy[b, 0]
+        vy = xy[c, 1] - xy[b, 1]
+        lu = math.hypot(ux, uy)
+        lv = math.hypot(vx, vy)
+        dt = time[c] - time[a]
+        noise = min_sigmas * sigma
+        reverses = lu > noise and lv > noise and ux * vx + uy * vy < -0.5 * lu * lv
+        if reverses and dt > 0 and (lu + lv) / dt > max_speed:
+            out[b] = False
+            continue  # ``a`` stays the neighbour of the next point
+        a = b
+    return out

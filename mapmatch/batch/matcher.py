@@ -16,7 +16,7 @@ from numpy.typing import NDArray
 
 from mapmatch import model
 from mapmatch.batch.arrays import CandidateArrays, EdgeGeometry, TrackPoints, kernel_params
-from mapmatch.batch.lattice import bearing_at, thin
+from mapmatch.batch.lattice import bearing_at, drop_spikes, thin
 from mapmatch.batch.results import fill_route_lonlat, track_match
 from mapmatch.batch.run import CompiledRun, fresh
 from mapmatch.config import BATCH_CONFIG, MatchConfig
@@ -99,6 +99,11 @@ class BatchMatcher:
         xy = fresh(xy, F8)
         # points closer than the noise to the previous kept point are interpolated afterwards
         kept = thin(xy, valid, float(cfg.interpolate_distance))
+        time = fresh(_opt(track.time, n), F8)
+        sigma0 = float(model.position_sigma(np.nan, cfg))
+        # jumps (a fix reached and left in opposite directions too fast) get no candidates
+        spikes = (float(cfg.spike_sigmas), float(cfg.spike_speed))
+        jump = valid & ~drop_spikes(xy, time, kept, valid, sigma0, *spikes)
         kidx = np.flatnonzero(kept)
         cands = self._grid.query(xy[kidx], cfg.search_radius, k=cfg.max_candidates)
         # points with no road within the search radius look again up to the outlier distance
@@ -106,8 +111,10 @@ class BatchMatcher:
         if len(lonely) and cfg.outlier_distance > cfg.search_radius:
             more = self._grid.query(xy[kidx[lonely]], cfg.outlier_distance, k=cfg.max_candidates)
             cands = _merge_candidates(cands, more, lonely)
+        if jump.any():
+            cands = _subset(cands, ~jump[kidx][cands.point])
         # emissions (shared model); pruning of hopeless candidates happens in the kernel
-        sigma: float | NDArray[np.float64] = float(model.position_sigma(np.nan, cfg))
+        sigma: float | NDArray[np.float64] = sigma0
         if track.pos_sigma is not None:
             sigma = model.position_sigma(np.asarray(track.pos_sigma, dtype=F8)[kidx], cfg)[cands.point]
         heading = None if track.heading is None else np.asarray(track.heading, dtype=F8)[kidx]
@@ -125,11 +132,12 @@ class BatchMatcher:
             odo = np.where(np.isfinite(d), np.cumsum(np.where(np.isfinite(d), d, 0.0)), np.nan)
         pt = TrackPoints(
             valid=fresh(valid, np.bool_), kept=fresh(kept, np.bool_), xy=xy,
-            time=fresh(_opt(track.time, n), F8), odo=fresh(odo, F8), kidx=fresh(kidx, I8),
+            time=time, odo=fresh(odo, F8), kidx=fresh(kidx, I8),
         )  # fmt: skip
         ca = CandidateArrays(
             point=fresh(cands.point, I8), edge=fresh(cands.edge, I8), offset=fresh(cands.offset, F8),
             xy=fresh(cands.xy, F8), dist=fresh(cands.dist, F8), emis=fresh(emis, F8),
+            sigma=fresh(sigma if np.ndim(sigma) else np.zeros(0), F8),
         )  # fmt: skip
         params = kernel_params(cfg, sigma if isinstance(sigma, float) else 0.0)
         res = track_match(str(track.track_id), self._run(pt, ca, params, self._geom, self._router))
@@ -155,6 +163,12 @@ def _merge_candidates(a: Candidates, b: Candidates, b_points: NDArray[np.int64])
         dist=np.concatenate([a.dist, b.dist])[order],
         offset=np.concatenate([a.offset, b.offset])[order],
         xy=np.concatenate([a.xy, b.xy])[order],
+    )
+
+
+def _subset(c: Candidates, keep: NDArray[np.bool_]) -> Candidates:
+    return Candidates(
+        point=c.point[keep], edge=c.edge[keep], dist=c.dist[keep], offset=c.offset[keep], xy=c.xy[keep]
     )
 
 

@@ -34,8 +34,9 @@ class Trellis(NamedTuple):
 
 
 @njit(cache=True, nogil=True)
-def _step(a0, a1, b0, b1, lat, tr, params, node_uturn, trav, dt, bound, reverse_tol, router):  # type: ignore[no-untyped-def]
-    """One Viterbi step from candidates ``a0:a1`` to ``b0:b1``, routing as needed.
+def _step(a0, a1, b0, b1, lat, tr, params, node_uturn, trav, dt, bound, vcap, reverse_tol, router):  # type: ignore[no-untyped-def]
+    """One Viterbi step from candidates ``a0:a1`` to ``b0:b1``, routing as needed (routes
+    longer than ``vcap``, the most the step's time allows, are impossible).
 
     Sources are taken best score first. As every transition log-probability is <= 0, a source
     can only improve target ``j`` when its score beats ``best[j]``, and only through a route
@@ -91,14 +92,15 @@ def _step(a0, a1, b0, b1, lat, tr, params, node_uturn, trav, dt, bound, reverse_
         for j in range(b0, b1):
             f = cedge[j]
             if f == e and coff[j] >= o - reverse_tol:
-                lp = transition_logp_one(max(coff[j] - o, 0.0), trav, dt, params, False)
+                r = max(coff[j] - o, 0.0)
+                lp = transition_logp_one(r, trav, dt, params, False) if r <= vcap else -np.inf
                 if si + lp > best[j - b0]:
                     best[j - b0] = si + lp
                     bp[j] = i
                     bpu[j] = False
             else:
                 need = True
-                if f == edge_rev[e]:
+                if f == edge_rev[e] and abs(edge_len[e] - coff[j] - o) <= vcap:
                     lp = transition_logp_one(abs(edge_len[e] - coff[j] - o), trav, dt, params, True)
                     if node_uturn < params[3] and edge_len[e] - o <= reverse_tol and coff[j] <= reverse_tol:
                         # turning round at the junction (within reverse_tol) after a stop
@@ -156,7 +158,10 @@ def _try_step(prev, t, d, lat, tr, p, router):  # type: ignore[no-untyped-def]
     if np.isfinite(od) and od > 0:
         trav = od
     dt = lat.ptime[t] - lat.ptime[prev]
-    bound = p.route_factor * trav + p.route_slack
+    vcap = np.inf  # the longest route the time between the fixes allows
+    if p.split_speed > 0 and dt > 0:
+        vcap = p.split_speed * dt + p.split_slack
+    bound = min(p.route_factor * trav + p.route_slack, vcap)
     tight = min(bound, trav + p.lp_cut_m)
     stop = p.stop  # (stop speed, stop time, U-turn penalty across a stop)
     node_uturn = p.transition[3]
@@ -170,7 +175,7 @@ def _try_step(prev, t, d, lat, tr, p, router):  # type: ignore[no-untyped-def]
             break
         reached = _step(
             ptr[prev], ptr[prev + 1], ptr[t], ptr[t + 1], lat, tr, p.transition, node_uturn, trav, dt, lim,
-            p.reverse_tol, router,
+            vcap, p.reverse_tol, router,
         )  # fmt: skip
         if reached:
             break
@@ -229,7 +234,7 @@ def solve(lat: Lattice, p: KernelParams, router):  # type: ignore[no-untyped-def
             restart = s0  # several trailing points unreachable: they form their own piece
         else:
             d = math.hypot(pxy[t, 0] - pxy[prev, 0], pxy[t, 1] - pxy[prev, 1])
-            if d > gap_distance:
+            if d > gap_distance or lat.cut[t]:
                 restart = s0 if nskip > 0 else t
         if restart < 0:
             reached, bound = _try_step(prev, t, d, lat, tr, p, router)
