@@ -294,6 +294,10 @@ class BatchConfig:
         never routed to a far road (``outlier_distance`` caps it).
     off_map_cut : metres; a run of off-map fixes travelling at least this far (the track
         leaves the map and comes back) cuts the route there (0: never cut).
+    speed_limit_factor : where the map has speed limits (posted, or the default of the road's
+        class), a step faster on average than this times the higher limit of its two roads ...
+    speed_limit_penalty : ... costs this log-probability per m/s beyond (0 disables it; maps
+        without limits are unaffected).
     """
 
     max_route_factor: float = 3.0
@@ -315,6 +319,8 @@ class BatchConfig:
     spike_sigmas: float = 3.0
     off_map_sigmas: float = 5.0
     off_map_cut: float = 200.0
+    speed_limit_factor: float = 1.5
+    speed_limit_penalty: float = 0.5
 
     def __post_init__(self) -> None:
         _check_numbers(self)

@@ -396,3 +396,39 @@ def test_a_fix_that_jumps_back_is_dropped_not_looped_round() -> None:
     r = BatchMatcher(m.graph).match(Track("s", np.array([0.0, 30.0, 60.0]), back[:, 1], back[:, 0]))
     assert [p.status for p in r.points] == ["matched"] * 3
     assert [names(m, piece) for piece in r.routes] == [["ab", "bc", "cb"]]
+
+
+def _with_speeds(amap: AsciiMap, kph: dict[str, float]) -> AsciiMap:
+    """The map with speed limits by road (``"ab": 80``; both directions), NaN elsewhere."""
+    from mapmatch.graph.road_graph import RoadGraph
+
+    g = amap.graph
+    inv = {v: k for k, v in amap.nodes.items()}
+    speed = [
+        kph.get("".join(sorted(inv[int(u)] + inv[int(v)])), np.nan)
+        for u, v in zip(g.edge_u, g.edge_v, strict=True)
+    ]
+    graph = RoadGraph.from_edges(
+        crs=g.crs, node_xy=g.node_xy, node_lonlat=g.node_lonlat, node_id=g.node_id, edge_u=g.edge_u,
+        edge_v=g.edge_v, edge_way_id=g.edge_way_id, edge_speed_kph=np.array(speed, dtype=np.float32),
+    )  # fmt: skip
+    return AsciiMap(graph=graph, nodes=amap.nodes, scale=amap.scale)
+
+
+def test_speed_limits_tell_parallel_roads_apart_at_sparse_sampling() -> None:
+    # a main road (80 km/h) and a residential street (30 km/h) 40 m apart; the fixes run
+    # between them, a little closer to the street, at 20 m/s: too fast for the street
+    drawing = """
+        a------------------------------------------------------------b
+        |                                                            |
+        c------------------------------------------------------------d
+        """
+    plain = parse_ascii_map(drawing, scale=10)
+    m = _with_speeds(plain, {"ab": 80.0, "cd": 30.0, "ac": 30.0, "bd": 30.0})
+    pts = [at(m, "a", x, -21) for x in (30, 180, 330, 480)]
+    fast = track_from_xy(m, pts, dt=7.5)
+    assert [names(m, piece) for piece in BatchMatcher(plain.graph).match(fast).routes] == [["cd"]]
+    assert [names(m, piece) for piece in BatchMatcher(m.graph).match(fast).routes] == [["ab"]]
+    # slowly (5 m/s) the street is plausible again, and nearer
+    slow = track_from_xy(m, pts, dt=30.0)
+    assert [names(m, piece) for piece in BatchMatcher(m.graph).match(slow).routes] == [["cd"]]

@@ -43,6 +43,8 @@ class CandidateArrays(NamedTuple):
     """Emission log-probabilities; empty: distance-only with :attr:`KernelParams.sigma`."""
     sigma: NDArray[np.float64]
     """Position σ per candidate; empty: :attr:`KernelParams.sigma` for all."""
+    limit: NDArray[np.float64]
+    """Speed limit (m/s) of the candidate's road, NaN unknown; empty: the map has none."""
 
 
 class Lattice(NamedTuple):
@@ -54,6 +56,7 @@ class Lattice(NamedTuple):
     xy: NDArray[np.float64]
     dist: NDArray[np.float64]
     emis: NDArray[np.float64]
+    limit: NDArray[np.float64]
     pts: NDArray[np.int64]
     """Track index of each lattice point."""
     pxy: NDArray[np.float64]
@@ -93,6 +96,10 @@ class KernelParams(NamedTuple):
     split_slack: float
     off_map_sigmas: float
     off_map_cut: float
+    limit_factor: float
+    """A step faster than this times the higher speed limit of its two roads ..."""
+    limit_penalty: float
+    """... costs this log-probability per m/s beyond (0 disables it)."""
 
 
 class Assembly(NamedTuple):
@@ -131,4 +138,6 @@ def kernel_params(cfg: MatchConfig, sigma: float) -> KernelParams:
         split_slack=float(cfg.split_slack),
         off_map_sigmas=float(cfg.off_map_sigmas),
         off_map_cut=float(cfg.off_map_cut),
+        limit_factor=float(cfg.speed_limit_factor),
+        limit_penalty=float(cfg.speed_limit_penalty),
     )

@@ -106,6 +106,8 @@ def prune(nk, c: CandidateArrays, emis, prune_lp, outlier, sigma, off_map_sigmas
     ox = np.empty((nkeep, 2))
     od = np.empty(nkeep)
     om = np.empty(nkeep)
+    nl = nkeep if len(c.limit) == nc else 0
+    ol = np.empty(nl)
     k = 0
     for i in range(nc):
         if keep[i]:
@@ -115,8 +117,10 @@ def prune(nk, c: CandidateArrays, emis, prune_lp, outlier, sigma, off_map_sigmas
             ox[k, 1] = c.xy[i, 1]
             od[k] = c.dist[i]
             om[k] = emis[i]
+            if nl:
+                ol[k] = c.limit[i]
             k += 1
-    return ptr, oe, oo, ox, od, om, has
+    return ptr, oe, oo, ox, od, om, ol, has
 
 
 @njit(cache=True, nogil=True)
@@ -128,7 +132,9 @@ def build_lattice(pt: TrackPoints, c: CandidateArrays, p: KernelParams) -> Latti
         emis = np.empty(len(c.dist))
         for i in range(len(c.dist)):
             emis[i] = emission_logp_one(c.dist[i], p.sigma, 0.0, 0.0, 0.0)
-    ptr, ce, co, cx, cd, em, has = prune(len(pt.kidx), c, emis, p.prune, p.outlier, p.sigma, p.off_map_sigmas)
+    ptr, ce, co, cx, cd, em, lim, has = prune(
+        len(pt.kidx), c, emis, p.prune, p.outlier, p.sigma, p.off_map_sigmas
+    )
     pts = pt.kidx[has]
     m = len(pts)
     pxy = np.empty((m, 2))
@@ -141,7 +147,7 @@ def build_lattice(pt: TrackPoints, c: CandidateArrays, p: KernelParams) -> Latti
         if len(pt.odo):
             podo[i] = pt.odo[pts[i]]
     cut = off_map_cuts(pt, has, p.off_map_cut)
-    return Lattice(ptr, ce, co, cx, cd, em, pts, pxy, ptime, podo, cut)
+    return Lattice(ptr, ce, co, cx, cd, em, lim, pts, pxy, ptime, podo, cut)
 
 
 @njit(cache=True, nogil=True)

@@ -65,6 +65,9 @@ class BatchMatcher:
         self._geom = EdgeGeometry(
             np.ascontiguousarray(graph.seg_xy, dtype=F8), np.ascontiguousarray(graph.edge_seg_ptr, dtype=I8)
         )
+        kph = np.asarray(graph.edge_speed_kph, dtype=F8)
+        # speed limits (m/s) where the map has any (posted, or by road class)
+        self._limit = kph / 3.6 if np.isfinite(kph).any() else np.zeros(0)
         self._run = CompiledRun()
         self._local = threading.local()
 
@@ -138,6 +141,7 @@ class BatchMatcher:
             point=fresh(cands.point, I8), edge=fresh(cands.edge, I8), offset=fresh(cands.offset, F8),
             xy=fresh(cands.xy, F8), dist=fresh(cands.dist, F8), emis=fresh(emis, F8),
             sigma=fresh(sigma if np.ndim(sigma) else np.zeros(0), F8),
+            limit=fresh(self._limit[cands.edge] if len(self._limit) else self._limit, F8),
         )  # fmt: skip
         params = kernel_params(cfg, sigma if isinstance(sigma, float) else 0.0)
         res = track_match(str(track.track_id), self._run(pt, ca, params, self._geom, self._router))
