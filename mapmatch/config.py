@@ -298,6 +298,11 @@ class BatchConfig:
         class), a step faster on average than this times the higher limit of its two roads ...
     speed_limit_penalty : ... costs this log-probability per m/s beyond (0 disables it; maps
         without limits are unaffected).
+    motion_heading_sigma : degrees; where a fix has no heading, the direction of travel from
+        its neighbours (both legs at least ``motion_min_distance`` metres, turning by at most
+        ``straight_max_deg``) is its heading with this σ against the road's bearing and
+        one-way direction (0 disables it).
+    motion_min_distance : see ``motion_heading_sigma``.
     """
 
     max_route_factor: float = 3.0
@@ -321,6 +326,8 @@ class BatchConfig:
     off_map_cut: float = 200.0
     speed_limit_factor: float = 1.5
     speed_limit_penalty: float = 0.5
+    motion_heading_sigma: float = 30.0
+    motion_min_distance: float = 15.0
 
     def __post_init__(self) -> None:
         _check_numbers(self)

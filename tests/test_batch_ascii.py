@@ -432,3 +432,26 @@ def test_speed_limits_tell_parallel_roads_apart_at_sparse_sampling() -> None:
     # slowly (5 m/s) the street is plausible again, and nearer
     slow = track_from_xy(m, pts, dt=30.0)
     assert [names(m, piece) for piece in BatchMatcher(m.graph).match(slow).routes] == [["cd"]]
+
+
+def test_first_fix_near_a_crossing_takes_the_road_of_the_direction_of_travel() -> None:
+    # the first fix lies 6 m from the cross road cb and 9 m from ab, the road the car drives
+    # on (east, straight through b): the direction of travel from the fixes (no heading
+    # column) puts it on ab, so the first road is not lost
+    m = parse_ascii_map(
+        """
+                c
+                |
+        a-------b-------d
+                |
+                e
+        """,
+        scale=10,
+    )
+    pts = [at(m, "b", -6, 9), at(m, "b", 20, 1), at(m, "b", 40, -1), at(m, "b", 60, 1), at(m, "b", 75, 0)]
+    track = track_from_xy(m, pts, dt=2.0)
+    r = BatchMatcher(m.graph).match(track)
+    assert [names(m, piece) for piece in r.routes] == [["ab", "bd"]]
+    # without the direction of travel the nearer road wins and ab is missing
+    off = BatchMatcher(m.graph).match(track, DEFAULT_CONFIG.replace(motion_heading_sigma=0))
+    assert [names(m, piece) for piece in off.routes] == [["cb", "bd"]]

@@ -182,6 +182,33 @@ def off_map_cuts(pt: TrackPoints, has, min_run):  # type: ignore[no-untyped-def]
 
 
 @njit(cache=True, nogil=True)
+def motion_heading(xy, kidx, min_leg, max_turn):  # type: ignore[no-untyped-def]
+    """Direction of travel (compass degrees) at each kept point from its two legs (to the
+    previous and the next kept point; at the ends the first or last two legs), where both
+    are at least ``min_leg`` metres and turn by at most ``max_turn`` degrees; NaN elsewhere."""
+    k = len(kidx)
+    out = np.full(k, np.nan)
+    if k < 3:
+        return out
+    cos_max = math.cos(math.radians(max_turn))
+    for i in range(k):
+        c = min(max(i, 1), k - 2)
+        a = kidx[c - 1]
+        b = kidx[c]
+        d = kidx[c + 1]
+        ux = xy[b, 0] - xy[a, 0]
+        uy = xy[b, 1] - xy[a, 1]
+        vx = xy[d, 0] - xy[b, 0]
+        vy = xy[d, 1] - xy[b, 1]
+        lu = math.hypot(ux, uy)
+        lv = math.hypot(vx, vy)
+        if lu < min_leg or lv < min_leg or ux * vx + uy * vy < cos_max * lu * lv:
+            continue
+        out[i] = math.degrees(math.atan2(ux / lu + vx / lv, uy / lu + vy / lv)) % 360.0
+    return out
+
+
+@njit(cache=True, nogil=True)
 def drop_spikes(xy, time, kept, valid, sigma, min_sigmas, max_speed):  # type: ignore[no-untyped-def]
     """Valid flags with jumps cleared: kept points the track reaches and leaves in opposite
     directions (legs longer than ``min_sigmas * sigma``) where visiting them needs more than

@@ -16,7 +16,7 @@ from numpy.typing import NDArray
 
 from mapmatch import model
 from mapmatch.batch.arrays import CandidateArrays, EdgeGeometry, TrackPoints, kernel_params
-from mapmatch.batch.lattice import bearing_at, drop_spikes, thin
+from mapmatch.batch.lattice import bearing_at, drop_spikes, motion_heading, thin
 from mapmatch.batch.results import fill_route_lonlat, track_match
 from mapmatch.batch.run import CompiledRun, fresh
 from mapmatch.config import BATCH_CONFIG, MatchConfig
@@ -121,8 +121,16 @@ class BatchMatcher:
         if track.pos_sigma is not None:
             sigma = model.position_sigma(np.asarray(track.pos_sigma, dtype=F8)[kidx], cfg)[cands.point]
         heading = None if track.heading is None else np.asarray(track.heading, dtype=F8)[kidx]
+        head_sigma: float | NDArray[np.float64] = np.nan
+        if cfg.motion_heading_sigma > 0:
+            # the direction of travel where the track gives no heading
+            mh = motion_heading(xy, kidx, float(cfg.motion_min_distance), float(cfg.straight_max_deg))
+            use = np.isfinite(mh) if heading is None else np.isfinite(mh) & ~np.isfinite(heading)
+            heading = mh if heading is None else np.where(use, mh, heading)
+            head_sigma = np.where(use, float(cfg.motion_heading_sigma), np.nan)
         if heading is not None and np.isfinite(heading).any():
-            kappa = model.heading_kappa(heading, np.nan, _opt(track.speed, n)[kidx], cfg)[cands.point]
+            speed = _opt(track.speed, n)[kidx]
+            kappa = model.heading_kappa(heading, head_sigma, speed, cfg)[cands.point]
             bearing = bearing_at(cands.edge, cands.offset, *self._geom)
             emis = model.emission_logp(cands.dist, sigma, heading[cands.point], bearing, kappa)
         elif np.ndim(sigma):
