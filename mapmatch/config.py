@@ -292,6 +292,8 @@ class BatchConfig:
     spike_sigmas : see ``spike_speed``.
     off_map_sigmas : a fix further than this many σ from every road is off the map: unmatched,
         never routed to a far road (``outlier_distance`` caps it).
+    off_map_min_run : fewer fixes than this in a row with a road, between off-map fixes, are
+        off the map too (a fix near some road amid a run off it is no evidence; 1 disables it).
     off_map_cut : metres; a run of off-map fixes travelling at least this far (the track
         leaves the map and comes back) cuts the route there (0: never cut).
     speed_limit_factor : where the map has speed limits (posted, or the default of the road's
@@ -324,6 +326,7 @@ class BatchConfig:
     spike_sigmas: float = 3.0
     off_map_sigmas: float = 5.0
     off_map_cut: float = 200.0
+    off_map_min_run: int = 2
     speed_limit_factor: float = 1.5
     speed_limit_penalty: float = 0.5
     motion_heading_sigma: float = 30.0

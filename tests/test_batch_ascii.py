@@ -455,3 +455,19 @@ def test_first_fix_near_a_crossing_takes_the_road_of_the_direction_of_travel() -
     # without the direction of travel the nearer road wins and ab is missing
     off = BatchMatcher(m.graph).match(track, DEFAULT_CONFIG.replace(motion_heading_sigma=0))
     assert [names(m, piece) for piece in off.routes] == [["cb", "bd"]]
+
+
+def test_a_lone_fix_near_a_road_amid_fixes_off_the_map_is_off_the_map_too() -> None:
+    # five fixes: off, near a road (35 m), off, on, on (σ 8 m: 40 m is off the map)
+    from mapmatch.batch.arrays import CandidateArrays
+    from mapmatch.batch.lattice import prune
+
+    dist = np.array([45.0, 35.0, 50.0, 3.0, 4.0])
+    empty = np.zeros(0)
+    c = CandidateArrays(
+        point=np.arange(5), edge=np.zeros(5, dtype=np.int64), offset=np.zeros(5), xy=np.zeros((5, 2)),
+        dist=dist, emis=-0.5 * (dist / 8.0) ** 2, sigma=empty, limit=empty,
+    )  # fmt: skip
+    for min_run, has in ((2, [False, False, False, True, True]), (1, [False, True, False, True, True])):
+        *_, got = prune(5, c, c.emis, 12.5, 100.0, 8.0, 5.0, min_run)
+        assert got.tolist() == has

@@ -96,6 +96,7 @@ class KernelParams(NamedTuple):
     split_slack: float
     off_map_sigmas: float
     off_map_cut: float
+    off_map_min_run: int
     limit_factor: float
     """A step faster than this times the higher speed limit of its two roads ..."""
     limit_penalty: float
@@ -138,6 +139,7 @@ def kernel_params(cfg: MatchConfig, sigma: float) -> KernelParams:
         split_slack=float(cfg.split_slack),
         off_map_sigmas=float(cfg.off_map_sigmas),
         off_map_cut=float(cfg.off_map_cut),
+        off_map_min_run=int(cfg.off_map_min_run),
         limit_factor=float(cfg.speed_limit_factor),
         limit_penalty=float(cfg.speed_limit_penalty),
     )

@@ -65,7 +65,7 @@ def bearing_at(edges, offs, seg_xy, seg_ptr):  # type: ignore[no-untyped-def]
 
 
 @njit(cache=True, nogil=True)
-def prune(nk, c: CandidateArrays, emis, prune_lp, outlier, sigma, off_map_sigmas):  # type: ignore[no-untyped-def]
+def prune(nk, c: CandidateArrays, emis, prune_lp, outlier, sigma, off_map_sigmas, min_run):  # type: ignore[no-untyped-def]
     """Drop candidates far below their point's best emission, beyond ``outlier`` metres or
     beyond ``off_map_sigmas`` times their σ (``c.sigma``, else ``sigma``; 0: no σ limit).
 
@@ -90,6 +90,27 @@ def prune(nk, c: CandidateArrays, emis, prune_lp, outlier, sigma, off_map_sigmas
             keep[i] = True
             counts[cpoint[i]] += 1
             nkeep += 1
+    if off_map_sigmas > 0 and min_run > 1:
+        # runs of fewer than ``min_run`` points with roads, off-map points on both sides, are
+        # off the map too (a fix near some road amid a run off it is no evidence)
+        p = 0
+        while p < nk:
+            if counts[p] == 0:
+                p += 1
+                continue
+            q = p
+            while q < nk and counts[q] > 0:
+                q += 1
+            if p > 0 and q < nk and q - p < min_run:
+                for r in range(p, q):
+                    counts[r] = 0
+            p = q
+        nkeep = 0
+        for i in range(nc):
+            if keep[i] and counts[cpoint[i]] == 0:
+                keep[i] = False
+            if keep[i]:
+                nkeep += 1
     has = counts > 0
     m = 0
     for p in range(nk):
@@ -133,7 +154,7 @@ def build_lattice(pt: TrackPoints, c: CandidateArrays, p: KernelParams) -> Latti
         for i in range(len(c.dist)):
             emis[i] = emission_logp_one(c.dist[i], p.sigma, 0.0, 0.0, 0.0)
     ptr, ce, co, cx, cd, em, lim, has = prune(
-        len(pt.kidx), c, emis, p.prune, p.outlier, p.sigma, p.off_map_sigmas
+        len(pt.kidx), c, emis, p.prune, p.outlier, p.sigma, p.off_map_sigmas, p.off_map_min_run
     )
     pts = pt.kidx[has]
     m = len(pts)
