@@ -298,6 +298,29 @@ class BatchConfig:
     stop_uturn_penalty : ... across which turning round at a junction costs this U-turn
         penalty (turning round there, e.g. in a yard off the mapped road, is common; mid-road
         U-turns keep the full penalty).
+    split_speed : m/s; a step whose route needs more than this (plus ``split_slack`` metres of
+        noise over the step) is impossible: the fix is left out as an outlier, or the match
+        splits there (0 disables the check).
+    split_slack : metres of fix noise allowed on top of ``split_speed`` over a step.
+    spike_speed : m/s; a fix the track reaches and leaves in opposite directions, both legs
+        longer than ``spike_sigmas`` σ, is dropped as a jump when visiting it needs more than
+        this mean speed between its neighbours (turning round needs slowing down; 0 disables).
+    spike_sigmas : see ``spike_speed``.
+    off_map_sigmas : a fix further than this many σ from every road is off the map: unmatched,
+        never routed to a far road (``outlier_distance`` caps it).
+    off_map_min_run : fewer fixes than this in a row with a road, between off-map fixes, are
+        off the map too (a fix near some road amid a run off it is no evidence; 1 disables it).
+    off_map_cut : metres; a run of off-map fixes travelling at least this far (the track
+        leaves the map and comes back) cuts the route there (0: never cut).
+    speed_limit_factor : where the map has speed limits (posted, or the default of the road's
+        class), a step faster on average than this times the higher limit of its two roads ...
+    speed_limit_penalty : ... costs this log-probability per m/s beyond (0 disables it; maps
+        without limits are unaffected).
+    motion_heading_sigma : degrees; where a fix has no heading, the direction of travel from
+        its neighbours (both legs at least ``motion_min_distance`` metres, turning by at most
+        ``straight_max_deg``) is its heading with this σ against the road's bearing and
+        one-way direction (0 disables it).
+    motion_min_distance : see ``motion_heading_sigma``.
     """
 
     max_route_factor: float = 3.0
@@ -313,6 +336,17 @@ class BatchConfig:
     stop_uturn_speed: float = 1.0
     stop_uturn_time: float = 5.0
     stop_uturn_penalty: float = 1.0
+    split_speed: float = 50.0
+    split_slack: float = 50.0
+    spike_speed: float = 20.0
+    spike_sigmas: float = 3.0
+    off_map_sigmas: float = 5.0
+    off_map_cut: float = 200.0
+    off_map_min_run: int = 2
+    speed_limit_factor: float = 1.5
+    speed_limit_penalty: float = 0.5
+    motion_heading_sigma: float = 30.0
+    motion_min_distance: float = 15.0
 
     def __post_init__(self) -> None:
         _check_numbers(self)

@@ -306,3 +306,168 @@ def test_one_matcher_serves_many_threads() -> None:
         ["de", "eb", "bc"],
         ["cb", "ba", "ad", "de", "ef"],
     ]
+
+
+def test_fixes_off_the_map_at_the_end_are_unmatched_not_routed_to_a_far_road() -> None:
+    # the track ends in a car park 58 m north of ae, 42 m from cd: no road explains it (5 σ
+    # is 40 m); it must not pull the route round e-d onto cd
+    m = parse_ascii_map(
+        """
+        c------------d
+        |            |
+        |            |
+        |            |
+        |            |
+        a------------e
+        """,
+        scale=10,
+    )
+    road = [at(m, "a", x, 1) for x in (10, 22, 34, 46, 58, 70)]
+    park = [at(m, "a", x, 58 + dy) for x, dy in ((76, 0), (80, 2), (78, -1), (81, 1))]
+    r = BatchMatcher(m.graph).match(track_from_xy(m, road + park))
+    assert [names(m, piece) for piece in r.routes] == [["ae"]]
+    assert [p.status for p in r.points][6:] == [PointStatus.UNMATCHED] * 4
+    assert r.length_m == pytest.approx(60, abs=2)
+    # with the σ rule off (only the fixed outlier distance) the car park is routed to cd
+    track = track_from_xy(m, road + park)
+    loose = BatchMatcher(m.graph).match(track, DEFAULT_CONFIG.replace(off_map_sigmas=0))
+    assert loose.length_m > 150
+
+
+def test_a_run_off_the_map_cuts_the_route() -> None:
+    # the track leaves ae up an unmapped lane, drives 200 m with no road within 40 m and comes
+    # back onto cd: the route is cut there, never bridged by a guess
+    m = parse_ascii_map(
+        """
+        c------------------------------d
+        |                              |
+        |                              |
+        |                              |
+        |                              |
+        a------------------------------e
+        """,
+        scale=10,
+    )
+    go = [at(m, "a", x, 1) for x in (10, 22, 34, 46)]
+    lane = [at(m, "a", x, 50) for x in (45, 89, 133, 177, 221, 265)]
+    back = [at(m, "c", x, -1) for x in (280, 265, 250, 235)]
+    track = track_from_xy(m, go + lane + back)
+    r = BatchMatcher(m.graph).match(track)
+    assert r.splits == [10]
+    assert [names(m, piece) for piece in r.routes] == [["ae"], ["dc"]]
+    assert [p.status for p in r.points][4:10] == [PointStatus.UNMATCHED] * 6
+    # a short excursion (less than off_map_cut) is bridged
+    r = BatchMatcher(m.graph).match(track, DEFAULT_CONFIG.replace(off_map_cut=1000.0))
+    assert r.splits == [] and len(r.routes) == 1
+
+
+def test_impossible_step_splits_the_match() -> None:
+    # a peer's case: b to c is 176 m of road in 1 s: the match splits rather than drive it
+    m = parse_ascii_map(
+        """
+        a-b------x
+                 |
+                 |
+                 y---c-d
+        """,
+        scale=10,
+    )
+    pts = [at(m, "a", 3, 1), at(m, "a", 17, 1), at(m, "y", 43, -1), at(m, "y", 57, -1)]
+    r = BatchMatcher(m.graph).match(track_from_xy(m, pts, dt=1.0))
+    assert r.splits == [2]
+    assert [names(m, piece) for piece in r.routes] == [["ab"], ["cd"]]
+    # at 10 s a step the same road is plausible: one piece through x and y
+    r = BatchMatcher(m.graph).match(track_from_xy(m, pts, dt=10.0))
+    assert r.splits == [] and [names(m, piece) for piece in r.routes] == [["ab", "bx", "xy", "yc", "cd"]]
+
+
+def test_a_fix_that_jumps_back_is_dropped_not_looped_round() -> None:
+    # a peer's case: 100 m back after 2 s, then on: no U-turn loop, the jump is unmatched
+    m = parse_ascii_map("a----------b----------c----------d", scale=10)
+    xs, ts = [5, 105, 5, 215, 325], [0.0, 10.0, 12.0, 20.0, 30.0]
+    ll = np.array([m.lonlat(*at(m, "a", x, 1)) for x in xs])
+    track = Track("t", np.array(ts), ll[:, 1], ll[:, 0])
+    r = BatchMatcher(m.graph).match(track)
+    assert [names(m, piece) for piece in r.routes] == [["ab", "bc", "cd"]]
+    assert r.length_m == pytest.approx(320, abs=2)
+    assert [p.status for p in r.points] == ["matched", "matched", "unmatched", "matched", "matched"]
+    # driving out and back slowly (a dead end at 30 s) is a real turn, kept
+    back = np.array([m.lonlat(*at(m, "a", x, 1)) for x in (2, 220, 150)])
+    r = BatchMatcher(m.graph).match(Track("s", np.array([0.0, 30.0, 60.0]), back[:, 1], back[:, 0]))
+    assert [p.status for p in r.points] == ["matched"] * 3
+    assert [names(m, piece) for piece in r.routes] == [["ab", "bc", "cb"]]
+
+
+def _with_speeds(amap: AsciiMap, kph: dict[str, float]) -> AsciiMap:
+    """The map with speed limits by road (``"ab": 80``; both directions), NaN elsewhere."""
+    from mapmatch.graph.road_graph import RoadGraph
+
+    g = amap.graph
+    inv = {v: k for k, v in amap.nodes.items()}
+    speed = [
+        kph.get("".join(sorted(inv[int(u)] + inv[int(v)])), np.nan)
+        for u, v in zip(g.edge_u, g.edge_v, strict=True)
+    ]
+    graph = RoadGraph.from_edges(
+        crs=g.crs, node_xy=g.node_xy, node_lonlat=g.node_lonlat, node_id=g.node_id, edge_u=g.edge_u,
+        edge_v=g.edge_v, edge_way_id=g.edge_way_id, edge_speed_kph=np.array(speed, dtype=np.float32),
+    )  # fmt: skip
+    return AsciiMap(graph=graph, nodes=amap.nodes, scale=amap.scale)
+
+
+def test_speed_limits_tell_parallel_roads_apart_at_sparse_sampling() -> None:
+    # a main road (80 km/h) and a residential street (30 km/h) 40 m apart; the fixes run
+    # between them, a little closer to the street, at 20 m/s: too fast for the street
+    drawing = """
+        a------------------------------------------------------------b
+        |                                                            |
+        c------------------------------------------------------------d
+        """
+    plain = parse_ascii_map(drawing, scale=10)
+    m = _with_speeds(plain, {"ab": 80.0, "cd": 30.0, "ac": 30.0, "bd": 30.0})
+    pts = [at(m, "a", x, -21) for x in (30, 180, 330, 480)]
+    fast = track_from_xy(m, pts, dt=7.5)
+    assert [names(m, piece) for piece in BatchMatcher(plain.graph).match(fast).routes] == [["cd"]]
+    assert [names(m, piece) for piece in BatchMatcher(m.graph).match(fast).routes] == [["ab"]]
+    # slowly (5 m/s) the street is plausible again, and nearer
+    slow = track_from_xy(m, pts, dt=30.0)
+    assert [names(m, piece) for piece in BatchMatcher(m.graph).match(slow).routes] == [["cd"]]
+
+
+def test_first_fix_near_a_crossing_takes_the_road_of_the_direction_of_travel() -> None:
+    # the first fix lies 6 m from the cross road cb and 9 m from ab, the road the car drives
+    # on (east, straight through b): the direction of travel from the fixes (no heading
+    # column) puts it on ab, so the first road is not lost
+    m = parse_ascii_map(
+        """
+                c
+                |
+        a-------b-------d
+                |
+                e
+        """,
+        scale=10,
+    )
+    pts = [at(m, "b", -6, 9), at(m, "b", 20, 1), at(m, "b", 40, -1), at(m, "b", 60, 1), at(m, "b", 75, 0)]
+    track = track_from_xy(m, pts, dt=2.0)
+    r = BatchMatcher(m.graph).match(track)
+    assert [names(m, piece) for piece in r.routes] == [["ab", "bd"]]
+    # without the direction of travel the nearer road wins and ab is missing
+    off = BatchMatcher(m.graph).match(track, DEFAULT_CONFIG.replace(motion_heading_sigma=0))
+    assert [names(m, piece) for piece in off.routes] == [["cb", "bd"]]
+
+
+def test_a_lone_fix_near_a_road_amid_fixes_off_the_map_is_off_the_map_too() -> None:
+    # five fixes: off, near a road (35 m), off, on, on (σ 8 m: 40 m is off the map)
+    from mapmatch.batch.arrays import CandidateArrays
+    from mapmatch.batch.lattice import prune
+
+    dist = np.array([45.0, 35.0, 50.0, 3.0, 4.0])
+    empty = np.zeros(0)
+    c = CandidateArrays(
+        point=np.arange(5), edge=np.zeros(5, dtype=np.int64), offset=np.zeros(5), xy=np.zeros((5, 2)),
+        dist=dist, emis=-0.5 * (dist / 8.0) ** 2, sigma=empty, limit=empty,
+    )  # fmt: skip
+    for min_run, has in ((2, [False, False, False, True, True]), (1, [False, True, False, True, True])):
+        *_, got = prune(5, c, c.emis, 12.5, 100.0, 8.0, 5.0, min_run)
+        assert got.tolist() == has

@@ -15,6 +15,9 @@ from mapmatch.graph.index import EdgeIndex
 from mapmatch.graph.road_graph import RESTRICTION_ONLY, RoadGraph
 from mapmatch.gridindex import GridIndex
 
+PLAIN = BATCH_CONFIG.replace(motion_heading_sigma=0.0, spike_speed=0.0)
+"""The batch rules that need the Python steps switched off: such a track takes one compiled call."""
+
 DRAWING = """
 a-----b-----c---------d
 |    / \\    |         |
@@ -198,10 +201,10 @@ def test_compiled_entry_point_sees_the_types_it_was_compiled_for() -> None:
 
     with unittest.mock.patch.object(CompiledRun, "__call__", spy):
         for t in tracks:
-            assert matcher.match(t).routes
+            assert matcher.match(t).routes and matcher.match(t, PLAIN).routes
     kernels = {id(matcher._run): matcher._run, id(matcher._run_track): matcher._run_track}
     assert set(seen) == set(kernels)  # both kernels ran
-    assert sum(len(v) for v in seen.values()) == len(tracks)
+    assert sum(len(v) for v in seen.values()) == 2 * len(tracks)
     for k, sigs in seen.items():
         assert all(s == kernels[k].signature for s in sigs), sigs
 
@@ -245,7 +248,7 @@ def test_one_compiled_call_matches_as_the_python_steps_do() -> None:
     from mapmatch.types import Track
 
     m = parse_ascii_map(DRAWING, scale=7)
-    matcher = BatchMatcher(m.graph)
+    matcher = BatchMatcher(m.graph, config=PLAIN)
     rng = np.random.default_rng(4)
     lo, hi = m.graph.node_xy.min(axis=0) - 60, m.graph.node_xy.max(axis=0) + 60
     lonely = 0
@@ -261,7 +264,7 @@ def test_one_compiled_call_matches_as_the_python_steps_do() -> None:
         t = Track("r", np.arange(n) * 10.0, lat, lon)
         d = matcher.index.query(xy, BATCH_CONFIG.search_radius).point if n else np.zeros(0, dtype=int)
         lonely += n - len(np.unique(d))
-        a, b = matcher._match_plain(t, BATCH_CONFIG), matcher._match_general(t, BATCH_CONFIG)
+        a, b = matcher._match_plain(t, PLAIN), matcher._match_general(t, PLAIN)
         assert a.routes == b.routes and a.splits == b.splits
         assert a.length_m == b.length_m and a.confidence == b.confidence
         assert a.point_arrays is not None and b.point_arrays is not None

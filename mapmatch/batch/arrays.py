@@ -41,6 +41,10 @@ class CandidateArrays(NamedTuple):
     dist: NDArray[np.float64]
     emis: NDArray[np.float64]
     """Emission log-probabilities; empty: distance-only with :attr:`KernelParams.sigma`."""
+    sigma: NDArray[np.float64]
+    """Position σ per candidate; empty: :attr:`KernelParams.sigma` for all."""
+    limit: NDArray[np.float64]
+    """Speed limit (m/s) of the candidate's road, NaN unknown; empty: the map has none."""
 
 
 class Lattice(NamedTuple):
@@ -52,11 +56,15 @@ class Lattice(NamedTuple):
     xy: NDArray[np.float64]
     dist: NDArray[np.float64]
     emis: NDArray[np.float64]
+    limit: NDArray[np.float64]
     pts: NDArray[np.int64]
     """Track index of each lattice point."""
     pxy: NDArray[np.float64]
     ptime: NDArray[np.float64]
     podo: NDArray[np.float64]
+    cut: NDArray[np.bool_]
+    """A piece of route starts here: the track left the map (off-map fixes) since the
+    previous lattice point."""
 
 
 class EdgeGeometry(NamedTuple):
@@ -83,6 +91,16 @@ class KernelParams(NamedTuple):
     gap_distance: float
     max_skip: int
     reverse_tol: float
+    split_speed: float
+    """m/s; 0: no speed check on steps."""
+    split_slack: float
+    off_map_sigmas: float
+    off_map_cut: float
+    off_map_min_run: int
+    limit_factor: float
+    """A step faster than this times the higher speed limit of its two roads ..."""
+    limit_penalty: float
+    """... costs this log-probability per m/s beyond (0 disables it)."""
 
 
 class Assembly(NamedTuple):
@@ -117,4 +135,11 @@ def kernel_params(cfg: MatchConfig, sigma: float) -> KernelParams:
         gap_distance=float(cfg.gap_distance),
         max_skip=int(cfg.max_skip),
         reverse_tol=float(cfg.reverse_tolerance),
+        split_speed=float(cfg.split_speed),
+        split_slack=float(cfg.split_slack),
+        off_map_sigmas=float(cfg.off_map_sigmas),
+        off_map_cut=float(cfg.off_map_cut),
+        off_map_min_run=int(cfg.off_map_min_run),
+        limit_factor=float(cfg.speed_limit_factor),
+        limit_penalty=float(cfg.speed_limit_penalty),
     )

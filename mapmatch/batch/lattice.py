@@ -65,8 +65,9 @@ def bearing_at(edges, offs, seg_xy, seg_ptr):  # type: ignore[no-untyped-def]
 
 
 @njit(cache=True, nogil=True)
-def prune(nk, c: CandidateArrays, emis, prune_lp, outlier):  # type: ignore[no-untyped-def]
-    """Drop candidates far below their point's best emission or beyond ``outlier`` metres.
+def prune(nk, c: CandidateArrays, emis, prune_lp, outlier, sigma, off_map_sigmas, min_run):  # type: ignore[no-untyped-def]
+    """Drop candidates far below their point's best emission, beyond ``outlier`` metres or
+    beyond ``off_map_sigmas`` times their σ (``c.sigma``, else ``sigma``; 0: no σ limit).
 
     Candidates come sorted by point. Returns the kept ones with their per-point pointer (over
     the points that keep any) and which of the ``nk`` points keep any.
@@ -81,10 +82,35 @@ def prune(nk, c: CandidateArrays, emis, prune_lp, outlier):  # type: ignore[no-u
     counts = np.zeros(nk, dtype=np.int64)
     nkeep = 0
     for i in range(nc):
-        if emis[i] >= best[cpoint[i]] - prune_lp and c.dist[i] <= outlier:
+        lim = outlier
+        if off_map_sigmas > 0:
+            s = c.sigma[i] if len(c.sigma) == len(cpoint) else sigma
+            lim = min(lim, off_map_sigmas * s)
+        if emis[i] >= best[cpoint[i]] - prune_lp and c.dist[i] <= lim:
             keep[i] = True
             counts[cpoint[i]] += 1
             nkeep += 1
+    if off_map_sigmas > 0 and min_run > 1:
+        # runs of fewer than ``min_run`` points with roads, off-map points on both sides, are
+        # off the map too (a fix near some road amid a run off it is no evidence)
+        p = 0
+        while p < nk:
+            if counts[p] == 0:
+                p += 1
+                continue
+            q = p
+            while q < nk and counts[q] > 0:
+                q += 1
+            if p > 0 and q < nk and q - p < min_run:
+                for r in range(p, q):
+                    counts[r] = 0
+            p = q
+        nkeep = 0
+        for i in range(nc):
+            if keep[i] and counts[cpoint[i]] == 0:
+                keep[i] = False
+            if keep[i]:
+                nkeep += 1
     has = counts > 0
     m = 0
     for p in range(nk):
@@ -101,6 +127,8 @@ def prune(nk, c: CandidateArrays, emis, prune_lp, outlier):  # type: ignore[no-u
     ox = np.empty((nkeep, 2))
     od = np.empty(nkeep)
     om = np.empty(nkeep)
+    nl = nkeep if len(c.limit) == nc else 0
+    ol = np.empty(nl)
     k = 0
     for i in range(nc):
         if keep[i]:
@@ -110,8 +138,10 @@ def prune(nk, c: CandidateArrays, emis, prune_lp, outlier):  # type: ignore[no-u
             ox[k, 1] = c.xy[i, 1]
             od[k] = c.dist[i]
             om[k] = emis[i]
+            if nl:
+                ol[k] = c.limit[i]
             k += 1
-    return ptr, oe, oo, ox, od, om, has
+    return ptr, oe, oo, ox, od, om, ol, has
 
 
 @njit(cache=True, nogil=True)
@@ -123,7 +153,9 @@ def build_lattice(pt: TrackPoints, c: CandidateArrays, p: KernelParams) -> Latti
         emis = np.empty(len(c.dist))
         for i in range(len(c.dist)):
             emis[i] = emission_logp_one(c.dist[i], p.sigma, 0.0, 0.0, 0.0)
-    ptr, ce, co, cx, cd, em, has = prune(len(pt.kidx), c, emis, p.prune, p.outlier)
+    ptr, ce, co, cx, cd, em, lim, has = prune(
+        len(pt.kidx), c, emis, p.prune, p.outlier, p.sigma, p.off_map_sigmas, p.off_map_min_run
+    )
     pts = pt.kidx[has]
     m = len(pts)
     pxy = np.empty((m, 2))
@@ -135,4 +167,95 @@ def build_lattice(pt: TrackPoints, c: CandidateArrays, p: KernelParams) -> Latti
         ptime[i] = pt.time[pts[i]]
         if len(pt.odo):
             podo[i] = pt.odo[pts[i]]
-    return Lattice(ptr, ce, co, cx, cd, em, pts, pxy, ptime, podo)
+    cut = off_map_cuts(pt, has, p.off_map_cut)
+    return Lattice(ptr, ce, co, cx, cd, em, lim, pts, pxy, ptime, podo, cut)
+
+
+@njit(cache=True, nogil=True)
+def off_map_cuts(pt: TrackPoints, has, min_run):  # type: ignore[no-untyped-def]
+    """Per lattice point: whether the kept points just before it that have no road within the
+    off-map distance travel at least ``min_run`` metres among themselves (the track left the
+    map and came back: the route is cut there; 0 never cuts)."""
+    m = 0
+    for q in range(len(has)):
+        if has[q]:
+            m += 1
+    cut = np.zeros(m, dtype=np.bool_)
+    if min_run <= 0:
+        return cut
+    t = -1
+    run = 0.0
+    off = 0
+    for q in range(len(has)):
+        if q > 0 and t >= 0 and not has[q] and not has[q - 1]:
+            a = pt.kidx[q - 1]
+            b = pt.kidx[q]
+            run += math.hypot(pt.xy[b, 0] - pt.xy[a, 0], pt.xy[b, 1] - pt.xy[a, 1])
+        if has[q]:
+            if t >= 0 and off > 0 and run >= min_run:
+                cut[t + 1] = True
+            t += 1
+            run = 0.0
+            off = 0
+        else:
+            off += 1
+    return cut
+
+
+@njit(cache=True, nogil=True)
+def motion_heading(xy, kidx, min_leg, max_turn):  # type: ignore[no-untyped-def]
+    """Direction of travel (compass degrees) at each kept point from its two legs (to the
+    previous and the next kept point; at the ends the first or last two legs), where both
+    are at least ``min_leg`` metres and turn by at most ``max_turn`` degrees; NaN elsewhere."""
+    k = len(kidx)
+    out = np.full(k, np.nan)
+    if k < 3:
+        return out
+    cos_max = math.cos(math.radians(max_turn))
+    for i in range(k):
+        c = min(max(i, 1), k - 2)
+        a = kidx[c - 1]
+        b = kidx[c]
+        d = kidx[c + 1]
+        ux = xy[b, 0] - xy[a, 0]
+        uy = xy[b, 1] - xy[a, 1]
+        vx = xy[d, 0] - xy[b, 0]
+        vy = xy[d, 1] - xy[b, 1]
+        lu = math.hypot(ux, uy)
+        lv = math.hypot(vx, vy)
+        if lu < min_leg or lv < min_leg or ux * vx + uy * vy < cos_max * lu * lv:
+            continue
+        out[i] = math.degrees(math.atan2(ux / lu + vx / lv, uy / lu + vy / lv)) % 360.0
+    return out
+
+
+@njit(cache=True, nogil=True)
+def drop_spikes(xy, time, kept, valid, sigma, min_sigmas, max_speed):  # type: ignore[no-untyped-def]
+    """Valid flags with jumps cleared: kept points the track reaches and leaves in opposite
+    directions (legs longer than ``min_sigmas * sigma``) where visiting them needs more than
+    ``max_speed`` m/s on average between the kept neighbours (0 disables it)."""
+    out = valid.copy()
+    if max_speed <= 0:
+        return out
+    kidx = np.flatnonzero(kept)
+    a = -1
+    for q in range(len(kidx) - 1):
+        b = kidx[q]
+        c = kidx[q + 1]
+        if a < 0:
+            a = b
+            continue
+        ux = xy[b, 0] - xy[a, 0]
+        uy = xy[b, 1] - xy[a, 1]
+        vx = xy[c, 0] - xy[b, 0]
+        vy = xy[c, 1] - xy[b, 1]
+        lu = math.hypot(ux, uy)
+        lv = math.hypot(vx, vy)
+        dt = time[c] - time[a]
+        noise = min_sigmas * sigma
+        reverses = lu > noise and lv > noise and ux * vx + uy * vy < -0.5 * lu * lv
+        if reverses and dt > 0 and (lu + lv) / dt > max_speed:
+            out[b] = False
+            continue  # ``a`` stays the neighbour of the next point
+        a = b
+    return out

@@ -18,7 +18,7 @@ from pyproj import Transformer
 
 from mapmatch import model
 from mapmatch.batch.arrays import CandidateArrays, EdgeGeometry, KernelParams, TrackPoints, kernel_params
-from mapmatch.batch.lattice import bearing_at, thin
+from mapmatch.batch.lattice import bearing_at, drop_spikes, motion_heading, thin
 from mapmatch.batch.results import fill_route_lonlat, track_match
 from mapmatch.batch.run import CompiledRun, QueryParams, TrackInput, fresh, run_track
 from mapmatch.config import BATCH_CONFIG, MatchConfig
@@ -87,6 +87,9 @@ class BatchMatcher:
         self._geom = EdgeGeometry(
             np.ascontiguousarray(graph.seg_xy, dtype=F8), np.ascontiguousarray(graph.edge_seg_ptr, dtype=I8)
         )
+        kph = np.asarray(graph.edge_speed_kph, dtype=F8)
+        # speed limits (m/s) where the map has any (posted, or by road class)
+        self._limit = kph / 3.6 if np.isfinite(kph).any() else np.zeros(0)
         self._run = CompiledRun()
         self._run_track = CompiledRun(run_track)
         self._local = threading.local()
@@ -129,13 +132,22 @@ class BatchMatcher:
         ``route_lonlat`` and ``points`` from them.
         """
         cfg = config or self.config
-        if track.pos_sigma is None and track.heading is None:
-            res = self._match_plain(track, cfg)
-        else:
-            res = self._match_general(track, cfg)
+        plain = self._plain(track, cfg)
+        res = self._match_plain(track, cfg) if plain else self._match_general(track, cfg)
         if lonlat:
             fill_route_lonlat(res, self.graph.crs)
         return res
+
+    def _plain(self, track: Track, cfg: MatchConfig) -> bool:
+        """Whether the track takes the all-compiled path: one σ, no heading (neither the
+        track's nor the direction of travel), no jumps to drop and no speed limits."""
+        return (
+            track.pos_sigma is None
+            and track.heading is None
+            and cfg.motion_heading_sigma <= 0
+            and cfg.spike_speed <= 0
+            and not len(self._limit)
+        )
 
     def _match_plain(self, track: Track, cfg: MatchConfig) -> TrackMatch:
         """One σ, no heading: the projection, then one compiled call (:func:`run_track`)."""
@@ -150,7 +162,8 @@ class BatchMatcher:
         return track_match(str(track.track_id), a)
 
     def _match_general(self, track: Track, cfg: MatchConfig) -> TrackMatch:
-        """Per-fix σ or headings: candidates and emissions in numpy, then :func:`run`."""
+        """Per-fix σ, headings, jumps or speed limits: candidates and emissions in numpy, then
+        :func:`run`."""
         g = self.graph
         n = len(track)
         lat = np.asarray(track.lat, dtype=F8)
@@ -165,6 +178,11 @@ class BatchMatcher:
         xy = fresh(xy, F8)
         # points closer than the noise to the previous kept point are interpolated afterwards
         kept = thin(xy, valid, float(cfg.interpolate_distance))
+        time = fresh(_opt(track.time, n), F8)
+        sigma0 = float(model.position_sigma(np.nan, cfg))
+        # jumps (a fix reached and left in opposite directions too fast) get no candidates
+        spikes = (float(cfg.spike_sigmas), float(cfg.spike_speed))
+        jump = valid & ~drop_spikes(xy, time, kept, valid, sigma0, *spikes)
         kidx = np.flatnonzero(kept)
         cands = self._grid.query(xy[kidx], cfg.search_radius, k=cfg.max_candidates)
         # points with no road within the search radius look again up to the outlier distance
@@ -172,13 +190,23 @@ class BatchMatcher:
         if len(lonely) and cfg.outlier_distance > cfg.search_radius:
             more = self._grid.query(xy[kidx[lonely]], cfg.outlier_distance, k=cfg.max_candidates)
             cands = _merge_candidates(cands, more, lonely)
+        if jump.any():
+            cands = _subset(cands, ~jump[kidx][cands.point])
         # emissions (shared model); pruning of hopeless candidates happens in the kernel
-        sigma: float | NDArray[np.float64] = float(model.position_sigma(np.nan, cfg))
+        sigma: float | NDArray[np.float64] = sigma0
         if track.pos_sigma is not None:
             sigma = model.position_sigma(np.asarray(track.pos_sigma, dtype=F8)[kidx], cfg)[cands.point]
         heading = None if track.heading is None else np.asarray(track.heading, dtype=F8)[kidx]
+        head_sigma: float | NDArray[np.float64] = np.nan
+        if cfg.motion_heading_sigma > 0:
+            # the direction of travel where the track gives no heading
+            mh = motion_heading(xy, kidx, float(cfg.motion_min_distance), float(cfg.straight_max_deg))
+            use = np.isfinite(mh) if heading is None else np.isfinite(mh) & ~np.isfinite(heading)
+            heading = mh if heading is None else np.where(use, mh, heading)
+            head_sigma = np.where(use, float(cfg.motion_heading_sigma), np.nan)
         if heading is not None and np.isfinite(heading).any():
-            kappa = model.heading_kappa(heading, np.nan, _opt(track.speed, n)[kidx], cfg)[cands.point]
+            speed = _opt(track.speed, n)[kidx]
+            kappa = model.heading_kappa(heading, head_sigma, speed, cfg)[cands.point]
             bearing = bearing_at(cands.edge, cands.offset, *self._geom)
             emis = model.emission_logp(cands.dist, sigma, heading[cands.point], bearing, kappa)
         elif np.ndim(sigma):
@@ -188,11 +216,13 @@ class BatchMatcher:
         odo = NO_ODO if track.distance is None else _odometer(track.distance)
         pt = TrackPoints(
             valid=fresh(valid, np.bool_), kept=fresh(kept, np.bool_), xy=xy,
-            time=fresh(_opt(track.time, n), F8), odo=fresh(odo, F8), kidx=fresh(kidx, I8),
+            time=time, odo=fresh(odo, F8), kidx=fresh(kidx, I8),
         )  # fmt: skip
         ca = CandidateArrays(
             point=fresh(cands.point, I8), edge=fresh(cands.edge, I8), offset=fresh(cands.offset, F8),
             xy=fresh(cands.xy, F8), dist=fresh(cands.dist, F8), emis=fresh(emis, F8),
+            sigma=fresh(sigma if np.ndim(sigma) else np.zeros(0), F8),
+            limit=fresh(self._limit[cands.edge] if len(self._limit) else self._limit, F8),
         )  # fmt: skip
         params = kernel_params(cfg, sigma if isinstance(sigma, float) else 0.0)
         return track_match(str(track.track_id), self._run(pt, ca, params, self._geom, self._router))
@@ -215,6 +245,12 @@ def _merge_candidates(a: Candidates, b: Candidates, b_points: NDArray[np.int64])
         dist=np.concatenate([a.dist, b.dist])[order],
         offset=np.concatenate([a.offset, b.offset])[order],
         xy=np.concatenate([a.xy, b.xy])[order],
+    )
+
+
+def _subset(c: Candidates, keep: NDArray[np.bool_]) -> Candidates:
+    return Candidates(
+        point=c.point[keep], edge=c.edge[keep], dist=c.dist[keep], offset=c.offset[keep], xy=c.xy[keep]
     )
 
 

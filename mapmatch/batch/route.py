@@ -274,10 +274,14 @@ def assemble(  # type: ignore[no-untyped-def]
             k += 1
         route_ptr[s + 1] = k
         rxy_ptr[s + 1] = xptr[i + 1]
-    # interpolated points: projected onto the chosen edge of the nearer kept neighbour
+    # interpolated points: projected onto the chosen edge of the nearer kept neighbour; those
+    # thinned after an unmatched kept point (off the map, a jump) stay unmatched with it
     q = 0
+    last_matched = True
     for i in range(n):
-        if not valid[i] or kept[i]:
+        if kept[i]:
+            last_matched = status[i] == 1
+        if not valid[i] or kept[i] or not last_matched:
             continue
         while q < m and pts[q] < i:
             q += 1

@@ -101,7 +101,7 @@ def run_track(ti, q, p, geom, router, grid, gsc):  # type: ignore[no-untyped-def
                 cxy[r, 0], cxy[r, 1] = cq[a, 0], cq[a, 1]
                 a += 1
         cp, ce, cd, co, cq = point, edge, dist, off, cxy
-    cands = CandidateArrays(cp, ce.astype(np.int64), co, cq, cd, np.zeros(0))
+    cands = CandidateArrays(cp, ce.astype(np.int64), co, cq, cd, np.zeros(0), np.zeros(0), np.zeros(0))
     pt = TrackPoints(valid, kept, xy, ti.time, ti.odo, kidx)
     return run(pt, cands, p, geom, router)
 

@@ -33,9 +33,24 @@ class Trellis(NamedTuple):
     best: NDArray[np.float64]
 
 
+@njit(cache=True, nogil=True, inline="always")
+def _over_limit(r, dt, limit, i, j, factor, penalty):  # type: ignore[no-untyped-def]
+    """Log-probability cost of a step of ``r`` metres in ``dt`` s beyond ``factor`` times the
+    higher speed limit of candidates ``i`` and ``j`` (0 without limits)."""
+    if penalty <= 0 or len(limit) == 0 or not dt > 0:
+        return 0.0
+    a = limit[i]
+    b = limit[j]
+    v = a if not np.isfinite(b) or (np.isfinite(a) and a > b) else b
+    if not np.isfinite(v):
+        return 0.0
+    return -penalty * max(r / dt - factor * v, 0.0)
+
+
 @njit(cache=True, nogil=True)
-def _step(a0, a1, b0, b1, lat, tr, params, node_uturn, trav, dt, bound, reverse_tol, router):  # type: ignore[no-untyped-def]
-    """One Viterbi step from candidates ``a0:a1`` to ``b0:b1``, routing as needed.
+def _step(a0, a1, b0, b1, lat, tr, params, node_uturn, trav, dt, bound, vcap, p, router):  # type: ignore[no-untyped-def]
+    """One Viterbi step from candidates ``a0:a1`` to ``b0:b1``, routing as needed (routes
+    longer than ``vcap``, the most the step's time allows, are impossible).
 
     Sources are taken best score first. As every transition log-probability is <= 0, a source
     can only improve target ``j`` when its score beats ``best[j]``, and only through a route
@@ -50,6 +65,10 @@ def _step(a0, a1, b0, b1, lat, tr, params, node_uturn, trav, dt, bound, reverse_
     score, bp, bpu, order, best = tr
     edge_len = g.edge_len
     edge_rev = g.edge_rev
+    reverse_tol = p.reverse_tol
+    limit = lat.limit
+    lf = p.limit_factor
+    lpen = p.limit_penalty
     ka = a1 - a0
     kb = b1 - b0
     beta = params[0]
@@ -91,15 +110,20 @@ def _step(a0, a1, b0, b1, lat, tr, params, node_uturn, trav, dt, bound, reverse_
         for j in range(b0, b1):
             f = cedge[j]
             if f == e and coff[j] >= o - reverse_tol:
-                lp = transition_logp_one(max(coff[j] - o, 0.0), trav, dt, params, False)
+                r = max(coff[j] - o, 0.0)
+                lp = transition_logp_one(r, trav, dt, params, False) if r <= vcap else -np.inf
+                lp += _over_limit(r, dt, limit, i, j, lf, lpen)
                 if si + lp > best[j - b0]:
                     best[j - b0] = si + lp
                     bp[j] = i
                     bpu[j] = False
             else:
                 need = True
-                if f == edge_rev[e]:
-                    lp = transition_logp_one(abs(edge_len[e] - coff[j] - o), trav, dt, params, True)
+                r = abs(edge_len[e] - coff[j] - o)
+                if f == edge_rev[e] and r <= vcap:
+                    lp = transition_logp_one(r, trav, dt, params, True) + _over_limit(
+                        r, dt, limit, i, j, lf, lpen
+                    )
                     if node_uturn < params[3] and edge_len[e] - o <= reverse_tol and coff[j] <= reverse_tol:
                         # turning round at the junction (within reverse_tol) after a stop
                         lp += params[3] - node_uturn
@@ -116,7 +140,9 @@ def _step(a0, a1, b0, b1, lat, tr, params, node_uturn, trav, dt, bound, reverse_
                     continue
                 r = edge_len[e] - o + ubodt_lookup(table, e, f) + coff[j]
                 if r <= lim:
-                    lp = transition_logp_one(r, trav, dt, params, False)
+                    lp = transition_logp_one(r, trav, dt, params, False) + _over_limit(
+                        r, dt, limit, i, j, lf, lpen
+                    )
                     if si + lp > best[j - b0]:
                         best[j - b0] = si + lp
                         bp[j] = i
@@ -129,7 +155,9 @@ def _step(a0, a1, b0, b1, lat, tr, params, node_uturn, trav, dt, bound, reverse_
                 continue
             r = ws.dist[f] + coff[j]
             if r <= lim:
-                lp = transition_logp_one(r, trav, dt, params, False)
+                lp = transition_logp_one(r, trav, dt, params, False) + _over_limit(
+                    r, dt, limit, i, j, lf, lpen
+                )
                 if si + lp > best[j - b0]:
                     best[j - b0] = si + lp
                     bp[j] = i
@@ -156,7 +184,10 @@ def _try_step(prev, t, d, lat, tr, p, router):  # type: ignore[no-untyped-def]
     if np.isfinite(od) and od > 0:
         trav = od
     dt = lat.ptime[t] - lat.ptime[prev]
-    bound = p.route_factor * trav + p.route_slack
+    vcap = np.inf  # the longest route the time between the fixes allows
+    if p.split_speed > 0 and dt > 0:
+        vcap = p.split_speed * dt + p.split_slack
+    bound = min(p.route_factor * trav + p.route_slack, vcap)
     tight = min(bound, trav + p.lp_cut_m)
     stop = p.stop  # (stop speed, stop time, U-turn penalty across a stop)
     node_uturn = p.transition[3]
@@ -170,7 +201,7 @@ def _try_step(prev, t, d, lat, tr, p, router):  # type: ignore[no-untyped-def]
             break
         reached = _step(
             ptr[prev], ptr[prev + 1], ptr[t], ptr[t + 1], lat, tr, p.transition, node_uturn, trav, dt, lim,
-            p.reverse_tol, router,
+            vcap, p, router,
         )  # fmt: skip
         if reached:
             break
@@ -229,7 +260,7 @@ def solve(lat: Lattice, p: KernelParams, router):  # type: ignore[no-untyped-def
             restart = s0  # several trailing points unreachable: they form their own piece
         else:
             d = math.hypot(pxy[t, 0] - pxy[prev, 0], pxy[t, 1] - pxy[prev, 1])
-            if d > gap_distance:
+            if d > gap_distance or lat.cut[t]:
                 restart = s0 if nskip > 0 else t
         if restart < 0:
             reached, bound = _try_step(prev, t, d, lat, tr, p, router)
@@ -248,13 +279,14 @@ def solve(lat: Lattice, p: KernelParams, router):  # type: ignore[no-untyped-def
                 t += 1
                 continue
             restart = s0
+        if nskip > 0 and restart == s0:
             # before splitting: maybe the last accepted points were the outliers (a drift onto a
             # road that does not lead on); reach s0 from up to max_skip points before them
             q = prev_pt[prev]
             back = 0
             while q >= 0 and back < max_skip:
                 dq = math.hypot(pxy[s0, 0] - pxy[q, 0], pxy[s0, 1] - pxy[q, 1])
-                if dq > gap_distance:
+                if dq > gap_distance * (back + 2):  # each step it spans is within the gap
                     break
                 reached, bound = _try_step(q, s0, dq, lat, tr, p, router)
                 if reached:
