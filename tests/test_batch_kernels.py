@@ -273,3 +273,42 @@ def test_one_compiled_call_matches_as_the_python_steps_do() -> None:
         for u, v in zip(a.route_xy, b.route_xy, strict=True):
             np.testing.assert_array_equal(u, v)
     assert lonely > 10  # fixes beyond the search radius were looked for again
+
+
+def _bearing_by_walking(e: int, off: float, seg_xy: np.ndarray, seg_ptr: np.ndarray) -> float:
+    """The bearing at an offset by walking the polyline from the edge's start (the reference)."""
+    acc, b = 0.0, 0.0
+    for q in range(seg_ptr[e], seg_ptr[e + 1] - 1):
+        dx, dy = seg_xy[q + 1] - seg_xy[q]
+        L = float(np.hypot(dx, dy))
+        if L > 0:
+            b = float(np.degrees(np.arctan2(dx, dy)) % 360.0)
+        acc += L
+        if acc >= off:
+            break
+    return b
+
+
+def test_bearing_by_binary_search_is_the_walk_along_the_polyline() -> None:
+    """Headings are scored against the bearing of the segment under each candidate: found by a
+    binary search over the segments' end distances, it is the walk's answer, with repeated
+    vertices, offsets at vertices, beyond the edge, negative and NaN, and one-vertex edges."""
+    from mapmatch.batch.lattice import along_lengths, bearing_at
+
+    rng = np.random.default_rng(7)
+    counts = rng.integers(1, 9, size=60)
+    seg_ptr = np.r_[0, np.cumsum(counts)].astype(np.int64)
+    seg_xy = np.cumsum(rng.normal(0, 20, (int(seg_ptr[-1]), 2)), axis=0)
+    dup = rng.random(len(seg_xy)) < 0.2
+    seg_xy[1:][dup[1:]] = seg_xy[:-1][dup[1:]]  # zero-length segments
+    ends = along_lengths(seg_xy, seg_ptr)
+    edges = rng.integers(0, 60, size=2000).astype(np.int64)
+    total = np.array([ends[seg_ptr[e + 1] - 2] if counts[e] > 1 else 0.0 for e in edges])
+    offs = rng.random(2000) * (total * 1.2 + 1) - 1
+    offs[:50] = np.nan
+    at_vertex = [e for e in edges[50:100] if counts[e] > 2]
+    edges[50 : 50 + len(at_vertex)] = at_vertex
+    offs[50 : 50 + len(at_vertex)] = [ends[seg_ptr[e]] for e in at_vertex]  # at the first inner vertex
+    got = bearing_at(edges, offs, seg_xy, seg_ptr, ends)
+    want = [_bearing_by_walking(int(e), float(o), seg_xy, seg_ptr) for e, o in zip(edges, offs, strict=True)]
+    np.testing.assert_array_equal(got, want)

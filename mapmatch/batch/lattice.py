@@ -43,22 +43,44 @@ def thin(xy, valid, min_dist):  # type: ignore[no-untyped-def]
 
 
 @njit(cache=True, nogil=True)
-def bearing_at(edges, offs, seg_xy, seg_ptr):  # type: ignore[no-untyped-def]
-    """Compass bearing (degrees) of the edge polyline segment at each offset."""
+def along_lengths(seg_xy, seg_ptr):  # type: ignore[no-untyped-def]
+    """Per polyline segment (indexed by its first vertex), the distance along its edge to the
+    segment's end, summed in order from the edge's start (the last vertex of an edge gets 0)."""
+    out = np.zeros(len(seg_xy))
+    for e in range(len(seg_ptr) - 1):
+        acc = 0.0
+        for q in range(seg_ptr[e], seg_ptr[e + 1] - 1):
+            acc += math.hypot(seg_xy[q + 1, 0] - seg_xy[q, 0], seg_xy[q + 1, 1] - seg_xy[q, 1])
+            out[q] = acc
+    return out
+
+
+@njit(cache=True, nogil=True)
+def bearing_at(edges, offs, seg_xy, seg_ptr, seg_end):  # type: ignore[no-untyped-def]
+    """Compass bearing (degrees) of the edge polyline segment at each offset: the first segment
+    ending at or beyond it (the last one when beyond the edge), or the nearest non-degenerate
+    segment before it; ``seg_end`` from :func:`along_lengths`. A binary search per offset."""
     out = np.empty(len(edges))
     for i in range(len(edges)):
         a0 = seg_ptr[edges[i]]
         a1 = seg_ptr[edges[i] + 1]
-        acc = 0.0
+        lo = a0
+        hi = a1 - 2
+        if hi < lo:
+            out[i] = 0.0
+            continue
+        while lo < hi:
+            mid = (lo + hi) >> 1
+            if seg_end[mid] >= offs[i]:
+                hi = mid
+            else:
+                lo = mid + 1
         b = 0.0
-        for q in range(a0, a1 - 1):
+        for q in range(lo, a0 - 1, -1):
             dx = seg_xy[q + 1, 0] - seg_xy[q, 0]
             dy = seg_xy[q + 1, 1] - seg_xy[q, 1]
-            L = math.hypot(dx, dy)
-            if L > 0:
+            if math.hypot(dx, dy) > 0:
                 b = math.degrees(math.atan2(dx, dy)) % 360.0
-            acc += L
-            if acc >= offs[i]:
                 break
         out[i] = b
     return out

@@ -18,7 +18,7 @@ from pyproj import Transformer
 
 from mapmatch import model
 from mapmatch.batch.arrays import CandidateArrays, EdgeGeometry, KernelParams, TrackPoints, kernel_params
-from mapmatch.batch.lattice import bearing_at, drop_spikes, motion_heading, thin
+from mapmatch.batch.lattice import along_lengths, bearing_at, drop_spikes, motion_heading, thin
 from mapmatch.batch.results import fill_route_lonlat, track_match
 from mapmatch.batch.run import CompiledRun, QueryParams, TrackInput, fresh, run_track
 from mapmatch.config import BATCH_CONFIG, MatchConfig
@@ -87,6 +87,7 @@ class BatchMatcher:
         self._geom = EdgeGeometry(
             np.ascontiguousarray(graph.seg_xy, dtype=F8), np.ascontiguousarray(graph.edge_seg_ptr, dtype=I8)
         )
+        self._seg_end = along_lengths(*self._geom)
         kph = np.asarray(graph.edge_speed_kph, dtype=F8)
         # speed limits (m/s) where the map has any (posted, or by road class)
         self._limit = kph / 3.6 if np.isfinite(kph).any() else np.zeros(0)
@@ -207,7 +208,7 @@ class BatchMatcher:
         if heading is not None and np.isfinite(heading).any():
             speed = _opt(track.speed, n)[kidx]
             kappa = model.heading_kappa(heading, head_sigma, speed, cfg)[cands.point]
-            bearing = bearing_at(cands.edge, cands.offset, *self._geom)
+            bearing = bearing_at(cands.edge, cands.offset, *self._geom, self._seg_end)
             emis = model.emission_logp(cands.dist, sigma, heading[cands.point], bearing, kappa)
         elif np.ndim(sigma):
             emis = model.emission_logp(cands.dist, sigma, np.nan, 0.0, 0.0)
