@@ -146,12 +146,15 @@ class MapRegistry:
         self.config = config
         self.on_unload: list[Callable[[str], int]] = []
 
-    def add(self, map_id: str, graph: RoadGraph, *, source: str = "", warm: bool = True) -> MapEntry:
-        """Build, warm up (unless ``warm`` is False) and register a map, replacing one of the
-        same id only once the new one has passed; returns its entry."""
+    def add(
+        self, map_id: str, graph: RoadGraph, *, source: str = "", warm: bool = True, batch: bool = True
+    ) -> MapEntry:
+        """Build, warm up (unless ``warm`` is False; the batch matcher too unless ``batch`` is
+        False) and register a map, replacing one of the same id only once the new one has
+        passed; returns its entry."""
         entry = self.prepare(map_id, graph, source=source)
         if warm:
-            warm_up(entry)
+            warm_up(entry, batch=batch)
         return self.install(entry)
 
     def prepare(self, map_id: str, graph: RoadGraph, *, source: str = "") -> MapEntry:
@@ -371,23 +374,21 @@ def _child_main(argv: list[str]) -> int:
 
 
 # ---------------------------------------------------------------------------------- warm-up
-def warm_up(entry: MapEntry) -> None:
-    """One online fix at the start of the map's longest road (and one batch match when the
-    batch matcher is available) through the matchers and converters requests use; raises
-    :class:`MapLoadError` when the map cannot serve. Leaves no session behind."""
+def warm_up(entry: MapEntry, *, batch: bool = True) -> None:
+    """One online fix at the start of the map's longest road (and, with ``batch``, one batch
+    match when the batch kernels are compiled: :func:`warm_batch`) through the matchers and
+    converters requests use; raises :class:`MapLoadError` when the map cannot serve. Leaves no
+    session behind."""
     from mapmatch.service import convert
 
     g = entry.graph
     if g.n_edges == 0:
         raise MapLoadError(f"path: map {entry.map_id!r} has no roads")
     e = int(g.edge_len.argmax())
-    u, v = int(g.edge_u[e]), int(g.edge_v[e])
-    lon0, lat0 = (float(x) for x in g.node_lonlat[u])
-    lon1, lat1 = (float(x) for x in g.node_lonlat[v])
+    lon0, lat0 = (float(x) for x in g.node_lonlat[int(g.edge_u[e])])
     # at the road's start node: on the road whatever its shape
     heading = float(g.edge_bearing_start[e]) % 360.0
     fix = Fix(time=0.0, lat=lat0, lon=lon0, heading=heading, pos_sigma=5.0, speed=5.0)
-    lat, lon = lat1, lon1
     try:
         fix.validate()
         result = entry.online.update(entry.online.new_session(), fix)
@@ -403,12 +404,22 @@ def warm_up(entry: MapEntry) -> None:
             f"path: map {entry.map_id!r} failed its warm-up: a fix on one of its roads came back off-road "
             "(wrong CRS or coordinates?)"
         )
+    if batch:
+        warm_batch(entry)
+
+
+def warm_batch(entry: MapEntry) -> None:
+    """One batch match along the map's longest road when the batch kernels are compiled (on a
+    machine's first run the first MatchTrack compiles them, about a minute, and nothing need
+    wait for that); raises :class:`MapLoadError` when it fails."""
     from mapmatch.kernels import is_cached
 
     if not is_cached("batch"):
-        # on a machine's first run the first MatchTrack compiles the batch kernels (about a
-        # minute), so serving need not wait for them
         return
+    g = entry.graph
+    e = int(g.edge_len.argmax())
+    lon0, lat0 = (float(x) for x in g.node_lonlat[int(g.edge_u[e])])
+    lon, lat = (float(x) for x in g.node_lonlat[int(g.edge_v[e])])
     try:
         entry.batch.match(
             Track(

@@ -40,10 +40,11 @@ from grpc_reflection.v1alpha import reflection
 from mapmatch.errors import ConfigError
 from mapmatch.graph.road_graph import RoadGraph
 from mapmatch.service.config import ServerConfig
+from mapmatch.service.errors import MapLoadError
 from mapmatch.service.gen import mapmatch_pb2 as pb
 from mapmatch.service.gen import mapmatch_pb2_grpc as pb_grpc
 from mapmatch.service.interceptors import Metrics, interceptors
-from mapmatch.service.maps import MapRegistry, load_map_file, warm_up
+from mapmatch.service.maps import MapRegistry, load_map_file, warm_batch, warm_up
 from mapmatch.service.servicer import SERVICE_NAME, MapMatchServicer, OnlineQueue, load_limits
 from mapmatch.service.sessions import SessionStore
 
@@ -193,11 +194,11 @@ class ServiceRuntime:
                 log.info("loading map %s from %s", name, path.name)
                 graph = load_map_file(path, limits=limits, name=path.name)
                 log.info("warming up map %s (%d edges)", name, graph.n_edges)
-                self.maps.add(name, graph, source=path.name)
+                self.maps.add(name, graph, source=path.name, batch=False)
             for entry in self.maps.entries():
                 if entry.map_id not in {n for n, _ in self.to_load}:
                     log.info("warming up map %s (%d edges)", entry.map_id, entry.graph.n_edges)
-                    warm_up(entry)
+                    warm_up(entry, batch=False)
                 log.info("map %s ready (checksum %s)", entry.map_id, entry.checksum)
         except Exception as exc:
             log.error("map loading or warm-up failed, health stays NOT_SERVING: %s", exc)
@@ -211,6 +212,13 @@ class ServiceRuntime:
                 "batch kernels not compiled yet: the first MatchTrack compiles them, once, about %.0f s",
                 COMPILE_SECONDS["batch"],
             )
+            return
+        # the batch matchers warm up after SERVING: online streams need not wait for them
+        for entry in self.maps.entries():
+            try:
+                warm_batch(entry)
+            except MapLoadError as exc:
+                log.error("map %s: %s (MatchTrack on it will fail)", entry.map_id, exc)
 
     async def update_health(self) -> None:
         """SERVING when maps are loaded (each has passed its warm-up), else NOT_SERVING; and
