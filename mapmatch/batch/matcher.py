@@ -43,6 +43,16 @@ class _ThreadState(NamedTuple):
     to_map: Transformer
 
 
+class _Rules(NamedTuple):
+    """The batch rules' settings the Python steps read (config look-ups cost microseconds)."""
+
+    spike_sigmas: float
+    spike_speed: float
+    motion_heading_sigma: float
+    motion_min_distance: float
+    straight_max_deg: float
+
+
 class _Settings(NamedTuple):
     """What a config turns into for the kernels (built once per config object)."""
 
@@ -50,6 +60,7 @@ class _Settings(NamedTuple):
     params: KernelParams
     query: QueryParams
     sigma: float
+    rules: _Rules
 
 
 class BatchMatcher:
@@ -119,7 +130,13 @@ class BatchMatcher:
                 radius=float(cfg.search_radius), outlier=float(cfg.outlier_distance),
                 k=int(cfg.max_candidates), min_dist=float(cfg.interpolate_distance),
             )  # fmt: skip
-            st = _Settings(cfg, kernel_params(cfg, sigma), query, sigma)
+            rules = _Rules(
+                spike_sigmas=float(cfg.spike_sigmas), spike_speed=float(cfg.spike_speed),
+                motion_heading_sigma=float(cfg.motion_heading_sigma),
+                motion_min_distance=float(cfg.motion_min_distance),
+                straight_max_deg=float(cfg.straight_max_deg),
+            )  # fmt: skip
+            st = _Settings(cfg, kernel_params(cfg, sigma), query, sigma, rules)
             if len(self._settings) >= 64:
                 self._settings.clear()
             self._settings[id(cfg)] = st
@@ -145,8 +162,8 @@ class BatchMatcher:
         return (
             track.pos_sigma is None
             and track.heading is None
-            and cfg.motion_heading_sigma <= 0
-            and cfg.spike_speed <= 0
+            and self._settings_for(cfg).rules.motion_heading_sigma <= 0
+            and self._settings_for(cfg).rules.spike_speed <= 0
             and not len(self._limit)
         )
 
@@ -167,6 +184,8 @@ class BatchMatcher:
         :func:`run`."""
         g = self.graph
         n = len(track)
+        st = self._settings_for(cfg)
+        q, rules = st.query, st.rules
         lat = np.asarray(track.lat, dtype=F8)
         lon = np.asarray(track.lon, dtype=F8)
         valid = np.isfinite(lat) & np.isfinite(lon) & (np.abs(lat) <= 90) & (np.abs(lon) <= 180)
@@ -178,18 +197,18 @@ class BatchMatcher:
                 xy[valid] = to_xy(g.crs, lon[valid], lat[valid])
         xy = fresh(xy, F8)
         # points closer than the noise to the previous kept point are interpolated afterwards
-        kept = thin(xy, valid, float(cfg.interpolate_distance))
+        kept = thin(xy, valid, q.min_dist)
         time = fresh(_opt(track.time, n), F8)
-        sigma0 = float(model.position_sigma(np.nan, cfg))
+        sigma0 = st.sigma
         # jumps (a fix reached and left in opposite directions too fast) get no candidates
-        spikes = (float(cfg.spike_sigmas), float(cfg.spike_speed))
+        spikes = (rules.spike_sigmas, rules.spike_speed)
         jump = valid & ~drop_spikes(xy, time, kept, valid, sigma0, *spikes)
         kidx = np.flatnonzero(kept)
-        cands = self._grid.query(xy[kidx], cfg.search_radius, k=cfg.max_candidates)
+        cands = self._grid.query(xy[kidx], q.radius, k=q.k)
         # points with no road within the search radius look again up to the outlier distance
         lonely = np.flatnonzero(np.bincount(cands.point, minlength=len(kidx)) == 0)
-        if len(lonely) and cfg.outlier_distance > cfg.search_radius:
-            more = self._grid.query(xy[kidx[lonely]], cfg.outlier_distance, k=cfg.max_candidates)
+        if len(lonely) and q.outlier > q.radius:
+            more = self._grid.query(xy[kidx[lonely]], q.outlier, k=q.k)
             cands = _merge_candidates(cands, more, lonely)
         if jump.any():
             cands = _subset(cands, ~jump[kidx][cands.point])
@@ -199,12 +218,12 @@ class BatchMatcher:
             sigma = model.position_sigma(np.asarray(track.pos_sigma, dtype=F8)[kidx], cfg)[cands.point]
         heading = None if track.heading is None else np.asarray(track.heading, dtype=F8)[kidx]
         head_sigma: float | NDArray[np.float64] = np.nan
-        if cfg.motion_heading_sigma > 0:
+        if rules.motion_heading_sigma > 0:
             # the direction of travel where the track gives no heading
-            mh = motion_heading(xy, kidx, float(cfg.motion_min_distance), float(cfg.straight_max_deg))
+            mh = motion_heading(xy, kidx, rules.motion_min_distance, rules.straight_max_deg)
             use = np.isfinite(mh) if heading is None else np.isfinite(mh) & ~np.isfinite(heading)
             heading = mh if heading is None else np.where(use, mh, heading)
-            head_sigma = np.where(use, float(cfg.motion_heading_sigma), np.nan)
+            head_sigma = np.where(use, rules.motion_heading_sigma, np.nan)
         if heading is not None and np.isfinite(heading).any():
             speed = _opt(track.speed, n)[kidx]
             kappa = model.heading_kappa(heading, head_sigma, speed, cfg)[cands.point]
@@ -225,7 +244,7 @@ class BatchMatcher:
             sigma=fresh(sigma if np.ndim(sigma) else np.zeros(0), F8),
             limit=fresh(self._limit[cands.edge] if len(self._limit) else self._limit, F8),
         )  # fmt: skip
-        params = kernel_params(cfg, sigma if isinstance(sigma, float) else 0.0)
+        params = st.params if isinstance(sigma, float) else st.params._replace(sigma=0.0)
         return track_match(str(track.track_id), self._run(pt, ca, params, self._geom, self._router))
 
 
