@@ -458,9 +458,9 @@ def _build_ubodt(  # type: ignore[no-untyped-def]
 
 
 @njit(cache=True, nogil=True, inline="always")
-def ubodt_lookup(table, e: int, f: int) -> float:  # type: ignore[no-untyped-def]
-    """Distance from the end of ``e`` to the start of ``f`` if within the table, else inf."""
-    ptr, tgt, dist = table.ptr, table.tgt, table.dist
+def _row_place(table, e: int, f: int) -> int:  # type: ignore[no-untyped-def]
+    """The place of ``f`` in the table's row of ``e`` (a binary search), -1 when not in it."""
+    ptr, tgt = table.ptr, table.tgt
     lo = ptr[e]
     hi = ptr[e + 1]
     while lo < hi:
@@ -470,24 +470,24 @@ def ubodt_lookup(table, e: int, f: int) -> float:  # type: ignore[no-untyped-def
         else:
             hi = mid
     if lo < ptr[e + 1] and tgt[lo] == f:
-        return dist[lo]
-    return INF
+        return lo
+    return -1
+
+
+@njit(cache=True, nogil=True, inline="always")
+def ubodt_lookup(table, e: int, f: int) -> float:  # type: ignore[no-untyped-def]
+    """Distance from the end of ``e`` to the start of ``f`` if within the table, else inf."""
+    k = _row_place(table, e, f)
+    return table.dist[k] if k >= 0 else INF
 
 
 @njit(cache=True, nogil=True)
 def ubodt_path(table, src: int, dst: int):  # type: ignore[no-untyped-def]
     """The edges strictly between ``src`` and ``dst`` from the table (None if not in it)."""
-    ptr, tgt, pos = table.ptr, table.tgt, table.pred_pos
-    a = ptr[src]
-    lo = a
-    hi = ptr[src + 1]
-    while lo < hi:
-        mid = (lo + hi) >> 1
-        if tgt[mid] < dst:
-            lo = mid + 1
-        else:
-            hi = mid
-    if lo >= ptr[src + 1] or tgt[lo] != dst:
+    pos, tgt = table.pred_pos, table.tgt
+    a = table.ptr[src]
+    lo = _row_place(table, src, dst)
+    if lo < 0:
         return None
     m = 0
     k = pos[lo]

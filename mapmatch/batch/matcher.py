@@ -162,8 +162,8 @@ class BatchMatcher:
         return (
             track.pos_sigma is None
             and track.heading is None
-            and self._settings_for(cfg).rules.motion_heading_sigma <= 0
-            and self._settings_for(cfg).rules.spike_speed <= 0
+            and (rules := self._settings_for(cfg).rules).motion_heading_sigma <= 0
+            and rules.spike_speed <= 0
             and not len(self._limit)
         )
 
