@@ -185,7 +185,8 @@ def read_tracks_parquet(path: str | os.PathLike[str], *, columns: Columns = DEFA
 
 
 def read_tracks_gpx(path: str | os.PathLike[str]) -> list[Track]:
-    """One track per GPX ``<trk>`` (its segments joined) and per ``<rte>``; speed when recorded."""
+    """One track per GPX ``<trk>`` (its segments joined) and per ``<rte>``; speed and course
+    (the heading) when recorded."""
     import gpxpy
     import gpxpy.gpx
 
@@ -208,14 +209,38 @@ def read_tracks_gpx(path: str | os.PathLike[str]) -> list[Track]:
 
 def _gpx_track(name: str, pts: Sequence[Any]) -> Track:
     t = np.array([p.time.timestamp() if p.time else np.nan for p in pts], dtype=np.float64)
-    speed = np.array([p.speed if p.speed is not None else np.nan for p in pts], dtype=np.float64)
+    speed = np.array([_gpx_value(p, "speed") for p in pts], dtype=np.float64)
+    course = np.array([_gpx_value(p, "course") for p in pts], dtype=np.float64)
     return Track(
         track_id=str(name),
         time=t,
         lat=np.array([p.latitude for p in pts], dtype=np.float64),
         lon=np.array([p.longitude for p in pts], dtype=np.float64),
+        heading=course % 360.0 if np.isfinite(course).any() else None,
         speed=speed if np.isfinite(speed).any() else None,
     )
+
+
+def _gpx_value(point: Any, name: str) -> float:
+    """A point's ``speed`` (m/s) or ``course`` (degrees clockwise from north), NaN if absent.
+
+    GPX 1.0 has them as elements of the point; GPX 1.1 loggers write them in an extension
+    (Garmin's TrackPointExtension v2: ``<gpxtpx:speed>``, ``<gpxtpx:course>``).
+    """
+    value = getattr(point, name, None)
+    if value is None:
+        for ext in point.extensions or ():
+            for el in ext.iter():
+                if el.tag.rsplit("}", 1)[-1].lower() == name and el.text:
+                    value = el.text
+                    break
+            if value is not None:
+                break
+    try:
+        out = float(value) if value is not None else np.nan
+    except ValueError:
+        return np.nan
+    return out if np.isfinite(out) else np.nan
 
 
 def tracks_from_frame(
@@ -328,13 +353,15 @@ def write_tracks(
             for i in range(len(t)):
                 tm = datetime.fromtimestamp(float(t.time[i]), tz=UTC) if np.isfinite(t.time[i]) else None
                 sp = float(t.speed[i]) if t.speed is not None and np.isfinite(t.speed[i]) else None
-                seg.points.append(
-                    gpxpy.gpx.GPXTrackPoint(float(t.lat[i]), float(t.lon[i]), time=tm, speed=sp)
-                )
+                point = gpxpy.gpx.GPXTrackPoint(float(t.lat[i]), float(t.lon[i]), time=tm, speed=sp)
+                if t.heading is not None and np.isfinite(t.heading[i]):
+                    point.course = float(t.heading[i])
+                seg.points.append(point)
             trk.segments.append(seg)
             gpx.tracks.append(trk)
-        # GPX 1.0 is the version with a <speed> element
-        xml = gpx.to_xml(version="1.0" if any(t.speed is not None for t in tracks) else "1.1")
+        # GPX 1.0 is the version with <speed> and <course> elements
+        motion = any(t.speed is not None or t.heading is not None for t in tracks)
+        xml = gpx.to_xml(version="1.0" if motion else "1.1")
         with atomic_path(p) as tmp:
             tmp.write_text(xml, encoding="utf-8")
         return
