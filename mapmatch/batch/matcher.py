@@ -13,14 +13,14 @@ import threading
 from typing import NamedTuple
 
 import numpy as np
-from numpy.typing import NDArray
+from numpy.typing import ArrayLike, NDArray
 from pyproj import Transformer
 
 from mapmatch import model
 from mapmatch.batch.arrays import CandidateArrays, EdgeGeometry, KernelParams, TrackPoints, kernel_params
 from mapmatch.batch.lattice import along_lengths, bearing_at, drop_spikes, motion_heading, thin
 from mapmatch.batch.results import fill_route_lonlat, track_match
-from mapmatch.batch.run import CompiledRun, QueryParams, TrackInput, fresh, run_track
+from mapmatch.batch.run import CompiledRun, QueryParams, RoadArrays, RuleParams, TrackInput, fresh, run_track
 from mapmatch.config import BATCH_CONFIG, MatchConfig
 from mapmatch.graph.index import Candidates, EdgeIndex
 from mapmatch.graph.projection import to_xy
@@ -32,6 +32,8 @@ from mapmatch.types import Track, TrackMatch
 F8, I8 = np.float64, np.int64
 NO_ODO = np.zeros(0)
 """The odometer readings of a track without them (read-only use)."""
+NO_COLUMN = np.zeros(0)
+"""An optional per-fix column the track does not have (read-only use)."""
 
 
 class _ThreadState(NamedTuple):
@@ -61,6 +63,7 @@ class _Settings(NamedTuple):
     query: QueryParams
     sigma: float
     rules: _Rules
+    track_rules: RuleParams
 
 
 class BatchMatcher:
@@ -102,6 +105,7 @@ class BatchMatcher:
         kph = np.asarray(graph.edge_speed_kph, dtype=F8)
         # speed limits (m/s) where the map has any (posted, or by road class)
         self._limit = kph / 3.6 if np.isfinite(kph).any() else np.zeros(0)
+        self._roads = RoadArrays(self._seg_end, self._limit)
         self._run = CompiledRun()
         self._run_track = CompiledRun(run_track)
         self._local = threading.local()
@@ -136,7 +140,13 @@ class BatchMatcher:
                 motion_min_distance=float(cfg.motion_min_distance),
                 straight_max_deg=float(cfg.straight_max_deg),
             )  # fmt: skip
-            st = _Settings(cfg, kernel_params(cfg, sigma), query, sigma, rules)
+            track_rules = RuleParams(
+                gps_sigma=sigma, spike_sigmas=rules.spike_sigmas, spike_speed=rules.spike_speed,
+                motion_sigma=rules.motion_heading_sigma, motion_min_distance=rules.motion_min_distance,
+                straight_max_deg=rules.straight_max_deg, heading_sigma=float(cfg.heading_sigma),
+                heading_min_speed=float(cfg.heading_min_speed),
+            )  # fmt: skip
+            st = _Settings(cfg, kernel_params(cfg, sigma), query, sigma, rules, track_rules)
             if len(self._settings) >= 64:
                 self._settings.clear()
             self._settings[id(cfg)] = st
@@ -150,38 +160,36 @@ class BatchMatcher:
         ``route_lonlat`` and ``points`` from them.
         """
         cfg = config or self.config
-        plain = self._plain(track, cfg)
-        res = self._match_plain(track, cfg) if plain else self._match_general(track, cfg)
+        res = self._match_compiled(track, cfg)
         if lonlat:
             fill_route_lonlat(res, self.graph.crs)
         return res
 
-    def _plain(self, track: Track, cfg: MatchConfig) -> bool:
-        """Whether the track takes the all-compiled path: one σ, no heading (neither the
-        track's nor the direction of travel), no jumps to drop and no speed limits."""
-        return (
-            track.pos_sigma is None
-            and track.heading is None
-            and (rules := self._settings_for(cfg).rules).motion_heading_sigma <= 0
-            and rules.spike_speed <= 0
-            and not len(self._limit)
-        )
-
-    def _match_plain(self, track: Track, cfg: MatchConfig) -> TrackMatch:
-        """One σ, no heading: the projection, then one compiled call (:func:`run_track`)."""
+    def _match_compiled(self, track: Track, cfg: MatchConfig) -> TrackMatch:
+        """The projection, then one compiled call (:func:`run_track`)."""
         st = self._state()
         s = self._settings_for(cfg)
         lat = fresh(track.lat, F8)
         lon = fresh(track.lon, F8)
+        if lat.ndim != 1 or lon.shape != lat.shape:
+            raise ValueError(f"the track's lat and lon have shapes {lat.shape} and {lon.shape}, not one (n,)")
+        n = len(lat)
         x, y = st.to_map.transform(lon, lat)
-        odo = NO_ODO if track.distance is None else _odometer(track.distance)
-        ti = TrackInput(lat, lon, fresh(x, F8), fresh(y, F8), fresh(_opt(track.time, len(lat)), F8), odo)
-        a = self._run_track(ti, s.query, s.params, self._geom, st.router, self._grid.arrays, st.grid)
+        ti = TrackInput(
+            lat, lon, fresh(x, F8), fresh(y, F8), _column(track.time, n, "time", np.nan),
+            NO_ODO if track.distance is None else _odometer(_column(track.distance, n, "distance")),
+            _column(track.pos_sigma, n, "pos_sigma"), _column(track.heading, n, "heading"),
+            _column(track.speed, n, "speed"),
+        )  # fmt: skip
+        a = self._run_track(
+            ti, s.query, s.track_rules, s.params, self._geom, self._roads, st.router, self._grid.arrays, st.grid
+        )
         return track_match(str(track.track_id), a)
 
-    def _match_general(self, track: Track, cfg: MatchConfig) -> TrackMatch:
-        """Per-fix σ, headings, jumps or speed limits: candidates and emissions in numpy, then
-        :func:`run`."""
+    def _match_steps(self, track: Track, cfg: MatchConfig) -> TrackMatch:
+        """The same match as :meth:`match` in Python steps (candidates, rules and emissions in
+        numpy with the shared :mod:`mapmatch.model`), then :func:`run`: the reference the
+        one compiled call is tested against."""
         g = self.graph
         n = len(track)
         st = self._settings_for(cfg)
@@ -278,6 +286,17 @@ def _odometer(distance: NDArray[np.float64]) -> NDArray[np.float64]:
     """Cumulative odometer distance from per-point distances (NaN where a reading is missing)."""
     d = np.asarray(distance, dtype=F8)
     return np.where(np.isfinite(d), np.cumsum(np.where(np.isfinite(d), d, 0.0)), np.nan)
+
+
+def _column(a: ArrayLike | None, n: int, name: str, missing: float | None = None) -> NDArray[np.float64]:
+    """An optional per-fix column for the kernel: float64, C-contiguous, ``n`` long; a missing
+    one is empty, or ``n`` times ``missing`` when given (the kernel never reads past its end)."""
+    if a is None:
+        return NO_COLUMN if missing is None else np.full(n, missing)
+    out = fresh(a, F8)
+    if out.shape != (n,):
+        raise ValueError(f"the track's {name} column has shape {out.shape}, not ({n},) as lat")
+    return out
 
 
 def _opt(a: NDArray[np.float64] | None, n: int) -> NDArray[np.float64]:
