@@ -4,10 +4,12 @@ Runs ``../shared/peers/run_peers.py`` (or ``$MAPMATCH_PEERS/run_peers.py``) with
 custom engine (``bench/peers_adapter.py``), so every engine is scored by the peers' ``score.py``.
 The harness times each call once; with ``--repeat K`` (the default) every engine is then timed
 again by ``bench/peers_timing.py`` in its own Python, the same loop for all: per track and S one
-warm-up call, then K timed calls, and the median replaces the harness's single time (the least
-is kept too). Prints mean and median RMF and points/s per
-engine and S, the per-track geometric mean of our points/s over fastmm's per S, our time per point at
-S = 30 on the largest vs the smallest map, and one PASS/FAIL line per target of issue #14.
+warm-up call, then K timed calls, and the least of them (best of K) replaces the harness's
+single time; the median is kept too. On a shared machine the least is the figure least
+disturbed by the other processes (a 0.5 ms call loses whole time slices under load).
+Prints mean and median RMF and points/s per engine and S, the per-track
+geometric mean of our points/s over fastmm's per S, our time per point at S = 30 on the largest
+vs the smallest map, and one PASS/FAIL line per target of issue #14.
 
     python bench/bench_batch.py                       # all 15 tracks, S = 1, 10, 30
     python bench/bench_batch.py --ids 0,21 --engines custom,fastmm     # a quick check
@@ -93,7 +95,8 @@ def time_engines(ids: str, engines: str, S: str, repeat: int, tag: str) -> Path:
 
 
 def apply_timing(recs: list[dict], timing: Path) -> int:
-    """Replace each record's ``match_s`` with the median of its repeated timing; returns how many."""
+    """Replace each record's ``match_s`` with the least of its repeated timings (the median goes
+    to ``match_median_s``); returns how many."""
     t = {}
     for line in timing.read_text().splitlines():
         if line.strip():
@@ -103,7 +106,11 @@ def apply_timing(recs: list[dict], timing: Path) -> int:
     for r in recs:
         got = t.get((r["engine"], r["track"], int(r["S"])))
         if got and r.get("match_s"):
-            r["match_s_harness"], r["match_s"], r["match_min_s"] = r["match_s"], got["median_s"], got["min_s"]
+            r["match_s_harness"], r["match_s"], r["match_median_s"] = (
+                r["match_s"],
+                got["min_s"],
+                got["median_s"],
+            )
             n += 1
     return n
 
@@ -119,7 +126,8 @@ def summarise(paths: list[Path], timing: Path | None = None) -> bool:
         print(
             f"\ntiming: {n} of {len(recs)} (track, engine, S) runs timed again by bench/peers_timing.py, "
             f"each engine in its own process per track: one warm-up call, then {'/'.join(map(str, reps))} "
-            "timed calls; match s below is the median (the harness's single warm call is match_s_harness)"
+            "timed calls; match s below is the least of them, best of K (the median is match_median_s, "
+            "the harness's single warm call match_s_harness)"
         )
     else:
         print("\ntiming: the harness's own (one warm call per track and S, after one first call)")
@@ -197,6 +205,9 @@ def summarise(paths: list[Path], timing: Path | None = None) -> bool:
             f"largest {big['track']} ({big['arcs']} arcs, {big['n_points']} points) {ub:.2f} us, "
             f"ratio {ub / us:.2f}"
         )
+        if small.get("match_median_s") and big.get("match_median_s"):
+            ms, mb = (r["match_median_s"] / r["n_points"] * 1e6 for r in (small, big))
+            growth_txt += f" (medians {ms:.2f} and {mb:.2f} us, ratio {mb / ms:.2f})"
         print(f"S=30: our time per point: {growth_txt}")
     checks.append(
         ("time per point at 30 s grows less than 2x from the smallest to the largest map", growth, growth_txt)
@@ -333,7 +344,7 @@ def main() -> int:
     print(f"load average after: {' '.join(f'{x:.2f}' for x in os.getloadavg())}")
     timing = a.timing
     if timing is None and not a.summary and a.repeat > 0:
-        timing = time_engines(a.ids, a.engines, a.S, a.repeat, a.tag)
+        timing = time_engines(a.ids, a.time_engines or a.engines, a.S, a.repeat, a.tag)
         print(f"load average after the repeated timing: {' '.join(f'{x:.2f}' for x in os.getloadavg())}")
     summarise(paths, timing)
     return 0

@@ -352,3 +352,21 @@ def test_bearing_by_binary_search_is_the_walk_along_the_polyline() -> None:
     got = bearing_at(edges, offs, seg_xy, seg_ptr, ends)
     want = [_bearing_by_walking(int(e), float(o), seg_xy, seg_ptr) for e, o in zip(edges, offs, strict=True)]
     np.testing.assert_array_equal(got, want)
+
+
+def test_the_in_place_projection_equals_pyproj_s_public_call() -> None:
+    """The matcher projects fixes through pyproj's in-place call: the same numbers, bit for bit,
+    as :meth:`Transformer.transform`, for good, out-of-range and missing coordinates."""
+    from pyproj import Transformer
+
+    from mapmatch.batch.matcher import _projector
+
+    tr = Transformer.from_crs("EPSG:4326", "EPSG:32633", always_xy=True)
+    rng = np.random.default_rng(5)
+    lon = np.r_[rng.uniform(10, 20, 50), np.nan, 200.0, 15.0, -181.0]
+    lat = np.r_[rng.uniform(40, 60, 50), 50.0, 50.0, np.nan, 95.0]
+    want = np.array(tr.transform(lon, lat))
+    buf = np.array((lon, lat))
+    _projector(tr)(buf)
+    np.testing.assert_array_equal(buf, want)
+    assert np.isfinite(buf[:, :50]).all()

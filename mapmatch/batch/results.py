@@ -19,12 +19,11 @@ def track_match(track_id: str, packed: Packed) -> TrackMatch:
     ints, floats, length, conf = packed
     n, ns, ne, nseg, nxy = ints[:5].tolist()
     k = 5 + 2 * n
-    route_e = ints[k + ns : k + ns + ne].tolist()
-    ptr = ints[k + ns + ne : k + ns + ne + 2 * (nseg + 1)].tolist()
+    rest = ints[k:].tolist()  # splits, route edges, their pointers, the geometry's pointers
+    route_e = rest[ns : ns + ne]
+    ptr = rest[ns + ne :]
     xy_all = floats[4 * n :].reshape(nxy, 2)
-    res = TrackMatch(
-        track_id=track_id, splits=ints[k : k + ns].tolist(), length_m=float(length), confidence=float(conf)
-    )
+    res = TrackMatch(track_id=track_id, splits=rest[:ns], length_m=length, confidence=conf)
     for s in range(nseg):
         res.routes.append(route_e[ptr[s] : ptr[s + 1]])
         seg = xy_all[ptr[nseg + 1 + s] : ptr[nseg + 2 + s]]
