@@ -322,6 +322,7 @@ def main() -> int:
         default=7,
         help="timed calls per track, S and engine after the run (0: the harness's)",
     )
+    ap.add_argument("--time-engines", help="the engines timed again (default: all of --engines)")
     ap.add_argument("--routing", action="store_true", help="compare bounded search and UBODT in process")
     ap.add_argument("--deltas", default="1000,2000,3000", help="UBODT bounds in metres for --routing")
     ap.add_argument(

@@ -1,10 +1,13 @@
-"""The batch matcher: measurements to candidates and emissions in numpy, then one compiled call.
+"""The batch matcher: the fixes projected to the map's CRS, then one compiled call per track.
 
-Candidates for all points come from one vectorised index query; emissions and transitions
-from the shared :mod:`mapmatch.model`; route distances from bounded edge-based Dijkstra
-(:mod:`mapmatch.routing`); lattice (:mod:`~mapmatch.batch.lattice`), Viterbi
-(:mod:`~mapmatch.batch.viterbi`) and route assembly (:mod:`~mapmatch.batch.route`) are
-compiled with numba and run as one call (:mod:`~mapmatch.batch.run`).
+The call (:func:`mapmatch.batch.run.run_track`) does every step: validity and thinning, the
+batch rules on the fixes (jumps, the direction of travel), the grid candidate search,
+emissions and transitions of the shared :mod:`mapmatch.model` (compiled twins, the same
+floats), route distances from bounded edge-based search or the route table
+(:mod:`mapmatch.routing`), lattice (:mod:`~mapmatch.batch.lattice`), Viterbi
+(:mod:`~mapmatch.batch.viterbi`) and route assembly (:mod:`~mapmatch.batch.route`).
+:meth:`BatchMatcher._match_steps` does the steps before the lattice in numpy: the reference
+the compiled call is tested against.
 """
 
 from __future__ import annotations
