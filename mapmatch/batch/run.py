@@ -1,10 +1,11 @@
 """The whole compiled match in one call, and the call itself without the dispatch cost.
 
-Two entry points: :func:`run` takes the candidates (and emissions) the Python side computed,
-:func:`run_track` also finds the candidates itself (the common case of one σ and no heading,
-where a match is then one compiled call after the projection). numba's dispatcher types every
-argument on every call, which for nested named tuples of arrays costs tens of microseconds;
-:class:`CompiledRun` resolves the compiled entry point once and then calls it directly.
+:func:`run_track` is a match: the fixes' validity, thinning and rules, the candidates and
+their emissions, then :func:`run` (lattice, Viterbi, route assembly), which also serves the
+Python reference steps. numba's dispatcher types every argument on every call, which for nested
+named tuples of arrays costs tens of microseconds; :class:`CompiledRun` resolves the compiled
+entry point once and then calls it directly. The answer comes back packed in two arrays
+(:func:`pack`), as each array handed to Python costs about a microsecond.
 """
 
 from __future__ import annotations
@@ -96,9 +97,9 @@ def run(pt, cands, p, geom, router):  # type: ignore[no-untyped-def]
 
 @njit(cache=True, nogil=True)
 def pack(a):  # type: ignore[no-untyped-def]
-    """The assembly in two arrays, as :func:`mapmatch.batch.results.unpack` reads them (each
-    array handed back to Python costs about a microsecond: ten of them were a third of a small
-    track's call).
+    """The assembly in two arrays, as :func:`mapmatch.batch.results.track_match` reads them
+    (each array handed back to Python costs about a microsecond: ten of them were a third of
+    a small track's call).
 
     Integers: ``n, splits, route edges, pieces, route points``, then ``p_edge, status, splits,
     route_e, route_ptr, rxy_ptr``; floats: ``p_off, p_xy, p_dist, xy_all``.
