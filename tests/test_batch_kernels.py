@@ -16,7 +16,7 @@ from mapmatch.graph.road_graph import RESTRICTION_ONLY, RoadGraph
 from mapmatch.gridindex import GridIndex
 
 PLAIN = BATCH_CONFIG.replace(motion_heading_sigma=0.0, spike_speed=0.0)
-"""The batch rules that need the Python steps switched off: such a track takes one compiled call."""
+"""The batch rules on the fixes (direction of travel, jumps) switched off."""
 
 DRAWING = """
 a-----b-----c---------d
@@ -202,9 +202,11 @@ def test_compiled_entry_point_sees_the_types_it_was_compiled_for() -> None:
     with unittest.mock.patch.object(CompiledRun, "__call__", spy):
         for t in tracks:
             assert matcher.match(t).routes and matcher.match(t, PLAIN).routes
+            assert matcher._match_steps(t, matcher.config).routes
     kernels = {id(matcher._run): matcher._run, id(matcher._run_track): matcher._run_track}
     assert set(seen) == set(kernels)  # both kernels ran
-    assert sum(len(v) for v in seen.values()) == 2 * len(tracks)
+    assert len(seen[id(matcher._run_track)]) == 2 * len(tracks)  # every match() is one call
+    assert len(seen[id(matcher._run)]) == len(tracks)
     for k, sigs in seen.items():
         assert all(s == kernels[k].signature for s in sigs), sigs
 
@@ -240,31 +242,52 @@ def test_goal_directed_search_settles_the_targets_as_the_search_does() -> None:
     assert reached > 300 and cut > 100  # both cases are exercised
 
 
-def test_one_compiled_call_matches_as_the_python_steps_do() -> None:
-    """A track with one σ and no heading is matched in one compiled call (validity, thinning,
-    candidates with the outlier re-query): the same answer as the Python steps then ``run``,
-    with bad points, repeated fixes and fixes away from every road."""
+@pytest.mark.parametrize("rules", ["default", "plain"])
+def test_one_compiled_call_matches_as_the_python_steps_do(rules: str) -> None:
+    """Every track is matched in one compiled call (validity, thinning, jumps, candidates with
+    the outlier re-query, the direction of travel, the fixes' σ, heading and speed): the same
+    answer, to the last bit, as the Python steps with the shared model then ``run``; with bad
+    points, repeated fixes, fixes away from every road, jumps and speed limits on the map."""
     from mapmatch.batch import BatchMatcher
     from mapmatch.types import Track
 
+    cfg = BATCH_CONFIG if rules == "default" else PLAIN
     m = parse_ascii_map(DRAWING, scale=7)
-    matcher = BatchMatcher(m.graph, config=PLAIN)
+    m.graph.edge_speed_kph[:] = np.where(np.arange(m.graph.n_edges) % 3 == 0, np.nan, 30.0)
+    matcher = BatchMatcher(m.graph, config=cfg)
+    assert len(matcher._limit)  # the speed-limit term is exercised
     rng = np.random.default_rng(4)
     lo, hi = m.graph.node_xy.min(axis=0) - 60, m.graph.node_xy.max(axis=0) + 60
-    lonely = 0
-    for _ in range(25):
+    lonely = headed = 0
+    for i in range(60):
         n = int(rng.integers(0, 12))
-        xy = lo + rng.random((n, 2)) * (hi - lo)
+        if i % 2:  # a drive along the roads with noise and a jump
+            path = m.graph.node_xy[rng.integers(m.graph.n_nodes, size=2)]
+            f = np.linspace(0, 1, n)[:, None]
+            xy = path[0] + f * (path[1] - path[0]) + rng.normal(0, 4, (n, 2))
+            if n > 4:
+                xy[n // 2] += 150.0
+        else:
+            xy = lo + rng.random((n, 2)) * (hi - lo)
         if n > 3:
             xy[2] = xy[1] + 1.0  # thinned out (interpolated afterwards)
         ll = np.array([m.lonlat(x, y) for x, y in xy]).reshape(-1, 2)
         lat, lon = ll[:, 1].copy(), ll[:, 0].copy()
         if n > 5:
             lat[4], lon[5] = np.nan, 200.0  # invalid fixes
-        t = Track("r", np.arange(n) * 10.0, lat, lon)
+        extra: dict[str, np.ndarray] = {}
+        if i % 3 == 1:
+            extra["heading"] = np.where(rng.random(n) < 0.3, np.nan, rng.uniform(0, 360, n))
+            extra["speed"] = rng.uniform(0, 3, n)
+            headed += 1
+        if i % 5 == 2:
+            extra["pos_sigma"] = np.where(rng.random(n) < 0.3, np.nan, rng.uniform(-1, 12, n))
+        if i % 7 == 3:
+            extra["distance"] = rng.uniform(0, 60, n)
+        t = Track("r", np.arange(n) * 3.0, lat, lon, **extra)
         d = matcher.index.query(xy, BATCH_CONFIG.search_radius).point if n else np.zeros(0, dtype=int)
         lonely += n - len(np.unique(d))
-        a, b = matcher._match_plain(t, PLAIN), matcher._match_general(t, PLAIN)
+        a, b = matcher._match_compiled(t, cfg), matcher._match_steps(t, cfg)
         assert a.routes == b.routes and a.splits == b.splits
         assert a.length_m == b.length_m and a.confidence == b.confidence
         assert a.point_arrays is not None and b.point_arrays is not None
@@ -272,7 +295,24 @@ def test_one_compiled_call_matches_as_the_python_steps_do() -> None:
             np.testing.assert_array_equal(u, v)
         for u, v in zip(a.route_xy, b.route_xy, strict=True):
             np.testing.assert_array_equal(u, v)
-    assert lonely > 10  # fixes beyond the search radius were looked for again
+    assert lonely > 10 and headed > 10  # fixes beyond the search radius were looked for again
+
+
+def test_a_column_of_the_wrong_length_is_refused() -> None:
+    """The compiled call reads the columns unchecked: a track whose columns disagree in length
+    is refused with an error naming the column."""
+    from mapmatch.batch import BatchMatcher
+    from mapmatch.types import Track
+
+    m = parse_ascii_map(DRAWING, scale=7)
+    ll = np.array([m.lonlat(*m.xy(c)) for c in "abcd"])
+    matcher = BatchMatcher(m.graph)
+    with pytest.raises(ValueError, match="heading"):
+        matcher.match(Track("h", np.arange(4.0), ll[:, 1], ll[:, 0], heading=np.zeros(3)))
+    with pytest.raises(ValueError, match="time"):
+        matcher.match(Track("t", np.arange(3.0), ll[:, 1], ll[:, 0]))
+    with pytest.raises(ValueError, match="lon"):
+        matcher.match(Track("l", np.arange(4.0), ll[:, 1], ll[:3, 0]))
 
 
 def _bearing_by_walking(e: int, off: float, seg_xy: np.ndarray, seg_ptr: np.ndarray) -> float:
@@ -312,3 +352,21 @@ def test_bearing_by_binary_search_is_the_walk_along_the_polyline() -> None:
     got = bearing_at(edges, offs, seg_xy, seg_ptr, ends)
     want = [_bearing_by_walking(int(e), float(o), seg_xy, seg_ptr) for e, o in zip(edges, offs, strict=True)]
     np.testing.assert_array_equal(got, want)
+
+
+def test_the_in_place_projection_equals_pyproj_s_public_call() -> None:
+    """The matcher projects fixes through pyproj's in-place call: the same numbers, bit for bit,
+    as :meth:`Transformer.transform`, for good, out-of-range and missing coordinates."""
+    from pyproj import Transformer
+
+    from mapmatch.batch.matcher import _projector
+
+    tr = Transformer.from_crs("EPSG:4326", "EPSG:32633", always_xy=True)
+    rng = np.random.default_rng(5)
+    lon = np.r_[rng.uniform(10, 20, 50), np.nan, 200.0, 15.0, -181.0]
+    lat = np.r_[rng.uniform(40, 60, 50), 50.0, 50.0, np.nan, 95.0]
+    want = np.array(tr.transform(lon, lat))
+    buf = np.array((lon, lat))
+    _projector(tr)(buf)
+    np.testing.assert_array_equal(buf, want)
+    assert np.isfinite(buf[:, :50]).all()

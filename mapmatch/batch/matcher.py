@@ -1,26 +1,31 @@
-"""The batch matcher: measurements to candidates and emissions in numpy, then one compiled call.
+"""The batch matcher: the fixes projected to the map's CRS, then one compiled call per track.
 
-Candidates for all points come from one vectorised index query; emissions and transitions
-from the shared :mod:`mapmatch.model`; route distances from bounded edge-based Dijkstra
-(:mod:`mapmatch.routing`); lattice (:mod:`~mapmatch.batch.lattice`), Viterbi
-(:mod:`~mapmatch.batch.viterbi`) and route assembly (:mod:`~mapmatch.batch.route`) are
-compiled with numba and run as one call (:mod:`~mapmatch.batch.run`).
+The call (:func:`mapmatch.batch.run.run_track`) does every step: validity and thinning, the
+batch rules on the fixes (jumps, the direction of travel), the grid candidate search,
+emissions and transitions of the shared :mod:`mapmatch.model` (compiled twins, the same
+floats), route distances from bounded edge-based search or the route table
+(:mod:`mapmatch.routing`), lattice (:mod:`~mapmatch.batch.lattice`), Viterbi
+(:mod:`~mapmatch.batch.viterbi`) and route assembly (:mod:`~mapmatch.batch.route`).
+:meth:`BatchMatcher._match_steps` does the steps before the lattice in numpy: the reference
+the compiled call is tested against.
 """
 
 from __future__ import annotations
 
 import threading
+from collections.abc import Callable
 from typing import NamedTuple
 
 import numpy as np
-from numpy.typing import NDArray
+from numpy.typing import ArrayLike, NDArray
 from pyproj import Transformer
+from pyproj.enums import TransformDirection
 
 from mapmatch import model
 from mapmatch.batch.arrays import CandidateArrays, EdgeGeometry, KernelParams, TrackPoints, kernel_params
 from mapmatch.batch.lattice import along_lengths, bearing_at, drop_spikes, motion_heading, thin
 from mapmatch.batch.results import fill_route_lonlat, track_match
-from mapmatch.batch.run import CompiledRun, QueryParams, TrackInput, fresh, run_track
+from mapmatch.batch.run import CompiledRun, QueryParams, RoadArrays, RuleParams, TrackInput, fresh, run_track
 from mapmatch.config import BATCH_CONFIG, MatchConfig
 from mapmatch.graph.index import Candidates, EdgeIndex
 from mapmatch.graph.projection import to_xy
@@ -32,6 +37,8 @@ from mapmatch.types import Track, TrackMatch
 F8, I8 = np.float64, np.int64
 NO_ODO = np.zeros(0)
 """The odometer readings of a track without them (read-only use)."""
+NO_COLUMN = np.zeros(0)
+"""An optional per-fix column the track does not have (read-only use)."""
 
 
 class _ThreadState(NamedTuple):
@@ -40,7 +47,8 @@ class _ThreadState(NamedTuple):
 
     router: Router
     grid: GridScratch
-    to_map: Transformer
+    to_map: Callable[[NDArray[np.float64]], None]
+    """Projects a (2, n) lon/lat buffer to the map's CRS in place (:func:`_projector`)."""
 
 
 class _Rules(NamedTuple):
@@ -61,6 +69,7 @@ class _Settings(NamedTuple):
     query: QueryParams
     sigma: float
     rules: _Rules
+    track_rules: RuleParams
 
 
 class BatchMatcher:
@@ -102,6 +111,7 @@ class BatchMatcher:
         kph = np.asarray(graph.edge_speed_kph, dtype=F8)
         # speed limits (m/s) where the map has any (posted, or by road class)
         self._limit = kph / 3.6 if np.isfinite(kph).any() else np.zeros(0)
+        self._roads = RoadArrays(self._seg_end, self._limit)
         self._run = CompiledRun()
         self._run_track = CompiledRun(run_track)
         self._local = threading.local()
@@ -112,7 +122,7 @@ class BatchMatcher:
         st: _ThreadState | None = getattr(self._local, "state", None)
         if st is None:
             router = Router(self._rg, Workspace.new(self.graph.n_edges), self._table)
-            to_map = Transformer.from_crs("EPSG:4326", self.graph.crs, always_xy=True)
+            to_map = _projector(Transformer.from_crs("EPSG:4326", self.graph.crs, always_xy=True))
             st = self._local.state = _ThreadState(router, self._grid.scratch(), to_map)
         return st
 
@@ -136,7 +146,13 @@ class BatchMatcher:
                 motion_min_distance=float(cfg.motion_min_distance),
                 straight_max_deg=float(cfg.straight_max_deg),
             )  # fmt: skip
-            st = _Settings(cfg, kernel_params(cfg, sigma), query, sigma, rules)
+            track_rules = RuleParams(
+                gps_sigma=sigma, spike_sigmas=rules.spike_sigmas, spike_speed=rules.spike_speed,
+                motion_sigma=rules.motion_heading_sigma, motion_min_distance=rules.motion_min_distance,
+                straight_max_deg=rules.straight_max_deg, heading_sigma=float(cfg.heading_sigma),
+                heading_min_speed=float(cfg.heading_min_speed),
+            )  # fmt: skip
+            st = _Settings(cfg, kernel_params(cfg, sigma), query, sigma, rules, track_rules)
             if len(self._settings) >= 64:
                 self._settings.clear()
             self._settings[id(cfg)] = st
@@ -150,38 +166,45 @@ class BatchMatcher:
         ``route_lonlat`` and ``points`` from them.
         """
         cfg = config or self.config
-        plain = self._plain(track, cfg)
-        res = self._match_plain(track, cfg) if plain else self._match_general(track, cfg)
+        res = self._match_compiled(track, cfg)
         if lonlat:
             fill_route_lonlat(res, self.graph.crs)
         return res
 
-    def _plain(self, track: Track, cfg: MatchConfig) -> bool:
-        """Whether the track takes the all-compiled path: one σ, no heading (neither the
-        track's nor the direction of travel), no jumps to drop and no speed limits."""
-        return (
-            track.pos_sigma is None
-            and track.heading is None
-            and (rules := self._settings_for(cfg).rules).motion_heading_sigma <= 0
-            and rules.spike_speed <= 0
-            and not len(self._limit)
-        )
-
-    def _match_plain(self, track: Track, cfg: MatchConfig) -> TrackMatch:
-        """One σ, no heading: the projection, then one compiled call (:func:`run_track`)."""
+    def _match_compiled(self, track: Track, cfg: MatchConfig) -> TrackMatch:
+        """The projection, then one compiled call (:func:`run_track`)."""
         st = self._state()
         s = self._settings_for(cfg)
         lat = fresh(track.lat, F8)
         lon = fresh(track.lon, F8)
-        x, y = st.to_map.transform(lon, lat)
-        odo = NO_ODO if track.distance is None else _odometer(track.distance)
-        ti = TrackInput(lat, lon, fresh(x, F8), fresh(y, F8), fresh(_opt(track.time, len(lat)), F8), odo)
-        a = self._run_track(ti, s.query, s.params, self._geom, st.router, self._grid.arrays, st.grid)
+        if lat.ndim != 1 or lon.shape != lat.shape:
+            raise ValueError(f"the track's lat and lon have shapes {lat.shape} and {lon.shape}, not one (n,)")
+        n = len(lat)
+        xy = np.array((lon, lat))
+        st.to_map(xy)
+        ti = TrackInput(
+            lat, lon, xy[0], xy[1], _column(track.time, n, "time", np.nan),
+            NO_ODO if track.distance is None else _odometer(_column(track.distance, n, "distance")),
+            _column(track.pos_sigma, n, "pos_sigma"), _column(track.heading, n, "heading"),
+            _column(track.speed, n, "speed"),
+        )  # fmt: skip
+        a = self._run_track(
+            ti,
+            s.query,
+            s.track_rules,
+            s.params,
+            self._geom,
+            self._roads,
+            st.router,
+            self._grid.arrays,
+            st.grid,
+        )
         return track_match(str(track.track_id), a)
 
-    def _match_general(self, track: Track, cfg: MatchConfig) -> TrackMatch:
-        """Per-fix σ, headings, jumps or speed limits: candidates and emissions in numpy, then
-        :func:`run`."""
+    def _match_steps(self, track: Track, cfg: MatchConfig) -> TrackMatch:
+        """The same match as :meth:`match` in Python steps (candidates, rules and emissions in
+        numpy with the shared :mod:`mapmatch.model`), then :func:`run`: the reference the
+        one compiled call is tested against."""
         g = self.graph
         n = len(track)
         st = self._settings_for(cfg)
@@ -274,10 +297,43 @@ def _subset(c: Candidates, keep: NDArray[np.bool_]) -> Candidates:
     )
 
 
+def _projector(tr: Transformer) -> Callable[[NDArray[np.float64]], None]:
+    """A function projecting a C-contiguous (2, n) float64 lon/lat buffer in place with ``tr``.
+
+    :meth:`Transformer.transform` spends about 7 of its 9 microseconds on a handful of points
+    checking and copying its arguments; with pyproj's own buffers the projection is called
+    directly (the same PROJ call, so the same numbers), else through the public method.
+    """
+    core = getattr(tr, "_transformer", None)
+    if core is not None and hasattr(core, "_transform"):
+        forward = TransformDirection.FORWARD
+
+        def project(buf: NDArray[np.float64]) -> None:
+            core._transform(buf[0], buf[1], None, None, forward, False, False)
+
+        return project
+
+    def project_public(buf: NDArray[np.float64]) -> None:
+        tr.transform(buf[0], buf[1], inplace=True)
+
+    return project_public
+
+
 def _odometer(distance: NDArray[np.float64]) -> NDArray[np.float64]:
     """Cumulative odometer distance from per-point distances (NaN where a reading is missing)."""
     d = np.asarray(distance, dtype=F8)
     return np.where(np.isfinite(d), np.cumsum(np.where(np.isfinite(d), d, 0.0)), np.nan)
+
+
+def _column(a: ArrayLike | None, n: int, name: str, missing: float | None = None) -> NDArray[np.float64]:
+    """An optional per-fix column for the kernel: float64, C-contiguous, ``n`` long; a missing
+    one is empty, or ``n`` times ``missing`` when given (the kernel never reads past its end)."""
+    if a is None:
+        return NO_COLUMN if missing is None else np.full(n, missing)
+    out = fresh(a, F8)
+    if out.shape != (n,):
+        raise ValueError(f"the track's {name} column has shape {out.shape}, not ({n},) as lat")
+    return out
 
 
 def _opt(a: NDArray[np.float64] | None, n: int) -> NDArray[np.float64]:

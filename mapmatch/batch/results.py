@@ -7,22 +7,34 @@ import math
 
 import numpy as np
 
-from mapmatch.batch.arrays import Assembly
+from mapmatch.batch.run import Packed
 from mapmatch.graph.projection import to_lonlat
 from mapmatch.graph.road_graph import RoadGraph, merge_repeats
 from mapmatch.types import MatchedPoint, PointStatus, TrackMatch
 
 
-def track_match(track_id: str, a: Assembly) -> TrackMatch:
-    """A :class:`TrackMatch` from the compiled kernel's arrays (points still as arrays)."""
-    res = TrackMatch(
-        track_id=track_id, splits=a.splits.tolist(), length_m=float(a.length), confidence=float(a.conf)
-    )
-    for s in range(len(a.route_ptr) - 1):
-        res.routes.append(a.route_e[a.route_ptr[s] : a.route_ptr[s + 1]].tolist())
-        seg = a.xy_all[a.rxy_ptr[s] : a.rxy_ptr[s + 1]]
+def track_match(track_id: str, packed: Packed) -> TrackMatch:
+    """A :class:`TrackMatch` from the compiled kernel's packed arrays (:func:`mapmatch.batch.run.pack`;
+    points still as arrays, views into them)."""
+    ints, floats, length, conf = packed
+    n, ns, ne, nseg, nxy = ints[:5].tolist()
+    k = 5 + 2 * n
+    rest = ints[k:].tolist()  # splits, route edges, their pointers, the geometry's pointers
+    route_e = rest[ns : ns + ne]
+    ptr = rest[ns + ne :]
+    xy_all = floats[4 * n :].reshape(nxy, 2)
+    res = TrackMatch(track_id=track_id, splits=rest[:ns], length_m=length, confidence=conf)
+    for s in range(nseg):
+        res.routes.append(route_e[ptr[s] : ptr[s + 1]])
+        seg = xy_all[ptr[nseg + 1 + s] : ptr[nseg + 2 + s]]
         res.route_xy.append(np.vstack([seg, seg]) if len(seg) == 1 else seg)
-    res.point_arrays = (a.status, a.p_edge, a.p_off, a.p_xy, a.p_dist)
+    res.point_arrays = (
+        ints[5 + n : k],
+        ints[5 : 5 + n],
+        floats[:n],
+        floats[n : 3 * n].reshape(n, 2),
+        floats[3 * n : 4 * n],
+    )
     return res
 
 

@@ -1,10 +1,11 @@
 """The whole compiled match in one call, and the call itself without the dispatch cost.
 
-Two entry points: :func:`run` takes the candidates (and emissions) the Python side computed,
-:func:`run_track` also finds the candidates itself (the common case of one σ and no heading,
-where a match is then one compiled call after the projection). numba's dispatcher types every
-argument on every call, which for nested named tuples of arrays costs tens of microseconds;
-:class:`CompiledRun` resolves the compiled entry point once and then calls it directly.
+:func:`run_track` is a match: the fixes' validity, thinning and rules, the candidates and
+their emissions, then :func:`run` (lattice, Viterbi, route assembly), which also serves the
+Python reference steps. numba's dispatcher types every argument on every call, which for nested
+named tuples of arrays costs tens of microseconds; :class:`CompiledRun` resolves the compiled
+entry point once and then calls it directly. The answer comes back packed in two arrays
+(:func:`pack`), as each array handed to Python costs about a microsecond.
 """
 
 from __future__ import annotations
@@ -18,16 +19,19 @@ import numpy as np
 from numba import njit
 from numpy.typing import NDArray
 
-from mapmatch.batch.arrays import Assembly, CandidateArrays, TrackPoints
-from mapmatch.batch.lattice import build_lattice, thin
+from mapmatch.batch.arrays import CandidateArrays, TrackPoints
+from mapmatch.batch.lattice import bearing_at, build_lattice, drop_spikes, motion_heading, thin
 from mapmatch.batch.route import assemble
 from mapmatch.batch.viterbi import solve
 from mapmatch.gridindex import query_grid
 
+Packed = tuple[NDArray[np.int64], NDArray[np.float64], float, float]
+"""What the kernels return: the assembly packed by :func:`pack`."""
+
 
 class TrackInput(NamedTuple):
     """One track as :func:`run_track` takes it: WGS84 degrees, their projection to the map's CRS
-    (any value where the degrees are invalid), times and odometer readings (empty: none)."""
+    (any value where the degrees are invalid), times, and the optional columns (empty: none)."""
 
     lat: NDArray[np.float64]
     lon: NDArray[np.float64]
@@ -35,6 +39,13 @@ class TrackInput(NamedTuple):
     y: NDArray[np.float64]
     time: NDArray[np.float64]
     odo: NDArray[np.float64]
+    """Cumulative odometer distance."""
+    pos_sigma: NDArray[np.float64]
+    """The fixes' own position σ (metres; NaN or <= 0: the configured one)."""
+    heading: NDArray[np.float64]
+    """Compass degrees, NaN where unknown."""
+    speed: NDArray[np.float64]
+    """m/s, NaN where unknown (a heading below ``heading_min_speed`` is not trusted)."""
 
 
 class QueryParams(NamedTuple):
@@ -50,19 +61,81 @@ class QueryParams(NamedTuple):
     """``interpolate_distance``."""
 
 
+class RuleParams(NamedTuple):
+    """The rules :func:`run_track` applies before the lattice (jumps, headings), as it reads them."""
+
+    gps_sigma: float
+    """The configured position σ (metres)."""
+    spike_sigmas: float
+    spike_speed: float
+    """m/s; 0: jumps are not dropped."""
+    motion_sigma: float
+    """Degrees; 0: no direction of travel."""
+    motion_min_distance: float
+    straight_max_deg: float
+    heading_sigma: float
+    """Default heading σ (degrees) of a track's own heading."""
+    heading_min_speed: float
+
+
+class RoadArrays(NamedTuple):
+    """Per-edge arrays the emissions read beside the geometry."""
+
+    seg_end: NDArray[np.float64]
+    """:func:`mapmatch.batch.lattice.along_lengths`."""
+    limit: NDArray[np.float64]
+    """Speed limit per edge (m/s, NaN unknown); empty: the map has none."""
+
+
 @njit(cache=True, nogil=True)
 def run(pt, cands, p, geom, router):  # type: ignore[no-untyped-def]
     """Lattice (:func:`build_lattice`), Viterbi (:func:`solve`) and route assembly (:func:`assemble`)."""
     lat = build_lattice(pt, cands, p)
     choice, seg_start, via_u, used_bound = solve(lat, p, router)
-    return assemble(pt, lat, choice, seg_start, via_u, used_bound, p, geom, router)
+    return pack(assemble(pt, lat, choice, seg_start, via_u, used_bound, p, geom, router))
 
 
 @njit(cache=True, nogil=True)
-def run_track(ti, q, p, geom, router, grid, gsc):  # type: ignore[no-untyped-def]
-    """Validity, thinning, the candidate search (:func:`mapmatch.gridindex.query_grid`, again
-    up to the outlier distance for points with no road in the search radius), then :func:`run`
-    with distance-only emissions: the same answer as the Python side's steps and :func:`run`."""
+def pack(a):  # type: ignore[no-untyped-def]
+    """The assembly in two arrays, as :func:`mapmatch.batch.results.track_match` reads them
+    (each array handed back to Python costs about a microsecond: ten of them were a third of
+    a small track's call).
+
+    Integers: ``n, splits, route edges, pieces, route points``, then ``p_edge, status, splits,
+    route_e, route_ptr, rxy_ptr``; floats: ``p_off, p_xy, p_dist, xy_all``.
+    """
+    n = len(a.p_edge)
+    ns = len(a.splits)
+    ne = len(a.route_e)
+    nseg = len(a.route_ptr) - 1
+    nxy = len(a.xy_all)
+    ints = np.empty(5 + 2 * n + ns + ne + 2 * (nseg + 1), dtype=np.int64)
+    ints[0], ints[1], ints[2], ints[3], ints[4] = n, ns, ne, nseg, nxy
+    ints[5 : 5 + n] = a.p_edge
+    for i in range(n):
+        ints[5 + n + i] = a.status[i]
+    k = 5 + 2 * n
+    for arr in (a.splits, a.route_e, a.route_ptr, a.rxy_ptr):
+        ints[k : k + len(arr)] = arr
+        k += len(arr)
+    floats = np.empty(4 * n + 2 * nxy)
+    floats[:n] = a.p_off
+    for i in range(n):
+        floats[n + 2 * i] = a.p_xy[i, 0]
+        floats[n + 2 * i + 1] = a.p_xy[i, 1]
+    floats[3 * n : 4 * n] = a.p_dist
+    for i in range(nxy):
+        floats[4 * n + 2 * i] = a.xy_all[i, 0]
+        floats[4 * n + 2 * i + 1] = a.xy_all[i, 1]
+    return ints, floats, a.length, a.conf
+
+
+@njit(cache=True, nogil=True)
+def run_track(ti, q, r, p, geom, roads, router, grid, gsc):  # type: ignore[no-untyped-def]
+    """The whole match of one track: validity, thinning, jumps (:func:`drop_spikes`), the
+    candidate search (:func:`mapmatch.gridindex.query_grid`, again up to the outlier distance
+    for points with no road in the search radius), emissions with the fixes' σ and heading or
+    the direction of travel (:func:`motion_heading`), then :func:`run`."""
     n = len(ti.lat)
     valid = np.zeros(n, dtype=np.bool_)
     xy = np.full((n, 2), np.nan)
@@ -73,6 +146,8 @@ def run_track(ti, q, p, geom, router, grid, gsc):  # type: ignore[no-untyped-def
             xy[i, 0] = ti.x[i]
             xy[i, 1] = ti.y[i]
     kept = thin(xy, valid, q.min_dist)
+    # jumps (a fix reached and left in opposite directions too fast) get no candidates
+    nojump = drop_spikes(xy, ti.time, kept, valid, r.gps_sigma, r.spike_sigmas, r.spike_speed)
     kidx = np.flatnonzero(kept)
     nk = len(kidx)
     cp, ce, cd, co, cq = query_grid(xy[kidx], q.radius, q.k, grid, gsc)
@@ -91,19 +166,83 @@ def run_track(ti, q, p, geom, router, grid, gsc):  # type: ignore[no-untyped-def
         cxy = np.empty((tot, 2))
         a = 0
         b = 0
-        for r in range(tot):
+        for i in range(tot):
             if b < len(mp) and (a >= len(cp) or lonely[mp[b]] < cp[a]):
-                point[r], edge[r], dist[r], off[r] = lonely[mp[b]], me[b], md[b], mo[b]
-                cxy[r, 0], cxy[r, 1] = mq[b, 0], mq[b, 1]
+                point[i], edge[i], dist[i], off[i] = lonely[mp[b]], me[b], md[b], mo[b]
+                cxy[i, 0], cxy[i, 1] = mq[b, 0], mq[b, 1]
                 b += 1
             else:
-                point[r], edge[r], dist[r], off[r] = cp[a], ce[a], cd[a], co[a]
-                cxy[r, 0], cxy[r, 1] = cq[a, 0], cq[a, 1]
+                point[i], edge[i], dist[i], off[i] = cp[a], ce[a], cd[a], co[a]
+                cxy[i, 0], cxy[i, 1] = cq[a, 0], cq[a, 1]
                 a += 1
         cp, ce, cd, co, cq = point, edge, dist, off, cxy
-    cands = CandidateArrays(cp, ce.astype(np.int64), co, cq, cd, np.zeros(0), np.zeros(0), np.zeros(0))
+    # the jumps' candidates go
+    nc = 0
+    for i in range(len(cp)):
+        if nojump[kidx[cp[i]]]:
+            nc += 1
+    if nc < len(cp):
+        keep = np.empty(nc, dtype=np.int64)
+        c = 0
+        for i in range(len(cp)):
+            if nojump[kidx[cp[i]]]:
+                keep[c] = i
+                c += 1
+        cp, ce, cd, co, cq = cp[keep], ce[keep], cd[keep], co[keep], cq[keep]
+    cands = candidate_emissions(ti, kidx, xy, cp, ce.astype(np.int64), co, cq, cd, r, p, geom, roads)
     pt = TrackPoints(valid, kept, xy, ti.time, ti.odo, kidx)
     return run(pt, cands, p, geom, router)
+
+
+@njit(cache=True, nogil=True)
+def candidate_emissions(ti, kidx, xy, cp, ce, co, cq, cd, r, p, geom, roads):  # type: ignore[no-untyped-def]
+    """The candidates with their emissions (:func:`mapmatch.model.emission_logp`, computed
+    per candidate in the same float steps), σ (the fix's own, when the track has them) and
+    speed limit. A kept point's heading is the track's, else its direction of travel (σ
+    ``motion_sigma``); none where neither is known or the fix is slower than
+    ``heading_min_speed``."""
+    nk = len(kidx)
+    nc = len(cp)
+    # per kept point: σ, heading and its concentration κ
+    sig = np.full(nk, p.sigma)
+    if len(ti.pos_sigma):
+        for k in range(nk):
+            s = ti.pos_sigma[kidx[k]]
+            sig[k] = r.gps_sigma if math.isnan(s) or s <= 0 else max(s, 0.5)
+    head = np.full(nk, np.nan)
+    kappa = np.zeros(nk)
+    mh = motion_heading(xy, kidx, r.motion_min_distance, r.straight_max_deg) if r.motion_sigma > 0 else head
+    any_head = False
+    for k in range(nk):
+        h = ti.heading[kidx[k]] if len(ti.heading) else np.nan
+        hs = r.heading_sigma
+        if r.motion_sigma > 0 and math.isfinite(mh[k]) and not math.isfinite(h):
+            h = mh[k]
+            hs = r.motion_sigma
+        slow = len(ti.speed) > 0 and ti.speed[kidx[k]] < r.heading_min_speed
+        if math.isnan(h) or slow:
+            continue
+        head[k] = h
+        kappa[k] = 1.0 / math.radians(max(hs, 1.0)) ** 2
+        any_head = True
+    bearing = bearing_at(ce, co, geom.seg_xy, geom.seg_ptr, roads.seg_end) if any_head else np.zeros(nc)
+    emis = np.empty(nc)
+    csig = np.empty(nc if len(ti.pos_sigma) else 0)
+    for i in range(nc):
+        k = cp[i]
+        s = sig[k]
+        e = -0.5 * (cd[i] / s) ** 2 - math.log(s)
+        if kappa[k] > 0:
+            t = kappa[k] * (math.cos(math.radians(head[k] - bearing[i])) - 1.0)
+            if math.isfinite(t):
+                e += t
+        emis[i] = e
+        if len(csig):
+            csig[i] = s
+    limit = np.empty(nc if len(roads.limit) else 0)
+    for i in range(len(limit)):
+        limit[i] = roads.limit[ce[i]]
+    return CandidateArrays(cp, ce, co, cq, cd, emis, csig, limit)
 
 
 def fresh(a: Any, dtype: Any) -> Any:
@@ -133,7 +272,7 @@ class CompiledRun:
         self.signature: tuple[Any, ...] = ()
         self._lock = threading.Lock()
 
-    def __call__(self, *args: Any) -> Assembly:
+    def __call__(self, *args: Any) -> Packed:
         entry = self._entry
         if entry is None:
             with self._lock:
