@@ -38,6 +38,7 @@ from __future__ import annotations
 
 import argparse
 import asyncio
+import contextlib
 import math
 import multiprocessing as mp
 import os
@@ -346,7 +347,7 @@ def run_phase(
     c0, w0 = (sum(server.cpu_times()[:2]) if server else 0.0), time.perf_counter()
     mid: dict[str, int] = {}
     if server is not None and rss_at is not None:  # RSS once the sessions exist (after warm-up)
-        threading.Timer(rss_at, lambda: mid.setdefault("rss", server.memory_info().rss)).start()
+        threading.Timer(rss_at, lambda: mid.setdefault("rss", server.rss_of("server"))).start()
     results = [queue.get() for _ in procs]
     c1, w1 = (sum(server.cpu_times()[:2]) if server else 0.0), time.perf_counter()
     for p in procs:
@@ -366,7 +367,8 @@ def run_phase(
 
 
 def big_match_process(args: tuple[Any, ...]) -> None:
-    """Keep one ``n``-point MatchTrack in flight until ``stop`` is set; report durations."""
+    """Keep one ``n``-point MatchTrack in flight until ``stop`` is set (the call then in flight
+    is cancelled); report the finished calls' durations."""
     port, track_bytes, stop, started, queue = args
     import grpc
 
@@ -375,14 +377,21 @@ def big_match_process(args: tuple[Any, ...]) -> None:
 
     big = [("grpc.max_receive_message_length", -1), ("grpc.max_send_message_length", -1)]
     req = pb.MatchTrackRequest(track=pb.Track.FromString(track_bytes))
-    out: dict[str, Any] = {"durations": [], "errors": 0, "points": 0}
+    out: dict[str, Any] = {"durations": [], "errors": 0, "points": 0, "cancelled_after": None}
     with grpc.insecure_channel(f"127.0.0.1:{port}", options=big) as ch:
         api = pb_grpc.MapMatchStub(ch)
         started.set()
         while not stop.is_set():
             t = time.perf_counter()
+            fut = api.MatchTrack.future(req, timeout=1800)
+            while not fut.done() and not stop.is_set():
+                time.sleep(0.1)
+            if not fut.done():
+                fut.cancel()
+                out["cancelled_after"] = time.perf_counter() - t
+                break
             try:
-                res = api.MatchTrack(req, timeout=600)
+                res = fut.result()
                 out["points"] = len(res.points)
             except grpc.RpcError as exc:
                 out["errors"] += 1
@@ -411,10 +420,11 @@ def big_track(vehicles: list[list[Any]], n: int) -> bytes:
 class ServerTree:
     """CPU times and RSS summed over the server process and its children (``--processes``)."""
 
-    def __init__(self, pid: int) -> None:
+    def __init__(self, pid: int, processes: int = 1) -> None:
         import psutil
 
         self.root = psutil.Process(pid)
+        self.processes = processes
 
     def _all(self) -> list[Any]:
         return [self.root, *self.root.children(recursive=True)]
@@ -425,6 +435,60 @@ class ServerTree:
 
     def memory_info(self) -> Any:
         return SimpleNamespace(rss=sum(p.memory_info().rss for p in self._all()))
+
+    def _kinds(self) -> list[tuple[str, Any]]:
+        """Each process with its kind: ``server`` (answers the online streams), ``batch``
+        (a batch worker process), ``supervisor`` (``--processes``) or ``mp-tracker``."""
+        out: list[tuple[str, Any]] = []
+        servers = [self.root] if self.processes == 1 else []
+        if self.processes > 1:
+            out.append(("supervisor", self.root))
+        else:
+            out.append(("server", self.root))
+        for p in self.root.children(recursive=True):
+            try:
+                cmd = " ".join(p.cmdline())
+                parent = p.ppid()
+            except Exception:  # ended meanwhile
+                continue
+            if "resource_tracker" in cmd:
+                out.append(("mp-tracker", p))
+            elif self.processes > 1 and parent == self.root.pid:
+                servers.append(p)
+                out.append(("server", p))
+            else:
+                out.append(("batch", p))
+        return out
+
+    def rss_of(self, kind: str) -> int:
+        total = 0
+        for k, p in self._kinds():
+            if k == kind:
+                with contextlib.suppress(Exception):
+                    total += p.memory_info().rss
+        return total
+
+    def parts(self) -> str:
+        """RSS per process and kind."""
+        out = []
+        for kind, p in self._kinds():
+            with contextlib.suppress(Exception):
+                out.append(f"{kind} {p.pid} {p.memory_info().rss / 2**20:.0f} MiB")
+        return ", ".join(out)
+
+    def settle(self, *, quiet: float = 2.0, timeout: float = 90.0) -> float:
+        """Wait until the process tree's size and RSS hold still for ``quiet`` s (the batch
+        workers start and warm up after the server is SERVING); returns the seconds waited."""
+        t0 = time.perf_counter()
+        last, since = (-1, 0), time.perf_counter()
+        while time.perf_counter() - t0 < timeout:
+            now = (len(self._all()), self.memory_info().rss >> 20)
+            if now[0] != last[0] or abs(now[1] - last[1]) > 1:
+                last, since = now, time.perf_counter()
+            elif time.perf_counter() - since >= quiet:
+                break
+            time.sleep(0.2)
+        return time.perf_counter() - t0
 
 
 def start_server(
@@ -455,7 +519,7 @@ def phase1(args: argparse.Namespace, port: int, sp: Any, paced: list[list[Any]],
         port, paced, rate=args.rate, window=1, seconds=total, clients=args.clients, tag="v", server=sp,
         rss_at=args.warmup,
     )  # fmt: skip
-    rss1 = sp.memory_info().rss
+    rss1 = sp.rss_of("server")
     lat = r["lat"] * 1000.0
     steady = (r["at"] >= args.warmup) & (r["at"] < total)
     ups = int(steady.sum()) / args.seconds
@@ -481,8 +545,10 @@ def phase1(args: argparse.Namespace, port: int, sp: Any, paced: list[list[Any]],
         )
     print(
         f"server RSS start / end    {rss0 / 2**20:.1f} / {rss1 / 2**20:.1f} MiB "
-        f"({100.0 * (rss1 - rss0) / rss0:+.1f} %, target <= 5 %)"
+        f"({100.0 * (rss1 - rss0) / rss0:+.1f} %, target <= 5 %; the online server process(es) only; "
+        "start: SERVING, batch workers warm, no session yet)"
     )
+    print(f"  by process at the end   {sp.parts()}")
     if r["rss_mid"]:
         m = r["rss_mid"]
         print(
@@ -512,12 +578,12 @@ def phase4(args: argparse.Namespace, port: int, sp: Any, paced: list[list[Any]])
     big.start()
     started.wait(60)
     time.sleep(2.0)  # the first match is under way
-    rss0 = sp.memory_info().rss
+    rss0, b0 = sp.rss_of("server"), sp.rss_of("batch")
     total = args.warmup + args.seconds
     r = run_phase(
         port, paced, rate=args.rate, window=1, seconds=total, clients=args.clients, tag="m", server=sp
     )
-    rss1 = sp.memory_info().rss
+    rss1, b1 = sp.rss_of("server"), sp.rss_of("batch")
     stop.set()
     out = queue.get()
     big.join()
@@ -527,11 +593,14 @@ def phase4(args: argparse.Namespace, port: int, sp: Any, paced: list[list[Any]])
     d = out["durations"]
     print("## phase 4: paced load during a concurrent big MatchTrack")
     print(f"big MatchTrack            {args.big_points} points, {len(d)} call(s), {out['errors']} failed, "
-          f"durations {', '.join(f'{x:.1f}' for x in d)} s, {out['points']} points answered")  # fmt: skip
+          f"durations {', '.join(f'{x:.1f}' for x in d)} s, {out['points']} points answered"
+          + (f"; one cancelled at the end after {out['cancelled_after']:.1f} s"
+             if out["cancelled_after"] else ""))  # fmt: skip
     print(f"updates answered          {r['n']} ({int(steady.sum())} in the measured window)")
     print(f"errors                    {r['errors']}")
     print(f"latency p50 / p99 / max   {p50:.2f} / {p99:.2f} / {pmax:.2f} ms  (target p99 <= 20 ms)")
-    print(f"server RSS start / end    {rss0 / 2**20:.1f} / {rss1 / 2**20:.1f} MiB (during the big match)")
+    print(f"server RSS start / end    {rss0 / 2**20:.1f} / {rss1 / 2**20:.1f} MiB (online process(es), "
+          f"during the big match); batch workers {b0 / 2**20:.0f} / {b1 / 2**20:.0f} MiB")  # fmt: skip
     _cpu_lines(r)
 
 
@@ -566,9 +635,13 @@ def main() -> int:
     proc, port = start_server(
         map_path, max_sessions=6 * args.vehicles, big_points=args.big_points, processes=args.processes
     )
-    sp = ServerTree(proc.pid)
+    sp = ServerTree(proc.pid, args.processes)
     try:
-        rss0 = sp.memory_info().rss
+        waited = sp.settle()
+        rss0 = sp.rss_of("server")
+        print(
+            f"# server settled {waited:.1f} s after listening (batch workers warm): {sp.parts()}", flush=True
+        )
         print(
             f"# server pid {proc.pid} ({args.processes} process(es)) on port {port}; "
             f"machine: {os.cpu_count()} cores, "

@@ -15,6 +15,8 @@ builds it.
 * A child that dies (killed, out of memory) fails its call with UNAVAILABLE naming the
   cause, and a new child starts. A call the client abandons (cancelled, deadline passed)
   stops its child, which restarts: no work goes on for nobody.
+* The children run at a lower CPU priority (``nice``): on a busy host the online streams
+  get the cores first, and a batch match takes what is left.
 * :meth:`BatchWorkers.stop` ends the children (SIGTERM, then SIGKILL); queued calls get
   UNAVAILABLE. A child also ends when the server process is gone.
 
@@ -128,12 +130,15 @@ class BatchWorkers:
         Child processes (each matches one track at a time).
     limits
         Points per track and bytes per answer.
+    nice
+        Added to the children's nice value (lower CPU priority than the online process).
     """
 
-    def __init__(self, *, processes: int, limits: TrackLimits) -> None:
+    def __init__(self, *, processes: int, limits: TrackLimits, nice: int = 10) -> None:
         import multiprocessing as mp
 
         self.limits = limits
+        self.nice = nice
         self._ctx = mp.get_context("spawn")
         self._q: queue.SimpleQueue[_Job | None] = queue.SimpleQueue()
         self._slots = [_Slot(i) for i in range(processes)]
@@ -241,7 +246,7 @@ class BatchWorkers:
             parent, child = self._ctx.Pipe(duplex=True)
             proc = self._ctx.Process(
                 target=worker_main,
-                args=(child, files, self.limits, os.getpid()),
+                args=(child, files, self.limits, os.getpid(), self.nice),
                 name=f"mapmatch-batch-{slot.index}",
                 daemon=True,
             )
@@ -388,9 +393,14 @@ def _watch_parent(parent: int) -> None:
             os._exit(0)
 
 
-def worker_main(conn: Connection, files: tuple[MapFile, ...], limits: TrackLimits, parent: int) -> None:
+def worker_main(
+    conn: Connection, files: tuple[MapFile, ...], limits: TrackLimits, parent: int, nice: int = 0
+) -> None:
     """A child process: load the maps, then answer jobs until the pipe closes."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the server's to handle
+    if nice:
+        with contextlib.suppress(OSError):
+            os.nice(nice)
     logging.basicConfig(stream=sys.stderr, level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
     threading.Thread(target=_watch_parent, args=(parent,), daemon=True).start()
     held: dict[str, Any] = {}

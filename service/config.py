@@ -30,6 +30,7 @@ MAPMATCH_ONLINE_WORKERS     --online-workers N          threads for FixBatch sli
 MAPMATCH_INLINE_FIXES       --inline-fixes              single fixes on the event loop (on)
 MAPMATCH_PROCESSES          --processes N               server processes on one port (1)
 MAPMATCH_BATCH_PROCESSES    --batch-processes N         child processes for MatchTrack(s); 0: threads (1)
+MAPMATCH_BATCH_NICE         --batch-nice N              their lower CPU priority, 0-19 (10)
 MAPMATCH_BATCH_SLICE        --batch-slice N             fixes per slice of a batch answer (64)
 MAPMATCH_MAX_MAP_BYTES      --max-map-bytes N           largest map file LoadMap reads (4 GiB)
 MAPMATCH_LOAD_TIMEOUT       --load-timeout SECONDS      time limit of a map build from source (300)
@@ -115,6 +116,9 @@ class ServerConfig:
     batch_processes : int
         Child processes matching ``MatchTrack``/``MatchTracks`` on maps loaded from map files,
         off the online process's GIL (0: on the ``workers`` threads).
+    batch_nice : int
+        Added to those processes' nice value (0-19): on a busy host the online streams get
+        the cores first.
     inline_fixes : bool
         Match a single fix (``StreamFixes``, ``SnapFix``) on the event loop, without a hop to
         an online thread: one fix is short, bounded work, and the hop costs more than it saves.
@@ -151,6 +155,7 @@ class ServerConfig:
     inline_fixes: bool = True
     processes: int = 1
     batch_processes: int = 1
+    batch_nice: int = 10
     batch_slice: int = 64
     max_map_bytes: int = 4 * 1024**3
     load_timeout: float = 300.0
@@ -183,6 +188,12 @@ class ServerConfig:
             or (self.batch_processes < 0)
         ):
             raise ConfigError(f"batch_processes must be 0 or more, got {self.batch_processes!r}")
+        if (
+            isinstance(self.batch_nice, bool)
+            or not isinstance(self.batch_nice, int)
+            or not (0 <= self.batch_nice <= 19)
+        ):
+            raise ConfigError(f"batch_nice must be an integer from 0 to 19, got {self.batch_nice!r}")
         for name in ("max_time_jump", "load_timeout"):
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, int | float) or not v > 0:
@@ -267,6 +278,7 @@ _LIMIT_FLAGS: tuple[tuple[str, type, str], ...] = (
     ("--load-memory-bytes", int, "memory for a map build from source [MAPMATCH_LOAD_MEMORY_BYTES; 8 GiB]"),
     ("--processes", int, "server processes sharing the port, own sessions each [MAPMATCH_PROCESSES; 1]"),
     ("--batch-processes", int, "child processes for MatchTrack(s), 0: threads [MAPMATCH_BATCH_PROCESSES; 1]"),
+    ("--batch-nice", int, "lower CPU priority of those, 0-19 [MAPMATCH_BATCH_NICE; 10]"),
 )
 _NUMBERS: dict[str, type[int] | type[float]] = {
     "max_sessions": int,

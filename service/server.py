@@ -80,6 +80,7 @@ class ServiceRuntime:
                 limits=TrackLimits(
                     max_track_points=config.max_track_points, max_answer_bytes=config.max_answer_bytes
                 ),
+                nice=config.batch_nice,
             )
             if config.batch_processes > 0
             else None

@@ -81,6 +81,12 @@ def test_the_largest_track_is_matched_in_a_worker_process_while_a_good_stream_ke
     with running(cfg) as (server, port):
         (worker,) = _workers(server)
         assert worker.pid != os.getpid()
+        # a lower CPU priority: on a busy host the online streams get the cores first
+        want = min(19, psutil.Process().nice() + cfg.batch_nice)
+        t = time.monotonic()
+        while worker.nice() != want and time.monotonic() - t < 60:  # set as the child starts
+            time.sleep(0.05)
+        assert worker.nice() == want
         ch, api = stub(port, **big)
         quiet: list[float] = []
         stop = threading.Event()
@@ -93,7 +99,7 @@ def test_the_largest_track_is_matched_in_a_worker_process_while_a_good_stream_ke
         busy: list[float] = []
         stop = threading.Event()
         t = threading.Thread(target=_snap_latencies, args=(port, "busy", stop, busy))
-        server_cpu0, worker_cpu0 = _cpu(psutil.Process()), _cpu(worker)
+        worker_cpu0 = _cpu(worker)
         t.start()
         t0 = time.perf_counter()
         res = api.MatchTrack(pb.MatchTrackRequest(track=_track(AMAP, BIG)), timeout=600)
@@ -101,29 +107,31 @@ def test_the_largest_track_is_matched_in_a_worker_process_while_a_good_stream_ke
         stop.set()
         t.join(30)
         worker_cpu = _cpu(worker) - worker_cpu0
-        server_cpu = _cpu(psutil.Process()) - server_cpu0  # this process: server and test clients
         assert len(res.points) == BIG and res.points[0].status == pb.POINT_STATUS_MATCHED
-        # the match ran in the worker: it used most of the call's time there, and it is the same
-        # answer the server's own threads give
-        assert worker_cpu > 0.5 * heavy, (worker_cpu, heavy)
         assert server.batch_workers.pids() == [worker.pid]
         ch.close()
         assert len(busy) >= 5, "the good stream was starved"
         assert float(np.median(busy)) < max(5 * base, 0.005), (base, np.median(busy), heavy)
         assert max(busy) < heavy / 2, (sorted(busy)[-5:], heavy)
-        assert server_cpu < worker_cpu, (server_cpu, worker_cpu)
     with running(cfg.replace(batch_processes=0)) as (server, port):
         assert server.batch_workers is None
         ch, api = stub(port, **big)
         small = pb.MatchTrackRequest(track=_track(AMAP, 500))
         in_threads = api.MatchTrack(small, timeout=120)
+        c0 = _cpu(psutil.Process())
+        assert api.MatchTrack(pb.MatchTrackRequest(track=_track(AMAP, BIG)), timeout=600) == res
+        thread_cpu = _cpu(psutil.Process()) - c0
         ch.close()
+    # the match ran in the worker: it spent there (idle before the call) at least half the CPU
+    # the same match takes on the server's own threads
+    assert worker_cpu > 0.5 * thread_cpu, (worker_cpu, thread_cpu)
     with running(cfg) as (server, port):
         ch, api = stub(port, **big)
         assert api.MatchTrack(small, timeout=120) == in_threads
         out = list(api.MatchTracks(pb.MatchTracksRequest(tracks=[small.track, pb.Track()]), timeout=120))
         assert out[0] == in_threads
-        assert out[1].error.code == grpc.StatusCode.INVALID_ARGUMENT.value[0] and "tracks[1]" in out[1].error.field
+        assert out[1].error.code == grpc.StatusCode.INVALID_ARGUMENT.value[0]
+        assert "tracks[1]" in out[1].error.field
         _workers(server)
         ch.close()
 
