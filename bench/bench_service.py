@@ -345,11 +345,13 @@ def run_phase(
         ready.acquire()
     start.set()
     c0, w0 = (sum(server.cpu_times()[:2]) if server else 0.0), time.perf_counter()
+    o0 = server.cpu_of("server") if server else 0.0
     mid: dict[str, int] = {}
     if server is not None and rss_at is not None:  # RSS once the sessions exist (after warm-up)
         threading.Timer(rss_at, lambda: mid.setdefault("rss", server.rss_of("server"))).start()
     results = [queue.get() for _ in procs]
     c1, w1 = (sum(server.cpu_times()[:2]) if server else 0.0), time.perf_counter()
+    o1 = server.cpu_of("server") if server else 0.0
     for p in procs:
         p.join()
     lat = np.concatenate([r["lat"] for r in results]) if results else np.empty(0)
@@ -357,6 +359,8 @@ def run_phase(
     return {
         "cpu": 100.0 * (c1 - c0) / (w1 - w0),
         "cpu_s": c1 - c0,
+        "online_cpu_s": o1 - o0,
+        "online_cpu": 100.0 * (o1 - o0) / (w1 - w0),
         "rss_mid": mid.get("rss"),
         "at": at,
         "n": sum(r["n"] for r in results),
@@ -460,6 +464,16 @@ class ServerTree:
                 out.append(("batch", p))
         return out
 
+    def cpu_of(self, kind: str) -> float:
+        """CPU seconds (user + system) of the processes of one kind (see :meth:`_kinds`)."""
+        total = 0.0
+        for k, p in self._kinds():
+            if k == kind:
+                with contextlib.suppress(Exception):
+                    t = p.cpu_times()
+                    total += t.user + t.system
+        return total
+
     def rss_of(self, kind: str) -> int:
         total = 0
         for k, p in self._kinds():
@@ -561,9 +575,24 @@ def phase1(args: argparse.Namespace, port: int, sp: Any, paced: list[list[Any]],
 def _cpu_lines(r: dict[str, Any]) -> None:
     """Server CPU share, and CPU seconds per answered update (robust to a busy machine)."""
     per = r["cpu_s"] / max(r["n"], 1)
-    print(f"server CPU                {r['cpu']:.0f} % of one core (all server processes)")
+    online = r["online_cpu_s"] / max(r["n"], 1)
+    print(
+        f"server CPU                {r['cpu']:.0f} % of one core (all server processes), "
+        f"{r['online_cpu']:.0f} % in the online server process(es)"
+    )
     print(f"server CPU per update     {1e6 * per:.0f} us (one core: at most {1.0 / per:.0f} updates/s)")
-    print(f"load average              {os.getloadavg()[0]:.2f}")
+    print(
+        f"  online process(es) only {1e6 * online:.0f} us per update "
+        f"(one core: at most {1.0 / max(online, 1e-9):.0f} updates/s)"
+    )
+    print(f"load average              {os.getloadavg()[0]:.2f}  (uptime: {_uptime()})")
+
+
+def _uptime() -> str:
+    try:
+        return subprocess.run(["uptime"], capture_output=True, text=True, check=False).stdout.strip()
+    except OSError:
+        return "n/a"
 
 
 def phase4(args: argparse.Namespace, port: int, sp: Any, paced: list[list[Any]]) -> None:

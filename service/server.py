@@ -2,7 +2,8 @@
 
 :func:`create_server` only builds: it checks the configuration (TLS files, maps) and returns
 a :class:`ServiceRuntime`, which then starts (event-loop thread, bound port), warms up (loads
-every map and runs a warm-up query on it), sweeps idle sessions and stops: health goes
+every map and runs a warm-up query on it; then the batch worker processes start), sweeps
+idle sessions and stops (the batch workers too): health goes
 NOT_SERVING, new calls are refused and in-flight calls get ``grace`` seconds to finish.
 :func:`start_server` does both; :func:`serve` runs a server until SIGTERM/SIGINT.
 

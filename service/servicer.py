@@ -3,8 +3,10 @@
 No matching logic lives here. A single fix (``StreamFixes``, ``SnapFix``) is matched on the
 event loop (``inline_fixes``, the default): it is short, bounded work, and a hop to another
 thread and back cost more CPU than the fix itself saves, all under one GIL. ``FixBatch``
-slices run on the online thread(s) (``online_workers``), batch matching and map loads on the
-batch pool (``workers``), so no long work holds the loop. A vehicle's fixes never race (each
+slices run on the online thread(s) (``online_workers``); batch matching on a map loaded from
+a map file runs in batch worker processes (``batch_processes``,
+:mod:`mapmatch.service.batch_workers`), off this process's GIL; other batch matching and map
+loads on the batch pool (``workers``), so no long work holds the loop. A vehicle's fixes never race (each
 session has a lock); a ``FixBatch`` is matched in slices of ``batch_slice`` fixes, so other
 streams' fixes are served in between. Every message's work is bounded by the configured
 limits (fixes per batch, points per track, bytes per answer), each refused with

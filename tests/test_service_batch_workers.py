@@ -16,7 +16,7 @@ import numpy as np
 import psutil
 import pytest
 from online_helpers import drive
-from service_util import city, local_config, requests, running, stub
+from service_util import city, local_config, looped_track, requests, running, stub
 
 from mapmatch.graph.artifact import save_map
 from mapmatch.service.gen import mapmatch_pb2 as pb
@@ -24,17 +24,6 @@ from mapmatch.service.gen import mapmatch_pb2 as pb
 AMAP = city()
 OTHER = city(scale=12.0)
 BIG = 50_000  # the largest track these servers allow
-
-
-def _track(amap, n: int, track_id: str = "t") -> pb.Track:
-    fixes = drive(amap, "abcfedghd", speed=10.0, dt=1.0)
-    k = len(fixes)
-    return pb.Track(
-        track_id=track_id,
-        time=[float(i) for i in range(n)],
-        lat=[fixes[i % k].lat for i in range(n)],
-        lon=[fixes[i % k].lon for i in range(n)],
-    )
 
 
 def _map_file(tmp_path: Path, amap=AMAP, name: str = "city.map") -> Path:
@@ -102,7 +91,7 @@ def test_the_largest_track_is_matched_in_a_worker_process_while_a_good_stream_ke
         worker_cpu0 = _cpu(worker)
         t.start()
         t0 = time.perf_counter()
-        res = api.MatchTrack(pb.MatchTrackRequest(track=_track(AMAP, BIG)), timeout=600)
+        res = api.MatchTrack(pb.MatchTrackRequest(track=looped_track(AMAP, BIG)), timeout=600)
         heavy = time.perf_counter() - t0
         stop.set()
         t.join(30)
@@ -116,10 +105,10 @@ def test_the_largest_track_is_matched_in_a_worker_process_while_a_good_stream_ke
     with running(cfg.replace(batch_processes=0)) as (server, port):
         assert server.batch_workers is None
         ch, api = stub(port, **big)
-        small = pb.MatchTrackRequest(track=_track(AMAP, 500))
+        small = pb.MatchTrackRequest(track=looped_track(AMAP, 500))
         in_threads = api.MatchTrack(small, timeout=120)
         c0 = _cpu(psutil.Process())
-        assert api.MatchTrack(pb.MatchTrackRequest(track=_track(AMAP, BIG)), timeout=600) == res
+        assert api.MatchTrack(pb.MatchTrackRequest(track=looped_track(AMAP, BIG)), timeout=600) == res
         thread_cpu = _cpu(psutil.Process()) - c0
         ch.close()
     # the match ran in the worker: it spent there (idle before the call) at least half the CPU
@@ -143,7 +132,7 @@ def test_a_worker_that_dies_fails_its_call_with_unavailable_and_is_replaced(tmp_
     with running(cfg) as (server, port):
         (worker,) = _workers(server)
         ch, api = stub(port, **big)
-        fut = api.MatchTrack.future(pb.MatchTrackRequest(track=_track(AMAP, BIG)), timeout=600)
+        fut = api.MatchTrack.future(pb.MatchTrackRequest(track=looped_track(AMAP, BIG)), timeout=600)
         c0 = _cpu(worker)
         while _cpu(worker) - c0 < 0.3:  # the match is under way in the worker
             time.sleep(0.05)
@@ -152,7 +141,7 @@ def test_a_worker_that_dies_fails_its_call_with_unavailable_and_is_replaced(tmp_
             fut.result()
         assert ei.value.code() == grpc.StatusCode.UNAVAILABLE
         assert "killed by SIGKILL" in ei.value.details() and "retry" in ei.value.details()
-        res = api.MatchTrack(pb.MatchTrackRequest(track=_track(AMAP, 50)), timeout=120)
+        res = api.MatchTrack(pb.MatchTrackRequest(track=looped_track(AMAP, 50)), timeout=120)
         assert len(res.points) == 50
         (again,) = _workers(server)
         assert again.pid != worker.pid and server.batch_workers.restarts == 1
@@ -169,12 +158,12 @@ def test_an_abandoned_call_stops_its_worker_and_stop_ends_the_workers(tmp_path):
         (worker,) = _workers(server)
         ch, api = stub(port, options=[("grpc.max_receive_message_length", -1)])
         with pytest.raises(grpc.RpcError) as ei:
-            api.MatchTrack(pb.MatchTrackRequest(track=_track(AMAP, BIG)), timeout=1.0)
+            api.MatchTrack(pb.MatchTrackRequest(track=looped_track(AMAP, BIG)), timeout=1.0)
         assert ei.value.code() == grpc.StatusCode.DEADLINE_EXCEEDED
         worker.wait(10)  # stopped, not left matching for nobody
         (again,) = _workers(server)
         assert again.pid != worker.pid
-        fut = api.MatchTrack.future(pb.MatchTrackRequest(track=_track(AMAP, BIG)), timeout=600)
+        fut = api.MatchTrack.future(pb.MatchTrackRequest(track=looped_track(AMAP, BIG)), timeout=600)
         c0 = _cpu(again)
         while _cpu(again) - c0 < 0.3:
             time.sleep(0.05)
@@ -198,7 +187,7 @@ def test_a_replaced_map_reaches_the_workers(tmp_path):
     with running(cfg) as (server, port):
         _workers(server)
         ch, api = stub(port)
-        req = pb.MatchTrackRequest(map_id="city", track=_track(OTHER, 40))
+        req = pb.MatchTrackRequest(map_id="city", track=looped_track(OTHER, 40))
         before = api.MatchTrack(req, timeout=120)
         info = api.LoadMap(pb.LoadMapRequest(map_id="city", path="other.map"), timeout=120)
         after = api.MatchTrack(req, timeout=120)
