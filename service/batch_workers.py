@@ -16,7 +16,8 @@ builds it.
   cause, and a new child starts. A call the client abandons (cancelled, deadline passed)
   stops its child, which restarts: no work goes on for nobody.
 * The children run at a lower CPU priority (``nice``): on a busy host the online streams
-  get the cores first, and a batch match takes what is left.
+  get the cores first, and a batch match takes what is left. They are also the kernel's
+  first choice when memory runs out (``oom_score_adj`` 1000), not the server.
 * :meth:`BatchWorkers.stop` ends the children (SIGTERM, then SIGKILL); queued calls get
   UNAVAILABLE. A child also ends when the server process is gone.
 
@@ -281,6 +282,9 @@ class BatchWorkers:
             code, fld, msg = info
             return StatusError(grpc.StatusCode[code], fld, msg)
         except (EOFError, OSError):
+            if self._stopping.is_set():
+                self._end_child(slot)
+                return BatchWorkerError("the server is shutting down; retry on another server")
             proc.join(2.0)
             why = _exit_reason(proc.exitcode)
             self._end_child(slot)
@@ -401,6 +405,10 @@ def worker_main(
     if nice:
         with contextlib.suppress(OSError):
             os.nice(nice)
+    # when memory runs out, the kernel ends this process (its call fails UNAVAILABLE, a new
+    # worker starts), not the server
+    with contextlib.suppress(OSError), open("/proc/self/oom_score_adj", "w") as f:
+        f.write("1000")
     logging.basicConfig(stream=sys.stderr, level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
     threading.Thread(target=_watch_parent, args=(parent,), daemon=True).start()
     held: dict[str, Any] = {}

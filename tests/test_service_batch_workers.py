@@ -76,6 +76,8 @@ def test_the_largest_track_is_matched_in_a_worker_process_while_a_good_stream_ke
         while worker.nice() != want and time.monotonic() - t < 60:  # set as the child starts
             time.sleep(0.05)
         assert worker.nice() == want
+        if Path(f"/proc/{worker.pid}/oom_score_adj").exists():  # the kernel's first choice when out of memory
+            assert Path(f"/proc/{worker.pid}/oom_score_adj").read_text().strip() == "1000"
         ch, api = stub(port, **big)
         quiet: list[float] = []
         stop = threading.Event()
