@@ -506,14 +506,14 @@ class ServerTree:
 
 
 def start_server(
-    map_path: Path, max_sessions: int, big_points: int, processes: int = 1
+    map_path: Path, max_sessions: int, big_points: int, processes: int = 1, extra: tuple[str, ...] = ()
 ) -> tuple[subprocess.Popen, int]:
     cmd = [
         sys.executable, "-m", "mapmatch", "serve", "--map", f"helsinki={map_path}",
         "--address", "127.0.0.1:0", "--max-sessions", str(max_sessions), "--no-reuse-port",
         "--max-track-points", str(big_points), "--max-message-bytes", str(64 << 20),
         "--max-answer-bytes", str(1 << 30),
-        *(["--processes", str(processes)] if processes > 1 else []),
+        *(["--processes", str(processes)] if processes > 1 else []), *extra,
     ]  # fmt: skip
     env = {**os.environ, "PYTHONPATH": str(ROOT)}
     proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, text=True, env=env, cwd=ROOT)
@@ -647,6 +647,12 @@ def main() -> int:
     ap.add_argument("--processes", type=int, default=1, help="server processes (serve --processes)")
     ap.add_argument("--big-points", type=int, default=1_000_000, help="points of the phase-4 MatchTrack")
     ap.add_argument(
+        "--serve-arg",
+        action="append",
+        default=[],
+        help="an extra `mapmatch serve` flag (repeat), e.g. --serve-arg=--no-inline-fixes",
+    )
+    ap.add_argument(
         "--skip",
         default="",
         help="phases to skip, e.g. 23 (1: paced, 2: peak, 3: batched peak, 4: big match)",
@@ -662,7 +668,11 @@ def main() -> int:
     print(f"# generated {args.vehicles} drives in {time.perf_counter() - t:.1f} s", flush=True)
 
     proc, port = start_server(
-        map_path, max_sessions=6 * args.vehicles, big_points=args.big_points, processes=args.processes
+        map_path,
+        max_sessions=6 * args.vehicles,
+        big_points=args.big_points,
+        processes=args.processes,
+        extra=tuple(args.serve_arg),
     )
     sp = ServerTree(proc.pid, args.processes)
     try:
