@@ -38,6 +38,7 @@ from __future__ import annotations
 
 import argparse
 import asyncio
+import contextlib
 import math
 import multiprocessing as mp
 import os
@@ -344,11 +345,13 @@ def run_phase(
         ready.acquire()
     start.set()
     c0, w0 = (sum(server.cpu_times()[:2]) if server else 0.0), time.perf_counter()
+    o0 = server.cpu_of("server") if server else 0.0
     mid: dict[str, int] = {}
     if server is not None and rss_at is not None:  # RSS once the sessions exist (after warm-up)
-        threading.Timer(rss_at, lambda: mid.setdefault("rss", server.memory_info().rss)).start()
+        threading.Timer(rss_at, lambda: mid.setdefault("rss", server.rss_of("server"))).start()
     results = [queue.get() for _ in procs]
     c1, w1 = (sum(server.cpu_times()[:2]) if server else 0.0), time.perf_counter()
+    o1 = server.cpu_of("server") if server else 0.0
     for p in procs:
         p.join()
     lat = np.concatenate([r["lat"] for r in results]) if results else np.empty(0)
@@ -356,6 +359,8 @@ def run_phase(
     return {
         "cpu": 100.0 * (c1 - c0) / (w1 - w0),
         "cpu_s": c1 - c0,
+        "online_cpu_s": o1 - o0,
+        "online_cpu": 100.0 * (o1 - o0) / (w1 - w0),
         "rss_mid": mid.get("rss"),
         "at": at,
         "n": sum(r["n"] for r in results),
@@ -366,7 +371,8 @@ def run_phase(
 
 
 def big_match_process(args: tuple[Any, ...]) -> None:
-    """Keep one ``n``-point MatchTrack in flight until ``stop`` is set; report durations."""
+    """Keep one ``n``-point MatchTrack in flight until ``stop`` is set (the call then in flight
+    is cancelled); report the finished calls' durations."""
     port, track_bytes, stop, started, queue = args
     import grpc
 
@@ -375,14 +381,21 @@ def big_match_process(args: tuple[Any, ...]) -> None:
 
     big = [("grpc.max_receive_message_length", -1), ("grpc.max_send_message_length", -1)]
     req = pb.MatchTrackRequest(track=pb.Track.FromString(track_bytes))
-    out: dict[str, Any] = {"durations": [], "errors": 0, "points": 0}
+    out: dict[str, Any] = {"durations": [], "errors": 0, "points": 0, "cancelled_after": None}
     with grpc.insecure_channel(f"127.0.0.1:{port}", options=big) as ch:
         api = pb_grpc.MapMatchStub(ch)
         started.set()
         while not stop.is_set():
             t = time.perf_counter()
+            fut = api.MatchTrack.future(req, timeout=1800)
+            while not fut.done() and not stop.is_set():
+                time.sleep(0.1)
+            if not fut.done():
+                fut.cancel()
+                out["cancelled_after"] = time.perf_counter() - t
+                break
             try:
-                res = api.MatchTrack(req, timeout=600)
+                res = fut.result()
                 out["points"] = len(res.points)
             except grpc.RpcError as exc:
                 out["errors"] += 1
@@ -411,10 +424,11 @@ def big_track(vehicles: list[list[Any]], n: int) -> bytes:
 class ServerTree:
     """CPU times and RSS summed over the server process and its children (``--processes``)."""
 
-    def __init__(self, pid: int) -> None:
+    def __init__(self, pid: int, processes: int = 1) -> None:
         import psutil
 
         self.root = psutil.Process(pid)
+        self.processes = processes
 
     def _all(self) -> list[Any]:
         return [self.root, *self.root.children(recursive=True)]
@@ -426,16 +440,80 @@ class ServerTree:
     def memory_info(self) -> Any:
         return SimpleNamespace(rss=sum(p.memory_info().rss for p in self._all()))
 
+    def _kinds(self) -> list[tuple[str, Any]]:
+        """Each process with its kind: ``server`` (answers the online streams), ``batch``
+        (a batch worker process), ``supervisor`` (``--processes``) or ``mp-tracker``."""
+        out: list[tuple[str, Any]] = []
+        servers = [self.root] if self.processes == 1 else []
+        if self.processes > 1:
+            out.append(("supervisor", self.root))
+        else:
+            out.append(("server", self.root))
+        for p in self.root.children(recursive=True):
+            try:
+                cmd = " ".join(p.cmdline())
+                parent = p.ppid()
+            except Exception:  # ended meanwhile
+                continue
+            if "resource_tracker" in cmd:
+                out.append(("mp-tracker", p))
+            elif self.processes > 1 and parent == self.root.pid:
+                servers.append(p)
+                out.append(("server", p))
+            else:
+                out.append(("batch", p))
+        return out
+
+    def cpu_of(self, kind: str) -> float:
+        """CPU seconds (user + system) of the processes of one kind (see :meth:`_kinds`)."""
+        total = 0.0
+        for k, p in self._kinds():
+            if k == kind:
+                with contextlib.suppress(Exception):
+                    t = p.cpu_times()
+                    total += t.user + t.system
+        return total
+
+    def rss_of(self, kind: str) -> int:
+        total = 0
+        for k, p in self._kinds():
+            if k == kind:
+                with contextlib.suppress(Exception):
+                    total += p.memory_info().rss
+        return total
+
+    def parts(self) -> str:
+        """RSS per process and kind."""
+        out = []
+        for kind, p in self._kinds():
+            with contextlib.suppress(Exception):
+                out.append(f"{kind} {p.pid} {p.memory_info().rss / 2**20:.0f} MiB")
+        return ", ".join(out)
+
+    def settle(self, *, quiet: float = 2.0, timeout: float = 90.0) -> float:
+        """Wait until the process tree's size and RSS hold still for ``quiet`` s (the batch
+        workers start and warm up after the server is SERVING); returns the seconds waited."""
+        t0 = time.perf_counter()
+        last, since = (-1, 0), time.perf_counter()
+        while time.perf_counter() - t0 < timeout:
+            now = (len(self._all()), self.memory_info().rss >> 20)
+            if now[0] != last[0] or abs(now[1] - last[1]) > 1:
+                last, since = now, time.perf_counter()
+            elif time.perf_counter() - since >= quiet:
+                break
+            time.sleep(0.2)
+        return time.perf_counter() - t0
+
 
 def start_server(
-    map_path: Path, max_sessions: int, big_points: int, processes: int = 1
+    map_path: Path, max_sessions: int, big_points: int, processes: int = 1, extra: tuple[str, ...] = ()
 ) -> tuple[subprocess.Popen, int]:
     cmd = [
         sys.executable, "-m", "mapmatch", "serve", "--map", f"helsinki={map_path}",
         "--address", "127.0.0.1:0", "--max-sessions", str(max_sessions), "--no-reuse-port",
         "--max-track-points", str(big_points), "--max-message-bytes", str(64 << 20),
         "--max-answer-bytes", str(1 << 30),
-        *(["--processes", str(processes)] if processes > 1 else []),
+        *(["--processes", str(processes)] if processes > 1 else []), *extra,
     ]  # fmt: skip
     env = {**os.environ, "PYTHONPATH": str(ROOT)}
     proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, text=True, env=env, cwd=ROOT)
@@ -455,7 +533,7 @@ def phase1(args: argparse.Namespace, port: int, sp: Any, paced: list[list[Any]],
         port, paced, rate=args.rate, window=1, seconds=total, clients=args.clients, tag="v", server=sp,
         rss_at=args.warmup,
     )  # fmt: skip
-    rss1 = sp.memory_info().rss
+    rss1 = sp.rss_of("server")
     lat = r["lat"] * 1000.0
     steady = (r["at"] >= args.warmup) & (r["at"] < total)
     ups = int(steady.sum()) / args.seconds
@@ -481,8 +559,10 @@ def phase1(args: argparse.Namespace, port: int, sp: Any, paced: list[list[Any]],
         )
     print(
         f"server RSS start / end    {rss0 / 2**20:.1f} / {rss1 / 2**20:.1f} MiB "
-        f"({100.0 * (rss1 - rss0) / rss0:+.1f} %, target <= 5 %)"
+        f"({100.0 * (rss1 - rss0) / rss0:+.1f} %, target <= 5 %; the online server process(es) only; "
+        "start: SERVING, batch workers warm, no session yet)"
     )
+    print(f"  by process at the end   {sp.parts()}")
     if r["rss_mid"]:
         m = r["rss_mid"]
         print(
@@ -495,9 +575,24 @@ def phase1(args: argparse.Namespace, port: int, sp: Any, paced: list[list[Any]],
 def _cpu_lines(r: dict[str, Any]) -> None:
     """Server CPU share, and CPU seconds per answered update (robust to a busy machine)."""
     per = r["cpu_s"] / max(r["n"], 1)
-    print(f"server CPU                {r['cpu']:.0f} % of one core (all server processes)")
+    online = r["online_cpu_s"] / max(r["n"], 1)
+    print(
+        f"server CPU                {r['cpu']:.0f} % of one core (all server processes), "
+        f"{r['online_cpu']:.0f} % in the online server process(es)"
+    )
     print(f"server CPU per update     {1e6 * per:.0f} us (one core: at most {1.0 / per:.0f} updates/s)")
-    print(f"load average              {os.getloadavg()[0]:.2f}")
+    print(
+        f"  online process(es) only {1e6 * online:.0f} us per update "
+        f"(one core: at most {1.0 / max(online, 1e-9):.0f} updates/s)"
+    )
+    print(f"load average              {os.getloadavg()[0]:.2f}  (uptime: {_uptime()})")
+
+
+def _uptime() -> str:
+    try:
+        return subprocess.run(["uptime"], capture_output=True, text=True, check=False).stdout.strip()
+    except OSError:
+        return "n/a"
 
 
 def phase4(args: argparse.Namespace, port: int, sp: Any, paced: list[list[Any]]) -> None:
@@ -512,12 +607,12 @@ def phase4(args: argparse.Namespace, port: int, sp: Any, paced: list[list[Any]])
     big.start()
     started.wait(60)
     time.sleep(2.0)  # the first match is under way
-    rss0 = sp.memory_info().rss
+    rss0, b0 = sp.rss_of("server"), sp.rss_of("batch")
     total = args.warmup + args.seconds
     r = run_phase(
         port, paced, rate=args.rate, window=1, seconds=total, clients=args.clients, tag="m", server=sp
     )
-    rss1 = sp.memory_info().rss
+    rss1, b1 = sp.rss_of("server"), sp.rss_of("batch")
     stop.set()
     out = queue.get()
     big.join()
@@ -527,11 +622,14 @@ def phase4(args: argparse.Namespace, port: int, sp: Any, paced: list[list[Any]])
     d = out["durations"]
     print("## phase 4: paced load during a concurrent big MatchTrack")
     print(f"big MatchTrack            {args.big_points} points, {len(d)} call(s), {out['errors']} failed, "
-          f"durations {', '.join(f'{x:.1f}' for x in d)} s, {out['points']} points answered")  # fmt: skip
+          f"durations {', '.join(f'{x:.1f}' for x in d)} s, {out['points']} points answered"
+          + (f"; one cancelled at the end after {out['cancelled_after']:.1f} s"
+             if out["cancelled_after"] else ""))  # fmt: skip
     print(f"updates answered          {r['n']} ({int(steady.sum())} in the measured window)")
     print(f"errors                    {r['errors']}")
     print(f"latency p50 / p99 / max   {p50:.2f} / {p99:.2f} / {pmax:.2f} ms  (target p99 <= 20 ms)")
-    print(f"server RSS start / end    {rss0 / 2**20:.1f} / {rss1 / 2**20:.1f} MiB (during the big match)")
+    print(f"server RSS start / end    {rss0 / 2**20:.1f} / {rss1 / 2**20:.1f} MiB (online process(es), "
+          f"during the big match); batch workers {b0 / 2**20:.0f} / {b1 / 2**20:.0f} MiB")  # fmt: skip
     _cpu_lines(r)
 
 
@@ -549,6 +647,12 @@ def main() -> int:
     ap.add_argument("--processes", type=int, default=1, help="server processes (serve --processes)")
     ap.add_argument("--big-points", type=int, default=1_000_000, help="points of the phase-4 MatchTrack")
     ap.add_argument(
+        "--serve-arg",
+        action="append",
+        default=[],
+        help="an extra `mapmatch serve` flag (repeat), e.g. --serve-arg=--no-inline-fixes",
+    )
+    ap.add_argument(
         "--skip",
         default="",
         help="phases to skip, e.g. 23 (1: paced, 2: peak, 3: batched peak, 4: big match)",
@@ -564,11 +668,19 @@ def main() -> int:
     print(f"# generated {args.vehicles} drives in {time.perf_counter() - t:.1f} s", flush=True)
 
     proc, port = start_server(
-        map_path, max_sessions=6 * args.vehicles, big_points=args.big_points, processes=args.processes
+        map_path,
+        max_sessions=6 * args.vehicles,
+        big_points=args.big_points,
+        processes=args.processes,
+        extra=tuple(args.serve_arg),
     )
-    sp = ServerTree(proc.pid)
+    sp = ServerTree(proc.pid, args.processes)
     try:
-        rss0 = sp.memory_info().rss
+        waited = sp.settle()
+        rss0 = sp.rss_of("server")
+        print(
+            f"# server settled {waited:.1f} s after listening (batch workers warm): {sp.parts()}", flush=True
+        )
         print(
             f"# server pid {proc.pid} ({args.processes} process(es)) on port {port}; "
             f"machine: {os.cpu_count()} cores, "

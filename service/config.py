@@ -29,6 +29,8 @@ MAPMATCH_MAX_TIME_JUMP      --max-time-jump SECONDS     larger time jumps restar
 MAPMATCH_ONLINE_WORKERS     --online-workers N          threads for FixBatch slices (1)
 MAPMATCH_INLINE_FIXES       --inline-fixes              single fixes on the event loop (on)
 MAPMATCH_PROCESSES          --processes N               server processes on one port (1)
+MAPMATCH_BATCH_PROCESSES    --batch-processes N         child processes for MatchTrack(s); 0: threads (1)
+MAPMATCH_BATCH_NICE         --batch-nice N              their lower CPU priority, 0-19 (10)
 MAPMATCH_BATCH_SLICE        --batch-slice N             fixes per slice of a batch answer (64)
 MAPMATCH_MAX_MAP_BYTES      --max-map-bytes N           largest map file LoadMap reads (4 GiB)
 MAPMATCH_LOAD_TIMEOUT       --load-timeout SECONDS      time limit of a map build from source (300)
@@ -111,6 +113,12 @@ class ServerConfig:
         Server processes sharing the port (SO_REUSEPORT), so one host uses every core. Each
         process has its own sessions; a stream stays on the process that accepted its
         connection, so a vehicle should keep its connection (or export/import its session).
+    batch_processes : int
+        Child processes matching ``MatchTrack``/``MatchTracks`` on maps loaded from map files,
+        off the online process's GIL (0: on the ``workers`` threads).
+    batch_nice : int
+        Added to those processes' nice value (0-19): on a busy host the online streams get
+        the cores first.
     inline_fixes : bool
         Match a single fix (``StreamFixes``, ``SnapFix``) on the event loop, without a hop to
         an online thread: one fix is short, bounded work, and the hop costs more than it saves.
@@ -146,6 +154,8 @@ class ServerConfig:
     online_workers: int = 1
     inline_fixes: bool = True
     processes: int = 1
+    batch_processes: int = 1
+    batch_nice: int = 10
     batch_slice: int = 64
     max_map_bytes: int = 4 * 1024**3
     load_timeout: float = 300.0
@@ -172,6 +182,18 @@ class ServerConfig:
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, int) or v < 1:
                 raise ConfigError(f"{name} must be a positive integer, got {v!r}")
+        if (
+            isinstance(self.batch_processes, bool)
+            or not isinstance(self.batch_processes, int)
+            or (self.batch_processes < 0)
+        ):
+            raise ConfigError(f"batch_processes must be 0 or more, got {self.batch_processes!r}")
+        if (
+            isinstance(self.batch_nice, bool)
+            or not isinstance(self.batch_nice, int)
+            or not (0 <= self.batch_nice <= 19)
+        ):
+            raise ConfigError(f"batch_nice must be an integer from 0 to 19, got {self.batch_nice!r}")
         for name in ("max_time_jump", "load_timeout"):
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, int | float) or not v > 0:
@@ -255,6 +277,8 @@ _LIMIT_FLAGS: tuple[tuple[str, type, str], ...] = (
     ("--load-timeout", float, "seconds for a map build from source [MAPMATCH_LOAD_TIMEOUT; 300]"),
     ("--load-memory-bytes", int, "memory for a map build from source [MAPMATCH_LOAD_MEMORY_BYTES; 8 GiB]"),
     ("--processes", int, "server processes sharing the port, own sessions each [MAPMATCH_PROCESSES; 1]"),
+    ("--batch-processes", int, "child processes for MatchTrack(s), 0: threads [MAPMATCH_BATCH_PROCESSES; 1]"),
+    ("--batch-nice", int, "lower CPU priority of those, 0-19 [MAPMATCH_BATCH_NICE; 10]"),
 )
 _NUMBERS: dict[str, type[int] | type[float]] = {
     "max_sessions": int,

@@ -18,6 +18,7 @@ from mapmatch.graph.errors import GraphError
 errlog = logging.getLogger("mapmatch.service")
 
 __all__ = [
+    "BatchWorkerError",
     "LimitError",
     "MapLoadError",
     "MapNotFoundError",
@@ -26,6 +27,7 @@ __all__ = [
     "SessionExistsError",
     "SessionLimitError",
     "SessionNotFoundError",
+    "StatusError",
     "log_internal",
     "status_for",
 ]
@@ -99,6 +101,22 @@ class SessionNotFoundError(ServiceError, LookupError):
     field = "vehicle_id"
 
 
+class StatusError(ServiceError):
+    """An error that already carries its status: a batch worker process's answer."""
+
+    def __init__(self, code: grpc.StatusCode, field: str, message: str) -> None:
+        super().__init__(message)
+        self.code = code
+        self.field = field
+
+
+class BatchWorkerError(StatusError):
+    """A batch worker process ended during a call, or the server is stopping (UNAVAILABLE)."""
+
+    def __init__(self, message: str) -> None:
+        super().__init__(grpc.StatusCode.UNAVAILABLE, "", message)
+
+
 _CODES: tuple[tuple[type[BaseException], grpc.StatusCode], ...] = (
     (ValidationError, grpc.StatusCode.INVALID_ARGUMENT),
     (MapNotFoundError, grpc.StatusCode.NOT_FOUND),
@@ -112,6 +130,8 @@ _CODES: tuple[tuple[type[BaseException], grpc.StatusCode], ...] = (
 
 def status_for(exc: BaseException) -> tuple[grpc.StatusCode, str, str]:
     """``(status, field, message)`` for an exception raised while serving a request."""
+    if isinstance(exc, StatusError):
+        return exc.code, exc.field, str(exc)
     for kind, code in _CODES:
         if isinstance(exc, kind):
             return code, str(getattr(exc, "field", "")), str(exc)

@@ -46,6 +46,7 @@ __all__ = [
     "MapNotFoundError",
     "MapRegistry",
     "graph_checksum",
+    "is_map_file",
     "load_map_file",
     "make_entry",
     "resolve_map_path",
@@ -75,6 +76,7 @@ class MapEntry:
     index: EdgeIndex
     online: Any
     config: MatchConfig = DEFAULT_CONFIG
+    path: Path | None = None  # the map file it was loaded from (batch worker processes map it too)
     _batch: Any = field(default=None, repr=False)
     _lock: threading.Lock = field(default_factory=threading.Lock, repr=False)
 
@@ -147,12 +149,20 @@ class MapRegistry:
         self.on_unload: list[Callable[[str], int]] = []
 
     def add(
-        self, map_id: str, graph: RoadGraph, *, source: str = "", warm: bool = True, batch: bool = True
+        self,
+        map_id: str,
+        graph: RoadGraph,
+        *,
+        source: str = "",
+        warm: bool = True,
+        batch: bool = True,
+        path: Path | None = None,
     ) -> MapEntry:
         """Build, warm up (unless ``warm`` is False; the batch matcher too unless ``batch`` is
         False) and register a map, replacing one of the same id only once the new one has
-        passed; returns its entry."""
+        passed; returns its entry. ``path``: the map file ``graph`` was read from, if any."""
         entry = self.prepare(map_id, graph, source=source)
+        entry.path = path
         if warm:
             warm_up(entry, batch=batch)
         return self.install(entry)
@@ -183,7 +193,8 @@ class MapRegistry:
             The file cannot be served; a map of the same id stays as it was.
         """
         graph = load_map_file(Path(path), limits=limits or LoadLimits(), name=source or Path(path).name)
-        return self.add(map_id, graph, source=source or Path(path).name)
+        file = Path(path) if is_map_file(Path(path)) else None
+        return self.add(map_id, graph, source=source or Path(path).name, path=file)
 
     def unload(self, map_id: str) -> int:
         """Remove a map; returns the number of sessions dropped with it."""
@@ -230,6 +241,18 @@ class MapRegistry:
 
 
 # ---------------------------------------------------------------------------------- loading
+def is_map_file(path: Path) -> bool:
+    """Whether ``path`` is a prepared map file (not an OSM/GIS source); never blocks."""
+    try:
+        fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK)
+    except OSError:
+        return False
+    try:
+        return stat.S_ISREG(os.fstat(fd).st_mode) and os.read(fd, len(MAGIC))[:-1] == MAGIC[:-1]
+    finally:
+        os.close(fd)
+
+
 @dataclass(frozen=True)
 class LoadLimits:
     """Limits of one map load.

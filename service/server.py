@@ -2,7 +2,8 @@
 
 :func:`create_server` only builds: it checks the configuration (TLS files, maps) and returns
 a :class:`ServiceRuntime`, which then starts (event-loop thread, bound port), warms up (loads
-every map and runs a warm-up query on it), sweeps idle sessions and stops: health goes
+every map and runs a warm-up query on it; then the batch worker processes start), sweeps
+idle sessions and stops (the batch workers too): health goes
 NOT_SERVING, new calls are refused and in-flight calls get ``grace`` seconds to finish.
 :func:`start_server` does both; :func:`serve` runs a server until SIGTERM/SIGINT.
 
@@ -39,12 +40,13 @@ from grpc_reflection.v1alpha import reflection
 
 from mapmatch.errors import ConfigError
 from mapmatch.graph.road_graph import RoadGraph
+from mapmatch.service.batch_workers import BatchWorkers, MapFile, TrackLimits
 from mapmatch.service.config import ServerConfig
 from mapmatch.service.errors import MapLoadError
 from mapmatch.service.gen import mapmatch_pb2 as pb
 from mapmatch.service.gen import mapmatch_pb2_grpc as pb_grpc
 from mapmatch.service.interceptors import Metrics, interceptors
-from mapmatch.service.maps import MapRegistry, load_map_file, warm_batch, warm_up
+from mapmatch.service.maps import MapRegistry, is_map_file, load_map_file, warm_batch, warm_up
 from mapmatch.service.servicer import SERVICE_NAME, MapMatchServicer, OnlineQueue, load_limits
 from mapmatch.service.sessions import SessionStore
 
@@ -73,6 +75,17 @@ class ServiceRuntime:
         registry.on_unload.append(self.sessions.drop_map)
         self.executor = ThreadPoolExecutor(max_workers=config.workers, thread_name_prefix="mapmatch-batch")
         self.online = OnlineQueue(workers=config.online_workers)
+        self.batch_workers = (
+            BatchWorkers(
+                processes=config.batch_processes,
+                limits=TrackLimits(
+                    max_track_points=config.max_track_points, max_answer_bytes=config.max_answer_bytes
+                ),
+                nice=config.batch_nice,
+            )
+            if config.batch_processes > 0
+            else None
+        )
         self.metrics = Metrics()
         self.credentials = _credentials(config)
         self.servicer = MapMatchServicer(
@@ -80,8 +93,9 @@ class ServiceRuntime:
             sessions=self.sessions,
             executor=self.executor,
             online=self.online,
+            batch_workers=self.batch_workers,
             config=config,
-            on_maps_changed=self.update_health,
+            on_maps_changed=self.maps_changed,
         )
         self.port = 0
         self.loop: asyncio.AbstractEventLoop | None = None
@@ -159,7 +173,7 @@ class ServiceRuntime:
             interceptors=interceptors(token=cfg.token, metrics=self.metrics, log_format=cfg.log_format),
             options=options,
         )
-        pb_grpc.add_MapMatchServicer_to_server(self.servicer, srv)
+        add_servicer(self.servicer, srv)
         health_pb2_grpc.add_HealthServicer_to_server(self.health, srv)
         names = (
             pb.DESCRIPTOR.services_by_name["MapMatch"].full_name,
@@ -194,7 +208,8 @@ class ServiceRuntime:
                 log.info("loading map %s from %s", name, path.name)
                 graph = load_map_file(path, limits=limits, name=path.name)
                 log.info("warming up map %s (%d edges)", name, graph.n_edges)
-                self.maps.add(name, graph, source=path.name, batch=False)
+                file = path if is_map_file(path) else None
+                self.maps.add(name, graph, source=path.name, batch=False, path=file)
             for entry in self.maps.entries():
                 if entry.map_id not in {n for n, _ in self.to_load}:
                     log.info("warming up map %s (%d edges)", entry.map_id, entry.graph.n_edges)
@@ -205,6 +220,7 @@ class ServiceRuntime:
             raise
         self.to_load = []
         self.call(self.update_health())
+        in_workers = self._sync_workers()
         from mapmatch.kernels import COMPILE_SECONDS, is_cached
 
         if not is_cached("batch"):
@@ -215,10 +231,32 @@ class ServiceRuntime:
             return
         # the batch matchers warm up after SERVING: online streams need not wait for them
         for entry in self.maps.entries():
+            if entry.map_id in in_workers:
+                continue  # matched (and warmed up) in the batch worker processes
             try:
                 warm_batch(entry)
             except MapLoadError as exc:
                 log.error("map %s: %s (MatchTrack on it will fail)", entry.map_id, exc)
+
+    def _sync_workers(self) -> set[str]:
+        """Tell the batch worker processes the maps with files (started on the first such
+        map); returns the ids of the maps they serve."""
+        if self.batch_workers is None:
+            return set()
+        files = [
+            MapFile(map_id=e.map_id, path=str(e.path), checksum=e.checksum)
+            for e in self.maps.entries()
+            if e.path is not None
+        ]
+        self.batch_workers.set_maps(files)
+        if files:
+            self.batch_workers.start()
+        return {f.map_id for f in files}
+
+    async def maps_changed(self) -> None:
+        """After LoadMap/UnloadMap: health, and the batch workers' maps."""
+        self._sync_workers()
+        await self.update_health()
 
     async def update_health(self) -> None:
         """SERVING when maps are loaded (each has passed its warm-up), else NOT_SERVING; and
@@ -270,6 +308,8 @@ class ServiceRuntime:
     def _shutdown_pools(self) -> None:
         self.executor.shutdown(wait=False, cancel_futures=True)
         self.online.shutdown()
+        if self.batch_workers is not None:
+            self.batch_workers.stop()
 
     def wait_for_termination(self, timeout: float | None = None) -> bool:
         """Block until :meth:`stop` has run; returns False on timeout."""
@@ -277,6 +317,49 @@ class ServiceRuntime:
 
 
 Server = ServiceRuntime  # the name older code uses
+
+
+def _pass_bytes(serialize: Any) -> Any:
+    """A response serializer that sends ``bytes`` as they are (answers serialised elsewhere)."""
+
+    def out(msg: Any) -> bytes:
+        return msg if type(msg) is bytes else serialize(msg)
+
+    return out
+
+
+class _Collect:
+    """Stands for a server while the generated code registers a servicer's handlers."""
+
+    def __init__(self) -> None:
+        self.handlers: dict[str, grpc.RpcMethodHandler] = {}
+
+    def add_generic_rpc_handlers(self, handlers: Any) -> None:
+        pass
+
+    def add_registered_method_handlers(self, service: str, handlers: dict[str, Any]) -> None:
+        self.handlers = dict(handlers)
+
+
+def add_servicer(servicer: MapMatchServicer, server: aio.Server) -> None:
+    """Register the MapMatch servicer; ``MatchTrack`` gets its request as bytes (passed on to
+    a batch worker process as they are), and the batch methods may answer with bytes."""
+    got = _Collect()
+    pb_grpc.add_MapMatchServicer_to_server(servicer, got)
+    h = got.handlers
+    h["MatchTrack"] = grpc.unary_unary_rpc_method_handler(
+        servicer.MatchTrack,
+        request_deserializer=None,
+        response_serializer=_pass_bytes(pb.TrackResult.SerializeToString),
+    )
+    h["MatchTracks"] = grpc.unary_stream_rpc_method_handler(
+        servicer.MatchTracks,
+        request_deserializer=pb.MatchTracksRequest.FromString,
+        response_serializer=_pass_bytes(pb.TrackResult.SerializeToString),
+    )
+    name = pb.DESCRIPTOR.services_by_name["MapMatch"].full_name
+    server.add_generic_rpc_handlers((grpc.method_handlers_generic_handler(name, h),))
+    server.add_registered_method_handlers(name, h)
 
 
 def _copy_result(src: Future[None], dst: Future[None]) -> None:

@@ -3,8 +3,10 @@
 No matching logic lives here. A single fix (``StreamFixes``, ``SnapFix``) is matched on the
 event loop (``inline_fixes``, the default): it is short, bounded work, and a hop to another
 thread and back cost more CPU than the fix itself saves, all under one GIL. ``FixBatch``
-slices run on the online thread(s) (``online_workers``), batch matching and map loads on the
-batch pool (``workers``), so no long work holds the loop. A vehicle's fixes never race (each
+slices run on the online thread(s) (``online_workers``); batch matching on a map loaded from
+a map file runs in batch worker processes (``batch_processes``,
+:mod:`mapmatch.service.batch_workers`), off this process's GIL; other batch matching and map
+loads on the batch pool (``workers``), so no long work holds the loop. A vehicle's fixes never race (each
 session has a lock); a ``FixBatch`` is matched in slices of ``batch_slice`` fixes, so other
 streams' fixes are served in between. Every message's work is bounded by the configured
 limits (fixes per batch, points per track, bytes per answer), each refused with
@@ -33,6 +35,14 @@ from grpc import aio
 
 from mapmatch.errors import ValidationError
 from mapmatch.service import convert
+from mapmatch.service.batch_workers import (
+    BatchWorkers,
+    MapFile,
+    TrackLimits,
+    check_answer_bytes,
+    check_points,
+    match_track,
+)
 from mapmatch.service.config import ServerConfig
 from mapmatch.service.errors import LimitError, MapPathError, log_internal, status_for
 from mapmatch.service.gen import mapmatch_pb2 as pb
@@ -148,6 +158,8 @@ class MapMatchServicer(pb_grpc.MapMatchServicer):
         Thread pool for batch matching and map loads.
     online
         Where online updates run (one thread of their own by default).
+    batch_workers
+        Child processes for batch matches on maps with a file (None: the ``executor`` threads).
     config
         Limits (``max_*``), ``batch_slice``, ``max_time_jump`` and ``map_dir``.
     on_maps_changed
@@ -161,6 +173,7 @@ class MapMatchServicer(pb_grpc.MapMatchServicer):
         sessions: SessionStore,
         executor: Executor,
         online: OnlineQueue | None = None,
+        batch_workers: BatchWorkers | None = None,
         config: ServerConfig | None = None,
         on_maps_changed: Callable[[], Any] | None = None,
     ) -> None:
@@ -168,25 +181,20 @@ class MapMatchServicer(pb_grpc.MapMatchServicer):
         self.sessions = sessions
         self.executor = executor
         self.online = online or OnlineQueue()
+        self.batch_workers = batch_workers
         self.config = config or ServerConfig()
+        self.track_limits = TrackLimits(
+            max_track_points=self.config.max_track_points, max_answer_bytes=self.config.max_answer_bytes
+        )
         self.on_maps_changed = on_maps_changed
         self.server_id = f"{socket.gethostname()}:{os.getpid()}"
 
     async def _offload(self, context: aio.ServicerContext | None, fn: Callable[[], T]) -> T:
-        if context is not None:
-            left = context.time_remaining()
-            if left is not None and left <= 0:
-                await context.abort(grpc.StatusCode.DEADLINE_EXCEEDED, "deadline passed before work started")
+        await self._check_deadline(context)
         return await asyncio.get_running_loop().run_in_executor(self.executor, fn)
 
     def _answer_size(self, msg: Any) -> Any:
-        n = msg.ByteSize()
-        if n > self.config.max_answer_bytes:
-            raise LimitError(
-                "max_answer_bytes",
-                f"the answer would be {n} bytes, over the server's limit of {self.config.max_answer_bytes}; "
-                "send fewer fixes or points per message",
-            )
+        check_answer_bytes(msg.ByteSize(), self.config.max_answer_bytes)
         return msg
 
     # ------------------------------------------------------------------ online
@@ -285,39 +293,69 @@ class MapMatchServicer(pb_grpc.MapMatchServicer):
         return await self.online.submit(functools.partial(self.snap, request))
 
     # ------------------------------------------------------------------ batch
-    def _check_track(self, msg: pb.Track) -> None:
-        n = max(len(msg.lat), len(msg.lon), len(msg.time))
-        if n > self.config.max_track_points:
-            raise LimitError(
-                "max_track_points",
-                f"a track has {n} points, over the server's limit of {self.config.max_track_points}",
-            )
+    def _worker_map(self, entry: MapEntry) -> MapFile | None:
+        """The map's file when a batch worker process can match on it."""
+        if self.batch_workers is None or entry.path is None:
+            return None
+        return MapFile(map_id=entry.map_id, path=str(entry.path), checksum=entry.checksum)
 
-    def _match(self, entry: MapEntry, msg: pb.Track, prefix: str) -> pb.TrackResult:
-        self._check_track(msg)
-        track = convert.track_from_proto(msg, prefix=prefix)
-        try:
-            m = entry.batch.match(track)
-        except ValidationError as exc:
-            raise _prefixed(exc, prefix) from None
-        return self._answer_size(convert.track_match_to_proto(m, entry.graph))
-
-    async def MatchTrack(self, request: pb.MatchTrackRequest, context: aio.ServicerContext) -> pb.TrackResult:
+    async def MatchTrack(
+        self, request: pb.MatchTrackRequest | bytes, context: aio.ServicerContext
+    ) -> pb.TrackResult | bytes:
+        """Registered with ``request`` as bytes (:func:`mapmatch.service.server.add_servicer`):
+        on a map with a file they go to a batch worker process as they are, and its answer
+        comes back as bytes."""
+        if isinstance(request, bytes):
+            data = request
+            try:
+                request = pb.MatchTrackRequest.FromString(data)
+            except Exception as exc:  # protobuf DecodeError and friends
+                raise ValidationError(
+                    "request",
+                    f"the message does not decode as the method's request type ({type(exc).__name__})",
+                ) from None
+        else:
+            data = b""
         entry = self.maps.get(request.map_id)
         if not request.HasField("track"):
             raise ValidationError("track", "is required")
-        self._check_track(request.track)
-        return await self._offload(context, lambda: self._match(entry, request.track, "track"))
+        check_points(request.track, self.config.max_track_points)
+        mf = self._worker_map(entry)
+        if mf is not None and self.batch_workers is not None:
+            await self._check_deadline(context)
+            return await self.batch_workers.match(
+                mf, data or request.SerializeToString(), kind="request", prefix="track"
+            )
+        track = request.track
+        return await self._offload(
+            context, lambda: match_track(entry, track, prefix="track", limits=self.track_limits)
+        )
+
+    async def _check_deadline(self, context: aio.ServicerContext | None) -> None:
+        if context is not None:
+            left = context.time_remaining()
+            if left is not None and left <= 0:
+                await context.abort(grpc.StatusCode.DEADLINE_EXCEEDED, "deadline passed before work started")
 
     async def MatchTracks(
         self, request: pb.MatchTracksRequest, context: aio.ServicerContext
-    ) -> AsyncIterator[pb.TrackResult]:
+    ) -> AsyncIterator[pb.TrackResult | bytes]:
         entry = self.maps.get(request.map_id)
+        mf = self._worker_map(entry)
         for i, t in enumerate(request.tracks):
             if context.cancelled() or context.done():
                 return
+            prefix = f"tracks[{i}]"
             try:
-                yield await self._offload(context, functools.partial(self._match, entry, t, f"tracks[{i}]"))
+                if mf is not None and self.batch_workers is not None:
+                    check_points(t, self.config.max_track_points)
+                    await self._check_deadline(context)
+                    yield await self.batch_workers.match(
+                        mf, t.SerializeToString(), kind="track", prefix=prefix
+                    )
+                else:
+                    fn = functools.partial(match_track, entry, t, prefix=prefix, limits=self.track_limits)
+                    yield await self._offload(context, fn)
             except (asyncio.CancelledError, aio.AbortError):
                 raise
             except Exception as exc:

@@ -57,3 +57,17 @@ def requests(fixes: list[Fix], vehicle: str, map_id: str = "", seq0: int = 0) ->
         pb.FixRequest(map_id=map_id, vehicle_id=vehicle, seq=seq0 + i, fix=convert.fix_to_proto(f))
         for i, f in enumerate(fixes)
     ]
+
+
+def looped_track(amap: AsciiMap, n: int, track_id: str = "t") -> pb.Track:
+    """An ``n``-point track at 1 Hz, driving a loop of the city over and over."""
+    from online_helpers import drive
+
+    fixes = drive(amap, "abcfedghd", speed=10.0, dt=1.0)
+    k = len(fixes)
+    return pb.Track(
+        track_id=track_id,
+        time=[float(i) for i in range(n)],
+        lat=[fixes[i % k].lat for i in range(n)],
+        lon=[fixes[i % k].lon for i in range(n)],
+    )

@@ -19,7 +19,7 @@ import numpy as np
 import pytest
 from grpc_health.v1 import health_pb2, health_pb2_grpc
 from online_helpers import drive
-from service_util import city, local_config, requests, running, stub
+from service_util import city, local_config, looped_track, requests, running, stub
 
 from mapmatch.cli import main
 from mapmatch.errors import ConfigError
@@ -45,17 +45,6 @@ def _err(fn, *a, **kw) -> grpc.RpcError:
     return ei.value
 
 
-def _track(amap, n: int, track_id: str = "t") -> pb.Track:
-    fixes = drive(amap, "abcfedghd", speed=10.0, dt=1.0)
-    k = len(fixes)
-    return pb.Track(
-        track_id=track_id,
-        time=[float(i) for i in range(n)],
-        lat=[fixes[i % k].lat for i in range(n)],
-        lon=[fixes[i % k].lon for i in range(n)],
-    )
-
-
 # ---------------------------------------------------------------------------------- 1. bounded work
 def test_limits_give_resource_exhausted_naming_the_limit():
     cfg = local_config(max_batch_fixes=20, max_track_points=50, max_answer_bytes=8 << 10)
@@ -68,17 +57,17 @@ def test_limits_give_resource_exhausted_naming_the_limit():
         # at the cap: answered
         out = list(api.StreamFixBatches(iter([pb.FixBatch(fixes=reqs[:20])]), timeout=10))
         assert len(out[0].responses) == 20 and not any(r.HasField("error") for r in out[0].responses)
-        err = _err(api.MatchTrack, pb.MatchTrackRequest(track=_track(AMAP, 51)), timeout=10)
+        err = _err(api.MatchTrack, pb.MatchTrackRequest(track=looped_track(AMAP, 51)), timeout=10)
         assert err.code() == grpc.StatusCode.RESOURCE_EXHAUSTED and _field(err) == "max_track_points"
-        size = api.MatchTrack(pb.MatchTrackRequest(track=_track(AMAP, 50)), timeout=30).ByteSize()
+        size = api.MatchTrack(pb.MatchTrackRequest(track=looped_track(AMAP, 50)), timeout=30).ByteSize()
         ch.close()
     # an answer just over the byte limit is refused, one under it answered
     cfg = local_config(max_batch_fixes=20, max_track_points=50, max_answer_bytes=size - 1)
     with running(cfg, {"city": AMAP.graph}) as (_, port):
         ch, api = stub(port)
-        err = _err(api.MatchTrack, pb.MatchTrackRequest(track=_track(AMAP, 50)), timeout=30)
+        err = _err(api.MatchTrack, pb.MatchTrackRequest(track=looped_track(AMAP, 50)), timeout=30)
         assert err.code() == grpc.StatusCode.RESOURCE_EXHAUSTED and _field(err) == "max_answer_bytes"
-        assert api.MatchTrack(pb.MatchTrackRequest(track=_track(AMAP, 5)), timeout=30).points
+        assert api.MatchTrack(pb.MatchTrackRequest(track=looped_track(AMAP, 5)), timeout=30).points
         ch.close()
 
 
@@ -115,7 +104,7 @@ def test_a_good_stream_keeps_its_latency_during_the_largest_batch_and_track():
         t.start()
         t0 = time.perf_counter()
         answers = list(api.StreamFixBatches(iter([batch] * 3), timeout=300))
-        track = api.MatchTrack(pb.MatchTrackRequest(track=_track(AMAP, 20_000)), timeout=300)
+        track = api.MatchTrack(pb.MatchTrackRequest(track=looped_track(AMAP, 20_000)), timeout=300)
         heavy = time.perf_counter() - t0
         stop.set()
         t.join(30)

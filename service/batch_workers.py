@@ -1,0 +1,440 @@
+"""Batch matching in child processes, off the online process's GIL.
+
+A long ``MatchTrack`` (a 1M-point track takes minutes) would hold the GIL for long stretches
+and raise every online stream's latency. :class:`BatchWorkers` runs batch matches in
+``processes`` child processes started with the server: each child memory-maps the same map
+files read-only (the page cache is shared), builds its batch matchers and warms them up
+before the first request. The server passes the request bytes through and gets the answer
+bytes back (serialised in the child), so the online process neither parses the answer nor
+builds it.
+
+* Map replacement: every job names the map's file and checksum; a child loads a map it does
+  not hold (or holds in another version), and :meth:`BatchWorkers.set_maps` tells idle
+  children to load new maps and drop unloaded ones. A file changed on disk since the server
+  loaded it is refused (FAILED_PRECONDITION), not matched on another map.
+* A child that dies (killed, out of memory) fails its call with UNAVAILABLE naming the
+  cause, and a new child starts. A call the client abandons (cancelled, deadline passed)
+  stops its child, which restarts: no work goes on for nobody.
+* The children run at a lower CPU priority (``nice``): on a busy host the online streams
+  get the cores first, and a batch match takes what is left. They are also the kernel's
+  first choice when memory runs out (``oom_score_adj`` 1000), not the server.
+* :meth:`BatchWorkers.stop` ends the children (SIGTERM, then SIGKILL); queued calls get
+  UNAVAILABLE. A child also ends when the server process is gone.
+
+Maps without a file (built in memory, or from an OSM/GIS source) are matched on the
+server's batch threads as before.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import logging
+import os
+import queue
+import signal
+import sys
+import threading
+import time
+from dataclasses import dataclass
+from multiprocessing.connection import Connection
+from pathlib import Path
+from typing import Any
+
+import grpc
+
+from mapmatch.errors import ValidationError
+from mapmatch.service.errors import BatchWorkerError, LimitError, StatusError, log_internal, status_for
+from mapmatch.service.gen import mapmatch_pb2 as pb
+
+log = logging.getLogger("mapmatch.service")
+
+__all__ = ["BatchWorkers", "MapFile", "TrackLimits", "check_answer_bytes", "check_points", "match_track"]
+
+
+@dataclass(frozen=True)
+class MapFile:
+    """A loaded map as a child process finds it: id, file and checksum."""
+
+    map_id: str
+    path: str
+    checksum: str
+
+
+@dataclass(frozen=True)
+class TrackLimits:
+    """The per-track limits a batch match obeys (points in, bytes out)."""
+
+    max_track_points: int
+    max_answer_bytes: int
+
+
+# ---------------------------------------------------------------------------------- matching
+def check_points(msg: pb.Track, limit: int) -> None:
+    """:class:`LimitError` naming ``max_track_points`` when the track is over ``limit``."""
+    n = max(len(msg.lat), len(msg.lon), len(msg.time))
+    if n > limit:
+        raise LimitError("max_track_points", f"a track has {n} points, over the server's limit of {limit}")
+
+
+def check_answer_bytes(n: int, limit: int) -> None:
+    """:class:`LimitError` naming ``max_answer_bytes`` when an ``n``-byte answer is over ``limit``."""
+    if n > limit:
+        raise LimitError(
+            "max_answer_bytes",
+            f"the answer would be {n} bytes, over the server's limit of {limit}; "
+            "send fewer fixes or points per message",
+        )
+
+
+def match_track(entry: Any, msg: pb.Track, *, prefix: str, limits: TrackLimits) -> pb.TrackResult:
+    """One track through a map entry's batch matcher, as a ``TrackResult`` (limits checked)."""
+    from mapmatch.service import convert
+
+    check_points(msg, limits.max_track_points)
+    track = convert.track_from_proto(msg, prefix=prefix)
+    try:
+        m = entry.batch.match(track)
+    except ValidationError as exc:
+        raise ValidationError(f"{prefix}.{exc.field}", exc.reason) from None
+    out = convert.track_match_to_proto(m, entry.graph)
+    check_answer_bytes(out.ByteSize(), limits.max_answer_bytes)
+    return out
+
+
+# ---------------------------------------------------------------------------------- server side
+@dataclass
+class _Job:
+    loop: asyncio.AbstractEventLoop
+    fut: asyncio.Future[bytes]
+    header: tuple[Any, ...]
+    data: bytes
+
+
+class _Slot:
+    """One child process and the thread that feeds it."""
+
+    def __init__(self, index: int) -> None:
+        self.index = index
+        self.proc: Any = None
+        self.conn: Connection | None = None
+        self.generation = -1
+        self.thread: threading.Thread | None = None
+
+
+class BatchWorkers:
+    """``processes`` child processes matching tracks; see the module docstring.
+
+    Parameters
+    ----------
+    processes
+        Child processes (each matches one track at a time).
+    limits
+        Points per track and bytes per answer.
+    nice
+        Added to the children's nice value (lower CPU priority than the online process).
+    """
+
+    def __init__(self, *, processes: int, limits: TrackLimits, nice: int = 10) -> None:
+        import multiprocessing as mp
+
+        self.limits = limits
+        self.nice = nice
+        self._ctx = mp.get_context("spawn")
+        self._q: queue.SimpleQueue[_Job | None] = queue.SimpleQueue()
+        self._slots = [_Slot(i) for i in range(processes)]
+        self._files: tuple[MapFile, ...] = ()
+        self._generation = 0
+        self._lock = threading.Lock()
+        self._stopping = threading.Event()
+        self._started = False
+        self.restarts = 0
+
+    # ------------------------------------------------------------------ control
+    def set_maps(self, files: list[MapFile]) -> None:
+        """The maps now served (children load new ones and drop others when idle)."""
+        with self._lock:
+            self._files = tuple(files)
+            self._generation += 1
+
+    def start(self) -> None:
+        """Start the children (once); each loads and warms the maps of :meth:`set_maps`."""
+        with self._lock:
+            if self._started or self._stopping.is_set():
+                return
+            self._started = True
+        for slot in self._slots:
+            slot.thread = threading.Thread(
+                target=self._run, args=(slot,), name=f"mapmatch-batch-feed-{slot.index}", daemon=True
+            )
+            slot.thread.start()
+
+    def pids(self) -> list[int]:
+        """The children's process ids (those running)."""
+        return [s.proc.pid for s in self._slots if s.proc is not None and s.proc.is_alive()]
+
+    def stop(self, timeout: float = 5.0) -> None:
+        """End the children; queued and running calls get UNAVAILABLE."""
+        self._stopping.set()
+        for _ in self._slots:
+            self._q.put(None)
+        for slot in self._slots:
+            self._end_child(slot)
+        for slot in self._slots:
+            if slot.thread is not None:
+                slot.thread.join(timeout)
+        while True:  # calls still queued
+            try:
+                job = self._q.get_nowait()
+            except queue.Empty:
+                break
+            if job is not None:
+                _deliver(job, BatchWorkerError("the server is shutting down; retry on another server"))
+
+    # ------------------------------------------------------------------ calls
+    async def match(self, map_file: MapFile, data: bytes, *, kind: str, prefix: str) -> bytes:
+        """Match in a child: ``data`` is a serialised ``MatchTrackRequest`` (``kind`` "request")
+        or ``Track`` (``kind`` "track"); returns a serialised ``TrackResult``.
+
+        Raises
+        ------
+        StatusError
+            The child's answer was an error (its status, field and message), or the child
+            ended (UNAVAILABLE).
+        """
+        if self._stopping.is_set():
+            raise BatchWorkerError("the server is shutting down; retry on another server")
+        if not self._started:
+            self.start()
+        loop = asyncio.get_running_loop()
+        fut: asyncio.Future[bytes] = loop.create_future()
+        self._q.put(_Job(loop, fut, ("match", kind, map_file, prefix), data))
+        return await fut  # cancelled with the call: the feeding thread then stops the child
+
+    # ------------------------------------------------------------------ feeding threads
+    def _run(self, slot: _Slot) -> None:
+        while not self._stopping.is_set():
+            try:
+                self._ensure_child(slot)
+            except Exception as exc:  # cannot start a process: wait, try again
+                log.error("cannot start a batch worker process: %s", exc)
+                time.sleep(1.0)
+                continue
+            try:
+                job = self._q.get(timeout=0.5)
+            except queue.Empty:
+                continue
+            if job is None:
+                return
+            if job.fut.cancelled():
+                continue
+            try:
+                self._ensure_child(slot)
+                result = self._call(slot, job)
+            except Exception as exc:
+                result = exc
+            if result is not None:
+                _deliver(job, result)
+
+    def _ensure_child(self, slot: _Slot) -> None:
+        if slot.proc is not None and not slot.proc.is_alive():
+            self._end_child(slot)
+        with self._lock:
+            files, generation = self._files, self._generation
+        if slot.proc is None:
+            if self._stopping.is_set():
+                raise BatchWorkerError("the server is shutting down; retry on another server")
+            parent, child = self._ctx.Pipe(duplex=True)
+            proc = self._ctx.Process(
+                target=worker_main,
+                args=(child, files, self.limits, os.getpid(), self.nice),
+                name=f"mapmatch-batch-{slot.index}",
+                daemon=True,
+            )
+            proc.start()
+            child.close()
+            slot.proc, slot.conn, slot.generation = proc, parent, generation
+            log.info("batch worker %d started (pid %d, %d map(s))", slot.index, proc.pid, len(files))
+        elif slot.generation != generation:
+            assert slot.conn is not None
+            slot.conn.send(("maps", files))
+            slot.generation = generation
+
+    def _call(self, slot: _Slot, job: _Job) -> bytes | BaseException | None:
+        conn, proc = slot.conn, slot.proc
+        assert conn is not None and proc is not None
+        try:
+            conn.send(job.header)
+            conn.send_bytes(job.data)
+            while not conn.poll(0.2):
+                if job.fut.cancelled():  # the client gave up: stop the work
+                    log.info("batch worker %d: call abandoned, restarting the worker", slot.index)
+                    self._end_child(slot)
+                    return None
+                if self._stopping.is_set():
+                    self._end_child(slot)
+                    return BatchWorkerError("the server is shutting down; retry on another server")
+                if not proc.is_alive():
+                    raise EOFError
+            status, info = conn.recv()
+            if status == "ok":
+                return conn.recv_bytes()
+            code, fld, msg = info
+            return StatusError(grpc.StatusCode[code], fld, msg)
+        except (EOFError, OSError):
+            if self._stopping.is_set():
+                self._end_child(slot)
+                return BatchWorkerError("the server is shutting down; retry on another server")
+            proc.join(2.0)
+            why = _exit_reason(proc.exitcode)
+            self._end_child(slot)
+            self.restarts += 1
+            log.error("batch worker %d ended during a match (%s); starting another", slot.index, why)
+            return BatchWorkerError(
+                f"the batch worker process ended during this match ({why}); a new one is starting, "
+                "retry (a track this large may need more memory than the server has)"
+            )
+
+    def _end_child(self, slot: _Slot) -> None:
+        proc, conn = slot.proc, slot.conn
+        slot.proc, slot.conn = None, None
+        if conn is not None:
+            with contextlib.suppress(OSError):
+                conn.close()
+        if proc is None:
+            return
+        if proc.is_alive():
+            proc.terminate()
+            proc.join(2.0)
+            if proc.is_alive():
+                proc.kill()
+        proc.join(2.0)
+
+
+def _deliver(job: _Job, result: bytes | BaseException) -> None:
+    def done() -> None:
+        if job.fut.cancelled():
+            return
+        if isinstance(result, BaseException):
+            job.fut.set_exception(result)
+        else:
+            job.fut.set_result(result)
+
+    with contextlib.suppress(RuntimeError):  # the loop has closed
+        job.loop.call_soon_threadsafe(done)
+
+
+def _exit_reason(code: int | None) -> str:
+    if code is None:
+        return "it stopped answering"
+    if code < 0:
+        try:
+            name = signal.Signals(-code).name
+        except ValueError:
+            name = f"signal {-code}"
+        return f"killed by {name}" + (", perhaps out of memory" if -code == signal.SIGKILL else "")
+    return f"exit status {code}"
+
+
+# ---------------------------------------------------------------------------------- child side
+def _load(mf: MapFile) -> Any:
+    """A map entry (graph, index, batch matcher warmed up) from its file, checksum checked."""
+    from mapmatch.graph.artifact import load_map
+    from mapmatch.graph.index import EdgeIndex
+    from mapmatch.service.maps import MapEntry, graph_checksum, warm_batch
+
+    try:
+        graph = load_map(Path(mf.path))
+    except Exception:
+        graph = None
+    if graph is None or graph_checksum(graph) != mf.checksum:
+        raise StatusError(
+            grpc.StatusCode.FAILED_PRECONDITION,
+            "map_id",
+            f"map_id: the file of map {mf.map_id!r} changed since the server loaded it; load it again",
+        )
+    entry = MapEntry(
+        map_id=mf.map_id, graph=graph, source="", checksum=mf.checksum, index=EdgeIndex(graph), online=None
+    )
+    warm_batch(entry)
+    return entry
+
+
+def _refresh(held: dict[str, Any], files: tuple[MapFile, ...]) -> None:
+    keep = {(f.map_id, f.checksum) for f in files}
+    for map_id in [k for k, e in held.items() if (k, e.checksum) not in keep]:
+        del held[map_id]
+    for f in files:
+        if f.map_id not in held:
+            try:
+                held[f.map_id] = _load(f)
+            except Exception as exc:  # reported by the first call that needs it
+                log.error("batch worker: map %s: %s", f.map_id, exc)
+
+
+def _run_job(held: dict[str, Any], header: tuple[Any, ...], data: bytes, limits: TrackLimits) -> bytes:
+    _, kind, mf, prefix = header
+    entry = held.get(mf.map_id)
+    if entry is None or entry.checksum != mf.checksum:
+        entry = held[mf.map_id] = _load(mf)
+    try:
+        parse = pb.MatchTrackRequest.FromString if kind == "request" else pb.Track.FromString
+        msg = parse(data)
+        if isinstance(msg, pb.MatchTrackRequest):
+            msg = msg.track
+    except Exception as exc:
+        raise ValidationError(
+            "request", f"the message does not decode as the method's request type ({type(exc).__name__})"
+        ) from None
+    out = match_track(entry, msg, prefix=prefix, limits=limits).SerializeToString()
+    return out
+
+
+def _watch_parent(parent: int) -> None:
+    while True:
+        time.sleep(1.0)
+        if os.getppid() != parent:
+            os._exit(0)
+
+
+def worker_main(
+    conn: Connection, files: tuple[MapFile, ...], limits: TrackLimits, parent: int, nice: int = 0
+) -> None:
+    """A child process: load the maps, then answer jobs until the pipe closes."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the server's to handle
+    if nice:
+        with contextlib.suppress(OSError):
+            os.nice(nice)
+    # when memory runs out, the kernel ends this process (its call fails UNAVAILABLE, a new
+    # worker starts), not the server
+    with contextlib.suppress(OSError), open("/proc/self/oom_score_adj", "w") as f:
+        f.write("1000")
+    logging.basicConfig(stream=sys.stderr, level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
+    threading.Thread(target=_watch_parent, args=(parent,), daemon=True).start()
+    held: dict[str, Any] = {}
+    _refresh(held, files)
+    while True:
+        try:
+            header = conn.recv()
+            if header[0] == "maps":
+                _refresh(held, header[1])
+                continue
+            data = conn.recv_bytes()
+        except (EOFError, OSError):
+            return
+        try:
+            out = _run_job(held, header, data, limits)
+        except Exception as exc:
+            code, fld, msg = status_for(exc)
+            if code is grpc.StatusCode.INTERNAL:
+                log_internal(exc, "batch worker")
+            reply: tuple[Any, ...] = ("error", (code.name, fld, msg))
+        else:
+            reply = ("ok", None)
+        del data
+        try:
+            conn.send(reply)
+            if reply[0] == "ok":
+                conn.send_bytes(out)
+        except (EOFError, OSError):
+            return
