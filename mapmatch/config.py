@@ -280,7 +280,9 @@ class BatchConfig:
 
     max_route_factor : routes longer than this times the straight line (+ ``route_slack``) are cut.
     route_slack : metres added to the bound of each routing search.
-    gap_time : seconds between fixes that split a track.
+    gap_time : seconds; fixes further apart in time than this are matched as separate pieces
+        (a parked vehicle, a logger switched off), however near they are (0: time never
+        splits; the route is then cut only by distance, off-map runs and impossible steps).
     gap_distance : metres between fixes that split a track.
     outlier_distance : a fix further than this from every road is unmatched.
     interpolate_distance : fixes closer than this to the previous kept fix are interpolated.
@@ -325,7 +327,7 @@ class BatchConfig:
 
     max_route_factor: float = 3.0
     route_slack: float = 100.0
-    gap_time: float = 120.0
+    gap_time: float = 0.0
     gap_distance: float = 2000.0
     outlier_distance: float = 100.0
     interpolate_distance: float = 0.0

@@ -89,6 +89,8 @@ class KernelParams(NamedTuple):
     route_slack: float
     lp_cut_m: float
     gap_distance: float
+    gap_time: float
+    """seconds; 0: time never splits."""
     max_skip: int
     reverse_tol: float
     split_speed: float
@@ -133,6 +135,7 @@ def kernel_params(cfg: MatchConfig, sigma: float) -> KernelParams:
         route_slack=float(cfg.route_slack),
         lp_cut_m=float(cfg.beta * cfg.route_lp_cut),
         gap_distance=float(cfg.gap_distance),
+        gap_time=float(cfg.gap_time),
         max_skip=int(cfg.max_skip),
         reverse_tol=float(cfg.reverse_tolerance),
         split_speed=float(cfg.split_speed),

@@ -221,6 +221,8 @@ def solve(lat: Lattice, p: KernelParams, router):  # type: ignore[no-untyped-def
     emis = lat.emis
     pxy = lat.pxy
     gap_distance = p.gap_distance
+    gap_time = p.gap_time if p.gap_time > 0 else np.inf
+    ptime = lat.ptime
     max_skip = p.max_skip
     m = len(cand_ptr) - 1
     nc = len(emis)
@@ -260,7 +262,7 @@ def solve(lat: Lattice, p: KernelParams, router):  # type: ignore[no-untyped-def
             restart = s0  # several trailing points unreachable: they form their own piece
         else:
             d = math.hypot(pxy[t, 0] - pxy[prev, 0], pxy[t, 1] - pxy[prev, 1])
-            if d > gap_distance or lat.cut[t]:
+            if d > gap_distance or lat.cut[t] or ptime[t] - ptime[prev] > gap_time:
                 restart = s0 if nskip > 0 else t
         if restart < 0:
             reached, bound = _try_step(prev, t, d, lat, tr, p, router)
