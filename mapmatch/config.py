@@ -184,6 +184,13 @@ class OnlineConfig:
     trail_max_distance : ... and crossings at most this many metres back.
     revise_sigmas : a revised crossing moves only as far as its anchor is this many σ sure.
     report_back_ratio : reporting an edge behind the one reported needs this much more mass.
+
+    Stops on real GPS (issue #12, with GPS valid)
+    ---------------------------------------------
+    stop_hold_fix_distance : metres; the stop line holds a stopped vehicle back before a node
+        only when the fix's own projection, too, lies less than this past the node (the
+        position believed may lag the fix by its along-track correction, 4-9 m on REAL GPS;
+        where the vehicle stands, the fixes show). 0: not checked.
     """
 
     drift_rate: float = 0.04
@@ -259,6 +266,9 @@ class OnlineConfig:
     trail_max_distance: float = 300.0
     revise_sigmas: float = 1.0
     report_back_ratio: float = 3.0
+
+    # stops on real GPS (issue #12, with GPS valid)
+    stop_hold_fix_distance: float = 4.0
 
     def __post_init__(self) -> None:
         _check_numbers(self)
