@@ -191,6 +191,13 @@ class OnlineConfig:
         only when the fix's own projection, too, lies less than this past the node (the
         position believed may lag the fix by its along-track correction, 4-9 m on REAL GPS;
         where the vehicle stands, the fixes show). 0: not checked.
+
+    Forks (issue #12, with GPS valid)
+    ---------------------------------
+    commit_hold_probability : a node is not committed while the paths its commit would drop
+        (another branch of a fork) still hold more than this share of the probability, until
+        the best path is ``ambiguous_max_radius`` past it: leaving the ambiguous circle is no
+        evidence (0 disables it).
     """
 
     drift_rate: float = 0.04
@@ -269,6 +276,8 @@ class OnlineConfig:
 
     # stops on real GPS (issue #12, with GPS valid)
     stop_hold_fix_distance: float = 4.0
+    # forks (issue #12, with GPS valid)
+    commit_hold_probability: float = 0.05
 
     def __post_init__(self) -> None:
         _check_numbers(self)

@@ -40,7 +40,7 @@ def commit(
         state.hyps = [h for h in state.hyps if h.edges[0] == best.edges[0]]
         state.init_pending = False
     while best.k >= 1 and best.s - road.elen[best.edges[0]] >= step.r_a:
-        if _branches_close(road, state, best, step, cfg):
+        if _branches_close(road, state, best, step, cfg) or _branch_probable(road, state, best, step, cfg):
             break  # the evidence cannot tell the branches apart yet
         if state.live:
             c = correction(road, state, best, cfg)
@@ -71,6 +71,30 @@ def _branches_close(
         and math.hypot(h.px - best.px, h.py - best.py) < sep
         for h in state.hyps
     )
+
+
+def _branch_probable(
+    road: RoadModel, state: SessionState, best: Hypothesis, step: Step, cfg: MatchConfig
+) -> bool:
+    """Whether the paths the commit of ``best``'s first node would drop still hold more than
+    ``commit_hold_probability`` of the probability (until ``best`` is ``ambiguous_max_radius``
+    past the node): a fork's branches separate slowly, and leaving the ambiguous circle is
+    no evidence."""
+    o = cfg.online
+    if (
+        o.commit_hold_probability <= 0.0
+        or not step.gps  # dead reckoning: the turn's anchor at the commit carries the vehicle
+        or best.s - road.elen[best.edges[0]] >= o.ambiguous_max_radius
+    ):
+        return False
+    e1 = best.edges[1]
+    total = drop = 0.0
+    for h in state.hyps:
+        p = math.exp(h.logp)
+        total += p
+        if len(h.edges) < 2 or h.edges[1] != e1:
+            drop += p
+    return drop > o.commit_hold_probability * total
 
 
 def _commit_start(
