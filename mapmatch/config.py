@@ -192,8 +192,12 @@ class OnlineConfig:
         position believed may lag the fix by its along-track correction, 4-9 m on REAL GPS;
         where the vehicle stands, the fixes show). 0: not checked.
 
-    Forks (issue #12, with GPS valid)
-    ---------------------------------
+    Forks and parallel roads (issue #12, with GPS valid)
+    ----------------------------------------------------
+    bias_emission : share of the learnt fix bias's part across the road taken off a GPS-aided
+        fix's distance from each road when the paths are weighed: the receiver's error lasts
+        minutes, so a fix that has lain 10 m left of the road is no evidence for the road
+        10 m to the left (0 disables it).
     commit_hold_probability : a node is not committed while the paths its commit would drop
         (another branch of a fork) still hold more than this share of the probability, until
         the best path is ``ambiguous_max_radius`` past it: leaving the ambiguous circle is no
@@ -276,8 +280,9 @@ class OnlineConfig:
 
     # stops on real GPS (issue #12, with GPS valid)
     stop_hold_fix_distance: float = 4.0
-    # forks (issue #12, with GPS valid)
+    # forks and parallel roads (issue #12, with GPS valid)
     commit_hold_probability: float = 0.05
+    bias_emission: float = 1.0
 
     def __post_init__(self) -> None:
         _check_numbers(self)
