@@ -97,6 +97,23 @@ def _branch_probable(
     return drop > o.commit_hold_probability * total
 
 
+def _branches_kept(state: SessionState, e1: int, step: Step, cfg: MatchConfig) -> list[Hypothesis]:
+    """The hypotheses on another branch past the node committed (not through ``e1``) that still
+    hold more than ``commit_hold_probability`` of the probability: a commit forced by the
+    distance (the branches of a motorway split may run within a few metres for a kilometre)
+    does not end them; they go on as paths of their own, and the evidence decides."""
+    o = cfg.online
+    if o.commit_hold_probability <= 0.0 or not step.gps:
+        return []
+    total = sum(math.exp(h.logp) for h in state.hyps)
+    floor = o.commit_hold_probability * total
+    return [
+        h
+        for h in state.hyps
+        if h.k >= 1 and len(h.edges) > 1 and h.edges[1] != e1 and math.exp(h.logp) > floor
+    ]
+
+
 def _commit_start(
     road: RoadModel, state: SessionState, best: Hypothesis, step: Step, cfg: MatchConfig
 ) -> bool:
@@ -121,6 +138,7 @@ def _commit_node(
     the turn, anchor the position by it, and drop the edge behind from every path."""
     e0, e1 = best.edges[0], best.edges[1]
     hyps = [h for h in state.hyps if len(h.edges) > 1 and h.edges[1] == e1]
+    hyps += _branches_kept(state, e1, step, cfg)
     is_rev = e1 == road.rev[e0]
     anchor_odo = anchor_sd = math.nan
     angle = angle_diff(road.bstart[e1], road.bend[e0])
