@@ -225,3 +225,71 @@ def test_ten_degree_fork_stays_open_until_the_branches_are_apart() -> None:
         wrong[sep] = n
     assert wrong[2.0] <= 0.6 * wrong[0.0]
     assert wrong[-1.0] <= wrong[2.0]
+
+
+def _split_map(deg: float) -> tuple[RoadGraph, dict[str, int]]:
+    """A motorway a-b that splits at b into b-c straight on and b-d at ``deg``°, 1.5 km long,
+    in metres."""
+    x0, y0 = 385_000.0, 6_672_000.0
+    ang = math.radians(deg)
+    xy = [
+        (x0, y0),
+        (x0 + 400.0, y0),
+        (x0 + 1900.0, y0),
+        (x0 + 400.0 + 1500.0 * math.cos(ang), y0 - 1500.0 * math.sin(ang)),
+    ]
+    uv = [(0, 1), (1, 2), (1, 3)]
+    g = RoadGraph.from_edges(crs=ASCII_CRS, node_xy=xy, edge_u=[a for a, _ in uv], edge_v=[b for _, b in uv])
+    return g, {"ab": 0, "bc": 1, "bd": 2}
+
+
+def test_motorway_split_keeps_the_other_branch_after_a_forced_commit() -> None:
+    """The branches of a 1.5° split run within 4 m for 150 m, where the region's radius forces
+    the commit: the branch that is still probable then goes on as a path of its own, so when
+    the branches are apart the evidence, not the coin toss, decides (and fewer fixes are on
+    the wrong one than when the commit drops it).
+
+        a-------------b=================c      (b-d leaves b-c at 1.5°)
+                        ` ` ` ` ` ` ` ` d
+    """
+    g, e = _split_map(1.5)
+    amap = AsciiMap(graph=g, nodes={"a": 0, "b": 1, "c": 2, "d": 3}, scale=1.0)
+    wrong = {}
+    for hold in (0.0, DEFAULT_CONFIG.online.commit_hold_probability):
+        m = OnlineMatcher(g, config=DEFAULT_CONFIG.replace(commit_hold_probability=hold))
+        n = 0
+        for taken in (False, True):
+            route = "abd" if taken else "abc"
+            other = e["bc"] if taken else e["bd"]
+            for seed in range(4):
+                res = run(m, drive(amap, route, speed=30.0, sigma=4.0, noise=2.0, seed=seed, heading_noise=1.0))
+                n += sum(r.edge == other for r in res)
+                if hold > 0.0:
+                    assert res[-1].edge == (e["bd"] if taken else e["bc"])
+        wrong[hold] = n
+    assert wrong[DEFAULT_CONFIG.online.commit_hold_probability] < 0.6 * wrong[0.0]
+
+
+def test_learnt_bias_is_no_evidence_for_the_branch_it_points_to() -> None:
+    """The 10° exit with every fix 5 m towards the other branch, from the start: on a-b the
+    offset across the road is learnt as the receiver's bias, and taken off the distances when
+    the branches are weighed, so fewer answers are on the branch the bias points to.
+
+        a----------------b----------------c
+                           ` ` ` ` ` ` ` d      (fixes 5 m towards the branch not taken)
+    """
+    g, e = _exit_map()
+    amap = AsciiMap(graph=g, nodes={"a": 0, "b": 1, "c": 2, "d": 3}, scale=1.0)
+    wrong = {}
+    for share in (0.0, 1.0):
+        m = OnlineMatcher(g, config=DEFAULT_CONFIG.replace(bias_emission=share))
+        n = 0
+        for taken in (False, True):
+            route = "abd" if taken else "abc"
+            other = e["bc"] if taken else e["bd"]
+            for seed in range(6):
+                fixes = drive(amap, route, speed=25.0, sigma=4.0, noise=2.0, seed=seed, heading_noise=1.0)
+                res = run(m, _biased(g, fixes, 5.0 if taken else -5.0))
+                n += sum(r.edge == other for r in res)
+        wrong[share] = n
+    assert wrong[1.0] < 0.6 * wrong[0.0]
