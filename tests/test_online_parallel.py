@@ -262,7 +262,9 @@ def test_motorway_split_keeps_the_other_branch_after_a_forced_commit() -> None:
             route = "abd" if taken else "abc"
             other = e["bc"] if taken else e["bd"]
             for seed in range(4):
-                res = run(m, drive(amap, route, speed=30.0, sigma=4.0, noise=2.0, seed=seed, heading_noise=1.0))
+                res = run(
+                    m, drive(amap, route, speed=30.0, sigma=4.0, noise=2.0, seed=seed, heading_noise=1.0)
+                )
                 n += sum(r.edge == other for r in res)
                 if hold > 0.0:
                     assert res[-1].edge == (e["bd"] if taken else e["bc"])
