@@ -197,6 +197,27 @@ def _biased(g: RoadGraph, fixes: list[Fix], dy: float) -> list[Fix]:
     return out
 
 
+def _wrong_at_fork(
+    g: RoadGraph, e: dict[str, int], cfg: MatchConfig, *, seeds: int, speed: float, bias: float, end: bool
+) -> int:
+    """Answers on the branch not taken, summed over both routes through the fork b (c and d)
+    and ``seeds`` noisy drives, the fixes ``bias`` metres towards the other branch; with
+    ``end``, every drive must end on the branch taken."""
+    amap = AsciiMap(graph=g, nodes={"a": 0, "b": 1, "c": 2, "d": 3}, scale=1.0)
+    m = OnlineMatcher(g, config=cfg)
+    n = 0
+    for taken in (False, True):
+        route = "abd" if taken else "abc"
+        other = e["bc"] if taken else e["bd"]
+        for seed in range(seeds):
+            fixes = drive(amap, route, speed=speed, sigma=4.0, noise=2.0, seed=seed, heading_noise=1.0)
+            res = run(m, _biased(g, fixes, bias if taken else -bias) if bias else fixes)
+            n += sum(r.edge == other for r in res)
+            if end:
+                assert res[-1].edge == (e["bd"] if taken else e["bc"])
+    return n
+
+
 def test_ten_degree_fork_stays_open_until_the_branches_are_apart() -> None:
     """The 10° exit with the GPS biased 5 m towards the other branch: the node is committed
     only once the branches lie 2 σ apart, so the evidence, not the region's circle, decides
@@ -204,25 +225,15 @@ def test_ten_degree_fork_stays_open_until_the_branches_are_apart() -> None:
     circle: the fork-commit and bias rules of issue #12 off). The shipped defaults (the
     branch held while probable, the learnt bias taken off) do at least as well."""
     g, e = _exit_map()
-    amap = AsciiMap(graph=g, nodes={"a": 0, "b": 1, "c": 2, "d": 3}, scale=1.0)
     circle = DEFAULT_CONFIG.replace(commit_hold_probability=0.0, bias_emission=0.0)
-    wrong = {}
-    for sep, cfg in (
-        (0.0, circle),
-        (2.0, circle.replace(commit_separation_sigmas=2.0)),
-        (-1.0, DEFAULT_CONFIG),
-    ):
-        m = OnlineMatcher(g, config=cfg)
-        n = 0
-        for taken in (False, True):
-            route = "abd" if taken else "abc"
-            other = e["bc"] if taken else e["bd"]
-            for seed in range(6):
-                fixes = drive(amap, route, speed=25.0, sigma=4.0, noise=2.0, seed=seed, heading_noise=1.0)
-                res = run(m, _biased(g, fixes, 5.0 if taken else -5.0))
-                n += sum(r.edge == other for r in res)
-                assert res[-1].edge == (e["bd"] if taken else e["bc"])
-        wrong[sep] = n
+    wrong = {
+        sep: _wrong_at_fork(g, e, cfg, seeds=6, speed=25.0, bias=5.0, end=True)
+        for sep, cfg in (
+            (0.0, circle),
+            (2.0, circle.replace(commit_separation_sigmas=2.0)),
+            (-1.0, DEFAULT_CONFIG),
+        )
+    }
     assert wrong[2.0] <= 0.6 * wrong[0.0]
     assert wrong[-1.0] <= wrong[2.0]
 
@@ -253,23 +264,11 @@ def test_motorway_split_keeps_the_other_branch_after_a_forced_commit() -> None:
                         ` ` ` ` ` ` ` ` d
     """
     g, e = _split_map(1.5)
-    amap = AsciiMap(graph=g, nodes={"a": 0, "b": 1, "c": 2, "d": 3}, scale=1.0)
-    wrong = {}
-    for hold in (0.0, DEFAULT_CONFIG.online.commit_hold_probability):
-        m = OnlineMatcher(g, config=DEFAULT_CONFIG.replace(commit_hold_probability=hold))
-        n = 0
-        for taken in (False, True):
-            route = "abd" if taken else "abc"
-            other = e["bc"] if taken else e["bd"]
-            for seed in range(4):
-                res = run(
-                    m, drive(amap, route, speed=30.0, sigma=4.0, noise=2.0, seed=seed, heading_noise=1.0)
-                )
-                n += sum(r.edge == other for r in res)
-                if hold > 0.0:
-                    assert res[-1].edge == (e["bd"] if taken else e["bc"])
-        wrong[hold] = n
-    assert wrong[DEFAULT_CONFIG.online.commit_hold_probability] < 0.6 * wrong[0.0]
+    hold = DEFAULT_CONFIG.online.commit_hold_probability
+    old = DEFAULT_CONFIG.replace(commit_hold_probability=0.0)
+    dropped = _wrong_at_fork(g, e, old, seeds=4, speed=30.0, bias=0.0, end=False)
+    kept = _wrong_at_fork(g, e, DEFAULT_CONFIG, seeds=4, speed=30.0, bias=0.0, end=True)
+    assert hold > 0.0 and kept < 0.6 * dropped
 
 
 def test_learnt_bias_is_no_evidence_for_the_branch_it_points_to() -> None:
@@ -281,17 +280,10 @@ def test_learnt_bias_is_no_evidence_for_the_branch_it_points_to() -> None:
                            ` ` ` ` ` ` ` d      (fixes 5 m towards the branch not taken)
     """
     g, e = _exit_map()
-    amap = AsciiMap(graph=g, nodes={"a": 0, "b": 1, "c": 2, "d": 3}, scale=1.0)
-    wrong = {}
-    for share in (0.0, 1.0):
-        m = OnlineMatcher(g, config=DEFAULT_CONFIG.replace(bias_emission=share))
-        n = 0
-        for taken in (False, True):
-            route = "abd" if taken else "abc"
-            other = e["bc"] if taken else e["bd"]
-            for seed in range(6):
-                fixes = drive(amap, route, speed=25.0, sigma=4.0, noise=2.0, seed=seed, heading_noise=1.0)
-                res = run(m, _biased(g, fixes, 5.0 if taken else -5.0))
-                n += sum(r.edge == other for r in res)
-        wrong[share] = n
+    wrong = {
+        share: _wrong_at_fork(
+            g, e, DEFAULT_CONFIG.replace(bias_emission=share), seeds=6, speed=25.0, bias=5.0, end=False
+        )
+        for share in (0.0, 1.0)
+    }
     assert wrong[1.0] < 0.6 * wrong[0.0]
