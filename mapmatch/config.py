@@ -190,7 +190,8 @@ class OnlineConfig:
     stop_hold_fix_distance : metres; the stop line holds a stopped vehicle back before a node
         only when the fix's own projection, too, lies less than this past the node (the
         position believed may lag the fix by its along-track correction, 4-9 m on REAL GPS;
-        where the vehicle stands, the fixes show). 0: not checked.
+        where the vehicle stands, the fixes show; checked only on GPS-aided fixes with no
+        dead-reckoning drift left above their own σ). 0: not checked.
 
     Forks and parallel roads (issue #12, with GPS valid)
     ----------------------------------------------------
