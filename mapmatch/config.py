@@ -184,6 +184,27 @@ class OnlineConfig:
     trail_max_distance : ... and crossings at most this many metres back.
     revise_sigmas : a revised crossing moves only as far as its anchor is this many σ sure.
     report_back_ratio : reporting an edge behind the one reported needs this much more mass.
+
+    Stops on real GPS (issue #12, with GPS valid)
+    ---------------------------------------------
+    stop_hold_fix_distance : metres; the stop line holds a stopped vehicle back before a node
+        only when the fix's own projection, too, lies less than this past the node (the
+        position believed may lag the fix by its along-track correction, 4-9 m on REAL GPS;
+        where the vehicle stands, the fixes show; checked only on GPS-aided fixes with no
+        dead-reckoning drift left above their own σ). 0: not checked.
+
+    Forks and parallel roads (issue #12, with GPS valid)
+    ----------------------------------------------------
+    bias_emission : share of the learnt fix bias's part across the road taken off a GPS-aided
+        fix's distance from each road when the paths are weighed: the receiver's error lasts
+        minutes, so a fix that has lain 10 m left of the road is no evidence for the road
+        10 m to the left (0 disables it). Half: the learnt bias is an estimate (1 and 0.5 are
+        alike on REAL GPS; 1 made a single-fix flip that cost a SIMULATED 10 Hz drive a
+        quarter of its live intersections).
+    commit_hold_probability : a node is not committed while the paths its commit would drop
+        (another branch of a fork) still hold more than this share of the probability, until
+        the best path is ``ambiguous_max_radius`` past it: leaving the ambiguous circle is no
+        evidence (0 disables it).
     """
 
     drift_rate: float = 0.04
@@ -259,6 +280,12 @@ class OnlineConfig:
     trail_max_distance: float = 300.0
     revise_sigmas: float = 1.0
     report_back_ratio: float = 3.0
+
+    # stops on real GPS (issue #12, with GPS valid)
+    stop_hold_fix_distance: float = 4.0
+    # forks and parallel roads (issue #12, with GPS valid)
+    commit_hold_probability: float = 0.05
+    bias_emission: float = 0.5
 
     def __post_init__(self) -> None:
         _check_numbers(self)

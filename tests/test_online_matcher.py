@@ -920,3 +920,40 @@ def test_odometer_scale_is_learnt_from_the_gps_on_a_straight_road() -> None:
     off = SessionState()
     run(OnlineMatcher(m.graph, config=DEFAULT_CONFIG.replace(scale_baseline=0.0)), fixes, off)
     assert off.odo_k == 0.0
+
+
+TURN_THEN_CROSSING = """
+n
+|
+|
+|
+|
+b-----c-------d
+      |
+      s
+"""
+
+
+def test_stop_line_hold_needs_the_fix_too_when_the_belief_lags_it() -> None:
+    # the odometer reads 10 % low: from the turn at b on, the position carried by it (the turn
+    # anchor) lags the exact fixes. The vehicle stops 6 m past the straight crossing c, where
+    # its fixes lie: the belief is within the stop-line distance of c, the fix is not, so the
+    # vehicle is not held back before c.
+    #
+    #   n
+    #   |
+    #   b-----c-*-----d      *: stops 6 m past c (fixes there); the belief lags 3 m
+    #         s
+    m = parse_ascii_map(TURN_THEN_CROSSING, scale=10)
+    bc, cd = m.edge("b", "c"), m.edge("c", "d")
+    stop_s = float(m.xy("n")[1] - m.xy("b")[1]) + float(m.xy("c")[0] - m.xy("b")[0]) + 6.0
+    fixes = [
+        dataclasses.replace(f, distance=0.9 * f.distance, speed=0.9 * f.speed)
+        for f in _stop_drive(m, "nbcd", stop_s=stop_s, bias_x=0.0, bias_y=0.0)
+    ]
+    res = run(OnlineMatcher(m.graph), fixes)
+    assert 0.0 < res[-20].offset < DEFAULT_CONFIG.online.stop_hold_distance  # the belief lags
+    assert [r.edge for r in res[-19:]] == [cd] * 19
+    # held by the belief alone (the old rule), it is put back before c
+    old = run(OnlineMatcher(m.graph, config=DEFAULT_CONFIG.replace(stop_hold_fix_distance=0.0)), fixes)
+    assert [r.edge for r in old[-15:]] == [bc] * 15

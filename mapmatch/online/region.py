@@ -40,7 +40,7 @@ def commit(
         state.hyps = [h for h in state.hyps if h.edges[0] == best.edges[0]]
         state.init_pending = False
     while best.k >= 1 and best.s - road.elen[best.edges[0]] >= step.r_a:
-        if _branches_close(road, state, best, step, cfg):
+        if _branches_close(road, state, best, step, cfg) or _branch_probable(road, state, best, step, cfg):
             break  # the evidence cannot tell the branches apart yet
         if state.live:
             c = correction(road, state, best, cfg)
@@ -73,6 +73,47 @@ def _branches_close(
     )
 
 
+def _branch_probable(
+    road: RoadModel, state: SessionState, best: Hypothesis, step: Step, cfg: MatchConfig
+) -> bool:
+    """Whether the paths the commit of ``best``'s first node would drop still hold more than
+    ``commit_hold_probability`` of the probability (until ``best`` is ``ambiguous_max_radius``
+    past the node): a fork's branches separate slowly, and leaving the ambiguous circle is
+    no evidence."""
+    o = cfg.online
+    if (
+        o.commit_hold_probability <= 0.0
+        or not step.gps  # dead reckoning: the turn's anchor at the commit carries the vehicle
+        or best.s - road.elen[best.edges[0]] >= o.ambiguous_max_radius
+    ):
+        return False
+    e1 = best.edges[1]
+    total = drop = 0.0
+    for h in state.hyps:
+        p = math.exp(h.logp)
+        total += p
+        if len(h.edges) < 2 or h.edges[1] != e1:
+            drop += p
+    return drop > o.commit_hold_probability * total
+
+
+def _branches_kept(state: SessionState, e1: int, step: Step, cfg: MatchConfig) -> list[Hypothesis]:
+    """The hypotheses on another branch past the node committed (not through ``e1``) that still
+    hold more than ``commit_hold_probability`` of the probability: a commit forced by the
+    distance (the branches of a motorway split may run within a few metres for a kilometre)
+    does not end them; they go on as paths of their own, and the evidence decides."""
+    o = cfg.online
+    if o.commit_hold_probability <= 0.0 or not step.gps:
+        return []
+    total = sum(math.exp(h.logp) for h in state.hyps)
+    floor = o.commit_hold_probability * total
+    return [
+        h
+        for h in state.hyps
+        if h.k >= 1 and len(h.edges) > 1 and h.edges[1] != e1 and math.exp(h.logp) > floor
+    ]
+
+
 def _commit_start(
     road: RoadModel, state: SessionState, best: Hypothesis, step: Step, cfg: MatchConfig
 ) -> bool:
@@ -97,6 +138,7 @@ def _commit_node(
     the turn, anchor the position by it, and drop the edge behind from every path."""
     e0, e1 = best.edges[0], best.edges[1]
     hyps = [h for h in state.hyps if len(h.edges) > 1 and h.edges[1] == e1]
+    hyps += _branches_kept(state, e1, step, cfg)
     is_rev = e1 == road.rev[e0]
     anchor_odo = anchor_sd = math.nan
     angle = angle_diff(road.bstart[e1], road.bend[e0])

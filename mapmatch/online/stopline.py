@@ -37,12 +37,19 @@ def hold_before_node(
 ) -> float:
     """Put a stopped vehicle back before the node it has just crossed: vehicles stop at stop
     lines, not in junctions, so its fixes' along-track error put it past. Only when it stopped
-    within ``stop_hold_distance`` of driving past the node, with the next node further than
-    that, and without a turn there that its heading shows taken. Returns the time it had
-    crossed the node (nan: not put back)."""
+    within ``stop_hold_distance`` of driving past the node (and a GPS-aided fix whose σ is its
+    own, no dead-reckoning drift above it, within ``stop_hold_fix_distance``), with the next
+    node further than that, and without a turn there that its heading shows taken. Returns
+    the time it had crossed the node (nan: not put back)."""
     hold = cfg.online.stop_hold_distance
     prev, cur = h.edges[h.k - 1], h.edges[h.k]
     if h.off >= hold or road.elen[cur] - h.off <= hold or len(state.trail) < 2:
+        return math.nan
+    fix_hold = cfg.online.stop_hold_fix_distance
+    own = step.gps and step.sigma <= step.fix_sigma  # no dead-reckoning drift left above its own σ
+    if fix_hold > 0.0 and own and road.project(cur, step.x, step.y)[0] >= fix_hold:
+        # the fix itself shows the stop further past the node than a stop line: the position
+        # believed may lag it (along-track correction), but where it stands the fix tells
         return math.nan
     crossed = h.enter[h.k]
     t_tr = [x.time for x in state.trail]
