@@ -184,6 +184,13 @@ class OnlineConfig:
     trail_max_distance : ... and crossings at most this many metres back.
     revise_sigmas : a revised crossing moves only as far as its anchor is this many σ sure.
     report_back_ratio : reporting an edge behind the one reported needs this much more mass.
+
+    Fix rate and outages (rate-independent rules)
+    ---------------------------------------------
+    speed_time : seconds; the transition's speed penalty judges the distance along the path over
+        at least this long. Between fixes 0.1 s apart the positions' own noise (a lagging
+        estimate catching up with its fix, 10 m in one step) would read as an impossible speed,
+        which one second of the same motion is not: at 10 Hz the vehicle stuck behind a node.
     """
 
     drift_rate: float = 0.04
@@ -259,6 +266,8 @@ class OnlineConfig:
     trail_max_distance: float = 300.0
     revise_sigmas: float = 1.0
     report_back_ratio: float = 3.0
+
+    speed_time: float = 1.0
 
     def __post_init__(self) -> None:
         _check_numbers(self)
