@@ -11,6 +11,7 @@ from mapmatch.graph.ascii import AsciiMap, parse_ascii_map
 from mapmatch.graph.projection import to_lonlat
 from mapmatch.online import OnlineMatcher
 from mapmatch.types import Fix, SnapResult
+from tests.online_helpers import drive
 
 TURN = """
 a-----------b
@@ -90,3 +91,46 @@ def test_speed_is_judged_over_a_second_at_any_fix_rate() -> None:
     assert raw < tenth - 20.0
     # a real impossibility is still one: 200 m in 0.1 s
     assert road.transition(200.0, step(0.1), cfg) < -60.0
+
+
+BESIDE = """
+a-------------b------------------------------------c
+               \\
+                f----------------------------------d
+"""
+
+
+def _outage_beside(m: AsciiMap) -> tuple[list[Fix], int]:
+    """a -> b -> f -> d at 10 m/s with GPS lost 10 s before b for 35 s. The dead reckoning
+    drifts north (4 m/s) onto b-c, 40 m north of f-d, heading east (the fused heading smooths the
+    short jog b-f away): the matcher follows b-c. The fusion filter then blends the offset out
+    slowly: the first fix back keeps 80 % of it (8 m from b-c), each next one half the one
+    before. Returns the fixes and the index of the first fix back."""
+    truth = drive(m, "abfd", speed=10, sigma=3.0)
+    bx = m.xy("b")[0]
+    gap = m.xy("b")[1] - m.xy("f")[1]
+    lost = next(i for i, f in enumerate(truth) if _xy(m, f)[0] > bx - 100.0)
+    back = lost + 35
+    out: list[Fix] = []
+    for i, f in enumerate(truth):
+        if lost <= i < back:
+            dy = min(4.0 * (i - lost + 1), gap)
+            out += _shifted(m, [f], 0.0, dy, gps_valid=False, pos_sigma=float("nan"), heading=90.0)
+        elif i >= back:
+            out += _shifted(m, [f], 0.0, 0.8 * gap * 0.5 ** (i - back))
+        else:
+            out.append(f)
+    return out, back
+
+
+def test_outage_that_ends_beside_a_parallel_road_is_decided_by_the_returning_gps() -> None:
+    """Dead reckoning put the vehicle on b-c, 40 m beside the road it drives (f-d). The first
+    fix back lies 8 m from b-c (nothing to search for yet), the next ones come ever closer to
+    f-d, still within the drift's σ of b-c: the returning GPS decides within 4 s, not once the
+    drift has decayed (8 s and more)."""
+    m = parse_ascii_map(BESIDE, scale=10)
+    fixes, back = _outage_beside(m)
+    res = _run(OnlineMatcher(m.graph), fixes)
+    assert res[back - 1].edge == m.edge("b", "c")  # the dead reckoning's road
+    fd = m.edge("f", "d")
+    assert all(r.edge == fd for r in res[back + 4 :]), [r.edge for r in res[back:]]
