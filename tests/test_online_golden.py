@@ -4,7 +4,9 @@ The outputs in ``tests/data/online_golden/before.json.gz`` were first recorded w
 7ce485e, before the restructuring (#13), and recorded again on branch i12 (issue #12), whose
 rules change answers on purpose: a stopped vehicle keeps its road, the odometer scale is also
 learnt from the GPS on straight roads, the stop-line hold is 4 m (``python tests/online_golden.py
-record``). They hold every ``SnapResult`` of the service tests' drives and of bench_online drives
+record``), and again on branch i12o (issue #12, outages and 10 Hz): the speed penalty judged
+over a second, branches passed in an outage kept alive, the returning GPS searched while the
+drift blends out, the drift σ decaying over 4 s, the turn score weighed by distance only. They hold every ``SnapResult`` of the service tests' drives and of bench_online drives
 on shared maps, and a session exported half way (imported here and replayed). A few batch
 matches are in ``batch.json.gz``, recorded after #14 changed the batch model (off-map fixes,
 impossible steps, jumps, speed limits, the direction of travel). The maps are built by the osmnx
