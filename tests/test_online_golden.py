@@ -6,7 +6,8 @@ rules change answers on purpose: a stopped vehicle keeps its road, the odometer 
 learnt from the GPS on straight roads, the stop-line hold is 4 m (``python tests/online_golden.py
 record``), and again on branch i12o (issue #12, outages and 10 Hz): the speed penalty judged
 over a second, branches passed in an outage kept alive, the returning GPS searched while the
-drift blends out, the drift σ decaying over 4 s, the turn score weighed by distance only. They hold every ``SnapResult`` of the service tests' drives and of bench_online drives
+drift blends out, the drift σ decaying over 4 s, the turn score weighed by distance only.
+They hold every ``SnapResult`` of the service tests' drives and of bench_online drives
 on shared maps, and a session exported half way (imported here and replayed). A few batch
 matches are in ``batch.json.gz``, recorded after #14 changed the batch model (off-map fixes,
 impossible steps, jumps, speed limits, the direction of travel). The maps are built by the osmnx
