@@ -4,9 +4,14 @@ The outputs in ``tests/data/online_golden/before.json.gz`` were first recorded w
 7ce485e, before the restructuring (#13), and recorded again on branch i12 (issue #12), whose
 rules change answers on purpose: a stopped vehicle keeps its road, the odometer scale is also
 learnt from the GPS on straight roads, the stop-line hold is 4 m (``python tests/online_golden.py
-record``), and again on branch i12g (issue #12, with GPS valid): the stop-line hold needs the
-fix within ``stop_hold_fix_distance`` too, a probable fork branch holds the commit and outlives
-a forced one, and the learnt bias across the road is taken off the distances weighed. They hold every ``SnapResult`` of the service tests' drives and of bench_online drives
+record``), and again after merging the #12 work of this session (``record --set committed``):
+with GPS valid, the stop-line hold needs the fix within ``stop_hold_fix_distance`` too, a
+probable fork branch holds the commit and outlives a forced one, and the learnt bias across
+the road is partly taken off the distances weighed; in outages and at 10 Hz, the speed penalty
+is judged over a second, branches passed in an outage are kept alive, the returning GPS is
+searched while the drift blends out, the drift σ decays over 4 s, and the turn score is
+weighed by distance only. They hold every ``SnapResult`` of the service tests' drives and of
+bench_online drives
 on shared maps, and a session exported half way (imported here and replayed). A few batch
 matches are in ``batch.json.gz``, recorded after #14 changed the batch model (off-map fixes,
 impossible steps, jumps, speed limits, the direction of travel). The maps are built by the osmnx

@@ -207,3 +207,21 @@ def test_truth_through_map_nodes_keeps_a_u_turn(tmp_path: Path) -> None:
     d = real_drive(amap.graph, tmp_path, outages=False)
     assert d.route.edges.tolist() == [amap.edge("a", "b"), amap.edge("b", "c"), amap.edge("c", "b")]
     assert d.truth["edge"].iloc[-1] == amap.edge("c", "b")
+
+
+def test_the_odometer_measures_the_rounded_path_not_the_centre_line(tmp_path: Path) -> None:
+    """At the 90° turn at b the vehicle cuts the corner (as the simulator's vehicles do): the
+    odometer reads a metre or two less than the centre line; without rounding it reads the line."""
+    _ell_track(tmp_path)
+    amap = parse_ascii_map(ELL, scale=10.0)
+    exact = RealGpsConfig(odo_scale_sigma=0.0, odo_noise_m=0.0)
+    line = real_drive(
+        amap.graph,
+        tmp_path,
+        outages=False,
+        config=RealGpsConfig(odo_scale_sigma=0.0, odo_noise_m=0.0, corner_smooth_m=0.0),
+    )
+    cut = real_drive(amap.graph, tmp_path, outages=False, config=exact)
+    length = line.route.length
+    assert abs(line.fixes["distance"].sum() - length) < 0.01
+    assert 0.5 < length - cut.fixes["distance"].sum() < 4.0

@@ -22,16 +22,20 @@ def filter_step(
     weight: float,
     place: Callable[[H], float],
     turn: Callable[[H, float], float],
+    turn_weight: float | None = None,
 ) -> None:
     """Move every hypothesis to its place for this observation and add its log-score there:
-    ``place(h)`` (emission and transition, moving ``h``) plus ``turn(h, s_before)``, times the
-    observation's ``weight``. A single hypothesis has nothing to be weighed against."""
+    ``place(h)`` (emission and transition, moving ``h``) times the observation's ``weight``,
+    plus ``turn(h, s_before)`` times ``turn_weight`` (default ``weight``; a score already per
+    distance moved is not weighed by time again). A single hypothesis has nothing to be
+    weighed against."""
     many = len(hyps) > 1
+    tw = weight if turn_weight is None else turn_weight
     for h in hyps:
         s_prev = h.s
-        score = place(h)
-        score += turn(h, s_prev)
-        h.logp += weight * score if many else 0.0
+        score = weight * place(h)
+        score += tw * turn(h, s_prev)
+        h.logp += score if many else 0.0
 
 
 def normalise(hyps: list[H], *, prune_log_ratio: float) -> list[H]:

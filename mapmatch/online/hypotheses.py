@@ -120,6 +120,7 @@ def advance(road: RoadModel, state: SessionState, step: Step, cfg: MatchConfig) 
     filter_step(
         hyps,
         weight=step.weight,
+        turn_weight=step.turn_weight,
         place=lambda h: place(road, h, step, cfg, cache),
         turn=lambda h, s_prev: road.turn(h, s_prev, turn_obs, covered, cfg),
     )

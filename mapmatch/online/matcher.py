@@ -73,8 +73,13 @@ class OnlineMatcher:
         if step is None:  # far off the map: accepted, but nowhere to put it
             state.time = fix.time
             return report.off_road(fix)
-        # the first GPS-aided fix after dead reckoning: it is the truth, not an outlier
-        returned = step.gps and step.kappa > 0.0 and state.odo - state.gps_odo > 0.0
+        # the first GPS-aided fix after dead reckoning, and those while its drift blends out:
+        # they are the truth, not outliers
+        first = state.odo - state.gps_odo > 0.0
+        blending = (
+            state.drift_sigma > step.fix_sigma and not step.time - state.search_time < cfg.online.search_every
+        )
+        returned = step.gps and step.kappa > 0.0 and (first or blending)
         self._take(state, step, cfg)
         held: list[tuple[Hypothesis, float]] = []
         reinit = False

@@ -58,10 +58,11 @@ def _branches_close(
     road: RoadModel, state: SessionState, best: Hypothesis, step: Step, cfg: MatchConfig
 ) -> bool:
     """Whether a path the commit of ``best``'s first node would drop is still probable and
-    closer to ``best`` than ``commit_separation_sigmas`` fix σ (until ``best`` is
+    closer to ``best`` than ``commit_separation_sigmas`` fix σ (``outage_separation_sigmas``
+    without GPS; until ``best`` is
     ``ambiguous_max_radius`` past the node)."""
     o = cfg.online
-    sep = o.commit_separation_sigmas * step.sigma
+    sep = (o.commit_separation_sigmas if step.gps else o.outage_separation_sigmas) * step.sigma
     if sep <= 0.0 or best.s - road.elen[best.edges[0]] >= o.ambiguous_max_radius:
         return False
     e1 = best.edges[1]

@@ -122,9 +122,11 @@ class RoadModel:
 
     @staticmethod
     def transition(route_dist: float, step: Step, cfg: MatchConfig) -> float:
-        """Log-probability of ``route_dist`` metres along the path for this step's travel."""
+        """Log-probability of ``route_dist`` metres along the path for this step's travel (its
+        speed judged over at least ``speed_time``, whatever the fix rate)."""
         m = cfg.model
-        return transition_one(route_dist, step.travelled, step.dt, m.beta, m.max_speed, m.speed_penalty)
+        dt = max(step.dt, cfg.online.speed_time)
+        return transition_one(route_dist, step.travelled, dt, m.beta, m.max_speed, m.speed_penalty)
 
     def turn(self, h: Hypothesis, s_prev: float, turn_obs: float, covered: float, cfg: MatchConfig) -> float:
         """Log-score of the heading change observed over the last ``covered`` metres against the

@@ -170,3 +170,4 @@ class Step:
     bias: FixBias  # predicted fix bias
     odo_sigma: float  # σ of the odometer's relative error (after the learnt scale)
     fix_sigma: float = math.nan  # σ of the fix itself, without the dead-reckoning drift
+    turn_weight: float = 1.0  # the turn score's weight: ``weight`` without its share of time

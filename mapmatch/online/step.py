@@ -45,11 +45,15 @@ def prepare(road: RoadModel, state: SessionState, fix: Fix, cfg: MatchConfig) ->
         hs = max(hs, floor, math.sqrt(state.res_head2))
         kappa = 1.0 / math.radians(hs) ** 2
     # the fused error is correlated: evidence accrues with time and, when known, distance
-    weight = 1.0 if math.isnan(dt) else min(1.0, dt / o.evidence_time)
+    per_time = 1.0 if math.isnan(dt) else min(1.0, dt / o.evidence_time)
+    weight = per_time
     stopped = False
     if odo_known and not math.isnan(dt):
         weight = min(weight, travelled / o.evidence_distance)
         stopped = travelled < o.stop_speed * dt
+    # the turn score is already per metre driven: weighed per fix only by the distance share,
+    # or it would count ten times less at 10 Hz than at 1 Hz
+    turn_weight = weight / per_time if per_time > 0.0 else 0.0
     odo = state.odo + (travelled if not math.isnan(travelled) else 0.0)
     return Step(
         time=fix.time,
@@ -64,6 +68,7 @@ def prepare(road: RoadModel, state: SessionState, fix: Fix, cfg: MatchConfig) ->
         dt=dt,
         gps=gps,
         weight=weight,
+        turn_weight=turn_weight,
         stopped=stopped,
         r_a=region_radius(road, sigma, cfg),
         dr=0.0 if gps else odo - state.gps_odo,

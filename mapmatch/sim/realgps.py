@@ -42,7 +42,10 @@ Steps (:func:`real_drive`):
      the gyro's residual bias is integrated: a constant per drive (σ ``gyro_bias_dps``) plus
      a random walk (``gyro_bias_walk_dps`` per √s), so the heading drifts through an outage
      and snaps back when GPS returns;
-   * **odometer**: the true distance times ``1 + k`` with a residual scale error k per drive
+   * **odometer**: the distance along the vehicle's path, the route's centre line with its
+     corners rounded by a moving average over ``corner_smooth_m`` (vehicles cut corners, as
+     the simulator's vehicles do; the odometer measures that path, not the centre line),
+     times ``1 + k`` with a residual scale error k per drive
      (σ ``odo_scale_sigma``: what is left after the fusion node learnt the scale), plus white
      noise ``odo_noise_m`` per output interval; ``speed`` is that distance over the interval;
    * **reported σ**: ``pos_sigma`` is ``gps_sigma_m`` (the receiver's nominal accuracy; the
@@ -75,7 +78,7 @@ from mapmatch.graph.projection import to_lonlat, to_xy
 from mapmatch.graph.road_graph import RoadGraph
 from mapmatch.sim.drive import Drive, fixes_frame, truth_frame
 from mapmatch.sim.kalman import FusedStream
-from mapmatch.sim.profile import Trajectory
+from mapmatch.sim.profile import Trajectory, _moving_average
 from mapmatch.sim.routes import Route, RouteError, route_from_edges, route_from_geometry
 from mapmatch.sim.sensors import SensorData, spread_outages
 
@@ -98,7 +101,9 @@ class RealGpsConfig:
     the gyro's residual bias in deg/s (constant per drive) and ``gyro_bias_walk_dps`` its
     random walk in deg/s/√s, both integrated only without GPS.
     Odometer: ``odo_scale_sigma`` residual scale error per drive, ``odo_noise_m`` white noise
-    per output interval.
+    per output interval, ``corner_smooth_m`` the window in metres of the moving average that
+    rounds the route's corners into the path the vehicle drives and the odometer measures
+    (0: the centre line).
     Truth: it is known where a real fix within ``truth_radius_m`` of the true route lies at
     most ``truth_max_gap_s`` away in time on either side (else the vehicle's place on the
     route is a guess).
@@ -120,6 +125,7 @@ class RealGpsConfig:
     gyro_bias_walk_dps: float = 0.002
     odo_scale_sigma: float = 0.01
     odo_noise_m: float = 0.02
+    corner_smooth_m: float = 9.0
     truth_radius_m: float = 50.0
     truth_max_gap_s: float = 10.0
 
@@ -371,6 +377,18 @@ def _route_heading(route: Route, s: NDArray[np.float64], half_m: float) -> NDArr
     return np.unwrap(np.arctan2(p1[:, 0] - p0[:, 0], p1[:, 1] - p0[:, 1]))
 
 
+def driven_distance(route: Route, s: NDArray[np.float64], smooth_m: float) -> NDArray[np.float64]:
+    """Distance along the path a vehicle drives at route distances ``s``: the centre line
+    resampled every metre with its corners rounded by a moving average over ``smooth_m`` metres
+    (vehicles cut corners: at a 90° turn the path is a metre or two shorter than the line)."""
+    grid = np.append(np.arange(0.0, route.length, 1.0), route.length)
+    c = route.position(grid)
+    w = max(1, round(smooth_m))
+    x, y = _moving_average(c[:, 0], w), _moving_average(c[:, 1], w)
+    arc = np.concatenate([[0.0], np.cumsum(np.hypot(np.diff(x), np.diff(y)))])
+    return np.interp(s, grid, arc)
+
+
 def _gauss_markov(
     n: int, dt: float, tau: float, sigma: float, rng: np.random.Generator
 ) -> NDArray[np.float64]:
@@ -496,9 +514,10 @@ def real_drive(
             since[i] = since[i - 1] + dt
     head = lag + h_err + drift
 
-    # ---- odometer
+    # ---- odometer: the length of the path driven (corners rounded), with a scale error
     scale = float(rng.normal(0.0, cfg.odo_scale_sigma))
-    step_d = np.diff(sb, prepend=sb[0]) * (1.0 + scale)
+    driven = driven_distance(route, sb, cfg.corner_smooth_m)
+    step_d = np.diff(driven, prepend=driven[0]) * (1.0 + scale)
     odo = np.cumsum(step_d)
 
     # ---- fused position: GPS, dead reckoning without it, the offset blended out on return

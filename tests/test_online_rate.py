@@ -1,0 +1,136 @@
+"""Online matcher at 1 and 10 Hz and in GPS outages, on tiny ASCII maps: rate-independent rules
+(evidence per second and metre, not per fix) and the vehicle carried through an outage."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import pytest
+
+from mapmatch.graph.ascii import AsciiMap, parse_ascii_map
+from mapmatch.graph.projection import to_lonlat
+from mapmatch.online import OnlineMatcher
+from mapmatch.types import Fix, SnapResult
+from tests.online_helpers import drive
+
+TURN = """
+a-----------b
+            |
+            |
+            |
+            |
+            |
+            |
+            |
+            |
+            c
+"""
+
+
+def _shifted(m: AsciiMap, fixes: list[Fix], dx: float, dy: float, **kw: float) -> list[Fix]:
+    """The fixes moved by (dx, dy) metres, with other fields replaced."""
+    out = []
+    for f in fixes:
+        x, y = _xy(m, f)
+        lon, lat = to_lonlat(m.graph.crs, [x + dx], [y + dy])[0]
+        out.append(dataclasses.replace(f, lon=float(lon), lat=float(lat), **kw))
+    return out
+
+
+def _xy(m: AsciiMap, f: Fix) -> tuple[float, float]:
+    from mapmatch.graph.projection import point_to_xy
+
+    return point_to_xy(m.graph.crs, f.lon, f.lat)
+
+
+def _run(matcher: OnlineMatcher, fixes: list[Fix]) -> list[SnapResult]:
+    st = matcher.new_session()
+    return [matcher.update(st, f) for f in fixes]
+
+
+def test_speed_is_judged_over_a_second_at_any_fix_rate() -> None:
+    """A position that catches up with its fix by 10 m in one step: in a step of 1 s a plausible
+    speed, and in a step of 0.1 s (10 Hz) no less plausible, for the same motion over a second
+    (the transition's speed penalty once held a vehicle behind a node for 35 s at 10 Hz)."""
+    from mapmatch.config import DEFAULT_CONFIG
+    from mapmatch.online.road import RoadModel
+    from mapmatch.online.state import FixBias, Step
+
+    m = parse_ascii_map(TURN, scale=10)
+    road = RoadModel(m.graph)
+
+    def step(dt: float) -> Step:
+        nan = float("nan")
+        return Step(
+            time=0.0,
+            x=0.0,
+            y=0.0,
+            sigma=5.0,
+            heading=nan,
+            kappa=0.0,
+            travelled=10.0 * dt,
+            odo=0.0,
+            odo_known=True,
+            dt=dt,
+            gps=True,
+            weight=1.0,
+            stopped=False,
+            r_a=10.0,
+            dr=0.0,
+            bias=FixBias(),
+            odo_sigma=0.01,
+        )
+
+    cfg = DEFAULT_CONFIG
+    one = road.transition(11.0, step(1.0), cfg)
+    tenth = road.transition(11.0, step(0.1), cfg)
+    assert one == pytest.approx(-1.0 / cfg.model.beta, abs=0.01)
+    assert tenth == pytest.approx(-10.0 / cfg.model.beta, abs=0.01)  # the distance, no speed term
+    # judged over the step itself, 110 m/s would cost 25 log units
+    raw = road.transition(11.0, step(0.1), cfg.replace(speed_time=0.0))
+    assert raw < tenth - 20.0
+    # a real impossibility is still one: 200 m in 0.1 s
+    assert road.transition(200.0, step(0.1), cfg) < -60.0
+
+
+BESIDE = """
+a-------------b------------------------------------c
+               \\
+                f----------------------------------d
+"""
+
+
+def _outage_beside(m: AsciiMap) -> tuple[list[Fix], int]:
+    """a -> b -> f -> d at 10 m/s with GPS lost 10 s before b for 35 s. The dead reckoning
+    drifts north (4 m/s) onto b-c, 40 m north of f-d, heading east (the fused heading smooths the
+    short jog b-f away): the matcher follows b-c. The fusion filter then blends the offset out
+    slowly: the first fix back keeps 80 % of it (8 m from b-c), each next one half the one
+    before. Returns the fixes and the index of the first fix back."""
+    truth = drive(m, "abfd", speed=10, sigma=3.0)
+    bx = m.xy("b")[0]
+    gap = m.xy("b")[1] - m.xy("f")[1]
+    lost = next(i for i, f in enumerate(truth) if _xy(m, f)[0] > bx - 100.0)
+    back = lost + 35
+    out: list[Fix] = []
+    for i, f in enumerate(truth):
+        if lost <= i < back:
+            dy = min(4.0 * (i - lost + 1), gap)
+            out += _shifted(m, [f], 0.0, dy, gps_valid=False, pos_sigma=float("nan"), heading=90.0)
+        elif i >= back:
+            out += _shifted(m, [f], 0.0, 0.8 * gap * 0.5 ** (i - back))
+        else:
+            out.append(f)
+    return out, back
+
+
+def test_outage_that_ends_beside_a_parallel_road_is_decided_by_the_returning_gps() -> None:
+    """Dead reckoning put the vehicle on b-c, 40 m beside the road it drives (f-d). The first
+    fix back lies 8 m from b-c (nothing to search for yet), the next ones come ever closer to
+    f-d, still within the drift's σ of b-c: the returning GPS decides within 4 s, not once the
+    drift has decayed (8 s and more)."""
+    m = parse_ascii_map(BESIDE, scale=10)
+    fixes, back = _outage_beside(m)
+    res = _run(OnlineMatcher(m.graph), fixes)
+    assert res[back - 1].edge == m.edge("b", "c")  # the dead reckoning's road
+    fd = m.edge("f", "d")
+    assert all(r.edge == fd for r in res[back + 4 :]), [r.edge for r in res[back:]]
