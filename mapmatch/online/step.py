@@ -30,7 +30,8 @@ def prepare(road: RoadModel, state: SessionState, fix: Fix, cfg: MatchConfig) ->
     if not math.isnan(fix.distance):
         travelled = fix.distance * (1.0 + state.odo_k)
     elif not math.isnan(fix.speed) and not math.isnan(dt):
-        travelled = fix.speed * dt * (1.0 + state.odo_k)
+        # a speed says nothing of a long gap: at most the largest odometer step a fix may give
+        travelled = min(fix.speed * dt, LIMITS["distance"]) * (1.0 + state.odo_k)
     else:
         odo_known = False
         travelled = math.hypot(x - state.x, y - state.y) if not math.isnan(state.x) else math.nan
