@@ -355,7 +355,7 @@ def write_tracks(
                 sp = float(t.speed[i]) if t.speed is not None and np.isfinite(t.speed[i]) else None
                 point = gpxpy.gpx.GPXTrackPoint(float(t.lat[i]), float(t.lon[i]), time=tm, speed=sp)
                 if t.heading is not None and np.isfinite(t.heading[i]):
-                    point.course = float(t.heading[i])
+                    setattr(point, "course", float(t.heading[i]))  # noqa: B010 (typed None in gpxpy)
                 seg.points.append(point)
             trk.segments.append(seg)
             gpx.tracks.append(trk)
