@@ -215,6 +215,10 @@ class OnlineConfig:
         at least this long. Between fixes 0.1 s apart the positions' own noise (a lagging
         estimate catching up with its fix, 10 m in one step) would read as an impossible speed,
         which one second of the same motion is not: at 10 Hz the vehicle stuck behind a node.
+    stopped_heading_weight : a stopped vehicle's fused heading (a fix with ``heading_sigma``,
+        gyro-aided, which holds at a standstill where a GPS course does not) scores the paths
+        with this share of the fix's time weight, the share its distance weight leaves out: a
+        vehicle turning round while stopped at a node shows which road it faces (0 disables it).
     outage_separation_sigmas : ``commit_separation_sigmas`` for a node passed without GPS: the
         dead-reckoned position cannot tell branches a few metres apart, while their headings
         soon will (a ramp curving off a straight road), so they stay alive until the evidence or
@@ -303,6 +307,7 @@ class OnlineConfig:
     bias_emission: float = 0.5
     speed_time: float = 1.0
     outage_separation_sigmas: float = 2.0
+    stopped_heading_weight: float = 1.0
 
     def __post_init__(self) -> None:
         _check_numbers(self)

@@ -957,3 +957,40 @@ def test_stop_line_hold_needs_the_fix_too_when_the_belief_lags_it() -> None:
     # held by the belief alone (the old rule), it is put back before c
     old = run(OnlineMatcher(m.graph, config=DEFAULT_CONFIG.replace(stop_hold_fix_distance=0.0)), fixes)
     assert [r.edge for r in old[-15:]] == [bc] * 15
+
+
+def test_stopped_vehicle_faces_the_way_its_fused_heading_says() -> None:
+    # a two-way road; the vehicle stands at o from the start, its gyro-fused heading (with its σ)
+    # pointing west: it stands on b->a, not on a->b (on track 84 of the real drives, a vehicle
+    # that turned round while standing at a node)
+    #
+    #   a-----------o-----------b      o: standing, facing a
+    m = parse_ascii_map("a-----------------------b", scale=10)
+    a, b = m.xy("a"), m.xy("b")
+    stop = (a + b) / 2 + np.array([0.0, 1.0])
+    rng = np.random.default_rng(3)
+    fixes = [
+        _fix_at(
+            m,
+            stop + rng.normal(0.0, 1.0, 2),
+            float(i),
+            270.0,
+            speed=0.0,
+            distance=0.0,
+            heading_sigma=3.0,
+            pos_sigma=3.0,
+        )
+        for i in range(30)
+    ]
+    res = run(OnlineMatcher(m.graph), fixes)
+    assert all(r.edge == m.edge("b", "a") for r in res[-10:])
+    facing_east = [dataclasses.replace(f, heading=90.0) for f in fixes]
+    assert all(r.edge == m.edge("a", "b") for r in run(OnlineMatcher(m.graph), facing_east)[-10:])
+    # neither a GPS course (no heading σ) nor the rule switched off can tell at a standstill
+    off = DEFAULT_CONFIG.replace(stopped_heading_weight=0.0)
+    for matcher, fs in (
+        (OnlineMatcher(m.graph, config=off), fixes),
+        (OnlineMatcher(m.graph), [dataclasses.replace(f, heading_sigma=math.nan) for f in fixes]),
+    ):
+        res = run(matcher, fs)
+        assert [r.edge for r in res[-10:]] == [run(matcher, facing_east)[-1].edge] * 10

@@ -124,6 +124,10 @@ def advance(road: RoadModel, state: SessionState, step: Step, cfg: MatchConfig) 
         place=lambda h: place(road, h, step, cfg, cache),
         turn=lambda h, s_prev: road.turn(h, s_prev, turn_obs, covered, cfg),
     )
+    if step.still_weight > 0.0 and len(hyps) > 1:
+        w, kappa, heading = step.still_weight, step.still_kappa, step.heading
+        for h in hyps:
+            h.logp += w * kappa * (math.cos(math.radians(heading - h.bearing)) - 1.0)
     return hyps
 
 

@@ -171,3 +171,5 @@ class Step:
     odo_sigma: float  # σ of the odometer's relative error (after the learnt scale)
     fix_sigma: float = math.nan  # σ of the fix itself, without the dead-reckoning drift
     turn_weight: float = 1.0  # the turn score's weight: ``weight`` without its share of time
+    still_kappa: float = 0.0  # a stopped vehicle's fused heading: its concentration ...
+    still_weight: float = 0.0  # ... and weight (time share the distance share left out)

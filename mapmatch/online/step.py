@@ -55,6 +55,18 @@ def prepare(road: RoadModel, state: SessionState, fix: Fix, cfg: MatchConfig) ->
     # the turn score is already per metre driven: weighed per fix only by the distance share,
     # or it would count ten times less at 10 Hz than at 1 Hz
     turn_weight = weight / per_time if per_time > 0.0 else 0.0
+    # a fused heading (with its σ: gyro-aided) holds at a standstill, where a GPS course does not:
+    # a vehicle turning round while stopped shows it by the heading alone, weighed by time
+    still_kappa = still_weight = 0.0
+    if (
+        stopped
+        and o.stopped_heading_weight > 0.0
+        and not math.isnan(fix.heading_sigma)
+        and not math.isnan(heading)
+    ):
+        hs = max(fix.heading_sigma, o.heading_sigma_floor_deg, math.sqrt(state.res_head2))
+        still_kappa = 1.0 / math.radians(hs) ** 2
+        still_weight = o.stopped_heading_weight * max(per_time - weight, 0.0)
     odo = state.odo + (travelled if not math.isnan(travelled) else 0.0)
     return Step(
         time=fix.time,
@@ -70,6 +82,8 @@ def prepare(road: RoadModel, state: SessionState, fix: Fix, cfg: MatchConfig) ->
         gps=gps,
         weight=weight,
         turn_weight=turn_weight,
+        still_kappa=still_kappa,
+        still_weight=still_weight,
         stopped=stopped,
         r_a=region_radius(road, sigma, cfg),
         dr=0.0 if gps else odo - state.gps_odo,
