@@ -91,11 +91,16 @@ def test_measurement_fields_and_usable_gating_on_a_drive() -> None:
     matcher = OnlineMatcher(m.graph)
     st = matcher.new_session()
     res = [matcher.update(st, f) for f in drive.fix_objects()]
-    # not usable while initialising (two directions of the road); on the road from then on
+    # not usable while initialising (two directions of the road), nor on the road until the
+    # settling distance is driven (the standing start's fused heading picks the direction
+    # before the vehicle moves); usable from then on
     states = [r.state for r in res]
     assert states[0] == State.INITIALISING and states[-1] == State.ON_ROAD
     assert all(r.map_aided.reason == "initialising" for r in res if r.state == State.INITIALISING)
-    assert all(r.map_aided.usable for r in res if r.state == State.ON_ROAD)
+    on_road = [r.map_aided for r in res if r.state == State.ON_ROAD]
+    first = next(i for i, a in enumerate(on_road) if a.usable)
+    assert all(a.reason == "settling" for a in on_road[:first])
+    assert all(a.usable for a in on_road[first:])
     a = res[-1].map_aided
     r = res[-1]
     assert (a.lat, a.lon, a.heading) == (r.lat, r.lon, r.bearing)
