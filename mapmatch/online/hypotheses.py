@@ -125,9 +125,10 @@ def advance(road: RoadModel, state: SessionState, step: Step, cfg: MatchConfig) 
         turn=lambda h, s_prev: road.turn(h, s_prev, turn_obs, covered, cfg),
     )
     if step.still_weight > 0.0 and len(hyps) > 1:
+        # the shared emission's heading term alone (no distance: σ 1, distance 0)
         w, kappa, heading = step.still_weight, step.still_kappa, step.heading
         for h in hyps:
-            h.logp += w * kappa * (math.cos(math.radians(heading - h.bearing)) - 1.0)
+            h.logp += w * road.emission(0.0, 1.0, heading, h.bearing, kappa)
     return hyps
 
 
