@@ -98,6 +98,7 @@ def transition_one(
 
 
 _transition_one = njit(cache=True)(transition_one)
+transition_one_compiled = _transition_one  # for other compiled kernels
 
 
 def transition_logp(

@@ -27,11 +27,15 @@ def test_filter_step_on_a_line_without_roads() -> None:
     hyps = [Point(0.0), Point(10.0), Point(20.0)]
     z = 11.0  # observation; each hypothesis moves 1 m towards it and is scored by its distance
 
-    def place(p: Point) -> float:
-        p.s += math.copysign(1.0, z - p.s)
-        return -0.5 * (p.s - z) ** 2
+    def place(ps: list[Point]) -> list[tuple[float, float]]:
+        out = []
+        for p in ps:
+            before = p.s
+            p.s += math.copysign(1.0, z - p.s)
+            out.append((-0.5 * (p.s - z) ** 2, -abs(p.s - before - 1.0)))
+        return out
 
-    filter_step(hyps, weight=0.5, place=place, turn=lambda p, before: -abs(p.s - before - 1.0))
+    filter_step(hyps, weight=0.5, place=place)
     assert [p.s for p in hyps] == [1.0, 11.0, 19.0]
     # weight × (place + turn): the one moving away from z also pays its turn score
     assert [p.logp for p in hyps] == [0.5 * -50.0, 0.0, 0.5 * (-32.0 - 2.0)]
@@ -43,7 +47,7 @@ def test_filter_step_on_a_line_without_roads() -> None:
 
 def test_a_single_hypothesis_is_not_weighed() -> None:
     one = [Point(3.0, logp=-2.0)]
-    filter_step(one, weight=1.0, place=lambda p: -100.0, turn=lambda p, b: -100.0)
+    filter_step(one, weight=1.0, place=lambda ps: [(-100.0, -100.0)] * len(ps))
     assert one[0].logp == -2.0
 
 

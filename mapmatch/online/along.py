@@ -1,66 +1,82 @@
 """The position along a path: on a straight road the map cannot show the fix's along-track
 error, so the projection is corrected by the learnt fix bias and fused with the turn anchor
-carried on by the odometer."""
+carried on by the odometer. Compiled: called by :mod:`mapmatch.online.placement`."""
 
 from __future__ import annotations
 
 import math
 
-from mapmatch.config import MatchConfig
-from mapmatch.online.road import RoadModel
-from mapmatch.online.state import Hypothesis, PathPos, Step
+import numpy as np
+from numba import njit
+from numpy.typing import NDArray
+
+from mapmatch.online.geometry import RoadArrays, hypot, locate, straight
+from mapmatch.online.params import PlaceParams
+
+# a position on a path: (j, off, s, dist, px, py, bearing) as in :class:`~mapmatch.online.state.PathPos`
+Pos = tuple[int, float, float, float, float, float, float]
 
 
-def along_track(
-    road: RoadModel, h: Hypothesis, step: Step, best: PathPos, acc: float, cfg: MatchConfig
-) -> tuple[PathPos, float]:
-    """Correct the position along ``h``'s path: the fix's projection ``best`` less its learnt
-    along-track bias, fused with the turn anchor (on a straight road the map cannot tell the
-    fix's along-track error). ``acc`` is the furthest ``s`` allowed. Returns the corrected
-    position (``best`` itself when unchanged) and a log-penalty when the path's turn stops the
-    position short of the estimate."""
-    bx, by, pxx, pxy, pyy = step.bias
-    rad = math.radians(best.bearing)
+@njit(cache=True)
+def along_track(  # type: ignore[no-untyped-def]
+    road: RoadArrays,
+    p: PlaceParams,
+    edges: NDArray[np.int64],
+    anc: float,
+    anc_sd: float,
+    best: Pos,
+    acc: float,
+):
+    """Correct the position along the path ``edges``: the fix's projection ``best`` less its
+    learnt along-track bias, fused with the turn anchor ``anc`` (σ ``anc_sd``; on a straight
+    road the map cannot tell the fix's along-track error). ``acc`` is the furthest ``s``
+    allowed. Returns ``(moved, position, miss, anc, anc_sd)``: whether the position changed,
+    the corrected position (``best`` when unchanged), a log-penalty when the path's turn stops
+    the position short of the estimate, and the anchor (nan when inconsistent: forgotten)."""
+    j0, off0, s0, dist0, px0, py0, brg0 = best
+    rad = math.radians(brg0)
     tx, ty = math.sin(rad), math.cos(rad)
-    s_f = s_m = best.s - (bx * tx + by * ty)
+    s_f = s_m = s0 - (p.bx * tx + p.by * ty)
     va = 0.0
-    white = cfg.online.bias_white_fraction * step.sigma
-    vf = tx * tx * pxx + 2.0 * tx * ty * pxy + ty * ty * pyy + white**2
-    if not math.isnan(h.anc_sd) and step.odo_known:
-        va = h.anc_sd * h.anc_sd
-        innov = h.anc + step.odo - s_m
-        if innov * innov > cfg.online.anchor_gate**2 * (va + vf):
-            h.anc = h.anc_sd = math.nan  # inconsistent: forget it
+    white = p.bias_white_fraction * p.sigma
+    vf = tx * tx * p.pxx + 2.0 * tx * ty * p.pxy + ty * ty * p.pyy + white**2
+    if not math.isnan(anc_sd) and p.odo_known:
+        va = anc_sd * anc_sd
+        innov = anc + p.odo - s_m
+        if innov * innov > p.anchor_gate**2 * (va + vf):
+            anc = anc_sd = math.nan  # inconsistent: forget it
         else:
             s_f = s_m + innov * vf / (va + vf)
-    if abs(s_f - best.s) <= 0.01:
-        return best, 0.0
+    if abs(s_f - s0) <= 0.01:
+        return False, best, 0.0, anc, anc_sd
     s_f = min(max(s_f, 0.0), acc)
     want, miss = s_f, 0.0
-    j, start, s_f = _stop_at_turns(road, h, best, s_f, cfg)
+    j, start, s_f = _stop_at_turns(road, p, edges, j0, s0 - off0, s_f)
     if s_f != want:  # the along-track estimate is past a turn this path has not taken yet
         miss = 0.5 * (want - s_f) ** 2 * (1.0 / vf + (1.0 / va if va > 0.0 else 0.0))
-    rest = min(max(s_f - start, 0.0), road.elen[h.edges[j]])
-    px, py, brg = road.locate(h.edges[j], rest)
-    return PathPos(j, rest, s_f, math.hypot(px - step.x, py - step.y), px, py, brg), miss
+    rest = min(max(s_f - start, 0.0), road.elen[edges[j]])
+    px, py, brg = locate(road, edges[j], rest)
+    moved = (j, rest, s_f, hypot(px - p.x, py - p.y), px, py, brg)
+    return True, moved, miss, anc, anc_sd
 
 
-def _stop_at_turns(
-    road: RoadModel, h: Hypothesis, best: PathPos, s_f: float, cfg: MatchConfig
-) -> tuple[int, float, float]:
-    """Move from ``best`` towards ``s_f`` across nodes only where the path goes straight on (at a
-    turn the fix shows it): the edge index reached, its start along the path and the ``s``."""
-    j, start = best.j, best.s - best.off
-    while s_f > start + road.elen[h.edges[j]] and j < len(h.edges) - 1:
-        if not road.straight(h.edges[j], h.edges[j + 1], cfg):
-            s_f = start + road.elen[h.edges[j]]
+@njit(cache=True)
+def _stop_at_turns(  # type: ignore[no-untyped-def]
+    road: RoadArrays, p: PlaceParams, edges: NDArray[np.int64], j: int, start: float, s_f: float
+):
+    """Move from edge ``j`` (starting ``start`` metres along the path) towards ``s_f`` across
+    nodes only where the path goes straight on (at a turn the fix shows it): the edge index
+    reached, its start along the path and the ``s``."""
+    while s_f > start + road.elen[edges[j]] and j < len(edges) - 1:
+        if not straight(road, edges[j], edges[j + 1], p.straight_max_deg):
+            s_f = start + road.elen[edges[j]]
             break
-        start += road.elen[h.edges[j]]
+        start += road.elen[edges[j]]
         j += 1
     while s_f < start and j > 0:
-        if not road.straight(h.edges[j - 1], h.edges[j], cfg):
+        if not straight(road, edges[j - 1], edges[j], p.straight_max_deg):
             s_f = start
             break
         j -= 1
-        start -= road.elen[h.edges[j]]
+        start -= road.elen[edges[j]]
     return j, start, s_f

@@ -4,7 +4,7 @@ scored by scorers the road model supplies. Nothing here knows about roads."""
 from __future__ import annotations
 
 import math
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterable, Sequence
 from typing import Protocol, TypeVar
 
 
@@ -20,21 +20,19 @@ def filter_step(
     hyps: Sequence[H],
     *,
     weight: float,
-    place: Callable[[H], float],
-    turn: Callable[[H, float], float],
+    place: Callable[[Sequence[H]], Iterable[tuple[float, float]]],
     turn_weight: float | None = None,
 ) -> None:
     """Move every hypothesis to its place for this observation and add its log-score there:
-    ``place(h)`` (emission and transition, moving ``h``) times the observation's ``weight``,
-    plus ``turn(h, s_before)`` times ``turn_weight`` (default ``weight``; a score already per
-    distance moved is not weighed by time again). A single hypothesis has nothing to be
-    weighed against."""
+    ``place(hyps)`` moves each and gives its ``(score, turn)``: the score (emission and
+    transition) times the observation's ``weight``, plus the turn score times ``turn_weight``
+    (default ``weight``; a score already per distance moved is not weighed by time again). A
+    single hypothesis has nothing to be weighed against."""
     many = len(hyps) > 1
     tw = weight if turn_weight is None else turn_weight
-    for h in hyps:
-        s_prev = h.s
-        score = weight * place(h)
-        score += tw * turn(h, s_prev)
+    for h, (sc, turn) in zip(hyps, place(hyps), strict=True):
+        score = weight * sc
+        score += tw * turn
         h.logp += score if many else 0.0
 
 

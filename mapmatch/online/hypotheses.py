@@ -1,5 +1,6 @@
 """Path hypotheses: start them from the spatial index, let other roads join, extend them at
-their end node with the legal moves, and place each on its path for a fix."""
+their end node with the legal moves, and the filter step placing each on its path for a fix
+(:mod:`mapmatch.online.placement`)."""
 
 from __future__ import annotations
 
@@ -7,10 +8,10 @@ import math
 
 from mapmatch.config import MatchConfig
 from mapmatch.graph.index import EdgeIndex
-from mapmatch.online.along import along_track
 from mapmatch.online.filter import filter_step, keep_best, normalise
 from mapmatch.online.road import Projection, RoadModel
-from mapmatch.online.state import Hypothesis, PathPos, SessionState, Step
+from mapmatch.online.placement import place_all
+from mapmatch.online.state import Hypothesis, SessionState, Step
 from mapmatch.turns import angle_diff, heading_change
 
 
@@ -116,13 +117,11 @@ def advance(road: RoadModel, state: SessionState, step: Step, cfg: MatchConfig) 
     turn_obs, covered = (math.nan, 0.0)
     if len(hyps) > 1 and step.kappa > 0.0:
         turn_obs, covered = heading_change(state.headings, state.odo, window=o.turn_window)
-    cache: dict[int, Projection] = {}
     filter_step(
         hyps,
         weight=step.weight,
         turn_weight=step.turn_weight,
-        place=lambda h: place(road, h, step, cfg, cache),
-        turn=lambda h, s_prev: road.turn(h, s_prev, turn_obs, covered, cfg),
+        place=lambda hs: place_all(road.arrays, hs, step, cfg, turn_obs=turn_obs, covered=covered),
     )
     if step.still_weight > 0.0 and len(hyps) > 1:
         # the shared emission's heading term alone (no distance: σ 1, distance 0)
@@ -130,129 +129,6 @@ def advance(road: RoadModel, state: SessionState, step: Step, cfg: MatchConfig) 
         for h in hyps:
             h.logp += w * road.emission(0.0, 1.0, heading, h.bearing, kappa)
     return hyps
-
-
-def place(
-    road: RoadModel, h: Hypothesis, step: Step, cfg: MatchConfig, cache: dict[int, Projection]
-) -> float:
-    """Move ``h`` to its best position for this fix; return that position's log-score."""
-    best_sc, best, acc = _nearest_on_path(road, h, step, cfg, cache)
-    if step.gps:
-        moved, miss = along_track(road, h, step, best, acc, cfg)
-        if moved is not best:
-            # scored where the vehicle is now believed to be: its heading against the road
-            # there (the distance stays the fix's offset from the road, which the correction
-            # along the road does not change)
-            dist = debiased(step, best.dist, best.px, best.py, best.bearing, cfg)
-            best_sc = road.emission(dist, step.sigma, step.heading, moved.bearing, step.kappa) - miss
-            if not math.isnan(step.travelled):
-                best_sc += road.transition(moved.s - h.s, step, cfg)
-            best = moved
-    elif step.odo_known:
-        best_sc, best = _dead_reckon(road, h, step, acc, cfg)
-    j = best.j
-    if j < h.k:
-        h.k = j
-        del h.enter[j + 1 :]
-    while h.k < j:
-        h.k += 1
-        h.enter.append(step.time)
-    h.off, h.s, h.dist, h.px, h.py, h.bearing = best.off, best.s, best.dist, best.px, best.py, best.bearing
-    return best_sc
-
-
-def _nearest_on_path(
-    road: RoadModel, h: Hypothesis, step: Step, cfg: MatchConfig, cache: dict[int, Projection]
-) -> tuple[float, PathPos, float]:
-    """The fix's best projection onto ``h``'s path (emission and transition), with hysteresis at
-    nodes: ``(score, position, furthest s allowed)``."""
-    x, y, sigma = step.x, step.y, step.sigma
-    hold = cfg.online.node_hold_sigmas * sigma
-    best_sc = -math.inf
-    best = (h.k, h.off, h.s, h.dist, h.px, h.py, h.bearing)
-    acc = 0.0
-    j0 = max(h.k - 1, 0)  # one edge back: a fix may run ahead of the vehicle near a node
-    for j in range(j0):
-        acc += road.elen[h.edges[j]]
-    # stopped: the fix's noise may move the vehicle back but not on across a node
-    jmax = h.k + 1 if step.stopped else len(h.edges)
-    for j in range(j0, jmax):
-        e = h.edges[j]
-        pr = cache.get(e)
-        if pr is None:
-            pr = cache[e] = road.project(e, x, y)
-        off, dist, px, py, brg = pr
-        s = acc + off
-        if j < h.k and road.elen[e] - off < hold:
-            # back across the node only when the fix is clearly behind it (no flicker)
-            acc += road.elen[e]
-            continue
-        if j < jmax - 1 and off >= road.elen[e] - 1e-6:
-            # the fix is past the end of an edge the path continues on: held at the node
-            # only within a margin (stop line, along-track error); further on the next edge
-            # holds that place (else the hypothesis would lag ever further behind)
-            e2 = h.edges[j + 1]
-            pr2 = cache.get(e2)
-            if pr2 is None:
-                pr2 = cache[e2] = road.project(e2, x, y)
-            if pr2[0] > hold:
-                acc += road.elen[e]
-                continue
-        sc = road.emission(debiased(step, dist, px, py, brg, cfg), sigma, step.heading, brg, step.kappa)
-        if not math.isnan(step.travelled):
-            sc += road.transition(s - h.s, step, cfg)
-        if sc > best_sc + 1e-9:
-            best_sc = sc
-            best = (j, off, s, dist, px, py, brg)
-        acc += road.elen[e]
-    return best_sc, PathPos(*best), acc
-
-
-def debiased(step: Step, dist: float, px: float, py: float, bearing: float, cfg: MatchConfig) -> float:
-    """The fix's distance from the road point ``(px, py)`` of ``bearing`` with the learnt fix
-    bias's part across the road taken off (``bias_emission`` of it): a receiver's error lasts
-    minutes, so a fix that has lain 10 m left of the road for a minute is no evidence for the
-    road 10 m to the left. ``dist`` unchanged without GPS or before the bias is learnt."""
-    share = cfg.online.bias_emission
-    b = step.bias
-    if share <= 0.0 or not step.gps or math.isnan(b.pxx):
-        return dist
-    rad = math.radians(bearing)
-    nx, ny = math.cos(rad), -math.sin(rad)  # normal to the road (bearing clockwise from north)
-    z = (step.x - px) * nx + (step.y - py) * ny
-    zc = z - share * (b.bx * nx + b.by * ny)
-    return math.sqrt(max(dist * dist - z * z, 0.0) + zc * zc)
-
-
-def _dead_reckon(
-    road: RoadModel, h: Hypothesis, step: Step, acc: float, cfg: MatchConfig
-) -> tuple[float, PathPos]:
-    """Dead reckoning: the fix drifts, the odometer does not; the vehicle is carried along its
-    path by the distance travelled (the fix still weighs the paths against each other)."""
-    d = step.travelled
-    s_pred = min(h.s + d, acc)
-    j, rest = h.k, s_pred
-    for i in range(h.k):
-        rest -= road.elen[h.edges[i]]
-    while j < len(h.edges) - 1 and rest > road.elen[h.edges[j]]:
-        rest -= road.elen[h.edges[j]]
-        j += 1
-    rest = min(max(rest, 0.0), road.elen[h.edges[j]])
-    px, py, brg = road.locate(h.edges[j], rest)
-    dist = math.hypot(px - step.x, py - step.y)
-    # the distance carried is uncertain (odometer scale): near a node the heading is
-    # compared with the road anywhere within that uncertainty, not just at one point
-    head = brg
-    spread = cfg.online.pos_sigma_floor + step.odo_sigma * step.dr
-    if step.kappa > 0.0 and not math.isnan(step.heading):
-        for k in (-2, -1, 1, 2):
-            b = road.bearing_on_path(h, s_pred + 0.5 * k * spread)
-            if abs(angle_diff(step.heading, b)) < abs(angle_diff(step.heading, head)):
-                head = b
-    sc = road.emission(dist, step.sigma, step.heading, head, step.kappa) + road.transition(
-        s_pred - h.s, step, cfg
-    )
-    return sc, PathPos(j, rest, s_pred, dist, px, py, brg)
 
 
 def move_to(road: RoadModel, h: Hypothesis, s: float, step: Step) -> None:

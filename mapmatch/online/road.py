@@ -9,34 +9,17 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from numba import njit
 
 from mapmatch.config import MatchConfig
 from mapmatch.graph.index import project_point_compiled
 from mapmatch.graph.road_graph import RoadGraph
 from mapmatch.graph.rules import junctions, legal_moves
 from mapmatch.model import emission_one, transition_one
+from mapmatch.online.geometry import RoadArrays, locate_on
 from mapmatch.online.state import Hypothesis, Step
 from mapmatch.turns import angle_diff
 
 Projection = tuple[float, float, float, float, float]  # offset, dist, px, py, bearing
-
-
-@njit(cache=True)
-def _locate(seg_xy, lo, hi, off, bearing_end):  # type: ignore[no-untyped-def]
-    """``(x, y, bearing)`` at ``off`` metres along the polyline ``seg_xy[lo:hi]``."""
-    acc = 0.0
-    ax, ay = seg_xy[lo, 0], seg_xy[lo, 1]
-    for q in range(lo + 1, hi):
-        bx, by = seg_xy[q, 0], seg_xy[q, 1]
-        dx, dy = bx - ax, by - ay
-        seg = math.hypot(dx, dy)
-        if acc + seg >= off and seg > 0.0:
-            t = (off - acc) / seg
-            return ax + t * dx, ay + t * dy, math.degrees(math.atan2(dx, dy)) % 360.0
-        acc += seg
-        ax, ay = bx, by
-    return ax, ay, bearing_end
 
 
 class RoadModel:
@@ -52,6 +35,14 @@ class RoadModel:
         self.bend: list[float] = graph.edge_bearing_end.tolist()
         self.ptr: list[int] = graph.edge_seg_ptr.tolist()
         self.seg = np.ascontiguousarray(graph.seg_xy, dtype=np.float64)
+        # the same, as arrays for the compiled kernels
+        self.arrays = RoadArrays(
+            seg=self.seg,
+            ptr=np.ascontiguousarray(graph.edge_seg_ptr, dtype=np.int64),
+            elen=np.ascontiguousarray(graph.edge_len, dtype=np.float64),
+            bstart=np.ascontiguousarray(graph.edge_bearing_start, dtype=np.float64),
+            bend=np.ascontiguousarray(graph.edge_bearing_end, dtype=np.float64),
+        )
         # every piece of every polyline: length and bearing (the last row of each edge is unused)
         d = np.diff(graph.seg_xy, axis=0) if len(graph.seg_xy) else np.zeros((0, 2))
         self.piece_len = np.hypot(d[:, 0], d[:, 1])
@@ -83,7 +74,7 @@ class RoadModel:
 
     def locate(self, e: int, off: float) -> tuple[float, float, float]:
         """``(x, y, bearing)`` at ``off`` metres along edge ``e``."""
-        return _locate(self.seg, self.ptr[e], self.ptr[e + 1], off, self.bend[e])  # type: ignore[no-any-return]
+        return locate_on(self.seg, self.ptr[e], self.ptr[e + 1], off, self.bend[e])  # type: ignore[no-any-return]
 
     def straight(self, e: int, e2: int, cfg: MatchConfig) -> bool:
         """Whether ``e2`` continues ``e`` straight on at their shared node."""
@@ -127,13 +118,3 @@ class RoadModel:
         m = cfg.model
         dt = max(step.dt, cfg.online.speed_time)
         return transition_one(route_dist, step.travelled, dt, m.beta, m.max_speed, m.speed_penalty)
-
-    def turn(self, h: Hypothesis, s_prev: float, turn_obs: float, covered: float, cfg: MatchConfig) -> float:
-        """Log-score of the heading change observed over the last ``covered`` metres against the
-        bearing change ``h``'s path has there (0 when too little was covered)."""
-        if covered >= 0.5 * cfg.online.turn_window and not math.isnan(turn_obs):
-            expect = angle_diff(h.bearing, self.bearing_on_path(h, h.s - covered))
-            miss = angle_diff(turn_obs, expect) / cfg.online.turn_sigma
-            frac = min(1.0, max(h.s - s_prev, 0.0) / cfg.online.turn_window)
-            return -(0.5 * miss * miss * frac)
-        return 0.0

@@ -1,0 +1,227 @@
+"""The fix placed on every hypothesis's path at once (compiled): the best projection onto the
+path (emission and transition, hysteresis at nodes), the along-track correction with GPS or
+the odometer's carry in dead reckoning, and the log-score there.
+
+The scores are the shared model's (:func:`mapmatch.model.emission_logp_one`,
+:func:`mapmatch.model.transition_one_compiled`); :func:`place_all` is the Python entry, one
+kernel call per fix for all hypotheses.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+
+import numpy as np
+from numba import njit
+from numpy.typing import NDArray
+
+from mapmatch.config import MatchConfig
+from mapmatch.model import emission_logp_one, transition_one_compiled
+from mapmatch.online.along import Pos, along_track
+from mapmatch.online.geometry import RoadArrays, angle_diff_c, bearing_on_path, hypot, locate, project
+from mapmatch.online.params import PlaceParams, place_params
+from mapmatch.online.state import Hypothesis, Step
+
+# a hypothesis's row in the kernel's input: where it is and its turn anchor
+IN_K, IN_OFF, IN_S, IN_DIST, IN_PX, IN_PY, IN_BRG, IN_ANC, IN_ANC_SD = range(9)
+# and in its output: the score, the new position, the anchor and the turn score
+OUT_SCORE, OUT_J, OUT_OFF, OUT_S, OUT_DIST, OUT_PX, OUT_PY, OUT_BRG, OUT_ANC, OUT_ANC_SD, OUT_TURN = range(11)
+
+
+@njit(cache=True)
+def transition(p: PlaceParams, route_dist: float) -> float:
+    """Log-probability of ``route_dist`` metres along the path for this step's travel (its
+    speed judged over at least ``speed_time``, whatever the fix rate)."""
+    return transition_one_compiled(  # type: ignore[no-any-return]
+        route_dist, p.travelled, p.speed_dt, p.beta, p.max_speed, p.speed_penalty
+    )
+
+
+@njit(cache=True)
+def debiased(p: PlaceParams, dist: float, px: float, py: float, bearing: float) -> float:
+    """The fix's distance from the road point ``(px, py)`` of ``bearing`` with the learnt fix
+    bias's part across the road taken off (``bias_emission`` of it): a receiver's error lasts
+    minutes, so a fix that has lain 10 m left of the road for a minute is no evidence for the
+    road 10 m to the left. ``dist`` unchanged without GPS or before the bias is learnt."""
+    share = p.bias_emission
+    if share <= 0.0 or not p.gps or math.isnan(p.pxx):
+        return dist
+    rad = math.radians(bearing)
+    nx, ny = math.cos(rad), -math.sin(rad)  # normal to the road (bearing clockwise from north)
+    z = (p.x - px) * nx + (p.y - py) * ny
+    zc = z - share * (p.bx * nx + p.by * ny)
+    return math.sqrt(max(dist * dist - z * z, 0.0) + zc * zc)
+
+
+@njit(cache=True)
+def nearest_on_path(  # type: ignore[no-untyped-def]
+    road: RoadArrays, p: PlaceParams, edges: NDArray[np.int64], here: Pos
+):
+    """The fix's best projection onto the path ``edges`` from the position ``here`` (emission
+    and transition), with hysteresis at nodes: ``(score, position, furthest s allowed)``."""
+    k, h_s = here[0], here[2]
+    hold = p.node_hold
+    best_sc = -math.inf
+    best = here
+    acc = 0.0
+    j0 = max(k - 1, 0)  # one edge back: a fix may run ahead of the vehicle near a node
+    for j in range(j0):
+        acc += road.elen[edges[j]]
+    # stopped: the fix's noise may move the vehicle back but not on across a node
+    jmax = k + 1 if p.stopped else len(edges)
+    for j in range(j0, jmax):
+        e = edges[j]
+        le = road.elen[e]
+        off, dist, px, py, brg = project(road, e, p.x, p.y)
+        s = acc + off
+        if j < k and le - off < hold:
+            # back across the node only when the fix is clearly behind it (no flicker)
+            acc += le
+            continue
+        if j < jmax - 1 and off >= le - 1e-6:
+            # the fix is past the end of an edge the path continues on: held at the node
+            # only within a margin (stop line, along-track error); further on the next edge
+            # holds that place (else the hypothesis would lag ever further behind)
+            if project(road, edges[j + 1], p.x, p.y)[0] > hold:
+                acc += le
+                continue
+        sc = emission_logp_one(debiased(p, dist, px, py, brg), p.sigma, p.heading, brg, p.kappa)
+        if not math.isnan(p.travelled):
+            sc += transition(p, s - h_s)
+        if sc > best_sc + 1e-9:
+            best_sc = sc
+            best = (j, off, s, dist, px, py, brg)
+        acc += le
+    return best_sc, best, acc
+
+
+@njit(cache=True)
+def dead_reckon(  # type: ignore[no-untyped-def]
+    road: RoadArrays, p: PlaceParams, edges: NDArray[np.int64], k: int, h_s: float, acc: float
+):
+    """Dead reckoning: the fix drifts, the odometer does not; the vehicle is carried along its
+    path by the distance travelled (the fix still weighs the paths against each other)."""
+    s_pred = min(h_s + p.travelled, acc)
+    j, rest = k, s_pred
+    for i in range(k):
+        rest -= road.elen[edges[i]]
+    while j < len(edges) - 1 and rest > road.elen[edges[j]]:
+        rest -= road.elen[edges[j]]
+        j += 1
+    rest = min(max(rest, 0.0), road.elen[edges[j]])
+    px, py, brg = locate(road, edges[j], rest)
+    dist = hypot(px - p.x, py - p.y)
+    # the distance carried is uncertain (odometer scale): near a node the heading is
+    # compared with the road anywhere within that uncertainty, not just at one point
+    head = brg
+    spread = p.pos_sigma_floor + p.odo_sigma * p.dr
+    if p.kappa > 0.0 and not math.isnan(p.heading):
+        for q in (-2, -1, 1, 2):
+            b = bearing_on_path(road, edges, s_pred + 0.5 * q * spread)
+            if abs(angle_diff_c(p.heading, b)) < abs(angle_diff_c(p.heading, head)):
+                head = b
+    sc = emission_logp_one(dist, p.sigma, p.heading, head, p.kappa) + transition(p, s_pred - h_s)
+    return sc, (j, rest, s_pred, dist, px, py, brg)
+
+
+@njit(cache=True)
+def turn_score(road: RoadArrays, p: PlaceParams, edges: NDArray[np.int64], pos: Pos, s_prev: float) -> float:
+    """Log-score of the heading change observed over the last ``covered`` metres against the
+    bearing change the path has there, up to ``pos`` from ``s_prev`` (0 when too little was
+    covered)."""
+    if p.covered >= 0.5 * p.turn_window and not math.isnan(p.turn_obs):
+        s, brg = pos[2], pos[6]
+        expect = angle_diff_c(brg, bearing_on_path(road, edges, s - p.covered))
+        miss = angle_diff_c(p.turn_obs, expect) / p.turn_sigma
+        frac = min(1.0, max(s - s_prev, 0.0) / p.turn_window)
+        return -(0.5 * miss * miss * frac)
+    return 0.0
+
+
+@njit(cache=True)
+def place_one(  # type: ignore[no-untyped-def]
+    road: RoadArrays, p: PlaceParams, edges: NDArray[np.int64], here: Pos, anc: float, anc_sd: float
+):
+    """One hypothesis's best position for this fix from ``here``: ``(score, position, anc,
+    anc_sd)``."""
+    best_sc, best, acc = nearest_on_path(road, p, edges, here)
+    if p.gps:
+        moved, pos, miss, anc, anc_sd = along_track(road, p, edges, anc, anc_sd, best, acc)
+        if moved:
+            # scored where the vehicle is now believed to be: its heading against the road
+            # there (the distance stays the fix's offset from the road, which the correction
+            # along the road does not change)
+            dist = debiased(p, best[3], best[4], best[5], best[6])
+            best_sc = emission_logp_one(dist, p.sigma, p.heading, pos[6], p.kappa) - miss
+            if not math.isnan(p.travelled):
+                best_sc += transition(p, pos[2] - here[2])
+            best = pos
+    elif p.odo_known:
+        best_sc, best = dead_reckon(road, p, edges, here[0], here[2], acc)
+    return best_sc, best, anc, anc_sd
+
+
+@njit(cache=True)
+def _place_all(
+    road: RoadArrays,
+    p: PlaceParams,
+    edges: NDArray[np.int64],
+    ptr: NDArray[np.int64],
+    rows: NDArray[np.float64],
+) -> NDArray[np.float64]:
+    """:func:`place_one` for every hypothesis: path ``i`` is ``edges[ptr[i]:ptr[i + 1]]``, its
+    state ``rows[i]`` (``IN_*`` columns); one row of ``OUT_*`` columns each."""
+    n = len(rows)
+    out = np.empty((n, 11))
+    for i in range(n):
+        r = rows[i]
+        path = edges[ptr[i] : ptr[i + 1]]
+        here = (int(r[IN_K]), r[IN_OFF], r[IN_S], r[IN_DIST], r[IN_PX], r[IN_PY], r[IN_BRG])
+        sc, pos, anc, anc_sd = place_one(road, p, path, here, r[IN_ANC], r[IN_ANC_SD])
+        o = out[i]
+        o[OUT_TURN] = turn_score(road, p, path, pos, here[2])
+        o[OUT_SCORE] = sc
+        o[OUT_J], o[OUT_OFF], o[OUT_S], o[OUT_DIST], o[OUT_PX], o[OUT_PY], o[OUT_BRG] = pos
+        o[OUT_ANC], o[OUT_ANC_SD] = anc, anc_sd
+    return out
+
+
+def place_all(
+    road: RoadArrays,
+    hyps: Sequence[Hypothesis],
+    step: Step,
+    cfg: MatchConfig,
+    *,
+    turn_obs: float = math.nan,
+    covered: float = 0.0,
+) -> list[tuple[float, float]]:
+    """Move every hypothesis to its best position for this fix (the vehicle's edge index and
+    entry times follow); return each position's log-score and the score of the turn observed
+    (``turn_obs`` degrees over the last ``covered`` metres) against the path's."""
+    flat: list[int] = []
+    ptr = [0]
+    rows = []
+    for h in hyps:
+        flat += h.edges
+        ptr.append(len(flat))
+        rows.append((h.k, h.off, h.s, h.dist, h.px, h.py, h.bearing, h.anc, h.anc_sd))
+    out = _place_all(
+        road,
+        place_params(step, cfg, turn_obs=turn_obs, covered=covered),
+        np.array(flat, dtype=np.int64),
+        np.array(ptr, dtype=np.int64),
+        np.array(rows, dtype=np.float64),
+    ).tolist()
+    scores = []
+    for h, (sc, j, off, s, dist, px, py, brg, anc, anc_sd, turn) in zip(hyps, out, strict=True):
+        j = int(j)
+        if j < h.k:
+            h.k = j
+            del h.enter[j + 1 :]
+        while h.k < j:
+            h.k += 1
+            h.enter.append(step.time)
+        h.off, h.s, h.dist, h.px, h.py, h.bearing, h.anc, h.anc_sd = off, s, dist, px, py, brg, anc, anc_sd
+        scores.append((sc, turn))
+    return scores
