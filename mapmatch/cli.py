@@ -21,7 +21,9 @@ SUBCOMMANDS = ("prep", "export", "info", "replay", "match", "serve", "send", "si
 KERNELS: dict[str, tuple[str, ...]] = {
     "match": ("batch",),
     "simulate": ("simulator",),
-    "demo": ("simulator",),
+    "demo": ("simulator", "online"),
+    "replay": ("online",),
+    "serve": ("online",),
 }
 """The compiled-kernel groups (:mod:`mapmatch.kernels`) each command compiles on a machine's first run."""
 

@@ -3,8 +3,8 @@
 Kernels compile on first use and are cached on disk (``__pycache__`` next to the source, or
 ``NUMBA_CACHE_DIR``), so only the first run on a machine pays for it. Commands call
 :func:`announce` before work that needs a group, which prints one line when the group is not
-cached yet. The online matcher has no compiled kernels; ``simulate`` needs the fusion filter,
-``match`` (and the service's ``MatchTrack``) the batch matcher.
+cached yet. ``simulate`` needs the fusion filter, ``match`` (and the service's ``MatchTrack``)
+the batch matcher, the online matcher (``replay``, ``serve``, ``demo``) its placement kernel.
 
 ``python -m mapmatch.kernels [GROUP...]`` compiles groups ahead of time (a container build
 does it, so a container's first start is warm).
@@ -37,13 +37,21 @@ GROUPS: dict[str, tuple[str, ...]] = {
         "mapmatch.gridindex",
         "mapmatch.model",
     ),
+    "online": (
+        "mapmatch.online.geometry",
+        "mapmatch.online.along",
+        "mapmatch.online.placement",
+        "mapmatch.graph.index:project_point_compiled",
+        "mapmatch.model:emission_logp_one",
+        "mapmatch.model:transition_one_compiled",
+    ),
 }
 """Kernel groups: the compiled functions a kind of job uses, as modules (all their kernels) or
 ``module:kernel`` (that kernel, with what it calls: the filter's map-aided update compiles only
 for a closed loop). Kernels called through :func:`for_size`, which compile only for large
 inputs, are in none."""
 
-COMPILE_SECONDS: dict[str, float] = {"simulator": 8.0, "batch": 60.0}
+COMPILE_SECONDS: dict[str, float] = {"simulator": 8.0, "batch": 60.0, "online": 10.0}
 """About how long (CPU seconds) a group takes to compile on the 2-core development machine."""
 
 PYTHON_MAX_ITEMS = 50_000
@@ -187,6 +195,18 @@ def compile_group(group: str) -> float:
         ll = np.array([m.lonlat(x, y0 + 1.0) for x in xs])
         t = np.arange(len(xs), dtype=np.float64) * 2.0
         BatchMatcher(g).match(Track("warm", t, ll[:, 1].astype(np.float64), ll[:, 0].astype(np.float64)))
+    elif group == "online":
+        from mapmatch.graph.ascii import parse_ascii_map
+        from mapmatch.online import OnlineMatcher
+        from mapmatch.types import Fix
+
+        m = parse_ascii_map("a-----------b-----------c", scale=10)
+        om = OnlineMatcher(m.graph)
+        session = om.new_session()
+        (x0, y0), (x1, _) = m.xy("a"), m.xy("c")
+        for i, x in enumerate(np.linspace(x0 + 5, x1 - 5, 6).tolist()):
+            lon, lat = m.lonlat(x, y0 + 1.0)
+            om.update(session, Fix(time=float(i), lat=lat, lon=lon, heading=90.0, speed=10.0, pos_sigma=5.0))
     elif group == "simulator":
         from mapmatch.sim.kalman import run_filter
         from mapmatch.sim.sensors import SensorData

@@ -36,6 +36,7 @@ from __future__ import annotations
 import math
 from collections.abc import Callable
 from dataclasses import dataclass, fields
+from functools import cached_property
 
 import numpy as np
 
@@ -126,6 +127,11 @@ class MeasurementConfig:
         if min(self.map_sigma, self.lane_width, self.default_width, self.heading_sigma) <= 0:
             raise ConfigError("map_sigma, lane_width, default_width and heading_sigma must be positive")
 
+    @cached_property
+    def width_of(self) -> dict[str, float]:
+        """``road_width`` as a mapping."""
+        return dict(self.road_width)
+
 
 DEFAULT_MEASUREMENT = MeasurementConfig()
 
@@ -142,7 +148,7 @@ def road_width(
         return width
     if math.isfinite(lanes) and lanes > 0:
         return lanes * config.lane_width
-    return dict(config.road_width).get(highway, config.default_width)
+    return config.width_of.get(highway, config.default_width)
 
 
 def cross_track_sigma(

@@ -90,14 +90,24 @@ class Fix:
             math.isfinite(self.heading) and 0.0 <= self.heading <= 360.0
         ):
             raise ValidationError("heading", "must be in [0, 360] degrees or unset")
-        for name in ("pos_sigma", "heading_sigma", "speed", "distance"):
-            v = getattr(self, name)
-            if not math.isnan(v) and not (math.isfinite(v) and v >= 0.0):
-                raise ValidationError(name, "must be a finite non-negative number or unset")
+        if not (
+            _unset_or_non_negative(self.pos_sigma)
+            and _unset_or_non_negative(self.heading_sigma)
+            and _unset_or_non_negative(self.speed)
+            and _unset_or_non_negative(self.distance)
+        ):
+            for name in ("pos_sigma", "heading_sigma", "speed", "distance"):  # the first bad one
+                if not _unset_or_non_negative(getattr(self, name)):
+                    raise ValidationError(name, "must be a finite non-negative number or unset")
         if self.pos_cov is not None:
             ve, cen, vn = self.pos_cov
             if not all(math.isfinite(x) for x in self.pos_cov) or ve < 0 or vn < 0 or cen * cen > ve * vn:
                 raise ValidationError("pos_cov", "must be a finite positive semi-definite 2x2 covariance")
+
+
+def _unset_or_non_negative(v: float) -> bool:
+    """NaN (unset), or a finite number at least 0."""
+    return v != v or 0.0 <= v < math.inf
 
 
 @dataclass(frozen=True, slots=True)

@@ -3,8 +3,10 @@
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
 
+import numpy as np
 import pytest
 from service_util import city
 
@@ -27,7 +29,7 @@ def test_filter_step_on_a_line_without_roads() -> None:
     hyps = [Point(0.0), Point(10.0), Point(20.0)]
     z = 11.0  # observation; each hypothesis moves 1 m towards it and is scored by its distance
 
-    def place(ps: list[Point]) -> list[tuple[float, float]]:
+    def place(ps: Sequence[Point]) -> list[tuple[float, float]]:
         out = []
         for p in ps:
             before = p.s
@@ -60,6 +62,8 @@ def test_road_scorers_alone() -> None:
     assert on > road.emission(5.0, 5.0, road.bstart[e], road.bstart[e], 8.0)
     assert on > road.emission(0.0, 5.0, (road.bstart[e] + 180.0) % 360.0, road.bstart[e], 8.0)
     # transition: progress matching the odometer is best
+    from mapmatch.online.params import place_params
+    from mapmatch.online.placement import turn_score
     from mapmatch.online.state import FixBias, Step
 
     step = Step(
@@ -72,9 +76,15 @@ def test_road_scorers_alone() -> None:
     # turn: a straight path predicts no heading change, so an observed 90° turn costs
     b = amap.edge("b", "c")
     h = Hypothesis([e, b], 1, 10.0, road.elen[e] + 10.0, 0.0, [0.0, 1.0], bearing=road.bstart[b])
-    assert road.turn(h, h.s - 10.0, 0.0, 30.0, DEFAULT_CONFIG) == 0.0
-    assert road.turn(h, h.s - 10.0, 90.0, 30.0, DEFAULT_CONFIG) < -1.0
-    assert road.turn(h, h.s - 10.0, 90.0, 5.0, DEFAULT_CONFIG) == 0.0  # too little covered
+
+    def turn(observed: float, covered: float) -> float:
+        p = place_params(step, DEFAULT_CONFIG, turn_obs=observed, covered=covered)
+        pos = (h.k, h.off, h.s, h.dist, h.px, h.py, h.bearing)
+        return float(turn_score(road.arrays, p, np.array(h.edges, dtype=np.int64), pos, h.s - 10.0))
+
+    assert turn(0.0, 30.0) == 0.0
+    assert turn(90.0, 30.0) < -1.0
+    assert turn(90.0, 5.0) == 0.0  # too little covered
 
 
 def test_legal_moves_table_u_turn_policies() -> None:

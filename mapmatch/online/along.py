@@ -33,8 +33,8 @@ def along_track(  # type: ignore[no-untyped-def]
     allowed. Returns ``(moved, position, miss, anc, anc_sd)``: whether the position changed,
     the corrected position (``best`` when unchanged), a log-penalty when the path's turn stops
     the position short of the estimate, and the anchor (nan when inconsistent: forgotten)."""
-    j0, off0, s0, dist0, px0, py0, brg0 = best
-    rad = math.radians(brg0)
+    j0, off0, s0 = best[0], best[1], best[2]
+    rad = math.radians(best[6])
     tx, ty = math.sin(rad), math.cos(rad)
     s_f = s_m = s0 - (p.bx * tx + p.by * ty)
     va = 0.0

@@ -9,8 +9,8 @@ import math
 from mapmatch.config import MatchConfig
 from mapmatch.graph.index import EdgeIndex
 from mapmatch.online.filter import filter_step, keep_best, normalise
-from mapmatch.online.road import Projection, RoadModel
 from mapmatch.online.placement import place_all
+from mapmatch.online.road import Projection, RoadModel
 from mapmatch.online.state import Hypothesis, SessionState, Step
 from mapmatch.turns import angle_diff, heading_change
 
@@ -121,7 +121,7 @@ def advance(road: RoadModel, state: SessionState, step: Step, cfg: MatchConfig) 
         hyps,
         weight=step.weight,
         turn_weight=step.turn_weight,
-        place=lambda hs: place_all(road.arrays, hs, step, cfg, turn_obs=turn_obs, covered=covered),
+        place=lambda hs: place_all(road, hs, step, cfg, turn_obs=turn_obs, covered=covered),
     )
     if step.still_weight > 0.0 and len(hyps) > 1:
         # the shared emission's heading term alone (no distance: σ 1, distance 0)

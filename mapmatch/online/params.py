@@ -1,5 +1,10 @@
 """The per-fix quantities and configuration the compiled placement kernels read, as one named
-tuple built once per fix."""
+tuple built once per fix.
+
+numba's on-disk cache keys a kernel by its argument types, not by the fields' names: after
+changing :class:`PlaceParams`, delete the caches (``mapmatch/**/__pycache__/*.nb*``) or a
+kernel compiled for the old layout may be loaded.
+"""
 
 from __future__ import annotations
 
@@ -10,8 +15,8 @@ from mapmatch.online.state import Step
 
 
 class PlaceParams(NamedTuple):
-    """One fix's :class:`~mapmatch.online.state.Step` fields and the configuration they are
-    scored with (see the config fields of the same names)."""
+    """One fix's :class:`~mapmatch.online.state.Step` fields, the turn observed, and the
+    configuration they are scored with (see the config fields of the same names)."""
 
     x: float
     y: float
@@ -32,6 +37,9 @@ class PlaceParams(NamedTuple):
     dr: float
     speed_dt: float  # the step's dt, at least ``speed_time``: the transition's speed judged over it
     node_hold: float  # ``node_hold_sigmas`` · σ
+    turn_obs: float  # the heading change observed over the last ``covered`` metres (nan: none)
+    covered: float
+    # configuration
     bias_emission: float
     bias_white_fraction: float
     anchor_gate: float
@@ -40,46 +48,64 @@ class PlaceParams(NamedTuple):
     beta: float
     max_speed: float
     speed_penalty: float
-    turn_obs: float  # the heading change observed over the last ``covered`` metres (nan: none)
-    covered: float
     turn_window: float
     turn_sigma: float
 
 
+def _config_part(cfg: MatchConfig) -> tuple[float, ...]:
+    """The configuration fields of :class:`PlaceParams`, in order."""
+    m, o = cfg.model, cfg.online
+    return tuple(
+        float(v)
+        for v in (
+            o.bias_emission,
+            o.bias_white_fraction,
+            o.anchor_gate,
+            m.straight_max_deg,
+            o.pos_sigma_floor,
+            m.beta,
+            m.max_speed,
+            m.speed_penalty,
+            o.turn_window,
+            o.turn_sigma,
+        )
+    )
+
+
+_last: tuple[MatchConfig | None, tuple[float, ...]] = (None, ())  # the last configuration's part
+
+
 def place_params(step: Step, cfg: MatchConfig, *, turn_obs: float, covered: float) -> PlaceParams:
     """The kernels' view of ``step`` under ``cfg`` (and the turn observed)."""
-    m, o = cfg.model, cfg.online
+    global _last
+    last = _last
+    if last[0] is not cfg:
+        last = _last = (cfg, _config_part(cfg))
+    o = cfg.online
     b = step.bias
-    return PlaceParams(
-        step.x,
-        step.y,
-        step.sigma,
-        step.heading,
-        step.kappa,
-        step.travelled,
-        step.odo,
-        step.odo_known,
-        step.gps,
-        step.stopped,
-        b.bx,
-        b.by,
-        b.pxx,
-        b.pxy,
-        b.pyy,
-        step.odo_sigma,
-        step.dr,
-        float(max(step.dt, o.speed_time)),
-        float(o.node_hold_sigmas * step.sigma),
-        float(o.bias_emission),
-        float(o.bias_white_fraction),
-        float(o.anchor_gate),
-        float(m.straight_max_deg),
-        float(o.pos_sigma_floor),
-        float(m.beta),
-        float(m.max_speed),
-        float(m.speed_penalty),
-        float(turn_obs),
-        float(covered),
-        float(o.turn_window),
-        float(o.turn_sigma),
+    return PlaceParams._make(
+        (
+            step.x,
+            step.y,
+            float(step.sigma),  # a fix's int field must not compile the kernels again
+            float(step.heading),
+            step.kappa,
+            step.travelled,
+            step.odo,
+            step.odo_known,
+            step.gps,
+            step.stopped,
+            float(b.bx),
+            float(b.by),
+            float(b.pxx),
+            float(b.pxy),
+            float(b.pyy),
+            step.odo_sigma,
+            step.dr,
+            float(max(step.dt, o.speed_time)),
+            float(o.node_hold_sigmas * step.sigma),
+            float(turn_obs),
+            float(covered),
+            *last[1],
+        )
     )

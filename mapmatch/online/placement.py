@@ -21,12 +21,15 @@ from mapmatch.model import emission_logp_one, transition_one_compiled
 from mapmatch.online.along import Pos, along_track
 from mapmatch.online.geometry import RoadArrays, angle_diff_c, bearing_on_path, hypot, locate, project
 from mapmatch.online.params import PlaceParams, place_params
+from mapmatch.online.road import RoadModel
 from mapmatch.online.state import Hypothesis, Step
 
-# a hypothesis's row in the kernel's input: where it is and its turn anchor
-IN_K, IN_OFF, IN_S, IN_DIST, IN_PX, IN_PY, IN_BRG, IN_ANC, IN_ANC_SD = range(9)
+# a hypothesis's values in the kernel's input: its path's length, where it is, its turn anchor
+IN_LEN, IN_K, IN_OFF, IN_S, IN_DIST, IN_PX, IN_PY, IN_BRG, IN_ANC, IN_ANC_SD = range(10)
+N_IN = 10
 # and in its output: the score, the new position, the anchor and the turn score
 OUT_SCORE, OUT_J, OUT_OFF, OUT_S, OUT_DIST, OUT_PX, OUT_PY, OUT_BRG, OUT_ANC, OUT_ANC_SD, OUT_TURN = range(11)
+N_OUT = 11
 
 
 @njit(cache=True)
@@ -79,13 +82,12 @@ def nearest_on_path(  # type: ignore[no-untyped-def]
             # back across the node only when the fix is clearly behind it (no flicker)
             acc += le
             continue
-        if j < jmax - 1 and off >= le - 1e-6:
+        if j < jmax - 1 and off >= le - 1e-6 and project(road, edges[j + 1], p.x, p.y)[0] > hold:
             # the fix is past the end of an edge the path continues on: held at the node
             # only within a margin (stop line, along-track error); further on the next edge
             # holds that place (else the hypothesis would lag ever further behind)
-            if project(road, edges[j + 1], p.x, p.y)[0] > hold:
-                acc += le
-                continue
+            acc += le
+            continue
         sc = emission_logp_one(debiased(p, dist, px, py, brg), p.sigma, p.heading, brg, p.kappa)
         if not math.isnan(p.travelled):
             sc += transition(p, s - h_s)
@@ -163,32 +165,32 @@ def place_one(  # type: ignore[no-untyped-def]
 
 
 @njit(cache=True)
-def _place_all(
-    road: RoadArrays,
-    p: PlaceParams,
-    edges: NDArray[np.int64],
-    ptr: NDArray[np.int64],
-    rows: NDArray[np.float64],
-) -> NDArray[np.float64]:
-    """:func:`place_one` for every hypothesis: path ``i`` is ``edges[ptr[i]:ptr[i + 1]]``, its
-    state ``rows[i]`` (``IN_*`` columns); one row of ``OUT_*`` columns each."""
-    n = len(rows)
-    out = np.empty((n, 11))
+def _place_all(road_t, p_t, edges, rows):  # type: ignore[no-untyped-def]
+    """:func:`place_one` for every hypothesis: ``rows`` holds ``N_IN`` values each (the
+    ``IN_*`` columns), its path the next ``rows[IN_LEN]`` of ``edges``; ``N_OUT`` values each
+    out (``OUT_*``). ``road_t`` and ``p_t`` are a :class:`RoadArrays` and a
+    :class:`PlaceParams` as plain tuples (numba reads those ten times faster at a call)."""
+    road = RoadArrays(*road_t)
+    p = PlaceParams(*p_t)
+    n = len(rows) // N_IN
+    out = np.empty(n * N_OUT)
+    lo = 0
     for i in range(n):
-        r = rows[i]
-        path = edges[ptr[i] : ptr[i + 1]]
+        r = rows[i * N_IN : (i + 1) * N_IN]
+        path = edges[lo : lo + int(r[IN_LEN])]
+        lo += len(path)
         here = (int(r[IN_K]), r[IN_OFF], r[IN_S], r[IN_DIST], r[IN_PX], r[IN_PY], r[IN_BRG])
         sc, pos, anc, anc_sd = place_one(road, p, path, here, r[IN_ANC], r[IN_ANC_SD])
-        o = out[i]
-        o[OUT_TURN] = turn_score(road, p, path, pos, here[2])
+        o = out[i * N_OUT : (i + 1) * N_OUT]
         o[OUT_SCORE] = sc
         o[OUT_J], o[OUT_OFF], o[OUT_S], o[OUT_DIST], o[OUT_PX], o[OUT_PY], o[OUT_BRG] = pos
         o[OUT_ANC], o[OUT_ANC_SD] = anc, anc_sd
+        o[OUT_TURN] = turn_score(road, p, path, pos, here[2])
     return out
 
 
 def place_all(
-    road: RoadArrays,
+    road: RoadModel,
     hyps: Sequence[Hypothesis],
     step: Step,
     cfg: MatchConfig,
@@ -200,28 +202,27 @@ def place_all(
     entry times follow); return each position's log-score and the score of the turn observed
     (``turn_obs`` degrees over the last ``covered`` metres) against the path's."""
     flat: list[int] = []
-    ptr = [0]
-    rows = []
+    rows: list[float] = []
     for h in hyps:
         flat += h.edges
-        ptr.append(len(flat))
-        rows.append((h.k, h.off, h.s, h.dist, h.px, h.py, h.bearing, h.anc, h.anc_sd))
+        rows += (len(h.edges), h.k, h.off, h.s, h.dist, h.px, h.py, h.bearing, h.anc, h.anc_sd)
     out = _place_all(
-        road,
-        place_params(step, cfg, turn_obs=turn_obs, covered=covered),
+        road.arrays_tuple,
+        tuple(place_params(step, cfg, turn_obs=turn_obs, covered=covered)),
         np.array(flat, dtype=np.int64),
-        np.array(ptr, dtype=np.int64),
         np.array(rows, dtype=np.float64),
     ).tolist()
     scores = []
-    for h, (sc, j, off, s, dist, px, py, brg, anc, anc_sd, turn) in zip(hyps, out, strict=True):
-        j = int(j)
+    for i, h in enumerate(hyps):
+        sc, j_new, h.off, h.s, h.dist, h.px, h.py, h.bearing, h.anc, h.anc_sd, turn = out[
+            i * N_OUT : (i + 1) * N_OUT
+        ]
+        j = int(j_new)
         if j < h.k:
             h.k = j
             del h.enter[j + 1 :]
         while h.k < j:
             h.k += 1
             h.enter.append(step.time)
-        h.off, h.s, h.dist, h.px, h.py, h.bearing, h.anc, h.anc_sd = off, s, dist, px, py, brg, anc, anc_sd
         scores.append((sc, turn))
     return scores

@@ -70,13 +70,12 @@ def state_of(state: SessionState, reinit: bool) -> State:
 def candidates(road: RoadModel, agg: EdgeMass) -> tuple[Candidate, ...]:
     """The edges the vehicle may be on, most probable first."""
     total = sum(a[0] for a in agg.values())
-    g = road.graph
     return tuple(
         Candidate(
             edge=ce,
-            u=int(g.node_id[road.eu[ce]]),
-            v=int(g.node_id[road.ev[ce]]),
-            way_id=g.piece_fields(g.piece_index(ce, a[1].off))[0],
+            u=road.u_id[ce],
+            v=road.v_id[ce],
+            way_id=road.piece(ce, a[1].off)[0],
             probability=a[0] / total,
             offset=a[1].off,
             dist=a[1].dist,
@@ -106,7 +105,7 @@ def report(
     lon, lat = point_to_lonlat(g.crs, shown.px, shown.py)
     st = state_of(state, reinit)
     cands = candidates(road, agg) if len(state.hyps) > 1 else ()
-    way_id, name, road_class, speed_kph = g.piece_fields(g.piece_index(e, shown.off))
+    way_id, name, road_class, speed_kph = road.piece(e, shown.off)
     aided = map_aided_measurement(
         g,
         state=st,
@@ -126,15 +125,15 @@ def report(
         gps_sigma=cfg.model.gps_sigma,
         since_init=state.odo - state.init_odo,
         road_class=road_class,
-        bearing_at=lambda edge, off: road.locate(edge, off)[2],
+        bearing_at=road.bearing_at,
         config=measurement,
     )
     return SnapResult(
         time=fix.time,
         state=st,
         edge=e,
-        u=int(g.node_id[road.eu[e]]),
-        v=int(g.node_id[road.ev[e]]),
+        u=road.u_id[e],
+        v=road.v_id[e],
         way_id=way_id,
         name=name,
         road_class=road_class,

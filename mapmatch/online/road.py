@@ -7,8 +7,10 @@ All plain-float code for the per-fix hot path; the arrays come from the prepared
 from __future__ import annotations
 
 import math
+from bisect import bisect_left, bisect_right
 
 import numpy as np
+from numpy.typing import NDArray
 
 from mapmatch.config import MatchConfig
 from mapmatch.graph.index import project_point_compiled
@@ -20,6 +22,25 @@ from mapmatch.online.state import Hypothesis, Step
 from mapmatch.turns import angle_diff
 
 Projection = tuple[float, float, float, float, float]  # offset, dist, px, py, bearing
+
+
+def _piece_table(seg_xy: NDArray[np.float64], ptr: list[int]) -> tuple[list[float], list[float], list[float]]:
+    """Per polyline vertex row ``q`` (the piece from ``q - 1`` to ``q`` of its edge): the
+    distance from the edge's start to its end, its length and its bearing, each computed as
+    the compiled :func:`~mapmatch.online.geometry.locate_on` computes them (the C library's
+    ``hypot``, as numpy's; sums in order), so that a look-up in the table gives its answers."""
+    d = np.diff(seg_xy, axis=0, prepend=seg_xy[:1]) if len(seg_xy) else np.zeros((0, 2))
+    seg_len: list[float] = np.hypot(d[:, 0], d[:, 1]).tolist()
+    dx, dy = d[:, 0].tolist(), d[:, 1].tolist()
+    cum = [0.0] * len(seg_len)
+    brg = [0.0] * len(seg_len)
+    for e in range(len(ptr) - 1):
+        acc = 0.0
+        for q in range(ptr[e] + 1, ptr[e + 1]):
+            cum[q] = acc + seg_len[q]
+            brg[q] = math.degrees(math.atan2(dx[q], dy[q])) % 360.0
+            acc += seg_len[q]
+    return cum, seg_len, brg
 
 
 class RoadModel:
@@ -43,10 +64,29 @@ class RoadModel:
             bstart=np.ascontiguousarray(graph.edge_bearing_start, dtype=np.float64),
             bend=np.ascontiguousarray(graph.edge_bearing_end, dtype=np.float64),
         )
+        self.arrays_tuple = tuple(self.arrays)  # as a plain tuple: how the kernels take it
+        self._cum, self._seg_len, self._brg = _piece_table(self.seg, self.ptr)
         # every piece of every polyline: length and bearing (the last row of each edge is unused)
         d = np.diff(graph.seg_xy, axis=0) if len(graph.seg_xy) else np.zeros((0, 2))
         self.piece_len = np.hypot(d[:, 0], d[:, 1])
         self.piece_brg = np.degrees(np.arctan2(d[:, 0], d[:, 1])) % 360.0
+        # what the report reads per fix, as Python values: node ids and the way pieces
+        ids = graph.node_id
+        self.u_id: list[int] = ids[graph.edge_u].tolist()
+        self.v_id: list[int] = ids[graph.edge_v].tolist()
+        self._pptr: list[int] = graph.piece_ptr.tolist()
+        self._pstart: list[float] = graph.piece_start.tolist()
+        names, classes = graph.names, graph.highways
+        self._pfields: list[tuple[int, str, str, float]] = [  # as RoadGraph.piece_fields
+            (w, names[n] if n >= 0 else "", classes[c] if c >= 0 else "", v if v == v else 0.0)
+            for w, n, c, v in zip(
+                graph.piece_way_id.tolist(),
+                graph.piece_name_idx.tolist(),
+                graph.piece_highway_idx.tolist(),
+                graph.piece_speed_kph.astype(np.float64).tolist(),
+                strict=True,
+            )
+        ]
         self.branching: list[bool] = junctions(graph).tolist()
         moves = legal_moves(graph, uturns="junction")
         self._mptr: list[int] = moves.ptr.tolist()
@@ -75,6 +115,24 @@ class RoadModel:
     def locate(self, e: int, off: float) -> tuple[float, float, float]:
         """``(x, y, bearing)`` at ``off`` metres along edge ``e``."""
         return locate_on(self.seg, self.ptr[e], self.ptr[e + 1], off, self.bend[e])  # type: ignore[no-any-return]
+
+    def piece(self, e: int, off: float) -> tuple[int, str, str, float]:
+        """Way id, name, road class and speed of the way piece under ``(e, off)`` (as
+        :meth:`RoadGraph.piece_fields` of :meth:`RoadGraph.piece_index`)."""
+        lo, hi = self._pptr[e], self._pptr[e + 1]
+        i = lo if hi - lo <= 1 else bisect_right(self._pstart, off, lo + 1, hi) - 1
+        return self._pfields[i]
+
+    def bearing_at(self, e: int, off: float) -> float:
+        """The bearing at ``off`` metres along edge ``e`` (``locate(e, off)[2]``, looked up)."""
+        lo, hi = self.ptr[e] + 1, self.ptr[e + 1]
+        if off != off:
+            return self.bend[e]
+        q = bisect_left(self._cum, off, lo, hi)  # the first piece ending at or past ``off`` ...
+        seg = self._seg_len
+        while q < hi and seg[q] <= 0.0:  # ... of some length
+            q += 1
+        return self._brg[q] if q < hi else self.bend[e]
 
     def straight(self, e: int, e2: int, cfg: MatchConfig) -> bool:
         """Whether ``e2`` continues ``e`` straight on at their shared node."""

@@ -148,9 +148,10 @@ class SessionState:
         return from_bytes(data)
 
 
-@dataclass(frozen=True, slots=True)
+@dataclass(slots=True)
 class Step:
-    """Per-fix quantities shared by all hypotheses."""
+    """Per-fix quantities shared by all hypotheses (read-only by convention: not frozen, which
+    would make every fix's construction slower)."""
 
     time: float
     x: float

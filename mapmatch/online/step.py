@@ -16,6 +16,7 @@ from mapmatch.types import Fix
 
 # input limits: a fix beyond them is rejected (a ValidationError naming the field)
 LIMITS = {"speed": 1_000.0, "distance": 100_000.0, "pos_sigma": 100_000.0, "heading_sigma": 360.0}
+_SPEED, _DISTANCE, _POS, _HEADING = (LIMITS[k] for k in ("speed", "distance", "pos_sigma", "heading_sigma"))
 
 
 def prepare(road: RoadModel, state: SessionState, fix: Fix, cfg: MatchConfig) -> Step | None:
@@ -108,9 +109,10 @@ def own_sigma(state: SessionState, fix: Fix, cfg: MatchConfig) -> float:
 def validate(road: RoadModel, state: SessionState, fix: Fix) -> None:
     """Reject a bad fix, or a state of another map (the state stays unchanged)."""
     fix.validate()
-    for name, top in LIMITS.items():
-        if getattr(fix, name) > top:
-            raise ValidationError(name, f"must be at most {top:g}")
+    if fix.speed > _SPEED or fix.distance > _DISTANCE or fix.pos_sigma > _POS or fix.heading_sigma > _HEADING:
+        for name, top in LIMITS.items():  # name the first field over its limit
+            if getattr(fix, name) > top:
+                raise ValidationError(name, f"must be at most {top:g}")
     if fix.pos_cov is not None and max(fix.pos_cov) > LIMITS["pos_sigma"] ** 2:
         raise ValidationError("pos_cov", "variance too large")
     if not math.isnan(state.time) and not fix.time > state.time:
