@@ -2,8 +2,8 @@
 #   docker build -t mapmatch .
 #   docker run -p 50051:50051 -v "$PWD/maps:/maps:ro" -e MAPMATCH_MAPS=city=/maps/city.map mapmatch
 # (README, "Deployment"). Stage 1 installs the package into a venv; stage 2 copies only that
-# venv, runs as an unprivileged user, compiles the batch kernels once at build time (so the
-# first MatchTrack is fast) and checks health through grpc.health.v1.
+# venv, runs as an unprivileged user, compiles the batch and online kernels once at build time (so the
+# first MatchTrack and the first fixes are fast) and checks health through grpc.health.v1.
 
 FROM python:3.11-slim AS build
 WORKDIR /src
@@ -20,7 +20,7 @@ ENV PATH=/opt/mapmatch/bin:$PATH \
     MAPMATCH_LOG_FORMAT=json
 USER mapmatch
 WORKDIR /home/mapmatch
-RUN python -m mapmatch.kernels batch
+RUN python -m mapmatch.kernels batch online
 EXPOSE 50051
 HEALTHCHECK --interval=10s --timeout=5s --start-period=60s --retries=3 \
   CMD ["python", "-m", "mapmatch.healthcheck", "127.0.0.1:50051"]
