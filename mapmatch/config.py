@@ -125,6 +125,9 @@ class OnlineConfig:
     -------------------
     stop_speed : m/s; below this (from the odometer) the vehicle is stopped: its position may
         move back along the path but never on across a node (no flicker at a stop line).
+    stop_time : seconds; the speed compared with ``stop_speed`` is the odometer's averaged over
+        this long (exponentially), whatever the fix rate: over 0.1 s an odometer's noise of a
+        few centimetres reads as walking pace, and a parked vehicle at 10 Hz kept moving on.
     stop_hold_distance : metres; a vehicle that stops less than this past a node it went
         straight through (or has not yet turned at, by its heading) is placed before the node:
         vehicles stop at stop lines, not in junctions. About the fixes' along-track error:
@@ -263,6 +266,7 @@ class OnlineConfig:
     drift_decay_time: float = 4.0
 
     stop_speed: float = 0.5
+    stop_time: float = 1.0
     stop_hold_distance: float = 4.0
     node_hold_sigmas: float = 0.5
     still_distance: float = 0.05
@@ -315,9 +319,11 @@ class OnlineConfig:
             raise ConfigError("max_hypotheses, max_hops and max_live must be at least 1, trail_max 2")
         if self.init_commit_probability > 1:
             raise ConfigError("init_commit_probability must be at most 1")
-        if min(self.turn_sigma, self.evidence_time, self.evidence_distance, self.drift_decay_time) <= 0:
+        times = (self.evidence_time, self.drift_decay_time, self.stop_time)
+        if min(self.turn_sigma, self.evidence_distance, *times) <= 0:
             raise ConfigError(
-                "turn_sigma, evidence_time, evidence_distance and drift_decay_time must be positive"
+                "turn_sigma, evidence_time, evidence_distance, drift_decay_time and stop_time "
+                "must be positive"
             )
         if min(self.residual_time, self.bias_white_fraction, self.trail_step) <= 0:
             raise ConfigError("residual_time, bias_white_fraction and trail_step must be positive")

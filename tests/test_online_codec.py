@@ -82,6 +82,8 @@ def test_version_1_is_migrated() -> None:
     old = SessionState.from_bytes(json.dumps(v1).encode())
     assert all(math.isnan(v) for v in old.base)  # version 1 had no scale baseline: none yet
     old.base = st.base
+    assert math.isnan(old.speed)  # nor an averaged speed: it starts from the next fix
+    old.speed = st.speed
     assert old.to_bytes() == st.to_bytes()
     # the oldest layout (10-slot hypotheses, 3 odometer values) gets the defaults
     v1["h"] = [h[:10] for h in v1["h"]]
@@ -99,6 +101,7 @@ def test_version_1_is_migrated() -> None:
         (lambda d: d.update(odo=math.inf), "state.odo"),
         (lambda d: d.update(res_pos2=-1.0), "state.res_pos2"),
         (lambda d: d.update(drift_sigma=-0.1), "state.drift_sigma"),
+        (lambda d: d.update(speed=-0.1), "state.speed"),
         (lambda d: d.update(drift_sigma=1.7e175), "state.drift_sigma"),  # its square overflows
         (lambda d: d.update(base=[1.0, 2.0]), "state.base"),
         (lambda d: d.update(base=[1.0, 2.0, "x", 4.0]), "state.base[2]"),

@@ -134,3 +134,59 @@ def test_outage_that_ends_beside_a_parallel_road_is_decided_by_the_returning_gps
     assert res[back - 1].edge == m.edge("b", "c")  # the dead reckoning's road
     fd = m.edge("f", "d")
     assert all(r.edge == fd for r in res[back + 4 :]), [r.edge for r in res[back:]]
+
+
+CROSSING = """
+        n
+        |
+        |
+a-------b-------c
+        |
+        |
+        s
+"""
+
+
+def test_stopped_vehicle_stays_stopped_through_odometer_noise_at_10_hz() -> None:
+    """A vehicle stops 1 m before the crossing b and stands there 30 s while its fixes drift
+    15 m up the side road b-n (on track 84 of the real drives a parked vehicle's fixes did).
+    At 10 Hz its odometer's noise of a few centimetres per fix reads as walking pace over
+    0.1 s: judged over ``stop_time`` the vehicle stays stopped, before b, as it does at 1 Hz."""
+    import numpy as np
+
+    from mapmatch.config import DEFAULT_CONFIG
+
+    #           n
+    #           |   fixes drift up here while the vehicle stands at o
+    #   a------ob-------c
+    #           s
+    m = parse_ascii_map(CROSSING, scale=10)
+    a, b, n = m.xy("a"), m.xy("b"), m.xy("n")
+    east = (b - a) / np.linalg.norm(b - a)
+    north = (n - b) / np.linalg.norm(n - b)
+    moving = [f for f in drive(m, "ab", speed=5, dt=0.1) if np.dot(b - np.array(_xy(m, f)), east) > 1.0]
+    t = moving[-1].time
+    stop = b - 1.0 * east
+    rng = np.random.default_rng(1)
+    noise = np.maximum(rng.normal(0.0, 0.02, 300), 0.0)  # metres per fix, as odometers read
+    standing = []
+    for i in range(300):
+        xy = stop + min(1.0, i / 30.0) * 15.0 * north
+        lon, lat = to_lonlat(m.graph.crs, [xy[0]], [xy[1]])[0]
+        d = float(noise[i])
+        standing.append(
+            Fix(time=t + 0.1 * (i + 1), lat=float(lat), lon=float(lon), heading=90.0, speed=10.0 * d,
+                distance=d, gps_valid=True)
+        )  # fmt: skip
+    stop_speed = DEFAULT_CONFIG.online.stop_speed
+    assert (noise > 0.1 * stop_speed).any()  # some fixes alone read as moving
+    ab = m.edge("a", "b")
+    res = _run(OnlineMatcher(m.graph), moving + standing)
+    assert {r.edge for r in res[-300:]} == {ab}
+    # judged per fix (the old rule: a stop_time of one fix interval) it moves up b-n
+    per_fix = _run(OnlineMatcher(m.graph, config=DEFAULT_CONFIG.replace(stop_time=0.1)), moving + standing)
+    assert per_fix[-1].edge == m.edge("b", "n")
+    # at 1 Hz the same stop is one either way
+    slow = moving[::10] + standing[9::10]
+    slow = [dataclasses.replace(f, distance=0.0, speed=0.0) if f in standing else f for f in slow]
+    assert {r.edge for r in _run(OnlineMatcher(m.graph), slow)[-30:]} == {ab}

@@ -44,6 +44,7 @@ def to_bytes(st: SessionState) -> bytes:
         "res_pos2": st.res_pos2,
         "res_head2": st.res_head2,
         "drift_sigma": st.drift_sigma,
+        "speed": st.speed,
         "search_time": st.search_time,
         "shown": st.shown,
         "bias": st.bias._asdict(),
@@ -222,6 +223,7 @@ def _decode(r: _Reader, n_edges: int | None) -> SessionState:
         res_pos2=r.num("res_pos2", low=0.0),
         res_head2=r.num("res_head2", low=0.0),
         drift_sigma=r.num("drift_sigma", low=0.0),
+        speed=r.num("speed", nan=True, low=0.0) if "speed" in r.d else _NAN,  # absent in older blobs
         search_time=r.num("search_time", nan=True),
         shown=r.int_("shown", low=-1, high=n_edges),
         bias=FixBias(

@@ -119,6 +119,7 @@ class OnlineMatcher:
             state.odo += step.travelled
         if step.gps:
             state.gps_odo = state.odo
+        state.speed = step.speed
         state.drift_sigma = bias.drift_sigma(state, step.gps, 0.0, step.dt, cfg) if step.gps else step.sigma
         state.time, state.x, state.y = step.time, step.x, step.y
         state.bias = step.bias

@@ -116,6 +116,7 @@ class SessionState:
     res_pos2: float = 25.0  # running mean of squared distance to the road (m²), on road
     res_head2: float = 400.0  # running mean of squared heading residual (deg²), on road
     drift_sigma: float = 0.0  # dead-reckoning drift σ (m), decaying after GPS returns
+    speed: float = math.nan  # the odometer's speed averaged over ``stop_time`` (m/s; nan: unknown)
     search_time: float = math.nan  # time of the last soft re-initialisation search
     shown: int = -1  # the edge reported last
     # learnt from the fix's offsets across roads of other directions; along a road it is
@@ -165,7 +166,7 @@ class Step:
     dt: float
     gps: bool
     weight: float
-    stopped: bool  # slower than ``stop_speed`` by the odometer
+    stopped: bool  # slower than ``stop_speed`` by the odometer (over ``stop_time``)
     r_a: float
     dr: float  # odometer metres since the last GPS-aided fix (0 when this one is)
     bias: FixBias  # predicted fix bias
@@ -174,3 +175,4 @@ class Step:
     turn_weight: float = 1.0  # the turn score's weight: ``weight`` without its share of time
     still_kappa: float = 0.0  # a stopped vehicle's fused heading: its concentration ...
     still_weight: float = 0.0  # ... and weight (time share the distance share left out)
+    speed: float = math.nan  # the odometer's speed over the last ``stop_time`` (m/s)

@@ -50,9 +50,16 @@ def prepare(road: RoadModel, state: SessionState, fix: Fix, cfg: MatchConfig) ->
     per_time = 1.0 if math.isnan(dt) else min(1.0, dt / o.evidence_time)
     weight = per_time
     stopped = False
+    speed = state.speed
     if odo_known and not math.isnan(dt):
         weight = min(weight, travelled / o.evidence_distance)
-        stopped = travelled < o.stop_speed * dt
+        # stopped by this fix's speed or by that over ``stop_time``: over 0.1 s an odometer's
+        # noise alone reads as a speed, which must not start a stopped vehicle moving
+        speed = travelled / dt
+        now = speed
+        if not math.isnan(state.speed):
+            speed = state.speed + min(1.0, dt / o.stop_time) * (speed - state.speed)
+        stopped = min(now, speed) < o.stop_speed
     # the turn score is already per metre driven: weighed per fix only by the distance share,
     # or it would count ten times less at 10 Hz than at 1 Hz
     turn_weight = weight / per_time if per_time > 0.0 else 0.0
@@ -86,6 +93,7 @@ def prepare(road: RoadModel, state: SessionState, fix: Fix, cfg: MatchConfig) ->
         still_kappa=still_kappa,
         still_weight=still_weight,
         stopped=stopped,
+        speed=speed,
         r_a=region_radius(road, sigma, cfg),
         dr=0.0 if gps else odo - state.gps_odo,
         odo_sigma=math.sqrt(anchor.odo_kvar(state, cfg) + o.odo_scale_floor**2),
