@@ -176,6 +176,8 @@ def _nearest_on_path(
         acc += road.elen[h.edges[j]]
     # stopped: the fix's noise may move the vehicle back but not on across a node
     jmax = h.k + 1 if step.stopped else len(h.edges)
+    reach = step.r_a
+    ahead = (step.travelled if not math.isnan(step.travelled) else 0.0) + reach
     for j in range(j0, jmax):
         e = h.edges[j]
         pr = cache.get(e)
@@ -198,12 +200,21 @@ def _nearest_on_path(
             if pr2[0] > hold:
                 acc += road.elen[e]
                 continue
-        sc = road.emission(debiased(step, dist, px, py, brg, cfg), sigma, step.heading, brg, step.kappa)
-        if not math.isnan(step.travelled):
-            sc += road.transition(s - h.s, step, cfg)
-        if sc > best_sc + 1e-9:
-            best_sc = sc
-            best = (j, off, s, dist, px, py, brg)
+        cands = [pr]
+        if not h.s - reach <= s <= h.s + ahead:
+            # an edge that loops back (a ramp) may pass nearer the fix further on: the part
+            # the vehicle can have reached since the last fix is a candidate too
+            local = road.project_between(e, x, y, h.s - reach - acc, h.s + ahead - acc)
+            if local is not None:
+                cands.append(local)
+        for off, dist, px, py, brg in cands:
+            s = acc + off
+            sc = road.emission(debiased(step, dist, px, py, brg, cfg), sigma, step.heading, brg, step.kappa)
+            if not math.isnan(step.travelled):
+                sc += road.transition(s - h.s, step, cfg)
+            if sc > best_sc + 1e-9:
+                best_sc = sc
+                best = (j, off, s, dist, px, py, brg)
         acc += road.elen[e]
     return best_sc, PathPos(*best), acc
 

@@ -6,6 +6,7 @@ All plain-float code for the per-fix hot path; the arrays come from the prepared
 
 from __future__ import annotations
 
+import bisect
 import math
 
 import numpy as np
@@ -56,6 +57,14 @@ class RoadModel:
         d = np.diff(graph.seg_xy, axis=0) if len(graph.seg_xy) else np.zeros((0, 2))
         self.piece_len = np.hypot(d[:, 0], d[:, 1])
         self.piece_brg = np.degrees(np.arctan2(d[:, 0], d[:, 1])) % 360.0
+        # every vertex's distance along its edge
+        vcum = np.zeros(len(graph.seg_xy))
+        ptr = graph.edge_seg_ptr
+        for e in range(graph.n_edges):
+            lo, hi = int(ptr[e]), int(ptr[e + 1])
+            if hi - lo > 1:
+                vcum[lo + 1 : hi] = np.cumsum(self.piece_len[lo : hi - 1])
+        self.vcum: list[float] = vcum.tolist()
         self.branching: list[bool] = junctions(graph).tolist()
         moves = legal_moves(graph, uturns="junction")
         self._mptr: list[int] = moves.ptr.tolist()
@@ -80,6 +89,23 @@ class RoadModel:
         return project_point_compiled(  # type: ignore[no-any-return]
             self.seg, self.ptr[e], self.ptr[e + 1], x, y, self.elen[e], self.bstart[e]
         )
+
+    def project_between(self, e: int, x: float, y: float, lo: float, hi: float) -> Projection | None:
+        """The point's nearest point on edge ``e`` between ``lo`` and ``hi`` metres along it, when
+        that is a foot of its own inside the stretch (not the stretch's end); else None."""
+        lo, hi = max(lo, 0.0), min(hi, self.elen[e])
+        if hi <= lo:
+            return None
+        a, b = self.ptr[e], self.ptr[e + 1]
+        q0 = max(bisect.bisect_right(self.vcum, lo, a, b) - 1, a)
+        q1 = min(bisect.bisect_left(self.vcum, hi, a, b) + 1, b)
+        if q1 - q0 < 2:
+            return None
+        off, dist, px, py, brg = project_point_compiled(self.seg, q0, q1, x, y, math.inf, self.bstart[e])
+        off += self.vcum[q0]
+        if not lo < off < hi:
+            return None
+        return off, dist, px, py, brg
 
     def locate(self, e: int, off: float) -> tuple[float, float, float]:
         """``(x, y, bearing)`` at ``off`` metres along edge ``e``."""
