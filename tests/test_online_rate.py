@@ -4,6 +4,8 @@
 from __future__ import annotations
 
 import dataclasses
+import math
+from pathlib import Path
 
 import pytest
 
@@ -190,3 +192,52 @@ def test_stopped_vehicle_stays_stopped_through_odometer_noise_at_10_hz() -> None
     slow = moving[::10] + standing[9::10]
     slow = [dataclasses.replace(f, distance=0.0, speed=0.0) if f in standing else f for f in slow]
     assert {r.edge for r in _run(OnlineMatcher(m.graph), slow)[-30:]} == {ab}
+
+
+def test_fix_beside_a_looping_ramp_is_placed_on_the_part_reached(tmp_path: Path) -> None:
+    """A ramp leaves the road at b, loops round and comes back 6 m beside its own start. Fixes
+    4.5 m off its start lie nearer its far end (1.5 m), which the vehicle cannot have reached
+    since the last fix: the position stays on the part of the ramp reached (on track 56 of the
+    real drives a 10 Hz position once jumped 326 m ahead along a looping edge)."""
+    import json
+
+    from mapmatch.graph.build import build_map
+
+    #   a---------------------b--------+      (the ramp: east, south, west, north, west)
+    #                  c------------+  |
+    #                               +--+
+    crs = "EPSG:32635"
+    x0, y0 = 385_000.0, 6_672_000.0
+    road = [(0.0, 0.0), (400.0, 0.0)]
+    ramp = [(400.0, 0.0), (500.0, 0.0), (500.0, -50.0), (440.0, -50.0), (440.0, -6.0), (300.0, -6.0)]
+
+    def lonlat(pts: list[tuple[float, float]]) -> list[list[float]]:
+        ll = to_lonlat(crs, [x0 + x for x, _ in pts], [y0 + y for _, y in pts])
+        return [[float(a), float(b)] for a, b in ll]
+
+    feats = [
+        {
+            "type": "Feature",
+            "properties": {"id": i + 1},
+            "geometry": {"type": "LineString", "coordinates": lonlat(p)},
+        }
+        for i, p in enumerate((road, ramp))
+    ]
+    src = tmp_path / "ramp.geojson"
+    src.write_text(json.dumps({"type": "FeatureCollection", "features": feats}), encoding="utf-8")
+    graph = build_map(src)
+    matcher = OnlineMatcher(graph)
+    fixes, truth = [], []
+    for i in range(470):  # 10 Hz at 10 m/s: along the road and 70 m into the ramp
+        x = 1.0 * i
+        y = -4.5 if 410.0 <= x <= 490.0 else 0.0
+        lon, lat = lonlat([(x, y)])[0]
+        fixes.append(
+            Fix(time=0.1 * i, lat=lat, lon=lon, heading=90.0, speed=10.0, distance=1.0 if i else math.nan,
+                gps_valid=True)
+        )  # fmt: skip
+        truth.append(x)
+    res = _run(matcher, fixes)
+    # b joins two roads only: the map has one edge a-b-ramp (a loop of 794 m)
+    assert graph.n_edges == 2 and all(r.edge == res[0].edge for r in res)
+    assert max(abs(r.offset - x) for r, x in zip(res, truth, strict=True)) < 10.0

@@ -25,6 +25,7 @@ class RoadArrays(NamedTuple):
     elen: NDArray[np.float64]  # edge length (m)
     bstart: NDArray[np.float64]  # bearing at the edge's start (degrees clockwise from north)
     bend: NDArray[np.float64]  # bearing at its end
+    vcum: NDArray[np.float64]  # every vertex's distance along its edge
 
 
 @njit(cache=True)
@@ -33,6 +34,26 @@ def project(road: RoadArrays, e: int, x: float, y: float) -> tuple[float, float,
     return project_point_compiled(  # type: ignore[no-any-return]
         road.seg, road.ptr[e], road.ptr[e + 1], x, y, road.elen[e], road.bstart[e]
     )
+
+
+@njit(cache=True)
+def project_between(  # type: ignore[no-untyped-def]
+    road: RoadArrays, e: int, x: float, y: float, lo: float, hi: float
+):
+    """``(found, offset, dist, px, py, bearing)``: the point's nearest point on edge ``e``
+    between ``lo`` and ``hi`` metres along it, found when it is a foot of its own inside that
+    stretch (not the stretch's end)."""
+    lo, hi = max(lo, 0.0), min(hi, road.elen[e])
+    a, b = road.ptr[e], road.ptr[e + 1]
+    if hi <= lo:
+        return False, 0.0, 0.0, 0.0, 0.0, 0.0
+    q0 = max(a + np.searchsorted(road.vcum[a:b], lo, side="right") - 1, a)
+    q1 = min(a + np.searchsorted(road.vcum[a:b], hi, side="left") + 1, b)
+    if q1 - q0 < 2:
+        return False, 0.0, 0.0, 0.0, 0.0, 0.0
+    off, dist, px, py, brg = project_point_compiled(road.seg, q0, q1, x, y, math.inf, road.bstart[e])
+    off += road.vcum[q0]
+    return lo < off < hi, off, dist, px, py, brg
 
 
 @njit(cache=True)

@@ -39,6 +39,7 @@ class PlaceParams(NamedTuple):
     node_hold: float  # ``node_hold_sigmas`` · σ
     turn_obs: float  # the heading change observed over the last ``covered`` metres (nan: none)
     covered: float
+    reach: float  # the region radius: how far behind its place a hypothesis may be found
     # configuration
     bias_emission: float
     bias_white_fraction: float
@@ -106,6 +107,7 @@ def place_params(step: Step, cfg: MatchConfig, *, turn_obs: float, covered: floa
             float(o.node_hold_sigmas * step.sigma),
             float(turn_obs),
             float(covered),
+            float(step.r_a),
             *last[1],
         )
     )

@@ -19,7 +19,15 @@ from numpy.typing import NDArray
 from mapmatch.config import MatchConfig
 from mapmatch.model import emission_logp_one, transition_one_compiled
 from mapmatch.online.along import Pos, along_track
-from mapmatch.online.geometry import RoadArrays, angle_diff_c, bearing_on_path, hypot, locate, project
+from mapmatch.online.geometry import (
+    RoadArrays,
+    angle_diff_c,
+    bearing_on_path,
+    hypot,
+    locate,
+    project,
+    project_between,
+)
 from mapmatch.online.params import PlaceParams, place_params
 from mapmatch.online.road import RoadModel
 from mapmatch.online.state import Hypothesis, Step
@@ -73,6 +81,7 @@ def nearest_on_path(  # type: ignore[no-untyped-def]
         acc += road.elen[edges[j]]
     # stopped: the fix's noise may move the vehicle back but not on across a node
     jmax = k + 1 if p.stopped else len(edges)
+    ahead = (0.0 if math.isnan(p.travelled) else p.travelled) + p.reach
     for j in range(j0, jmax):
         e = edges[j]
         le = road.elen[e]
@@ -94,6 +103,20 @@ def nearest_on_path(  # type: ignore[no-untyped-def]
         if sc > best_sc + 1e-9:
             best_sc = sc
             best = (j, off, s, dist, px, py, brg)
+        if not h_s - p.reach <= s <= h_s + ahead:
+            # an edge that loops back (a ramp) may pass nearer the fix further on: the part
+            # the vehicle can have reached since the last fix is a candidate too
+            found, off, dist, px, py, brg = project_between(
+                road, e, p.x, p.y, h_s - p.reach - acc, h_s + ahead - acc
+            )
+            if found:
+                s = acc + off
+                sc = emission_logp_one(debiased(p, dist, px, py, brg), p.sigma, p.heading, brg, p.kappa)
+                if not math.isnan(p.travelled):
+                    sc += transition(p, s - h_s)
+                if sc > best_sc + 1e-9:
+                    best_sc = sc
+                    best = (j, off, s, dist, px, py, brg)
         acc += le
     return best_sc, best, acc
 

@@ -57,12 +57,20 @@ class RoadModel:
         self.ptr: list[int] = graph.edge_seg_ptr.tolist()
         self.seg = np.ascontiguousarray(graph.seg_xy, dtype=np.float64)
         # the same, as arrays for the compiled kernels
+        # every vertex's distance along its edge
+        piece = np.hypot(*np.diff(graph.seg_xy, axis=0).T) if len(graph.seg_xy) else np.zeros(0)
+        vcum = np.zeros(len(graph.seg_xy))
+        for e in range(graph.n_edges):
+            lo, hi = int(graph.edge_seg_ptr[e]), int(graph.edge_seg_ptr[e + 1])
+            if hi - lo > 1:
+                vcum[lo + 1 : hi] = np.cumsum(piece[lo : hi - 1])
         self.arrays = RoadArrays(
             seg=self.seg,
             ptr=np.ascontiguousarray(graph.edge_seg_ptr, dtype=np.int64),
             elen=np.ascontiguousarray(graph.edge_len, dtype=np.float64),
             bstart=np.ascontiguousarray(graph.edge_bearing_start, dtype=np.float64),
             bend=np.ascontiguousarray(graph.edge_bearing_end, dtype=np.float64),
+            vcum=vcum,
         )
         self.arrays_tuple = tuple(self.arrays)  # as a plain tuple: how the kernels take it
         self._cum, self._seg_len, self._brg = _piece_table(self.seg, self.ptr)
