@@ -36,6 +36,7 @@ from mapmatch.errors import ValidationError
 from mapmatch.graph.artifact import MAGIC, load_map, save_map
 from mapmatch.graph.errors import GraphError
 from mapmatch.graph.index import EdgeIndex
+from mapmatch.graph.projection import point_to_lonlat
 from mapmatch.graph.road_graph import ARRAY_FIELDS, RoadGraph
 from mapmatch.service.errors import LimitError, MapLoadError, MapNotFoundError, MapPathError
 from mapmatch.types import Fix, State, Track
@@ -412,10 +413,19 @@ def warm_up(entry: MapEntry, *, batch: bool = True) -> None:
     # at the road's start node: on the road whatever its shape
     heading = float(g.edge_bearing_start[e]) % 360.0
     fix = Fix(time=0.0, lat=lat0, lon=lon0, heading=heading, pos_sigma=5.0, speed=5.0)
+    # a second fix a little way on: the placement kernels load (or compile) now, not on a
+    # vehicle's first fix
+    step = min(3.0, 0.5 * float(g.edge_len[e]))
+    x0, y0 = (float(v) for v in g.node_xy[int(g.edge_u[e])])
+    rad = math.radians(heading)
+    lon1, lat1 = point_to_lonlat(g.crs, x0 + step * math.sin(rad), y0 + step * math.cos(rad))
+    fix1 = Fix(time=1.0, lat=lat1, lon=lon1, heading=heading, pos_sigma=5.0, speed=step)
     try:
         fix.validate()
-        result = entry.online.update(entry.online.new_session(), fix)
+        state = entry.online.new_session()
+        result = entry.online.update(state, fix)
         convert.snap_result_to_proto(result)
+        convert.snap_result_to_proto(entry.online.update(state, fix1))
     except (ValidationError, GraphError) as exc:
         raise MapLoadError(f"path: map {entry.map_id!r} failed its warm-up query ({exc})") from None
     except Exception as exc:
