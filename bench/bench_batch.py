@@ -33,7 +33,12 @@ from pathlib import Path
 from typing import Any
 
 ROOT = Path(__file__).resolve().parents[1]
-PEERS = Path(os.environ.get("MAPMATCH_PEERS", ROOT.parent / "shared" / "peers"))
+PEERS = Path(
+    os.environ.get("MAPMATCH_PEERS")
+    # the nearest folder above the project with shared/peers (a worktree sits one level deeper)
+    or next((d / "shared" / "peers" for d in ROOT.parents if (d / "shared" / "peers").is_dir()), "")
+    or ROOT.parent / "shared" / "peers"
+)
 CACHE = Path(os.path.expanduser("~/.cache/mapmatch-peers"))
 PEERS_PY = CACHE / "venvs" / "venv" / "bin" / "python"
 
@@ -223,7 +228,7 @@ def _tracks(ids: str) -> tuple[Any, Path, list[str]]:
     sys.path.insert(0, str(ROOT / "bench"))
     import peers_adapter  # type: ignore[import-not-found]
 
-    data = ROOT.parent / "shared" / "data" / "kubicka"
+    data = PEERS.parent / "data" / "kubicka"
     names = sorted(p.name for p in data.iterdir() if p.is_dir())
     if ids != "all":
         names = [n for n in names if int(n) in {int(x) for x in ids.split(",")}]

@@ -16,6 +16,7 @@ import numpy as np
 from numba import njit
 from numpy.typing import ArrayLike, NDArray
 
+from mapmatch.arena import Arena, take_f8, take_i8, take_xy
 from mapmatch.graph.index import Candidates, EdgeIndex
 
 DENSE_MAX_CELLS = 1 << 23
@@ -125,7 +126,7 @@ class GridIndex:
         """As :meth:`EdgeIndex.query` (scalar radius): directed edges within ``radius`` of each point."""
         pts = np.ascontiguousarray(np.asarray(xy, dtype=np.float64).reshape(-1, 2))
         p, e, d, o, q = query_grid(
-            pts, float(radius), -1 if k is None else int(k), self.arrays, self.scratch()
+            pts, float(radius), -1 if k is None else int(k), self.arrays, self.scratch(), Arena.new()
         )
         return Candidates(point=p, edge=e, dist=d, offset=o, xy=q)
 
@@ -159,10 +160,11 @@ def _bucket(a, b, origin, cell, ny):  # type: ignore[no-untyped-def]
 
 
 @njit(cache=True, nogil=True)
-def query_grid(pts, radius, k, grid, sc):  # type: ignore[no-untyped-def]
+def query_grid(pts, radius, k, grid, sc, ar):  # type: ignore[no-untyped-def]
     """Directed edges within ``radius`` of each point of ``pts`` (non-finite points have none),
     nearest ``k`` roads (``k < 0``: all) with their reverse twins, sorted by point then (distance,
-    edge): ``(point, edge, dist, offset, xy)`` as :class:`~mapmatch.graph.index.Candidates`."""
+    edge): ``(point, edge, dist, offset, xy)`` as :class:`~mapmatch.graph.index.Candidates`.
+    Working arrays and the answer come from the arena ``ar`` (:mod:`mapmatch.arena`)."""
     origin, cell, nx, ny = grid.origin, grid.cell, grid.nx, grid.ny
     cell_ptr, cell_ids, cell_seg = grid.cell_ptr, grid.cell_ids, grid.cell_seg
     seg_a, seg_b, seg_len, seg_off = grid.seg_a, grid.seg_b, grid.seg_len, grid.seg_off
@@ -171,19 +173,19 @@ def query_grid(pts, radius, k, grid, sc):  # type: ignore[no-untyped-def]
     stamp0 = sc.stamp[0]
     n = len(pts)
     cap = 16 * n + 16
-    op = np.empty(cap, dtype=np.int64)
-    oe = np.empty(cap, dtype=np.int32)
-    od = np.empty(cap)
-    oo = np.empty(cap)
-    oq = np.empty((cap, 2))
+    op = take_i8(ar, cap)
+    oe = take_i8(ar, cap)
+    od = take_f8(ar, cap)
+    oo = take_f8(ar, cap)
+    oq = take_xy(ar, cap)
     m = 0
     r = math.ceil(radius / cell)
-    loc_e = np.empty(64, dtype=np.int64)
-    loc_d = np.empty(64)
-    loc_o = np.empty(64)
-    loc_x = np.empty(64)
-    loc_y = np.empty(64)
-    sel = np.empty(64, dtype=np.int64)
+    loc_e = take_i8(ar, 64)
+    loc_d = take_f8(ar, 64)
+    loc_o = take_f8(ar, 64)
+    loc_x = take_f8(ar, 64)
+    loc_y = take_f8(ar, 64)
+    sel = take_i8(ar, 64)
     p = -1
     redo = False
     while True:
@@ -314,7 +316,7 @@ def query_grid(pts, radius, k, grid, sc):  # type: ignore[no-untyped-def]
             od[b + 1], oe[b + 1], oo[b + 1] = d0, e0, o0
             oq[b + 1, 0], oq[b + 1, 1] = x0, y0
     sc.stamp[0] = stamp0
-    return op[:m].copy(), oe[:m].copy(), od[:m].copy(), oo[:m].copy(), oq[:m].copy()
+    return op[:m], oe[:m], od[:m], oo[:m], oq[:m]
 
 
 @njit(cache=True, nogil=True)

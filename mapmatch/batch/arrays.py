@@ -112,7 +112,7 @@ class Assembly(NamedTuple):
     p_off: NDArray[np.float64]
     p_xy: NDArray[np.float64]
     p_dist: NDArray[np.float64]
-    status: NDArray[np.int8]
+    status: NDArray[np.int64]
     """0 unmatched, 1 matched, 2 interpolated."""
     splits: NDArray[np.int64]
     route_e: NDArray[np.int64]

@@ -12,6 +12,7 @@ import math
 import numpy as np
 from numba import njit
 
+from mapmatch.arena import full_b1, full_f8, full_i8, take_b1, take_f8, take_i8, take_xy
 from mapmatch.batch.arrays import CandidateArrays, KernelParams, Lattice, TrackPoints
 from mapmatch.model import emission_logp_one
 
@@ -87,7 +88,7 @@ def bearing_at(edges, offs, seg_xy, seg_ptr, seg_end):  # type: ignore[no-untype
 
 
 @njit(cache=True, nogil=True)
-def prune(nk, c: CandidateArrays, emis, prune_lp, outlier, sigma, off_map_sigmas, min_run):  # type: ignore[no-untyped-def]
+def prune(nk, c: CandidateArrays, emis, prune_lp, outlier, sigma, off_map_sigmas, min_run, ar):  # type: ignore[no-untyped-def]
     """Drop candidates far below their point's best emission, beyond ``outlier`` metres or
     beyond ``off_map_sigmas`` times their σ (``c.sigma``, else ``sigma``; 0: no σ limit).
 
@@ -96,12 +97,12 @@ def prune(nk, c: CandidateArrays, emis, prune_lp, outlier, sigma, off_map_sigmas
     """
     cpoint = c.point
     nc = len(cpoint)
-    best = np.full(nk, -np.inf)
+    best = full_f8(ar, nk, -np.inf)
     for i in range(nc):
         if emis[i] > best[cpoint[i]]:
             best[cpoint[i]] = emis[i]
-    keep = np.zeros(nc, dtype=np.bool_)
-    counts = np.zeros(nk, dtype=np.int64)
+    keep = full_b1(ar, nc, False)
+    counts = full_i8(ar, nk, 0)
     nkeep = 0
     for i in range(nc):
         lim = outlier
@@ -133,24 +134,25 @@ def prune(nk, c: CandidateArrays, emis, prune_lp, outlier, sigma, off_map_sigmas
                 keep[i] = False
             if keep[i]:
                 nkeep += 1
-    has = counts > 0
+    has = take_b1(ar, nk)
     m = 0
     for p in range(nk):
+        has[p] = counts[p] > 0
         if has[p]:
             m += 1
-    ptr = np.zeros(m + 1, dtype=np.int64)
+    ptr = full_i8(ar, m + 1, 0)
     q = 0
     for p in range(nk):
         if has[p]:
             ptr[q + 1] = ptr[q] + counts[p]
             q += 1
-    oe = np.empty(nkeep, dtype=np.int64)
-    oo = np.empty(nkeep)
-    ox = np.empty((nkeep, 2))
-    od = np.empty(nkeep)
-    om = np.empty(nkeep)
+    oe = take_i8(ar, nkeep)
+    oo = take_f8(ar, nkeep)
+    ox = take_xy(ar, nkeep)
+    od = take_f8(ar, nkeep)
+    om = take_f8(ar, nkeep)
     nl = nkeep if len(c.limit) == nc else 0
-    ol = np.empty(nl)
+    ol = take_f8(ar, nl)
     k = 0
     for i in range(nc):
         if keep[i]:
@@ -167,34 +169,39 @@ def prune(nk, c: CandidateArrays, emis, prune_lp, outlier, sigma, off_map_sigmas
 
 
 @njit(cache=True, nogil=True)
-def build_lattice(pt: TrackPoints, c: CandidateArrays, p: KernelParams) -> Lattice:
+def build_lattice(pt: TrackPoints, c: CandidateArrays, p: KernelParams, ar) -> Lattice:  # type: ignore[no-untyped-def]
     """Emissions (distance-only with one σ when ``c.emis`` is empty), pruning, and the lattice
     points' positions, times and odometer readings."""
     emis = c.emis
     if len(emis) != len(c.dist):
-        emis = np.empty(len(c.dist))
+        emis = take_f8(ar, len(c.dist))
         for i in range(len(c.dist)):
             emis[i] = emission_logp_one(c.dist[i], p.sigma, 0.0, 0.0, 0.0)
     ptr, ce, co, cx, cd, em, lim, has = prune(
-        len(pt.kidx), c, emis, p.prune, p.outlier, p.sigma, p.off_map_sigmas, p.off_map_min_run
+        len(pt.kidx), c, emis, p.prune, p.outlier, p.sigma, p.off_map_sigmas, p.off_map_min_run, ar
     )
-    pts = pt.kidx[has]
-    m = len(pts)
-    pxy = np.empty((m, 2))
-    ptime = np.empty(m)
-    podo = np.full(m, np.nan)
+    m = len(ptr) - 1
+    pts = take_i8(ar, m)
+    q = 0
+    for i in range(len(has)):
+        if has[i]:
+            pts[q] = pt.kidx[i]
+            q += 1
+    pxy = take_xy(ar, m)
+    ptime = take_f8(ar, m)
+    podo = full_f8(ar, m, np.nan)
     for i in range(m):
         pxy[i, 0] = pt.xy[pts[i], 0]
         pxy[i, 1] = pt.xy[pts[i], 1]
         ptime[i] = pt.time[pts[i]]
         if len(pt.odo):
             podo[i] = pt.odo[pts[i]]
-    cut = off_map_cuts(pt, has, p.off_map_cut)
+    cut = off_map_cuts(pt, has, p.off_map_cut, ar)
     return Lattice(ptr, ce, co, cx, cd, em, lim, pts, pxy, ptime, podo, cut)
 
 
 @njit(cache=True, nogil=True)
-def off_map_cuts(pt: TrackPoints, has, min_run):  # type: ignore[no-untyped-def]
+def off_map_cuts(pt: TrackPoints, has, min_run, ar):  # type: ignore[no-untyped-def]
     """Per lattice point: whether the kept points just before it that have no road within the
     off-map distance travel at least ``min_run`` metres among themselves (the track left the
     map and came back: the route is cut there; 0 never cuts)."""
@@ -202,7 +209,7 @@ def off_map_cuts(pt: TrackPoints, has, min_run):  # type: ignore[no-untyped-def]
     for q in range(len(has)):
         if has[q]:
             m += 1
-    cut = np.zeros(m, dtype=np.bool_)
+    cut = full_b1(ar, m, False)
     if min_run <= 0:
         return cut
     t = -1

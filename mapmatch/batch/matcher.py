@@ -22,6 +22,7 @@ from pyproj import Transformer
 from pyproj.enums import TransformDirection
 
 from mapmatch import model
+from mapmatch.arena import Arena
 from mapmatch.batch.arrays import CandidateArrays, EdgeGeometry, KernelParams, TrackPoints, kernel_params
 from mapmatch.batch.lattice import along_lengths, bearing_at, drop_spikes, motion_heading, thin
 from mapmatch.batch.results import fill_route_lonlat, track_match
@@ -39,14 +40,19 @@ NO_ODO = np.zeros(0)
 """The odometer readings of a track without them (read-only use)."""
 NO_COLUMN = np.zeros(0)
 """An optional per-fix column the track does not have (read-only use)."""
+ARENA_ITEMS = 1 << 14
+"""Items per buffer of a thread's first arena (grown as tracks need)."""
 
 
 class _ThreadState(NamedTuple):
-    """One thread's scratch for one matcher: the route workspace, the grid marks and the
-    transformer to the map's CRS (pyproj transformers are not shared across threads)."""
+    """One thread's scratch for one matcher: the route workspace, the grid marks, the kernels'
+    arena and the transformer to the map's CRS (pyproj transformers are not shared across
+    threads)."""
 
     router: Router
     grid: GridScratch
+    arena: Arena
+    """Grown after a call that needed more (:meth:`mapmatch.arena.Arena.grown`)."""
     to_map: Callable[[NDArray[np.float64]], None]
     """Projects a (2, n) lon/lat buffer to the map's CRS in place (:func:`_projector`)."""
 
@@ -123,7 +129,9 @@ class BatchMatcher:
         if st is None:
             router = Router(self._rg, Workspace.new(self.graph.n_edges), self._table)
             to_map = _projector(Transformer.from_crs("EPSG:4326", self.graph.crs, always_xy=True))
-            st = self._local.state = _ThreadState(router, self._grid.scratch(), to_map)
+            st = self._local.state = _ThreadState(
+                router, self._grid.scratch(), Arena.new(ARENA_ITEMS), to_map
+            )
         return st
 
     @property
@@ -175,19 +183,21 @@ class BatchMatcher:
         """The projection, then one compiled call (:func:`run_track`)."""
         st = self._state()
         s = self._settings_for(cfg)
-        lat = fresh(track.lat, F8)
-        lon = fresh(track.lon, F8)
+        lat, lon = track.lat, track.lon
+        if not isinstance(lat, np.ndarray) or not isinstance(lon, np.ndarray):
+            lat, lon = np.asarray(lat, dtype=F8), np.asarray(lon, dtype=F8)
         if lat.ndim != 1 or lon.shape != lat.shape:
             raise ValueError(f"the track's lat and lon have shapes {lat.shape} and {lon.shape}, not one (n,)")
         n = len(lat)
-        xy = np.array((lon, lat))
-        st.to_map(xy)
+        pos = np.array((lon, lat, lon, lat), dtype=F8)
+        st.to_map(pos[2:])
         ti = TrackInput(
-            lat, lon, xy[0], xy[1], _column(track.time, n, "time", np.nan),
+            pos, _column(track.time, n, "time", np.nan),
             NO_ODO if track.distance is None else _odometer(_column(track.distance, n, "distance")),
             _column(track.pos_sigma, n, "pos_sigma"), _column(track.heading, n, "heading"),
             _column(track.speed, n, "speed"),
         )  # fmt: skip
+        ar = st.arena
         a = self._run_track(
             ti,
             s.query,
@@ -198,8 +208,17 @@ class BatchMatcher:
             st.router,
             self._grid.arrays,
             st.grid,
+            ar,
         )
+        if max(ar.top.tolist()) > len(ar.f8):
+            self._grow_arena(st)
         return track_match(str(track.track_id), a)
+
+    def _grow_arena(self, st: _ThreadState) -> None:
+        """This thread's arena grown to what the last call needed."""
+        big = st.arena.grown()
+        if big is not None:
+            self._local.state = st._replace(arena=big)
 
     def _match_steps(self, track: Track, cfg: MatchConfig) -> TrackMatch:
         """The same match as :meth:`match` in Python steps (candidates, rules and emissions in
@@ -268,7 +287,8 @@ class BatchMatcher:
             limit=fresh(self._limit[cands.edge] if len(self._limit) else self._limit, F8),
         )  # fmt: skip
         params = st.params if isinstance(sigma, float) else st.params._replace(sigma=0.0)
-        return track_match(str(track.track_id), self._run(pt, ca, params, self._geom, self._router))
+        st_ = self._state()
+        return track_match(str(track.track_id), self._run(pt, ca, params, self._geom, st_.router, st_.arena))
 
 
 def match_track(

@@ -14,28 +14,32 @@ from mapmatch.types import MatchedPoint, PointStatus, TrackMatch
 
 
 def track_match(track_id: str, packed: Packed) -> TrackMatch:
-    """A :class:`TrackMatch` from the compiled kernel's packed arrays (:func:`mapmatch.batch.run.pack`;
-    points still as arrays, views into them)."""
-    ints, floats, length, conf = packed
-    n, ns, ne, nseg, nxy = ints[:5].tolist()
+    """A :class:`TrackMatch` from the compiled kernel's packed array (:func:`mapmatch.batch.run.pack`;
+    points still as arrays, views into it)."""
+    n, ns, ne, nseg, nxy = packed[:5].tolist()
     k = 5 + 2 * n
-    rest = ints[k:].tolist()  # splits, route edges, their pointers, the geometry's pointers
+    ni = k + ns + ne + 2 * (nseg + 1)
+    rest = packed[k:ni].tolist()  # splits, route edges, their pointers, the geometry's pointers
+    floats = packed[ni:].view(np.float64)
     route_e = rest[ns : ns + ne]
     ptr = rest[ns + ne :]
-    xy_all = floats[4 * n :].reshape(nxy, 2)
-    res = TrackMatch(track_id=track_id, splits=rest[:ns], length_m=length, confidence=conf)
-    for s in range(nseg):
-        res.routes.append(route_e[ptr[s] : ptr[s + 1]])
-        seg = xy_all[ptr[nseg + 1 + s] : ptr[nseg + 2 + s]]
-        res.route_xy.append(np.vstack([seg, seg]) if len(seg) == 1 else seg)
-    res.point_arrays = (
-        ints[5 + n : k],
-        ints[5 : 5 + n],
+    routes = []
+    route_xy = []
+    if nseg:
+        xy_all = floats[4 * n : 4 * n + 2 * nxy].reshape(nxy, 2)
+        for s in range(nseg):
+            routes.append(route_e[ptr[s] : ptr[s + 1]])
+            seg = xy_all[ptr[nseg + 1 + s] : ptr[nseg + 2 + s]]
+            route_xy.append(np.vstack([seg, seg]) if len(seg) == 1 else seg)
+    length, conf = floats[4 * n + 2 * nxy :].tolist()
+    pa = (
+        packed[5 + n : k],
+        packed[5 : 5 + n],
         floats[:n],
         floats[n : 3 * n].reshape(n, 2),
         floats[3 * n : 4 * n],
     )
-    return res
+    return TrackMatch(track_id, [], routes, [], rest[:ns], length, conf, route_xy, pa)
 
 
 def fill_route_lonlat(result: TrackMatch, crs: str) -> TrackMatch:

@@ -13,6 +13,7 @@ import math
 import numpy as np
 from numba import njit
 
+from mapmatch.arena import full_b1, full_f8, full_i8, take_f8, take_i8, take_xy
 from mapmatch.batch.arrays import Assembly, EdgeGeometry, KernelParams, Lattice, TrackPoints
 from mapmatch.graph.index import project_point_compiled
 from mapmatch.gridindex import grow_array
@@ -29,16 +30,16 @@ def _project_one(seg_xy, seg_ptr, e, x, y):  # type: ignore[no-untyped-def]
 
 
 @njit(cache=True, nogil=True)
-def route_pieces(ch_edge, ch_off, kind, bound, router):  # type: ignore[no-untyped-def]
+def route_pieces(ch_edge, ch_off, kind, bound, router, ar):  # type: ignore[no-untyped-def]
     """The route as pieces ``(edge, start offset, end offset, segment)`` along the chosen candidates."""
     edge_len = router.g.edge_len
     m = len(ch_edge)
     cap = 2 * m + 16
-    pe = np.empty(cap, dtype=np.int64)
-    ps = np.empty(cap)
-    pend = np.empty(cap)
-    pseg = np.empty(cap, dtype=np.int64)
-    bad = np.zeros(m, dtype=np.bool_)
+    pe = take_i8(ar, cap)
+    ps = take_f8(ar, cap)
+    pend = take_f8(ar, cap)
+    pseg = take_i8(ar, cap)
+    bad = full_b1(ar, m, False)
     n = 0
     seg = -1
     for t in range(m):
@@ -105,7 +106,7 @@ def route_pieces(ch_edge, ch_off, kind, bound, router):  # type: ignore[no-untyp
 
 
 @njit(cache=True, nogil=True)
-def pieces_xy(pe, ps, pend, geom):  # type: ignore[no-untyped-def]
+def pieces_xy(pe, ps, pend, geom, ar):  # type: ignore[no-untyped-def]
     """Polyline coordinates of each piece (consecutive duplicates dropped); ``ptr`` per piece."""
     seg_xy = geom.seg_xy
     seg_ptr = geom.seg_ptr
@@ -113,8 +114,8 @@ def pieces_xy(pe, ps, pend, geom):  # type: ignore[no-untyped-def]
     total = 0
     for i in range(n):
         total += seg_ptr[pe[i] + 1] - seg_ptr[pe[i]] + 2
-    out = np.empty((total, 2))
-    ptr = np.zeros(n + 1, dtype=np.int64)
+    out = take_xy(ar, total)
+    ptr = full_i8(ar, n + 1, 0)
     c = 0
     for i in range(n):
         a0 = seg_ptr[pe[i]]
@@ -156,6 +157,7 @@ def assemble(  # type: ignore[no-untyped-def]
     p: KernelParams,
     geom: EdgeGeometry,
     router,
+    ar,
 ) -> Assembly:
     """Per-point results, route pieces (edges and geometry), splits, length and confidence."""
     valid = pt.valid
@@ -173,17 +175,17 @@ def assemble(  # type: ignore[no-untyped-def]
     seg_ptr = geom.seg_ptr
     reverse_tol = p.reverse_tol
     edge_rev = router.g.edge_rev
-    p_edge = np.full(n, -1, dtype=np.int64)
-    p_off = np.full(n, np.nan)
-    p_xy = np.full((n, 2), np.nan)
-    p_dist = np.full(n, np.nan)
-    status = np.zeros(n, dtype=np.int8)  # 0 unmatched, 1 matched, 2 interpolated
+    p_edge = full_i8(ar, n, -1)
+    p_off = full_f8(ar, n, np.nan)
+    p_xy = full_f8(ar, 2 * n, np.nan).reshape((n, 2))
+    p_dist = full_f8(ar, n, np.nan)
+    status = full_i8(ar, n, 0)  # 0 unmatched, 1 matched, 2 interpolated
     # lattice points left out as unreachable outliers are unmatched
     m = 0
     for t in range(len(choice_all)):
         if choice_all[t] >= 0:
             m += 1
-    acc = np.empty(m, dtype=np.int64)
+    acc = take_i8(ar, m)
     q = 0
     for t in range(len(choice_all)):
         if choice_all[t] >= 0:
@@ -195,14 +197,14 @@ def assemble(  # type: ignore[no-untyped-def]
             nvalid += 1
     if m == 0:
         return Assembly(
-            p_edge, p_off, p_xy, p_dist, status, np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64),
-            np.zeros(1, dtype=np.int64), np.zeros((0, 2)), np.zeros(1, dtype=np.int64), 0.0, 0.0,
+            p_edge, p_off, p_xy, p_dist, status, take_i8(ar, 0), take_i8(ar, 0),
+            full_i8(ar, 1, 0), take_xy(ar, 0), full_i8(ar, 1, 0), 0.0, 0.0,
         )  # fmt: skip
-    ch_edge = np.empty(m, dtype=np.int64)
-    ch_off = np.empty(m)
-    kind = np.empty(m, dtype=np.int64)
-    bound = np.empty(m)
-    pts = np.empty(m, dtype=np.int64)
+    ch_edge = take_i8(ar, m)
+    ch_off = take_f8(ar, m)
+    kind = take_i8(ar, m)
+    bound = take_f8(ar, m)
+    pts = take_i8(ar, m)
     post = 0.0
     for i in range(m):
         t = acc[i]
@@ -246,24 +248,24 @@ def assemble(  # type: ignore[no-untyped-def]
             if rf == road:
                 mine += w
         post += mine / tot
-    pe, ps, pend, pseg, bad = route_pieces(ch_edge, ch_off, kind, bound, router)
+    pe, ps, pend, pseg, bad = route_pieces(ch_edge, ch_off, kind, bound, router, ar)
     # a failed path (should not happen: Viterbi chose a reachable pair) becomes a split
     nsplit = 0
     for i in range(1, m):
         if kind[i] == STEP_SPLIT or bad[i]:
             nsplit += 1
-    splits = np.empty(nsplit, dtype=np.int64)
+    splits = take_i8(ar, nsplit)
     q = 0
     for i in range(1, m):
         if kind[i] == STEP_SPLIT or bad[i]:
             splits[q] = pts[i]
             q += 1
-    xy_all, xptr = pieces_xy(pe, ps, pend, geom)
+    xy_all, xptr = pieces_xy(pe, ps, pend, geom, ar)
     npc = len(pe)
     nseg = pseg[npc - 1] + 1 if npc else 0
-    route_e = np.empty(npc, dtype=np.int64)
-    route_ptr = np.zeros(nseg + 1, dtype=np.int64)
-    rxy_ptr = np.zeros(nseg + 1, dtype=np.int64)
+    route_e = take_i8(ar, npc)
+    route_ptr = full_i8(ar, nseg + 1, 0)
+    rxy_ptr = full_i8(ar, nseg + 1, 0)
     length = 0.0
     k = 0
     for i in range(npc):

@@ -4,7 +4,7 @@
 their emissions, then :func:`run` (lattice, Viterbi, route assembly), which also serves the
 Python reference steps. numba's dispatcher types every argument on every call, which for nested
 named tuples of arrays costs tens of microseconds; :class:`CompiledRun` resolves the compiled
-entry point once and then calls it directly. The answer comes back packed in two arrays
+entry point once and then calls it directly. The answer comes back packed in one array
 (:func:`pack`), as each array handed to Python costs about a microsecond.
 """
 
@@ -19,24 +19,24 @@ import numpy as np
 from numba import njit
 from numpy.typing import NDArray
 
+from mapmatch.arena import full_f8, full_i8, reset, take_f8, take_i8, take_xy
 from mapmatch.batch.arrays import CandidateArrays, TrackPoints
 from mapmatch.batch.lattice import bearing_at, build_lattice, drop_spikes, motion_heading, thin
 from mapmatch.batch.route import assemble
 from mapmatch.batch.viterbi import solve
 from mapmatch.gridindex import query_grid
 
-Packed = tuple[NDArray[np.int64], NDArray[np.float64], float, float]
+Packed = NDArray[np.int64]
 """What the kernels return: the assembly packed by :func:`pack`."""
 
 
 class TrackInput(NamedTuple):
-    """One track as :func:`run_track` takes it: WGS84 degrees, their projection to the map's CRS
-    (any value where the degrees are invalid), times, and the optional columns (empty: none)."""
+    """One track as :func:`run_track` takes it: WGS84 degrees and their projection to the map's
+    CRS in one buffer (any projected value where the degrees are invalid), times, and the
+    optional columns (empty: none)."""
 
-    lat: NDArray[np.float64]
-    lon: NDArray[np.float64]
-    x: NDArray[np.float64]
-    y: NDArray[np.float64]
+    pos: NDArray[np.float64]
+    """(4, n): longitude, latitude, x, y."""
     time: NDArray[np.float64]
     odo: NDArray[np.float64]
     """Cumulative odometer distance."""
@@ -88,28 +88,38 @@ class RoadArrays(NamedTuple):
 
 
 @njit(cache=True, nogil=True)
-def run(pt, cands, p, geom, router):  # type: ignore[no-untyped-def]
-    """Lattice (:func:`build_lattice`), Viterbi (:func:`solve`) and route assembly (:func:`assemble`)."""
-    lat = build_lattice(pt, cands, p)
-    choice, seg_start, via_u, used_bound = solve(lat, p, router)
-    return pack(assemble(pt, lat, choice, seg_start, via_u, used_bound, p, geom, router))
+def run(pt, cands, p, geom, router, ar):  # type: ignore[no-untyped-def]
+    """Lattice (:func:`build_lattice`), Viterbi (:func:`solve`) and route assembly (:func:`assemble`),
+    working in the arena ``ar`` (:mod:`mapmatch.arena`)."""
+    reset(ar)
+    return pack(_run(pt, cands, p, geom, router, ar))
+
+
+@njit(cache=True, nogil=True)
+def _run(pt, cands, p, geom, router, ar):  # type: ignore[no-untyped-def]
+    lat = build_lattice(pt, cands, p, ar)
+    choice, seg_start, via_u, used_bound = solve(lat, p, router, ar)
+    return assemble(pt, lat, choice, seg_start, via_u, used_bound, p, geom, router, ar)
 
 
 @njit(cache=True, nogil=True)
 def pack(a):  # type: ignore[no-untyped-def]
-    """The assembly in two arrays, as :func:`mapmatch.batch.results.track_match` reads them
-    (each array handed back to Python costs about a microsecond: ten of them were a third of
-    a small track's call).
+    """The assembly in one array, as :func:`mapmatch.batch.results.track_match` reads it (each
+    array handed back to Python costs about a microsecond: ten of them were a third of a small
+    track's call).
 
     Integers: ``n, splits, route edges, pieces, route points``, then ``p_edge, status, splits,
-    route_e, route_ptr, rxy_ptr``; floats: ``p_off, p_xy, p_dist, xy_all``.
+    route_e, route_ptr, rxy_ptr``; then, as float64 (:func:`packed_floats`): ``p_off, p_xy,
+    p_dist, xy_all, length, confidence``.
     """
     n = len(a.p_edge)
     ns = len(a.splits)
     ne = len(a.route_e)
     nseg = len(a.route_ptr) - 1
     nxy = len(a.xy_all)
-    ints = np.empty(5 + 2 * n + ns + ne + 2 * (nseg + 1), dtype=np.int64)
+    ni = 5 + 2 * n + ns + ne + 2 * (nseg + 1)
+    out = np.empty(ni + 4 * n + 2 * nxy + 2, dtype=np.int64)
+    ints = out[:ni]
     ints[0], ints[1], ints[2], ints[3], ints[4] = n, ns, ne, nseg, nxy
     ints[5 : 5 + n] = a.p_edge
     for i in range(n):
@@ -118,7 +128,7 @@ def pack(a):  # type: ignore[no-untyped-def]
     for arr in (a.splits, a.route_e, a.route_ptr, a.rxy_ptr):
         ints[k : k + len(arr)] = arr
         k += len(arr)
-    floats = np.empty(4 * n + 2 * nxy)
+    floats = out[ni:].view(np.float64)
     floats[:n] = a.p_off
     for i in range(n):
         floats[n + 2 * i] = a.p_xy[i, 0]
@@ -127,43 +137,74 @@ def pack(a):  # type: ignore[no-untyped-def]
     for i in range(nxy):
         floats[4 * n + 2 * i] = a.xy_all[i, 0]
         floats[4 * n + 2 * i + 1] = a.xy_all[i, 1]
-    return ints, floats, a.length, a.conf
+    floats[4 * n + 2 * nxy] = a.length
+    floats[4 * n + 2 * nxy + 1] = a.conf
+    return out
 
 
 @njit(cache=True, nogil=True)
-def run_track(ti, q, r, p, geom, roads, router, grid, gsc):  # type: ignore[no-untyped-def]
+def run_track(ti, q, r, p, geom, roads, router, grid, gsc, ar):  # type: ignore[no-untyped-def]
     """The whole match of one track: validity, thinning, jumps (:func:`drop_spikes`), the
     candidate search (:func:`mapmatch.gridindex.query_grid`, again up to the outlier distance
     for points with no road in the search radius), emissions with the fixes' σ and heading or
-    the direction of travel (:func:`motion_heading`), then :func:`run`."""
-    n = len(ti.lat)
+    the direction of travel (:func:`motion_heading`), then :func:`run`; working arrays from the
+    arena ``ar`` (:mod:`mapmatch.arena`)."""
+    reset(ar)
+    pos = ti.pos
+    n = pos.shape[1]
     valid = np.zeros(n, dtype=np.bool_)
-    xy = np.full((n, 2), np.nan)
+    xy = take_xy(ar, n)
     for i in range(n):
-        la, lo = ti.lat[i], ti.lon[i]
+        lo, la = pos[0, i], pos[1, i]
         if math.isfinite(la) and math.isfinite(lo) and abs(la) <= 90.0 and abs(lo) <= 180.0:
             valid[i] = True
-            xy[i, 0] = ti.x[i]
-            xy[i, 1] = ti.y[i]
+            xy[i, 0] = pos[2, i]
+            xy[i, 1] = pos[3, i]
+        else:
+            xy[i, 0] = np.nan
+            xy[i, 1] = np.nan
     kept = thin(xy, valid, q.min_dist)
     # jumps (a fix reached and left in opposite directions too fast) get no candidates
     nojump = drop_spikes(xy, ti.time, kept, valid, r.gps_sigma, r.spike_sigmas, r.spike_speed)
-    kidx = np.flatnonzero(kept)
-    nk = len(kidx)
-    cp, ce, cd, co, cq = query_grid(xy[kidx], q.radius, q.k, grid, gsc)
-    count = np.zeros(nk, dtype=np.int64)
+    nk = 0
+    for i in range(n):
+        if kept[i]:
+            nk += 1
+    kidx = take_i8(ar, nk)
+    kxy = take_xy(ar, nk)
+    c = 0
+    for i in range(n):
+        if kept[i]:
+            kidx[c] = i
+            kxy[c, 0] = xy[i, 0]
+            kxy[c, 1] = xy[i, 1]
+            c += 1
+    cp, ce, cd, co, cq = query_grid(kxy, q.radius, q.k, grid, gsc, ar)
+    count = full_i8(ar, nk, 0)
     for i in range(len(cp)):
         count[cp[i]] += 1
-    lonely = np.flatnonzero(count == 0)
-    if len(lonely) and q.outlier > q.radius:
-        mp, me, md, mo, mq = query_grid(xy[kidx[lonely]], q.outlier, q.k, grid, gsc)
+    nl = 0
+    for i in range(nk):
+        if count[i] == 0:
+            nl += 1
+    if nl and q.outlier > q.radius:
+        lonely = take_i8(ar, nl)
+        lxy = take_xy(ar, nl)
+        c = 0
+        for i in range(nk):
+            if count[i] == 0:
+                lonely[c] = i
+                lxy[c, 0] = kxy[i, 0]
+                lxy[c, 1] = kxy[i, 1]
+                c += 1
+        mp, me, md, mo, mq = query_grid(lxy, q.outlier, q.k, grid, gsc, ar)
         # merge by point: a lonely point has no rows in the first answer
         tot = len(cp) + len(mp)
-        point = np.empty(tot, dtype=np.int64)
-        edge = np.empty(tot, dtype=np.int32)
-        dist = np.empty(tot)
-        off = np.empty(tot)
-        cxy = np.empty((tot, 2))
+        point = take_i8(ar, tot)
+        edge = take_i8(ar, tot)
+        dist = take_f8(ar, tot)
+        off = take_f8(ar, tot)
+        cxy = take_xy(ar, tot)
         a = 0
         b = 0
         for i in range(tot):
@@ -182,20 +223,20 @@ def run_track(ti, q, r, p, geom, roads, router, grid, gsc):  # type: ignore[no-u
         if nojump[kidx[cp[i]]]:
             nc += 1
     if nc < len(cp):
-        keep = np.empty(nc, dtype=np.int64)
         c = 0
         for i in range(len(cp)):
             if nojump[kidx[cp[i]]]:
-                keep[c] = i
+                cp[c], ce[c], cd[c], co[c] = cp[i], ce[i], cd[i], co[i]
+                cq[c, 0], cq[c, 1] = cq[i, 0], cq[i, 1]
                 c += 1
-        cp, ce, cd, co, cq = cp[keep], ce[keep], cd[keep], co[keep], cq[keep]
-    cands = candidate_emissions(ti, kidx, xy, cp, ce.astype(np.int64), co, cq, cd, r, p, geom, roads)
+        cp, ce, cd, co, cq = cp[:nc], ce[:nc], cd[:nc], co[:nc], cq[:nc]
+    cands = candidate_emissions(ti, kidx, xy, cp, ce, co, cq, cd, r, p, geom, roads, ar)
     pt = TrackPoints(valid, kept, xy, ti.time, ti.odo, kidx)
-    return run(pt, cands, p, geom, router)
+    return pack(_run(pt, cands, p, geom, router, ar))
 
 
 @njit(cache=True, nogil=True)
-def candidate_emissions(ti, kidx, xy, cp, ce, co, cq, cd, r, p, geom, roads):  # type: ignore[no-untyped-def]
+def candidate_emissions(ti, kidx, xy, cp, ce, co, cq, cd, r, p, geom, roads, ar):  # type: ignore[no-untyped-def]
     """The candidates with their emissions (:func:`mapmatch.model.emission_logp`, computed
     per candidate in the same float steps), σ (the fix's own, when the track has them) and
     speed limit. A kept point's heading is the track's, else its direction of travel (σ
@@ -204,13 +245,13 @@ def candidate_emissions(ti, kidx, xy, cp, ce, co, cq, cd, r, p, geom, roads):  #
     nk = len(kidx)
     nc = len(cp)
     # per kept point: σ, heading and its concentration κ
-    sig = np.full(nk, p.sigma)
+    sig = full_f8(ar, nk, p.sigma)
     if len(ti.pos_sigma):
         for k in range(nk):
             s = ti.pos_sigma[kidx[k]]
             sig[k] = r.gps_sigma if math.isnan(s) or s <= 0 else max(s, 0.5)
-    head = np.full(nk, np.nan)
-    kappa = np.zeros(nk)
+    head = full_f8(ar, nk, np.nan)
+    kappa = full_f8(ar, nk, 0.0)
     mh = motion_heading(xy, kidx, r.motion_min_distance, r.straight_max_deg) if r.motion_sigma > 0 else head
     any_head = False
     for k in range(nk):
@@ -225,9 +266,11 @@ def candidate_emissions(ti, kidx, xy, cp, ce, co, cq, cd, r, p, geom, roads):  #
         head[k] = h
         kappa[k] = 1.0 / math.radians(max(hs, 1.0)) ** 2
         any_head = True
-    bearing = bearing_at(ce, co, geom.seg_xy, geom.seg_ptr, roads.seg_end) if any_head else np.zeros(nc)
-    emis = np.empty(nc)
-    csig = np.empty(nc if len(ti.pos_sigma) else 0)
+    bearing = (
+        bearing_at(ce, co, geom.seg_xy, geom.seg_ptr, roads.seg_end) if any_head else full_f8(ar, nc, 0.0)
+    )
+    emis = take_f8(ar, nc)
+    csig = take_f8(ar, nc if len(ti.pos_sigma) else 0)
     for i in range(nc):
         k = cp[i]
         s = sig[k]
@@ -239,7 +282,7 @@ def candidate_emissions(ti, kidx, xy, cp, ce, co, cq, cd, r, p, geom, roads):  #
         emis[i] = e
         if len(csig):
             csig[i] = s
-    limit = np.empty(nc if len(roads.limit) else 0)
+    limit = take_f8(ar, nc if len(roads.limit) else 0)
     for i in range(len(limit)):
         limit[i] = roads.limit[ce[i]]
     return CandidateArrays(cp, ce, co, cq, cd, emis, csig, limit)

@@ -16,6 +16,7 @@ import numpy as np
 from numba import njit
 from numpy.typing import NDArray
 
+from mapmatch.arena import full_b1, full_f8, full_i8, take_f8, take_i8
 from mapmatch.batch.arrays import KernelParams, Lattice
 from mapmatch.model import transition_logp_one
 from mapmatch.routing import _reset, _search_toward, ubodt_lookup
@@ -209,7 +210,7 @@ def _try_step(prev, t, d, lat, tr, p, router):  # type: ignore[no-untyped-def]
 
 
 @njit(cache=True, nogil=True)
-def solve(lat: Lattice, p: KernelParams, router):  # type: ignore[no-untyped-def]
+def solve(lat: Lattice, p: KernelParams, router, ar):  # type: ignore[no-untyped-def]
     """Exact Viterbi over the lattice, routing each step as it goes.
 
     A point no candidate of the previous accepted point can reach is left out (an outlier);
@@ -226,23 +227,23 @@ def solve(lat: Lattice, p: KernelParams, router):  # type: ignore[no-untyped-def
     max_skip = p.max_skip
     m = len(cand_ptr) - 1
     nc = len(emis)
-    prev_pt = np.full(m, -1, dtype=np.int64)
-    accepted = np.zeros(m, dtype=np.bool_)
-    seg_start = np.zeros(m, dtype=np.bool_)
-    used_bound = np.zeros(m)
-    choice = np.full(m, -1, dtype=np.int64)
-    via_u = np.zeros(m, dtype=np.bool_)
+    prev_pt = full_i8(ar, m, -1)
+    accepted = full_b1(ar, m, False)
+    seg_start = full_b1(ar, m, False)
+    used_bound = full_f8(ar, m, 0.0)
+    choice = full_i8(ar, m, -1)
+    via_u = full_b1(ar, m, False)
     if m == 0:
         return choice, seg_start, via_u, used_bound
     kmax = 1
     for t in range(m):
         kmax = max(kmax, cand_ptr[t + 1] - cand_ptr[t])
     tr = Trellis(
-        np.full(nc, -np.inf),
-        np.full(nc, -1, dtype=np.int64),
-        np.zeros(nc, dtype=np.bool_),
-        np.empty(kmax, dtype=np.int64),
-        np.empty(kmax),
+        full_f8(ar, nc, -np.inf),
+        full_i8(ar, nc, -1),
+        full_b1(ar, nc, False),
+        take_i8(ar, kmax),
+        take_f8(ar, kmax),
     )
     score = tr.score
     bp = tr.bp

@@ -1,0 +1,116 @@
+"""One thread's scratch memory for the compiled match: the kernels take their working arrays from
+it instead of allocating each (a small track's call made about a hundred allocations).
+
+A bump allocator: :func:`reset` at the start of a call, then each ``take_*`` hands out the next
+free piece of a buffer. Nothing is freed within a call, so pieces never overlap; a call's
+pieces are overwritten by the next call of the same thread, so they must not outlive it (the
+answer is copied out by :func:`mapmatch.batch.run.pack`). When a buffer is used up the piece
+is allocated as before, and ``top`` still counts it, so the caller can grow the arena
+(:meth:`Arena.grown`) for the next call.
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import numpy as np
+from numba import njit
+from numpy.typing import NDArray
+
+MAX_ITEMS = 1 << 22
+"""An arena grows to at most this many items per buffer (32 MB of floats); a call needing more
+allocates the rest (only memory and speed depend on it, never a result)."""
+
+
+class Arena(NamedTuple):
+    """Scratch buffers by dtype and the next free place in each (``top``: floats, integers, flags)."""
+
+    f8: NDArray[np.float64]
+    i8: NDArray[np.int64]
+    b1: NDArray[np.bool_]
+    top: NDArray[np.int64]
+
+    @classmethod
+    def new(cls, items: int = 0) -> Arena:
+        """An arena of ``items`` items per buffer (0: every piece is allocated)."""
+        return cls(
+            np.empty(items),
+            np.empty(items, dtype=np.int64),
+            np.empty(items, dtype=np.bool_),
+            np.zeros(3, np.int64),
+        )
+
+    def grown(self) -> Arena | None:
+        """A larger arena when the last call needed more than this one holds, else None."""
+        need = max(self.top.tolist())
+        if need <= len(self.f8) or len(self.f8) >= MAX_ITEMS:
+            return None
+        return Arena.new(min(max(2 * need, 4096), MAX_ITEMS))
+
+
+@njit(cache=True, nogil=True, inline="always")
+def reset(ar):  # type: ignore[no-untyped-def]
+    """Every buffer free again (the start of a call)."""
+    ar.top[0] = 0
+    ar.top[1] = 0
+    ar.top[2] = 0
+
+
+@njit(cache=True, nogil=True, inline="always")
+def take_f8(ar, n):  # type: ignore[no-untyped-def]
+    """``n`` floats (contents undefined, as ``np.empty``)."""
+    p = ar.top[0]
+    ar.top[0] = p + n
+    if p + n <= len(ar.f8):
+        return ar.f8[p : p + n]
+    return np.empty(n)
+
+
+@njit(cache=True, nogil=True, inline="always")
+def take_xy(ar, n):  # type: ignore[no-untyped-def]
+    """``(n, 2)`` floats (contents undefined)."""
+    return take_f8(ar, 2 * n).reshape((n, 2))
+
+
+@njit(cache=True, nogil=True, inline="always")
+def take_i8(ar, n):  # type: ignore[no-untyped-def]
+    """``n`` int64 (contents undefined)."""
+    p = ar.top[1]
+    ar.top[1] = p + n
+    if p + n <= len(ar.i8):
+        return ar.i8[p : p + n]
+    return np.empty(n, dtype=np.int64)
+
+
+@njit(cache=True, nogil=True, inline="always")
+def take_b1(ar, n):  # type: ignore[no-untyped-def]
+    """``n`` flags (contents undefined)."""
+    p = ar.top[2]
+    ar.top[2] = p + n
+    if p + n <= len(ar.b1):
+        return ar.b1[p : p + n]
+    return np.empty(n, dtype=np.bool_)
+
+
+@njit(cache=True, nogil=True, inline="always")
+def full_f8(ar, n, v):  # type: ignore[no-untyped-def]
+    """``n`` floats set to ``v``."""
+    a = take_f8(ar, n)
+    a[:] = v
+    return a
+
+
+@njit(cache=True, nogil=True, inline="always")
+def full_i8(ar, n, v):  # type: ignore[no-untyped-def]
+    """``n`` int64 set to ``v``."""
+    a = take_i8(ar, n)
+    a[:] = v
+    return a
+
+
+@njit(cache=True, nogil=True, inline="always")
+def full_b1(ar, n, v):  # type: ignore[no-untyped-def]
+    """``n`` flags set to ``v``."""
+    a = take_b1(ar, n)
+    a[:] = v
+    return a
