@@ -349,6 +349,10 @@ class BatchConfig:
         this many β (a transition log-probability below ``-route_lp_cut``).
     max_skip : fixes in a row that may be left out as unreachable outliers before the track is
         split.
+    outlier_lookahead : 1: where a fix cannot be reached from the previous kept fix, also try
+        leaving out that previous fix instead, and keep whichever choice reaches the next fix
+        with the higher score (a stray fix on a side road is dropped, not the good one after
+        it); 0: always leave out the unreachable fix.
     stop_uturn_speed : m/s; a step slower than this on average (over at least
         ``stop_uturn_time``) spans a stop ...
     stop_uturn_time : ... of at least this many seconds, ...
@@ -390,6 +394,7 @@ class BatchConfig:
     reverse_tolerance: float = 10.0
     route_lp_cut: float = 30.0
     max_skip: int = 8
+    outlier_lookahead: int = 1
     stop_uturn_speed: float = 1.0
     stop_uturn_time: float = 5.0
     stop_uturn_penalty: float = 1.0
@@ -407,6 +412,8 @@ class BatchConfig:
 
     def __post_init__(self) -> None:
         _check_numbers(self)
+        if self.outlier_lookahead not in (0, 1):
+            raise ConfigError("outlier_lookahead must be 0 or 1")
 
 
 _SECTIONS = {"model": ModelConfig, "online": OnlineConfig, "batch": BatchConfig}

@@ -416,6 +416,33 @@ def test_a_fix_that_jumps_back_is_dropped_not_looped_round() -> None:
     assert [names(m, piece) for piece in r.routes] == [["ab", "bc", "cb"]]
 
 
+def test_a_stray_fix_by_a_side_road_is_dropped_not_the_good_fix_after_it() -> None:
+    # sparse fixes: one strays next to the side road hd, 55 m from bc; the next fix (on bc)
+    # cannot be reached from there (back along hd and hb is too far for the step), the one
+    # after it only by turning round on hd. Leaving out the stray fix explains both; leaving
+    # out the good fix after it makes a U-turn trip up the side road.
+    m = parse_ascii_map(
+        """
+                    h--------------------d
+                    |
+                    |
+                    |
+        a-----------b---------------------------------------------c
+        """,
+        scale=10,
+    )
+    stray = at(m, "b", 180, 55)
+    pts = [at(m, "a", 10, 2), at(m, "a", 100, 2), stray, at(m, "b", 185, -2), at(m, "b", 400, 2)]
+    track = track_from_xy(m, pts, dt=30.0)
+    r = BatchMatcher(m.graph).match(track)
+    assert [names(m, piece) for piece in r.routes] == [["ab", "bc"]]
+    assert [p.status for p in r.points] == ["matched", "matched", "unmatched", "matched", "matched"]
+    # always leaving out the unreachable fix instead: the good fix goes, the trip up hd comes
+    greedy = BatchMatcher(m.graph).match(track, DEFAULT_CONFIG.replace(outlier_lookahead=0))
+    assert [p.status for p in greedy.points][2:4] == ["matched", "unmatched"]
+    assert "hd" in names(m, greedy.routes[0])
+
+
 def _with_speeds(amap: AsciiMap, kph: dict[str, float]) -> AsciiMap:
     """The map with speed limits by road (``"ab": 80``; both directions), NaN elsewhere."""
     from mapmatch.graph.road_graph import RoadGraph

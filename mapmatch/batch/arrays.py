@@ -92,6 +92,8 @@ class KernelParams(NamedTuple):
     gap_time: float
     """seconds; 0: time never splits."""
     max_skip: int
+    outlier_lookahead: bool
+    """Where a point is unreachable, also try leaving out the one before it."""
     reverse_tol: float
     split_speed: float
     """m/s; 0: no speed check on steps."""
@@ -137,6 +139,7 @@ def kernel_params(cfg: MatchConfig, sigma: float) -> KernelParams:
         gap_distance=float(cfg.gap_distance),
         gap_time=float(cfg.gap_time),
         max_skip=int(cfg.max_skip),
+        outlier_lookahead=bool(cfg.outlier_lookahead),
         reverse_tol=float(cfg.reverse_tolerance),
         split_speed=float(cfg.split_speed),
         split_slack=float(cfg.split_slack),

@@ -209,6 +209,72 @@ def _try_step(prev, t, d, lat, tr, p, router):  # type: ignore[no-untyped-def]
     return reached, bound
 
 
+class Saved(NamedTuple):
+    """One point's Viterbi scores and back-pointers, kept while an alternative is tried."""
+
+    score: NDArray[np.float64]
+    bp: NDArray[np.int64]
+    bpu: NDArray[np.bool_]
+    bound: NDArray[np.float64]
+    """Route bounds of the chosen alternative's two steps."""
+
+
+@njit(cache=True, nogil=True)
+def _joinable(a, b, lat, p):  # type: ignore[no-untyped-def]
+    """Whether a step from lattice point ``a`` to ``b`` stays in one piece; and its distance."""
+    d = math.hypot(lat.pxy[b, 0] - lat.pxy[a, 0], lat.pxy[b, 1] - lat.pxy[a, 1])
+    gap_time = p.gap_time if p.gap_time > 0 else np.inf
+    ok = d <= p.gap_distance and lat.ptime[b] - lat.ptime[a] <= gap_time
+    for r in range(a + 1, b + 1):
+        ok = ok and not lat.cut[r]
+    return ok, d
+
+
+@njit(cache=True, nogil=True)
+def _drop_one(q, prev, t, lat, tr, p, router, saved):  # type: ignore[no-untyped-def]
+    """``t`` is unreachable from ``prev``: leave out ``t`` (step ``prev`` -> ``t + 1``) or
+    ``prev`` (steps ``q`` -> ``t`` -> ``t + 1``), whichever scores higher at ``t + 1``.
+
+    Returns the point kept of the two (-1: neither reaches ``t + 1``; scores at ``t`` and
+    ``t + 1`` are then to be recomputed). ``saved.bound`` gets the chosen steps' route bounds.
+    """
+    ptr = lat.ptr
+    b0, b1 = ptr[t + 1], ptr[t + 2]
+    n = b1 - b0
+    s_drop_t = -np.inf
+    ok, d = _joinable(prev, t + 1, lat, p)
+    if ok:
+        reached, bound = _try_step(prev, t + 1, d, lat, tr, p, router)
+        if reached:
+            saved.bound[1] = bound
+            for j in range(n):
+                saved.score[j] = tr.score[b0 + j]
+                saved.bp[j] = tr.bp[b0 + j]
+                saved.bpu[j] = tr.bpu[b0 + j]
+                s_drop_t = max(s_drop_t, tr.score[b0 + j])
+    s_drop_prev = -np.inf
+    ok1, d1 = _joinable(q, t, lat, p) if q >= 0 else (False, 0.0)
+    ok2, d2 = _joinable(t, t + 1, lat, p)
+    if ok1 and ok2:
+        r1, bound1 = _try_step(q, t, d1, lat, tr, p, router)
+        if r1:
+            r2, bound2 = _try_step(t, t + 1, d2, lat, tr, p, router)
+            if r2:
+                for j in range(b0, b1):
+                    s_drop_prev = max(s_drop_prev, tr.score[j])
+                if s_drop_prev > s_drop_t:
+                    saved.bound[0] = bound1
+                    saved.bound[1] = bound2
+                    return t
+    if s_drop_t == -np.inf:
+        return -1
+    for j in range(n):
+        tr.score[b0 + j] = saved.score[j]
+        tr.bp[b0 + j] = saved.bp[j]
+        tr.bpu[b0 + j] = saved.bpu[j]
+    return prev
+
+
 @njit(cache=True, nogil=True)
 def solve(lat: Lattice, p: KernelParams, router, ar):  # type: ignore[no-untyped-def]
     """Exact Viterbi over the lattice, routing each step as it goes.
@@ -248,6 +314,7 @@ def solve(lat: Lattice, p: KernelParams, router, ar):  # type: ignore[no-untyped
     score = tr.score
     bp = tr.bp
     bpu = tr.bpu
+    saved = Saved(np.empty(kmax), np.empty(kmax, dtype=np.int64), np.empty(kmax, dtype=np.bool_), np.zeros(2))
     prev = 0
     accepted[0] = True
     seg_start[0] = True
@@ -275,6 +342,24 @@ def solve(lat: Lattice, p: KernelParams, router, ar):  # type: ignore[no-untyped
                 nskip = 0
                 t += 1
                 continue
+            if nskip == 0 and p.outlier_lookahead and t + 1 < m and not seg_start[prev]:
+                q = prev_pt[prev]
+                kept = _drop_one(q, prev, t, lat, tr, p, router, saved)
+                if kept >= 0:  # one of prev, t left out; t + 1 reached
+                    if kept == t:
+                        accepted[prev] = False
+                        accepted[t] = True
+                        prev_pt[t] = q
+                        used_bound[t] = saved.bound[0]
+                        prev_pt[t + 1] = t
+                    else:
+                        prev_pt[t + 1] = prev
+                    accepted[t + 1] = True
+                    used_bound[t + 1] = saved.bound[1]
+                    prev = t + 1
+                    nskip = 0
+                    t += 2
+                    continue
             if nskip == 0:
                 s0 = t
             nskip += 1

@@ -1,0 +1,174 @@
+"""The protocol's own cost: server CPU per message of a ``StreamFixes`` that does no work.
+
+A grpc.aio server whose ``StreamFixes`` answers every ``FixRequest`` with one fixed, typical
+``SnapResponse`` (no session, no matcher, no interceptors) runs in its own process; client
+processes push fixes over ``--streams`` bidirectional streams. Printed: messages answered,
+the server's CPU seconds per message and the updates/s one core could answer at that cost.
+This is the floor under ``bench_service.py``'s "server CPU per update": what is left above
+it is ours (interceptors, conversion, sessions, the matcher). ``--style`` compares handler
+styles: ``iter`` (async for / yield, as the service does), ``rw`` (context.read / write),
+``sync`` (the thread-pool server).
+
+    python bench/bench_grpc_floor.py
+    python bench/bench_grpc_floor.py --style rw --messages 1000
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import multiprocessing as mp
+import sys
+import time
+from concurrent import futures
+from pathlib import Path
+from typing import Any
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+import grpc  # noqa: E402
+import psutil  # noqa: E402
+from grpc import aio  # noqa: E402
+
+from mapmatch.service.gen import mapmatch_pb2 as pb  # noqa: E402
+from mapmatch.service.gen import mapmatch_pb2_grpc as pbg  # noqa: E402
+
+
+def _answer() -> Any:
+    cands = [
+        {"edge": 3, "u": 11, "v": 12, "probability": 0.9},
+        {"edge": 4, "u": 12, "v": 13, "probability": 0.1},
+    ]
+    result = {
+        "time": 1.0, "state": pb.STATE_ON_ROAD, "edge": 3, "u": 11, "v": 12, "way_id": 7, "offset": 10.0,
+        "lat": 60.1, "lon": 24.9, "bearing": 90.0, "dist": 2.0, "candidates": cands, "raw_lat": 60.1,
+        "raw_lon": 24.9, "name": "Mannerheimintie", "road_class": "primary", "speed_kph": 50.0,
+        "map_aided": {"lat": 60.1, "lon": 24.9, "cov": [4.0, 0.0, 4.0], "probability": 0.9, "usable": True},
+    }  # fmt: skip
+    return pb.SnapResponse(map_id="hel", vehicle_id="v1", seq=1, result=result)
+
+
+ANSWER = _answer()
+
+
+class IterStyle(pbg.MapMatchServicer):
+    async def StreamFixes(self, it: Any, context: Any) -> Any:
+        async for _ in it:
+            yield ANSWER
+
+
+class ReadWriteStyle(pbg.MapMatchServicer):
+    async def StreamFixes(self, it: Any, context: Any) -> None:
+        while True:
+            req = await context.read()
+            if req is aio.EOF:
+                return
+            await context.write(ANSWER)
+
+
+class SyncStyle(pbg.MapMatchServicer):
+    def StreamFixes(self, it: Any, context: Any) -> Any:
+        for _ in it:
+            yield ANSWER
+
+
+def serve(style: str, port_q: Any) -> None:
+    if style == "sync":
+        server = grpc.server(futures.ThreadPoolExecutor(max_workers=64))
+        pbg.add_MapMatchServicer_to_server(SyncStyle(), server)
+        port_q.put(server.add_insecure_port("127.0.0.1:0"))
+        server.start()
+        server.wait_for_termination()
+        return
+
+    async def main() -> None:
+        server = aio.server()
+        pbg.add_MapMatchServicer_to_server(IterStyle() if style == "iter" else ReadWriteStyle(), server)
+        port_q.put(server.add_insecure_port("127.0.0.1:0"))
+        await server.start()
+        await server.wait_for_termination()
+
+    asyncio.run(main())
+
+
+def client(port: int, streams: int, messages: int, out_q: Any) -> None:
+    fix = pb.Fix(time=1.0, lat=60.1, lon=24.9, heading=90.0, speed=10.0)
+    req = pb.FixRequest(map_id="hel", vehicle_id="v1", seq=1, fix=fix)
+
+    async def one(stub: Any) -> int:
+        call = stub.StreamFixes()
+
+        async def read() -> int:
+            n = 0
+            async for _ in call:
+                n += 1
+            return n
+
+        reader = asyncio.ensure_future(read())
+        for _ in range(messages):
+            await call.write(req)
+        await call.done_writing()
+        return await reader
+
+    async def main() -> None:
+        async with aio.insecure_channel(f"127.0.0.1:{port}") as ch:
+            stub = pbg.MapMatchStub(ch)
+            t = time.perf_counter()
+            n = await asyncio.gather(*[one(stub) for _ in range(streams)])
+            out_q.put((sum(n), time.perf_counter() - t))
+
+    asyncio.run(main())
+
+
+def measure(style: str, *, clients: int, streams: int, messages: int) -> tuple[int, float, float]:
+    """(messages answered, server CPU seconds per message, wall seconds)."""
+    ctx = mp.get_context("spawn")
+    port_q, out_q = ctx.Queue(), ctx.Queue()
+    server = ctx.Process(target=serve, args=(style, port_q), daemon=True)
+    server.start()
+    try:
+        port = port_q.get(timeout=60)
+        ps = psutil.Process(server.pid)
+        warm = ctx.Process(target=client, args=(port, 4, 200, out_q))
+        warm.start()
+        out_q.get(timeout=120)
+        warm.join()
+        cpu0 = sum(ps.cpu_times()[:2])
+        procs = [ctx.Process(target=client, args=(port, streams, messages, out_q)) for _ in range(clients)]
+        for p in procs:
+            p.start()
+        res = [out_q.get(timeout=600) for _ in procs]
+        for p in procs:
+            p.join()
+        cpu = sum(ps.cpu_times()[:2]) - cpu0
+    finally:
+        server.terminate()
+        server.join()
+    n = sum(r[0] for r in res)
+    return n, cpu / max(n, 1), max(r[1] for r in res)
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--style", default="iter,rw,sync", help="comma-separated: iter, rw, sync")
+    ap.add_argument("--clients", type=int, default=2, help="client processes")
+    ap.add_argument("--streams", type=int, default=25, help="streams per client process")
+    ap.add_argument("--messages", type=int, default=400, help="fixes per stream")
+    ap.add_argument("--repeat", type=int, default=2, help="runs per style (the least CPU is printed)")
+    a = ap.parse_args()
+    load = " ".join(f"{x:.2f}" for x in psutil.getloadavg())
+    print(f"load average before: {load} ({psutil.cpu_count()} cores)")
+    for style in a.style.split(","):
+        kw = {"clients": a.clients, "streams": a.streams, "messages": a.messages}
+        runs = [measure(style, **kw) for _ in range(a.repeat)]
+        n, per, wall = min(runs, key=lambda r: r[1])
+        print(
+            f"{style:5s}: {n} messages, server CPU {per * 1e6:.1f} us per message "
+            f"(one core: at most {1 / per:,.0f} messages/s), wall {wall:.1f} s"
+        )
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
