@@ -16,7 +16,7 @@ import numpy as np
 from numba import njit
 from numpy.typing import NDArray
 
-from mapmatch.arena import full_b1, full_f8, full_i8, take_f8, take_i8
+from mapmatch.arena import full_b1, full_f8, full_i8, take_b1, take_f8, take_i8
 from mapmatch.batch.arrays import KernelParams, Lattice
 from mapmatch.model import transition_logp_one
 from mapmatch.routing import _reset, _search_toward, ubodt_lookup
@@ -314,7 +314,7 @@ def solve(lat: Lattice, p: KernelParams, router, ar):  # type: ignore[no-untyped
     score = tr.score
     bp = tr.bp
     bpu = tr.bpu
-    saved = Saved(np.empty(kmax), np.empty(kmax, dtype=np.int64), np.empty(kmax, dtype=np.bool_), np.zeros(2))
+    saved = Saved(take_f8(ar, kmax), take_i8(ar, kmax), take_b1(ar, kmax), take_f8(ar, 2))
     prev = 0
     accepted[0] = True
     seg_start[0] = True
