@@ -66,6 +66,16 @@ def debiased(p: PlaceParams, dist: float, px: float, py: float, bearing: float) 
 
 
 @njit(cache=True)
+def _score(p: PlaceParams, dist: float, px: float, py: float, brg: float, moved: float) -> float:
+    """Log-score of the road point ``(px, py)`` of bearing ``brg``, ``dist`` from the fix and
+    ``moved`` metres along the path from the hypothesis's place (emission and transition)."""
+    sc = emission_logp_one(debiased(p, dist, px, py, brg), p.sigma, p.heading, brg, p.kappa)
+    if not math.isnan(p.travelled):
+        sc += transition(p, moved)
+    return sc  # type: ignore[no-any-return]
+
+
+@njit(cache=True)
 def nearest_on_path(  # type: ignore[no-untyped-def]
     road: RoadArrays, p: PlaceParams, edges: NDArray[np.int64], here: Pos
 ):
@@ -97,9 +107,7 @@ def nearest_on_path(  # type: ignore[no-untyped-def]
             # holds that place (else the hypothesis would lag ever further behind)
             acc += le
             continue
-        sc = emission_logp_one(debiased(p, dist, px, py, brg), p.sigma, p.heading, brg, p.kappa)
-        if not math.isnan(p.travelled):
-            sc += transition(p, s - h_s)
+        sc = _score(p, dist, px, py, brg, s - h_s)
         if sc > best_sc + 1e-9:
             best_sc = sc
             best = (j, off, s, dist, px, py, brg)
@@ -111,9 +119,7 @@ def nearest_on_path(  # type: ignore[no-untyped-def]
             )
             if found:
                 s = acc + off
-                sc = emission_logp_one(debiased(p, dist, px, py, brg), p.sigma, p.heading, brg, p.kappa)
-                if not math.isnan(p.travelled):
-                    sc += transition(p, s - h_s)
+                sc = _score(p, dist, px, py, brg, s - h_s)
                 if sc > best_sc + 1e-9:
                     best_sc = sc
                     best = (j, off, s, dist, px, py, brg)
