@@ -59,16 +59,16 @@ def run(args: argparse.Namespace) -> int:
 
     if args.length_km <= 0:
         raise CommandError("--length-km must be positive")
-    # on a first run the simulator's and the online matcher's kernels compile in child
-    # processes while this one prepares the map and starts the server
+    # on a first run the simulator's kernels compile in a child process while this one
+    # prepares the map and starts the server (whose warm-up compiles the online kernels)
     from mapmatch.extras import require_installed
 
     require_installed("pyrosm", "matplotlib", "folium", extra="demo", needed_for="mapmatch demo")
-    with compiling_in_background("simulator") as kernels, compiling_in_background("online") as online:
-        return _demo(args, kernels, online)
+    with compiling_in_background("simulator") as kernels:
+        return _demo(args, kernels)
 
 
-def _demo(args: argparse.Namespace, kernels: BackgroundCompile, online: BackgroundCompile) -> int:
+def _demo(args: argparse.Namespace, kernels: BackgroundCompile) -> int:
     from mapmatch.evaluate import Metrics
     from mapmatch.service.client import MapMatchClient
     from mapmatch.service.config import ServerConfig
@@ -84,7 +84,6 @@ def _demo(args: argparse.Namespace, kernels: BackgroundCompile, online: Backgrou
     s = graph.stats()
     size = f"{s['nodes']} intersections, {s['edges']} edges, {s['road_km']:.1f} km of road"
     _step(f"map {map_path}: {size}", t0)
-
     server, port = start_server(ServerConfig(address="127.0.0.1:0"), {"helsinki": map_path})
     try:
         _step(f"gRPC server on 127.0.0.1:{port} is SERVING", t0)
@@ -95,7 +94,6 @@ def _demo(args: argparse.Namespace, kernels: BackgroundCompile, online: Backgrou
         drive = demo_drive(
             graph, seed=args.seed, length_km=args.length_km, outages=args.outage, rate=args.rate
         )
-        online.wait()  # the online matcher's kernels, compiling alongside (first run)
         _step(f"streaming {len(drive.fixes)} fixes through the server", t0)
 
         def snap(fixes: Sequence[Fix]) -> list[SnapResult | None]:
