@@ -359,9 +359,11 @@ class BatchConfig:
     stop_uturn_penalty : ... across which turning round at a junction costs this U-turn
         penalty (turning round there, e.g. in a yard off the mapped road, is common; mid-road
         U-turns keep the full penalty).
-    split_speed : m/s; a step whose route needs more than this (plus ``split_slack`` metres of
-        noise over the step) is impossible: the fix is left out as an outlier, or the match
-        splits there (0 disables the check).
+    split_speed : m/s; a step whose route is longer than the straight line between its fixes
+        by more than this times its time (plus ``split_slack`` metres of noise) is impossible:
+        the fix is left out as an outlier, or the match splits there (0 disables the check).
+        The detour is what is judged, not the speed: fixes that themselves move too fast tell
+        of their timestamps, not of the road.
     split_slack : metres of fix noise allowed on top of ``split_speed`` over a step.
     spike_speed : m/s; a fix the track reaches and leaves in opposite directions, both legs
         longer than ``spike_sigmas`` σ, is dropped as a jump when visiting it needs more than

@@ -380,23 +380,59 @@ def test_a_run_off_the_map_cuts_the_route() -> None:
 
 
 def test_impossible_step_splits_the_match() -> None:
-    # a peer's case: b to c is 176 m of road in 1 s: the match splits rather than drive it
+    # a peer's case: b and c are 60 m apart but 260 m of road round the block; a detour of
+    # 200 m in 1 s is impossible: the match splits rather than drive it
     m = parse_ascii_map(
         """
-        a-b------x
-                 |
-                 |
-                 y---c-d
+        a-b----------x
+                     |
+                     |
+        d-c----------y
         """,
         scale=10,
     )
-    pts = [at(m, "a", 3, 1), at(m, "a", 17, 1), at(m, "y", 43, -1), at(m, "y", 57, -1)]
+    pts = [at(m, "a", 3, 1), at(m, "a", 17, 1), at(m, "c", 3, -1), at(m, "c", -13, -1)]
     r = BatchMatcher(m.graph).match(track_from_xy(m, pts, dt=1.0))
     assert r.splits == [2]
-    assert [names(m, piece) for piece in r.routes] == [["ab"], ["cd"]]
-    # at 10 s a step the same road is plausible: one piece through x and y
+    assert [names(m, piece) for piece in r.routes] == [["ab"], ["yc", "cd"]]
+    # at 10 s a step the same road is plausible: one piece round the block
     r = BatchMatcher(m.graph).match(track_from_xy(m, pts, dt=10.0))
     assert r.splits == [] and [names(m, piece) for piece in r.routes] == [["ab", "bx", "xy", "yc", "cd"]]
+
+
+def test_fixes_too_fast_for_a_car_along_a_straight_road_are_one_match() -> None:
+    # a peer's case: fixes 100 m apart 1 s apart, one of them 200 m off the road. Too fast
+    # for a car, but the road between them is the straight line: it is their timestamps that
+    # are wrong, not the route. One match; only the fix far off the road is left out.
+    m = parse_ascii_map("a----------b----------c----------d", scale=10)
+    pts = [at(m, "a", 2, 1), at(m, "b", 0, -1), at(m, "c", 0, -200), at(m, "d", -2, 1)]
+    r = BatchMatcher(m.graph).match(track_from_xy(m, pts, dt=1.0))
+    assert r.splits == []
+    assert [names(m, piece) for piece in r.routes] == [["ab", "bc", "cd"]]
+    assert [p.status for p in r.points] == ["matched", "matched", "unmatched", "matched"]
+
+
+def test_the_route_begins_on_the_road_driven_not_on_one_ending_at_the_first_fix() -> None:
+    # a peer's case: the first fix is on node e, where the one-way a->e ends and e->f begins;
+    # the route starts on ef (no metre of ae is driven) and the fix is placed on ef
+    m = parse_ascii_map(
+        """
+        a>>>>>>>b>>>>>>>c
+        v       ^       v
+        v       ^       v
+        e>>>>>>>f>>>>>>>g
+        """,
+        scale=5,
+    )
+    pts = [at(m, "e"), at(m, "f"), at(m, "b"), at(m, "c")]
+    r = BatchMatcher(m.graph).match(track_from_xy(m, pts, dt=2.0))
+    assert [names(m, piece) for piece in r.routes] == [["ef", "fb", "bc"]]
+    assert names(m, [r.points[0].edge]) == ["ef"] and r.points[0].offset == pytest.approx(0.0, abs=1e-6)
+    assert r.length_m == pytest.approx(40 + 30 + 40, abs=0.5)
+    # and it ends on the road driven: the last fix is on node b, where bc begins
+    r = BatchMatcher(m.graph).match(track_from_xy(m, pts[:3], dt=2.0))
+    assert [names(m, piece) for piece in r.routes] == [["ef", "fb"]]
+    assert names(m, [r.points[-1].edge]) == ["fb"]
 
 
 def test_a_fix_that_jumps_back_is_dropped_not_looped_round() -> None:

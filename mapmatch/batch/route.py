@@ -20,6 +20,7 @@ from mapmatch.gridindex import grow_array
 from mapmatch.routing import path_edges, ubodt_path
 
 STEP_SAME, STEP_UTURN, STEP_ROUTE, STEP_SPLIT = 0, 1, 2, 3
+ON_NODE = 1e-6  # metres: an offset this near an edge's end is at its node (float noise)
 
 
 @njit(cache=True, inline="always")
@@ -106,6 +107,23 @@ def route_pieces(ch_edge, ch_off, kind, bound, router, ar):  # type: ignore[no-u
 
 
 @njit(cache=True, nogil=True)
+def trim_ends(pe, ps, pend, pseg, edge_len, ar):  # type: ignore[no-untyped-def]
+    """Which pieces to keep: a piece of route that begins at the very end of its edge (or ends
+    at the very start of it) is no road driven, only the node where the next (or previous)
+    piece begins. Such a piece is dropped at either end of a route with more than one piece."""
+    n = len(pe)
+    keep = full_b1(ar, n, True)
+    for i in range(n):
+        first = i == 0 or pseg[i - 1] != pseg[i]
+        last = i == n - 1 or pseg[i + 1] != pseg[i]
+        if first == last or pend[i] - ps[i] > ON_NODE:
+            continue
+        if (first and ps[i] >= edge_len[pe[i]] - ON_NODE) or (last and pend[i] <= ON_NODE):
+            keep[i] = False
+    return keep
+
+
+@njit(cache=True, nogil=True)
 def pieces_xy(pe, ps, pend, geom, ar):  # type: ignore[no-untyped-def]
     """Polyline coordinates of each piece (consecutive duplicates dropped); ``ptr`` per piece."""
     seg_xy = geom.seg_xy
@@ -144,6 +162,58 @@ def pieces_xy(pe, ps, pend, geom, ar):  # type: ignore[no-untyped-def]
                 break
         ptr[i + 1] = c
     return out[:c], ptr
+
+
+@njit(cache=True, nogil=True)
+def _trimmed(pieces, chosen, p_edge, p_off, router, ar):  # type: ignore[no-untyped-def]
+    """The route ``pieces`` (edge, start, end, segment) without those :func:`trim_ends` drops;
+    the ``chosen`` points (edge, offset, step kind, failed path, point index) on a dropped piece
+    move to the same node on the neighbouring piece (their edge and offset, and ``p_edge``,
+    ``p_off``, in place)."""
+    pe, ps, pend, pseg = pieces
+    ch_edge, ch_off, kind, bad, pts = chosen
+    keep = trim_ends(pe, ps, pend, pseg, router.g.edge_len, ar)
+    n = len(pe)
+    k = 0
+    for i in range(n):
+        if keep[i]:
+            k += 1
+    if k == n:
+        return pe, ps, pend, pseg
+    # each segment's dropped head (tail): the edge and offset its points move to
+    nseg = pseg[n - 1] + 1
+    head = full_i8(ar, nseg, -1)
+    tail = full_i8(ar, nseg, -1)
+    for i in range(n):
+        if not keep[i]:
+            if i + 1 < n and pseg[i + 1] == pseg[i] and keep[i + 1] and (i == 0 or pseg[i - 1] != pseg[i]):
+                head[pseg[i]] = i
+            else:
+                tail[pseg[i]] = i
+    seg = -1
+    for c in range(len(ch_edge)):
+        if kind[c] == STEP_SPLIT or bad[c]:
+            seg += 1
+        h = head[seg]
+        t = tail[seg]
+        if h >= 0 and ch_edge[c] == pe[h] and ch_off[c] >= ps[h] - ON_NODE:
+            ch_edge[c], ch_off[c] = pe[h + 1], ps[h + 1]
+        elif t >= 0 and ch_edge[c] == pe[t] and ch_off[c] <= pend[t] + ON_NODE:
+            ch_edge[c], ch_off[c] = pe[t - 1], pend[t - 1]
+        else:
+            continue
+        p_edge[pts[c]] = ch_edge[c]
+        p_off[pts[c]] = ch_off[c]
+    qe = take_i8(ar, k)
+    qs = take_f8(ar, k)
+    qend = take_f8(ar, k)
+    qseg = take_i8(ar, k)
+    k = 0
+    for i in range(n):
+        if keep[i]:
+            qe[k], qs[k], qend[k], qseg[k] = pe[i], ps[i], pend[i], pseg[i]
+            k += 1
+    return qe, qs, qend, qseg
 
 
 @njit(cache=True, nogil=True)
@@ -249,6 +319,8 @@ def assemble(  # type: ignore[no-untyped-def]
                 mine += w
         post += mine / tot
     pe, ps, pend, pseg, bad = route_pieces(ch_edge, ch_off, kind, bound, router, ar)
+    chosen = (ch_edge, ch_off, kind, bad, pts)
+    pe, ps, pend, pseg = _trimmed((pe, ps, pend, pseg), chosen, p_edge, p_off, router, ar)
     # a failed path (should not happen: Viterbi chose a reachable pair) becomes a split
     nsplit = 0
     for i in range(1, m):

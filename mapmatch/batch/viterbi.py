@@ -185,9 +185,9 @@ def _try_step(prev, t, d, lat, tr, p, router):  # type: ignore[no-untyped-def]
     if np.isfinite(od) and od > 0:
         trav = od
     dt = lat.ptime[t] - lat.ptime[prev]
-    vcap = np.inf  # the longest route the time between the fixes allows
-    if p.split_speed > 0 and dt > 0:
-        vcap = p.split_speed * dt + p.split_slack
+    vcap = np.inf  # the longest route the time between the fixes allows: the straight line
+    if p.split_speed > 0 and dt > 0:  # plus the detour that time allows
+        vcap = d + p.split_speed * dt + p.split_slack
     bound = min(p.route_factor * trav + p.route_slack, vcap)
     tight = min(bound, trav + p.lp_cut_m)
     stop = p.stop  # (stop speed, stop time, U-turn penalty across a stop)
