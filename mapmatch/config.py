@@ -383,7 +383,8 @@ class BatchConfig:
         its neighbours (both legs at least ``motion_min_distance`` metres, turning by at most
         ``straight_max_deg``) is its heading with this σ against the road's bearing and
         one-way direction (0 disables it).
-    motion_min_distance : see ``motion_heading_sigma``.
+    motion_min_distance : see ``motion_heading_sigma``. Short: consecutive fixes share most of
+        their error, so even a slow vehicle's legs of a few metres tell its direction.
     """
 
     max_route_factor: float = 3.0
@@ -410,7 +411,7 @@ class BatchConfig:
     speed_limit_factor: float = 1.5
     speed_limit_penalty: float = 0.5
     motion_heading_sigma: float = 30.0
-    motion_min_distance: float = 15.0
+    motion_min_distance: float = 8.0
 
     def __post_init__(self) -> None:
         _check_numbers(self)

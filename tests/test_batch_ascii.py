@@ -107,6 +107,28 @@ def test_one_way_road_is_not_driven_backwards() -> None:
     assert [names(m, piece) for piece in r2.routes] == [["ab"]]
 
 
+def test_slow_dense_fixes_tell_their_direction_against_a_one_way() -> None:
+    # fixes every 10 m (1 s) westbound on top of the eastbound one-way a-d; the westbound
+    # road e-h is 20 m south. Standing still on a-d (each fix falling 10 m behind the last)
+    # would explain them almost as well, but their direction of travel says west: on e-h.
+    m = parse_ascii_map(
+        """
+        a>b>c>d
+        | | | |
+        e<f<g<h
+        """,
+        scale=5,
+    )
+    pts = [at(m, n) for n in "dcba"]
+    r = BatchMatcher(m.graph).match(track_from_xy(m, pts, dt=1.0))
+    assert [names(m, piece) for piece in r.routes] == [["hg", "gf", "fe"]]
+    # with the direction judged only on legs of 15 m or more, the fixes stand on a-d
+    old = BatchMatcher(m.graph).match(
+        track_from_xy(m, pts, dt=1.0), DEFAULT_CONFIG.replace(motion_min_distance=15)
+    )
+    assert [names(m, piece) for piece in old.routes] == [["bc"]]
+
+
 def test_turn_restriction_is_respected() -> None:
     drawing = """
         a---b---c
