@@ -33,6 +33,7 @@ GROUPS: dict[str, tuple[str, ...]] = {
         "mapmatch.batch.viterbi",
         "mapmatch.batch.route",
         "mapmatch.batch.run",
+        "mapmatch.batch.context",
         "mapmatch.routing",
         "mapmatch.gridindex",
         "mapmatch.model",

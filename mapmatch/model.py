@@ -155,7 +155,7 @@ def transition_params(config: MatchConfig) -> NDArray[np.float64]:
     )
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")  # inlined: no reference count of ``params`` per pair
 def transition_logp_one(
     route_dist: float, travelled: float, dt: float, params: NDArray[np.float64], uturn: bool
 ) -> float:

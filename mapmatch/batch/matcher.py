@@ -1,6 +1,6 @@
 """The batch matcher: the fixes projected to the map's CRS, then one compiled call per track.
 
-The call (:func:`mapmatch.batch.run.run_track`) does every step: validity and thinning, the
+The call (:func:`mapmatch.batch.run.run_track_in`) does every step: validity and thinning, the
 batch rules on the fixes (jumps, the direction of travel), the grid candidate search,
 emissions and transitions of the shared :mod:`mapmatch.model` (compiled twins, the same
 floats), route distances from bounded edge-based search or the route table
@@ -24,9 +24,18 @@ from pyproj.enums import TransformDirection
 from mapmatch import model
 from mapmatch.arena import Arena
 from mapmatch.batch.arrays import CandidateArrays, EdgeGeometry, KernelParams, TrackPoints, kernel_params
+from mapmatch.batch.context import Context, new_context
 from mapmatch.batch.lattice import along_lengths, bearing_at, drop_spikes, motion_heading, thin
 from mapmatch.batch.results import fill_route_lonlat, track_match
-from mapmatch.batch.run import CompiledRun, QueryParams, RoadArrays, RuleParams, TrackInput, fresh, run_track
+from mapmatch.batch.run import (
+    CompiledRun,
+    QueryParams,
+    RoadArrays,
+    RuleParams,
+    TrackInput,
+    fresh,
+    run_track_in,
+)
 from mapmatch.config import BATCH_CONFIG, MatchConfig
 from mapmatch.graph.index import Candidates, EdgeIndex
 from mapmatch.graph.projection import to_xy
@@ -46,15 +55,19 @@ ARENA_ITEMS = 1 << 14
 
 class _ThreadState(NamedTuple):
     """One thread's scratch for one matcher: the route workspace, the grid marks, the kernels'
-    arena and the transformer to the map's CRS (pyproj transformers are not shared across
-    threads)."""
+    arena, the transformer to the map's CRS (pyproj transformers are not shared across
+    threads) and the compiled call's contexts by config."""
 
     router: Router
     grid: GridScratch
     arena: Arena
     """Grown after a call that needed more (:meth:`mapmatch.arena.Arena.grown`)."""
     to_map: Callable[[NDArray[np.float64]], None]
-    """Projects a (2, n) lon/lat buffer to the map's CRS in place (:func:`_projector`)."""
+    """Projects rows 2 and 3 (lon, lat) of a (4, n) buffer to the map's CRS in place
+    (:func:`_projector`)."""
+    contexts: dict[int, tuple[MatchConfig, Context]]
+    """By ``id`` of the config: the config and its :class:`~mapmatch.batch.context.Context`
+    with this thread's scratch (the arena's growth starts a new dict)."""
 
 
 class _Rules(NamedTuple):
@@ -119,7 +132,7 @@ class BatchMatcher:
         self._limit = kph / 3.6 if np.isfinite(kph).any() else np.zeros(0)
         self._roads = RoadArrays(self._seg_end, self._limit)
         self._run = CompiledRun()
-        self._run_track = CompiledRun(run_track)
+        self._run_track = CompiledRun(run_track_in)
         self._local = threading.local()
         self._settings: dict[int, _Settings] = {}
 
@@ -130,7 +143,7 @@ class BatchMatcher:
             router = Router(self._rg, Workspace.new(self.graph.n_edges), self._table)
             to_map = _projector(Transformer.from_crs("EPSG:4326", self.graph.crs, always_xy=True))
             st = self._local.state = _ThreadState(
-                router, self._grid.scratch(), Arena.new(ARENA_ITEMS), to_map
+                router, self._grid.scratch(), Arena.new(ARENA_ITEMS), to_map, {}
             )
         return st
 
@@ -179,10 +192,26 @@ class BatchMatcher:
             fill_route_lonlat(res, self.graph.crs)
         return res
 
-    def _match_compiled(self, track: Track, cfg: MatchConfig) -> TrackMatch:
-        """The projection, then one compiled call (:func:`run_track`)."""
-        st = self._state()
+    def _context(self, st: _ThreadState, cfg: MatchConfig) -> Context:
+        """This thread's :class:`~mapmatch.batch.context.Context` for ``cfg`` (built once)."""
+        got = st.contexts.get(id(cfg))
+        if got is not None and got[0] is cfg:
+            return got[1]
         s = self._settings_for(cfg)
+        ctx = new_context(
+            s.query, s.track_rules, s.params, self._geom, self._roads, st.router, self._grid.arrays,
+            st.grid, st.arena,
+        )  # fmt: skip
+        if len(st.contexts) >= 64:
+            st.contexts.clear()
+        st.contexts[id(cfg)] = (cfg, ctx)
+        return ctx
+
+    def _match_compiled(self, track: Track, cfg: MatchConfig) -> TrackMatch:
+        """The projection, then one compiled call (:func:`run_track_in`)."""
+        st = self._state()
+        got = st.contexts.get(id(cfg))
+        ctx = got[1] if got is not None and got[0] is cfg else self._context(st, cfg)
         lat, lon = track.lat, track.lon
         if not isinstance(lat, np.ndarray) or not isinstance(lon, np.ndarray):
             lat, lon = np.asarray(lat, dtype=F8), np.asarray(lon, dtype=F8)
@@ -190,35 +219,24 @@ class BatchMatcher:
             raise ValueError(f"the track's lat and lon have shapes {lat.shape} and {lon.shape}, not one (n,)")
         n = len(lat)
         pos = np.array((lon, lat, lon, lat), dtype=F8)
-        st.to_map(pos[2:])
+        st.to_map(pos)
         ti = TrackInput(
             pos, _column(track.time, n, "time", np.nan),
             NO_ODO if track.distance is None else _odometer(_column(track.distance, n, "distance")),
             _column(track.pos_sigma, n, "pos_sigma"), _column(track.heading, n, "heading"),
             _column(track.speed, n, "speed"),
         )  # fmt: skip
+        a = self._run_track(ti, ctx)
         ar = st.arena
-        a = self._run_track(
-            ti,
-            s.query,
-            s.track_rules,
-            s.params,
-            self._geom,
-            self._roads,
-            st.router,
-            self._grid.arrays,
-            st.grid,
-            ar,
-        )
         if max(ar.top.tolist()) > len(ar.f8):
             self._grow_arena(st)
         return track_match(str(track.track_id), a)
 
     def _grow_arena(self, st: _ThreadState) -> None:
-        """This thread's arena grown to what the last call needed."""
+        """This thread's arena grown to what the last call needed (new contexts with it)."""
         big = st.arena.grown()
         if big is not None:
-            self._local.state = st._replace(arena=big)
+            self._local.state = st._replace(arena=big, contexts={})
 
     def _match_steps(self, track: Track, cfg: MatchConfig) -> TrackMatch:
         """The same match as :meth:`match` in Python steps (candidates, rules and emissions in
@@ -318,7 +336,8 @@ def _subset(c: Candidates, keep: NDArray[np.bool_]) -> Candidates:
 
 
 def _projector(tr: Transformer) -> Callable[[NDArray[np.float64]], None]:
-    """A function projecting a C-contiguous (2, n) float64 lon/lat buffer in place with ``tr``.
+    """A function projecting rows 2 and 3 (lon, lat) of a C-contiguous (4, n) float64 buffer in
+    place with ``tr``.
 
     :meth:`Transformer.transform` spends about 7 of its 9 microseconds on a handful of points
     checking and copying its arguments; with pyproj's own buffers the projection is called
@@ -329,12 +348,12 @@ def _projector(tr: Transformer) -> Callable[[NDArray[np.float64]], None]:
         forward = TransformDirection.FORWARD
 
         def project(buf: NDArray[np.float64]) -> None:
-            core._transform(buf[0], buf[1], None, None, forward, False, False)
+            core._transform(buf[2], buf[3], None, None, forward, False, False)
 
         return project
 
     def project_public(buf: NDArray[np.float64]) -> None:
-        tr.transform(buf[0], buf[1], inplace=True)
+        tr.transform(buf[2], buf[3], inplace=True)
 
     return project_public
 

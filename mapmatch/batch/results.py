@@ -20,24 +20,25 @@ def track_match(track_id: str, packed: Packed) -> TrackMatch:
     k = 5 + 2 * n
     ni = k + ns + ne + 2 * (nseg + 1)
     rest = packed[k:ni].tolist()  # splits, route edges, their pointers, the geometry's pointers
-    floats = packed[ni:].view(np.float64)
-    route_e = rest[ns : ns + ne]
-    ptr = rest[ns + ne :]
+    floats = packed.view(np.float64)  # the float part starts at ni
+    f = ni + 4 * n
     routes = []
     route_xy = []
     if nseg:
-        xy_all = floats[4 * n : 4 * n + 2 * nxy].reshape(nxy, 2)
+        route_e = rest[ns : ns + ne]
+        ptr = rest[ns + ne :]
+        xy_all = floats[f : f + 2 * nxy].reshape(nxy, 2)
         for s in range(nseg):
             routes.append(route_e[ptr[s] : ptr[s + 1]])
             seg = xy_all[ptr[nseg + 1 + s] : ptr[nseg + 2 + s]]
             route_xy.append(np.vstack([seg, seg]) if len(seg) == 1 else seg)
-    length, conf = floats[4 * n + 2 * nxy :].tolist()
+    length, conf = floats[f + 2 * nxy :].tolist()
     pa = (
         packed[5 + n : k],
         packed[5 : 5 + n],
-        floats[:n],
-        floats[n : 3 * n].reshape(n, 2),
-        floats[3 * n : 4 * n],
+        floats[ni : ni + n],
+        floats[ni + n : ni + 3 * n].reshape(n, 2),
+        floats[ni + 3 * n : f],
     )
     return TrackMatch(track_id, [], routes, [], rest[:ns], length, conf, route_xy, pa)
 

@@ -236,6 +236,13 @@ def run_track(ti, q, r, p, geom, roads, router, grid, gsc, ar):  # type: ignore[
 
 
 @njit(cache=True, nogil=True)
+def run_track_in(ti, c):  # type: ignore[no-untyped-def]
+    """:func:`run_track` with everything but the track from one
+    :class:`~mapmatch.batch.context.Context` (one pointer to unbox instead of some 80 values)."""
+    return run_track(ti, c.q, c.r, c.p, c.geom, c.roads, c.router, c.grid, c.gsc, c.ar)
+
+
+@njit(cache=True, nogil=True)
 def candidate_emissions(ti, kidx, xy, cp, ce, co, cq, cd, r, p, geom, roads, ar):  # type: ignore[no-untyped-def]
     """The candidates with their emissions (:func:`mapmatch.model.emission_logp`, computed
     per candidate in the same float steps), σ (the fix's own, when the track has them) and

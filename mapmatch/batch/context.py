@@ -1,0 +1,46 @@
+"""What the compiled match reads besides the track, handed over as one pointer.
+
+numba unboxes every array argument on every call (about 0.1 µs each, and a reference count
+taken and dropped); the batch call read some 45 arrays and 35 numbers (the map's, one thread's
+scratch and a config's parameters). A :class:`Context` holds them all in one numba structref,
+built once per thread and config (:func:`new_context`, compiled and cached on disk like every
+kernel), so a call passes the track's arrays and one pointer.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+from numba import njit, types
+from numba.experimental import structref
+
+CONTEXT_FIELDS = ("q", "r", "p", "geom", "roads", "router", "grid", "gsc", "ar")
+"""The fields of a :class:`Context`: the query, rule and kernel parameters
+(:class:`~mapmatch.batch.run.QueryParams`, :class:`~mapmatch.batch.run.RuleParams`,
+:class:`~mapmatch.batch.arrays.KernelParams`), the map's edge geometry, road arrays, route
+queries (:class:`~mapmatch.routing.Router`, with the thread's workspace) and grid, then the
+thread's grid marks and arena."""
+
+
+@structref.register
+class ContextType(types.StructRef):
+    """The numba type of a :class:`Context`."""
+
+    def preprocess_fields(self, fields: Any) -> tuple[tuple[str, Any], ...]:
+        return tuple((name, types.unliteral(typ)) for name, typ in fields)
+
+
+class Context(structref.StructRefProxy):
+    """One thread's and one config's inputs of :func:`mapmatch.batch.run.run_track_in`
+    (fields :data:`CONTEXT_FIELDS`; read only by compiled code). Build with :func:`new_context`:
+    the proxy's own constructor compiles in every process."""
+
+
+structref.define_constructor(Context, ContextType, list(CONTEXT_FIELDS))
+structref.define_boxing(ContextType, Context)
+
+
+@njit(cache=True)
+def new_context(q, r, p, geom, roads, router, grid, gsc, ar):  # type: ignore[no-untyped-def]
+    """A :class:`Context` of these named tuples (see :data:`CONTEXT_FIELDS`)."""
+    return Context(q, r, p, geom, roads, router, grid, gsc, ar)
