@@ -132,6 +132,12 @@ class MeasurementConfig:
         """``road_width`` as a mapping."""
         return dict(self.road_width)
 
+    @cached_property
+    def cross_sigmas(self) -> dict[tuple[str, bool], float]:
+        """:func:`cross_track_sigma` of a road without width tags by (class, one-way), as
+        computed so far."""
+        return {}
+
 
 DEFAULT_MEASUREMENT = MeasurementConfig()
 
@@ -280,6 +286,7 @@ def map_aided_measurement(
     width: float = math.nan,
     lanes: float = math.nan,
     road_class: str | None = None,
+    one_way: bool | None = None,
     bearing_at: BearingAt | None = None,
     config: MeasurementConfig = DEFAULT_MEASUREMENT,
 ) -> MapAidedMeasurement:
@@ -289,7 +296,8 @@ def map_aided_measurement(
     that of the reported edge; ``bias_cov`` the learnt fix bias covariance ``(Pxx, Pxy, Pyy)``
     (m²; NaN when not learnt); ``since_init`` odometer metres since the last (re)initialisation;
     ``width``/``lanes`` the road's tags when the map has them; ``road_class`` that of the way
-    piece under the point (default: the edge's); ``bearing_at`` as in :func:`heading_sigma`.
+    piece under the point (default: the edge's); ``one_way`` whether the edge is one-way
+    (default: from the graph); ``bearing_at`` as in :func:`heading_sigma`.
     The rest as in :func:`along_track_sigma`.
     """
     if edge < 0 or not math.isfinite(lat):
@@ -308,13 +316,16 @@ def map_aided_measurement(
         gps_sigma=gps_sigma,
         config=config,
     )
-    cross = cross_track_sigma(
-        graph.edge_highway(edge) if road_class is None else road_class,
-        one_way=int(graph.edge_reverse[edge]) < 0,
-        width=width,
-        lanes=lanes,
-        config=config,
-    )
+    highway = graph.edge_highway(edge) if road_class is None else road_class
+    if one_way is None:
+        one_way = int(graph.edge_reverse[edge]) < 0
+    if width != width and lanes != lanes:  # no tags: one σ per class and direction
+        key = (highway, one_way)
+        cross = config.cross_sigmas.get(key, math.nan)
+        if cross != cross:
+            cross = config.cross_sigmas[key] = cross_track_sigma(highway, one_way=one_way, config=config)
+    else:
+        cross = cross_track_sigma(highway, one_way=one_way, width=width, lanes=lanes, config=config)
     va, vc = along * along, cross * cross
     # rotate diag(along², cross²) from (along, across) to (east, north); across = (ty, -tx)
     var_e = va * tx * tx + vc * ty * ty

@@ -78,36 +78,41 @@ _last: tuple[MatchConfig | None, tuple[float, ...]] = (None, ())  # the last con
 
 def place_params(step: Step, cfg: MatchConfig, *, turn_obs: float, covered: float) -> PlaceParams:
     """The kernels' view of ``step`` under ``cfg`` (and the turn observed)."""
+    return PlaceParams._make(param_values(step, cfg, turn_obs=turn_obs, covered=covered))
+
+
+def param_values(
+    step: Step, cfg: MatchConfig, *, turn_obs: float, covered: float
+) -> tuple[float | bool, ...]:
+    """:func:`place_params` as a plain tuple (how the kernels take it)."""
     global _last
     last = _last
     if last[0] is not cfg:
         last = _last = (cfg, _config_part(cfg))
     o = cfg.online
     b = step.bias
-    return PlaceParams._make(
-        (
-            step.x,
-            step.y,
-            float(step.sigma),  # a fix's int field must not compile the kernels again
-            float(step.heading),
-            step.kappa,
-            step.travelled,
-            step.odo,
-            step.odo_known,
-            step.gps,
-            step.stopped,
-            float(b.bx),
-            float(b.by),
-            float(b.pxx),
-            float(b.pxy),
-            float(b.pyy),
-            step.odo_sigma,
-            step.dr,
-            float(max(step.dt, o.speed_time)),
-            float(o.node_hold_sigmas * step.sigma),
-            float(turn_obs),
-            float(covered),
-            float(step.r_a),
-            *last[1],
-        )
+    return (
+        step.x,
+        step.y,
+        float(step.sigma),  # a fix's int field must not compile the kernels again
+        float(step.heading),
+        step.kappa,
+        step.travelled,
+        step.odo,
+        step.odo_known,
+        step.gps,
+        step.stopped,
+        float(b.bx),
+        float(b.by),
+        float(b.pxx),
+        float(b.pxy),
+        float(b.pyy),
+        step.odo_sigma,
+        step.dr,
+        float(max(step.dt, o.speed_time)),
+        float(o.node_hold_sigmas * step.sigma),
+        float(turn_obs),
+        float(covered),
+        float(step.r_a),
+        *last[1],
     )

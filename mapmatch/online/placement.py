@@ -28,7 +28,7 @@ from mapmatch.online.geometry import (
     project,
     project_between,
 )
-from mapmatch.online.params import PlaceParams, place_params
+from mapmatch.online.params import PlaceParams, param_values
 from mapmatch.online.road import RoadModel
 from mapmatch.online.state import Hypothesis, Step
 
@@ -237,15 +237,15 @@ def place_all(
         rows += (len(h.edges), h.k, h.off, h.s, h.dist, h.px, h.py, h.bearing, h.anc, h.anc_sd)
     out = _place_all(
         road.arrays_tuple,
-        tuple(place_params(step, cfg, turn_obs=turn_obs, covered=covered)),
+        param_values(step, cfg, turn_obs=turn_obs, covered=covered),
         np.array(flat, dtype=np.int64),
         np.array(rows, dtype=np.float64),
     ).tolist()
     scores = []
-    for i, h in enumerate(hyps):
-        sc, j_new, h.off, h.s, h.dist, h.px, h.py, h.bearing, h.anc, h.anc_sd, turn = out[
-            i * N_OUT : (i + 1) * N_OUT
-        ]
+    lo = 0
+    for h in hyps:
+        sc, j_new, h.off, h.s, h.dist, h.px, h.py, h.bearing, h.anc, h.anc_sd, turn = out[lo : lo + N_OUT]
+        lo += N_OUT
         j = int(j_new)
         if j < h.k:
             h.k = j

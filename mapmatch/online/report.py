@@ -69,7 +69,7 @@ def state_of(state: SessionState, reinit: bool) -> State:
 
 def candidates(road: RoadModel, agg: EdgeMass) -> tuple[Candidate, ...]:
     """The edges the vehicle may be on, most probable first."""
-    total = sum(a[0] for a in agg.values())
+    total = sum([a[0] for a in agg.values()])
     return tuple(
         Candidate(
             edge=ce,
@@ -125,6 +125,7 @@ def report(
         gps_sigma=cfg.model.gps_sigma,
         since_init=state.odo - state.init_odo,
         road_class=road_class,
+        one_way=road.rev[e] < 0,
         bearing_at=road.bearing_at,
         config=measurement,
     )
