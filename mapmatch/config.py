@@ -128,6 +128,10 @@ class OnlineConfig:
     stop_time : seconds; the speed compared with ``stop_speed`` is the odometer's averaged over
         this long (exponentially), whatever the fix rate: over 0.1 s an odometer's noise of a
         few centimetres reads as walking pace, and a parked vehicle at 10 Hz kept moving on.
+    zero_speed : m/s; below this odometer speed (averaged over ``stop_time``) the vehicle
+        stands and the fix's distance counts as zero (a zero-velocity update): a speed sensor's
+        noise at a standstill is never negative, so at 10 Hz its sum crept a parked vehicle
+        forward by metres a minute, carrying the along-track anchor ahead of it (0 disables it).
     stop_hold_distance : metres; a vehicle that stops less than this past a node it went
         straight through (or has not yet turned at, by its heading) is placed before the node:
         vehicles stop at stop lines, not in junctions. About the fixes' along-track error:
@@ -267,6 +271,7 @@ class OnlineConfig:
 
     stop_speed: float = 0.5
     stop_time: float = 1.0
+    zero_speed: float = 0.2
     stop_hold_distance: float = 4.0
     node_hold_sigmas: float = 0.5
     still_distance: float = 0.05

@@ -241,3 +241,36 @@ def test_fix_beside_a_looping_ramp_is_placed_on_the_part_reached(tmp_path: Path)
     # b joins two roads only: the map has one edge a-b-ramp (a loop of 794 m)
     assert graph.n_edges == 2 and all(r.edge == res[0].edge for r in res)
     assert max(abs(r.offset - x) for r, x in zip(res, truth, strict=True)) < 10.0
+
+
+def test_parked_vehicle_in_an_outage_does_not_creep_forward_at_10_hz() -> None:
+    """A vehicle stops 3 m before the crossing b in a GPS outage and stands there 2 min, its
+    dead-reckoned fixes still. Its odometer's noise, never negative, sums at 10 Hz to ~5 m a
+    minute: below ``zero_speed`` the distance counts as zero and the vehicle stays where it
+    stopped; without the rule (``zero_speed`` 0) it creeps up to b."""
+    import numpy as np
+
+    from mapmatch.config import DEFAULT_CONFIG
+
+    #   a-----o-b-------c     o: the vehicle stands here, 3 m before b, without GPS
+    m = parse_ascii_map(CROSSING, scale=10)
+    a, b = m.xy("a"), m.xy("b")
+    east = (b - a) / np.linalg.norm(b - a)
+    moving = [f for f in drive(m, "ab", speed=5, dt=0.1) if np.dot(b - np.array(_xy(m, f)), east) > 3.0]
+    t = moving[-1].time
+    stop = b - 3.0 * east
+    rng = np.random.default_rng(2)
+    noise = np.maximum(rng.normal(0.0, 0.02, 1200), 0.0)  # metres per fix, as odometers read
+    lon, lat = to_lonlat(m.graph.crs, [stop[0]], [stop[1]])[0]
+    standing = [
+        Fix(time=t + 0.1 * (i + 1), lat=float(lat), lon=float(lon), heading=90.0, speed=10.0 * float(d),
+            distance=float(d), gps_valid=False)
+        for i, d in enumerate(noise)
+    ]  # fmt: skip
+    assert noise.sum() > 6.0  # the noise alone would carry it past b
+    ab = m.edge("a", "b")
+    res = _run(OnlineMatcher(m.graph), moving + standing)
+    assert {r.edge for r in res[-1200:]} == {ab}
+    assert max(r.offset for r in res[-1200:]) < 78.0  # stands ~3 m before b (ab is 80 m)
+    off = _run(OnlineMatcher(m.graph, config=DEFAULT_CONFIG.replace(zero_speed=0.0)), moving + standing)
+    assert off[-1].offset > 79.5  # crept up to b

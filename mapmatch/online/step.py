@@ -52,7 +52,6 @@ def prepare(road: RoadModel, state: SessionState, fix: Fix, cfg: MatchConfig) ->
     stopped = False
     speed = state.speed
     if odo_known and not math.isnan(dt):
-        weight = min(weight, travelled / o.evidence_distance)
         # stopped by this fix's speed or by that over ``stop_time``: over 0.1 s an odometer's
         # noise alone reads as a speed, which must not start a stopped vehicle moving
         speed = travelled / dt
@@ -60,6 +59,9 @@ def prepare(road: RoadModel, state: SessionState, fix: Fix, cfg: MatchConfig) ->
         if not math.isnan(state.speed):
             speed = state.speed + min(1.0, dt / o.stop_time) * (speed - state.speed)
         stopped = min(now, speed) < o.stop_speed
+        if speed < o.zero_speed:
+            travelled = 0.0  # standing: the odometer's rectified noise is no distance
+        weight = min(weight, travelled / o.evidence_distance)
     # the turn score is already per metre driven: weighed per fix only by the distance share,
     # or it would count ten times less at 10 Hz than at 1 Hz
     turn_weight = weight / per_time if per_time > 0.0 else 0.0
