@@ -210,8 +210,7 @@ class BatchMatcher:
     def _match_compiled(self, track: Track, cfg: MatchConfig) -> TrackMatch:
         """The projection, then one compiled call (:func:`run_track_in`)."""
         st = self._state()
-        got = st.contexts.get(id(cfg))
-        ctx = got[1] if got is not None and got[0] is cfg else self._context(st, cfg)
+        ctx = self._context(st, cfg)
         lat, lon = track.lat, track.lon
         if not isinstance(lat, np.ndarray) or not isinstance(lon, np.ndarray):
             lat, lon = np.asarray(lat, dtype=F8), np.asarray(lon, dtype=F8)
