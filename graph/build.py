@@ -123,6 +123,7 @@ def build_map(
     id_field: str | None = None,
     node_id_fields: tuple[str, str] | None = None,
     topology: str = "auto",
+    directed: bool = False,
     crs: str | None = None,
     layer: str | None = None,
     network_type: str = "drive",
@@ -144,7 +145,7 @@ def build_map(
         Merge complex intersections whose nodes lie within this many metres
         (:func:`osmnx.consolidate_intersections`); ``None`` (default) keeps every node.
     snap_tolerance, node_crossings, oneway_field, oneway_convention, name_field, speed_field,
-    highway_field, id_field, node_id_fields, topology, crs, layer
+    highway_field, id_field, node_id_fields, topology, directed, crs, layer
         GIS options, see :class:`mapmatch.graph.gis.GisOptions`.
     network_type
         osmnx network type for OSM input: ``"drive"`` (default) or ``"drive_service"``.
@@ -200,6 +201,8 @@ def build_map(
     if source is None:
         if place is None and bbox is None:
             raise InputError("give a source file, a place name or a bounding box")
+        if directed:
+            raise InputError("directed lines are a GIS input option; a download is OpenStreetMap data")
         from mapmatch.graph.osm import download_graph
 
         say(f"downloading the {network_type} network from OpenStreetMap")
@@ -213,6 +216,8 @@ def build_map(
         if path.is_dir():
             raise InputError(f"{path} is a directory, not a road data file")
         fmt = source_format(path)
+        if directed and fmt != "gis":
+            raise InputError(f"directed lines are a GIS input option; {path.name} is OpenStreetMap data")
         report.source_format = fmt
         say(f"checksumming {path.name}")
         src_meta = {
@@ -239,6 +244,7 @@ def build_map(
                 id_field=id_field,
                 node_id_fields=node_id_fields,
                 topology=topology,
+                directed=directed,
                 snap_tolerance=snap_tolerance,
                 node_crossings=node_crossings,
                 crs=crs,
@@ -257,6 +263,7 @@ def build_map(
                     "id_field": id_field,
                     "node_id_fields": list(node_id_fields) if node_id_fields else None,
                     "topology": topology,
+                    "directed": directed,
                     "crs": crs,
                     "layer": layer,
                 }

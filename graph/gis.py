@@ -118,6 +118,10 @@ class GisOptions:
         (the ids are kept as node ids only if they agree); ``"ids"``: from the id fields, or
         an error. With ids, distinct nodes at the same position (grade-separated crossings)
         stay apart.
+    directed
+        Every line is one way, in the direction it is drawn: a network of directed arcs, where
+        a two-way road is two lines (FMM's and fastmm's network files, routing-engine exports).
+        No one-way field is read then.
     """
 
     oneway_field: str | None = None
@@ -133,6 +137,7 @@ class GisOptions:
     bbox: tuple[float, float, float, float] | None = None
     node_id_fields: tuple[str, str] | None = None
     topology: str = "auto"
+    directed: bool = False
 
 
 def _pick(columns: Iterable[str], wanted: str | None, candidates: tuple[str, ...], what: str) -> str | None:
@@ -436,13 +441,20 @@ def lines_to_raw(
         raise InputError(f"unknown topology {opts.topology!r} (use {', '.join(TOPOLOGIES)})")
     with open_source(path, opts) as source:
         fields = source.fields
-        oneway_f = _pick(fields, opts.oneway_field, ("oneway", "one_way", "dir", "direction"), "one-way")
+        if opts.directed and opts.oneway_field is not None:
+            raise InputError("directed lines have no one-way field: give one of the two, not both")
+        oneway_f = (
+            None
+            if opts.directed
+            else _pick(fields, opts.oneway_field, ("oneway", "one_way", "dir", "direction"), "one-way")
+        )
         name_f = _pick(fields, opts.name_field, ("name",), "name")
         speed_f = _pick(fields, opts.speed_field, ("maxspeed", "speed", "speed_kph"), "speed")
         hw_f = _pick(fields, opts.highway_field, ("highway", "class", "fclass"), "highway")
         id_f = _pick(fields, opts.id_field, ("id", "way_id", "osm_id", "fid"), "id")
         uv_f = _node_id_fields(fields, opts)
         info: dict[str, Any] = {
+            "directed": opts.directed,
             "oneway_field": oneway_f,
             "name_field": name_f,
             "speed_field": speed_f,
@@ -480,7 +492,7 @@ def _lines_to_raw(
             dropped["unrecognised one-way value (read as two-way)"] = bad
         direction = np.array([BOTH if c is None else c for c in ucodes], dtype=np.int8)[inv]
     else:
-        direction = np.zeros(n_feat, dtype=np.int8)
+        direction = np.full(n_feat, FORWARD if opts.directed else BOTH, dtype=np.int8)
     names = _labels(lines, name_f)
     hws = _labels(lines, hw_f)
     if speed_f:

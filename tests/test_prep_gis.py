@@ -229,3 +229,26 @@ def test_progress_within_the_long_steps(tmp_path: Path) -> None:
     walk = [m for m in said if m.startswith("simplifying: ")]
     assert walk and all(m.endswith(" paths still growing") for m in walk)
     assert said.index("reading GIS lines from roads.gpkg") < said.index(walk[0])
+
+
+def test_directed_lines_are_one_way_arcs(tmp_path: Path) -> None:
+    # a network of directed arcs (FMM's format): the two-way road a-b is two lines, b->c one
+    a, b, c = (14.42, 50.08), (14.421, 50.08), (14.421, 50.081)
+    lines = [shapely.LineString([a, b]), shapely.LineString([b, a]), shapely.LineString([b, c])]
+    df = gpd.GeoDataFrame({"id": [11, 12, 13]}, geometry=lines, crs=4326)
+    p = tmp_path / "arcs.geojson"
+    df.to_file(p)
+    g = build_map(p, directed=True)
+    assert g.n_edges == 3
+    ab, ba, bc = (_edges(g, x, y) for x, y in (((0, 0), (1, 0)), ((1, 0), (0, 0)), ((1, 0), (1, 1))))
+    assert [g.edge_way_id[e] for e in ab + ba + bc] == [11, 12, 13]
+    assert _edges(g, (1, 1), (1, 0)) == []
+    assert g.meta["report"]["fields"]["directed"] is True
+    # the two arcs of a-b are one road's two directions (a U-turn on it is possible), b-c has none
+    assert g.edge_reverse[ab[0]] == ba[0] and g.edge_reverse[ba[0]] == ab[0] and g.edge_reverse[bc[0]] == -1
+    # without the option every line is two-way: a-b is drawn twice
+    assert build_map(p).n_edges == 6
+    with pytest.raises(InputError, match="not both"):
+        build_map(p, directed=True, oneway_field="id")
+    with pytest.raises(InputError, match="GIS input option"):
+        build_map(DATA / "prep_tiny.osm", directed=True)

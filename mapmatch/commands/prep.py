@@ -89,6 +89,12 @@ def register(subparsers: Any) -> None:
         help="field with one-way information (default: oneway/one_way/dir/direction if present)",
     )
     gis.add_argument(
+        "--directed",
+        action="store_true",
+        help="every line is one way, in the direction it is drawn (a network of directed arcs, "
+        "a two-way road being two lines, as in FMM's network files); no one-way field is read",
+    )
+    gis.add_argument(
         "--oneway-convention",
         metavar="SPEC",
         help='how that field\'s values read, e.g. "forward=FT;reverse=TF;both=B" (see below)',
@@ -198,6 +204,7 @@ def run(args: argparse.Namespace) -> int:
         id_field=args.id_field,
         node_id_fields=_parse_fields(args.node_id_fields) if args.node_id_fields else None,
         topology=args.topology,
+        directed=args.directed,
         crs=args.crs,
         layer=args.layer,
         network_type=args.network_type,
@@ -246,6 +253,8 @@ def summary(graph: Any, output: Path, export: Path | None = None) -> str:
             for k, v in fields.items()
             if k.endswith("_field") and v is not None
         )
+        if fields.get("directed"):
+            used = ", ".join(x for x in ("every line one way as drawn", used) if x)
         lines.append(f"GIS: nodes from {fields['topology']}; {used or 'no attribute fields used'}")
     if rep.get("self_loops_split"):
         lines.append(f"loops split into two edges: {rep['self_loops_split']:,}")
