@@ -482,6 +482,9 @@ def _lines_to_raw(
 
     n_feat = lines.n_lines
     fid = _int_column(lines, id_f) if id_f is not None else None
+    if fid is None and opts.id_field is not None:
+        raise InputError(f"the id field {opts.id_field!r} does not hold integers on every line")
+    info["id_field"] = id_f if fid is not None else None  # None: ids are row numbers
     if fid is None:
         fid = np.arange(n_feat, dtype=np.int64)
     if oneway_f is not None:
@@ -721,13 +724,28 @@ def _node_id_fields(fields: list[str], opts: GisOptions) -> tuple[str, str] | No
 
 
 def _int_column(lines: Lines, name: str) -> NDArray[np.int64] | None:
-    """An integer column per line as int64; None when it is not integers or has nulls."""
+    """An integer column per line as int64: integers, whole floats or integer text (a DBF's
+    character field); None when it has nulls or other values."""
     import pyarrow as pa
 
     col = lines.columns[name]
-    if not pa.types.is_integer(col.type) or col.null_count:
+    if col.null_count:
         return None
-    return np.asarray(col.to_numpy(), dtype=np.int64)[lines.row]
+    if pa.types.is_integer(col.type):
+        return np.asarray(col.to_numpy(), dtype=np.int64)[lines.row]
+    try:
+        if pa.types.is_floating(col.type):
+            f = np.asarray(col.to_numpy(), dtype=np.float64)
+            if not (np.isfinite(f).all() and (f == np.round(f)).all()):
+                return None
+            vals = f.astype(np.int64)
+        elif pa.types.is_string(col.type) or pa.types.is_large_string(col.type):
+            vals = np.asarray([int(v) for v in col.to_pylist()], dtype=np.int64)
+        else:
+            return None
+    except (TypeError, ValueError, OverflowError):
+        return None
+    return vals[lines.row]
 
 
 def _endpoint_id_values(lines: Lines, fields: tuple[str, str]) -> NDArray[np.int64] | None:

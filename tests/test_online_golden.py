@@ -35,6 +35,7 @@ from online_golden import (
     load,
     replay,
     resume,
+    same_input,
     without_ways,
 )
 
@@ -54,7 +55,8 @@ def test_same_snap_results_fix_for_fix(name: str, make: Any) -> None:
     _needs_shared(name)
     old = GOLDEN["drives"][name]
     graph, fixes = make()
-    assert fixes_digest(fixes) == old["digest"], "the input drive changed: the comparison would be void"
+    same = same_input(old["digest"], fixes_digest(fixes))
+    assert same, "the input drive changed: the comparison would be void"
     k = len(fixes) // 2
     new = replay(graph, fixes, export_at=k)
     assert sum(s is not None for s in old["snaps"]) > 0

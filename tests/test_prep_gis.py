@@ -235,7 +235,8 @@ def test_directed_lines_are_one_way_arcs(tmp_path: Path) -> None:
     # a network of directed arcs (FMM's format): the two-way road a-b is two lines, b->c one
     a, b, c = (14.42, 50.08), (14.421, 50.08), (14.421, 50.081)
     lines = [shapely.LineString([a, b]), shapely.LineString([b, a]), shapely.LineString([b, c])]
-    df = gpd.GeoDataFrame({"id": [11, 12, 13]}, geometry=lines, crs=4326)
+    # ids as integer text, as a DBF character field holds them
+    df = gpd.GeoDataFrame({"id": ["11", "12", "13"], "name": ["x", "x", "y"]}, geometry=lines, crs=4326)
     p = tmp_path / "arcs.geojson"
     df.to_file(p)
     g = build_map(p, directed=True)
@@ -252,3 +253,5 @@ def test_directed_lines_are_one_way_arcs(tmp_path: Path) -> None:
         build_map(p, directed=True, oneway_field="id")
     with pytest.raises(InputError, match="GIS input option"):
         build_map(DATA / "prep_tiny.osm", directed=True)
+    with pytest.raises(InputError, match="id field 'name' does not hold integers"):
+        build_map(p, id_field="name")
