@@ -89,6 +89,15 @@ def test_only_validation_errors_and_snaps_on_the_road(seq: list[Fix]) -> None:
         assert type(state).from_bytes(state.to_bytes()).to_bytes() == state.to_bytes()
 
 
+def test_fixes_a_hair_apart_in_time_leave_a_session_that_can_be_exported() -> None:
+    # found by the property above: 1 m in 2.4e-109 s made a speed no session import accepts
+    state = MATCHER.new_session()
+    for t in (0.0, 2.410831004492582e-109, 1e-9):
+        MATCHER.update(state, Fix(time=t, lat=LAT0, lon=LON0, distance=1.0))
+        assert math.isnan(state.speed) or state.speed <= 1_000.0
+        assert type(state).from_bytes(state.to_bytes()).to_bytes() == state.to_bytes()
+
+
 @settings(max_examples=100, deadline=None)
 @given(
     st.lists(st.tuples(st.floats(-80, 80), st.floats(-80, 80)), min_size=2, max_size=60), st.integers(0, 3)

@@ -54,7 +54,7 @@ def prepare(road: RoadModel, state: SessionState, fix: Fix, cfg: MatchConfig) ->
     if odo_known and not math.isnan(dt):
         # stopped by this fix's speed or by that over ``stop_time``: over 0.1 s an odometer's
         # noise alone reads as a speed, which must not start a stopped vehicle moving
-        speed = travelled / dt
+        speed = min(travelled / dt, _SPEED)  # fixes a hair apart in time: no absurd speed
         now = speed
         if not math.isnan(state.speed):
             speed = state.speed + min(1.0, dt / o.stop_time) * (speed - state.speed)
