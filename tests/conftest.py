@@ -7,6 +7,13 @@ from importlib import resources
 from pathlib import Path
 
 import pytest
+from hypothesis import settings
+
+# Property tests replay the same examples on every run, so that a run fails for the code, not by
+# the luck of the draw; `pytest --hypothesis-profile=explore` draws new examples to hunt for bugs.
+settings.register_profile("default", derandomize=True)
+settings.register_profile("explore", derandomize=False)
+settings.load_profile("default")
 
 ROOT = Path(__file__).resolve().parents[1]
 SHARED = Path(os.environ.get("MAPMATCH_SHARED", ROOT.parent / "shared"))
