@@ -46,7 +46,13 @@ class Columns:
 
 
 DEFAULT_COLUMNS = Columns()
-TRACK_SUFFIXES = (".csv", ".csv.gz", ".gpx", ".parquet", ".geoparquet", ".pq")
+LINE_SUFFIXES = (".geojson", ".json", ".gpkg", ".shp", ".fgb")
+"""GIS files whose line features are tracks (one track per line, its vertices the points)."""
+TRACK_SUFFIXES = (".csv", ".csv.gz", ".gpx", ".parquet", ".geoparquet", ".pq", *LINE_SUFFIXES)
+WKT_COLUMNS = ("geom", "geometry", "wkt")
+"""CSV columns read as WKT line tracks when there are no lat/lon columns (FMM's trips.csv)."""
+LINE_TIME_COLUMNS = ("timestamp", "timestamps")
+"""Fields tried after ``Columns.time`` for a line track's times, one per vertex."""
 OUTPUT_SUFFIXES = (".geojson", ".json", ".csv", ".parquet", ".geoparquet")
 
 
@@ -132,7 +138,7 @@ def copy_to_stdout(path: str | os.PathLike[str]) -> None:
 
 # ---------------------------------------------------------------------- reading
 def read_tracks(path: str | os.PathLike[str], *, columns: Columns = DEFAULT_COLUMNS) -> list[Track]:
-    """Read every track of a CSV, GPX or (Geo)Parquet file, or of a folder of Parquet parts."""
+    """Read every track of a CSV, GPX, (Geo)Parquet or GIS line file, or of a folder of Parquet parts."""
     p = Path(path)
     if p.is_dir():
         parts = sorted(q for q in p.iterdir() if q.name.lower().endswith((".parquet", ".geoparquet", ".pq")))
@@ -148,16 +154,115 @@ def read_tracks(path: str | os.PathLike[str], *, columns: Columns = DEFAULT_COLU
         return read_tracks_gpx(p)
     if name.endswith((".parquet", ".geoparquet", ".pq")):
         return read_tracks_parquet(p, columns=columns)
+    if name.endswith(LINE_SUFFIXES):
+        return read_tracks_lines(p, columns=columns)
     raise TrackInputError(f"{p}: unknown track format (use one of {', '.join(TRACK_SUFFIXES)})")
 
 
 def read_tracks_csv(path: str | os.PathLike[str], *, columns: Columns = DEFAULT_COLUMNS) -> list[Track]:
-    """Tracks from a CSV file with configurable column names; no id column means one track."""
+    """Tracks from a CSV file with configurable column names; no id column means one track.
+
+    Points are rows (lat/lon columns). Without lat/lon, a WKT column (``geom``, ``geometry`` or
+    ``wkt``) of LINESTRINGs gives one track per row, as FMM's trajectory files do (``;``
+    between fields, times in a ``timestamp`` column, see :func:`read_tracks_lines`).
+    """
     try:
-        df = pd.read_csv(path)
+        df = pd.read_csv(path, sep=_csv_separator(path))
     except (pd.errors.ParserError, UnicodeDecodeError, pd.errors.EmptyDataError) as exc:
         raise TrackInputError(f"{path}: not a readable CSV file ({exc})") from exc
+    wkt = next((c for c in df.columns if str(c).lower() in WKT_COLUMNS), None)
+    if wkt is not None and not (columns.lat in df.columns and columns.lon in df.columns):
+        import shapely
+
+        try:
+            geoms = shapely.from_wkt(df[wkt].astype(str).to_numpy())
+        except shapely.errors.GEOSException as exc:
+            raise TrackInputError(f"{path}: column {wkt!r} is not WKT ({exc})") from None
+        return _tracks_from_lines(df, geoms, columns=columns, default_id=_stem(path), where=str(path))
     return tracks_from_frame(df, columns=columns, default_id=_stem(path))
+
+
+def _csv_separator(path: str | os.PathLike[str]) -> str:
+    """``;`` when the header line has semicolons and no commas (FMM's files), else ``,``."""
+    import gzip
+
+    opener: Any = gzip.open if str(path).lower().endswith(".gz") else open
+    try:
+        with opener(path, "rt", encoding="utf-8", errors="replace") as f:
+            head = f.readline()
+    except OSError:
+        return ","
+    return ";" if ";" in head and "," not in head else ","
+
+
+def read_tracks_lines(path: str | os.PathLike[str], *, columns: Columns = DEFAULT_COLUMNS) -> list[Track]:
+    """One track per line feature of a GIS file (GeoJSON, GeoPackage, Shapefile, FlatGeobuf).
+
+    The line's vertices, in drawn order, are the track's points (a MultiLineString's parts
+    joined); features without geometry are skipped. The id is ``columns.id`` when the file has
+    it, else the file name (numbered when there are several lines). Times come from the
+    vertices' M values, else from a ``columns.time``, ``timestamp`` or ``timestamps`` field
+    holding one time per vertex (a list, or text with commas, as FMM writes them), else there
+    are none. Coordinates in a projected CRS are brought to lon/lat.
+    """
+    import pyogrio
+
+    try:
+        df = pyogrio.read_dataframe(path)
+    except Exception as exc:  # pyogrio/GDAL raise several types for a bad file
+        raise TrackInputError(f"{path}: not a readable GIS file ({exc})") from exc
+    if df.crs is not None and not df.crs.is_geographic:
+        df = df.to_crs(4326)
+    return _tracks_from_lines(
+        df, df.geometry.to_numpy(), columns=columns, default_id=_stem(path), where=str(path)
+    )
+
+
+def _tracks_from_lines(
+    df: pd.DataFrame, geoms: NDArray[Any], *, columns: Columns, default_id: str, where: str
+) -> list[Track]:
+    import shapely
+
+    kinds = shapely.get_type_id(geoms)
+    keep = ~shapely.is_missing(geoms) & ~shapely.is_empty(geoms)
+    bad = keep & ~np.isin(kinds, (1, 5))  # LineString, MultiLineString
+    if bad.any():
+        kind = int(shapely.get_type_id(geoms[bad][0]))
+        names = {0: "Point", 3: "Polygon", 4: "MultiPoint", 6: "MultiPolygon", 7: "GeometryCollection"}
+        raise TrackInputError(
+            f"{where}: a track is a line, but {int(bad.sum())} feature(s) are "
+            f"{names.get(kind, 'other')}s (points are rows of a CSV or Parquet file)"
+        )
+    rows = np.flatnonzero(keep)
+    has_id = columns.id in df.columns
+    tcol = next((c for c in (columns.time, *LINE_TIME_COLUMNS) if c and c in df.columns), None)
+    out = []
+    for k, i in enumerate(rows):
+        g = geoms[i]
+        with_m = bool(shapely.has_m(g))
+        xy = shapely.get_coordinates(g, include_m=with_m)
+        if with_m:
+            t = xy[:, 2].astype(np.float64)
+        elif tcol is not None:
+            t = _vertex_times(df[tcol].iloc[i], len(xy), f"{where}: feature {i} field {tcol!r}")
+        else:
+            t = np.full(len(xy), np.nan)
+        tid = str(df[columns.id].iloc[i]) if has_id else default_id if len(rows) == 1 else f"{default_id}-{k}"
+        out.append(Track(track_id=tid, time=t, lat=xy[:, 1].copy(), lon=xy[:, 0].copy()))
+    return out
+
+
+def _vertex_times(value: Any, n: int, what: str) -> NDArray[np.float64]:
+    """One time per vertex from a list or comma-separated text; NaN when the field is empty."""
+    if value is None or (isinstance(value, float) and np.isnan(value)) or value == "":
+        return np.full(n, np.nan)
+    items = value.split(",") if isinstance(value, str) else list(np.atleast_1d(value))
+    if len(items) != n:
+        raise TrackInputError(f"{what}: {len(items)} time(s) for {n} vertices")
+    try:
+        return _time_seconds(pd.Series([x.strip() if isinstance(x, str) else x for x in items]))
+    except (TypeError, ValueError) as exc:
+        raise TrackInputError(f"{what}: not times ({exc})") from None
 
 
 def read_tracks_parquet(path: str | os.PathLike[str], *, columns: Columns = DEFAULT_COLUMNS) -> list[Track]:

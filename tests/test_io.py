@@ -180,3 +180,21 @@ def test_results_written_as_geojson_csv_and_geoparquet(tmp_path: Path) -> None:
     g = gpd.read_parquet(pq)
     assert g.crs.to_epsg() == 4326
     assert shapely.equals(g.geometry.iloc[0], shapely.from_wkb(table["route_wkb"].iloc[0]))
+
+
+def test_line_tracks_take_their_times_from_m_values_or_a_timestamp_field(tmp_path: Path) -> None:
+    p = tmp_path / "trips.csv"
+    p.write_text(
+        "id;geom;timestamp\n"
+        "a;LINESTRING M (24.9 60.1 100, 24.91 60.1 105, 24.92 60.1 111);\n"
+        "b;LINESTRING (24.9 60.2, 24.91 60.2);2026-01-01T00:00:00Z,2026-01-01T00:00:02Z\n"
+        "c;LINESTRING (24.9 60.3, 24.91 60.3);\n"
+    )
+    a, b, c = read_tracks(p)
+    assert (a.track_id, b.track_id, c.track_id) == ("a", "b", "c")
+    np.testing.assert_allclose(a.time, [100, 105, 111])
+    np.testing.assert_allclose(a.lon, [24.9, 24.91, 24.92])
+    assert b.time[1] - b.time[0] == 2.0 and np.isnan(c.time).all()
+    p.write_text("id;geom;timestamp\na;LINESTRING (24.9 60.2, 24.91 60.2);1,2,3\n")
+    with pytest.raises(TrackInputError, match="3 time\\(s\\) for 2 vertices"):
+        read_tracks(p)

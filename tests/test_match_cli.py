@@ -118,3 +118,49 @@ def test_match_command_errors_are_one_line(
     assert "no such input" in capsys.readouterr().err
     assert main(["match", "--map", str(map_path), str(tracks_path), "-o", str(tmp_path / "o.txt")]) == 2
     assert "unknown output format" in capsys.readouterr().err
+
+
+def test_tracks_drawn_as_lines_in_a_geopackage_or_fmm_csv_match_like_their_points(
+    setup: tuple[Path, Path, AsciiMap], tmp_path: Path
+) -> None:
+    # FMM's inputs: trips as line features (trips.shp) or as WKT lines in a ';' CSV with times
+    import geopandas as gpd
+    import shapely
+
+    map_path, _, m = setup
+    tracks = make_tracks(m, 3)
+    lines = [shapely.LineString(np.c_[t.lon, t.lat]) for t in tracks]
+    gdf = gpd.GeoDataFrame({"id": [t.track_id for t in tracks]}, geometry=lines, crs=4326)
+    gdf.to_crs(m.graph.crs).to_file(tmp_path / "trips.gpkg")  # in metres: brought back to lon/lat
+    wkt = tmp_path / "trips.csv"
+    rows = [f"{t.track_id};{shapely.to_wkt(g, rounding_precision=-1)};{','.join(map(str, t.time))}"
+            for t, g in zip(tracks, lines, strict=True)]  # fmt: skip
+    wkt.write_text("id;geom;timestamp\n" + "\n".join(rows) + "\n")
+    points = tmp_path / "points.csv"
+    write_tracks(points, tracks)
+    outs = {}
+    for src in (points, tmp_path / "trips.gpkg", wkt):
+        out = tmp_path / f"{src.stem}-{src.suffix[1:]}.parquet"
+        assert main(["match", "--map", str(map_path), str(src), "-o", str(out), "--workers", "1", "-q"]) == 0
+        outs[src.name] = read_results(out)
+    ref = outs["points.csv"]
+    assert list(ref["track_id"]) == ["v00", "v01", "v02"]
+    for got in outs.values():
+        assert list(got["track_id"]) == list(ref["track_id"]) and list(got["edges"]) == list(ref["edges"])
+        assert list(got["pt_edge"]) == list(ref["pt_edge"])
+        np.testing.assert_allclose(np.concatenate(got["pt_lat"]), np.concatenate(ref["pt_lat"]), atol=1e-7)
+
+
+def test_a_gis_file_of_points_is_not_a_track(tmp_path: Path, capsys) -> None:
+    import geopandas as gpd
+    import shapely
+
+    m = parse_ascii_map(DRAWING, scale=10)
+    save_map(m.graph, tmp_path / "city.map")
+    pts = gpd.GeoDataFrame(geometry=[shapely.Point(m.lonlat(*m.xy("a")))], crs=4326)
+    pts.to_file(tmp_path / "pts.geojson")
+    args = ["match", "--map", str(tmp_path / "city.map"), str(tmp_path / "pts.geojson")]
+    rc = main([*args, "-o", str(tmp_path / "o.csv")])
+    assert rc == 2
+    assert "a track is a line, but 1 feature(s) are Points" in capsys.readouterr().err
+    assert not (tmp_path / "o.csv").exists()

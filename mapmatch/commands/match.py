@@ -12,8 +12,10 @@ Match historic tracks to the road network of a prepared map (Viterbi over each w
 
 INPUT files are CSV (columns id,time,lat,lon plus heading and speed when present; names set
 with --id-col etc.; time as seconds or ISO-8601; "-" reads CSV from standard input), GPX
-(one track per <trk>), Parquet or GeoParquet (lat/lon columns, or point geometry), or
-folders of Parquet parts.
+(one track per <trk>), Parquet or GeoParquet (lat/lon columns, or point geometry), folders
+of Parquet parts, or tracks drawn as lines: GIS files (.geojson, .gpkg, .shp, .fgb; one track
+per line feature, its vertices the points, times from M values or a "timestamp" field) and
+CSV with a WKT "geom" column (FMM's trips.csv, ';' between fields).
 OUT by suffix: .geojson (one feature per track: route, track id, length, confidence, edge
 sequence with OSM way ids and names), .csv (one row per input point: matched edge, offset,
 snapped lat/lon, distance, status matched/interpolated/unmatched), .parquet/.geoparquet (one
