@@ -292,6 +292,11 @@ def align_by_time(t_truth: ArrayLike, t_match: ArrayLike, *, tol: float = 0.05) 
     return np.where(ok, i, -1).astype(np.int64)
 
 
+
+def _text(col: pd.Series) -> pd.Series:
+    """A column as text, empty where missing (an all-empty CSV column reads as float NaN)."""
+    return col.astype(object).where(col.notna(), "").astype(str)
+
 def apply_corrections(graph: RoadGraph, matched: pd.DataFrame) -> pd.DataFrame:
     """The matched rows as revised by the corrections the matcher emitted later.
 
@@ -319,8 +324,8 @@ def apply_corrections(graph: RoadGraph, matched: pd.DataFrame) -> pd.DataFrame:
     new_edge = out["edge"].to_numpy(dtype=np.int64).copy()
     snapped = np.full((len(out), 2), np.nan)
     touched = np.zeros(len(out), dtype=bool)
-    corr = out["correction"].fillna("").astype(str)
-    starts = out["correction_times"].fillna("").astype(str) if "correction_times" in out.columns else None
+    corr = _text(out["correction"])
+    starts = _text(out["correction_times"]) if "correction_times" in out.columns else None
     for i in np.flatnonzero(corr.str.strip() != "").tolist():
         try:
             edges = [int(e) for e in corr.iloc[i].split(";") if e.strip()]
