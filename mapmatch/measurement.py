@@ -42,7 +42,7 @@ import numpy as np
 
 from mapmatch.errors import ConfigError
 from mapmatch.graph.road_graph import RoadGraph
-from mapmatch.types import MapAidedMeasurement, State
+from mapmatch.types import MapAidedMeasurement, State, new_measurement
 
 # default carriageway width in metres per OSM highway class (all lanes, both directions on a
 # two-way road; one carriageway of a dual road drawn as one-way); unknown classes: 6 m
@@ -343,19 +343,19 @@ def map_aided_measurement(
         reason = "low_probability"
     else:
         reason = ""
-    return MapAidedMeasurement(
-        lat=lat,
-        lon=lon,
-        var_e=var_e,
-        cov_en=cov_en,
-        var_n=var_n,
-        along_sigma=along,
-        cross_sigma=cross,
-        heading=bearing,
-        heading_sigma=heading_sigma(graph, edge, offset, along, config=config, bearing_at=bearing_at),
-        probability=probability,
-        usable=reason == "",
-        reason=reason,
+    return new_measurement(
+        lat,
+        lon,
+        var_e,
+        cov_en,
+        var_n,
+        along,
+        cross,
+        bearing,
+        heading_sigma(graph, edge, offset, along, config=config, bearing_at=bearing_at),
+        probability,
+        reason == "",
+        reason,
     )
 
 

@@ -11,7 +11,7 @@ from mapmatch.measurement import DEFAULT_MEASUREMENT, MeasurementConfig, map_aid
 from mapmatch.online.filter import best as best_of
 from mapmatch.online.road import RoadModel
 from mapmatch.online.state import Hypothesis, SessionState, Step
-from mapmatch.types import Candidate, Correction, Fix, SnapResult, State, Turn
+from mapmatch.types import Candidate, Correction, Fix, SnapResult, State, Turn, new_candidate, new_snap_result
 
 EdgeMass = dict[int, tuple[float, Hypothesis]]
 
@@ -71,14 +71,8 @@ def candidates(road: RoadModel, agg: EdgeMass) -> tuple[Candidate, ...]:
     """The edges the vehicle may be on, most probable first."""
     total = sum([a[0] for a in agg.values()])
     return tuple(
-        Candidate(
-            edge=ce,
-            u=road.u_id[ce],
-            v=road.v_id[ce],
-            way_id=road.piece(ce, a[1].off)[0],
-            probability=a[0] / total,
-            offset=a[1].off,
-            dist=a[1].dist,
+        new_candidate(
+            ce, road.u_id[ce], road.v_id[ce], road.piece(ce, a[1].off)[0], a[0] / total, a[1].off, a[1].dist
         )
         for ce, a in sorted(agg.items(), key=lambda kv: -kv[1][0])
     )
@@ -129,7 +123,7 @@ def report(
         bearing_at=road.bearing_at,
         config=measurement,
     )
-    return SnapResult(
+    return new_snap_result(
         time=fix.time,
         state=st,
         edge=e,
