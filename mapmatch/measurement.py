@@ -256,11 +256,12 @@ def heading_sigma(
     at = bearing_at or (lambda e, off: _bearing_at(graph, e, off))
     here = at(edge, offset)
     length = float(graph.edge_len[edge])
-    bend = max(
-        _angle(here, at(edge, max(offset - along_sigma, 0.0))),
-        _angle(here, at(edge, min(offset + along_sigma, length))),
-    )
-    node = config.node_heading_sigma if offset + along_sigma > length else 0.0
+    back, ahead = offset - along_sigma, offset + along_sigma
+    # max(back, 0.0), min(ahead, length), _angle and max(_, _), inline (a per-fix path)
+    a = abs((here - at(edge, 0.0 if back < 0.0 else back) + 180.0) % 360.0 - 180.0)
+    b = abs((here - at(edge, length if length < ahead else ahead) + 180.0) % 360.0 - 180.0)
+    bend = b if b > a else a
+    node = config.node_heading_sigma if ahead > length else 0.0
     return math.sqrt(config.heading_sigma**2 + bend**2 + node**2)
 
 

@@ -100,6 +100,11 @@ def report(
     st = state_of(state, reinit)
     cands = candidates(road, agg) if len(state.hyps) > 1 else ()
     way_id, name, road_class, speed_kph = road.piece(e, shown.off)
+    probability = 1.0
+    for c in cands:
+        if c.edge == e:
+            probability = c.probability
+            break
     aided = map_aided_measurement(
         g,
         state=st,
@@ -108,7 +113,7 @@ def report(
         lat=lat,
         lon=lon,
         bearing=shown.bearing,
-        probability=next((c.probability for c in cands if c.edge == e), 1.0),
+        probability=probability,
         gps=step.gps,
         fix_sigma=step.sigma,
         bias_cov=(step.bias.pxx, step.bias.pxy, step.bias.pyy),
