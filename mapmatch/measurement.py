@@ -267,7 +267,6 @@ def heading_sigma(
 
 def map_aided_measurement(
     graph: RoadGraph,
-    *,
     state: State,
     edge: int,
     offset: float,
@@ -284,6 +283,7 @@ def map_aided_measurement(
     dr_distance: float,
     gps_sigma: float,
     since_init: float,
+    *,
     width: float = math.nan,
     lanes: float = math.nan,
     road_class: str | None = None,
@@ -299,7 +299,9 @@ def map_aided_measurement(
     ``width``/``lanes`` the road's tags when the map has them; ``road_class`` that of the way
     piece under the point (default: the edge's); ``one_way`` whether the edge is one-way
     (default: from the graph); ``bearing_at`` as in :func:`heading_sigma`.
-    The rest as in :func:`along_track_sigma`.
+    The rest as in :func:`along_track_sigma`. The inputs may be given by position, in order (the
+    per-fix path does: a call of positional arguments plus twice its keywords over 30 goes
+    through a dict, 1 µs more); the options are keywords.
     """
     if edge < 0 or not math.isfinite(lat):
         return MapAidedMeasurement()

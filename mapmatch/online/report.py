@@ -105,49 +105,51 @@ def report(
         if c.edge == e:
             probability = c.probability
             break
+    # the inputs by position (in order): a call of positional arguments plus twice its keywords
+    # over 30 goes through a dict, 1 µs more
     aided = map_aided_measurement(
         g,
-        state=st,
-        edge=e,
-        offset=shown.off,
-        lat=lat,
-        lon=lon,
-        bearing=shown.bearing,
-        probability=probability,
-        gps=step.gps,
-        fix_sigma=step.sigma,
-        bias_cov=(step.bias.pxx, step.bias.pxy, step.bias.pyy),
-        white_share=cfg.online.bias_white_fraction,
-        anchor_sd=shown.anc_sd,
-        odo_sigma=step.odo_sigma,
-        dr_distance=step.dr,
-        gps_sigma=cfg.model.gps_sigma,
-        since_init=state.odo - state.init_odo,
+        st,  # state
+        e,  # edge
+        shown.off,  # offset
+        lat,
+        lon,
+        shown.bearing,
+        probability,
+        step.gps,
+        step.sigma,  # fix_sigma
+        (step.bias.pxx, step.bias.pxy, step.bias.pyy),  # bias_cov
+        cfg.online.bias_white_fraction,  # white_share
+        shown.anc_sd,  # anchor_sd
+        step.odo_sigma,
+        step.dr,  # dr_distance
+        cfg.model.gps_sigma,
+        state.odo - state.init_odo,  # since_init
         road_class=road_class,
         one_way=road.rev[e] < 0,
         bearing_at=road.bearing_at,
         config=measurement,
     )
     return new_snap_result(
-        time=fix.time,
-        state=st,
-        edge=e,
-        u=road.u_id[e],
-        v=road.v_id[e],
-        way_id=way_id,
-        name=name,
-        road_class=road_class,
-        speed_kph=speed_kph,
-        offset=shown.off,
-        lat=lat,
-        lon=lon,
-        bearing=shown.bearing,
-        dist=shown.dist,
-        turn=turn,
+        fix.time,  # time
+        st,  # state
+        e,  # edge
+        road.u_id[e],  # u
+        road.v_id[e],  # v
+        way_id,
+        shown.off,  # offset
+        lat,
+        lon,
+        shown.bearing,
+        shown.dist,
+        turn,
         candidates=cands,
         correction=correction,
         raw_lat=fix.lat,
         raw_lon=fix.lon,
+        name=name,
+        road_class=road_class,
+        speed_kph=speed_kph,
         map_aided=aided,
     )
 
