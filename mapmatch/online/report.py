@@ -59,12 +59,17 @@ def shown_hypothesis(state: SessionState, cfg: MatchConfig) -> tuple[Hypothesis,
 def state_of(state: SessionState, reinit: bool) -> State:
     """The matcher's state for this fix."""
     if reinit:
-        return State.REINITIALISED
+        return _REINITIALISED
     if not math.isnan(state.bad_time):
-        return State.OFF_ROAD
+        return _OFF_ROAD
     if state.init_pending:
-        return State.INITIALISING
-    return State.AMBIGUOUS if len(state.hyps) > 1 else State.ON_ROAD
+        return _INITIALISING
+    return _AMBIGUOUS if len(state.hyps) > 1 else _ON_ROAD
+
+
+# the states as module values: an enum member's look-up on its class takes 0.1 µs (per fix)
+_REINITIALISED, _OFF_ROAD, _INITIALISING = State.REINITIALISED, State.OFF_ROAD, State.INITIALISING
+_AMBIGUOUS, _ON_ROAD = State.AMBIGUOUS, State.ON_ROAD
 
 
 def candidates(road: RoadModel, agg: EdgeMass) -> tuple[Candidate, ...]:
