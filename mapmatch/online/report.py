@@ -75,11 +75,19 @@ _AMBIGUOUS, _ON_ROAD = State.AMBIGUOUS, State.ON_ROAD
 def candidates(road: RoadModel, agg: EdgeMass) -> tuple[Candidate, ...]:
     """The edges the vehicle may be on, most probable first."""
     total = sum([a[0] for a in agg.values()])
-    return tuple(
-        new_candidate(
-            ce, road.u_id[ce], road.v_id[ce], road.piece(ce, a[1].off)[0], a[0] / total, a[1].off, a[1].dist
-        )
-        for ce, a in sorted(agg.items(), key=lambda kv: -kv[1][0])
+    return tuple(  # of a list: a generator is slower
+        [
+            new_candidate(
+                ce,
+                road.u_id[ce],
+                road.v_id[ce],
+                road.piece(ce, a[1].off)[0],
+                a[0] / total,
+                a[1].off,
+                a[1].dist,
+            )
+            for ce, a in sorted(agg.items(), key=lambda kv: -kv[1][0])
+        ]
     )
 
 
@@ -123,7 +131,7 @@ def report(
         probability,
         step.gps,
         step.sigma,  # fix_sigma
-        (step.bias.pxx, step.bias.pxy, step.bias.pyy),  # bias_cov
+        step.bias[2:],  # bias_cov: (pxx, pxy, pyy)
         cfg.online.bias_white_fraction,  # white_share
         shown.anc_sd,  # anchor_sd
         step.odo_sigma,
