@@ -58,3 +58,26 @@ def test_snap_result() -> None:
     kw["map_aided"] = new_measurement(*_values(MapAidedMeasurement).values())  # type: ignore[arg-type]
     _check(new_snap_result(**kw), SnapResult, kw)  # type: ignore[arg-type]
     assert dataclasses.replace(new_snap_result(**kw), edge=7).edge == 7  # type: ignore[arg-type]
+
+
+def test_positional_orders() -> None:
+    """The per-fix path passes these by position, in this order (a call of positional arguments
+    plus twice its keywords over 30 goes through a dict): a field or parameter moved or put in
+    between must change those calls too (``prepare``, ``report``)."""
+    import inspect
+
+    from mapmatch.measurement import map_aided_measurement
+    from mapmatch.online.state import Step
+
+    step = ("time", "x", "y", "sigma", "heading", "kappa", "travelled", "odo", "odo_known", "dt", "gps")
+    assert tuple(f.name for f in dataclasses.fields(Step))[:14] == (*step, "weight", "stopped", "r_a")
+    aided = inspect.signature(map_aided_measurement).parameters
+    assert tuple(aided)[:18] == (
+        *("graph", "state", "edge", "offset", "lat", "lon", "bearing", "probability", "gps"),
+        *("fix_sigma", "bias_cov", "white_share", "anchor_sd", "odo_sigma", "dr_distance", "gps_sigma"),
+        "since_init",
+        "width",
+    )
+    assert aided["width"].kind is inspect.Parameter.KEYWORD_ONLY
+    snap = tuple(inspect.signature(new_snap_result).parameters)
+    assert snap[:12] == tuple(f.name for f in dataclasses.fields(SnapResult))[:12]
