@@ -194,14 +194,15 @@ def place_one(  # type: ignore[no-untyped-def]
 
 
 @njit(cache=True)
-def _place_all(road_t, p_t, edges, rows):  # type: ignore[no-untyped-def]
-    """:func:`place_one` for every hypothesis: ``rows`` holds ``N_IN`` values each (the
-    ``IN_*`` columns), its path the next ``rows[IN_LEN]`` of ``edges``; ``N_OUT`` values each
+def _place_all(road_t, p_t, rows, n):  # type: ignore[no-untyped-def]
+    """:func:`place_one` for ``n`` hypotheses: ``rows`` holds ``N_IN`` values each (the
+    ``IN_*`` columns), then all their paths' edges (as floats: one array to convert and pass,
+    not two), hypothesis ``i``'s path the next ``rows[IN_LEN]`` of them; ``N_OUT`` values each
     out (``OUT_*``). ``road_t`` and ``p_t`` are a :class:`RoadArrays` and a
     :class:`PlaceParams` as plain tuples (numba reads those ten times faster at a call)."""
     road = RoadArrays(*road_t)
     p = PlaceParams(*p_t)
-    n = len(rows) // N_IN
+    edges = rows[n * N_IN :].astype(np.int64)
     out = np.empty(n * N_OUT)
     lo = 0
     for i in range(n):
@@ -235,11 +236,12 @@ def place_all(
     for h in hyps:
         flat += h.edges
         rows += (len(h.edges), h.k, h.off, h.s, h.dist, h.px, h.py, h.bearing, h.anc, h.anc_sd)
+    rows += flat
     out = _place_all(
         road.arrays_tuple,
         param_values(step, cfg, turn_obs=turn_obs, covered=covered),
-        np.array(flat, dtype=np.int64),
         np.array(rows, dtype=np.float64),
+        len(hyps),
     ).tolist()
     scores = []
     lo = 0

@@ -17,6 +17,8 @@ from mapmatch.online.state import BackEdge, Hypothesis, SessionState, Step
 from mapmatch.turns import angle_diff, classify_turn, corner_cut
 from mapmatch.types import Correction, Turn
 
+_NO_TURN = Turn.NONE  # as a module value: an enum member's look-up on its class takes 0.1 µs
+
 
 def region_radius(road: RoadModel, sigma: float, cfg: MatchConfig) -> float:
     """Ambiguous-region radius in metres for a fix of position σ (DR growth included)."""
@@ -32,7 +34,7 @@ def commit(
     past. Returns the last turn committed and the corrections it brings."""
     best = best_of(state.hyps)
     corr: Correction | None = None
-    turn = Turn.NONE
+    turn = _NO_TURN
     if state.init_pending:
         if not _commit_start(road, state, best, step, cfg):
             return turn, None

@@ -78,29 +78,31 @@ def prepare(road: RoadModel, state: SessionState, fix: Fix, cfg: MatchConfig) ->
         still_kappa = 1.0 / math.radians(hs) ** 2
         still_weight = o.stopped_heading_weight * max(per_time - weight, 0.0)
     odo = state.odo + (travelled if not math.isnan(travelled) else 0.0)
+    # positional up to ``r_a`` (in field order): a call of positional arguments plus twice its
+    # keywords over 30 goes through a dict, 1 µs more
     return Step(
-        time=fix.time,
-        x=x,
-        y=y,
-        sigma=sigma,
-        heading=heading,
-        kappa=kappa,
-        travelled=travelled,
-        odo=odo,
-        odo_known=odo_known,
-        dt=dt,
-        gps=gps,
-        weight=weight,
+        fix.time,  # time
+        x,
+        y,
+        sigma,
+        heading,
+        kappa,
+        travelled,
+        odo,
+        odo_known,
+        dt,
+        gps,
+        weight,
+        stopped,
+        region_radius(road, sigma, cfg),  # r_a
+        dr=0.0 if gps else odo - state.gps_odo,
+        bias=bias.predict_bias(state.bias, sigma, dt, cfg),
+        odo_sigma=math.sqrt(anchor.odo_kvar(state, cfg) + o.odo_scale_floor**2),
+        fix_sigma=own,
         turn_weight=turn_weight,
         still_kappa=still_kappa,
         still_weight=still_weight,
-        stopped=stopped,
         speed=speed,
-        r_a=region_radius(road, sigma, cfg),
-        dr=0.0 if gps else odo - state.gps_odo,
-        odo_sigma=math.sqrt(anchor.odo_kvar(state, cfg) + o.odo_scale_floor**2),
-        bias=bias.predict_bias(state.bias, sigma, dt, cfg),
-        fix_sigma=own,
     )
 
 
@@ -125,7 +127,7 @@ def validate(road: RoadModel, state: SessionState, fix: Fix) -> None:
                 raise ValidationError(name, f"must be at most {top:g}")
     if fix.pos_cov is not None and max(fix.pos_cov) > LIMITS["pos_sigma"] ** 2:
         raise ValidationError("pos_cov", "variance too large")
-    if not math.isnan(state.time) and not fix.time > state.time:
+    if state.time == state.time and not fix.time > state.time:  # not nan, and not later
         raise ValidationError("time", "must increase from one fix to the next within a vehicle")
     n = len(road.elen)
     for h in state.hyps:
