@@ -210,7 +210,8 @@ def read_tracks_lines(path: str | os.PathLike[str], *, columns: Columns = DEFAUL
     try:
         df = pyogrio.read_dataframe(path)
     except Exception as exc:  # pyogrio/GDAL raise several types for a bad file
-        raise TrackInputError(f"{path}: not a readable GIS file ({exc})") from exc
+        why = str(exc).split(";")[0].strip()  # GDAL's first sentence, without its driver hint
+        raise TrackInputError(f"{path}: not a readable GIS file ({why})") from exc
     if df.crs is not None and not df.crs.is_geographic:
         df = df.to_crs(4326)
     return _tracks_from_lines(
