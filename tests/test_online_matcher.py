@@ -536,7 +536,7 @@ def test_fix_past_a_bend_is_not_held_back_at_the_node() -> None:
     bc = m.edge("b", "c")
     far = [r for r, f in zip(res, fixes, strict=True) if np.dot(to_xy_arr(m, f) - b, north) > 12.0]
     assert far and all(r.edge == bc for r in far)
-    held = run(OnlineMatcher(m.graph, config=DEFAULT_CONFIG.replace(node_hold_sigmas=1e6)), fixes)
+    held = run(OnlineMatcher(m.graph, config=DEFAULT_CONFIG.replace(node_hold_ahead_sigmas=1e6)), fixes)
     assert any(
         r.edge != bc for r, f in zip(held, fixes, strict=True) if np.dot(to_xy_arr(m, f) - b, north) > 12.0
     )

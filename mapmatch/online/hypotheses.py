@@ -128,7 +128,35 @@ def advance(road: RoadModel, state: SessionState, step: Step, cfg: MatchConfig) 
         w, kappa, heading = step.still_weight, step.still_kappa, step.heading
         for h in hyps:
             h.logp += w * road.emission(0.0, 1.0, heading, h.bearing, kappa)
-    return hyps
+    return merge_identical(hyps, by_path=step.gps)
+
+
+def merge_identical(hyps: list[Hypothesis], *, by_path: bool = False) -> list[Hypothesis]:
+    """One hypothesis per path and place: paths that came by different ways (a road that joined
+    the filter, a branch kept past a commit) to the same edges and the same position are one
+    belief, and their probabilities add (the more probable one's record is kept). With
+    ``by_path`` (a GPS-aided fix, which places every hypothesis on its path itself), one per
+    path and edge, wherever along it: their places differ only by what each carried (a turn
+    anchor), and the fix no longer tells them apart. Left apart, a copy never falls behind its
+    twin: the pair stayed ambiguous for good, and the learning that needs a single hypothesis
+    (the fix's bias and residuals) never ran (REAL track 42 at 10 Hz: 98,008 of 123,771 fixes
+    with a twin)."""
+    if len(hyps) < 2:
+        return hyps
+    seen: dict[tuple[float, ...], int] = {}
+    out: list[Hypothesis] = []
+    for h in hyps:
+        key = (h.k, 0.0 if by_path else h.s, *h.edges)
+        i = seen.get(key)
+        if i is None:
+            seen[key] = len(out)
+            out.append(h)
+            continue
+        g = out[i]
+        hi, lo = (h, g) if h.logp > g.logp else (g, h)
+        hi.logp += math.log1p(math.exp(lo.logp - hi.logp))
+        out[i] = hi
+    return out
 
 
 def move_to(road: RoadModel, h: Hypothesis, s: float, step: Step) -> None:
