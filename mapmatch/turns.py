@@ -15,24 +15,29 @@ from numpy.typing import NDArray
 
 from mapmatch.types import Turn
 
-MAX_SAMPLES = 48  # heading samples kept (a memory bound: two windows hold fewer)
-
-
 def angle_diff(a: float, b: float) -> float:
     """Signed smallest difference ``a - b`` of two angles in degrees, in (-180, 180]."""
     d = (a - b + 180.0) % 360.0 - 180.0
     return 180.0 if d == -180.0 else d
 
 
-def add_sample(samples: list[list[float]], odo: float, heading: float, *, window: float) -> None:
-    """Append ``(odo, heading)`` when the vehicle moved at least a metre since the last sample
-    (a sample keeps its own reading); drop samples older than two windows (keeping one before
-    that horizon)."""
-    if math.isnan(heading) or (samples and odo - samples[-1][0] < 1.0):
+def add_sample(
+    samples: list[list[float]],
+    odo: float,
+    heading: float,
+    *,
+    window: float,
+    spacing: float = 1.0,
+    max_samples: int = 48,
+) -> None:
+    """Append ``(odo, heading)`` when the vehicle moved at least ``spacing`` metres since the last
+    sample (a sample keeps its own reading); drop samples older than two windows (keeping one
+    before that horizon) and the oldest beyond ``max_samples``."""
+    if math.isnan(heading) or (samples and odo - samples[-1][0] < spacing):
         return
     samples.append([odo, heading])
     horizon = odo - 2.0 * window
-    while len(samples) > 2 and (samples[1][0] <= horizon or len(samples) > MAX_SAMPLES):
+    while len(samples) > 2 and (samples[1][0] <= horizon or len(samples) > max_samples):
         samples.pop(0)
 
 

@@ -124,7 +124,11 @@ class OnlineMatcher:
         state.time, state.x, state.y = step.time, step.x, step.y
         state.bias = step.bias
         if step.kappa > 0.0:
-            add_sample(state.headings, state.odo, step.heading, window=cfg.online.turn_window)
+            o = cfg.online
+            add_sample(
+                state.headings, state.odo, step.heading,
+                window=o.turn_window, spacing=o.turn_sample_spacing, max_samples=o.turn_max_samples,
+            )  # fmt: skip
         if step.odo_known:
             anchor.add_trail(
                 state.trail, step.time, state.odo, step.travelled <= cfg.online.still_distance, cfg
