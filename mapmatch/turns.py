@@ -15,6 +15,7 @@ from numpy.typing import NDArray
 
 from mapmatch.types import Turn
 
+
 def angle_diff(a: float, b: float) -> float:
     """Signed smallest difference ``a - b`` of two angles in degrees, in (-180, 180]."""
     d = (a - b + 180.0) % 360.0 - 180.0
