@@ -8,6 +8,7 @@ import threading
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from pyproj import Transformer
+from pyproj.enums import TransformDirection
 
 
 def utm_crs(lon: float, lat: float) -> str:
@@ -40,6 +41,22 @@ def to_lonlat(crs: str, x: ArrayLike, y: ArrayLike) -> NDArray[np.float64]:
     """(P, 2) WGS84 lon/lat from metres in ``crs``."""
     lon, lat = _transformer(crs, "EPSG:4326").transform(np.asarray(x, float), np.asarray(y, float))
     return np.column_stack([np.atleast_1d(lon), np.atleast_1d(lat)])
+
+
+def rows_to_lonlat(crs: str, buf: NDArray[np.float64]) -> None:
+    """Project the rows of a C-contiguous (2, P) float64 buffer (x, y in ``crs``) to WGS84
+    lon/lat in place: the numbers of :func:`to_lonlat`, without its argument checks and copies.
+
+    :meth:`Transformer.transform` spends most of its time on a handful of points checking and
+    copying its arguments before it calls the projection; with pyproj's own buffers this calls
+    the projection directly (the same PROJ call, so the same numbers), else the public method.
+    """
+    tf = _transformer(crs, "EPSG:4326")
+    core = getattr(tf, "_transformer", None)
+    if core is not None and hasattr(core, "_transform"):
+        core._transform(buf[0], buf[1], None, None, TransformDirection.FORWARD, False, False)
+    else:
+        tf.transform(buf[0], buf[1], inplace=True)
 
 
 def point_to_xy(crs: str, lon: float, lat: float) -> tuple[float, float]:

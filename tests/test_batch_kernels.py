@@ -355,6 +355,23 @@ def test_bearing_by_binary_search_is_the_walk_along_the_polyline() -> None:
     np.testing.assert_allclose(got, want, rtol=0, atol=1e-9)
 
 
+def test_the_in_place_projection_back_to_lonlat_equals_to_lonlat() -> None:
+    """The answer's geometry goes back to lon/lat through pyproj's in-place call: the same
+    numbers, bit for bit, as :func:`mapmatch.graph.projection.to_lonlat`, missing values too."""
+    from mapmatch.graph.projection import rows_to_lonlat, to_lonlat
+
+    rng = np.random.default_rng(6)
+    xy = np.c_[rng.uniform(3e5, 7e5, 40), rng.uniform(4.4e6, 6.6e6, 40)]
+    xy[3] = np.nan
+    want = to_lonlat("EPSG:32633", xy[:, 0], xy[:, 1])
+    buf = np.ascontiguousarray(xy.T)
+    rows_to_lonlat("EPSG:32633", buf)
+    np.testing.assert_array_equal(buf.T, want)
+    empty = np.zeros((2, 0))
+    rows_to_lonlat("EPSG:32633", empty)
+    assert empty.shape == (2, 0)
+
+
 def test_the_in_place_projection_equals_pyproj_s_public_call() -> None:
     """The matcher projects fixes through pyproj's in-place call: the same numbers, bit for bit,
     as :meth:`Transformer.transform`, for good, out-of-range and missing coordinates."""

@@ -8,7 +8,7 @@ import math
 import numpy as np
 
 from mapmatch.batch.run import Packed
-from mapmatch.graph.projection import to_lonlat
+from mapmatch.graph.projection import rows_to_lonlat
 from mapmatch.graph.road_graph import RoadGraph, merge_repeats
 from mapmatch.types import MatchedPoint, PointStatus, TrackMatch
 
@@ -44,31 +44,33 @@ def track_match(track_id: str, packed: Packed) -> TrackMatch:
 
 
 def fill_route_lonlat(result: TrackMatch, crs: str) -> TrackMatch:
-    """Fill ``route_lonlat`` from ``route_xy`` and ``points`` from ``point_arrays`` (one projection)."""
+    """Fill ``route_lonlat`` from ``route_xy`` and ``points`` from ``point_arrays`` (one projection
+    of the route and every point; unmatched points get NaN)."""
     pa = result.point_arrays
-    ok = np.zeros(0, dtype=bool)
-    parts = list(result.route_xy)
+    pieces = list(result.route_xy)
     if pa is not None:
-        ok = pa[0] > 0
-        parts.append(pa[3][ok])
-    ll = to_lonlat(crs, *np.concatenate(parts).T) if parts else np.zeros((0, 2))
+        pieces.append(pa[3])
+    lon: list[float] = []
+    lat: list[float] = []
+    if pieces:
+        buf = np.ascontiguousarray(np.concatenate(pieces).T)  # rows x, y: projected in place
+        rows_to_lonlat(crs, buf)
+        lon, lat = buf.tolist()
     out: list[list[tuple[float, float]]] = []
     i = 0
     for piece in result.route_xy:
-        out.append(list(map(tuple, ll[i : i + len(piece)].tolist())))
+        out.append(list(zip(lon[i : i + len(piece)], lat[i : i + len(piece)], strict=True)))
         i += len(piece)
     result.route_lonlat = out
     if pa is not None:
         status, p_edge, p_off, _, p_dist = pa
-        p_ll = np.full((len(status), 2), np.nan)
-        p_ll[ok] = ll[i:]
         stat = (PointStatus.UNMATCHED, PointStatus.MATCHED, PointStatus.INTERPOLATED)
-        lat, lon = p_ll[:, 1].tolist(), p_ll[:, 0].tolist()
+        nan = math.nan
         result.points = [
-            MatchedPoint(i, stat[s], e, o, la, lo, d)
-            for i, (s, e, o, la, lo, d) in enumerate(
+            MatchedPoint(k, stat[s], e, o, la if s else nan, lo if s else nan, d)
+            for k, (s, e, o, la, lo, d) in enumerate(
                 zip(
-                    status.tolist(), p_edge.tolist(), p_off.tolist(), lat, lon,
+                    status.tolist(), p_edge.tolist(), p_off.tolist(), lat[i:], lon[i:],
                     p_dist.tolist(), strict=True,
                 )
             )

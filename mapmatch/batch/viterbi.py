@@ -19,7 +19,7 @@ from numpy.typing import NDArray
 from mapmatch.arena import full_b1, full_f8, full_i8, take_b1, take_f8, take_i8
 from mapmatch.batch.arrays import KernelParams, Lattice
 from mapmatch.model import transition_logp_one
-from mapmatch.routing import _reset, _search_toward, ubodt_lookup
+from mapmatch.routing import _reset, search_toward_inlined, ubodt_lookup
 
 
 class Trellis(NamedTuple):
@@ -149,7 +149,7 @@ def _step(a0, a1, b0, b1, lat, tr, params, node_uturn, trav, dt, bound, vcap, p,
                         bp[j] = i
                         bpu[j] = False
             continue
-        nt = _search_toward(e, edge_len[e] - o, lim, nuniq, cedge[b0:b1], g, ws)
+        nt = search_toward_inlined(e, edge_len[e] - o, lim, nuniq, cedge[b0:b1], g, ws)
         for j in range(b0, b1):
             f = cedge[j]
             if f == e and coff[j] >= o - reverse_tol:
@@ -176,10 +176,15 @@ def _step(a0, a1, b0, b1, lat, tr, params, node_uturn, trav, dt, bound, vcap, p,
     return reached
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, inline="always")
 def _try_step(prev, t, d, lat, tr, p, router):  # type: ignore[no-untyped-def]
     """The Viterbi step from lattice point ``prev`` to ``t`` (``d`` metres apart): a tight search
-    bound first, the full bound only if nothing is reached. Returns (reached, full bound)."""
+    bound first, the full bound only if nothing is reached. Returns (reached, full bound).
+
+    Compiled into its callers, as the search is into :func:`_step`: one call less per step and
+    per search (about 5 % fewer instructions per point at 30 s, callgrind on REAL track
+    00000021). The reference counts of the arrays a step reads stay: callgrind still counts
+    about 78 increments per step at the call of :func:`_step` and 63 inside it."""
     trav = d
     od = lat.podo[t] - lat.podo[prev]
     if np.isfinite(od) and od > 0:
