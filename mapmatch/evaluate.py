@@ -292,10 +292,10 @@ def align_by_time(t_truth: ArrayLike, t_match: ArrayLike, *, tol: float = 0.05) 
     return np.where(ok, i, -1).astype(np.int64)
 
 
-
 def _text(col: pd.Series) -> pd.Series:
     """A column as text, empty where missing (an all-empty CSV column reads as float NaN)."""
     return col.astype(object).where(col.notna(), "").astype(str)
+
 
 def apply_corrections(graph: RoadGraph, matched: pd.DataFrame) -> pd.DataFrame:
     """The matched rows as revised by the corrections the matcher emitted later.

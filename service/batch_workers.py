@@ -39,7 +39,7 @@ import time
 from dataclasses import dataclass
 from multiprocessing.connection import Connection
 from pathlib import Path
-from typing import Any
+from typing import Any, NamedTuple
 
 import grpc
 
@@ -111,6 +111,12 @@ class _Job:
     data: bytes
 
 
+class _Stop(NamedTuple):
+    """A call ended before its answer: ``result`` is what to deliver (None: nothing)."""
+
+    result: BaseException | None
+
+
 class _Slot:
     """One child process and the thread that feeds it."""
 
@@ -120,6 +126,7 @@ class _Slot:
         self.conn: Connection | None = None
         self.generation = -1
         self.thread: threading.Thread | None = None
+        self.loading = 0  # map loads the child has not yet said "ready" for
 
 
 class BatchWorkers:
@@ -253,29 +260,31 @@ class BatchWorkers:
             )
             proc.start()
             child.close()
-            slot.proc, slot.conn, slot.generation = proc, parent, generation
+            slot.proc, slot.conn, slot.generation, slot.loading = proc, parent, generation, 1
             log.info("batch worker %d started (pid %d, %d map(s))", slot.index, proc.pid, len(files))
         elif slot.generation != generation:
             assert slot.conn is not None
             slot.conn.send(("maps", files))
             slot.generation = generation
+            slot.loading += 1
 
     def _call(self, slot: _Slot, job: _Job) -> bytes | BaseException | None:
         conn, proc = slot.conn, slot.proc
         assert conn is not None and proc is not None
         try:
+            # a child loading (and warming) its maps reads nothing: a track sent now would block
+            # this thread, deaf to the call being abandoned, until the load ends
+            while slot.loading:
+                stop = self._wait(slot, job)
+                if stop is not None:
+                    return stop.result
+                if conn.recv() == ("ready",):
+                    slot.loading -= 1
             conn.send(job.header)
             conn.send_bytes(job.data)
-            while not conn.poll(0.2):
-                if job.fut.cancelled():  # the client gave up: stop the work
-                    log.info("batch worker %d: call abandoned, restarting the worker", slot.index)
-                    self._end_child(slot)
-                    return None
-                if self._stopping.is_set():
-                    self._end_child(slot)
-                    return BatchWorkerError("the server is shutting down; retry on another server")
-                if not proc.is_alive():
-                    raise EOFError
+            stop = self._wait(slot, job)
+            if stop is not None:
+                return stop.result
             status, info = conn.recv()
             if status == "ok":
                 return conn.recv_bytes()
@@ -294,6 +303,23 @@ class BatchWorkers:
                 f"the batch worker process ended during this match ({why}); a new one is starting, "
                 "retry (a track this large may need more memory than the server has)"
             )
+
+    def _wait(self, slot: _Slot, job: _Job) -> _Stop | None:
+        """Wait for the child's next message; a :class:`_Stop` when the call was abandoned (the
+        child is restarted) or the server is stopping."""
+        conn, proc = slot.conn, slot.proc
+        assert conn is not None and proc is not None
+        while not conn.poll(0.2):
+            if job.fut.cancelled():  # the client gave up: stop the work
+                log.info("batch worker %d: call abandoned, restarting the worker", slot.index)
+                self._end_child(slot)
+                return _Stop(None)
+            if self._stopping.is_set():
+                self._end_child(slot)
+                return _Stop(BatchWorkerError("the server is shutting down; retry on another server"))
+            if not proc.is_alive():
+                raise EOFError
+        return None
 
     def _end_child(self, slot: _Slot) -> None:
         proc, conn = slot.proc, slot.conn
@@ -413,11 +439,14 @@ def worker_main(
     threading.Thread(target=_watch_parent, args=(parent,), daemon=True).start()
     held: dict[str, Any] = {}
     _refresh(held, files)
+    with contextlib.suppress(EOFError, OSError):
+        conn.send(("ready",))
     while True:
         try:
             header = conn.recv()
             if header[0] == "maps":
                 _refresh(held, header[1])
+                conn.send(("ready",))
                 continue
             data = conn.recv_bytes()
         except (EOFError, OSError):
