@@ -71,6 +71,11 @@ def for_size(kernel: Any, items: int) -> Callable[..., Any]:
     return kernel.py_func if items <= PYTHON_MAX_ITEMS else kernel  # type: ignore[no-any-return]
 
 
+def _kernel(entry: str) -> Any:
+    name, _, kernel = entry.partition(":")
+    return getattr(importlib.import_module(name), kernel)
+
+
 def dispatchers(group: str) -> list[Any]:
     """The group's numba dispatchers (the jitted functions in its modules)."""
     from numba.core.registry import CPUDispatcher
@@ -86,9 +91,19 @@ def dispatchers(group: str) -> list[Any]:
     return out
 
 
+CACHE_PROBES: dict[str, tuple[str, ...]] = {"batch": ("mapmatch.batch.run:run_track_in",)}
+"""Per group, the entry kernels whose cache tells it was compiled (default: every kernel). The
+batch group's other entries (``run``, for tests) and its ``inline="always"`` helpers, compiled
+only into their callers, never get a cache of their own."""
+
+
 def is_cached(group: str) -> bool:
-    """Whether every kernel of the group has an on-disk cache index (compiled before)."""
-    for d in dispatchers(group):
+    """Whether the group's kernels have an on-disk cache index (compiled before)."""
+    probes = CACHE_PROBES.get(group)
+    kernels = dispatchers(group) if probes is None else [_kernel(e) for e in probes]
+    for d in kernels:
+        if getattr(d, "targetoptions", {}).get("inline") == "always":
+            continue  # compiled only into its callers: never cached on its own
         try:
             index = d._cache._cache_file._index_path  # numba's cache locator
         except AttributeError:
