@@ -54,9 +54,12 @@ def rows_to_lonlat(crs: str, buf: NDArray[np.float64]) -> None:
     tf = _transformer(crs, "EPSG:4326")
     core = getattr(tf, "_transformer", None)
     if core is not None and hasattr(core, "_transform"):
-        core._transform(buf[0], buf[1], None, None, TransformDirection.FORWARD, False, False)
-    else:
-        tf.transform(buf[0], buf[1], inplace=True)
+        try:
+            core._transform(buf[0], buf[1], None, None, TransformDirection.FORWARD, False, False)
+            return
+        except TypeError:  # a pyproj whose private call differs: the public one below
+            pass
+    tf.transform(buf[0], buf[1], inplace=True)
 
 
 def point_to_xy(crs: str, lon: float, lat: float) -> tuple[float, float]:

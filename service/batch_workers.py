@@ -275,14 +275,14 @@ class BatchWorkers:
             # a child loading (and warming) its maps reads nothing: a track sent now would block
             # this thread, deaf to the call being abandoned, until the load ends
             while slot.loading:
-                stop = self._wait(slot, job)
+                stop = self._wait(slot, job, working=False)
                 if stop is not None:
                     return stop.result
                 if conn.recv() == ("ready",):
                     slot.loading -= 1
             conn.send(job.header)
             conn.send_bytes(job.data)
-            stop = self._wait(slot, job)
+            stop = self._wait(slot, job, working=True)
             if stop is not None:
                 return stop.result
             status, info = conn.recv()
@@ -304,15 +304,17 @@ class BatchWorkers:
                 "retry (a track this large may need more memory than the server has)"
             )
 
-    def _wait(self, slot: _Slot, job: _Job) -> _Stop | None:
-        """Wait for the child's next message; a :class:`_Stop` when the call was abandoned (the
-        child is restarted) or the server is stopping."""
+    def _wait(self, slot: _Slot, job: _Job, *, working: bool) -> _Stop | None:
+        """Wait for the child's next message; a :class:`_Stop` when the call was abandoned (a
+        child ``working`` on it is restarted; one still loading its maps goes on) or the server
+        is stopping."""
         conn, proc = slot.conn, slot.proc
         assert conn is not None and proc is not None
         while not conn.poll(0.2):
-            if job.fut.cancelled():  # the client gave up: stop the work
-                log.info("batch worker %d: call abandoned, restarting the worker", slot.index)
-                self._end_child(slot)
+            if job.fut.cancelled():  # the client gave up
+                if working:  # stop the work
+                    log.info("batch worker %d: call abandoned, restarting the worker", slot.index)
+                    self._end_child(slot)
                 return _Stop(None)
             if self._stopping.is_set():
                 self._end_child(slot)

@@ -159,6 +159,7 @@ def test_an_abandoned_call_stops_its_worker_and_stop_ends_the_workers(tmp_path):
     with running(cfg) as (server, port):
         (worker,) = _workers(server)
         ch, api = stub(port, options=[("grpc.max_receive_message_length", -1)])
+        assert api.MatchTrack(pb.MatchTrackRequest(track=looped_track(AMAP, 5)), timeout=300).points
         # abandoned while the worker matches (its CPU time grows): a deadline alone may come
         # after a fast match, or before the track reaches the worker
         call = api.MatchTrack.future(pb.MatchTrackRequest(track=looped_track(AMAP, BIG)), timeout=600)

@@ -162,8 +162,8 @@ class RoadModel:
         b = self.bounds
         if b is None:
             return True
-        if b[0] <= x <= b[2] and b[1] <= y <= b[3] and cfg.online.far_off >= 0.0:
-            return False  # inside (the common case, without the distance)
+        if b[0] <= x <= b[2] and b[1] <= y <= b[3]:
+            return False  # inside (the common case): distance 0, never over far_off (≥ 0)
         dx = max(b[0] - x, 0.0, x - b[2])
         dy = max(b[1] - y, 0.0, y - b[3])
         return math.hypot(dx, dy) > cfg.online.far_off
