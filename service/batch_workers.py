@@ -37,6 +37,7 @@ import logging
 import os
 import queue
 import signal
+import socket
 import sys
 import threading
 import time
@@ -405,7 +406,7 @@ class BatchWorkers:
                 return stop.result
             status, info = conn.recv()
             if status == "ok":
-                return conn.recv_bytes()
+                return recv_raw(conn, info)
             code, fld, msg = info
             return StatusError(grpc.StatusCode[code], fld, msg)
         except (EOFError, OSError):
@@ -455,6 +456,53 @@ class BatchWorkers:
             if proc.is_alive():
                 proc.kill()
         proc.join(2.0)
+
+
+def send_raw(conn: Connection, data: bytes) -> None:
+    """Write ``data`` on the connection's descriptor as it is (no message frame): the reader
+    knows its length from the message before it (:func:`recv_raw`)."""
+    try:
+        sock = socket.socket(fileno=os.dup(conn.fileno()))
+    except OSError:  # not a socket: plain writes
+        view = memoryview(data)
+        while view:
+            view = view[os.write(conn.fileno(), view) :]
+        return
+    with sock:
+        sock.sendall(data)
+
+
+def _read_exactly(fd: int, n: int) -> bytes:
+    buf = bytearray(n)
+    view = memoryview(buf)
+    got = 0
+    while got < n:
+        k = os.readv(fd, [view[got:]])
+        if k == 0:
+            raise EOFError
+        got += k
+    return bytes(buf)
+
+
+def recv_raw(conn: Connection, n: int) -> bytes:
+    """The ``n`` bytes :func:`send_raw` wrote. On a socket (a duplex pipe on Unix) one
+    ``recv(MSG_WAITALL)`` fills a new bytes object with the GIL released; multiprocessing's
+    ``recv_bytes`` read a 50 MB answer in pipe-sized pieces, each into a fresh ``n``-byte
+    buffer, then copied them twice, holding the GIL (the event loop) for tens of ms."""
+    parts: list[bytes] = []
+    got = 0
+    try:
+        sock = socket.socket(fileno=os.dup(conn.fileno()))
+    except OSError:  # not a socket: plain reads
+        return _read_exactly(conn.fileno(), n)
+    with sock:
+        while got < n:
+            chunk = sock.recv(n - got, socket.MSG_WAITALL)
+            if not chunk:
+                raise EOFError
+            parts.append(chunk)
+            got += len(chunk)
+    return parts[0] if len(parts) == 1 else b"".join(parts)
 
 
 def _deliver(job: _Job, result: bytes | BaseException) -> None:
@@ -607,11 +655,11 @@ def worker_main(
                 log_internal(exc, "batch worker")
             reply: tuple[Any, ...] = ("error", (code.name, fld, msg))
         else:
-            reply = ("ok", None)
+            reply = ("ok", len(out))
         del data
         try:
             conn.send(reply)
             if reply[0] == "ok":
-                conn.send_bytes(out)
+                send_raw(conn, out)
         except (EOFError, OSError):
             return
