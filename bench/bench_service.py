@@ -282,12 +282,13 @@ async def _run_clients(
     ready, start = barrier
     ready.release()
     await asyncio.get_running_loop().run_in_executor(None, start.wait)
-    t0 = time.perf_counter()
+    t0, c0 = time.perf_counter(), time.process_time()
     stats["t0"] = t0
     clock["until"] = t0 + seconds
     go.set()
     await asyncio.gather(*tasks)
     stats["elapsed"] = time.perf_counter() - t0
+    stats["cpu_s"] = time.process_time() - c0
     for c in channels:
         await c.close()
     return stats
@@ -309,6 +310,8 @@ def client_process(args: tuple[Any, ...]) -> None:
             "errors": stats["errors"],
             "n": stats["n"],
             "elapsed": stats["elapsed"],
+            "t0": stats["t0"],
+            "cpu_s": stats["cpu_s"],
         }
     )
 
@@ -366,6 +369,8 @@ def run_phase(
         "n": sum(r["n"] for r in results),
         "errors": sum(r["errors"] for r in results),
         "elapsed": max(r["elapsed"] for r in results),
+        "t0": min(r["t0"] for r in results) if results else math.nan,
+        "client_cpu_s": sum(r["cpu_s"] for r in results),
         "lat": lat,
     }
 
@@ -572,6 +577,21 @@ def phase1(args: argparse.Namespace, port: int, sp: Any, paced: list[list[Any]],
     _cpu_lines(r)
 
 
+def _per_second(r: dict[str, Any], lat: np.ndarray, steady: np.ndarray, *, limit: float) -> None:
+    """Per-second p99s of the measured window: their median and the seconds over ``limit``."""
+    sec = np.floor(r["at"][steady]).astype(int)
+    per_s = {int(k): float(np.percentile(lat[steady][sec == k], 99)) for k in np.unique(sec)}
+    if not per_s:
+        return
+    over = {k: v for k, v in per_s.items() if v > limit}
+    print(
+        f"  per-second p99: median {np.median(list(per_s.values())):.2f} ms, "
+        f"{len(over)} of {len(per_s)} seconds above {limit:g} ms"
+        + (": " + ", ".join(f"{k} s {v:.0f} ms" for k, v in sorted(over.items())[:12]) if over else "")
+    )
+    print(f"  (phase start at monotonic clock {r['t0']:.3f} s)")
+
+
 def _cpu_lines(r: dict[str, Any]) -> None:
     """Server CPU share, and CPU seconds per answered update (robust to a busy machine)."""
     per = r["cpu_s"] / max(r["n"], 1)
@@ -584,6 +604,10 @@ def _cpu_lines(r: dict[str, Any]) -> None:
     print(
         f"  online process(es) only {1e6 * online:.0f} us per update "
         f"(one core: at most {1.0 / max(online, 1e-9):.0f} updates/s)"
+    )
+    print(
+        f"client CPU per update     {1e6 * r['client_cpu_s'] / max(r['n'], 1):.0f} us (the bench's client "
+        "processes, on the same cores: server and clients together bound the rate)"
     )
     print(f"load average              {os.getloadavg()[0]:.2f}  (uptime: {_uptime()})")
 
@@ -628,6 +652,7 @@ def phase4(args: argparse.Namespace, port: int, sp: Any, paced: list[list[Any]])
     print(f"updates answered          {r['n']} ({int(steady.sum())} in the measured window)")
     print(f"errors                    {r['errors']}")
     print(f"latency p50 / p99 / max   {p50:.2f} / {p99:.2f} / {pmax:.2f} ms  (target p99 <= 20 ms)")
+    _per_second(r, lat, steady, limit=20.0)
     print(f"server RSS start / end    {rss0 / 2**20:.1f} / {rss1 / 2**20:.1f} MiB (online process(es), "
           f"during the big match); batch workers {b0 / 2**20:.0f} / {b1 / 2**20:.0f} MiB")  # fmt: skip
     _cpu_lines(r)

@@ -15,9 +15,13 @@ builds it.
 * A child that dies (killed, out of memory) fails its call with UNAVAILABLE naming the
   cause, and a new child starts. A call the client abandons (cancelled, deadline passed)
   stops its child, which restarts: no work goes on for nobody.
-* The children run at a lower CPU priority (``nice``): on a busy host the online streams
-  get the cores first, and a batch match takes what is left. They are also the kernel's
-  first choice when memory runs out (``oom_score_adj`` 1000), not the server.
+* The children run in a lower CPU class: ``SCHED_IDLE`` by default (``sched="idle"``), so
+  they get a core only when no other task of the server's wants it, and a waking online
+  thread takes the core from them at once; ``"idle-session"`` also keeps their CPU time out
+  of the server's share of a host busy with other work (see :func:`lower_cpu_class`); with
+  ``"normal"`` (or where ``SCHED_IDLE`` is missing) they are time-shared at a higher
+  ``nice``. They are also the kernel's first choice when memory runs out
+  (``oom_score_adj`` 1000), not the server.
 * :meth:`BatchWorkers.stop` ends the children (SIGTERM, then SIGKILL); queued calls get
   UNAVAILABLE. A child also ends when the server process is gone.
 
@@ -33,6 +37,7 @@ import logging
 import os
 import queue
 import signal
+import socket
 import sys
 import threading
 import time
@@ -49,7 +54,17 @@ from mapmatch.service.gen import mapmatch_pb2 as pb
 
 log = logging.getLogger("mapmatch.service")
 
-__all__ = ["BatchWorkers", "MapFile", "TrackLimits", "check_answer_bytes", "check_points", "match_track"]
+__all__ = [
+    "BatchWorkers",
+    "MapFile",
+    "RequestPeek",
+    "TrackLimits",
+    "check_answer_bytes",
+    "check_point_count",
+    "check_points",
+    "match_track",
+    "peek_track_request",
+]
 
 
 @dataclass(frozen=True)
@@ -70,9 +85,109 @@ class TrackLimits:
 
 
 # ---------------------------------------------------------------------------------- matching
+class RequestPeek(NamedTuple):
+    """What the server needs of a serialised ``MatchTrackRequest`` before handing it on."""
+
+    map_id: str
+    has_track: bool
+    points: int | None  # None: not counted here (the worker checks the limit)
+
+
+PEEK_FIELDS = 64  # wire fields a peek reads at most (per message level) before giving up
+
+
+def _varint(data: bytes, i: int, end: int) -> tuple[int, int]:
+    out = shift = 0
+    while i < end and shift < 64:
+        b = data[i]
+        i += 1
+        out |= (b & 0x7F) << shift
+        if b < 0x80:
+            return out, i
+        shift += 7
+    raise ValueError("bad varint")
+
+
+def _fields(data: bytes, start: int, end: int) -> list[tuple[int, int, int, int]] | None:
+    """``(field, wire type, value start, value end)`` of one message level, its values
+    skipped unread; None past :data:`PEEK_FIELDS` fields or on a wire type a peek leaves
+    to the full parser (groups, bad bytes)."""
+    out: list[tuple[int, int, int, int]] = []
+    i = start
+    while i < end:
+        if len(out) >= PEEK_FIELDS:
+            return None
+        key, i = _varint(data, i, end)
+        field, wire = key >> 3, key & 7
+        if wire == 0:
+            _, j = _varint(data, i, end)
+        elif wire == 1:
+            j = i + 8
+        elif wire == 2:
+            n, i = _varint(data, i, end)
+            j = i + n
+        elif wire == 5:
+            j = i + 4
+        else:
+            return None
+        if field == 0 or j > end:
+            return None
+        out.append((field, wire, i, j))
+        i = j
+    return out
+
+
+def peek_track_request(data: bytes) -> RequestPeek | None:
+    """The map id, the presence of the track and its point count of a serialised
+    ``MatchTrackRequest``, read from the wire format without parsing the track's arrays:
+    O(1) work on the event loop for a request of any size.
+
+    None when the bytes are anything but the plain encoding (then the full parser decides,
+    with its own error for bad bytes); ``points`` None when the track's fields are not all
+    packed (the worker's parse then checks the limit).
+    """
+    try:
+        top = _fields(data, 0, len(data))
+        if top is None:
+            return None
+        map_id, tracks = b"", []
+        for field, wire, a, b in top:
+            if field == 1 and wire == 2:
+                map_id = data[a:b]  # a repeated scalar: the last one counts
+            elif field == 2 and wire == 2:
+                tracks.append((a, b))  # repeated message fields merge
+            elif field in (1, 2):
+                return None
+        name = map_id.decode("utf-8")
+        counts = [0] * 9
+        for a, b in tracks:
+            inner = _fields(data, a, b)
+            if inner is None:
+                return RequestPeek(name, True, None)
+            for field, wire, x, y in inner:
+                if 2 <= field <= 8 and wire == 2:  # packed doubles
+                    if (y - x) % 8:
+                        return None
+                    counts[field] += (y - x) // 8
+                elif 2 <= field <= 8 and wire == 1:
+                    counts[field] += 1
+                elif field == 1 and wire == 2:
+                    data[x:y].decode("utf-8")
+                elif field <= 8:
+                    return None
+        # as check_points counts: the longest of time, lat and lon
+        return RequestPeek(name, bool(tracks), max(counts[2], counts[3], counts[4]))
+    except (ValueError, UnicodeDecodeError):
+        return None
+
+
 def check_points(msg: pb.Track, limit: int) -> None:
     """:class:`LimitError` naming ``max_track_points`` when the track is over ``limit``."""
-    n = max(len(msg.lat), len(msg.lon), len(msg.time))
+    check_point_count(max(len(msg.lat), len(msg.lon), len(msg.time)), limit)
+
+
+def check_point_count(n: int, limit: int) -> None:
+    """:class:`LimitError` naming ``max_track_points`` when ``n`` points are over ``limit``."""
     if n > limit:
         raise LimitError("max_track_points", f"a track has {n} points, over the server's limit of {limit}")
 
@@ -140,13 +255,17 @@ class BatchWorkers:
         Points per track and bytes per answer.
     nice
         Added to the children's nice value (lower CPU priority than the online process).
+    sched
+        The children's CPU class: ``"idle"``, ``"idle-session"`` or ``"normal"``
+        (:func:`lower_cpu_class`).
     """
 
-    def __init__(self, *, processes: int, limits: TrackLimits, nice: int = 10) -> None:
+    def __init__(self, *, processes: int, limits: TrackLimits, nice: int = 10, sched: str = "idle") -> None:
         import multiprocessing as mp
 
         self.limits = limits
         self.nice = nice
+        self.sched = sched
         self._ctx = mp.get_context("spawn")
         self._q: queue.SimpleQueue[_Job | None] = queue.SimpleQueue()
         self._slots = [_Slot(i) for i in range(processes)]
@@ -254,7 +373,7 @@ class BatchWorkers:
             parent, child = self._ctx.Pipe(duplex=True)
             proc = self._ctx.Process(
                 target=worker_main,
-                args=(child, files, self.limits, os.getpid(), self.nice),
+                args=(child, files, self.limits, os.getpid(), self.nice, self.sched),
                 name=f"mapmatch-batch-{slot.index}",
                 daemon=True,
             )
@@ -287,7 +406,7 @@ class BatchWorkers:
                 return stop.result
             status, info = conn.recv()
             if status == "ok":
-                return conn.recv_bytes()
+                return recv_raw(conn, info)
             code, fld, msg = info
             return StatusError(grpc.StatusCode[code], fld, msg)
         except (EOFError, OSError):
@@ -337,6 +456,53 @@ class BatchWorkers:
             if proc.is_alive():
                 proc.kill()
         proc.join(2.0)
+
+
+def send_raw(conn: Connection, data: bytes) -> None:
+    """Write ``data`` on the connection's descriptor as it is (no message frame): the reader
+    knows its length from the message before it (:func:`recv_raw`)."""
+    try:
+        sock = socket.socket(fileno=os.dup(conn.fileno()))
+    except OSError:  # not a socket: plain writes
+        view = memoryview(data)
+        while view:
+            view = view[os.write(conn.fileno(), view) :]
+        return
+    with sock:
+        sock.sendall(data)
+
+
+def _read_exactly(fd: int, n: int) -> bytes:
+    buf = bytearray(n)
+    view = memoryview(buf)
+    got = 0
+    while got < n:
+        k = os.readv(fd, [view[got:]])
+        if k == 0:
+            raise EOFError
+        got += k
+    return bytes(buf)
+
+
+def recv_raw(conn: Connection, n: int) -> bytes:
+    """The ``n`` bytes :func:`send_raw` wrote. On a socket (a duplex pipe on Unix) one
+    ``recv(MSG_WAITALL)`` fills a new bytes object with the GIL released; multiprocessing's
+    ``recv_bytes`` read a 50 MB answer in pipe-sized pieces, each into a fresh ``n``-byte
+    buffer, then copied them twice, holding the GIL (the event loop) for tens of ms."""
+    parts: list[bytes] = []
+    got = 0
+    try:
+        sock = socket.socket(fileno=os.dup(conn.fileno()))
+    except OSError:  # not a socket: plain reads
+        return _read_exactly(conn.fileno(), n)
+    with sock:
+        while got < n:
+            chunk = sock.recv(n - got, socket.MSG_WAITALL)
+            if not chunk:
+                raise EOFError
+            parts.append(chunk)
+            got += len(chunk)
+    return parts[0] if len(parts) == 1 else b"".join(parts)
 
 
 def _deliver(job: _Job, result: bytes | BaseException) -> None:
@@ -425,14 +591,42 @@ def _watch_parent(parent: int) -> None:
             os._exit(0)
 
 
-def worker_main(
-    conn: Connection, files: tuple[MapFile, ...], limits: TrackLimits, parent: int, nice: int = 0
-) -> None:
-    """A child process: load the maps, then answer jobs until the pipe closes."""
-    signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the server's to handle
+def lower_cpu_class(*, nice: int, sched: str) -> None:
+    """Put the calling process in the batch workers' CPU class (see :class:`BatchWorkers`).
+
+    ``"idle"``: ``SCHED_IDLE``: a waking thread of the server takes the core at once.
+    ``"idle-session"``: also a session of its own, which Linux's autogroup scheduling (on in
+    many kernels, for processes outside a cgroup of their own) puts in a group of its own,
+    at ``nice``: an idle-class process in the server's group still counts against that
+    group's share of a host busy with other sessions (a waking online thread then waited
+    for the next tick, about 6 ms per wake-up, measured), while in a group of its own the
+    batch work gets only what the other groups leave. Steps the host does not allow are
+    skipped (``nice`` still applies).
+    """
     if nice:
         with contextlib.suppress(OSError):
             os.nice(nice)
+    if sched == "idle-session":
+        with contextlib.suppress(OSError):
+            os.setsid()
+        with contextlib.suppress(OSError), open("/proc/self/autogroup", "w") as f:
+            f.write(str(nice))
+    if sched in ("idle", "idle-session") and hasattr(os, "SCHED_IDLE"):
+        with contextlib.suppress(OSError):
+            os.sched_setscheduler(0, os.SCHED_IDLE, os.sched_param(0))
+
+
+def worker_main(
+    conn: Connection,
+    files: tuple[MapFile, ...],
+    limits: TrackLimits,
+    parent: int,
+    nice: int = 0,
+    sched: str = "normal",
+) -> None:
+    """A child process: load the maps, then answer jobs until the pipe closes."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the server's to handle
+    lower_cpu_class(nice=nice, sched=sched)
     # when memory runs out, the kernel ends this process (its call fails UNAVAILABLE, a new
     # worker starts), not the server
     with contextlib.suppress(OSError), open("/proc/self/oom_score_adj", "w") as f:
@@ -461,11 +655,11 @@ def worker_main(
                 log_internal(exc, "batch worker")
             reply: tuple[Any, ...] = ("error", (code.name, fld, msg))
         else:
-            reply = ("ok", None)
+            reply = ("ok", len(out))
         del data
         try:
             conn.send(reply)
             if reply[0] == "ok":
-                conn.send_bytes(out)
+                send_raw(conn, out)
         except (EOFError, OSError):
             return

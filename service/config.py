@@ -31,6 +31,7 @@ MAPMATCH_INLINE_FIXES       --inline-fixes              single fixes on the even
 MAPMATCH_PROCESSES          --processes N               server processes on one port (1)
 MAPMATCH_BATCH_PROCESSES    --batch-processes N         child processes for MatchTrack(s); 0: threads (1)
 MAPMATCH_BATCH_NICE         --batch-nice N              their lower CPU priority, 0-19 (10)
+MAPMATCH_BATCH_SCHED        --batch-sched CLASS         their CPU class: idle, idle-session, normal (idle)
 MAPMATCH_BATCH_SLICE        --batch-slice N             fixes per slice of a batch answer (64)
 MAPMATCH_MAX_MAP_BYTES      --max-map-bytes N           largest map file LoadMap reads (4 GiB)
 MAPMATCH_LOAD_TIMEOUT       --load-timeout SECONDS      time limit of a map build from source (300)
@@ -62,6 +63,7 @@ from typing import Any
 from mapmatch.errors import ConfigError
 
 ENV_PREFIX = "MAPMATCH_"
+BATCH_SCHED = ("idle", "idle-session", "normal")  # the batch workers' CPU classes
 
 
 @dataclass(frozen=True)
@@ -119,6 +121,14 @@ class ServerConfig:
     batch_nice : int
         Added to those processes' nice value (0-19): on a busy host the online streams get
         the cores first.
+    batch_sched : str
+        Those processes' CPU class: ``"idle"`` (Linux ``SCHED_IDLE``: they run on CPU time the
+        server's own threads do not want, so a long match cannot delay an online update),
+        ``"idle-session"`` (also a session of their own, in an autogroup at ``batch_nice``, so
+        on a host busy with other sessions their CPU time does not count against the
+        server's share; the batch work then gets only what those sessions leave) or
+        ``"normal"`` (time-shared at ``batch_nice``). Where ``SCHED_IDLE`` is missing,
+        ``batch_nice`` alone applies.
     inline_fixes : bool
         Match a single fix (``StreamFixes``, ``SnapFix``) on the event loop, without a hop to
         an online thread: one fix is short, bounded work, and the hop costs more than it saves.
@@ -156,6 +166,7 @@ class ServerConfig:
     processes: int = 1
     batch_processes: int = 1
     batch_nice: int = 10
+    batch_sched: str = "idle"
     batch_slice: int = 64
     max_map_bytes: int = 4 * 1024**3
     load_timeout: float = 300.0
@@ -172,6 +183,9 @@ class ServerConfig:
             raise ConfigError("max_sessions and workers must be >= 1, max_message_bytes >= 1024")
         if not self.session_ttl > 0 or self.grace < 0:
             raise ConfigError("session_ttl must be positive and grace non-negative")
+        if self.batch_sched not in BATCH_SCHED:
+            classes = ", ".join(BATCH_SCHED)
+            raise ConfigError(f"batch_sched must be one of {classes}, got {self.batch_sched!r}")
         if self.log_format not in ("json", "text"):
             raise ConfigError(f"log_format must be json or text, got {self.log_format!r}")
         if self.token is not None and not self.token.strip():
@@ -256,6 +270,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         action=argparse.BooleanOptionalAction,
         default=None,
         help="match single fixes on the event loop, no thread hop [MAPMATCH_INLINE_FIXES; on]",
+    )
+    parser.add_argument(
+        "--batch-sched",
+        choices=BATCH_SCHED,
+        help="CPU class of the batch processes: idle (SCHED_IDLE), idle-session (also a session "
+        "of their own at --batch-nice) or normal (at --batch-nice) [MAPMATCH_BATCH_SCHED; idle]",
     )
     parser.add_argument("--config", type=Path, help="TOML file with server settings [MAPMATCH_CONFIG]")
     parser.add_argument(
@@ -381,7 +401,7 @@ def config_from(
         v = pick(key)
         if v is not None:
             out[key] = _num(key.upper(), v, kind) if isinstance(v, str) else v
-    for key in ("address", "log_format", "token"):
+    for key in ("address", "log_format", "token", "batch_sched"):
         v = pick(key)
         if v is not None:
             out[key] = str(v)

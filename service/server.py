@@ -82,6 +82,7 @@ class ServiceRuntime:
                     max_track_points=config.max_track_points, max_answer_bytes=config.max_answer_bytes
                 ),
                 nice=config.batch_nice,
+                sched=config.batch_sched,
             )
             if config.batch_processes > 0
             else None

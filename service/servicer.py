@@ -40,8 +40,10 @@ from mapmatch.service.batch_workers import (
     MapFile,
     TrackLimits,
     check_answer_bytes,
+    check_point_count,
     check_points,
     match_track,
+    peek_track_request,
 )
 from mapmatch.service.config import ServerConfig
 from mapmatch.service.errors import LimitError, MapPathError, log_internal, status_for
@@ -304,9 +306,22 @@ class MapMatchServicer(pb_grpc.MapMatchServicer):
     ) -> pb.TrackResult | bytes:
         """Registered with ``request`` as bytes (:func:`mapmatch.service.server.add_servicer`):
         on a map with a file they go to a batch worker process as they are, and its answer
-        comes back as bytes."""
+        comes back as bytes. The server reads only the map id, the track's presence and its
+        point count from the wire format (:func:`peek_track_request`): no work on the event
+        loop grows with the track."""
+        data = request if isinstance(request, bytes) else b""
+        peek = peek_track_request(data) if data else None
+        if peek is not None:
+            entry = self.maps.get(peek.map_id)
+            mf = self._worker_map(entry)
+            if mf is not None and self.batch_workers is not None:
+                if not peek.has_track:
+                    raise ValidationError("track", "is required")
+                if peek.points is not None:
+                    check_point_count(peek.points, self.config.max_track_points)
+                await self._check_deadline(context)
+                return await self.batch_workers.match(mf, data, kind="request", prefix="track")
         if isinstance(request, bytes):
-            data = request
             try:
                 request = pb.MatchTrackRequest.FromString(data)
             except Exception as exc:  # protobuf DecodeError and friends
@@ -314,8 +329,6 @@ class MapMatchServicer(pb_grpc.MapMatchServicer):
                     "request",
                     f"the message does not decode as the method's request type ({type(exc).__name__})",
                 ) from None
-        else:
-            data = b""
         entry = self.maps.get(request.map_id)
         if not request.HasField("track"):
             raise ValidationError("track", "is required")

@@ -90,14 +90,19 @@ def test_the_largest_track_is_matched_in_a_worker_process_while_a_good_stream_ke
         busy: list[float] = []
         stop = threading.Event()
         t = threading.Thread(target=_snap_latencies, args=(port, "busy", stop, busy))
-        worker_cpu0 = _cpu(worker)
+        req = pb.MatchTrackRequest(track=looped_track(AMAP, BIG))
         t.start()
-        t0 = time.perf_counter()
-        res = api.MatchTrack(pb.MatchTrackRequest(track=looped_track(AMAP, BIG)), timeout=600)
-        heavy = time.perf_counter() - t0
+        heavy, worker_cpu = 0.0, 0.0
+        for _ in range(20):  # the match again until the good stream has had its samples
+            worker_cpu0 = _cpu(worker)
+            t0 = time.perf_counter()
+            res = api.MatchTrack(req, timeout=600)
+            heavy = max(heavy, time.perf_counter() - t0)
+            worker_cpu = max(worker_cpu, _cpu(worker) - worker_cpu0)
+            if len(busy) >= 5:
+                break
         stop.set()
         t.join(30)
-        worker_cpu = _cpu(worker) - worker_cpu0
         assert len(res.points) == BIG and res.points[0].status == pb.POINT_STATUS_MATCHED
         assert server.batch_workers.pids() == [worker.pid]
         ch.close()
