@@ -11,10 +11,12 @@ is allocated as before, and ``top`` still counts it, so the caller can grow the 
 
 from __future__ import annotations
 
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 import numpy as np
 from numba import njit
+from numba.core import cgutils, errors, types
+from numba.extending import intrinsic
 from numpy.typing import NDArray
 
 MAX_ITEMS = 1 << 22
@@ -114,3 +116,44 @@ def full_b1(ar, n, v):  # type: ignore[no-untyped-def]
     a = take_b1(ar, n)
     a[:] = v
     return a
+
+
+def _borrowed_value(context: Any, builder: Any, ty: Any, val: Any) -> Any:
+    """``val`` of type ``ty`` with every array's owner (meminfo, parent) cleared."""
+    if isinstance(ty, types.Array):
+        ary = context.make_array(ty)(context, builder, value=val)
+        ary.meminfo = cgutils.get_null_value(ary.meminfo.type)
+        ary.parent = cgutils.get_null_value(ary.parent.type)
+        return ary._getvalue()
+    if isinstance(ty, types.BaseTuple):
+        out = val
+        for i, t in enumerate(ty):
+            item = _borrowed_value(context, builder, t, builder.extract_value(val, i))
+            out = builder.insert_value(out, item, i)
+        return out
+    return val
+
+
+def _borrowable(ty: Any) -> bool:
+    if isinstance(ty, types.Array | types.Number | types.Boolean | types.NoneType):
+        return True
+    return isinstance(ty, types.BaseTuple) and all(_borrowable(t) for t in ty)
+
+
+@intrinsic(prefer_literal=False)
+def borrowed(typingctx: Any, x: Any) -> Any:
+    """``x`` (an array, or a tuple or named tuple of arrays and numbers, nested) with views of
+    its arrays that own nothing, like :func:`numba.carray`'s: no reference counting (numba's
+    atomic increments and decrements were half the time of a small track's match).
+
+    Only for arrays that outlive every use of the views: those the caller of the compiled
+    call holds (the track's, a :class:`~mapmatch.batch.context.Context`'s) and pieces of
+    them, within one call. A view must never be returned to Python or stored beyond it.
+    """
+    if not _borrowable(x):
+        raise errors.TypingError(f"borrowed: {x} holds more than arrays and numbers")
+
+    def codegen(context: Any, builder: Any, sig: Any, args: Any) -> Any:
+        return _borrowed_value(context, builder, sig.args[0], args[0])
+
+    return x(x), codegen

@@ -19,7 +19,7 @@ import numpy as np
 from numba import njit
 from numpy.typing import NDArray
 
-from mapmatch.arena import full_f8, full_i8, reset, take_f8, take_i8, take_xy
+from mapmatch.arena import borrowed, full_f8, full_i8, reset, take_f8, take_i8, take_xy
 from mapmatch.batch.arrays import CandidateArrays, TrackPoints
 from mapmatch.batch.lattice import bearing_at, build_lattice, drop_spikes, motion_heading, thin
 from mapmatch.batch.route import assemble
@@ -238,8 +238,13 @@ def run_track(ti, q, r, p, geom, roads, router, grid, gsc, ar):  # type: ignore[
 @njit(cache=True, nogil=True)
 def run_track_in(ti, c):  # type: ignore[no-untyped-def]
     """:func:`run_track` with everything but the track from one
-    :class:`~mapmatch.batch.context.Context` (one pointer to unbox instead of some 80 values)."""
-    return run_track(ti, c.q, c.r, c.p, c.geom, c.roads, c.router, c.grid, c.gsc, c.ar)
+    :class:`~mapmatch.batch.context.Context` (one pointer to unbox instead of some 80 values),
+    all of them :func:`~mapmatch.arena.borrowed` (the caller holds the track and the context
+    for the whole call; the answer is a new array, :func:`pack`)."""
+    return run_track(
+        borrowed(ti), c.q, c.r, borrowed(c.p), borrowed(c.geom), borrowed(c.roads), borrowed(c.router),
+        borrowed(c.grid), borrowed(c.gsc), borrowed(c.ar),
+    )  # fmt: skip
 
 
 @njit(cache=True, nogil=True)
