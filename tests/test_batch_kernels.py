@@ -333,7 +333,7 @@ def test_bearing_by_binary_search_is_the_walk_along_the_polyline() -> None:
     """Headings are scored against the bearing of the segment under each candidate: found by a
     binary search over the segments' end distances, it is the walk's answer, with repeated
     vertices, offsets at vertices, beyond the edge, negative and NaN, and one-vertex edges."""
-    from mapmatch.batch.lattice import along_lengths, bearing_at
+    from mapmatch.batch.lattice import along_lengths, bearing_at, bearing_on, segment_bearings
 
     rng = np.random.default_rng(7)
     counts = rng.integers(1, 9, size=60)
@@ -353,6 +353,10 @@ def test_bearing_by_binary_search_is_the_walk_along_the_polyline() -> None:
     want = [_bearing_by_walking(int(e), float(o), seg_xy, seg_ptr) for e, o in zip(edges, offs, strict=True)]
     # the same segment's bearing: equal to the last bits the compiled atan2 may round differently
     np.testing.assert_allclose(got, want, rtol=0, atol=1e-9)
+    # the per-map table of bearings gives the same bits as the search (the batch call's path)
+    table = segment_bearings(seg_xy, seg_ptr)
+    looked_up = bearing_on(edges, offs, seg_ptr, ends, table, np.empty(len(edges)))
+    np.testing.assert_array_equal(looked_up, got)
 
 
 def test_the_in_place_projection_back_to_lonlat_equals_to_lonlat() -> None:

@@ -88,6 +88,44 @@ def bearing_at(edges, offs, seg_xy, seg_ptr, seg_end):  # type: ignore[no-untype
 
 
 @njit(cache=True, nogil=True)
+def segment_bearings(seg_xy, seg_ptr):  # type: ignore[no-untyped-def]
+    """Per polyline segment (indexed by its first vertex), the bearing :func:`bearing_at` gives on
+    it: its own, else that of the nearest non-degenerate segment before it on its edge (0 if
+    none); the same float steps, computed once per map."""
+    out = np.zeros(len(seg_xy))
+    for e in range(len(seg_ptr) - 1):
+        b = 0.0
+        for q in range(seg_ptr[e], seg_ptr[e + 1] - 1):
+            dx = seg_xy[q + 1, 0] - seg_xy[q, 0]
+            dy = seg_xy[q + 1, 1] - seg_xy[q, 1]
+            if math.hypot(dx, dy) > 0:
+                b = math.degrees(math.atan2(dx, dy)) % 360.0
+            out[q] = b
+    return out
+
+
+@njit(cache=True, nogil=True)
+def bearing_on(edges, offs, seg_ptr, seg_end, seg_bearing, out):  # type: ignore[no-untyped-def]
+    """:func:`bearing_at` into ``out`` with the bearings of :func:`segment_bearings` (a look-up
+    instead of an arctangent per candidate)."""
+    for i in range(len(edges)):
+        a0 = seg_ptr[edges[i]]
+        lo = a0
+        hi = seg_ptr[edges[i] + 1] - 2
+        if hi < lo:
+            out[i] = 0.0
+            continue
+        while lo < hi:
+            mid = (lo + hi) >> 1
+            if seg_end[mid] >= offs[i]:
+                hi = mid
+            else:
+                lo = mid + 1
+        out[i] = seg_bearing[lo]
+    return out
+
+
+@njit(cache=True, nogil=True)
 def prune(nk, c: CandidateArrays, emis, prune_lp, outlier, sigma, off_map_sigmas, min_run, ar):  # type: ignore[no-untyped-def]
     """Drop candidates far below their point's best emission, beyond ``outlier`` metres or
     beyond ``off_map_sigmas`` times their σ (``c.sigma``, else ``sigma``; 0: no σ limit).

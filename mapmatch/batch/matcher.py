@@ -25,7 +25,14 @@ from mapmatch import model
 from mapmatch.arena import Arena
 from mapmatch.batch.arrays import CandidateArrays, EdgeGeometry, KernelParams, TrackPoints, kernel_params
 from mapmatch.batch.context import Context, new_context
-from mapmatch.batch.lattice import along_lengths, bearing_at, drop_spikes, motion_heading, thin
+from mapmatch.batch.lattice import (
+    along_lengths,
+    bearing_at,
+    drop_spikes,
+    motion_heading,
+    segment_bearings,
+    thin,
+)
 from mapmatch.batch.results import fill_route_lonlat, track_match
 from mapmatch.batch.run import (
     CompiledRun,
@@ -130,7 +137,7 @@ class BatchMatcher:
         kph = np.asarray(graph.edge_speed_kph, dtype=F8)
         # speed limits (m/s) where the map has any (posted, or by road class)
         self._limit = kph / 3.6 if np.isfinite(kph).any() else np.zeros(0)
-        self._roads = RoadArrays(self._seg_end, self._limit)
+        self._roads = RoadArrays(self._seg_end, self._limit, segment_bearings(*self._geom))
         self._run = CompiledRun()
         self._run_track = CompiledRun(run_track_in)
         self._local = threading.local()

@@ -21,7 +21,7 @@ from numpy.typing import NDArray
 
 from mapmatch.arena import borrowed, full_f8, full_i8, reset, take_f8, take_i8, take_xy
 from mapmatch.batch.arrays import CandidateArrays, TrackPoints
-from mapmatch.batch.lattice import bearing_at, build_lattice, drop_spikes, motion_heading, thin
+from mapmatch.batch.lattice import bearing_on, build_lattice, drop_spikes, motion_heading, thin
 from mapmatch.batch.route import assemble
 from mapmatch.batch.viterbi import solve
 from mapmatch.gridindex import query_grid
@@ -85,14 +85,18 @@ class RoadArrays(NamedTuple):
     """:func:`mapmatch.batch.lattice.along_lengths`."""
     limit: NDArray[np.float64]
     """Speed limit per edge (m/s, NaN unknown); empty: the map has none."""
+    seg_bearing: NDArray[np.float64]
+    """:func:`mapmatch.batch.lattice.segment_bearings`."""
 
 
 @njit(cache=True, nogil=True)
 def run(pt, cands, p, geom, router, ar):  # type: ignore[no-untyped-def]
     """Lattice (:func:`build_lattice`), Viterbi (:func:`solve`) and route assembly (:func:`assemble`),
-    working in the arena ``ar`` (:mod:`mapmatch.arena`)."""
+    working in the arena ``ar`` (:mod:`mapmatch.arena`); every array :func:`~mapmatch.arena.borrowed`
+    (the caller holds them for the call)."""
+    ar = borrowed(ar)
     reset(ar)
-    return pack(_run(pt, cands, p, geom, router, ar))
+    return pack(_run(borrowed(pt), borrowed(cands), borrowed(p), borrowed(geom), borrowed(router), ar))
 
 
 @njit(cache=True, nogil=True)
@@ -278,9 +282,9 @@ def candidate_emissions(ti, kidx, xy, cp, ce, co, cq, cd, r, p, geom, roads, ar)
         head[k] = h
         kappa[k] = 1.0 / math.radians(max(hs, 1.0)) ** 2
         any_head = True
-    bearing = (
-        bearing_at(ce, co, geom.seg_xy, geom.seg_ptr, roads.seg_end) if any_head else full_f8(ar, nc, 0.0)
-    )
+    bearing = full_f8(ar, nc, 0.0)
+    if any_head:
+        bearing_on(ce, co, geom.seg_ptr, roads.seg_end, roads.seg_bearing, bearing)
     emis = take_f8(ar, nc)
     csig = take_f8(ar, nc if len(ti.pos_sigma) else 0)
     for i in range(nc):
