@@ -11,7 +11,7 @@ is allocated as before, and ``top`` still counts it, so the caller can grow the 
 
 from __future__ import annotations
 
-from typing import Any, NamedTuple
+from typing import Any, NamedTuple, cast
 
 import numpy as np
 from numba import njit
@@ -127,7 +127,7 @@ def _borrowed_value(context: Any, builder: Any, ty: Any, val: Any) -> Any:
         return ary._getvalue()
     if isinstance(ty, types.BaseTuple):
         out = val
-        for i, t in enumerate(ty):
+        for i, t in enumerate(cast(Any, ty)):
             item = _borrowed_value(context, builder, t, builder.extract_value(val, i))
             out = builder.insert_value(out, item, i)
         return out
@@ -137,11 +137,10 @@ def _borrowed_value(context: Any, builder: Any, ty: Any, val: Any) -> Any:
 def _borrowable(ty: Any) -> bool:
     if isinstance(ty, types.Array | types.Number | types.Boolean | types.NoneType):
         return True
-    return isinstance(ty, types.BaseTuple) and all(_borrowable(t) for t in ty)
+    return isinstance(ty, types.BaseTuple) and all(_borrowable(t) for t in cast(Any, ty))
 
 
-@intrinsic(prefer_literal=False)
-def borrowed(typingctx: Any, x: Any) -> Any:
+def _borrowed(typingctx: Any, x: Any) -> Any:
     """``x`` (an array, or a tuple or named tuple of arrays and numbers, nested) with views of
     its arrays that own nothing, like :func:`numba.carray`'s: no reference counting (numba's
     atomic increments and decrements were half the time of a small track's match).
@@ -157,3 +156,7 @@ def borrowed(typingctx: Any, x: Any) -> Any:
         return _borrowed_value(context, builder, sig.args[0], args[0])
 
     return x(x), codegen
+
+
+borrowed: Any = intrinsic(prefer_literal=False)(_borrowed)
+"""See :func:`_borrowed` (an intrinsic: called from compiled code only)."""

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import itertools
 import math
 
@@ -13,7 +14,7 @@ from mapmatch.batch import BATCH_CONFIG as DEFAULT_CONFIG
 from mapmatch.batch import BatchMatcher
 from mapmatch.graph.ascii import AsciiMap, parse_ascii_map
 from mapmatch.routing import shortest_route
-from mapmatch.types import PointStatus, Track
+from mapmatch.types import PointStatus, Track, TrackMatch
 
 
 def track_from_xy(amap: AsciiMap, xy: list[tuple[float, float]], *, dt: float = 5.0, tid: str = "t") -> Track:
@@ -575,3 +576,41 @@ def test_a_lone_fix_near_a_road_amid_fixes_off_the_map_is_off_the_map_too() -> N
     for min_run, has in ((2, [False, False, False, True, True]), (1, [False, True, False, True, True])):
         *_, got = prune(5, c, c.emis, 12.5, 100.0, 8.0, 5.0, min_run, Arena.new())
         assert got.tolist() == has
+
+
+def test_an_answer_read_late_equals_one_read_at_once_and_pickles_as_a_track_match() -> None:
+    """The answer's fields come from the kernel's packed array on first access: reading them in
+    any order, setting one first, or pickling gives what an eager unpack gives."""
+    import pickle
+
+    from mapmatch.batch.results import _LAZY, PackedMatch, _unpack
+
+    m = parse_ascii_map(
+        """
+        a-----b-----c
+              |
+              d-----e
+        """,
+        scale=20,
+    )
+    pts = [at(m, "a", 10, 3), at(m, "b", 12, 2), at(m, "b", -3, -30), at(m, "d", 40, 4), at(m, "e", -5, 3)]
+    matcher = BatchMatcher(m.graph)
+    track = track_from_xy(m, pts)
+    first = matcher.match(track, lonlat=False)
+    assert isinstance(first, PackedMatch) and first._packed is not None
+    eager = _unpack(first._packed)
+    assert first.confidence == eager[3] and first._packed is None  # one read fills every field
+    assert first.routes == eager[0] and first.splits == eager[1] and first.length_m == eager[2]
+    assert first.routes and first.length_m > 0
+    other = matcher.match(track, lonlat=False)
+    other.length_m = -1.0  # a write fills the rest first, then wins
+    assert other.length_m == -1.0 and other.routes == first.routes and other.splits == first.splits
+    assert other.point_arrays is not None
+    batch.fill_route_lonlat(other, m.graph.crs)
+    full = matcher.match(track)
+    back = pickle.loads(pickle.dumps(full))
+    assert type(back) is TrackMatch
+    assert back.points == full.points and back.routes == full.routes
+    assert back.route_lonlat == full.route_lonlat
+    assert other.points == full.points and other.route_lonlat == full.route_lonlat
+    assert set(_LAZY) < {f.name for f in dataclasses.fields(TrackMatch)}

@@ -393,3 +393,37 @@ def test_the_in_place_projection_equals_pyproj_s_public_call() -> None:
     np.testing.assert_array_equal(buf[2:], want)
     np.testing.assert_array_equal(buf[:2], np.array((lon, lat)))
     assert np.isfinite(buf[2:, :50]).all()
+
+
+def test_borrowed_views_share_the_data_and_refuse_what_they_cannot_borrow() -> None:
+    """:func:`mapmatch.arena.borrowed` views (no owner, so no reference counting) read and write
+    the caller's arrays, nested in named tuples too; anything that is not arrays and numbers is
+    refused at compile time."""
+    from numba import njit
+    from numba.core.errors import TypingError
+
+    from mapmatch.arena import Arena, borrowed, take_f8
+    from mapmatch.routing import NO_TABLE, RouteTable
+
+    @njit
+    def write(a, table, ar):  # type: ignore[no-untyped-def]
+        b = borrowed(a)
+        t = borrowed(table)
+        arb = borrowed(ar)
+        piece = take_f8(arb, 3)  # a piece of a borrowed arena writes into the arena
+        piece[:] = 2.0
+        b[0] = 5.0
+        return b.sum() + t.ptr.size + t.delta + piece.sum()
+
+    a = np.ones(4)
+    ar = Arena.new(8)
+    assert write(a, NO_TABLE, ar) == 8.0 + 1 - 1.0 + 6.0
+    assert a.tolist() == [5.0, 1.0, 1.0, 1.0] and ar.f8[:3].tolist() == [2.0] * 3 and ar.top[0] == 3
+    assert isinstance(NO_TABLE, RouteTable)
+
+    @njit
+    def bad(x):  # type: ignore[no-untyped-def]
+        return borrowed(x)
+
+    with pytest.raises(TypingError):
+        bad([1.0, 2.0])

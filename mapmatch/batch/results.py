@@ -3,7 +3,9 @@ and names under the matched route and points."""
 
 from __future__ import annotations
 
+import dataclasses
 import math
+from typing import Any
 
 import numpy as np
 
@@ -14,8 +16,13 @@ from mapmatch.types import MatchedPoint, PointStatus, TrackMatch
 
 
 def track_match(track_id: str, packed: Packed) -> TrackMatch:
-    """A :class:`TrackMatch` from the compiled kernel's packed array (:func:`mapmatch.batch.run.pack`;
-    points still as arrays, views into it)."""
+    """A :class:`TrackMatch` of the compiled kernel's packed array (:func:`mapmatch.batch.run.pack`):
+    its fields are read from the array on first access (:class:`PackedMatch`)."""
+    return PackedMatch(track_id, packed)
+
+
+def _unpack(packed: Packed) -> tuple[Any, ...]:
+    """Routes, splits, length, confidence, route geometry and point arrays (views into ``packed``)."""
     n, ns, ne, nseg, nxy = packed[:5].tolist()
     k = 5 + 2 * n
     ni = k + ns + ne + 2 * (nseg + 1)
@@ -40,7 +47,66 @@ def track_match(track_id: str, packed: Packed) -> TrackMatch:
         floats[ni + n : ni + 3 * n].reshape(n, 2),
         floats[ni + 3 * n : f],
     )
-    return TrackMatch(track_id, [], routes, [], rest[:ns], length, conf, route_xy, pa)
+    return routes, rest[:ns], length, conf, route_xy, pa
+
+
+_LAZY = ("routes", "splits", "length_m", "confidence", "route_xy", "point_arrays")
+"""The fields a :class:`PackedMatch` reads from its packed array, in :func:`_unpack`'s order."""
+_SLOT = {name: TrackMatch.__dict__[name] for name in _LAZY}
+""":class:`TrackMatch`'s own storage of those fields."""
+
+
+class PackedMatch(TrackMatch):
+    """A :class:`TrackMatch` that keeps the kernel's packed answer and fills ``routes``,
+    ``splits``, ``length_m``, ``confidence``, ``route_xy`` and ``point_arrays`` from it the first
+    time any of them is read or set (a call whose answer is not read does not pay for them).
+    Compares equal to a :class:`TrackMatch` with the same fields."""
+
+    __slots__ = ("_packed",)
+
+    def __init__(self, track_id: str, packed: Packed) -> None:
+        self._packed: Packed | None = packed
+        self.track_id = track_id
+        self.points = []
+        self.route_lonlat = []
+
+    def _fill(self) -> None:
+        packed = getattr(self, "_packed", None)
+        self._packed = None
+        values = _unpack(packed) if packed is not None else ([], [], 0.0, 0.0, [], None)
+        for name, value in zip(_LAZY, values, strict=True):
+            _SLOT[name].__set__(self, value)
+
+    def __eq__(self, other: object) -> bool:
+        if not isinstance(other, TrackMatch):
+            return NotImplemented
+        names = [f.name for f in dataclasses.fields(TrackMatch)]  # as the dataclass compares
+        return tuple(getattr(self, n) for n in names) == tuple(getattr(other, n) for n in names)
+
+    def __reduce__(self) -> tuple[Any, ...]:
+        return (TrackMatch, tuple(getattr(self, f.name) for f in dataclasses.fields(TrackMatch)))
+
+
+def _lazy_field(name: str) -> property:
+    slot = _SLOT[name]
+
+    def get(self: PackedMatch) -> Any:
+        try:
+            return slot.__get__(self)
+        except AttributeError:  # not filled yet
+            self._fill()
+            return slot.__get__(self)
+
+    def put(self: PackedMatch, value: Any) -> None:
+        if getattr(self, "_packed", None) is not None:
+            self._fill()
+        slot.__set__(self, value)
+
+    return property(get, put)
+
+
+for _name in _LAZY:
+    setattr(PackedMatch, _name, _lazy_field(_name))
 
 
 def fill_route_lonlat(result: TrackMatch, crs: str) -> TrackMatch:
