@@ -20,8 +20,13 @@ from mapmatch.model import emission_logp_one
 @njit(cache=True, nogil=True)
 def thin(xy, valid, min_dist):  # type: ignore[no-untyped-def]
     """Keep valid points at least ``min_dist`` from the previously kept one (always the last)."""
+    return thin_into(xy, valid, min_dist, np.zeros(len(valid), dtype=np.bool_))
+
+
+@njit(cache=True, nogil=True)
+def thin_into(xy, valid, min_dist, kept):  # type: ignore[no-untyped-def]
+    """:func:`thin` into ``kept`` (all False on entry)."""
     n = len(valid)
-    kept = np.zeros(n, dtype=np.bool_)
     last = -1
     for i in range(n):
         if not valid[i]:
@@ -274,8 +279,13 @@ def motion_heading(xy, kidx, min_leg, max_turn):  # type: ignore[no-untyped-def]
     """Direction of travel (compass degrees) at each kept point from its two legs (to the
     previous and the next kept point; at the ends the first or last two legs), where both
     are at least ``min_leg`` metres and turn by at most ``max_turn`` degrees; NaN elsewhere."""
+    return motion_heading_into(xy, kidx, min_leg, max_turn, np.full(len(kidx), np.nan))
+
+
+@njit(cache=True, nogil=True)
+def motion_heading_into(xy, kidx, min_leg, max_turn, out):  # type: ignore[no-untyped-def]
+    """:func:`motion_heading` into ``out`` (all NaN on entry)."""
     k = len(kidx)
-    out = np.full(k, np.nan)
     if k < 3:
         return out
     cos_max = math.cos(math.radians(max_turn))
@@ -301,10 +311,15 @@ def drop_spikes(xy, time, kept, valid, sigma, min_sigmas, max_speed):  # type: i
     """Valid flags with jumps cleared: kept points the track reaches and leaves in opposite
     directions (legs longer than ``min_sigmas * sigma``) where visiting them needs more than
     ``max_speed`` m/s on average between the kept neighbours (0 disables it)."""
-    out = valid.copy()
+    return drop_spikes_into(xy, time, np.flatnonzero(kept), sigma, min_sigmas, max_speed, valid.copy())
+
+
+@njit(cache=True, nogil=True)
+def drop_spikes_into(xy, time, kidx, sigma, min_sigmas, max_speed, out):  # type: ignore[no-untyped-def]
+    """:func:`drop_spikes` into ``out`` (a copy of the valid flags on entry); ``kidx``: the kept
+    points' indices."""
     if max_speed <= 0:
         return out
-    kidx = np.flatnonzero(kept)
     a = -1
     for q in range(len(kidx) - 1):
         b = kidx[q]

@@ -19,9 +19,9 @@ import numpy as np
 from numba import njit
 from numpy.typing import NDArray
 
-from mapmatch.arena import borrowed, full_f8, full_i8, reset, take_f8, take_i8, take_xy
+from mapmatch.arena import borrowed, full_b1, full_f8, full_i8, reset, take_b1, take_f8, take_i8, take_xy
 from mapmatch.batch.arrays import CandidateArrays, TrackPoints
-from mapmatch.batch.lattice import bearing_on, build_lattice, drop_spikes, motion_heading, thin
+from mapmatch.batch.lattice import bearing_on, build_lattice, drop_spikes_into, motion_heading_into, thin_into
 from mapmatch.batch.route import assemble
 from mapmatch.batch.viterbi import solve
 from mapmatch.gridindex import query_grid
@@ -156,7 +156,7 @@ def run_track(ti, q, r, p, geom, roads, router, grid, gsc, ar):  # type: ignore[
     reset(ar)
     pos = ti.pos
     n = pos.shape[1]
-    valid = np.zeros(n, dtype=np.bool_)
+    valid = full_b1(ar, n, False)
     xy = take_xy(ar, n)
     for i in range(n):
         lo, la = pos[0, i], pos[1, i]
@@ -167,9 +167,7 @@ def run_track(ti, q, r, p, geom, roads, router, grid, gsc, ar):  # type: ignore[
         else:
             xy[i, 0] = np.nan
             xy[i, 1] = np.nan
-    kept = thin(xy, valid, q.min_dist)
-    # jumps (a fix reached and left in opposite directions too fast) get no candidates
-    nojump = drop_spikes(xy, ti.time, kept, valid, r.gps_sigma, r.spike_sigmas, r.spike_speed)
+    kept = thin_into(xy, valid, q.min_dist, full_b1(ar, n, False))
     nk = 0
     for i in range(n):
         if kept[i]:
@@ -183,6 +181,10 @@ def run_track(ti, q, r, p, geom, roads, router, grid, gsc, ar):  # type: ignore[
             kxy[c, 0] = xy[i, 0]
             kxy[c, 1] = xy[i, 1]
             c += 1
+    # jumps (a fix reached and left in opposite directions too fast) get no candidates
+    nojump = take_b1(ar, n)
+    nojump[:] = valid
+    drop_spikes_into(xy, ti.time, kidx, r.gps_sigma, r.spike_sigmas, r.spike_speed, nojump)
     cp, ce, cd, co, cq = query_grid(kxy, q.radius, q.k, grid, gsc, ar)
     count = full_i8(ar, nk, 0)
     for i in range(len(cp)):
@@ -268,7 +270,9 @@ def candidate_emissions(ti, kidx, xy, cp, ce, co, cq, cd, r, p, geom, roads, ar)
             sig[k] = r.gps_sigma if math.isnan(s) or s <= 0 else max(s, 0.5)
     head = full_f8(ar, nk, np.nan)
     kappa = full_f8(ar, nk, 0.0)
-    mh = motion_heading(xy, kidx, r.motion_min_distance, r.straight_max_deg) if r.motion_sigma > 0 else head
+    mh = head
+    if r.motion_sigma > 0:
+        mh = motion_heading_into(xy, kidx, r.motion_min_distance, r.straight_max_deg, full_f8(ar, nk, np.nan))
     any_head = False
     for k in range(nk):
         h = ti.heading[kidx[k]] if len(ti.heading) else np.nan
