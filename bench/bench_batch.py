@@ -33,6 +33,8 @@ from pathlib import Path
 from typing import Any
 
 ROOT = Path(__file__).resolve().parents[1]
+if str(ROOT) not in sys.path:  # the in-process modes use this tree's mapmatch, not the installed one
+    sys.path.insert(0, str(ROOT))
 PEERS = Path(
     os.environ.get("MAPMATCH_PEERS")
     # the nearest folder above the project with shared/peers (a worktree sits one level deeper)
