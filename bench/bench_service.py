@@ -7,7 +7,9 @@ with 3 m GPS noise and send one fused fix every 0.1 s, each on its own bidirecti
 Phase 1 (paced): ``--vehicles`` streams at ``--rate`` Hz. Every stream is opened first; then
 fixes flow for ``--warmup`` s (reported, not measured) plus ``--seconds`` s (measured). Reports
 errors, achieved updates/s, end-to-end latency p50/p99/max (client send -> answer received),
-per-second p99s, and the server's RSS at start and end and CPU.
+per-second p99s, CPU, and the server's RSS: at SERVING, once every stream and session exists
+(after the warm-up), once every session's state has reached its cap (``--rss-steady``: the
+server's steady working set; growth from there is what a leak would show) and at the end.
 
 Phase 2 (peak): the same streams push as fast as the server answers (each keeps ``--window``
 fixes in flight) for ``--peak-seconds`` s, from ``--peak-clients`` client processes; reports
@@ -138,9 +140,9 @@ def drives(map_path: Path, n: int, steps: int, *, rate: float, seed: int) -> lis
 
 # ---------------------------------------------------------------------------------- client
 async def _vehicle(
-    stub: Any,
+    send: Any,
     vid: str,
-    fixes: list[Any],
+    fixes: list[bytes],
     *,
     rate: float | None,
     window: int,
@@ -149,41 +151,49 @@ async def _vehicle(
 ) -> None:
     """One stream. Paced at ``rate`` Hz, or (rate None) keeping ``window`` fixes in flight.
 
-    The stream is opened first; fixes flow once every stream of the run is open (``sync``)."""
+    ``fixes`` are the stream's ``FixRequest`` messages, serialised before the run and sent as
+    bytes (``send`` is the channel's raw ``StreamFixes``): the client spends its CPU on the
+    protocol, not on building messages. The stream is opened first; fixes flow once every
+    stream of the run is open (``sync``)."""
     from mapmatch.service.gen import mapmatch_pb2 as pb
 
+    parse = pb.SnapResponse.FromString
     sent: dict[int, float] = {}
     credit = asyncio.Semaphore(window)
     lat: list[float] = stats["lat"]
+    at: list[float] = stats["at"]
+    clock = time.perf_counter
 
-    go, connected, clock = sync
+    go, connected, limits = sync
 
     async def gen():  # type: ignore[no-untyped-def]
         await go.wait()
-        until = clock["until"]
-        t0 = time.perf_counter() + (hash(vid) % 1000) / 1000.0 / (rate or 1.0)
-        for k, fix in enumerate(fixes):
+        until = limits["until"]
+        t0 = clock() + (hash(vid) % 1000) / 1000.0 / (rate or 1.0)
+        for k, msg in enumerate(fixes):
             if rate is not None:
-                delay = t0 + k / rate - time.perf_counter()
+                delay = t0 + k / rate - clock()
                 if delay > 0:
                     await asyncio.sleep(delay)
             else:
                 await credit.acquire()
-            if time.perf_counter() >= until:
+            now = clock()
+            if now >= until:
                 break
-            sent[k] = time.perf_counter()
-            yield pb.FixRequest(vehicle_id=vid, seq=k, fix=fix)
+            sent[k] = now
+            yield msg
 
-    call = stub.StreamFixes(gen())
+    call = send(gen())
     await call.wait_for_connection()
     connected.release()
     try:
-        async for resp in call:
-            now = time.perf_counter()
+        async for data in call:
+            now = clock()
+            resp = parse(data)
             t = sent.pop(resp.seq, None)
             if t is not None:
                 lat.append(now - t)
-                stats["at"].append(t)
+                at.append(t)
             if resp.HasField("error"):
                 stats["errors"] += 1
                 if stats["errors"] <= 5:
@@ -255,6 +265,7 @@ async def _run_clients(
 ) -> dict[str, Any]:
     import grpc
 
+    from mapmatch.service.gen import mapmatch_pb2 as pb
     from mapmatch.service.gen import mapmatch_pb2_grpc as pb_grpc
 
     stats: dict[str, Any] = {"lat": [], "at": [], "errors": 0, "n": 0}
@@ -271,9 +282,18 @@ async def _run_clients(
             _gateway(stubs[i % len(stubs)], f"g{i}", fl, window=window, sync=sync, stats=stats)
             for i, fl in enumerate(fleets)
         ]
-    else:
+    else:  # raw StreamFixes: requests go as the bytes they are, answers come back as bytes
+        sends = [c.stream_stream("/mapmatch.v1.MapMatch/StreamFixes") for c in channels]
         jobs = [
-            _vehicle(stubs[i % len(stubs)], vid, fx, rate=rate, window=window, sync=sync, stats=stats)
+            _vehicle(
+                sends[i % len(sends)],
+                vid,
+                [pb.FixRequest(vehicle_id=vid, seq=k, fix=f).SerializeToString() for k, f in enumerate(fx)],
+                rate=rate,
+                window=window,
+                sync=sync,
+                stats=stats,
+            )
             for i, (vid, fx) in enumerate(streams)
         ]
     tasks = [asyncio.create_task(j) for j in jobs]
@@ -327,7 +347,7 @@ def run_phase(
     tag: str,
     batch: int = 1,
     server: Any = None,
-    rss_at: float | None = None,
+    rss_at: tuple[float, ...] = (),
 ) -> dict[str, Any]:
     """Run client processes; they connect, wait for a common start, then load the server."""
     ctx = mp.get_context("spawn")
@@ -349,9 +369,9 @@ def run_phase(
     start.set()
     c0, w0 = (sum(server.cpu_times()[:2]) if server else 0.0), time.perf_counter()
     o0 = server.cpu_of("server") if server else 0.0
-    mid: dict[str, int] = {}
-    if server is not None and rss_at is not None:  # RSS once the sessions exist (after warm-up)
-        threading.Timer(rss_at, lambda: mid.setdefault("rss", server.rss_of("server"))).start()
+    mid: dict[float, int] = {}
+    for at in rss_at if server is not None else ():  # the online server's RSS at these seconds
+        threading.Timer(at, lambda at=at: mid.setdefault(at, server.rss_of("server"))).start()
     results = [queue.get() for _ in procs]
     c1, w1 = (sum(server.cpu_times()[:2]) if server else 0.0), time.perf_counter()
     o1 = server.cpu_of("server") if server else 0.0
@@ -364,7 +384,7 @@ def run_phase(
         "cpu_s": c1 - c0,
         "online_cpu_s": o1 - o0,
         "online_cpu": 100.0 * (o1 - o0) / (w1 - w0),
-        "rss_mid": mid.get("rss"),
+        "rss_mid": mid,
         "at": at,
         "n": sum(r["n"] for r in results),
         "errors": sum(r["errors"] for r in results),
@@ -439,8 +459,17 @@ class ServerTree:
         return [self.root, *self.root.children(recursive=True)]
 
     def cpu_times(self) -> tuple[float, float]:
-        t = [p.cpu_times() for p in self._all()]
-        return sum(x.user for x in t), sum(x.system for x in t)
+        """User and system CPU seconds of the whole tree so far: every live process's own, plus
+        what its ended (reaped) children used (``children_*``). Summing live processes only
+        lost the CPU of a batch worker that ended or was replaced between two readings (the
+        big match's worker, cancelled at the end of phase 4)."""
+        user = system = 0.0
+        for p in self._all():
+            with contextlib.suppress(Exception):  # ended meanwhile: its parent counts it
+                t = p.cpu_times()
+                user += t.user + t.children_user
+                system += t.system + t.children_system
+        return user, system
 
     def memory_info(self) -> Any:
         return SimpleNamespace(rss=sum(p.memory_info().rss for p in self._all()))
@@ -536,7 +565,7 @@ def phase1(args: argparse.Namespace, port: int, sp: Any, paced: list[list[Any]],
     total = args.warmup + args.seconds
     r = run_phase(
         port, paced, rate=args.rate, window=1, seconds=total, clients=args.clients, tag="v", server=sp,
-        rss_at=args.warmup,
+        rss_at=(args.warmup, args.rss_steady),
     )  # fmt: skip
     rss1 = sp.rss_of("server")
     lat = r["lat"] * 1000.0
@@ -568,11 +597,18 @@ def phase1(args: argparse.Namespace, port: int, sp: Any, paced: list[list[Any]],
         "start: SERVING, batch workers warm, no session yet)"
     )
     print(f"  by process at the end   {sp.parts()}")
-    if r["rss_mid"]:
-        m = r["rss_mid"]
+    m = r["rss_mid"].get(args.warmup)
+    if m:
         print(
-            f"server RSS after warm-up  {m / 2**20:.1f} MiB (every session made); to the end "
+            f"server RSS after warm-up  {m / 2**20:.1f} MiB (every stream and session made); to the end "
             f"{100.0 * (rss1 - m) / m:+.1f} % over {args.seconds:g} s"
+        )
+    m = r["rss_mid"].get(args.rss_steady)
+    if m:
+        print(
+            f"server RSS steady         {m / 2**20:.1f} MiB at {args.rss_steady:g} s (every session's state "
+            f"full: trail and turn samples are capped); to the end {100.0 * (rss1 - m) / m:+.1f} % over "
+            f"{total - args.rss_steady:g} s"
         )
     _cpu_lines(r)
 
@@ -664,6 +700,13 @@ def main() -> int:
     ap.add_argument("--rate", type=float, default=10.0, help="fixes per second per vehicle")
     ap.add_argument("--seconds", type=float, default=60.0, help="measured seconds of the paced phase")
     ap.add_argument("--warmup", type=float, default=5.0, help="seconds before measuring (streams open)")
+    ap.add_argument(
+        "--rss-steady",
+        type=float,
+        default=35.0,
+        help="seconds into the paced phase when the server holds its steady working set: every "
+        "session's state has reached its cap (trail_max_distance 300 m at 10 m/s: 30 s of fixes)",
+    )
     ap.add_argument("--peak-seconds", type=float, default=20.0)
     ap.add_argument("--clients", type=int, default=2, help="client processes in the paced phase")
     ap.add_argument("--peak-clients", type=int, default=2, help="client processes in the peak phase")

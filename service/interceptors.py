@@ -106,21 +106,24 @@ class Chain(aio.ServerInterceptor):
         d = handler_call_details
         for c in self.concerns:
             c.handler_found(d, handler)
+        call = _Call(d)
         if handler.request_streaming and handler.response_streaming:
             inner, factory = handler.stream_stream, grpc.stream_stream_rpc_method_handler
-            wrapped = self._stream_out(d, inner, streaming_in=True)
+            wrapped = self._stream_out(call, inner, streaming_in=True)
         elif handler.request_streaming:
             inner, factory = handler.stream_unary, grpc.stream_unary_rpc_method_handler
-            wrapped = self._unary_out(d, inner, streaming_in=True)
+            wrapped = self._unary_out(call, inner, streaming_in=True)
         elif handler.response_streaming:
             inner, factory = handler.unary_stream, grpc.unary_stream_rpc_method_handler
-            wrapped = self._stream_out(d, inner, streaming_in=False)
+            wrapped = self._stream_out(call, inner, streaming_in=False)
         else:
             inner, factory = handler.unary_unary, grpc.unary_unary_rpc_method_handler
-            wrapped = self._unary_out(d, inner, streaming_in=False)
+            wrapped = self._unary_out(call, inner, streaming_in=False)
         deserializer = handler.request_deserializer
         for c in reversed(self.concerns):  # the outermost concern sees the bytes first
             deserializer = c.deserializer(deserializer)
+        if handler.request_streaming and self._requests:
+            deserializer = call.streamed(deserializer)
         return factory(
             wrapped, request_deserializer=deserializer, response_serializer=handler.response_serializer
         )
@@ -130,31 +133,27 @@ class Chain(aio.ServerInterceptor):
     ) -> list[Any]:
         return [await stack.enter_async_context(c.around(d, context)) for c in self._arounds]
 
-    def _input(self, states: list[Any], request: Any, streaming_in: bool) -> Any:
-        hooks = [(self._arounds[i].request, states[i]) for i in self._requests]
-        if not hooks:
-            return request
-        if not streaming_in:
-            for hook, st in hooks:
-                request = hook(st, request)
-            return request
+    def _hooks(self, states: list[Any]) -> list[tuple[Callable[[Any, Any], Any], Any]]:
+        return [(self._arounds[i].request, states[i]) for i in self._requests]
 
-        async def each(it: AsyncIterator[Any]) -> AsyncIterator[Any]:
-            async for m in it:
-                for hook, st in hooks:
-                    m = hook(st, m)
-                yield m
-
-        return each(request)
+    def _input(self, call: _Call, states: list[Any], request: Any, streaming_in: bool) -> Any:
+        """The request (iterator) the handler gets. A streamed request's hooks run in the
+        call's deserializer (:meth:`_Call.streamed`), not in another async-generator layer."""
+        if streaming_in:
+            call.hooks = self._hooks(states)
+            return request
+        for hook, st in self._hooks(states):
+            request = hook(st, request)
+        return request
 
     def _output(self, states: list[Any]) -> list[tuple[Callable[[Any, Any], None], Any]]:
         return [(self._arounds[i].response, states[i]) for i in reversed(self._responses)]
 
-    def _unary_out(self, d: grpc.HandlerCallDetails, inner: Any, *, streaming_in: bool) -> Any:
+    def _unary_out(self, call: _Call, inner: Any, *, streaming_in: bool) -> Any:
         async def behaviour(request: Any, context: aio.ServicerContext) -> Any:
             async with contextlib.AsyncExitStack() as stack:
-                states = await self._enter(stack, d, context)
-                result = inner(self._input(states, request, streaming_in), context)
+                states = await self._enter(stack, call.details, context)
+                result = inner(self._input(call, states, request, streaming_in), context)
                 if inspect.isawaitable(result):
                     result = await result
                 for hook, st in self._output(states):
@@ -164,20 +163,49 @@ class Chain(aio.ServerInterceptor):
 
         return behaviour
 
-    def _stream_out(self, d: grpc.HandlerCallDetails, inner: Any, *, streaming_in: bool) -> Any:
+    def _stream_out(self, call: _Call, inner: Any, *, streaming_in: bool) -> Any:
         if not inspect.isasyncgenfunction(inner):  # reader/writer style (health Watch, reflection)
-            return self._unary_out(d, inner, streaming_in=streaming_in)
+            return self._unary_out(call, inner, streaming_in=streaming_in)
 
         async def behaviour(request: Any, context: aio.ServicerContext) -> AsyncIterator[Any]:
             async with contextlib.AsyncExitStack() as stack:
-                states = await self._enter(stack, d, context)
+                states = await self._enter(stack, call.details, context)
                 out = self._output(states)
-                async for resp in inner(self._input(states, request, streaming_in), context):
+                requests = self._input(call, states, request, streaming_in)
+                if not out:
+                    async for resp in inner(requests, context):
+                        yield resp
+                    return
+                async for resp in inner(requests, context):
                     for hook, st in out:
                         hook(st, resp)
                     yield resp
 
         return behaviour
+
+
+class _Call:
+    """One call's place for its request hooks, bound once the concerns have entered."""
+
+    __slots__ = ("details", "hooks")
+
+    def __init__(self, details: grpc.HandlerCallDetails) -> None:
+        self.details = details
+        self.hooks: list[tuple[Callable[[Any, Any], Any], Any]] = []
+
+    def streamed(self, inner: Any) -> Callable[[bytes], Any]:
+        """The deserializer of a streamed request: parse, then run the request hooks. gRPC
+        calls it as the handler reads each message (the concerns have entered by then), and
+        what a hook raises reaches the handler as if the request iterator had raised it."""
+        parse = inner if inner is not None else (lambda data: data)
+
+        def each(data: bytes) -> Any:
+            m = parse(data)
+            for hook, st in self.hooks:
+                m = hook(st, m)
+            return m
+
+        return each
 
 
 # ---------------------------------------------------------------------------------- auth
@@ -348,7 +376,9 @@ class AccessLogInterceptor(_Wrapping):
     async def around(
         self, details: grpc.HandlerCallDetails, context: aio.ServicerContext
     ) -> AsyncIterator[_CallLog]:
-        call = _CallLog(details.method, timed=self._bidi.get(details.method, False))
+        # per-message latencies only feed the log line: not timed when no line is written
+        timed = self._bidi.get(details.method, False) and log.isEnabledFor(logging.INFO)
+        call = _CallLog(details.method, timed=timed)
         try:
             yield call
         except asyncio.CancelledError:

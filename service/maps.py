@@ -140,6 +140,10 @@ def make_entry(
 class MapRegistry:
     """Thread-safe registry of loaded maps by id.
 
+    The id -> entry dict is never changed in place: a change builds a new dict (under the
+    lock) and replaces the old one in one assignment, so :meth:`get`, which runs once per fix,
+    reads without the lock.
+
     ``on_unload`` is called with a map id after it is removed (the session store drops its sessions).
     """
 
@@ -178,7 +182,7 @@ class MapRegistry:
         """Register a prepared (and warmed-up) entry, replacing any map of the same id."""
         with self._lock:
             old = self._maps.get(entry.map_id)
-            self._maps[entry.map_id] = entry
+            self._maps = {**self._maps, entry.map_id: entry}
         if old is not None and old.checksum != entry.checksum:
             self._dropped(entry.map_id)  # sessions refer to the old map's edges
         return entry
@@ -202,26 +206,26 @@ class MapRegistry:
         with self._lock:
             if map_id not in self._maps:
                 raise MapNotFoundError(map_id, sorted(self._maps))
-            del self._maps[map_id]
+            self._maps = {k: v for k, v in self._maps.items() if k != map_id}
         return self._dropped(map_id)
 
     def _dropped(self, map_id: str) -> int:
         return sum(cb(map_id) for cb in self.on_unload)
 
     def get(self, map_id: str = "") -> MapEntry:
-        """The named map, or the only one when ``map_id`` is empty."""
-        with self._lock:
-            if map_id:
-                entry = self._maps.get(map_id)
-            elif len(self._maps) > 1:
-                raise ValidationError(
-                    "map_id", f"is required when several maps are loaded ({', '.join(sorted(self._maps))})"
-                )
-            else:
-                entry = next(iter(self._maps.values()), None)
-            if entry is None:
-                raise MapNotFoundError(map_id, sorted(self._maps))
+        """The named map, or the only one when ``map_id`` is empty (no lock: see the class)."""
+        maps = self._maps
+        entry = maps.get(map_id) if map_id else None
+        if entry is not None:
             return entry
+        if not map_id and len(maps) > 1:
+            names = ", ".join(sorted(maps))
+            raise ValidationError("map_id", f"is required when several maps are loaded ({names})")
+        if not map_id:
+            entry = next(iter(maps.values()), None)
+        if entry is None:
+            raise MapNotFoundError(map_id, sorted(maps))
+        return entry
 
     @property
     def default_id(self) -> str:

@@ -189,6 +189,7 @@ class MapMatchServicer(pb_grpc.MapMatchServicer):
             max_track_points=self.config.max_track_points, max_answer_bytes=self.config.max_answer_bytes
         )
         self.on_maps_changed = on_maps_changed
+        self._short_id = self.config.max_vehicle_id // 4  # ids this long or shorter fit in any case
         self.server_id = f"{socket.gethostname()}:{os.getpid()}"
 
     async def _offload(self, context: aio.ServicerContext | None, fn: Callable[[], T]) -> T:
@@ -215,7 +216,10 @@ class MapMatchServicer(pb_grpc.MapMatchServicer):
         fix leaves the session as it was (no new session, no refreshed idle timer).
         """
         entry = self.maps.get(req.map_id)
-        self._check_vehicle(req.vehicle_id)
+        vehicle_id = req.vehicle_id
+        # at most 4 bytes a character: a short id needs no encoding to check its length
+        if not 0 < len(vehicle_id) <= self._short_id:
+            self._check_vehicle(vehicle_id)
         if not req.HasField("fix"):
             raise ValidationError("fix", "is required")
         fix = convert.fix_from_proto(req.fix)
@@ -224,22 +228,36 @@ class MapMatchServicer(pb_grpc.MapMatchServicer):
         except ValidationError as exc:
             raise _prefixed(exc, "fix") from None
         online = entry.online
-        with self.sessions.use(entry.map_id, req.vehicle_id, online.new_session) as s:
-            last = s.state.time
-            jumped = math.isfinite(last) and abs(fix.time - last) > self.config.max_time_jump
-            state = online.new_session() if jumped else s.state
+        sessions = self.sessions
+        s = sessions.live((entry.map_id, vehicle_id))
+        if s is not None and s.lock.acquire(blocking=False):  # a known vehicle, not busy
             try:
-                result = online.update(state, fix)
-            except ValidationError as exc:
-                raise _prefixed(exc, "fix") from None
-            except Exception:
-                # state may be half-updated: start this vehicle afresh, keep the others
-                s.state = online.new_session()
-                raise
-            s.state = state
+                result, jumped = self._update(online, s, fix)
+            finally:
+                s.lock.release()
+            sessions.touch(s)
+        else:
+            with sessions.use(entry.map_id, vehicle_id, online.new_session) as s:
+                result, jumped = self._update(online, s, fix)
         if jumped:
             result = dataclasses.replace(result, state=State.REINITIALISED)
-        return convert.snap_response(entry.map_id, req.vehicle_id, req.seq, result)
+        return convert.snap_response(entry.map_id, vehicle_id, req.seq, result)
+
+    def _update(self, online: Any, s: Any, fix: Any) -> tuple[Any, bool]:
+        """The update of a locked session: (the result, whether the time jump restarted it)."""
+        last = s.state.time
+        jumped = math.isfinite(last) and abs(fix.time - last) > self.config.max_time_jump
+        state = online.new_session() if jumped else s.state
+        try:
+            result = online.update(state, fix)
+        except ValidationError as exc:
+            raise _prefixed(exc, "fix") from None
+        except Exception:
+            # state may be half-updated: start this vehicle afresh, keep the others
+            s.state = online.new_session()
+            raise
+        s.state = state
+        return result, jumped
 
     def answer(self, req: pb.FixRequest) -> pb.SnapResponse:
         """Like :meth:`snap`, but a rejected fix becomes a response carrying its error."""

@@ -85,3 +85,26 @@ def test_one_vehicle_is_processed_in_order_while_others_run():
     with store.use("m", "same", State) as s:
         assert sorted(s.state.log) == list(range(1, 40, 2))
     assert store.count() == 21
+
+
+def test_the_fast_path_finds_only_stored_live_sessions_and_touch_renews_without_restoring():
+    now = [0.0]
+    store = SessionStore(max_sessions=10, ttl=10.0, clock=lambda: now[0])
+    assert store.live(("m", "a")) is None  # nothing stored: the caller goes through use()
+    with store.use("m", "a", State) as made:
+        pass
+    s = store.live(("m", "a"))
+    assert s is made
+    now[0] = 8.0
+    store.touch(s)  # an accepted fix at 8 s keeps "a" alive until 18 s
+    now[0] = 17.0
+    assert store.live(("m", "a")) is s and store.count() == 1
+    now[0] = 27.5  # idle for 10.5 s: expired, the fast path does not return it
+    assert store.live(("m", "a")) is None
+    now[0] = 28.0
+    with store.use("m", "b", State):
+        pass
+    b = store.live(("m", "b"))
+    assert b is not None and store.drop("m", "b")
+    store.touch(b)  # ended meanwhile (EndSession): a touch does not bring it back
+    assert store.live(("m", "b")) is None and store.count() == 0
