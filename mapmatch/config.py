@@ -247,7 +247,9 @@ class OnlineConfig:
         with the turn anchor) to a candidate point is judged to the point's place corrected
         alike, by this share of the correction (0: to the point's uncorrected projection,
         which counts the offset between a projection and its corrected place against every
-        step, ten times a second at 10 Hz).
+        step, ten times a second at 10 Hz). A place the path's turn stops short of its
+        estimate pays by the correction's miss, and its step is judged to the estimate by the
+        same share. REAL live correct road 1 Hz 99.142 -> 99.148 %, 10 Hz 99.085 -> 99.143 %.
     """
 
     drift_rate: float = 0.04
