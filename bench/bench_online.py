@@ -11,6 +11,7 @@ as reported live and after applying the matcher's corrections.
     python bench/bench_online.py                 # everything (~15 min on 2 cores)
     python bench/bench_online.py --quick         # one map, 1 Hz, σ 5 m
     python bench/bench_online.py --quick --breakdown   # also classify the wrong-edge fixes
+    python bench/bench_online.py --quick --set node_hold_ahead_sigmas=0   # an A/B of a config field
 """
 
 from __future__ import annotations
@@ -22,6 +23,7 @@ import time
 from dataclasses import replace
 from importlib import resources
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pandas as pd
@@ -29,6 +31,8 @@ import pandas as pd
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from mapmatch.config import DEFAULT_CONFIG, MatchConfig  # noqa: E402
+from mapmatch.errors import ConfigError  # noqa: E402
 from mapmatch.evaluate import evaluate, path_nodes  # noqa: E402
 from mapmatch.graph.build import build_map  # noqa: E402
 from mapmatch.graph.road_graph import RoadGraph  # noqa: E402
@@ -213,11 +217,13 @@ def simulate(graph: RoadGraph, route: Route, *, rate: float, sigma: float, seed:
     return simulate_drive(graph, route, rate=rate, outages=outs or "none", seed=seed, sensors=sens)
 
 
-def speed_bench(name: str, graph: RoadGraph, *, seed: int = 1) -> dict[str, float]:
+def speed_bench(
+    name: str, graph: RoadGraph, *, seed: int = 1, config: MatchConfig = DEFAULT_CONFIG
+) -> dict[str, float]:
     rng = np.random.default_rng(seed)
     route = random_route(graph, length_m=15000.0, rng=rng)
     drive = simulate_drive(graph, route, rate=10.0, outages="paper", seed=seed)
-    matcher = OnlineMatcher(graph)
+    matcher = OnlineMatcher(graph, config=config)
     run_drive(matcher, drive)  # warm-up
     _, ts = run_drive(matcher, drive)
     us = ts * 1e6
@@ -245,6 +251,7 @@ def accuracy_runs(
     n_random: int,
     km: float,
     breakdown: dict[str, int] | None = None,
+    config: MatchConfig = DEFAULT_CONFIG,
 ) -> list[dict[str, object]]:
     routes: list[tuple[str, Route]] = []
     if name.isdigit():
@@ -252,7 +259,7 @@ def accuracy_runs(
     rng = np.random.default_rng(7)
     for i in range(n_random):
         routes.append((f"random{i}", random_route(graph, length_m=km * 1000.0, rng=rng)))
-    matcher = OnlineMatcher(graph)
+    matcher = OnlineMatcher(graph, config=config)
     rows: list[dict[str, object]] = []
     for rname, route in routes:
         for rate in rates:
@@ -294,13 +301,20 @@ def main() -> int:
     ap.add_argument("--maps", nargs="*", default=None)
     ap.add_argument("--json", type=Path, default=None, help="also write all rows here")
     ap.add_argument("--breakdown", action="store_true", help="classify the wrong-edge fixes")
+    ap.add_argument("--set", nargs="*", default=[], metavar="NAME=VALUE", help="matcher config overrides")
     args = ap.parse_args()
+    try:
+        over: dict[str, Any] = {k: float(v) for k, v in (kv.split("=", 1) for kv in args.set)}
+        cfg = DEFAULT_CONFIG.replace(**over)
+    except (ValueError, TypeError, ConfigError) as exc:
+        print(f"error: --set: {exc}", file=sys.stderr)
+        return 2
     out: dict[str, object] = {}
     if not args.no_speed:
         print("## speed: per-fix update time, 10 Hz simulated drive with the paper's outages")
         rows = []
         for name in ["helsinki"] if args.quick else ["helsinki", KUBICKA_LARGEST]:
-            rows.append(speed_bench(name, load(name)))
+            rows.append(speed_bench(name, load(name), config=cfg))
             r = rows[-1]
             print(
                 f"{r['map']:>9}: {r['edges']:7d} edges, {r['fixes']} fixes: median {r['median_us']:.1f} µs, "
@@ -325,7 +339,14 @@ def main() -> int:
         kinds: dict[str, int] | None = {} if args.breakdown else None
         for name, rates, sigmas, n_random, km in plan:
             rows2 += accuracy_runs(
-                name, load(name), rates=rates, sigmas=sigmas, n_random=n_random, km=km, breakdown=kinds
+                name,
+                load(name),
+                rates=rates,
+                sigmas=sigmas,
+                n_random=n_random,
+                km=km,
+                breakdown=kinds,
+                config=cfg,
             )
         df = pd.DataFrame(rows2)
         for col in ("ix", "ix_live", "edge", "edge_live", "edge_outage"):

@@ -242,6 +242,14 @@ class OnlineConfig:
         99.16 % at 1 Hz, but SIMULATED (white fix noise) -0.11 points of correct edge, -0.14
         live (0.25: -0.04/-0.08 on Helsinki and Monaco): the hold stays until a rule tells the
         noise at a node from the 10 Hz lag (was ``node_hold_sigmas``).
+    step_from_corrected : with GPS, the step from a hypothesis's place (where the along-track
+        correction put it: the fix's projection less the learnt fix bias along the road, fused
+        with the turn anchor) to a candidate point is judged to the point's place corrected
+        alike, by this share of the correction (0: to the point's uncorrected projection,
+        which counts the offset between a projection and its corrected place against every
+        step, ten times a second at 10 Hz). A place the path's turn stops short of its
+        estimate pays by the correction's miss, and its step is judged to the estimate by the
+        same share. REAL live correct road 1 Hz 99.142 -> 99.148 %, 10 Hz 99.085 -> 99.143 %.
     """
 
     drift_rate: float = 0.04
@@ -331,6 +339,7 @@ class OnlineConfig:
     outage_separation_sigmas: float = 2.0
     node_hold_ahead_sigmas: float = 0.5
     stopped_heading_weight: float = 1.0
+    step_from_corrected: float = 1.0
 
     def __post_init__(self) -> None:
         _check_numbers(self)

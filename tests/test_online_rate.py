@@ -336,6 +336,58 @@ def test_position_at_a_crossing_is_held_at_10_hz_only_within_the_ahead_margin() 
         assert edge == bc and off == pytest.approx(2.0, abs=0.01)
 
 
+def test_step_is_judged_between_corrected_places_at_10_hz() -> None:
+    """The fixes lie 3 m ahead of the vehicle along a-b-c (a learnt bias along the road), so
+    the vehicle's place is 3 m behind each fix's projection: 1 m before the crossing b. The next
+    10 Hz fix, 0.7 m on, lies 2.7 m past b. Judged from that place to the candidates' corrected
+    places, the point on b-c (corrected 0.3 m before b) is the 0.7 m the odometer drove and
+    the place moves on by that; judged to the uncorrected projections
+    (``step_from_corrected`` 0), the crossing b itself (1 m on) is nearer the odometer's 0.7 m
+    than b-c's 3.7 m, and b corrected by the bias puts the vehicle back 2 m."""
+    import numpy as np
+
+    from mapmatch.config import DEFAULT_CONFIG
+    from mapmatch.online.placement import place_all
+    from mapmatch.online.road import RoadModel
+    from mapmatch.online.state import FixBias, Hypothesis, Step
+
+    m = parse_ascii_map(CROSSING, scale=10)
+    road = RoadModel(m.graph)
+    ab, bc = m.edge("a", "b"), m.edge("b", "c")
+    le = float(road.elen[ab])
+    assert DEFAULT_CONFIG.online.step_from_corrected == 1.0
+
+    def place(share: float) -> float:
+        px, py, brg = road.locate(ab, le - 1.0)
+        h = Hypothesis([ab, bc], 0, le - 1.0, le - 1.0, 0.0, [0.0], 0.0, px, py, brg)
+        x, y = m.xy("b") + np.array([2.7, 0.0])
+        step = Step(
+            time=1.0,
+            x=float(x),
+            y=float(y),
+            sigma=8.0,
+            heading=90.0,
+            kappa=1.0 / math.radians(10.0) ** 2,
+            travelled=0.7,
+            odo=100.0,
+            odo_known=True,
+            dt=0.1,
+            gps=True,
+            weight=0.1,
+            stopped=False,
+            r_a=16.0,
+            dr=0.0,
+            bias=FixBias(3.0, 0.0, 1.0, 0.0, 1.0),  # 3 m east: ahead along a-b-c
+            odo_sigma=0.01,
+            fix_sigma=8.0,
+        )
+        place_all(road, [h], step, DEFAULT_CONFIG.replace(step_from_corrected=share))
+        return h.s
+
+    assert place(1.0) == pytest.approx(le - 0.3, abs=0.01)  # on by the 0.7 m driven
+    assert place(0.0) == pytest.approx(le - 3.0, abs=0.01)  # back 2 m
+
+
 def test_twin_hypothesis_on_the_same_path_is_merged_at_10_hz() -> None:
     """A second hypothesis on the vehicle's own path, 3 m ahead of it and 9 log units less
     probable (as a road that joined the filter, or a branch kept past a commit, comes to be):

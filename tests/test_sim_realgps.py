@@ -101,6 +101,20 @@ def test_ten_hz_interpolates_between_real_fixes(tmp_path: Path) -> None:
     assert np.isclose(d10.fixes["distance"].sum(), d1.fixes["distance"].sum(), rtol=0.02)
 
 
+def test_ten_hz_uses_no_fix_an_outage_hides(tmp_path: Path) -> None:
+    """At 10 Hz the positions next to an outage are not interpolated towards (before) or from
+    (after) the fixes it hides: up to the last fix before it and from the first fix after it."""
+    amap, _, _ = _ell_track(tmp_path)
+    # fixes every second from 0; the outage hides fixes 10.5 ... 21.5, i.e. 11 to 21
+    d = real_drive(amap.graph, tmp_path, rate_hz=10.0, outages=[(10.5, 11.0)], seed=2)
+    tm = d.fixes["time"].to_numpy()
+    valid = d.fixes["gps_valid"].to_numpy() > 0
+    assert valid[tm <= 10.0 + 1e-6].all()  # up to the last fix the outage leaves
+    assert not valid[(tm > 10.0 + 1e-6) & (tm < 22.0 - 1e-6)].any()  # 21.5-22: from fix 21, hidden
+    assert valid[tm >= 22.0 - 1e-6].all()
+    assert (d.truth["gps_outage"].to_numpy() == ~valid).all()
+
+
 def test_track_gaps_are_dead_reckoned(tmp_path: Path) -> None:
     amap, pts, t = _ell_track(tmp_path)
     keep = np.ones(len(t), dtype=bool)

@@ -30,9 +30,10 @@ def along_track(  # type: ignore[no-untyped-def]
     """Correct the position along the path ``edges``: the fix's projection ``best`` less its
     learnt along-track bias, fused with the turn anchor ``anc`` (σ ``anc_sd``; on a straight
     road the map cannot tell the fix's along-track error). ``acc`` is the furthest ``s``
-    allowed. Returns ``(moved, position, miss, anc, anc_sd)``: whether the position changed,
-    the corrected position (``best`` when unchanged), a log-penalty when the path's turn stops
-    the position short of the estimate, and the anchor (nan when inconsistent: forgotten)."""
+    allowed. Returns ``(moved, position, want, miss, anc, anc_sd)``: whether the position
+    changed, the corrected position (``best`` when unchanged), the estimate's ``s`` (the
+    position's unless a turn of the path stops it short), a log-penalty for that, and the
+    anchor (nan when inconsistent: forgotten)."""
     j0, off0, s0 = best[0], best[1], best[2]
     rad = math.radians(best[6])
     tx, ty = math.sin(rad), math.cos(rad)
@@ -48,20 +49,38 @@ def along_track(  # type: ignore[no-untyped-def]
         else:
             s_f = s_m + innov * vf / (va + vf)
     if abs(s_f - s0) <= 0.01:
-        return False, best, 0.0, anc, anc_sd
+        return False, best, s0, 0.0, anc, anc_sd
     s_f = min(max(s_f, 0.0), acc)
     want, miss = s_f, 0.0
-    j, start, s_f = _stop_at_turns(road, p, edges, j0, s0 - off0, s_f)
+    j, start, s_f = stop_at_turns(road, p, edges, j0, s0 - off0, s_f)
     if s_f != want:  # the along-track estimate is past a turn this path has not taken yet
         miss = 0.5 * (want - s_f) ** 2 * (1.0 / vf + (1.0 / va if va > 0.0 else 0.0))
     rest = min(max(s_f - start, 0.0), road.elen[edges[j]])
     px, py, brg = locate(road, edges[j], rest)
     moved = (j, rest, s_f, hypot(px - p.x, py - p.y), px, py, brg)
-    return True, moved, miss, anc, anc_sd
+    return True, moved, want, miss, anc, anc_sd
 
 
 @njit(cache=True)
-def _stop_at_turns(  # type: ignore[no-untyped-def]
+def corrected_s(p: PlaceParams, s0: float, bearing: float, anc: float, anc_sd: float) -> float:
+    """Where :func:`along_track` would put a projection ``s0`` on a road of ``bearing`` (before
+    the path's turns stop it): less the learnt bias along the road, fused with the anchor."""
+    rad = math.radians(bearing)
+    tx, ty = math.sin(rad), math.cos(rad)
+    s_m = s0 - (p.bx * tx + p.by * ty)
+    if math.isnan(anc_sd) or not p.odo_known:
+        return s_m
+    white = p.bias_white_fraction * p.sigma
+    vf = tx * tx * p.pxx + 2.0 * tx * ty * p.pxy + ty * ty * p.pyy + white**2
+    va = anc_sd * anc_sd
+    innov = anc + p.odo - s_m
+    if innov * innov > p.anchor_gate**2 * (va + vf):
+        return s_m
+    return s_m + innov * vf / (va + vf)  # type: ignore[no-any-return]
+
+
+@njit(cache=True)
+def stop_at_turns(  # type: ignore[no-untyped-def]
     road: RoadArrays, p: PlaceParams, edges: NDArray[np.int64], j: int, start: float, s_f: float
 ):
     """Move from edge ``j`` (starting ``start`` metres along the path) towards ``s_f`` across

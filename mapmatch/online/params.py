@@ -44,6 +44,7 @@ class PlaceParams(NamedTuple):
     # configuration
     bias_emission: float
     bias_white_fraction: float
+    step_from_corrected: float
     anchor_gate: float
     straight_max_deg: float
     pos_sigma_floor: float
@@ -62,6 +63,7 @@ def _config_part(cfg: MatchConfig) -> tuple[float, ...]:
         for v in (
             o.bias_emission,
             o.bias_white_fraction,
+            o.step_from_corrected,
             o.anchor_gate,
             m.straight_max_deg,
             o.pos_sigma_floor,

@@ -18,7 +18,7 @@ from numpy.typing import NDArray
 
 from mapmatch.config import MatchConfig
 from mapmatch.model import emission_logp_one, transition_one_compiled
-from mapmatch.online.along import Pos, along_track
+from mapmatch.online.along import Pos, along_track, corrected_s
 from mapmatch.online.geometry import (
     RoadArrays,
     angle_diff_c,
@@ -66,21 +66,39 @@ def debiased(p: PlaceParams, dist: float, px: float, py: float, bearing: float) 
 
 
 @njit(cache=True)
-def _score(p: PlaceParams, dist: float, px: float, py: float, brg: float, moved: float) -> float:
+def _score(  # type: ignore[no-untyped-def]
+    p: PlaceParams,
+    dist: float,
+    px: float,
+    py: float,
+    brg: float,
+    s: float,
+    here: Pos,
+    anc: float,
+    anc_sd: float,
+) -> float:
     """Log-score of the road point ``(px, py)`` of bearing ``brg``, ``dist`` from the fix and
-    ``moved`` metres along the path from the hypothesis's place (emission and transition)."""
+    ``s`` along the path (emission, and transition from the hypothesis's place ``here``).
+    That place is where the along-track correction put it: with GPS the step is judged from
+    there to the point's place corrected alike (``step_from_corrected`` of the correction),
+    or the offset between a projection and its corrected place would count against every
+    step (ten times a second at 10 Hz). Not stopped at the path's turns: a place held at a
+    turn pays for that by the correction's miss, not twice."""
     sc = emission_logp_one(debiased(p, dist, px, py, brg), p.sigma, p.heading, brg, p.kappa)
     if not math.isnan(p.travelled):
-        sc += transition(p, moved)
+        if p.gps and p.step_from_corrected > 0.0:
+            s += p.step_from_corrected * (corrected_s(p, s, brg, anc, anc_sd) - s)
+        sc += transition(p, s - here[2])
     return sc  # type: ignore[no-any-return]
 
 
 @njit(cache=True)
 def nearest_on_path(  # type: ignore[no-untyped-def]
-    road: RoadArrays, p: PlaceParams, edges: NDArray[np.int64], here: Pos
+    road: RoadArrays, p: PlaceParams, edges: NDArray[np.int64], here: Pos, anc: float, anc_sd: float
 ):
     """The fix's best projection onto the path ``edges`` from the position ``here`` (emission
-    and transition), with hysteresis at nodes: ``(score, position, furthest s allowed)``."""
+    and transition; ``anc``, ``anc_sd`` its turn anchor), with hysteresis at nodes:
+    ``(score, position, furthest s allowed)``."""
     k, h_s = here[0], here[2]
     hold = p.node_hold
     hold_ahead = p.node_hold_ahead + 1e-6
@@ -109,7 +127,7 @@ def nearest_on_path(  # type: ignore[no-untyped-def]
             # transition over one step's 0.7 m favours that fix after fix up to the margin)
             acc += le
             continue
-        sc = _score(p, dist, px, py, brg, s - h_s)
+        sc = _score(p, dist, px, py, brg, s, here, anc, anc_sd)
         if sc > best_sc + 1e-9:
             best_sc = sc
             best = (j, off, s, dist, px, py, brg)
@@ -121,7 +139,7 @@ def nearest_on_path(  # type: ignore[no-untyped-def]
             )
             if found:
                 s = acc + off
-                sc = _score(p, dist, px, py, brg, s - h_s)
+                sc = _score(p, dist, px, py, brg, s, here, anc, anc_sd)
                 if sc > best_sc + 1e-9:
                     best_sc = sc
                     best = (j, off, s, dist, px, py, brg)
@@ -178,9 +196,9 @@ def place_one(  # type: ignore[no-untyped-def]
 ):
     """One hypothesis's best position for this fix from ``here``: ``(score, position, anc,
     anc_sd)``."""
-    best_sc, best, acc = nearest_on_path(road, p, edges, here)
+    best_sc, best, acc = nearest_on_path(road, p, edges, here, anc, anc_sd)
     if p.gps:
-        moved, pos, miss, anc, anc_sd = along_track(road, p, edges, anc, anc_sd, best, acc)
+        moved, pos, want, miss, anc, anc_sd = along_track(road, p, edges, anc, anc_sd, best, acc)
         if moved:
             # scored where the vehicle is now believed to be: its heading against the road
             # there (the distance stays the fix's offset from the road, which the correction
@@ -188,7 +206,10 @@ def place_one(  # type: ignore[no-untyped-def]
             dist = debiased(p, best[3], best[4], best[5], best[6])
             best_sc = emission_logp_one(dist, p.sigma, p.heading, pos[6], p.kappa) - miss
             if not math.isnan(p.travelled):
-                best_sc += transition(p, pos[2] - here[2])
+                # held at a turn short of the estimate: the miss is its penalty; the step
+                # is judged to the estimate (``step_from_corrected`` of the way there)
+                to = pos[2] + p.step_from_corrected * (want - pos[2])
+                best_sc += transition(p, to - here[2])
             best = pos
     elif p.odo_known:
         best_sc, best = dead_reckon(road, p, edges, here[0], here[2], acc)

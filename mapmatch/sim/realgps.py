@@ -29,7 +29,8 @@ Steps (:func:`real_drive`):
 3. The fused output, on a base grid of 10 Hz, subsampled to 1 Hz:
 
    * **position with GPS**: the real fix; between two real fixes at most ``max_interp_gap_s``
-     apart (at 10 Hz, and at 1 Hz where a track has a 2 s step) interpolated linearly. After
+     apart (at 10 Hz, and at 1 Hz where a track has a 2 s step) interpolated linearly, but
+     never towards or from a fix an outage hides (there the position is dead-reckoned). After
      a stretch without GPS, the dead-reckoned offset is blended out: a share ``blend_keep``
      of it remains at the first fix, and it decays by that factor per second (a Kalman
      filter whose position covariance has grown in the outage takes most of the first fix);
@@ -482,14 +483,18 @@ def real_drive(
     k1 = np.minimum(k + 1, len(t_fix) - 1)
     exact = np.abs(t_fix[k] - tb) < 1e-6
     gap = t_fix[k1] - t_fix[k]
-    have = exact | ((gap <= cfg.max_interp_gap_s) & (tb > t_fix[k]) & (tb < t_fix[k1]))
+    fix_in_out = np.zeros(len(t_fix), dtype=bool)  # real fixes the outages hide
+    in_out = np.zeros(n, dtype=bool)
+    for a, d in outs:
+        fix_in_out |= (t_fix >= a) & (t_fix < a + d)
+        in_out |= (tb >= a) & (tb < a + d)
+    # interpolated only between two fixes the receiver gave: next to an outage a position is
+    # not built from a fix the outage hides (it is dead-reckoned)
+    between = (gap <= cfg.max_interp_gap_s) & (tb > t_fix[k]) & (tb < t_fix[k1]) & ~fix_in_out[k1]
+    have = (exact | between) & ~fix_in_out[k] & ~in_out
     frac = np.where(gap > 0, (tb - t_fix[k]) / np.where(gap > 0, gap, 1.0), 0.0)
     frac = np.where(exact, 0.0, frac)
     gps = fix_xy[k] + frac[:, None] * (fix_xy[k1] - fix_xy[k])
-    in_out = np.zeros(n, dtype=bool)
-    for a, d in outs:
-        in_out |= (tb >= a) & (tb < a + d)
-    have &= ~in_out
 
     # ---- reported heading: lagged truth + bias + noise; gyro drift without GPS
     lag = psi.copy()
@@ -596,9 +601,6 @@ def real_drive(
     )
     truth["truth_known"] = truth_known(route, fix_xy, t_fix, ot, config=cfg)
     gll = to_lonlat(graph.crs, fix_xy[:, 0], fix_xy[:, 1])
-    fix_in_out = np.zeros(len(t_fix), dtype=bool)
-    for a, d in outs:
-        fix_in_out |= (t_fix >= a) & (t_fix < a + d)
     gps_df = pd.DataFrame(
         {
             "time": t_fix + time0,
