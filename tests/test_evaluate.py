@@ -10,6 +10,7 @@ from mapmatch.evaluate import (
     edge_path,
     evaluate,
     intersection_score,
+    matched_junctions,
     path_geometry,
     path_nodes,
     route_mismatch,
@@ -107,6 +108,21 @@ def test_alignment_counts_matching_blocks() -> None:
     s = intersection_score([1, 2, 3], [1, 2, 7, 8, 3])
     assert (s.correct, s.precision) == (3, 0.6)
     assert np.isnan(intersection_score([], []).accuracy)
+
+
+def test_alignment_is_optimal_on_a_route_that_drives_a_loop_twice() -> None:
+    loop = [10, 11, 12, 13, 14, 15]
+    true = [1, 2, *loop, *loop, 3, 4]
+    # the first pass misses 13 and 15 and reports a wrong 99; the second is right; 3 is missed.
+    # difflib's greedy longest block (10..15 of the second pass paired with the first) found 9
+    matched = [1, 2, 10, 11, 12, 14, 99, 10, 11, 12, 13, 14, 15, 4]
+    s = intersection_score(true, matched)
+    assert (s.true, s.matched, s.correct) == (16, 14, 13)
+    found = matched_junctions(true, matched)
+    assert found.sum() == 13 and not found[5] and not found[7] and not found[14]
+    # an extra report (a brief wrong branch) costs precision, not accuracy
+    s = intersection_score(true, [1, 2, 10, 50, 11, 12, 13, 14, 15, *loop, 3, 4])
+    assert (s.correct, s.accuracy, s.matched) == (16, 1.0, 17)
 
 
 def test_gap_in_per_fix_edges_is_closed_by_shortest_path(amap) -> None:  # type: ignore[no-untyped-def]
