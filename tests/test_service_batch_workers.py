@@ -161,14 +161,19 @@ def test_a_worker_that_dies_fails_its_call_with_unavailable_and_is_replaced(tmp_
 
 def test_an_abandoned_call_stops_its_worker_and_stop_ends_the_workers(tmp_path):
     path = _map_file(tmp_path)
-    cfg = local_config(maps=(("city", path),), max_track_points=BIG, max_answer_bytes=256 << 20)
+    long = 6 * BIG  # a match of a few seconds: one of BIG points could end before the cancel arrives
+    cfg = local_config(
+        maps=(("city", path),), max_track_points=long, max_answer_bytes=256 << 20, max_message_bytes=64 << 20
+    )
     with running(cfg) as (server, port):
         (worker,) = _workers(server)
-        ch, api = stub(port, options=[("grpc.max_receive_message_length", -1)])
+        ch, api = stub(
+            port, options=[("grpc.max_receive_message_length", -1), ("grpc.max_send_message_length", -1)]
+        )
         assert api.MatchTrack(pb.MatchTrackRequest(track=looped_track(AMAP, 5)), timeout=300).points
         # abandoned while the worker matches (its CPU time grows): a deadline alone may come
         # after a fast match, or before the track reaches the worker
-        call = api.MatchTrack.future(pb.MatchTrackRequest(track=looped_track(AMAP, BIG)), timeout=600)
+        call = api.MatchTrack.future(pb.MatchTrackRequest(track=looped_track(AMAP, long)), timeout=600)
         c0 = _cpu(worker)
         while _cpu(worker) - c0 < 0.1 and not call.done():
             time.sleep(0.01)
@@ -179,7 +184,7 @@ def test_an_abandoned_call_stops_its_worker_and_stop_ends_the_workers(tmp_path):
         worker.wait(10)  # stopped, not left matching for nobody
         (again,) = _workers(server)
         assert again.pid != worker.pid
-        fut = api.MatchTrack.future(pb.MatchTrackRequest(track=looped_track(AMAP, BIG)), timeout=600)
+        fut = api.MatchTrack.future(pb.MatchTrackRequest(track=looped_track(AMAP, long)), timeout=600)
         c0 = _cpu(again)
         while _cpu(again) - c0 < 0.3:
             time.sleep(0.05)

@@ -102,10 +102,14 @@ def test_a_good_stream_keeps_its_latency_during_the_largest_batch_and_track():
             fixes=[r for k in range(1000 // len(fixes) + 1) for r in requests(fixes, f"b{k}")][:1000]
         )
         t.start()
-        t0 = time.perf_counter()
-        answers = list(api.StreamFixBatches(iter([batch] * 3), timeout=300))
-        track = api.MatchTrack(pb.MatchTrackRequest(track=looped_track(AMAP, 20_000)), timeout=300)
-        heavy = time.perf_counter() - t0
+        heavy = 0.0
+        for _ in range(20):  # the heavy calls again until the good stream has had its samples
+            t0 = time.perf_counter()
+            answers = list(api.StreamFixBatches(iter([batch] * 3), timeout=300))
+            track = api.MatchTrack(pb.MatchTrackRequest(track=looped_track(AMAP, 20_000)), timeout=300)
+            heavy = max(heavy, time.perf_counter() - t0)
+            if len(busy) >= 5:
+                break
         stop.set()
         t.join(30)
         assert [len(a.responses) for a in answers] == [1000] * 3 and len(track.points) == 20_000
