@@ -23,7 +23,6 @@ import time
 from dataclasses import replace
 from importlib import resources
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 import pandas as pd
@@ -304,9 +303,8 @@ def main() -> int:
     ap.add_argument("--set", nargs="*", default=[], metavar="NAME=VALUE", help="matcher config overrides")
     args = ap.parse_args()
     try:
-        over: dict[str, Any] = {k: float(v) for k, v in (kv.split("=", 1) for kv in args.set)}
-        cfg = DEFAULT_CONFIG.replace(**over)
-    except (ValueError, TypeError, ConfigError) as exc:
+        cfg = DEFAULT_CONFIG.with_settings(args.set)
+    except ConfigError as exc:
         print(f"error: --set: {exc}", file=sys.stderr)
         return 2
     out: dict[str, object] = {}

@@ -37,7 +37,6 @@ import json
 import sys
 import time
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 import pandas as pd
@@ -306,9 +305,8 @@ def main() -> int:
     ap.add_argument("--set", nargs="*", default=[], metavar="NAME=VALUE", help="matcher config overrides")
     args = ap.parse_args()
     try:
-        over: dict[str, Any] = {k: float(v) for k, v in (kv.split("=", 1) for kv in args.set)}
-        cfg = DEFAULT_CONFIG.replace(**over)
-    except (ValueError, TypeError, ConfigError) as exc:
+        cfg = DEFAULT_CONFIG.with_settings(args.set)
+    except ConfigError as exc:
         print(f"error: --set: {exc}", file=sys.stderr)
         return 2
     if not KUBICKA.is_dir():

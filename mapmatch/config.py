@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -485,6 +486,21 @@ class MatchConfig:
             flat = {k: v for k, v in overrides.items() if _OWNER.get(k) == sec}
             parts[sec] = _replace_section(cur, flat) if flat else cur
         return MatchConfig(**parts)
+
+    def with_settings(self, settings: Sequence[str]) -> MatchConfig:
+        """A copy with ``NAME=VALUE`` settings (numbers, by field name) applied, as
+        :meth:`replace`; a setting without ``=`` or a value that is no number is a
+        :class:`ConfigError` naming it."""
+        over: dict[str, Any] = {}
+        for kv in settings:
+            name, sep, value = kv.partition("=")
+            if not sep:
+                raise ConfigError(f"{kv!r}: expected NAME=VALUE")
+            try:  # "8" an integer (counts), "0.5" or "1e3" a float
+                over[name.strip()] = int(value) if value.strip().lstrip("+-").isdigit() else float(value)
+            except ValueError:
+                raise ConfigError(f"{name.strip()}: {value!r} is not a number") from None
+        return self.replace(**over)
 
     def to_dict(self) -> dict[str, Any]:
         """Nested plain values, one mapping per section."""

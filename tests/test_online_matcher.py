@@ -567,6 +567,23 @@ def test_online_tuning_constants_are_validated_config_fields() -> None:
             DEFAULT_CONFIG.replace(**bad)
 
 
+def test_settings_by_name_and_value_as_the_benchmarks_take_them() -> None:
+    from mapmatch.errors import ConfigError
+
+    cfg = DEFAULT_CONFIG.with_settings(["step_from_corrected=0", " node_hold_sigmas = 2.5"])
+    assert (cfg.step_from_corrected, cfg.node_hold_sigmas) == (0.0, 2.5)
+    assert DEFAULT_CONFIG.with_settings([]) == DEFAULT_CONFIG
+    assert type(DEFAULT_CONFIG.with_settings(["max_hypotheses=8"]).max_hypotheses) is int
+    for bad, says in (
+        (["step_from_corrected"], "NAME=VALUE"),
+        (["node_hold_sigmas=wide"], "node_hold_sigmas"),
+        (["no_such_field=1"], "no_such_field"),
+        (["max_hypotheses=0"], "max_hypotheses"),
+    ):
+        with pytest.raises(ConfigError, match=says):
+            DEFAULT_CONFIG.with_settings(bad)
+
+
 TURN_THEN_CROSS = """
     d       n
     |       |
