@@ -302,8 +302,15 @@ def motion_heading_into(xy, kidx, min_leg, max_turn, out):  # type: ignore[no-un
         lv = math.hypot(vx, vy)
         if lu < min_leg or lv < min_leg or ux * vx + uy * vy < cos_max * lu * lv:
             continue
-        out[i] = math.degrees(math.atan2(ux / lu + vx / lv, uy / lu + vy / lv)) % 360.0
+        out[i] = _wrap360(math.degrees(math.atan2(ux / lu + vx / lv, uy / lu + vy / lv)))
     return out
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _wrap360(h):  # type: ignore[no-untyped-def]
+    """``h % 360.0`` for ``h`` in [-360, 360) (an arctangent in degrees), in Python's float steps
+    (-0.0 gives 0.0, NaN stays NaN) without the ``fmod`` call."""
+    return h + 360.0 if h < 0.0 else h + 0.0
 
 
 @njit(cache=True, nogil=True)
