@@ -62,6 +62,17 @@ def along_lengths(seg_xy, seg_ptr):  # type: ignore[no-untyped-def]
 
 
 @njit(cache=True, nogil=True)
+def segment_lengths(seg_xy, seg_ptr):  # type: ignore[no-untyped-def]
+    """Per polyline segment (indexed by its first vertex), its length in the float steps of
+    :func:`mapmatch.batch.route.pieces_xy` (the last vertex of an edge gets 0)."""
+    out = np.zeros(len(seg_xy))
+    for e in range(len(seg_ptr) - 1):
+        for q in range(seg_ptr[e], seg_ptr[e + 1] - 1):
+            out[q] = math.hypot(seg_xy[q + 1, 0] - seg_xy[q, 0], seg_xy[q + 1, 1] - seg_xy[q, 1])
+    return out
+
+
+@njit(cache=True, nogil=True)
 def bearing_at(edges, offs, seg_xy, seg_ptr, seg_end):  # type: ignore[no-untyped-def]
     """Compass bearing (degrees) of the edge polyline segment at each offset: the first segment
     ending at or beyond it (the last one when beyond the edge), or the nearest non-degenerate
