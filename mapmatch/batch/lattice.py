@@ -300,16 +300,25 @@ def motion_heading_into(xy, kidx, min_leg, max_turn, out):  # type: ignore[no-un
     if k < 3:
         return out
     cos_max = math.cos(math.radians(max_turn))
+    last = -1  # the previous centre point: its second leg is this one's first
+    vx = vy = lv = 0.0
     for i in range(k):
         c = min(max(i, 1), k - 2)
-        a = kidx[c - 1]
+        if c == last:  # the ends: the same two legs as the neighbour
+            out[i] = out[i - 1]
+            continue
         b = kidx[c]
+        if c == last + 1:
+            ux, uy, lu = vx, vy, lv
+        else:
+            a = kidx[c - 1]
+            ux = xy[b, 0] - xy[a, 0]
+            uy = xy[b, 1] - xy[a, 1]
+            lu = math.hypot(ux, uy)
+        last = c
         d = kidx[c + 1]
-        ux = xy[b, 0] - xy[a, 0]
-        uy = xy[b, 1] - xy[a, 1]
         vx = xy[d, 0] - xy[b, 0]
         vy = xy[d, 1] - xy[b, 1]
-        lu = math.hypot(ux, uy)
         lv = math.hypot(vx, vy)
         if lu < min_leg or lv < min_leg or ux * vx + uy * vy < cos_max * lu * lv:
             continue
