@@ -180,6 +180,8 @@ def query_grid(pts, radius, k, grid, sc, ar):  # type: ignore[no-untyped-def]
     oq = take_xy(ar, cap)
     m = 0
     r = math.ceil(radius / cell)
+    # squared-distance pre-check: beyond this, hypot exceeds ``radius`` too (margin >> rounding)
+    r2 = radius * radius * (1.0 + 1e-9)
     loc_e = take_i8(ar, 64)
     loc_d = take_f8(ar, 64)
     loc_o = take_f8(ar, 64)
@@ -228,7 +230,10 @@ def query_grid(pts, radius, k, grid, sc, ar):  # type: ignore[no-untyped-def]
                         t = ((px - ax) * dx + (py - ay) * dy) / max(L * L, 1e-12)
                         t = min(max(t, 0.0), 1.0)
                     qx, qy = ax + dx * t, ay + dy * t
-                    d = math.hypot(px - qx, py - qy)
+                    ex, ey = px - qx, py - qy
+                    if ex * ex + ey * ey > r2:
+                        continue
+                    d = math.hypot(ex, ey)
                     if d > radius:
                         continue
                     e = seg_edge[s]

@@ -72,6 +72,8 @@ class EdgeGeometry(NamedTuple):
 
     seg_xy: NDArray[np.float64]
     seg_ptr: NDArray[np.int64]
+    seg_len: NDArray[np.float64]
+    """:func:`mapmatch.batch.lattice.segment_lengths` (computed once per map)."""
 
 
 class KernelParams(NamedTuple):

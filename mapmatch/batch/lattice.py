@@ -62,6 +62,17 @@ def along_lengths(seg_xy, seg_ptr):  # type: ignore[no-untyped-def]
 
 
 @njit(cache=True, nogil=True)
+def segment_lengths(seg_xy, seg_ptr):  # type: ignore[no-untyped-def]
+    """Per polyline segment (indexed by its first vertex), its length in the float steps of
+    :func:`mapmatch.batch.route.pieces_xy` (the last vertex of an edge gets 0)."""
+    out = np.zeros(len(seg_xy))
+    for e in range(len(seg_ptr) - 1):
+        for q in range(seg_ptr[e], seg_ptr[e + 1] - 1):
+            out[q] = math.hypot(seg_xy[q + 1, 0] - seg_xy[q, 0], seg_xy[q + 1, 1] - seg_xy[q, 1])
+    return out
+
+
+@njit(cache=True, nogil=True)
 def bearing_at(edges, offs, seg_xy, seg_ptr, seg_end):  # type: ignore[no-untyped-def]
     """Compass bearing (degrees) of the edge polyline segment at each offset: the first segment
     ending at or beyond it (the last one when beyond the edge), or the nearest non-degenerate
@@ -289,21 +300,37 @@ def motion_heading_into(xy, kidx, min_leg, max_turn, out):  # type: ignore[no-un
     if k < 3:
         return out
     cos_max = math.cos(math.radians(max_turn))
+    last = -1  # the previous centre point: its second leg is this one's first
+    vx = vy = lv = 0.0
     for i in range(k):
         c = min(max(i, 1), k - 2)
-        a = kidx[c - 1]
+        if c == last:  # the ends: the same two legs as the neighbour
+            out[i] = out[i - 1]
+            continue
         b = kidx[c]
+        if c == last + 1:
+            ux, uy, lu = vx, vy, lv
+        else:
+            a = kidx[c - 1]
+            ux = xy[b, 0] - xy[a, 0]
+            uy = xy[b, 1] - xy[a, 1]
+            lu = math.hypot(ux, uy)
+        last = c
         d = kidx[c + 1]
-        ux = xy[b, 0] - xy[a, 0]
-        uy = xy[b, 1] - xy[a, 1]
         vx = xy[d, 0] - xy[b, 0]
         vy = xy[d, 1] - xy[b, 1]
-        lu = math.hypot(ux, uy)
         lv = math.hypot(vx, vy)
         if lu < min_leg or lv < min_leg or ux * vx + uy * vy < cos_max * lu * lv:
             continue
-        out[i] = math.degrees(math.atan2(ux / lu + vx / lv, uy / lu + vy / lv)) % 360.0
+        out[i] = _wrap360(math.degrees(math.atan2(ux / lu + vx / lv, uy / lu + vy / lv)))
     return out
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _wrap360(h):  # type: ignore[no-untyped-def]
+    """``h % 360.0`` for ``h`` in [-360, 360) (an arctangent in degrees), in Python's float steps
+    (-0.0 gives 0.0, NaN stays NaN) without the ``fmod`` call."""
+    return h + 360.0 if h < 0.0 else h + 0.0
 
 
 @njit(cache=True, nogil=True)

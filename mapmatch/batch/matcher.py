@@ -31,6 +31,7 @@ from mapmatch.batch.lattice import (
     drop_spikes,
     motion_heading,
     segment_bearings,
+    segment_lengths,
     thin,
 )
 from mapmatch.batch.results import fill_route_lonlat, track_match
@@ -130,14 +131,14 @@ class BatchMatcher:
         self.config = config or BATCH_CONFIG
         self._grid = GridIndex(self.index, cell=self.config.search_radius)
         self._rg = route_graph(graph, uturns="dead_end")
-        self._geom = EdgeGeometry(
-            np.ascontiguousarray(graph.seg_xy, dtype=F8), np.ascontiguousarray(graph.edge_seg_ptr, dtype=I8)
-        )
-        self._seg_end = along_lengths(*self._geom)
+        seg_xy = np.ascontiguousarray(graph.seg_xy, dtype=F8)
+        seg_ptr = np.ascontiguousarray(graph.edge_seg_ptr, dtype=I8)
+        self._geom = EdgeGeometry(seg_xy, seg_ptr, segment_lengths(seg_xy, seg_ptr))
+        self._seg_end = along_lengths(seg_xy, seg_ptr)
         kph = np.asarray(graph.edge_speed_kph, dtype=F8)
         # speed limits (m/s) where the map has any (posted, or by road class)
         self._limit = kph / 3.6 if np.isfinite(kph).any() else np.zeros(0)
-        self._roads = RoadArrays(self._seg_end, self._limit, segment_bearings(*self._geom))
+        self._roads = RoadArrays(self._seg_end, self._limit, segment_bearings(seg_xy, seg_ptr))
         self._run = CompiledRun()
         self._run_track = CompiledRun(run_track_in)
         self._local = threading.local()
@@ -293,7 +294,8 @@ class BatchMatcher:
         if heading is not None and np.isfinite(heading).any():
             speed = _opt(track.speed, n)[kidx]
             kappa = model.heading_kappa(heading, head_sigma, speed, cfg)[cands.point]
-            bearing = bearing_at(cands.edge, cands.offset, *self._geom, self._seg_end)
+            geo = self._geom
+            bearing = bearing_at(cands.edge, cands.offset, geo.seg_xy, geo.seg_ptr, self._seg_end)
             emis = model.emission_logp(cands.dist, sigma, heading[cands.point], bearing, kappa)
         elif np.ndim(sigma):
             emis = model.emission_logp(cands.dist, sigma, np.nan, 0.0, 0.0)

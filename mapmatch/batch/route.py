@@ -128,6 +128,7 @@ def pieces_xy(pe, ps, pend, geom, ar):  # type: ignore[no-untyped-def]
     """Polyline coordinates of each piece (consecutive duplicates dropped); ``ptr`` per piece."""
     seg_xy = geom.seg_xy
     seg_ptr = geom.seg_ptr
+    seg_len = geom.seg_len
     n = len(pe)
     total = 0
     for i in range(n):
@@ -144,7 +145,7 @@ def pieces_xy(pe, ps, pend, geom, ar):  # type: ignore[no-untyped-def]
         for q in range(a0, a1 - 1):
             x0, y0 = seg_xy[q, 0], seg_xy[q, 1]
             x1, y1 = seg_xy[q + 1, 0], seg_xy[q + 1, 1]
-            L = math.hypot(x1 - x0, y1 - y0)
+            L = seg_len[q]
             lo = max(s, acc)
             hi = min(e, acc + L)
             if hi >= lo and (L > 0 or q == a0):
