@@ -72,6 +72,24 @@ def segment_lengths(seg_xy, seg_ptr):  # type: ignore[no-untyped-def]
     return out
 
 
+@njit(cache=True, nogil=True, inline="always")
+def segment_at(seg_ptr, seg_end, e, off):  # type: ignore[no-untyped-def]
+    """The segment (index of its first vertex) of edge ``e`` at offset ``off``: the first one
+    ending at or beyond it, the last one when beyond the edge; -1 for an edge of one vertex.
+    A binary search on ``seg_end`` (:func:`along_lengths`)."""
+    lo = seg_ptr[e]
+    hi = seg_ptr[e + 1] - 2
+    if hi < lo:
+        return -1
+    while lo < hi:
+        mid = (lo + hi) >> 1
+        if seg_end[mid] >= off:
+            hi = mid
+        else:
+            lo = mid + 1
+    return lo
+
+
 @njit(cache=True, nogil=True)
 def bearing_at(edges, offs, seg_xy, seg_ptr, seg_end):  # type: ignore[no-untyped-def]
     """Compass bearing (degrees) of the edge polyline segment at each offset: the first segment
@@ -80,18 +98,10 @@ def bearing_at(edges, offs, seg_xy, seg_ptr, seg_end):  # type: ignore[no-untype
     out = np.empty(len(edges))
     for i in range(len(edges)):
         a0 = seg_ptr[edges[i]]
-        a1 = seg_ptr[edges[i] + 1]
-        lo = a0
-        hi = a1 - 2
-        if hi < lo:
+        lo = segment_at(seg_ptr, seg_end, edges[i], offs[i])
+        if lo < 0:
             out[i] = 0.0
             continue
-        while lo < hi:
-            mid = (lo + hi) >> 1
-            if seg_end[mid] >= offs[i]:
-                hi = mid
-            else:
-                lo = mid + 1
         b = 0.0
         for q in range(lo, a0 - 1, -1):
             dx = seg_xy[q + 1, 0] - seg_xy[q, 0]
@@ -125,19 +135,8 @@ def bearing_on(edges, offs, seg_ptr, seg_end, seg_bearing, out):  # type: ignore
     """:func:`bearing_at` into ``out`` with the bearings of :func:`segment_bearings` (a look-up
     instead of an arctangent per candidate)."""
     for i in range(len(edges)):
-        a0 = seg_ptr[edges[i]]
-        lo = a0
-        hi = seg_ptr[edges[i] + 1] - 2
-        if hi < lo:
-            out[i] = 0.0
-            continue
-        while lo < hi:
-            mid = (lo + hi) >> 1
-            if seg_end[mid] >= offs[i]:
-                hi = mid
-            else:
-                lo = mid + 1
-        out[i] = seg_bearing[lo]
+        lo = segment_at(seg_ptr, seg_end, edges[i], offs[i])
+        out[i] = 0.0 if lo < 0 else seg_bearing[lo]
     return out
 
 
