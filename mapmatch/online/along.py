@@ -35,24 +35,14 @@ def along_track(  # type: ignore[no-untyped-def]
     position's unless a turn of the path stops it short), a log-penalty for that, and the
     anchor (nan when inconsistent: forgotten)."""
     j0, off0, s0 = best[0], best[1], best[2]
-    rad = math.radians(best[6])
-    tx, ty = math.sin(rad), math.cos(rad)
-    s_f = s_m = s0 - (p.bx * tx + p.by * ty)
-    va = 0.0
-    white = p.bias_white_fraction * p.sigma
-    vf = tx * tx * p.pxx + 2.0 * tx * ty * p.pxy + ty * ty * p.pyy + white**2
-    if not math.isnan(anc_sd) and p.odo_known:
-        va = anc_sd * anc_sd
-        innov = anc + p.odo - s_m
-        if innov * innov > p.anchor_gate**2 * (va + vf):
-            anc = anc_sd = math.nan  # inconsistent: forget it
-        else:
-            s_f = s_m + innov * vf / (va + vf)
+    s_f, vf, va, inconsistent = fuse_along(p, s0, best[6], anc, anc_sd)
+    if inconsistent:
+        anc = anc_sd = math.nan  # forget it
     if abs(s_f - s0) <= 0.01:
         return False, best, s0, 0.0, anc, anc_sd
     s_f = min(max(s_f, 0.0), acc)
     want, miss = s_f, 0.0
-    j, start, s_f = stop_at_turns(road, p, edges, j0, s0 - off0, s_f)
+    j, start, s_f = _stop_at_turns(road, p, edges, j0, s0 - off0, s_f)
     if s_f != want:  # the along-track estimate is past a turn this path has not taken yet
         miss = 0.5 * (want - s_f) ** 2 * (1.0 / vf + (1.0 / va if va > 0.0 else 0.0))
     rest = min(max(s_f - start, 0.0), road.elen[edges[j]])
@@ -62,25 +52,34 @@ def along_track(  # type: ignore[no-untyped-def]
 
 
 @njit(cache=True)
-def corrected_s(p: PlaceParams, s0: float, bearing: float, anc: float, anc_sd: float) -> float:
-    """Where :func:`along_track` would put a projection ``s0`` on a road of ``bearing`` (before
-    the path's turns stop it): less the learnt bias along the road, fused with the anchor."""
+def fuse_along(p: PlaceParams, s0: float, bearing: float, anc: float, anc_sd: float):  # type: ignore[no-untyped-def]
+    """A projection ``s0`` on a road of ``bearing`` less the learnt bias along the road, fused
+    with the turn anchor (before the path's turns stop it). Returns ``(s, vf, va,
+    inconsistent)``: the corrected ``s``, the fix's and the anchor's variance along the road
+    (``va`` 0 without an anchor) and whether the anchor failed its gate (then not fused)."""
     rad = math.radians(bearing)
     tx, ty = math.sin(rad), math.cos(rad)
     s_m = s0 - (p.bx * tx + p.by * ty)
-    if math.isnan(anc_sd) or not p.odo_known:
-        return s_m
     white = p.bias_white_fraction * p.sigma
     vf = tx * tx * p.pxx + 2.0 * tx * ty * p.pxy + ty * ty * p.pyy + white**2
+    if math.isnan(anc_sd) or not p.odo_known:
+        return s_m, vf, 0.0, False
     va = anc_sd * anc_sd
     innov = anc + p.odo - s_m
     if innov * innov > p.anchor_gate**2 * (va + vf):
-        return s_m
-    return s_m + innov * vf / (va + vf)  # type: ignore[no-any-return]
+        return s_m, vf, va, True
+    return s_m + innov * vf / (va + vf), vf, va, False
 
 
 @njit(cache=True)
-def stop_at_turns(  # type: ignore[no-untyped-def]
+def corrected_s(p: PlaceParams, s0: float, bearing: float, anc: float, anc_sd: float) -> float:
+    """Where :func:`along_track` would put a projection ``s0`` on a road of ``bearing`` (before
+    the path's turns stop it): :func:`fuse_along`'s ``s``."""
+    return fuse_along(p, s0, bearing, anc, anc_sd)[0]  # type: ignore[no-any-return]
+
+
+@njit(cache=True)
+def _stop_at_turns(  # type: ignore[no-untyped-def]
     road: RoadArrays, p: PlaceParams, edges: NDArray[np.int64], j: int, start: float, s_f: float
 ):
     """Move from edge ``j`` (starting ``start`` metres along the path) towards ``s_f`` across
