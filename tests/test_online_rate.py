@@ -6,6 +6,7 @@ from __future__ import annotations
 import dataclasses
 import math
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import pytest
 
@@ -14,6 +15,9 @@ from mapmatch.graph.projection import to_lonlat
 from mapmatch.online import OnlineMatcher
 from mapmatch.types import Fix, SnapResult
 from tests.online_helpers import drive
+
+if TYPE_CHECKING:
+    from mapmatch.online.state import FixBias, Step
 
 TURN = """
 a-----------b
@@ -276,6 +280,32 @@ def test_parked_vehicle_in_an_outage_does_not_creep_forward_at_10_hz() -> None:
     assert off[-1].offset > 79.5  # crept up to b
 
 
+def _east_step(x: float, y: float, *, travelled: float, dt: float, weight: float, bias: FixBias) -> Step:
+    """A GPS-aided step heading east (σ 8 m, heading σ 10°) with the odometer known."""
+    from mapmatch.online.state import Step
+
+    return Step(
+        time=1.0,
+        x=float(x),
+        y=float(y),
+        sigma=8.0,
+        heading=90.0,
+        kappa=1.0 / math.radians(10.0) ** 2,
+        travelled=travelled,
+        odo=100.0,
+        odo_known=True,
+        dt=dt,
+        gps=True,
+        weight=weight,
+        stopped=False,
+        r_a=16.0,
+        dr=0.0,
+        bias=bias,
+        odo_sigma=0.01,
+        fix_sigma=8.0,
+    )
+
+
 def test_position_at_a_crossing_is_held_at_10_hz_only_within_the_ahead_margin() -> None:
     """The vehicle's position is at the crossing b, its fix 2 (or 3.5) m past it on b-c. At 10 Hz
     the odometer moved 0.7 m since the last fix: kept at b the position moves by nothing, on b-c
@@ -289,7 +319,7 @@ def test_position_at_a_crossing_is_held_at_10_hz_only_within_the_ahead_margin() 
     from mapmatch.config import DEFAULT_CONFIG
     from mapmatch.online.placement import place_all
     from mapmatch.online.road import RoadModel
-    from mapmatch.online.state import FixBias, Hypothesis, Step
+    from mapmatch.online.state import FixBias, Hypothesis
 
     m = parse_ascii_map(CROSSING, scale=10)
     road = RoadModel(m.graph)
@@ -302,26 +332,7 @@ def test_position_at_a_crossing_is_held_at_10_hz_only_within_the_ahead_margin() 
         px, py, brg = road.locate(ab, le - before)
         h = Hypothesis([ab, bc], 0, le - before, le - before, 0.0, [0.0], 0.0, px, py, brg)
         x, y = m.xy("b") + np.array([past, 0.0])
-        step = Step(
-            time=1.0,
-            x=float(x),
-            y=float(y),
-            sigma=8.0,
-            heading=90.0,
-            kappa=1.0 / math.radians(10.0) ** 2,
-            travelled=travelled,
-            odo=100.0,
-            odo_known=True,
-            dt=dt,
-            gps=True,
-            weight=1.0,
-            stopped=False,
-            r_a=16.0,
-            dr=0.0,
-            bias=FixBias(),
-            odo_sigma=0.01,
-            fix_sigma=8.0,
-        )
+        step = _east_step(x, y, travelled=travelled, dt=dt, weight=1.0, bias=FixBias())
         cfg = DEFAULT_CONFIG if hold is None else DEFAULT_CONFIG.replace(node_hold_ahead_sigmas=hold)
         place_all(road, [h], step, cfg)
         return h.edges[h.k], h.off
@@ -349,7 +360,7 @@ def test_step_is_judged_between_corrected_places_at_10_hz() -> None:
     from mapmatch.config import DEFAULT_CONFIG
     from mapmatch.online.placement import place_all
     from mapmatch.online.road import RoadModel
-    from mapmatch.online.state import FixBias, Hypothesis, Step
+    from mapmatch.online.state import FixBias, Hypothesis
 
     m = parse_ascii_map(CROSSING, scale=10)
     road = RoadModel(m.graph)
@@ -361,26 +372,8 @@ def test_step_is_judged_between_corrected_places_at_10_hz() -> None:
         px, py, brg = road.locate(ab, le - 1.0)
         h = Hypothesis([ab, bc], 0, le - 1.0, le - 1.0, 0.0, [0.0], 0.0, px, py, brg)
         x, y = m.xy("b") + np.array([2.7, 0.0])
-        step = Step(
-            time=1.0,
-            x=float(x),
-            y=float(y),
-            sigma=8.0,
-            heading=90.0,
-            kappa=1.0 / math.radians(10.0) ** 2,
-            travelled=0.7,
-            odo=100.0,
-            odo_known=True,
-            dt=0.1,
-            gps=True,
-            weight=0.1,
-            stopped=False,
-            r_a=16.0,
-            dr=0.0,
-            bias=FixBias(3.0, 0.0, 1.0, 0.0, 1.0),  # 3 m east: ahead along a-b-c
-            odo_sigma=0.01,
-            fix_sigma=8.0,
-        )
+        bias = FixBias(3.0, 0.0, 1.0, 0.0, 1.0)  # 3 m east: ahead along a-b-c
+        step = _east_step(x, y, travelled=0.7, dt=0.1, weight=0.1, bias=bias)
         place_all(road, [h], step, DEFAULT_CONFIG.replace(step_from_corrected=share))
         return h.s
 
