@@ -36,7 +36,10 @@ class ModelConfig:
     gps_sigma : default 1-σ position error in metres when a fix gives none.
     heading_sigma : default 1-σ heading error in degrees when a fix gives a heading but no accuracy.
     heading_min_speed : m/s below which a heading is not trusted (0 disables the check).
-    beta : scale in metres of |route distance - travelled distance| (Newson & Krumm's β).
+    beta : scale in metres of |route distance - travelled distance| (Newson & Krumm's β) ...
+    beta_per_m : ... plus this many metres per metre travelled: a long step's true route bends
+        away from its straight line more than a short one's, so between far-apart fixes a
+        route's length tells less and the fixes' distances from the roads tell more.
     uturn_penalty : log-probability penalty of a U-turn.
     max_speed : m/s; transitions needing more are penalised.
     speed_penalty : log-probability penalty per (m/s) above ``max_speed``.
@@ -50,6 +53,7 @@ class ModelConfig:
     heading_sigma: float = 20.0
     heading_min_speed: float = 1.0
     beta: float = 5.0
+    beta_per_m: float = 0.0
     uturn_penalty: float = 6.0
     max_speed: float = 60.0
     speed_penalty: float = 0.5
@@ -375,7 +379,8 @@ class BatchConfig:
     reverse_tolerance : metres a candidate may fall behind the previous one on the same edge and
         count as standing.
     route_lp_cut : routes are searched only as a fallback beyond the travelled distance plus
-        this many β (a transition log-probability below ``-route_lp_cut``).
+        this many β (the base ``beta``, without ``beta_per_m``'s growth: a wider first search
+        costs time on dense maps and changed no REAL match).
     max_skip : fixes in a row that may be left out as unreachable outliers before the track is
         split.
     outlier_lookahead : 1: where a fix cannot be reached from the previous kept fix, also try
@@ -516,5 +521,8 @@ def _replace_section(section: Any, changes: dict[str, Any]) -> Any:
 
 
 DEFAULT_CONFIG = MatchConfig()
-# batch matching fits whole tracks of plain GPS: a wider default σ, costlier U-turns, thinned fixes
-BATCH_CONFIG = DEFAULT_CONFIG.replace(gps_sigma=8.0, uturn_penalty=20.0, interpolate_distance=8.0)
+# batch matching fits whole tracks of plain GPS: a wider default σ, costlier U-turns, thinned fixes,
+# and a β that grows with the step (sparse tracks: fixes up to a kilometre apart)
+BATCH_CONFIG = DEFAULT_CONFIG.replace(
+    gps_sigma=8.0, uturn_penalty=20.0, interpolate_distance=8.0, beta_per_m=0.04
+)

@@ -87,11 +87,17 @@ emission_logp_one = njit(cache=True)(emission_one)
 
 
 def transition_one(
-    route_dist: float, travelled: float, dt: float, beta: float, max_speed: float, speed_penalty: float
+    route_dist: float,
+    travelled: float,
+    dt: float,
+    beta: float,
+    beta_per_m: float,
+    max_speed: float,
+    speed_penalty: float,
 ) -> float:
     """:func:`transition_logp` for one pair without the U-turn term, in plain float math (the
     online hot path); :func:`transition_logp_one` compiles the same function."""
-    lp = -abs(route_dist - travelled) / beta
+    lp = -abs(route_dist - travelled) / (beta + beta_per_m * travelled)
     if dt > 0.0:
         lp -= speed_penalty * max(route_dist / dt - max_speed, 0.0)
     return lp
@@ -126,7 +132,7 @@ def transition_logp(
     """
     r = np.asarray(route_dist, dtype=np.float64)
     d = np.asarray(travelled, dtype=np.float64)
-    lp = -np.abs(r - d) / config.model.beta
+    lp = -np.abs(r - d) / (config.model.beta + config.model.beta_per_m * d)
     t = np.asarray(dt, dtype=np.float64)
     with np.errstate(divide="ignore", invalid="ignore"):
         v = np.where((t > 0) & np.isfinite(r), r / np.where(t > 0, t, 1.0), 0.0)
@@ -150,7 +156,13 @@ def normalise_log(lp: ArrayLike) -> NDArray[np.float64]:
 def transition_params(config: MatchConfig) -> NDArray[np.float64]:
     """The transition parameters as an array for :func:`transition_logp_one`."""
     return np.array(
-        [config.model.beta, config.model.max_speed, config.model.speed_penalty, config.model.uturn_penalty],
+        [
+            config.model.beta,
+            config.model.max_speed,
+            config.model.speed_penalty,
+            config.model.uturn_penalty,
+            config.model.beta_per_m,
+        ],
         dtype=np.float64,
     )
 
@@ -165,7 +177,7 @@ def transition_logp_one(
     """
     if not np.isfinite(route_dist):
         return -np.inf
-    lp = _transition_one(route_dist, travelled, dt, params[0], params[1], params[2])
+    lp = _transition_one(route_dist, travelled, dt, params[0], params[4], params[1], params[2])
     if uturn:
         lp -= params[3]
     return lp

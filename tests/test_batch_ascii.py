@@ -538,6 +538,28 @@ def test_speed_limits_tell_parallel_roads_apart_at_sparse_sampling() -> None:
     assert [names(m, piece) for piece in BatchMatcher(m.graph).match(slow).routes] == [["cd"]]
 
 
+def test_far_apart_fixes_follow_the_near_road_though_another_is_shorter() -> None:
+    # a straight road b-c and a parallel one b-e-f-c 40 m south of it, 80 m longer; one fix
+    # every 30 s (about 480 m apart), the middle one 5 m from the southern road and 35 m from
+    # the straight one. Over so long a step a route's length tells less than the fix does: β
+    # grows with the distance travelled (``beta_per_m``), and the southern road is kept
+    m = parse_ascii_map(
+        """
+        a-b----------------------------------------------------------------------------------------------c-d
+          |                                                                                              |
+          e----------------------------------------------------------------------------------------------f
+        """,
+        scale=10,
+    )
+    pts = [at(m, "a", 5, 1), at(m, "e", 480, 5), at(m, "d", -5, -1)]
+    track = track_from_xy(m, pts, dt=30.0)
+    r = BatchMatcher(m.graph).match(track)
+    assert [names(m, piece) for piece in r.routes] == [["ab", "be", "ef", "fc", "cd"]]
+    # with a fixed β the 80 m detour costs more than the fix's 35 m off the straight road
+    fixed = BatchMatcher(m.graph).match(track, DEFAULT_CONFIG.replace(beta_per_m=0.0))
+    assert [names(m, piece) for piece in fixed.routes] == [["ab", "bc", "cd"]]
+
+
 def test_first_fix_near_a_crossing_takes_the_road_of_the_direction_of_travel() -> None:
     # the first fix lies 6 m from the cross road cb and 9 m from ab, the road the car drives
     # on (east, straight through b): the direction of travel from the fixes (no heading

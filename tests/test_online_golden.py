@@ -16,7 +16,8 @@ came to be judged to the candidates' places corrected alike (``step_from_correct
 They hold every ``SnapResult`` of the service tests' drives and of bench_online drives on
 shared maps, and a session exported half way (imported here and replayed). A few batch
 matches are in ``batch.json.gz``, recorded after #14 changed the batch model (off-map fixes,
-impossible steps, jumps, speed limits, the direction of travel). The maps are built by the osmnx
+impossible steps, jumps, speed limits, the direction of travel), and again when β came to grow
+with the distance of a step (``beta_per_m``). The maps are built by the osmnx
 reference engine, whose edge order the recording used; way ids are not compared, since answers
 now name the way piece under the point (#15).
 """

@@ -446,8 +446,10 @@ def test_one_matcher_serves_many_threads() -> None:
 
 
 def test_scalar_model_twins_agree_with_the_shared_model() -> None:
-    from mapmatch.config import DEFAULT_CONFIG as C
+    from mapmatch.config import DEFAULT_CONFIG
     from mapmatch.model import emission_logp, emission_one, transition_logp, transition_one
+
+    C = DEFAULT_CONFIG.replace(beta_per_m=0.04)  # β growing with the step, as the batch default
 
     rng = np.random.default_rng(1)
     for _ in range(200):
@@ -461,7 +463,8 @@ def test_scalar_model_twins_agree_with_the_shared_model() -> None:
         assert emission_one(d, s, h, b, k) == pytest.approx(float(emission_logp(d, s, h, b, k)))
         r, t, dt = rng.uniform(-20, 200), rng.uniform(0, 100), rng.uniform(0.1, 2)
         ref = float(transition_logp(r, t, dt, C))
-        got = transition_one(r, t, dt, C.model.beta, C.model.max_speed, C.model.speed_penalty)
+        m = C.model
+        got = transition_one(r, t, dt, m.beta, m.beta_per_m, m.max_speed, m.speed_penalty)
         assert got == pytest.approx(ref)
 
 

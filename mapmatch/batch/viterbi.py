@@ -72,7 +72,7 @@ def _step(a0, a1, b0, b1, lat, tr, params, node_uturn, trav, dt, bound, vcap, p,
     lpen = p.limit_penalty
     ka = a1 - a0
     kb = b1 - b0
-    beta = params[0]
+    beta = params[0] + params[4] * trav  # the step's β (it grows with the distance)
     for i in range(ka):
         order[i] = a0 + i
     # insertion sort by descending score (k is small)

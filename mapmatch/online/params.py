@@ -49,6 +49,7 @@ class PlaceParams(NamedTuple):
     straight_max_deg: float
     pos_sigma_floor: float
     beta: float
+    beta_per_m: float
     max_speed: float
     speed_penalty: float
     turn_window: float
@@ -68,6 +69,7 @@ def _config_part(cfg: MatchConfig) -> tuple[float, ...]:
             m.straight_max_deg,
             o.pos_sigma_floor,
             m.beta,
+            m.beta_per_m,
             m.max_speed,
             m.speed_penalty,
             o.turn_window,

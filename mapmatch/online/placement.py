@@ -45,7 +45,7 @@ def transition(p: PlaceParams, route_dist: float) -> float:
     """Log-probability of ``route_dist`` metres along the path for this step's travel (its
     speed judged over at least ``speed_time``, whatever the fix rate)."""
     return transition_one_compiled(  # type: ignore[no-any-return]
-        route_dist, p.travelled, p.speed_dt, p.beta, p.max_speed, p.speed_penalty
+        route_dist, p.travelled, p.speed_dt, p.beta, p.beta_per_m, p.max_speed, p.speed_penalty
     )
 
 

@@ -185,4 +185,6 @@ class RoadModel:
         speed judged over at least ``speed_time``, whatever the fix rate)."""
         m = cfg.model
         dt = max(step.dt, cfg.online.speed_time)
-        return transition_one(route_dist, step.travelled, dt, m.beta, m.max_speed, m.speed_penalty)
+        return transition_one(
+            route_dist, step.travelled, dt, m.beta, m.beta_per_m, m.max_speed, m.speed_penalty
+        )
