@@ -371,7 +371,10 @@ class BatchConfig:
     gap_time : seconds; fixes further apart in time than this are matched as separate pieces
         (a parked vehicle, a logger switched off), however near they are (0: time never
         splits; the route is then cut only by distance, off-map runs and impossible steps).
-    gap_distance : metres between fixes that split a track.
+    gap_distance : metres between consecutive fixes beyond which a step faster on average than
+        ``split_speed`` splits the track (a jump: two drives joined, a clock error); a slower
+        one was driven (a logger off, a sparse track) and its route is searched as any step's
+        (0: distance never splits).
     outlier_distance : a fix further than this from every road is unmatched.
     interpolate_distance : fixes closer than this to the previous kept fix are interpolated.
     emission_prune : candidates whose emission log-probability is this far below their fix's

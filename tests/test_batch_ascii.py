@@ -153,16 +153,47 @@ def test_turn_restriction_is_respected() -> None:
 
 
 def test_gap_splits_the_track_and_is_reported() -> None:
+    # fixes 3 and 4 are 180 m apart, beyond gap_distance (100 m here), and 2 s apart: too fast
+    # to drive (split_speed 50 m/s), a jump, so the track splits there
     m = parse_ascii_map("a-----------------------------b", scale=10)
     xs = [10, 30, 50, 230, 250, 270]
     cfg = DEFAULT_CONFIG.replace(gap_distance=100.0)
-    r = BatchMatcher(m.graph).match(track_from_xy(m, [at(m, "a", x, 1) for x in xs]), cfg)
+    r = BatchMatcher(m.graph).match(track_from_xy(m, [at(m, "a", x, 1) for x in xs], dt=2.0), cfg)
     assert r.splits == [3]
     assert len(r.routes) == 2 and len(r.route_lonlat) == 2
     assert all(p.status == PointStatus.MATCHED for p in r.points)
     assert r.length_m == pytest.approx(40 + 40, abs=1.0)
     # one road, every fix on it: full confidence (both directions count as one road)
     assert r.confidence > 0.99
+
+
+def test_a_gap_driven_at_road_speed_is_bridged_by_its_route() -> None:
+    # a sparse track with the logger off for 150 s between fixes 3 and 4, 2.1 km apart (beyond
+    # gap_distance) and 2.4 km along an L-shaped road (100 m per character): 16 m/s is a drive,
+    # not a jump, so the route bridges the gap and the track stays one piece; the same 2.1 km in
+    # 15 s (140 m/s) splits
+    #
+    #   a-------------------------b
+    #                             |
+    #                             c
+    m = parse_ascii_map(
+        """
+        a-------------------------b
+                                  |
+                                  c
+        """,
+        scale=100,
+    )
+    xy = [at(m, "a", 100, 3), at(m, "a", 300, -3), at(m, "a", 500, 2)]
+    xy += [at(m, "b", -4, -300), at(m, "b", 3, -380)]
+    assert math.dist(xy[2], xy[3]) > DEFAULT_CONFIG.gap_distance
+    ll = np.array([m.lonlat(x, y) for x, y in xy])
+    bridged = Track("t", np.array([0.0, 15.0, 30.0, 180.0, 190.0]), ll[:, 1], ll[:, 0])
+    r = BatchMatcher(m.graph).match(bridged)
+    assert r.splits == [] and [names(m, piece) for piece in r.routes] == [["ab", "bc"]]
+    assert r.length_m == pytest.approx(2500 + 380, abs=5.0)
+    jump = Track("t", np.array([0.0, 15.0, 30.0, 45.0, 55.0]), ll[:, 1], ll[:, 0])
+    assert BatchMatcher(m.graph).match(jump).splits == [3]
 
 
 def test_a_long_pause_splits_the_track_when_gap_time_is_set() -> None:

@@ -138,7 +138,7 @@ def kernel_params(cfg: MatchConfig, sigma: float) -> KernelParams:
         route_factor=float(cfg.max_route_factor),
         route_slack=float(cfg.route_slack),
         lp_cut_m=float(cfg.beta * cfg.route_lp_cut),
-        gap_distance=float(cfg.gap_distance),
+        gap_distance=float(cfg.gap_distance) if cfg.gap_distance > 0 else np.inf,
         gap_time=float(cfg.gap_time),
         max_skip=int(cfg.max_skip),
         outlier_lookahead=bool(cfg.outlier_lookahead),

@@ -224,12 +224,24 @@ class Saved(NamedTuple):
     """Route bounds of the chosen alternative's two steps."""
 
 
+@njit(cache=True, nogil=True, inline="always")
+def _far_gap(d, dt, p, steps):  # type: ignore[no-untyped-def]
+    """Whether ``d`` metres in ``dt`` seconds, over ``steps`` steps, is a gap that splits the
+    track: longer than ``gap_distance`` a step, and faster on average than ``split_speed`` (a
+    slower gap, a logger off or a sparse track, is driven: its route is searched as any step's).
+    """
+    if d <= p.gap_distance * steps:
+        return False
+    return p.split_speed <= 0 or not dt > 0 or d > p.split_speed * dt
+
+
 @njit(cache=True, nogil=True)
 def _joinable(a, b, lat, p):  # type: ignore[no-untyped-def]
     """Whether a step from lattice point ``a`` to ``b`` stays in one piece; and its distance."""
     d = math.hypot(lat.pxy[b, 0] - lat.pxy[a, 0], lat.pxy[b, 1] - lat.pxy[a, 1])
     gap_time = p.gap_time if p.gap_time > 0 else np.inf
-    ok = d <= p.gap_distance and lat.ptime[b] - lat.ptime[a] <= gap_time
+    dt = lat.ptime[b] - lat.ptime[a]
+    ok = not _far_gap(d, dt, p, 1) and dt <= gap_time
     for r in range(a + 1, b + 1):
         ok = ok and not lat.cut[r]
     return ok, d
@@ -285,14 +297,13 @@ def solve(lat: Lattice, p: KernelParams, router, ar):  # type: ignore[no-untyped
     """Exact Viterbi over the lattice, routing each step as it goes.
 
     A point no candidate of the previous accepted point can reach is left out (an outlier);
-    after ``max_skip`` such points in a row, or across a distance gap, a new piece starts at
+    after ``max_skip`` such points in a row, or across a jump (:func:`_far_gap`), a new piece starts at
     the first of them. Returns per lattice point the chosen candidate (-1 = left out), whether a
     piece starts there, whether the step into it is an along-road U-turn, and its route bound.
     """
     cand_ptr = lat.ptr
     emis = lat.emis
     pxy = lat.pxy
-    gap_distance = p.gap_distance
     gap_time = p.gap_time if p.gap_time > 0 else np.inf
     ptime = lat.ptime
     max_skip = p.max_skip
@@ -335,7 +346,8 @@ def solve(lat: Lattice, p: KernelParams, router, ar):  # type: ignore[no-untyped
             restart = s0  # several trailing points unreachable: they form their own piece
         else:
             d = math.hypot(pxy[t, 0] - pxy[prev, 0], pxy[t, 1] - pxy[prev, 1])
-            if d > gap_distance or lat.cut[t] or ptime[t] - ptime[prev] > gap_time:
+            dt = ptime[t] - ptime[prev]
+            if _far_gap(d, dt, p, 1) or lat.cut[t] or dt > gap_time:
                 restart = s0 if nskip > 0 else t
         if restart < 0:
             reached, bound = _try_step(prev, t, d, lat, tr, p, router)
@@ -379,7 +391,7 @@ def solve(lat: Lattice, p: KernelParams, router, ar):  # type: ignore[no-untyped
             back = 0
             while q >= 0 and back < max_skip:
                 dq = math.hypot(pxy[s0, 0] - pxy[q, 0], pxy[s0, 1] - pxy[q, 1])
-                if dq > gap_distance * (back + 2):  # each step it spans is within the gap
+                if _far_gap(dq, ptime[s0] - ptime[q], p, back + 2):  # each step it spans is within the gap
                     break
                 reached, bound = _try_step(q, s0, dq, lat, tr, p, router)
                 if reached:
