@@ -120,6 +120,31 @@ def test_match_command_errors_are_one_line(
     assert "unknown output format" in capsys.readouterr().err
 
 
+def test_match_command_sets_any_parameter_by_name(
+    setup: tuple[Path, Path, AsciiMap], tmp_path: Path, capsys
+) -> None:
+    map_path, tracks_path, _ = setup
+    base = ["match", "--map", str(map_path), str(tracks_path), "--workers", "1"]
+    # every fix matched by default; with no road sought beyond 0.5 m of these noisy fixes (σ 2 m)
+    # most are unmatched, and the run says so
+    out = tmp_path / "points.csv"
+    assert main([*base, "-o", str(out)]) == 0
+    assert set(pd.read_csv(out)["status"]) == {"matched"}
+    assert main([*base, "-o", str(out), "--set", "outlier_distance=0.5", "--set", "search_radius=0.5"]) == 1
+    assert (pd.read_csv(out)["status"] == "unmatched").mean() > 0.5
+    capsys.readouterr()
+    for bad, says in (
+        ("nope=1", "unknown parameter(s): nope"),
+        ("gps_sigma=abc", "gps_sigma: 'abc' is not a number"),
+        ("gps_sigma", "expected NAME=VALUE"),
+        ("gps_sigma=-1", "gps_sigma must be a finite non-negative number"),
+    ):
+        assert main([*base, "-o", str(tmp_path / "bad.csv"), "--set", bad]) == 2
+        err = capsys.readouterr().err
+        assert err.startswith("mapmatch match: error:") and says in err and err.count("\n") == 1
+        assert not (tmp_path / "bad.csv").exists()
+
+
 def test_tracks_drawn_as_lines_in_a_geopackage_or_fmm_csv_match_like_their_points(
     setup: tuple[Path, Path, AsciiMap], tmp_path: Path
 ) -> None:

@@ -89,6 +89,11 @@ def register(subparsers: Any) -> None:
     )
     model.add_argument("--interpolate-distance", type=float, default=None, metavar="M",
                        help="points closer than this to the previous one are interpolated")  # fmt: skip
+    model.add_argument(
+        "--set", action="append", default=[], metavar="NAME=VALUE", dest="settings",
+        help="any other model or batch parameter by its name in mapmatch.config (repeatable), "
+        "e.g. --set gap_time=300 splits tracks at pauses over 5 minutes",
+    )  # fmt: skip
     p.set_defaults(func=run_match)
 
 
@@ -140,6 +145,7 @@ def _match(args: argparse.Namespace, inputs: list[Path], output: Path, *, out: A
 
     from mapmatch.batch import BATCH_CONFIG
     from mapmatch.cli import EXIT_OK, EXIT_PARTIAL, CommandError
+    from mapmatch.errors import ConfigError
     from mapmatch.io import Columns
     from mapmatch.parallel import run_batch
 
@@ -170,7 +176,10 @@ def _match(args: argparse.Namespace, inputs: list[Path], output: Path, *, out: A
         )
         if v is not None
     }
-    config = BATCH_CONFIG.replace(**over)
+    try:
+        config = BATCH_CONFIG.replace(**over).with_settings(args.settings)
+    except ConfigError as exc:
+        raise CommandError(str(exc)) from None
     columns = Columns(
         id=args.id_col, time=args.time_col, lat=args.lat_col, lon=args.lon_col, heading=args.heading_col,
         speed=args.speed_col,
