@@ -12,7 +12,7 @@ stress sets of runs (``bench/peers_robust.py`` defines them):
 Every run is scored by the peers' ``score.py`` (RMF, 3 m) with the run's own first and last fix.
 Ours runs in this process (``bench/peers_adapter.py``), each peer in its own Python by
 ``bench/peers_robust.py`` as ``bench_batch.py`` runs ``peers_timing.py``. Prints per engine and
-set: runs, mean and median RMF, runs returned in more than one connected piece (split) or none,
+set: runs, mean, median and worst RMF, runs returned in more than one connected piece (split) or none,
 and for phases the mean of offset 0 alone (the main bench's draw). One JSON line per run goes to
 ``--out``.
 
@@ -116,8 +116,8 @@ def summarise(path: Path) -> None:
     order = {e: i for i, e in enumerate(ENGINES)}
     keys = sorted(by, key=lambda k: (order.get(k[0], len(order)), k[0], k[1] != "phases", k[2]))
     print(
-        f"\n{'engine':9s} {'set':7s} {'runs':>9s} {'runs':>5s} {'mean RMF':>9s} {'median':>8s} "
-        f"{'offset 0':>9s} {'split':>6s} {'none':>5s} {'failed':>6s}"
+        f"\n{'engine':9s} {'set':7s} {'S or G':>9s} {'runs':>5s} {'mean RMF':>9s} {'median':>8s} "
+        f"{'worst':>7s} {'offset 0':>9s} {'split':>6s} {'none':>5s} {'failed':>6s}"
     )
     for eng, set_, label in keys:
         g = by[(eng, set_, label)]
@@ -126,12 +126,14 @@ def summarise(path: Path) -> None:
         first = f"{statistics.fmean(off0):9.4f}" if set_ == "phases" and off0 else f"{'':9s}"
         print(
             f"{eng:9s} {set_:7s} {label:>9s} {len(g):5d} {statistics.fmean(rmf):9.4f} "
-            f"{statistics.median(rmf):8.4f} {first} {sum(r['pieces'] > 1 for r in g):6d} "
+            f"{statistics.median(rmf):8.4f} {max(rmf):7.4f} {first} {sum(r['pieces'] > 1 for r in g):6d} "
             f"{sum(r['pieces'] == 0 for r in g):5d} {sum(bool(r.get('failed')) for r in g):6d}"
         )
     print(
-        "\nREAL GPS (Kubicka). RMF by the peers' score.py (3 m); split: the route came back in more "
-        "than one connected piece; none: no route; offset 0: the mean of the runs from fix 0 alone."
+        "\nREAL GPS (Kubicka). RMF by the peers' score.py (3 m), a failed run counts 1; worst: the "
+        "largest RMF of a run; offset 0: the mean of the runs from fix 0 alone (bench_batch.py's "
+        "draw); split: the route came back in more than one connected piece; none: no route; "
+        "failed: no route or an error."
     )
 
 
