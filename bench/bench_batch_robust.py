@@ -85,9 +85,14 @@ def run_peer(eng: str, name: str, a: argparse.Namespace) -> list[dict[str, Any]]
     out = WORK / name / f"robust_{eng}.jsonl"
     out.unlink(missing_ok=True)
     cmd = [engine_python(eng), str(WORKER), eng, str(WORK / name), str(out), "--peers", str(PEERS)]
-    r = subprocess.run([*cmd, *run_args(a)], env=worker_env(), capture_output=True, text=True)
-    if r.returncode != 0:
-        print(f"{eng} on {name} failed: {r.stderr.strip().splitlines()[-3:]}", file=sys.stderr)
+    try:
+        r = subprocess.run(
+            [*cmd, *run_args(a)], env=worker_env(), capture_output=True, text=True, timeout=a.timeout
+        )
+        if r.returncode != 0:
+            print(f"{eng} on {name} failed: {r.stderr.strip().splitlines()[-3:]}", file=sys.stderr)
+    except subprocess.TimeoutExpired:
+        print(f"{eng} on {name}: timed out after {a.timeout:.0f} s, its runs so far kept", file=sys.stderr)
     if not out.exists():
         return []
     return [json.loads(x) for x in out.read_text().splitlines() if x.strip()]
@@ -142,6 +147,7 @@ def main() -> int:
     ap.add_argument("--ids", default="all", help="all, or comma-separated track numbers")
     ap.add_argument("--engines", help=f"default: all of {','.join(ENGINES)} that are installed")
     ap.add_argument("--out", type=Path, default=CACHE / "results" / "robust.jsonl", help="per-run rows")
+    ap.add_argument("--timeout", type=float, default=1800.0, help="seconds per peer and track")
     ap.add_argument("--summary", type=Path, help="only summarise this file of an earlier run")
     add_run_args(ap)
     a = ap.parse_args()
