@@ -64,30 +64,46 @@ ENGINE_VENV = {
     "valhalla_fs120": "venv312",
 }
 """The peers' venv of each engine (as the harness's ``ENGINE_PY``; the rest use ``venv``)."""
+WORK = CACHE / "work"
+"""The peers' prepared work dirs, one per track (made by ``run_peers.py``)."""
+
+
+def engine_python(eng: str) -> str:
+    """The Python that runs ``eng``: ours this one, a peer its own venv's."""
+    if eng == "custom":
+        return sys.executable
+    return str(CACHE / "venvs" / ENGINE_VENV.get(eng, "venv") / "bin" / "python")
+
+
+def worker_env() -> dict[str, str]:
+    """The environment of a worker run in an engine's Python (ours as the custom engine)."""
+    env = dict(os.environ)
+    env["MM_PEERS_CUSTOM"] = str(ROOT / "bench" / "peers_adapter.py")
+    env["PYTHONPATH"] = str(ROOT) + os.pathsep + env.get("PYTHONPATH", "")
+    env.setdefault("PEERS_DIR", str(CACHE / "venvs"))
+    return env
+
+
+def work_tracks(ids: str) -> list[str]:
+    """The prepared work dirs' track names: all, or those of comma-separated numbers."""
+    names = sorted(p.name for p in WORK.iterdir() if p.is_dir() and p.name.isdigit())
+    if ids != "all":
+        names = [n for n in names if int(n) in {int(x) for x in ids.split(",")}]
+    return names
 
 
 def time_engines(ids: str, engines: str, S: str, repeat: int, tag: str) -> Path:
     """Time every engine on every track again (``peers_timing.py``): one warm-up call, then
     ``repeat`` timed calls per S. Returns the JSON-lines file of the timings."""
-    env = dict(os.environ)
-    env["MM_PEERS_CUSTOM"] = str(ROOT / "bench" / "peers_adapter.py")
-    env["PYTHONPATH"] = str(ROOT) + os.pathsep + env.get("PYTHONPATH", "")
-    env.setdefault("PEERS_DIR", str(CACHE / "venvs"))
-    work = CACHE / "work"
-    names = sorted(p.name for p in work.iterdir() if p.is_dir() and p.name.isdigit())
-    if ids != "all":
-        names = [n for n in names if int(n) in {int(x) for x in ids.split(",")}]
+    env = worker_env()
+    names = work_tracks(ids)
     out = CACHE / "results" / f"{tag}_timing.jsonl"
     lines = []
     for name in names:
         for eng in engines.split(","):
-            py = (
-                sys.executable
-                if eng == "custom"
-                else str(CACHE / "venvs" / ENGINE_VENV.get(eng, "venv") / "bin" / "python")
-            )
-            tmp = work / name / f"timing_{eng}.json"
-            cmd = [py, str(ROOT / "bench" / "peers_timing.py"), eng, str(work / name), str(tmp)]
+            py = engine_python(eng)
+            tmp = WORK / name / f"timing_{eng}.json"
+            cmd = [py, str(ROOT / "bench" / "peers_timing.py"), eng, str(WORK / name), str(tmp)]
             cmd += ["--S", S, "--repeat", str(repeat), "--peers", str(PEERS)]
             r = subprocess.run(cmd, env=env, capture_output=True, text=True)
             if r.returncode != 0:
