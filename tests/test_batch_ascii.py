@@ -591,6 +591,30 @@ def test_far_apart_fixes_follow_the_near_road_though_another_is_shorter() -> Non
     assert [names(m, piece) for piece in fixed.routes] == [["ab", "bc", "cd"]]
 
 
+def test_sparse_fixes_either_side_of_a_dual_carriageway_drive_round_its_turning_point() -> None:
+    # fixes two minutes apart: east on the one-way a>b, then back west on d<c, 80 m south; the
+    # only way round is the turning point b-c, 1.5 km of road, far beyond three times the 80 m
+    # between the fixes. Two minutes at 25 m/s (``route_speed``, off by default) allow it
+    m = parse_ascii_map(
+        """
+        a>>>>>>>>>>>>>>>>>>>>>>>>>>>>>>>>>>>>>>>>>>>>>>>>>>>>>>>>>>>>>>>>>>>>>>>>>>>b
+                                                                                    |
+                                                                                    |
+                                                                                    |
+        d<<<<<<<<<<<<<<<<<<<<<<<<<<<<<<<<<<<<<<<<<<<<<<<<<<<<<<<<<<<<<<<<<<<<<<<<<<<c
+        """,
+        scale=10,
+    )
+    pts = [at(m, "a", 20, 2), at(m, "a", 60, -1), at(m, "d", 60, 2), at(m, "d", 20, -1)]
+    ll = np.array([m.lonlat(x, y) for x, y in pts])
+    track = Track("t", np.array([0.0, 4.0, 124.0, 128.0]), ll[:, 1], ll[:, 0])
+    r = BatchMatcher(m.graph).match(track, DEFAULT_CONFIG.replace(route_speed=25.0))
+    assert r.splits == [] and [names(m, piece) for piece in r.routes] == [["ab", "bc", "cd"]]
+    assert all(p.status == PointStatus.MATCHED for p in r.points)
+    # bounded by the distance alone (the default) the back leg is out of reach: a split
+    assert BatchMatcher(m.graph).match(track).splits == [2]
+
+
 def test_first_fix_near_a_crossing_takes_the_road_of_the_direction_of_travel() -> None:
     # the first fix lies 6 m from the cross road cb and 9 m from ab, the road the car drives
     # on (east, straight through b): the direction of travel from the fixes (no heading

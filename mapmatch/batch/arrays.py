@@ -89,6 +89,7 @@ class KernelParams(NamedTuple):
     """(stop speed, stop time, U-turn penalty across a stop)."""
     route_factor: float
     route_slack: float
+    route_speed: float
     lp_cut_m: float
     gap_distance: float
     gap_time: float
@@ -137,6 +138,7 @@ def kernel_params(cfg: MatchConfig, sigma: float) -> KernelParams:
         stop=np.array([cfg.stop_uturn_speed, cfg.stop_uturn_time, cfg.stop_uturn_penalty], dtype=np.float64),
         route_factor=float(cfg.max_route_factor),
         route_slack=float(cfg.route_slack),
+        route_speed=float(cfg.route_speed),
         lp_cut_m=float(cfg.beta * cfg.route_lp_cut),
         gap_distance=float(cfg.gap_distance) if cfg.gap_distance > 0 else np.inf,
         gap_time=float(cfg.gap_time),

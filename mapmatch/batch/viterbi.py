@@ -193,7 +193,10 @@ def _try_step(prev, t, d, lat, tr, p, router):  # type: ignore[no-untyped-def]
     vcap = np.inf  # the longest route the time between the fixes allows: the straight line
     if p.split_speed > 0 and dt > 0:  # plus the detour that time allows
         vcap = d + p.split_speed * dt + p.split_slack
-    bound = min(p.route_factor * trav + p.route_slack, vcap)
+    reach = p.route_factor * trav + p.route_slack
+    if dt > 0:
+        reach = max(reach, p.route_speed * dt)
+    bound = min(reach, vcap)
     tight = min(bound, trav + p.lp_cut_m)
     stop = p.stop  # (stop speed, stop time, U-turn penalty across a stop)
     node_uturn = p.transition[3]
