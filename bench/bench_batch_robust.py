@@ -19,6 +19,8 @@ and for phases the mean of offset 0 alone (the main bench's draw). One JSON line
     python bench/bench_batch_robust.py                                # all 15 tracks, all engines
     python bench/bench_batch_robust.py --ids 0,21 --engines custom,osrm --sets gaps
     python bench/bench_batch_robust.py --summary ~/.cache/mapmatch-peers/results/robust.jsonl
+    python bench/bench_batch_robust.py --sets phases --S 60,120,300 --step 1000   # sparse tracks
+    python bench/bench_batch_robust.py --engines custom --set route_speed=25 --sets phases --S 120
 """
 
 from __future__ import annotations
@@ -40,6 +42,7 @@ if str(HERE) not in sys.path:
     sys.path.insert(0, str(HERE))
 
 from bench_batch import CACHE, PEERS, ROOT, WORK, engine_python, work_tracks, worker_env  # noqa: E402
+from peers_adapter import SETTINGS_ENV  # noqa: E402
 from peers_robust import add_run_args, run_track  # noqa: E402
 
 ENGINES = ("custom", "osrm", "valhalla", "fastmm")
@@ -119,7 +122,11 @@ def summarise(path: Path) -> None:
         label = f"S={r['S']}" if r["set"] == "phases" else f"G={r['G'] / 1000:g} km"
         by[(r["engine"], r["set"], label)].append(r)
     order = {e: i for i, e in enumerate(ENGINES)}
-    keys = sorted(by, key=lambda k: (order.get(k[0], len(order)), k[0], k[1] != "phases", k[2]))
+
+    def number(label: str) -> float:  # "S=30" or "G=3 km": sort by the number, not its text
+        return float(label.split("=")[1].split()[0])
+
+    keys = sorted(by, key=lambda k: (order.get(k[0], len(order)), k[0], k[1] != "phases", number(k[2])))
     print(
         f"\n{'engine':9s} {'set':7s} {'S or G':>9s} {'runs':>5s} {'mean RMF':>9s} {'median':>8s} "
         f"{'worst':>7s} {'offset 0':>9s} {'split':>6s} {'none':>5s} {'failed':>6s}"
@@ -149,8 +156,22 @@ def main() -> int:
     ap.add_argument("--out", type=Path, default=CACHE / "results" / "robust.jsonl", help="per-run rows")
     ap.add_argument("--timeout", type=float, default=1800.0, help="seconds per peer and track")
     ap.add_argument("--summary", type=Path, help="only summarise this file of an earlier run")
+    ap.add_argument(
+        "--set", action="append", default=[], metavar="NAME=VALUE",
+        help="a setting of our batch config (repeatable), e.g. --set route_speed=25",
+    )  # fmt: skip
     add_run_args(ap)
     a = ap.parse_args()
+    if a.set:
+        from mapmatch.config import DEFAULT_CONFIG
+        from mapmatch.errors import ConfigError
+
+        try:
+            DEFAULT_CONFIG.with_settings(a.set)
+        except ConfigError as exc:
+            print(f"--set: {exc}", file=sys.stderr)
+            return 2
+        os.environ[SETTINGS_ENV] = ",".join(a.set)
     if a.summary:
         summarise(a.summary)
         return 0

@@ -15,6 +15,7 @@ bench-only loader of ``roads.geojson`` (degree-2 chains contracted, as for fastm
 from __future__ import annotations
 
 import gc
+import os
 import sys
 from pathlib import Path
 from typing import Any
@@ -52,9 +53,20 @@ UBODT_DELTA = 2000.0
 """Route table bound in metres built at load time (fastmm's adapter uses a 3000 m UBODT)."""
 
 
+SETTINGS_ENV = "MAPMATCH_BENCH_SET"
+"""``NAME=VALUE`` settings, comma-separated, applied to our batch config (``MatchConfig.with_settings``)."""
+
+
 def load(work: Path) -> BatchMatcher:
+    from mapmatch.batch import BATCH_CONFIG
+
     graph = load_graph(Path(work))
-    matcher = BatchMatcher(graph, ubodt=Ubodt.build(graph, UBODT_DELTA) if UBODT_DELTA else None)
+    settings = [s for s in os.environ.get(SETTINGS_ENV, "").split(",") if s.strip()]
+    matcher = BatchMatcher(
+        graph,
+        config=BATCH_CONFIG.with_settings(settings),
+        ubodt=Ubodt.build(graph, UBODT_DELTA) if UBODT_DELTA else None,
+    )
     # warm up: loads the numba cache before the timed calls
     lon, lat = matcher.graph.node_lonlat[0]
     matcher.match(Track("warmup", np.array([0.0, 1.0]), np.array([lat, lat]), np.array([lon, lon])))
