@@ -41,8 +41,8 @@ HERE = Path(__file__).resolve().parent
 if str(HERE) not in sys.path:
     sys.path.insert(0, str(HERE))
 
+import peers_adapter  # noqa: E402
 from bench_batch import CACHE, PEERS, ROOT, WORK, engine_python, work_tracks, worker_env  # noqa: E402
-from peers_adapter import SETTINGS_ENV  # noqa: E402
 from peers_robust import add_run_args, run_track  # noqa: E402
 
 ENGINES = ("custom", "osrm", "valhalla", "fastmm")
@@ -76,8 +76,6 @@ def run_args(a: argparse.Namespace) -> list[str]:
 
 
 def run_ours(name: str, a: argparse.Namespace) -> list[dict[str, Any]]:
-    import peers_adapter  # type: ignore[import-not-found]
-
     rows = list(run_track(peers_adapter, WORK / name, a, str(PEERS), "custom"))
     gc.unfreeze()  # the adapter froze the map's objects; let this track's map go
     gc.collect()
@@ -163,15 +161,15 @@ def main() -> int:
     add_run_args(ap)
     a = ap.parse_args()
     if a.set:
-        from mapmatch.config import DEFAULT_CONFIG
+        from mapmatch.batch import BATCH_CONFIG
         from mapmatch.errors import ConfigError
 
         try:
-            DEFAULT_CONFIG.with_settings(a.set)
+            BATCH_CONFIG.with_settings(a.set)  # the adapter's config: fail here, not per track
         except ConfigError as exc:
             print(f"--set: {exc}", file=sys.stderr)
             return 2
-        os.environ[SETTINGS_ENV] = ",".join(a.set)
+        os.environ[peers_adapter.SETTINGS_ENV] = ",".join(a.set)
     if a.summary:
         summarise(a.summary)
         return 0

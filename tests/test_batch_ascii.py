@@ -194,6 +194,9 @@ def test_a_gap_driven_at_road_speed_is_bridged_by_its_route() -> None:
     assert r.length_m == pytest.approx(2500 + 380, abs=5.0)
     jump = Track("t", np.array([0.0, 15.0, 30.0, 45.0, 55.0]), ll[:, 1], ll[:, 0])
     assert BatchMatcher(m.graph).match(jump).splits == [3]
+    # gap_distance 0: distance never splits, so even the jump is one piece
+    never = BatchMatcher(m.graph).match(jump, DEFAULT_CONFIG.replace(gap_distance=0.0))
+    assert never.splits == [] and [names(m, piece) for piece in never.routes] == [["ab", "bc"]]
 
 
 def test_a_long_pause_splits_the_track_when_gap_time_is_set() -> None:

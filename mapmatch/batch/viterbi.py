@@ -394,7 +394,7 @@ def solve(lat: Lattice, p: KernelParams, router, ar):  # type: ignore[no-untyped
             back = 0
             while q >= 0 and back < max_skip:
                 dq = math.hypot(pxy[s0, 0] - pxy[q, 0], pxy[s0, 1] - pxy[q, 1])
-                if _far_gap(dq, ptime[s0] - ptime[q], p, back + 2):  # each step it spans is within the gap
+                if _far_gap(dq, ptime[s0] - ptime[q], p, back + 2):  # a jump even spread over its steps
                     break
                 reached, bound = _try_step(q, s0, dq, lat, tr, p, router)
                 if reached:
