@@ -169,15 +169,17 @@ def transition_params(config: MatchConfig) -> NDArray[np.float64]:
 
 @njit(cache=True, inline="always")  # inlined: no reference count of ``params`` per pair
 def transition_logp_one(
-    route_dist: float, travelled: float, dt: float, params: NDArray[np.float64], uturn: bool
+    route_dist: float, travelled: float, dt: float, params: NDArray[np.float64], uturn: bool, beta: float
 ) -> float:
     """:func:`transition_logp` for one pair, compiled (for loops that route and score together).
 
-    ``params`` comes from :func:`transition_params`; the result equals :func:`transition_logp`.
+    ``params`` comes from :func:`transition_params`; ``beta`` is the step's base β, ``params[0]``
+    or more (the batch's grows with the step's time). With ``params[0]`` the result equals
+    :func:`transition_logp`.
     """
     if not np.isfinite(route_dist):
         return -np.inf
-    lp = _transition_one(route_dist, travelled, dt, params[0], params[4], params[1], params[2])
+    lp = _transition_one(route_dist, travelled, dt, beta, params[4], params[1], params[2])
     if uturn:
         lp -= params[3]
     return lp

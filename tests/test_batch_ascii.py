@@ -5,6 +5,7 @@ from __future__ import annotations
 import dataclasses
 import itertools
 import math
+from typing import Any
 
 import numpy as np
 import pytest
@@ -12,6 +13,7 @@ import pytest
 from mapmatch import batch
 from mapmatch.batch import BATCH_CONFIG as DEFAULT_CONFIG
 from mapmatch.batch import BatchMatcher
+from mapmatch.config import MatchConfig
 from mapmatch.graph.ascii import AsciiMap, parse_ascii_map
 from mapmatch.routing import shortest_route
 from mapmatch.types import PointStatus, Track, TrackMatch
@@ -589,9 +591,48 @@ def test_far_apart_fixes_follow_the_near_road_though_another_is_shorter() -> Non
     track = track_from_xy(m, pts, dt=30.0)
     r = BatchMatcher(m.graph).match(track)
     assert [names(m, piece) for piece in r.routes] == [["ab", "be", "ef", "fc", "cd"]]
-    # with a fixed β the 80 m detour costs more than the fix's 35 m off the straight road
-    fixed = BatchMatcher(m.graph).match(track, DEFAULT_CONFIG.replace(beta_per_m=0.0))
+    # with a fixed β (growing neither with the distance nor with the time) the 80 m detour
+    # costs more than the fix's 35 m off the straight road
+    fixed = BatchMatcher(m.graph).match(track, DEFAULT_CONFIG.replace(beta_per_m=0.0, beta_per_s=0.0))
     assert [names(m, piece) for piece in fixed.routes] == [["ab", "bc", "cd"]]
+
+
+def test_the_longer_the_time_between_fixes_the_further_round_the_route_may_go() -> None:
+    # a straight road b-c and a loop b-e-f-c 40 m north of it, 80 m longer; the middle fix lies
+    # 27 m from bc and 13 m from ef. Seconds apart, the loop's length outweighs the fix; with
+    # 20 s or more between the fixes the car may well have driven round it (``beta_per_s``)
+    m = parse_ascii_map(
+        """
+                    e----------f
+                    |          |
+        a-----------b----------c-----------d
+        """,
+        scale=10,
+    )
+    mid = at(m, "b", 50, 27)
+    pts = [at(m, "b", -30, 1), at(m, "b", -15, -1), mid, at(m, "c", 15, 1), at(m, "c", 30, -1)]
+    loop, straight = [["ab", "be", "ef", "fc", "cd"]], [["ab", "bc", "cd"]]
+
+    def routes(ts: list[float], xy: list[tuple[float, float]], cfg: MatchConfig = DEFAULT_CONFIG) -> Any:
+        ll = np.array([m.lonlat(x, y) for x, y in xy])
+        r = BatchMatcher(m.graph).match(Track("t", np.array(ts, dtype=float), ll[:, 1], ll[:, 0]), cfg)
+        return [names(m, piece) for piece in r.routes]
+
+    assert routes([0, 2, 4, 6, 8], pts) == straight
+    assert routes([0, 30, 60, 90, 120], pts) == loop
+    assert routes([0, 30, 60, 90, 120], pts, DEFAULT_CONFIG.replace(beta_per_s=0.0)) == straight
+    # the same fixes 36 s apart after a logger gap: the loop; but after a stop of 30 s at each
+    # of the first two (their fixes interpolated), the car drove only seconds: straight on
+    assert routes([0, 2, 38, 74, 76], pts) == loop
+
+    def jitter(p: tuple[float, float], i: int) -> tuple[float, float]:
+        return p[0] + i % 3 - 1, p[1] + (i % 2) * 2 - 1
+
+    ts = [0, 2, *range(3, 33), 38, *range(39, 69), 74, 76]
+    stand_b = [jitter(pts[1], i) for i in range(30)]
+    stand_mid = [jitter(mid, i) for i in range(30)]
+    xy = [*pts[:2], *stand_b, mid, *stand_mid, *pts[3:]]
+    assert routes(ts, xy) == straight
 
 
 def test_sparse_fixes_either_side_of_a_dual_carriageway_drive_round_its_turning_point() -> None:

@@ -66,7 +66,8 @@ def test_compiled_transition_equals_the_shared_model() -> None:
     for uturn in (False, True):
         ref = model.transition_logp(route, trav, dt, BATCH_CONFIG, uturn=uturn)
         got = [
-            model.transition_logp_one(r, d, t, params, uturn) for r, d, t in zip(route, trav, dt, strict=True)
+            model.transition_logp_one(r, d, t, params, uturn, params[0])
+            for r, d, t in zip(route, trav, dt, strict=True)
         ]
         np.testing.assert_allclose(got, ref)
 

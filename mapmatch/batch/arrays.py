@@ -65,6 +65,8 @@ class Lattice(NamedTuple):
     cut: NDArray[np.bool_]
     """A piece of route starts here: the track left the map (off-map fixes) since the
     previous lattice point."""
+    pgap: NDArray[np.float64]
+    """Seconds since the track's previous fix (0 for the first or when unknown)."""
 
 
 class EdgeGeometry(NamedTuple):
@@ -90,6 +92,8 @@ class KernelParams(NamedTuple):
     route_factor: float
     route_slack: float
     route_speed: float
+    beta_per_s: float
+    """Metres of β per second of a step's moving time."""
     lp_cut_m: float
     gap_distance: float
     gap_time: float
@@ -139,6 +143,7 @@ def kernel_params(cfg: MatchConfig, sigma: float) -> KernelParams:
         route_factor=float(cfg.max_route_factor),
         route_slack=float(cfg.route_slack),
         route_speed=float(cfg.route_speed),
+        beta_per_s=float(cfg.beta_per_s),
         lp_cut_m=float(cfg.beta * cfg.route_lp_cut),
         gap_distance=float(cfg.gap_distance) if cfg.gap_distance > 0 else np.inf,
         gap_time=float(cfg.gap_time),

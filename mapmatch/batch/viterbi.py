@@ -49,9 +49,10 @@ def _over_limit(r, dt, limit, i, j, factor, penalty):  # type: ignore[no-untyped
 
 
 @njit(cache=True, nogil=True)
-def _step(a0, a1, b0, b1, lat, tr, params, node_uturn, trav, dt, bound, vcap, p, router):  # type: ignore[no-untyped-def]
+def _step(a0, a1, b0, b1, lat, tr, params, node_uturn, trav, dt, beta0, bound, vcap, p, router):  # type: ignore[no-untyped-def]
     """One Viterbi step from candidates ``a0:a1`` to ``b0:b1``, routing as needed (routes
-    longer than ``vcap``, the most the step's time allows, are impossible).
+    longer than ``vcap``, the most the step's time allows, are impossible; ``beta0``: the
+    step's base β, grown with its moving time).
 
     Sources are taken best score first. As every transition log-probability is <= 0, a source
     can only improve target ``j`` when its score beats ``best[j]``, and only through a route
@@ -72,7 +73,7 @@ def _step(a0, a1, b0, b1, lat, tr, params, node_uturn, trav, dt, bound, vcap, p,
     lpen = p.limit_penalty
     ka = a1 - a0
     kb = b1 - b0
-    beta = params[0] + params[4] * trav  # the step's β (it grows with the distance)
+    beta = beta0 + params[4] * trav  # the step's β (it grows with the distance)
     for i in range(ka):
         order[i] = a0 + i
     # insertion sort by descending score (k is small)
@@ -112,7 +113,7 @@ def _step(a0, a1, b0, b1, lat, tr, params, node_uturn, trav, dt, bound, vcap, p,
             f = cedge[j]
             if f == e and coff[j] >= o - reverse_tol:
                 r = max(coff[j] - o, 0.0)
-                lp = transition_logp_one(r, trav, dt, params, False) if r <= vcap else -np.inf
+                lp = transition_logp_one(r, trav, dt, params, False, beta0) if r <= vcap else -np.inf
                 lp += _over_limit(r, dt, limit, i, j, lf, lpen)
                 if si + lp > best[j - b0]:
                     best[j - b0] = si + lp
@@ -122,7 +123,7 @@ def _step(a0, a1, b0, b1, lat, tr, params, node_uturn, trav, dt, bound, vcap, p,
                 need = True
                 r = abs(edge_len[e] - coff[j] - o)
                 if f == edge_rev[e] and r <= vcap:
-                    lp = transition_logp_one(r, trav, dt, params, True) + _over_limit(
+                    lp = transition_logp_one(r, trav, dt, params, True, beta0) + _over_limit(
                         r, dt, limit, i, j, lf, lpen
                     )
                     if node_uturn < params[3] and edge_len[e] - o <= reverse_tol and coff[j] <= reverse_tol:
@@ -141,7 +142,7 @@ def _step(a0, a1, b0, b1, lat, tr, params, node_uturn, trav, dt, bound, vcap, p,
                     continue
                 r = edge_len[e] - o + ubodt_lookup(table, e, f) + coff[j]
                 if r <= lim:
-                    lp = transition_logp_one(r, trav, dt, params, False) + _over_limit(
+                    lp = transition_logp_one(r, trav, dt, params, False, beta0) + _over_limit(
                         r, dt, limit, i, j, lf, lpen
                     )
                     if si + lp > best[j - b0]:
@@ -156,7 +157,7 @@ def _step(a0, a1, b0, b1, lat, tr, params, node_uturn, trav, dt, bound, vcap, p,
                 continue
             r = ws.dist[f] + coff[j]
             if r <= lim:
-                lp = transition_logp_one(r, trav, dt, params, False) + _over_limit(
+                lp = transition_logp_one(r, trav, dt, params, False, beta0) + _over_limit(
                     r, dt, limit, i, j, lf, lpen
                 )
                 if si + lp > best[j - b0]:
@@ -198,6 +199,9 @@ def _try_step(prev, t, d, lat, tr, p, router):  # type: ignore[no-untyped-def]
         reach = max(reach, p.route_speed * dt)
     bound = min(reach, vcap)
     tight = min(bound, trav + p.lp_cut_m)
+    beta0 = p.transition[0]
+    if dt > 0:  # driving time: a stop's fixes are interpolated, so at most the last fix interval
+        beta0 += p.beta_per_s * min(dt, lat.pgap[t])
     stop = p.stop  # (stop speed, stop time, U-turn penalty across a stop)
     node_uturn = p.transition[3]
     if dt >= stop[1] and d < stop[0] * dt:
@@ -209,8 +213,8 @@ def _try_step(prev, t, d, lat, tr, p, router):  # type: ignore[no-untyped-def]
         if npass == 1 and lim <= tight:
             break
         reached = _step(
-            ptr[prev], ptr[prev + 1], ptr[t], ptr[t + 1], lat, tr, p.transition, node_uturn, trav, dt, lim,
-            vcap, p, router,
+            ptr[prev], ptr[prev + 1], ptr[t], ptr[t + 1], lat, tr, p.transition, node_uturn, trav, dt, beta0,
+            lim, vcap, p, router,
         )  # fmt: skip
         if reached:
             break
