@@ -371,7 +371,7 @@ class BatchConfig:
     route_speed : m/s; a route may also be as long as this speed for the time between its two
         fixes allows. For tracks minutes apart, where the road often goes far round (a dual
         carriageway's turning point, a one-way loop): REAL Kubicka tracks at one fix per 60 /
-        120 s match better with 25 (mean RMF 0.050 -> 0.036, 0.130 -> 0.067). Off (0) by
+        120 s match better with 25 (mean RMF 0.050 -> 0.036, 0.078 -> 0.067). Off (0) by
         default, the bound is the distance's alone: a reachable fix is always visited, so a
         longer bound also sends the route up a side road to a stray fix it would leave out.
     beta_per_s : metres added to the model's β per second of the step's driving time: the
