@@ -224,7 +224,7 @@ def prune(nk, c: CandidateArrays, emis, prune_lp, outlier, sigma, off_map_sigmas
 @njit(cache=True, nogil=True)
 def build_lattice(pt: TrackPoints, c: CandidateArrays, p: KernelParams, ar) -> Lattice:  # type: ignore[no-untyped-def]
     """Emissions (distance-only with one σ when ``c.emis`` is empty), pruning, and the lattice
-    points' positions, times, odometer readings and time since the track's previous fix."""
+    points' positions, times and odometer readings."""
     emis = c.emis
     if len(emis) != len(c.dist):
         emis = take_f8(ar, len(c.dist))
@@ -243,19 +243,14 @@ def build_lattice(pt: TrackPoints, c: CandidateArrays, p: KernelParams, ar) -> L
     pxy = take_xy(ar, m)
     ptime = take_f8(ar, m)
     podo = full_f8(ar, m, np.nan)
-    pgap = full_f8(ar, m, 0.0)
     for i in range(m):
         pxy[i, 0] = pt.xy[pts[i], 0]
         pxy[i, 1] = pt.xy[pts[i], 1]
         ptime[i] = pt.time[pts[i]]
-        if pts[i] > 0:
-            g = pt.time[pts[i]] - pt.time[pts[i] - 1]
-            if g > 0:
-                pgap[i] = g
         if len(pt.odo):
             podo[i] = pt.odo[pts[i]]
     cut = off_map_cuts(pt, has, p.off_map_cut, ar)
-    return Lattice(ptr, ce, co, cx, cd, em, lim, pts, pxy, ptime, podo, cut, pgap)
+    return Lattice(ptr, ce, co, cx, cd, em, lim, pts, pxy, ptime, podo, cut)
 
 
 @njit(cache=True, nogil=True)

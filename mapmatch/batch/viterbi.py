@@ -200,8 +200,8 @@ def _try_step(prev, t, d, lat, tr, p, router):  # type: ignore[no-untyped-def]
     bound = min(reach, vcap)
     tight = min(bound, trav + p.lp_cut_m)
     beta0 = p.transition[0]
-    if dt > 0:  # driving time: a stop's fixes are interpolated, so at most the last fix interval
-        beta0 += p.beta_per_s * min(dt, lat.pgap[t])
+    if dt > 0:  # driving time: the step's mean fix interval (a stop's fixes are interpolated)
+        beta0 += p.beta_per_s * dt / max(lat.pts[t] - lat.pts[prev], 1)
     stop = p.stop  # (stop speed, stop time, U-turn penalty across a stop)
     node_uturn = p.transition[3]
     if dt >= stop[1] and d < stop[0] * dt:
