@@ -376,10 +376,10 @@ class BatchConfig:
         longer bound also sends the route up a side road to a stray fix it would leave out.
     beta_per_s : metres added to the model's β per second of the step's driving time: the
         time between its two fixes over the number of the track's fix intervals between them
-        (a stop, whose fixes are interpolated, is not driving). The longer a
-        vehicle drives between two fixes, the further round it may have gone, whatever the
-        straight line. REAL Kubicka tracks, all start offsets, mean RMF at 10 / 30 s: 0.0051 /
-        0.0148 with 0, 0.0042 / 0.0138 with 0.5; 1 Hz unchanged (from 1.0 on its median grows).
+        (a stop, whose fixes are interpolated, is not driving). The longer a vehicle drives
+        between two fixes, the further round it may have gone, whatever the straight line.
+        REAL Kubicka tracks, all start offsets, mean RMF at 10 / 30 s: 0.0051 / 0.0148 with 0,
+        0.0042 / 0.0138 with 0.5; 1 Hz unchanged (from 1.0 on its median grows).
     gap_time : seconds; fixes further apart in time than this are matched as separate pieces
         (a parked vehicle, a logger switched off), however near they are (0: time never
         splits; the route is then cut only by distance, off-map runs and impossible steps).

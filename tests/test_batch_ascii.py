@@ -5,7 +5,6 @@ from __future__ import annotations
 import dataclasses
 import itertools
 import math
-from typing import Any
 
 import numpy as np
 import pytest
@@ -613,7 +612,9 @@ def test_the_longer_the_time_between_fixes_the_further_round_the_route_may_go() 
     pts = [at(m, "b", -30, 1), at(m, "b", -15, -1), mid, at(m, "c", 15, 1), at(m, "c", 30, -1)]
     loop, straight = [["ab", "be", "ef", "fc", "cd"]], [["ab", "bc", "cd"]]
 
-    def routes(ts: list[float], xy: list[tuple[float, float]], cfg: MatchConfig = DEFAULT_CONFIG) -> Any:
+    def routes(
+        ts: list[float], xy: list[tuple[float, float]], cfg: MatchConfig = DEFAULT_CONFIG
+    ) -> list[list[str]]:
         ll = np.array([m.lonlat(x, y) for x, y in xy])
         r = BatchMatcher(m.graph).match(Track("t", np.array(ts, dtype=float), ll[:, 1], ll[:, 0]), cfg)
         return [names(m, piece) for piece in r.routes]

@@ -95,7 +95,7 @@ class KernelParams(NamedTuple):
     route_slack: float
     route_speed: float
     beta_per_s: float
-    """Metres of β per second of a step's moving time."""
+    """Metres of β per second of a step's driving time (its mean fix interval)."""
     lp_cut_m: float
     gap_distance: float
     gap_time: float

@@ -52,7 +52,7 @@ def _over_limit(r, dt, limit, i, j, factor, penalty):  # type: ignore[no-untyped
 def _step(a0, a1, b0, b1, lat, tr, params, node_uturn, trav, dt, beta0, bound, vcap, p, router):  # type: ignore[no-untyped-def]
     """One Viterbi step from candidates ``a0:a1`` to ``b0:b1``, routing as needed (routes
     longer than ``vcap``, the most the step's time allows, are impossible; ``beta0``: the
-    step's base β, grown with its moving time).
+    step's base β, grown with its driving time).
 
     Sources are taken best score first. As every transition log-probability is <= 0, a source
     can only improve target ``j`` when its score beats ``best[j]``, and only through a route
