@@ -62,10 +62,11 @@ def load(work: Path) -> BatchMatcher:
 
     graph = load_graph(Path(work))
     settings = [s for s in os.environ.get(SETTINGS_ENV, "").split(",") if s.strip()]
+    config = BATCH_CONFIG.with_settings(settings)
     matcher = BatchMatcher(
         graph,
-        config=BATCH_CONFIG.with_settings(settings),
-        ubodt=Ubodt.build(graph, UBODT_DELTA) if UBODT_DELTA else None,
+        config=config,
+        ubodt=Ubodt.build(graph, UBODT_DELTA, turn_cost=config.turn_cost) if UBODT_DELTA else None,
     )
     # warm up: loads the numba cache before the timed calls
     lon, lat = matcher.graph.node_lonlat[0]

@@ -27,7 +27,7 @@ from typing import Any
 
 import pandas as pd
 
-from mapmatch.config import MatchConfig
+from mapmatch.config import BATCH_CONFIG, MatchConfig
 from mapmatch.errors import MatchError
 from mapmatch.graph.files import atomic_path
 from mapmatch.io import (
@@ -75,21 +75,22 @@ class RunSummary:
 
 
 # ---------------------------------------------------------------------- worker side
-_CACHE: dict[tuple[str, float, float], Any] = {}
+_CACHE: dict[tuple[str, float, float, float], Any] = {}
 
 
-def _matcher(map_path: str, ubodt_delta: float | None = None) -> Any:
-    """The process's matcher for a map file (and optional route table), loaded once."""
+def _matcher(map_path: str, ubodt_delta: float | None = None, turn_cost: float = 0.0) -> Any:
+    """The process's matcher for a map file (and optional route table, its routes costing
+    ``turn_cost`` per turn back), loaded once."""
     from mapmatch.batch import BatchMatcher
     from mapmatch.graph.artifact import load_map
     from mapmatch.routing import Ubodt
 
-    key = (os.path.abspath(map_path), os.path.getmtime(map_path), float(ubodt_delta or 0.0))
+    key = (os.path.abspath(map_path), os.path.getmtime(map_path), float(ubodt_delta or 0.0), float(turn_cost))
     m = _CACHE.get(key)
     if m is None:
         _CACHE.clear()
         graph = load_map(map_path)
-        table = Ubodt.build(graph, ubodt_delta) if ubodt_delta else None
+        table = Ubodt.build(graph, ubodt_delta, turn_cost=turn_cost) if ubodt_delta else None
         m = _CACHE[key] = BatchMatcher(graph, ubodt=table)
     return m
 
@@ -103,7 +104,7 @@ def match_partition(
     ubodt_delta: float | None = None,
 ) -> tuple[int, int]:
     """Match one partition and write its results file atomically: ``(tracks, points)``."""
-    matcher = _matcher(map_path, ubodt_delta)
+    matcher = _matcher(map_path, ubodt_delta, (config or BATCH_CONFIG).turn_cost)
     tracks = list(part.tracks) if part.source is None else read_tracks(part.source, columns=columns)
     results = [matcher.match(t, config) for t in tracks]
     write_geoparquet(out_file, results_table(results, matcher.graph))

@@ -36,27 +36,49 @@ class RouteGraph(NamedTuple):
     """The graph arrays the compiled searches read: the legal-moves table
     (``move_to[move_ptr[e]:move_ptr[e + 1]]`` are the edges a route may take after ``e``), the
     edge lengths, the edges' reverse twins (-1 for none) and the positions of the edges' start
-    and end nodes (for the straight-line lower bound of :func:`_search_toward`)."""
+    and end nodes, ``edge_xy[e] = (x0, y0, x1, y1)`` (for the straight-line lower bound of
+    :func:`_search_toward`). ``move_cost`` is each move's turn cost in metres, added to the
+    route's length (:func:`turn_costs`).
+
+    Keep it at six arrays: with the start and end positions as two arrays (seven in all) every
+    batch call took about 20 % longer (interleaved A/B, REAL Kubicka tracks), as a thirteenth
+    :class:`~mapmatch.batch.arrays.Lattice` array did.
+    """
 
     move_ptr: NDArray[np.int64]
     move_to: NDArray[np.int32]
+    move_cost: NDArray[np.float64]
     edge_len: NDArray[np.float64]
     edge_rev: NDArray[np.int32]
-    start_xy: NDArray[np.float64]
-    end_xy: NDArray[np.float64]
+    edge_xy: NDArray[np.float64]
 
 
-def route_graph(graph: RoadGraph, *, uturns: UTurnPolicy = "dead_end") -> RouteGraph:
+def turn_costs(
+    graph: RoadGraph, ptr: NDArray[np.int64], to: NDArray[np.int32], cost: float
+) -> NDArray[np.float64]:
+    """Each move's turn cost: ``cost`` metres times ``(1 - cos θ) / 2`` for the turn angle θ
+    between the end of the edge and the start of the next (0 straight on, ``cost`` turning back)."""
+    frm = np.repeat(np.arange(len(ptr) - 1), np.diff(ptr))
+    theta = np.radians(graph.edge_bearing_start[to] - graph.edge_bearing_end[frm])
+    return np.ascontiguousarray(cost * 0.5 * (1.0 - np.cos(theta)), dtype=np.float64)
+
+
+def route_graph(graph: RoadGraph, *, uturns: UTurnPolicy = "dead_end", turn_cost: float = 0.0) -> RouteGraph:
     """The compiled searches' arrays of ``graph``, moves by :func:`mapmatch.graph.rules.moves_for`
-    under the U-turn policy ``uturns`` (the batch matcher's: turning back only at a dead end)."""
+    under the U-turn policy ``uturns`` (the batch matcher's: turning back only at a dead end),
+    each costing :func:`turn_costs` of ``turn_cost`` metres (finite, not negative)."""
+    if not math.isfinite(turn_cost) or turn_cost < 0:
+        raise ValueError(f"turn_cost must be a finite non-negative number of metres, got {turn_cost!r}")
     moves = moves_for(graph, uturns=uturns)
     return RouteGraph(
         move_ptr=np.ascontiguousarray(moves.ptr, dtype=np.int64),
         move_to=np.ascontiguousarray(moves.to, dtype=np.int32),
+        move_cost=turn_costs(graph, moves.ptr, moves.to, turn_cost),
         edge_len=np.ascontiguousarray(graph.edge_len, dtype=np.float64),
         edge_rev=np.ascontiguousarray(graph.edge_reverse, dtype=np.int32),
-        start_xy=np.ascontiguousarray(graph.node_xy[graph.edge_u], dtype=np.float64),
-        end_xy=np.ascontiguousarray(graph.node_xy[graph.edge_v], dtype=np.float64),
+        edge_xy=np.ascontiguousarray(
+            np.hstack([graph.node_xy[graph.edge_u], graph.node_xy[graph.edge_v]]), dtype=np.float64
+        ),
     )
 
 
@@ -200,32 +222,33 @@ def _search_toward(  # type: ignore[no-untyped-def]
     dist, pred, done, tgt, touched, heap_k, heap_v = ws
     move_ptr = g.move_ptr
     move_to = g.move_to
+    move_cost = g.move_cost
     edge_len = g.edge_len
-    start_xy = g.start_xy
-    end_xy = g.end_xy
+    exy = g.edge_xy
     goal = len(targets) > 0
     gx = gy = reach = 0.0
     if goal:
-        gx = start_xy[targets[0], 0]
-        gy = start_xy[targets[0], 1]
+        gx = exy[targets[0], 0]
+        gy = exy[targets[0], 1]
     for i in range(1, len(targets)):
         f = targets[i]
-        reach = max(reach, math.hypot(start_xy[f, 0] - gx, start_xy[f, 1] - gy))
+        reach = max(reach, math.hypot(exy[f, 0] - gx, exy[f, 1] - gy))
     nt = 0
     nh = 0
     h = 0.0
     if goal:
-        h = max(math.hypot(end_xy[src, 0] - gx, end_xy[src, 1] - gy) - reach, 0.0) * LOWER_BOUND_SCALE
+        h = max(math.hypot(exy[src, 2] - gx, exy[src, 3] - gy) - reach, 0.0) * LOWER_BOUND_SCALE
     if base + h <= bound:
         for i in range(move_ptr[src], move_ptr[src + 1]):
             f = move_to[i]
-            if base < dist[f]:
+            c = base + move_cost[i]
+            if c < dist[f]:
                 if dist[f] == INF:
                     touched[nt] = f
                     nt += 1
-                dist[f] = base
+                dist[f] = c
                 pred[f] = src
-                nh = _push(heap_k, heap_v, nh, base + h, f)
+                nh = _push(heap_k, heap_v, nh, c + h, f)
     left = n_targets
     while nh > 0 and left != 0:
         e = heap_v[0]
@@ -237,19 +260,20 @@ def _search_toward(  # type: ignore[no-untyped-def]
             left -= 1
         nd = dist[e] + edge_len[e]
         if goal:
-            h = max(math.hypot(end_xy[e, 0] - gx, end_xy[e, 1] - gy) - reach, 0.0) * LOWER_BOUND_SCALE
+            h = max(math.hypot(exy[e, 2] - gx, exy[e, 3] - gy) - reach, 0.0) * LOWER_BOUND_SCALE
         if nd + h > bound:
             continue
         for i in range(move_ptr[e], move_ptr[e + 1]):
             f = move_to[i]
-            if nd < dist[f] and not done[f]:
+            c = nd + move_cost[i]
+            if c < dist[f] and not done[f]:
                 if dist[f] == INF:
                     touched[nt] = f
                     nt += 1
-                dist[f] = nd
+                dist[f] = c
                 pred[f] = e
                 if nh < len(heap_k):
-                    nh = _push(heap_k, heap_v, nh, nd + h, f)
+                    nh = _push(heap_k, heap_v, nh, c + h, f)
     return nt
 
 
@@ -387,13 +411,18 @@ class Ubodt:
     dist: NDArray[np.float64]
     pred: NDArray[np.int32]
     pred_pos: NDArray[np.int32]
+    turn_cost: float = 0.0
+    """The turn cost its routes were found with (:func:`route_graph`); a matcher uses the
+    table only for a config with the same ``turn_cost``."""
 
     @classmethod
-    def build(cls, graph: RoadGraph, delta: float) -> Ubodt:
-        """Precompute the table for ``delta`` metres (time and memory grow fast with it)."""
+    def build(cls, graph: RoadGraph, delta: float, *, turn_cost: float = 0.0) -> Ubodt:
+        """Precompute the table for ``delta`` metres (time and memory grow fast with it), routes
+        costing ``turn_cost`` metres per turn back (:func:`turn_costs`)."""
         ws = Workspace.new(graph.n_edges)
-        ptr, tgt, dist, pred, pos = _build_ubodt(float(delta), graph.n_edges, route_graph(graph), ws)
-        return cls(delta=float(delta), ptr=ptr, tgt=tgt, dist=dist, pred=pred, pred_pos=pos)
+        rg = route_graph(graph, turn_cost=turn_cost)
+        ptr, tgt, dist, pred, pos = _build_ubodt(float(delta), graph.n_edges, rg, ws)
+        return cls(float(delta), ptr, tgt, dist, pred, pos, float(turn_cost))
 
     @property
     def table(self) -> RouteTable:

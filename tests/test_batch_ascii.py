@@ -14,7 +14,7 @@ from mapmatch.batch import BATCH_CONFIG as DEFAULT_CONFIG
 from mapmatch.batch import BatchMatcher
 from mapmatch.config import MatchConfig
 from mapmatch.graph.ascii import AsciiMap, parse_ascii_map
-from mapmatch.routing import shortest_route
+from mapmatch.routing import Ubodt, shortest_route
 from mapmatch.types import PointStatus, Track, TrackMatch
 
 
@@ -288,10 +288,12 @@ def test_turning_round_at_a_junction_after_a_stop() -> None:
     r = BatchMatcher(m.graph).match(track)
     assert [names(m, piece) for piece in r.routes] == [["ab", "ba"]]
     assert r.length_m == pytest.approx(150, abs=12)
-    # without the stop rule the full U-turn penalty makes the loop win
+    # without the stop rule the full U-turn penalty makes the loop win (either way round: the
+    # same length and the same turns)
     full = DEFAULT_CONFIG.replace(stop_uturn_penalty=DEFAULT_CONFIG.uturn_penalty)
     r = BatchMatcher(m.graph).match(track, full)
-    assert [names(m, piece) for piece in r.routes] == [["ab", "bc", "ce", "ed", "db", "ba"]]
+    loops = ([["ab", "bc", "ce", "ed", "db", "ba"]], [["ab", "bd", "de", "ec", "cb", "ba"]])
+    assert [names(m, piece) for piece in r.routes] in loops
 
 
 def test_drift_onto_a_dead_end_is_left_out_rather_than_splitting() -> None:
@@ -636,6 +638,33 @@ def test_the_longer_the_time_between_fixes_the_further_round_the_route_may_go() 
     assert routes(ts, xy) == straight
 
 
+def test_of_two_routes_of_one_length_the_one_with_fewer_turns_wins() -> None:
+    # from ab to gh, 10 s a fix: round the corner c (two right angles) or down the steps
+    # d-e-f (four), both 200 m. The middle fix lies about as near to both (23 m from bc, 22 m
+    # from e): the route that turns less wins (``turn_cost``); without it, the nearer one
+    m = parse_ascii_map(
+        """
+        a-----b-----------c
+              |           |
+              d-----e     |
+                    |     |
+                    f-----g-----h
+        """,
+        scale=10,
+    )
+    pts = [at(m, "a", 10, 1), at(m, "a", 40, -1), at(m, "e", 14, 17), at(m, "g", 30, 1), at(m, "h", 0, -1)]
+    track = track_from_xy(m, pts, dt=10.0)
+    corner, steps = [["ab", "bc", "cg", "gh"]], [["ab", "bd", "de", "ef", "fg", "gh"]]
+    assert [names(m, piece) for piece in BatchMatcher(m.graph).match(track).routes] == corner
+    flat = DEFAULT_CONFIG.replace(turn_cost=0)
+    assert [names(m, piece) for piece in BatchMatcher(m.graph).match(track, flat).routes] == steps
+    # the same with a route table built with the turn costs, and one without them (not used)
+    for cost in (DEFAULT_CONFIG.turn_cost, 0.0):
+        table = Ubodt.build(m.graph, 500.0, turn_cost=cost)
+        r = BatchMatcher(m.graph, ubodt=table).match(track)
+        assert [names(m, piece) for piece in r.routes] == corner
+
+
 def test_sparse_fixes_either_side_of_a_dual_carriageway_drive_round_its_turning_point() -> None:
     # fixes two minutes apart: east on the one-way a>b, then back west on d<c, 80 m south; the
     # only way round is the turning point b-c, 1.5 km of road, far beyond three times the 80 m
@@ -678,9 +707,13 @@ def test_first_fix_near_a_crossing_takes_the_road_of_the_direction_of_travel() -
     track = track_from_xy(m, pts, dt=2.0)
     r = BatchMatcher(m.graph).match(track)
     assert [names(m, piece) for piece in r.routes] == [["ab", "bd"]]
-    # without the direction of travel the nearer road wins and ab is missing
-    off = BatchMatcher(m.graph).match(track, DEFAULT_CONFIG.replace(motion_heading_sigma=0))
+    # without the direction of travel and the cost of turning at b, the nearer road wins and
+    # ab is missing
+    off = BatchMatcher(m.graph).match(track, DEFAULT_CONFIG.replace(motion_heading_sigma=0, turn_cost=0))
     assert [names(m, piece) for piece in off.routes] == [["cb", "bd"]]
+    # either alone puts the first fix on ab
+    for cfg in (DEFAULT_CONFIG.replace(motion_heading_sigma=0), DEFAULT_CONFIG.replace(turn_cost=0)):
+        assert [names(m, piece) for piece in BatchMatcher(m.graph).match(track, cfg).routes] == [["ab", "bd"]]
 
 
 def test_a_lone_fix_near_a_road_amid_fixes_off_the_map_is_off_the_map_too() -> None:

@@ -158,6 +158,42 @@ def test_routing_moves_are_the_old_dead_end_rule(restrictions: list[tuple[str, s
     assert len(g.restrictions) == (4 if restrictions else 0)
 
 
+def test_a_move_costs_its_share_of_the_turn_cost_by_its_angle() -> None:
+    from mapmatch.routing import Workspace, _reset, _search, route_graph
+
+    # from ab: straight on to bc, right angles to bd and be, back at the dead end c (cb)
+    m = parse_ascii_map(
+        """
+              d
+              |
+        a-----b-----c
+              |
+              e
+        """,
+        scale=10,
+    )
+    g = m.graph
+    rg = route_graph(g, turn_cost=30.0)
+
+    def cost(e: str, f: str) -> float:
+        i = m.edge(*e)
+        moves = rg.move_to[rg.move_ptr[i] : rg.move_ptr[i + 1]].tolist()
+        return float(rg.move_cost[rg.move_ptr[i] + moves.index(m.edge(*f))])
+
+    assert cost("ab", "bc") == pytest.approx(0.0, abs=1e-9)
+    assert cost("ab", "bd") == pytest.approx(15.0) and cost("ab", "be") == pytest.approx(15.0)
+    assert cost("bc", "cb") == pytest.approx(30.0)  # turning back at a dead end
+    assert not route_graph(g).move_cost.any()  # none by default
+    # the search adds them to the metres: from the end of ab, bc starts at 0, bd at 15 (a right
+    # angle), cb at 90 (60 m of bc, then turning back at c)
+    ws = Workspace.new(g.n_edges)
+    nt = _search(m.edge("a", "b"), 0.0, 1e9, -1, rg, ws)
+    assert ws.dist[m.edge("b", "c")] == pytest.approx(0.0, abs=1e-9)
+    assert ws.dist[m.edge("b", "d")] == pytest.approx(15.0)
+    assert ws.dist[m.edge("c", "b")] == pytest.approx(90.0)
+    _reset(nt, ws)
+
+
 def test_compiled_entry_point_sees_the_types_it_was_compiled_for() -> None:
     """The batch kernels are called through their entry points, which do not check types: every
     kind of input (read-only arrays, integer coordinates, lists, headings, σ, odometer, no time)

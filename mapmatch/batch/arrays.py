@@ -143,7 +143,7 @@ def kernel_params(cfg: MatchConfig, sigma: float) -> KernelParams:
         transition=model.transition_params(cfg),
         stop=np.array([cfg.stop_uturn_speed, cfg.stop_uturn_time, cfg.stop_uturn_penalty], dtype=np.float64),
         route_factor=float(cfg.max_route_factor),
-        route_slack=float(cfg.route_slack),
+        route_slack=float(cfg.route_slack + cfg.turn_cost),  # the search counts turns as metres
         route_speed=float(cfg.route_speed),
         beta_per_s=float(cfg.beta_per_s),
         lp_cut_m=float(cfg.beta * cfg.route_lp_cut),

@@ -49,7 +49,7 @@ from mapmatch.graph.index import Candidates, EdgeIndex
 from mapmatch.graph.projection import to_xy
 from mapmatch.graph.road_graph import RoadGraph
 from mapmatch.gridindex import GridIndex, GridScratch
-from mapmatch.routing import NO_TABLE, Router, Ubodt, Workspace, route_graph
+from mapmatch.routing import NO_TABLE, RouteGraph, Router, RouteTable, Ubodt, Workspace, route_graph
 from mapmatch.types import Track, TrackMatch
 
 F8, I8 = np.float64, np.int64
@@ -113,7 +113,8 @@ class BatchMatcher:
         override.
     ubodt
         Optional precomputed route table (:class:`mapmatch.routing.Ubodt`); routes within its
-        bound are looked up instead of searched. Without it every route is a bounded search.
+        bound are looked up instead of searched, for configs with the ``turn_cost`` it was built
+        with. Without it every route is a bounded search.
     """
 
     def __init__(
@@ -130,7 +131,8 @@ class BatchMatcher:
         self.index = index or EdgeIndex(graph)
         self.config = config or BATCH_CONFIG
         self._grid = GridIndex(self.index, cell=self.config.search_radius)
-        self._rg = route_graph(graph, uturns="dead_end")
+        self._rg = route_graph(graph, uturns="dead_end", turn_cost=self.config.turn_cost)
+        self._rg_by_cost: dict[float, RouteGraph] = {float(self.config.turn_cost): self._rg}
         seg_xy = np.ascontiguousarray(graph.seg_xy, dtype=F8)
         seg_ptr = np.ascontiguousarray(graph.edge_seg_ptr, dtype=I8)
         self._geom = EdgeGeometry(seg_xy, seg_ptr, segment_lengths(seg_xy, seg_ptr))
@@ -148,17 +150,31 @@ class BatchMatcher:
         """This thread's scratch (built once per thread, so one matcher serves many threads)."""
         st: _ThreadState | None = getattr(self._local, "state", None)
         if st is None:
-            router = Router(self._rg, Workspace.new(self.graph.n_edges), self._table)
+            router = Router(self._rg, Workspace.new(self.graph.n_edges), self._table_for(self.config))
             to_map = _projector(Transformer.from_crs("EPSG:4326", self.graph.crs, always_xy=True))
             st = self._local.state = _ThreadState(
                 router, self._grid.scratch(), Arena.new(ARENA_ITEMS), to_map, {}
             )
         return st
 
-    @property
-    def _router(self) -> Router:
-        """The route queries' arrays, with this thread's workspace."""
-        return self._state().router
+    def _table_for(self, cfg: MatchConfig) -> RouteTable:
+        """The route table if it was built with ``cfg``'s turn cost, else none (every route searched)."""
+        if self.ubodt is not None and self.ubodt.turn_cost == cfg.turn_cost:
+            return self._table
+        return NO_TABLE
+
+    def _router_for(self, st: _ThreadState, cfg: MatchConfig) -> Router:
+        """This thread's router for ``cfg``'s turn cost (the moves' costs are the graph's)."""
+        rg = self._rg_by_cost.get(float(cfg.turn_cost))
+        if rg is None:
+            if len(self._rg_by_cost) >= 8:
+                self._rg_by_cost = {float(self.config.turn_cost): self._rg}
+            rg = self._rg_by_cost[float(cfg.turn_cost)] = route_graph(
+                self.graph, uturns="dead_end", turn_cost=cfg.turn_cost
+            )
+        if rg is st.router.g:
+            return st.router
+        return Router(rg, st.router.ws, self._table_for(cfg))
 
     def _settings_for(self, cfg: MatchConfig) -> _Settings:
         """The kernels' parameters of ``cfg`` (a config is immutable: cached by identity)."""
@@ -207,8 +223,8 @@ class BatchMatcher:
             return got[1]
         s = self._settings_for(cfg)
         ctx = new_context(
-            s.query, s.track_rules, s.params, self._geom, self._roads, st.router, self._grid.arrays,
-            st.grid, st.arena,
+            s.query, s.track_rules, s.params, self._geom, self._roads, self._router_for(st, cfg),
+            self._grid.arrays, st.grid, st.arena,
         )  # fmt: skip
         if len(st.contexts) >= 64:
             st.contexts.clear()
@@ -314,7 +330,8 @@ class BatchMatcher:
         )  # fmt: skip
         params = st.params if isinstance(sigma, float) else st.params._replace(sigma=0.0)
         st_ = self._state()
-        return track_match(str(track.track_id), self._run(pt, ca, params, self._geom, st_.router, st_.arena))
+        router = self._router_for(st_, cfg)
+        return track_match(str(track.track_id), self._run(pt, ca, params, self._geom, router, st_.arena))
 
 
 def match_track(
