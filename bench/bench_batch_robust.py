@@ -20,7 +20,7 @@ and for phases the mean of offset 0 alone (the main bench's draw). One JSON line
     python bench/bench_batch_robust.py --ids 0,21 --engines custom,osrm --sets gaps
     python bench/bench_batch_robust.py --summary ~/.cache/mapmatch-peers/results/robust.jsonl
     python bench/bench_batch_robust.py --sets phases --S 60,120,300 --step 1000   # sparse tracks
-    python bench/bench_batch_robust.py --engines custom --set route_speed=25 --sets phases --S 120
+    python bench/bench_batch_robust.py --engines custom --set route_speed=0 --sets phases --S 120
 """
 
 from __future__ import annotations

@@ -369,12 +369,13 @@ class BatchConfig:
     max_route_factor : routes longer than this times the straight line (+ ``route_slack``) are cut.
     route_slack : metres added to the bound of each routing search (and ``turn_cost``: the
         search counts turn costs as metres).
-    route_speed : m/s; a route may also be as long as this speed for the time between its two
-        fixes allows. For tracks minutes apart, where the road often goes far round (a dual
-        carriageway's turning point, a one-way loop): REAL Kubicka tracks at one fix per 60 /
-        120 s match better with 25 (mean RMF 0.050 -> 0.036, 0.078 -> 0.067). Off (0) by
-        default, the bound is the distance's alone: a reachable fix is always visited, so a
-        longer bound also sends the route up a side road to a stray fix it would leave out.
+    route_speed : m/s; a route may also be as long as this speed allows over the time between
+        its two fixes: where fixes are far apart in time the road may go far round (a dual
+        carriageway's turning point, a one-way loop, a logger gap). REAL Kubicka tracks, mean
+        RMF with 0 and with 25: one fix per 60 / 120 s 0.038 / 0.058 and 0.024 / 0.047; 10 and
+        30 s (all start offsets) the same; 1 Hz 0.0033 and 0.0031 (the logger gaps of
+        00000042). A fix the route can reach is visited: 30 s apart, a fix beside a side road
+        becomes a trip up it (with 0 the bound is the distance's alone and it is left out).
     beta_per_s : metres added to the model's β per second of the step's driving time: the
         time between its two fixes over the number of the track's fix intervals between them
         (a stop, whose fixes are interpolated, is not driving). The longer a vehicle drives
@@ -447,7 +448,7 @@ class BatchConfig:
 
     max_route_factor: float = 3.0
     route_slack: float = 100.0
-    route_speed: float = 0.0
+    route_speed: float = 25.0
     beta_per_s: float = 0.5
     turn_cost: float = 20.0
     gap_time: float = 0.0

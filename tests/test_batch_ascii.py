@@ -513,10 +513,10 @@ def test_a_fix_that_jumps_back_is_dropped_not_looped_round() -> None:
 
 
 def test_a_stray_fix_by_a_side_road_is_dropped_not_the_good_fix_after_it() -> None:
-    # sparse fixes: one strays next to the side road hd, 55 m from bc; the next fix (on bc)
+    # fixes 10 s apart: one strays next to the side road hd, 55 m from bc; the next fix (on bc)
     # cannot be reached from there (back along hd and hb is too far for the step), the one
     # after it only by turning round on hd. Leaving out the stray fix explains both; leaving
-    # out the good fix after it makes a U-turn trip up the side road.
+    # out the good fix after it makes a trip up the side road.
     m = parse_ascii_map(
         """
                     h--------------------d
@@ -529,7 +529,7 @@ def test_a_stray_fix_by_a_side_road_is_dropped_not_the_good_fix_after_it() -> No
     )
     stray = at(m, "b", 180, 55)
     pts = [at(m, "a", 10, 2), at(m, "a", 100, 2), stray, at(m, "b", 185, -2), at(m, "b", 400, 2)]
-    track = track_from_xy(m, pts, dt=30.0)
+    track = track_from_xy(m, pts, dt=10.0)
     r = BatchMatcher(m.graph).match(track)
     assert [names(m, piece) for piece in r.routes] == [["ab", "bc"]]
     assert [p.status for p in r.points] == ["matched", "matched", "unmatched", "matched", "matched"]
@@ -537,6 +537,16 @@ def test_a_stray_fix_by_a_side_road_is_dropped_not_the_good_fix_after_it() -> No
     greedy = BatchMatcher(m.graph).match(track, DEFAULT_CONFIG.replace(outlier_lookahead=0))
     assert [p.status for p in greedy.points][2:4] == ["matched", "unmatched"]
     assert "hd" in names(m, greedy.routes[0])
+    # 30 s apart, the car may well have driven up hd and back (``route_speed``: 25 m/s): every
+    # fix is explained, the trip turning at the dead end d
+    sparse = track_from_xy(m, pts, dt=30.0)
+    r = BatchMatcher(m.graph).match(sparse)
+    assert [names(m, piece) for piece in r.routes] == [["ab", "bh", "hd", "dh", "hb", "bc"]]
+    assert all(p.status == PointStatus.MATCHED for p in r.points)
+    # a route bounded by the distance alone cannot make the trip: the stray fix is left out
+    r = BatchMatcher(m.graph).match(sparse, DEFAULT_CONFIG.replace(route_speed=0.0))
+    assert [names(m, piece) for piece in r.routes] == [["ab", "bc"]]
+    assert [p.status for p in r.points][2] == "unmatched"
 
 
 def _with_speeds(amap: AsciiMap, kph: dict[str, float]) -> AsciiMap:
@@ -668,7 +678,7 @@ def test_of_two_routes_of_one_length_the_one_with_fewer_turns_wins() -> None:
 def test_sparse_fixes_either_side_of_a_dual_carriageway_drive_round_its_turning_point() -> None:
     # fixes two minutes apart: east on the one-way a>b, then back west on d<c, 80 m south; the
     # only way round is the turning point b-c, 1.5 km of road, far beyond three times the 80 m
-    # between the fixes. Two minutes at 25 m/s (``route_speed``, off by default) allow it
+    # between the fixes. Two minutes at 25 m/s (``route_speed``) allow it
     m = parse_ascii_map(
         """
         a>>>>>>>>>>>>>>>>>>>>>>>>>>>>>>>>>>>>>>>>>>>>>>>>>>>>>>>>>>>>>>>>>>>>>>>>>>>b
@@ -682,11 +692,12 @@ def test_sparse_fixes_either_side_of_a_dual_carriageway_drive_round_its_turning_
     pts = [at(m, "a", 20, 2), at(m, "a", 60, -1), at(m, "d", 60, 2), at(m, "d", 20, -1)]
     ll = np.array([m.lonlat(x, y) for x, y in pts])
     track = Track("t", np.array([0.0, 4.0, 124.0, 128.0]), ll[:, 1], ll[:, 0])
-    r = BatchMatcher(m.graph).match(track, DEFAULT_CONFIG.replace(route_speed=25.0))
+    r = BatchMatcher(m.graph).match(track)
     assert r.splits == [] and [names(m, piece) for piece in r.routes] == [["ab", "bc", "cd"]]
     assert all(p.status == PointStatus.MATCHED for p in r.points)
-    # bounded by the distance alone (the default) the back leg is out of reach: a split
-    assert BatchMatcher(m.graph).match(track).splits == [2]
+    # bounded by the distance alone the back leg is out of reach: a split
+    by_distance = DEFAULT_CONFIG.replace(route_speed=0.0)
+    assert BatchMatcher(m.graph).match(track, by_distance).splits == [2]
 
 
 def test_first_fix_near_a_crossing_takes_the_road_of_the_direction_of_travel() -> None:
