@@ -387,9 +387,10 @@ class BatchConfig:
         route with fewer and gentler turns wins over one of about the same length, as drivers
         do. REAL Kubicka tracks, all start offsets, mean RMF at 10 / 30 s: 0.0042 / 0.0138 with
         0, 0.0036 / 0.0114 with 20; one fix per 60 / 120 s 0.050 / 0.078 -> 0.038 / 0.058; 1 Hz
-        0.0031 -> 0.0033. From 25 on the 1 Hz figures get worse. A route table
-        (:class:`~mapmatch.routing.Ubodt`) holds one turn cost; a matcher uses it only for
-        configs with that turn cost.
+        0.0031 -> 0.0033. From 25 on the 1 Hz figures get worse. A route's turn costs count as
+        metres wherever its length is used (the transition, the search bound, the speed
+        checks). A route table (:class:`~mapmatch.routing.Ubodt`) holds one turn cost; a
+        matcher uses it only for configs with that turn cost.
     gap_time : seconds; fixes further apart in time than this are matched as separate pieces
         (a parked vehicle, a logger switched off), however near they are (0: time never
         splits; the route is then cut only by distance, off-map runs and impossible steps).

@@ -188,7 +188,8 @@ def _search(  # type: ignore[no-untyped-def]
 ) -> int:
     """Dijkstra from the end of edge ``src`` (``base`` metres ahead of the start point).
 
-    ``dist[f]`` becomes the distance to the start of edge ``f``; stops when ``n_targets``
+    ``dist[f]`` becomes the distance to the start of edge ``f`` (metres of road plus the turn
+    costs of the moves, :func:`turn_costs`); stops when ``n_targets``
     edges flagged in ``tgt`` are settled or keys pass ``bound``. Returns the number of
     touched edges (listed in ``touched``; the caller resets them with :func:`_reset`).
     """
@@ -397,7 +398,8 @@ def shortest_path(
 class Ubodt:
     """Upper-bounded origin-destination table (FMM's UBODT, edge-based).
 
-    For every edge ``e``, the edges ``f`` whose start is within ``delta`` metres of the end of
+    For every edge ``e``, the edges ``f`` whose start is within ``delta`` metres (turn costs
+    counted, as in the searches) of the end of
     ``e`` (turn rules applied), sorted by ``f``: ``tgt[ptr[e]:ptr[e+1]]`` with the distances in
     ``dist`` and the edge before ``f`` on the route in ``pred`` (``e`` itself for a neighbour),
     whose place in the same row is ``pred_pos`` (-1 for a neighbour), so a route is read back
@@ -416,9 +418,14 @@ class Ubodt:
     table only for a config with the same ``turn_cost``."""
 
     @classmethod
-    def build(cls, graph: RoadGraph, delta: float, *, turn_cost: float = 0.0) -> Ubodt:
+    def build(cls, graph: RoadGraph, delta: float, *, turn_cost: float | None = None) -> Ubodt:
         """Precompute the table for ``delta`` metres (time and memory grow fast with it), routes
-        costing ``turn_cost`` metres per turn back (:func:`turn_costs`)."""
+        costing ``turn_cost`` metres per turn back (:func:`turn_costs`; by default the batch
+        matcher's, ``BATCH_CONFIG.turn_cost``)."""
+        if turn_cost is None:
+            from mapmatch.config import BATCH_CONFIG
+
+            turn_cost = float(BATCH_CONFIG.turn_cost)
         ws = Workspace.new(graph.n_edges)
         rg = route_graph(graph, turn_cost=turn_cost)
         ptr, tgt, dist, pred, pos = _build_ubodt(float(delta), graph.n_edges, rg, ws)
@@ -510,7 +517,8 @@ def _row_place(table, e: int, f: int) -> int:  # type: ignore[no-untyped-def]
 
 @njit(cache=True, nogil=True, inline="always")
 def ubodt_lookup(table, e: int, f: int) -> float:  # type: ignore[no-untyped-def]
-    """Distance from the end of ``e`` to the start of ``f`` if within the table, else inf."""
+    """Distance (with turn costs) from the end of ``e`` to the start of ``f`` if within the table,
+    else inf."""
     k = _row_place(table, e, f)
     return table.dist[k] if k >= 0 else INF
 

@@ -669,6 +669,7 @@ def test_of_two_routes_of_one_length_the_one_with_fewer_turns_wins() -> None:
     flat = DEFAULT_CONFIG.replace(turn_cost=0)
     assert [names(m, piece) for piece in BatchMatcher(m.graph).match(track, flat).routes] == steps
     # the same with a route table built with the turn costs, and one without them (not used)
+    assert Ubodt.build(m.graph, 500.0).turn_cost == DEFAULT_CONFIG.turn_cost  # the default's
     for cost in (DEFAULT_CONFIG.turn_cost, 0.0):
         table = Ubodt.build(m.graph, 500.0, turn_cost=cost)
         r = BatchMatcher(m.graph, ubodt=table).match(track)
