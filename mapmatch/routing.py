@@ -108,13 +108,15 @@ class Workspace(NamedTuple):
 
 
 class RouteTable(NamedTuple):
-    """A :class:`Ubodt`'s arrays as the compiled kernels read them (``delta < 0``: no table)."""
+    """A :class:`Ubodt`'s arrays as the compiled kernels read them (``delta < 0``: no table).
+
+    Only what they read: the kernels' tuples cost time per array they carry (see
+    :class:`RouteGraph`), so the table's ``pred`` stays out."""
 
     delta: float
     ptr: NDArray[np.int64]
     tgt: NDArray[np.int32]
     dist: NDArray[np.float64]
-    pred: NDArray[np.int32]
     pred_pos: NDArray[np.int32]
 
 
@@ -123,7 +125,6 @@ NO_TABLE = RouteTable(
     np.zeros(1, np.int64),
     np.zeros(0, np.int32),
     np.zeros(0),
-    np.zeros(0, np.int32),
     np.zeros(0, np.int32),
 )
 """The empty table: every route is searched."""
@@ -434,7 +435,7 @@ class Ubodt:
     @property
     def table(self) -> RouteTable:
         """The arrays as the compiled kernels read them."""
-        return RouteTable(self.delta, self.ptr, self.tgt, self.dist, self.pred, self.pred_pos)
+        return RouteTable(self.delta, self.ptr, self.tgt, self.dist, self.pred_pos)
 
     @property
     def nbytes(self) -> int:
