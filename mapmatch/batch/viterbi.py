@@ -34,6 +34,25 @@ class Trellis(NamedTuple):
     best: NDArray[np.float64]
 
 
+class StepCandidates(NamedTuple):
+    """The lattice arrays a Viterbi step reads: each array a compiled call carries costs time
+    (see :class:`~mapmatch.routing.RouteGraph`), and :class:`Lattice` has twelve."""
+
+    edge: NDArray[np.int64]
+    offset: NDArray[np.float64]
+    limit: NDArray[np.float64]
+    emis: NDArray[np.float64]
+
+
+class StepRules(NamedTuple):
+    """The parameters a Viterbi step reads besides the transition's (see
+    :class:`~mapmatch.batch.arrays.KernelParams`)."""
+
+    reverse_tol: float
+    limit_factor: float
+    limit_penalty: float
+
+
 @njit(cache=True, nogil=True, inline="always")
 def _over_limit(r, dt, limit, i, j, factor, penalty):  # type: ignore[no-untyped-def]
     """Log-probability cost of a step of ``r`` metres in ``dt`` s beyond ``factor`` times the
@@ -49,7 +68,7 @@ def _over_limit(r, dt, limit, i, j, factor, penalty):  # type: ignore[no-untyped
 
 
 @njit(cache=True, nogil=True)
-def _step(a0, a1, b0, b1, lat, tr, params, node_uturn, trav, dt, beta0, bound, vcap, p, router):  # type: ignore[no-untyped-def]
+def _step(a0, a1, b0, b1, lat, tr, params, node_uturn, trav, dt, beta0, bound, vcap, rules, router):  # type: ignore[no-untyped-def]
     """One Viterbi step from candidates ``a0:a1`` to ``b0:b1``, routing as needed (routes
     longer than ``vcap``, the most the step's time allows, are impossible; ``beta0``: the
     step's base β, grown with its driving time).
@@ -67,10 +86,10 @@ def _step(a0, a1, b0, b1, lat, tr, params, node_uturn, trav, dt, beta0, bound, v
     score, bp, bpu, order, best = tr
     edge_len = g.edge_len
     edge_rev = g.edge_rev
-    reverse_tol = p.reverse_tol
+    reverse_tol = rules.reverse_tol
     limit = lat.limit
-    lf = p.limit_factor
-    lpen = p.limit_penalty
+    lf = rules.limit_factor
+    lpen = rules.limit_penalty
     ka = a1 - a0
     kb = b1 - b0
     beta = beta0 + params[4] * trav  # the step's β (it grows with the distance)
@@ -208,13 +227,15 @@ def _try_step(prev, t, d, lat, tr, p, router):  # type: ignore[no-untyped-def]
         node_uturn = min(node_uturn, stop[2])
     reached = False
     ptr = lat.ptr
+    sc = StepCandidates(lat.edge, lat.offset, lat.limit, lat.emis)
+    rules = StepRules(p.reverse_tol, p.limit_factor, p.limit_penalty)
     for npass in range(2):
         lim = tight if npass == 0 else bound
         if npass == 1 and lim <= tight:
             break
         reached = _step(
-            ptr[prev], ptr[prev + 1], ptr[t], ptr[t + 1], lat, tr, p.transition, node_uturn, trav, dt, beta0,
-            lim, vcap, p, router,
+            ptr[prev], ptr[prev + 1], ptr[t], ptr[t + 1], sc, tr, p.transition, node_uturn, trav, dt, beta0,
+            lim, vcap, rules, router,
         )  # fmt: skip
         if reached:
             break
