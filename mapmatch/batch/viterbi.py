@@ -68,10 +68,11 @@ def _over_limit(r, dt, limit, i, j, factor, penalty):  # type: ignore[no-untyped
 
 
 @njit(cache=True, nogil=True)
-def _step(a0, a1, b0, b1, lat, tr, params, node_uturn, trav, dt, beta0, bound, vcap, rules, router):  # type: ignore[no-untyped-def]
-    """One Viterbi step from candidates ``a0:a1`` to ``b0:b1``, routing as needed (routes
-    longer than ``vcap``, the most the step's time allows, are impossible; ``beta0``: the
-    step's base β, grown with its driving time).
+def _step(a0, a1, b0, b1, cand, tr, params, node_uturn, trav, dt, beta0, bound, vcap, rules, router):  # type: ignore[no-untyped-def]
+    """One Viterbi step from candidates ``a0:a1`` to ``b0:b1`` of ``cand``
+    (:class:`StepCandidates`), routing as needed (routes longer than ``vcap``, the most the
+    step's time allows, are impossible; ``beta0``: the step's base β, grown with its driving
+    time).
 
     Sources are taken best score first. As every transition log-probability is <= 0, a source
     can only improve target ``j`` when its score beats ``best[j]``, and only through a route
@@ -81,13 +82,13 @@ def _step(a0, a1, b0, b1, lat, tr, params, node_uturn, trav, dt, beta0, bound, v
     g = router.g
     ws = router.ws
     table = router.table
-    cedge = lat.edge
-    coff = lat.offset
+    cedge = cand.edge
+    coff = cand.offset
     score, bp, bpu, order, best = tr
     edge_len = g.edge_len
     edge_rev = g.edge_rev
     reverse_tol = rules.reverse_tol
-    limit = lat.limit
+    limit = cand.limit
     lf = rules.limit_factor
     lpen = rules.limit_penalty
     ka = a1 - a0
@@ -190,7 +191,7 @@ def _step(a0, a1, b0, b1, lat, tr, params, node_uturn, trav, dt, beta0, bound, v
     for j in range(kb):
         if best[j] > -np.inf:
             reached = True
-            score[b0 + j] = best[j] + lat.emis[b0 + j]
+            score[b0 + j] = best[j] + cand.emis[b0 + j]
         else:
             score[b0 + j] = -np.inf
     return reached
