@@ -259,7 +259,7 @@ def compare_routing(ids: str, S: str, deltas: str) -> None:
 
     import numpy as np
 
-    from mapmatch.batch import BATCH_CONFIG, BatchMatcher
+    from mapmatch.batch import BatchMatcher
     from mapmatch.io import Columns, read_tracks
     from mapmatch.routing import Ubodt
 
@@ -270,7 +270,7 @@ def compare_routing(ids: str, S: str, deltas: str) -> None:
         variants: list[tuple[str, BatchMatcher]] = [("search", BatchMatcher(graph))]
         for d in (float(x) for x in deltas.split(",")):
             t0 = time.perf_counter()
-            table = Ubodt.build(graph, d, turn_cost=BATCH_CONFIG.turn_cost)
+            table = Ubodt.build(graph, d)  # with the batch default turn cost
             build = time.perf_counter() - t0
             print(
                 f"{name} edges={graph.n_edges} UBODT {d:.0f} m: "

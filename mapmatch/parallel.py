@@ -78,7 +78,7 @@ class RunSummary:
 _CACHE: dict[tuple[str, float, float, float], Any] = {}
 
 
-def _matcher(map_path: str, ubodt_delta: float | None = None, turn_cost: float = 0.0) -> Any:
+def _matcher(map_path: str, ubodt_delta: float | None, turn_cost: float) -> Any:
     """The process's matcher for a map file (and optional route table, its routes costing
     ``turn_cost`` per turn back), loaded once."""
     from mapmatch.batch import BatchMatcher

@@ -26,6 +26,7 @@ import numpy as np
 from numba import njit
 from numpy.typing import NDArray
 
+from mapmatch.config import BATCH_CONFIG
 from mapmatch.graph.road_graph import RoadGraph
 from mapmatch.graph.rules import UTurnPolicy, moves_for
 
@@ -424,8 +425,6 @@ class Ubodt:
         costing ``turn_cost`` metres per turn back (:func:`turn_costs`; by default the batch
         matcher's, ``BATCH_CONFIG.turn_cost``)."""
         if turn_cost is None:
-            from mapmatch.config import BATCH_CONFIG
-
             turn_cost = float(BATCH_CONFIG.turn_cost)
         ws = Workspace.new(graph.n_edges)
         rg = route_graph(graph, turn_cost=turn_cost)
