@@ -1,13 +1,15 @@
 """Batch matching robustness on REAL GPS: ours and the peers on more than one sub-sampling.
 
 ``bench_batch.py`` scores every S-th fix from fix 0, one draw of many. Here, on the shared Kubicka
-tracks (1 Hz GPS with true routes, the peers' prepared work dirs), every engine matches two
+tracks (1 Hz GPS with true routes, the peers' prepared work dirs), every engine matches
 stress sets of runs (``bench/peers_robust.py`` defines them):
 
   phases  every S-th fix (S = 10, 30) from each start offset 0, 3, 6, ... < S, plus the last fix;
   gaps    every 30th fix with one long gap cut out per run, from sub-fix g0 = 5, 30, 55, ...
           until the next kept fix is at least G m (3 km, 8 km) from g0 in a straight line,
-          as a logger switched off while driving.
+          as a logger switched off while driving;
+  noise   every S-th fix (S = 1, 10, 30) of the real track with extra drifting position error
+          of σ N m (10, 20) added: real routes and fixes, SIMULATED extra error.
 
 Every run is scored by the peers' ``score.py`` (RMF, 3 m) with the run's own first and last fix.
 Ours runs in this process (``bench/peers_adapter.py``), each peer in its own Python by
@@ -20,6 +22,7 @@ and for phases the mean of offset 0 alone (the main bench's draw). One JSON line
     python bench/bench_batch_robust.py --ids 0,21 --engines custom,osrm --sets gaps
     python bench/bench_batch_robust.py --summary ~/.cache/mapmatch-peers/results/robust.jsonl
     python bench/bench_batch_robust.py --sets phases --S 60,120,300 --step 1000   # sparse tracks
+    python bench/bench_batch_robust.py --sets noise --noise 10,20                 # a worse receiver
     python bench/bench_batch_robust.py --engines custom --set route_speed=0 --sets phases --S 120
 """
 
@@ -72,6 +75,7 @@ def run_args(a: argparse.Namespace) -> list[str]:
     return [
         *("--sets", a.sets, "--S", a.S, "--step", str(a.step), "--gap-S", str(a.gap_S)),
         *("--gaps", a.gaps, "--gap-first", str(a.gap_first), "--gap-every", str(a.gap_every)),
+        *("--noise", a.noise, "--noise-S", a.noise_S, "--noise-tau", str(a.noise_tau)),
     ]
 
 
@@ -117,16 +121,22 @@ def summarise(path: Path) -> None:
     rows = [json.loads(x) for x in path.read_text().splitlines() if x.strip()]
     by: dict[tuple[str, str, str], list[dict[str, Any]]] = defaultdict(list)
     for r in rows:
-        label = f"S={r['S']}" if r["set"] == "phases" else f"G={r['G'] / 1000:g} km"
+        if r["set"] == "phases":
+            label = f"S={r['S']}"
+        elif r["set"] == "noise":
+            label = f"N={r['N']:g} S={r['S']}"
+        else:
+            label = f"G={r['G'] / 1000:g} km"
         by[(r["engine"], r["set"], label)].append(r)
     order = {e: i for i, e in enumerate(ENGINES)}
 
-    def number(label: str) -> float:  # "S=30" or "G=3 km": sort by the number, not its text
-        return float(label.split("=")[1].split()[0])
+    def numbers(label: str) -> list[float]:  # "S=30", "G=3 km", "N=10 S=30": by number, not text
+        return [float(w.split("=")[1]) for w in label.split() if "=" in w]
 
-    keys = sorted(by, key=lambda k: (order.get(k[0], len(order)), k[0], k[1] != "phases", number(k[2])))
+    rank = {"phases": 0, "gaps": 1, "noise": 2}
+    keys = sorted(by, key=lambda k: (order.get(k[0], len(order)), k[0], rank.get(k[1], 3), numbers(k[2])))
     print(
-        f"\n{'engine':9s} {'set':7s} {'S or G':>9s} {'runs':>5s} {'mean RMF':>9s} {'median':>8s} "
+        f"\n{'engine':9s} {'set':7s} {'S, G, N':>9s} {'runs':>5s} {'mean RMF':>9s} {'median':>8s} "
         f"{'worst':>7s} {'offset 0':>9s} {'split':>6s} {'none':>5s} {'failed':>6s}"
     )
     for eng, set_, label in keys:
@@ -143,7 +153,7 @@ def summarise(path: Path) -> None:
         "\nREAL GPS (Kubicka). RMF by the peers' score.py (3 m), a failed run counts 1; worst: the "
         "largest RMF of a run; offset 0: the mean of the runs from fix 0 alone (bench_batch.py's "
         "draw); split: the route came back in more than one connected piece; none: no route; "
-        "failed: no route or an error."
+        "failed: no route or an error. The noise set is REAL GPS with SIMULATED extra error (N m)."
     )
 
 

@@ -6,12 +6,17 @@ in process). Writes one JSON line per run, scored by the peers' ``score.py``.
     <python> peers_robust.py ENGINE --check --peers DIR      # is the engine installed?
 
 The engine is the harness's ``engines_kubicka.ENGINES[ENGINE]`` (``load``, ``call``, ``convert``).
-Two sets of runs (``phase_runs``, ``gap_runs``):
+Three sets of runs (``phase_runs``, ``gap_runs``, ``noise_runs``):
   phases  for each S, every S-th fix from offset 0, step, 2 step, ... < S, plus the last fix
           (``engines_kubicka.subsample`` is offset 0);
   gaps    every gap_S-th fix from offset 0 (plus the last), with one gap cut out per run: from
           sub-fix g0 (first, first + every, ...) the following sub-fixes are dropped until the
           next kept one is at least G metres (straight line, UTM) from g0.
+  noise   every S-th fix from offset 0 (plus the last) of the real track with extra position
+          noise added at 1 Hz before sub-sampling: per axis a first-order autoregressive error of
+          σ N metres and correlation time ``--noise-tau`` (GPS errors drift, they do not jump),
+          seeded by the track and N, so every engine gets the same fixes. Real routes and real
+          fixes, synthetic extra error: a worse receiver than the tracks had.
 Each run is scored against truth.geojson with the run's own first and last fix.
 """
 
@@ -75,6 +80,24 @@ def gap_runs(
             yield key, idx[: g0 + 1] + idx[g1:]
 
 
+def noise_offsets(
+    n: int, t: list[float], sigma: float, tau: float, seed: int
+) -> tuple[list[float], list[float]]:
+    """East and north errors (metres) of ``n`` fixes at times ``t``: per axis a stationary
+    first-order autoregressive series of standard deviation ``sigma`` and correlation time
+    ``tau`` seconds."""
+    import random
+
+    rng = random.Random(seed)
+    ex, ey = [rng.gauss(0.0, sigma)], [rng.gauss(0.0, sigma)]
+    for i in range(1, n):
+        rho = math.exp(-max(t[i] - t[i - 1], 0.0) / tau)
+        k = sigma * math.sqrt(1.0 - rho * rho)
+        ex.append(rho * ex[-1] + k * rng.gauss(0.0, 1.0))
+        ey.append(rho * ey[-1] + k * rng.gauss(0.0, 1.0))
+    return ex, ey
+
+
 def pieces(lines: list[list[list[float]]]) -> int:
     """Connected pieces of the returned lines (consecutive lines joined end to start)."""
     n = 0
@@ -101,15 +124,28 @@ def run_track(
     epsg = json.loads((work / "meta.json").read_text())["utm_epsg"]
     X, Y = Transformer.from_crs("EPSG:4326", f"EPSG:{epsg}", always_xy=True).transform(lon, lat)
     runs: list[tuple[dict[str, Any], list[int]]] = []
+    noisy: dict[float, tuple[list[float], list[float]]] = {}
     sets = a.sets.split(",")
     if "phases" in sets:
         runs += phase_runs(len(t), [int(x) for x in a.S.split(",")], a.step)
     if "gaps" in sets:
         Gs = [float(x) for x in a.gaps.split(",")]
         runs += gap_runs(list(zip(X, Y, strict=True)), a.gap_S, Gs, a.gap_first, a.gap_every)
+    if "noise" in sets:
+        back = Transformer.from_crs(f"EPSG:{epsg}", "EPSG:4326", always_xy=True)
+        for N in (float(x) for x in a.noise.split(",")):
+            ex, ey = noise_offsets(len(t), t, N, a.noise_tau, int(work.name) * 1000 + round(N))
+            nx = [x + e for x, e in zip(X, ex, strict=True)]
+            ny = [y + e for y, e in zip(Y, ey, strict=True)]
+            nlo, nla = back.transform(nx, ny)
+            noisy[N] = (list(nla), list(nlo))
+            for s in (int(x) for x in a.noise_S.split(",")):
+                key = {"set": "noise", "S": s, "offset": 0, "N": N}
+                runs.append((key, with_last(list(range(0, len(t), s)), len(t))))
     obj = engine.load(work)
     for key, idx in runs:
-        tt, la, lo = [t[i] for i in idx], [lat[i] for i in idx], [lon[i] for i in idx]
+        la_all, lo_all = noisy[key["N"]] if key["set"] == "noise" else (lat, lon)
+        tt, la, lo = [t[i] for i in idx], [la_all[i] for i in idx], [lo_all[i] for i in idx]
         row: dict[str, Any] = {"engine": name, "track": work.name, **key, "n_points": len(idx)}
         if key["set"] == "gaps":
             row["gap_s"] = round(tt[key["g0"] + 1] - tt[key["g0"]], 1)
@@ -131,13 +167,16 @@ def run_track(
 
 def add_run_args(ap: argparse.ArgumentParser) -> None:
     """The options that define the runs (shared with ``bench_batch_robust.py``)."""
-    ap.add_argument("--sets", default="phases,gaps", help="phases, gaps or both")
+    ap.add_argument("--sets", default="phases,gaps", help="any of phases, gaps, noise")
     ap.add_argument("--S", default="10,30", help="phases: the sub-sampling steps")
     ap.add_argument("--step", type=int, default=3, help="phases: offsets 0, step, 2 step, ... < S")
     ap.add_argument("--gap-S", type=int, default=30, help="gaps: the sub-sampling step")
     ap.add_argument("--gaps", default="3000,8000", help="gaps: the least straight-line gaps G in metres")
     ap.add_argument("--gap-first", type=int, default=5, help="gaps: the first g0 (sub-fix index)")
     ap.add_argument("--gap-every", type=int, default=25, help="gaps: g0 step in sub-fixes")
+    ap.add_argument("--noise", default="10,20", help="noise: the extra position σ in metres")
+    ap.add_argument("--noise-S", default="1,10,30", help="noise: the sub-sampling steps")
+    ap.add_argument("--noise-tau", type=float, default=20.0, help="noise: correlation time in seconds")
 
 
 def main() -> int:

@@ -431,6 +431,11 @@ class BatchConfig:
     spike_sigmas : see ``spike_speed``.
     off_map_sigmas : a fix further than this many σ from every road is off the map: unmatched,
         never routed to a far road (``outlier_distance`` caps it).
+    track_sigma_max : metres; a track's fixes without their own accuracy take the larger of
+        ``gps_sigma`` and the track's own σ, up to this: 1.4826 times the median distance of its
+        fixes to their nearest road (Newson and Krumm's robust estimate: a worse receiver
+        shows in how far its fixes lie from the roads). 0: always ``gps_sigma``. The σ counts
+        in the emissions, the off-map limit and the jump rule.
     off_map_min_run : fewer fixes than this in a row with a road, between off-map fixes, are
         off the map too (a fix near some road amid a run off it is no evidence; 1 disables it).
     off_map_cut : metres; a run of off-map fixes travelling at least this far (the track
@@ -469,6 +474,7 @@ class BatchConfig:
     spike_speed: float = 20.0
     spike_sigmas: float = 3.0
     off_map_sigmas: float = 5.0
+    track_sigma_max: float = 30.0
     off_map_cut: float = 200.0
     off_map_min_run: int = 2
     speed_limit_factor: float = 1.5

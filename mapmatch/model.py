@@ -22,6 +22,9 @@ from mapmatch.config import MatchConfig
 
 NEG_INF = -np.inf
 
+MAD_TO_SIGMA = 1.4826
+"""σ of a normal distribution over the median of its absolute values (1 / Φ⁻¹(3/4))."""
+
 
 def heading_kappa(
     heading: ArrayLike, heading_sigma: ArrayLike, speed: ArrayLike, config: MatchConfig
@@ -42,6 +45,17 @@ def position_sigma(pos_sigma: ArrayLike, config: MatchConfig) -> NDArray[np.floa
     """σ in metres per fix: the fix's own accuracy, or the configured default."""
     s = np.asarray(pos_sigma, dtype=np.float64)
     return np.where(np.isnan(s) | (s <= 0), config.model.gps_sigma, np.maximum(s, 0.5))
+
+
+def track_sigma(nearest: ArrayLike, sigma: float, most: float) -> float:
+    """A track's position σ from its fixes' distances to their nearest road: ``sigma``, or
+    where larger (up to ``most``; 0: never) :data:`MAD_TO_SIGMA` times their median (Newson
+    and Krumm's robust estimate). The batch matcher's compiled twin is
+    :func:`mapmatch.batch.run.track_sigma`."""
+    d = np.asarray(nearest, dtype=np.float64)
+    if most <= sigma or len(d) == 0:
+        return sigma
+    return min(max(sigma, MAD_TO_SIGMA * float(np.median(d))), most)
 
 
 def emission_logp(

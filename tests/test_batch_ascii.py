@@ -728,6 +728,29 @@ def test_first_fix_near_a_crossing_takes_the_road_of_the_direction_of_travel() -
         assert [names(m, piece) for piece in BatchMatcher(m.graph).match(track, cfg).routes] == [["ab", "bd"]]
 
 
+def test_a_noisy_receiver_is_matched_with_its_own_sigma_not_cut_off_the_map() -> None:
+    # one road; a worse receiver's fixes lie 12-27 m either side of it, 20 m apart:
+    #
+    #      x       x               x       x
+    #   a-----------------b-----------------c
+    #          x       x       x       x
+    #
+    # with the configured σ of 5 m most lie beyond the off-map limit (5 σ); the track's own σ
+    # (1.4826 times the median distance to the road: about 30 m) keeps them all on the road
+    m = parse_ascii_map("a-------------------b-------------------c", scale=10)
+    side = [14, -22, 26, -12, 21, -27, 17, -24]
+    pts = [at(m, "a", x, side[k % len(side)]) for k, x in enumerate(range(15, 390, 20))]
+    track = track_from_xy(m, pts, dt=2.0)
+    r = BatchMatcher(m.graph).match(track)
+    assert [names(m, piece) for piece in r.routes] == [["ab", "bc"]]
+    assert r.splits == []
+    assert all(p.status == PointStatus.MATCHED for p in r.points)
+    # counterfactual: the configured σ alone leaves most fixes off the map and cuts the route
+    fixed = BatchMatcher(m.graph).match(track, DEFAULT_CONFIG.replace(track_sigma_max=0.0))
+    assert len(fixed.routes) == 2
+    assert sum(p.status == PointStatus.MATCHED for p in fixed.points) < len(pts) // 2
+
+
 def test_a_lone_fix_near_a_road_amid_fixes_off_the_map_is_off_the_map_too() -> None:
     # five fixes: off, near a road (35 m), off, on, on (σ 8 m: 40 m is off the map)
     from mapmatch.arena import Arena

@@ -295,7 +295,7 @@ def test_one_compiled_call_matches_as_the_python_steps_do(rules: str) -> None:
     assert len(matcher._limit)  # the speed-limit term is exercised
     rng = np.random.default_rng(4)
     lo, hi = m.graph.node_xy.min(axis=0) - 60, m.graph.node_xy.max(axis=0) + 60
-    lonely = headed = 0
+    lonely = headed = raised = 0
     for i in range(60):
         n = int(rng.integers(0, 12))
         if i % 2:  # a drive along the roads with noise and a jump
@@ -322,8 +322,14 @@ def test_one_compiled_call_matches_as_the_python_steps_do(rules: str) -> None:
         if i % 7 == 3:
             extra["distance"] = rng.uniform(0, 60, n)
         t = Track("r", np.arange(n) * 3.0, lat, lon, **extra)
-        d = matcher.index.query(xy, BATCH_CONFIG.search_radius).point if n else np.zeros(0, dtype=int)
+        q = matcher.index.query(xy, BATCH_CONFIG.search_radius) if n else None
+        d = q.point if q is not None else np.zeros(0, dtype=int)
         lonely += n - len(np.unique(d))
+        if q is not None and len(d):
+            near = np.full(n, np.inf)
+            np.minimum.at(near, q.point, q.dist)
+            own = model.track_sigma(near[np.isfinite(near)], cfg.gps_sigma, cfg.track_sigma_max)
+            raised += own > cfg.gps_sigma
         a, b = matcher._match_compiled(t, cfg), matcher._match_steps(t, cfg)
         assert a.routes == b.routes and a.splits == b.splits
         assert a.length_m == b.length_m and a.confidence == b.confidence
@@ -333,6 +339,21 @@ def test_one_compiled_call_matches_as_the_python_steps_do(rules: str) -> None:
         for u, v in zip(a.route_xy, b.route_xy, strict=True):
             np.testing.assert_array_equal(u, v)
     assert lonely > 10 and headed > 10  # fixes beyond the search radius were looked for again
+    assert raised > 10  # tracks whose fixes lie far from the roads got their own σ
+
+
+def test_a_track_s_sigma_is_the_robust_spread_of_its_distances_to_the_roads() -> None:
+    """1.4826 times the median distance to the nearest road, never below the configured σ,
+    never above the most, and the configured σ when the most is 0."""
+    d = np.array([3.0, 20.0, 10.0, 12.0, 40.0])
+    assert model.track_sigma(d, 5.0, 30.0) == pytest.approx(1.4826 * 12.0)
+    assert model.track_sigma(d, 20.0, 30.0) == 20.0  # a good receiver keeps the configured σ
+    assert model.track_sigma(d * 3, 5.0, 30.0) == 30.0  # capped
+    assert model.track_sigma(d, 5.0, 0.0) == 5.0  # off
+    assert model.track_sigma(np.zeros(0), 5.0, 30.0) == 5.0  # no fix near any road
+    # normal noise across a road: the estimate finds its σ
+    rng = np.random.default_rng(1)
+    assert model.track_sigma(np.abs(rng.normal(0, 15.0, 4000)), 5.0, 30.0) == pytest.approx(15.0, rel=0.05)
 
 
 def test_a_column_of_the_wrong_length_is_refused() -> None:

@@ -196,6 +196,7 @@ class BatchMatcher:
                 motion_sigma=rules.motion_heading_sigma, motion_min_distance=rules.motion_min_distance,
                 straight_max_deg=rules.straight_max_deg, heading_sigma=float(cfg.heading_sigma),
                 heading_min_speed=float(cfg.heading_min_speed),
+                track_sigma_max=float(cfg.track_sigma_max),
             )  # fmt: skip
             st = _Settings(cfg, kernel_params(cfg, sigma), query, sigma, rules, track_rules)
             if len(self._settings) >= 64:
@@ -282,10 +283,6 @@ class BatchMatcher:
         # points closer than the noise to the previous kept point are interpolated afterwards
         kept = thin(xy, valid, q.min_dist)
         time = fresh(_opt(track.time, n), F8)
-        sigma0 = st.sigma
-        # jumps (a fix reached and left in opposite directions too fast) get no candidates
-        spikes = (rules.spike_sigmas, rules.spike_speed)
-        jump = valid & ~drop_spikes(xy, time, kept, valid, sigma0, *spikes)
         kidx = np.flatnonzero(kept)
         cands = self._grid.query(xy[kidx], q.radius, k=q.k)
         # points with no road within the search radius look again up to the outlier distance
@@ -293,12 +290,19 @@ class BatchMatcher:
         if len(lonely) and q.outlier > q.radius:
             more = self._grid.query(xy[kidx[lonely]], q.outlier, k=q.k)
             cands = _merge_candidates(cands, more, lonely)
+        # the track's σ where its fixes lie further from the roads than the configured one says
+        first = np.flatnonzero(np.r_[True, np.diff(cands.point) != 0]) if len(cands.point) else kidx[:0]
+        sigma0 = model.track_sigma(cands.dist[first], st.sigma, float(cfg.track_sigma_max))
+        # jumps (a fix reached and left in opposite directions too fast) get no candidates
+        spikes = (rules.spike_sigmas, rules.spike_speed)
+        jump = valid & ~drop_spikes(xy, time, kept, valid, sigma0, *spikes)
         if jump.any():
             cands = _subset(cands, ~jump[kidx][cands.point])
         # emissions (shared model); pruning of hopeless candidates happens in the kernel
         sigma: float | NDArray[np.float64] = sigma0
         if track.pos_sigma is not None:
-            sigma = model.position_sigma(np.asarray(track.pos_sigma, dtype=F8)[kidx], cfg)[cands.point]
+            own = np.asarray(track.pos_sigma, dtype=F8)[kidx]
+            sigma = np.where(np.isnan(own) | (own <= 0), sigma0, model.position_sigma(own, cfg))[cands.point]
         heading = None if track.heading is None else np.asarray(track.heading, dtype=F8)[kidx]
         head_sigma: float | NDArray[np.float64] = np.nan
         if rules.motion_heading_sigma > 0:
@@ -328,7 +332,7 @@ class BatchMatcher:
             sigma=fresh(sigma if np.ndim(sigma) else np.zeros(0), F8),
             limit=fresh(self._limit[cands.edge] if len(self._limit) else self._limit, F8),
         )  # fmt: skip
-        params = st.params if isinstance(sigma, float) else st.params._replace(sigma=0.0)
+        params = st.params._replace(sigma=sigma if isinstance(sigma, float) else 0.0)
         st_ = self._state()
         router = self._router_for(st_, cfg)
         return track_match(str(track.track_id), self._run(pt, ca, params, self._geom, router, st_.arena))

@@ -25,6 +25,7 @@ from mapmatch.batch.lattice import bearing_on, build_lattice, drop_spikes_into, 
 from mapmatch.batch.route import assemble
 from mapmatch.batch.viterbi import solve
 from mapmatch.gridindex import query_grid
+from mapmatch.model import MAD_TO_SIGMA
 
 Packed = NDArray[np.int64]
 """What the kernels return: the assembly packed by :func:`pack`."""
@@ -76,6 +77,8 @@ class RuleParams(NamedTuple):
     heading_sigma: float
     """Default heading σ (degrees) of a track's own heading."""
     heading_min_speed: float
+    track_sigma_max: float
+    """The most σ a track's own residuals may give (:func:`track_sigma`); 0: ``gps_sigma``."""
 
 
 class RoadArrays(NamedTuple):
@@ -181,10 +184,6 @@ def run_track(ti, q, r, p, geom, roads, router, grid, gsc, ar):  # type: ignore[
             kxy[c, 0] = xy[i, 0]
             kxy[c, 1] = xy[i, 1]
             c += 1
-    # jumps (a fix reached and left in opposite directions too fast) get no candidates
-    nojump = take_b1(ar, n)
-    nojump[:] = valid
-    drop_spikes_into(xy, ti.time, kidx, r.gps_sigma, r.spike_sigmas, r.spike_speed, nojump)
     cp, ce, cd, co, cq = query_grid(kxy, q.radius, q.k, grid, gsc, ar)
     count = full_i8(ar, nk, 0)
     for i in range(len(cp)):
@@ -223,6 +222,11 @@ def run_track(ti, q, r, p, geom, roads, router, grid, gsc, ar):  # type: ignore[
                 cxy[i, 0], cxy[i, 1] = cq[a, 0], cq[a, 1]
                 a += 1
         cp, ce, cd, co, cq = point, edge, dist, off, cxy
+    sigma = track_sigma(cp, cd, nk, r.gps_sigma, r.track_sigma_max, ar)
+    # jumps (a fix reached and left in opposite directions too fast) get no candidates
+    nojump = take_b1(ar, n)
+    nojump[:] = valid
+    drop_spikes_into(xy, ti.time, kidx, sigma, r.spike_sigmas, r.spike_speed, nojump)
     # the jumps' candidates go
     nc = 0
     for i in range(len(cp)):
@@ -236,7 +240,7 @@ def run_track(ti, q, r, p, geom, roads, router, grid, gsc, ar):  # type: ignore[
                 cq[c, 0], cq[c, 1] = cq[i, 0], cq[i, 1]
                 c += 1
         cp, ce, cd, co, cq = cp[:nc], ce[:nc], cd[:nc], co[:nc], cq[:nc]
-    cands = candidate_emissions(ti, kidx, xy, cp, ce, co, cq, cd, r, p, geom, roads, ar)
+    cands = candidate_emissions(ti, kidx, xy, cp, ce, co, cq, cd, sigma, r, p, geom, roads, ar)
     pt = TrackPoints(valid, kept, xy, ti.time, ti.odo, kidx)
     return pack(_run(pt, cands, p, geom, router, ar))
 
@@ -254,20 +258,36 @@ def run_track_in(ti, c):  # type: ignore[no-untyped-def]
 
 
 @njit(cache=True, nogil=True)
-def candidate_emissions(ti, kidx, xy, cp, ce, co, cq, cd, r, p, geom, roads, ar):  # type: ignore[no-untyped-def]
+def track_sigma(point, dist, nk, sigma, most, ar):  # type: ignore[no-untyped-def]
+    """The track's σ: ``sigma``, or where larger (up to ``most``; 0: never) 1.4826 times the
+    median distance of the ``nk`` kept fixes to their nearest candidate (rows sorted by point,
+    nearest first); fixes without one do not count."""
+    if most <= sigma or len(point) == 0:
+        return sigma
+    near = take_f8(ar, nk)
+    m = 0
+    for i in range(len(point)):
+        if i == 0 or point[i] != point[i - 1]:
+            near[m] = dist[i]
+            m += 1
+    return min(max(sigma, MAD_TO_SIGMA * np.median(near[:m])), most)
+
+
+@njit(cache=True, nogil=True)
+def candidate_emissions(ti, kidx, xy, cp, ce, co, cq, cd, sigma, r, p, geom, roads, ar):  # type: ignore[no-untyped-def]
     """The candidates with their emissions (:func:`mapmatch.model.emission_logp`, computed
-    per candidate in the same float steps), σ (the fix's own, when the track has them) and
-    speed limit. A kept point's heading is the track's, else its direction of travel (σ
-    ``motion_sigma``); none where neither is known or the fix is slower than
-    ``heading_min_speed``."""
+    per candidate in the same float steps), σ (the fix's own when the track has them, else
+    ``sigma``, the track's: :func:`track_sigma`) and speed limit. A kept point's heading is the
+    track's, else its direction of travel (σ ``motion_sigma``); none where neither is known or
+    the fix is slower than ``heading_min_speed``."""
     nk = len(kidx)
     nc = len(cp)
     # per kept point: σ, heading and its concentration κ
-    sig = full_f8(ar, nk, p.sigma)
+    sig = full_f8(ar, nk, sigma)
     if len(ti.pos_sigma):
         for k in range(nk):
             s = ti.pos_sigma[kidx[k]]
-            sig[k] = r.gps_sigma if math.isnan(s) or s <= 0 else max(s, 0.5)
+            sig[k] = sigma if math.isnan(s) or s <= 0 else max(s, 0.5)
     head = full_f8(ar, nk, np.nan)
     kappa = full_f8(ar, nk, 0.0)
     mh = head
@@ -290,7 +310,8 @@ def candidate_emissions(ti, kidx, xy, cp, ce, co, cq, cd, r, p, geom, roads, ar)
     if any_head:
         bearing_on(ce, co, geom.seg_ptr, roads.seg_end, roads.seg_bearing, bearing)
     emis = take_f8(ar, nc)
-    csig = take_f8(ar, nc if len(ti.pos_sigma) else 0)
+    # per candidate σ where it is not the one of the kernels' parameters
+    csig = take_f8(ar, nc if len(ti.pos_sigma) or sigma != p.sigma else 0)
     for i in range(nc):
         k = cp[i]
         s = sig[k]
