@@ -436,6 +436,9 @@ class BatchConfig:
         fixes to their nearest road (Newson and Krumm's robust estimate: a worse receiver
         shows in how far its fixes lie from the roads). 0: always ``gps_sigma``. The σ counts
         in the emissions, the off-map limit and the jump rule.
+    thin_sigmas : a track whose own σ exceeds ``gps_sigma`` is thinned (as by
+        ``interpolate_distance``) at this many times the excess: a worse receiver's fixes
+        close together share their error, so they are less evidence than their number says.
     off_map_min_run : fewer fixes than this in a row with a road, between off-map fixes, are
         off the map too (a fix near some road amid a run off it is no evidence; 1 disables it).
     off_map_cut : metres; a run of off-map fixes travelling at least this far (the track
@@ -475,6 +478,7 @@ class BatchConfig:
     spike_sigmas: float = 3.0
     off_map_sigmas: float = 5.0
     track_sigma_max: float = 30.0
+    thin_sigmas: float = 6.0
     off_map_cut: float = 200.0
     off_map_min_run: int = 2
     speed_limit_factor: float = 1.5

@@ -736,7 +736,8 @@ def test_a_noisy_receiver_is_matched_with_its_own_sigma_not_cut_off_the_map() ->
     #          x       x       x       x
     #
     # with the configured σ of 5 m most lie beyond the off-map limit (5 σ); the track's own σ
-    # (1.4826 times the median distance to the road: about 30 m) keeps them all on the road
+    # (1.4826 times the median distance to the road: about 30 m) keeps them all on the road,
+    # and as fixes close together share their error they are thinned out (interpolated)
     m = parse_ascii_map("a-------------------b-------------------c", scale=10)
     side = [14, -22, 26, -12, 21, -27, 17, -24]
     pts = [at(m, "a", x, side[k % len(side)]) for k, x in enumerate(range(15, 390, 20))]
@@ -744,7 +745,13 @@ def test_a_noisy_receiver_is_matched_with_its_own_sigma_not_cut_off_the_map() ->
     r = BatchMatcher(m.graph).match(track)
     assert [names(m, piece) for piece in r.routes] == [["ab", "bc"]]
     assert r.splits == []
-    assert all(p.status == PointStatus.MATCHED for p in r.points)
+    status = [p.status for p in r.points]
+    assert PointStatus.UNMATCHED not in status
+    assert 0 < status.count(PointStatus.INTERPOLATED) < len(pts) - 2
+    # without the thinning every fix is matched, on the same route
+    unthinned = BatchMatcher(m.graph).match(track, DEFAULT_CONFIG.replace(thin_sigmas=0.0))
+    assert [names(m, piece) for piece in unthinned.routes] == [["ab", "bc"]]
+    assert all(p.status == PointStatus.MATCHED for p in unthinned.points)
     # counterfactual: the configured σ alone leaves most fixes off the map and cuts the route
     fixed = BatchMatcher(m.graph).match(track, DEFAULT_CONFIG.replace(track_sigma_max=0.0))
     assert len(fixed.routes) == 2

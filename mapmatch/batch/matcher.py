@@ -196,7 +196,7 @@ class BatchMatcher:
                 motion_sigma=rules.motion_heading_sigma, motion_min_distance=rules.motion_min_distance,
                 straight_max_deg=rules.straight_max_deg, heading_sigma=float(cfg.heading_sigma),
                 heading_min_speed=float(cfg.heading_min_speed),
-                track_sigma_max=float(cfg.track_sigma_max),
+                track_sigma_max=float(cfg.track_sigma_max), thin_sigmas=float(cfg.thin_sigmas),
             )  # fmt: skip
             st = _Settings(cfg, kernel_params(cfg, sigma), query, sigma, rules, track_rules)
             if len(self._settings) >= 64:
@@ -280,19 +280,15 @@ class BatchMatcher:
             if valid.any():
                 xy[valid] = to_xy(g.crs, lon[valid], lat[valid])
         xy = fresh(xy, F8)
-        # points closer than the noise to the previous kept point are interpolated afterwards
-        kept = thin(xy, valid, q.min_dist)
         time = fresh(_opt(track.time, n), F8)
-        kidx = np.flatnonzero(kept)
-        cands = self._grid.query(xy[kidx], q.radius, k=q.k)
-        # points with no road within the search radius look again up to the outlier distance
-        lonely = np.flatnonzero(np.bincount(cands.point, minlength=len(kidx)) == 0)
-        if len(lonely) and q.outlier > q.radius:
-            more = self._grid.query(xy[kidx[lonely]], q.outlier, k=q.k)
-            cands = _merge_candidates(cands, more, lonely)
+        # points closer than the noise to the previous kept point are interpolated afterwards
+        kept, kidx, cands = self._kept_candidates(xy, valid, q.min_dist, q)
         # the track's σ where its fixes lie further from the roads than the configured one says
         first = np.flatnonzero(np.r_[True, np.diff(cands.point) != 0]) if len(cands.point) else kidx[:0]
         sigma0 = model.track_sigma(cands.dist[first], st.sigma, float(cfg.track_sigma_max))
+        far = float(cfg.thin_sigmas) * (sigma0 - st.sigma)
+        if far > q.min_dist:
+            kept, kidx, cands = self._kept_candidates(xy, valid, far, q)
         # jumps (a fix reached and left in opposite directions too fast) get no candidates
         spikes = (rules.spike_sigmas, rules.spike_speed)
         jump = valid & ~drop_spikes(xy, time, kept, valid, sigma0, *spikes)
@@ -336,6 +332,21 @@ class BatchMatcher:
         st_ = self._state()
         router = self._router_for(st_, cfg)
         return track_match(str(track.track_id), self._run(pt, ca, params, self._geom, router, st_.arena))
+
+    def _kept_candidates(
+        self, xy: NDArray[np.float64], valid: NDArray[np.bool_], min_dist: float, q: QueryParams
+    ) -> tuple[NDArray[np.bool_], NDArray[np.int64], Candidates]:
+        """The fixes kept by thinning at ``min_dist`` and their candidates, looked for again up
+        to the outlier distance for fixes with no road in the search radius (the reference of
+        :func:`mapmatch.batch.run.kept_candidates`)."""
+        kept = thin(xy, valid, min_dist)
+        kidx = np.flatnonzero(kept)
+        cands = self._grid.query(xy[kidx], q.radius, k=q.k)
+        lonely = np.flatnonzero(np.bincount(cands.point, minlength=len(kidx)) == 0)
+        if len(lonely) and q.outlier > q.radius:
+            more = self._grid.query(xy[kidx[lonely]], q.outlier, k=q.k)
+            cands = _merge_candidates(cands, more, lonely)
+        return kept, kidx, cands
 
 
 def match_track(

@@ -79,6 +79,8 @@ class RuleParams(NamedTuple):
     heading_min_speed: float
     track_sigma_max: float
     """The most σ a track's own residuals may give (:func:`track_sigma`); 0: ``gps_sigma``."""
+    thin_sigmas: float
+    """Fixes are thinned at this many times the track's σ beyond ``gps_sigma``."""
 
 
 class RoadArrays(NamedTuple):
@@ -170,7 +172,42 @@ def run_track(ti, q, r, p, geom, roads, router, grid, gsc, ar):  # type: ignore[
         else:
             xy[i, 0] = np.nan
             xy[i, 1] = np.nan
-    kept = thin_into(xy, valid, q.min_dist, full_b1(ar, n, False))
+    kept, kidx, cp, ce, cd, co, cq = kept_candidates(xy, valid, q.min_dist, q, grid, gsc, ar)
+    sigma = track_sigma(cp, cd, len(kidx), r.gps_sigma, r.track_sigma_max, ar)
+    # a worse receiver's fixes close together share their error: thinned out further
+    far = r.thin_sigmas * (sigma - r.gps_sigma)
+    if far > q.min_dist:
+        kept, kidx, cp, ce, cd, co, cq = kept_candidates(xy, valid, far, q, grid, gsc, ar)
+    # jumps (a fix reached and left in opposite directions too fast) get no candidates
+    nojump = take_b1(ar, n)
+    nojump[:] = valid
+    drop_spikes_into(xy, ti.time, kidx, sigma, r.spike_sigmas, r.spike_speed, nojump)
+    # the jumps' candidates go
+    nc = 0
+    for i in range(len(cp)):
+        if nojump[kidx[cp[i]]]:
+            nc += 1
+    if nc < len(cp):
+        c = 0
+        for i in range(len(cp)):
+            if nojump[kidx[cp[i]]]:
+                cp[c], ce[c], cd[c], co[c] = cp[i], ce[i], cd[i], co[i]
+                cq[c, 0], cq[c, 1] = cq[i, 0], cq[i, 1]
+                c += 1
+        cp, ce, cd, co, cq = cp[:nc], ce[:nc], cd[:nc], co[:nc], cq[:nc]
+    cands = candidate_emissions(ti, kidx, xy, cp, ce, co, cq, cd, sigma, r, p, geom, roads, ar)
+    pt = TrackPoints(valid, kept, xy, ti.time, ti.odo, kidx)
+    return pack(_run(pt, cands, p, geom, router, ar))
+
+
+@njit(cache=True, nogil=True)
+def kept_candidates(xy, valid, min_dist, q, grid, gsc, ar):  # type: ignore[no-untyped-def]
+    """The fixes kept by thinning at ``min_dist`` (:func:`thin_into`) and their candidates
+    (:func:`mapmatch.gridindex.query_grid`, again up to the outlier distance for fixes with no
+    road in the search radius): ``kept, kidx`` and the rows ``point, edge, dist, offset, xy``
+    sorted by kept point, nearest first."""
+    n = len(valid)
+    kept = thin_into(xy, valid, min_dist, full_b1(ar, n, False))
     nk = 0
     for i in range(n):
         if kept[i]:
@@ -222,27 +259,7 @@ def run_track(ti, q, r, p, geom, roads, router, grid, gsc, ar):  # type: ignore[
                 cxy[i, 0], cxy[i, 1] = cq[a, 0], cq[a, 1]
                 a += 1
         cp, ce, cd, co, cq = point, edge, dist, off, cxy
-    sigma = track_sigma(cp, cd, nk, r.gps_sigma, r.track_sigma_max, ar)
-    # jumps (a fix reached and left in opposite directions too fast) get no candidates
-    nojump = take_b1(ar, n)
-    nojump[:] = valid
-    drop_spikes_into(xy, ti.time, kidx, sigma, r.spike_sigmas, r.spike_speed, nojump)
-    # the jumps' candidates go
-    nc = 0
-    for i in range(len(cp)):
-        if nojump[kidx[cp[i]]]:
-            nc += 1
-    if nc < len(cp):
-        c = 0
-        for i in range(len(cp)):
-            if nojump[kidx[cp[i]]]:
-                cp[c], ce[c], cd[c], co[c] = cp[i], ce[i], cd[i], co[i]
-                cq[c, 0], cq[c, 1] = cq[i, 0], cq[i, 1]
-                c += 1
-        cp, ce, cd, co, cq = cp[:nc], ce[:nc], cd[:nc], co[:nc], cq[:nc]
-    cands = candidate_emissions(ti, kidx, xy, cp, ce, co, cq, cd, sigma, r, p, geom, roads, ar)
-    pt = TrackPoints(valid, kept, xy, ti.time, ti.odo, kidx)
-    return pack(_run(pt, cands, p, geom, router, ar))
+    return kept, kidx, cp, ce, cd, co, cq
 
 
 @njit(cache=True, nogil=True)
