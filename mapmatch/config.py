@@ -438,7 +438,9 @@ class BatchConfig:
         in the emissions, the off-map limit and the jump rule.
     thin_sigmas : a track whose own σ exceeds ``gps_sigma`` is thinned (as by
         ``interpolate_distance``) at this many times the excess: a worse receiver's fixes
-        close together share their error, so they are less evidence than their number says.
+        close together share their error, so they are less evidence than their number says
+        (0: never). Chosen on the REAL tracks with SIMULATED extra error of
+        ``bench/bench_batch_robust.py --sets noise`` (2, 4, 6, 10 tried); no REAL run changes.
     off_map_min_run : fewer fixes than this in a row with a road, between off-map fixes, are
         off the map too (a fix near some road amid a run off it is no evidence; 1 disables it).
     off_map_cut : metres; a run of off-map fixes travelling at least this far (the track
