@@ -206,8 +206,13 @@ def query_grid(pts, radius, k, grid, sc, ar):  # type: ignore[no-untyped-def]
         cy0 = int((py - origin[1]) // cell)
         nl = 0
         for cx in range(cx0 - r, cx0 + r + 1):
+            # the point's distance to the cell's column, then to the cell (beyond: skipped)
+            gx = max(origin[0] + cx * cell - px, px - (origin[0] + (cx + 1) * cell), 0.0)
             for cy in range(cy0 - r, cy0 + r + 1):
                 if cx < 0 or cy < 0 or cx >= nx or cy >= ny:
+                    continue
+                gy = max(origin[1] + cy * cell - py, py - (origin[1] + (cy + 1) * cell), 0.0)
+                if gx * gx + gy * gy > r2:
                     continue
                 cid = cx * ny + cy
                 if len(cell_ptr):
