@@ -9,7 +9,9 @@ stress sets of runs (``bench/peers_robust.py`` defines them):
           until the next kept fix is at least G m (3 km, 8 km) from g0 in a straight line,
           as a logger switched off while driving;
   noise   every S-th fix (S = 1, 10, 30) of the real track with extra drifting position error
-          of σ N m (10, 20) added: real routes and fixes, SIMULATED extra error.
+          of σ N m (10, 20) added: real routes and fixes, SIMULATED extra error;
+  jumps   every S-th fix (S = 1, 10) with SIMULATED multipath jumps: bursts of 1-5 s, starting
+          at J % (1, 3) of the fixes, displaced 50-200 m.
 
 Every run is scored by the peers' ``score.py`` (RMF, 3 m) with the run's own first and last fix.
 Ours runs in this process (``bench/peers_adapter.py``), each peer in its own Python by
@@ -76,6 +78,7 @@ def run_args(a: argparse.Namespace) -> list[str]:
         *("--sets", a.sets, "--S", a.S, "--step", str(a.step), "--gap-S", str(a.gap_S)),
         *("--gaps", a.gaps, "--gap-first", str(a.gap_first), "--gap-every", str(a.gap_every)),
         *("--noise", a.noise, "--noise-S", a.noise_S, "--noise-tau", str(a.noise_tau)),
+        *("--jumps", a.jumps, "--jumps-S", a.jumps_S),
     ]
 
 
@@ -123,8 +126,8 @@ def summarise(path: Path) -> None:
     for r in rows:
         if r["set"] == "phases":
             label = f"S={r['S']}"
-        elif r["set"] == "noise":
-            label = f"N={r['N']:g} S={r['S']}"
+        elif r["set"] in ("noise", "jumps"):
+            label = f"{'N' if r['set'] == 'noise' else 'J'}={r['N']:g} S={r['S']}"
         else:
             label = f"G={r['G'] / 1000:g} km"
         by[(r["engine"], r["set"], label)].append(r)
@@ -133,7 +136,7 @@ def summarise(path: Path) -> None:
     def numbers(label: str) -> list[float]:  # "S=30", "G=3 km", "N=10 S=30": by number, not text
         return [float(w.split("=")[1]) for w in label.split() if "=" in w]
 
-    rank = {"phases": 0, "gaps": 1, "noise": 2}
+    rank = {"phases": 0, "gaps": 1, "noise": 2, "jumps": 3}
     keys = sorted(by, key=lambda k: (order.get(k[0], len(order)), k[0], rank.get(k[1], 3), numbers(k[2])))
     print(
         f"\n{'engine':9s} {'set':7s} {'S, G, N':>9s} {'runs':>5s} {'mean RMF':>9s} {'median':>8s} "
@@ -153,7 +156,8 @@ def summarise(path: Path) -> None:
         "\nREAL GPS (Kubicka). RMF by the peers' score.py (3 m), a failed run counts 1; worst: the "
         "largest RMF of a run; offset 0: the mean of the runs from fix 0 alone (bench_batch.py's "
         "draw); split: the route came back in more than one connected piece; none: no route; "
-        "failed: no route or an error. The noise set is REAL GPS with SIMULATED extra error (N m)."
+        "failed: no route or an error. The noise and jumps sets are REAL GPS with SIMULATED extra "
+        "error (N m, J % bursts)."
     )
 
 

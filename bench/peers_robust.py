@@ -6,7 +6,7 @@ in process). Writes one JSON line per run, scored by the peers' ``score.py``.
     <python> peers_robust.py ENGINE --check --peers DIR      # is the engine installed?
 
 The engine is the harness's ``engines_kubicka.ENGINES[ENGINE]`` (``load``, ``call``, ``convert``).
-Three sets of runs (``phase_runs``, ``gap_runs``, ``noise_runs``):
+Four sets of runs (``phase_runs``, ``gap_runs``, ``noise_offsets``, ``jump_offsets``):
   phases  for each S, every S-th fix from offset 0, step, 2 step, ... < S, plus the last fix
           (``engines_kubicka.subsample`` is offset 0);
   gaps    every gap_S-th fix from offset 0 (plus the last), with one gap cut out per run: from
@@ -17,6 +17,9 @@ Three sets of runs (``phase_runs``, ``gap_runs``, ``noise_runs``):
           σ N metres and correlation time ``--noise-tau`` (GPS errors drift, they do not jump),
           seeded by the track and N, so every engine gets the same fixes. Real routes and real
           fixes, synthetic extra error: a worse receiver than the tracks had.
+  jumps   as noise, but the extra error is multipath jumps: a burst starts at a fix with
+          probability J % and lasts 1-5 s, every fix in it displaced by one offset of 50-200 m
+          in a random direction.
 Each run is scored against truth.geojson with the run's own first and last fix.
 """
 
@@ -98,6 +101,25 @@ def noise_offsets(
     return ex, ey
 
 
+def jump_offsets(n: int, rate: float, seed: int) -> tuple[list[float], list[float]]:
+    """East and north errors (metres) of ``n`` 1 Hz fixes: bursts of 1-5 fixes, starting at a
+    fix with probability ``rate``, each displaced by one offset of 50-200 m in a random
+    direction; zero elsewhere."""
+    import random
+
+    rng = random.Random(seed)
+    ex, ey = [0.0] * n, [0.0] * n
+    i = 0
+    while i < n:
+        if rng.random() < rate:
+            r, a = rng.uniform(50.0, 200.0), rng.uniform(0.0, 2.0 * math.pi)
+            for k in range(i, min(n, i + rng.randint(1, 5))):
+                ex[k], ey[k] = r * math.cos(a), r * math.sin(a)
+                i = k
+        i += 1
+    return ex, ey
+
+
 def pieces(lines: list[list[list[float]]]) -> int:
     """Connected pieces of the returned lines (consecutive lines joined end to start)."""
     n = 0
@@ -124,27 +146,34 @@ def run_track(
     epsg = json.loads((work / "meta.json").read_text())["utm_epsg"]
     X, Y = Transformer.from_crs("EPSG:4326", f"EPSG:{epsg}", always_xy=True).transform(lon, lat)
     runs: list[tuple[dict[str, Any], list[int]]] = []
-    noisy: dict[float, tuple[list[float], list[float]]] = {}
+    noisy: dict[tuple[str, float], tuple[list[float], list[float]]] = {}
     sets = a.sets.split(",")
     if "phases" in sets:
         runs += phase_runs(len(t), [int(x) for x in a.S.split(",")], a.step)
     if "gaps" in sets:
         Gs = [float(x) for x in a.gaps.split(",")]
         runs += gap_runs(list(zip(X, Y, strict=True)), a.gap_S, Gs, a.gap_first, a.gap_every)
-    if "noise" in sets:
-        back = Transformer.from_crs(f"EPSG:{epsg}", "EPSG:4326", always_xy=True)
-        for N in (float(x) for x in a.noise.split(",")):
-            ex, ey = noise_offsets(len(t), t, N, a.noise_tau, int(work.name) * 1000 + round(N))
+    back = Transformer.from_crs(f"EPSG:{epsg}", "EPSG:4326", always_xy=True)
+    for kind in ("noise", "jumps"):
+        if kind not in sets:
+            continue
+        levels, steps = (a.noise, a.noise_S) if kind == "noise" else (a.jumps, a.jumps_S)
+        for N in (float(x) for x in levels.split(",")):
+            seed = int(work.name) * 1000 + round(N)
+            if kind == "noise":
+                ex, ey = noise_offsets(len(t), t, N, a.noise_tau, seed)
+            else:
+                ex, ey = jump_offsets(len(t), N / 100.0, seed)
             nx = [x + e for x, e in zip(X, ex, strict=True)]
             ny = [y + e for y, e in zip(Y, ey, strict=True)]
             nlo, nla = back.transform(nx, ny)
-            noisy[N] = (list(nla), list(nlo))
-            for s in (int(x) for x in a.noise_S.split(",")):
-                key = {"set": "noise", "S": s, "offset": 0, "N": N}
+            noisy[(kind, N)] = (list(nla), list(nlo))
+            for s in (int(x) for x in steps.split(",")):
+                key = {"set": kind, "S": s, "offset": 0, "N": N}
                 runs.append((key, with_last(list(range(0, len(t), s)), len(t))))
     obj = engine.load(work)
     for key, idx in runs:
-        la_all, lo_all = noisy[key["N"]] if key["set"] == "noise" else (lat, lon)
+        la_all, lo_all = noisy[(key["set"], key["N"])] if "N" in key else (lat, lon)
         tt, la, lo = [t[i] for i in idx], [la_all[i] for i in idx], [lo_all[i] for i in idx]
         row: dict[str, Any] = {"engine": name, "track": work.name, **key, "n_points": len(idx)}
         if key["set"] == "gaps":
@@ -167,7 +196,7 @@ def run_track(
 
 def add_run_args(ap: argparse.ArgumentParser) -> None:
     """The options that define the runs (shared with ``bench_batch_robust.py``)."""
-    ap.add_argument("--sets", default="phases,gaps", help="any of phases, gaps, noise")
+    ap.add_argument("--sets", default="phases,gaps", help="any of phases, gaps, noise, jumps")
     ap.add_argument("--S", default="10,30", help="phases: the sub-sampling steps")
     ap.add_argument("--step", type=int, default=3, help="phases: offsets 0, step, 2 step, ... < S")
     ap.add_argument("--gap-S", type=int, default=30, help="gaps: the sub-sampling step")
@@ -177,6 +206,8 @@ def add_run_args(ap: argparse.ArgumentParser) -> None:
     ap.add_argument("--noise", default="10,20", help="noise: the extra position σ in metres")
     ap.add_argument("--noise-S", default="1,10,30", help="noise: the sub-sampling steps")
     ap.add_argument("--noise-tau", type=float, default=20.0, help="noise: correlation time in seconds")
+    ap.add_argument("--jumps", default="1,3", help="jumps: the % of fixes where a burst starts")
+    ap.add_argument("--jumps-S", default="1,10", help="jumps: the sub-sampling steps")
 
 
 def main() -> int:
