@@ -429,6 +429,10 @@ class BatchConfig:
         longer than ``spike_sigmas`` σ, is dropped as a jump when visiting it needs more than
         this mean speed between its neighbours (turning round needs slowing down; 0 disables).
     spike_sigmas : see ``spike_speed``.
+    spike_max_time : seconds; a jump may also be a run of fixes lasting up to this (a
+        multipath burst): such a run, reached and left in opposite directions, is dropped as
+        one when visiting it needs more than ``spike_speed`` (the shortest such run; 0: single
+        fixes only). Short, as a car cannot turn round at that speed within a few seconds.
     off_map_sigmas : a fix further than this many σ from every road is off the map: unmatched,
         never routed to a far road (``outlier_distance`` caps it).
     track_sigma_max : metres; a track's fixes without their own accuracy take the larger of
@@ -478,6 +482,7 @@ class BatchConfig:
     split_slack: float = 50.0
     spike_speed: float = 20.0
     spike_sigmas: float = 3.0
+    spike_max_time: float = 5.0
     off_map_sigmas: float = 5.0
     track_sigma_max: float = 30.0
     thin_sigmas: float = 6.0

@@ -512,6 +512,44 @@ def test_a_fix_that_jumps_back_is_dropped_not_looped_round() -> None:
     assert [names(m, piece) for piece in r.routes] == [["ab", "bc", "cb"]]
 
 
+def test_a_multipath_burst_of_fixes_is_dropped_as_one_jump() -> None:
+    # 1 Hz along a-b-c at 10 m/s; for 3 s the fixes jump 79 m onto d-e-f (multipath) and back
+    #
+    #   a----x----x----x----x----b----x----x----c
+    #   |                        |              |
+    #   |                        |              |
+    #   |                        |              |
+    #   d-------------------x-x-xe--------------f
+    m = parse_ascii_map(
+        """
+        a---------b---------c
+        |         |         |
+        |         |         |
+        |         |         |
+        d---------e---------f
+        """,
+        scale=10,
+    )
+    pts = [at(m, "a", x, -78 if 8 <= k <= 10 else 1) for k, x in enumerate(range(5, 200, 10))]
+    track = track_from_xy(m, pts, dt=1.0)
+    r = BatchMatcher(m.graph).match(track)
+    assert [names(m, piece) for piece in r.routes] == [["ab", "bc"]]
+    assert [k for k, p in enumerate(r.points) if p.status == PointStatus.UNMATCHED] == [8, 9, 10]
+    # counterfactual: single-fix jumps only, and the route goes down be and back for the burst
+    single = BatchMatcher(m.graph).match(track, DEFAULT_CONFIG.replace(spike_max_time=0.0))
+    assert [names(m, piece) for piece in single.routes] == [["ab", "be", "eb", "bc"]]
+    # a real drive down b-e and back at 10 m/s turns round in far more than a few seconds: kept
+    drive = (
+        [at(m, "a", x, 1) for x in range(5, 100, 10)]
+        + [at(m, "b", 1, -y) for y in range(5, 80, 10)]
+        + [at(m, "b", -1, -y) for y in range(75, 0, -10)]
+        + [at(m, "b", x, 1) for x in range(5, 100, 10)]
+    )
+    r = BatchMatcher(m.graph).match(track_from_xy(m, drive, dt=1.0))
+    assert [names(m, piece) for piece in r.routes] == [["ab", "be", "eb", "bc"]]
+    assert all(p.status != PointStatus.UNMATCHED for p in r.points)
+
+
 def test_a_stray_fix_by_a_side_road_is_dropped_not_the_good_fix_after_it() -> None:
     # fixes 10 s apart: one strays next to the side road hd, 55 m from bc; the next fix (on bc)
     # cannot be reached from there (back along hd and hb is too far for the step), the one

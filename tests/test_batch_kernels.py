@@ -303,7 +303,7 @@ def test_one_compiled_call_matches_as_the_python_steps_do(rules: str) -> None:
             f = np.linspace(0, 1, n)[:, None]
             xy = path[0] + f * (path[1] - path[0]) + rng.normal(0, 4, (n, 2))
             if n > 4:
-                xy[n // 2] += 150.0
+                xy[n // 2 : n // 2 + (2 if i % 4 == 1 else 1)] += 150.0  # a jump, or a burst of two
         else:
             xy = lo + rng.random((n, 2)) * (hi - lo)
         if n > 3:

@@ -333,19 +333,59 @@ def _wrap360(h):  # type: ignore[no-untyped-def]
 
 
 @njit(cache=True, nogil=True)
-def drop_spikes(xy, time, kept, valid, sigma, min_sigmas, max_speed):  # type: ignore[no-untyped-def]
-    """Valid flags with jumps cleared: kept points the track reaches and leaves in opposite
-    directions (legs longer than ``min_sigmas * sigma``) where visiting them needs more than
-    ``max_speed`` m/s on average between the kept neighbours (0 disables it)."""
-    return drop_spikes_into(xy, time, np.flatnonzero(kept), sigma, min_sigmas, max_speed, valid.copy())
+def drop_spikes(xy, time, kept, valid, sigma, min_sigmas, max_speed, max_time):  # type: ignore[no-untyped-def]
+    """Valid flags with jumps cleared: a kept point, or a run of them lasting at most
+    ``max_time`` seconds, that the track reaches and leaves in opposite directions (legs longer
+    than ``min_sigmas * sigma``) where visiting it needs more than ``max_speed`` m/s on average
+    between the kept neighbours (0 disables it). The shortest such run is dropped."""
+    kidx = np.flatnonzero(kept)
+    return drop_spikes_into(xy, time, kidx, sigma, min_sigmas, max_speed, max_time, valid.copy())
 
 
 @njit(cache=True, nogil=True)
-def drop_spikes_into(xy, time, kidx, sigma, min_sigmas, max_speed, out):  # type: ignore[no-untyped-def]
+def drop_spikes_into(xy, time, kidx, sigma, min_sigmas, max_speed, max_time, out):  # type: ignore[no-untyped-def]
     """:func:`drop_spikes` into ``out`` (a copy of the valid flags on entry); ``kidx``: the kept
     points' indices."""
     if max_speed <= 0:
         return out
+    noise = min_sigmas * sigma
+    a = -1
+    q = 0
+    while q < len(kidx) - 1:
+        b = kidx[q]
+        if a < 0:
+            a = b
+            q += 1
+            continue
+        ux = xy[b, 0] - xy[a, 0]
+        uy = xy[b, 1] - xy[a, 1]
+        lu = math.hypot(ux, uy)
+        run = 0
+        if lu > noise:
+            inside = 0.0  # the path within the run
+            for m in range(1, len(kidx) - q):
+                e = kidx[q + m - 1]
+                c = kidx[q + m]
+                if m > 1:
+                    if not time[e] - time[b] <= max_time:
+                        break
+                    inside += math.hypot(xy[e, 0] - xy[kidx[q + m - 2], 0], xy[e, 1] - xy[kidx[q + m - 2], 1])
+                vx = xy[c, 0] - xy[e, 0]
+                vy = xy[c, 1] - xy[e, 1]
+                lv = math.hypot(vx, vy)
+                dt = time[c] - time[a]
+                reverses = lv > noise and ux * vx + uy * vy < -0.5 * lu * lv
+                if reverses and dt > 0 and (lu + inside + lv) / dt > max_speed:
+                    run = m
+                    break
+        if run:
+            for k in range(q, q + run):
+                out[kidx[k]] = False
+            q += run  # ``a`` stays the neighbour of the next point
+            continue
+        a = b
+        q += 1
+    return out
     a = -1
     for q in range(len(kidx) - 1):
         b = kidx[q]

@@ -83,6 +83,7 @@ class _Rules(NamedTuple):
 
     spike_sigmas: float
     spike_speed: float
+    spike_max_time: float
     motion_heading_sigma: float
     motion_min_distance: float
     straight_max_deg: float
@@ -187,12 +188,14 @@ class BatchMatcher:
             )  # fmt: skip
             rules = _Rules(
                 spike_sigmas=float(cfg.spike_sigmas), spike_speed=float(cfg.spike_speed),
+                spike_max_time=float(cfg.spike_max_time),
                 motion_heading_sigma=float(cfg.motion_heading_sigma),
                 motion_min_distance=float(cfg.motion_min_distance),
                 straight_max_deg=float(cfg.straight_max_deg),
             )  # fmt: skip
             track_rules = RuleParams(
                 gps_sigma=sigma, spike_sigmas=rules.spike_sigmas, spike_speed=rules.spike_speed,
+                spike_max_time=rules.spike_max_time,
                 motion_sigma=rules.motion_heading_sigma, motion_min_distance=rules.motion_min_distance,
                 straight_max_deg=rules.straight_max_deg, heading_sigma=float(cfg.heading_sigma),
                 heading_min_speed=float(cfg.heading_min_speed),
@@ -290,7 +293,7 @@ class BatchMatcher:
         if far > q.min_dist:
             kept, kidx, cands = self._kept_candidates(xy, valid, far, q)
         # jumps (a fix reached and left in opposite directions too fast) get no candidates
-        spikes = (rules.spike_sigmas, rules.spike_speed)
+        spikes = (rules.spike_sigmas, rules.spike_speed, rules.spike_max_time)
         jump = valid & ~drop_spikes(xy, time, kept, valid, sigma0, *spikes)
         if jump.any():
             cands = _subset(cands, ~jump[kidx][cands.point])

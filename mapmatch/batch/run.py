@@ -70,6 +70,8 @@ class RuleParams(NamedTuple):
     spike_sigmas: float
     spike_speed: float
     """m/s; 0: jumps are not dropped."""
+    spike_max_time: float
+    """Seconds a jump of several fixes may last."""
     motion_sigma: float
     """Degrees; 0: no direction of travel."""
     motion_min_distance: float
@@ -181,7 +183,7 @@ def run_track(ti, q, r, p, geom, roads, router, grid, gsc, ar):  # type: ignore[
     # jumps (a fix reached and left in opposite directions too fast) get no candidates
     nojump = take_b1(ar, n)
     nojump[:] = valid
-    drop_spikes_into(xy, ti.time, kidx, sigma, r.spike_sigmas, r.spike_speed, nojump)
+    drop_spikes_into(xy, ti.time, kidx, sigma, r.spike_sigmas, r.spike_speed, r.spike_max_time, nojump)
     # the jumps' candidates go
     nc = 0
     for i in range(len(cp)):
