@@ -25,6 +25,7 @@ and for phases the mean of offset 0 alone (the main bench's draw). One JSON line
     python bench/bench_batch_robust.py --summary ~/.cache/mapmatch-peers/results/robust.jsonl
     python bench/bench_batch_robust.py --sets phases --S 60,120,300 --step 1000   # sparse tracks
     python bench/bench_batch_robust.py --sets noise --noise 10,20                 # a worse receiver
+    python bench/bench_batch_robust.py --sets jumps --jumps 1,3                   # multipath bursts
     python bench/bench_batch_robust.py --engines custom --set route_speed=0 --sets phases --S 120
 """
 
