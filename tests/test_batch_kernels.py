@@ -485,3 +485,32 @@ def test_borrowed_views_share_the_data_and_refuse_what_they_cannot_borrow() -> N
 
     with pytest.raises(TypingError):
         bad([1.0, 2.0])
+
+
+def test_the_jump_rule_drops_a_burst_not_the_good_fixes_around_it() -> None:
+    """Runs of jumps (``drop_spikes``): at 30 m/s a two-fix burst 190 m to the side is dropped
+    and the fixes before it are kept (their legs are as long as the burst's inner one); a stopped
+    vehicle's burst is dropped though its thinned fixes leave the kept neighbours far apart in
+    time; a drive that turns round over 20 s is not a jump."""
+    from mapmatch.batch.lattice import drop_spikes, thin
+
+    def dropped(xy: np.ndarray, t: np.ndarray, min_dist: float = 0.0) -> list[int]:
+        valid = np.ones(len(t), dtype=np.bool_)
+        kept = thin(xy, valid, min_dist)
+        return np.flatnonzero(~drop_spikes(xy, t, kept, valid, 5.0, 3.0, 20.0, 5.0)).tolist()
+
+    t = np.arange(12, dtype=np.float64)
+    fast = np.column_stack([30.0 * t, np.zeros(12)])
+    burst = fast.copy()
+    burst[7:9] += (0.0, 190.0)
+    assert dropped(burst, t) == [7, 8]
+    assert dropped(fast, t) == []
+    # stopped 28 s, the fixes thinned out: the visit starts at the last fix before the burst
+    ts = np.arange(40, dtype=np.float64)
+    stopped = np.zeros((40, 2))
+    stopped[28:30] = (180.0, 60.0)
+    assert dropped(stopped, ts, min_dist=16.0) == [28]  # 29 is thinned out: it follows 28
+    # out along a side road at 10 m/s and back: 20 s to turn round, kept
+    u = np.arange(30, dtype=np.float64)
+    drive = np.column_stack([np.zeros(30), 10.0 * np.minimum(u, 29 - u)])
+    assert dropped(drive, u) == []

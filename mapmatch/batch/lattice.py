@@ -336,8 +336,11 @@ def _wrap360(h):  # type: ignore[no-untyped-def]
 def drop_spikes(xy, time, kept, valid, sigma, min_sigmas, max_speed, max_time):  # type: ignore[no-untyped-def]
     """Valid flags with jumps cleared: a kept point, or a run of them lasting at most
     ``max_time`` seconds, that the track reaches and leaves in opposite directions (legs longer
-    than ``min_sigmas * sigma``) where visiting it needs more than ``max_speed`` m/s on average
-    between the kept neighbours (0 disables it). The shortest such run is dropped."""
+    than ``min_sigmas * sigma``; for a run also longer than any leg within it, the way back
+    undoing the way out: together they move less than either) where visiting it needs more
+    than ``max_speed`` m/s on average between the neighbours (0 disables it): from the last
+    valid fix before the run (a thinned fix is near the kept one before it) to the kept one
+    after. The shortest such run is dropped."""
     kidx = np.flatnonzero(kept)
     return drop_spikes_into(xy, time, kidx, sigma, min_sigmas, max_speed, max_time, valid.copy())
 
@@ -362,19 +365,32 @@ def drop_spikes_into(xy, time, kidx, sigma, min_sigmas, max_speed, max_time, out
         lu = math.hypot(ux, uy)
         run = 0
         if lu > noise:
+            # the vehicle was near ``a`` until the last valid fix before ``b`` (fixes between
+            # are thinned out, as a stopped vehicle's are): its time starts the visit
+            tp = b - 1
+            while tp > a and not out[tp]:
+                tp -= 1
             inside = 0.0  # the path within the run
+            longest = 0.0  # its longest leg
             for m in range(1, len(kidx) - q):
                 e = kidx[q + m - 1]
                 c = kidx[q + m]
                 if m > 1:
                     if not time[e] - time[b] <= max_time:
                         break
-                    inside += math.hypot(xy[e, 0] - xy[kidx[q + m - 2], 0], xy[e, 1] - xy[kidx[q + m - 2], 1])
+                    leg = math.hypot(xy[e, 0] - xy[kidx[q + m - 2], 0], xy[e, 1] - xy[kidx[q + m - 2], 1])
+                    inside += leg
+                    longest = max(longest, leg)
                 vx = xy[c, 0] - xy[e, 0]
                 vy = xy[c, 1] - xy[e, 1]
                 lv = math.hypot(vx, vy)
-                dt = time[c] - time[a]
+                dt = time[c] - time[tp]
                 reverses = lv > noise and ux * vx + uy * vy < -0.5 * lu * lv
+                if m > 1:
+                    # a burst moves with the vehicle and the jump is its way in and out: legs
+                    # longer than any within the run, the way back undoing the way out
+                    back = math.hypot(ux + vx, uy + vy)
+                    reverses = reverses and longest < min(lu, lv) and back < min(lu, lv)
                 if reverses and dt > 0 and (lu + inside + lv) / dt > max_speed:
                     run = m
                     break
