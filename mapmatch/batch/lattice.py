@@ -402,24 +402,3 @@ def drop_spikes_into(xy, time, kidx, sigma, min_sigmas, max_speed, max_time, out
         a = b
         q += 1
     return out
-    a = -1
-    for q in range(len(kidx) - 1):
-        b = kidx[q]
-        c = kidx[q + 1]
-        if a < 0:
-            a = b
-            continue
-        ux = xy[b, 0] - xy[a, 0]
-        uy = xy[b, 1] - xy[a, 1]
-        vx = xy[c, 0] - xy[b, 0]
-        vy = xy[c, 1] - xy[b, 1]
-        lu = math.hypot(ux, uy)
-        lv = math.hypot(vx, vy)
-        dt = time[c] - time[a]
-        noise = min_sigmas * sigma
-        reverses = lu > noise and lv > noise and ux * vx + uy * vy < -0.5 * lu * lv
-        if reverses and dt > 0 and (lu + lv) / dt > max_speed:
-            out[b] = False
-            continue  # ``a`` stays the neighbour of the next point
-        a = b
-    return out

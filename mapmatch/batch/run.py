@@ -155,11 +155,12 @@ def pack(a):  # type: ignore[no-untyped-def]
 
 @njit(cache=True, nogil=True)
 def run_track(ti, q, r, p, geom, roads, router, grid, gsc, ar):  # type: ignore[no-untyped-def]
-    """The whole match of one track: validity, thinning, jumps (:func:`drop_spikes`), the
-    candidate search (:func:`mapmatch.gridindex.query_grid`, again up to the outlier distance
-    for points with no road in the search radius), emissions with the fixes' σ and heading or
-    the direction of travel (:func:`motion_heading`), then :func:`run`; working arrays from the
-    arena ``ar`` (:mod:`mapmatch.arena`)."""
+    """The whole match of one track: validity, thinning and the candidate search
+    (:func:`kept_candidates`), the track's own σ (:func:`track_sigma`) and, where it exceeds
+    the configured one, the thinning and search again at ``thin_sigmas`` times the excess,
+    jumps (:func:`drop_spikes`), emissions with the fixes' σ and heading or the direction of
+    travel (:func:`motion_heading`), then :func:`run`; working arrays from the arena ``ar``
+    (:mod:`mapmatch.arena`)."""
     reset(ar)
     pos = ti.pos
     n = pos.shape[1]
