@@ -287,7 +287,7 @@ class BatchMatcher:
         # points closer than the noise to the previous kept point are interpolated afterwards
         kept, kidx, cands = self._kept_candidates(xy, valid, q.min_dist, q)
         # the track's σ where its fixes lie further from the roads than the configured one says
-        first = np.flatnonzero(np.r_[True, np.diff(cands.point) != 0]) if len(cands.point) else kidx[:0]
+        first = np.unique(cands.point, return_index=True)[1]  # each fix's nearest road
         sigma0 = model.track_sigma(cands.dist[first], st.sigma, float(cfg.track_sigma_max))
         far = float(cfg.thin_sigmas) * (sigma0 - st.sigma)
         if far > q.min_dist:
