@@ -18,6 +18,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from mapmatch.graph.keys import unique, unique_inverse
+from mapmatch.graph.order import spatial_edge_order, take_edges
 from mapmatch.graph.road_graph import Labels, Pieces, RoadGraph
 
 if TYPE_CHECKING:
@@ -882,7 +883,8 @@ def road_graph_arrays(
         "meta": meta,
         "copy": False,
     }
-    return kw, info
+    # nearby roads at nearby indices (:mod:`mapmatch.graph.order`)
+    return take_edges(kw, spatial_edge_order(node_xy, eu, ev)), info
 
 
 def _edge_pieces(
