@@ -9,7 +9,8 @@ single time; the median is kept too. On a shared machine the least is the figure
 disturbed by the other processes (a 0.5 ms call loses whole time slices under load).
 Prints mean and median RMF and points/s per engine and S, the per-track
 geometric mean of our points/s over fastmm's per S, our time per point at S = 30 on the largest
-vs the smallest map, and one PASS/FAIL line per target of issue #14.
+vs the smallest map (timed apart, as above, and side by side in one process, alternating calls:
+the check's figure, ``--side-rounds``), and one PASS/FAIL line per target of issue #14.
 
     python bench/bench_batch.py                       # all 15 tracks, S = 1, 10, 30
     python bench/bench_batch.py --ids 0,21 --engines custom,fastmm     # a quick check
@@ -138,7 +139,7 @@ def apply_timing(recs: list[dict], timing: Path) -> int:
     return n
 
 
-def summarise(paths: list[Path], timing: Path | None = None) -> bool:
+def summarise(paths: list[Path], timing: Path | None = None, *, side_rounds: int = 0) -> bool:
     """Print the table, the speed figures and one pass/fail line per "Done means" target of
     issue #14; returns whether all pass."""
     recs = [json.loads(line) for p in paths for line in p.read_text().splitlines() if line.strip()]
@@ -232,6 +233,16 @@ def summarise(paths: list[Path], timing: Path | None = None) -> bool:
             ms, mb = (r["match_median_s"] / r["n_points"] * 1e6 for r in (small, big))
             growth_txt += f" (medians {ms:.2f} and {mb:.2f} us, ratio {mb / ms:.2f})"
         print(f"S=30: our time per point: {growth_txt}")
+        if side_rounds > 0:
+            (ls, ms), (lb, mb) = growth_side_by_side(small["track"], big["track"], S=30, rounds=side_rounds)
+            growth = lb / ls < 2.0
+            side = (
+                f"side by side in one process ({side_rounds} rounds of 5 calls each, alternating): "
+                f"{ls:.2f} and {lb:.2f} us, ratio {lb / ls:.2f} "
+                f"(medians {ms:.2f} and {mb:.2f} us, ratio {mb / ms:.2f})"
+            )
+            print(f"S=30: our time per point, {side}")
+            growth_txt = f"{side}; timed apart as above: ratio {ub / us:.2f}"
     checks.append(
         ("time per point at 30 s grows less than 2x from the smallest to the largest map", growth, growth_txt)
     )
@@ -239,6 +250,41 @@ def summarise(paths: list[Path], timing: Path | None = None) -> bool:
     for label, ok, txt in checks:
         print(f"  {'PASS' if ok else 'FAIL'}  {label}: {txt}")
     return all(ok for _, ok, _ in checks)
+
+
+def growth_side_by_side(
+    small: str, big: str, *, S: int, rounds: int, block: int = 5
+) -> list[tuple[float, float]]:
+    """Our time per point (µs) at ``S`` on two prepared work dirs, timed side by side in this
+    process: after ``rounds`` untimed rounds, ``rounds`` timed rounds of ``block`` calls on each
+    in turn, so both meet the same machine (whose speed moves by up to 2x within minutes, which
+    makes two tracks timed minutes apart, as above, a poor ratio), and each block runs on its own
+    map as a batch does (single calls alternating would start every call in the other map's
+    cache). The harness's sub-sampling and our
+    adapter's load and timed call, as the harness's. Returns (least, median) per track."""
+    import time
+
+    sys.path.insert(0, str(ROOT / "bench"))
+    sys.path.insert(0, str(PEERS))
+    import engines_kubicka as ek  # type: ignore[import-not-found]
+    import peers_adapter  # type: ignore[import-not-found]
+
+    calls = []
+    for name in (small, big):
+        matcher = peers_adapter.load(WORK / name)
+        t, lat, lon = ek.read_track(WORK / name)
+        idx = ek.subsample(len(t), S)
+        calls.append((matcher, [t[i] for i in idx], [lat[i] for i in idx], [lon[i] for i in idx]))
+    times: list[list[float]] = [[], []]
+    for r in range(2 * rounds):
+        for k, (m, tt, la, lo) in enumerate(calls):
+            for _ in range(block):
+                t0 = time.perf_counter()
+                peers_adapter.call(m, tt, la, lo)
+                dt = time.perf_counter() - t0
+                if r >= rounds:
+                    times[k].append(dt / len(tt) * 1e6)
+    return [(min(x), statistics.median(x)) for x in times]
 
 
 def _tracks(ids: str) -> tuple[Any, Path, list[str]]:
@@ -346,6 +392,12 @@ def main() -> int:
         help="timed calls per track, S and engine after the run (0: the harness's)",
     )
     ap.add_argument("--time-engines", help="the engines timed again (default: all of --engines)")
+    ap.add_argument(
+        "--side-rounds",
+        type=int,
+        default=25,
+        help="growth check: calls per map with the smallest and largest map timed side by side (0: apart)",
+    )
     ap.add_argument("--routing", action="store_true", help="compare bounded search and UBODT in process")
     ap.add_argument("--deltas", default="1000,2000,3000", help="UBODT bounds in metres for --routing")
     ap.add_argument(
@@ -370,7 +422,8 @@ def main() -> int:
     if timing is None and not a.summary and a.repeat > 0:
         timing = time_engines(a.ids, a.time_engines or a.engines, a.S, a.repeat, a.tag)
         print(f"load average after the repeated timing: {' '.join(f'{x:.2f}' for x in os.getloadavg())}")
-    summarise(paths, timing)
+    side = a.side_rounds if "custom" in a.engines.split(",") and not a.summary else 0
+    summarise(paths, timing, side_rounds=side)
     return 0
 
 
