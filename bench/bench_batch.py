@@ -9,8 +9,9 @@ single time; the median is kept too. On a shared machine the least is the figure
 disturbed by the other processes (a 0.5 ms call loses whole time slices under load).
 Prints mean and median RMF and points/s per engine and S, the per-track
 geometric mean of our points/s over fastmm's per S, our time per point at S = 30 on the largest
-vs the smallest map (timed apart, as above, and side by side in one process, alternating calls:
-the check's figure, ``--side-rounds``), and one PASS/FAIL line per target of issue #14.
+vs the smallest map (timed apart, as above, and side by side in one process, in alternating
+rounds of five calls on each: the check's figure, ``--side-rounds``), and one PASS/FAIL line
+per target of issue #14.
 
     python bench/bench_batch.py                       # all 15 tracks, S = 1, 10, 30
     python bench/bench_batch.py --ids 0,21 --engines custom,fastmm     # a quick check
@@ -260,8 +261,8 @@ def growth_side_by_side(
     in turn, so both meet the same machine (whose speed moves by up to 2x within minutes, which
     makes two tracks timed minutes apart, as above, a poor ratio), and each block runs on its own
     map as a batch does (single calls alternating would start every call in the other map's
-    cache). The harness's sub-sampling and our
-    adapter's load and timed call, as the harness's. Returns (least, median) per track."""
+    cache). The harness's sub-sampling, and our adapter's load and timed call. Returns (least,
+    median) per track."""
     import time
 
     sys.path.insert(0, str(ROOT / "bench"))
@@ -396,7 +397,7 @@ def main() -> int:
         "--side-rounds",
         type=int,
         default=25,
-        help="growth check: calls per map with the smallest and largest map timed side by side (0: apart)",
+        help="growth check: rounds of 5 calls per map, smallest and largest map side by side (0: apart)",
     )
     ap.add_argument("--routing", action="store_true", help="compare bounded search and UBODT in process")
     ap.add_argument("--deltas", default="1000,2000,3000", help="UBODT bounds in metres for --routing")
