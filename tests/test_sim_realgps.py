@@ -16,7 +16,7 @@ from mapmatch.graph.build import build_map
 from mapmatch.graph.projection import to_lonlat
 from mapmatch.online import OnlineMatcher
 from mapmatch.sim.drive import position_error, write_fixes_csv
-from mapmatch.sim.realgps import RealGpsConfig, isotonic, real_drive
+from mapmatch.sim.realgps import RealGpsConfig, _route_heading, isotonic, real_drive
 
 ELL = """
 a---------------b
@@ -239,3 +239,61 @@ def test_the_odometer_measures_the_rounded_path_not_the_centre_line(tmp_path: Pa
     length = line.route.length
     assert abs(line.fixes["distance"].sum() - length) < 0.01
     assert 0.5 < length - cut.fixes["distance"].sum() < 4.0
+
+
+def test_the_true_heading_through_a_u_turn_is_the_way_in_then_the_way_out(tmp_path: Path) -> None:
+    """Where the route turns back (a U-turn at a dead end, after a stop there), the chord over
+    ±``heading_base_m`` is about nothing and its direction the rounding's: the heading is the
+    way in until the turning point, then the way out, never a direction across the road, and
+    the same when the fixes move by a micrometre."""
+    bend = """
+a---------b
+           \\
+            \\
+             \\
+              \\
+               c
+"""
+    heads = []
+    for shift in (0.0, 1e-6):
+        amap = parse_ascii_map(bend, scale=10.0)
+        a, b, c = (amap.xy(n) + shift for n in "abc")
+        leg1, leg2 = float(np.hypot(*(b - a))), float(np.hypot(*(c - b)))
+        # 1 m/s to the dead end c, 10 s standing 3 m beyond its end (a yard: every fix of the stop
+        # projects onto c itself, the turning point), and back
+        x = np.concatenate([np.arange(0.0, leg1 + leg2, 1.0), np.full(10, leg1 + leg2 + 3.0)])
+        x = np.concatenate([x, leg1 + leg2 + 6.0 + np.arange(1.0, leg2 - 10.0, 1.0)])
+
+        def at(v: float, a=a, b=b, c=c, leg1=leg1, leg2=leg2) -> np.ndarray:  # type: ignore[no-untyped-def]
+            if v <= leg1:
+                return a + (b - a) * v / leg1
+            if v <= leg1 + leg2 + 3.0:
+                return b + (c - b) * (v - leg1) / leg2
+            return c + (b - c) * (v - leg1 - leg2 - 6.0) / leg2
+
+        sub = tmp_path / str(shift)
+        sub.mkdir()
+        _write_track(sub, amap, np.array([at(v) for v in x]), np.arange(len(x), dtype=float), "abcb")
+        d = real_drive(amap.graph, sub, outages=False)
+        tr = d.truth
+        e, off = tr["edge"].to_numpy(), tr["offset"].to_numpy()
+        # on the dead-end leg, away from the bend at b
+        cb = ((e == amap.edge("b", "c")) & (off > 5.0)) | ((e == amap.edge("c", "b")) & (off < leg2 - 5.0))
+        heads.append(tr["heading"].to_numpy()[cb])
+    for h in heads:
+        hin = np.degrees(np.arctan2(*(c - b))) % 360.0  # b to c (south-east); out: c to b
+        way_in = np.abs((h - hin + 180.0) % 360.0 - 180.0) < 1.0
+        way_out = np.abs((h - hin + 360.0) % 360.0 - 180.0) < 1.0
+        assert len(h) > 20 and (way_in | way_out).all()
+        # in, then out from the turning point on: one change of direction
+        assert way_in[0] and way_out[-1] and np.count_nonzero(np.diff(way_in.astype(int))) == 1
+    assert len(heads[0]) == len(heads[1])
+    np.testing.assert_allclose(heads[0], heads[1], atol=1e-3)
+    # at the turning point itself (a stop whose fixes project onto c: on 00000084 the chord's
+    # rounding gave 311 degrees on one edge order and 53 on another), and a hair either side
+    assert d.route.edges.tolist() == [amap.edge("a", "b"), amap.edge("b", "c"), amap.edge("c", "b")]
+    fold = float(d.route.edge_start[2])  # where c -> b begins
+    h = np.degrees(_route_heading(d.route, fold + np.array([-1e-9, 0.0, 1e-9]), 4.0)) % 360.0
+    hin = np.degrees(np.arctan2(*(c - b))) % 360.0
+    off = np.minimum(np.abs((h - hin + 180.0) % 360.0 - 180.0), np.abs((h - hin) % 360.0 - 180.0))
+    assert (off < 1e-6).all(), h

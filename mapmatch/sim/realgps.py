@@ -372,10 +372,20 @@ def _trim(graph: RoadGraph, route: Route, s_from: float, s_to: float) -> Route:
 
 
 def _route_heading(route: Route, s: NDArray[np.float64], half_m: float) -> NDArray[np.float64]:
-    """Unwrapped heading (rad, clockwise from north) of the route at distances ``s``."""
+    """Unwrapped heading (rad, clockwise from north) of the route at distances ``s``: the chord
+    over ±``half_m``, or where the route turns back within it (a U-turn, whose chord is about
+    nothing and its direction the rounding's) the way in until the turning point is passed,
+    then the way out."""
     p0 = route.position(np.clip(s - half_m, 0.0, route.length))
+    pm = route.position(np.clip(s, 0.0, route.length))
     p1 = route.position(np.clip(s + half_m, 0.0, route.length))
-    return np.unwrap(np.arctan2(p1[:, 0] - p0[:, 0], p1[:, 1] - p0[:, 1]))
+    d = p1 - p0
+    folded = np.hypot(d[:, 0], d[:, 1]) < 0.5 * half_m
+    if folded.any():
+        back, ahead = pm - p0, p1 - pm
+        way_in = np.hypot(back[:, 0], back[:, 1]) > np.hypot(ahead[:, 0], ahead[:, 1])
+        d = np.where(folded[:, None], np.where(way_in[:, None], back, ahead), d)
+    return np.unwrap(np.arctan2(d[:, 0], d[:, 1]))
 
 
 def driven_distance(route: Route, s: NDArray[np.float64], smooth_m: float) -> NDArray[np.float64]:
