@@ -29,8 +29,8 @@ def hilbert_key(x: NDArray[np.int64], y: NDArray[np.int64], *, bits: int = HILBE
     >>> hilbert_key(np.array([0, 0, 1, 1]), np.array([0, 1, 1, 0]), bits=1).tolist()
     [0, 1, 2, 3]
     """
-    x = np.asarray(x, dtype=np.int64).copy()
-    y = np.asarray(y, dtype=np.int64).copy()
+    x = np.asarray(x, dtype=np.int64)
+    y = np.asarray(y, dtype=np.int64)
     n = np.int64(1) << bits
     d = np.zeros(len(x), dtype=np.int64)
     s = n >> 1
@@ -38,11 +38,10 @@ def hilbert_key(x: NDArray[np.int64], y: NDArray[np.int64], *, bits: int = HILBE
         rx = (x & s) > 0
         ry = (y & s) > 0
         d += s * s * ((3 * rx.astype(np.int64)) ^ ry.astype(np.int64))
-        flip = ~ry & rx
-        x[flip] = n - 1 - x[flip]
-        y[flip] = n - 1 - y[flip]
-        swap = ~ry
-        x[swap], y[swap] = y[swap], x[swap].copy()
+        flip = ~ry & rx  # then x and y swap where ~ry
+        fx = np.where(flip, n - 1 - x, x)
+        fy = np.where(flip, n - 1 - y, y)
+        x, y = np.where(ry, fx, fy), np.where(ry, fy, fx)
         s >>= 1
     return d
 
@@ -55,7 +54,9 @@ def spatial_edge_order(
     bits: int = HILBERT_BITS,
 ) -> NDArray[np.int64]:
     """The edges' new order: by the Hilbert key of the midpoint of their end nodes, then by
-    their unordered end nodes (both directions of a road side by side), then by index."""
+    their lower end node (both directions of a road side by side), then by index."""
+    if not 0 < bits <= 16:
+        raise ValueError(f"bits must be 1 to 16 (the sort key holds 2 * bits and a node index), not {bits}")
     u = np.asarray(edge_u, dtype=np.int64)
     v = np.asarray(edge_v, dtype=np.int64)
     if len(u) == 0:
@@ -66,8 +67,9 @@ def spatial_edge_order(
     scale = ((1 << bits) - 1) / span if span > 0 else 0.0
     cell = np.floor((mid - lo) * scale).astype(np.int64)
     key = hilbert_key(cell[:, 0], cell[:, 1], bits=bits)
-    a, b = np.minimum(u, v), np.maximum(u, v)
-    return np.lexsort((np.arange(len(u)), b, a, key)).astype(np.int64)
+    # one stable sort of (key, lower end node) in 63 bits: key < 2**(2 * bits), nodes < 2**31
+    both = (key << np.int64(31)) | np.minimum(u, v)
+    return np.argsort(both, kind="stable").astype(np.int64)
 
 
 def _take_ragged(
