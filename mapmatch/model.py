@@ -47,15 +47,16 @@ def position_sigma(pos_sigma: ArrayLike, config: MatchConfig) -> NDArray[np.floa
     return np.where(np.isnan(s) | (s <= 0), config.model.gps_sigma, np.maximum(s, 0.5))
 
 
-def track_sigma(nearest: ArrayLike, sigma: float, most: float) -> float:
+def track_sigma(nearest: NDArray[np.float64], sigma: float, most: float) -> float:
     """A track's position σ from its fixes' distances to their nearest road: ``sigma``, or
     where larger (up to ``most``; 0: never) :data:`MAD_TO_SIGMA` times their median (Newson
-    and Krumm's robust estimate). The batch matcher's compiled twin is
-    :func:`mapmatch.batch.run.track_sigma`."""
-    d = np.asarray(nearest, dtype=np.float64)
-    if most <= sigma or len(d) == 0:
+    and Krumm's robust estimate). Compiled for the batch kernels as :data:`track_sigma_compiled`."""
+    if most <= sigma or len(nearest) == 0:
         return sigma
-    return min(max(sigma, MAD_TO_SIGMA * float(np.median(d))), most)
+    return min(max(sigma, MAD_TO_SIGMA * float(np.median(nearest))), most)
+
+
+track_sigma_compiled = njit(cache=True)(track_sigma)
 
 
 def emission_logp(

@@ -25,7 +25,7 @@ from mapmatch.batch.lattice import bearing_on, build_lattice, drop_spikes_into, 
 from mapmatch.batch.route import assemble
 from mapmatch.batch.viterbi import solve
 from mapmatch.gridindex import query_grid
-from mapmatch.model import MAD_TO_SIGMA
+from mapmatch.model import track_sigma_compiled
 
 Packed = NDArray[np.int64]
 """What the kernels return: the assembly packed by :func:`pack`."""
@@ -279,10 +279,10 @@ def run_track_in(ti, c):  # type: ignore[no-untyped-def]
 
 @njit(cache=True, nogil=True)
 def track_sigma(point, dist, nk, sigma, most, ar):  # type: ignore[no-untyped-def]
-    """The track's σ: ``sigma``, or where larger (up to ``most``; 0: never) 1.4826 times the
-    median distance of the ``nk`` kept fixes to their nearest candidate (rows sorted by point,
-    nearest first); fixes without one do not count."""
-    if most <= sigma or len(point) == 0:
+    """The track's σ (:func:`mapmatch.model.track_sigma`) from the ``nk`` kept fixes' distances
+    to their nearest candidate (rows sorted by point, nearest first); fixes without one do not
+    count."""
+    if most <= sigma:
         return sigma
     near = take_f8(ar, nk)
     m = 0
@@ -290,7 +290,7 @@ def track_sigma(point, dist, nk, sigma, most, ar):  # type: ignore[no-untyped-de
         if i == 0 or point[i] != point[i - 1]:
             near[m] = dist[i]
             m += 1
-    return min(max(sigma, MAD_TO_SIGMA * np.median(near[:m])), most)
+    return track_sigma_compiled(near[:m], sigma, most)
 
 
 @njit(cache=True, nogil=True)
