@@ -308,7 +308,7 @@ def compare_routing(ids: str, S: str, deltas: str) -> None:
 
     from mapmatch.batch import BatchMatcher
     from mapmatch.io import Columns, read_tracks
-    from mapmatch.routing import Ubodt
+    from mapmatch.routing import Ubodt, ubodt_estimate
 
     peers_adapter, data, names = _tracks(ids)
     for name in names:
@@ -317,11 +317,14 @@ def compare_routing(ids: str, S: str, deltas: str) -> None:
         variants: list[tuple[str, BatchMatcher]] = [("search", BatchMatcher(graph))]
         for d in (float(x) for x in deltas.split(",")):
             t0 = time.perf_counter()
+            estimate = ubodt_estimate(graph, d)
+            t1 = time.perf_counter()
             table = Ubodt.build(graph, d)  # with the batch default turn cost
-            build = time.perf_counter() - t0
+            build = time.perf_counter() - t1
             print(
                 f"{name} edges={graph.n_edges} UBODT {d:.0f} m: "
-                f"build {build:.2f} s, {table.nbytes / 1e6:.0f} MB"
+                f"build {build:.2f} s, {table.nbytes / 1e6:.0f} MB "
+                f"(estimated {estimate / 1e6:.0f} MB in {(t1 - t0) * 1e3:.0f} ms)"
             )
             variants.append((f"ubodt{d:.0f}", BatchMatcher(graph, ubodt=table)))
         for s in (int(x) for x in S.split(",")):

@@ -27,6 +27,7 @@ if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
 from mapmatch.batch import BatchMatcher, fill_route_lonlat  # noqa: E402
+from mapmatch.config import UBODT_MAX_BYTES  # noqa: E402
 from mapmatch.graph.road_graph import RoadGraph  # noqa: E402
 from mapmatch.routing import Ubodt  # noqa: E402
 from mapmatch.types import Track  # noqa: E402
@@ -50,7 +51,9 @@ def load_graph(work: Path) -> RoadGraph:
 
 
 UBODT_DELTA = 2000.0
-"""Route table bound in metres built at load time (fastmm's adapter uses a 3000 m UBODT)."""
+"""Route table bound in metres built at load time (fastmm's adapter uses a 3000 m UBODT); a
+shorter one where it would not fit in ``UBODT_MAX_BYTES`` (1 GiB), as ``mapmatch match``
+does."""
 
 
 SETTINGS_ENV = "MAPMATCH_BENCH_SET"
@@ -66,7 +69,11 @@ def load(work: Path) -> BatchMatcher:
     matcher = BatchMatcher(
         graph,
         config=config,
-        ubodt=Ubodt.build(graph, UBODT_DELTA, turn_cost=config.turn_cost) if UBODT_DELTA else None,
+        ubodt=(
+            Ubodt.build(graph, UBODT_DELTA, turn_cost=config.turn_cost, max_bytes=UBODT_MAX_BYTES)
+            if UBODT_DELTA
+            else None
+        ),
     )
     # warm up: loads the numba cache before the timed calls
     lon, lat = matcher.graph.node_lonlat[0]

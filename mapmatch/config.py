@@ -572,3 +572,9 @@ DEFAULT_CONFIG = MatchConfig()
 BATCH_CONFIG = DEFAULT_CONFIG.replace(
     gps_sigma=8.0, uturn_penalty=20.0, interpolate_distance=8.0, beta_per_m=0.04
 )
+
+UBODT_MAX_BYTES = 1 << 30
+"""Default memory budget of a batch worker's route table (1 GiB, ``mapmatch match
+--ubodt-max-mb``): where a table of the asked bound would not fit, a shorter bound is used
+(:meth:`mapmatch.routing.Ubodt.build`), with the same matches. A resource limit, not a model
+parameter: it changes speed and memory, never a result."""

@@ -27,7 +27,7 @@ from typing import Any
 
 import pandas as pd
 
-from mapmatch.config import BATCH_CONFIG, MatchConfig
+from mapmatch.config import BATCH_CONFIG, UBODT_MAX_BYTES, MatchConfig
 from mapmatch.errors import MatchError
 from mapmatch.graph.files import atomic_path
 from mapmatch.io import (
@@ -75,22 +75,32 @@ class RunSummary:
 
 
 # ---------------------------------------------------------------------- worker side
-_CACHE: dict[tuple[str, float, float, float], Any] = {}
+_CACHE: dict[tuple[str, float, float, float, int | None], Any] = {}
 
 
-def _matcher(map_path: str, ubodt_delta: float | None, turn_cost: float) -> Any:
+def _matcher(
+    map_path: str, ubodt_delta: float | None, turn_cost: float, ubodt_max_bytes: int | None = None
+) -> Any:
     """The process's matcher for a map file (and optional route table, its routes costing
-    ``turn_cost`` per turn back), loaded once."""
+    ``turn_cost`` per turn back, of at most about ``ubodt_max_bytes``), loaded once."""
     from mapmatch.batch import BatchMatcher
     from mapmatch.graph.artifact import load_map
     from mapmatch.routing import Ubodt
 
-    key = (os.path.abspath(map_path), os.path.getmtime(map_path), float(ubodt_delta or 0.0), float(turn_cost))
+    key = (
+        os.path.abspath(map_path),
+        os.path.getmtime(map_path),
+        float(ubodt_delta or 0.0),
+        float(turn_cost),
+        ubodt_max_bytes,
+    )
     m = _CACHE.get(key)
     if m is None:
         _CACHE.clear()
         graph = load_map(map_path)
-        table = Ubodt.build(graph, ubodt_delta, turn_cost=turn_cost) if ubodt_delta else None
+        table = None
+        if ubodt_delta:
+            table = Ubodt.build(graph, ubodt_delta, turn_cost=turn_cost, max_bytes=ubodt_max_bytes)
         m = _CACHE[key] = BatchMatcher(graph, ubodt=table)
     return m
 
@@ -102,9 +112,10 @@ def match_partition(
     config: MatchConfig | None = None,
     columns: Columns = DEFAULT_COLUMNS,
     ubodt_delta: float | None = None,
+    ubodt_max_bytes: int | None = None,
 ) -> tuple[int, int]:
     """Match one partition and write its results file atomically: ``(tracks, points)``."""
-    matcher = _matcher(map_path, ubodt_delta, (config or BATCH_CONFIG).turn_cost)
+    matcher = _matcher(map_path, ubodt_delta, (config or BATCH_CONFIG).turn_cost, ubodt_max_bytes)
     tracks = list(part.tracks) if part.source is None else read_tracks(part.source, columns=columns)
     results = [matcher.match(t, config) for t in tracks]
     write_geoparquet(out_file, results_table(results, matcher.graph))
@@ -182,6 +193,7 @@ def run_batch(
     scheduler: str | Any | None = None,
     partition_size: int = 64,
     ubodt_delta: float | None = None,
+    ubodt_max_bytes: int | None = UBODT_MAX_BYTES,
     progress: Callable[[int, int], None] | None = None,
     on_total: Callable[[int], None] | None = None,
 ) -> RunSummary:
@@ -206,6 +218,9 @@ def run_batch(
     ubodt_delta
         When given, each worker precomputes a route table (:class:`mapmatch.routing.Ubodt`)
         of this bound in metres: faster matching for more memory and start-up time.
+    ubodt_max_bytes
+        The table's memory budget per worker (about; ``None``: no limit). Where the bound's
+        table would not fit, a shorter bound is used; the matches are the same.
     progress
         Called with ``(points, tracks)`` as partitions finish (after resumed ones).
     on_total
@@ -229,13 +244,14 @@ def run_batch(
     summary = RunSummary(partitions=len(parts), skipped=len(parts) - len(todo), parts_dir=str(pdir))
     if on_total:
         on_total(sum(p.n_points for p in todo))
+    route_table = (ubodt_delta, ubodt_max_bytes)
     done: Iterable[tuple[int, int]]
     if scheduler is not None:
-        done = _run_dask(scheduler, map_s, todo, files, config, columns, ubodt_delta)
+        done = _run_dask(scheduler, map_s, todo, files, config, columns, route_table)
     elif workers == 1 or len(todo) <= 1:
-        done = (match_partition(map_s, p, str(files[p.index]), config, columns, ubodt_delta) for p in todo)
+        done = (match_partition(map_s, p, str(files[p.index]), config, columns, *route_table) for p in todo)
     else:
-        done = _run_pool(workers, map_s, todo, files, config, columns, ubodt_delta)
+        done = _run_pool(workers, map_s, todo, files, config, columns, route_table)
     for ntr, npts in done:
         summary.tracks += ntr
         summary.points += npts
@@ -279,7 +295,7 @@ def _run_pool(
     files: list[Path],
     config: MatchConfig | None,
     columns: Columns,
-    ubodt_delta: float | None,
+    table: tuple[float | None, int | None],
 ) -> Iterable[tuple[int, int]]:
     import multiprocessing as mp
 
@@ -287,8 +303,7 @@ def _run_pool(
     ctx = mp.get_context("spawn")  # no fork of a process holding threads
     with ProcessPoolExecutor(max_workers=min(n, len(todo)), mp_context=ctx) as ex:
         futs: list[Future[tuple[int, int]]] = [
-            ex.submit(match_partition, map_s, p, str(files[p.index]), config, columns, ubodt_delta)
-            for p in todo
+            ex.submit(match_partition, map_s, p, str(files[p.index]), config, columns, *table) for p in todo
         ]
         for f in as_completed(futs):
             yield f.result()
@@ -301,7 +316,7 @@ def _run_dask(
     files: list[Path],
     config: MatchConfig | None,
     columns: Columns,
-    ubodt_delta: float | None,
+    table: tuple[float | None, int | None],
 ) -> Iterable[tuple[int, int]]:
     from distributed import Client
     from distributed import as_completed as dask_completed
@@ -317,7 +332,7 @@ def _run_dask(
                 str(files[p.index]),
                 config,
                 columns,
-                ubodt_delta,
+                *table,
                 key=f"mapmatch-part-{p.index}-{id(p)}",
             )
             for p in todo

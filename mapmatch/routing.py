@@ -420,16 +420,35 @@ class Ubodt:
     table only for a config with the same ``turn_cost``."""
 
     @classmethod
-    def build(cls, graph: RoadGraph, delta: float, *, turn_cost: float | None = None) -> Ubodt:
+    def build(
+        cls,
+        graph: RoadGraph,
+        delta: float,
+        *,
+        turn_cost: float | None = None,
+        max_bytes: int | None = None,
+    ) -> Ubodt:
         """Precompute the table for ``delta`` metres (time and memory grow fast with it), routes
         costing ``turn_cost`` metres per turn back (:func:`turn_costs`; by default the batch
-        matcher's, ``BATCH_CONFIG.turn_cost``)."""
+        matcher's, ``BATCH_CONFIG.turn_cost``).
+
+        With ``max_bytes``, the bound is first lowered until the table's estimated size
+        (:func:`ubodt_estimate`) fits: a dense map then gets a shorter table, not an
+        out-of-memory error. The matches stay the same, as routes beyond a table's bound are
+        searched; the table's ``delta`` is the bound it was built for.
+        """
+        if not (math.isfinite(delta) and delta > 0):
+            raise ValueError(f"delta must be a positive number of metres, got {delta!r}")
+        if max_bytes is not None and not max_bytes > 0:
+            raise ValueError(f"max_bytes must be a positive number of bytes, got {max_bytes!r}")
         if turn_cost is None:
             turn_cost = float(BATCH_CONFIG.turn_cost)
         ws = Workspace.new(graph.n_edges)
         rg = route_graph(graph, turn_cost=turn_cost)
-        ptr, tgt, dist, pred, pos = _build_ubodt(float(delta), graph.n_edges, rg, ws)
-        return cls(float(delta), ptr, tgt, dist, pred, pos, float(turn_cost))
+        delta, entries = _fit_delta(float(delta), max_bytes, graph.n_edges, rg, ws)
+        cap = int(entries * ESTIMATE_HEADROOM) + 16  # no doubling, no copy: a lower peak
+        ptr, tgt, dist, pred, pos = _build_ubodt(delta, graph.n_edges, rg, ws, cap)
+        return cls(delta, ptr, tgt, dist, pred, pos, float(turn_cost))
 
     @property
     def table(self) -> RouteTable:
@@ -443,16 +462,93 @@ class Ubodt:
         )
 
 
+UBODT_ENTRY_BYTES = 4 + 8 + 4 + 4
+"""Bytes per entry of a :class:`Ubodt` (``tgt``, ``dist``, ``pred``, ``pred_pos``); each edge
+adds 8 (``ptr``)."""
+
+ESTIMATE_SAMPLE = 512
+"""Rows searched to estimate a table's size (edges evenly spaced in the map's spatial order)."""
+
+FIT_STEPS = 6
+"""Bisection steps of a bound lowered to fit a memory budget (within 1/64 of the last halving)."""
+
+ESTIMATE_HEADROOM = 1.15
+"""The build's first allocation over the estimated entries (it grows if the estimate was low)."""
+
+
+def ubodt_estimate(graph: RoadGraph, delta: float, *, turn_cost: float | None = None) -> int:
+    """The estimated size in bytes of ``Ubodt.build(graph, delta, turn_cost=turn_cost)``, from
+    the rows of :data:`ESTIMATE_SAMPLE` edges evenly spaced through the map's edges (a map
+    prepared by :func:`mapmatch.graph.build.build_map` stores them in spatial order, so the
+    sample spreads over the map)."""
+    if turn_cost is None:
+        turn_cost = float(BATCH_CONFIG.turn_cost)
+    rg = route_graph(graph, turn_cost=turn_cost)
+    entries = _estimate_entries(float(delta), graph.n_edges, rg, Workspace.new(graph.n_edges))
+    return _table_bytes(entries, graph.n_edges)
+
+
+def _table_bytes(entries: float, n_edges: int) -> int:
+    return int(entries * UBODT_ENTRY_BYTES + 8 * (n_edges + 1))
+
+
+def _estimate_entries(delta: float, n_edges: int, g: RouteGraph, ws: Workspace) -> float:
+    if n_edges == 0:
+        return 0.0
+    sample = np.unique(np.linspace(0, n_edges - 1, min(n_edges, ESTIMATE_SAMPLE)).astype(np.int64))
+    rows = _row_lengths(delta, sample, g, ws)
+    return float(rows.mean()) * n_edges
+
+
+def _fit_delta(
+    delta: float, max_bytes: int | None, n_edges: int, g: RouteGraph, ws: Workspace
+) -> tuple[float, float]:
+    """The largest bound up to ``delta`` whose estimated table fits ``max_bytes`` (``None``:
+    ``delta``), to within :data:`FIT_STEPS` halvings of the last step, and its estimated
+    entries."""
+    entries = _estimate_entries(delta, n_edges, g, ws)
+    if max_bytes is None or _table_bytes(entries, n_edges) <= max_bytes:
+        return delta, entries
+    hi = lo = delta
+    while lo >= 1.0:  # halve until it fits
+        hi, lo = lo, lo / 2
+        entries = _estimate_entries(lo, n_edges, g, ws)
+        if _table_bytes(entries, n_edges) <= max_bytes:
+            break
+    for _ in range(FIT_STEPS):  # then bisect between the bounds that fit and that do not
+        mid = (lo + hi) / 2
+        e = _estimate_entries(mid, n_edges, g, ws)
+        if _table_bytes(e, n_edges) <= max_bytes:
+            lo, entries = mid, e
+        else:
+            hi = mid
+    return lo, entries
+
+
+@njit(cache=True, nogil=True)
+def _row_lengths(delta, edges, g, ws):  # type: ignore[no-untyped-def]
+    """The number of entries of each of ``edges``'s table rows (as :func:`_build_ubodt` fills them)."""
+    out = np.zeros(len(edges), dtype=np.int64)
+    for k in range(len(edges)):
+        nt = _search(edges[k], 0.0, delta, -1, g, ws)
+        for i in range(nt):
+            f = ws.touched[i]
+            if ws.done[f] and ws.dist[f] <= delta:
+                out[k] += 1
+        _reset(nt, ws)
+    return out
+
+
 @njit(cache=True, nogil=True)
 def _build_ubodt(  # type: ignore[no-untyped-def]
     delta,
     n_edges,
     g,
     ws,
+    cap,
 ):
     dist, pred, done, touched = ws.dist, ws.pred, ws.done, ws.touched
     ptr = np.zeros(n_edges + 1, dtype=np.int64)
-    cap = 16 * n_edges + 16
     out_t = np.empty(cap, dtype=np.int32)
     out_d = np.empty(cap)
     out_p = np.empty(cap, dtype=np.int32)
@@ -495,6 +591,8 @@ def _build_ubodt(  # type: ignore[no-untyped-def]
                 q = np.searchsorted(out_t[a:b], p)
                 if q < b - a and out_t[a + q] == p:
                     pos[k] = q
+    if 4 * cap <= 5 * m:  # within a quarter of the size: keep the arrays rather than copy them
+        return ptr, out_t[:m], out_d[:m], out_p[:m], pos
     return ptr, out_t[:m].copy(), out_d[:m].copy(), out_p[:m].copy(), pos
 
 

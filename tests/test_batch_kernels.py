@@ -514,3 +514,67 @@ def test_the_jump_rule_drops_a_burst_not_the_good_fixes_around_it() -> None:
     u = np.arange(30, dtype=np.float64)
     drive = np.column_stack([np.zeros(30), 10.0 * np.minimum(u, 29 - u)])
     assert dropped(drive, u) == []
+
+
+def test_a_route_table_over_its_memory_budget_gets_a_shorter_bound_and_the_same_matches() -> None:
+    from mapmatch.batch import BatchMatcher
+    from mapmatch.routing import Ubodt
+    from mapmatch.types import Track
+
+    m = parse_ascii_map(DRAWING, scale=7, restrictions=[("b", "c", "h", "no")])
+    whole = Ubodt.build(m.graph, 400.0)
+    budget = whole.nbytes // 3
+    small = Ubodt.build(m.graph, 400.0, max_bytes=budget)
+    assert 0 < small.delta < 400.0 and 0 < small.nbytes <= budget
+    assert Ubodt.build(m.graph, 400.0, max_bytes=10 * whole.nbytes).delta == 400.0
+    # the bound the table was built for is exact: its rows are the full table's rows up to it
+    for e in range(m.graph.n_edges):
+        row = slice(whole.ptr[e], whole.ptr[e + 1])
+        keep = whole.dist[row] <= small.delta
+        got = slice(small.ptr[e], small.ptr[e + 1])
+        np.testing.assert_array_equal(small.tgt[got], whole.tgt[row][keep])
+        np.testing.assert_array_equal(small.dist[got], whole.dist[row][keep])
+    plain, fast = BatchMatcher(m.graph), BatchMatcher(m.graph, ubodt=small)
+    xy = np.array([m.xy(n) for n in "abcdhg" if n in m.nodes])
+    pts = np.array([a + (b - a) * f for a, b in itertools.pairwise(xy) for f in (0.2, 0.5, 0.8)])
+    ll = np.array([m.lonlat(x, y) for x, y in pts])
+    t = Track("w", np.arange(len(pts)) * 20.0, ll[:, 1], ll[:, 0])
+    a, b = plain.match(t), fast.match(t)
+    assert a.routes == b.routes and [p.edge for p in a.points] == [p.edge for p in b.points]
+    for bad in (0, -5):
+        with pytest.raises(ValueError, match="max_bytes"):
+            Ubodt.build(m.graph, 400.0, max_bytes=bad)
+    with pytest.raises(ValueError, match="delta"):
+        Ubodt.build(m.graph, float("nan"))
+
+
+def test_the_route_table_size_is_estimated_from_a_sample_of_rows(tmp_path) -> None:
+    import json
+
+    from mapmatch.graph.build import build_map
+    from mapmatch.routing import ESTIMATE_SAMPLE, Ubodt, ubodt_estimate
+
+    # a 40 x 40 street grid, 80 m blocks, drawn as GIS centre lines: more edges than the sample
+    n, step, x0, y0 = 40, 80.0, 24.90, 60.15
+    dlon, dlat = step / 55_600.0, step / 111_300.0
+    lines = []
+    for i in range(n):
+        for j in range(n - 1):
+            lines.append([[x0 + j * dlon, y0 + i * dlat], [x0 + (j + 1) * dlon, y0 + i * dlat]])
+            lines.append([[x0 + i * dlon, y0 + j * dlat], [x0 + i * dlon, y0 + (j + 1) * dlat]])
+    feats = [
+        {"type": "Feature", "properties": {}, "geometry": {"type": "LineString", "coordinates": c}}
+        for c in lines
+    ]
+    path = tmp_path / "grid.geojson"
+    path.write_text(json.dumps({"type": "FeatureCollection", "features": feats}))
+    g = build_map(path)
+    assert g.n_edges > 4 * ESTIMATE_SAMPLE
+    for delta in (300.0, 900.0):
+        est, table = ubodt_estimate(g, delta), Ubodt.build(g, delta)
+        assert abs(est - table.nbytes) <= 0.1 * table.nbytes, (delta, est, table.nbytes)
+    budget = ubodt_estimate(g, 300.0) + 1
+    fit = Ubodt.build(g, 900.0, max_bytes=budget)
+    # the largest bound that fits, to within the bisection's last step (450 m / 64)
+    assert ubodt_estimate(g, fit.delta) <= budget < ubodt_estimate(g, fit.delta + 450.0 / 64)
+    assert 300.0 <= fit.delta < 900.0 and fit.nbytes <= 1.1 * budget

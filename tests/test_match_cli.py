@@ -189,3 +189,24 @@ def test_a_gis_file_of_points_is_not_a_track(tmp_path: Path, capsys) -> None:
     assert rc == 2
     assert "a track is a line, but 1 feature(s) are Points" in capsys.readouterr().err
     assert not (tmp_path / "o.csv").exists()
+
+
+def test_a_route_table_over_its_budget_is_built_shorter_with_the_same_results(
+    setup: tuple[Path, Path, AsciiMap], tmp_path: Path, capsys
+) -> None:
+    map_path, tracks_path, _ = setup
+    plain, tabled = tmp_path / "plain.csv", tmp_path / "tabled.csv"
+    common = ["match", "--map", str(map_path), str(tracks_path), "--workers", "1", "--no-progress"]
+    assert main([*common, "-o", str(plain)]) == 0
+    # a budget of 1 kB is far below the 500 m table of this map: a shorter bound is built
+    assert main([*common, "-o", str(tabled), "--ubodt", "500", "--ubodt-max-mb", "0.001"]) == 0
+    from mapmatch.parallel import _CACHE  # one worker: this process's matcher
+
+    (matcher,) = _CACHE.values()
+    assert 0 < matcher.ubodt.delta < 500 and matcher.ubodt.nbytes <= 1024
+    pd.testing.assert_frame_equal(pd.read_csv(plain), pd.read_csv(tabled))
+    capsys.readouterr()
+    for bad in ("0", "-1", "nan"):
+        assert main([*common, "-o", str(tmp_path / "x.csv"), "--ubodt", "500", "--ubodt-max-mb", bad]) == 2
+        assert "--ubodt-max-mb must be a positive number of megabytes" in capsys.readouterr().err
+    assert not (tmp_path / "x.csv").exists()

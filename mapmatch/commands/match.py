@@ -3,9 +3,12 @@
 from __future__ import annotations
 
 import argparse
+import math
 import sys
 from pathlib import Path
 from typing import Any
+
+from mapmatch.config import UBODT_MAX_BYTES
 
 DESCRIPTION = """\
 Match historic tracks to the road network of a prepared map (Viterbi over each whole track).
@@ -79,6 +82,11 @@ def register(subparsers: Any) -> None:
     run.add_argument(
         "--ubodt", type=float, default=None, metavar="METRES",
         help="precompute a route table up to this many metres per worker (faster; more memory)",
+    )  # fmt: skip
+    run.add_argument(
+        "--ubodt-max-mb", type=float, default=UBODT_MAX_BYTES / 2**20, metavar="MB",
+        help="memory budget of each worker's route table (1024); a shorter bound is used where "
+        "the table would not fit, with the same matches",
     )  # fmt: skip
     model = p.add_argument_group("model")
     model.add_argument(
@@ -158,6 +166,8 @@ def _match(args: argparse.Namespace, inputs: list[Path], output: Path, *, out: A
         raise CommandError("--partition-size must be at least 1")
     if args.ubodt is not None and not args.ubodt > 0:
         raise CommandError("--ubodt must be a positive number of metres")
+    if not (math.isfinite(args.ubodt_max_mb) and args.ubodt_max_mb > 0):
+        raise CommandError("--ubodt-max-mb must be a positive number of megabytes")
     if args.scheduler:
         from mapmatch.extras import require
 
@@ -200,7 +210,7 @@ def _match(args: argparse.Namespace, inputs: list[Path], output: Path, *, out: A
         s = run_batch(
             [str(i) for i in inputs], args.map, output, config=config, columns=columns,
             workers=args.workers, scheduler=args.scheduler, partition_size=args.partition_size,
-            ubodt_delta=args.ubodt,
+            ubodt_delta=args.ubodt, ubodt_max_bytes=int(args.ubodt_max_mb * 2**20),
             progress=progress, on_total=on_total,
         )  # fmt: skip
     finally:
