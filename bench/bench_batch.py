@@ -308,7 +308,7 @@ def compare_routing(ids: str, S: str, deltas: str) -> None:
 
     from mapmatch.batch import BatchMatcher
     from mapmatch.io import Columns, read_tracks
-    from mapmatch.routing import Ubodt, ubodt_estimate
+    from mapmatch.route_table import Ubodt, ubodt_estimate
 
     peers_adapter, data, names = _tracks(ids)
     for name in names:

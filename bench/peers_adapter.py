@@ -29,7 +29,7 @@ if str(ROOT) not in sys.path:
 from mapmatch.batch import BatchMatcher, fill_route_lonlat  # noqa: E402
 from mapmatch.config import UBODT_MAX_BYTES  # noqa: E402
 from mapmatch.graph.road_graph import RoadGraph  # noqa: E402
-from mapmatch.routing import Ubodt  # noqa: E402
+from mapmatch.route_table import Ubodt  # noqa: E402
 from mapmatch.types import Track  # noqa: E402
 
 

@@ -389,7 +389,7 @@ class BatchConfig:
         0, 0.0036 / 0.0114 with 20; one fix per 60 / 120 s 0.050 / 0.078 -> 0.038 / 0.058; 1 Hz
         0.0031 -> 0.0033. From 25 on the 1 Hz figures get worse. A route's turn costs count as
         metres wherever its length is used (the transition, the search bound, the speed
-        checks). A route table (:class:`~mapmatch.routing.Ubodt`) holds one turn cost; a
+        checks). A route table (:class:`~mapmatch.route_table.Ubodt`) holds one turn cost; a
         matcher uses it only for configs with that turn cost.
     gap_time : seconds; fixes further apart in time than this are matched as separate pieces
         (a parked vehicle, a logger switched off), however near they are (0: time never
@@ -576,5 +576,5 @@ BATCH_CONFIG = DEFAULT_CONFIG.replace(
 UBODT_MAX_BYTES = 1 << 30
 """Default memory budget of a batch worker's route table (1 GiB, ``mapmatch match
 --ubodt-max-mb``): where a table of the asked bound would not fit, a shorter bound is used
-(:meth:`mapmatch.routing.Ubodt.build`), with the same matches. A resource limit, not a model
+(:meth:`mapmatch.route_table.Ubodt.build`), with the same matches. A resource limit, not a model
 parameter: it changes speed and memory, never a result."""

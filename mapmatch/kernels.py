@@ -35,6 +35,7 @@ GROUPS: dict[str, tuple[str, ...]] = {
         "mapmatch.batch.run",
         "mapmatch.batch.context",
         "mapmatch.routing",
+        "mapmatch.route_table",
         "mapmatch.gridindex",
         "mapmatch.model",
     ),

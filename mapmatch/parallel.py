@@ -85,7 +85,7 @@ def _matcher(
     ``turn_cost`` per turn back, of at most about ``ubodt_max_bytes``), loaded once."""
     from mapmatch.batch import BatchMatcher
     from mapmatch.graph.artifact import load_map
-    from mapmatch.routing import Ubodt
+    from mapmatch.route_table import Ubodt
 
     key = (
         os.path.abspath(map_path),
@@ -216,7 +216,7 @@ def run_batch(
     partition_size
         Tracks per partition for non-Parquet inputs.
     ubodt_delta
-        When given, each worker precomputes a route table (:class:`mapmatch.routing.Ubodt`)
+        When given, each worker precomputes a route table (:class:`mapmatch.route_table.Ubodt`)
         of this bound in metres: faster matching for more memory and start-up time.
     ubodt_max_bytes
         The table's memory budget per worker (about; ``None``: no limit). Where the bound's

@@ -7,8 +7,9 @@ the batch matcher needs between the candidates of consecutive fixes:
 * :func:`_search`: a bounded Dijkstra from one source candidate, stopped as soon as every
   target edge is settled or the bound is passed (no precomputation; the matcher shrinks the
   bound per source, see ``mapmatch.batch``);
-* :class:`Ubodt`: an FMM-style upper-bounded origin-destination table, precomputed once per
-  map for a bound in metres, then looked up (``bench/bench_batch.py --routing`` measures both).
+* :class:`mapmatch.route_table.Ubodt`: an FMM-style upper-bounded origin-destination table,
+  precomputed once per map for a bound in metres, then looked up (``bench/bench_batch.py
+  --routing`` measures both).
 
 The moves come from the map's table of legal moves (:mod:`mapmatch.graph.rules`, policy
 ``"dead_end"``: turning back at a node only at a dead end); a U-turn along the road is a
@@ -19,14 +20,12 @@ from __future__ import annotations
 
 import heapq
 import math
-from dataclasses import dataclass
 from typing import NamedTuple
 
 import numpy as np
 from numba import njit
 from numpy.typing import NDArray
 
-from mapmatch.config import BATCH_CONFIG
 from mapmatch.graph.road_graph import RoadGraph
 from mapmatch.graph.rules import UTurnPolicy, moves_for
 
@@ -109,7 +108,8 @@ class Workspace(NamedTuple):
 
 
 class RouteTable(NamedTuple):
-    """A :class:`Ubodt`'s arrays as the compiled kernels read them (``delta < 0``: no table).
+    """A :class:`~mapmatch.route_table.Ubodt`'s arrays as the compiled kernels read them
+    (``delta < 0``: no table).
 
     Only what they read: the kernels' tuples cost time per array they carry (see
     :class:`RouteGraph`), so the table's ``pred`` stays out."""
@@ -394,250 +394,3 @@ def shortest_path(
                 pred[f] = e
                 heapq.heappush(heap, (cf, f))
     return None
-
-
-@dataclass(frozen=True)
-class Ubodt:
-    """Upper-bounded origin-destination table (FMM's UBODT, edge-based).
-
-    For every edge ``e``, the edges ``f`` whose start is within ``delta`` metres (turn costs
-    counted, as in the searches) of the end of
-    ``e`` (turn rules applied), sorted by ``f``: ``tgt[ptr[e]:ptr[e+1]]`` with the distances in
-    ``dist`` and the edge before ``f`` on the route in ``pred`` (``e`` itself for a neighbour),
-    whose place in the same row is ``pred_pos`` (-1 for a neighbour), so a route is read back
-    hop by hop without searching. A route query within the bound is then a binary search
-    instead of a search.
-    """
-
-    delta: float
-    ptr: NDArray[np.int64]
-    tgt: NDArray[np.int32]
-    dist: NDArray[np.float64]
-    pred: NDArray[np.int32]
-    pred_pos: NDArray[np.int32]
-    turn_cost: float = 0.0
-    """The turn cost its routes were found with (:func:`route_graph`); a matcher uses the
-    table only for a config with the same ``turn_cost``."""
-
-    @classmethod
-    def build(
-        cls,
-        graph: RoadGraph,
-        delta: float,
-        *,
-        turn_cost: float | None = None,
-        max_bytes: int | None = None,
-    ) -> Ubodt:
-        """Precompute the table for ``delta`` metres (time and memory grow fast with it), routes
-        costing ``turn_cost`` metres per turn back (:func:`turn_costs`; by default the batch
-        matcher's, ``BATCH_CONFIG.turn_cost``).
-
-        With ``max_bytes``, the bound is first lowered until the table's estimated size
-        (:func:`ubodt_estimate`) fits: a dense map then gets a shorter table, not an
-        out-of-memory error. The matches stay the same, as routes beyond a table's bound are
-        searched; the table's ``delta`` is the bound it was built for.
-        """
-        if not (math.isfinite(delta) and delta > 0):
-            raise ValueError(f"delta must be a positive number of metres, got {delta!r}")
-        if max_bytes is not None and not max_bytes > 0:
-            raise ValueError(f"max_bytes must be a positive number of bytes, got {max_bytes!r}")
-        if turn_cost is None:
-            turn_cost = float(BATCH_CONFIG.turn_cost)
-        ws = Workspace.new(graph.n_edges)
-        rg = route_graph(graph, turn_cost=turn_cost)
-        delta, entries = _fit_delta(float(delta), max_bytes, graph.n_edges, rg, ws)
-        cap = int(entries * ESTIMATE_HEADROOM) + 16  # no doubling, no copy: a lower peak
-        ptr, tgt, dist, pred, pos = _build_ubodt(delta, graph.n_edges, rg, ws, cap)
-        return cls(delta, ptr, tgt, dist, pred, pos, float(turn_cost))
-
-    @property
-    def table(self) -> RouteTable:
-        """The arrays as the compiled kernels read them."""
-        return RouteTable(self.delta, self.ptr, self.tgt, self.dist, self.pred_pos)
-
-    @property
-    def nbytes(self) -> int:
-        return int(
-            self.ptr.nbytes + self.tgt.nbytes + self.dist.nbytes + self.pred.nbytes + self.pred_pos.nbytes
-        )
-
-
-UBODT_ENTRY_BYTES = 4 + 8 + 4 + 4
-"""Bytes per entry of a :class:`Ubodt` (``tgt``, ``dist``, ``pred``, ``pred_pos``); each edge
-adds 8 (``ptr``)."""
-
-ESTIMATE_SAMPLE = 512
-"""Rows searched to estimate a table's size (edges evenly spaced in the map's spatial order)."""
-
-FIT_STEPS = 6
-"""Bisection steps of a bound lowered to fit a memory budget (within 1/64 of the last halving)."""
-
-ESTIMATE_HEADROOM = 1.15
-"""The build's first allocation over the estimated entries (it grows if the estimate was low)."""
-
-
-def ubodt_estimate(graph: RoadGraph, delta: float, *, turn_cost: float | None = None) -> int:
-    """The estimated size in bytes of ``Ubodt.build(graph, delta, turn_cost=turn_cost)``, from
-    the rows of :data:`ESTIMATE_SAMPLE` edges evenly spaced through the map's edges (a map
-    prepared by :func:`mapmatch.graph.build.build_map` stores them in spatial order, so the
-    sample spreads over the map)."""
-    if turn_cost is None:
-        turn_cost = float(BATCH_CONFIG.turn_cost)
-    rg = route_graph(graph, turn_cost=turn_cost)
-    entries = _estimate_entries(float(delta), graph.n_edges, rg, Workspace.new(graph.n_edges))
-    return _table_bytes(entries, graph.n_edges)
-
-
-def _table_bytes(entries: float, n_edges: int) -> int:
-    return int(entries * UBODT_ENTRY_BYTES + 8 * (n_edges + 1))
-
-
-def _estimate_entries(delta: float, n_edges: int, g: RouteGraph, ws: Workspace) -> float:
-    if n_edges == 0:
-        return 0.0
-    sample = np.unique(np.linspace(0, n_edges - 1, min(n_edges, ESTIMATE_SAMPLE)).astype(np.int64))
-    rows = _row_lengths(delta, sample, g, ws)
-    return float(rows.mean()) * n_edges
-
-
-def _fit_delta(
-    delta: float, max_bytes: int | None, n_edges: int, g: RouteGraph, ws: Workspace
-) -> tuple[float, float]:
-    """The largest bound up to ``delta`` whose estimated table fits ``max_bytes`` (``None``:
-    ``delta``), to within :data:`FIT_STEPS` halvings of the last step, and its estimated
-    entries."""
-    entries = _estimate_entries(delta, n_edges, g, ws)
-    if max_bytes is None or _table_bytes(entries, n_edges) <= max_bytes:
-        return delta, entries
-    hi = lo = delta
-    while lo >= 1.0:  # halve until it fits
-        hi, lo = lo, lo / 2
-        entries = _estimate_entries(lo, n_edges, g, ws)
-        if _table_bytes(entries, n_edges) <= max_bytes:
-            break
-    for _ in range(FIT_STEPS):  # then bisect between the bounds that fit and that do not
-        mid = (lo + hi) / 2
-        e = _estimate_entries(mid, n_edges, g, ws)
-        if _table_bytes(e, n_edges) <= max_bytes:
-            lo, entries = mid, e
-        else:
-            hi = mid
-    return lo, entries
-
-
-@njit(cache=True, nogil=True)
-def _row_lengths(delta, edges, g, ws):  # type: ignore[no-untyped-def]
-    """The number of entries of each of ``edges``'s table rows (as :func:`_build_ubodt` fills them)."""
-    out = np.zeros(len(edges), dtype=np.int64)
-    for k in range(len(edges)):
-        nt = _search(edges[k], 0.0, delta, -1, g, ws)
-        for i in range(nt):
-            f = ws.touched[i]
-            if ws.done[f] and ws.dist[f] <= delta:
-                out[k] += 1
-        _reset(nt, ws)
-    return out
-
-
-@njit(cache=True, nogil=True)
-def _build_ubodt(  # type: ignore[no-untyped-def]
-    delta,
-    n_edges,
-    g,
-    ws,
-    cap,
-):
-    dist, pred, done, touched = ws.dist, ws.pred, ws.done, ws.touched
-    ptr = np.zeros(n_edges + 1, dtype=np.int64)
-    out_t = np.empty(cap, dtype=np.int32)
-    out_d = np.empty(cap)
-    out_p = np.empty(cap, dtype=np.int32)
-    m = 0
-    for e in range(n_edges):
-        nt = _search(e, 0.0, delta, -1, g, ws)
-        if m + nt > cap:
-            cap = 2 * (m + nt)
-            t2 = np.empty(cap, dtype=np.int32)
-            t2[:m] = out_t[:m]
-            d2 = np.empty(cap)
-            d2[:m] = out_d[:m]
-            p2 = np.empty(cap, dtype=np.int32)
-            p2[:m] = out_p[:m]
-            out_t, out_d, out_p = t2, d2, p2
-        start = m
-        for i in range(nt):
-            f = touched[i]
-            if done[f] and dist[f] <= delta:
-                out_t[m] = f
-                out_d[m] = dist[f]
-                out_p[m] = pred[f]
-                m += 1
-        order = np.argsort(out_t[start:m])
-        st = out_t[start:m][order].copy()
-        sd = out_d[start:m][order].copy()
-        sp = out_p[start:m][order].copy()
-        out_t[start:m] = st
-        out_d[start:m] = sd
-        out_p[start:m] = sp
-        ptr[e + 1] = m
-        _reset(nt, ws)
-    # each entry's predecessor as a place in its row (-1: the row's own edge)
-    pos = np.full(m, -1, dtype=np.int32)
-    for e in range(n_edges):
-        a, b = ptr[e], ptr[e + 1]
-        for k in range(a, b):
-            p = out_p[k]
-            if p != e:
-                q = np.searchsorted(out_t[a:b], p)
-                if q < b - a and out_t[a + q] == p:
-                    pos[k] = q
-    if 4 * cap <= 5 * m:  # within a quarter of the size: keep the arrays rather than copy them
-        return ptr, out_t[:m], out_d[:m], out_p[:m], pos
-    return ptr, out_t[:m].copy(), out_d[:m].copy(), out_p[:m].copy(), pos
-
-
-@njit(cache=True, nogil=True, inline="always")
-def _row_place(table, e: int, f: int) -> int:  # type: ignore[no-untyped-def]
-    """The place of ``f`` in the table's row of ``e`` (a binary search), -1 when not in it."""
-    ptr, tgt = table.ptr, table.tgt
-    lo = ptr[e]
-    hi = ptr[e + 1]
-    while lo < hi:
-        mid = (lo + hi) >> 1
-        if tgt[mid] < f:
-            lo = mid + 1
-        else:
-            hi = mid
-    if lo < ptr[e + 1] and tgt[lo] == f:
-        return lo
-    return -1
-
-
-@njit(cache=True, nogil=True, inline="always")
-def ubodt_lookup(table, e: int, f: int) -> float:  # type: ignore[no-untyped-def]
-    """Distance (with turn costs) from the end of ``e`` to the start of ``f`` if within the table,
-    else inf."""
-    k = _row_place(table, e, f)
-    return table.dist[k] if k >= 0 else INF
-
-
-@njit(cache=True, nogil=True)
-def ubodt_path(table, src: int, dst: int):  # type: ignore[no-untyped-def]
-    """The edges strictly between ``src`` and ``dst`` from the table (None if not in it)."""
-    pos, tgt = table.pred_pos, table.tgt
-    a = table.ptr[src]
-    lo = _row_place(table, src, dst)
-    if lo < 0:
-        return None
-    m = 0
-    k = pos[lo]
-    while k >= 0:
-        m += 1
-        k = pos[a + k]
-    out = np.empty(m, dtype=np.int32)
-    k = pos[lo]
-    while k >= 0:
-        m -= 1
-        out[m] = tgt[a + k]
-        k = pos[a + k]
-    return out

@@ -14,7 +14,8 @@ from mapmatch.batch import BATCH_CONFIG as DEFAULT_CONFIG
 from mapmatch.batch import BatchMatcher
 from mapmatch.config import MatchConfig
 from mapmatch.graph.ascii import AsciiMap, parse_ascii_map
-from mapmatch.routing import Ubodt, shortest_route
+from mapmatch.route_table import Ubodt
+from mapmatch.routing import shortest_route
 from mapmatch.types import PointStatus, Track, TrackMatch
 
 

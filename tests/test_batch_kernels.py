@@ -74,7 +74,7 @@ def test_compiled_transition_equals_the_shared_model() -> None:
 
 def test_ubodt_gives_the_same_matches_as_the_search() -> None:
     from mapmatch.batch import BatchMatcher
-    from mapmatch.routing import Ubodt
+    from mapmatch.route_table import Ubodt
     from mapmatch.types import Track
 
     m = parse_ascii_map(DRAWING, scale=7, restrictions=[("b", "c", "h", "no")])
@@ -518,7 +518,7 @@ def test_the_jump_rule_drops_a_burst_not_the_good_fixes_around_it() -> None:
 
 def test_a_route_table_over_its_memory_budget_gets_a_shorter_bound_and_the_same_matches() -> None:
     from mapmatch.batch import BatchMatcher
-    from mapmatch.routing import Ubodt
+    from mapmatch.route_table import Ubodt
     from mapmatch.types import Track
 
     m = parse_ascii_map(DRAWING, scale=7, restrictions=[("b", "c", "h", "no")])
@@ -552,7 +552,7 @@ def test_the_route_table_size_is_estimated_from_a_sample_of_rows(tmp_path) -> No
     import json
 
     from mapmatch.graph.build import build_map
-    from mapmatch.routing import ESTIMATE_SAMPLE, Ubodt, ubodt_estimate
+    from mapmatch.route_table import ESTIMATE_SAMPLE, Ubodt, ubodt_estimate
 
     # a 40 x 40 street grid, 80 m blocks, drawn as GIS centre lines: more edges than the sample
     n, step, x0, y0 = 40, 80.0, 24.90, 60.15

@@ -49,7 +49,8 @@ from mapmatch.graph.index import Candidates, EdgeIndex
 from mapmatch.graph.projection import to_xy
 from mapmatch.graph.road_graph import RoadGraph
 from mapmatch.gridindex import GridIndex, GridScratch
-from mapmatch.routing import NO_TABLE, RouteGraph, Router, RouteTable, Ubodt, Workspace, route_graph
+from mapmatch.route_table import Ubodt
+from mapmatch.routing import NO_TABLE, RouteGraph, Router, RouteTable, Workspace, route_graph
 from mapmatch.types import Track, TrackMatch
 
 F8, I8 = np.float64, np.int64
@@ -113,7 +114,7 @@ class BatchMatcher:
         Default parameters (:data:`BATCH_CONFIG` when omitted); :meth:`match` takes a per-call
         override.
     ubodt
-        Optional precomputed route table (:class:`mapmatch.routing.Ubodt`); routes within its
+        Optional precomputed route table (:class:`mapmatch.route_table.Ubodt`); routes within its
         bound are looked up instead of searched, for configs with the ``turn_cost`` it was built
         with. Without it every route is a bounded search.
     """

@@ -17,7 +17,8 @@ from mapmatch.arena import full_b1, full_f8, full_i8, take_f8, take_i8, take_xy
 from mapmatch.batch.arrays import Assembly, EdgeGeometry, KernelParams, Lattice, TrackPoints
 from mapmatch.graph.index import project_point_compiled
 from mapmatch.gridindex import grow_array
-from mapmatch.routing import path_edges, ubodt_path
+from mapmatch.route_table import ubodt_path
+from mapmatch.routing import path_edges
 
 STEP_SAME, STEP_UTURN, STEP_ROUTE, STEP_SPLIT = 0, 1, 2, 3
 ON_NODE = 1e-6  # metres: an offset this near an edge's end is at its node (float noise)

@@ -2,8 +2,9 @@
 
 A step scores every pair of candidates of two consecutive lattice points with the shared
 transition model (:func:`mapmatch.model.transition_logp_one`) over the route distance
-between them. Routes come from :mod:`mapmatch.routing` (a table look-up within its bound,
-else a bounded search whose bound shrinks as the targets' best scores rise). A point no
+between them. Routes come from a table look-up within its bound (:mod:`mapmatch.route_table`),
+else a bounded search whose bound shrinks as the targets' best scores rise
+(:mod:`mapmatch.routing`). A point no
 candidate of the previous point can reach is left out; a run of them splits the match.
 """
 
@@ -19,7 +20,8 @@ from numpy.typing import NDArray
 from mapmatch.arena import full_b1, full_f8, full_i8, take_b1, take_f8, take_i8
 from mapmatch.batch.arrays import KernelParams, Lattice
 from mapmatch.model import transition_logp_one
-from mapmatch.routing import _reset, search_toward_inlined, ubodt_lookup
+from mapmatch.route_table import ubodt_lookup
+from mapmatch.routing import _reset, search_toward_inlined
 
 
 class Trellis(NamedTuple):
