@@ -172,15 +172,8 @@ def build_map(
     """
     from mapmatch.graph.artifact import file_sha256
     from mapmatch.graph.components import component_counts
-    from mapmatch.graph.simplify import (
-        RawNetwork,
-        consolidate,
-        raw_to_nx,
-        road_graph_arrays,
-        simplify,
-        simplify_arrays,
-        to_road_graph,
-    )
+    from mapmatch.graph.raw_network import RawNetwork, raw_to_nx, road_graph_arrays, simplify_arrays
+    from mapmatch.graph.simplify import consolidate, simplify, to_road_graph
 
     if engine not in ("arrays", "osmnx"):
         raise InputError(f"unknown build engine {engine!r} (use arrays or osmnx)")

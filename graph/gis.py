@@ -26,8 +26,9 @@ from mapmatch.graph.components import union_find
 from mapmatch.graph.errors import InputError
 from mapmatch.graph.keys import dense_labels, unique, unique_inverse
 from mapmatch.graph.projection import utm_crs
+from mapmatch.graph.raw_network import RawNetwork, compact_raw
 from mapmatch.graph.road_graph import Labels
-from mapmatch.graph.simplify import RawNetwork, _text, compact_raw
+from mapmatch.graph.simplify import _text
 
 if TYPE_CHECKING:
     import networkx as nx
@@ -420,7 +421,7 @@ def lines_to_graph(
     path: Path, opts: GisOptions
 ) -> tuple[nx.MultiDiGraph, str, dict[str, int], dict[str, Any]]:
     """Read GIS road lines into a raw MultiDiGraph in the local UTM CRS (see :func:`lines_to_raw`)."""
-    from mapmatch.graph.simplify import raw_to_nx
+    from mapmatch.graph.raw_network import raw_to_nx
 
     raw, dropped, info = lines_to_raw(path, opts)
     return raw_to_nx(raw), raw.crs, dropped, info

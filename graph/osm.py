@@ -23,8 +23,8 @@ from mapmatch.graph.errors import InputError
 from mapmatch.graph.gis import _parse_speed
 from mapmatch.graph.keys import unique_inverse
 from mapmatch.graph.projection import to_xy, utm_crs
+from mapmatch.graph.raw_network import RawNetwork, compact_raw
 from mapmatch.graph.road_graph import RESTRICTION_NO, RESTRICTION_ONLY, Labels
-from mapmatch.graph.simplify import RawNetwork, compact_raw
 
 if TYPE_CHECKING:
     import networkx as nx
@@ -242,7 +242,7 @@ def read_osm(
         and restrictions as ``(from_way, via_node_id, to_way, kind)``.
     """
     raw, dropped, restrictions = read_osm_raw(path, network_type=network_type, bbox=bbox)
-    from mapmatch.graph.simplify import raw_to_nx
+    from mapmatch.graph.raw_network import raw_to_nx
 
     return raw_to_nx(raw), raw.crs, dropped, restrictions
 
