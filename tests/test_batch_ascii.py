@@ -247,6 +247,8 @@ def test_points_closer_than_the_noise_are_interpolated() -> None:
         assert p.offset == pytest.approx(x, abs=0.5)
         assert p.dist == pytest.approx(2.0, abs=0.01)
     assert [names(m, piece) for piece in r.routes] == [["ab"]]
+    # an interpolated point is a matched one: one road, every fix on it, full confidence
+    assert r.confidence > 0.99
 
 
 def test_track_partly_outside_the_map_and_bad_points() -> None:

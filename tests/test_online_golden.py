@@ -17,7 +17,8 @@ They hold every ``SnapResult`` of the service tests' drives and of bench_online 
 shared maps, and a session exported half way (imported here and replayed). A few batch
 matches are in ``batch.json.gz``, recorded after #14 changed the batch model (off-map fixes,
 impossible steps, jumps, speed limits, the direction of travel), and again when β came to grow
-with the distance of a step (``beta_per_m``). The maps are built by the osmnx
+with the distance of a step (``beta_per_m``), and when the confidence came to count
+interpolated points as matched (the confidence alone changed). The maps are built by the osmnx
 reference engine, whose edge order the recording used; way ids are not compared, since answers
 now name the way piece under the point (#15).
 """

@@ -370,7 +370,12 @@ def assemble(  # type: ignore[no-untyped-def]
         else:
             p_edge[i], p_off[i], p_xy[i, 0], p_xy[i, 1], p_dist[i] = ch_edge[prv], o1, x1, y1, d1
         status[i] = 2
-    conf = post / max(nvalid, 1)
+    # the matched fraction (interpolated points count) times the lattice points' mean
+    nmatched = 0
+    for i in range(n):
+        if valid[i] and status[i] != 0:
+            nmatched += 1
+    conf = nmatched / max(nvalid, 1) * post / m
     return Assembly(
         p_edge, p_off, p_xy, p_dist, status, splits, route_e[:k], route_ptr, xy_all, rxy_ptr, length, conf
     )
