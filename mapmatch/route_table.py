@@ -42,7 +42,7 @@ class Ubodt:
     pred: NDArray[np.int32]
     pred_pos: NDArray[np.int32]
     turn_cost: float = 0.0
-    """The turn cost its routes were found with (:func:`route_graph`); a matcher uses the
+    """The turn cost its routes were found with (:func:`~mapmatch.routing.route_graph`); a matcher uses the
     table only for a config with the same ``turn_cost``."""
 
     @classmethod
@@ -55,7 +55,7 @@ class Ubodt:
         max_bytes: int | None = None,
     ) -> Ubodt:
         """Precompute the table for ``delta`` metres (time and memory grow fast with it), routes
-        costing ``turn_cost`` metres per turn back (:func:`turn_costs`; by default the batch
+        costing ``turn_cost`` metres per turn back (:func:`mapmatch.routing.turn_costs`; by default the batch
         matcher's, ``BATCH_CONFIG.turn_cost``).
 
         With ``max_bytes``, the bound is first lowered until the table's estimated size
