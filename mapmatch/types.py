@@ -256,6 +256,9 @@ class TrackMatch:
     ``route_xy`` holds the same pieces' geometry as (k, 2) arrays in the map's CRS.
     ``point_arrays`` (status, edge, offset, xy, dist per point) is set only while ``points``
     awaits :func:`mapmatch.batch.fill_route_lonlat` (``BatchMatcher.match(lonlat=False)``).
+    ``confidence`` (0 to 1) is the matched fraction of the valid points (interpolated ones
+    count) times the mean, over the lattice's points, of the chosen road's normalised emission
+    probability among the point's candidates.
     """
 
     track_id: str
