@@ -10,6 +10,7 @@ the table would not fit (:meth:`Ubodt.build`). The kernels read a table as a
 
 from __future__ import annotations
 
+import logging
 import math
 from dataclasses import dataclass
 
@@ -20,6 +21,8 @@ from numpy.typing import NDArray
 from mapmatch.config import BATCH_CONFIG
 from mapmatch.graph.road_graph import RoadGraph
 from mapmatch.routing import INF, RouteGraph, RouteTable, Workspace, _reset, _search, route_graph
+
+log = logging.getLogger(__name__)
 
 
 @dataclass(frozen=True)
@@ -71,7 +74,14 @@ class Ubodt:
             turn_cost = float(BATCH_CONFIG.turn_cost)
         ws = Workspace.new(graph.n_edges)
         rg = route_graph(graph, turn_cost=turn_cost)
-        delta, entries = _fit_delta(float(delta), max_bytes, graph.n_edges, rg, ws)
+        asked = float(delta)
+        delta, entries = _fit_delta(asked, max_bytes, graph.n_edges, rg, ws)
+        if delta < asked:
+            log.warning(
+                "route table: %.0f m would not fit in %.3g MB; built for %.0f m instead "
+                "(the same matches; routes beyond it are searched)",
+                asked, (max_bytes or 0) / 2**20, delta,
+            )  # fmt: skip
         cap = int(entries * ESTIMATE_HEADROOM) + 16  # no doubling, no copy: a lower peak
         ptr, tgt, dist, pred, pos = _build_ubodt(delta, graph.n_edges, rg, ws, cap)
         return cls(delta, ptr, tgt, dist, pred, pos, float(turn_cost))

@@ -192,7 +192,7 @@ def test_a_gis_file_of_points_is_not_a_track(tmp_path: Path, capsys) -> None:
 
 
 def test_a_route_table_over_its_budget_is_built_shorter_with_the_same_results(
-    setup: tuple[Path, Path, AsciiMap], tmp_path: Path, capsys
+    setup: tuple[Path, Path, AsciiMap], tmp_path: Path, capsys, caplog
 ) -> None:
     map_path, tracks_path, _ = setup
     plain, tabled = tmp_path / "plain.csv", tmp_path / "tabled.csv"
@@ -204,6 +204,7 @@ def test_a_route_table_over_its_budget_is_built_shorter_with_the_same_results(
 
     (matcher,) = _CACHE.values()
     assert 0 < matcher.ubodt.delta < 500 and matcher.ubodt.nbytes <= 1024
+    assert "route table: 500 m would not fit in" in caplog.text and "MB; built for" in caplog.text
     pd.testing.assert_frame_equal(pd.read_csv(plain), pd.read_csv(tabled))
     capsys.readouterr()
     for bad in ("0", "-1", "nan"):
