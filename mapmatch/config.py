@@ -574,7 +574,7 @@ BATCH_CONFIG = DEFAULT_CONFIG.replace(
 )
 
 UBODT_MAX_BYTES = 1 << 30
-"""Default memory budget of a batch worker's route table (1 GiB, ``mapmatch match
+"""Default memory budget of a batch run's route table (1 GiB, ``mapmatch match
 --ubodt-max-mb``): where a table of the asked bound would not fit, a shorter bound is used
 (:meth:`mapmatch.route_table.Ubodt.build`), with the same matches. A resource limit, not a model
 parameter: it changes speed and memory, never a result."""

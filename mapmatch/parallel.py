@@ -43,6 +43,7 @@ from mapmatch.io import (
 from mapmatch.types import Track
 
 MANIFEST = "_run.json"
+ROUTE_TABLE_PREFIX = "_route_table-"
 PARQUET_SUFFIXES = (".parquet", ".geoparquet", ".pq")
 
 
@@ -75,14 +76,19 @@ class RunSummary:
 
 
 # ---------------------------------------------------------------------- worker side
-_CACHE: dict[tuple[str, float, float, float, int | None], Any] = {}
+_CACHE: dict[tuple[str, float, float, float, int | None, str | None], Any] = {}
 
 
 def _matcher(
-    map_path: str, ubodt_delta: float | None, turn_cost: float, ubodt_max_bytes: int | None = None
+    map_path: str,
+    ubodt_delta: float | None,
+    turn_cost: float,
+    ubodt_max_bytes: int | None = None,
+    ubodt_path: str | None = None,
 ) -> Any:
     """The process's matcher for a map file (and optional route table, its routes costing
-    ``turn_cost`` per turn back, of at most about ``ubodt_max_bytes``), loaded once."""
+    ``turn_cost`` per turn back, of at most about ``ubodt_max_bytes``: mapped from
+    ``ubodt_path`` when the run built it once for every worker, else built here), loaded once."""
     from mapmatch.batch import BatchMatcher
     from mapmatch.graph.artifact import load_map
     from mapmatch.route_table import Ubodt
@@ -93,13 +99,16 @@ def _matcher(
         float(ubodt_delta or 0.0),
         float(turn_cost),
         ubodt_max_bytes,
+        ubodt_path,
     )
     m = _CACHE.get(key)
     if m is None:
         _CACHE.clear()
         graph = load_map(map_path)
         table = None
-        if ubodt_delta:
+        if ubodt_path:
+            table = Ubodt.load(ubodt_path)
+        elif ubodt_delta:
             table = Ubodt.build(graph, ubodt_delta, turn_cost=turn_cost, max_bytes=ubodt_max_bytes)
         m = _CACHE[key] = BatchMatcher(graph, ubodt=table)
     return m
@@ -113,9 +122,11 @@ def match_partition(
     columns: Columns = DEFAULT_COLUMNS,
     ubodt_delta: float | None = None,
     ubodt_max_bytes: int | None = None,
+    ubodt_path: str | None = None,
 ) -> tuple[int, int]:
     """Match one partition and write its results file atomically: ``(tracks, points)``."""
-    matcher = _matcher(map_path, ubodt_delta, (config or BATCH_CONFIG).turn_cost, ubodt_max_bytes)
+    turn_cost = (config or BATCH_CONFIG).turn_cost
+    matcher = _matcher(map_path, ubodt_delta, turn_cost, ubodt_max_bytes, ubodt_path)
     tracks = list(part.tracks) if part.source is None else read_tracks(part.source, columns=columns)
     results = [matcher.match(t, config) for t in tracks]
     write_geoparquet(out_file, results_table(results, matcher.graph))
@@ -216,10 +227,13 @@ def run_batch(
     partition_size
         Tracks per partition for non-Parquet inputs.
     ubodt_delta
-        When given, each worker precomputes a route table (:class:`mapmatch.route_table.Ubodt`)
-        of this bound in metres: faster matching for more memory and start-up time.
+        When given, a route table (:class:`mapmatch.route_table.Ubodt`) of this bound in metres
+        is precomputed: faster matching for more memory and start-up time. With worker
+        processes or Dask, the run builds it once into the parts folder and every worker maps
+        that file (one table's memory on a machine, however many workers); in process, it is
+        built there.
     ubodt_max_bytes
-        The table's memory budget per worker (about; ``None``: no limit). Where the bound's
+        The table's memory budget (about; ``None``: no limit). Where the bound's
         table would not fit, a shorter bound is used; the matches are the same.
     progress
         Called with ``(points, tracks)`` as partitions finish (after resumed ones).
@@ -244,7 +258,12 @@ def run_batch(
     summary = RunSummary(partitions=len(parts), skipped=len(parts) - len(todo), parts_dir=str(pdir))
     if on_total:
         on_total(sum(p.n_points for p in todo))
-    route_table = (ubodt_delta, ubodt_max_bytes)
+    in_process = scheduler is None and (workers == 1 or len(todo) <= 1)
+    shared = None
+    if ubodt_delta and todo and not in_process:  # built once, mapped by every worker
+        turn_cost = (config or BATCH_CONFIG).turn_cost
+        shared = _shared_route_table(pdir, map_s, ubodt_delta, ubodt_max_bytes, turn_cost)
+    route_table = (ubodt_delta, ubodt_max_bytes, str(shared) if shared else None)
     done: Iterable[tuple[int, int]]
     if scheduler is not None:
         done = _run_dask(scheduler, map_s, todo, files, config, columns, route_table)
@@ -257,6 +276,8 @@ def run_batch(
         summary.points += npts
         if progress:
             progress(npts, ntr)
+    if shared is not None:
+        shutil.rmtree(shared, ignore_errors=True)
     if not _is_dir_output(outp):
         if files:
             table = pd.concat([read_results(f) for f in files], ignore_index=True)
@@ -267,6 +288,25 @@ def run_batch(
     summary.output = str(outp)
     summary.seconds = time.perf_counter() - t0
     return summary
+
+
+def _shared_route_table(
+    pdir: Path, map_s: str, delta: float, max_bytes: int | None, turn_cost: float
+) -> Path:
+    """The run's route table in the parts folder, built once for every worker (each maps the
+    same file, so N workers hold one table's memory, not N); kept for a resumed run."""
+    from mapmatch.graph.artifact import load_map
+    from mapmatch.route_table import Ubodt
+
+    st = os.stat(map_s)
+    key = json.dumps([os.path.abspath(map_s), st.st_mtime_ns, st.st_size, delta, max_bytes, turn_cost])
+    folder = pdir / f"{ROUTE_TABLE_PREFIX}{hashlib.sha256(key.encode()).hexdigest()[:16]}"
+    for old in pdir.glob(ROUTE_TABLE_PREFIX + "*"):
+        if old != folder:
+            shutil.rmtree(old, ignore_errors=True)
+    if not (folder / "table.json").exists():
+        Ubodt.build(load_map(map_s), delta, turn_cost=turn_cost, max_bytes=max_bytes).save(folder)
+    return folder
 
 
 def _prepare_parts_dir(pdir: Path, fingerprint: str, n: int) -> None:
@@ -295,7 +335,7 @@ def _run_pool(
     files: list[Path],
     config: MatchConfig | None,
     columns: Columns,
-    table: tuple[float | None, int | None],
+    table: tuple[float | None, int | None, str | None],
 ) -> Iterable[tuple[int, int]]:
     import multiprocessing as mp
 
@@ -316,7 +356,7 @@ def _run_dask(
     files: list[Path],
     config: MatchConfig | None,
     columns: Columns,
-    table: tuple[float | None, int | None],
+    table: tuple[float | None, int | None, str | None],
 ) -> Iterable[tuple[int, int]]:
     from distributed import Client
     from distributed import as_completed as dask_completed

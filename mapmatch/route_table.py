@@ -10,9 +10,13 @@ the table would not fit (:meth:`Ubodt.build`). The kernels read a table as a
 
 from __future__ import annotations
 
+import json
 import logging
 import math
+import os
+import shutil
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 from numba import njit
@@ -86,6 +90,33 @@ class Ubodt:
         ptr, tgt, dist, pred, pos = _build_ubodt(delta, graph.n_edges, rg, ws, cap)
         return cls(delta, ptr, tgt, dist, pred, pos, float(turn_cost))
 
+    def save(self, folder: str | os.PathLike[str]) -> None:
+        """Write the table to ``folder`` (created; one ``.npy`` file per array and ``table.json``),
+        to be mapped by :meth:`load`. Written under a temporary name and renamed: a reader sees
+        the whole table or none."""
+        dest = Path(folder)
+        tmp = dest.with_name(dest.name + f".tmp-{os.getpid()}")
+        shutil.rmtree(tmp, ignore_errors=True)
+        tmp.mkdir(parents=True)
+        for name in _ARRAYS:
+            np.save(tmp / f"{name}.npy", getattr(self, name))
+        meta = {"version": TABLE_FILE_VERSION, "delta": self.delta, "turn_cost": self.turn_cost}
+        (tmp / "table.json").write_text(json.dumps(meta))
+        shutil.rmtree(dest, ignore_errors=True)
+        os.replace(tmp, dest)
+
+    @classmethod
+    def load(cls, folder: str | os.PathLike[str]) -> Ubodt:
+        """A table written by :meth:`save`, its arrays mapped from the files (copy on write,
+        never written): processes that load one table share its pages."""
+        src = Path(folder)
+        meta = json.loads((src / "table.json").read_text())
+        if meta.get("version") != TABLE_FILE_VERSION:
+            raise ValueError(f"{src}: route table version {meta.get('version')!r}, not {TABLE_FILE_VERSION}")
+        # plain ndarray views of the mappings (a np.memmap costs time per scalar read in Python)
+        arrays = {name: np.load(src / f"{name}.npy", mmap_mode="c").view(np.ndarray) for name in _ARRAYS}
+        return cls(float(meta["delta"]), turn_cost=float(meta["turn_cost"]), **arrays)
+
     @property
     def table(self) -> RouteTable:
         """The arrays as the compiled kernels read them."""
@@ -97,6 +128,11 @@ class Ubodt:
             self.ptr.nbytes + self.tgt.nbytes + self.dist.nbytes + self.pred.nbytes + self.pred_pos.nbytes
         )
 
+
+_ARRAYS = ("ptr", "tgt", "dist", "pred", "pred_pos")
+
+TABLE_FILE_VERSION = 1
+"""Version of :meth:`Ubodt.save`'s folder layout."""
 
 UBODT_ENTRY_BYTES = 4 + 8 + 4 + 4
 """Bytes per entry of a :class:`Ubodt` (``tgt``, ``dist``, ``pred``, ``pred_pos``); each edge

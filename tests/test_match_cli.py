@@ -211,3 +211,34 @@ def test_a_route_table_over_its_budget_is_built_shorter_with_the_same_results(
         assert main([*common, "-o", str(tmp_path / "x.csv"), "--ubodt", "500", "--ubodt-max-mb", bad]) == 2
         assert "--ubodt-max-mb must be a positive number of megabytes" in capsys.readouterr().err
     assert not (tmp_path / "x.csv").exists()
+
+
+def test_worker_processes_map_one_route_table_that_the_run_builds(
+    setup: tuple[Path, Path, AsciiMap], tmp_path: Path
+) -> None:
+    from mapmatch.graph.artifact import load_map
+    from mapmatch.route_table import Ubodt
+
+    map_path, tracks_path, _ = setup
+    plain = tmp_path / "plain.csv"
+    run_batch([tracks_path], map_path, plain, workers=1, partition_size=2)
+    out = tmp_path / "tabled.csv"
+
+    def stop(points: int, tracks: int) -> None:
+        raise KeyboardInterrupt
+
+    with pytest.raises(KeyboardInterrupt):  # interrupted after the first partition
+        run_batch([tracks_path], map_path, out, workers=2, partition_size=2, ubodt_delta=300.0, progress=stop)
+    (folder,) = parts_dir_for(out).glob("_route_table-*")
+    shared, built = Ubodt.load(folder), Ubodt.build(load_map(map_path), 300.0)
+    assert shared.delta == built.delta == 300.0 and shared.turn_cost == built.turn_cost
+    for name in ("ptr", "tgt", "dist", "pred", "pred_pos"):
+        np.testing.assert_array_equal(getattr(shared, name), getattr(built, name))
+    # the resumed run maps the same table, and the finished run leaves nothing behind
+    s = run_batch([tracks_path], map_path, out, workers=2, partition_size=2, ubodt_delta=300.0)
+    assert s.skipped >= 1 and not parts_dir_for(out).exists()
+    pd.testing.assert_frame_equal(pd.read_csv(out), pd.read_csv(plain))
+    # a folder output keeps its parts, not the table
+    folder_out = tmp_path / "parts"
+    run_batch([tracks_path], map_path, folder_out, workers=2, partition_size=2, ubodt_delta=300.0)
+    assert list(folder_out.glob("part-*.parquet")) and not list(folder_out.glob("_route_table-*"))

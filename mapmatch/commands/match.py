@@ -81,11 +81,12 @@ def register(subparsers: Any) -> None:
     )
     run.add_argument(
         "--ubodt", type=float, default=None, metavar="METRES",
-        help="precompute a route table up to this many metres per worker (faster; more memory)",
+        help="precompute a route table up to this many metres (faster; more memory; built once "
+        "per run and mapped by every worker)",
     )  # fmt: skip
     run.add_argument(
         "--ubodt-max-mb", type=float, default=UBODT_MAX_BYTES / 2**20, metavar="MB",
-        help="memory budget of each worker's route table (1024); a shorter bound is used where "
+        help="memory budget of the route table (1024); a shorter bound is used where "
         "the table would not fit, with the same matches",
     )  # fmt: skip
     model = p.add_argument_group("model")
