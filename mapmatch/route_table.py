@@ -98,12 +98,15 @@ class Ubodt:
         tmp = dest.with_name(dest.name + f".tmp-{os.getpid()}")
         shutil.rmtree(tmp, ignore_errors=True)
         tmp.mkdir(parents=True)
-        for name in _ARRAYS:
-            np.save(tmp / f"{name}.npy", getattr(self, name))
-        meta = {"version": TABLE_FILE_VERSION, "delta": self.delta, "turn_cost": self.turn_cost}
-        (tmp / "table.json").write_text(json.dumps(meta))
-        shutil.rmtree(dest, ignore_errors=True)
-        os.replace(tmp, dest)
+        try:
+            for name in _ARRAYS:
+                np.save(tmp / f"{name}.npy", getattr(self, name))
+            meta = {"version": TABLE_FILE_VERSION, "delta": self.delta, "turn_cost": self.turn_cost}
+            (tmp / "table.json").write_text(json.dumps(meta))
+            shutil.rmtree(dest, ignore_errors=True)
+            os.replace(tmp, dest)
+        finally:
+            shutil.rmtree(tmp, ignore_errors=True)
 
     @classmethod
     def load(cls, folder: str | os.PathLike[str]) -> Ubodt:
