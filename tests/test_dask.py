@@ -66,6 +66,9 @@ def test_match_command_with_scheduler_address(tmp_path: Path) -> None:
             str(remote),
             "--scheduler",
             cl.scheduler_address,
+            "--ubodt",
+            "300",  # built once by the run, mapped by the workers
         ]
         assert main([*argv, "--no-progress"]) == 0
     pd.testing.assert_frame_equal(pd.read_csv(local), pd.read_csv(remote))
+    assert not (tmp_path / "remote.csv.parts").exists()
