@@ -267,7 +267,7 @@ def run_batch(
     done: Iterable[tuple[int, int]]
     if scheduler is not None:
         done = _run_dask(scheduler, map_s, todo, files, config, columns, route_table)
-    elif workers == 1 or len(todo) <= 1:
+    elif in_process:
         done = (match_partition(map_s, p, str(files[p.index]), config, columns, *route_table) for p in todo)
     else:
         done = _run_pool(workers, map_s, todo, files, config, columns, route_table)
