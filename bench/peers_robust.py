@@ -206,7 +206,7 @@ def add_run_args(ap: argparse.ArgumentParser) -> None:
     ap.add_argument("--noise", default="10,20", help="noise: the extra position σ in metres")
     ap.add_argument("--noise-S", default="1,10,30", help="noise: the sub-sampling steps")
     ap.add_argument("--noise-tau", type=float, default=20.0, help="noise: correlation time in seconds")
-    ap.add_argument("--jumps", default="1,3", help="jumps: the % of fixes where a burst starts")
+    ap.add_argument("--jumps", default="1,3", help="jumps: the %% of fixes where a burst starts")
     ap.add_argument("--jumps-S", default="1,10", help="jumps: the sub-sampling steps")
 
 
