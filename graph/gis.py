@@ -4,14 +4,14 @@ The lines are read batch by batch from pyogrio's Arrow stream (pyarrow's for Geo
 straight into coordinate arrays; only the attribute fields the build uses are kept, and no
 GeoDataFrame is made. Topology comes from shared line endpoints (within a snap tolerance); crossings without a
 shared vertex stay unconnected (bridges) unless noding is asked for. One-way comes from a
-configurable field and value convention.
+configurable field and value convention. The options, field choice and reading are here;
+:mod:`mapmatch.graph.gis_network` turns the lines read into the raw network.
 """
 
 from __future__ import annotations
 
 import logging
 import math
-import re
 from collections.abc import Callable, Iterable, Iterator
 from contextlib import ExitStack, contextmanager
 from dataclasses import dataclass, field
@@ -22,24 +22,17 @@ import numpy as np
 import shapely
 from numpy.typing import NDArray
 
-from mapmatch.graph.components import union_find
 from mapmatch.graph.errors import InputError
-from mapmatch.graph.keys import dense_labels, unique, unique_inverse
-from mapmatch.graph.projection import utm_crs
-from mapmatch.graph.raw_network import RawNetwork, compact_raw
-from mapmatch.graph.road_graph import Labels
-from mapmatch.graph.simplify import _text
+from mapmatch.graph.gis_network import BOTH, FORWARD, REVERSE, lines_to_network
 
 if TYPE_CHECKING:
     import networkx as nx
 
+    from mapmatch.graph.raw_network import RawNetwork
+
 log = logging.getLogger(__name__)
 
 GIS_SUFFIXES = (".geojson", ".json", ".gpkg", ".shp", ".fgb", ".parquet", ".geoparquet")
-
-FORWARD = 1
-BOTH = 0
-REVERSE = -1
 
 
 @dataclass(frozen=True)
@@ -152,27 +145,6 @@ def _pick(columns: Iterable[str], wanted: str | None, candidates: tuple[str, ...
         if c in lower:
             return lower[c]
     return None
-
-
-def _parse_speed(value: Any) -> float:
-    """Speed in km/h from a number or text such as ``"50"``, ``"30 mph"``; NaN when unknown."""
-    if value is None:
-        return math.nan
-    if isinstance(value, int | float | np.integer | np.floating):
-        return float(value) if float(value) > 0 else math.nan
-    m = re.match(r"\s*([\d.]+)\s*(mph|knots|km/h|kmh|kph)?", str(value).lower())
-    if not m:
-        return math.nan
-    try:
-        v = float(m.group(1))
-    except ValueError:
-        return math.nan
-    unit = m.group(2)
-    if unit == "mph":
-        v *= 1.609344
-    elif unit == "knots":
-        v *= 1.852
-    return v if v > 0 else math.nan
 
 
 class Lines(NamedTuple):
@@ -464,186 +436,7 @@ def lines_to_raw(
         lines, dropped = read_lines(
             source, opts, want=(oneway_f, name_f, speed_f, hw_f, id_f, *(uv_f or ())), progress=progress
         )
-    return _lines_to_raw(lines, dropped, info, (oneway_f, name_f, speed_f, hw_f, id_f), uv_f, opts)
-
-
-def _lines_to_raw(
-    lines: Lines,
-    dropped: dict[str, int],
-    info: dict[str, Any],
-    picked: tuple[str | None, ...],
-    uv_f: tuple[str, str] | None,
-    opts: GisOptions,
-) -> tuple[RawNetwork, dict[str, int], dict[str, Any]]:
-    """:func:`lines_to_raw` once the lines are read (``picked``: the one-way, name, speed,
-    class and id fields)."""
-    from mapmatch.graph.projection import to_xy
-
-    oneway_f, name_f, speed_f, hw_f, id_f = picked
-
-    n_feat = lines.n_lines
-    fid = _int_column(lines, id_f) if id_f is not None else None
-    if fid is None and opts.id_field is not None:
-        raise InputError(f"the id field {opts.id_field!r} does not hold integers on every line")
-    info["id_field"] = id_f if fid is not None else None  # None: ids are row numbers
-    if fid is None:
-        fid = np.arange(n_feat, dtype=np.int64)
-    if oneway_f is not None:
-        inv, uniq = _factorize(lines.column(oneway_f))
-        ucodes = [opts.oneway_convention.code(v) for v in uniq]
-        bad = sum(int((inv == i).sum()) for i, c in enumerate(ucodes) if c is None)
-        if bad:
-            dropped["unrecognised one-way value (read as two-way)"] = bad
-        direction = np.array([BOTH if c is None else c for c in ucodes], dtype=np.int8)[inv]
-    else:
-        direction = np.full(n_feat, FORWARD if opts.directed else BOTH, dtype=np.int8)
-    names = _labels(lines, name_f)
-    hws = _labels(lines, hw_f)
-    if speed_f:
-        inv, uniq = _factorize(lines.column(speed_f))
-        speeds = np.array([_parse_speed(v) for v in uniq], dtype=np.float64)[inv]
-    else:
-        speeds = np.full(n_feat, math.nan)
-
-    lo, hi = np.nanmin(lines.lonlat, axis=0), np.nanmax(lines.lonlat, axis=0)
-    crs = utm_crs(float((lo[0] + hi[0]) / 2), float((lo[1] + hi[1]) / 2))
-
-    src_ids = None
-    if uv_f is not None and not opts.node_crossings and len(unique(lines.row)) == n_feat:
-        src_ids = _endpoint_id_values(lines, uv_f)
-    if opts.node_crossings:
-        import shapely
-
-        owner0 = np.repeat(np.arange(n_feat), np.diff(lines.ptr))
-        geoms, src = _node_lines(shapely.linestrings(lines.lonlat, indices=owner0))
-        fid, direction, speeds = fid[src], direction[src], speeds[src]
-        names, hws = names.take(src), hws.take(src)
-        n_feat = len(geoms)
-        ll, owner = shapely.get_coordinates(geoms, return_index=True)
-        del geoms
-    else:
-        ll = lines.lonlat
-        owner = np.repeat(np.arange(n_feat), np.diff(lines.ptr))
-    del lines
-    xy = to_xy(crs, ll[:, 0], ll[:, 1])
-    counts = np.bincount(owner, minlength=n_feat)
-    start = np.zeros(n_feat + 1, dtype=np.int64)
-    np.cumsum(counts, out=start[1:])
-    first, last = start[:-1], start[1:] - 1
-    ends = np.concatenate([first, last])
-    end_xy = xy[ends]
-    place_of_end, places = _places(end_xy)
-    node_of_end, end_ids = None, None
-    if opts.topology == "ids" or (opts.topology == "auto" and src_ids is not None):
-        node_of_end, end_ids = _nodes_from_ids(src_ids, end_xy, opts)
-    if node_of_end is None:
-        node_of_end = _nodes_from_coords(places, place_of_end, opts.snap_tolerance)
-        end_ids = _consistent_ids(src_ids, node_of_end)
-        info["topology"] = "shared endpoints"
-    else:
-        info["topology"] = "node id fields"
-    n_end_nodes = int(node_of_end.max()) + 1 if len(node_of_end) else 0
-    # node position: mean of its endpoints
-    node_xy = np.zeros((n_end_nodes, 2))
-    np.add.at(node_xy, node_of_end, end_xy)
-    node_xy /= np.bincount(node_of_end, minlength=n_end_nodes)[:, None]
-    node_ll = ll[ends][unique_inverse(node_of_end)[1]]
-    info["merged_endpoints"] = len(places) - n_end_nodes
-    del place_of_end, places
-
-    # every vertex is a node: endpoints shared, interior vertices private to their feature
-    vnode = np.empty(len(xy), dtype=np.int64)
-    interior = np.ones(len(xy), dtype=bool)
-    interior[ends] = False
-    vnode[ends] = node_of_end
-    vnode[interior] = n_end_nodes + np.arange(int(interior.sum()))
-    all_xy = np.vstack([node_xy, xy[interior]])
-    all_ll = np.vstack([node_ll, ll[interior]])
-    del ll, node_ll, node_xy, end_xy
-    # node keys are the source ids: u/v fields when they name the endpoints consistently,
-    # else 0..N-1; interior vertices get negative keys
-    info["node_ids"] = "u/v fields" if end_ids is not None else "generated"
-    keys = np.concatenate(
-        [
-            end_ids if end_ids is not None else np.arange(n_end_nodes, dtype=np.int64),
-            -1 - np.arange(int(interior.sum()), dtype=np.int64),
-        ]
-    )
-
-    seg_a = np.arange(len(xy) - 1)
-    seg_a = seg_a[owner[seg_a] == owner[seg_a + 1]]
-    a_n, b_n = vnode[seg_a], vnode[seg_a + 1]
-    f = owner[seg_a]
-    d = xy[seg_a + 1] - xy[seg_a]
-    seg_len = np.hypot(d[:, 0], d[:, 1])
-    del d, xy, vnode, interior
-    ok = a_n != b_n
-    a_n, b_n, fo = a_n[ok], b_n[ok], f[ok]
-    dirn = direction[fo]
-    fwd = (dirn == BOTH) | (dirn == FORWARD)
-    bwd = (dirn == BOTH) | (dirn == REVERSE)
-    # per segment: forward then backward, as the segments come
-    src = np.stack([np.where(fwd, a_n, -1), np.where(bwd, b_n, -1)], axis=1).ravel()
-    dst = np.stack([b_n, a_n], axis=1).ravel()
-    feat = np.repeat(fo, 2)
-    use = src >= 0
-    raw = RawNetwork(
-        crs=crs,
-        node_key=keys,
-        node_xy=all_xy,
-        node_lonlat=all_ll,
-        edge_src=src[use].astype(np.int64, copy=False),
-        edge_dst=dst[use].astype(np.int64, copy=False),
-        edge_feat=feat[use].astype(np.int64, copy=False),
-        edge_oneway=(direction[feat[use]] != BOTH),
-        feat_way_id=fid.astype(np.int64, copy=False),
-        feat_name=names,
-        feat_highway=hws,
-        feat_speed_kph=speeds.astype(np.float64),
-    )
-    # features that collapsed to one point
-    flen = np.bincount(f, weights=seg_len, minlength=n_feat)
-    collapsed = int((flen <= opts.snap_tolerance).sum())
-    if collapsed:
-        dropped["zero length after snapping"] = collapsed
-    return compact_raw(raw), dropped, info
-
-
-def _factorize(column: Any) -> tuple[NDArray[np.int64], list[Any]]:
-    """Codes into the distinct values of a pyarrow column (missing values, NaN included, one value)."""
-    import pyarrow.compute as pc
-
-    enc = pc.dictionary_encode(column, null_encoding="encode")
-    codes = np.asarray(enc.indices.to_numpy(zero_copy_only=False), dtype=np.int64)
-    vals = [None if isinstance(v, float) and v != v else v for v in enc.dictionary.to_pylist()]
-    # NaN and null read alike: give them one code
-    first: dict[Any, int] = {}
-    remap = np.array(
-        [
-            first.setdefault(("<missing>",) if v is None else (type(v) is bool, v), i)
-            for i, v in enumerate(vals)
-        ],
-        dtype=np.int64,
-    )
-    if len(remap) and (remap != np.arange(len(remap))).any():
-        codes = remap[codes]
-    return codes, vals
-
-
-def _labels(lines: Lines, name: str | None) -> Labels:
-    """A text column per line as :class:`Labels` (each distinct value read as text once)."""
-    if name is None:
-        return Labels(np.full(lines.n_lines, -1, dtype=np.int32), [])
-    import pyarrow.compute as pc
-
-    enc = pc.dictionary_encode(lines.columns[name])
-    table: dict[str, int] = {}
-    texts = [_text(v) for v in enc.dictionary.to_pylist()]
-    code_of = np.array(
-        [-1 if t is None else table.setdefault(t, len(table)) for t in texts] + [-1], dtype=np.int32
-    )
-    idx = np.asarray(enc.indices.fill_null(-1).to_numpy(zero_copy_only=False), dtype=np.int64)
-    return Labels(code_of[idx][lines.row], list(table))
+    return lines_to_network(lines, dropped, info, (oneway_f, name_f, speed_f, hw_f, id_f), uv_f, opts)
 
 
 class Source(NamedTuple):
@@ -722,163 +515,3 @@ def _node_id_fields(fields: list[str], opts: GisOptions) -> tuple[str, str] | No
         return opts.node_id_fields
     cols = {c.lower(): c for c in fields}
     return (cols["u"], cols["v"]) if "u" in cols and "v" in cols else None
-
-
-def _int_column(lines: Lines, name: str) -> NDArray[np.int64] | None:
-    """An integer column per line as int64: integers, whole floats or integer text (a DBF's
-    character field); None when it has nulls or other values."""
-    import pyarrow as pa
-
-    col = lines.columns[name]
-    if col.null_count:
-        return None
-    if pa.types.is_integer(col.type):
-        return np.asarray(col.to_numpy(), dtype=np.int64)[lines.row]
-    try:
-        if pa.types.is_floating(col.type):
-            f = np.asarray(col.to_numpy(), dtype=np.float64)
-            if not (np.isfinite(f).all() and (f == np.round(f)).all()):
-                return None
-            vals = f.astype(np.int64)
-        elif pa.types.is_string(col.type) or pa.types.is_large_string(col.type):
-            vals = np.asarray([int(v) for v in col.to_pylist()], dtype=np.int64)
-        else:
-            return None
-    except (TypeError, ValueError, OverflowError):
-        return None
-    return vals[lines.row]
-
-
-def _endpoint_id_values(lines: Lines, fields: tuple[str, str]) -> NDArray[np.int64] | None:
-    """Ids of every line's first then last node from the u/v fields, or None when unusable
-    (not integers, nulls, or negative)."""
-    import pyarrow as pa
-
-    out = []
-    for f in fields:
-        col = lines.columns[f]
-        if col.null_count:
-            return None
-        if pa.types.is_integer(col.type) or pa.types.is_floating(col.type):
-            vals = np.asarray(col.to_numpy(), dtype=np.int64)
-        else:
-            try:
-                vals = np.asarray(col.to_pylist(), dtype=np.int64)
-            except (TypeError, ValueError, OverflowError):
-                return None
-        out.append(vals[lines.row])
-    ids = np.concatenate(out)
-    return ids if (ids >= 0).all() else None
-
-
-def _nodes_from_ids(
-    ids: NDArray[np.int64] | None, end_xy: NDArray[np.float64], opts: GisOptions
-) -> tuple[NDArray[np.int64] | None, NDArray[np.int64] | None]:
-    """Endpoint -> node from the id fields, if every id sits at one place (within 1 m or the
-    snap tolerance). Returns ``(None, None)`` for ``topology="auto"`` when that fails."""
-    if ids is None:
-        if opts.topology == "ids":
-            raise InputError("topology from node ids needs integer u/v fields (see --node-id-fields)")
-        return None, None
-    uniq, _, inv = unique_inverse(ids)
-    n = len(uniq)
-    mean = np.zeros((n, 2))
-    np.add.at(mean, inv, end_xy)
-    mean /= np.bincount(inv, minlength=n)[:, None]
-    spread = float(np.hypot(*(end_xy - mean[inv]).T).max()) if len(inv) else 0.0
-    if spread > max(1.0, opts.snap_tolerance):
-        if opts.topology == "ids":
-            raise InputError(f"node id fields name line ends up to {spread:.1f} m apart: not node ids")
-        log.warning("u/v fields name line ends up to %.1f m apart; using shared endpoints instead", spread)
-        return None, None
-    return inv.astype(np.int64), uniq.astype(np.int64)
-
-
-def _places(end_xy: NDArray[np.float64]) -> tuple[NDArray[np.int64], NDArray[np.float64]]:
-    """Distinct endpoint positions (rounded to the micrometre, sorted by x then y) and the
-    place of each endpoint."""
-    r = np.round(end_xy, 6)
-    order = np.lexsort((r[:, 1], r[:, 0]))  # as np.unique(axis=0) orders them, much faster
-    rs = r[order]
-    new = np.ones(len(rs), dtype=bool)
-    new[1:] = (rs[1:] != rs[:-1]).any(axis=1)
-    inv = np.empty(len(r), dtype=np.int64)
-    inv[order] = np.cumsum(new) - 1
-    return inv, rs[new]
-
-
-def _nodes_from_coords(uniq: NDArray[np.float64], inv: NDArray[np.int64], tol: float) -> NDArray[np.int64]:
-    """Endpoint -> node: identical positions (``uniq[inv]``) first, then snapping within
-    ``tol`` metres."""
-    if tol > 0 and len(uniq) > 1:
-        pa, pb = _pairs_within(uniq, tol)
-        lab = union_find(len(uniq), pa, pb)
-        _, lab = dense_labels(lab, len(uniq))
-    else:
-        lab = np.arange(len(uniq))
-    return np.asarray(lab, dtype=np.int64).ravel()[inv]
-
-
-def _pairs_within(xy: NDArray[np.float64], tol: float) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
-    """All pairs ``a < b`` of points at most ``tol`` apart: points hashed to cells of side
-    ``tol``, each cell compared with itself and the neighbours ahead of it (an STRtree when
-    the cells would not fit 64-bit keys)."""
-    lo = xy.min(axis=0)
-    cell = np.floor((xy - lo) / tol).astype(np.int64)
-    width = int(cell[:, 1].max()) + 3
-    if (int(cell[:, 0].max()) + 3) * width >= 2**62:
-        tree = shapely.STRtree(shapely.points(xy))
-        pa, pb = tree.query(shapely.points(xy), predicate="dwithin", distance=tol)
-        keep = pa < pb
-        return pa[keep].astype(np.int64), pb[keep].astype(np.int64)
-    key = cell[:, 0] * width + cell[:, 1] + 1
-    del cell
-    order = np.argsort(key, kind="stable")
-    skey = key[order]
-    out_a, out_b = [], []
-    for dx, dy in ((0, 0), (0, 1), (1, -1), (1, 0), (1, 1)):
-        want = key + dx * width + dy
-        first = np.searchsorted(skey, want, side="left")
-        n = np.searchsorted(skey, want, side="right") - first
-        a = np.repeat(np.arange(len(xy), dtype=np.int64), n)
-        b = order[np.repeat(first, n) + np.arange(int(n.sum())) - np.repeat(np.cumsum(n) - n, n)]
-        near = np.hypot(xy[a, 0] - xy[b, 0], xy[a, 1] - xy[b, 1]) <= tol
-        a, b = a[near], b[near]
-        out_a.append(np.minimum(a, b)[a != b])
-        out_b.append(np.maximum(a, b)[a != b])
-    pa, pb = np.concatenate(out_a), np.concatenate(out_b)
-    pair = unique(pa * len(xy) + pb)
-    return pair // len(xy), pair % len(xy)
-
-
-def _consistent_ids(
-    ids: NDArray[np.int64] | None, node_of_end: NDArray[np.int64]
-) -> NDArray[np.int64] | None:
-    """One id per node when the u/v fields agree with the coordinate topology, else None."""
-    if ids is None or not len(node_of_end):
-        return None
-    n = int(node_of_end.max()) + 1
-    out = np.full(n, -1, dtype=np.int64)
-    out[node_of_end] = ids
-    if (out < 0).any() or not np.array_equal(out[node_of_end], ids) or len(unique(out)) != n:
-        log.info("u/v fields do not match the shared endpoints; generating node ids")
-        return None
-    return out
-
-
-def _node_lines(lines: NDArray[Any]) -> tuple[NDArray[Any], NDArray[np.int64]]:
-    """Split lines at every crossing; each piece keeps the index of the line it came from."""
-    pieces = shapely.get_parts(shapely.node(shapely.multilinestrings(lines)))
-    tree = shapely.STRtree(lines)
-    mid = shapely.line_interpolate_point(pieces, 0.5, normalized=True)
-    pi, li = tree.query(mid, predicate="dwithin", distance=1e-9)
-    src = np.full(len(pieces), -1, dtype=np.int64)
-    src[pi[::-1]] = li[::-1]  # first match wins
-    ok = src >= 0
-    pieces, src = pieces[ok], src[ok]
-    # orient each piece like its source line
-    proj_a = shapely.line_locate_point(lines[src], shapely.get_point(pieces, 0))
-    proj_b = shapely.line_locate_point(lines[src], shapely.get_point(pieces, -1))
-    flip = proj_b < proj_a
-    pieces[flip] = shapely.reverse(pieces[flip])
-    return pieces, src

@@ -20,7 +20,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from mapmatch.graph.errors import InputError
-from mapmatch.graph.gis import _parse_speed
+from mapmatch.graph.gis_network import parse_speed
 from mapmatch.graph.keys import unique_inverse
 from mapmatch.graph.projection import to_xy, utm_crs
 from mapmatch.graph.raw_network import RawNetwork, compact_raw
@@ -399,7 +399,7 @@ def _maxspeed(value: str | None) -> float:
     """km/h from an OSM maxspeed (``"50"``, ``"30 mph"``, ``"50;30"`` -> the lowest); NaN otherwise."""
     if not value:
         return float("nan")
-    speeds = [_parse_speed(v) for v in value.split(";")]
+    speeds = [parse_speed(v) for v in value.split(";")]
     speeds = [s for s in speeds if s == s]
     return min(speeds) if speeds else float("nan")
 
