@@ -412,7 +412,12 @@ class BatchConfig:
     outlier_lookahead : 1: where a fix cannot be reached from the previous kept fix, also try
         leaving out that previous fix instead, and keep whichever choice reaches the next fix
         with the higher score (a stray fix on a side road is dropped, not the good one after
-        it); 0: always leave out the unreachable fix.
+        it); and where a fix is reached only after leaving out two or more before it, also try
+        leaving out the fix before them instead (a stray fix followed by another, or by a road
+        that does not lead on); 0: always leave out the unreachable fix.
+    leave_out_cost : log-probability each fix left out as an outlier costs where two ways of
+        leaving fixes out compete (``outlier_lookahead``): 12.5 = ½ 5², a fix at the off-map
+        limit of 5 σ.
     stop_uturn_speed : m/s; a step slower than this on average (over at least
         ``stop_uturn_time``) spans a stop ...
     stop_uturn_time : ... of at least this many seconds, ...
@@ -475,6 +480,7 @@ class BatchConfig:
     route_lp_cut: float = 30.0
     max_skip: int = 8
     outlier_lookahead: int = 1
+    leave_out_cost: float = 12.5
     stop_uturn_speed: float = 1.0
     stop_uturn_time: float = 5.0
     stop_uturn_penalty: float = 1.0

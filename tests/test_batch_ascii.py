@@ -590,6 +590,45 @@ def test_a_stray_fix_by_a_side_road_is_dropped_not_the_good_fix_after_it() -> No
     assert [p.status for p in r.points][2] == "unmatched"
 
 
+def test_a_stray_fix_followed_by_another_is_dropped_not_the_good_fixes_after_them() -> None:
+    # fixes 15 s apart along ab and bc; two in a row stray (2 and 3 below, 20 m from the dead
+    # ends hd and ge). 2 is reachable from 1 (up hd), but from 2 the car would have to drive
+    # back along hd to reach 3, 4 or 5 in their time; 3 is reachable from 1, 4 not from 3.
+    # Leaving out 3, 4 and 5 keeps the trip up hd; leaving out 2 and 3 explains the rest.
+    #
+    #               h-------------------------------------------------d
+    #               |                             2
+    #   a-----------b--------------------------------------4-----------5-----------6-----------7--c
+    #    0          |  1                               3
+    #               g-------------------------------------------------e
+    m = parse_ascii_map(
+        """
+                h-------------------------------------------------d
+                |
+                |
+                |
+    a-----------b-----------------------------------------------------------------------------c
+                |
+                |
+                |
+                g-------------------------------------------------e
+        """,
+        scale=10,
+    )
+    pts = [
+        at(m, "a", 10, 2), at(m, "b", 30, -2), at(m, "b", 300, 100), at(m, "b", 350, -100),
+        at(m, "b", 390, 2), at(m, "b", 510, -2), at(m, "b", 630, 2), at(m, "b", 750, -2),
+    ]  # fmt: skip
+    track = track_from_xy(m, pts, dt=15.0)
+    r = BatchMatcher(m.graph).match(track)
+    assert [names(m, piece) for piece in r.routes] == [["ab", "bc"]]
+    assert [p.status for p in r.points] == ["matched"] * 2 + ["unmatched"] * 2 + ["matched"] * 4
+    # without trying the fix before a run left out: the trip up hd, three good fixes lost
+    greedy = BatchMatcher(m.graph).match(track, DEFAULT_CONFIG.replace(outlier_lookahead=0))
+    assert names(m, greedy.routes[0]) == ["ab", "bh", "hd", "dh", "hb", "bc"]
+    assert [p.status for p in greedy.points][2:6] == ["matched", "unmatched", "unmatched", "unmatched"]
+
+
 def _with_speeds(amap: AsciiMap, kph: dict[str, float]) -> AsciiMap:
     """The map with speed limits by road (``"ab": 80``; both directions), NaN elsewhere."""
     from mapmatch.graph.road_graph import RoadGraph

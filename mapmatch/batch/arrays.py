@@ -103,6 +103,8 @@ class KernelParams(NamedTuple):
     max_skip: int
     outlier_lookahead: bool
     """Where a point is unreachable, also try leaving out the one before it."""
+    leave_out_cost: float
+    """Log-probability cost of a point left out, where two ways of leaving points out compete."""
     reverse_tol: float
     split_speed: float
     """m/s; 0: no speed check on steps."""
@@ -151,6 +153,7 @@ def kernel_params(cfg: MatchConfig, sigma: float) -> KernelParams:
         gap_time=float(cfg.gap_time),
         max_skip=int(cfg.max_skip),
         outlier_lookahead=bool(cfg.outlier_lookahead),
+        leave_out_cost=float(cfg.leave_out_cost),
         reverse_tol=float(cfg.reverse_tolerance),
         split_speed=float(cfg.split_speed),
         split_slack=float(cfg.split_slack),

@@ -323,6 +323,75 @@ def _drop_one(q, prev, t, lat, tr, p, router, saved):  # type: ignore[no-untyped
     return prev
 
 
+class Detour(NamedTuple):
+    """Per point of a run left out (index from its first): the point its best step came from
+    (-1: none reaches it), the points left out on the way, the score less their cost, and the
+    step's route bound (:func:`_leave_out_prev`)."""
+
+    pred: NDArray[np.int64]
+    left_out: NDArray[np.int64]
+    score: NDArray[np.float64]
+    bound: NDArray[np.float64]
+
+
+@njit(cache=True, nogil=True)
+def _leave_out_prev(q, s0, t, lat, tr, p, router, saved, dt):  # type: ignore[no-untyped-def]
+    """``t`` was reached from ``prev = s0 - 1`` leaving out the points ``s0 .. t - 1``: try
+    leaving out ``prev`` instead, stepping from ``q`` (the point before it) through those
+    points to ``t``, each step from whichever earlier point scores best at it, each point left
+    out costing ``p.leave_out_cost``. Returns whether that scores higher at ``t`` by more than
+    that cost (a choice made at ``t`` binds the points after it: only a clear gain is taken),
+    with the chosen steps in ``dt`` (:class:`Detour`); if not, the scores at ``t`` are as they
+    were."""
+    ptr = lat.ptr
+    b0, b1 = ptr[t], ptr[t + 1]
+    n = b1 - b0
+    kept = -np.inf
+    for j in range(n):
+        saved.score[j] = tr.score[b0 + j]
+        saved.bp[j] = tr.bp[b0 + j]
+        saved.bpu[j] = tr.bpu[b0 + j]
+        kept = max(kept, tr.score[b0 + j])
+    cost = p.leave_out_cost
+    kept -= (t - s0) * cost
+    for r in range(s0, t + 1):
+        k = r - s0
+        dt.pred[k] = -1
+        dt.score[k] = -np.inf
+        last = -1
+        for i in range(-1, k):  # from q (-1), then from each point of the run a step reached
+            src = q if i < 0 else s0 + i
+            if i >= 0 and dt.pred[i] < 0:
+                continue
+            ok, d = _joinable(src, r, lat, p)
+            if not ok:
+                continue
+            reached, bound = _try_step(src, r, d, lat, tr, p, router)
+            last = src
+            if not reached:
+                continue
+            lo = k + 1 if i < 0 else dt.left_out[i] + k - i - 1  # ``prev`` counts when from q
+            sc = -np.inf
+            for j in range(ptr[r], ptr[r + 1]):
+                sc = max(sc, tr.score[j])
+            if sc - lo * cost > dt.score[k]:
+                dt.pred[k] = src
+                dt.left_out[k] = lo
+                dt.score[k] = sc - lo * cost
+                dt.bound[k] = bound
+        src = dt.pred[k]
+        if src >= 0 and src != last:  # the scores at ``r`` are the last try's: redo the best
+            d = math.hypot(lat.pxy[r, 0] - lat.pxy[src, 0], lat.pxy[r, 1] - lat.pxy[src, 1])
+            _try_step(src, r, d, lat, tr, p, router)
+    if dt.pred[t - s0] >= 0 and dt.score[t - s0] > kept + cost:  # by more than one fix's worth
+        return True
+    for j in range(n):
+        tr.score[b0 + j] = saved.score[j]
+        tr.bp[b0 + j] = saved.bp[j]
+        tr.bpu[b0 + j] = saved.bpu[j]
+    return False
+
+
 @njit(cache=True, nogil=True)
 def solve(lat: Lattice, p: KernelParams, router, ar):  # type: ignore[no-untyped-def]
     """Exact Viterbi over the lattice, routing each step as it goes.
@@ -362,6 +431,12 @@ def solve(lat: Lattice, p: KernelParams, router, ar):  # type: ignore[no-untyped
     bp = tr.bp
     bpu = tr.bpu
     saved = Saved(take_f8(ar, kmax), take_i8(ar, kmax), take_b1(ar, kmax), take_f8(ar, 2))
+    detour = Detour(
+        take_i8(ar, max_skip + 1),
+        take_i8(ar, max_skip + 1),
+        take_f8(ar, max_skip + 1),
+        take_f8(ar, max_skip + 1),
+    )
     prev = 0
     accepted[0] = True
     seg_start[0] = True
@@ -386,6 +461,20 @@ def solve(lat: Lattice, p: KernelParams, router, ar):  # type: ignore[no-untyped
                 accepted[t] = True
                 prev_pt[t] = prev
                 used_bound[t] = bound
+                # maybe ``prev`` was the outlier, not the points after it
+                if (
+                    nskip > 1
+                    and p.outlier_lookahead
+                    and not seg_start[prev]
+                    and _leave_out_prev(prev_pt[prev], s0, t, lat, tr, p, router, saved, detour)
+                ):
+                    accepted[prev] = False
+                    r = t
+                    while r >= s0:
+                        accepted[r] = True
+                        prev_pt[r] = detour.pred[r - s0]
+                        used_bound[r] = detour.bound[r - s0]
+                        r = prev_pt[r]
                 prev = t
                 nskip = 0
                 t += 1
