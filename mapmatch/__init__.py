@@ -34,6 +34,10 @@ import sys
 from types import ModuleType
 from typing import TYPE_CHECKING, Any
 
+from mapmatch.kernel_cache import refresh_package
+
+refresh_package()  # before any kernel loads a cache that an edit elsewhere made stale
+
 _API: dict[str, str] = {
     "RoadGraph": "mapmatch.graph.road_graph",
     "build_map": "mapmatch.graph.build",

@@ -1,0 +1,122 @@
+"""numba's on-disk kernel caches kept in step with the package's sources.
+
+numba checks a cached kernel against its own source file only: a kernel that calls one from
+another file keeps the old callee's machine code after that file changes (numba documents
+this), so after a ``git pull`` or an edit in an editable install the matcher would run old
+code. :func:`refresh`, run when ``mapmatch`` is imported, compares the sources with those of
+the last run (a stamp file); when any changed, it deletes the cached kernels of every file
+that has kernels, wherever numba keeps them, so all of them compile anew on first use. An
+unchanged tree costs a ``stat`` per file.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import hashlib
+import os
+from collections.abc import Iterable
+from pathlib import Path
+
+STAMP_NAME = "mapmatch-kernel-sources.stamp"
+
+
+def source_files(dirs: Iterable[Path]) -> list[Path]:
+    """The ``.py`` files under ``dirs``, sorted."""
+    return sorted(p for d in dirs for p in Path(d).rglob("*.py") if "__pycache__" not in p.parts)
+
+
+def fingerprint(files: Iterable[Path]) -> str:
+    """A digest of the files' paths, sizes and modification times (a ``stat`` each)."""
+    h = hashlib.sha256()
+    for f in files:
+        st = f.stat()
+        h.update(f"{f}\0{st.st_size}\0{st.st_mtime_ns}\n".encode())
+    return h.hexdigest()
+
+
+def content_digest(files: Iterable[Path]) -> str:
+    """A digest of the files' paths and contents."""
+    h = hashlib.sha256()
+    for f in files:
+        h.update(f"{f}\0".encode())
+        h.update(hashlib.sha256(f.read_bytes()).digest())
+    return h.hexdigest()
+
+
+def cache_files(source: Path) -> list[Path]:
+    """numba's cache files (index and data) of the kernels in ``source``, wherever its cache
+    locators would put them (``NUMBA_CACHE_DIR``, ``__pycache__`` beside the file, the user's
+    cache folder)."""
+    from numba.core import caching, config
+
+    def probe() -> None:
+        """Stands for a kernel of ``source`` (a locator reads the line of its code)."""
+
+    names = ("UserProvidedCacheLocator", "InTreeCacheLocator", "UserWideCacheLocator")
+    found: list[Path] = []
+    for name in names:
+        cls = getattr(caching, name, None) or getattr(caching, f"_{name}", None)
+        if cls is None or (name.startswith("UserProvided") and not getattr(config, "CACHE_DIR", "")):
+            continue
+        try:
+            folder = Path(cls(probe, str(source)).get_cache_path())
+        except Exception:  # a locator this numba lacks or cannot place
+            continue
+        found += [p for ext in ("nbi", "nbc") for p in folder.glob(f"{source.stem}.*.{ext}")]
+    return found
+
+
+def refresh(dirs: Iterable[Path], stamp: Path) -> bool:
+    """Delete the cached kernels of the files under ``dirs`` if any source's content changed
+    since the last run recorded in ``stamp``. Returns whether it did.
+
+    The stamp holds the sources' content digest and their :func:`fingerprint`: an unchanged
+    fingerprint costs no reading; a changed one with the same contents (a checkout, a touch)
+    only updates the stamp. Without a stamp (a first run, a new cache folder) nothing is
+    deleted. Nothing is deleted either when ``stamp`` cannot be written (a read-only install),
+    as then every run would compile every kernel anew.
+    """
+    tmp = stamp.with_name(f"{stamp.name}.{os.getpid()}.tmp")
+    try:
+        files = source_files(dirs)
+        old = stamp.read_text().split() if stamp.is_file() else []
+        if old[1:2] == [fingerprint(files)]:
+            return False
+        digest = content_digest(files)
+        stamp.parent.mkdir(parents=True, exist_ok=True)
+        tmp.write_text("")  # the stamp's folder is writable
+        changed = bool(old) and old[0] != digest
+        if changed:
+            for f in files:
+                if b"njit" in f.read_bytes():
+                    for cached in cache_files(f):
+                        cached.unlink(missing_ok=True)
+        tmp.write_text(f"{digest} {fingerprint(files)}\n")
+        os.replace(tmp, stamp)
+    except OSError:
+        with contextlib.suppress(OSError):
+            tmp.unlink(missing_ok=True)
+        return False
+    return changed
+
+
+def refresh_package() -> bool:
+    """:func:`refresh` for ``mapmatch`` (with ``mapmatch.graph`` and ``mapmatch.service``,
+    which an editable install keeps in folders of their own); the stamp goes where numba
+    caches (``NUMBA_CACHE_DIR``, else ``mapmatch/__pycache__``)."""
+    from importlib.machinery import PathFinder
+
+    here = Path(__file__).resolve().parent
+    dirs = [here]
+    for sub in ("graph", "service"):
+        spec = PathFinder.find_spec(sub, [str(here)])
+        if spec is None:  # an editable install: the folder is mapped by the install's finder
+            import importlib.util
+
+            spec = importlib.util.find_spec(f"mapmatch.{sub}")
+        for loc in (spec.submodule_search_locations or []) if spec is not None else []:
+            if Path(loc).resolve() != here:
+                dirs.append(Path(loc).resolve())
+    cache = os.environ.get("NUMBA_CACHE_DIR")
+    stamp = Path(cache) / STAMP_NAME if cache else here / "__pycache__" / STAMP_NAME
+    return refresh(dirs, stamp)
