@@ -414,10 +414,12 @@ class BatchConfig:
         with the higher score (a stray fix on a side road is dropped, not the good one after
         it); and where a fix is reached only after leaving out two or more before it, also try
         leaving out the fix before them instead (a stray fix followed by another, or by a road
-        that does not lead on); 0: always leave out the unreachable fix.
-    leave_out_cost : log-probability each fix left out as an outlier costs where two ways of
-        leaving fixes out compete (``outlier_lookahead``): 12.5 = ½ 5², a fix at the off-map
-        limit of 5 σ.
+        that does not lead on); and where the two steps through a fix cost more than
+        ``leave_out_cost``, also try the step past it (a stray fix the route bent to); 0:
+        always leave out the unreachable fix, visit every reachable one.
+    leave_out_cost : log-probability each fix left out as an outlier costs where leaving fixes
+        out competes with visiting them (``outlier_lookahead``): 12.5 = ½ 5², a fix at the
+        off-map limit of 5 σ. The other choice is taken only if it wins by more than this.
     stop_uturn_speed : m/s; a step slower than this on average (over at least
         ``stop_uturn_time``) spans a stop ...
     stop_uturn_time : ... of at least this many seconds, ...

@@ -466,11 +466,17 @@ def test_impossible_step_splits_the_match() -> None:
 def test_fixes_too_fast_for_a_car_along_a_straight_road_are_one_match() -> None:
     # a peer's case: fixes 100 m apart 1 s apart, one of them 200 m off the road. Too fast
     # for a car, but the road between them is the straight line: it is their timestamps that
-    # are wrong, not the route. One match; only the fix far off the road is left out.
+    # are wrong, not the route. One match; the fix far off the road is left out.
     m = parse_ascii_map("a----------b----------c----------d", scale=10)
     pts = [at(m, "a", 2, 1), at(m, "b", 0, -1), at(m, "c", 0, -200), at(m, "d", -2, 1)]
     r = BatchMatcher(m.graph).match(track_from_xy(m, pts, dt=1.0))
     assert r.splits == []
+    assert [names(m, piece) for piece in r.routes] == [["ab", "bc", "cd"]]
+    # so is b: visiting it makes two steps too fast for a car (each paying the speed penalty)
+    # instead of one, which costs clearly more than leaving it out (``leave_out_cost``)
+    assert [p.status for p in r.points] == ["matched", "unmatched", "unmatched", "matched"]
+    # 2 s apart the steps are still too fast, but visiting b costs less than leaving it out
+    r = BatchMatcher(m.graph).match(track_from_xy(m, pts, dt=2.0))
     assert [names(m, piece) for piece in r.routes] == [["ab", "bc", "cd"]]
     assert [p.status for p in r.points] == ["matched", "matched", "unmatched", "matched"]
 
@@ -578,14 +584,19 @@ def test_a_stray_fix_by_a_side_road_is_dropped_not_the_good_fix_after_it() -> No
     greedy = BatchMatcher(m.graph).match(track, DEFAULT_CONFIG.replace(outlier_lookahead=0))
     assert [p.status for p in greedy.points][2:4] == ["matched", "unmatched"]
     assert "hd" in names(m, greedy.routes[0])
-    # 30 s apart, the car may well have driven up hd and back (``route_speed``: 25 m/s): every
-    # fix is explained, the trip turning at the dead end d
+    # 30 s apart the car could have driven up hd and back (``route_speed``: 25 m/s), but that
+    # trip costs clearly more than leaving the stray fix out (``leave_out_cost``)
     sparse = track_from_xy(m, pts, dt=30.0)
     r = BatchMatcher(m.graph).match(sparse)
+    assert [names(m, piece) for piece in r.routes] == [["ab", "bc"]]
+    assert [p.status for p in r.points][2] == "unmatched"
+    # 60 s apart the trip costs less (β grows with the time between fixes): every fix is
+    # explained, the trip turning at the dead end d
+    r = BatchMatcher(m.graph).match(track_from_xy(m, pts, dt=60.0))
     assert [names(m, piece) for piece in r.routes] == [["ab", "bh", "hd", "dh", "hb", "bc"]]
     assert all(p.status == PointStatus.MATCHED for p in r.points)
     # a route bounded by the distance alone cannot make the trip: the stray fix is left out
-    r = BatchMatcher(m.graph).match(sparse, DEFAULT_CONFIG.replace(route_speed=0.0))
+    r = BatchMatcher(m.graph).match(track_from_xy(m, pts, dt=60.0), DEFAULT_CONFIG.replace(route_speed=0.0))
     assert [names(m, piece) for piece in r.routes] == [["ab", "bc"]]
     assert [p.status for p in r.points][2] == "unmatched"
 

@@ -323,6 +323,44 @@ def _drop_one(q, prev, t, lat, tr, p, router, saved):  # type: ignore[no-untyped
     return prev
 
 
+@njit(cache=True, nogil=True)
+def _leave_out_visited(q, prev, t, lat, tr, p, router, saved):  # type: ignore[no-untyped-def]
+    """``t`` was reached from ``prev``, and ``prev`` from ``q``, at a cost above
+    ``p.leave_out_cost``: score ``t`` from ``q`` too, leaving ``prev`` out at that cost, and keep
+    that if it scores higher by more than the cost (a clear gain, as in
+    :func:`_leave_out_prev`). Returns whether it did (``saved.bound[0]`` gets the step's route
+    bound); if not, the scores at ``t`` are as they were."""
+    ptr = lat.ptr
+    b0, b1 = ptr[t], ptr[t + 1]
+    n = b1 - b0
+    kept = -np.inf
+    for j in range(n):
+        saved.score[j] = tr.score[b0 + j]
+        saved.bp[j] = tr.bp[b0 + j]
+        saved.bpu[j] = tr.bpu[b0 + j]
+        kept = max(kept, tr.score[b0 + j])
+    ok, d = _joinable(q, t, lat, p)
+    if ok:
+        reached, bound = _try_step(q, t, d, lat, tr, p, router)
+        if reached and _best(tr.score, b0, b1) - p.leave_out_cost > kept + p.leave_out_cost:
+            saved.bound[0] = bound
+            return True
+    for j in range(n):
+        tr.score[b0 + j] = saved.score[j]
+        tr.bp[b0 + j] = saved.bp[j]
+        tr.bpu[b0 + j] = saved.bpu[j]
+    return False
+
+
+@njit(cache=True, nogil=True)
+def _best(score, a, b):  # type: ignore[no-untyped-def]
+    """The highest of ``score[a:b]``."""
+    out = -np.inf
+    for j in range(a, b):
+        out = max(out, score[j])
+    return out
+
+
 class Detour(NamedTuple):
     """Per point of a run left out (index from its first): the point its best step came from
     (-1: none reaches it), the points left out on the way, the score less their cost, and the
@@ -475,6 +513,18 @@ def solve(lat: Lattice, p: KernelParams, router, ar):  # type: ignore[no-untyped
                         prev_pt[r] = detour.pred[r - s0]
                         used_bound[r] = detour.bound[r - s0]
                         r = prev_pt[r]
+                elif (
+                    nskip == 0
+                    and p.outlier_lookahead
+                    and not seg_start[prev]
+                    and _best(score, cand_ptr[t], cand_ptr[t + 1])
+                    < _best(score, cand_ptr[prev_pt[prev]], cand_ptr[prev_pt[prev] + 1]) - p.leave_out_cost
+                    and _leave_out_visited(prev_pt[prev], prev, t, lat, tr, p, router, saved)
+                ):
+                    # visiting ``prev`` cost more than leaving it out: a stray the route bent to
+                    accepted[prev] = False
+                    prev_pt[t] = prev_pt[prev]
+                    used_bound[t] = saved.bound[0]
                 prev = t
                 nskip = 0
                 t += 1
