@@ -517,11 +517,14 @@ def solve(lat: Lattice, p: KernelParams, router, ar):  # type: ignore[no-untyped
                     nskip == 0
                     and p.outlier_lookahead
                     and not seg_start[prev]
+                    # the step past ``prev`` scores at most its start plus ``t``'s best emission
                     and _best(score, cand_ptr[t], cand_ptr[t + 1])
-                    < _best(score, cand_ptr[prev_pt[prev]], cand_ptr[prev_pt[prev] + 1]) - p.leave_out_cost
+                    < _best(score, cand_ptr[prev_pt[prev]], cand_ptr[prev_pt[prev] + 1])
+                    + _best(emis, cand_ptr[t], cand_ptr[t + 1])
+                    - 2.0 * p.leave_out_cost
                     and _leave_out_visited(prev_pt[prev], prev, t, lat, tr, p, router, saved)
                 ):
-                    # visiting ``prev`` cost more than leaving it out: a stray the route bent to
+                    # visiting ``prev`` cost clearly more than leaving it out: a stray the route bent to
                     accepted[prev] = False
                     prev_pt[t] = prev_pt[prev]
                     used_bound[t] = saved.bound[0]
