@@ -278,6 +278,37 @@ def _joinable(a, b, lat, p):  # type: ignore[no-untyped-def]
     return ok, d
 
 
+@njit(cache=True, nogil=True, inline="always")
+def _save(tr, saved, b0, b1):  # type: ignore[no-untyped-def]
+    """Keep the scores and back-pointers of candidates ``b0:b1`` in ``saved``; returns their best
+    score."""
+    best = -np.inf
+    for j in range(b1 - b0):
+        saved.score[j] = tr.score[b0 + j]
+        saved.bp[j] = tr.bp[b0 + j]
+        saved.bpu[j] = tr.bpu[b0 + j]
+        best = max(best, tr.score[b0 + j])
+    return best
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _restore(tr, saved, b0, b1):  # type: ignore[no-untyped-def]
+    """Put back what :func:`_save` kept."""
+    for j in range(b1 - b0):
+        tr.score[b0 + j] = saved.score[j]
+        tr.bp[b0 + j] = saved.bp[j]
+        tr.bpu[b0 + j] = saved.bpu[j]
+
+
+@njit(cache=True, nogil=True)
+def _best(score, a, b):  # type: ignore[no-untyped-def]
+    """The highest of ``score[a:b]``."""
+    out = -np.inf
+    for j in range(a, b):
+        out = max(out, score[j])
+    return out
+
+
 @njit(cache=True, nogil=True)
 def _drop_one(q, prev, t, lat, tr, p, router, saved):  # type: ignore[no-untyped-def]
     """``t`` is unreachable from ``prev``: leave out ``t`` (step ``prev`` -> ``t + 1``) or
@@ -288,18 +319,13 @@ def _drop_one(q, prev, t, lat, tr, p, router, saved):  # type: ignore[no-untyped
     """
     ptr = lat.ptr
     b0, b1 = ptr[t + 1], ptr[t + 2]
-    n = b1 - b0
     s_drop_t = -np.inf
     ok, d = _joinable(prev, t + 1, lat, p)
     if ok:
         reached, bound = _try_step(prev, t + 1, d, lat, tr, p, router)
         if reached:
             saved.bound[1] = bound
-            for j in range(n):
-                saved.score[j] = tr.score[b0 + j]
-                saved.bp[j] = tr.bp[b0 + j]
-                saved.bpu[j] = tr.bpu[b0 + j]
-                s_drop_t = max(s_drop_t, tr.score[b0 + j])
+            s_drop_t = _save(tr, saved, b0, b1)
     s_drop_prev = -np.inf
     ok1, d1 = _joinable(q, t, lat, p) if q >= 0 else (False, 0.0)
     ok2, d2 = _joinable(t, t + 1, lat, p)
@@ -308,18 +334,14 @@ def _drop_one(q, prev, t, lat, tr, p, router, saved):  # type: ignore[no-untyped
         if r1:
             r2, bound2 = _try_step(t, t + 1, d2, lat, tr, p, router)
             if r2:
-                for j in range(b0, b1):
-                    s_drop_prev = max(s_drop_prev, tr.score[j])
+                s_drop_prev = _best(tr.score, b0, b1)
                 if s_drop_prev > s_drop_t:
                     saved.bound[0] = bound1
                     saved.bound[1] = bound2
                     return t
     if s_drop_t == -np.inf:
         return -1
-    for j in range(n):
-        tr.score[b0 + j] = saved.score[j]
-        tr.bp[b0 + j] = saved.bp[j]
-        tr.bpu[b0 + j] = saved.bpu[j]
+    _restore(tr, saved, b0, b1)
     return prev
 
 
@@ -332,33 +354,15 @@ def _leave_out_visited(q, prev, t, lat, tr, p, router, saved):  # type: ignore[n
     bound); if not, the scores at ``t`` are as they were."""
     ptr = lat.ptr
     b0, b1 = ptr[t], ptr[t + 1]
-    n = b1 - b0
-    kept = -np.inf
-    for j in range(n):
-        saved.score[j] = tr.score[b0 + j]
-        saved.bp[j] = tr.bp[b0 + j]
-        saved.bpu[j] = tr.bpu[b0 + j]
-        kept = max(kept, tr.score[b0 + j])
+    kept = _save(tr, saved, b0, b1)
     ok, d = _joinable(q, t, lat, p)
     if ok:
         reached, bound = _try_step(q, t, d, lat, tr, p, router)
         if reached and _best(tr.score, b0, b1) - p.leave_out_cost > kept + p.leave_out_cost:
             saved.bound[0] = bound
             return True
-    for j in range(n):
-        tr.score[b0 + j] = saved.score[j]
-        tr.bp[b0 + j] = saved.bp[j]
-        tr.bpu[b0 + j] = saved.bpu[j]
+    _restore(tr, saved, b0, b1)
     return False
-
-
-@njit(cache=True, nogil=True)
-def _best(score, a, b):  # type: ignore[no-untyped-def]
-    """The highest of ``score[a:b]``."""
-    out = -np.inf
-    for j in range(a, b):
-        out = max(out, score[j])
-    return out
 
 
 class Detour(NamedTuple):
@@ -383,13 +387,7 @@ def _leave_out_prev(q, s0, t, lat, tr, p, router, saved, dt):  # type: ignore[no
     were."""
     ptr = lat.ptr
     b0, b1 = ptr[t], ptr[t + 1]
-    n = b1 - b0
-    kept = -np.inf
-    for j in range(n):
-        saved.score[j] = tr.score[b0 + j]
-        saved.bp[j] = tr.bp[b0 + j]
-        saved.bpu[j] = tr.bpu[b0 + j]
-        kept = max(kept, tr.score[b0 + j])
+    kept = _save(tr, saved, b0, b1)
     cost = p.leave_out_cost
     kept -= (t - s0) * cost
     for r in range(s0, t + 1):
@@ -423,10 +421,7 @@ def _leave_out_prev(q, s0, t, lat, tr, p, router, saved, dt):  # type: ignore[no
             _try_step(src, r, d, lat, tr, p, router)
     if dt.pred[t - s0] >= 0 and dt.score[t - s0] > kept + cost:  # by more than one fix's worth
         return True
-    for j in range(n):
-        tr.score[b0 + j] = saved.score[j]
-        tr.bp[b0 + j] = saved.bp[j]
-        tr.bpu[b0 + j] = saved.bpu[j]
+    _restore(tr, saved, b0, b1)
     return False
 
 
