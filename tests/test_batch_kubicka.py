@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import itertools
 import json
 import sys
 from pathlib import Path
@@ -44,3 +45,35 @@ def test_kubicka_track_matches_its_true_route(
     sc = score.score(truth, [[list(p) for p in piece] for piece in r.route_lonlat], first_last)
     assert sc["rmf"] < 0.01, sc
     assert sum(p.status != "unmatched" for p in r.points) >= 0.95 * len(idx)
+
+
+def test_every_piece_of_a_route_torn_by_multipath_is_connected(kubicka_dir: Path) -> None:
+    """A REAL track with SIMULATED multipath bursts (a third of the 1 Hz fixes start one) splits
+    into dozens of pieces. Each piece is a connected run of edges: a piece trimmed to nothing
+    (its route only touches a node) stays empty and does not merge its neighbours into one."""
+    import random
+
+    from mapmatch.graph.build import build_map
+    from mapmatch.graph.projection import to_lonlat, to_xy
+
+    d = kubicka_dir / "00000035"
+    graph = build_map(d / "roads.geojson")
+    (t,) = read_tracks(d / "track.csv", columns=Columns(time="t"))
+    x, y = to_xy(graph.crs, t.lon, t.lat).T
+    rng = random.Random(23)
+    ex, ey = np.zeros(len(t)), np.zeros(len(t))
+    i = 0
+    while i < len(t):  # bursts of 1-5 fixes, each displaced by one offset
+        if rng.random() < 0.3:
+            r, a = rng.uniform(50.0, 200.0), rng.uniform(0.0, 2.0 * np.pi)
+            for k in range(i, min(len(t), i + rng.randint(1, 5))):
+                ex[k], ey[k] = 0.5 * r * np.cos(a), r * np.sin(a)
+                i = k
+        i += 1
+    t.lon, t.lat = to_lonlat(graph.crs, x + ex, y + ey).T
+    r = BatchMatcher(graph).match(t)
+    assert len(r.routes) == len(r.splits) + 1 > 20
+    assert any(not piece for piece in r.routes)  # the case this test is for
+    for piece in r.routes:
+        for a, b in itertools.pairwise(piece):
+            assert graph.edge_v[a] == graph.edge_u[b] or graph.edge_reverse[a] == b, (a, b)

@@ -350,6 +350,9 @@ def assemble(  # type: ignore[no-untyped-def]
             k += 1
         route_ptr[s + 1] = k
         rxy_ptr[s + 1] = xptr[i + 1]
+    for s in range(nseg):  # a piece trimmed to nothing ends where the one before it ends
+        route_ptr[s + 1] = max(route_ptr[s + 1], route_ptr[s])
+        rxy_ptr[s + 1] = max(rxy_ptr[s + 1], rxy_ptr[s])
     # interpolated points: projected onto the chosen edge of the nearer kept neighbour; those
     # thinned after an unmatched kept point (off the map, a jump) stay unmatched with it
     q = 0
