@@ -253,6 +253,7 @@ class TrackMatch:
 
     ``routes`` holds one edge sequence per connected piece; a new piece starts where the
     track was split (``splits`` lists the point indices where a piece starts, after the first).
+    A piece whose route only touches a node (its points all at that node) is empty.
     ``route_xy`` holds the same pieces' geometry as (k, 2) arrays in the map's CRS.
     ``point_arrays`` (status, edge, offset, xy, dist per point) is set only while ``points``
     awaits :func:`mapmatch.batch.fill_route_lonlat` (``BatchMatcher.match(lonlat=False)``).
