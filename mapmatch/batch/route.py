@@ -336,7 +336,7 @@ def assemble(  # type: ignore[no-untyped-def]
             q += 1
     xy_all, xptr = pieces_xy(pe, ps, pend, geom, ar)
     npc = len(pe)
-    nseg = pseg[npc - 1] + 1 if npc else 0
+    nseg = nsplit + 1  # every piece, a last one trimmed to nothing too
     route_e = take_i8(ar, npc)
     route_ptr = full_i8(ar, nseg + 1, 0)
     rxy_ptr = full_i8(ar, nseg + 1, 0)
