@@ -115,7 +115,7 @@ def refresh_package() -> bool:
 
             spec = importlib.util.find_spec(f"mapmatch.{sub}")
         for loc in (spec.submodule_search_locations or []) if spec is not None else []:
-            if Path(loc).resolve() != here:
+            if not Path(loc).resolve().is_relative_to(here):  # an installed copy: under ``here``
                 dirs.append(Path(loc).resolve())
     cache = os.environ.get("NUMBA_CACHE_DIR")
     stamp = Path(cache) / STAMP_NAME if cache else here / "__pycache__" / STAMP_NAME

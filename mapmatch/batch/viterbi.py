@@ -347,11 +347,12 @@ def _drop_one(q, prev, t, lat, tr, p, router, saved):  # type: ignore[no-untyped
 
 @njit(cache=True, nogil=True)
 def _leave_out_visited(q, prev, t, lat, tr, p, router, saved):  # type: ignore[no-untyped-def]
-    """``t`` was reached from ``prev``, and ``prev`` from ``q``, at a cost above
-    ``p.leave_out_cost``: score ``t`` from ``q`` too, leaving ``prev`` out at that cost, and keep
-    that if it scores higher by more than the cost (a clear gain, as in
-    :func:`_leave_out_prev`). Returns whether it did (``saved.bound[0]`` gets the step's route
-    bound); if not, the scores at ``t`` are as they were."""
+    """``t`` was reached from ``prev``, and ``prev`` from ``q``, so dearly that the step from
+    ``q`` straight to ``t`` could win (:func:`solve` checks the bound): score ``t`` from ``q``
+    too, leaving ``prev`` out at ``p.leave_out_cost``, and keep that if it scores higher by more
+    than the cost (a clear gain, as in :func:`_leave_out_prev`). Returns whether it did
+    (``saved.bound[0]`` gets the step's route bound); if not, the scores at ``t`` are as they
+    were."""
     ptr = lat.ptr
     b0, b1 = ptr[t], ptr[t + 1]
     kept = _save(tr, saved, b0, b1)
@@ -407,9 +408,7 @@ def _leave_out_prev(q, s0, t, lat, tr, p, router, saved, dt):  # type: ignore[no
             if not reached:
                 continue
             lo = k + 1 if i < 0 else dt.left_out[i] + k - i - 1  # ``prev`` counts when from q
-            sc = -np.inf
-            for j in range(ptr[r], ptr[r + 1]):
-                sc = max(sc, tr.score[j])
+            sc = _best(tr.score, ptr[r], ptr[r + 1])
             if sc - lo * cost > dt.score[k]:
                 dt.pred[k] = src
                 dt.left_out[k] = lo
