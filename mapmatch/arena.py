@@ -24,6 +24,18 @@ MAX_ITEMS = 1 << 22
 allocates the rest (only memory and speed depend on it, never a result)."""
 
 
+def read_only(a: Any, dtype: Any) -> NDArray[Any]:
+    """``a`` as a C-contiguous array of ``dtype`` that kernels cannot write: a read-only view.
+
+    A map read from its file has read-only arrays, one built in memory writable ones, and numba
+    compiles a kernel once per argument type, writability included: every array a kernel only
+    reads goes in read-only, whatever its source, so one compile (about a minute for the batch
+    matcher) serves both."""
+    v = np.ascontiguousarray(a, dtype=dtype).view()
+    v.flags.writeable = False
+    return v
+
+
 class Arena(NamedTuple):
     """Scratch buffers by dtype and the next free place in each (``top``: floats, integers, flags)."""
 

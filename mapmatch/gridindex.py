@@ -16,7 +16,7 @@ import numpy as np
 from numba import njit
 from numpy.typing import ArrayLike, NDArray
 
-from mapmatch.arena import Arena, take_f8, take_i8, take_xy
+from mapmatch.arena import Arena, read_only, take_f8, take_i8, take_xy
 from mapmatch.graph.index import Candidates, EdgeIndex
 
 DENSE_MAX_CELLS = 1 << 23
@@ -97,20 +97,20 @@ class GridIndex:
             self.cell_ptr = np.zeros(0, dtype=np.int64)
         i8, f8 = np.int64, np.float64
         self.arrays = Grid(
-            origin=np.ascontiguousarray(self.origin, dtype=f8),
+            origin=read_only(self.origin, f8),
             cell=self.cell,
             nx=int(self.nx),
             ny=int(self.ny),
-            cell_ptr=self.cell_ptr,
-            cell_ids=np.ascontiguousarray(self.cell_ids, dtype=i8),
-            cell_seg=np.ascontiguousarray(self.cell_seg, dtype=i8),
-            seg_a=np.ascontiguousarray(a, dtype=f8),
-            seg_b=np.ascontiguousarray(b, dtype=f8),
-            seg_len=np.ascontiguousarray(index.seg_len, dtype=f8),
-            seg_off=np.ascontiguousarray(index.seg_off, dtype=f8),
-            seg_edge=np.ascontiguousarray(index.seg_edge, dtype=i8),
-            edge_rev=np.ascontiguousarray(self.graph.edge_reverse, dtype=i8),
-            edge_len=np.ascontiguousarray(self.graph.edge_len, dtype=f8),
+            cell_ptr=read_only(self.cell_ptr, i8),
+            cell_ids=read_only(self.cell_ids, i8),
+            cell_seg=read_only(self.cell_seg, i8),
+            seg_a=read_only(a, f8),
+            seg_b=read_only(b, f8),
+            seg_len=read_only(index.seg_len, f8),
+            seg_off=read_only(index.seg_off, f8),
+            seg_edge=read_only(index.seg_edge, i8),
+            edge_rev=read_only(self.graph.edge_reverse, i8),
+            edge_len=read_only(self.graph.edge_len, f8),
         )
         """The compiled query's arrays (:class:`Grid`)."""
         self._local = threading.local()

@@ -26,6 +26,7 @@ import numpy as np
 from numba import njit
 from numpy.typing import NDArray
 
+from mapmatch.arena import read_only
 from mapmatch.graph.road_graph import RoadGraph
 from mapmatch.graph.rules import UTurnPolicy, moves_for
 
@@ -71,14 +72,12 @@ def route_graph(graph: RoadGraph, *, uturns: UTurnPolicy = "dead_end", turn_cost
         raise ValueError(f"turn_cost must be a finite non-negative number of metres, got {turn_cost!r}")
     moves = moves_for(graph, uturns=uturns)
     return RouteGraph(
-        move_ptr=np.ascontiguousarray(moves.ptr, dtype=np.int64),
-        move_to=np.ascontiguousarray(moves.to, dtype=np.int32),
-        move_cost=turn_costs(graph, moves.ptr, moves.to, turn_cost),
-        edge_len=np.ascontiguousarray(graph.edge_len, dtype=np.float64),
-        edge_rev=np.ascontiguousarray(graph.edge_reverse, dtype=np.int32),
-        edge_xy=np.ascontiguousarray(
-            np.hstack([graph.node_xy[graph.edge_u], graph.node_xy[graph.edge_v]]), dtype=np.float64
-        ),
+        move_ptr=read_only(moves.ptr, np.int64),
+        move_to=read_only(moves.to, np.int32),
+        move_cost=read_only(turn_costs(graph, moves.ptr, moves.to, turn_cost), np.float64),
+        edge_len=read_only(graph.edge_len, np.float64),
+        edge_rev=read_only(graph.edge_reverse, np.int32),
+        edge_xy=read_only(np.hstack([graph.node_xy[graph.edge_u], graph.node_xy[graph.edge_v]]), np.float64),
     )
 
 

@@ -248,6 +248,38 @@ def test_compiled_entry_point_sees_the_types_it_was_compiled_for() -> None:
         assert all(s == kernels[k].signature for s in sigs), sigs
 
 
+def test_a_map_read_from_its_file_and_one_built_in_memory_share_one_compile(tmp_path) -> None:
+    """A map file's arrays are read-only, a map built in memory has writable ones, and numba
+    compiles a kernel once per argument type: the kernels' map arrays go in read-only either
+    way, so both maps reach each kernel with the same types (one compile, not two)."""
+    import unittest.mock
+
+    import numba
+
+    from mapmatch.batch import BatchMatcher
+    from mapmatch.batch.run import CompiledRun
+    from mapmatch.graph.artifact import load_map, save_map
+    from mapmatch.types import Track
+
+    m = parse_ascii_map(DRAWING, scale=7)
+    save_map(m.graph, tmp_path / "m.map")
+    loaded = load_map(tmp_path / "m.map")
+    assert not loaded.seg_xy.flags.writeable and m.graph.seg_xy.flags.writeable
+    ll = np.array([m.lonlat(*m.xy(c)) for c in "abcd"])
+    track = Track("t", np.arange(4.0), ll[:, 1], ll[:, 0])
+    seen: list[tuple[object, ...]] = []
+    inner = CompiledRun.__call__
+
+    def spy(self, *args):  # type: ignore[no-untyped-def]
+        seen.append(tuple(numba.typeof(a) for a in args))
+        return inner(self, *args)
+
+    with unittest.mock.patch.object(CompiledRun, "__call__", spy):
+        results = [BatchMatcher(g).match(track) for g in (m.graph, loaded)]
+    assert len(seen) == 2 and seen[0] == seen[1]
+    assert results[0].routes == results[1].routes == [[m.edge("a", "b"), m.edge("b", "c"), m.edge("c", "d")]]
+
+
 def test_goal_directed_search_settles_the_targets_as_the_search_does() -> None:
     """The A* search the Viterbi step runs finds every target within the bound at the distance
     the plain bounded search finds (same edges, same floats), on a map with turn restrictions."""

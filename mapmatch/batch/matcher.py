@@ -22,7 +22,7 @@ from pyproj import Transformer
 from pyproj.enums import TransformDirection
 
 from mapmatch import model
-from mapmatch.arena import Arena
+from mapmatch.arena import Arena, read_only
 from mapmatch.batch.arrays import CandidateArrays, EdgeGeometry, KernelParams, TrackPoints, kernel_params
 from mapmatch.batch.context import Context, new_context
 from mapmatch.batch.lattice import (
@@ -135,14 +135,14 @@ class BatchMatcher:
         self._grid = GridIndex(self.index, cell=self.config.search_radius)
         self._rg = route_graph(graph, uturns="dead_end", turn_cost=self.config.turn_cost)
         self._rg_by_cost: dict[float, RouteGraph] = {float(self.config.turn_cost): self._rg}
-        seg_xy = np.ascontiguousarray(graph.seg_xy, dtype=F8)
-        seg_ptr = np.ascontiguousarray(graph.edge_seg_ptr, dtype=I8)
-        self._geom = EdgeGeometry(seg_xy, seg_ptr, segment_lengths(seg_xy, seg_ptr))
-        self._seg_end = along_lengths(seg_xy, seg_ptr)
+        seg_xy = read_only(graph.seg_xy, F8)
+        seg_ptr = read_only(graph.edge_seg_ptr, I8)
+        self._geom = EdgeGeometry(seg_xy, seg_ptr, read_only(segment_lengths(seg_xy, seg_ptr), F8))
+        self._seg_end = read_only(along_lengths(seg_xy, seg_ptr), F8)
         kph = np.asarray(graph.edge_speed_kph, dtype=F8)
         # speed limits (m/s) where the map has any (posted, or by road class)
-        self._limit = kph / 3.6 if np.isfinite(kph).any() else np.zeros(0)
-        self._roads = RoadArrays(self._seg_end, self._limit, segment_bearings(seg_xy, seg_ptr))
+        self._limit = read_only(kph / 3.6 if np.isfinite(kph).any() else np.zeros(0), F8)
+        self._roads = RoadArrays(self._seg_end, self._limit, read_only(segment_bearings(seg_xy, seg_ptr), F8))
         self._run = CompiledRun()
         self._run_track = CompiledRun(run_track_in)
         self._local = threading.local()
