@@ -15,6 +15,7 @@ import shapely
 from numba import njit
 from numpy.typing import ArrayLike, NDArray
 
+from mapmatch.arena import read_only
 from mapmatch.graph.road_graph import RoadGraph
 
 
@@ -221,6 +222,8 @@ def project_points(graph: RoadGraph, edges: ArrayLike, xy: ArrayLike) -> NDArray
     p = np.asarray(xy, dtype=np.float64).reshape(-1, 2)
     if len(e) != len(p):
         raise ValueError("one edge per point")
+    f8 = np.float64
     return _project_many(  # type: ignore[no-any-return]
-        graph.seg_xy, graph.edge_seg_ptr, graph.edge_len, graph.edge_bearing_start, e, p
-    )
+        read_only(graph.seg_xy, f8), read_only(graph.edge_seg_ptr, np.int64), read_only(graph.edge_len, f8),
+        read_only(graph.edge_bearing_start, f8), e, p,
+    )  # fmt: skip

@@ -251,7 +251,8 @@ def test_compiled_entry_point_sees_the_types_it_was_compiled_for() -> None:
 def test_a_map_read_from_its_file_and_one_built_in_memory_share_one_compile(tmp_path) -> None:
     """A map file's arrays are read-only, a map built in memory has writable ones, and numba
     compiles a kernel once per argument type: the kernels' map arrays go in read-only either
-    way, so both maps reach each kernel with the same types (one compile, not two)."""
+    way, so both maps reach each kernel with the same types (one compile, not two), batch and
+    online."""
     import unittest.mock
 
     import numba
@@ -278,6 +279,11 @@ def test_a_map_read_from_its_file_and_one_built_in_memory_share_one_compile(tmp_
         results = [BatchMatcher(g).match(track) for g in (m.graph, loaded)]
     assert len(seen) == 2 and seen[0] == seen[1]
     assert results[0].routes == results[1].routes == [[m.edge("a", "b"), m.edge("b", "c"), m.edge("c", "d")]]
+    # the online matcher's road arrays too
+    from mapmatch.online import OnlineMatcher
+
+    online = [OnlineMatcher(g).road.arrays_tuple for g in (m.graph, loaded)]
+    assert numba.typeof(online[0]) == numba.typeof(online[1])
 
 
 def test_goal_directed_search_settles_the_targets_as_the_search_does() -> None:

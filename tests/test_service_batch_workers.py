@@ -120,9 +120,11 @@ def test_the_largest_track_is_matched_in_a_worker_process_while_a_good_stream_ke
         ch, api = stub(port, **big)
         small = pb.MatchTrackRequest(track=looped_track(AMAP, 500))
         in_threads = api.MatchTrack(small, timeout=120)
-        c0 = _cpu(psutil.Process())
-        assert api.MatchTrack(pb.MatchTrackRequest(track=looped_track(AMAP, BIG)), timeout=600) == res
-        thread_cpu = _cpu(psutil.Process()) - c0
+        thread_cpu = np.inf
+        for _ in range(2):  # the least of two: a one-off (the test process collecting garbage) not counted
+            c0 = _cpu(psutil.Process())
+            assert api.MatchTrack(pb.MatchTrackRequest(track=looped_track(AMAP, BIG)), timeout=600) == res
+            thread_cpu = min(thread_cpu, _cpu(psutil.Process()) - c0)
         ch.close()
     # the match ran in the worker: it spent there (idle before the call) a good part of the CPU
     # the same match takes on the server's own threads (a quarter: under a load average of 7 the

@@ -12,6 +12,7 @@ from bisect import bisect_left, bisect_right
 import numpy as np
 from numpy.typing import NDArray
 
+from mapmatch.arena import read_only
 from mapmatch.config import MatchConfig
 from mapmatch.graph.index import project_point_compiled
 from mapmatch.graph.road_graph import RoadGraph
@@ -55,7 +56,7 @@ class RoadModel:
         self.bstart: list[float] = graph.edge_bearing_start.tolist()
         self.bend: list[float] = graph.edge_bearing_end.tolist()
         self.ptr: list[int] = graph.edge_seg_ptr.tolist()
-        self.seg = np.ascontiguousarray(graph.seg_xy, dtype=np.float64)
+        self.seg = read_only(graph.seg_xy, np.float64)
         # the same, as arrays for the compiled kernels
         # every vertex's distance along its edge
         piece = np.hypot(*np.diff(graph.seg_xy, axis=0).T) if len(graph.seg_xy) else np.zeros(0)
@@ -64,13 +65,13 @@ class RoadModel:
             lo, hi = int(graph.edge_seg_ptr[e]), int(graph.edge_seg_ptr[e + 1])
             if hi - lo > 1:
                 vcum[lo + 1 : hi] = np.cumsum(piece[lo : hi - 1])
-        self.arrays = RoadArrays(
+        self.arrays = RoadArrays(  # read-only whatever the map's source: one compile (``read_only``)
             seg=self.seg,
-            ptr=np.ascontiguousarray(graph.edge_seg_ptr, dtype=np.int64),
-            elen=np.ascontiguousarray(graph.edge_len, dtype=np.float64),
-            bstart=np.ascontiguousarray(graph.edge_bearing_start, dtype=np.float64),
-            bend=np.ascontiguousarray(graph.edge_bearing_end, dtype=np.float64),
-            vcum=vcum,
+            ptr=read_only(graph.edge_seg_ptr, np.int64),
+            elen=read_only(graph.edge_len, np.float64),
+            bstart=read_only(graph.edge_bearing_start, np.float64),
+            bend=read_only(graph.edge_bearing_end, np.float64),
+            vcum=read_only(vcum, np.float64),
         )
         self.arrays_tuple = tuple(self.arrays)  # as a plain tuple: how the kernels take it
         self._cum, self._seg_len, self._brg = _piece_table(self.seg, self.ptr)
