@@ -60,9 +60,9 @@ _API: dict[str, str] = {
     "write_results": "mapmatch.io",
     "run_batch": "mapmatch.parallel",
     "evaluate": "mapmatch.evaluate",
-    "route_mismatch": "mapmatch.evaluate",
-    "read_route_geojson": "mapmatch.evaluate",
-    "score_route": "mapmatch.evaluate",
+    "route_mismatch": "mapmatch.route_score",
+    "read_route_geojson": "mapmatch.route_score",
+    "score_route": "mapmatch.route_score",
     "ServerConfig": "mapmatch.service.config",
     "create_server": "mapmatch.service.server",
     "start_server": "mapmatch.service.server",
@@ -147,7 +147,7 @@ if TYPE_CHECKING:
     from mapmatch.batch import BATCH_CONFIG, BatchMatcher
     from mapmatch.config import DEFAULT_CONFIG, MatchConfig
     from mapmatch.errors import ConfigError, MatchError, ValidationError
-    from mapmatch.evaluate import evaluate, read_route_geojson, route_mismatch, score_route
+    from mapmatch.evaluate import evaluate
     from mapmatch.extras import MissingExtraError
     from mapmatch.graph.artifact import load_map, open_map, save_map
     from mapmatch.graph.build import build_map
@@ -156,6 +156,7 @@ if TYPE_CHECKING:
     from mapmatch.io import read_fixes, read_tracks, results_table, write_results
     from mapmatch.online import OnlineMatcher, SessionState
     from mapmatch.parallel import run_batch
+    from mapmatch.route_score import read_route_geojson, route_mismatch, score_route
     from mapmatch.service.client import MapMatchClient
     from mapmatch.service.config import ServerConfig
     from mapmatch.service.server import create_server, start_server

@@ -9,9 +9,9 @@ from pathlib import Path
 import pytest
 
 from mapmatch.cli import main
-from mapmatch.evaluate import read_route_geojson, score_route
 from mapmatch.graph.artifact import save_map
 from mapmatch.graph.ascii import parse_ascii_map
+from mapmatch.route_score import read_route_geojson, score_route
 
 GRID = """
 a-----------b-----------c

@@ -66,7 +66,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[ty
 
 def run_route(args: argparse.Namespace) -> int:
     """``--route``: the route mismatch fraction of a matched route against a true route."""
-    from mapmatch.evaluate import read_route_geojson, route_lonlat_from_results, score_route
+    from mapmatch.evaluate import route_lonlat_from_results
+    from mapmatch.route_score import read_route_geojson, score_route
 
     for name in ("route", "matched"):
         if not Path(getattr(args, name)).is_file():
@@ -119,9 +120,10 @@ def _csv_route(args: argparse.Namespace, path: Path, rebuild: Any) -> tuple[str,
     import numpy as np
     import pandas as pd
 
-    from mapmatch.evaluate import edge_path, path_geometry, read_matched_csv
+    from mapmatch.evaluate import edge_path, read_matched_csv
     from mapmatch.graph.artifact import open_map
     from mapmatch.graph.projection import to_lonlat
+    from mapmatch.route_score import path_geometry
 
     graph = open_map(args.map)
     head = pd.read_csv(path, nrows=0).columns
@@ -132,10 +134,10 @@ def _csv_route(args: argparse.Namespace, path: Path, rebuild: Any) -> tuple[str,
         if tid is None:
             raise CommandError(f"--matched {path} holds {len(ids)} tracks; name one with --track-id")
         df = df[df["track_id"] == tid]
-        from mapmatch.evaluate import _split
+        from mapmatch.route_score import split_parts
 
         xy = path_geometry(graph, edge_path(graph, df["edge"].to_numpy(dtype=np.int64)))
-        parts = [to_lonlat(graph.crs, p[:, 0], p[:, 1]) for p in _split(xy) if len(p) >= 2]
+        parts = [to_lonlat(graph.crs, p[:, 0], p[:, 1]) for p in split_parts(xy) if len(p) >= 2]
         return str(tid), parts, len(df), int((df["status"] == "unmatched").sum())
     df = read_matched_csv(path, vehicle_id=args.vehicle_id)
     vid = str(df["vehicle_id"].iloc[0]) if "vehicle_id" in df.columns and len(df) else ""
@@ -208,7 +210,8 @@ def run(args: argparse.Namespace) -> int:
         print("\nopen vs closed loop (outage figures over the drive's outages, metres; heading degrees)")
         print(table.round(3).to_string(index=False))
     if args.png or args.html:
-        from mapmatch.evaluate import edge_path, path_geometry
+        from mapmatch.evaluate import edge_path
+        from mapmatch.route_score import path_geometry
 
         route_xy = (
             truth_xy
