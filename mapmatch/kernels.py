@@ -99,18 +99,25 @@ only into their callers, never get a cache of their own."""
 
 
 def is_cached(group: str) -> bool:
-    """Whether the group's kernels have an on-disk cache index (compiled before)."""
+    """Whether the group's kernels have an on-disk cache index valid for their source (compiled
+    before)."""
     probes = CACHE_PROBES.get(group)
     kernels = dispatchers(group) if probes is None else [_kernel(e) for e in probes]
     for d in kernels:
         if getattr(d, "targetoptions", {}).get("inline") == "always":
             continue  # compiled only into its callers: never cached on its own
         try:
-            index = d._cache._cache_file._index_path  # numba's cache locator
+            cache_file = d._cache._cache_file  # numba's cache locator
+            index = cache_file._index_path
         except AttributeError:
             return True  # unknown numba internals: do not claim anything
         if not os.path.exists(index):
             return False
+        try:
+            if not cache_file._load_index():  # stale: written for another source or numba version
+                return False
+        except Exception:
+            return True
     return True
 
 

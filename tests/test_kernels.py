@@ -146,3 +146,35 @@ def test_the_demo_checks_its_extras_without_importing_them() -> None:
     require_installed("json", "pyrosm", extra="demo", needed_for="mapmatch demo")
     with pytest.raises(MissingExtraError, match=r"needs no_such_xyz, .*pip install 'mapmatch\[demo\]'"):
         require_installed("json", "no_such_xyz", extra="demo", needed_for="mapmatch demo")
+
+
+def test_a_group_whose_cache_was_written_for_other_source_is_not_cached(tmp_path: Path) -> None:
+    """A cache index written for another version of a kernel's file does not count: the kernel
+    compiles again, so the "preparing compiled kernels" line must be printed."""
+    (tmp_path / "probe_kernels.py").write_text(
+        "from numba import njit\n\n@njit(cache=True)\ndef f(x):\n    return x + 1\n"
+    )
+    script = textwrap.dedent(
+        """
+        import mapmatch.kernels as k
+        k.GROUPS["probe"] = ("probe_kernels",)
+        before = k.is_cached("probe")
+        import probe_kernels
+        probe_kernels.f(1)
+        print(before, k.is_cached("probe"))
+        """
+    )
+    env = dict(_child_env(tmp_path / "numba"), PYTHONPATH=f"{ROOT}{os.pathsep}{tmp_path}")
+
+    def run() -> list[str]:
+        cmd = [sys.executable, "-c", script]
+        out = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=300)
+        assert out.returncode == 0, out.stderr
+        return out.stdout.split()
+
+    assert run() == ["False", "True"]  # compiled once, then cached
+    assert run() == ["True", "True"]
+    (tmp_path / "probe_kernels.py").write_text(
+        "from numba import njit\n\n@njit(cache=True)\ndef f(x):\n    return x + 2\n"
+    )
+    assert run() == ["False", "True"]  # the index is there, but for the old source

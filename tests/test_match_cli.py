@@ -120,6 +120,34 @@ def test_match_command_errors_are_one_line(
     assert "unknown output format" in capsys.readouterr().err
 
 
+def test_a_track_matched_nowhere_gets_a_hint_from_its_coordinates(
+    setup: tuple[Path, Path, AsciiMap], tmp_path: Path, capsys
+) -> None:
+    # lat and lon swapped, projected metres, another city, and points on the map far from its roads
+    map_path, _, m = setup
+    good = make_tracks(m, 1)[0]
+    lat, lon = np.asarray(good.lat), np.asarray(good.lon)
+    x0, y0 = m.xy("a")
+    cases = {
+        "swapped": (lon, lat, "would lie on it with lat and lon swapped"),
+        "metres": (np.full(len(lat), y0), np.full(len(lat), x0), "no point has lat/lon in degrees"),
+        "elsewhere": (lat - 10.0, lon + 20.0, "lie off the map"),
+    }
+    for name, (la, lo, hint) in cases.items():
+        f = tmp_path / f"{name}.csv"
+        write_tracks(f, [Track(name, np.asarray(good.time), la, lo)])
+        assert main(["match", "--map", str(map_path), str(f), "-o", str(tmp_path / f"{name}.out.csv")]) == 1
+        err = capsys.readouterr().err
+        assert f"mapmatch match: hint: track {name}: " in err and hint in err, err
+    # on the map but 1 km from every road: unmatched, and no coordinate mistake to point at
+    far = tmp_path / "far.csv"
+    ll = np.array([m.lonlat(x0 + 10.0 * i, y0 + 1000.0) for i in range(len(lat))])
+    write_tracks(far, [Track("far", np.asarray(good.time), ll[:, 1], ll[:, 0])])
+    assert main(["match", "--map", str(map_path), str(far), "-o", str(tmp_path / "far.out.csv")]) == 1
+    err = capsys.readouterr().err
+    assert "entirely unmatched" in err and "hint" not in err
+
+
 def test_match_command_sets_any_parameter_by_name(
     setup: tuple[Path, Path, AsciiMap], tmp_path: Path, capsys
 ) -> None:

@@ -26,7 +26,8 @@ row per track, route geometry plus the per-point lists), or a folder (partitione
 "-o -" writes the per-point CSV to standard output (and the summary to stderr).
 
 The run exits 1 (done with failures) when more than --max-unmatched of all points, or every
-point of some track, is unmatched (or there is no point at all), with a one-line summary.
+point of some track, is unmatched (or there is no point at all), with a one-line summary (and
+a hint when a whole track's coordinates are not degrees, off the map, or lat/lon swapped).
 
 Tracks run in parallel on the local cores, or on a Dask cluster with --scheduler. An
 interrupted run, started again with the same arguments, resumes: finished partitions
@@ -228,8 +229,59 @@ def _match(args: argparse.Namespace, inputs: list[Path], output: Path, *, out: A
     failed = _failure(counts, args.max_unmatched)
     if failed:
         print(f"mapmatch match: error: {failed}", file=sys.stderr)
+        lost = next((t for t, n, u in counts if n > 0 and u == n), None)
+        hint = _why_unmatched(inputs, columns, args.map, lost) if lost is not None else ""
+        if hint:
+            print(f"mapmatch match: hint: track {lost}: {hint}", file=sys.stderr)
         return EXIT_PARTIAL
     return EXIT_OK
+
+
+def _why_unmatched(inputs: list[Path], columns: Any, map_path: str, track_id: str) -> str:
+    """Why every point of track ``track_id`` is unmatched, when its coordinates tell: not degrees
+    (projected coordinates, wrong columns), off the map, or on it with lat and lon swapped; ""
+    when they do not (the points are on the map but far from its roads) or it cannot be read."""
+    import numpy as np
+
+    from mapmatch.graph.artifact import read_manifest
+    from mapmatch.io import read_tracks
+
+    try:
+        lon0, lat0, lon1, lat1 = (float(v) for v in read_manifest(map_path)["bbox"])
+        track = None
+        for inp in inputs:
+            if str(inp) == "-":
+                continue
+            track = next((t for t in read_tracks(inp, columns=columns) if str(t.track_id) == track_id), None)
+            if track is not None:
+                break
+    except Exception:  # a hint only: the run's own error is already reported
+        return ""
+    if track is None or not len(track.lat):
+        return ""
+    lat = np.asarray(track.lat, dtype=np.float64)
+    lon = np.asarray(track.lon, dtype=np.float64)
+    ok = np.isfinite(lat) & np.isfinite(lon) & (np.abs(lat) <= 90) & (np.abs(lon) <= 180)
+    if not ok.any():
+        return (
+            "no point has lat/lon in degrees (lat within ±90, lon within ±180): projected "
+            "coordinates, or the wrong columns (--lat-col, --lon-col)?"
+        )
+    margin = 0.05  # degrees: a few kilometres round the map's roads
+
+    def on_map(la: Any, lo: Any) -> Any:
+        return (la >= lat0 - margin) & (la <= lat1 + margin) & (lo >= lon0 - margin) & (lo <= lon1 + margin)
+
+    if on_map(lat[ok], lon[ok]).any():
+        return ""
+    where = f"lat {np.median(lat[ok]):.4f}, lon {np.median(lon[ok]):.4f}"
+    extent = f"lat {lat0:.4f} to {lat1:.4f}, lon {lon0:.4f} to {lon1:.4f}"
+    if on_map(lon[ok], lat[ok]).any():
+        return (
+            f"its points ({where}) lie off the map ({extent}) but would lie on it with lat and lon "
+            "swapped: check --lat-col and --lon-col"
+        )
+    return f"its points ({where}) lie off the map ({extent}): another city's map?"
 
 
 def unmatched_counts(output: Path) -> list[tuple[str, int, int]]:
