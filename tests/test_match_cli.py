@@ -136,16 +136,19 @@ def test_a_track_matched_nowhere_gets_a_hint_from_its_coordinates(
     for name, (la, lo, hint) in cases.items():
         f = tmp_path / f"{name}.csv"
         write_tracks(f, [Track(name, np.asarray(good.time), la, lo)])
-        assert main(["match", "--map", str(map_path), str(f), "-o", str(tmp_path / f"{name}.out.csv")]) == 1
+        out = str(tmp_path / f"{name}.out.csv")
+        assert main(["match", "--map", str(map_path), str(f), "-o", out, "--no-progress"]) == 1
         err = capsys.readouterr().err
-        assert f"mapmatch match: hint: track {name}: " in err and hint in err, err
+        assert err.count("\n") == 1 and f"entirely unmatched (first: {name}); track {name}: " in err, err
+        assert hint in err, err
     # on the map but 1 km from every road: unmatched, and no coordinate mistake to point at
     far = tmp_path / "far.csv"
     ll = np.array([m.lonlat(x0 + 10.0 * i, y0 + 1000.0) for i in range(len(lat))])
     write_tracks(far, [Track("far", np.asarray(good.time), ll[:, 1], ll[:, 0])])
-    assert main(["match", "--map", str(map_path), str(far), "-o", str(tmp_path / "far.out.csv")]) == 1
+    out = str(tmp_path / "far.out.csv")
+    assert main(["match", "--map", str(map_path), str(far), "-o", out, "--no-progress"]) == 1
     err = capsys.readouterr().err
-    assert "entirely unmatched" in err and "hint" not in err
+    assert err.count("\n") == 1 and err.rstrip().endswith("entirely unmatched (first: far)"), err
 
 
 def test_match_command_sets_any_parameter_by_name(

@@ -26,8 +26,8 @@ row per track, route geometry plus the per-point lists), or a folder (partitione
 "-o -" writes the per-point CSV to standard output (and the summary to stderr).
 
 The run exits 1 (done with failures) when more than --max-unmatched of all points, or every
-point of some track, is unmatched (or there is no point at all), with a one-line summary (and
-a hint when a whole track's coordinates are not degrees, off the map, or lat/lon swapped).
+point of some track, is unmatched (or there is no point at all), with a one-line summary that
+says why when a whole track's coordinates are not degrees, off the map, or lat/lon swapped.
 
 Tracks run in parallel on the local cores, or on a Dask cluster with --scheduler. An
 interrupted run, started again with the same arguments, resumes: finished partitions
@@ -228,11 +228,9 @@ def _match(args: argparse.Namespace, inputs: list[Path], output: Path, *, out: A
         )
     failed = _failure(counts, args.max_unmatched)
     if failed:
-        print(f"mapmatch match: error: {failed}", file=sys.stderr)
         lost = next((t for t, n, u in counts if n > 0 and u == n), None)
         hint = _why_unmatched(inputs, columns, args.map, lost) if lost is not None else ""
-        if hint:
-            print(f"mapmatch match: hint: track {lost}: {hint}", file=sys.stderr)
+        print(f"mapmatch match: error: {failed}{f'; track {lost}: {hint}' if hint else ''}", file=sys.stderr)
         return EXIT_PARTIAL
     return EXIT_OK
 
