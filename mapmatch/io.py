@@ -9,7 +9,9 @@ and renamed, never left half-written.
 
 from __future__ import annotations
 
+import dataclasses
 import json
+import logging
 import os
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
@@ -46,6 +48,16 @@ class Columns:
 
 
 DEFAULT_COLUMNS = Columns()
+COLUMN_ALIASES: dict[str, tuple[str, ...]] = {
+    "id": ("track_id", "trip_id", "vehicle_id", "track", "trip", "vehicle"),
+    "time": ("timestamp", "datetime", "date_time", "t", "ts", "time_s", "seconds"),
+    "lat": ("latitude", "lat_deg"),
+    "lon": ("lng", "long", "longitude", "lon_deg"),
+    "heading": ("course", "bearing"),
+}
+"""Other common names of a column of :class:`Columns`, tried case-insensitively when a file
+lacks the default name (:func:`resolve_columns`). Speed is not among them: its unit varies."""
+log = logging.getLogger(__name__)
 LINE_SUFFIXES = (".geojson", ".json", ".gpkg", ".shp", ".fgb")
 """GIS files whose line features are tracks (one track per line, its vertices the points)."""
 TRACK_SUFFIXES = (".csv", ".csv.gz", ".gpx", ".parquet", ".geoparquet", ".pq", *LINE_SUFFIXES)
@@ -170,6 +182,7 @@ def read_tracks_csv(path: str | os.PathLike[str], *, columns: Columns = DEFAULT_
         df = pd.read_csv(path, sep=_csv_separator(path))
     except (pd.errors.ParserError, UnicodeDecodeError, pd.errors.EmptyDataError) as exc:
         raise TrackInputError(f"{path}: not a readable CSV file ({exc})") from exc
+    columns = resolve_columns(df.columns, columns)
     wkt = next((c for c in df.columns if str(c).lower() in WKT_COLUMNS), None)
     if wkt is not None and not (columns.lat in df.columns and columns.lon in df.columns):
         import shapely
@@ -276,6 +289,7 @@ def read_tracks_parquet(path: str | os.PathLike[str], *, columns: Columns = DEFA
         raise TrackInputError(f"{path}: not a readable Parquet file ({exc})") from exc
     meta = table.schema.metadata or {}
     df = table.to_pandas()
+    columns = resolve_columns(df.columns, columns)
     if (columns.lat not in df or columns.lon not in df) and b"geo" in meta:
         import shapely
 
@@ -349,14 +363,37 @@ def _gpx_value(point: Any, name: str) -> float:
     return out if np.isfinite(out) else np.nan
 
 
+def resolve_columns(names: Iterable[Any], columns: Columns = DEFAULT_COLUMNS) -> Columns:
+    """``columns`` for a table with columns ``names``: a default name the table lacks becomes
+    the table's one column that is that name in another case or one of its
+    :data:`COLUMN_ALIASES` (``t``, ``timestamp``; ``latitude``; ``lng``, ...), when there is
+    exactly one. Names the caller chose stay as they are."""
+    present = [str(n) for n in names]
+    by_lower: dict[str, list[str]] = {}
+    for n in present:
+        by_lower.setdefault(n.strip().lower(), []).append(n)
+    changes: dict[str, str] = {}
+    for field, aliases in COLUMN_ALIASES.items():
+        name = getattr(columns, field)
+        if name != getattr(DEFAULT_COLUMNS, field) or name in present:
+            continue
+        found = [n for a in (name, *aliases) for n in by_lower.get(a, [])]
+        if len(found) == 1:
+            changes[field] = found[0]
+            log.info("reading column %r as %s", found[0], field)
+    return dataclasses.replace(columns, **changes) if changes else columns
+
+
 def tracks_from_frame(
     df: pd.DataFrame, *, columns: Columns = DEFAULT_COLUMNS, default_id: str
 ) -> list[Track]:
     """Split a point table into tracks by the id column, in order of first appearance.
 
     The lat, lon and time columns are required (``columns.time == ""`` reads tracks without
-    times); without the id column the table is one track named ``default_id``.
+    times), under their names or a common other name (:func:`resolve_columns`); without the id
+    column the table is one track named ``default_id``.
     """
+    columns = resolve_columns(df.columns, columns)
     for need in (columns.lat, columns.lon, columns.time):
         if need and need not in df.columns:
             hint = " (or an empty --time-col for tracks without times)" if need == columns.time else ""

@@ -248,12 +248,12 @@ def test_match_missing_time_column_is_named(grid: tuple[AsciiMap, Path], tmp_pat
     m, map_path = grid
     src = tmp_path / "t.csv"
     write_tracks(src, [grid_track(m, "v1")])
-    pd.read_csv(src).rename(columns={"time": "t"}).to_csv(src, index=False)
+    pd.read_csv(src).rename(columns={"time": "clock"}).to_csv(src, index=False)
     assert match(map_path, src, out=tmp_path / "o.csv") == EXIT_USAGE
     err = capsys.readouterr().err
     one_line_error(err, "match")
     assert "'time'" in err and "--time-col" in err
-    assert match(map_path, src, out=tmp_path / "o.csv", extra=("--time-col", "t")) == EXIT_OK
+    assert match(map_path, src, out=tmp_path / "o.csv", extra=("--time-col", "clock")) == EXIT_OK
 
 
 def _damaged(map_path: Path, old: bytes, new: bytes) -> Path:

@@ -129,6 +129,33 @@ def test_csv_without_id_is_one_track(tmp_path: Path) -> None:
     assert t.track_id == "drive" and len(t) == 2
 
 
+def test_common_other_column_names_are_read_without_options(tmp_path: Path) -> None:
+    # Kubicka's t, a GPS logger's Latitude/Lng/Timestamp, a fleet's trip_id: no --*-col needed
+    p = tmp_path / "kubicka.csv"
+    p.write_text("t,lat,lon\n1,43.3887,77.1221\n2,43.3888,77.1222\n")
+    (t,) = read_tracks(p)
+    assert list(t.time) == [1.0, 2.0] and t.lat[1] == 43.3888
+    p = tmp_path / "logger.csv"
+    p.write_text(
+        "trip_id,Timestamp,Latitude,Lng,course\n"
+        "a,2024-05-01T10:00:00Z,60.1,24.9,90\n"
+        "b,2024-05-01T10:00:00Z,60.2,24.8,180\n"
+        "a,2024-05-01T10:00:05Z,60.1001,24.9001,91\n"
+    )
+    a, b = read_tracks(p)
+    assert (a.track_id, b.track_id) == ("a", "b")
+    assert a.time[1] - a.time[0] == 5.0 and a.lon[1] == 24.9001
+    assert a.heading is not None and list(a.heading) == [90.0, 91.0]
+    pd.read_csv(p).to_parquet(tmp_path / "logger.parquet")
+    assert [x.track_id for x in read_tracks(tmp_path / "logger.parquet")] == ["a", "b"]
+    # a name the user chose is not replaced, and two candidates are no answer
+    with pytest.raises(TrackInputError, match="missing column 'when'"):
+        read_tracks(p, columns=Columns(time="when"))
+    p.write_text("t,timestamp,lat,lon\n1,1,60.1,24.9\n")
+    with pytest.raises(TrackInputError, match="missing column 'time'"):
+        read_tracks(p)
+
+
 def test_geoparquet_points_input(tmp_path: Path) -> None:
     import geopandas as gpd
 

@@ -14,7 +14,8 @@ DESCRIPTION = """\
 Match historic tracks to the road network of a prepared map (Viterbi over each whole track).
 
 INPUT files are CSV (columns id,time,lat,lon plus heading and speed when present; names set
-with --id-col etc.; time as seconds or ISO-8601; "-" reads CSV from standard input), GPX
+with --id-col etc., or common other names found: t, timestamp, latitude, lng, trip_id, ...;
+time as seconds or ISO-8601; "-" reads CSV from standard input), GPX
 (one track per <trk>), Parquet or GeoParquet (lat/lon columns, or point geometry), folders
 of Parquet parts, or tracks drawn as lines: GIS files (.geojson, .gpkg, .shp, .fgb; one track
 per line feature, its vertices the points, times from M values or a "timestamp" field) and
