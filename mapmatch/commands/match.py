@@ -6,9 +6,12 @@ import argparse
 import math
 import sys
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from mapmatch.config import UBODT_MAX_BYTES
+
+if TYPE_CHECKING:
+    from mapmatch.io import Columns
 
 DESCRIPTION = """\
 Match historic tracks to the road network of a prepared map (Viterbi over each whole track).
@@ -236,10 +239,16 @@ def _match(args: argparse.Namespace, inputs: list[Path], output: Path, *, out: A
     return EXIT_OK
 
 
-def _why_unmatched(inputs: list[Path], columns: Any, map_path: str, track_id: str) -> str:
+HINT_MAX_BYTES = 256 << 20
+"""Input files up to this size are read again for :func:`_why_unmatched` (a hint is not worth
+reading a fleet's history twice)."""
+
+
+def _why_unmatched(inputs: list[Path], columns: Columns, map_path: str, track_id: str) -> str:
     """Why every point of track ``track_id`` is unmatched, when its coordinates tell: not degrees
     (projected coordinates, wrong columns), off the map, or on it with lat and lon swapped; ""
-    when they do not (the points are on the map but far from its roads) or it cannot be read."""
+    when they do not (the points are on the map but far from its roads) or the track is not in
+    a file of at most :data:`HINT_MAX_BYTES` that can be read."""
     import numpy as np
 
     from mapmatch.graph.artifact import read_manifest
@@ -249,7 +258,7 @@ def _why_unmatched(inputs: list[Path], columns: Any, map_path: str, track_id: st
         lon0, lat0, lon1, lat1 = (float(v) for v in read_manifest(map_path)["bbox"])
         track = None
         for inp in inputs:
-            if str(inp) == "-":
+            if str(inp) == "-" or not inp.is_file() or inp.stat().st_size > HINT_MAX_BYTES:
                 continue
             track = next((t for t in read_tracks(inp, columns=columns) if str(t.track_id) == track_id), None)
             if track is not None:
