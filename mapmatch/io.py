@@ -17,7 +17,7 @@ from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 from datetime import UTC, datetime
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeVar
 
 import numpy as np
 import pandas as pd
@@ -50,13 +50,15 @@ class Columns:
 DEFAULT_COLUMNS = Columns()
 COLUMN_ALIASES: dict[str, tuple[str, ...]] = {
     "id": ("track_id", "trip_id", "vehicle_id", "track", "trip", "vehicle"),
+    "vehicle_id": ("vehicle", "id", "track_id", "trip_id", "track", "trip"),
     "time": ("timestamp", "datetime", "date_time", "t", "ts", "time_s", "seconds"),
     "lat": ("latitude", "lat_deg"),
     "lon": ("lng", "long", "longitude", "lon_deg"),
     "heading": ("course", "bearing"),
 }
-"""Other common names of a column of :class:`Columns`, tried case-insensitively when a file
-lacks the default name (:func:`resolve_columns`). Speed is not among them: its unit varies."""
+"""Other common names of a column of :class:`Columns` or :class:`FixColumns`, tried
+case-insensitively when a file lacks the default name (:func:`resolve_columns`). Speed is not
+among them: its unit varies."""
 log = logging.getLogger(__name__)
 LINE_SUFFIXES = (".geojson", ".json", ".gpkg", ".shp", ".fgb")
 """GIS files whose line features are tracks (one track per line, its vertices the points)."""
@@ -94,6 +96,9 @@ class FixColumns:
     gps_valid: str = "gps_valid"
 
 
+ColumnsT = TypeVar("ColumnsT", Columns, FixColumns)
+
+
 def read_fixes(
     source: str | os.PathLike[str], *, columns: FixColumns = FixColumns(), default_vehicle: str = ""
 ) -> dict[str, list[Any]]:
@@ -121,6 +126,7 @@ def read_fixes(
     except (pd.errors.ParserError, UnicodeDecodeError) as exc:
         raise ValidationError("file", f"{name} is not a readable CSV ({exc})") from None
     df.columns = [str(c).strip() for c in df.columns]
+    columns = resolve_columns(df.columns, columns)
     for need in (columns.time, columns.lat, columns.lon):
         if need not in df.columns:
             raise ValidationError(
@@ -363,24 +369,26 @@ def _gpx_value(point: Any, name: str) -> float:
     return out if np.isfinite(out) else np.nan
 
 
-def resolve_columns(names: Iterable[Any], columns: Columns = DEFAULT_COLUMNS) -> Columns:
-    """``columns`` for a table with columns ``names``: a default name the table lacks becomes
-    the table's one column that is that name in another case or one of its
-    :data:`COLUMN_ALIASES` (``t``, ``timestamp``; ``latitude``; ``lng``, ...), when there is
-    exactly one. Names the caller chose stay as they are."""
+def resolve_columns(names: Iterable[Any], columns: ColumnsT) -> ColumnsT:
+    """``columns`` (:class:`Columns` or :class:`FixColumns`) for a table with columns ``names``:
+    a default name the table lacks becomes the table's one column that is that name in another
+    case or one of its :data:`COLUMN_ALIASES` (``t``, ``timestamp``; ``latitude``; ``lng``,
+    ...), when there is exactly one. Names the caller chose stay as they are."""
     present = [str(n) for n in names]
     by_lower: dict[str, list[str]] = {}
     for n in present:
         by_lower.setdefault(n.strip().lower(), []).append(n)
+    defaults = type(columns)()
     changes: dict[str, str] = {}
-    for field, aliases in COLUMN_ALIASES.items():
-        name = getattr(columns, field)
-        if name != getattr(DEFAULT_COLUMNS, field) or name in present:
+    for field in dataclasses.fields(columns):
+        aliases: tuple[str, ...] = COLUMN_ALIASES.get(field.name, ())
+        name: str = getattr(columns, field.name)
+        if name != getattr(defaults, field.name) or name in present:
             continue
-        found = [n for a in (name, *aliases) for n in by_lower.get(a, [])]
+        found = [n for a in dict.fromkeys((name, *aliases)) for n in by_lower.get(a, [])]
         if len(found) == 1:
-            changes[field] = found[0]
-            log.info("reading column %r as %s", found[0], field)
+            changes[field.name] = found[0]
+            log.info("reading column %r as %s", found[0], field.name)
     return dataclasses.replace(columns, **changes) if changes else columns
 
 

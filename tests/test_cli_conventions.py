@@ -123,18 +123,18 @@ def test_replay_column_options_and_optional_vehicle_and_heading(
     src = fixes_csv(m, tmp_path / "fixes.csv")
     ref = tmp_path / "ref.csv"
     assert main(["replay", "--map", str(map_path), str(src), "-o", str(ref)]) == 0
-    df = pd.read_csv(src).rename(columns={"time": "t", "lat": "y", "lon": "x", "speed": "v"})
+    df = pd.read_csv(src).rename(columns={"time": "clock", "lat": "y", "lon": "x", "speed": "v"})
     renamed = tmp_path / "renamed.csv"
     df.to_csv(renamed, index=False)
     out = tmp_path / "out.csv"
     rc = main(["replay", "--map", str(map_path), str(renamed), "-o", str(out),
-               "--time-col", "t", "--lat-col", "y", "--lon-col", "x", "--speed-col", "v"])  # fmt: skip
+               "--time-col", "clock", "--lat-col", "y", "--lon-col", "x", "--speed-col", "v"])  # fmt: skip
     assert rc == 0
     assert out.read_text() == ref.read_text()
     # no vehicle_id and no heading column: one vehicle named after the file, headings unknown
     df.drop(columns=["vehicle_id", "heading"]).to_csv(tmp_path / "car-9.csv", index=False)
     rc = main(["replay", "--map", str(map_path), str(tmp_path / "car-9.csv"), "-o", str(out),
-               "--time-col", "t", "--lat-col", "y", "--lon-col", "x", "--speed-col", "v"])  # fmt: skip
+               "--time-col", "clock", "--lat-col", "y", "--lon-col", "x", "--speed-col", "v"])  # fmt: skip
     assert rc == 0
     res = pd.read_csv(out)
     assert set(res["vehicle_id"]) == {"car-9"} and (res["state"] == "on_road").mean() > 0.5
@@ -146,7 +146,7 @@ def test_replay_column_options_and_optional_vehicle_and_heading(
     assert rc == EXIT_USAGE
     err = capsys.readouterr().err
     one_line_error(err, "replay")
-    assert "'time'" in err and "t, y, x" in err
+    assert "'time'" in err and "clock, y, x" in err
 
 
 def test_replay_reads_stdin_and_writes_stdout(cross: tuple[AsciiMap, Path], tmp_path: Path) -> None:

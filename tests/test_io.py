@@ -16,6 +16,7 @@ from mapmatch.io import (
     Columns,
     TrackInputError,
     points_frame,
+    read_fixes,
     read_results,
     read_tracks,
     results_table,
@@ -154,6 +155,16 @@ def test_common_other_column_names_are_read_without_options(tmp_path: Path) -> N
     p.write_text("t,timestamp,lat,lon\n1,1,60.1,24.9\n")
     with pytest.raises(TrackInputError, match="missing column 'time'"):
         read_tracks(p)
+
+
+def test_fused_fixes_with_common_other_column_names(tmp_path: Path) -> None:
+    # mapmatch replay's input: a plain GPS log (id, t, Latitude, lng, course) needs no options
+    p = tmp_path / "log.csv"
+    p.write_text("id,t,Latitude,lng,course\nv1,1,60.1,24.9,90\nv2,1,60.2,24.8,180\nv1,2,60.1001,24.9001,91\n")
+    fixes = read_fixes(p)
+    assert sorted(fixes) == ["v1", "v2"]
+    got = [(f.time, f.lat, f.lon, f.heading) for f in fixes["v1"]]
+    assert got == [(1.0, 60.1, 24.9, 90.0), (2.0, 60.1001, 24.9001, 91.0)]
 
 
 def test_geoparquet_points_input(tmp_path: Path) -> None:
