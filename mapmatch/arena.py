@@ -7,6 +7,9 @@ pieces are overwritten by the next call of the same thread, so they must not out
 answer is copied out by :func:`mapmatch.batch.run.pack`). When a buffer is used up the piece
 is allocated as before, and ``top`` still counts it, so the caller can grow the arena
 (:meth:`Arena.grown`) for the next call.
+
+Also :func:`read_only`, the view every map array a kernel only reads goes in as, so that a map
+read from its file and one built in memory share one compile.
 """
 
 from __future__ import annotations

@@ -398,10 +398,9 @@ def tracks_from_frame(
     """Split a point table into tracks by the id column, in order of first appearance.
 
     The lat, lon and time columns are required (``columns.time == ""`` reads tracks without
-    times), under their names or a common other name (:func:`resolve_columns`); without the id
-    column the table is one track named ``default_id``.
+    times), under the names of ``columns`` (the readers first resolve common other names:
+    :func:`resolve_columns`); without the id column the table is one track named ``default_id``.
     """
-    columns = resolve_columns(df.columns, columns)
     for need in (columns.lat, columns.lon, columns.time):
         if need and need not in df.columns:
             hint = " (or an empty --time-col for tracks without times)" if need == columns.time else ""
