@@ -10,6 +10,7 @@ S and one over all of them.
 
     python bench/hash_batch.py                 # all 15 tracks, S = 1, 10, 30
     python bench/hash_batch.py --ids 0,14 --S 30
+    python bench/hash_batch.py --set detour_cost_max=20    # which answers a setting changes
 """
 
 from __future__ import annotations
@@ -75,7 +76,11 @@ def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--ids", default="all", help="all, or comma-separated track numbers")
     ap.add_argument("--S", default="1,10,30")
+    ap.add_argument("--set", action="append", default=[], dest="settings", metavar="NAME=VALUE")
     a = ap.parse_args()
+    from mapmatch.batch import BATCH_CONFIG
+
+    config = BATCH_CONFIG.with_settings(a.settings)
     peers_adapter, data, names = _tracks(a.ids)
     total = hashlib.sha256()
     for name in names:
@@ -86,7 +91,7 @@ def main() -> int:
         t, lat, lon = raw[:, cols["t"]], raw[:, cols["lat"]], raw[:, cols["lon"]]
         for s in (int(x) for x in a.S.split(",")):
             idx = np.asarray(subsample(len(t), s))
-            res = matcher.match(Track(name, t[idx], lat[idx], lon[idx]))
+            res = matcher.match(Track(name, t[idx], lat[idx], lon[idx]), config)
             d = digest(res)
             total.update(f"{name}/{s}/{d}".encode())
             print(f"{name} S={s:2d} points={len(idx):5d} {d[:16]}", flush=True)

@@ -412,11 +412,12 @@ class BatchConfig:
     outlier_lookahead : 1: where a fix cannot be reached from the previous kept fix, also try
         leaving out that previous fix instead, and keep whichever choice reaches the next fix
         with the higher score (a stray fix on a side road is dropped, not the good one after
-        it); and where a fix is reached only after leaving out two or more before it, also try
-        leaving out the fix before them instead (a stray fix followed by another, or by a road
-        that does not lead on); and where the two steps through a fix cost more than
-        ``leave_out_cost``, also try the step past it (a stray fix the route bent to); 0:
-        always leave out the unreachable fix, visit every reachable one.
+        it; where the previous fix starts its piece, the fix starts it instead: a first fix in
+        a car park by some other road); and where a fix is reached only after leaving out two
+        or more before it, also try leaving out the fix before them instead (a stray fix
+        followed by another, or by a road that does not lead on); and where the two steps
+        through a fix cost more than ``leave_out_cost``, also try the step past it (a stray fix
+        the route bent to); 0: always leave out the unreachable fix, visit every reachable one.
     leave_out_cost : log-probability each fix left out as an outlier costs where leaving fixes
         out competes with visiting them (``outlier_lookahead``): 12.5 = ½ 5², a fix at the
         off-map limit of 5 σ. The other choice is taken only if it wins by more than this.
@@ -432,6 +433,16 @@ class BatchConfig:
         The detour is what is judged, not the speed: fixes that themselves move too fast tell
         of their timestamps, not of the road.
     split_slack : metres of fix noise allowed on top of ``split_speed`` over a step.
+    detour_cost_max : a route longer than the distance travelled between its two fixes by more
+        than this many of the step's β (the detour's cost in the transition's log-probability)
+        is impossible, whatever the time allows: the fix is left out as an outlier, or the
+        match splits there (0: no limit). A fix beside some road where the map ends (a car park,
+        an unmapped lane) is then not joined to the route by a long way round. REAL Kubicka
+        tracks: the costliest detour of a matched step is 17 (a U-turn's penalty comes on top),
+        and no answer changes from 0 to 20. On them with the roads at the true route's ends
+        removed (SIMULATED, ``bench/bench_batch_ends.py``), the mean road added at S = 1 / 10 /
+        30 s is 659 / 947 / 974 m with 0 and 156 / 503 / 921 m with 25; 20 adds less at 10 and
+        30 s but more of the SIMULATED noise and jump sets' mismatch at 10 s.
     spike_speed : m/s; a fix the track reaches and leaves in opposite directions, both legs
         longer than ``spike_sigmas`` σ, is dropped as a jump when visiting it needs more than
         this mean speed between its neighbours (turning round needs slowing down; 0 disables).
@@ -488,6 +499,7 @@ class BatchConfig:
     stop_uturn_penalty: float = 1.0
     split_speed: float = 50.0
     split_slack: float = 50.0
+    detour_cost_max: float = 25.0
     spike_speed: float = 20.0
     spike_sigmas: float = 3.0
     spike_max_time: float = 5.0

@@ -442,6 +442,58 @@ def test_a_run_off_the_map_cuts_the_route() -> None:
     assert r.splits == [] and len(r.routes) == 1
 
 
+CAR_PARK_MAP = """
+        d----------------------------------------e
+                                                 |
+                                                 |
+                                                 |
+                                                 |
+        a----------------------------------------b
+        """
+"""Two roads 100 m apart, joined 400 m away: a car park between them is near de, off ab."""
+
+
+def test_a_first_fix_in_a_car_park_by_another_road_is_left_out_not_a_piece() -> None:
+    # the track starts 28 m south of de (within 5 σ), drives down an unmapped lane and east
+    # along ab: no route joins de to ab in time, so the first fix, not the drive, is left out
+    m = parse_ascii_map(CAR_PARK_MAP, scale=10)
+    drive = [at(m, "a", x, 1) for x in range(25, 200, 25)]
+    track = track_from_xy(m, [at(m, "d", 20, -28), at(m, "d", 22, -50), *drive])
+    r = BatchMatcher(m.graph).match(track)
+    assert [names(m, piece) for piece in r.routes] == [["ab"]]
+    assert [p.status for p in r.points][:2] == [PointStatus.UNMATCHED] * 2
+    assert r.length_m == pytest.approx(175 - 25, abs=2)
+    # without weighing the first fix against the next (outlier_lookahead) it is a piece alone
+    r = BatchMatcher(m.graph).match(track, DEFAULT_CONFIG.replace(outlier_lookahead=0))
+    assert r.splits == [2] and [names(m, piece) for piece in r.routes] == [["de"], ["ab"]]
+
+
+def test_fixes_in_a_car_park_are_not_joined_to_the_drive_by_a_long_way_round() -> None:
+    # the track starts 28 m south of de and waits on an unmapped lane for a minute (fixes 20 s
+    # apart, 50 m from each road) before driving west along ab. The time allows the 900 m
+    # round by e and b, but that detour costs more than ``detour_cost_max`` β: the car park's
+    # fixes are left unmatched. The same at the end of a track.
+    m = parse_ascii_map(CAR_PARK_MAP, scale=10)
+    park = [at(m, "d", 20, -28)] + [at(m, "d", 30 + 20 * k, -50) for k in (1, 2, 3)]
+    drive = [at(m, "a", x, -1) for x in range(140, 0, -12)]
+    n = len(drive)
+
+    def track(xy: list[tuple[float, float]], t: list[float]) -> Track:
+        ll = np.array([m.lonlat(x, y) for x, y in xy])
+        return Track("t", np.asarray(t, dtype=np.float64), ll[:, 1], ll[:, 0])
+
+    start = track(park + drive, [0, 20, 40, 60] + [70 + 5 * k for k in range(n)])
+    end_times = [5 * k for k in range(n)] + [5 * n + k for k in (5, 25, 45, 65)]
+    end = track(drive[::-1] + [(x + 40, y) for x, y in park[::-1]], end_times)
+    for trk, route, out in ((start, ["ba"], slice(0, 4)), (end, ["ab"], slice(n, None))):
+        r = BatchMatcher(m.graph).match(trk)
+        assert [names(m, piece) for piece in r.routes] == [route]
+        assert set(p.status for p in r.points[out]) == {PointStatus.UNMATCHED}
+        assert r.length_m == pytest.approx(132, abs=2)
+        loose = BatchMatcher(m.graph).match(trk, DEFAULT_CONFIG.replace(detour_cost_max=0))
+        assert loose.length_m > 800  # round by e and b
+
+
 def test_impossible_step_splits_the_match() -> None:
     # a peer's case: b and c are 60 m apart but 260 m of road round the block; a detour of
     # 200 m in 1 s is impossible: the match splits rather than drive it
@@ -634,10 +686,16 @@ def test_a_stray_fix_followed_by_another_is_dropped_not_the_good_fixes_after_the
     r = BatchMatcher(m.graph).match(track)
     assert [names(m, piece) for piece in r.routes] == [["ab", "bc"]]
     assert [p.status for p in r.points] == ["matched"] * 2 + ["unmatched"] * 2 + ["matched"] * 4
-    # without trying the fix before a run left out: the trip up hd, three good fixes lost
-    greedy = BatchMatcher(m.graph).match(track, DEFAULT_CONFIG.replace(outlier_lookahead=0))
+    # without trying the fix before a run left out, and with any detour the time allows: the
+    # trip up hd, three good fixes lost
+    loose = DEFAULT_CONFIG.replace(outlier_lookahead=0, detour_cost_max=0)
+    greedy = BatchMatcher(m.graph).match(track, loose)
     assert names(m, greedy.routes[0]) == ["ab", "bh", "hd", "dh", "hb", "bc"]
     assert [p.status for p in greedy.points][2:6] == ["matched", "unmatched", "unmatched", "unmatched"]
+    # the way back down hd to 4 is a detour of 630 m over 100 m: beyond ``detour_cost_max`` β,
+    # 4 is out of reach from 2 however the fixes are weighed: 2 is left out with 3
+    greedy = BatchMatcher(m.graph).match(track, DEFAULT_CONFIG.replace(outlier_lookahead=0))
+    assert [names(m, piece) for piece in greedy.routes] == [["ab", "bc"]]
 
 
 def _with_speeds(amap: AsciiMap, kph: dict[str, float]) -> AsciiMap:

@@ -109,6 +109,8 @@ class KernelParams(NamedTuple):
     split_speed: float
     """m/s; 0: no speed check on steps."""
     split_slack: float
+    detour_cost_max: float
+    """Routes longer than the travelled distance by more than this many β are impossible (0: no limit)."""
     off_map_sigmas: float
     off_map_cut: float
     off_map_min_run: int
@@ -157,6 +159,7 @@ def kernel_params(cfg: MatchConfig, sigma: float) -> KernelParams:
         reverse_tol=float(cfg.reverse_tolerance),
         split_speed=float(cfg.split_speed),
         split_slack=float(cfg.split_slack),
+        detour_cost_max=float(cfg.detour_cost_max),
         off_map_sigmas=float(cfg.off_map_sigmas),
         off_map_cut=float(cfg.off_map_cut),
         off_map_min_run=int(cfg.off_map_min_run),

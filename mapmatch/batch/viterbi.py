@@ -213,17 +213,19 @@ def _try_step(prev, t, d, lat, tr, p, router):  # type: ignore[no-untyped-def]
     if np.isfinite(od) and od > 0:
         trav = od
     dt = lat.ptime[t] - lat.ptime[prev]
+    beta0 = p.transition[0]
+    if dt > 0:  # driving time: the step's mean fix interval (a stop's fixes are interpolated)
+        beta0 += p.beta_per_s * dt / max(lat.pts[t] - lat.pts[prev], 1)
     vcap = np.inf  # the longest route the time between the fixes allows: the straight line
     if p.split_speed > 0 and dt > 0:  # plus the detour that time allows
         vcap = d + p.split_speed * dt + p.split_slack
+    if p.detour_cost_max > 0:  # and the longest detour the transition allows
+        vcap = min(vcap, trav + (beta0 + p.transition[4] * trav) * p.detour_cost_max)
     reach = p.route_factor * trav + p.route_slack
     if dt > 0:
         reach = max(reach, p.route_speed * dt)
     bound = min(reach, vcap)
     tight = min(bound, trav + p.lp_cut_m)
-    beta0 = p.transition[0]
-    if dt > 0:  # driving time: the step's mean fix interval (a stop's fixes are interpolated)
-        beta0 += p.beta_per_s * dt / max(lat.pts[t] - lat.pts[prev], 1)
     stop = p.stop  # (stop speed, stop time, U-turn penalty across a stop)
     node_uturn = p.transition[3]
     if dt >= stop[1] and d < stop[0] * dt:
@@ -312,7 +314,8 @@ def _best(score, a, b):  # type: ignore[no-untyped-def]
 @njit(cache=True, nogil=True)
 def _drop_one(q, prev, t, lat, tr, p, router, saved):  # type: ignore[no-untyped-def]
     """``t`` is unreachable from ``prev``: leave out ``t`` (step ``prev`` -> ``t + 1``) or
-    ``prev`` (steps ``q`` -> ``t`` -> ``t + 1``), whichever scores higher at ``t + 1``.
+    ``prev`` (steps ``q`` -> ``t`` -> ``t + 1``; ``q`` -1: ``prev`` starts its piece, and ``t``
+    starts it instead), whichever scores higher at ``t + 1``.
 
     Returns the point kept of the two (-1: neither reaches ``t + 1``; scores at ``t`` and
     ``t + 1`` are then to be recomputed). ``saved.bound`` gets the chosen steps' route bounds.
@@ -327,10 +330,16 @@ def _drop_one(q, prev, t, lat, tr, p, router, saved):  # type: ignore[no-untyped
             saved.bound[1] = bound
             s_drop_t = _save(tr, saved, b0, b1)
     s_drop_prev = -np.inf
-    ok1, d1 = _joinable(q, t, lat, p) if q >= 0 else (False, 0.0)
+    ok1, d1 = _joinable(q, t, lat, p) if q >= 0 else (True, 0.0)
     ok2, d2 = _joinable(t, t + 1, lat, p)
     if ok1 and ok2:
-        r1, bound1 = _try_step(q, t, d1, lat, tr, p, router)
+        r1, bound1 = True, 0.0
+        if q >= 0:
+            r1, bound1 = _try_step(q, t, d1, lat, tr, p, router)
+        else:  # ``t`` starts the piece
+            for j in range(ptr[t], ptr[t + 1]):
+                tr.score[j] = lat.emis[j]
+                tr.bp[j] = -1
         if r1:
             r2, bound2 = _try_step(t, t + 1, d2, lat, tr, p, router)
             if r2:
@@ -526,8 +535,8 @@ def solve(lat: Lattice, p: KernelParams, router, ar):  # type: ignore[no-untyped
                 nskip = 0
                 t += 1
                 continue
-            if nskip == 0 and p.outlier_lookahead and t + 1 < m and not seg_start[prev]:
-                q = prev_pt[prev]
+            if nskip == 0 and p.outlier_lookahead and t + 1 < m:
+                q = -1 if seg_start[prev] else prev_pt[prev]
                 kept = _drop_one(q, prev, t, lat, tr, p, router, saved)
                 if kept >= 0:  # one of prev, t left out; t + 1 reached
                     if kept == t:
@@ -535,6 +544,9 @@ def solve(lat: Lattice, p: KernelParams, router, ar):  # type: ignore[no-untyped
                         accepted[t] = True
                         prev_pt[t] = q
                         used_bound[t] = saved.bound[0]
+                        if seg_start[prev]:
+                            seg_start[prev] = False
+                            seg_start[t] = True
                         prev_pt[t + 1] = t
                     else:
                         prev_pt[t + 1] = prev
