@@ -409,9 +409,13 @@ def test_fixes_off_the_map_at_the_end_are_unmatched_not_routed_to_a_far_road() -
     assert [names(m, piece) for piece in r.routes] == [["ae"]]
     assert [p.status for p in r.points][6:] == [PointStatus.UNMATCHED] * 4
     assert r.length_m == pytest.approx(60, abs=2)
-    # with the σ rule off (only the fixed outlier distance) the car park is routed to cd
+    # with the σ rule off (only the fixed outlier distance) the car park's fixes are costly
+    # to visit (their emissions, 5 σ and more, and the way round): still left out
     track = track_from_xy(m, road + park)
     loose = BatchMatcher(m.graph).match(track, DEFAULT_CONFIG.replace(off_map_sigmas=0))
+    assert [names(m, piece) for piece in loose.routes] == [["ae"]]
+    # and with every fix at the ends visited too, the car park is routed to cd
+    loose = BatchMatcher(m.graph).match(track, DEFAULT_CONFIG.replace(off_map_sigmas=0, outlier_lookahead=0))
     assert loose.length_m > 150
 
 
@@ -490,8 +494,36 @@ def test_fixes_in_a_car_park_are_not_joined_to_the_drive_by_a_long_way_round() -
         assert [names(m, piece) for piece in r.routes] == [route]
         assert set(p.status for p in r.points[out]) == {PointStatus.UNMATCHED}
         assert r.length_m == pytest.approx(132, abs=2)
-        loose = BatchMatcher(m.graph).match(trk, DEFAULT_CONFIG.replace(detour_cost_max=0))
-        assert loose.length_m > 800  # round by e and b
+        # with any detour the time allows, and every fix at the ends visited: round by e and b
+        loose = DEFAULT_CONFIG.replace(detour_cost_max=0, outlier_lookahead=0)
+        assert BatchMatcher(m.graph).match(trk, loose).length_m > 800
+
+
+def test_a_last_fix_in_a_car_park_minutes_later_is_left_out_not_driven_to() -> None:
+    # the track drives east along ab, crosses an unmapped lane (fixes 50 m from both roads)
+    # and its last fix, five minutes later, lies in a car park 28 m south of de. The time
+    # allows the 500 m round by b and e, but visiting the fix would cost its emission (3.5 σ)
+    # plus that detour (9 β): more than ``leave_out_cost``, so the route ends on ab. The same
+    # for a first fix minutes before the drive.
+    m = parse_ascii_map(CAR_PARK_MAP, scale=10)
+    drive = [at(m, "a", x, 1) for x in range(25, 225, 25)]
+    n = len(drive)
+
+    def track(xy: list[tuple[float, float]], t: list[float]) -> Track:
+        ll = np.array([m.lonlat(x, y) for x, y in xy])
+        return Track("t", np.asarray(t, dtype=np.float64), ll[:, 1], ll[:, 0])
+
+    park_last = [at(m, "d", 215, -50), at(m, "d", 220, -50), at(m, "d", 225, -28)]
+    end = track(drive + park_last, [5.0 * k for k in range(n)] + [5 * n + 5, 5 * n + 15, 5 * n + 300])
+    park_first = [at(m, "d", 15, -28), at(m, "d", 20, -50), at(m, "d", 25, -50)]
+    start = track(park_first + drive, [0, 285, 295] + [300 + 5 * k for k in range(n)])
+    for trk, out in ((end, slice(n, None)), (start, slice(0, 3))):
+        r = BatchMatcher(m.graph).match(trk)
+        assert [names(m, piece) for piece in r.routes] == [["ab"]]
+        assert set(p.status for p in r.points[out]) == {PointStatus.UNMATCHED}
+        assert r.length_m == pytest.approx(175, abs=2)
+        greedy = BatchMatcher(m.graph).match(trk, DEFAULT_CONFIG.replace(outlier_lookahead=0))
+        assert greedy.length_m > 600  # round by b and e
 
 
 def test_impossible_step_splits_the_match() -> None:

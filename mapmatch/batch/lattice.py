@@ -254,6 +254,25 @@ def build_lattice(pt: TrackPoints, c: CandidateArrays, p: KernelParams, ar) -> L
 
 
 @njit(cache=True, nogil=True)
+def lattice_sigma(pt: TrackPoints, c: CandidateArrays, sigma, lat: Lattice, ar):  # type: ignore[no-untyped-def]
+    """Each lattice point's σ: its candidates' (``c.sigma``), else ``sigma``."""
+    m = len(lat.pts)
+    out = full_f8(ar, m, sigma)
+    if len(c.sigma) != len(c.point):
+        return out
+    q = 0
+    for i in range(len(c.point)):
+        k = pt.kidx[c.point[i]]
+        while q < m and lat.pts[q] < k:
+            q += 1
+        if q == m:
+            break
+        if lat.pts[q] == k:
+            out[q] = c.sigma[i]
+    return out
+
+
+@njit(cache=True, nogil=True)
 def off_map_cuts(pt: TrackPoints, has, min_run, ar):  # type: ignore[no-untyped-def]
     """Per lattice point: whether the kept points just before it that have no road within the
     off-map distance travel at least ``min_run`` metres among themselves (the track left the

@@ -21,7 +21,14 @@ from numpy.typing import NDArray
 
 from mapmatch.arena import borrowed, full_b1, full_f8, full_i8, reset, take_b1, take_f8, take_i8, take_xy
 from mapmatch.batch.arrays import CandidateArrays, TrackPoints
-from mapmatch.batch.lattice import bearing_on, build_lattice, drop_spikes_into, motion_heading_into, thin_into
+from mapmatch.batch.lattice import (
+    bearing_on,
+    build_lattice,
+    drop_spikes_into,
+    lattice_sigma,
+    motion_heading_into,
+    thin_into,
+)
 from mapmatch.batch.route import assemble
 from mapmatch.batch.viterbi import solve
 from mapmatch.gridindex import query_grid
@@ -109,7 +116,8 @@ def run(pt, cands, p, geom, router, ar):  # type: ignore[no-untyped-def]
 @njit(cache=True, nogil=True)
 def _run(pt, cands, p, geom, router, ar):  # type: ignore[no-untyped-def]
     lat = build_lattice(pt, cands, p, ar)
-    choice, seg_start, via_u, used_bound = solve(lat, p, router, ar)
+    sig = lattice_sigma(pt, cands, p.sigma, lat, ar)
+    choice, seg_start, via_u, used_bound = solve(lat, p, router, ar, sig)
     return assemble(pt, lat, choice, seg_start, via_u, used_bound, p, geom, router, ar)
 
 

@@ -21,7 +21,7 @@ from mapmatch.arena import full_b1, full_f8, full_i8, take_b1, take_f8, take_i8
 from mapmatch.batch.arrays import KernelParams, Lattice
 from mapmatch.model import transition_logp_one
 from mapmatch.route_table import ubodt_lookup
-from mapmatch.routing import _reset, search_toward_inlined
+from mapmatch.routing import _reset, _search, search_toward_inlined
 
 
 class Trellis(NamedTuple):
@@ -200,6 +200,22 @@ def _step(a0, a1, b0, b1, cand, tr, params, node_uturn, trav, dt, beta0, bound, 
 
 
 @njit(cache=True, nogil=True, inline="always")
+def _step_scale(prev, t, d, lat, p):  # type: ignore[no-untyped-def]
+    """The distance travelled from lattice point ``prev`` to ``t`` (``d`` metres apart; the
+    odometer's where it has one), their time apart and the step's base β (grown with its
+    driving time: the mean fix interval, as a stop's fixes are interpolated)."""
+    trav = d
+    od = lat.podo[t] - lat.podo[prev]
+    if np.isfinite(od) and od > 0:
+        trav = od
+    dt = lat.ptime[t] - lat.ptime[prev]
+    beta0 = p.transition[0]
+    if dt > 0:
+        beta0 += p.beta_per_s * dt / max(lat.pts[t] - lat.pts[prev], 1)
+    return trav, dt, beta0
+
+
+@njit(cache=True, nogil=True, inline="always")
 def _try_step(prev, t, d, lat, tr, p, router):  # type: ignore[no-untyped-def]
     """The Viterbi step from lattice point ``prev`` to ``t`` (``d`` metres apart): a tight search
     bound first, the full bound only if nothing is reached. Returns (reached, full bound).
@@ -208,14 +224,7 @@ def _try_step(prev, t, d, lat, tr, p, router):  # type: ignore[no-untyped-def]
     per search (about 5 % fewer instructions per point at 30 s, callgrind on REAL track
     00000021). The reference counts of the arrays a step reads stay: callgrind still counts
     about 78 increments per step at the call of :func:`_step` and 63 inside it."""
-    trav = d
-    od = lat.podo[t] - lat.podo[prev]
-    if np.isfinite(od) and od > 0:
-        trav = od
-    dt = lat.ptime[t] - lat.ptime[prev]
-    beta0 = p.transition[0]
-    if dt > 0:  # driving time: the step's mean fix interval (a stop's fixes are interpolated)
-        beta0 += p.beta_per_s * dt / max(lat.pts[t] - lat.pts[prev], 1)
+    trav, dt, beta0 = _step_scale(prev, t, d, lat, p)
     vcap = np.inf  # the longest route the time between the fixes allows: the straight line
     if p.split_speed > 0 and dt > 0:  # plus the detour that time allows
         vcap = d + p.split_speed * dt + p.split_slack
@@ -375,6 +384,52 @@ def _leave_out_visited(q, prev, t, lat, tr, p, router, saved):  # type: ignore[n
     return False
 
 
+@njit(cache=True, nogil=True)
+def _end_cost(a, i, b, j, end, uturn, bound, lat, p, router, sig):  # type: ignore[no-untyped-def]
+    """What visiting lattice point ``end`` (``a`` or ``b``) costs at its piece's end, with the
+    step from ``a`` (candidate ``i``) to ``b`` (candidate ``j``; ``uturn``: an along-road
+    U-turn; ``bound``: its route bound): the emission's cost against a fix on its road (its
+    distance and heading; ``sig``: the point's σ) plus the step's detour over the distance
+    travelled, in β. A step's speed terms are left out: they tell of the timestamps."""
+    c = i if end == a else j
+    cost = -(lat.emis[c] + math.log(sig[end]))
+    d = math.hypot(lat.pxy[b, 0] - lat.pxy[a, 0], lat.pxy[b, 1] - lat.pxy[a, 1])
+    trav, _dt, beta0 = _step_scale(a, b, d, lat, p)
+    e, o = lat.edge[i], lat.offset[i]
+    f, of = lat.edge[j], lat.offset[j]
+    g = router.g
+    if uturn:
+        r = abs(g.edge_len[e] - of - o)
+    elif f == e and of >= o - p.reverse_tol:
+        r = max(of - o, 0.0)
+    else:
+        ws = router.ws
+        ws.tgt[f] = 1
+        nt = _search(e, g.edge_len[e] - o, bound + 1.0, 1, g, ws)
+        ws.tgt[f] = 0
+        r = ws.dist[f] + of
+        _reset(nt, ws)
+        if not np.isfinite(r):
+            return 0.0
+    return cost + abs(r - trav) / (beta0 + p.transition[4] * trav)
+
+
+@njit(cache=True, nogil=True)
+def _piece_end(t, tr, lat, p, router, sig, prev_pt, seg_start, used_bound):  # type: ignore[no-untyped-def]
+    """The last point of a piece ending at lattice point ``t`` and its best candidate: points
+    at its end are left out while visiting one costs more than ``leave_out_cost``
+    (:func:`_end_cost`: a fix in a car park by some road, reached by a way round)."""
+    ptr = lat.ptr
+    j = ptr[t] + np.argmax(tr.score[ptr[t] : ptr[t + 1]])
+    while p.outlier_lookahead and not seg_start[t] and tr.bp[j] >= 0:
+        a = prev_pt[t]
+        if _end_cost(a, tr.bp[j], t, j, t, tr.bpu[j], used_bound[t], lat, p, router, sig) <= p.leave_out_cost:
+            break
+        t = a
+        j = ptr[t] + np.argmax(tr.score[ptr[t] : ptr[t + 1]])
+    return t, j
+
+
 class Detour(NamedTuple):
     """Per point of a run left out (index from its first): the point its best step came from
     (-1: none reaches it), the points left out on the way, the score less their cost, and the
@@ -434,13 +489,15 @@ def _leave_out_prev(q, s0, t, lat, tr, p, router, saved, dt):  # type: ignore[no
 
 
 @njit(cache=True, nogil=True)
-def solve(lat: Lattice, p: KernelParams, router, ar):  # type: ignore[no-untyped-def]
+def solve(lat: Lattice, p: KernelParams, router, ar, sig):  # type: ignore[no-untyped-def]
     """Exact Viterbi over the lattice, routing each step as it goes.
 
     A point no candidate of the previous accepted point can reach is left out (an outlier);
     after ``max_skip`` such points in a row, or across a jump (:func:`_far_gap`), a new piece starts at
-    the first of them. Returns per lattice point the chosen candidate (-1 = left out), whether a
-    piece starts there, whether the step into it is an along-road U-turn, and its route bound.
+    the first of them. A piece's first and last points are left out where visiting them costs
+    more than leaving them out (:func:`_end_cost`; ``sig``: each lattice point's σ). Returns
+    per lattice point the chosen candidate (-1 = left out), whether a piece starts there,
+    whether the step into it is an along-road U-turn, and its route bound.
     """
     cand_ptr = lat.ptr
     emis = lat.emis
@@ -596,23 +653,35 @@ def solve(lat: Lattice, p: KernelParams, router, ar):  # type: ignore[no-untyped
         prev = restart
         nskip = 0
         t = restart + 1
-    # backtrack
+    # backtrack, each piece from its last point
     t = m - 1
     while not accepted[t]:
         t -= 1
-    j = cand_ptr[t] + np.argmax(score[cand_ptr[t] : cand_ptr[t + 1]])
+    t, j = _piece_end(t, tr, lat, p, router, sig, prev_pt, seg_start, used_bound)
+    later = -1  # the point after ``t`` in its piece
     while True:
         choice[t] = j
         if seg_start[t]:
+            cost = 0.0
+            if p.outlier_lookahead and later >= 0:
+                u = via_u[later]
+                cost = _end_cost(t, j, later, choice[later], t, u, used_bound[later], lat, p, router, sig)
+            if cost > p.leave_out_cost:
+                # the piece's first point costs more than its absence: the next one starts it
+                choice[t] = -1
+                seg_start[t] = False
+                seg_start[later] = True
+                via_u[later] = False
             q = t - 1
             while q >= 0 and not accepted[q]:
                 q -= 1
             if q < 0:
                 break
-            t = q
-            j = cand_ptr[t] + np.argmax(score[cand_ptr[t] : cand_ptr[t + 1]])
+            t, j = _piece_end(q, tr, lat, p, router, sig, prev_pt, seg_start, used_bound)
+            later = -1
         else:
             via_u[t] = bpu[j]
+            later = t
             j = bp[j]
             t = prev_pt[t]
     return choice, seg_start, via_u, used_bound
