@@ -331,7 +331,8 @@ def test_batch_tuning_constants_are_validated_config_fields() -> None:
 
     cfg = DEFAULT_CONFIG.replace(emission_prune=5.0, max_skip=3, stop_uturn_time=2.0)
     assert (cfg.batch.emission_prune, cfg.batch.max_skip, cfg.batch.stop_uturn_time) == (5.0, 3, 2.0)
-    for bad in ({"max_skip": 2.5}, {"reverse_tolerance": -1.0}, {"route_lp_cut": math.inf}):
+    bads = [{"max_skip": 2.5}, {"reverse_tolerance": -1.0}, {"route_lp_cut": math.inf}]
+    for bad in [*bads, {"detour_cost_max": -1.0}]:
         with pytest.raises(ConfigError):
             DEFAULT_CONFIG.replace(**bad)
 

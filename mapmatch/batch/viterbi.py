@@ -403,12 +403,16 @@ def _end_cost(a, i, b, j, end, uturn, bound, lat, p, router, sig):  # type: igno
     elif f == e and of >= o - p.reverse_tol:
         r = max(of - o, 0.0)
     else:
-        ws = router.ws
-        ws.tgt[f] = 1
-        nt = _search(e, g.edge_len[e] - o, bound + 1.0, 1, g, ws)
-        ws.tgt[f] = 0
-        r = ws.dist[f] + of
-        _reset(nt, ws)
+        r = np.inf
+        if router.table.delta > 0:
+            r = g.edge_len[e] - o + ubodt_lookup(router.table, e, f) + of
+        if not np.isfinite(r) and bound > router.table.delta:  # beyond the table: searched
+            ws = router.ws
+            ws.tgt[f] = 1
+            nt = _search(e, g.edge_len[e] - o, bound + 1.0, 1, g, ws)
+            ws.tgt[f] = 0
+            r = ws.dist[f] + of
+            _reset(nt, ws)
         if not np.isfinite(r):
             return 0.0
     return cost + abs(r - trav) / (beta0 + p.transition[4] * trav)
