@@ -384,15 +384,19 @@ def _leave_out_visited(q, prev, t, lat, tr, p, router, saved):  # type: ignore[n
     return False
 
 
+@njit(cache=True, nogil=True, inline="always")
+def _emission_cost(c, t, lat, sig):  # type: ignore[no-untyped-def]
+    """What candidate ``c`` of lattice point ``t`` costs against a fix on its road: its
+    emission's distance and heading terms (``sig``: each lattice point's σ)."""
+    return -(lat.emis[c] + math.log(sig[t]))
+
+
 @njit(cache=True, nogil=True)
-def _end_cost(a, i, b, j, end, uturn, bound, lat, p, router, sig):  # type: ignore[no-untyped-def]
-    """What visiting lattice point ``end`` (``a`` or ``b``) costs at its piece's end, with the
-    step from ``a`` (candidate ``i``) to ``b`` (candidate ``j``; ``uturn``: an along-road
-    U-turn; ``bound``: its route bound): the emission's cost against a fix on its road (its
-    distance and heading; ``sig``: the point's σ) plus the step's detour over the distance
-    travelled, in β. A step's speed terms are left out: they tell of the timestamps."""
-    c = i if end == a else j
-    cost = -(lat.emis[c] + math.log(sig[end]))
+def _detour_cost(a, i, b, j, uturn, bound, lat, p, router):  # type: ignore[no-untyped-def]
+    """The detour of the step from lattice point ``a`` (candidate ``i``) to ``b`` (candidate
+    ``j``; ``uturn``: an along-road U-turn; ``bound``: its route bound) over the distance
+    travelled, in β: the transition's cost without its speed terms, which tell of the
+    timestamps, not of the road (0 if no route is found)."""
     d = math.hypot(lat.pxy[b, 0] - lat.pxy[a, 0], lat.pxy[b, 1] - lat.pxy[a, 1])
     trav, _dt, beta0 = _step_scale(a, b, d, lat, p)
     e, o = lat.edge[i], lat.offset[i]
@@ -415,19 +419,22 @@ def _end_cost(a, i, b, j, end, uturn, bound, lat, p, router, sig):  # type: igno
             _reset(nt, ws)
         if not np.isfinite(r):
             return 0.0
-    return cost + abs(r - trav) / (beta0 + p.transition[4] * trav)
+    return abs(r - trav) / (beta0 + p.transition[4] * trav)
 
 
 @njit(cache=True, nogil=True)
 def _piece_end(t, tr, lat, p, router, sig, prev_pt, seg_start, used_bound):  # type: ignore[no-untyped-def]
     """The last point of a piece ending at lattice point ``t`` and its best candidate: points
-    at its end are left out while visiting one costs more than ``leave_out_cost``
-    (:func:`_end_cost`: a fix in a car park by some road, reached by a way round)."""
+    at its end are left out while visiting one costs more than ``leave_out_cost``, its
+    emission's cost plus its step's detour (a fix in a car park by some road, reached by a way
+    round)."""
     ptr = lat.ptr
     j = ptr[t] + np.argmax(tr.score[ptr[t] : ptr[t + 1]])
     while p.outlier_lookahead and not seg_start[t] and tr.bp[j] >= 0:
         a = prev_pt[t]
-        if _end_cost(a, tr.bp[j], t, j, t, tr.bpu[j], used_bound[t], lat, p, router, sig) <= p.leave_out_cost:
+        cost = _emission_cost(j, t, lat, sig)
+        cost += _detour_cost(a, tr.bp[j], t, j, tr.bpu[j], used_bound[t], lat, p, router)
+        if cost <= p.leave_out_cost:
             break
         t = a
         j = ptr[t] + np.argmax(tr.score[ptr[t] : ptr[t + 1]])
@@ -499,7 +506,8 @@ def solve(lat: Lattice, p: KernelParams, router, ar, sig):  # type: ignore[no-un
     A point no candidate of the previous accepted point can reach is left out (an outlier);
     after ``max_skip`` such points in a row, or across a jump (:func:`_far_gap`), a new piece starts at
     the first of them. A piece's first and last points are left out where visiting them costs
-    more than leaving them out (:func:`_end_cost`; ``sig``: each lattice point's σ). Returns
+    more than leaving them out (:func:`_emission_cost` plus :func:`_detour_cost`; ``sig``: each
+    lattice point's σ). Returns
     per lattice point the chosen candidate (-1 = left out), whether a piece starts there,
     whether the step into it is an along-road U-turn, and its route bound.
     """
@@ -668,8 +676,9 @@ def solve(lat: Lattice, p: KernelParams, router, ar, sig):  # type: ignore[no-un
         if seg_start[t]:
             cost = 0.0
             if p.outlier_lookahead and later >= 0:
-                u = via_u[later]
-                cost = _end_cost(t, j, later, choice[later], t, u, used_bound[later], lat, p, router, sig)
+                nj = choice[later]
+                cost = _emission_cost(j, t, lat, sig)
+                cost += _detour_cost(t, j, later, nj, via_u[later], used_bound[later], lat, p, router)
             if cost > p.leave_out_cost:
                 # the piece's first point costs more than its absence: the next one starts it
                 choice[t] = -1
