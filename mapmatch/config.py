@@ -417,9 +417,10 @@ class BatchConfig:
         or more before it, also try leaving out the fix before them instead (a stray fix
         followed by another, or by a road that does not lead on); and where the two steps
         through a fix cost more than ``leave_out_cost``, also try the step past it (a stray fix
-        the route bent to); and leave out a piece's first or last fix where visiting it costs
-        more than ``leave_out_cost``: its emission against a fix on its road plus the detour of
-        its step, in β (a last fix in a car park by some road, minutes after the drive); 0:
+        the route bent to); and leave out the track's first or last fix where visiting it
+        costs more than ``leave_out_cost``: its emission against a fix on its road plus the
+        detour of its step, in β (a last fix in a car park by some road, minutes after the
+        drive; not at a split, where the fixes are already in doubt); 0:
         always leave out the unreachable fix, visit every reachable one.
     leave_out_cost : log-probability each fix left out as an outlier costs where leaving fixes
         out competes with visiting them (``outlier_lookahead``): 12.5 = ½ 5², a fix at the

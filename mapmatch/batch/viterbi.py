@@ -423,22 +423,22 @@ def _detour_cost(a, i, b, j, uturn, bound, lat, p, router):  # type: ignore[no-u
 
 
 @njit(cache=True, nogil=True)
-def _piece_end(t, tr, lat, p, router, sig, prev_pt, seg_start, used_bound):  # type: ignore[no-untyped-def]
-    """The last point of a piece ending at lattice point ``t`` and its best candidate: points
-    at its end are left out while visiting one costs more than ``leave_out_cost``, its
-    emission's cost plus its step's detour (a fix in a car park by some road, reached by a way
-    round)."""
+def _track_end(t, tr, lat, p, router, sig, prev_pt, seg_start, used_bound):  # type: ignore[no-untyped-def]
+    """The track's last kept point, its last being lattice point ``t``: points at its end are
+    left out while visiting one costs more than ``leave_out_cost``, its emission's cost plus
+    its step's detour (a fix in a car park by some road, reached by a way round)."""
     ptr = lat.ptr
-    j = ptr[t] + np.argmax(tr.score[ptr[t] : ptr[t + 1]])
-    while p.outlier_lookahead and not seg_start[t] and tr.bp[j] >= 0:
+    while not seg_start[t]:
+        j = ptr[t] + np.argmax(tr.score[ptr[t] : ptr[t + 1]])
         a = prev_pt[t]
+        if tr.bp[j] < 0 or a < 0:
+            break
         cost = _emission_cost(j, t, lat, sig)
         cost += _detour_cost(a, tr.bp[j], t, j, tr.bpu[j], used_bound[t], lat, p, router)
         if cost <= p.leave_out_cost:
             break
         t = a
-        j = ptr[t] + np.argmax(tr.score[ptr[t] : ptr[t + 1]])
-    return t, j
+    return t
 
 
 class Detour(NamedTuple):
@@ -505,7 +505,7 @@ def solve(lat: Lattice, p: KernelParams, router, ar, sig):  # type: ignore[no-un
 
     A point no candidate of the previous accepted point can reach is left out (an outlier);
     after ``max_skip`` such points in a row, or across a jump (:func:`_far_gap`), a new piece starts at
-    the first of them. A piece's first and last points are left out where visiting them costs
+    the first of them. The track's first and last points are left out where visiting them costs
     more than leaving them out (:func:`_emission_cost` plus :func:`_detour_cost`; ``sig``: each
     lattice point's σ). Returns
     per lattice point the chosen candidate (-1 = left out), whether a piece starts there,
@@ -665,32 +665,36 @@ def solve(lat: Lattice, p: KernelParams, router, ar, sig):  # type: ignore[no-un
         prev = restart
         nskip = 0
         t = restart + 1
-    # backtrack, each piece from its last point
+    # backtrack, each piece from its last point; the track's own ends may be left out (a
+    # split's, beside a jump or a gap, are not: there the fixes are already in doubt)
     t = m - 1
     while not accepted[t]:
         t -= 1
-    t, j = _piece_end(t, tr, lat, p, router, sig, prev_pt, seg_start, used_bound)
+    if p.outlier_lookahead:
+        t = _track_end(t, tr, lat, p, router, sig, prev_pt, seg_start, used_bound)
+    j = cand_ptr[t] + np.argmax(score[cand_ptr[t] : cand_ptr[t + 1]])
     later = -1  # the point after ``t`` in its piece
     while True:
         choice[t] = j
         if seg_start[t]:
+            q = t - 1
+            while q >= 0 and not accepted[q]:
+                q -= 1
             cost = 0.0
-            if p.outlier_lookahead and later >= 0:
+            if p.outlier_lookahead and later >= 0 and q < 0:
                 nj = choice[later]
                 cost = _emission_cost(j, t, lat, sig)
                 cost += _detour_cost(t, j, later, nj, via_u[later], used_bound[later], lat, p, router)
             if cost > p.leave_out_cost:
-                # the piece's first point costs more than its absence: the next one starts it
+                # the track's first point costs more than its absence: the next one starts it
                 choice[t] = -1
                 seg_start[t] = False
                 seg_start[later] = True
                 via_u[later] = False
-            q = t - 1
-            while q >= 0 and not accepted[q]:
-                q -= 1
             if q < 0:
                 break
-            t, j = _piece_end(q, tr, lat, p, router, sig, prev_pt, seg_start, used_bound)
+            t = q
+            j = cand_ptr[t] + np.argmax(score[cand_ptr[t] : cand_ptr[t + 1]])
             later = -1
         else:
             via_u[t] = bpu[j]
