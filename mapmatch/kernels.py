@@ -30,6 +30,8 @@ GROUPS: dict[str, tuple[str, ...]] = {
     "simulator": ("mapmatch.sim.kalman:_ekf",),
     "batch": (
         "mapmatch.batch.lattice",
+        "mapmatch.batch.step",
+        "mapmatch.batch.leave_out",
         "mapmatch.batch.viterbi",
         "mapmatch.batch.route",
         "mapmatch.batch.run",

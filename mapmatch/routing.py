@@ -281,7 +281,7 @@ def _search_toward(  # type: ignore[no-untyped-def]
 
 search_toward_inlined = njit(nogil=True, inline="always")(_search_toward.py_func)
 """:func:`_search_toward` compiled into its caller (the Viterbi step,
-:func:`mapmatch.batch.viterbi._step`: one call less per search)."""
+:func:`mapmatch.batch.step._step`: one call less per search)."""
 
 
 @njit(cache=True, nogil=True, inline="always")

@@ -5,7 +5,8 @@ The pipeline, one module a stage:
 - :mod:`~mapmatch.batch.matcher`: measurements → candidates (one index query) → emissions
   (the shared :mod:`mapmatch.model`);
 - :mod:`~mapmatch.batch.lattice`: thinning, pruning, the lattice (compiled);
-- :mod:`~mapmatch.batch.viterbi`: the Viterbi search, routing each step (compiled);
+- :mod:`~mapmatch.batch.viterbi`: the Viterbi search (compiled), each step scored and routed by
+  :mod:`~mapmatch.batch.step`, the fixes left out chosen by :mod:`~mapmatch.batch.leave_out`;
 - :mod:`~mapmatch.batch.route`: route assembly, the route's edges, geometry and per-point
   results (compiled);
 - :mod:`~mapmatch.batch.run`: the compiled stages as one call;
