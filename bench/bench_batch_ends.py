@@ -11,8 +11,12 @@ peers' ``score.py`` against the true route with the run's first and last fix.
 
     python bench/bench_batch_ends.py                      # cut 300 m, buffer 25 m, S = 1, 10, 30
     python bench/bench_batch_ends.py --cut 500 --buffer 3 --set off_map_sigmas=4
+    python bench/bench_batch_ends.py --engines custom,valhalla,osrm,fastmm   # the peers too
 
-The peers are not run: each would need its map prepared again for every track.
+With peers, each track's cut map is also written as the peers read it (``roads.geojson`` and
+``map.osm.pbf`` less the same roads) to ``~/.cache/mapmatch-peers/ends_cut<C>_buf<B>/data``, and
+``run_peers.py`` prepares and matches it there (the first run prepares every peer's map: a few
+minutes); ours runs in process as without peers, scored the same way.
 """
 
 from __future__ import annotations
@@ -30,7 +34,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "bench"))
 sys.path.insert(0, str(ROOT))
 
-from bench_batch import PEERS, _tracks  # noqa: E402
+from bench_batch import CACHE, PEERS, PEERS_PY, _tracks  # noqa: E402
 from hash_batch import subsample  # noqa: E402
 
 
@@ -55,6 +59,44 @@ def without_ends(roads: dict[str, Any], truth: dict[str, Any], cut: float, buffe
     return {**roads, "features": keep}
 
 
+def write_peer_track(src: Path, dst: Path, kept: dict[str, Any]) -> None:
+    """``src``'s track folder with only ``kept``'s roads, for the peers: ``roads.geojson`` and
+    ``map.osm.pbf`` (whose way ``i + 1`` is road feature ``i``), the rest copied."""
+    import shutil
+
+    import osmium
+
+    dst.mkdir(parents=True, exist_ok=True)
+    for f in ("track.csv", "truth.geojson", "meta.json"):
+        shutil.copy2(src / f, dst / f)
+    (dst / "roads.geojson").write_text(json.dumps(kept))
+    ways = {int(f["properties"]["id"]) + 1 for f in kept["features"]}
+    pbf = dst / "map.osm.pbf"
+    part = dst / "map.osm.pbf.part"
+    part.unlink(missing_ok=True)
+    with osmium.SimpleWriter(osmium.io.File(str(part), "pbf")) as w:
+        for o in osmium.FileProcessor(str(src / "map.osm.pbf")):
+            if isinstance(o, osmium.osm.Node) or (isinstance(o, osmium.osm.Way) and o.id in ways):
+                w.add(o)
+    part.replace(pbf)
+
+
+def run_peers(data: Path, engines: list[str], steps: list[int], ids: str) -> list[dict[str, Any]]:
+    """The peers' rows (one per track, engine and S) from ``run_peers.py`` on ``data``'s tracks."""
+    import os
+    import subprocess
+
+    cache = data.parent
+    env = dict(os.environ, PEERS_DIR=str(CACHE / "venvs"))
+    cmd = [str(PEERS_PY), str(PEERS / "run_peers.py"), "--data", str(data), "--cache", str(cache)]
+    cmd += ["--engines", ",".join(engines), "--S", ",".join(map(str, steps)), "--tag", "ends"]
+    if ids != "all":
+        cmd += ["--ids", ids]
+    subprocess.run(cmd, env=env, check=True, stdout=subprocess.DEVNULL)
+    out = cache / "results" / "ends.jsonl"
+    return [json.loads(x) for x in out.read_text().splitlines() if x.strip()]
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=(__doc__ or "").split("\n")[0])
     ap.add_argument("--ids", default="all", help="all, or comma-separated track numbers")
@@ -62,7 +104,10 @@ def main() -> int:
     ap.add_argument("--cut", type=float, default=300.0, help="metres of true route at each end")
     ap.add_argument("--buffer", type=float, default=25.0, help="roads within this many metres go")
     ap.add_argument("--set", action="append", default=[], dest="settings", metavar="NAME=VALUE")
+    ap.add_argument("--engines", default="custom", help="custom (ours), and any of the peers' engines")
     a = ap.parse_args()
+    peers = [e for e in a.engines.split(",") if e and e != "custom"]
+    peer_data = CACHE / f"ends_cut{a.cut:g}_buf{a.buffer:g}" / "data"
     sys.path.insert(0, str(PEERS))
     import score  # type: ignore[import-not-found]
 
@@ -80,6 +125,8 @@ def main() -> int:
         truth = doc if doc.get("type") == "Feature" else doc["features"][0]
         roads = json.loads((src / "roads.geojson").read_text())
         kept = without_ends(roads, truth, a.cut, a.buffer)
+        if peers:
+            write_peer_track(src, peer_data / name, kept)
         with tempfile.TemporaryDirectory() as tmp:
             (Path(tmp) / "roads.geojson").write_text(json.dumps(kept))
             matcher = BatchMatcher(adapter.load_graph(Path(tmp)), config=config)
@@ -94,14 +141,23 @@ def main() -> int:
             r = rows[-1]
             line = f"{r[0]:9} {r[1]:>3} {r[2]:>9} {r[3]:>7.0f} {r[4]:>7.0f} {r[5]:>7.4f} {r[6]:>6}"
             print(line, flush=True)
+    by_engine: dict[str, list[tuple[int, float, float]]] = {"custom": [(r[1], r[3], r[5]) for r in rows]}
+    if peers:
+        for rec in run_peers(peer_data, peers, steps, a.ids):
+            failed = rec.get("rmf") is None  # no route: scores 1, adds no road
+            d_plus, rmf = (0.0, 1.0) if failed else (float(rec["d_plus_m"]), float(rec["rmf"]))
+            run = (int(rec["S"]), d_plus, rmf)
+            by_engine.setdefault(str(rec["engine"]), []).append(run)
     print(f"\ncut {a.cut:g} m, buffer {a.buffer:g} m: REAL GPS on maps with SIMULATED missing roads")
-    for s in steps:
-        d = [r[3] for r in rows if r[1] == s]
-        rmf = [r[5] for r in rows if r[1] == s]
-        print(
-            f"S={s:>2}: d+ mean {np.mean(d):.0f} m, max {max(d):.0f} m, over 300 m on "
-            f"{sum(x > 300 for x in d)} of {len(d)} tracks; mean RMF {np.mean(rmf):.4f}"
-        )
+    for eng, runs in by_engine.items():
+        for s in steps:
+            d = [x[1] for x in runs if x[0] == s]
+            rmfs = [x[2] for x in runs if x[0] == s]
+            if d:
+                print(
+                    f"{eng:9} S={s:>2}: d+ mean {np.mean(d):.0f} m, max {max(d):.0f} m, over 300 m on "
+                    f"{sum(x > 300 for x in d)} of {len(d)} tracks; mean RMF {np.mean(rmfs):.4f}"
+                )
     return 0
 
 

@@ -332,7 +332,7 @@ def test_batch_tuning_constants_are_validated_config_fields() -> None:
     cfg = DEFAULT_CONFIG.replace(emission_prune=5.0, max_skip=3, stop_uturn_time=2.0)
     assert (cfg.batch.emission_prune, cfg.batch.max_skip, cfg.batch.stop_uturn_time) == (5.0, 3, 2.0)
     bads = [{"max_skip": 2.5}, {"reverse_tolerance": -1.0}, {"route_lp_cut": math.inf}]
-    for bad in [*bads, {"detour_cost_max": -1.0}]:
+    for bad in [*bads, {"detour_cost_max": -1.0}, {"off_map_cut_fixes": 1.5}]:
         with pytest.raises(ConfigError):
             DEFAULT_CONFIG.replace(**bad)
 
@@ -445,6 +445,37 @@ def test_a_run_off_the_map_cuts_the_route() -> None:
     # a short excursion (less than off_map_cut) is bridged
     r = BatchMatcher(m.graph).match(track, DEFAULT_CONFIG.replace(off_map_cut=1000.0))
     assert r.splits == [] and len(r.routes) == 1
+
+
+def test_fixes_on_a_road_the_route_cannot_reach_cut_the_route_not_a_way_round() -> None:
+    # the map lacks the 60 m of road from b to c. The track drives east along ab, then slowly
+    # along cd (a fix every 100 m, 20 s apart) and down df. No route reaches cd in the time of
+    # one step; after a few steps the 1 km round by a, e, f fits the time. The fixes left out
+    # on cd until then travel 200 m among themselves: the route is cut there, and cd starts a
+    # piece, as where fixes run off the map (issue #14's class 1: a road missing from the map)
+    m = parse_ascii_map(
+        """
+        a----------b     c--------------------------------------------d
+        |                                                             |
+        |                                                             |
+        e-------------------------------------------------------------f
+        """,
+        scale=10,
+    )
+    drive = [at(m, "a", x, 1) for x in (10, 30, 50, 70, 90)]
+    along = [at(m, "b", 30, 0)] + [at(m, "c", x, -2) for x in (20, 120, 220, 320, 420)]
+    down = [at(m, "d", 2, -20), at(m, "d", 2, -40)]
+    ll = np.array([m.lonlat(x, y) for x, y in drive + along + down])
+    times = np.r_[np.arange(5) * 2.0, 8.0 + 20.0 * np.arange(1, 9)]
+    track = Track("t", times, ll[:, 1], ll[:, 0])
+    r = BatchMatcher(m.graph).match(track)
+    assert r.splits == [6]
+    assert [names(m, piece) for piece in r.routes] == [["ab"], ["cd", "df"]]
+    assert set(p.status for p in r.points) == {PointStatus.MATCHED}
+    # with no cut, the fixes on cd are left out and the route goes round to df
+    loose = BatchMatcher(m.graph).match(track, DEFAULT_CONFIG.replace(off_map_cut=0))
+    assert len(loose.routes) == 1 and loose.length_m > 900
+    assert [p.status for p in loose.points][6:10] == [PointStatus.UNMATCHED] * 4
 
 
 CAR_PARK_MAP = """
@@ -719,9 +750,9 @@ def test_a_stray_fix_followed_by_another_is_dropped_not_the_good_fixes_after_the
     r = BatchMatcher(m.graph).match(track)
     assert [names(m, piece) for piece in r.routes] == [["ab", "bc"]]
     assert [p.status for p in r.points] == ["matched"] * 2 + ["unmatched"] * 2 + ["matched"] * 4
-    # without trying the fix before a run left out, and with any detour the time allows: the
-    # trip up hd, three good fixes lost
-    loose = DEFAULT_CONFIG.replace(outlier_lookahead=0, detour_cost_max=0)
+    # without trying the fix before a run left out, with any detour the time allows, and no
+    # cut where the fixes left out travel ``off_map_cut``: the trip up hd, three good fixes lost
+    loose = DEFAULT_CONFIG.replace(outlier_lookahead=0, detour_cost_max=0, off_map_cut=0)
     greedy = BatchMatcher(m.graph).match(track, loose)
     assert names(m, greedy.routes[0]) == ["ab", "bh", "hd", "dh", "hb", "bc"]
     assert [p.status for p in greedy.points][2:6] == ["matched", "unmatched", "unmatched", "unmatched"]

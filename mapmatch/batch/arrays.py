@@ -66,9 +66,9 @@ class Lattice(NamedTuple):
     pxy: NDArray[np.float64]
     ptime: NDArray[np.float64]
     podo: NDArray[np.float64]
-    cut: NDArray[np.bool_]
-    """A piece of route starts here: the track left the map (off-map fixes) since the
-    previous lattice point."""
+    run: NDArray[np.float64]
+    """(m, 10): :func:`mapmatch.batch.lattice.left_out_runs`, how far the kept points a step
+    leaves out travel among themselves (the route is cut where they travel ``off_map_cut``)."""
 
 
 class EdgeGeometry(NamedTuple):
@@ -113,6 +113,8 @@ class KernelParams(NamedTuple):
     """Routes longer than the travelled distance by more than this many β are impossible (0: no limit)."""
     off_map_sigmas: float
     off_map_cut: float
+    off_map_cut_fixes: int
+    off_map_cut_speed: float
     off_map_min_run: int
     limit_factor: float
     """A step faster than this times the higher speed limit of its two roads ..."""
@@ -162,6 +164,8 @@ def kernel_params(cfg: MatchConfig, sigma: float) -> KernelParams:
         detour_cost_max=float(cfg.detour_cost_max),
         off_map_sigmas=float(cfg.off_map_sigmas),
         off_map_cut=float(cfg.off_map_cut),
+        off_map_cut_fixes=int(cfg.off_map_cut_fixes),
+        off_map_cut_speed=float(cfg.off_map_cut_speed) if cfg.off_map_cut_speed > 0 else np.inf,
         off_map_min_run=int(cfg.off_map_min_run),
         limit_factor=float(cfg.speed_limit_factor),
         limit_penalty=float(cfg.speed_limit_penalty),

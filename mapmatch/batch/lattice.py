@@ -249,8 +249,8 @@ def build_lattice(pt: TrackPoints, c: CandidateArrays, p: KernelParams, ar) -> L
         ptime[i] = pt.time[pts[i]]
         if len(pt.odo):
             podo[i] = pt.odo[pts[i]]
-    cut = off_map_cuts(pt, has, p.off_map_cut, ar)
-    return Lattice(ptr, ce, co, cx, cd, em, lim, pts, pxy, ptime, podo, cut)
+    run = left_out_runs(pt, has, ar)
+    return Lattice(ptr, ce, co, cx, cd, em, lim, pts, pxy, ptime, podo, run)
 
 
 @njit(cache=True, nogil=True)
@@ -273,34 +273,49 @@ def lattice_sigma(pt: TrackPoints, c: CandidateArrays, sigma, lat: Lattice, ar):
 
 
 @njit(cache=True, nogil=True)
-def off_map_cuts(pt: TrackPoints, has, min_run, ar):  # type: ignore[no-untyped-def]
-    """Per lattice point: whether the kept points just before it that have no road within the
-    off-map distance travel at least ``min_run`` metres among themselves (the track left the
-    map and came back: the route is cut there; 0 never cuts)."""
+def left_out_runs(pt: TrackPoints, has, ar):  # type: ignore[no-untyped-def]
+    """Per lattice point, about the kept points just before it (columns 0, 2, 4, 6-7) and just
+    after it (1, 3, 5, 8-9): their path length from the track's first kept point (0, 1), their
+    position among the kept points (2, 3), their time (4, 5) and position (6-7, 8-9). A step
+    from lattice point ``a`` to ``b`` leaves out the kept points between them: ``run[b, 2] -
+    run[a, 3] + 1`` points that travel ``run[b, 0] - run[a, 1]`` among themselves in
+    ``run[b, 4] - run[a, 5]`` seconds, from ``run[a, 8:10]`` to ``run[b, 6:8]``."""
+    nk = len(has)
     m = 0
-    for q in range(len(has)):
+    for q in range(nk):
         if has[q]:
             m += 1
-    cut = full_b1(ar, m, False)
-    if min_run <= 0:
-        return cut
-    t = -1
-    run = 0.0
-    off = 0
-    for q in range(len(has)):
-        if q > 0 and t >= 0 and not has[q] and not has[q - 1]:
+    run = take_f8(ar, 10 * m).reshape((m, 10))
+    cum = 0.0
+    prev_cum = 0.0
+    t = 0
+    for q in range(nk):
+        if q > 0:
             a = pt.kidx[q - 1]
             b = pt.kidx[q]
-            run += math.hypot(pt.xy[b, 0] - pt.xy[a, 0], pt.xy[b, 1] - pt.xy[a, 1])
+            prev_cum = cum
+            cum += math.hypot(pt.xy[b, 0] - pt.xy[a, 0], pt.xy[b, 1] - pt.xy[a, 1])
+            if t > 0 and has[q - 1]:
+                run[t - 1, 1] = cum
+                run[t - 1, 3] = q
+                run[t - 1, 5] = pt.time[b]
+                run[t - 1, 8] = pt.xy[b, 0]
+                run[t - 1, 9] = pt.xy[b, 1]
         if has[q]:
-            if t >= 0 and off > 0 and run >= min_run:
-                cut[t + 1] = True
+            k = pt.kidx[q]
+            j = pt.kidx[q - 1] if q > 0 else k
+            run[t, 0] = prev_cum if q > 0 else 0.0
+            run[t, 2] = q - 1
+            run[t, 4] = pt.time[j]
+            run[t, 6] = pt.xy[j, 0]
+            run[t, 7] = pt.xy[j, 1]
+            run[t, 1] = cum  # the last kept point: no point after it
+            run[t, 3] = q + 1
+            run[t, 5] = pt.time[k]
+            run[t, 8] = pt.xy[k, 0]
+            run[t, 9] = pt.xy[k, 1]
             t += 1
-            run = 0.0
-            off = 0
-        else:
-            off += 1
-    return cut
+    return run
 
 
 @njit(cache=True, nogil=True)

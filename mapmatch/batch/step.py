@@ -273,6 +273,21 @@ def _joinable(a, b, lat, p):  # type: ignore[no-untyped-def]
     gap_time = p.gap_time if p.gap_time > 0 else np.inf
     dt = lat.ptime[b] - lat.ptime[a]
     ok = not _far_gap(d, dt, p, 1) and dt <= gap_time
-    for r in range(a + 1, b + 1):
-        ok = ok and not lat.cut[r]
+    for r in range(a + 1, b + 1):  # off-map runs only: a choice to leave fixes out is weighed
+        ok = ok and not _left_the_route(r - 1, r, lat, p)
     return ok, d
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _left_the_route(a, b, lat, p):  # type: ignore[no-untyped-def]
+    """Whether the fixes a step from lattice point ``a`` to ``b`` leaves out (off the map, or
+    no road of the route reaches them), ``off_map_cut_fixes`` or more, travel ``off_map_cut``
+    among themselves: the track left the route's roads and came back, and the route is cut
+    there, not routed round."""
+    run = lat.run
+    if not (p.off_map_cut > 0 and run[b, 0] - run[a, 1] >= p.off_map_cut):
+        return False
+    # the run's speed from its first fix to its last (its path would count the noise)
+    net = math.hypot(run[b, 6] - run[a, 8], run[b, 7] - run[a, 9])
+    slow = not net > p.off_map_cut_speed * (run[b, 4] - run[a, 5])
+    return run[b, 2] - run[a, 3] + 1 >= p.off_map_cut_fixes and slow

@@ -25,7 +25,7 @@ from mapmatch.batch.leave_out import (
     _leave_out_visited,
     _track_end,
 )
-from mapmatch.batch.step import Trellis, _far_gap, _try_step
+from mapmatch.batch.step import Trellis, _far_gap, _left_the_route, _try_step
 
 
 @njit(cache=True, nogil=True)
@@ -92,7 +92,7 @@ def solve(lat: Lattice, p: KernelParams, router, ar, sig):  # type: ignore[no-un
         else:
             d = math.hypot(pxy[t, 0] - pxy[prev, 0], pxy[t, 1] - pxy[prev, 1])
             dt = ptime[t] - ptime[prev]
-            if _far_gap(d, dt, p, 1) or lat.cut[t] or dt > gap_time:
+            if _far_gap(d, dt, p, 1) or _left_the_route(prev, t, lat, p) or dt > gap_time:
                 restart = s0 if nskip > 0 else t
         if restart < 0:
             reached, bound = _try_step(prev, t, d, lat, tr, p, router)
@@ -168,8 +168,8 @@ def solve(lat: Lattice, p: KernelParams, router, ar, sig):  # type: ignore[no-un
             back = 0
             while q >= 0 and back < max_skip:
                 dq = math.hypot(pxy[s0, 0] - pxy[q, 0], pxy[s0, 1] - pxy[q, 1])
-                if _far_gap(dq, ptime[s0] - ptime[q], p, back + 2):  # a jump even spread over its steps
-                    break
+                if _far_gap(dq, ptime[s0] - ptime[q], p, back + 2) or _left_the_route(q, s0, lat, p):
+                    break  # a jump even spread over its steps, or a run off the route
                 reached, bound = _try_step(q, s0, dq, lat, tr, p, router)
                 if reached:
                     for r in range(q + 1, s0):
