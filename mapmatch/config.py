@@ -483,7 +483,7 @@ class BatchConfig:
         before, 156 / 164 / 201 m now (Valhalla 162 / 111 / 591); REAL, every start offset at
         10 s: 0.0036 either way, 0.0041 with 2 fixes and any speed (a highway interchange of
         00000028 cut), 0.0038 at 20 m/s; SIMULATED multipath bursts (3 %) at 1 / 10 s: 0.0196 /
-        0.0374 before, 0.0075 / 0.0226 now (fast bursts off the map no longer cut).
+        0.0374 before, 0.0097 / 0.0240 now (fast bursts off the map no longer cut).
     speed_limit_factor : where the map has speed limits (posted, or the default of the road's
         class), a step faster on average than this times the higher limit of its two roads ...
     speed_limit_penalty : ... costs this log-probability per m/s beyond (0 disables it; maps
