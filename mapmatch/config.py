@@ -474,14 +474,15 @@ class BatchConfig:
         themselves (the track leaves the route's roads and comes back) cuts the route there,
         at the run's first fix, and is not routed round (0: never cut) ...
     off_map_cut_fixes : ... if the run has at least this many fixes ...
-    off_map_cut_speed : ... and is no faster on average than this (m/s; 0: any speed). Cars
+    off_map_cut_speed : ... and is no faster than this from its first fix to its last (m/s; 0:
+        any speed). Cars
         leave the mapped roads slowly (car parks, lanes, yards); two or three fixes left out at
         speed are a fast road's interchange or ramp with GPS trouble, where the route is the
         better guess. Before, only off-map fixes counted, and two of them 200 m apart cut at any
         speed. REAL GPS on maps less the roads at the true route's ends (SIMULATED,
         ``bench/bench_batch_ends.py``), road added at S = 1 / 10 / 30 s: 156 / 434 / 560 m
         before, 156 / 164 / 201 m now (Valhalla 162 / 111 / 591); REAL, every start offset at
-        10 s: 0.0036 either way, 0.0041 with 2 fixes and any speed (a highway interchange of
+        10 s: 0.0036 as before, 0.0041 with 2 fixes and any speed (a highway interchange of
         00000028 cut), 0.0038 at 20 m/s; SIMULATED multipath bursts (3 %) at 1 / 10 s: 0.0196 /
         0.0374 before, 0.0097 / 0.0240 now (fast bursts off the map no longer cut).
     speed_limit_factor : where the map has speed limits (posted, or the default of the road's

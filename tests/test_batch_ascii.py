@@ -447,6 +447,21 @@ def test_a_run_off_the_map_cuts_the_route() -> None:
     assert r.splits == [] and len(r.routes) == 1
 
 
+def test_fixes_off_the_map_at_speed_are_bridged_not_cut() -> None:
+    # on a fast road (25 m/s, a fix a second) ten fixes in a row lie 60 m off it (beyond 5 σ:
+    # off the map), moving with the car: GPS trouble on a road, not a car leaving the map,
+    # which it does slowly. They travel 225 m, but at 25 m/s: the route bridges them
+    m = parse_ascii_map("a" + "-" * 100 + "b", scale=10)
+    pts = [at(m, "a", x, 1 if not 100 <= x < 350 else 60) for x in range(0, 1000, 25)]
+    track = track_from_xy(m, pts, dt=1.0)
+    r = BatchMatcher(m.graph).match(track)
+    assert [names(m, piece) for piece in r.routes] == [["ab"]] and r.splits == []
+    assert [p.status for p in r.points].count(PointStatus.UNMATCHED) == 10
+    # at any speed (``off_map_cut_speed`` 0) the run cuts the route
+    cut = BatchMatcher(m.graph).match(track, DEFAULT_CONFIG.replace(off_map_cut_speed=0))
+    assert cut.splits == [14] and len(cut.routes) == 2
+
+
 def test_fixes_on_a_road_the_route_cannot_reach_cut_the_route_not_a_way_round() -> None:
     # the map lacks the 60 m of road from b to c. The track drives east along ab, then slowly
     # along cd (a fix every 100 m, 20 s apart) and down df. No route reaches cd in the time of

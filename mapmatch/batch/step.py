@@ -273,7 +273,9 @@ def _joinable(a, b, lat, p):  # type: ignore[no-untyped-def]
     gap_time = p.gap_time if p.gap_time > 0 else np.inf
     dt = lat.ptime[b] - lat.ptime[a]
     ok = not _far_gap(d, dt, p, 1) and dt <= gap_time
-    for r in range(a + 1, b + 1):  # off-map runs only: a choice to leave fixes out is weighed
+    # only the runs between consecutive lattice points (fixes off the map): the fixes a choice
+    # to leave out drops are weighed by their cost instead
+    for r in range(a + 1, b + 1):
         ok = ok and not _left_the_route(r - 1, r, lat, p)
     return ok, d
 
