@@ -5,7 +5,8 @@ transition model (:func:`mapmatch.model.transition_logp_one`) over the route bet
 Routes come from a table look-up within its bound (:mod:`mapmatch.route_table`), else a bounded
 search whose bound shrinks as the targets' best scores rise (:mod:`mapmatch.routing`). A route
 longer than the time between the fixes allows, or whose detour costs more than
-``detour_cost_max`` β, is no route. :func:`_joinable` and :func:`_far_gap` say whether a step
+``detour_cost_max`` β, is no route. :func:`_joinable`, :func:`_far_gap` and
+:func:`_left_the_route` (the fixes a step leaves out left the route's roads) say whether a step
 stays in one piece of the match.
 """
 
