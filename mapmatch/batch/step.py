@@ -157,27 +157,15 @@ def _step(a0, a1, b0, b1, cand, tr, params, node_uturn, trav, dt, beta0, bound, 
                         bpu[j] = True
         if not need or edge_len[e] - o > lim:
             continue
-        if lim <= table.delta:  # the table holds every route within the bound
-            for j in range(b0, b1):
-                f = cedge[j]
-                if f == e and coff[j] >= o - reverse_tol:
-                    continue
-                r = edge_len[e] - o + ubodt_lookup(table, e, f) + coff[j]
-                if r <= lim:
-                    lp = transition_logp_one(r, trav, dt, params, False, beta0) + _over_limit(
-                        r, dt, limit, i, j, lf, lpen
-                    )
-                    if si + lp > best[j - b0]:
-                        best[j - b0] = si + lp
-                        bp[j] = i
-                        bpu[j] = False
-            continue
-        nt = search_toward_inlined(e, edge_len[e] - o, lim, nuniq, cedge[b0:b1], g, ws)
+        via_table = lim <= table.delta  # the table holds every route within the bound
+        nt = 0
+        if not via_table:
+            nt = search_toward_inlined(e, edge_len[e] - o, lim, nuniq, cedge[b0:b1], g, ws)
         for j in range(b0, b1):
             f = cedge[j]
             if f == e and coff[j] >= o - reverse_tol:
                 continue
-            r = ws.dist[f] + coff[j]
+            r = (edge_len[e] - o + ubodt_lookup(table, e, f) if via_table else ws.dist[f]) + coff[j]
             if r <= lim:
                 lp = transition_logp_one(r, trav, dt, params, False, beta0) + _over_limit(
                     r, dt, limit, i, j, lf, lpen
@@ -186,7 +174,8 @@ def _step(a0, a1, b0, b1, cand, tr, params, node_uturn, trav, dt, beta0, bound, 
                     best[j - b0] = si + lp
                     bp[j] = i
                     bpu[j] = False
-        _reset(nt, ws)
+        if not via_table:
+            _reset(nt, ws)
     for j in range(b0, b1):
         ws.tgt[cedge[j]] = 0
     reached = False
