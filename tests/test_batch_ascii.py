@@ -442,8 +442,9 @@ def test_a_run_off_the_map_cuts_the_route() -> None:
     assert r.splits == [10]
     assert [names(m, piece) for piece in r.routes] == [["ae"], ["dc"]]
     assert [p.status for p in r.points][4:10] == [PointStatus.UNMATCHED] * 6
-    # a short excursion (less than off_map_cut) is bridged
-    r = BatchMatcher(m.graph).match(track, DEFAULT_CONFIG.replace(off_map_cut=1000.0))
+    # a short, brief excursion (less than off_map_cut, in less than off_map_cut_time) is bridged
+    brief = DEFAULT_CONFIG.replace(off_map_cut=1000.0, off_map_cut_time=30.0)
+    r = BatchMatcher(m.graph).match(track, brief)
     assert r.splits == [] and len(r.routes) == 1
 
 
@@ -493,6 +494,44 @@ def test_fixes_on_a_road_the_route_cannot_reach_cut_the_route_not_a_way_round() 
     assert [p.status for p in loose.points][6:10] == [PointStatus.UNMATCHED] * 4
 
 
+
+def test_sparse_fixes_off_the_map_for_a_while_cut_the_route_though_they_travel_little() -> None:
+    # the track drives east along ab (a fix every 10 s), turns into an unmapped yard (three
+    # fixes 20 s apart, 70 m from every road, 70 m travelled) and comes out west along cd. The
+    # time allows the 570 m round by b and d (15 β of detour, under ``detour_cost_max``), and
+    # the run is too short in space to cut by ``off_map_cut``; but it lasted 40 s, at least
+    # ``off_map_cut_time``: the track left the roads, and the route is cut there
+    m = parse_ascii_map(
+        """
+        c------------------------------------------------------------d
+                                                                     |
+                                                                     |
+                                                                     |
+                                                                     |
+                                                                     |
+                                                                     |
+                                                                     |
+                                                                     |
+                                                                     |
+        a------------------------------------------------------------b
+        """,
+        scale=10,
+    )
+    drive = [at(m, "a", x, 1) for x in (100, 200, 300, 400)]
+    yard = [at(m, "a", 420, 70), at(m, "a", 440, 100), at(m, "a", 420, 130)]
+    out = [at(m, "c", x, -1) for x in (450, 350, 250)]
+    ll = np.array([m.lonlat(x, y) for x, y in drive + yard + out])
+    times = np.array([0, 10, 20, 30, 50, 70, 90, 110, 120, 130], dtype=np.float64)
+    track = Track("t", times, ll[:, 1], ll[:, 0])
+    r = BatchMatcher(m.graph).match(track)
+    assert r.splits == [7]
+    assert [names(m, piece) for piece in r.routes] == [["ab"], ["dc"]]
+    assert [p.status for p in r.points][4:7] == [PointStatus.UNMATCHED] * 3
+    # without the time rule the route goes round by b and d
+    loose = BatchMatcher(m.graph).match(track, DEFAULT_CONFIG.replace(off_map_cut_time=0))
+    assert [names(m, piece) for piece in loose.routes] == [["ab", "bd", "dc"]]
+    assert loose.length_m > 1000
+
 CAR_PARK_MAP = """
         d----------------------------------------e
                                                  |
@@ -541,8 +580,9 @@ def test_fixes_in_a_car_park_are_not_joined_to_the_drive_by_a_long_way_round() -
         assert [names(m, piece) for piece in r.routes] == [route]
         assert set(p.status for p in r.points[out]) == {PointStatus.UNMATCHED}
         assert r.length_m == pytest.approx(132, abs=2)
-        # with any detour the time allows, and every fix at the ends visited: round by e and b
-        loose = DEFAULT_CONFIG.replace(detour_cost_max=0, outlier_lookahead=0)
+        # with any detour the time allows, every fix at the ends visited, and no cut where the
+        # fixes left out last a while (``off_map_cut_time``): round by e and b
+        loose = DEFAULT_CONFIG.replace(detour_cost_max=0, outlier_lookahead=0, off_map_cut_time=0)
         assert BatchMatcher(m.graph).match(trk, loose).length_m > 800
 
 
@@ -981,8 +1021,9 @@ def test_a_noisy_receiver_is_matched_with_its_own_sigma_not_cut_off_the_map() ->
     assert [names(m, piece) for piece in unthinned.routes] == [["ab", "bc"]]
     assert all(p.status == PointStatus.MATCHED for p in unthinned.points)
     # counterfactual: the configured σ alone leaves most fixes off the map and cuts the route
+    # (into pieces of one fix: no route at all)
     fixed = BatchMatcher(m.graph).match(track, DEFAULT_CONFIG.replace(track_sigma_max=0.0))
-    assert len(fixed.routes) == 2
+    assert fixed.length_m < r.length_m / 2
     assert sum(p.status == PointStatus.MATCHED for p in fixed.points) < len(pts) // 2
 
 

@@ -274,10 +274,13 @@ def _joinable(a, b, lat, p):  # type: ignore[no-untyped-def]
 def _left_the_route(a, b, lat, p):  # type: ignore[no-untyped-def]
     """Whether the fixes a step from lattice point ``a`` to ``b`` leaves out (off the map, or
     no road of the route reaches them), ``off_map_cut_fixes`` or more, travel ``off_map_cut``
-    among themselves: the track left the route's roads and came back, and the route is cut
-    there, not routed round."""
+    among themselves or last ``off_map_cut_time``: the track left the route's roads and came
+    back, and the route is cut there, not routed round."""
     run = lat.run
-    if not (p.off_map_cut > 0 and run[b, 0] - run[a, 1] >= p.off_map_cut):
+    if not (
+        p.off_map_cut > 0
+        and (run[b, 0] - run[a, 1] >= p.off_map_cut or run[b, 4] - run[a, 5] >= p.off_map_cut_time)
+    ):
         return False
     # the run's speed from its first fix to its last (its path would count the noise)
     net = math.hypot(run[b, 6] - run[a, 8], run[b, 7] - run[a, 9])

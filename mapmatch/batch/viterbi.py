@@ -201,6 +201,7 @@ def solve(lat: Lattice, p: KernelParams, router, ar, sig):  # type: ignore[no-un
         t -= 1
     if p.outlier_lookahead:
         t = _track_end(t, tr, lat, p, router, sig, prev_pt, seg_start, used_bound)
+    last = t
     j = cand_ptr[t] + np.argmax(score[cand_ptr[t] : cand_ptr[t + 1]])
     later = -1  # the point after ``t`` in its piece
     while True:
@@ -214,12 +215,16 @@ def solve(lat: Lattice, p: KernelParams, router, ar, sig):  # type: ignore[no-un
                 nj = choice[later]
                 cost = _emission_cost(j, t, lat, sig)
                 cost += _detour_cost(t, j, later, nj, via_u[later], used_bound[later], lat, p, router)
-            if cost > p.leave_out_cost:
+            # a piece of one point at the track's start or end, beside another piece: one
+            # fix makes no route (a fix near some road before or after a run off the route)
+            lone = p.outlier_lookahead and later < 0 and (q < 0) != (t == last)
+            if cost > p.leave_out_cost or lone:
                 # the track's first point costs more than its absence: the next one starts it
                 choice[t] = -1
                 seg_start[t] = False
-                seg_start[later] = True
-                via_u[later] = False
+                if later >= 0:
+                    seg_start[later] = True
+                    via_u[later] = False
             if q < 0:
                 break
             t = q
