@@ -494,7 +494,6 @@ def test_fixes_on_a_road_the_route_cannot_reach_cut_the_route_not_a_way_round() 
     assert [p.status for p in loose.points][6:10] == [PointStatus.UNMATCHED] * 4
 
 
-
 def test_sparse_fixes_off_the_map_for_a_while_cut_the_route_though_they_travel_little() -> None:
     # the track drives east along ab (a fix every 10 s), turns into an unmapped yard (three
     # fixes 20 s apart, 70 m from every road, 70 m travelled) and comes out west along cd. The
@@ -531,6 +530,7 @@ def test_sparse_fixes_off_the_map_for_a_while_cut_the_route_though_they_travel_l
     loose = BatchMatcher(m.graph).match(track, DEFAULT_CONFIG.replace(off_map_cut_time=0))
     assert [names(m, piece) for piece in loose.routes] == [["ab", "bd", "dc"]]
     assert loose.length_m > 1000
+
 
 CAR_PARK_MAP = """
         d----------------------------------------e
