@@ -499,7 +499,8 @@ def test_sparse_fixes_off_the_map_for_a_while_cut_the_route_though_they_travel_l
     # fixes 20 s apart, 70 m from every road, 70 m travelled) and comes out west along cd. The
     # time allows the 570 m round by b and d (15 β of detour, under ``detour_cost_max``), and
     # the run is too short in space to cut by ``off_map_cut``; but it lasted 40 s, at least
-    # ``off_map_cut_time``: the track left the roads, and the route is cut there
+    # ``off_map_cut_time``, and with its legs from ab and to cd it travels 210 m: the track
+    # left the roads, and the route is cut there
     m = parse_ascii_map(
         """
         c------------------------------------------------------------d

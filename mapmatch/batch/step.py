@@ -277,11 +277,17 @@ def _left_the_route(a, b, lat, p):  # type: ignore[no-untyped-def]
     among themselves or last ``off_map_cut_time``: the track left the route's roads and came
     back, and the route is cut there, not routed round."""
     run = lat.run
-    if not (
-        p.off_map_cut > 0
-        and (run[b, 0] - run[a, 1] >= p.off_map_cut or run[b, 4] - run[a, 5] >= p.off_map_cut_time)
-    ):
+    travel = run[b, 0] - run[a, 1]
+    if not (p.off_map_cut > 0 and (travel >= p.off_map_cut or run[b, 4] - run[a, 5] >= p.off_map_cut_time)):
         return False
+    if travel < p.off_map_cut:
+        # a run that lasts but travels little: with its legs from and back to the route it
+        # must travel ``off_map_cut`` too (a car parked by the road is not cut off it)
+        legs = math.hypot(run[a, 8] - lat.pxy[a, 0], run[a, 9] - lat.pxy[a, 1]) + math.hypot(
+            lat.pxy[b, 0] - run[b, 6], lat.pxy[b, 1] - run[b, 7]
+        )
+        if travel + legs < p.off_map_cut:
+            return False
     # the run's speed from its first fix to its last (its path would count the noise)
     net = math.hypot(run[b, 6] - run[a, 8], run[b, 7] - run[a, 9])
     slow = not net > p.off_map_cut_speed * (run[b, 4] - run[a, 5])
