@@ -587,6 +587,22 @@ def test_fixes_in_a_car_park_are_not_joined_to_the_drive_by_a_long_way_round() -
         assert BatchMatcher(m.graph).match(trk, loose).length_m > 800
 
 
+def test_a_lone_first_fix_before_a_run_off_the_map_is_left_out_not_a_piece() -> None:
+    # the first fix lies 28 m south of de (within 5 σ); the track then runs 220 m east along an
+    # unmapped lane 50 m from both roads (off the map: the route is cut) and drives along ab.
+    # The cut leaves the first fix a piece of its own, which makes no route: it is left out
+    m = parse_ascii_map(CAR_PARK_MAP, scale=10)
+    lane = [at(m, "a", x, 50) for x in (30, 74, 118, 162, 206, 250)]
+    drive = [at(m, "a", x, 1) for x in range(260, 400, 10)]
+    track = track_from_xy(m, [at(m, "d", 20, -28), *lane, *drive])
+    r = BatchMatcher(m.graph).match(track)
+    assert [names(m, piece) for piece in r.routes] == [["ab"]] and r.splits == []
+    assert [p.status for p in r.points][:7] == [PointStatus.UNMATCHED] * 7
+    # without the leave-out rules (``outlier_lookahead`` 0) it is a piece alone
+    r = BatchMatcher(m.graph).match(track, DEFAULT_CONFIG.replace(outlier_lookahead=0))
+    assert r.splits == [7] and [names(m, piece) for piece in r.routes] == [["de"], ["ab"]]
+
+
 def test_a_last_fix_in_a_car_park_minutes_later_is_left_out_not_driven_to() -> None:
     # the track drives east along ab, crosses an unmapped lane (fixes 50 m from both roads)
     # and its last fix, five minutes later, lies in a car park 28 m south of de. The time
