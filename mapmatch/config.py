@@ -475,8 +475,7 @@ class BatchConfig:
         route cannot reach in time: unreachable outliers) travelling at least this far among
         themselves (the track leaves the route's roads and comes back) cuts the route there,
         at the run's first fix, and is not routed round (0: never cut) ...
-    off_map_cut_fixes : ... if the run has at least this many fixes (with ``off_map_cut_time``
-        as well) ...
+    off_map_cut_fixes : ... if the run has at least this many fixes ...
     off_map_cut_speed : ... and is no faster than this from its first fix to its last (m/s; 0:
         any speed). Cars
         leave the mapped roads slowly (car parks, lanes, yards); two or three fixes left out at
@@ -487,18 +486,18 @@ class BatchConfig:
         before, 156 / 164 / 201 m now (Valhalla 162 / 111 / 591); REAL, every start offset at
         10 s: 0.0036 as before, 0.0041 with 2 fixes and any speed (a highway interchange of
         00000028 cut), 0.0038 at 20 m/s; SIMULATED multipath bursts (3 %) at 1 / 10 s: 0.0196 /
-        0.0374 before, 0.0097 / 0.0240 now (fast bursts off the map no longer cut).
-    off_map_cut_time : seconds; a run lasting at least this long from its first fix to its last
-        also cuts where, with its legs from the route's fix before it and back to the one after
-        it, it travels ``off_map_cut`` (0: never): sparse fixes in a yard off the map travel
-        little among themselves (three fixes 20 s apart, 70 m), while the time allows a way
-        round; a car parked beside the road, its fixes drifting off the map, is not cut (the
-        legs are short). REAL GPS on maps less the roads at the true route's ends (SIMULATED),
-        road added at S = 1 / 10 / 30 s: 156 / 164 / 201 m without it, 156 / 179 / 126 m with
-        it (10, 15 or 20 s give the same answers); every REAL answer at offset 0 is unchanged
-        (``bench/hash_batch.py``), and over every start offset at 10 / 30 s the mean RMF too
-        (0.0036 / 0.0115), with 8 runs of 00000084 now in pieces where the car parks in a yard
-        off the map; SIMULATED bursts (3 %) at 10 s: 0.0240 -> 0.0254.
+        0.0374 before, 0.0097 / 0.0240 now (fast bursts off the map no longer cut). A run
+        also cuts where it lasts as long as ``off_map_cut`` takes at this speed (13.3 s) and,
+        with its legs from the route's fix before it and back to the one after it, travels
+        ``off_map_cut``: sparse fixes in a yard off the map travel little among themselves
+        (three fixes 20 s apart, 70 m) while the time allows a way round; a car parked beside
+        the road, its fixes drifting off the map, is not cut (short legs). REAL GPS on maps
+        less the roads at the true route's ends (SIMULATED), road added at S = 1 / 10 / 30 s:
+        156 / 164 / 201 m without it, 156 / 179 / 126 m with it (a duration of 10 to 20 s
+        gives the same answers); every REAL answer at offset 0 is unchanged, and the mean RMF
+        over every start offset at 10 / 30 s (0.0036 / 0.0115), with 8 runs of 00000084 now in
+        pieces where the car parks in a yard off the map; SIMULATED bursts (3 %) at 10 s:
+        0.0240 -> 0.0254.
     speed_limit_factor : where the map has speed limits (posted, or the default of the road's
         class), a step faster on average than this times the higher limit of its two roads ...
     speed_limit_penalty : ... costs this log-probability per m/s beyond (0 disables it; maps
@@ -541,7 +540,6 @@ class BatchConfig:
     off_map_cut: float = 200.0
     off_map_cut_fixes: int = 3
     off_map_cut_speed: float = 15.0
-    off_map_cut_time: float = 15.0
     off_map_min_run: int = 2
     speed_limit_factor: float = 1.5
     speed_limit_penalty: float = 0.5

@@ -442,9 +442,9 @@ def test_a_run_off_the_map_cuts_the_route() -> None:
     assert r.splits == [10]
     assert [names(m, piece) for piece in r.routes] == [["ae"], ["dc"]]
     assert [p.status for p in r.points][4:10] == [PointStatus.UNMATCHED] * 6
-    # a short, brief excursion (less than off_map_cut, in less than off_map_cut_time) is bridged
-    brief = DEFAULT_CONFIG.replace(off_map_cut=1000.0, off_map_cut_time=30.0)
-    r = BatchMatcher(m.graph).match(track, brief)
+    # a short excursion (less than off_map_cut, lasting less than it takes at
+    # off_map_cut_speed) is bridged
+    r = BatchMatcher(m.graph).match(track, DEFAULT_CONFIG.replace(off_map_cut=1000.0))
     assert r.splits == [] and len(r.routes) == 1
 
 
@@ -498,9 +498,9 @@ def test_sparse_fixes_off_the_map_for_a_while_cut_the_route_though_they_travel_l
     # the track drives east along ab (a fix every 10 s), turns into an unmapped yard (three
     # fixes 20 s apart, 70 m from every road, 70 m travelled) and comes out west along cd. The
     # time allows the 570 m round by b and d (15 β of detour, under ``detour_cost_max``), and
-    # the run is too short in space to cut by ``off_map_cut``; but it lasted 40 s, at least
-    # ``off_map_cut_time``, and with its legs from ab and to cd it travels 210 m: the track
-    # left the roads, and the route is cut there
+    # the run is too short in space to cut by ``off_map_cut``; but it lasted 40 s, longer than
+    # ``off_map_cut`` takes at ``off_map_cut_speed`` (13 s), and with its legs from ab and to
+    # cd it travels 210 m: the track left the roads, and the route is cut there
     m = parse_ascii_map(
         """
         c------------------------------------------------------------d
@@ -527,8 +527,8 @@ def test_sparse_fixes_off_the_map_for_a_while_cut_the_route_though_they_travel_l
     assert r.splits == [7]
     assert [names(m, piece) for piece in r.routes] == [["ab"], ["dc"]]
     assert [p.status for p in r.points][4:7] == [PointStatus.UNMATCHED] * 3
-    # without the time rule the route goes round by b and d
-    loose = BatchMatcher(m.graph).match(track, DEFAULT_CONFIG.replace(off_map_cut_time=0))
+    # where 200 m takes 100 s (``off_map_cut_speed`` 2 m/s) the run is too brief: round by b and d
+    loose = BatchMatcher(m.graph).match(track, DEFAULT_CONFIG.replace(off_map_cut_speed=2.0))
     assert [names(m, piece) for piece in loose.routes] == [["ab", "bd", "dc"]]
     assert loose.length_m > 1000
 
@@ -581,9 +581,9 @@ def test_fixes_in_a_car_park_are_not_joined_to_the_drive_by_a_long_way_round() -
         assert [names(m, piece) for piece in r.routes] == [route]
         assert set(p.status for p in r.points[out]) == {PointStatus.UNMATCHED}
         assert r.length_m == pytest.approx(132, abs=2)
-        # with any detour the time allows, every fix at the ends visited, and no cut where the
-        # fixes left out last a while (``off_map_cut_time``): round by e and b
-        loose = DEFAULT_CONFIG.replace(detour_cost_max=0, outlier_lookahead=0, off_map_cut_time=0)
+        # with any detour the time allows, every fix at the ends visited, and no cut: round by
+        # e and b
+        loose = DEFAULT_CONFIG.replace(detour_cost_max=0, outlier_lookahead=0, off_map_cut=0)
         assert BatchMatcher(m.graph).match(trk, loose).length_m > 800
 
 

@@ -274,11 +274,14 @@ def _joinable(a, b, lat, p):  # type: ignore[no-untyped-def]
 def _left_the_route(a, b, lat, p):  # type: ignore[no-untyped-def]
     """Whether the fixes a step from lattice point ``a`` to ``b`` leaves out (off the map, or
     no road of the route reaches them), ``off_map_cut_fixes`` or more, travel ``off_map_cut``
-    among themselves or last ``off_map_cut_time``: the track left the route's roads and came
-    back, and the route is cut there, not routed round."""
+    among themselves, or last as long as that takes at ``off_map_cut_speed`` and travel it with
+    their legs to ``a`` and ``b``: the track left the route's roads and came back, and the
+    route is cut there, not routed round."""
     run = lat.run
     travel = run[b, 0] - run[a, 1]
-    if not (p.off_map_cut > 0 and (travel >= p.off_map_cut or run[b, 4] - run[a, 5] >= p.off_map_cut_time)):
+    # or it lasted as long as ``off_map_cut`` takes at ``off_map_cut_speed``
+    lasted = run[b, 4] - run[a, 5] >= p.off_map_cut / p.off_map_cut_speed
+    if not (p.off_map_cut > 0 and (travel >= p.off_map_cut or lasted)):
         return False
     if travel < p.off_map_cut:
         # a run that lasts but travels little: with its legs from and back to the route it
