@@ -477,8 +477,8 @@ class BatchConfig:
         at the run's first fix, and is not routed round (0: never cut) ...
     off_map_cut_fixes : ... if the run has at least this many fixes ...
     off_map_cut_speed : ... and is no faster than this from its first fix to its last (m/s; 0:
-        any speed). Cars
-        leave the mapped roads slowly (car parks, lanes, yards); two or three fixes left out at
+        any speed, and the duration rule below takes any duration). Cars leave the mapped roads
+        slowly (car parks, lanes, yards); two or three fixes left out at
         speed are a fast road's interchange or ramp with GPS trouble, where the route is the
         better guess. Before, only off-map fixes counted, and two of them 200 m apart cut at any
         speed. REAL GPS on maps less the roads at the true route's ends (SIMULATED,
