@@ -219,7 +219,8 @@ def solve(lat: Lattice, p: KernelParams, router, ar, sig):  # type: ignore[no-un
             # fix makes no route (a fix near some road before or after a run off the route)
             lone = p.outlier_lookahead and later < 0 and (q < 0) != (t == last)
             if cost > p.leave_out_cost or lone:
-                # the track's first point costs more than its absence: the next one starts it
+                # left out (its visit costs more than its absence, or it is alone): the next
+                # point of its piece, if any, starts it
                 choice[t] = -1
                 seg_start[t] = False
                 if later >= 0:
