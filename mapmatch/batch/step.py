@@ -278,10 +278,12 @@ def _left_the_route(a, b, lat, p):  # type: ignore[no-untyped-def]
     their legs to ``a`` and ``b``: the track left the route's roads and came back, and the
     route is cut there, not routed round."""
     run = lat.run
+    # most steps leave out no fix: the count first
+    if not (p.off_map_cut > 0 and run[b, 2] - run[a, 3] + 1 >= p.off_map_cut_fixes):
+        return False
     travel = run[b, 0] - run[a, 1]
-    # or it lasted as long as ``off_map_cut`` takes at ``off_map_cut_speed``
     lasted = run[b, 4] - run[a, 5] >= p.off_map_cut / p.off_map_cut_speed
-    if not (p.off_map_cut > 0 and (travel >= p.off_map_cut or lasted)):
+    if not (travel >= p.off_map_cut or lasted):
         return False
     if travel < p.off_map_cut:
         # a run that lasts but travels little: with its legs from and back to the route it
@@ -293,5 +295,4 @@ def _left_the_route(a, b, lat, p):  # type: ignore[no-untyped-def]
             return False
     # the run's speed from its first fix to its last (its path would count the noise)
     net = math.hypot(run[b, 6] - run[a, 8], run[b, 7] - run[a, 9])
-    slow = not net > p.off_map_cut_speed * (run[b, 4] - run[a, 5])
-    return run[b, 2] - run[a, 3] + 1 >= p.off_map_cut_fixes and slow
+    return not net > p.off_map_cut_speed * (run[b, 4] - run[a, 5])
