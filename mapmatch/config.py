@@ -420,7 +420,9 @@ class BatchConfig:
         the route bent to); and leave out the track's first or last fix where visiting it
         costs more than ``leave_out_cost``: its emission against a fix on its road plus the
         detour of its step, in β (a last fix in a car park by some road, minutes after the
-        drive; not at a split, where the fixes are already in doubt), and so is a piece of one
+        drive; not at a split, where the fixes are already in doubt), then the next one the
+        same way (the new first fix's candidate chosen again, as if the track began there),
+        and so is a piece of one
         fix at the track's start or end beside another piece (one fix makes no route: a fix by
         some road before or after a run off the route); 0: always leave out the unreachable
         fix, visit every reachable one.

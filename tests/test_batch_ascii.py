@@ -586,6 +586,45 @@ def test_fixes_in_a_car_park_are_not_joined_to_the_drive_by_a_long_way_round() -
         assert BatchMatcher(m.graph).match(trk, loose).length_m > 800
 
 
+def test_first_fixes_each_by_another_road_are_left_out_one_after_another() -> None:
+    # the track starts in a car park: a fix 25 m south of de, two minutes later one 25 m
+    # south of gh, then it drives east along ab. Each step out of those fixes needs a way
+    # round (de by e, c and b to gh: 930 m for 100 m; gh by h and b to ab: 530 m for 75 m),
+    # so each visit costs more than leaving it out: both go, and the route starts on ab
+    # with the first fix of the drive's candidate chosen anew (not the one reached round by
+    # h and b, which would start the route west and turn back)
+    m = parse_ascii_map(
+        """
+        d------------------------------------e
+                                             |
+                                             |
+                                             |
+                                             |
+        g---------------------------h        |
+                                    |        |
+                                    |        |
+                                    |        |
+                                    |        |
+        a---------------------------b--------c
+        """,
+        scale=10,
+    )
+    park = [at(m, "d", 40, -25), at(m, "g", 50, -25)]
+    drive = [at(m, "a", x, 1) for x in range(60, 260, 20)]
+    ll = np.array([m.lonlat(x, y) for x, y in park + drive])
+    times = np.r_[0.0, 120.0, 240.0 + 4.0 * np.arange(len(drive))]
+    track = Track("t", times, ll[:, 1], ll[:, 0])
+    r = BatchMatcher(m.graph).match(track)
+    assert [names(m, piece) for piece in r.routes] == [["ab"]]
+    assert [p.status for p in r.points][:3] == [PointStatus.UNMATCHED] * 2 + [PointStatus.MATCHED]
+    assert r.length_m == pytest.approx(240 - 60, abs=2)
+    # without the leave-out rules every fix is visited: round by e, c, b and h, turning at g,
+    # then by h and b, turning at a
+    loose = BatchMatcher(m.graph).match(track, DEFAULT_CONFIG.replace(outlier_lookahead=0))
+    routes = [["de", "ec", "cb", "bh", "hg", "gh", "hb", "ba", "ab"]]
+    assert [names(m, piece) for piece in loose.routes] == routes
+
+
 def test_a_lone_first_fix_before_a_run_off_the_map_is_left_out_not_a_piece() -> None:
     # the first fix lies 28 m south of de (within 5 σ); the track then runs 220 m east along an
     # unmapped lane 50 m from both roads (off the map: the route is cut) and drives along ab.

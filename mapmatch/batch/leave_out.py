@@ -181,6 +181,56 @@ def _track_end(t, tr, lat, p, router, sig, prev_pt, seg_start, used_bound):  # t
     return t
 
 
+@njit(cache=True, nogil=True)
+def _track_start(choice, seg_start, via_u, used_bound, tr, lat, p, router, sig):  # type: ignore[no-untyped-def]
+    """The mirror of :func:`_track_end`, on the chosen path (``choice`` etc. as
+    :func:`~mapmatch.batch.viterbi.solve` returns them): the track's first points are left
+    out while visiting one costs more than ``leave_out_cost`` (its emission's cost plus its
+    step's detour: a fix in a car park by some road, left by a way round). The next point
+    then starts the route, its candidate chosen again for the step after it, as the Viterbi
+    search would from a track starting there. A first piece left with one point beside
+    another piece is left out (one fix makes no route)."""
+    m = len(choice)
+    ptr = lat.ptr
+    s = 0
+    while s < m and choice[s] < 0:
+        s += 1
+    while s < m:
+        n = s + 1
+        while n < m and choice[n] < 0:
+            n += 1
+        if n == m or seg_start[n]:
+            return
+        i, j = choice[s], choice[n]
+        cost = _emission_cost(i, s, lat, sig)
+        cost += _detour_cost(s, i, n, j, via_u[n], used_bound[n], lat, p, router)
+        if cost <= p.leave_out_cost:
+            return
+        choice[s] = -1
+        seg_start[s] = False
+        seg_start[n] = True
+        via_u[n] = False
+        nn = n + 1
+        while nn < m and choice[nn] < 0:
+            nn += 1
+        if nn == m:
+            return
+        if seg_start[nn]:  # ``n`` alone beside another piece
+            choice[n] = -1
+            seg_start[n] = False
+            return
+        for k in range(ptr[n], ptr[n + 1]):
+            tr.score[k] = lat.emis[k]
+        d = math.hypot(lat.pxy[nn, 0] - lat.pxy[n, 0], lat.pxy[nn, 1] - lat.pxy[n, 1])
+        reached, bound = _try_step(n, nn, d, lat, tr, p, router)
+        k = choice[nn]
+        if reached and tr.bp[k] >= 0:
+            choice[n] = tr.bp[k]
+            via_u[nn] = tr.bpu[k]
+            used_bound[nn] = bound
+        s = n
+
+
 class Detour(NamedTuple):
     """Per point of a run left out (index from its first): the point its best step came from
     (-1: none reaches it), the points left out on the way, the score less their cost, and the

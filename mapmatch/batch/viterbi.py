@@ -18,12 +18,11 @@ from mapmatch.batch.leave_out import (
     Detour,
     Saved,
     _best,
-    _detour_cost,
     _drop_one,
-    _emission_cost,
     _leave_out_prev,
     _leave_out_visited,
     _track_end,
+    _track_start,
 )
 from mapmatch.batch.step import Trellis, _far_gap, _left_the_route, _try_step
 
@@ -210,22 +209,11 @@ def solve(lat: Lattice, p: KernelParams, router, ar, sig):  # type: ignore[no-un
             q = t - 1
             while q >= 0 and not accepted[q]:
                 q -= 1
-            cost = 0.0
-            if p.outlier_lookahead and later >= 0 and q < 0:
-                nj = choice[later]
-                cost = _emission_cost(j, t, lat, sig)
-                cost += _detour_cost(t, j, later, nj, via_u[later], used_bound[later], lat, p, router)
             # a piece of one point at the track's start or end, beside another piece: one
             # fix makes no route (a fix near some road before or after a run off the route)
-            lone = p.outlier_lookahead and later < 0 and (q < 0) != (t == last)
-            if cost > p.leave_out_cost or lone:
-                # left out (its visit costs more than its absence, or it is alone): the next
-                # point of its piece, if any, starts it
+            if p.outlier_lookahead and later < 0 and (q < 0) != (t == last):
                 choice[t] = -1
                 seg_start[t] = False
-                if later >= 0:
-                    seg_start[later] = True
-                    via_u[later] = False
             if q < 0:
                 break
             t = q
@@ -236,4 +224,6 @@ def solve(lat: Lattice, p: KernelParams, router, ar, sig):  # type: ignore[no-un
             later = t
             j = bp[j]
             t = prev_pt[t]
+    if p.outlier_lookahead:
+        _track_start(choice, seg_start, via_u, used_bound, tr, lat, p, router, sig)
     return choice, seg_start, via_u, used_bound
