@@ -1,0 +1,138 @@
+"""OSRM's own map-matching cases (``features/testbot/matching.feature``), drawn as ASCII maps.
+
+OSRM draws nodes on a grid and lists the ways through them; here the roads are drawn and the
+fixes placed on the map in metres. OSRM sends these traces without timestamps, and so do the
+tests (every time NaN, unknown): the fixes' order and positions alone must give OSRM's answer.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from mapmatch.batch import BatchMatcher
+from mapmatch.graph.ascii import AsciiMap, parse_ascii_map
+from mapmatch.types import PointStatus, Track, TrackMatch
+
+
+def at(amap: AsciiMap, node: str, dx: float = 0.0, dy: float = 0.0) -> tuple[float, float]:
+    x, y = amap.xy(node)
+    return float(x + dx), float(y + dy)
+
+
+def untimed(amap: AsciiMap, xy: list[tuple[float, float]]) -> TrackMatch:
+    ll = np.array([amap.lonlat(x, y) for x, y in xy])
+    return BatchMatcher(amap.graph).match(Track("t", np.full(len(xy), np.nan), ll[:, 1], ll[:, 0]))
+
+
+def names(amap: AsciiMap, r: TrackMatch) -> list[list[str]]:
+    inv = {v: k for k, v in amap.nodes.items()}
+    g = amap.graph
+    return [[inv[int(g.edge_u[e])] + inv[int(g.edge_v[e])] for e in piece] for piece in r.routes]
+
+
+ONE_WAYS_SIDE_BY_SIDE = """
+a>>>>>>>b>>>>>>>c>>>>>>>d
+
+e<<<<<<<f<<<<<<<g<<<<<<<h
+"""
+"""Two one-way roads 10 m apart (scale 2.5: 20 m between letters), opposite ways."""
+
+
+@pytest.mark.parametrize(("trace", "route"), [("dcba", ["hg", "gf", "fe"]), ("efgh", ["ab", "bc", "cd"])])
+def test_a_trace_against_a_one_way_takes_the_one_way_beside_it(trace: str, route: list[str]) -> None:
+    # "Matching with oneway streets": the fixes lie on the nodes of the one-way the car cannot
+    # drive that way; the route is the one-way beside it, 10 m off
+    m = parse_ascii_map(ONE_WAYS_SIDE_BY_SIDE, scale=2.5)
+    r = untimed(m, [at(m, c) for c in trace])
+    assert names(m, r) == [route]
+    assert all(p.status == PointStatus.MATCHED for p in r.points)
+
+
+def test_a_fix_off_the_start_of_a_one_way_loop_stays_on_the_through_road() -> None:
+    # "Map matching with small distortion": the second fix lies 10 m from b, on the one-way
+    # b->f->h->k->e; driving it and back from e is a 160 m loop for a fix the through road
+    # explains at 10 m
+    m = parse_ascii_map(
+        """
+        a-------b-------c-------d-------e
+                v                       ^
+                f                       ^
+                v                       ^
+                v                       ^
+                v                       ^
+                v                       ^
+                v                       ^
+                v                       ^
+                v                       ^
+                h>>>>>>>>>>>>>>>>>>>>>>>k
+        """,
+        scale=2.5,
+    )
+    r = untimed(m, [at(m, c) for c in "afcde"])
+    assert names(m, r) == [["ab", "bc", "cd", "de"]]
+
+
+def test_a_one_way_block_is_driven_round_the_way_it_allows() -> None:
+    # OSRM's regression test for its issue 3037: one-ways round two blocks; e f b c is driven
+    # e->f, up f->b, b->c
+    m = parse_ascii_map(
+        """
+        a>>>>>>>b>>>>>>>c
+        v       ^       v
+        v       ^       v
+        v       ^       v
+        e>>>>>>>f>>>>>>>g
+        """,
+        scale=5,
+    )
+    r = untimed(m, [at(m, c) for c in "efbc"])
+    assert names(m, r) == [["ef", "fb", "bc"]]
+
+
+CROSSING = """
+      e
+      |
+      |
+a-----b-----c
+      |
+      |
+      d
+"""
+
+
+@pytest.mark.parametrize(
+    ("trace", "route"),
+    [
+        ("abc", ["ab", "bc"]),
+        ("abd", ["ab", "bd"]),
+        ("abe", ["ab", "be"]),
+        ("ahd", ["ab", "bd"]),
+        ("ahe", ["ab", "be"]),
+    ],
+)
+def test_a_fix_just_before_a_crossing_turns_there_without_a_u_turn(trace: str, route: list[str]) -> None:
+    # OSRM's regression test for its issue 4919 ("non-uturn maneuver preferred over uturn"):
+    # h lies 10 m before the crossing b on ab; from h the route turns at b, never turning
+    # round on ab
+    m = parse_ascii_map(CROSSING, scale=10)
+    r = untimed(m, [at(m, "b", -10) if c == "h" else at(m, c) for c in trace])
+    assert names(m, r) == [route]
+    assert r.length_m == pytest.approx(120, abs=1)
+
+
+@pytest.mark.parametrize("reverse", [False, True])
+def test_fixes_amid_edges_are_placed_where_they_lie_both_ways(reverse: bool) -> None:
+    # "add source phantoms properly": fixes inside ab, bc and de, then inside one edge, driven
+    # either way: the route runs from the first fix's place to the last's, none snapped to a node
+    m = parse_ascii_map("a-----b-----c-d-----e", scale=10)
+    xy = [at(m, "a", 30), at(m, "b", 10), at(m, "d", 10)]
+    r = untimed(m, xy[::-1] if reverse else xy)
+    assert names(m, r) == [["ed", "dc", "cb", "ba"] if reverse else ["ab", "bc", "cd", "de"]]
+    assert r.length_m == pytest.approx(120, abs=0.5)
+    m = parse_ascii_map("a--------------b", scale=10)
+    xs = [40.0, 50.0, 60.0, 70.0]
+    r = untimed(m, [at(m, "a", x) for x in (xs[::-1] if reverse else xs)])
+    assert names(m, r) == [["ba"] if reverse else ["ab"]]
+    assert r.length_m == pytest.approx(30, abs=0.5)
+    assert [round(p.offset) for p in r.points] == ([150 - x for x in xs[::-1]] if reverse else xs)
