@@ -1,8 +1,9 @@
-"""OSRM's own map-matching cases (``features/testbot/matching.feature``), drawn as ASCII maps.
+"""The peers' own map-matching cases, drawn as ASCII maps: OSRM's
+(``features/testbot/matching.feature``) and Valhalla's (``test/gurka/test_match.cc``).
 
-OSRM draws nodes on a grid and lists the ways through them; here the roads are drawn and the
-fixes placed on the map in metres. OSRM sends these traces without timestamps, and so do the
-tests (every time NaN, unknown): the fixes' order and positions alone must give OSRM's answer.
+They draw nodes on a grid and list the ways through them; here the roads are drawn and the
+fixes placed on the map in metres. They send these traces without timestamps, and so do the
+tests (every time NaN, unknown): the fixes' order and positions alone must give their answer.
 """
 
 from __future__ import annotations
@@ -136,3 +137,20 @@ def test_fixes_amid_edges_are_placed_where_they_lie_both_ways(reverse: bool) -> 
     assert names(m, r) == [["ba"] if reverse else ["ab"]]
     assert r.length_m == pytest.approx(30, abs=0.5)
     assert [round(p.offset) for p in r.points] == ([150 - x for x in xs[::-1]] if reverse else xs)
+
+
+def test_fixes_along_two_roads_and_round_a_corner_give_the_route_between_them() -> None:
+    # Valhalla's BasicMatch: the first fix 10 m off ab, three on ab and bc, the last 10 m off
+    # cd: the route runs a -> b -> c -> d from the first fix's place to the last's, 100 m
+    m = parse_ascii_map(
+        """
+        a----b----c
+                  |
+                  |
+                  d
+        """,
+        scale=10,
+    )
+    r = untimed(m, [at(m, "a", 20, 10), at(m, "a", 40), at(m, "a", 70), at(m, "a", 90), at(m, "c", 10, -20)])
+    assert names(m, r) == [["ab", "bc", "cd"]]
+    assert r.length_m == pytest.approx(100, abs=0.5)
