@@ -591,8 +591,6 @@ def test_first_fixes_each_by_another_road_are_left_out_one_after_another() -> No
     # south of gh, then it drives east along ab. Each step out of those fixes needs a way
     # round (de by e, c and b to gh: 930 m for 100 m; gh by h and b to ab: 530 m for 75 m),
     # so each visit costs more than leaving it out: both go, and the route starts on ab
-    # with the first fix of the drive's candidate chosen anew (not the one reached round by
-    # h and b, which would start the route west and turn back)
     m = parse_ascii_map(
         """
         d------------------------------------e
