@@ -422,10 +422,9 @@ class BatchConfig:
         detour of its step, in β (a last fix in a car park by some road, minutes after the
         drive; not at a split, where the fixes are already in doubt), then the next one the
         same way (the new first fix's candidate chosen again, as if the track began there),
-        and so is a piece of one
-        fix at the track's start or end beside another piece (one fix makes no route: a fix by
-        some road before or after a run off the route); 0: always leave out the unreachable
-        fix, visit every reachable one.
+        and so is a piece of one fix at the track's start or end beside another piece (one
+        fix makes no route: a fix by some road before or after a run off the route); 0:
+        always leave out the unreachable fix, visit every reachable one.
     leave_out_cost : log-probability each fix left out as an outlier costs where leaving fixes
         out competes with visiting them (``outlier_lookahead``): 12.5 = ½ 5², a fix at the
         off-map limit of 5 σ. The other choice is taken only if it wins by more than this.

@@ -8,6 +8,7 @@ import math
 
 import numpy as np
 import pytest
+from ascii_helpers import at, names, track_from_xy
 
 from mapmatch import batch
 from mapmatch.batch import BATCH_CONFIG as DEFAULT_CONFIG
@@ -17,23 +18,6 @@ from mapmatch.graph.ascii import AsciiMap, parse_ascii_map
 from mapmatch.route_table import Ubodt
 from mapmatch.routing import shortest_route
 from mapmatch.types import PointStatus, Track, TrackMatch
-
-
-def track_from_xy(amap: AsciiMap, xy: list[tuple[float, float]], *, dt: float = 5.0, tid: str = "t") -> Track:
-    """A track through points given in metres relative to the map's origin node positions."""
-    ll = np.array([amap.lonlat(x, y) for x, y in xy])
-    return Track(tid, np.arange(len(xy)) * dt, ll[:, 1], ll[:, 0])
-
-
-def at(amap: AsciiMap, node: str, dx: float = 0.0, dy: float = 0.0) -> tuple[float, float]:
-    x, y = amap.xy(node)
-    return float(x + dx), float(y + dy)
-
-
-def names(amap: AsciiMap, edges: list[int]) -> list[str]:
-    inv = {v: k for k, v in amap.nodes.items()}
-    g = amap.graph
-    return [inv[int(g.edge_u[e])] + inv[int(g.edge_v[e])] for e in edges]
 
 
 def test_straight_drive_through_junctions() -> None:

@@ -10,26 +10,21 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from ascii_helpers import at, names
 
 from mapmatch.batch import BatchMatcher
 from mapmatch.graph.ascii import AsciiMap, parse_ascii_map
 from mapmatch.types import PointStatus, Track, TrackMatch
 
 
-def at(amap: AsciiMap, node: str, dx: float = 0.0, dy: float = 0.0) -> tuple[float, float]:
-    x, y = amap.xy(node)
-    return float(x + dx), float(y + dy)
+def routes(amap: AsciiMap, r: TrackMatch) -> list[list[str]]:
+    return [names(amap, list(piece)) for piece in r.routes]
 
 
 def untimed(amap: AsciiMap, xy: list[tuple[float, float]]) -> TrackMatch:
+    """The match of fixes at ``xy`` with no timestamps (every time NaN), as OSRM sends them."""
     ll = np.array([amap.lonlat(x, y) for x, y in xy])
     return BatchMatcher(amap.graph).match(Track("t", np.full(len(xy), np.nan), ll[:, 1], ll[:, 0]))
-
-
-def names(amap: AsciiMap, r: TrackMatch) -> list[list[str]]:
-    inv = {v: k for k, v in amap.nodes.items()}
-    g = amap.graph
-    return [[inv[int(g.edge_u[e])] + inv[int(g.edge_v[e])] for e in piece] for piece in r.routes]
 
 
 ONE_WAYS_SIDE_BY_SIDE = """
@@ -46,7 +41,7 @@ def test_a_trace_against_a_one_way_takes_the_one_way_beside_it(trace: str, route
     # drive that way; the route is the one-way beside it, 10 m off
     m = parse_ascii_map(ONE_WAYS_SIDE_BY_SIDE, scale=2.5)
     r = untimed(m, [at(m, c) for c in trace])
-    assert names(m, r) == [route]
+    assert routes(m, r) == [route]
     assert all(p.status == PointStatus.MATCHED for p in r.points)
 
 
@@ -71,7 +66,7 @@ def test_a_fix_off_the_start_of_a_one_way_loop_stays_on_the_through_road() -> No
         scale=2.5,
     )
     r = untimed(m, [at(m, c) for c in "afcde"])
-    assert names(m, r) == [["ab", "bc", "cd", "de"]]
+    assert routes(m, r) == [["ab", "bc", "cd", "de"]]
 
 
 def test_a_one_way_block_is_driven_round_the_way_it_allows() -> None:
@@ -88,7 +83,7 @@ def test_a_one_way_block_is_driven_round_the_way_it_allows() -> None:
         scale=5,
     )
     r = untimed(m, [at(m, c) for c in "efbc"])
-    assert names(m, r) == [["ef", "fb", "bc"]]
+    assert routes(m, r) == [["ef", "fb", "bc"]]
 
 
 CROSSING = """
@@ -118,7 +113,7 @@ def test_a_fix_just_before_a_crossing_turns_there_without_a_u_turn(trace: str, r
     # round on ab
     m = parse_ascii_map(CROSSING, scale=10)
     r = untimed(m, [at(m, "b", -10) if c == "h" else at(m, c) for c in trace])
-    assert names(m, r) == [route]
+    assert routes(m, r) == [route]
     assert r.length_m == pytest.approx(120, abs=1)
 
 
@@ -129,12 +124,12 @@ def test_fixes_amid_edges_are_placed_where_they_lie_both_ways(reverse: bool) -> 
     m = parse_ascii_map("a-----b-----c-d-----e", scale=10)
     xy = [at(m, "a", 30), at(m, "b", 10), at(m, "d", 10)]
     r = untimed(m, xy[::-1] if reverse else xy)
-    assert names(m, r) == [["ed", "dc", "cb", "ba"] if reverse else ["ab", "bc", "cd", "de"]]
+    assert routes(m, r) == [["ed", "dc", "cb", "ba"] if reverse else ["ab", "bc", "cd", "de"]]
     assert r.length_m == pytest.approx(120, abs=0.5)
     m = parse_ascii_map("a--------------b", scale=10)
     xs = [40.0, 50.0, 60.0, 70.0]
     r = untimed(m, [at(m, "a", x) for x in (xs[::-1] if reverse else xs)])
-    assert names(m, r) == [["ba"] if reverse else ["ab"]]
+    assert routes(m, r) == [["ba"] if reverse else ["ab"]]
     assert r.length_m == pytest.approx(30, abs=0.5)
     assert [round(p.offset) for p in r.points] == ([150 - x for x in xs[::-1]] if reverse else xs)
 
@@ -152,5 +147,5 @@ def test_fixes_along_two_roads_and_round_a_corner_give_the_route_between_them() 
         scale=10,
     )
     r = untimed(m, [at(m, "a", 20, 10), at(m, "a", 40), at(m, "a", 70), at(m, "a", 90), at(m, "c", 10, -20)])
-    assert names(m, r) == [["ab", "bc", "cd"]]
+    assert routes(m, r) == [["ab", "bc", "cd"]]
     assert r.length_m == pytest.approx(100, abs=0.5)
