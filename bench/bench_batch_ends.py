@@ -38,9 +38,12 @@ from bench_batch import CACHE, PEERS, PEERS_PY, _tracks  # noqa: E402
 from hash_batch import subsample  # noqa: E402
 
 
-def without_ends(roads: dict[str, Any], truth: dict[str, Any], cut: float, buffer: float) -> dict[str, Any]:
+def without_ends(
+    roads: dict[str, Any], truth: dict[str, Any], cut: float, buffer: float, *, at: str = "ends"
+) -> dict[str, Any]:
     """``roads`` (GeoJSON) less every feature within ``buffer`` m of the true route's first and
-    last ``cut`` m (distances in the truth's UTM zone)."""
+    last ``cut`` m (``at="ends"``), or of its ``cut`` m about its midpoint (``at="middle"``);
+    distances in the truth's UTM zone."""
     import shapely
     import shapely.ops
     from pyproj import Transformer
@@ -49,7 +52,10 @@ def without_ends(roads: dict[str, Any], truth: dict[str, Any], cut: float, buffe
     parts = [np.column_stack(fw.transform(*np.asarray(p)[:, :2].T)) for p in truth["geometry"]["coordinates"]]
     line = shapely.LineString(np.vstack(parts))
     end = line.length
-    ends = [shapely.ops.substring(line, 0.0, cut), shapely.ops.substring(line, end - cut, end)]
+    if at == "middle":
+        ends = [shapely.ops.substring(line, (end - cut) / 2, (end + cut) / 2)]
+    else:
+        ends = [shapely.ops.substring(line, 0.0, cut), shapely.ops.substring(line, end - cut, end)]
     zone = shapely.union_all([e.buffer(buffer) for e in ends])
     keep = []
     for f in roads["features"]:
@@ -103,11 +109,15 @@ def main() -> int:
     ap.add_argument("--S", default="1,10,30")
     ap.add_argument("--cut", type=float, default=300.0, help="metres of true route at each end")
     ap.add_argument("--buffer", type=float, default=25.0, help="roads within this many metres go")
+    ap.add_argument(
+        "--at", choices=("ends", "middle"), default="ends",
+        help="cut the true route's ends, or the --cut metres about its midpoint (a road the map lacks)",
+    )  # fmt: skip
     ap.add_argument("--set", action="append", default=[], dest="settings", metavar="NAME=VALUE")
     ap.add_argument("--engines", default="custom", help="custom (ours), and any of the peers' engines")
     a = ap.parse_args()
     peers = [e for e in a.engines.split(",") if e and e != "custom"]
-    peer_data = CACHE / f"ends_cut{a.cut:g}_buf{a.buffer:g}" / "data"
+    peer_data = CACHE / f"{a.at}_cut{a.cut:g}_buf{a.buffer:g}" / "data"
     sys.path.insert(0, str(PEERS))
     import score  # type: ignore[import-not-found]
 
@@ -124,7 +134,7 @@ def main() -> int:
         doc = json.loads((src / "truth.geojson").read_text())
         truth = doc if doc.get("type") == "Feature" else doc["features"][0]
         roads = json.loads((src / "roads.geojson").read_text())
-        kept = without_ends(roads, truth, a.cut, a.buffer)
+        kept = without_ends(roads, truth, a.cut, a.buffer, at=a.at)
         if peers:
             write_peer_track(src, peer_data / name, kept)
         with tempfile.TemporaryDirectory() as tmp:
@@ -148,7 +158,7 @@ def main() -> int:
             d_plus, rmf = (0.0, 1.0) if failed else (float(rec["d_plus_m"]), float(rec["rmf"]))
             run = (int(rec["S"]), d_plus, rmf)
             by_engine.setdefault(str(rec["engine"]), []).append(run)
-    print(f"\ncut {a.cut:g} m, buffer {a.buffer:g} m: REAL GPS on maps with SIMULATED missing roads")
+    print(f"\n{a.at}, cut {a.cut:g} m, buffer {a.buffer:g} m: REAL GPS on maps with SIMULATED missing roads")
     for eng, runs in by_engine.items():
         for s in steps:
             d = [x[1] for x in runs if x[0] == s]

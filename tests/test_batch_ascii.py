@@ -447,6 +447,34 @@ def test_fixes_off_the_map_at_speed_are_bridged_not_cut() -> None:
     assert cut.splits == [14] and len(cut.routes) == 2
 
 
+def test_fixes_off_the_map_at_speed_are_not_bridged_by_a_long_way_round() -> None:
+    # the map lacks the 525 m of fast road from b to c. The car drives on at 25 m/s, a fix a
+    # second: 18 fixes off the map (beyond 5 σ of any road), too fast for a cut, so the route
+    # may bridge them, but only near the path they trace (525 m): not round by e and f (1025 m,
+    # which the time between the fixes and the detour limit allow)
+    m = parse_ascii_map(
+        """
+        a------------b                    c------------d
+                     |                    |
+                     |                    |
+                     |                    |
+                     |                    |
+                     e--------------------f
+        """,
+        scale=25,
+    )
+    pts = [at(m, "a", x, 1) for x in range(0, 1150, 25)]
+    track = track_from_xy(m, pts, dt=1.0)
+    r = BatchMatcher(m.graph).match(track)
+    assert [names(m, piece) for piece in r.routes] == [["ab"], ["cd"]]
+    off = [i for i, p in enumerate(r.points) if p.status == PointStatus.UNMATCHED]
+    assert off == list(range(15, 33)) and r.splits == [33]
+    # with no such limit (or no cut rules) the run is bridged round by e and f
+    for cfg in (DEFAULT_CONFIG.replace(off_map_bridge_slack=0), DEFAULT_CONFIG.replace(off_map_cut=0)):
+        loose = BatchMatcher(m.graph).match(track, cfg)
+        assert [names(m, piece) for piece in loose.routes] == [["ab", "be", "ef", "fc", "cd"]]
+
+
 def test_fixes_on_a_road_the_route_cannot_reach_cut_the_route_not_a_way_round() -> None:
     # the map lacks the 60 m of road from b to c. The track drives east along ab, then slowly
     # along cd (a fix every 100 m, 20 s apart) and down df. No route reaches cd in the time of

@@ -115,6 +115,8 @@ class KernelParams(NamedTuple):
     off_map_cut: float
     off_map_cut_fixes: int
     off_map_cut_speed: float
+    off_map_bridge_slack: float
+    """metres; inf: any route bridges a run off the map."""
     off_map_min_run: int
     limit_factor: float
     """A step faster than this times the higher speed limit of its two roads ..."""
@@ -166,6 +168,7 @@ def kernel_params(cfg: MatchConfig, sigma: float) -> KernelParams:
         off_map_cut=float(cfg.off_map_cut),
         off_map_cut_fixes=int(cfg.off_map_cut_fixes),
         off_map_cut_speed=float(cfg.off_map_cut_speed) if cfg.off_map_cut_speed > 0 else np.inf,
+        off_map_bridge_slack=float(cfg.off_map_bridge_slack) if cfg.off_map_bridge_slack > 0 else np.inf,
         off_map_min_run=int(cfg.off_map_min_run),
         limit_factor=float(cfg.speed_limit_factor),
         limit_penalty=float(cfg.speed_limit_penalty),
