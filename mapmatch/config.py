@@ -501,19 +501,19 @@ class BatchConfig:
         0.0240 -> 0.0254.
     off_map_bridge_slack : metres; a run ``off_map_cut`` does not cut (a fast one: GPS trouble
         on a road, where the route is the better guess) is bridged only by a route at most this
-        much longer than the path through its fixes, from the fix before it to the one after
-        (0: any route). Its fixes still tell where the car went: a route kilometres round, where
-        the map lacks the road they follow, is not it; the step then fails, as a step no route
-        reaches, and the route is cut there. Twice ``off_map_cut``: fixes that far off a road
-        on both sides of the run. REAL GPS on maps less the roads about the true route's
-        midpoint (SIMULATED, ``bench/bench_batch_ends.py --at middle``), road added at S = 1 /
-        10 / 30 s: 141 / 1032 / 1227 m without it, 141 / 278 / 644 m with it; at the ends
-        (``--at ends``): 156 / 180 / 90 m without, 156 / 116 / 90 m with. Every REAL answer
-        is unchanged, and every run of the robustness sets (phases, gaps, noise, jumps). Taking
-        every run of one fix or more (not only runs that ``off_map_cut`` would count) made
-        the middle and ends at 30 s better (567 and 17 m) but changed REAL answers (a gap run
-        of 00000084 worse) and a SIMULATED noisy run of 00000056 at 30 s (0.010 -> 0.046):
-        one or two sparse fixes do not trace a winding road.
+        much longer than the path through its fixes, from the fix before it to the one after (0:
+        any route). Its fixes still tell where the car went: a route kilometres round, where the
+        map lacks the road they follow, is not it; the step then fails, as a step no route
+        reaches, and the route is cut there. The default is twice ``off_map_cut``: fixes that
+        far off a road on both sides of the run. REAL GPS on maps less the roads about the true
+        route's midpoint (SIMULATED, ``bench/bench_batch_ends.py --at middle``), road added at S
+        = 1 / 10 / 30 s: 141 / 1032 / 1227 m without it, 141 / 278 / 644 m with it; at the ends
+        (``--at ends``): 156 / 180 / 90 m without, 156 / 116 / 90 m with. Every REAL answer is
+        unchanged (also one fix a minute or more apart), and every run of the robustness sets
+        (phases, gaps, noise, jumps). Taking every run of one fix or more (not only runs that
+        ``off_map_cut`` would count) made the middle and ends at 30 s better (567 and 17 m) but
+        changed REAL answers (a gap run of 00000084 worse) and a SIMULATED noisy run of 00000056
+        at 30 s (0.010 -> 0.046): one or two sparse fixes do not trace a winding road.
     speed_limit_factor : where the map has speed limits (posted, or the default of the road's
         class), a step faster on average than this times the higher limit of its two roads ...
     speed_limit_penalty : ... costs this log-probability per m/s beyond (0 disables it; maps
