@@ -1,5 +1,6 @@
 """Batch matching where the map ends before the track does (issue #14's class 1: a car park, a
-driveway, an unmapped lane at a track's start or end), our engine only.
+driveway, an unmapped lane at a track's start or end), or misses a road mid-drive: ours, and the
+peers with ``--engines``.
 
 Each shared Kubicka track (REAL GPS) is matched on its own map with every road within
 ``--buffer`` metres of the true route's first and last ``--cut`` metres removed (SIMULATED
@@ -7,14 +8,17 @@ missing roads), sub-sampled as the peers' harness does (every S-th fix from fix 
 last). The figure that matters is d+, the road routed that the true route does not have: the
 fixes by the missing roads should be left unmatched, not routed round to far roads. d− counts
 the missing roads' own length too (no engine can match a road the map lacks). Scored by the
-peers' ``score.py`` against the true route with the run's first and last fix.
+peers' ``score.py`` against the true route with the run's first and last fix. With ``--at
+middle`` the roads go about the true route's midpoint instead (``--cut`` metres of it): a road
+the map lacks mid-drive, whose fixes should be left unmatched and the route cut there.
 
     python bench/bench_batch_ends.py                      # cut 300 m, buffer 25 m, S = 1, 10, 30
     python bench/bench_batch_ends.py --cut 500 --buffer 3 --set off_map_sigmas=4
+    python bench/bench_batch_ends.py --at middle          # a road missing mid-route instead
     python bench/bench_batch_ends.py --engines custom,valhalla,osrm,fastmm   # the peers too
 
 With peers, each track's cut map is also written as the peers read it (``roads.geojson`` and
-``map.osm.pbf`` less the same roads) to ``~/.cache/mapmatch-peers/ends_cut<C>_buf<B>/data``, and
+``map.osm.pbf`` less the same roads) to ``~/.cache/mapmatch-peers/<ends|middle>_cut<C>_buf<B>/data``, and
 ``run_peers.py`` prepares and matches it there (the first run prepares every peer's map: a few
 minutes); ours runs in process as without peers, scored the same way.
 """
