@@ -221,7 +221,7 @@ def _try_step(prev, t, d, lat, tr, p, router):  # type: ignore[no-untyped-def]
     if p.detour_cost_max > 0:  # and the longest detour the transition allows
         vcap = min(vcap, trav + (beta0 + p.transition[4] * trav) * p.detour_cost_max)
     # a run of fixes off the map is bridged only near the path its fixes trace (the count
-    # here, the rest a call: compiled into every caller, it made calls up to 20 % slower)
+    # here, the rest a call: compiled into every caller, it made calls up to 25 % slower)
     if lat.run[t, 2] - lat.run[prev, 3] + 1 >= p.off_map_cut_fixes:
         vcap = min(vcap, _run_path(prev, t, lat, p) + p.off_map_bridge_slack)
     reach = p.route_factor * trav + p.route_slack
