@@ -287,10 +287,17 @@ def _run_path(a, b, lat, p):  # type: ignore[no-untyped-def]
     travel = run[b, 0] - run[a, 1]
     if travel < p.off_map_cut:
         return np.inf
-    legs = math.hypot(run[a, 8] - lat.pxy[a, 0], run[a, 9] - lat.pxy[a, 1]) + math.hypot(
+    return travel + _run_legs(a, b, lat)
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _run_legs(a, b, lat):  # type: ignore[no-untyped-def]
+    """The legs from fix ``a`` to the first fix a step to ``b`` leaves out, and from its last
+    to fix ``b``."""
+    run = lat.run
+    return math.hypot(run[a, 8] - lat.pxy[a, 0], run[a, 9] - lat.pxy[a, 1]) + math.hypot(
         lat.pxy[b, 0] - run[b, 6], lat.pxy[b, 1] - run[b, 7]
     )
-    return travel + legs
 
 
 @njit(cache=True, nogil=True, inline="always")
@@ -308,14 +315,10 @@ def _left_the_route(a, b, lat, p):  # type: ignore[no-untyped-def]
     lasted = run[b, 4] - run[a, 5] >= p.off_map_cut / p.off_map_cut_speed
     if not (travel >= p.off_map_cut or lasted):
         return False
-    if travel < p.off_map_cut:
-        # a run that lasts but travels little: with its legs from and back to the route it
-        # must travel ``off_map_cut`` too (a car parked by the road is not cut off it)
-        legs = math.hypot(run[a, 8] - lat.pxy[a, 0], run[a, 9] - lat.pxy[a, 1]) + math.hypot(
-            lat.pxy[b, 0] - run[b, 6], lat.pxy[b, 1] - run[b, 7]
-        )
-        if travel + legs < p.off_map_cut:
-            return False
+    # a run that lasts but travels little: with its legs from and back to the route it must
+    # travel ``off_map_cut`` too (a car parked by the road is not cut off it)
+    if travel < p.off_map_cut and travel + _run_legs(a, b, lat) < p.off_map_cut:
+        return False
     # the run's speed from its first fix to its last (its path would count the noise)
     net = math.hypot(run[b, 6] - run[a, 8], run[b, 7] - run[a, 9])
     return not net > p.off_map_cut_speed * (run[b, 4] - run[a, 5])
