@@ -6,9 +6,11 @@ the route table), the track is sub-sampled as the peers' harness does (every S-t
 last) and matched with ``lonlat=True``; every field of the answer (per point: status, edge,
 offset, lon/lat, distance; routes, splits, length, confidence, route geometry in lon/lat and in
 the map's CRS) goes into a SHA-256, floats by their exact bits. Prints one digest per track and
-S and one over all of them.
+S and one over all of them. With ``--choices``, only the choices go in (per point: status and
+edge; routes and splits): the digest a change that moves distances by rounding alone keeps.
 
     python bench/hash_batch.py                 # all 15 tracks, S = 1, 10, 30
+    python bench/hash_batch.py --choices       # the matched edges, routes and splits only
     python bench/hash_batch.py --ids 0,14 --S 30
     python bench/hash_batch.py --set detour_cost_max=20    # which answers a setting changes
 """
@@ -40,8 +42,9 @@ def subsample(n: int, s: int) -> list[int]:
     return idx
 
 
-def digest(res: TrackMatch) -> str:
-    """SHA-256 of every field of a filled answer (floats by their bits)."""
+def digest(res: TrackMatch, *, choices: bool = False) -> str:
+    """SHA-256 of every field of a filled answer (floats by their bits); with ``choices``, of the
+    statuses, edges, routes and splits only."""
     h = hashlib.sha256()
 
     def floats(xs: object) -> None:
@@ -58,11 +61,14 @@ def digest(res: TrackMatch) -> str:
     ints([p.index for p in pts])
     h.update("".join(str(p.status) for p in pts).encode())
     ints([p.edge for p in pts])
-    floats([[p.offset, p.lat, p.lon, p.dist] for p in pts])
+    if not choices:
+        floats([[p.offset, p.lat, p.lon, p.dist] for p in pts])
     ints([len(r) for r in res.routes])
     for r in res.routes:
         ints(r)
     ints(res.splits)
+    if choices:
+        return h.hexdigest()
     floats([res.length_m, res.confidence])
     ints([len(r) for r in res.route_lonlat])
     for piece in res.route_lonlat:
@@ -76,6 +82,7 @@ def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--ids", default="all", help="all, or comma-separated track numbers")
     ap.add_argument("--S", default="1,10,30")
+    ap.add_argument("--choices", action="store_true", help="hash the choices only, not the floats")
     ap.add_argument("--set", action="append", default=[], dest="settings", metavar="NAME=VALUE")
     a = ap.parse_args()
     from mapmatch.batch import BATCH_CONFIG
@@ -92,7 +99,7 @@ def main() -> int:
         for s in (int(x) for x in a.S.split(",")):
             idx = np.asarray(subsample(len(t), s))
             res = matcher.match(Track(name, t[idx], lat[idx], lon[idx]), config)
-            d = digest(res)
+            d = digest(res, choices=a.choices)
             total.update(f"{name}/{s}/{d}".encode())
             print(f"{name} S={s:2d} points={len(idx):5d} {d[:16]}", flush=True)
     print(f"all {total.hexdigest()}")

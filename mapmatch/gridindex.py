@@ -165,12 +165,6 @@ def query_grid(pts, radius, k, grid, sc, ar):  # type: ignore[no-untyped-def]
     nearest ``k`` roads (``k < 0``: all) with their reverse twins, sorted by point then (distance,
     edge): ``(point, edge, dist, offset, xy)`` as :class:`~mapmatch.graph.index.Candidates`.
     Working arrays and the answer come from the arena ``ar`` (:mod:`mapmatch.arena`)."""
-    origin, cell, nx, ny = grid.origin, grid.cell, grid.nx, grid.ny
-    cell_ptr, cell_ids, cell_seg = grid.cell_ptr, grid.cell_ids, grid.cell_seg
-    seg_a, seg_b, seg_len, seg_off = grid.seg_a, grid.seg_b, grid.seg_len, grid.seg_off
-    seg_edge, edge_rev, edge_len = grid.seg_edge, grid.edge_rev, grid.edge_len
-    stamp_seg, stamp_edge, best = sc.stamp_seg, sc.stamp_edge, sc.best
-    stamp0 = sc.stamp[0]
     n = len(pts)
     cap = 16 * n + 16
     op = take_i8(ar, cap)
@@ -178,30 +172,56 @@ def query_grid(pts, radius, k, grid, sc, ar):  # type: ignore[no-untyped-def]
     od = take_f8(ar, cap)
     oo = take_f8(ar, cap)
     oq = take_xy(ar, cap)
+    room = 64  # roads near one point; ``loc_f`` holds (distance, offset, x, y) for each
+    loc_e = take_i8(ar, room)
+    loc_f = take_f8(ar, 4 * room)
+    sel = take_i8(ar, room)
     m = 0
-    r = math.ceil(radius / cell)
-    # squared-distance pre-check: beyond this, hypot exceeds ``radius`` too (margin >> rounding)
-    r2 = radius * radius * (1.0 + 1e-9)
-    loc_e = take_i8(ar, 64)
-    loc_d = take_f8(ar, 64)
-    loc_o = take_f8(ar, 64)
-    loc_x = take_f8(ar, 64)
-    loc_y = take_f8(ar, 64)
-    sel = take_i8(ar, 64)
-    p = -1
-    redo = False
-    while True:
-        if not redo:
-            p += 1
-        redo = False
+    p = 0
+    while p < n:
+        # the scan stops at the first point that does not fit; grow, and go on from there
+        m, p, more_loc = _scan_into(pts, p, m, radius, k, grid, sc, loc_e, loc_f, sel, op, oe, od, oo, oq)
         if p >= n:
             break
+        if more_loc:
+            room *= 2
+            loc_e = np.empty(room, dtype=np.int64)
+            loc_f = np.empty(4 * room)
+            sel = np.empty(room, dtype=np.int64)
+        else:
+            cap *= 2
+            op = grow_array(op, cap)
+            oe = grow_array(oe, cap)
+            od = grow_array(od, cap)
+            oo = grow_array(oo, cap)
+            oq2 = np.empty((cap, 2))
+            oq2[:m] = oq[:m]
+            oq = oq2
+    return op[:m], oe[:m], od[:m], oo[:m], oq[:m]
+
+
+@njit(cache=True, nogil=True)
+def _scan_into(pts, p0, m, radius, k, grid, sc, loc_e, loc_f, sel, op, oe, od, oo, oq):  # type: ignore[no-untyped-def]
+    """:func:`query_grid`'s answer rows for points ``p0`` on, written from row ``m``, until a point
+    does not fit: ``(rows, next point, whether the per-point scratch was too small)`` (no array
+    is replaced in the loop, so none is reference-counted there)."""
+    origin, cell, nx, ny = grid.origin, grid.cell, grid.nx, grid.ny
+    cell_ptr, cell_ids, cell_seg = grid.cell_ptr, grid.cell_ids, grid.cell_seg
+    seg_a, seg_b, seg_len, seg_off = grid.seg_a, grid.seg_b, grid.seg_len, grid.seg_off
+    seg_edge, edge_rev, edge_len = grid.seg_edge, grid.edge_rev, grid.edge_len
+    stamp_seg, stamp_edge, best = sc.stamp_seg, sc.stamp_edge, sc.best
+    n = len(pts)
+    cap = len(op)
+    room = len(loc_e)
+    r = math.ceil(radius / cell)
+    # squared-distance pre-check: beyond this, the distance exceeds ``radius`` too (margin >> rounding)
+    r2 = radius * radius * (1.0 + 1e-9)
+    for p in range(p0, n):
         px, py = pts[p, 0], pts[p, 1]
         if not (math.isfinite(px) and math.isfinite(py)):
             continue
-        stamp = stamp0
-        stamp0 += 1  # a fresh mark for every attempt at a point
-        overflow = False
+        stamp = sc.stamp[0]
+        sc.stamp[0] = stamp + 1  # a fresh mark for every attempt at a point
         cx0 = int((px - origin[0]) // cell)
         cy0 = int((py - origin[1]) // cell)
         nl = 0
@@ -238,81 +258,61 @@ def query_grid(pts, radius, k, grid, sc, ar):  # type: ignore[no-untyped-def]
                     ex, ey = px - qx, py - qy
                     if ex * ex + ey * ey > r2:
                         continue
-                    d = math.hypot(ex, ey)
+                    d = math.sqrt(ex * ex + ey * ey)
                     if d > radius:
                         continue
                     e = seg_edge[s]
                     if stamp_edge[e] == stamp:
                         j = best[e]
-                        if d < loc_d[j]:
-                            loc_d[j] = d
-                            loc_o[j] = seg_off[s] + t * L
-                            loc_x[j] = qx
-                            loc_y[j] = qy
+                        if d < loc_f[4 * j]:
+                            loc_f[4 * j] = d
+                            loc_f[4 * j + 1] = seg_off[s] + t * L
+                            loc_f[4 * j + 2] = qx
+                            loc_f[4 * j + 3] = qy
                         continue
                     stamp_edge[e] = stamp
-                    if nl == len(loc_e):
-                        overflow = True  # grown below, then this point is done again
-                        continue
+                    if nl == room:
+                        return m, p, True
                     best[e] = nl
                     loc_e[nl] = e
-                    loc_d[nl] = d
-                    loc_o[nl] = seg_off[s] + t * L
-                    loc_x[nl] = qx
-                    loc_y[nl] = qy
+                    loc_f[4 * nl] = d
+                    loc_f[4 * nl + 1] = seg_off[s] + t * L
+                    loc_f[4 * nl + 2] = qx
+                    loc_f[4 * nl + 3] = qy
                     nl += 1
-        if overflow:
-            loc_e = grow_array(loc_e, 2 * len(loc_e))
-            loc_d = grow_array(loc_d, 2 * len(loc_d))
-            loc_o = grow_array(loc_o, 2 * len(loc_o))
-            loc_x = grow_array(loc_x, 2 * len(loc_x))
-            loc_y = grow_array(loc_y, 2 * len(loc_y))
-            redo = True
-            continue
         if nl == 0:
             continue
         # nearest first (ties by edge), keep k roads, add reverse directions
-        if len(sel) < nl:
-            sel = np.empty(2 * nl, dtype=np.int64)
         for a in range(nl):
-            x = a
+            da, ea = loc_f[4 * a], loc_e[a]
             b = a - 1
-            while b >= 0 and (
-                loc_d[sel[b]] > loc_d[x] or (loc_d[sel[b]] == loc_d[x] and loc_e[sel[b]] > loc_e[x])
-            ):
+            while b >= 0 and (loc_f[4 * sel[b]] > da or (loc_f[4 * sel[b]] == da and loc_e[sel[b]] > ea)):
                 sel[b + 1] = sel[b]
                 b -= 1
-            sel[b + 1] = x
+            sel[b + 1] = a
         kk = nl if k < 0 else min(k, nl)
-        need = 2 * kk
-        if m + need > cap:
-            cap = 2 * (m + need)
-            op = grow_array(op, cap)
-            oe = grow_array(oe, cap)
-            od = grow_array(od, cap)
-            oo = grow_array(oo, cap)
-            oq2 = np.empty((cap, 2))
-            oq2[:m] = oq[:m]
-            oq = oq2
+        if m + 2 * kk > cap:
+            return m, p, False
         start = m
         for a in range(kk):
             j = sel[a]
             e = loc_e[j]
+            dj, oj, xj, yj = loc_f[4 * j], loc_f[4 * j + 1], loc_f[4 * j + 2], loc_f[4 * j + 3]
             op[m] = p
             oe[m] = e
-            od[m] = loc_d[j]
-            oo[m] = min(max(loc_o[j], 0.0), edge_len[e])
-            oq[m, 0] = loc_x[j]
-            oq[m, 1] = loc_y[j]
+            od[m] = dj
+            oo[m] = min(max(oj, 0.0), edge_len[e])
+            oq[m, 0] = xj
+            oq[m, 1] = yj
             m += 1
             rv = edge_rev[e]
             if rv >= 0:
                 op[m] = p
                 oe[m] = rv
-                od[m] = loc_d[j]
-                oo[m] = min(max(edge_len[rv] - loc_o[j], 0.0), edge_len[rv])
-                oq[m, 0] = loc_x[j]
-                oq[m, 1] = loc_y[j]
+                od[m] = dj
+                oo[m] = min(max(edge_len[rv] - oj, 0.0), edge_len[rv])
+                oq[m, 0] = xj
+                oq[m, 1] = yj
                 m += 1
         # order this point's rows by (dist, edge)
         for a in range(start + 1, m):
@@ -325,8 +325,7 @@ def query_grid(pts, radius, k, grid, sc, ar):  # type: ignore[no-untyped-def]
                 b -= 1
             od[b + 1], oe[b + 1], oo[b + 1] = d0, e0, o0
             oq[b + 1, 0], oq[b + 1, 1] = x0, y0
-    sc.stamp[0] = stamp0
-    return op[:m], oe[:m], od[:m], oo[:m], oq[:m]
+    return m, n, False
 
 
 @njit(cache=True, nogil=True)
