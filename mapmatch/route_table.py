@@ -296,23 +296,42 @@ def ubodt_lookup(table, e: int, f: int) -> float:  # type: ignore[no-untyped-def
     return table.dist[k] if k >= 0 else INF
 
 
-@njit(cache=True, nogil=True)
-def ubodt_path(table, src: int, dst: int):  # type: ignore[no-untyped-def]
-    """The edges strictly between ``src`` and ``dst`` from the table (None if not in it)."""
-    pos, tgt = table.pred_pos, table.tgt
-    a = table.ptr[src]
+@njit(cache=True, nogil=True, inline="always")
+def path_place(table, src: int, dst: int):  # type: ignore[no-untyped-def]
+    """The place of ``dst`` in the table's row of ``src`` and the number of edges strictly
+    between them on its path: ``(place, count)``, ``(-1, -1)`` when not in the table."""
     lo = _row_place(table, src, dst)
     if lo < 0:
-        return None
+        return -1, -1
+    pos = table.pred_pos
+    a = table.ptr[src]
     m = 0
     k = pos[lo]
     while k >= 0:
         m += 1
         k = pos[a + k]
-    out = np.empty(m, dtype=np.int32)
-    k = pos[lo]
+    return lo, m
+
+
+@njit(cache=True, nogil=True, inline="always")
+def path_into(table, src: int, place: int, m: int, out, n: int) -> None:  # type: ignore[no-untyped-def]
+    """The ``m`` edges of the path to ``place`` in the row of ``src`` (:func:`path_place`),
+    written to ``out[n : n + m]`` in driving order."""
+    pos, tgt = table.pred_pos, table.tgt
+    a = table.ptr[src]
+    k = pos[place]
     while k >= 0:
         m -= 1
-        out[m] = tgt[a + k]
+        out[n + m] = tgt[a + k]
         k = pos[a + k]
+
+
+@njit(cache=True, nogil=True)
+def ubodt_path(table, src: int, dst: int):  # type: ignore[no-untyped-def]
+    """The edges strictly between ``src`` and ``dst`` from the table (None if not in it)."""
+    place, m = path_place(table, src, dst)
+    if place < 0:
+        return None
+    out = np.empty(m, dtype=np.int32)
+    path_into(table, src, place, m, out, 0)
     return out

@@ -17,7 +17,7 @@ from mapmatch.arena import full_b1, full_f8, full_i8, take_f8, take_i8, take_xy
 from mapmatch.batch.arrays import Assembly, EdgeGeometry, KernelParams, Lattice, TrackPoints
 from mapmatch.graph.index import project_point_compiled
 from mapmatch.gridindex import grow_array
-from mapmatch.route_table import ubodt_path
+from mapmatch.route_table import path_into, path_place
 from mapmatch.routing import path_edges
 
 STEP_SAME, STEP_UTURN, STEP_ROUTE, STEP_SPLIT = 0, 1, 2, 3
@@ -34,7 +34,6 @@ def _project_one(seg_xy, seg_ptr, e, x, y):  # type: ignore[no-untyped-def]
 @njit(cache=True, nogil=True)
 def route_pieces(ch_edge, ch_off, kind, bound, router, ar):  # type: ignore[no-untyped-def]
     """The route as pieces ``(edge, start offset, end offset, segment)`` along the chosen candidates."""
-    edge_len = router.g.edge_len
     m = len(ch_edge)
     cap = 2 * m + 16
     pe = take_i8(ar, cap)
@@ -44,16 +43,35 @@ def route_pieces(ch_edge, ch_off, kind, bound, router, ar):  # type: ignore[no-u
     bad = full_b1(ar, m, False)
     n = 0
     seg = -1
-    for t in range(m):
-        e = ch_edge[t]
-        o = ch_off[t]
-        k = kind[t]
-        if n + 4 >= cap:
-            cap *= 2
+    t = 0
+    while t < m:
+        # the pieces stop at the first step that does not fit; grow, and go on from there
+        t, n, seg, need = _pieces_into(
+            ch_edge, ch_off, kind, bound, router, t, n, seg, pe, ps, pend, pseg, bad
+        )
+        if t < m:
+            cap = 2 * need
             pe = grow_array(pe, cap)
             ps = grow_array(ps, cap)
             pend = grow_array(pend, cap)
             pseg = grow_array(pseg, cap)
+    return pe[:n], ps[:n], pend[:n], pseg[:n], bad
+
+
+@njit(cache=True, nogil=True)
+def _pieces_into(ch_edge, ch_off, kind, bound, router, t0, n, seg, pe, ps, pend, pseg, bad):  # type: ignore[no-untyped-def]
+    """:func:`route_pieces` from step ``t0`` on, written from piece ``n`` (``seg``: the current
+    piece of route), until a step does not fit: ``(next step, pieces, seg, room it needs)``
+    (no array is replaced in the loop, so none is reference-counted there)."""
+    edge_len = router.g.edge_len
+    table = router.table
+    cap = len(pe)
+    for t in range(t0, len(ch_edge)):
+        e = ch_edge[t]
+        o = ch_off[t]
+        k = kind[t]
+        if n + 4 >= cap:
+            return t, n, seg, n + 4
         if k == STEP_SAME:
             if o > pend[n - 1]:
                 pend[n - 1] = o
@@ -69,28 +87,28 @@ def route_pieces(ch_edge, ch_off, kind, bound, router, ar):  # type: ignore[no-u
             n += 1
             continue
         if k == STEP_ROUTE:
-            mid = None
-            if router.table.delta > 0:
-                mid = ubodt_path(router.table, ch_edge[t - 1], e)
-            if mid is None:
-                mid = path_edges(ch_edge[t - 1], ch_off[t - 1], e, bound[t] + 1.0, router.g, router.ws)
-            if mid is None:
+            src = ch_edge[t - 1]
+            place, nm = path_place(table, src, e) if table.delta > 0 else (-1, -1)
+            got = None
+            if place < 0:
+                got = path_edges(src, ch_off[t - 1], e, bound[t] + 1.0, router.g, router.ws)
+                nm = -1 if got is None else len(got)
+            if nm < 0:
                 bad[t] = True
                 k = STEP_SPLIT
             else:
-                pend[n - 1] = edge_len[ch_edge[t - 1]]
-                if n + len(mid) + 4 >= cap:
-                    cap = 2 * (n + len(mid) + 4)
-                    pe = grow_array(pe, cap)
-                    ps = grow_array(ps, cap)
-                    pend = grow_array(pend, cap)
-                    pseg = grow_array(pseg, cap)
-                for x in mid:
-                    pe[n] = x
-                    ps[n] = 0.0
-                    pend[n] = edge_len[x]
-                    pseg[n] = seg
-                    n += 1
+                if n + nm + 4 >= cap:
+                    return t, n, seg, n + nm + 4
+                pend[n - 1] = edge_len[src]
+                if got is None:
+                    path_into(table, src, place, nm, pe, n)
+                else:
+                    pe[n : n + nm] = got
+                for i in range(n, n + nm):
+                    ps[i] = 0.0
+                    pend[i] = edge_len[pe[i]]
+                    pseg[i] = seg
+                n += nm
                 pe[n] = e
                 ps[n] = 0.0
                 pend[n] = o
@@ -104,7 +122,7 @@ def route_pieces(ch_edge, ch_off, kind, bound, router, ar):  # type: ignore[no-u
         pend[n] = o
         pseg[n] = seg
         n += 1
-    return pe[:n], ps[:n], pend[:n], pseg[:n], bad
+    return len(ch_edge), n, seg, n
 
 
 @njit(cache=True, nogil=True)
