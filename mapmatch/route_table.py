@@ -324,14 +324,3 @@ def path_into(table, src: int, place: int, m: int, out, n: int) -> None:  # type
         m -= 1
         out[n + m] = tgt[a + k]
         k = pos[a + k]
-
-
-@njit(cache=True, nogil=True)
-def ubodt_path(table, src: int, dst: int):  # type: ignore[no-untyped-def]
-    """The edges strictly between ``src`` and ``dst`` from the table (None if not in it)."""
-    place, m = path_place(table, src, dst)
-    if place < 0:
-        return None
-    out = np.empty(m, dtype=np.int32)
-    path_into(table, src, place, m, out, 0)
-    return out
