@@ -125,6 +125,34 @@ def test_grid_index_with_many_roads_near_one_point() -> None:
     assert np.sum(b.point == 0) == 150
 
 
+@pytest.mark.parametrize("with_table", [True, False])
+def test_a_route_of_many_more_edges_than_fixes_is_whole(with_table: bool) -> None:
+    # a straight road of 79 edges, 10 m each, and two fixes 780 m apart: the route's pieces
+    # outgrow their first arrays (sized by the fixes), from the route table or from a search
+    from pyproj import Transformer
+
+    from mapmatch.batch import BatchMatcher
+    from mapmatch.route_table import Ubodt
+    from mapmatch.types import Track
+
+    x0, y0 = 385_000.0, 6_672_000.0
+    g = RoadGraph.from_edges(
+        crs="EPSG:32635",
+        node_xy=np.column_stack([x0 + 10.0 * np.arange(80), np.full(80, y0)]),
+        edge_u=np.arange(79),
+        edge_v=np.arange(1, 80),
+    )
+    matcher = BatchMatcher(g, ubodt=Ubodt.build(g, 2000.0) if with_table else None)
+    to_lonlat = Transformer.from_crs(g.crs, 4326, always_xy=True)
+    lon, lat = to_lonlat.transform([x0 + 5, x0 + 785], [y0 + 1, y0 + 1])
+    res = matcher.match(Track("long", np.array([0.0, 60.0]), np.asarray(lat), np.asarray(lon)))
+    assert res.splits == [] and len(res.routes) == 1
+    route = list(res.routes[0])
+    assert len(route) == 79
+    assert int(g.edge_u[route[0]]) == 0 and int(g.edge_v[route[-1]]) == 79
+    assert all(int(g.edge_v[a]) == int(g.edge_u[b]) for a, b in itertools.pairwise(route))
+
+
 def _old_routing_rule(g: RoadGraph, e: int, f: int) -> bool:
     """The rule the compiled routing applied before the legal-moves table (#13), written out:
     the reverse twin only at a dead end, then the from-edge's turn restrictions."""
