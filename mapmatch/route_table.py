@@ -1,8 +1,9 @@
 """FMM-style route tables (UBODT): every route up to a bound, precomputed once per map.
 
 A :class:`Ubodt` lists, for every edge, the edges reachable within ``delta`` metres with their
-distances, so a route query within the bound is a binary search instead of a search
-(:mod:`mapmatch.routing`); routes beyond it are searched. Its size is estimated from a sample of
+distances, so a route query within the bound is a look-up (a binary search over the row's
+block heads, then over one block) instead of a search (:mod:`mapmatch.routing`); routes beyond
+it are searched. Its size is estimated from a sample of
 rows (:func:`ubodt_estimate`) before it is built, and a memory budget lowers the bound where
 the table would not fit (:meth:`Ubodt.build`). The kernels read a table as a
 :class:`mapmatch.routing.RouteTable`.
@@ -16,6 +17,7 @@ import math
 import os
 import shutil
 from dataclasses import dataclass
+from functools import cached_property
 from pathlib import Path
 
 import numpy as np
@@ -24,7 +26,7 @@ from numpy.typing import NDArray
 
 from mapmatch.config import BATCH_CONFIG
 from mapmatch.graph.road_graph import RoadGraph
-from mapmatch.routing import INF, RouteGraph, RouteTable, Workspace, _reset, _search, route_graph
+from mapmatch.routing import INF, TABLE_BLOCK, RouteGraph, RouteTable, Workspace, _reset, _search, route_graph
 
 log = logging.getLogger(__name__)
 
@@ -123,12 +125,23 @@ class Ubodt:
     @property
     def table(self) -> RouteTable:
         """The arrays as the compiled kernels read them."""
-        return RouteTable(self.delta, self.ptr, self.tgt, self.dist, self.pred_pos)
+        return RouteTable(self.delta, self.ptr, self.tgt, self._head, self.dist, self.pred_pos)
+
+    @cached_property
+    def _head(self) -> NDArray[np.int32]:
+        """Every :data:`~mapmatch.routing.TABLE_BLOCK`-th target (``RouteTable.head``), kept in
+        memory (a saved table is read, not copied: its arrays stay mapped)."""
+        return np.ascontiguousarray(self.tgt[::TABLE_BLOCK])
 
     @property
     def nbytes(self) -> int:
         return int(
-            self.ptr.nbytes + self.tgt.nbytes + self.dist.nbytes + self.pred.nbytes + self.pred_pos.nbytes
+            self.ptr.nbytes
+            + self.tgt.nbytes
+            + self.dist.nbytes
+            + self.pred.nbytes
+            + self.pred_pos.nbytes
+            + 4 * -(-len(self.tgt) // TABLE_BLOCK)
         )
 
 
@@ -137,9 +150,9 @@ _ARRAYS = ("ptr", "tgt", "dist", "pred", "pred_pos")
 TABLE_FILE_VERSION = 1
 """Version of :meth:`Ubodt.save`'s folder layout."""
 
-UBODT_ENTRY_BYTES = 4 + 8 + 4 + 4
-"""Bytes per entry of a :class:`Ubodt` (``tgt``, ``dist``, ``pred``, ``pred_pos``); each edge
-adds 8 (``ptr``)."""
+UBODT_ENTRY_BYTES = 4 + 8 + 4 + 4 + 4 / TABLE_BLOCK
+"""Bytes per entry of a :class:`Ubodt` (``tgt``, ``dist``, ``pred``, ``pred_pos``, and the
+block heads its look-ups read first); each edge adds 8 (``ptr``)."""
 
 ESTIMATE_SAMPLE = 512
 """Rows searched to estimate a table's size (edges evenly spaced in the map's spatial order)."""
@@ -273,17 +286,38 @@ def _build_ubodt(  # type: ignore[no-untyped-def]
 
 @njit(cache=True, nogil=True, inline="always")
 def _row_place(table, e: int, f: int) -> int:  # type: ignore[no-untyped-def]
-    """The place of ``f`` in the table's row of ``e`` (a binary search), -1 when not in it."""
-    ptr, tgt = table.ptr, table.tgt
-    lo = ptr[e]
-    hi = ptr[e + 1]
+    """The place of ``f`` in the table's row of ``e``, -1 when not in it: a binary search over
+    the row's block heads (``table.head``), then over one block."""
+    ptr, tgt, head = table.ptr, table.tgt, table.head
+    a = ptr[e]
+    b = ptr[e + 1]
+    if a >= b:
+        return -1
+    # the blocks that start inside the row after its first entry: ka .. kb - 1
+    ka = a // TABLE_BLOCK + 1
+    kb = (b - 1) // TABLE_BLOCK + 1
+    lo = ka
+    hi = kb
+    while lo < hi:  # the first of them whose head is beyond f
+        mid = (lo + hi) >> 1
+        if head[mid] <= f:
+            lo = mid + 1
+        else:
+            hi = mid
+    # f can only be in the block before it (or the row's first part)
+    if lo == ka:
+        lo = a
+        hi = min(b, ka * TABLE_BLOCK)
+    else:
+        hi = min(b, lo * TABLE_BLOCK)
+        lo = (lo - 1) * TABLE_BLOCK
     while lo < hi:
         mid = (lo + hi) >> 1
         if tgt[mid] < f:
             lo = mid + 1
         else:
             hi = mid
-    if lo < ptr[e + 1] and tgt[lo] == f:
+    if lo < b and tgt[lo] == f:
         return lo
     return -1
 

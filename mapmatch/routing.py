@@ -116,13 +116,21 @@ class RouteTable(NamedTuple):
     delta: float
     ptr: NDArray[np.int64]
     tgt: NDArray[np.int32]
+    head: NDArray[np.int32]
+    """Every :data:`TABLE_BLOCK`-th entry of ``tgt`` (``tgt[::TABLE_BLOCK]``): a row's look-up
+    searches these first, then one block, so it reads two or three cache lines of a cold row
+    rather than one per halving."""
     dist: NDArray[np.float64]
     pred_pos: NDArray[np.int32]
 
 
+TABLE_BLOCK = 16
+"""Entries of a route table's ``tgt`` per entry of its ``head`` (16 int32: one cache line)."""
+
 NO_TABLE = RouteTable(
     -1.0,
     np.zeros(1, np.int64),
+    np.zeros(0, np.int32),
     np.zeros(0, np.int32),
     np.zeros(0),
     np.zeros(0, np.int32),

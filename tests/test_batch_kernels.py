@@ -103,6 +103,42 @@ def test_ubodt_gives_the_same_matches_as_the_search() -> None:
         assert [p.edge for p in a.points] == [p.edge for p in b.points]
 
 
+def test_a_route_table_look_up_finds_what_a_plain_search_of_its_row_finds() -> None:
+    """The look-up searches the rows' block heads, then one block: on rows of every length and
+    place against the block boundaries, each target is found where a plain search finds it."""
+    from mapmatch.route_table import Ubodt, path_place
+    from mapmatch.routing import TABLE_BLOCK, RouteTable
+
+    def place(table: RouteTable, e: int, f: int) -> int:
+        return int(path_place(table, e, f)[0])
+
+    rng = np.random.default_rng(5)
+    b = TABLE_BLOCK
+    lengths = [0, 1, 2, b - 1, b, b + 1, 3, 2 * b, 5 * b + 7, 0, 40]
+    rows = [np.sort(rng.choice(500, size=n, replace=False)).astype(np.int32) for n in lengths]
+    ptr = np.concatenate([[0], np.cumsum(lengths)]).astype(np.int64)
+    tgt = np.concatenate(rows).astype(np.int32)
+    n = len(tgt)
+    table = RouteTable(
+        1.0, ptr, tgt, np.ascontiguousarray(tgt[::TABLE_BLOCK]), np.zeros(n), np.full(n, -1, np.int32)
+    )
+    for e, row in enumerate(rows):
+        for f in range(-1, 501):
+            k = int(np.searchsorted(row, f))
+            want = int(ptr[e]) + k if k < len(row) and row[k] == f else -1
+            assert place(table, e, f) == want
+    m = parse_ascii_map(DRAWING, scale=7)  # and a built table's rows, through its own head
+    ub = Ubodt.build(m.graph, 400.0)
+    real = ub.table
+    assert np.array_equal(real.head, ub.tgt[::TABLE_BLOCK])
+    for e in range(m.graph.n_edges):
+        row = ub.tgt[ub.ptr[e] : ub.ptr[e + 1]]
+        for f in range(m.graph.n_edges):
+            k = int(np.searchsorted(row, f))
+            want = int(ub.ptr[e]) + k if k < len(row) and row[k] == f else -1
+            assert place(real, e, f) == want
+
+
 def test_grid_index_with_many_roads_near_one_point() -> None:
     # 150 short one-way spokes around the origin: more roads near a point than the first buffer
     ang = np.linspace(0, 2 * np.pi, 150, endpoint=False)

@@ -22,7 +22,7 @@ from numpy.typing import NDArray
 
 from mapmatch.model import transition_logp_one
 from mapmatch.route_table import ubodt_lookup
-from mapmatch.routing import _reset, search_toward_inlined
+from mapmatch.routing import LOWER_BOUND_SCALE, _reset, search_toward_inlined
 
 
 class Trellis(NamedTuple):
@@ -90,6 +90,7 @@ def _step(a0, a1, b0, b1, cand, tr, params, node_uturn, trav, dt, beta0, bound, 
     score, bp, bpu, order, best = tr
     edge_len = g.edge_len
     edge_rev = g.edge_rev
+    exy = g.edge_xy
     reverse_tol = rules.reverse_tol
     limit = cand.limit
     lf = rules.limit_factor
@@ -166,6 +167,15 @@ def _step(a0, a1, b0, b1, cand, tr, params, node_uturn, trav, dt, beta0, bound, 
             f = cedge[j]
             if f == e and coff[j] >= o - reverse_tol:
                 continue
+            if via_table:
+                # no look-up (cold memory) where even the straight line from e's end to f's start
+                # is too long: beyond trav + beta * (si - best[j]), as lp <= -|r - trav| / beta,
+                # no route improves target j
+                ex = exy[e, 2] - exy[f, 0]
+                ey = exy[e, 3] - exy[f, 1]
+                lim_j = min(lim, trav + beta * (si - best[j - b0]) + 1e-6)
+                if edge_len[e] - o + math.sqrt(ex * ex + ey * ey) * LOWER_BOUND_SCALE + coff[j] > lim_j:
+                    continue
             r = (edge_len[e] - o + ubodt_lookup(table, e, f) if via_table else ws.dist[f]) + coff[j]
             if r <= lim:
                 lp = transition_logp_one(r, trav, dt, params, False, beta0) + _over_limit(
