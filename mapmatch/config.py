@@ -440,6 +440,11 @@ class BatchConfig:
         The detour is what is judged, not the speed: fixes that themselves move too fast tell
         of their timestamps, not of the road.
     split_slack : metres of fix noise allowed on top of ``split_speed`` over a step.
+    split_route_speed : m/s; a step whose route needs more than this average speed over its time
+        (plus ``split_slack``) is impossible too, where its fixes themselves do not move faster
+        (where they do, their timestamps are in doubt, and only ``split_speed`` judges the
+        detour). Sparse fixes either side of a road the map lacks are then not joined round by
+        a far longer way (0 disables the check).
     detour_cost_max : a route longer than the distance travelled between its two fixes by more
         than this many of the step's β (the detour's cost in the transition's log-probability)
         is impossible, whatever the time allows: the fix is left out as an outlier, or the
@@ -548,6 +553,7 @@ class BatchConfig:
     stop_uturn_penalty: float = 1.0
     split_speed: float = 50.0
     split_slack: float = 50.0
+    split_route_speed: float = 50.0
     detour_cost_max: float = 25.0
     spike_speed: float = 20.0
     spike_sigmas: float = 3.0

@@ -475,6 +475,34 @@ def test_fixes_off_the_map_at_speed_are_not_bridged_by_a_long_way_round() -> Non
         assert [names(m, piece) for piece in loose.routes] == [["ab", "be", "ef", "fc", "cd"]]
 
 
+def test_sparse_fixes_either_side_of_a_missing_road_split_rather_than_go_round_too_fast() -> None:
+    # a highway whose 1050 m from b to c the map lacks; the car drives on at 25 m/s, a fix
+    # every 30 s (150 m per character, 300 m per row). The fix between b and c is off the map,
+    # and one fix is too few for a cut. The way round by e and f (3900 m from fix 1 to fix 3
+    # in 60 s, or 4650 m to fix 4 in 90 s, leaving fix 3 out) needs over 50 m/s: impossible,
+    # so the match splits and both sides keep their fixes
+    m = parse_ascii_map(
+        """
+        a------b      c----------d
+               |      |
+               |      |
+               |      |
+               e------f
+        """,
+        scale=150,
+    )
+    track = track_from_xy(m, [at(m, "a", x, 2) for x in range(0, 3751, 750)], dt=30.0)
+    r = BatchMatcher(m.graph).match(track)
+    assert [names(m, piece) for piece in r.routes] == [["ab"], ["cd"]] and r.splits == [3]
+    off = [i for i, p in enumerate(r.points) if p.status != PointStatus.MATCHED]
+    assert off == [2]
+    # judged by its detour alone (2400 m more than the straight line in 90 s: within
+    # split_speed), the way round was taken and fix 3 left out
+    loose = BatchMatcher(m.graph).match(track, DEFAULT_CONFIG.replace(split_route_speed=0.0))
+    assert [names(m, piece) for piece in loose.routes] == [["ab", "be", "ef", "fc", "cd"]]
+    assert [i for i, p in enumerate(loose.points) if p.status != PointStatus.MATCHED] == [2, 3]
+
+
 def test_fixes_on_a_road_the_route_cannot_reach_cut_the_route_not_a_way_round() -> None:
     # the map lacks the 60 m of road from b to c. The track drives east along ab, then slowly
     # along cd (a fix every 100 m, 20 s apart) and down df. No route reaches cd in the time of

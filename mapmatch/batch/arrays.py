@@ -109,6 +109,8 @@ class KernelParams(NamedTuple):
     split_speed: float
     """m/s; 0: no speed check on steps."""
     split_slack: float
+    split_route_speed: float
+    """m/s; 0: routes are not judged by their own speed."""
     detour_cost_max: float
     """Routes longer than the travelled distance by more than this many β are impossible (0: no limit)."""
     off_map_sigmas: float
@@ -163,6 +165,7 @@ def kernel_params(cfg: MatchConfig, sigma: float) -> KernelParams:
         reverse_tol=float(cfg.reverse_tolerance),
         split_speed=float(cfg.split_speed),
         split_slack=float(cfg.split_slack),
+        split_route_speed=float(cfg.split_route_speed),
         detour_cost_max=float(cfg.detour_cost_max),
         off_map_sigmas=float(cfg.off_map_sigmas),
         off_map_cut=float(cfg.off_map_cut),

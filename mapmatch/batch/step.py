@@ -228,6 +228,9 @@ def _try_step(prev, t, d, lat, tr, p, router):  # type: ignore[no-untyped-def]
     vcap = np.inf  # the longest route the time between the fixes allows: the straight line
     if p.split_speed > 0 and dt > 0:  # plus the detour that time allows
         vcap = d + p.split_speed * dt + p.split_slack
+    if p.split_route_speed > 0 and dt > 0 and d <= p.split_route_speed * dt:
+        # a route a car could drive in the time (where the fixes could: else their clock is in doubt)
+        vcap = min(vcap, p.split_route_speed * dt + p.split_slack)
     if p.detour_cost_max > 0:  # and the longest detour the transition allows
         vcap = min(vcap, trav + (beta0 + p.transition[4] * trav) * p.detour_cost_max)
     # a run of fixes off the map is bridged only near the path its fixes trace (the count
