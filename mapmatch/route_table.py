@@ -3,10 +3,9 @@
 A :class:`Ubodt` lists, for every edge, the edges reachable within ``delta`` metres with their
 distances, so a route query within the bound is a look-up (a binary search over the row's
 block heads, then over one block) instead of a search (:mod:`mapmatch.routing`); routes beyond
-it are searched. Its size is estimated from a sample of
-rows (:func:`ubodt_estimate`) before it is built, and a memory budget lowers the bound where
-the table would not fit (:meth:`Ubodt.build`). The kernels read a table as a
-:class:`mapmatch.routing.RouteTable`.
+it are searched. Its size is estimated from a sample of rows (:func:`ubodt_estimate`) before
+it is built, and a memory budget lowers the bound where the table would not fit
+(:meth:`Ubodt.build`). The kernels read a table as a :class:`mapmatch.routing.RouteTable`.
 """
 
 from __future__ import annotations
@@ -40,8 +39,8 @@ class Ubodt:
     ``e`` (turn rules applied), sorted by ``f``: ``tgt[ptr[e]:ptr[e+1]]`` with the distances in
     ``dist`` and the edge before ``f`` on the route in ``pred`` (``e`` itself for a neighbour),
     whose place in the same row is ``pred_pos`` (-1 for a neighbour), so a route is read back
-    hop by hop without searching. A route query within the bound is then a binary search
-    instead of a search.
+    hop by hop without searching. A route query within the bound is then a look-up in the
+    row (:func:`_row_place`) instead of a search.
     """
 
     delta: float
