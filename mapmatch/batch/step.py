@@ -157,12 +157,14 @@ def _step(a0, a1, b0, b1, cand, tr, params, node_uturn, trav, dt, beta0, bound, 
                         best[j - b0] = si + lp
                         bp[j] = i
                         bpu[j] = True
-        if not need or edge_len[e] - o > lim:
+        rest = edge_len[e] - o  # the way left along e to its end node
+        if not need or rest > lim:
             continue
         via_table = lim <= table.delta  # the table holds every route within the bound
         nt = 0
         if not via_table:
-            nt = search_toward_inlined(e, edge_len[e] - o, lim, nuniq, cedge[b0:b1], g, ws)
+            nt = search_toward_inlined(e, rest, lim, nuniq, cedge[b0:b1], g, ws)
+        xe, ye = exy[e, 2], exy[e, 3]
         for j in range(b0, b1):
             f = cedge[j]
             if f == e and coff[j] >= o - reverse_tol:
@@ -171,12 +173,12 @@ def _step(a0, a1, b0, b1, cand, tr, params, node_uturn, trav, dt, beta0, bound, 
                 # no look-up (cold memory) where even the straight line from e's end to f's start
                 # is too long: beyond trav + beta * (si - best[j]), as lp <= -|r - trav| / beta,
                 # no route improves target j
-                ex = exy[e, 2] - exy[f, 0]
-                ey = exy[e, 3] - exy[f, 1]
+                ex = xe - exy[f, 0]
+                ey = ye - exy[f, 1]
                 lim_j = min(lim, trav + beta * (si - best[j - b0]) + 1e-6)
-                if edge_len[e] - o + math.sqrt(ex * ex + ey * ey) * LOWER_BOUND_SCALE + coff[j] > lim_j:
+                if rest + math.sqrt(ex * ex + ey * ey) * LOWER_BOUND_SCALE + coff[j] > lim_j:
                     continue
-            r = (edge_len[e] - o + ubodt_lookup(table, e, f) if via_table else ws.dist[f]) + coff[j]
+            r = (rest + ubodt_lookup(table, e, f) if via_table else ws.dist[f]) + coff[j]
             if r <= lim:
                 lp = transition_logp_one(r, trav, dt, params, False, beta0) + _over_limit(
                     r, dt, limit, i, j, lf, lpen
