@@ -900,7 +900,11 @@ def test_a_stray_fix_followed_by_another_is_dropped_not_the_good_fixes_after_the
     assert [p.status for p in r.points] == ["matched"] * 2 + ["unmatched"] * 2 + ["matched"] * 4
     # without trying the fix before a run left out, with any detour the time allows, and no
     # cut where the fixes left out travel ``off_map_cut``: the trip up hd, three good fixes lost
-    loose = DEFAULT_CONFIG.replace(outlier_lookahead=0, detour_cost_max=0, off_map_cut=0)
+    # (the first fix's direction kept over its 140 m leg: else the way is made longer by
+    # turning round at the dead end a, to fit the 140 m)
+    loose = DEFAULT_CONFIG.replace(
+        outlier_lookahead=0, detour_cost_max=0, off_map_cut=0, motion_end_leg_max=0
+    )
     greedy = BatchMatcher(m.graph).match(track, loose)
     assert names(m, greedy.routes[0]) == ["ab", "bh", "hd", "dh", "hb", "bc"]
     assert [p.status for p in greedy.points][2:6] == ["matched", "unmatched", "unmatched", "unmatched"]
@@ -1087,6 +1091,48 @@ def test_first_fix_near_a_crossing_takes_the_road_of_the_direction_of_travel() -
     # either alone puts the first fix on ab
     for cfg in (DEFAULT_CONFIG.replace(motion_heading_sigma=0), DEFAULT_CONFIG.replace(turn_cost=0)):
         assert [names(m, piece) for piece in BatchMatcher(m.graph).match(track, cfg).routes] == [["ab", "bd"]]
+
+
+def test_a_sparse_first_fix_by_a_junction_stays_on_its_road_though_the_car_turns_soon_after() -> None:
+    # one fix every 30 s: the first 15 m before the junction b on ab (1 m off it), then 300 and
+    # 600 m down bc. Both legs point south and are straight, but the car turned at b soon
+    # after the first fix: the direction they give is not the first fix's, and would put it on
+    # bc across the corner (15 m off), losing ab. Over a leg of 300 m the first fix takes no
+    # direction (``motion_end_leg_max``); the same for the last fix, driven the other way.
+    # Dense fixes keep it (legs of a few metres): the test above
+    #
+    #   a-----------------------0-b
+    #                             |
+    #                             1
+    #                             |
+    #                             2
+    #                             c
+    m = parse_ascii_map(
+        """
+        a---------b
+                  |
+                  |
+                  |
+                  |
+                  |
+                  |
+                  |
+                  |
+                  |
+                  |
+                  |
+                  c
+        """,
+        scale=30,
+    )
+    pts = [at(m, "b", -15, 1), at(m, "b", 2, -300), at(m, "b", -2, -600)]
+    ahead = track_from_xy(m, pts, dt=30.0)
+    back = track_from_xy(m, pts[::-1], dt=30.0)
+    unlimited = DEFAULT_CONFIG.replace(motion_end_leg_max=0)
+    assert [names(m, p) for p in BatchMatcher(m.graph).match(ahead).routes] == [["ab", "bc"]]
+    assert [names(m, p) for p in BatchMatcher(m.graph).match(back).routes] == [["cb", "ba"]]
+    assert [names(m, p) for p in BatchMatcher(m.graph).match(ahead, unlimited).routes] == [["bc"]]
+    assert [names(m, p) for p in BatchMatcher(m.graph).match(back, unlimited).routes] == [["cb"]]
 
 
 def test_a_noisy_receiver_is_matched_with_its_own_sigma_not_cut_off_the_map() -> None:

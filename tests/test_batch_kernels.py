@@ -618,6 +618,31 @@ def test_the_jump_rule_drops_a_burst_not_the_good_fixes_around_it() -> None:
     assert dropped(drive, u) == []
 
 
+def test_the_direction_of_travel_reaches_the_end_fixes_only_over_short_legs() -> None:
+    """``motion_heading``: every fix of a straight drive east gets 90°; the first and last take
+    it only where their own leg is at most ``end_leg_max`` (0: any length), while the fixes
+    inside keep theirs; a turn of more than ``max_turn`` at a fix leaves it and its end
+    neighbour without one."""
+    from mapmatch.batch.lattice import motion_heading
+
+    east = np.column_stack([np.array([0.0, 100.0, 120.0, 140.0, 300.0]), np.zeros(5)])
+
+    def heading(xy: np.ndarray, end_leg_max: float) -> list[float]:
+        return motion_heading(xy, np.arange(len(xy)), 8.0, 30.0, end_leg_max).round(6).tolist()
+
+    assert heading(east, 0.0) == [90.0] * 5
+    assert heading(east, 160.0) == [90.0] * 5
+    got = heading(east, 50.0)  # first leg 100 m, last 160 m: both ends lose it
+    assert np.isnan(got[0]) and np.isnan(got[4]) and got[1:4] == [90.0] * 3
+    got = heading(east, 120.0)  # the first leg is short enough, the last is not
+    assert got[:4] == [90.0] * 4 and np.isnan(got[4])
+    turn = east.copy()
+    turn[4] = (140.0, -160.0)  # a right angle at fix 3
+    got = heading(turn, 0.0)
+    assert got[:3] == [90.0] * 3 and np.isnan(got[3]) and np.isnan(got[4])
+    assert all(np.isnan(heading(east[:2], 0.0)))  # two fixes: no two legs
+
+
 def test_a_route_table_over_its_memory_budget_gets_a_shorter_bound_and_the_same_matches() -> None:
     from mapmatch.batch import BatchMatcher
     from mapmatch.route_table import Ubodt

@@ -319,26 +319,33 @@ def left_out_runs(pt: TrackPoints, has, ar):  # type: ignore[no-untyped-def]
 
 
 @njit(cache=True, nogil=True)
-def motion_heading(xy, kidx, min_leg, max_turn):  # type: ignore[no-untyped-def]
+def motion_heading(xy, kidx, min_leg, max_turn, end_leg_max):  # type: ignore[no-untyped-def]
     """Direction of travel (compass degrees) at each kept point from its two legs (to the
     previous and the next kept point; at the ends the first or last two legs), where both
-    are at least ``min_leg`` metres and turn by at most ``max_turn`` degrees; NaN elsewhere."""
-    return motion_heading_into(xy, kidx, min_leg, max_turn, np.full(len(kidx), np.nan))
+    are at least ``min_leg`` metres and turn by at most ``max_turn`` degrees; NaN elsewhere.
+
+    The first and last point take the direction only where their own leg is at most
+    ``end_leg_max`` metres (0: any length): a turn at a junction soon after the first fix (or
+    soon before the last) leaves both legs straight, so over a long leg it goes unseen."""
+    return motion_heading_into(xy, kidx, min_leg, max_turn, end_leg_max, np.full(len(kidx), np.nan))
 
 
 @njit(cache=True, nogil=True)
-def motion_heading_into(xy, kidx, min_leg, max_turn, out):  # type: ignore[no-untyped-def]
+def motion_heading_into(xy, kidx, min_leg, max_turn, end_leg_max, out):  # type: ignore[no-untyped-def]
     """:func:`motion_heading` into ``out`` (all NaN on entry)."""
     k = len(kidx)
     if k < 3:
         return out
     cos_max = math.cos(math.radians(max_turn))
+    end_max = end_leg_max if end_leg_max > 0 else np.inf
     last = -1  # the previous centre point: its second leg is this one's first
     vx = vy = lv = 0.0
+    h = np.nan  # the direction at the previous centre point
     for i in range(k):
         c = min(max(i, 1), k - 2)
         if c == last:  # the ends: the same two legs as the neighbour
-            out[i] = out[i - 1]
+            if i < k - 1 or lv <= end_max:
+                out[i] = h
             continue
         b = kidx[c]
         if c == last + 1:
@@ -353,9 +360,12 @@ def motion_heading_into(xy, kidx, min_leg, max_turn, out):  # type: ignore[no-un
         vx = xy[d, 0] - xy[b, 0]
         vy = xy[d, 1] - xy[b, 1]
         lv = math.hypot(vx, vy)
+        h = np.nan
         if lu < min_leg or lv < min_leg or ux * vx + uy * vy < cos_max * lu * lv:
             continue
-        out[i] = _wrap360(math.degrees(math.atan2(ux / lu + vx / lv, uy / lu + vy / lv)))
+        h = _wrap360(math.degrees(math.atan2(ux / lu + vx / lv, uy / lu + vy / lv)))
+        if i > 0 or lu <= end_max:
+            out[i] = h
     return out
 
 

@@ -87,6 +87,7 @@ class _Rules(NamedTuple):
     spike_max_time: float
     motion_heading_sigma: float
     motion_min_distance: float
+    motion_end_leg_max: float
     straight_max_deg: float
 
 
@@ -192,12 +193,14 @@ class BatchMatcher:
                 spike_max_time=float(cfg.spike_max_time),
                 motion_heading_sigma=float(cfg.motion_heading_sigma),
                 motion_min_distance=float(cfg.motion_min_distance),
+                motion_end_leg_max=float(cfg.motion_end_leg_max),
                 straight_max_deg=float(cfg.straight_max_deg),
             )  # fmt: skip
             track_rules = RuleParams(
                 gps_sigma=sigma, spike_sigmas=rules.spike_sigmas, spike_speed=rules.spike_speed,
                 spike_max_time=rules.spike_max_time,
                 motion_sigma=rules.motion_heading_sigma, motion_min_distance=rules.motion_min_distance,
+                motion_end_leg_max=rules.motion_end_leg_max,
                 straight_max_deg=rules.straight_max_deg, heading_sigma=float(cfg.heading_sigma),
                 heading_min_speed=float(cfg.heading_min_speed),
                 track_sigma_max=float(cfg.track_sigma_max), thin_sigmas=float(cfg.thin_sigmas),
@@ -307,7 +310,9 @@ class BatchMatcher:
         head_sigma: float | NDArray[np.float64] = np.nan
         if rules.motion_heading_sigma > 0:
             # the direction of travel where the track gives no heading
-            mh = motion_heading(xy, kidx, rules.motion_min_distance, rules.straight_max_deg)
+            mh = motion_heading(
+                xy, kidx, rules.motion_min_distance, rules.straight_max_deg, rules.motion_end_leg_max
+            )
             use = np.isfinite(mh) if heading is None else np.isfinite(mh) & ~np.isfinite(heading)
             heading = mh if heading is None else np.where(use, mh, heading)
             head_sigma = np.where(use, rules.motion_heading_sigma, np.nan)

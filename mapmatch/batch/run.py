@@ -82,6 +82,8 @@ class RuleParams(NamedTuple):
     motion_sigma: float
     """Degrees; 0: no direction of travel."""
     motion_min_distance: float
+    motion_end_leg_max: float
+    """Metres; the longest first or last leg whose end fix takes its direction (0: any)."""
     straight_max_deg: float
     heading_sigma: float
     """Default heading σ (degrees) of a track's own heading."""
@@ -320,7 +322,9 @@ def candidate_emissions(ti, kidx, xy, cp, ce, co, cq, cd, sigma, r, p, geom, roa
     kappa = full_f8(ar, nk, 0.0)
     mh = head
     if r.motion_sigma > 0:
-        mh = motion_heading_into(xy, kidx, r.motion_min_distance, r.straight_max_deg, full_f8(ar, nk, np.nan))
+        mh = motion_heading_into(
+            xy, kidx, r.motion_min_distance, r.straight_max_deg, r.motion_end_leg_max, full_f8(ar, nk, np.nan)
+        )
     any_head = False
     for k in range(nk):
         h = ti.heading[kidx[k]] if len(ti.heading) else np.nan
