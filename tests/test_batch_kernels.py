@@ -618,6 +618,35 @@ def test_the_jump_rule_drops_a_burst_not_the_good_fixes_around_it() -> None:
     assert dropped(drive, u) == []
 
 
+def test_a_grown_arena_is_sized_from_the_last_call_and_has_its_pages_mapped_in() -> None:
+    """``Arena.grown``: twice the most any buffer needed, None while it fits; the part of each
+    buffer the last call used is mapped in already, so writing it in the next call takes no
+    page faults (counted for this thread), where a fresh arena's first writes do."""
+    import mmap
+    import resource
+
+    from mapmatch.arena import Arena
+
+    small = Arena.new(1024)
+    small.top[:] = (1000, 10, 10)
+    assert small.grown() is None
+    n = 1 << 19  # 4 MB of floats
+    small.top[:] = (n, n // 2, 10)
+    big = small.grown()
+    assert big is not None and len(big.f8) == len(big.i8) == len(big.b1) == 2 * n
+
+    def faults_writing(buf: np.ndarray) -> int:
+        before = resource.getrusage(resource.RUSAGE_THREAD).ru_minflt
+        buf[:] = 1
+        return resource.getrusage(resource.RUSAGE_THREAD).ru_minflt - before
+
+    # memory never written (the allocator might hand out pages an earlier test mapped in)
+    fresh = np.frombuffer(mmap.mmap(-1, 8 * n), dtype=np.float64)
+    mapped, unmapped = faults_writing(big.f8[:n]), faults_writing(fresh)
+    assert unmapped > 0 and 10 * mapped < unmapped
+    assert 10 * faults_writing(big.i8[: n // 2]) < unmapped
+
+
 def test_the_direction_of_travel_reaches_the_end_fixes_only_over_short_legs() -> None:
     """``motion_heading``: every fix of a straight drive east gets 90°; the first and last take
     it only where their own leg is at most ``end_leg_max`` (0: any length), while the fixes
