@@ -10,8 +10,9 @@ disturbed by the other processes (a 0.5 ms call loses whole time slices under lo
 Prints mean and median RMF and points/s per engine and S, the per-track
 geometric mean of our points/s over fastmm's per S, our time per point at S = 30 on the largest
 vs the smallest map (timed apart, as above, and side by side in one process, in alternating
-rounds of five calls on each: the check's figure, ``--side-rounds``), and one PASS/FAIL line
-per target of issue #14.
+rounds of five calls on each: the check's figure, ``--side-rounds``) with each of those two
+tracks' candidates a fix and candidate pairs a step (which the time per point follows), and one
+PASS/FAIL line per target of issue #14.
 
     python bench/bench_batch.py                       # all 15 tracks, S = 1, 10, 30
     python bench/bench_batch.py --ids 0,21 --engines custom,fastmm     # a quick check
@@ -276,6 +277,9 @@ def growth_side_by_side(
         t, lat, lon = ek.read_track(WORK / name)
         idx = ek.subsample(len(t), S)
         calls.append((matcher, [t[i] for i in idx], [lat[i] for i in idx], [lon[i] for i in idx]))
+    for name, (m, _tt, la, lo) in zip((small, big), calls, strict=True):
+        cands, pairs = candidate_load(m, la, lo)
+        print(f"S={S}: {name}: {cands:.2f} candidates a fix, {pairs:.1f} candidate pairs a step")
     times: list[list[float]] = [[], []]
     for r in range(2 * rounds):
         for k, (m, tt, la, lo) in enumerate(calls):
@@ -286,6 +290,23 @@ def growth_side_by_side(
                 if r >= rounds:
                     times[k].append(dt / len(tt) * 1e6)
     return [(min(x), statistics.median(x)) for x in times]
+
+
+def candidate_load(matcher: Any, lat: list[float], lon: list[float]) -> tuple[float, float]:
+    """Mean candidates a fix and candidate pairs a Viterbi step (each fix's roads within the
+    search radius, nearest ``max_candidates`` and their reverse twins, as the matcher queries
+    them): the time per point follows these (the roads near the track), not the map's size."""
+    import numpy as np
+
+    from mapmatch.graph.projection import to_xy
+    from mapmatch.gridindex import GridIndex
+
+    cfg = matcher.config
+    xy = to_xy(matcher.graph.crs, np.asarray(lon, dtype=np.float64), np.asarray(lat, dtype=np.float64))
+    grid = GridIndex(matcher.index, cell=cfg.search_radius)
+    found = grid.query(xy, cfg.search_radius, k=cfg.max_candidates)
+    n = np.bincount(found.point, minlength=len(xy)).astype(np.float64)
+    return float(n.mean()), float(np.mean(n[1:] * n[:-1])) if len(n) > 1 else 0.0
 
 
 def _tracks(ids: str) -> tuple[Any, Path, list[str]]:
