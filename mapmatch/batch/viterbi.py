@@ -40,13 +40,9 @@ def solve(lat: Lattice, p: KernelParams, router, ar, sig):  # type: ignore[no-un
     whether the step into it is an along-road U-turn, and its route bound.
     """
     cand_ptr = lat.ptr
-    emis = lat.emis
-    pxy = lat.pxy
-    gap_time = p.gap_time if p.gap_time > 0 else np.inf
-    ptime = lat.ptime
     max_skip = p.max_skip
     m = len(cand_ptr) - 1
-    nc = len(emis)
+    nc = len(lat.emis)
     prev_pt = full_i8(ar, m, -1)
     accepted = full_b1(ar, m, False)
     seg_start = full_b1(ar, m, False)
@@ -75,6 +71,60 @@ def solve(lat: Lattice, p: KernelParams, router, ar, sig):  # type: ignore[no-un
         take_f8(ar, max_skip + 1),
         take_f8(ar, max_skip + 1),
     )
+    _forward(lat, p, router, tr, saved, detour, prev_pt, accepted, seg_start, used_bound)
+    # backtrack, each piece from its last point; the track's own ends may be left out (a
+    # split's, beside a jump or a gap, are not: there the fixes are already in doubt)
+    t = m - 1
+    while not accepted[t]:
+        t -= 1
+    if p.outlier_lookahead:
+        t = _track_end(t, tr, lat, p, router, sig, prev_pt, seg_start, used_bound)
+    last = t
+    j = cand_ptr[t] + np.argmax(score[cand_ptr[t] : cand_ptr[t + 1]])
+    later = -1  # the point after ``t`` in its piece
+    while True:
+        choice[t] = j
+        if seg_start[t]:
+            q = t - 1
+            while q >= 0 and not accepted[q]:
+                q -= 1
+            # a piece of one point at the track's start or end, beside another piece: one
+            # fix makes no route (a fix near some road before or after a run off the route)
+            if p.outlier_lookahead and later < 0 and (q < 0) != (t == last):
+                choice[t] = -1
+                seg_start[t] = False
+            if q < 0:
+                break
+            t = q
+            j = cand_ptr[t] + np.argmax(score[cand_ptr[t] : cand_ptr[t + 1]])
+            later = -1
+        else:
+            via_u[t] = bpu[j]
+            later = t
+            j = bp[j]
+            t = prev_pt[t]
+    if p.outlier_lookahead:
+        _track_start(choice, seg_start, via_u, used_bound, tr, lat, p, router, sig)
+    return choice, seg_start, via_u, used_bound
+
+
+@njit(cache=True, nogil=True, _nrt=False)
+def _forward(lat, p, router, tr, saved, detour, prev_pt, accepted, seg_start, used_bound):  # type: ignore[no-untyped-def]
+    """:func:`solve`'s forward pass: every step scored, its points accepted or left out, and the
+    pieces started, into ``prev_pt``, ``accepted``, ``seg_start`` and ``used_bound``.
+
+    Compiled without numba's reference counting (``_nrt=False``, as numba's own string
+    kernels): it allocates nothing and returns no array, and its caller holds every array it
+    reads. With it, the inlined :func:`~mapmatch.batch.step._try_step` no longer counts
+    references to the arrays of every tuple it is handed (about 170 calls a step)."""
+    cand_ptr = lat.ptr
+    emis = lat.emis
+    pxy = lat.pxy
+    gap_time = p.gap_time if p.gap_time > 0 else np.inf
+    ptime = lat.ptime
+    max_skip = p.max_skip
+    m = len(cand_ptr) - 1
+    score = tr.score
     prev = 0
     accepted[0] = True
     seg_start[0] = True
@@ -193,37 +243,3 @@ def solve(lat: Lattice, p: KernelParams, router, ar, sig):  # type: ignore[no-un
         prev = restart
         nskip = 0
         t = restart + 1
-    # backtrack, each piece from its last point; the track's own ends may be left out (a
-    # split's, beside a jump or a gap, are not: there the fixes are already in doubt)
-    t = m - 1
-    while not accepted[t]:
-        t -= 1
-    if p.outlier_lookahead:
-        t = _track_end(t, tr, lat, p, router, sig, prev_pt, seg_start, used_bound)
-    last = t
-    j = cand_ptr[t] + np.argmax(score[cand_ptr[t] : cand_ptr[t + 1]])
-    later = -1  # the point after ``t`` in its piece
-    while True:
-        choice[t] = j
-        if seg_start[t]:
-            q = t - 1
-            while q >= 0 and not accepted[q]:
-                q -= 1
-            # a piece of one point at the track's start or end, beside another piece: one
-            # fix makes no route (a fix near some road before or after a run off the route)
-            if p.outlier_lookahead and later < 0 and (q < 0) != (t == last):
-                choice[t] = -1
-                seg_start[t] = False
-            if q < 0:
-                break
-            t = q
-            j = cand_ptr[t] + np.argmax(score[cand_ptr[t] : cand_ptr[t + 1]])
-            later = -1
-        else:
-            via_u[t] = bpu[j]
-            later = t
-            j = bp[j]
-            t = prev_pt[t]
-    if p.outlier_lookahead:
-        _track_start(choice, seg_start, via_u, used_bound, tr, lat, p, router, sig)
-    return choice, seg_start, via_u, used_bound
