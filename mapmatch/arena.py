@@ -9,7 +9,8 @@ is allocated as before, and ``top`` still counts it, so the caller can grow the 
 (:meth:`Arena.grown`) for the next call.
 
 Also :func:`read_only`, the view every map array a kernel only reads goes in as, so that a map
-read from its file and one built in memory share one compile.
+read from its file and one built in memory share one compile; and two ways around numba's
+reference counting: :func:`borrowed` views, and :data:`UNCOUNTED` kernels.
 """
 
 from __future__ import annotations
@@ -29,6 +30,13 @@ allocates the rest (only memory and speed depend on it, never a result)."""
 
 PAGE_BYTES = 4096
 """A memory page: a grown arena writes one byte in each page its first call will use."""
+
+UNCOUNTED: dict[str, Any] = {"cache": True, "nogil": True, "_nrt": False}
+"""``njit`` options of a kernel compiled without numba's reference counting (``_nrt``, as
+numba's own string kernels): not a call per array it is handed or copies, as a tuple of arrays
+passed on or a function inlined into it copies every array in it. Only for a kernel that
+allocates nothing (numba refuses to compile one that does) and returns no array: its caller
+holds every array it reads."""
 
 
 def read_only(a: Any, dtype: Any) -> NDArray[Any]:

@@ -4,9 +4,8 @@ before a run left out (:func:`_leave_out_prev`), and the track's first and last 
 visiting them costs more than leaving them out (:func:`_track_end`). Each fix left out costs
 ``leave_out_cost`` where leaving out competes with visiting.
 
-Compiled without numba's reference counting (``_nrt=False``), as the Viterbi search's forward
-pass (:func:`mapmatch.batch.viterbi._forward`): none allocates or returns an array, and the
-caller holds every array they read.
+Compiled without reference counting (:data:`~mapmatch.arena.UNCOUNTED`), as the Viterbi
+search's forward pass that calls them (:func:`mapmatch.batch.viterbi._forward`).
 """
 
 from __future__ import annotations
@@ -18,6 +17,7 @@ import numpy as np
 from numba import njit
 from numpy.typing import NDArray
 
+from mapmatch.arena import UNCOUNTED
 from mapmatch.batch.step import _joinable, _step_scale, _try_step
 from mapmatch.route_table import ubodt_lookup
 from mapmatch.routing import _reset, _search
@@ -55,7 +55,7 @@ def _restore(tr, saved, b0, b1):  # type: ignore[no-untyped-def]
         tr.bpu[b0 + j] = saved.bpu[j]
 
 
-@njit(cache=True, nogil=True, _nrt=False)
+@njit(**UNCOUNTED)
 def _best(score, a, b):  # type: ignore[no-untyped-def]
     """The highest of ``score[a:b]``."""
     out = -np.inf
@@ -64,7 +64,7 @@ def _best(score, a, b):  # type: ignore[no-untyped-def]
     return out
 
 
-@njit(cache=True, nogil=True, _nrt=False)
+@njit(**UNCOUNTED)
 def _drop_one(q, prev, t, lat, tr, p, router, saved):  # type: ignore[no-untyped-def]
     """``t`` is unreachable from ``prev``: leave out ``t`` (step ``prev`` -> ``t + 1``) or
     ``prev`` (steps ``q`` -> ``t`` -> ``t + 1``; ``q`` -1: ``prev`` starts its piece, and ``t``
@@ -107,7 +107,7 @@ def _drop_one(q, prev, t, lat, tr, p, router, saved):  # type: ignore[no-untyped
     return prev
 
 
-@njit(cache=True, nogil=True, _nrt=False)
+@njit(**UNCOUNTED)
 def _leave_out_visited(q, prev, t, lat, tr, p, router, saved):  # type: ignore[no-untyped-def]
     """``t`` was reached from ``prev``, and ``prev`` from ``q``, so dearly that the step from
     ``q`` straight to ``t`` could win (:func:`solve` checks the bound): score ``t`` from ``q``
@@ -135,7 +135,7 @@ def _emission_cost(c, t, lat, sig):  # type: ignore[no-untyped-def]
     return -(lat.emis[c] + math.log(sig[t]))
 
 
-@njit(cache=True, nogil=True, _nrt=False)
+@njit(**UNCOUNTED)
 def _detour_cost(a, i, b, j, uturn, bound, lat, p, router):  # type: ignore[no-untyped-def]
     """The detour of the step from lattice point ``a`` (candidate ``i``) to ``b`` (candidate
     ``j``; ``uturn``: an along-road U-turn; ``bound``: its route bound) over the distance
@@ -166,7 +166,7 @@ def _detour_cost(a, i, b, j, uturn, bound, lat, p, router):  # type: ignore[no-u
     return abs(r - trav) / (beta0 + p.transition[4] * trav)
 
 
-@njit(cache=True, nogil=True, _nrt=False)
+@njit(**UNCOUNTED)
 def _track_end(t, tr, lat, p, router, sig, prev_pt, seg_start, used_bound):  # type: ignore[no-untyped-def]
     """The track's last kept point, its last being lattice point ``t``: points at its end are
     left out while visiting one costs more than ``leave_out_cost``, its emission's cost plus
@@ -185,7 +185,7 @@ def _track_end(t, tr, lat, p, router, sig, prev_pt, seg_start, used_bound):  # t
     return t
 
 
-@njit(cache=True, nogil=True, _nrt=False)
+@njit(**UNCOUNTED)
 def _track_start(choice, seg_start, via_u, used_bound, tr, lat, p, router, sig):  # type: ignore[no-untyped-def]
     """The mirror of :func:`_track_end`, on the chosen path (``choice`` etc. as
     :func:`~mapmatch.batch.viterbi.solve` returns them): the track's first points are left
@@ -246,7 +246,7 @@ class Detour(NamedTuple):
     bound: NDArray[np.float64]
 
 
-@njit(cache=True, nogil=True, _nrt=False)
+@njit(**UNCOUNTED)
 def _leave_out_prev(q, s0, t, lat, tr, p, router, saved, dt):  # type: ignore[no-untyped-def]
     """``t`` was reached from ``prev = s0 - 1`` leaving out the points ``s0 .. t - 1``: try
     leaving out ``prev`` instead, stepping from ``q`` (the point before it) through those

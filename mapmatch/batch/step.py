@@ -20,6 +20,7 @@ import numpy as np
 from numba import njit
 from numpy.typing import NDArray
 
+from mapmatch.arena import UNCOUNTED
 from mapmatch.model import transition_logp_one
 from mapmatch.route_table import ubodt_lookup
 from mapmatch.routing import LOWER_BOUND_SCALE, _reset, search_toward_inlined
@@ -70,7 +71,7 @@ def _over_limit(r, dt, limit, i, j, factor, penalty):  # type: ignore[no-untyped
     return -penalty * max(r / dt - factor * v, 0.0)
 
 
-@njit(cache=True, nogil=True, _nrt=False)
+@njit(**UNCOUNTED)
 def _step(a0, a1, b0, b1, cand, tr, params, node_uturn, trav, dt, beta0, bound, vcap, rules, router):  # type: ignore[no-untyped-def]
     """One Viterbi step from candidates ``a0:a1`` to ``b0:b1`` of ``cand``
     (:class:`StepCandidates`), routing as needed (routes longer than ``vcap``, the most the
@@ -80,11 +81,8 @@ def _step(a0, a1, b0, b1, cand, tr, params, node_uturn, trav, dt, beta0, bound, 
     Sources are taken best score first. As every transition log-probability is <= 0, a source
     can only improve target ``j`` when its score beats ``best[j]``, and only through a route
     shorter than ``trav + beta * (score - best[j])``: the search bound shrinks accordingly and
-    the result stays exact. Returns whether any target was reached.
-
-    Compiled without numba's reference counting (``_nrt=False``, as numba's own string
-    kernels): it allocates nothing and returns no array, and its caller holds every array it
-    reads.
+    the result stays exact. Returns whether any target was reached. Compiled without reference
+    counting (:data:`~mapmatch.arena.UNCOUNTED`).
     """
     g = router.g
     ws = router.ws
@@ -229,8 +227,9 @@ def _try_step(prev, t, d, lat, tr, p, router):  # type: ignore[no-untyped-def]
     Compiled into its callers, as the search is into :func:`_step`: one call less per step and
     per search (about 5 % fewer instructions per point at 30 s, callgrind on REAL track
     00000021). Its callers and :func:`_step` are compiled without reference counting
-    (``_nrt=False``): inlined, it copies every tuple it is handed, and numba counted a
-    reference to each of their arrays, about 300 calls a step (REAL 00000028 at 30 s)."""
+    (:data:`~mapmatch.arena.UNCOUNTED`): inlined, it copies every tuple it is handed, and
+    numba counted a reference to each of their arrays, about 300 calls a step (REAL 00000028
+    at 30 s)."""
     trav, dt, beta0 = _step_scale(prev, t, d, lat, p)
     vcap = np.inf  # the longest route the time between the fixes allows: the straight line
     if p.split_speed > 0 and dt > 0:  # plus the detour that time allows
