@@ -32,11 +32,11 @@ PAGE_BYTES = 4096
 """A memory page: a grown arena writes one byte in each page its first call will use."""
 
 UNCOUNTED: dict[str, Any] = {"cache": True, "nogil": True, "_nrt": False}
-"""``njit`` options of a kernel compiled without numba's reference counting (``_nrt``, as
-numba's own string kernels): not a call per array it is handed or copies, as a tuple of arrays
-passed on or a function inlined into it copies every array in it. Only for a kernel that
-allocates nothing (numba refuses to compile one that does) and returns no array: its caller
-holds every array it reads."""
+"""``njit`` options of a kernel compiled without numba's reference counting (``_nrt``, the
+option numba's own string kernels use). Otherwise numba makes a call for every array the kernel
+is handed or copies, and a tuple of arrays passed on, or a function inlined into the kernel,
+copies every array in it. Only for a kernel that allocates nothing (numba refuses to compile
+one that does) and returns no array; its caller holds every array it reads."""
 
 
 def read_only(a: Any, dtype: Any) -> NDArray[Any]:
