@@ -385,7 +385,9 @@ def assemble(  # type: ignore[no-untyped-def]
         prv = max(q - 1, 0)
         nxt = min(q, m - 1)
         o1, d1, x1, y1 = _project_one(seg_xy, seg_ptr, ch_edge[prv], xy[i, 0], xy[i, 1])
-        o2, d2, x2, y2 = _project_one(seg_xy, seg_ptr, ch_edge[nxt], xy[i, 0], xy[i, 1])
+        o2, d2, x2, y2 = 0.0, np.inf, 0.0, 0.0  # both neighbours on one edge (a stop): one projection
+        if ch_edge[nxt] != ch_edge[prv]:
+            o2, d2, x2, y2 = _project_one(seg_xy, seg_ptr, ch_edge[nxt], xy[i, 0], xy[i, 1])
         if d2 < d1:
             p_edge[i], p_off[i], p_xy[i, 0], p_xy[i, 1], p_dist[i] = ch_edge[nxt], o2, x2, y2, d2
         else:
