@@ -201,6 +201,83 @@ def project_point(
 project_point_compiled = njit(cache=True)(project_point)
 
 
+SKIP_MARGIN = 1e-3
+"""Metres by which a piece must lie beyond the nearest piece so far for :func:`project_point_near`
+to skip it: far above rounding (about 1e-9 m in projected coordinates), so a skip never changes
+an answer."""
+
+
+@njit(cache=True, nogil=True)
+def project_point_near(seg_xy, seg_len, lo, hi, x, y, hint, hint_acc):  # type: ignore[no-untyped-def]
+    """:func:`project_point`'s offset, distance and position (length unbounded), the same floats,
+    looking closely only at the pieces that can be as near as the nearest piece so far.
+
+    A piece is skipped when its bounding box lies beyond that, and so are the pieces after it
+    that the walk along the polyline keeps beyond (``seg_len``: each piece's length, by its first
+    vertex, as :func:`mapmatch.batch.lattice.segment_lengths`). ``hint`` (``lo < hint < hi``;
+    else none) is the end vertex of a piece to try first, and ``hint_acc`` the offset of its
+    start as returned with it: an earlier answer on this edge, such as the last fix's of a stop.
+    Returns ``(offset, dist, px, py, piece, piece_acc)``: ``piece`` the end vertex of the piece the
+    answer lies on (-1: none) and ``piece_acc`` the offset of its start, a hint for the next call.
+    """
+    if hi - lo < 2:
+        return 0.0, math.inf, seg_xy[lo, 0], seg_xy[lo, 1], -1, 0.0
+    q = hint if lo < hint < hi else lo + 1
+    ax, ay = seg_xy[q - 1, 0], seg_xy[q - 1, 1]
+    dx, dy = seg_xy[q, 0] - ax, seg_xy[q, 1] - ay
+    l2 = dx * dx + dy * dy
+    t = ((x - ax) * dx + (y - ay) * dy) / l2 if l2 > 1e-12 else 0.0
+    t = 0.0 if t < 0.0 else (1.0 if t > 1.0 else t)
+    qx, qy = ax + t * dx, ay + t * dy
+    lim = (math.sqrt((x - qx) ** 2 + (y - qy) ** 2) + SKIP_MARGIN) ** 2
+    # project_point's loop over the pieces that can be within ``lim`` (the others would neither
+    # win nor tie), in its order: the first of equally near pieces wins
+    best = math.inf
+    qb = -1
+    r_t, r_x, r_y = 0.0, seg_xy[lo, 0], seg_xy[lo, 1]
+    q = lo + 1
+    while q < hi:
+        ax, ay = seg_xy[q - 1, 0], seg_xy[q - 1, 1]
+        bx, by = seg_xy[q, 0], seg_xy[q, 1]
+        gx = max(min(ax, bx) - x, x - max(ax, bx), 0.0)
+        gy = max(min(ay, by) - y, y - max(ay, by), 0.0)
+        if gx * gx + gy * gy <= lim:
+            dx, dy = bx - ax, by - ay
+            l2 = dx * dx + dy * dy
+            t = ((x - ax) * dx + (y - ay) * dy) / l2 if l2 > 1e-12 else 0.0
+            t = 0.0 if t < 0.0 else (1.0 if t > 1.0 else t)
+            qx, qy = ax + t * dx, ay + t * dy
+            d2 = (x - qx) ** 2 + (y - qy) ** 2
+            if d2 < best:
+                best = d2
+                qb, r_t, r_x, r_y = q, t, qx, qy
+                lim = min(lim, (math.sqrt(d2) + SKIP_MARGIN) ** 2)
+            q += 1
+            continue
+        # a far piece: the pieces after it stay at least this far less the way walked
+        reach = math.sqrt((x - ax) ** 2 + (y - ay) ** 2) - math.sqrt(lim) - SKIP_MARGIN
+        walked = seg_len[q - 1]
+        q += 1
+        while q < hi and walked + seg_len[q - 1] < reach:
+            walked += seg_len[q - 1]
+            q += 1
+    if qb < 0:
+        return 0.0, math.sqrt(best), r_x, r_y, -1, 0.0
+    # the offset summed piece by piece in project_point's order (from the hint's, where it is
+    # on the way: the same sums)
+    q, acc = lo + 1, 0.0
+    if lo < hint <= qb:
+        q, acc = hint, hint_acc
+    while True:
+        ax, ay = seg_xy[q - 1, 0], seg_xy[q - 1, 1]
+        dx, dy = seg_xy[q, 0] - ax, seg_xy[q, 1] - ay
+        seg = math.sqrt(dx * dx + dy * dy)
+        if q == qb:
+            return acc + r_t * seg, math.sqrt(best), r_x, r_y, qb, acc
+        acc += seg
+        q += 1
+
+
 @njit(cache=True)
 def _project_many(seg_xy, seg_ptr, edge_len, bearing0, edges, xy):  # type: ignore[no-untyped-def]
     n = len(edges)

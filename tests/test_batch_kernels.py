@@ -519,6 +519,53 @@ def test_bearing_by_binary_search_is_the_walk_along_the_polyline() -> None:
     np.testing.assert_array_equal(looked_up, got)
 
 
+def test_the_projection_that_skips_far_pieces_gives_project_point_s_floats() -> None:
+    """A fix thinned out of a stop is projected onto a long edge by looking closely only at the
+    pieces that can be as near as the nearest so far, and summing the offset on from the last
+    answer's piece: the same offset, distance and position as the full walk, bit for bit, with
+    or without a hint, in UTM-sized coordinates, with repeated vertices, points equally near two
+    pieces (the first wins) and one-vertex edges."""
+    from mapmatch.batch.lattice import segment_lengths
+    from mapmatch.graph.index import project_point_compiled, project_point_near
+
+    rng = np.random.default_rng(11)
+    counts = rng.integers(1, 200, size=40)
+    counts[:3] = 1
+    seg_ptr = np.r_[0, np.cumsum(counts)].astype(np.int64)
+    seg_xy = np.cumsum(rng.normal(0, 15, (int(seg_ptr[-1]), 2)), axis=0) + [612_000.0, 5_393_000.0]
+    dup = rng.random(len(seg_xy)) < 0.1
+    seg_xy[1:][dup[1:]] = seg_xy[:-1][dup[1:]]  # zero-length pieces
+    # an edge folded back on itself: its middle point is equally near two pieces
+    seg_ptr = np.r_[seg_ptr, seg_ptr[-1] + 3]
+    seg_xy = np.vstack([seg_xy, [[0.0, 0.0], [10.0, 0.0], [0.0, 0.0]]])
+    seg_len = segment_lengths(seg_xy, seg_ptr)
+    n_edges = len(seg_ptr) - 1
+    checked = skipped_hint = 0
+    for e in range(n_edges):
+        lo, hi = int(seg_ptr[e]), int(seg_ptr[e + 1])
+        hint, hint_acc = -1, 0.0
+        # a walk along the edge and back, in small steps (a stop) and jumps, some far off it
+        for k in range(80):
+            if e == n_edges - 1:
+                x, y = 5.0, float(k % 4)
+            else:
+                v = seg_xy[lo + (k * 7 // 3) % (hi - lo)]
+                x, y = v + rng.normal(0, [0.5, 5.0, 60.0][k % 3], 2)
+            want = project_point_compiled(seg_xy, lo, hi, x, y, np.inf, 0.0)[:4]
+            cold = project_point_near(seg_xy, seg_len, lo, hi, x, y, -1, 0.0)
+            got = project_point_near(seg_xy, seg_len, lo, hi, x, y, hint, hint_acc)
+            assert cold[:4] == want, (e, k, cold, want)
+            assert got[:4] == want, (e, k, hint, got, want)
+            assert got[4:] == cold[4:]  # the piece it lies on and that piece's start
+            if hi - lo >= 2:
+                assert lo < got[4] < hi
+            skipped_hint += not (lo < hint <= got[4])
+            hint, hint_acc = got[4], got[5]
+            checked += 1
+    assert checked == 80 * n_edges
+    assert skipped_hint < checked  # the offset was summed on from a hint in many of them
+
+
 def test_the_in_place_projection_back_to_lonlat_equals_to_lonlat() -> None:
     """The answer's geometry goes back to lon/lat through pyproj's in-place call: the same
     numbers, bit for bit, as :func:`mapmatch.graph.projection.to_lonlat`, missing values too."""

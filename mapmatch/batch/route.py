@@ -15,20 +15,13 @@ from numba import njit
 
 from mapmatch.arena import full_b1, full_f8, full_i8, take_f8, take_i8, take_xy
 from mapmatch.batch.arrays import Assembly, EdgeGeometry, KernelParams, Lattice, TrackPoints
-from mapmatch.graph.index import project_point_compiled
+from mapmatch.graph.index import project_point_near
 from mapmatch.gridindex import grow_array
 from mapmatch.route_table import path_into, path_place
 from mapmatch.routing import path_edges
 
 STEP_SAME, STEP_UTURN, STEP_ROUTE, STEP_SPLIT = 0, 1, 2, 3
 ON_NODE = 1e-6  # metres: an offset this near an edge's end is at its node (float noise)
-
-
-@njit(cache=True, inline="always")
-def _project_one(seg_xy, seg_ptr, e, x, y):  # type: ignore[no-untyped-def]
-    """Offset, distance and position of point ``(x, y)`` projected onto edge ``e``."""
-    off, dist, px, py, _ = project_point_compiled(seg_xy, seg_ptr[e], seg_ptr[e + 1], x, y, np.inf, 0.0)
-    return off, dist, px, py
 
 
 @njit(cache=True, nogil=True)
@@ -262,6 +255,7 @@ def assemble(  # type: ignore[no-untyped-def]
     emis = lat.emis
     pts_all = lat.pts
     seg_xy = geom.seg_xy
+    seg_len = geom.seg_len
     seg_ptr = geom.seg_ptr
     reverse_tol = p.reverse_tol
     edge_rev = router.g.edge_rev
@@ -375,6 +369,8 @@ def assemble(  # type: ignore[no-untyped-def]
     # thinned after an unmatched kept point (off the map, a jump) stay unmatched with it
     q = 0
     last_matched = True
+    # the last projection's edge, piece and the piece's start: a stop's fixes share them
+    hint_e, hint, hint_acc = -1, -1, 0.0
     for i in range(n):
         if kept[i]:
             last_matched = status[i] == 1
@@ -384,10 +380,17 @@ def assemble(  # type: ignore[no-untyped-def]
             q += 1
         prv = max(q - 1, 0)
         nxt = min(q, m - 1)
-        o1, d1, x1, y1 = _project_one(seg_xy, seg_ptr, ch_edge[prv], xy[i, 0], xy[i, 1])
+        x, y = xy[i, 0], xy[i, 1]
+        e1, e2 = ch_edge[prv], ch_edge[nxt]
+        if e1 != hint_e:
+            hint_e, hint = e1, -1
+        o1, d1, x1, y1, hint, hint_acc = project_point_near(
+            seg_xy, seg_len, seg_ptr[e1], seg_ptr[e1 + 1], x, y, hint, hint_acc
+        )
         o2, d2, x2, y2 = 0.0, np.inf, 0.0, 0.0  # both neighbours on one edge (a stop): one projection
-        if ch_edge[nxt] != ch_edge[prv]:
-            o2, d2, x2, y2 = _project_one(seg_xy, seg_ptr, ch_edge[nxt], xy[i, 0], xy[i, 1])
+        if e2 != e1:
+            lo, hi = seg_ptr[e2], seg_ptr[e2 + 1]
+            o2, d2, x2, y2, _, _ = project_point_near(seg_xy, seg_len, lo, hi, x, y, -1, 0.0)
         if d2 < d1:
             p_edge[i], p_off[i], p_xy[i, 0], p_xy[i, 1], p_dist[i] = ch_edge[nxt], o2, x2, y2, d2
         else:
