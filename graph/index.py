@@ -13,6 +13,7 @@ from typing import Any
 import numpy as np
 import shapely
 from numba import njit
+from numba.extending import register_jitable
 from numpy.typing import ArrayLike, NDArray
 
 from mapmatch.arena import read_only
@@ -163,6 +164,21 @@ def project_to_edge(graph: RoadGraph, edge: int, x: float, y: float) -> tuple[fl
     return off, dist, px, py
 
 
+@register_jitable
+def onto_piece(
+    ax: float, ay: float, bx: float, by: float, x: float, y: float
+) -> tuple[float, float, float, float]:
+    """The point of the piece from ``(ax, ay)`` to ``(bx, by)`` nearest ``(x, y)``: ``(t, qx, qy,
+    d2)``, its fraction along the piece, its position and its squared distance (plain Python,
+    and compiled into the kernels that call it)."""
+    dx, dy = bx - ax, by - ay
+    l2 = dx * dx + dy * dy
+    t = ((x - ax) * dx + (y - ay) * dy) / l2 if l2 > 1e-12 else 0.0
+    t = 0.0 if t < 0.0 else (1.0 if t > 1.0 else t)
+    qx, qy = ax + t * dx, ay + t * dy
+    return t, qx, qy, (x - qx) ** 2 + (y - qy) ** 2
+
+
 def project_point(
     seg_xy: Any, lo: int, hi: int, x: float, y: float, length: float, bearing0: float
 ) -> tuple[float, float, float, float, float]:
@@ -181,13 +197,9 @@ def project_point(
     r_off, r_x, r_y, r_dx, r_dy = 0.0, ax, ay, 0.0, 1.0
     for q in range(lo + 1, hi):
         bx, by = seg_xy[q][0], seg_xy[q][1]
+        t, qx, qy, d2 = onto_piece(ax, ay, bx, by, x, y)
         dx, dy = bx - ax, by - ay
-        l2 = dx * dx + dy * dy
-        t = ((x - ax) * dx + (y - ay) * dy) / l2 if l2 > 1e-12 else 0.0
-        t = 0.0 if t < 0.0 else (1.0 if t > 1.0 else t)
-        qx, qy = ax + t * dx, ay + t * dy
-        d2 = (x - qx) ** 2 + (y - qy) ** 2
-        seg = math.sqrt(l2)
+        seg = math.sqrt(dx * dx + dy * dy)
         if d2 < best:
             best = d2
             r_off, r_x, r_y, r_dx, r_dy = acc + t * seg, qx, qy, dx, dy
@@ -223,13 +235,8 @@ def project_point_near(seg_xy, seg_len, lo, hi, x, y, hint, hint_acc):  # type: 
     if hi - lo < 2:
         return 0.0, math.inf, seg_xy[lo, 0], seg_xy[lo, 1], -1, 0.0
     q = hint if lo < hint < hi else lo + 1
-    ax, ay = seg_xy[q - 1, 0], seg_xy[q - 1, 1]
-    dx, dy = seg_xy[q, 0] - ax, seg_xy[q, 1] - ay
-    l2 = dx * dx + dy * dy
-    t = ((x - ax) * dx + (y - ay) * dy) / l2 if l2 > 1e-12 else 0.0
-    t = 0.0 if t < 0.0 else (1.0 if t > 1.0 else t)
-    qx, qy = ax + t * dx, ay + t * dy
-    lim = (math.sqrt((x - qx) ** 2 + (y - qy) ** 2) + SKIP_MARGIN) ** 2
+    d2 = onto_piece(seg_xy[q - 1, 0], seg_xy[q - 1, 1], seg_xy[q, 0], seg_xy[q, 1], x, y)[3]
+    lim = (math.sqrt(d2) + SKIP_MARGIN) ** 2
     # project_point's loop over the pieces that can be within ``lim`` (the others would neither
     # win nor tie), in its order: the first of equally near pieces wins
     best = math.inf
@@ -242,12 +249,7 @@ def project_point_near(seg_xy, seg_len, lo, hi, x, y, hint, hint_acc):  # type: 
         gx = max(min(ax, bx) - x, x - max(ax, bx), 0.0)
         gy = max(min(ay, by) - y, y - max(ay, by), 0.0)
         if gx * gx + gy * gy <= lim:
-            dx, dy = bx - ax, by - ay
-            l2 = dx * dx + dy * dy
-            t = ((x - ax) * dx + (y - ay) * dy) / l2 if l2 > 1e-12 else 0.0
-            t = 0.0 if t < 0.0 else (1.0 if t > 1.0 else t)
-            qx, qy = ax + t * dx, ay + t * dy
-            d2 = (x - qx) ** 2 + (y - qy) ** 2
+            t, qx, qy, d2 = onto_piece(ax, ay, bx, by, x, y)
             if d2 < best:
                 best = d2
                 qb, r_t, r_x, r_y = q, t, qx, qy
