@@ -540,7 +540,7 @@ def test_the_projection_that_skips_far_pieces_gives_project_point_s_floats() -> 
     seg_xy = np.vstack([seg_xy, [[0.0, 0.0], [10.0, 0.0], [0.0, 0.0]]])
     seg_len = segment_lengths(seg_xy, seg_ptr)
     n_edges = len(seg_ptr) - 1
-    checked = skipped_hint = 0
+    checked = unhinted = 0
     for e in range(n_edges):
         lo, hi = int(seg_ptr[e]), int(seg_ptr[e + 1])
         hint, hint_acc = -1, 0.0
@@ -559,11 +559,11 @@ def test_the_projection_that_skips_far_pieces_gives_project_point_s_floats() -> 
             assert got[4:] == cold[4:]  # the piece it lies on and that piece's start
             if hi - lo >= 2:
                 assert lo < got[4] < hi
-            skipped_hint += not (lo < hint <= got[4])
+            unhinted += not (lo < hint <= got[4])
             hint, hint_acc = got[4], got[5]
             checked += 1
     assert checked == 80 * n_edges
-    assert skipped_hint < checked  # the offset was summed on from a hint in many of them
+    assert unhinted < checked / 2  # the offset was summed on from a hint in most of them
 
 
 def test_the_in_place_projection_back_to_lonlat_equals_to_lonlat() -> None:
