@@ -296,10 +296,12 @@ def _shared_route_table(
     """The run's route table in the parts folder, built once for every worker (each maps the
     same file, so N workers hold one table's memory, not N); kept for a resumed run."""
     from mapmatch.graph.artifact import load_map
-    from mapmatch.route_table import Ubodt
+    from mapmatch.route_table import TABLE_FILE_VERSION, Ubodt
 
     st = os.stat(map_s)
-    key = json.dumps([os.path.abspath(map_s), st.st_mtime_ns, st.st_size, delta, max_bytes, turn_cost])
+    key = json.dumps(
+        [os.path.abspath(map_s), st.st_mtime_ns, st.st_size, delta, max_bytes, turn_cost, TABLE_FILE_VERSION]
+    )
     folder = pdir / f"{ROUTE_TABLE_PREFIX}{hashlib.sha256(key.encode()).hexdigest()[:16]}"
     for old in pdir.glob(ROUTE_TABLE_PREFIX + "*"):
         if old != folder:

@@ -37,17 +37,16 @@ class Ubodt:
     For every edge ``e``, the edges ``f`` whose start is within ``delta`` metres (turn costs
     counted, as in the searches) of the end of
     ``e`` (turn rules applied), sorted by ``f``: ``tgt[ptr[e]:ptr[e+1]]`` with the distances in
-    ``dist`` and the edge before ``f`` on the route in ``pred`` (``e`` itself for a neighbour),
-    whose place in the same row is ``pred_pos`` (-1 for a neighbour), so a route is read back
-    hop by hop without searching. A route query within the bound is then a look-up in the
-    row (:func:`_row_place`) instead of a search.
+    ``dist`` and the place in the same row of the edge before ``f`` on the route in
+    ``pred_pos`` (-1 for a neighbour of ``e``), so a route is read back hop by hop without
+    searching (that edge is ``tgt[ptr[e] + pred_pos[k]]``). A route query within the bound is
+    then a look-up in the row (:func:`_row_place`) instead of a search.
     """
 
     delta: float
     ptr: NDArray[np.int64]
     tgt: NDArray[np.int32]
     dist: NDArray[np.float64]
-    pred: NDArray[np.int32]
     pred_pos: NDArray[np.int32]
     turn_cost: float = 0.0
     """The turn cost its routes were found with (:func:`~mapmatch.routing.route_graph`); a matcher uses the
@@ -88,8 +87,8 @@ class Ubodt:
                 asked, (max_bytes or 0) / 2**20, delta,
             )  # fmt: skip
         cap = int(entries * ESTIMATE_HEADROOM) + 16  # no doubling, no copy: a lower peak
-        ptr, tgt, dist, pred, pos = _build_ubodt(delta, graph.n_edges, rg, ws, cap)
-        return cls(delta, ptr, tgt, dist, pred, pos, float(turn_cost))
+        ptr, tgt, dist, pos = _build_ubodt(delta, graph.n_edges, rg, ws, cap)
+        return cls(delta, ptr, tgt, dist, pos, float(turn_cost))
 
     def save(self, folder: str | os.PathLike[str]) -> None:
         """Write the table to ``folder`` (created; one ``.npy`` file per array and ``table.json``),
@@ -138,20 +137,20 @@ class Ubodt:
             self.ptr.nbytes
             + self.tgt.nbytes
             + self.dist.nbytes
-            + self.pred.nbytes
             + self.pred_pos.nbytes
             + 4 * -(-len(self.tgt) // TABLE_BLOCK)
         )
 
 
-_ARRAYS = ("ptr", "tgt", "dist", "pred", "pred_pos")
+_ARRAYS = ("ptr", "tgt", "dist", "pred_pos")
 
-TABLE_FILE_VERSION = 1
-"""Version of :meth:`Ubodt.save`'s folder layout."""
+TABLE_FILE_VERSION = 2
+"""Version of :meth:`Ubodt.save`'s folder layout (1 also held each entry's predecessor edge,
+which ``pred_pos`` gives)."""
 
-UBODT_ENTRY_BYTES = 4 + 8 + 4 + 4 + 4 / TABLE_BLOCK
-"""Bytes per entry of a :class:`Ubodt` (``tgt``, ``dist``, ``pred``, ``pred_pos``, and the
-block heads its look-ups read first); each edge adds 8 (``ptr``)."""
+UBODT_ENTRY_BYTES = 4 + 8 + 4 + 4 / TABLE_BLOCK
+"""Bytes per entry of a :class:`Ubodt` (``tgt``, ``dist``, ``pred_pos``, and the block heads
+its look-ups read first); each edge adds 8 (``ptr``)."""
 
 ESTIMATE_SAMPLE = 512
 """Rows searched to estimate a table's size (edges evenly spaced in the map's spatial order)."""
@@ -234,11 +233,14 @@ def _build_ubodt(  # type: ignore[no-untyped-def]
     ws,
     cap,
 ):
+    """The table's rows, one search each: ``(ptr, tgt, dist, pred_pos)``, each row sorted by
+    target, then each entry's predecessor edge found as a place in its row (three arrays of
+    ``cap`` entries, grown where the estimate was low)."""
     dist, pred, done, touched = ws.dist, ws.pred, ws.done, ws.touched
     ptr = np.zeros(n_edges + 1, dtype=np.int64)
     out_t = np.empty(cap, dtype=np.int32)
     out_d = np.empty(cap)
-    out_p = np.empty(cap, dtype=np.int32)
+    out_q = np.empty(cap, dtype=np.int32)
     m = 0
     for e in range(n_edges):
         nt = _search(e, 0.0, delta, -1, g, ws)
@@ -248,39 +250,36 @@ def _build_ubodt(  # type: ignore[no-untyped-def]
             t2[:m] = out_t[:m]
             d2 = np.empty(cap)
             d2[:m] = out_d[:m]
-            p2 = np.empty(cap, dtype=np.int32)
-            p2[:m] = out_p[:m]
-            out_t, out_d, out_p = t2, d2, p2
+            q2 = np.empty(cap, dtype=np.int32)
+            q2[:m] = out_q[:m]
+            out_t, out_d, out_q = t2, d2, q2
         start = m
         for i in range(nt):
             f = touched[i]
             if done[f] and dist[f] <= delta:
                 out_t[m] = f
                 out_d[m] = dist[f]
-                out_p[m] = pred[f]
+                out_q[m] = pred[f]  # the predecessor edge, until its place is known
                 m += 1
         order = np.argsort(out_t[start:m])
         st = out_t[start:m][order].copy()
         sd = out_d[start:m][order].copy()
-        sp = out_p[start:m][order].copy()
+        sp = out_q[start:m][order].copy()
         out_t[start:m] = st
         out_d[start:m] = sd
-        out_p[start:m] = sp
+        # each entry's predecessor as a place in its row (-1: the row's own edge)
+        for k in range(m - start):
+            out_q[start + k] = -1
+            p = sp[k]
+            if p != e:
+                q = np.searchsorted(st, p)
+                if q < m - start and st[q] == p:
+                    out_q[start + k] = q
         ptr[e + 1] = m
         _reset(nt, ws)
-    # each entry's predecessor as a place in its row (-1: the row's own edge)
-    pos = np.full(m, -1, dtype=np.int32)
-    for e in range(n_edges):
-        a, b = ptr[e], ptr[e + 1]
-        for k in range(a, b):
-            p = out_p[k]
-            if p != e:
-                q = np.searchsorted(out_t[a:b], p)
-                if q < b - a and out_t[a + q] == p:
-                    pos[k] = q
     if 4 * cap <= 5 * m:  # within a quarter of the size: keep the arrays rather than copy them
-        return ptr, out_t[:m], out_d[:m], out_p[:m], pos
-    return ptr, out_t[:m].copy(), out_d[:m].copy(), out_p[:m].copy(), pos
+        return ptr, out_t[:m], out_d[:m], out_q[:m]
+    return ptr, out_t[:m].copy(), out_d[:m].copy(), out_q[:m].copy()
 
 
 @njit(cache=True, nogil=True, inline="always")
