@@ -139,6 +139,48 @@ def test_a_route_table_look_up_finds_what_a_plain_search_of_its_row_finds() -> N
             assert place(real, e, f) == want
 
 
+def test_a_route_table_entry_reads_back_the_route_its_distance_is_of(tmp_path) -> None:
+    """Each entry's path, read back through ``pred_pos`` hop by hop, costs the entry's distance
+    (lengths between plus each move's turn cost), with a turn restriction and turn costs; a saved
+    table maps back the same, and a folder of another layout version is refused by name."""
+    import json
+
+    from mapmatch.route_table import TABLE_FILE_VERSION, Ubodt, path_into, path_place
+    from mapmatch.routing import route_graph
+
+    m = parse_ascii_map(DRAWING, scale=7, restrictions=[("b", "c", "h", "no")])
+    g = m.graph
+    ub = Ubodt.build(g, 400.0, turn_cost=20.0)
+    rg = route_graph(g, turn_cost=20.0)
+    move = {
+        (e, int(rg.move_to[k])): float(rg.move_cost[k])
+        for e in range(g.n_edges)
+        for k in range(rg.move_ptr[e], rg.move_ptr[e + 1])
+    }
+    out = np.zeros(g.n_edges + 2, dtype=np.int64)
+    checked = 0
+    for e in range(g.n_edges):
+        for k in range(ub.ptr[e], ub.ptr[e + 1]):
+            f = int(ub.tgt[k])
+            place, n = path_place(ub.table, e, f)
+            assert place == k
+            path_into(ub.table, e, place, n, out, 0)
+            hops = [e, *(int(x) for x in out[:n]), f]
+            turns = sum(move[a, b] for a, b in itertools.pairwise(hops))
+            want = sum(g.edge_len[x] for x in hops[1:-1]) + turns
+            assert ub.dist[k] == pytest.approx(want, abs=1e-9), (e, f, hops)
+            checked += 1
+    assert checked == len(ub.tgt) > 2 * g.n_edges
+    ub.save(tmp_path / "t")
+    back = Ubodt.load(tmp_path / "t")
+    for name in ("ptr", "tgt", "dist", "pred_pos"):
+        np.testing.assert_array_equal(getattr(back, name), getattr(ub, name))
+    meta = json.loads((tmp_path / "t" / "table.json").read_text())
+    (tmp_path / "t" / "table.json").write_text(json.dumps({**meta, "version": TABLE_FILE_VERSION - 1}))
+    with pytest.raises(ValueError, match=f"route table version {TABLE_FILE_VERSION - 1}"):
+        Ubodt.load(tmp_path / "t")
+
+
 def test_grid_index_with_many_roads_near_one_point() -> None:
     # 150 short one-way spokes around the origin: more roads near a point than the first buffer
     ang = np.linspace(0, 2 * np.pi, 150, endpoint=False)
