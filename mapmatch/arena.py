@@ -9,8 +9,9 @@ is allocated as before, and ``top`` still counts it, so the caller can grow the 
 (:meth:`Arena.grown`) for the next call.
 
 Also :func:`read_only`, the view every map array a kernel only reads goes in as, so that a map
-read from its file and one built in memory share one compile; and two ways around numba's
-reference counting: :func:`borrowed` views, and :data:`UNCOUNTED` kernels.
+read from its file and one built in memory share one compile; two ways around numba's
+reference counting: :func:`borrowed` views, and :data:`UNCOUNTED` kernels; and :func:`ref`,
+a tuple of arrays handed to a compiled call by one pointer instead of by value.
 """
 
 from __future__ import annotations
@@ -20,7 +21,9 @@ from typing import Any, NamedTuple, cast
 import numpy as np
 from numba import njit
 from numba.core import cgutils, errors, types
-from numba.extending import intrinsic
+from numba.core.datamodel import models
+from numba.core.imputils import impl_ret_borrowed
+from numba.extending import intrinsic, register_model
 from numpy.typing import NDArray
 
 MAX_ITEMS = 1 << 22
@@ -197,3 +200,56 @@ def _borrowed(typingctx: Any, x: Any) -> Any:
 
 borrowed: Any = intrinsic(prefer_literal=False)(_borrowed)
 """See :func:`_borrowed` (an intrinsic: called from compiled code only)."""
+
+
+class Ref(types.Type):
+    """numba's type of :func:`ref`: a pointer to a value of type ``of`` in a compiled caller's frame."""
+
+    def __init__(self, of: Any) -> None:
+        self.of = of
+        super().__init__(name=f"Ref({of})")
+
+    @property
+    def key(self) -> Any:
+        return self.of
+
+
+@register_model(Ref)
+class _RefModel(models.PrimitiveModel):  # type: ignore[misc]
+    def __init__(self, dmm: Any, fe_type: Ref) -> None:
+        super().__init__(dmm, fe_type, dmm.lookup(fe_type.of).get_value_type().as_pointer())
+
+
+def _ref(typingctx: Any, x: Any) -> Any:
+    """A pointer to a copy of ``x`` in the calling kernel's frame, for :func:`deref` in a kernel
+    it calls: one word passed instead of the value.
+
+    numba passes a tuple by value, every array in it as seven words: a call with a few dozen
+    arrays copied over a kilobyte of stack per call (REAL 00000021 at 30 s: the Viterbi step's,
+    once or twice a fix). How long that copy takes depends on where the compile happened to
+    put the two copies in the frame: 4 KB apart, each load waited on the store before it (4K
+    aliasing), and the whole match took twice as long. Made once, before a loop of calls, the
+    copy is made once. The pointer is valid until the kernel that made it returns: only for
+    the kernels it calls, never returned or stored."""
+
+    def codegen(context: Any, builder: Any, sig: Any, args: Any) -> Any:
+        return cgutils.alloca_once_value(builder, args[0])
+
+    return Ref(x)(x), codegen
+
+
+def _deref(typingctx: Any, r: Any) -> Any:
+    """The value a :func:`ref` points to."""
+    if not isinstance(r, Ref):
+        raise errors.TypingError(f"deref: {r} is not a Ref")
+
+    def codegen(context: Any, builder: Any, sig: Any, args: Any) -> Any:
+        return impl_ret_borrowed(context, builder, sig.return_type, builder.load(args[0]))
+
+    return r.of(r), codegen
+
+
+ref: Any = intrinsic(prefer_literal=False)(_ref)
+"""See :func:`_ref` (an intrinsic: called from compiled code only)."""
+deref: Any = intrinsic(prefer_literal=False)(_deref)
+"""See :func:`_deref` (an intrinsic: called from compiled code only)."""

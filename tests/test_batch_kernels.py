@@ -678,6 +678,47 @@ def test_borrowed_views_share_the_data_and_refuse_what_they_cannot_borrow() -> N
         bad([1.0, 2.0])
 
 
+def test_a_ref_hands_a_kernel_the_callers_tuple_by_one_pointer() -> None:
+    """:func:`mapmatch.arena.ref`: a named tuple of arrays and numbers, made once in the caller,
+    reaches a kernel without reference counting as one argument, a pointer, through which the
+    kernel reads the numbers and writes the caller's arrays on every call; ``deref`` of anything
+    else is refused at compile time."""
+    from numba import njit
+    from numba.core.errors import TypingError
+
+    from mapmatch.arena import UNCOUNTED, Ref, deref, ref
+    from mapmatch.batch.step import StepRules
+    from mapmatch.routing import NO_TABLE
+
+    @njit(**{**UNCOUNTED, "cache": False})
+    def add(i, r):  # type: ignore[no-untyped-def]
+        out, rules, table = deref(r)
+        out[i] += rules.reverse_tol * i + rules.limit_factor + table.delta
+        return out[i]
+
+    @njit
+    def caller(out, rules, table):  # type: ignore[no-untyped-def]
+        r = ref((out, rules, table))
+        total = 0.0
+        for i in range(len(out)):
+            total += add(i, r)
+        return total
+
+    out = np.ones(5)
+    total = caller(out, StepRules(2.0, 0.5, 9.0), NO_TABLE)
+    assert out.tolist() == [1.0 + 2.0 * i + 0.5 - 1.0 for i in range(5)]
+    assert total == pytest.approx(out.sum())
+    (sig,) = add.signatures
+    assert isinstance(sig[1], Ref) and len(sig) == 2
+
+    @njit
+    def bad(x):  # type: ignore[no-untyped-def]
+        return deref(x)
+
+    with pytest.raises(TypingError):
+        bad(np.ones(2))
+
+
 def test_the_jump_rule_drops_a_burst_not_the_good_fixes_around_it() -> None:
     """Runs of jumps (``drop_spikes``): at 30 m/s a two-fix burst 190 m to the side is dropped
     and the fixes before it are kept (their legs are as long as the burst's inner one); a stopped

@@ -18,7 +18,7 @@ from numba import njit
 from numpy.typing import NDArray
 
 from mapmatch.arena import UNCOUNTED
-from mapmatch.batch.step import _joinable, _step_scale, _try_step
+from mapmatch.batch.step import _joinable, _step_scale, _try_step, step_inputs
 from mapmatch.route_table import ubodt_lookup
 from mapmatch.routing import _reset, _search
 
@@ -73,12 +73,13 @@ def _drop_one(q, prev, t, lat, tr, p, router, saved):  # type: ignore[no-untyped
     Returns the point kept of the two (-1: neither reaches ``t + 1``; scores at ``t`` and
     ``t + 1`` are then to be recomputed). ``saved.bound`` gets the chosen steps' route bounds.
     """
+    inputs = step_inputs(lat, tr, p, router)
     ptr = lat.ptr
     b0, b1 = ptr[t + 1], ptr[t + 2]
     s_drop_t = -np.inf
     ok, d = _joinable(prev, t + 1, lat, p)
     if ok:
-        reached, bound = _try_step(prev, t + 1, d, lat, tr, p, router)
+        reached, bound = _try_step(prev, t + 1, d, lat, p, inputs)
         if reached:
             saved.bound[1] = bound
             s_drop_t = _save(tr, saved, b0, b1)
@@ -88,13 +89,13 @@ def _drop_one(q, prev, t, lat, tr, p, router, saved):  # type: ignore[no-untyped
     if ok1 and ok2:
         r1, bound1 = True, 0.0
         if q >= 0:
-            r1, bound1 = _try_step(q, t, d1, lat, tr, p, router)
+            r1, bound1 = _try_step(q, t, d1, lat, p, inputs)
         else:  # ``t`` starts the piece
             for j in range(ptr[t], ptr[t + 1]):
                 tr.score[j] = lat.emis[j]
                 tr.bp[j] = -1
         if r1:
-            r2, bound2 = _try_step(t, t + 1, d2, lat, tr, p, router)
+            r2, bound2 = _try_step(t, t + 1, d2, lat, p, inputs)
             if r2:
                 s_drop_prev = _best(tr.score, b0, b1)
                 if s_drop_prev > s_drop_t:
@@ -115,12 +116,13 @@ def _leave_out_visited(q, prev, t, lat, tr, p, router, saved):  # type: ignore[n
     than the cost (a clear gain, as in :func:`_leave_out_prev`). Returns whether it did
     (``saved.bound[0]`` gets the step's route bound); if not, the scores at ``t`` are as they
     were."""
+    inputs = step_inputs(lat, tr, p, router)
     ptr = lat.ptr
     b0, b1 = ptr[t], ptr[t + 1]
     kept = _save(tr, saved, b0, b1)
     ok, d = _joinable(q, t, lat, p)
     if ok:
-        reached, bound = _try_step(q, t, d, lat, tr, p, router)
+        reached, bound = _try_step(q, t, d, lat, p, inputs)
         if reached and _best(tr.score, b0, b1) - p.leave_out_cost > kept + p.leave_out_cost:
             saved.bound[0] = bound
             return True
@@ -194,6 +196,7 @@ def _track_start(choice, seg_start, via_u, used_bound, tr, lat, p, router, sig):
     then starts the route, its candidate chosen again for the step after it, as the Viterbi
     search would from a track starting there. A first piece left with one point beside
     another piece is left out (one fix makes no route)."""
+    inputs = step_inputs(lat, tr, p, router)
     m = len(choice)
     ptr = lat.ptr
     s = 0
@@ -226,7 +229,7 @@ def _track_start(choice, seg_start, via_u, used_bound, tr, lat, p, router, sig):
         for k in range(ptr[n], ptr[n + 1]):
             tr.score[k] = lat.emis[k]
         d = math.hypot(lat.pxy[nn, 0] - lat.pxy[n, 0], lat.pxy[nn, 1] - lat.pxy[n, 1])
-        reached, bound = _try_step(n, nn, d, lat, tr, p, router)
+        reached, bound = _try_step(n, nn, d, lat, p, inputs)
         k = choice[nn]
         if reached and tr.bp[k] >= 0:
             choice[n] = tr.bp[k]
@@ -255,6 +258,7 @@ def _leave_out_prev(q, s0, t, lat, tr, p, router, saved, dt):  # type: ignore[no
     that cost (a choice made at ``t`` binds the points after it: only a clear gain is taken),
     with the chosen steps in ``dt`` (:class:`Detour`); if not, the scores at ``t`` are as they
     were."""
+    inputs = step_inputs(lat, tr, p, router)
     ptr = lat.ptr
     b0, b1 = ptr[t], ptr[t + 1]
     kept = _save(tr, saved, b0, b1)
@@ -272,7 +276,7 @@ def _leave_out_prev(q, s0, t, lat, tr, p, router, saved, dt):  # type: ignore[no
             ok, d = _joinable(src, r, lat, p)
             if not ok:
                 continue
-            reached, bound = _try_step(src, r, d, lat, tr, p, router)
+            reached, bound = _try_step(src, r, d, lat, p, inputs)
             last = src
             if not reached:
                 continue
@@ -286,7 +290,7 @@ def _leave_out_prev(q, s0, t, lat, tr, p, router, saved, dt):  # type: ignore[no
         src = dt.pred[k]
         if src >= 0 and src != last:  # the scores at ``r`` are the last try's: redo the best
             d = math.hypot(lat.pxy[r, 0] - lat.pxy[src, 0], lat.pxy[r, 1] - lat.pxy[src, 1])
-            _try_step(src, r, d, lat, tr, p, router)
+            _try_step(src, r, d, lat, p, inputs)
     if dt.pred[t - s0] >= 0 and dt.score[t - s0] > kept + cost:  # by more than one fix's worth
         return True
     _restore(tr, saved, b0, b1)

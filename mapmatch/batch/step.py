@@ -14,13 +14,13 @@ stays in one piece of the match.
 from __future__ import annotations
 
 import math
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 import numpy as np
 from numba import njit
 from numpy.typing import NDArray
 
-from mapmatch.arena import UNCOUNTED
+from mapmatch.arena import UNCOUNTED, deref, ref
 from mapmatch.model import transition_logp_one
 from mapmatch.route_table import ubodt_lookup
 from mapmatch.routing import LOWER_BOUND_SCALE, _reset, search_toward_inlined
@@ -57,6 +57,28 @@ class StepRules(NamedTuple):
     limit_penalty: float
 
 
+class StepInputs(NamedTuple):
+    """What every Viterbi step of a kernel reads besides its candidates' places and scale:
+    :func:`_step` gets it by one pointer (:func:`step_inputs`)."""
+
+    cand: StepCandidates
+    tr: Trellis
+    params: NDArray[np.float64]
+    """The transition's parameters (:attr:`~mapmatch.batch.arrays.KernelParams.transition`)."""
+    rules: StepRules
+    router: Any
+    """:class:`~mapmatch.routing.Router`."""
+
+
+@njit(cache=True, nogil=True, inline="always")
+def step_inputs(lat, tr, p, router):  # type: ignore[no-untyped-def]
+    """:class:`StepInputs` in the calling kernel's frame, for its :func:`_try_step` calls
+    (:func:`~mapmatch.arena.ref`): made once, before the steps, not copied for each."""
+    sc = StepCandidates(lat.edge, lat.offset, lat.limit, lat.emis)
+    rules = StepRules(p.reverse_tol, p.limit_factor, p.limit_penalty)
+    return ref(StepInputs(sc, tr, p.transition, rules, router))
+
+
 @njit(cache=True, nogil=True, inline="always")
 def _over_limit(r, dt, limit, i, j, factor, penalty):  # type: ignore[no-untyped-def]
     """Log-probability cost of a step of ``r`` metres in ``dt`` s beyond ``factor`` times the
@@ -72,11 +94,11 @@ def _over_limit(r, dt, limit, i, j, factor, penalty):  # type: ignore[no-untyped
 
 
 @njit(**UNCOUNTED)
-def _step(a0, a1, b0, b1, cand, tr, params, node_uturn, trav, dt, beta0, bound, vcap, rules, router):  # type: ignore[no-untyped-def]
-    """One Viterbi step from candidates ``a0:a1`` to ``b0:b1`` of ``cand``
-    (:class:`StepCandidates`), routing as needed (routes longer than ``vcap``, the most the
-    step's time allows, are impossible; ``beta0``: the step's base β, grown with its driving
-    time).
+def _step(a0, a1, b0, b1, inputs, node_uturn, trav, dt, beta0, bound, vcap):  # type: ignore[no-untyped-def]
+    """One Viterbi step from candidates ``a0:a1`` to ``b0:b1`` of the candidates of ``inputs``
+    (:class:`StepInputs`, by :func:`~mapmatch.arena.ref`), routing as needed (routes longer
+    than ``vcap``, the most the step's time allows, are impossible; ``beta0``: the step's base
+    β, grown with its driving time).
 
     Sources are taken best score first. As every transition log-probability is <= 0, a source
     can only improve target ``j`` when its score beats ``best[j]``, and only through a route
@@ -84,6 +106,7 @@ def _step(a0, a1, b0, b1, cand, tr, params, node_uturn, trav, dt, beta0, bound, 
     the result stays exact. Returns whether any target was reached. Compiled without reference
     counting (:data:`~mapmatch.arena.UNCOUNTED`).
     """
+    cand, tr, params, rules, router = deref(inputs)
     g = router.g
     ws = router.ws
     table = router.table
@@ -220,9 +243,10 @@ def _step_scale(prev, t, d, lat, p):  # type: ignore[no-untyped-def]
 
 
 @njit(cache=True, nogil=True, inline="always")
-def _try_step(prev, t, d, lat, tr, p, router):  # type: ignore[no-untyped-def]
+def _try_step(prev, t, d, lat, p, inputs):  # type: ignore[no-untyped-def]
     """The Viterbi step from lattice point ``prev`` to ``t`` (``d`` metres apart): a tight search
     bound first, the full bound only if nothing is reached. Returns (reached, full bound).
+    ``inputs``: the caller's :func:`step_inputs`.
 
     Compiled into its callers, as the search is into :func:`_step`: one call less per step and
     per search (about 5 % fewer instructions per point at 30 s, callgrind on REAL track
@@ -254,16 +278,12 @@ def _try_step(prev, t, d, lat, tr, p, router):  # type: ignore[no-untyped-def]
         node_uturn = min(node_uturn, stop[2])
     reached = False
     ptr = lat.ptr
-    sc = StepCandidates(lat.edge, lat.offset, lat.limit, lat.emis)
-    rules = StepRules(p.reverse_tol, p.limit_factor, p.limit_penalty)
     for npass in range(2):
         lim = tight if npass == 0 else bound
         if npass == 1 and lim <= tight:
             break
-        reached = _step(
-            ptr[prev], ptr[prev + 1], ptr[t], ptr[t + 1], sc, tr, p.transition, node_uturn, trav, dt, beta0,
-            lim, vcap, rules, router,
-        )  # fmt: skip
+        a0, a1, b0, b1 = ptr[prev], ptr[prev + 1], ptr[t], ptr[t + 1]
+        reached = _step(a0, a1, b0, b1, inputs, node_uturn, trav, dt, beta0, lim, vcap)
         if reached:
             break
     return reached, bound
