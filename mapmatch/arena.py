@@ -230,7 +230,10 @@ def _ref(typingctx: Any, x: Any) -> Any:
     put the two copies in the frame: 4 KB apart, each load waited on the store before it (4K
     aliasing), and the whole match took twice as long. Made once, before a loop of calls, the
     copy is made once. The pointer is valid until the kernel that made it returns: only for
-    the kernels it calls, never returned or stored."""
+    the kernels it calls, never returned or stored. So ``ref`` must be called in that kernel,
+    or in a function compiled into it (``inline="always"``, as
+    :func:`mapmatch.batch.step.step_inputs`): called in a function of its own, it would
+    point into that function's finished frame."""
 
     def codegen(context: Any, builder: Any, sig: Any, args: Any) -> Any:
         return cgutils.alloca_once_value(builder, args[0])

@@ -73,7 +73,8 @@ class StepInputs(NamedTuple):
 @njit(cache=True, nogil=True, inline="always")
 def step_inputs(lat, tr, p, router):  # type: ignore[no-untyped-def]
     """:class:`StepInputs` in the calling kernel's frame, for its :func:`_try_step` calls
-    (:func:`~mapmatch.arena.ref`): made once, before the steps, not copied for each."""
+    (:func:`~mapmatch.arena.ref`): made once, before the steps, not copied for each. Compiled
+    into its caller, whose frame holds the copy the pointer points to."""
     sc = StepCandidates(lat.edge, lat.offset, lat.limit, lat.emis)
     rules = StepRules(p.reverse_tol, p.limit_factor, p.limit_penalty)
     return ref(StepInputs(sc, tr, p.transition, rules, router))
