@@ -14,7 +14,7 @@ stays in one piece of the match.
 from __future__ import annotations
 
 import math
-from typing import Any, NamedTuple
+from typing import NamedTuple
 
 import numpy as np
 from numba import njit
@@ -23,7 +23,7 @@ from numpy.typing import NDArray
 from mapmatch.arena import UNCOUNTED, deref, ref
 from mapmatch.model import transition_logp_one
 from mapmatch.route_table import ubodt_lookup
-from mapmatch.routing import LOWER_BOUND_SCALE, _reset, search_toward_inlined
+from mapmatch.routing import LOWER_BOUND_SCALE, Router, _reset, search_toward_inlined
 
 
 class Trellis(NamedTuple):
@@ -66,8 +66,7 @@ class StepInputs(NamedTuple):
     params: NDArray[np.float64]
     """The transition's parameters (:attr:`~mapmatch.batch.arrays.KernelParams.transition`)."""
     rules: StepRules
-    router: Any
-    """:class:`~mapmatch.routing.Router`."""
+    router: Router
 
 
 @njit(cache=True, nogil=True, inline="always")
