@@ -21,6 +21,8 @@ from mapmatch.graph.index import Candidates, EdgeIndex
 
 DENSE_MAX_CELLS = 1 << 23
 """Up to this many cells the grid keeps a dense cell table (8 bytes a cell)."""
+CELL_MARGIN = 1e-6
+"""Metres by which a cell's box is widened when testing whether a segment crosses it."""
 
 
 class Grid(NamedTuple):
@@ -133,30 +135,68 @@ class GridIndex:
 
 @njit(cache=True, nogil=True)
 def _bucket(a, b, origin, cell, ny):  # type: ignore[no-untyped-def]
-    """Cell ids (sorted) and the segment in each, for every cell a segment's box touches."""
+    """Cell ids (sorted) and the segment in each, for every cell a segment crosses.
+
+    A segment is listed only in the cells its line passes through (not every cell of its box:
+    a diagonal segment's box holds about twice as many). That is enough: the point of a segment
+    nearest a fix lies in one of them, and that cell is no further from the fix than the
+    segment, so the query looks in it. Each cell's box is widened by ``CELL_MARGIN`` for the
+    crossing test, so a rounding at a cell's edge can only add an entry, never drop one.
+    """
     n = len(a)
     cnt = 0
     for i in range(n):
-        x0 = int((min(a[i, 0], b[i, 0]) - origin[0]) // cell)
-        x1 = int((max(a[i, 0], b[i, 0]) - origin[0]) // cell)
-        y0 = int((min(a[i, 1], b[i, 1]) - origin[1]) // cell)
-        y1 = int((max(a[i, 1], b[i, 1]) - origin[1]) // cell)
+        x0, x1, y0, y1 = _box_cells(a[i], b[i], origin, cell)
         cnt += (x1 - x0 + 1) * (y1 - y0 + 1)
     ids = np.empty(cnt, dtype=np.int64)
     seg = np.empty(cnt, dtype=np.int64)
     c = 0
     for i in range(n):
-        x0 = int((min(a[i, 0], b[i, 0]) - origin[0]) // cell)
-        x1 = int((max(a[i, 0], b[i, 0]) - origin[0]) // cell)
-        y0 = int((min(a[i, 1], b[i, 1]) - origin[1]) // cell)
-        y1 = int((max(a[i, 1], b[i, 1]) - origin[1]) // cell)
+        ax, ay, bx, by = a[i, 0], a[i, 1], b[i, 0], b[i, 1]
+        x0, x1, y0, y1 = _box_cells(a[i], b[i], origin, cell)
         for cx in range(x0, x1 + 1):
             for cy in range(y0, y1 + 1):
-                ids[c] = cx * ny + cy
-                seg[c] = i
-                c += 1
-    order = np.argsort(ids, kind="mergesort")
-    return ids[order], seg[order]
+                lx = origin[0] + cx * cell - CELL_MARGIN
+                ly = origin[1] + cy * cell - CELL_MARGIN
+                side = cell + 2.0 * CELL_MARGIN
+                if x0 == x1 or y0 == y1 or _crosses(ax, ay, bx, by, lx, ly, lx + side, ly + side):
+                    ids[c] = cx * ny + cy
+                    seg[c] = i
+                    c += 1
+    order = np.argsort(ids[:c], kind="mergesort")
+    return ids[:c][order], seg[:c][order]
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _box_cells(a, b, origin, cell):  # type: ignore[no-untyped-def]
+    """The first and last cell column and row of the box of segment ``a``-``b``."""
+    x0 = int((min(a[0], b[0]) - origin[0]) // cell)
+    x1 = int((max(a[0], b[0]) - origin[0]) // cell)
+    y0 = int((min(a[1], b[1]) - origin[1]) // cell)
+    y1 = int((max(a[1], b[1]) - origin[1]) // cell)
+    return x0, x1, y0, y1
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _crosses(ax, ay, bx, by, x0, y0, x1, y1):  # type: ignore[no-untyped-def]
+    """Whether segment ``a``-``b`` meets the closed box ``[x0, x1] x [y0, y1]`` (Liang-Barsky clip)."""
+    dx, dy = bx - ax, by - ay
+    t0, t1 = 0.0, 1.0
+    for p, q in ((-dx, ax - x0), (dx, x1 - ax), (-dy, ay - y0), (dy, y1 - ay)):
+        if p == 0.0:
+            if q < 0.0:
+                return False
+        else:
+            r = q / p
+            if p < 0.0:
+                if r > t1:
+                    return False
+                t0 = max(t0, r)
+            else:
+                if r < t0:
+                    return False
+                t1 = min(t1, r)
+    return True
 
 
 @njit(cache=True, nogil=True)

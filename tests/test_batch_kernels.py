@@ -203,6 +203,35 @@ def test_grid_index_with_many_roads_near_one_point() -> None:
     assert np.sum(b.point == 0) == 150
 
 
+def test_a_diagonal_road_is_listed_only_in_the_cells_it_crosses() -> None:
+    # one road at 45 degrees through cell corners, one at a shallow angle: their boxes cover
+    # 100 and 40 cells of 10 m, their lines far fewer; fixes all around them (on the lines,
+    # at the corners, beside them) still find exactly what the plain index finds
+    o = np.array([385_000.0, 6_672_000.0])
+    g = RoadGraph.from_edges(
+        crs="EPSG:32635",
+        node_xy=np.array([o, o + [100.0, 100.0], o + [0.0, 200.0], o + [100.0, 237.0]]),
+        edge_u=np.array([0, 2]),
+        edge_v=np.array([1, 3]),
+    )
+    ix = EdgeIndex(g)
+    grid = GridIndex(ix, cell=10.0)
+    boxes = 11 * 11 + 11 * 5  # the cells of each segment's box (edges of cells included)
+    assert len(grid.cell_seg) < boxes * 0.45
+    rng = np.random.default_rng(5)
+    pts = o + rng.random((2000, 2)) * [130.0, 260.0] - 15.0
+    pts[:40] = o + np.arange(40)[:, None] * 2.5  # on the diagonal, every fourth one at a corner
+    for radius in (0.5, 7.0, 30.0):
+        a, b = ix.query(pts, radius), grid.query(pts, radius)
+        np.testing.assert_array_equal(a.point, b.point)
+        np.testing.assert_array_equal(a.edge, b.edge)
+        np.testing.assert_allclose(a.dist, b.dist, atol=1e-9)
+        np.testing.assert_allclose(a.offset, b.offset, atol=1e-6)
+    on = b.point < 40  # the fixes on the diagonal found it, at no distance
+    np.testing.assert_array_equal(b.point[on], np.arange(40))
+    assert (b.edge[on] == 0).all() and (b.dist[on] < 1e-9).all()
+
+
 @pytest.mark.parametrize("with_table", [True, False])
 def test_a_route_of_many_more_edges_than_fixes_is_whole(with_table: bool) -> None:
     # a straight road of 79 edges, 10 m each, and two fixes 780 m apart: the route's pieces
