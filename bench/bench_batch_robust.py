@@ -4,7 +4,8 @@
 tracks (1 Hz GPS with true routes, the peers' prepared work dirs), every engine matches
 stress sets of runs (``bench/peers_robust.py`` defines them):
 
-  phases  every S-th fix (S = 10, 30) from each start offset 0, 3, 6, ... < S, plus the last fix;
+  phases  every S-th fix (S = 10, 30) from each start offset 0, 3, 6, ... < S, between the
+          track's first and last fix;
   gaps    every 30th fix with one long gap cut out per run, from sub-fix g0 = 5, 30, 55, ...
           until the next kept fix is at least G m (3 km, 8 km) from g0 in a straight line,
           as a logger switched off while driving;

@@ -7,8 +7,8 @@ in process). Writes one JSON line per run, scored by the peers' ``score.py``.
 
 The engine is the harness's ``engines_kubicka.ENGINES[ENGINE]`` (``load``, ``call``, ``convert``).
 Four sets of runs (``phase_runs``, ``gap_runs``, ``noise_offsets``, ``jump_offsets``):
-  phases  for each S, every S-th fix from offset 0, step, 2 step, ... < S, plus the last fix
-          (``engines_kubicka.subsample`` is offset 0);
+  phases  for each S, fix 0, every S-th fix from offset 0, step, 2 step, ... < S, and the last
+          fix (``engines_kubicka.subsample`` is offset 0; the first fix: ``phase_runs``);
   gaps    every gap_S-th fix from offset 0 (plus the last), with one gap cut out per run: from
           sub-fix g0 (first, first + every, ...) the following sub-fixes are dropped until the
           next kept one is at least G metres (straight line, UTM) from g0.
@@ -55,11 +55,18 @@ def with_last(idx: list[int], n: int) -> list[int]:
 
 
 def phase_runs(n: int, Ss: list[int], step: int) -> Iterator[tuple[dict[str, Any], list[int]]]:
-    """Every S-th fix from each offset 0, step, ... < S, plus the last fix."""
+    """Every S-th fix from each offset 0, step, ... < S, after the first fix and before the last.
+
+    Every run starts at fix 0: ``score.py`` trims the true route only along its first arc, to
+    the run's first fix, so a run starting at fix ``offset`` would be charged with the road
+    driven before it (every engine alike, growing with the offset)."""
     for s in Ss:
         for off in range(0, s, max(step, 1)):
             if off < n:
-                yield {"set": "phases", "S": s, "offset": off}, with_last(list(range(off, n, s)), n)
+                yield (
+                    {"set": "phases", "S": s, "offset": off},
+                    with_last([0] * (off > 0) + list(range(off, n, s)), n),
+                )
 
 
 def gap_runs(
