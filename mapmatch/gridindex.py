@@ -216,8 +216,8 @@ def query_grid(pts, radius, k, grid, sc, ar):  # type: ignore[no-untyped-def]
     loc_e = take_i8(ar, room)
     loc_f = take_f8(ar, 4 * room)
     sel = take_i8(ar, room)
-    m = 0
-    p = 0
+    m = np.int64(0)  # np.int64: a plain 0 compiles ``_scan_into`` once more, for the literal
+    p = np.int64(0)
     while p < n:
         # the scan stops at the first point that does not fit; grow, and go on from there
         m, p, more_loc = _scan_into(pts, p, m, radius, k, grid, sc, loc_e, loc_f, sel, op, oe, od, oo, oq)

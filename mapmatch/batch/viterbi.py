@@ -126,14 +126,14 @@ def _forward(lat, p, router, tr, saved, detour, prev_pt, accepted, seg_start, us
     max_skip = p.max_skip
     m = len(cand_ptr) - 1
     score = tr.score
-    prev = 0
+    prev = np.int64(0)  # np.int64: plain constants compile the callees once more, for the literals
     accepted[0] = True
     seg_start[0] = True
     for j in range(cand_ptr[0], cand_ptr[1]):
         score[j] = emis[j]
     nskip = 0
-    s0 = -1
-    t = 1
+    s0 = np.int64(-1)
+    t = np.int64(1)
     d = 0.0
     while t < m or nskip > 1:
         restart = -1
