@@ -16,7 +16,7 @@ import numpy as np
 from numba import njit
 from numpy.typing import ArrayLike, NDArray
 
-from mapmatch.arena import Arena, read_only, take_f8, take_i8, take_xy
+from mapmatch.arena import Arena, int64, read_only, take_f8, take_i8, take_xy
 from mapmatch.graph.index import Candidates, EdgeIndex
 
 DENSE_MAX_CELLS = 1 << 23
@@ -216,8 +216,8 @@ def query_grid(pts, radius, k, grid, sc, ar):  # type: ignore[no-untyped-def]
     loc_e = take_i8(ar, room)
     loc_f = take_f8(ar, 4 * room)
     sel = take_i8(ar, room)
-    m = np.int64(0)  # np.int64: a plain 0 compiles ``_scan_into`` once more, for the literal
-    p = np.int64(0)
+    m = int64(0)  # not 0: one compile of ``_scan_into`` (``mapmatch.arena.int64``)
+    p = int64(0)
     while p < n:
         # the scan stops at the first point that does not fit; grow, and go on from there
         m, p, more_loc = _scan_into(pts, p, m, radius, k, grid, sc, loc_e, loc_f, sel, op, oe, od, oo, oq)

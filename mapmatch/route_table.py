@@ -23,6 +23,7 @@ import numpy as np
 from numba import njit
 from numpy.typing import NDArray
 
+from mapmatch.arena import int64
 from mapmatch.config import BATCH_CONFIG
 from mapmatch.graph.road_graph import RoadGraph
 from mapmatch.routing import INF, TABLE_BLOCK, RouteGraph, RouteTable, Workspace, _reset, _search, route_graph
@@ -216,7 +217,7 @@ def _row_lengths(delta, edges, g, ws):  # type: ignore[no-untyped-def]
     """The number of entries of each of ``edges``'s table rows (as :func:`_build_ubodt` fills them)."""
     out = np.zeros(len(edges), dtype=np.int64)
     for k in range(len(edges)):
-        nt = _search(edges[k], 0.0, delta, np.int64(-1), g, ws)  # -1: no targets (np.int64: one compile)
+        nt = _search(edges[k], 0.0, delta, int64(-1), g, ws)  # -1: no targets
         for i in range(nt):
             f = ws.touched[i]
             if ws.done[f] and ws.dist[f] <= delta:
@@ -243,7 +244,7 @@ def _build_ubodt(  # type: ignore[no-untyped-def]
     out_q = np.empty(cap, dtype=np.int32)
     m = 0
     for e in range(n_edges):
-        nt = _search(e, 0.0, delta, np.int64(-1), g, ws)
+        nt = _search(e, 0.0, delta, int64(-1), g, ws)
         if m + nt > cap:
             cap = 2 * (m + nt)
             t2 = np.empty(cap, dtype=np.int32)

@@ -26,7 +26,7 @@ import numpy as np
 from numba import njit
 from numpy.typing import NDArray
 
-from mapmatch.arena import read_only
+from mapmatch.arena import int64, read_only
 from mapmatch.graph.road_graph import RoadGraph
 from mapmatch.graph.rules import UTurnPolicy, moves_for
 
@@ -313,7 +313,7 @@ def path_edges(  # type: ignore[no-untyped-def]
     """The edges strictly between ``src`` and ``dst`` on the shortest route (None if none)."""
     dist, pred, tgt = ws.dist, ws.pred, ws.tgt
     tgt[dst] = 1
-    nt = _search(src, g.edge_len[src] - src_off, bound, np.int64(1), g, ws)
+    nt = _search(src, g.edge_len[src] - src_off, bound, int64(1), g, ws)
     tgt[dst] = 0
     ok = dist[dst] < INF
     out = np.empty(0, dtype=np.int32)

@@ -17,7 +17,7 @@ import numpy as np
 from numba import njit
 from numpy.typing import NDArray
 
-from mapmatch.arena import UNCOUNTED
+from mapmatch.arena import UNCOUNTED, int64
 from mapmatch.batch.step import _joinable, _step_scale, _try_step, step_inputs
 from mapmatch.route_table import ubodt_lookup
 from mapmatch.routing import _reset, _search
@@ -159,7 +159,7 @@ def _detour_cost(a, i, b, j, uturn, bound, lat, p, router):  # type: ignore[no-u
         if not np.isfinite(r) and bound > router.table.delta:  # beyond the table: searched
             ws = router.ws
             ws.tgt[f] = 1
-            nt = _search(e, g.edge_len[e] - o, bound + 1.0, np.int64(1), g, ws)
+            nt = _search(e, g.edge_len[e] - o, bound + 1.0, int64(1), g, ws)
             ws.tgt[f] = 0
             r = ws.dist[f] + of
             _reset(nt, ws)

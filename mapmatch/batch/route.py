@@ -13,7 +13,7 @@ import math
 import numpy as np
 from numba import njit
 
-from mapmatch.arena import full_b1, full_f8, full_i8, take_f8, take_i8, take_xy
+from mapmatch.arena import full_b1, full_f8, full_i8, int64, take_f8, take_i8, take_xy
 from mapmatch.batch.arrays import Assembly, EdgeGeometry, KernelParams, Lattice, TrackPoints
 from mapmatch.graph.index import project_point_near
 from mapmatch.gridindex import grow_array
@@ -34,9 +34,9 @@ def route_pieces(ch_edge, ch_off, kind, bound, router, ar):  # type: ignore[no-u
     pend = take_f8(ar, cap)
     pseg = take_i8(ar, cap)
     bad = full_b1(ar, m, False)
-    n = np.int64(0)  # np.int64: plain constants compile ``_pieces_into`` once more, for the literals
-    seg = np.int64(-1)
-    t = np.int64(0)
+    n = int64(0)  # not 0: one compile of ``_pieces_into`` (``mapmatch.arena.int64``)
+    seg = int64(-1)
+    t = int64(0)
     while t < m:
         # the pieces stop at the first step that does not fit; grow, and go on from there
         t, n, seg, need = _pieces_into(
@@ -370,7 +370,8 @@ def assemble(  # type: ignore[no-untyped-def]
     q = 0
     last_matched = True
     # the last projection's edge, piece and the piece's start: a stop's fixes share them
-    hint_e, hint, hint_acc = -1, np.int64(-1), 0.0  # np.int64: one compile of project_point_near
+    # (``int64(-1)``, not -1: one compile of project_point_near, ``mapmatch.arena.int64``)
+    hint_e, hint, hint_acc = -1, int64(-1), 0.0
     for i in range(n):
         if kept[i]:
             last_matched = status[i] == 1
@@ -383,14 +384,14 @@ def assemble(  # type: ignore[no-untyped-def]
         x, y = xy[i, 0], xy[i, 1]
         e1, e2 = ch_edge[prv], ch_edge[nxt]
         if e1 != hint_e:
-            hint_e, hint = e1, np.int64(-1)
+            hint_e, hint = e1, int64(-1)
         o1, d1, x1, y1, hint, hint_acc = project_point_near(
             seg_xy, seg_len, seg_ptr[e1], seg_ptr[e1 + 1], x, y, hint, hint_acc
         )
         o2, d2, x2, y2 = 0.0, np.inf, 0.0, 0.0  # both neighbours on one edge (a stop): one projection
         if e2 != e1:
             lo, hi = seg_ptr[e2], seg_ptr[e2 + 1]
-            o2, d2, x2, y2, _, _ = project_point_near(seg_xy, seg_len, lo, hi, x, y, np.int64(-1), 0.0)
+            o2, d2, x2, y2, _, _ = project_point_near(seg_xy, seg_len, lo, hi, x, y, int64(-1), 0.0)
         if d2 < d1:
             p_edge[i], p_off[i], p_xy[i, 0], p_xy[i, 1], p_dist[i] = ch_edge[nxt], o2, x2, y2, d2
         else:

@@ -12,7 +12,7 @@ import math
 import numpy as np
 from numba import njit
 
-from mapmatch.arena import UNCOUNTED, full_b1, full_f8, full_i8, take_b1, take_f8, take_i8
+from mapmatch.arena import UNCOUNTED, full_b1, full_f8, full_i8, int64, take_b1, take_f8, take_i8
 from mapmatch.batch.arrays import KernelParams, Lattice
 from mapmatch.batch.leave_out import (
     Detour,
@@ -126,14 +126,14 @@ def _forward(lat, p, router, tr, saved, detour, prev_pt, accepted, seg_start, us
     max_skip = p.max_skip
     m = len(cand_ptr) - 1
     score = tr.score
-    prev = np.int64(0)  # np.int64: plain constants compile the callees once more, for the literals
+    prev = int64(0)  # not 0: one compile of each kernel it is handed to (``mapmatch.arena.int64``)
     accepted[0] = True
     seg_start[0] = True
     for j in range(cand_ptr[0], cand_ptr[1]):
         score[j] = emis[j]
     nskip = 0
-    s0 = np.int64(-1)
-    t = np.int64(1)
+    s0 = int64(-1)
+    t = int64(1)
     d = 0.0
     while t < m or nskip > 1:
         restart = -1
