@@ -893,3 +893,24 @@ def test_the_route_table_size_is_estimated_from_a_sample_of_rows(tmp_path) -> No
     # the largest bound that fits, to within the bisection's last step (450 m / 64)
     assert ubodt_estimate(g, fit.delta) <= budget < ubodt_estimate(g, fit.delta + 450.0 / 64)
     assert 300.0 <= fit.delta < 900.0 and fit.nbytes <= 1.1 * budget
+
+
+def test_a_whole_edge_of_a_route_is_its_vertices_and_a_part_is_cut_from_its_segments() -> None:
+    from mapmatch.arena import Arena
+    from mapmatch.batch.arrays import EdgeGeometry
+    from mapmatch.batch.lattice import segment_lengths
+    from mapmatch.batch.route import pieces_xy
+
+    # edge 0: a bent line of 5 + 6 + 5 m with a repeated vertex; edge 1: 10 m on from its end
+    seg_xy = np.array(
+        [[0.1, 0.3], [3.1, 4.3], [3.1, 10.3], [3.1, 10.3], [8.1, 10.3], [8.1, 10.3], [18.1, 10.3]]
+    )
+    seg_ptr = np.array([0, 5, 7])
+    geom = EdgeGeometry(seg_xy, seg_ptr, segment_lengths(seg_xy, seg_ptr))
+    edge_len = np.array([16.0, 10.0])
+    # the whole of edge 0, then edge 1 up to 4 m; then a new piece of edge 0 from 2 m to 13 m
+    pe, ps, pend = np.array([0, 1, 0]), np.array([0.0, 0.0, 2.0]), np.array([16.0, 4.0, 13.0])
+    xy, ptr = pieces_xy(pe, ps, pend, geom, edge_len, Arena.new())
+    np.testing.assert_array_equal(xy[ptr[0] : ptr[1]], seg_xy[[0, 1, 2, 4]])  # exact, once each
+    np.testing.assert_allclose(xy[ptr[1] : ptr[2]], [[12.1, 10.3]])  # edge 1's start is edge 0's end
+    np.testing.assert_allclose(xy[ptr[2] : ptr[3]], [[1.3, 1.9], [3.1, 4.3], [3.1, 10.3], [5.1, 10.3]])

@@ -136,8 +136,12 @@ def trim_ends(pe, ps, pend, pseg, edge_len, ar):  # type: ignore[no-untyped-def]
 
 
 @njit(cache=True, nogil=True)
-def pieces_xy(pe, ps, pend, geom, ar):  # type: ignore[no-untyped-def]
-    """Polyline coordinates of each piece (consecutive duplicates dropped); ``ptr`` per piece."""
+def pieces_xy(pe, ps, pend, geom, edge_len, ar):  # type: ignore[no-untyped-def]
+    """Polyline coordinates of each piece (consecutive duplicates dropped); ``ptr`` per piece.
+
+    A piece that covers its whole edge (from 0 to ``edge_len``, as every edge a routed path
+    passes through does) takes the edge's vertices as they are; a part of an edge is cut from
+    its segments."""
     seg_xy = geom.seg_xy
     seg_ptr = geom.seg_ptr
     seg_len = geom.seg_len
@@ -153,6 +157,15 @@ def pieces_xy(pe, ps, pend, geom, ar):  # type: ignore[no-untyped-def]
         a1 = seg_ptr[pe[i] + 1]
         s = ps[i]
         e = pend[i]
+        if s <= 0.0 and e >= edge_len[pe[i]]:
+            for q in range(a0, a1):
+                x, y = seg_xy[q, 0], seg_xy[q, 1]
+                if c == 0 or abs(out[c - 1, 0] - x) > 1e-9 or abs(out[c - 1, 1] - y) > 1e-9:
+                    out[c, 0] = x
+                    out[c, 1] = y
+                    c += 1
+            ptr[i + 1] = c
+            continue
         acc = 0.0
         for q in range(a0, a1 - 1):
             x0, y0 = seg_xy[q, 0], seg_xy[q, 1]
@@ -346,7 +359,7 @@ def assemble(  # type: ignore[no-untyped-def]
         if kind[i] == STEP_SPLIT or bad[i]:
             splits[q] = pts[i]
             q += 1
-    xy_all, xptr = pieces_xy(pe, ps, pend, geom, ar)
+    xy_all, xptr = pieces_xy(pe, ps, pend, geom, router.g.edge_len, ar)
     npc = len(pe)
     nseg = nsplit + 1  # every piece, a last one trimmed to nothing too
     route_e = take_i8(ar, npc)
