@@ -65,7 +65,7 @@ def phase_runs(n: int, Ss: list[int], step: int) -> Iterator[tuple[dict[str, Any
             if off < n:
                 yield (
                     {"set": "phases", "S": s, "offset": off},
-                    with_last([0] * (off > 0) + list(range(off, n, s)), n),
+                    with_last(([0] if off else []) + list(range(off, n, s)), n),
                 )
 
 

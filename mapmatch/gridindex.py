@@ -22,7 +22,8 @@ from mapmatch.graph.index import Candidates, EdgeIndex
 DENSE_MAX_CELLS = 1 << 23
 """Up to this many cells the grid keeps a dense cell table (8 bytes a cell)."""
 CELL_MARGIN = 1e-6
-"""Metres by which a cell's box is widened when testing whether a segment crosses it."""
+"""Metres by which a cell's box is widened when testing whether a segment crosses it (a wider
+box lists a segment in more cells: a little more time, never another answer)."""
 
 
 class Grid(NamedTuple):
