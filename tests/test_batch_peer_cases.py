@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 from ascii_helpers import at, names
 
-from mapmatch.batch import BatchMatcher
+from mapmatch.batch import BATCH_CONFIG, BatchMatcher
 from mapmatch.graph.ascii import AsciiMap, parse_ascii_map
 from mapmatch.types import PointStatus, Track, TrackMatch
 
@@ -149,3 +149,17 @@ def test_fixes_along_two_roads_and_round_a_corner_give_the_route_between_them() 
     r = untimed(m, [at(m, "a", 20, 10), at(m, "a", 40), at(m, "a", 70), at(m, "a", 90), at(m, "c", 10, -20)])
     assert routes(m, r) == [["ab", "bc", "cd"]]
     assert r.length_m == pytest.approx(100, abs=0.5)
+
+
+def test_a_fix_back_along_the_road_is_a_u_turn_where_u_turns_cost_nothing() -> None:
+    # Valhalla's UturnMatch: fixes 30, 60 and 30 m along a 90 m road, with its U-turn penalty
+    # turned off (``penalize_immediate_uturn: false``; here ``uturn_penalty`` 0): the route
+    # turns round at the second fix, 60 m, and ends facing back, not turning again at the end
+    m = parse_ascii_map("a--------b", scale=10)
+    cfg = BATCH_CONFIG.replace(uturn_penalty=0.0)
+    ll = np.array([m.lonlat(*at(m, "a", x)) for x in (30, 60, 30)])
+    r = BatchMatcher(m.graph, config=cfg).match(Track("t", np.full(3, np.nan), ll[:, 1], ll[:, 0]))
+    assert routes(m, r) == [["ab", "ba"]]
+    assert r.length_m == pytest.approx(60, abs=0.5)
+    assert [names(m, [p.edge]) for p in r.points] == [["ab"], ["ab"], ["ba"]]
+    assert all(p.status == PointStatus.MATCHED for p in r.points)

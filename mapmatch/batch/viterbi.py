@@ -28,6 +28,27 @@ from mapmatch.batch.step import Trellis, _far_gap, _left_the_route, _try_step, s
 
 
 @njit(cache=True, nogil=True)
+def _piece_end(a, b, tr, lat, g):  # type: ignore[no-untyped-def]
+    """The candidate a piece ends on, of its last point's ``a:b``: the best, unless it was reached
+    by driving on to its place and turning round there, and the candidate at that place facing
+    the way driven explains the fix as well (no heading says the vehicle turned): then that
+    one. A turn of no length at a piece's end tells nothing; it can only tie with driving on,
+    where the U-turn costs nothing (``uturn_penalty`` 0), else the best is driving on already."""
+    score = tr.score
+    j = a + np.argmax(score[a:b])
+    i = tr.bp[j]
+    if not tr.bpu[j] or i < 0:
+        return j
+    e = lat.edge[i]
+    if g.edge_len[e] - lat.offset[j] < lat.offset[i]:
+        return j  # turned round at the previous fix's place and drove back: a U-turn of length
+    for k in range(a, b):
+        if lat.edge[k] == e and score[k] > -np.inf and lat.emis[k] >= lat.emis[j]:
+            return k
+    return j
+
+
+@njit(cache=True, nogil=True)
 def solve(lat: Lattice, p: KernelParams, router, ar, sig):  # type: ignore[no-untyped-def]
     """Exact Viterbi over the lattice, routing each step as it goes.
 
@@ -61,7 +82,6 @@ def solve(lat: Lattice, p: KernelParams, router, ar, sig):  # type: ignore[no-un
         take_i8(ar, kmax),
         take_f8(ar, kmax),
     )
-    score = tr.score
     bp = tr.bp
     bpu = tr.bpu
     saved = Saved(take_f8(ar, kmax), take_i8(ar, kmax), take_b1(ar, kmax), take_f8(ar, 2))
@@ -80,7 +100,7 @@ def solve(lat: Lattice, p: KernelParams, router, ar, sig):  # type: ignore[no-un
     if p.outlier_lookahead:
         t = _track_end(t, tr, lat, p, router, sig, prev_pt, seg_start, used_bound)
     last = t
-    j = cand_ptr[t] + np.argmax(score[cand_ptr[t] : cand_ptr[t + 1]])
+    j = _piece_end(cand_ptr[t], cand_ptr[t + 1], tr, lat, router.g)
     later = -1  # the point after ``t`` in its piece
     while True:
         choice[t] = j
@@ -96,7 +116,7 @@ def solve(lat: Lattice, p: KernelParams, router, ar, sig):  # type: ignore[no-un
             if q < 0:
                 break
             t = q
-            j = cand_ptr[t] + np.argmax(score[cand_ptr[t] : cand_ptr[t + 1]])
+            j = _piece_end(cand_ptr[t], cand_ptr[t + 1], tr, lat, router.g)
             later = -1
         else:
             via_u[t] = bpu[j]
