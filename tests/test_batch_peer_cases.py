@@ -13,7 +13,9 @@ import pytest
 from ascii_helpers import at, names
 
 from mapmatch.batch import BATCH_CONFIG, BatchMatcher
+from mapmatch.config import MatchConfig
 from mapmatch.graph.ascii import AsciiMap, parse_ascii_map
+from mapmatch.graph.projection import to_xy
 from mapmatch.types import PointStatus, Track, TrackMatch
 
 
@@ -21,10 +23,12 @@ def routes(amap: AsciiMap, r: TrackMatch) -> list[list[str]]:
     return [names(amap, list(piece)) for piece in r.routes]
 
 
-def untimed(amap: AsciiMap, xy: list[tuple[float, float]]) -> TrackMatch:
+def untimed(amap: AsciiMap, xy: list[tuple[float, float]], config: MatchConfig | None = None) -> TrackMatch:
     """The match of fixes at ``xy`` with no timestamps (every time NaN), as OSRM sends them."""
     ll = np.array([amap.lonlat(x, y) for x, y in xy])
-    return BatchMatcher(amap.graph).match(Track("t", np.full(len(xy), np.nan), ll[:, 1], ll[:, 0]))
+    return BatchMatcher(amap.graph, config=config).match(
+        Track("t", np.full(len(xy), np.nan), ll[:, 1], ll[:, 0])
+    )
 
 
 ONE_WAYS_SIDE_BY_SIDE = """
@@ -156,10 +160,72 @@ def test_a_fix_back_along_the_road_is_a_u_turn_where_u_turns_cost_nothing() -> N
     # turned off (``penalize_immediate_uturn: false``; here ``uturn_penalty`` 0): the route
     # turns round at the second fix, 60 m, and ends facing back, not turning again at the end
     m = parse_ascii_map("a--------b", scale=10)
-    cfg = BATCH_CONFIG.replace(uturn_penalty=0.0)
-    ll = np.array([m.lonlat(*at(m, "a", x)) for x in (30, 60, 30)])
-    r = BatchMatcher(m.graph, config=cfg).match(Track("t", np.full(3, np.nan), ll[:, 1], ll[:, 0]))
+    r = untimed(m, [at(m, "a", x) for x in (30, 60, 30)], BATCH_CONFIG.replace(uturn_penalty=0.0))
     assert routes(m, r) == [["ab", "ba"]]
     assert r.length_m == pytest.approx(60, abs=0.5)
     assert [names(m, [p.edge]) for p in r.points] == [["ab"], ["ab"], ["ba"]]
     assert all(p.status == PointStatus.MATCHED for p in r.points)
+
+
+def _ends(amap: AsciiMap, r: TrackMatch, node: str) -> list[tuple[float, float]]:
+    """The route's first and last vertex in metres east and north of intersection ``node``."""
+    (lon0, lat0), (lon1, lat1) = r.route_lonlat[0][0], r.route_lonlat[-1][-1]
+    xy = to_xy(amap.graph.crs, np.array([lon0, lon1]), np.array([lat0, lat1])) - amap.xy(node)
+    return [(float(x), float(y)) for x, y in xy]
+
+
+def test_fixes_past_a_corner_keep_the_whole_route_to_the_last_fix() -> None:
+    # OSRM's "waypoints trimming too much geometry" (first case): fixes beside a road down to
+    # the corner b, one 10 m past it, then along bc and 10 m past c; the route is the whole
+    # of ab and bc, 135 m, from a (the first fix's place) to c (the last's)
+    m = parse_ascii_map(
+        """
+        a
+        |
+        |
+        |
+        |
+        |
+        b--------------c
+        """,
+        scale=5,
+    )
+    r = untimed(
+        m, [at(m, "a", 5), at(m, "a", 5, -50), at(m, "b", 0, -10), at(m, "b", 25, 10), at(m, "c", 0, -10)]
+    )
+    assert routes(m, r) == [["ab", "bc"]]
+    assert r.length_m == pytest.approx(135, abs=0.5)
+    assert _ends(m, r, "a") == [
+        (pytest.approx(0, abs=0.5), pytest.approx(0, abs=0.5)),
+        (pytest.approx(75, abs=0.5), pytest.approx(-60, abs=0.5)),
+    ]
+
+
+def test_a_route_round_a_bend_ends_where_the_last_fix_lies_along_the_road() -> None:
+    # OSRM's "waypoints trimming too much geometry" (second case): the first fix 5 m beside h,
+    # the last 10 m west of f, beside the diagonal cf: the route is all of hc and cf up to the
+    # last fix's place, (28, -56) m from c (the diagonal is 30 m east and 60 m down)
+    m = parse_ascii_map(
+        """
+        h
+        |
+        |
+        |
+        c
+         \\
+          \\
+           \\
+            \\
+             \\
+              f
+        """,
+        scale=5,
+    )
+    r = untimed(m, [at(m, "h", -5), at(m, "c", 0, -10), at(m, "c", 15, -20), at(m, "f", -10)])
+    assert routes(m, r) == [["hc", "cf"]]
+    along = (20 * 30 + 60 * 60) / 4500**0.5  # the last fix's place along cf (62.6 m)
+    assert r.length_m == pytest.approx(40 + along, abs=0.5)
+    assert _ends(m, r, "h") == [
+        (pytest.approx(0, abs=0.5), pytest.approx(0, abs=0.5)),
+        (pytest.approx(28, abs=0.5), pytest.approx(-40 - 56, abs=0.5)),
+    ]
