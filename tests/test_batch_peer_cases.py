@@ -229,3 +229,14 @@ def test_a_route_round_a_bend_ends_where_the_last_fix_lies_along_the_road() -> N
         (pytest.approx(0, abs=0.5), pytest.approx(0, abs=0.5)),
         (pytest.approx(28, abs=0.5), pytest.approx(-40 - 56, abs=0.5)),
     ]
+
+
+def test_an_untimed_fix_a_little_back_along_the_road_is_standing_not_a_u_turn() -> None:
+    # OSRM's "trace tidying, dirty case by dist": nodes a q b c d 8 m apart, fixes at a b c b d
+    # with no timestamps; the fix back at b (8 m, within the noise) is no U-turn: the route
+    # runs a to d once, every fix on it
+    m = parse_ascii_map("a---------------d", scale=2)
+    r = untimed(m, [at(m, "a", x) for x in (0, 16, 24, 16, 32)])
+    assert routes(m, r) == [["ad"]]
+    assert r.length_m == pytest.approx(32, abs=0.5)
+    assert [p.status for p in r.points] == [PointStatus.MATCHED] * 5
