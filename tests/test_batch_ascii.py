@@ -785,6 +785,21 @@ def test_a_fix_that_jumps_back_is_dropped_not_looped_round() -> None:
     assert [names(m, piece) for piece in r.routes] == [["ab", "bc", "cb"]]
 
 
+def test_an_untimed_fix_that_jumps_back_is_dropped_not_looped_round() -> None:
+    # the same without timestamps (as OSRM's requests may come): a fix 16 m back amid fixes
+    # 16 m apart is left out as a visited stray, not driven to by turning round twice (or at
+    # the road's dead end); no time is no gap between the fixes either side of it
+    m = parse_ascii_map(
+        "a-----------------------------------------------------------------------------d", scale=2
+    )
+    xs = [0, 16, 32, 48, 32, 64, 80, 96]
+    ll = np.array([m.lonlat(*at(m, "a", x)) for x in xs])
+    r = BatchMatcher(m.graph).match(Track("t", np.full(len(xs), np.nan), ll[:, 1], ll[:, 0]))
+    assert [names(m, piece) for piece in r.routes] == [["ad"]]
+    assert r.length_m == pytest.approx(96, abs=0.5)
+    assert [p.status for p in r.points] == ["matched"] * 4 + ["unmatched"] + ["matched"] * 3
+
+
 def test_a_multipath_burst_of_fixes_is_dropped_as_one_jump() -> None:
     # 1 Hz along a-b-c at 10 m/s; for 3 s the fixes jump 79 m onto d-e-f (multipath) and back
     #

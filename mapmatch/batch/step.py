@@ -306,7 +306,7 @@ def _joinable(a, b, lat, p):  # type: ignore[no-untyped-def]
     d = math.hypot(lat.pxy[b, 0] - lat.pxy[a, 0], lat.pxy[b, 1] - lat.pxy[a, 1])
     gap_time = p.gap_time if p.gap_time > 0 else np.inf
     dt = lat.ptime[b] - lat.ptime[a]
-    ok = not _far_gap(d, dt, p, 1) and dt <= gap_time
+    ok = not _far_gap(d, dt, p, 1) and not dt > gap_time  # no time (NaN) is no gap, as in the forward pass
     # only the runs between consecutive lattice points (fixes off the map): the fixes a choice
     # to leave out drops are weighed by their cost instead
     for r in range(a + 1, b + 1):
