@@ -8,14 +8,20 @@ tests (every time NaN, unknown): the fixes' order and positions alone must give 
 
 from __future__ import annotations
 
+from pathlib import Path
+
+import geopandas as gpd
 import numpy as np
 import pytest
+import shapely
 from ascii_helpers import at, names
 
 from mapmatch.batch import BATCH_CONFIG, BatchMatcher
+from mapmatch.batch.results import route_ways
 from mapmatch.config import MatchConfig
-from mapmatch.graph.ascii import AsciiMap, parse_ascii_map
-from mapmatch.graph.projection import to_xy
+from mapmatch.graph.ascii import ASCII_CRS, AsciiMap, parse_ascii_map
+from mapmatch.graph.build import build_map
+from mapmatch.graph.projection import to_lonlat, to_xy
 from mapmatch.types import PointStatus, Track, TrackMatch
 
 
@@ -240,3 +246,85 @@ def test_an_untimed_fix_a_little_back_along_the_road_is_standing_not_a_u_turn() 
     assert routes(m, r) == [["ad"]]
     assert r.length_m == pytest.approx(32, abs=0.5)
     assert [p.status for p in r.points] == [PointStatus.MATCHED] * 5
+
+
+# FMM's example (``example/data``: ``edges.shp``, ``trips.csv``, and the paths of ``mr.txt``):
+# a network of directed arcs one unit apart, drawn here at 100 m a unit; the arcs' ids are FMM's
+FMM_NODES = {1: (2, 1), 2: (2, 0), 3: (3, 1), 4: (4, 1), 5: (2, 2), 6: (3, 2), 7: (0, 2), 8: (1, 2)}
+FMM_NODES |= {9: (4, 2), 10: (2, 3), 11: (3, 3), 12: (4, 3), 13: (2, 4)}
+FMM_NODES |= {14: (0.5, 3.5), 15: (2, 3.5), 16: (3.5, 4), 17: (3.5, 2.3)}  # two roads apart, one over 11->12
+FMM_ARCS = [
+    (1, 2),
+    (2, 1),
+    (3, 1),
+    (4, 3),
+    (1, 5),
+    (5, 1),
+    (3, 6),
+    (7, 8),
+    (8, 7),
+    (5, 8),
+    (8, 5),
+    (6, 5),
+    (5, 6),
+]
+FMM_ARCS += [
+    (6, 9),
+    (9, 6),
+    (10, 5),
+    (5, 10),
+    (6, 11),
+    (10, 11),
+    (11, 12),
+    (13, 10),
+    (10, 13),
+    (9, 12),
+    (12, 9),
+]
+FMM_ARCS += [(9, 4), (4, 9), (14, 15), (15, 14), (16, 17), (17, 16)]  # arc i + 1 is FMM's edge id i + 1
+FMM_TRIPS = {  # each trip's fixes in units, and the path FMM gives it
+    (2, 5, 13, 14, 23): [(1.659, 0.251), (1.655, 0.702), (2.493, 1.766), (3.549, 1.888), (4.131, 2.458)],
+    (25, 4, 3, 5, 17, 19): [
+        (4.150, 1.604),
+        (3.470, 0.923),
+        (2.406, 0.923),
+        (2.145, 1.532),
+        (2.086, 2.576),
+        (2.497, 2.988),
+    ],
+    (8, 11, 13, 18, 20, 24): [
+        (0.201, 2.141),
+        (1.443, 2.149),
+        (3.064, 2.161),
+        (3.064, 2.710),
+        (3.709, 2.979),
+        (4.116, 2.623),
+    ],
+}
+
+
+def test_fmm_example_trips_take_fmm_paths(tmp_path: Path) -> None:
+    # FMM's own example, untimed as its trips are: every trip runs along the arcs FMM's answer
+    # lists (a node between two arcs only, as 8 between 7->8 and 8->5, joins them into one edge)
+    x0, y0, unit = 385_000.0, 6_672_000.0, 100.0
+    at_xy = {n: (x0 + x * unit, y0 + y * unit) for n, (x, y) in FMM_NODES.items()}
+    arcs = gpd.GeoDataFrame(
+        {
+            "id": range(1, len(FMM_ARCS) + 1),
+            "source": [u for u, _ in FMM_ARCS],
+            "target": [v for _, v in FMM_ARCS],
+        },
+        geometry=[shapely.LineString([at_xy[u], at_xy[v]]) for u, v in FMM_ARCS],
+        crs=ASCII_CRS,
+    )
+    arcs.to_file(tmp_path / "edges.geojson")
+    g = build_map(
+        tmp_path / "edges.geojson", directed=True, id_field="id", node_id_fields=("source", "target")
+    )
+    matcher = BatchMatcher(g)
+    for path, fixes in FMM_TRIPS.items():
+        xy = np.array([(x0 + x * unit, y0 + y * unit) for x, y in fixes])
+        lonlat = to_lonlat(ASCII_CRS, xy[:, 0], xy[:, 1])
+        r = matcher.match(Track("t", np.full(len(fixes), np.nan), lonlat[:, 1], lonlat[:, 0]))
+        assert len(r.routes) == 1
+        assert route_ways(r, g)[0] == list(path)
