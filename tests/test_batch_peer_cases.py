@@ -1,5 +1,6 @@
 """The peers' own map-matching cases, drawn as ASCII maps: OSRM's
-(``features/testbot/matching.feature``) and Valhalla's (``test/gurka/test_match.cc``).
+(``features/testbot/matching.feature``) and Valhalla's (``test/gurka/test_match.cc``); and
+FMM's example network and trips (``example/data``), built from lines as FMM's files are.
 
 They draw nodes on a grid and list the ways through them; here the roads are drawn and the
 fixes placed on the map in metres. They send these traces without timestamps, and so do the
@@ -303,18 +304,30 @@ FMM_TRIPS = {  # each trip's fixes in units, and the path FMM gives it
 }
 
 
+FMM_ORIGIN, FMM_UNIT = (385_000.0, 6_672_000.0), 100.0
+
+
+def _fmm_xy(x: float, y: float) -> tuple[float, float]:
+    return FMM_ORIGIN[0] + x * FMM_UNIT, FMM_ORIGIN[1] + y * FMM_UNIT
+
+
+def _fmm_trip(fixes: list[tuple[float, float]]) -> Track:
+    """A trip of FMM's example, untimed as its trips are."""
+    xy = np.array([_fmm_xy(x, y) for x, y in fixes])
+    lonlat = to_lonlat(ASCII_CRS, xy[:, 0], xy[:, 1])
+    return Track("t", np.full(len(fixes), np.nan), lonlat[:, 1], lonlat[:, 0])
+
+
 def test_fmm_example_trips_take_fmm_paths(tmp_path: Path) -> None:
-    # FMM's own example, untimed as its trips are: every trip runs along the arcs FMM's answer
-    # lists (a node between two arcs only, as 8 between 7->8 and 8->5, joins them into one edge)
-    x0, y0, unit = 385_000.0, 6_672_000.0, 100.0
-    at_xy = {n: (x0 + x * unit, y0 + y * unit) for n, (x, y) in FMM_NODES.items()}
+    # every trip runs along the arcs FMM's answer lists (a node between two arcs only, as 8
+    # between 7->8 and 8->5, joins them into one edge)
     arcs = gpd.GeoDataFrame(
         {
             "id": range(1, len(FMM_ARCS) + 1),
             "source": [u for u, _ in FMM_ARCS],
             "target": [v for _, v in FMM_ARCS],
         },
-        geometry=[shapely.LineString([at_xy[u], at_xy[v]]) for u, v in FMM_ARCS],
+        geometry=[shapely.LineString([_fmm_xy(*FMM_NODES[u]), _fmm_xy(*FMM_NODES[v])]) for u, v in FMM_ARCS],
         crs=ASCII_CRS,
     )
     arcs.to_file(tmp_path / "edges.geojson")
@@ -323,8 +336,15 @@ def test_fmm_example_trips_take_fmm_paths(tmp_path: Path) -> None:
     )
     matcher = BatchMatcher(g)
     for path, fixes in FMM_TRIPS.items():
-        xy = np.array([(x0 + x * unit, y0 + y * unit) for x, y in fixes])
-        lonlat = to_lonlat(ASCII_CRS, xy[:, 0], xy[:, 1])
-        r = matcher.match(Track("t", np.full(len(fixes), np.nan), lonlat[:, 1], lonlat[:, 0]))
+        r = matcher.match(_fmm_trip(fixes))
         assert len(r.routes) == 1
         assert route_ways(r, g)[0] == list(path)
+    # its partial-match example: the first trip with a fix far off every road, then with two
+    # beside a road the grid does not reach; FMM's --partial-match breaks its path there, here
+    # they are left out and the route runs on
+    first = next(iter(FMM_TRIPS.values()))
+    for odd in ([(5.0, 5.0)], [(5.0, 5.0), (3.7, 3.8)], [(3.4, 3.9), (3.7, 3.8)]):
+        r = matcher.match(_fmm_trip(first[:3] + odd + first[3:]))
+        assert len(r.routes) == 1
+        assert route_ways(r, g)[0] == [2, 5, 13, 14, 23]
+        assert [p.status for p in r.points[3 : 3 + len(odd)]] == [PointStatus.UNMATCHED] * len(odd)
