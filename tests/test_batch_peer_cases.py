@@ -172,6 +172,10 @@ def test_a_fix_back_along_the_road_is_a_u_turn_where_u_turns_cost_nothing() -> N
     assert r.length_m == pytest.approx(60, abs=0.5)
     assert [names(m, [p.edge]) for p in r.points] == [["ab"], ["ab"], ["ba"]]
     assert all(p.status == PointStatus.MATCHED for p in r.points)
+    # its later form: 1, 2, 1, 2, turning round at each fix ("via"), 90 m
+    r = untimed(m, [at(m, "a", x) for x in (30, 60, 30, 60)], BATCH_CONFIG.replace(uturn_penalty=0.0))
+    assert routes(m, r) == [["ab", "ba", "ab"]]
+    assert r.length_m == pytest.approx(90, abs=0.5)
 
 
 def _ends(amap: AsciiMap, r: TrackMatch, node: str) -> list[tuple[float, float]]:
