@@ -9,6 +9,7 @@ tests (every time NaN, unknown): the fixes' order and positions alone must give 
 
 from __future__ import annotations
 
+import itertools
 from pathlib import Path
 
 import geopandas as gpd
@@ -352,3 +353,29 @@ def test_fmm_example_trips_take_fmm_paths(tmp_path: Path) -> None:
         assert len(r.routes) == 1
         assert route_ways(r, g)[0] == [2, 5, 13, 14, 23]
         assert [p.status for p in r.points[3 : 3 + len(odd)]] == [PointStatus.UNMATCHED] * len(odd)
+
+
+STAR = """
+o   a   c
+ \\  |  /
+  \\ | /
+   \\|/
+m---x---e
+   /|\\
+  / | \\
+ /  |  \\
+k   i   g
+"""
+"""Eight roads out of x (OSRM's "Turn directions" map, matched)."""
+
+
+def test_two_untimed_fixes_at_the_ends_of_any_two_roads_give_the_route_through_their_crossing() -> None:
+    # OSRM's "Turn directions" (its turns feature, "When I match"): one fix at the far end of
+    # each of two of the roads, no timestamps. Between neighbouring roads (a and c: 80 m apart,
+    # 339 m by road) the detour once left the second fix out and the match with one fix had no
+    # route; a track the rules would leave with one fix is matched without them
+    m = parse_ascii_map(STAR, scale=20)
+    for start, end in itertools.permutations("acegikmo", 2):
+        r = untimed(m, [at(m, start), at(m, end)])
+        assert routes(m, r) == [[start + "x", "x" + end]], (start, end)
+        assert all(p.status == PointStatus.MATCHED for p in r.points)

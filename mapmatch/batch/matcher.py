@@ -37,6 +37,7 @@ from mapmatch.batch.lattice import (
 from mapmatch.batch.results import fill_route_lonlat, track_match
 from mapmatch.batch.run import (
     CompiledRun,
+    Packed,
     QueryParams,
     RoadArrays,
     RuleParams,
@@ -148,6 +149,7 @@ class BatchMatcher:
         self._run_track = CompiledRun(run_track_in)
         self._local = threading.local()
         self._settings: dict[int, _Settings] = {}
+        self._joining_cfg: dict[int, tuple[MatchConfig, MatchConfig]] = {}
 
     def _state(self) -> _ThreadState:
         """This thread's scratch (built once per thread, so one matcher serves many threads)."""
@@ -261,7 +263,22 @@ class BatchMatcher:
         ar = st.arena
         if max(ar.top.tolist()) > len(ar.f8):
             self._grow_arena(st)
+        if n > 1 and _collapsed(a):
+            # one fix makes no route: join the fixes without the rules that leave fixes out
+            b = self._run_track(ti, self._context(st, self._joining(cfg)))
+            if max(ar.top.tolist()) > len(ar.f8):
+                self._grow_arena(st)
+            if _route_length(b) > 0.0:
+                a = b
         return track_match(str(track.track_id), a)
+
+    def _joining(self, cfg: MatchConfig) -> MatchConfig:
+        """``cfg`` without the rules that leave fixes out (``outlier_lookahead``) or judge a
+        step's detour without its time (``detour_cost_max``): for a track they left one fix."""
+        got = self._joining_cfg.get(id(cfg))
+        if got is None or got[0] is not cfg:
+            got = self._joining_cfg[id(cfg)] = (cfg, cfg.replace(outlier_lookahead=0, detour_cost_max=0.0))
+        return got[1]
 
     def _grow_arena(self, st: _ThreadState) -> None:
         """This thread's arena grown to what the last call needed (new contexts with it)."""
@@ -270,9 +287,18 @@ class BatchMatcher:
             self._local.state = st._replace(arena=big, contexts={})
 
     def _match_steps(self, track: Track, cfg: MatchConfig) -> TrackMatch:
-        """The same match as :meth:`match` in Python steps (candidates, rules and emissions in
-        numpy with the shared :mod:`mapmatch.model`), then :func:`run`: the reference the
-        one compiled call is tested against."""
+        """The same match as :meth:`match` in Python steps (:meth:`_steps_packed`): the reference
+        the one compiled call is tested against."""
+        packed = self._steps_packed(track, cfg)
+        if len(track) > 1 and _collapsed(packed):  # as in _match_compiled
+            again = self._steps_packed(track, self._joining(cfg))
+            if _route_length(again) > 0.0:
+                packed = again
+        return track_match(str(track.track_id), packed)
+
+    def _steps_packed(self, track: Track, cfg: MatchConfig) -> Packed:
+        """:meth:`_match_steps`' packed answer: candidates, rules and emissions in numpy with the
+        shared :mod:`mapmatch.model`, then :func:`run`."""
         g = self.graph
         n = len(track)
         st = self._settings_for(cfg)
@@ -340,7 +366,7 @@ class BatchMatcher:
         params = st.params._replace(sigma=sigma if isinstance(sigma, float) else 0.0)
         st_ = self._state()
         router = self._router_for(st_, cfg)
-        return track_match(str(track.track_id), self._run(pt, ca, params, self._geom, router, st_.arena))
+        return self._run(pt, ca, params, self._geom, router, st_.arena)  # type: ignore[no-any-return]
 
     def _kept_candidates(
         self, xy: NDArray[np.float64], valid: NDArray[np.bool_], min_dist: float, q: QueryParams
@@ -411,6 +437,19 @@ def _odometer(distance: NDArray[np.float64]) -> NDArray[np.float64]:
     """Cumulative odometer distance from per-point distances (NaN where a reading is missing)."""
     d = np.asarray(distance, dtype=F8)
     return np.where(np.isfinite(d), np.cumsum(np.where(np.isfinite(d), d, 0.0)), np.nan)
+
+
+def _route_length(packed: NDArray[np.int64]) -> float:
+    """A packed match's route length (:func:`mapmatch.batch.run.pack`)."""
+    return float(packed[-2:].view(F8)[0])
+
+
+def _collapsed(packed: NDArray[np.int64]) -> bool:
+    """Whether a packed match has no route and at most one placed fix."""
+    if packed[-2] != 0:  # the route's length, as float64 bits: 0.0 is all zero
+        return False
+    n = int(packed[0])
+    return int(np.count_nonzero(packed[5 : 5 + n] >= 0)) < 2
 
 
 def _column(a: ArrayLike | None, n: int, name: str, missing: float | None = None) -> NDArray[np.float64]:
