@@ -244,7 +244,6 @@ class BatchMatcher:
     def _match_compiled(self, track: Track, cfg: MatchConfig) -> TrackMatch:
         """The projection, then one compiled call (:func:`run_track_in`)."""
         st = self._state()
-        ctx = self._context(st, cfg)
         lat, lon = track.lat, track.lon
         if not isinstance(lat, np.ndarray) or not isinstance(lon, np.ndarray):
             lat, lon = np.asarray(lat, dtype=F8), np.asarray(lon, dtype=F8)
@@ -259,18 +258,18 @@ class BatchMatcher:
             _column(track.pos_sigma, n, "pos_sigma"), _column(track.heading, n, "heading"),
             _column(track.speed, n, "speed"),
         )  # fmt: skip
-        a = self._run_track(ti, ctx)
-        ar = st.arena
-        if max(ar.top.tolist()) > len(ar.f8):
+        packed = self._call(ti, cfg, st)
+        if n > 1 and packed[-2] == 0:  # no route (its length's float64 bits: 0.0 is all zero)
+            packed = _joined(packed, lambda: self._call(ti, self._joining(cfg), self._state()))
+        return track_match(str(track.track_id), packed)
+
+    def _call(self, ti: TrackInput, cfg: MatchConfig, st: _ThreadState) -> Packed:
+        """One compiled call with this thread's scratch ``st``; its arena grown after a call
+        that needed more (``st`` is then this thread's no more: :meth:`_state` again)."""
+        packed = self._run_track(ti, self._context(st, cfg))
+        if max(st.arena.top.tolist()) > len(st.arena.f8):
             self._grow_arena(st)
-        if n > 1 and _collapsed(a):
-            # one fix makes no route: join the fixes without the rules that leave fixes out
-            b = self._run_track(ti, self._context(st, self._joining(cfg)))
-            if max(ar.top.tolist()) > len(ar.f8):
-                self._grow_arena(st)
-            if _route_length(b) > 0.0:
-                a = b
-        return track_match(str(track.track_id), a)
+        return packed  # type: ignore[no-any-return]
 
     def _joining(self, cfg: MatchConfig) -> MatchConfig:
         """``cfg`` without the rules that leave fixes out (``outlier_lookahead``) or judge a
@@ -290,10 +289,8 @@ class BatchMatcher:
         """The same match as :meth:`match` in Python steps (:meth:`_steps_packed`): the reference
         the one compiled call is tested against."""
         packed = self._steps_packed(track, cfg)
-        if len(track) > 1 and _collapsed(packed):  # as in _match_compiled
-            again = self._steps_packed(track, self._joining(cfg))
-            if _route_length(again) > 0.0:
-                packed = again
+        if len(track) > 1 and packed[-2] == 0:  # as in _match_compiled
+            packed = _joined(packed, lambda: self._steps_packed(track, self._joining(cfg)))
         return track_match(str(track.track_id), packed)
 
     def _steps_packed(self, track: Track, cfg: MatchConfig) -> Packed:
@@ -439,17 +436,14 @@ def _odometer(distance: NDArray[np.float64]) -> NDArray[np.float64]:
     return np.where(np.isfinite(d), np.cumsum(np.where(np.isfinite(d), d, 0.0)), np.nan)
 
 
-def _route_length(packed: NDArray[np.int64]) -> float:
-    """A packed match's route length (:func:`mapmatch.batch.run.pack`)."""
-    return float(packed[-2:].view(F8)[0])
-
-
-def _collapsed(packed: NDArray[np.int64]) -> bool:
-    """Whether a packed match has no route and at most one placed fix."""
-    if packed[-2] != 0:  # the route's length, as float64 bits: 0.0 is all zero
-        return False
-    n = int(packed[0])
-    return int(np.count_nonzero(packed[5 : 5 + n] >= 0)) < 2
+def _joined(packed: Packed, again: Callable[[], Packed]) -> Packed:
+    """A match with no route (:func:`mapmatch.batch.run.pack`), or, where it places at most one
+    fix, ``again()`` (the match without the rules that leave fixes out,
+    :meth:`BatchMatcher._joining`) if that has a route: one fix makes no route."""
+    if int(np.count_nonzero(packed[5 : 5 + int(packed[0])] >= 0)) > 1:
+        return packed
+    other = again()
+    return other if float(other[-2:].view(F8)[0]) > 0.0 else packed
 
 
 def _column(a: ArrayLike | None, n: int, name: str, missing: float | None = None) -> NDArray[np.float64]:
