@@ -42,7 +42,7 @@ import numpy as np
 
 from graph.road_graph import RoadGraph
 from mapmatch.errors import ConfigError
-from mapmatch.types import MapAidedMeasurement, State, new_measurement
+from mapmatch.types import MapAidedMeasurement, State
 
 # default carriageway width in metres per OSM highway class (all lanes, both directions on a
 # two-way road; one carriageway of a dual road drawn as one-way); unknown classes: 6 m
@@ -351,7 +351,7 @@ def map_aided_measurement(
         reason = "low_probability"
     else:
         reason = ""
-    return new_measurement(
+    return MapAidedMeasurement(  # by position, in field order
         lat,
         lon,
         var_e,
