@@ -334,8 +334,8 @@ def candidate_load(matcher: Any, lat: list[float], lon: list[float]) -> tuple[fl
 
     cfg = matcher.config
     xy = to_xy(matcher.graph.crs, np.asarray(lon, dtype=np.float64), np.asarray(lat, dtype=np.float64))
-    grid = GridIndex(matcher.index, cell=cfg.search_radius)
-    found = grid.query(xy, cfg.search_radius, k=cfg.max_candidates)
+    grid = GridIndex(matcher.index, cell=cfg.model.search_radius)
+    found = grid.query(xy, cfg.model.search_radius, k=cfg.model.max_candidates)
     n = np.bincount(found.point, minlength=len(xy)).astype(np.float64)
     return float(n.mean()), float(np.mean(n[1:] * n[:-1])) if len(n) > 1 else 0.0
 

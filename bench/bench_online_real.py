@@ -302,7 +302,7 @@ def main() -> int:
     ap.add_argument("--breakdown", action="store_true", help="classify the wrong-road fixes")
     ap.add_argument("--json", type=Path, default=None, help="also write all rows here")
     ap.add_argument("--map-cache", type=Path, default=None, help="keep the prepared maps in this folder")
-    ap.add_argument("--set", nargs="*", default=[], metavar="NAME=VALUE", help="matcher config overrides")
+    ap.add_argument("--set", nargs="*", default=[], metavar="SECTION.FIELD=VALUE", help="matcher parameters")
     args = ap.parse_args()
     try:
         cfg = DEFAULT_CONFIG.with_settings(args.set)
