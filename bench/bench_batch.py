@@ -330,7 +330,7 @@ def candidate_load(matcher: Any, lat: list[float], lon: list[float]) -> tuple[fl
     them): the time per point follows these (the roads near the track), not the map's size."""
     import numpy as np
 
-    from mapmatch.graph.projection import to_xy
+    from graph.projection import to_xy
     from mapmatch.gridindex import GridIndex
 
     cfg = matcher.config

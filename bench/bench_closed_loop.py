@@ -39,8 +39,8 @@ sys.path.insert(0, str(ROOT / "bench"))
 
 from bench_online import sensors_for, simulate  # noqa: E402
 
-from mapmatch.graph.ascii import parse_ascii_map  # noqa: E402
-from mapmatch.graph.build import build_map  # noqa: E402
+from graph.ascii import parse_ascii_map  # noqa: E402
+from graph.build import build_map  # noqa: E402
 from mapmatch.online import OnlineMatcher  # noqa: E402
 from mapmatch.sim.closed_loop import closed_loop_drive, in_process  # noqa: E402
 from mapmatch.sim.drive import Drive, position_error, read_route, simulate_drive  # noqa: E402

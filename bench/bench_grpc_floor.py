@@ -31,8 +31,8 @@ import grpc  # noqa: E402
 import psutil  # noqa: E402
 from grpc import aio  # noqa: E402
 
-from mapmatch.service.gen import mapmatch_pb2 as pb  # noqa: E402
-from mapmatch.service.gen import mapmatch_pb2_grpc as pbg  # noqa: E402
+from service.gen import mapmatch_pb2 as pb  # noqa: E402
+from service.gen import mapmatch_pb2_grpc as pbg  # noqa: E402
 
 
 def _answer() -> Any:

@@ -30,11 +30,11 @@ import pandas as pd
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from graph.build import build_map  # noqa: E402
+from graph.road_graph import RoadGraph  # noqa: E402
 from mapmatch.config import DEFAULT_CONFIG, MatchConfig  # noqa: E402
 from mapmatch.errors import ConfigError  # noqa: E402
 from mapmatch.evaluate import evaluate, path_nodes  # noqa: E402
-from mapmatch.graph.build import build_map  # noqa: E402
-from mapmatch.graph.road_graph import RoadGraph  # noqa: E402
 from mapmatch.online import OnlineMatcher  # noqa: E402
 from mapmatch.sim.drive import Drive, read_route, simulate_drive  # noqa: E402
 from mapmatch.sim.routes import Route, random_route  # noqa: E402
@@ -95,8 +95,8 @@ def corrected_edges(graph: RoadGraph, results: list[SnapResult]) -> np.ndarray:
     each from its ``edge_times`` entry on; each replaced fix in the span gets the edge of its
     time (without ``edge_times``: the nearest of those edges, in order).
     """
-    from mapmatch.graph.index import project_to_edge
-    from mapmatch.graph.projection import point_to_xy
+    from graph.index import project_to_edge
+    from graph.projection import point_to_xy
 
     t = np.array([r.time for r in results])
     e = np.array([r.edge for r in results], dtype=np.int64)

@@ -48,14 +48,14 @@ sys.path.insert(0, str(ROOT / "bench"))
 
 from bench_online import corrected_edges, run_drive  # noqa: E402
 
+from graph.artifact import load_map, save_map  # noqa: E402
+from graph.build import build_map  # noqa: E402
+from graph.index import project_to_edge  # noqa: E402
+from graph.projection import to_xy  # noqa: E402
+from graph.road_graph import RoadGraph  # noqa: E402
 from mapmatch.config import DEFAULT_CONFIG  # noqa: E402
 from mapmatch.errors import ConfigError  # noqa: E402
 from mapmatch.evaluate import edge_path, is_junction, matched_junctions, path_nodes  # noqa: E402
-from mapmatch.graph.artifact import load_map, save_map  # noqa: E402
-from mapmatch.graph.build import build_map  # noqa: E402
-from mapmatch.graph.index import project_to_edge  # noqa: E402
-from mapmatch.graph.projection import to_xy  # noqa: E402
-from mapmatch.graph.road_graph import RoadGraph  # noqa: E402
 from mapmatch.online import OnlineMatcher  # noqa: E402
 from mapmatch.sim.drive import Drive  # noqa: E402
 from mapmatch.sim.realgps import real_drive  # noqa: E402

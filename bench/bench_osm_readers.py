@@ -1,4 +1,4 @@
-"""Compare the two PBF readers for map preparation: pyosmium (what mapmatch.graph.osm uses) and pyrosm.
+"""Compare the two PBF readers for map preparation: pyosmium (what graph.osm uses) and pyrosm.
 
 For each map and reader, a fresh subprocess reads the drivable ways with node coordinates and
 prints wall time, peak RSS (``ru_maxrss``) and how much the read added to the RSS after imports.
@@ -22,7 +22,7 @@ from pathlib import Path
 reader, path = sys.argv[1], Path(sys.argv[2])
 if reader == "osmium":
     import osmium
-    from mapmatch.graph.osm import network_filter, scan_osm
+    from graph.osm import network_filter, scan_osm
     keep = network_filter("drive")  # imports osmnx: outside the timing
 else:
     import pyrosm

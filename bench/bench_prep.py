@@ -31,8 +31,8 @@ PEER_VENVS = Path(os.environ.get("MM_PEERS_VENVS", Path.home() / ".cache" / "map
 BUILD = r"""
 import json, sys, threading, time
 t = time.perf_counter()
-from mapmatch.graph.build import build_map
-from mapmatch.graph.artifact import save_map
+from graph.build import build_map
+from graph.artifact import save_map
 t_imp = time.perf_counter() - t
 
 def rss_mb():
@@ -84,12 +84,12 @@ print(4 * n * (n - 1))
 LOAD = r"""
 import json, sys, time
 t = time.perf_counter()
-from mapmatch.graph.artifact import load_map
+from graph.artifact import load_map
 t_imp = time.perf_counter() - t
 t = time.perf_counter()
 g = load_map(sys.argv[1])
 t_load = time.perf_counter() - t
-from mapmatch.graph.index import EdgeIndex
+from graph.index import EdgeIndex
 t = time.perf_counter()
 EdgeIndex(g)
 t_index = time.perf_counter() - t
@@ -99,7 +99,7 @@ print(json.dumps({"load_s": t_load, "index_s": t_index, "import_s": t_imp, "edge
 
 COMPILE = r"""
 import json, sys, time
-from mapmatch.graph.build import build_map
+from graph.build import build_map
 t = time.perf_counter()
 build_map(sys.argv[1])
 print(json.dumps({"first_build_s": time.perf_counter() - t}))

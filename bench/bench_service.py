@@ -63,8 +63,8 @@ CACHE = Path(os.path.expanduser("~/.cache/mapmatch-bench"))
 
 def helsinki_map() -> Path:
     """Build (once) and cache the Helsinki map artifact."""
-    from mapmatch.graph.artifact import save_map
-    from mapmatch.graph.build import build_map
+    from graph.artifact import save_map
+    from graph.build import build_map
 
     path = CACHE / "helsinki.map"
     newest_code = max(f.stat().st_mtime for f in (ROOT / "graph").glob("*.py"))
@@ -81,9 +81,9 @@ def helsinki_map() -> Path:
 # ---------------------------------------------------------------------------------- traffic
 def drives(map_path: Path, n: int, steps: int, *, rate: float, seed: int) -> list[list[Any]]:
     """Per vehicle, ``steps`` fixes (as proto Fix messages) along a random walk on the roads."""
-    from mapmatch.graph.artifact import load_map
-    from mapmatch.graph.projection import to_lonlat
-    from mapmatch.service.gen import mapmatch_pb2 as pb
+    from graph.artifact import load_map
+    from graph.projection import to_lonlat
+    from service.gen import mapmatch_pb2 as pb
 
     g = load_map(map_path, verify=False)
     rng = np.random.default_rng(seed)
@@ -155,7 +155,7 @@ async def _vehicle(
     bytes (``send`` is the channel's raw ``StreamFixes``): the client spends its CPU on the
     protocol, not on building messages. The stream is opened first; fixes flow once every
     stream of the run is open (``sync``)."""
-    from mapmatch.service.gen import mapmatch_pb2 as pb
+    from service.gen import mapmatch_pb2 as pb
 
     parse = pb.SnapResponse.FromString
     sent: dict[int, float] = {}
@@ -216,7 +216,7 @@ async def _gateway(
     stats: dict[str, Any],
 ) -> None:
     """A fleet gateway: one batched stream; each message carries one fix of every vehicle."""
-    from mapmatch.service.gen import mapmatch_pb2 as pb
+    from service.gen import mapmatch_pb2 as pb
 
     credit = asyncio.Semaphore(window)
     sent: dict[int, float] = {}
@@ -265,8 +265,8 @@ async def _run_clients(
 ) -> dict[str, Any]:
     import grpc
 
-    from mapmatch.service.gen import mapmatch_pb2 as pb
-    from mapmatch.service.gen import mapmatch_pb2_grpc as pb_grpc
+    from service.gen import mapmatch_pb2 as pb
+    from service.gen import mapmatch_pb2_grpc as pb_grpc
 
     stats: dict[str, Any] = {"lat": [], "at": [], "errors": 0, "n": 0}
     # a few channels (TCP connections), as several fusion nodes would open
@@ -317,7 +317,7 @@ async def _run_clients(
 def client_process(args: tuple[Any, ...]) -> None:
     """Entry point of a client process (fixes arrive serialised)."""
     port, streams, rate, window, seconds, batch, queue, go = args
-    from mapmatch.service.gen import mapmatch_pb2 as pb
+    from service.gen import mapmatch_pb2 as pb
 
     decoded = [(vid, [pb.Fix.FromString(b) for b in fx]) for vid, fx in streams]
     stats = asyncio.run(
@@ -401,8 +401,8 @@ def big_match_process(args: tuple[Any, ...]) -> None:
     port, track_bytes, stop, started, queue = args
     import grpc
 
-    from mapmatch.service.gen import mapmatch_pb2 as pb
-    from mapmatch.service.gen import mapmatch_pb2_grpc as pb_grpc
+    from service.gen import mapmatch_pb2 as pb
+    from service.gen import mapmatch_pb2_grpc as pb_grpc
 
     big = [("grpc.max_receive_message_length", -1), ("grpc.max_send_message_length", -1)]
     req = pb.MatchTrackRequest(track=pb.Track.FromString(track_bytes))
@@ -432,7 +432,7 @@ def big_match_process(args: tuple[Any, ...]) -> None:
 
 def big_track(vehicles: list[list[Any]], n: int) -> bytes:
     """An ``n``-point track: the phase-1 drives one after another, re-timed at 1 Hz."""
-    from mapmatch.service.gen import mapmatch_pb2 as pb
+    from service.gen import mapmatch_pb2 as pb
 
     lat = [f.lat for fx in vehicles for f in fx]
     lon = [f.lon for fx in vehicles for f in fx]

@@ -25,7 +25,7 @@ from pathlib import Path
 
 import numpy as np
 
-from mapmatch.graph.road_graph import RoadGraph
+from graph.road_graph import RoadGraph
 from mapmatch.sim.kalman import fused_stream, run_filter
 from mapmatch.sim.profile import drive_profile
 from mapmatch.sim.routes import random_route
@@ -33,8 +33,8 @@ from mapmatch.sim.sensors import DEFAULT_SENSORS, PAPER_OUTAGES, SensorConfig, s
 
 
 def load(path: str | None) -> RoadGraph:
-    from mapmatch.graph.artifact import load_map, save_map
-    from mapmatch.graph.build import build_map
+    from graph.artifact import load_map, save_map
+    from graph.build import build_map
     from mapmatch.sim.demo import helsinki_source
 
     if path:

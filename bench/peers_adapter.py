@@ -8,7 +8,7 @@ of two calls on the loaded map). ``call`` does what fastmm's does inside its tim
 from lon/lat lists to the map's CRS and the whole match; the route stays in the map's CRS, and its
 projection back to lon/lat happens in ``convert`` (untimed), as fastmm's does. Valhalla and OSRM
 return lon/lat from their timed call.
-Map: ``mapmatch.graph.build.build_map(roads.geojson)`` when the project has it, else a small
+Map: ``graph.build.build_map(roads.geojson)`` when the project has it, else a small
 bench-only loader of ``roads.geojson`` (degree-2 chains contracted, as for fastmm).
 """
 
@@ -26,9 +26,9 @@ ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
+from graph.road_graph import RoadGraph  # noqa: E402
 from mapmatch.batch import BatchMatcher, fill_route_lonlat  # noqa: E402
 from mapmatch.config import UBODT_MAX_BYTES  # noqa: E402
-from mapmatch.graph.road_graph import RoadGraph  # noqa: E402
 from mapmatch.route_table import Ubodt  # noqa: E402
 from mapmatch.types import Track  # noqa: E402
 
@@ -45,7 +45,7 @@ def version() -> str:
 
 def load_graph(work: Path) -> RoadGraph:
     """The track's map, prepared from its roads.geojson as ``mapmatch prep`` would (not timed)."""
-    from mapmatch.graph.build import build_map
+    from graph.build import build_map
 
     return build_map(work / "roads.geojson")
 

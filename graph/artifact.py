@@ -32,8 +32,8 @@ from typing import Any, TypeGuard
 import numpy as np
 from numpy.typing import NDArray
 
-from mapmatch.graph.errors import ArtifactError
-from mapmatch.graph.road_graph import ARRAY_FIELDS, PIECE_FIELDS, RoadGraph
+from graph.errors import ArtifactError
+from graph.road_graph import ARRAY_FIELDS, PIECE_FIELDS, RoadGraph
 
 MAGIC = b"RGMAP\x00\x00\x01"
 FORMAT = "mapmatch-roadgraph"
@@ -359,6 +359,6 @@ def open_map(path: str | os.PathLike[str]) -> RoadGraph:
         raise ArtifactError(f"cannot read map file {p}: {exc.strerror}") from exc
     if head[:-1] == MAGIC[:-1]:  # any format version: load_map reports a mismatch
         return load_map(p)
-    from mapmatch.graph.build import build_map
+    from graph.build import build_map
 
     return build_map(p)

@@ -20,9 +20,9 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from mapmatch.graph.errors import InputError
-from mapmatch.graph.projection import to_lonlat
-from mapmatch.graph.road_graph import RESTRICTION_NO, RESTRICTION_ONLY, RoadGraph
+from graph.errors import InputError
+from graph.projection import to_lonlat
+from graph.road_graph import RESTRICTION_NO, RESTRICTION_ONLY, RoadGraph
 
 ASCII_CRS = "EPSG:32635"
 ASCII_ORIGIN = (385_000.0, 6_672_000.0)

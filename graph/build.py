@@ -20,9 +20,9 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from mapmatch.graph.errors import InputError
-from mapmatch.graph.gis import GIS_SUFFIXES, GisOptions, OnewayConvention
-from mapmatch.graph.road_graph import RoadGraph
+from graph.errors import InputError
+from graph.gis import GIS_SUFFIXES, GisOptions, OnewayConvention
+from graph.road_graph import RoadGraph
 
 if TYPE_CHECKING:
     import networkx as nx
@@ -146,7 +146,7 @@ def build_map(
         (:func:`osmnx.consolidate_intersections`); ``None`` (default) keeps every node.
     snap_tolerance, node_crossings, oneway_field, oneway_convention, name_field, speed_field,
     highway_field, id_field, node_id_fields, topology, directed, crs, layer
-        GIS options, see :class:`mapmatch.graph.gis.GisOptions`.
+        GIS options, see :class:`graph.gis.GisOptions`.
     network_type
         osmnx network type for OSM input: ``"drive"`` (default) or ``"drive_service"``.
     progress
@@ -170,10 +170,10 @@ def build_map(
     InputError
         Missing file, unknown format, corrupt data, no drivable roads, unreadable CRS.
     """
-    from mapmatch.graph.artifact import file_sha256
-    from mapmatch.graph.components import component_counts
-    from mapmatch.graph.raw_network import RawNetwork, raw_to_nx, road_graph_arrays, simplify_arrays
-    from mapmatch.graph.simplify import consolidate, simplify, to_road_graph
+    from graph.artifact import file_sha256
+    from graph.components import component_counts
+    from graph.raw_network import RawNetwork, raw_to_nx, road_graph_arrays, simplify_arrays
+    from graph.simplify import consolidate, simplify, to_road_graph
 
     if engine not in ("arrays", "osmnx"):
         raise InputError(f"unknown build engine {engine!r} (use arrays or osmnx)")
@@ -196,7 +196,7 @@ def build_map(
             raise InputError("give a source file, a place name or a bounding box")
         if directed:
             raise InputError("directed lines are a GIS input option; a download is OpenStreetMap data")
-        from mapmatch.graph.osm import download_graph
+        from graph.osm import download_graph
 
         say(f"downloading the {network_type} network from OpenStreetMap")
         G, crs_out, dropped = download_graph(place=place, bbox=bbox, network_type=network_type)
@@ -221,7 +221,7 @@ def build_map(
             "sha256": file_sha256(path),
         }
         if fmt == "gis":
-            from mapmatch.graph.gis import lines_to_raw
+            from graph.gis import lines_to_raw
 
             conv = (
                 OnewayConvention.parse(oneway_convention)
@@ -266,7 +266,7 @@ def build_map(
             raw_net, dropped, fields = lines_to_raw(path, opts, progress=step.update)
             report.fields = fields
         else:
-            from mapmatch.graph.osm import read_osm_raw
+            from graph.osm import read_osm_raw
 
             say(f"reading OSM {'PBF' if fmt == 'osm-pbf' else 'XML'} from {path.name}")
             step = StepProgress(say, f"reading {path.name}", "roads kept", interval=progress_interval)

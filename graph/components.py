@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import NDArray
 
-from mapmatch.graph.keys import dense_labels, isin, unique
-from mapmatch.graph.road_graph import RoadGraph
+from graph.keys import dense_labels, isin, unique
+from graph.road_graph import RoadGraph
 
 
 def union_find(n: int, a: NDArray[np.int64], b: NDArray[np.int64]) -> NDArray[np.int64]:

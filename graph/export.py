@@ -23,9 +23,9 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from mapmatch.graph.errors import GraphError
-from mapmatch.graph.projection import to_lonlat
-from mapmatch.graph.road_graph import RoadGraph
+from graph.errors import GraphError
+from graph.projection import to_lonlat
+from graph.road_graph import RoadGraph
 
 EXPORT_SUFFIXES = (".geojson", ".json", ".gpkg", ".fgb", ".parquet", ".geoparquet")
 ROAD_COLUMNS = (

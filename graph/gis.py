@@ -5,7 +5,7 @@ straight into coordinate arrays; only the attribute fields the build uses are ke
 GeoDataFrame is made. Topology comes from shared line endpoints (within a snap tolerance); crossings without a
 shared vertex stay unconnected (bridges) unless noding is asked for. One-way comes from a
 configurable field and value convention. The options, field choice and reading are here;
-:mod:`mapmatch.graph.gis_network` turns the lines read into the raw network.
+:mod:`graph.gis_network` turns the lines read into the raw network.
 """
 
 from __future__ import annotations
@@ -22,13 +22,13 @@ import numpy as np
 import shapely
 from numpy.typing import NDArray
 
-from mapmatch.graph.errors import InputError
-from mapmatch.graph.gis_network import BOTH, FORWARD, REVERSE, lines_to_network
+from graph.errors import InputError
+from graph.gis_network import BOTH, FORWARD, REVERSE, lines_to_network
 
 if TYPE_CHECKING:
     import networkx as nx
 
-    from mapmatch.graph.raw_network import RawNetwork
+    from graph.raw_network import RawNetwork
 
 log = logging.getLogger(__name__)
 
@@ -393,7 +393,7 @@ def lines_to_graph(
     path: Path, opts: GisOptions
 ) -> tuple[nx.MultiDiGraph, str, dict[str, int], dict[str, Any]]:
     """Read GIS road lines into a raw MultiDiGraph in the local UTM CRS (see :func:`lines_to_raw`)."""
-    from mapmatch.graph.raw_network import raw_to_nx
+    from graph.raw_network import raw_to_nx
 
     raw, dropped, info = lines_to_raw(path, opts)
     return raw_to_nx(raw), raw.crs, dropped, info

@@ -3,7 +3,7 @@
 The attribute columns are decoded once per distinct value (one-way codes, names, classes,
 speeds); line ends become nodes from the node id fields or from shared endpoints (snapped
 within a tolerance); crossings are noded when asked; each segment becomes one arc per
-direction it may be driven. Reading the files is :mod:`mapmatch.graph.gis`.
+direction it may be driven. Reading the files is :mod:`graph.gis`.
 """
 
 from __future__ import annotations
@@ -17,16 +17,16 @@ import numpy as np
 import shapely
 from numpy.typing import NDArray
 
-from mapmatch.graph.components import union_find
-from mapmatch.graph.errors import InputError
-from mapmatch.graph.keys import dense_labels, unique, unique_inverse
-from mapmatch.graph.projection import utm_crs
-from mapmatch.graph.raw_network import RawNetwork, compact_raw
-from mapmatch.graph.road_graph import Labels
-from mapmatch.graph.simplify import _text
+from graph.components import union_find
+from graph.errors import InputError
+from graph.keys import dense_labels, unique, unique_inverse
+from graph.projection import utm_crs
+from graph.raw_network import RawNetwork, compact_raw
+from graph.road_graph import Labels
+from graph.simplify import _text
 
 if TYPE_CHECKING:
-    from mapmatch.graph.gis import GisOptions, Lines
+    from graph.gis import GisOptions, Lines
 
 log = logging.getLogger(__name__)
 
@@ -64,9 +64,9 @@ def lines_to_network(
     uv_f: tuple[str, str] | None,
     opts: GisOptions,
 ) -> tuple[RawNetwork, dict[str, int], dict[str, Any]]:
-    """The raw network of lines read by :func:`mapmatch.graph.gis.lines_to_raw` (``picked``:
+    """The raw network of lines read by :func:`graph.gis.lines_to_raw` (``picked``:
     their one-way, name, speed, class and id fields; ``uv_f``: their node id fields)."""
-    from mapmatch.graph.projection import to_xy
+    from graph.projection import to_xy
 
     oneway_f, name_f, speed_f, hw_f, id_f = picked
 

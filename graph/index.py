@@ -12,12 +12,11 @@ from typing import Any
 
 import numpy as np
 import shapely
-from numba import njit
 from numba.extending import register_jitable
 from numpy.typing import ArrayLike, NDArray
 
-from mapmatch.arena import read_only
-from mapmatch.graph.road_graph import RoadGraph
+from graph.jit import njit, read_only
+from graph.road_graph import RoadGraph
 
 
 @dataclass(frozen=True)

@@ -15,8 +15,8 @@ import numpy as np
 import shapely
 from numpy.typing import NDArray
 
-from mapmatch.graph.index import EdgeIndex
-from mapmatch.graph.road_graph import RoadGraph
+from graph.index import EdgeIndex
+from graph.road_graph import RoadGraph
 
 
 @dataclass(frozen=True)

@@ -15,7 +15,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from mapmatch.graph.road_graph import Labels, Pieces
+from graph.road_graph import Labels, Pieces
 
 HILBERT_BITS = 16
 """Bits per axis of the curve's grid: cells of about 1.5 m on a 100 km map (finer changes little)."""
@@ -92,7 +92,7 @@ def _take_labels(v: Any, index: NDArray[np.int64]) -> Any:
 
 
 def take_edges(kw: dict[str, Any], order: NDArray[np.int64]) -> dict[str, Any]:
-    """:meth:`~mapmatch.graph.road_graph.RoadGraph.from_edges` arguments (``seg_xy`` and
+    """:meth:`~graph.road_graph.RoadGraph.from_edges` arguments (``seg_xy`` and
     ``edge_seg_ptr`` form) with the edges in ``order``: new edge ``i`` is old ``order[i]``
     (geometry, attributes, way pieces and restrictions follow)."""
     out = dict(kw)

@@ -19,12 +19,12 @@ from typing import TYPE_CHECKING, Any, NamedTuple
 import numpy as np
 from numpy.typing import NDArray
 
-from mapmatch.graph.errors import InputError
-from mapmatch.graph.gis_network import parse_speed
-from mapmatch.graph.keys import unique_inverse
-from mapmatch.graph.projection import to_xy, utm_crs
-from mapmatch.graph.raw_network import RawNetwork, compact_raw
-from mapmatch.graph.road_graph import RESTRICTION_NO, RESTRICTION_ONLY, Labels
+from graph.errors import InputError
+from graph.gis_network import parse_speed
+from graph.keys import unique_inverse
+from graph.projection import to_xy, utm_crs
+from graph.raw_network import RawNetwork, compact_raw
+from graph.road_graph import RESTRICTION_NO, RESTRICTION_ONLY, Labels
 
 if TYPE_CHECKING:
     import networkx as nx
@@ -242,7 +242,7 @@ def read_osm(
         and restrictions as ``(from_way, via_node_id, to_way, kind)``.
     """
     raw, dropped, restrictions = read_osm_raw(path, network_type=network_type, bbox=bbox)
-    from mapmatch.graph.raw_network import raw_to_nx
+    from graph.raw_network import raw_to_nx
 
     return raw_to_nx(raw), raw.crs, dropped, restrictions
 

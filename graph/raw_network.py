@@ -3,7 +3,7 @@
 The array build path (``build_map``'s default engine): a :class:`RawNetwork` holds every
 vertex as a node and one directed edge per straight piece, as the OSM and GIS readers make it;
 :func:`simplify_arrays` keeps intersections and dead ends exactly as osmnx's
-``simplify_graph`` would (:func:`mapmatch.graph.simplify.simplify`, the reference path), and
+``simplify_graph`` would (:func:`graph.simplify.simplify`, the reference path), and
 :func:`road_graph_arrays` turns the result into a :class:`RoadGraph`'s arrays, its edges in
 spatial order. :func:`raw_to_nx` gives the same network to the osmnx path.
 """
@@ -17,10 +17,10 @@ from typing import TYPE_CHECKING, Any, NamedTuple
 import numpy as np
 from numpy.typing import NDArray
 
-from mapmatch.graph.keys import unique, unique_inverse
-from mapmatch.graph.order import spatial_edge_order, take_edges
-from mapmatch.graph.road_graph import Labels, Pieces, RoadGraph
-from mapmatch.graph.simplify import _map_restrictions, _split_loop
+from graph.keys import unique, unique_inverse
+from graph.order import spatial_edge_order, take_edges
+from graph.road_graph import Labels, Pieces, RoadGraph
+from graph.simplify import _map_restrictions, _split_loop
 
 if TYPE_CHECKING:
     import networkx as nx
@@ -226,7 +226,7 @@ def _paths(
 def ring_keep(raw: RawNetwork, end: NDArray[np.bool_]) -> NDArray[np.bool_]:
     """Two opposite nodes of every isolated ring (a component without endpoints), as
     :func:`mark_rings` picks them: walk from the smallest node id, preferring the smaller."""
-    from mapmatch.graph.components import union_find
+    from graph.components import union_find
 
     keep = np.zeros(raw.n_nodes, dtype=bool)
     lab = union_find(raw.n_nodes, raw.edge_src, raw.edge_dst)
@@ -414,7 +414,7 @@ def road_graph_arrays(
         "meta": meta,
         "copy": False,
     }
-    # nearby roads at nearby indices (:mod:`mapmatch.graph.order`)
+    # nearby roads at nearby indices (:mod:`graph.order`)
     return take_edges(kw, spatial_edge_order(node_xy, eu, ev)), info
 
 

@@ -17,8 +17,8 @@ from typing import Any, NamedTuple
 import numpy as np
 from numpy.typing import NDArray
 
-from mapmatch.graph.errors import GraphError
-from mapmatch.graph.keys import unique_inverse
+from graph.errors import GraphError
+from graph.keys import unique_inverse
 
 RESTRICTION_NO = 0
 RESTRICTION_ONLY = 1

@@ -26,7 +26,7 @@ from typing import Literal
 import numpy as np
 from numpy.typing import NDArray
 
-from mapmatch.graph.road_graph import RESTRICTION_ONLY, RoadGraph
+from graph.road_graph import RESTRICTION_ONLY, RoadGraph
 
 UTurnPolicy = Literal["junction", "never", "dead_end"]
 

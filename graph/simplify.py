@@ -8,7 +8,7 @@ expects before :func:`osmnx.simplify_graph`.
 
 This is the reference path (``build_map(engine="osmnx")``) and the osmnx conversions
 (:func:`to_osmnx`, :func:`from_osmnx`); the default build does the same on arrays, in
-:mod:`mapmatch.graph.raw_network`, and shares this module's loop splitting and restriction
+:mod:`graph.raw_network`, and shares this module's loop splitting and restriction
 mapping.
 """
 
@@ -22,7 +22,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 from numpy.typing import NDArray
 
-from mapmatch.graph.road_graph import Pieces, RoadGraph
+from graph.road_graph import Pieces, RoadGraph
 
 if TYPE_CHECKING:
     import networkx as nx
@@ -330,7 +330,7 @@ def to_road_graph(
     node_xy = np.asarray(xy, dtype=np.float64).reshape(-1, 2)
     node_ll = np.asarray(lonlat, dtype=np.float64).reshape(-1, 2)
     if np.isnan(node_ll).any():
-        from mapmatch.graph.projection import to_lonlat
+        from graph.projection import to_lonlat
 
         bad = np.isnan(node_ll).any(axis=1)
         node_ll[bad] = to_lonlat(crs, node_xy[bad, 0], node_xy[bad, 1])

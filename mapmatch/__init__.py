@@ -15,9 +15,6 @@ Batch matching
     :func:`results_table`, :func:`write_results`.
 Scoring
     :func:`evaluate`, :func:`route_mismatch`, :func:`read_route_geojson`, :func:`score_route`.
-Service
-    :class:`ServerConfig`, :func:`create_server` (builds), :func:`start_server` (builds and
-    starts), :class:`MapMatchClient`.
 Errors
     :class:`MatchError` (:class:`ValidationError`, :class:`ConfigError`), :class:`GraphError`
     (:class:`InputError`, :class:`ArtifactError`), :class:`MissingExtraError`.
@@ -28,22 +25,14 @@ Errors
 from __future__ import annotations
 
 import importlib
-import importlib.machinery
-import os
-import sys
-from types import ModuleType
 from typing import TYPE_CHECKING, Any
 
-from mapmatch.kernel_cache import refresh_package
-
-refresh_package()  # before any kernel loads a cache that an edit elsewhere made stale
-
 _API: dict[str, str] = {
-    "RoadGraph": "mapmatch.graph.road_graph",
-    "build_map": "mapmatch.graph.build",
-    "save_map": "mapmatch.graph.artifact",
-    "load_map": "mapmatch.graph.artifact",
-    "open_map": "mapmatch.graph.artifact",
+    "RoadGraph": "graph.road_graph",
+    "build_map": "graph.build",
+    "save_map": "graph.artifact",
+    "load_map": "graph.artifact",
+    "open_map": "graph.artifact",
     "OnlineMatcher": "mapmatch.online",
     "SessionState": "mapmatch.online",
     "MatchConfig": "mapmatch.config",
@@ -63,16 +52,12 @@ _API: dict[str, str] = {
     "route_mismatch": "mapmatch.route_score",
     "read_route_geojson": "mapmatch.route_score",
     "score_route": "mapmatch.route_score",
-    "ServerConfig": "mapmatch.service.config",
-    "create_server": "mapmatch.service.server",
-    "start_server": "mapmatch.service.server",
-    "MapMatchClient": "mapmatch.service.client",
     "MatchError": "mapmatch.errors",
     "ValidationError": "mapmatch.errors",
     "ConfigError": "mapmatch.errors",
-    "GraphError": "mapmatch.graph.errors",
-    "InputError": "mapmatch.graph.errors",
-    "ArtifactError": "mapmatch.graph.errors",
+    "GraphError": "graph.errors",
+    "InputError": "graph.errors",
+    "ArtifactError": "graph.errors",
     "MissingExtraError": "mapmatch.extras",
 }
 __all__ = [
@@ -84,13 +69,11 @@ __all__ = [
     "Fix",
     "GraphError",
     "InputError",
-    "MapMatchClient",
     "MatchConfig",
     "MatchError",
     "MissingExtraError",
     "OnlineMatcher",
     "RoadGraph",
-    "ServerConfig",
     "SessionState",
     "SnapResult",
     "Track",
@@ -98,7 +81,6 @@ __all__ = [
     "ValidationError",
     "__version__",
     "build_map",
-    "create_server",
     "evaluate",
     "load_map",
     "open_map",
@@ -110,7 +92,6 @@ __all__ = [
     "run_batch",
     "save_map",
     "score_route",
-    "start_server",
     "write_results",
 ]
 
@@ -144,47 +125,17 @@ def __dir__() -> list[str]:
 
 if TYPE_CHECKING:
     __version__: str
+    from graph.artifact import load_map, open_map, save_map
+    from graph.build import build_map
+    from graph.errors import ArtifactError, GraphError, InputError
+    from graph.road_graph import RoadGraph
     from mapmatch.batch import BATCH_CONFIG, BatchMatcher
     from mapmatch.config import DEFAULT_CONFIG, MatchConfig
     from mapmatch.errors import ConfigError, MatchError, ValidationError
     from mapmatch.evaluate import evaluate
     from mapmatch.extras import MissingExtraError
-    from mapmatch.graph.artifact import load_map, open_map, save_map
-    from mapmatch.graph.build import build_map
-    from mapmatch.graph.errors import ArtifactError, GraphError, InputError
-    from mapmatch.graph.road_graph import RoadGraph
     from mapmatch.io import read_fixes, read_tracks, results_table, write_results
     from mapmatch.online import OnlineMatcher, SessionState
     from mapmatch.parallel import run_batch
     from mapmatch.route_score import read_route_geojson, route_mismatch, score_route
-    from mapmatch.service.client import MapMatchClient
-    from mapmatch.service.config import ServerConfig
-    from mapmatch.service.server import create_server, start_server
     from mapmatch.types import Fix, SnapResult, Track, TrackMatch
-
-
-# In a source tree, graph/ and service/ sit next to mapmatch/ (linked into it where the checkout
-# keeps symbolic links): find them as mapmatch.graph and mapmatch.service there too, as the
-# installed package (setuptools package-dir) has them.
-_ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
-_MAPPED = {"mapmatch.graph": "graph", "mapmatch.service": "service"}
-
-
-class _SourceTreeFinder:
-    """A meta-path finder for mapmatch.graph and mapmatch.service in an uninstalled source tree."""
-
-    def find_spec(
-        self, fullname: str, path: Any = None, target: ModuleType | None = None
-    ) -> importlib.machinery.ModuleSpec | None:
-        if fullname not in _MAPPED:
-            return None
-        return importlib.machinery.PathFinder.find_spec(fullname, [_ROOT])
-
-
-if (
-    not os.path.isdir(os.path.join(os.path.dirname(__file__), "graph"))
-    and os.path.isfile(os.path.join(_ROOT, "graph", "__init__.py"))
-    and os.path.isfile(os.path.join(_ROOT, "pyproject.toml"))
-    and not any(type(f).__name__ == "_SourceTreeFinder" for f in sys.meta_path)
-):
-    sys.meta_path.append(_SourceTreeFinder())

@@ -8,8 +8,7 @@ answer is copied out by :func:`mapmatch.batch.run.pack`). When a buffer is used 
 is allocated as before, and ``top`` still counts it, so the caller can grow the arena
 (:meth:`Arena.grown`) for the next call.
 
-Also :func:`read_only`, the view every map array a kernel only reads goes in as, so that a map
-read from its file and one built in memory share one compile; two ways around numba's
+Also two ways around numba's
 reference counting: :func:`borrowed` views, and :data:`UNCOUNTED` kernels; and :func:`ref`,
 a tuple of arrays handed to a compiled call by one pointer instead of by value.
 """
@@ -20,12 +19,13 @@ from collections.abc import Callable
 from typing import Any, NamedTuple, cast
 
 import numpy as np
-from numba import njit
 from numba.core import cgutils, errors, types
 from numba.core.datamodel import models
 from numba.core.imputils import impl_ret_borrowed
 from numba.extending import intrinsic, register_model
 from numpy.typing import NDArray
+
+from graph.jit import njit
 
 MAX_ITEMS = 1 << 22
 """An arena grows to at most this many items per buffer (32 MB of floats); a call needing more
@@ -47,18 +47,6 @@ int64: Callable[[int], int] = np.int64  # type: ignore[assignment]
 where a plain ``0`` is the literal 0: a kernel handed a literal (directly, or through a variable
 that starts as one, as ``t = 1`` before a loop) is compiled once more for that value, a copy
 no call uses (15 of them took 15 s of the batch kernels' 78 s compile)."""
-
-
-def read_only(a: Any, dtype: Any) -> NDArray[Any]:
-    """``a`` as a C-contiguous array of ``dtype`` that kernels cannot write: a read-only view.
-
-    A map read from its file has read-only arrays, one built in memory writable ones, and numba
-    compiles a kernel once per argument type, writability included: every array a kernel only
-    reads goes in read-only, whatever its source, so one compile (about a minute for the batch
-    matcher) serves both."""
-    v = np.ascontiguousarray(a, dtype=dtype).view()
-    v.flags.writeable = False
-    return v
 
 
 class Arena(NamedTuple):

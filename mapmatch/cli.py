@@ -138,8 +138,8 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 
 def _run(args: argparse.Namespace) -> int:
+    from graph.errors import GraphError
     from mapmatch.errors import MatchError
-    from mapmatch.graph.errors import GraphError
 
     cmd = args.command
     try:

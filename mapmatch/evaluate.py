@@ -27,10 +27,10 @@ import pandas as pd
 from numpy.typing import ArrayLike, NDArray
 from rapidfuzz.distance import LCSseq
 
+from graph.index import project_to_edge
+from graph.projection import to_lonlat, to_xy
+from graph.road_graph import RoadGraph
 from mapmatch.errors import ValidationError
-from mapmatch.graph.index import project_to_edge
-from mapmatch.graph.projection import to_lonlat, to_xy
-from mapmatch.graph.road_graph import RoadGraph
 from mapmatch.route_score import RouteMismatch, path_geometry, route_mismatch, split_parts
 from mapmatch.routing import shortest_path
 from mapmatch.types import Correction, Fix, SnapResult

@@ -16,9 +16,9 @@ from collections.abc import Iterable
 import numpy as np
 import pandas as pd
 
+from graph.files import atomic_path
+from graph.road_graph import RoadGraph
 from mapmatch.errors import ValidationError
-from mapmatch.graph.files import atomic_path
-from mapmatch.graph.road_graph import RoadGraph
 from mapmatch.measurement import AIDED_COLUMNS, aided_cells
 from mapmatch.types import Fix, SnapResult
 

@@ -1,4 +1,4 @@
-"""A compiled uniform-grid twin of :meth:`mapmatch.graph.index.EdgeIndex.query` for batch candidate search.
+"""A compiled uniform-grid twin of :meth:`graph.index.EdgeIndex.query` for batch candidate search.
 
 Same segments, same answer (tests check it against ``EdgeIndex.query``), several times faster
 on many points: the segments are bucketed in square cells kept as a sorted cell-id array,
@@ -13,11 +13,11 @@ import threading
 from typing import NamedTuple
 
 import numpy as np
-from numba import njit
 from numpy.typing import ArrayLike, NDArray
 
-from mapmatch.arena import Arena, int64, read_only, take_f8, take_i8, take_xy
-from mapmatch.graph.index import Candidates, EdgeIndex
+from graph.index import Candidates, EdgeIndex
+from graph.jit import njit, read_only
+from mapmatch.arena import Arena, int64, take_f8, take_i8, take_xy
 
 DENSE_MAX_CELLS = 1 << 23
 """Up to this many cells the grid keeps a dense cell table (8 bytes a cell)."""
@@ -204,7 +204,7 @@ def _crosses(ax, ay, bx, by, x0, y0, x1, y1):  # type: ignore[no-untyped-def]
 def query_grid(pts, radius, k, grid, sc, ar):  # type: ignore[no-untyped-def]
     """Directed edges within ``radius`` of each point of ``pts`` (non-finite points have none),
     nearest ``k`` roads (``k < 0``: all) with their reverse twins, sorted by point then (distance,
-    edge): ``(point, edge, dist, offset, xy)`` as :class:`~mapmatch.graph.index.Candidates`.
+    edge): ``(point, edge, dist, offset, xy)`` as :class:`~graph.index.Candidates`.
     Working arrays and the answer come from the arena ``ar`` (:mod:`mapmatch.arena`)."""
     n = len(pts)
     cap = 16 * n + 16

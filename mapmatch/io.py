@@ -23,9 +23,9 @@ import numpy as np
 import pandas as pd
 from numpy.typing import NDArray
 
+from graph.files import atomic_path
+from graph.road_graph import RoadGraph
 from mapmatch.errors import MatchError
-from mapmatch.graph.files import atomic_path
-from mapmatch.graph.road_graph import RoadGraph
 from mapmatch.types import Track, TrackMatch
 
 

@@ -10,7 +10,7 @@ the batch matcher, the online matcher (``replay``, ``serve``, ``demo``) its plac
 does it, so a container's first start is warm).
 
 A kernel that runs once per job on an input of a size the job chose (a map's nodes, a route's
-metres) goes through :func:`for_size`: on a small input it runs as plain Python (the same code,
+metres) goes through :func:`graph.jit.for_size`: on a small input it runs as plain Python (the same code,
 so the same results), which takes milliseconds where compiling takes seconds.
 """
 
@@ -21,7 +21,7 @@ import os
 import subprocess
 import sys
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
 from typing import Any, TextIO
@@ -45,33 +45,20 @@ GROUPS: dict[str, tuple[str, ...]] = {
         "mapmatch.online.geometry",
         "mapmatch.online.along",
         "mapmatch.online.placement",
-        "mapmatch.graph.index:project_point_compiled",
+        "graph.index:project_point_compiled",
         "mapmatch.model:emission_logp_one",
         "mapmatch.model:transition_one_compiled",
     ),
 }
 """Kernel groups: the compiled functions a kind of job uses, as modules (all their kernels) or
 ``module:kernel`` (that kernel, with what it calls: the filter's map-aided update compiles only
-for a closed loop). Kernels called through :func:`for_size`, which compile only for large
+for a closed loop). Kernels called through :func:`graph.jit.for_size`, which compile only for large
 inputs, are in none."""
 
 COMPILE_SECONDS: dict[str, float] = {"simulator": 8.0, "batch": 63.0, "online": 12.0}
 """About how long (CPU seconds) a group takes to compile on the 2-core development machine."""
 
-PYTHON_MAX_ITEMS = 50_000
-"""Inputs of up to this many items run a kernel as plain Python (:func:`for_size`); about
-0.2 s at that size on the development machine, against 1-3 s to compile each kernel."""
-
 _announced: set[str] = set()
-
-
-def for_size(kernel: Any, items: int) -> Callable[..., Any]:
-    """``kernel`` (a numba dispatcher) for an input of ``items`` items: its Python function when
-    the input is small (no compile; the same code, so the same results), else the compiled kernel.
-
-    Only for kernels that call no other compiled function (those would compile anyway).
-    """
-    return kernel.py_func if items <= PYTHON_MAX_ITEMS else kernel  # type: ignore[no-any-return]
 
 
 def _kernel(entry: str) -> Any:
@@ -209,8 +196,8 @@ def compile_group(group: str) -> float:
 
     t0 = time.perf_counter()
     if group == "batch":
+        from graph.ascii import parse_ascii_map
         from mapmatch.batch import BatchMatcher
-        from mapmatch.graph.ascii import parse_ascii_map
         from mapmatch.types import Track
 
         m = parse_ascii_map("a-----------b-----------c\n|           |\nd-----------e", scale=10)
@@ -222,7 +209,7 @@ def compile_group(group: str) -> float:
         t = np.arange(len(xs), dtype=np.float64) * 2.0
         BatchMatcher(g).match(Track("warm", t, ll[:, 1].astype(np.float64), ll[:, 0].astype(np.float64)))
     elif group == "online":
-        from mapmatch.graph.ascii import parse_ascii_map
+        from graph.ascii import parse_ascii_map
         from mapmatch.online import OnlineMatcher
         from mapmatch.types import Fix
 

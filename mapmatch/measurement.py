@@ -40,8 +40,8 @@ from functools import cached_property
 
 import numpy as np
 
+from graph.road_graph import RoadGraph
 from mapmatch.errors import ConfigError
-from mapmatch.graph.road_graph import RoadGraph
 from mapmatch.types import MapAidedMeasurement, State, new_measurement
 
 # default carriageway width in metres per OSM highway class (all lanes, both directions on a

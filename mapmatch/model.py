@@ -15,9 +15,9 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from numba import njit
 from numpy.typing import ArrayLike, NDArray
 
+from graph.jit import njit
 from mapmatch.config import MatchConfig
 
 NEG_INF = -np.inf

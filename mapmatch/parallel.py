@@ -27,9 +27,9 @@ from typing import Any
 
 import pandas as pd
 
+from graph.files import atomic_path
 from mapmatch.config import BATCH_CONFIG, UBODT_MAX_BYTES, MatchConfig
 from mapmatch.errors import MatchError
-from mapmatch.graph.files import atomic_path
 from mapmatch.io import (
     DEFAULT_COLUMNS,
     RESULT_COLUMNS,
@@ -89,8 +89,8 @@ def _matcher(
     """The process's matcher for a map file (and optional route table, its routes costing
     ``turn_cost`` per turn back, of at most about ``ubodt_max_bytes``: mapped from
     ``ubodt_path`` when the run built it once for every worker, else built here), loaded once."""
+    from graph.artifact import load_map
     from mapmatch.batch import BatchMatcher
-    from mapmatch.graph.artifact import load_map
     from mapmatch.route_table import Ubodt
 
     key = (
@@ -295,7 +295,7 @@ def _shared_route_table(
 ) -> Path:
     """The run's route table in the parts folder, built once for every worker (each maps the
     same file, so N workers hold one table's memory, not N); kept for a resumed run."""
-    from mapmatch.graph.artifact import load_map
+    from graph.artifact import load_map
     from mapmatch.route_table import TABLE_FILE_VERSION, Ubodt
 
     st = os.stat(map_s)

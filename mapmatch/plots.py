@@ -16,10 +16,10 @@ import numpy as np
 import pandas as pd
 from numpy.typing import ArrayLike, NDArray
 
+from graph.files import atomic_path
+from graph.projection import to_lonlat, to_xy
+from graph.road_graph import RoadGraph
 from mapmatch.evaluate import align_by_time, matched_edges_dense
-from mapmatch.graph.files import atomic_path
-from mapmatch.graph.projection import to_lonlat, to_xy
-from mapmatch.graph.road_graph import RoadGraph
 
 
 @dataclass(frozen=True)

@@ -22,9 +22,9 @@ import shapely
 from numpy.typing import ArrayLike, NDArray
 from shapely.ops import substring
 
+from graph.projection import to_xy
+from graph.road_graph import RoadGraph
 from mapmatch.errors import ValidationError
-from mapmatch.graph.projection import to_xy
-from mapmatch.graph.road_graph import RoadGraph
 
 
 def path_geometry(
@@ -245,7 +245,7 @@ def score_route(
     Both are projected to ``crs`` (default: the UTM zone of the true route's first vertex) and
     compared by :func:`route_mismatch`; separate parts stay separate.
     """
-    from mapmatch.graph.projection import utm_crs
+    from graph.projection import utm_crs
 
     truth = [np.asarray(p, dtype=np.float64).reshape(-1, 2) for p in truth_lonlat]
     truth = [p for p in truth if len(p)]

@@ -20,12 +20,12 @@ from functools import cached_property
 from pathlib import Path
 
 import numpy as np
-from numba import njit
 from numpy.typing import NDArray
 
+from graph.jit import njit
+from graph.road_graph import RoadGraph
 from mapmatch.arena import int64
 from mapmatch.config import BATCH_CONFIG
-from mapmatch.graph.road_graph import RoadGraph
 from mapmatch.routing import INF, TABLE_BLOCK, RouteGraph, RouteTable, Workspace, _reset, _search, route_graph
 
 log = logging.getLogger(__name__)
@@ -166,7 +166,7 @@ ESTIMATE_HEADROOM = 1.15
 def ubodt_estimate(graph: RoadGraph, delta: float, *, turn_cost: float | None = None) -> int:
     """The estimated size in bytes of ``Ubodt.build(graph, delta, turn_cost=turn_cost)``, from
     the rows of :data:`ESTIMATE_SAMPLE` edges evenly spaced through the map's edges (a map
-    prepared by :func:`mapmatch.graph.build.build_map` stores them in spatial order, so the
+    prepared by :func:`graph.build.build_map` stores them in spatial order, so the
     sample spreads over the map)."""
     if turn_cost is None:
         turn_cost = float(BATCH_CONFIG.turn_cost)

@@ -11,7 +11,7 @@ the batch matcher needs between the candidates of consecutive fixes:
   precomputed once per map for a bound in metres, then looked up (``bench/bench_batch.py
   --routing`` measures both).
 
-The moves come from the map's table of legal moves (:mod:`mapmatch.graph.rules`, policy
+The moves come from the map's table of legal moves (:mod:`graph.rules`, policy
 ``"dead_end"``: turning back at a node only at a dead end); a U-turn along the road is a
 separate, penalised move the matcher scores itself.
 """
@@ -23,12 +23,12 @@ import math
 from typing import NamedTuple
 
 import numpy as np
-from numba import njit
 from numpy.typing import NDArray
 
-from mapmatch.arena import int64, read_only
-from mapmatch.graph.road_graph import RoadGraph
-from mapmatch.graph.rules import UTurnPolicy, moves_for
+from graph.jit import njit, read_only
+from graph.road_graph import RoadGraph
+from graph.rules import UTurnPolicy, moves_for
+from mapmatch.arena import int64
 
 INF = np.inf
 
@@ -65,7 +65,7 @@ def turn_costs(
 
 
 def route_graph(graph: RoadGraph, *, uturns: UTurnPolicy = "dead_end", turn_cost: float = 0.0) -> RouteGraph:
-    """The compiled searches' arrays of ``graph``, moves by :func:`mapmatch.graph.rules.moves_for`
+    """The compiled searches' arrays of ``graph``, moves by :func:`graph.rules.moves_for`
     under the U-turn policy ``uturns`` (the batch matcher's: turning back only at a dead end),
     each costing :func:`turn_costs` of ``turn_cost`` metres (finite, not negative)."""
     if not math.isfinite(turn_cost) or turn_cost < 0:
@@ -372,7 +372,7 @@ def shortest_path(
     to_edge: int | None = None,
 ) -> list[int] | None:
     """Cheapest legal edge path from the end of ``from_edge`` to ``to_node`` (no U-turns onto
-    a reverse twin, turn restrictions kept: :func:`mapmatch.graph.rules.legal_moves` ``"never"``).
+    a reverse twin, turn restrictions kept: :func:`graph.rules.legal_moves` ``"never"``).
 
     Returns the edges after ``from_edge`` (empty when ``from_edge`` already ends there), or
     None when unreachable within ``max_cost``. ``weight`` is the cost of each edge (default:

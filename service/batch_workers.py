@@ -49,8 +49,8 @@ from typing import Any, NamedTuple
 import grpc
 
 from mapmatch.errors import ValidationError
-from mapmatch.service.errors import BatchWorkerError, LimitError, StatusError, log_internal, status_for
-from mapmatch.service.gen import mapmatch_pb2 as pb
+from service.errors import BatchWorkerError, LimitError, StatusError, log_internal, status_for
+from service.gen import mapmatch_pb2 as pb
 
 log = logging.getLogger("mapmatch.service")
 
@@ -204,7 +204,7 @@ def check_answer_bytes(n: int, limit: int) -> None:
 
 def match_track(entry: Any, msg: pb.Track, *, prefix: str, limits: TrackLimits) -> pb.TrackResult:
     """One track through a map entry's batch matcher, as a ``TrackResult`` (limits checked)."""
-    from mapmatch.service import convert
+    from service import convert
 
     check_points(msg, limits.max_track_points)
     track = convert.track_from_proto(msg, prefix=prefix)
@@ -533,9 +533,9 @@ def _exit_reason(code: int | None) -> str:
 # ---------------------------------------------------------------------------------- child side
 def _load(mf: MapFile) -> Any:
     """A map entry (graph, index, batch matcher warmed up) from its file, checksum checked."""
-    from mapmatch.graph.artifact import load_map
-    from mapmatch.graph.index import EdgeIndex
-    from mapmatch.service.maps import MapEntry, graph_checksum, warm_batch
+    from graph.artifact import load_map
+    from graph.index import EdgeIndex
+    from service.maps import MapEntry, graph_checksum, warm_batch
 
     try:
         graph = load_map(Path(mf.path))

@@ -9,6 +9,7 @@ Example::
 
 from __future__ import annotations
 
+import queue
 import threading
 from collections.abc import Iterable, Iterator
 from dataclasses import dataclass
@@ -18,9 +19,9 @@ from typing import TYPE_CHECKING, Any
 
 import grpc
 
-from mapmatch.service import convert
-from mapmatch.service.gen import mapmatch_pb2 as pb
-from mapmatch.service.gen import mapmatch_pb2_grpc as pb_grpc
+from service import convert
+from service.gen import mapmatch_pb2 as pb
+from service.gen import mapmatch_pb2_grpc as pb_grpc
 
 
 @dataclass(frozen=True, slots=True)
@@ -44,7 +45,7 @@ class Answer:
 
 _CODES = {c.value[0]: c for c in grpc.StatusCode}
 
-if TYPE_CHECKING:  # conversions go through mapmatch.service.convert; the types are for annotations
+if TYPE_CHECKING:  # conversions go through service.convert; the types are for annotations
     from mapmatch.types import Fix, SnapResult, Track
 
 
@@ -160,3 +161,47 @@ def interleave_by_time(by_vehicle: dict[str, list[Fix]]) -> list[tuple[str, Fix]
     rows = [(f.time, i, vid, f) for vid, fixes in by_vehicle.items() for i, f in enumerate(fixes)]
     rows.sort(key=lambda r: (r[0], r[1]))
     return [(vid, f) for _, _, vid, f in rows]
+
+
+class ServerMatcher:
+    """A :data:`MatchFn` over one stream to a running server: each fix waits for its answer.
+
+    Use as a context manager; ``grpc.RpcError`` propagates (the caller maps it to exit code 3).
+    """
+
+    def __init__(self, target: str, *, vehicle_id: str, map_id: str = "", timeout: float | None = None):
+        self._client = MapMatchClient(target)
+        self._queue: queue.Queue[Fix | None] = queue.Queue()
+        self._vehicle_id = vehicle_id
+        self._answers = self._client.stream(self._fixes(), map_id=map_id, timeout=timeout)
+        self._lock = threading.Lock()
+
+    def _fixes(self) -> Iterator[tuple[str, Fix]]:
+        while True:
+            f = self._queue.get()
+            if f is None:
+                return
+            yield self._vehicle_id, f
+
+    def __call__(self, fix: Fix) -> SnapResult | None:
+        with self._lock:
+            self._queue.put(fix)
+            return next(self._answers).result
+
+    def close(self) -> None:
+        self._queue.put(None)
+        for _ in self._answers:  # drain: the server ends the stream
+            pass
+        self._client.close()
+
+    def __enter__(self) -> ServerMatcher:
+        return self
+
+    def __exit__(
+        self, exc_type: type[BaseException] | None, exc: BaseException | None, tb: TracebackType | None
+    ) -> None:
+        if exc_type is None:
+            self.close()
+        else:  # end the request stream too, then drop the channel
+            self._queue.put(None)
+            self._client.close()

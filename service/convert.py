@@ -12,9 +12,8 @@ import numpy as np
 from google.protobuf import struct_pb2
 from google.protobuf.json_format import ParseDict
 
+from graph.road_graph import RoadGraph
 from mapmatch.errors import ValidationError
-from mapmatch.graph.road_graph import RoadGraph
-from mapmatch.service.gen import mapmatch_pb2 as pb
 from mapmatch.types import (
     Candidate,
     Correction,
@@ -28,6 +27,7 @@ from mapmatch.types import (
     TrackMatch,
     Turn,
 )
+from service.gen import mapmatch_pb2 as pb
 
 _STATE = {
     State.INITIALISING: pb.STATE_INITIALISING,
@@ -301,7 +301,7 @@ def track_match_to_proto(m: TrackMatch, graph: RoadGraph) -> pb.TrackResult:
 
 # ---------------------------------------------------------------------------------- maps
 def map_info_to_proto(entry: Any, *, session_count: int = 0) -> pb.MapInfo:
-    """The proto of a :class:`mapmatch.service.maps.MapEntry`."""
+    """The proto of a :class:`service.maps.MapEntry`."""
     g: RoadGraph = entry.graph
     bbox = g.bbox
     stats = g.stats()

@@ -1,6 +1,6 @@
 """Every error the service raises, and the one table mapping errors to gRPC statuses.
 
-Domain errors (:mod:`mapmatch.errors`, :mod:`mapmatch.graph.errors`) and the service's own errors below
+Domain errors (:mod:`mapmatch.errors`, :mod:`graph.errors`) and the service's own errors below
 become precise statuses in :func:`status_for`; the offending field, or the limit, is named
 in the message and in the trailing metadata key ``mapmatch-field``. Anything else is
 INTERNAL, logged with its traceback, and never reaches the client.
@@ -12,8 +12,8 @@ import logging
 
 import grpc
 
+from graph.errors import GraphError
 from mapmatch.errors import ConfigError, MatchError, ValidationError
-from mapmatch.graph.errors import GraphError
 
 errlog = logging.getLogger("mapmatch.service")
 

@@ -10,7 +10,7 @@ and hooks, but a streamed message passes through one wrapper, not one per concer
 * :class:`AuthInterceptor`: when a token is configured, every call but health checks needs
   the metadata ``authorization: Bearer <token>``; otherwise UNAUTHENTICATED.
 * :class:`StatusInterceptor`: exceptions become precise statuses
-  (:func:`mapmatch.service.errors.status_for`), the offending field named in the details and in the
+  (:func:`service.errors.status_for`), the offending field named in the details and in the
   trailing metadata key ``mapmatch-field``; a request whose bytes do not decode gets
   INVALID_ARGUMENT (not UNKNOWN or INTERNAL, and no traceback).
 """
@@ -34,7 +34,7 @@ import grpc
 from grpc import aio
 
 from mapmatch.errors import ValidationError
-from mapmatch.service.errors import log_internal, status_for
+from service.errors import log_internal, status_for
 
 log = logging.getLogger("mapmatch.access")
 

@@ -31,15 +31,15 @@ from typing import Any
 
 import numpy as np
 
+from graph.artifact import MAGIC, load_map, save_map
+from graph.errors import GraphError
+from graph.index import EdgeIndex
+from graph.projection import point_to_lonlat
+from graph.road_graph import ARRAY_FIELDS, RoadGraph
 from mapmatch.config import DEFAULT_CONFIG, MatchConfig
 from mapmatch.errors import ValidationError
-from mapmatch.graph.artifact import MAGIC, load_map, save_map
-from mapmatch.graph.errors import GraphError
-from mapmatch.graph.index import EdgeIndex
-from mapmatch.graph.projection import point_to_lonlat
-from mapmatch.graph.road_graph import ARRAY_FIELDS, RoadGraph
-from mapmatch.service.errors import LimitError, MapLoadError, MapNotFoundError, MapPathError
 from mapmatch.types import Fix, State, Track
+from service.errors import LimitError, MapLoadError, MapNotFoundError, MapPathError
 
 __all__ = [
     "LoadLimits",
@@ -96,7 +96,7 @@ class MapEntry:
         art = self.graph.meta.get("artifact")
         if not art:
             return ""
-        from mapmatch.graph.artifact import FORMAT, FORMAT_VERSION
+        from graph.artifact import FORMAT, FORMAT_VERSION
 
         return f"{FORMAT}/{FORMAT_VERSION}"
 
@@ -388,7 +388,7 @@ def _child_main(argv: list[str]) -> int:
     memory, cpu = int(argv[2]), int(argv[3])
     resource.setrlimit(resource.RLIMIT_AS, (memory, memory))
     resource.setrlimit(resource.RLIMIT_CPU, (cpu, cpu + 5))
-    from mapmatch.graph.build import build_map
+    from graph.build import build_map
 
     try:
         save_map(build_map(Path(argv[0])), argv[1])
@@ -407,7 +407,7 @@ def warm_up(entry: MapEntry, *, batch: bool = True) -> None:
     match when the batch kernels are compiled: :func:`warm_batch`) through the matchers and
     converters requests use; raises :class:`MapLoadError` when the map cannot serve. Leaves no
     session behind."""
-    from mapmatch.service import convert
+    from service import convert
 
     g = entry.graph
     if g.n_edges == 0:

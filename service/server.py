@@ -10,7 +10,7 @@ NOT_SERVING, new calls are refused and in-flight calls get ``grace`` seconds to 
 Health (``grpc.health.v1``) is NOT_SERVING for ``""`` and ``mapmatch.v1.MapMatch`` until
 at least one map is loaded and has passed its warm-up; each loaded map also has its own
 service name, ``mapmatch.v1.MapMatch/<map id>``. Server reflection is on. Every start-up
-step is logged on ``mapmatch.service``, and so is the moment the server is SERVING.
+step is logged on ``service``, and so is the moment the server is SERVING.
 """
 
 from __future__ import annotations
@@ -38,17 +38,17 @@ from grpc_health.v1 import health_pb2, health_pb2_grpc
 from grpc_health.v1.health import aio as health_aio
 from grpc_reflection.v1alpha import reflection
 
+from graph.road_graph import RoadGraph
 from mapmatch.errors import ConfigError
-from mapmatch.graph.road_graph import RoadGraph
-from mapmatch.service.batch_workers import BatchWorkers, MapFile, TrackLimits
-from mapmatch.service.config import ServerConfig
-from mapmatch.service.errors import MapLoadError
-from mapmatch.service.gen import mapmatch_pb2 as pb
-from mapmatch.service.gen import mapmatch_pb2_grpc as pb_grpc
-from mapmatch.service.interceptors import Metrics, interceptors
-from mapmatch.service.maps import MapRegistry, is_map_file, load_map_file, warm_batch, warm_up
-from mapmatch.service.servicer import SERVICE_NAME, MapMatchServicer, OnlineQueue, load_limits
-from mapmatch.service.sessions import SessionStore
+from service.batch_workers import BatchWorkers, MapFile, TrackLimits
+from service.config import ServerConfig
+from service.errors import MapLoadError
+from service.gen import mapmatch_pb2 as pb
+from service.gen import mapmatch_pb2_grpc as pb_grpc
+from service.interceptors import Metrics, interceptors
+from service.maps import MapRegistry, is_map_file, load_map_file, warm_batch, warm_up
+from service.servicer import SERVICE_NAME, MapMatchServicer, OnlineQueue, load_limits
+from service.sessions import SessionStore
 
 log = logging.getLogger("mapmatch.service")
 

@@ -5,13 +5,13 @@ event loop (``inline_fixes``, the default): it is short, bounded work, and a hop
 thread and back cost more CPU than the fix itself saves, all under one GIL. ``FixBatch``
 slices run on the online thread(s) (``online_workers``); batch matching on a map loaded from
 a map file runs in batch worker processes (``batch_processes``,
-:mod:`mapmatch.service.batch_workers`), off this process's GIL; other batch matching and map
+:mod:`service.batch_workers`), off this process's GIL; other batch matching and map
 loads on the batch pool (``workers``), so no long work holds the loop. A vehicle's fixes never race (each
 session has a lock); a ``FixBatch`` is matched in slices of ``batch_slice`` fixes, so other
 streams' fixes are served in between. Every message's work is bounded by the configured
 limits (fixes per batch, points per track, bytes per answer), each refused with
 RESOURCE_EXHAUSTED naming the limit. Exceptions propagate to
-:class:`mapmatch.service.interceptors.StatusInterceptor`, which maps them to statuses; in the live
+:class:`service.interceptors.StatusInterceptor`, which maps them to statuses; in the live
 streams a bad fix is answered with an ``error`` for that fix and the stream goes on.
 """
 
@@ -34,8 +34,9 @@ import grpc
 from grpc import aio
 
 from mapmatch.errors import ValidationError
-from mapmatch.service import convert
-from mapmatch.service.batch_workers import (
+from mapmatch.types import State
+from service import convert
+from service.batch_workers import (
     BatchWorkers,
     MapFile,
     TrackLimits,
@@ -45,13 +46,12 @@ from mapmatch.service.batch_workers import (
     match_track,
     peek_track_request,
 )
-from mapmatch.service.config import ServerConfig
-from mapmatch.service.errors import LimitError, MapPathError, log_internal, status_for
-from mapmatch.service.gen import mapmatch_pb2 as pb
-from mapmatch.service.gen import mapmatch_pb2_grpc as pb_grpc
-from mapmatch.service.maps import LoadLimits, MapEntry, MapRegistry, resolve_map_path
-from mapmatch.service.sessions import SessionStore
-from mapmatch.types import State
+from service.config import ServerConfig
+from service.errors import LimitError, MapPathError, log_internal, status_for
+from service.gen import mapmatch_pb2 as pb
+from service.gen import mapmatch_pb2_grpc as pb_grpc
+from service.maps import LoadLimits, MapEntry, MapRegistry, resolve_map_path
+from service.sessions import SessionStore
 
 T = TypeVar("T")
 SERVICE_NAME = pb.DESCRIPTOR.services_by_name["MapMatch"].full_name
@@ -322,7 +322,7 @@ class MapMatchServicer(pb_grpc.MapMatchServicer):
     async def MatchTrack(
         self, request: pb.MatchTrackRequest | bytes, context: aio.ServicerContext
     ) -> pb.TrackResult | bytes:
-        """Registered with ``request`` as bytes (:func:`mapmatch.service.server.add_servicer`):
+        """Registered with ``request`` as bytes (:func:`service.server.add_servicer`):
         on a map with a file they go to a batch worker process as they are, and its answer
         comes back as bytes. The server reads only the map id, the track's presence and its
         point count from the wire format (:func:`peek_track_request`): no work on the event

@@ -15,7 +15,7 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
-from mapmatch.service.errors import SessionExistsError, SessionLimitError, SessionNotFoundError
+from service.errors import SessionExistsError, SessionLimitError, SessionNotFoundError
 
 __all__ = ["Session", "SessionExistsError", "SessionLimitError", "SessionNotFoundError", "SessionStore"]
 

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from mapmatch.graph.ascii import AsciiMap
+from graph.ascii import AsciiMap
 from mapmatch.types import Track
 
 

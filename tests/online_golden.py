@@ -166,7 +166,7 @@ _MAPS: dict[str, Any] = {}
 
 
 def bench_map(name: str) -> Any:
-    from mapmatch.graph.build import build_map
+    from graph.build import build_map
 
     if name not in _MAPS:
         if name == "helsinki":

@@ -6,8 +6,8 @@ import math
 
 import numpy as np
 
-from mapmatch.graph.ascii import AsciiMap
-from mapmatch.graph.projection import to_lonlat
+from graph.ascii import AsciiMap
+from graph.projection import to_lonlat
 from mapmatch.types import Fix
 
 

@@ -9,7 +9,7 @@ import networkx as nx
 import numpy as np
 import pytest
 
-from mapmatch.graph.road_graph import RoadGraph
+from graph.road_graph import RoadGraph
 
 
 def to_nx(g: RoadGraph) -> nx.MultiDiGraph:

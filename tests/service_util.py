@@ -8,13 +8,13 @@ from typing import Any
 
 import grpc
 
-from mapmatch.graph.ascii import AsciiMap, parse_ascii_map
-from mapmatch.service import convert
-from mapmatch.service.config import ServerConfig
-from mapmatch.service.gen import mapmatch_pb2 as pb
-from mapmatch.service.gen import mapmatch_pb2_grpc as pb_grpc
-from mapmatch.service.server import Server, start_server
+from graph.ascii import AsciiMap, parse_ascii_map
 from mapmatch.types import Fix
+from service import convert
+from service.config import ServerConfig
+from service.gen import mapmatch_pb2 as pb
+from service.gen import mapmatch_pb2_grpc as pb_grpc
+from service.server import Server, start_server
 
 CITY = """
     a-----------b-----------c

@@ -10,11 +10,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from mapmatch.graph.artifact import FORMAT_VERSION, MAGIC, load_map, read_manifest, save_map
-from mapmatch.graph.ascii import parse_ascii_map
-from mapmatch.graph.build import build_map
-from mapmatch.graph.errors import ArtifactError
-from mapmatch.graph.road_graph import RoadGraph
+from graph.artifact import FORMAT_VERSION, MAGIC, load_map, read_manifest, save_map
+from graph.ascii import parse_ascii_map
+from graph.build import build_map
+from graph.errors import ArtifactError
+from graph.road_graph import RoadGraph
 
 DATA = Path(__file__).parent / "data"
 ROOT = Path(__file__).resolve().parents[1]
@@ -143,7 +143,7 @@ def test_loading_imports_neither_osmnx_nor_networkx(tiny: RoadGraph, tmp_path: P
     p = tmp_path / "m.map"
     save_map(tiny, p)
     code = (
-        "import sys; from mapmatch.graph.artifact import load_map; g = load_map(sys.argv[1]); "
+        "import sys; from graph.artifact import load_map; g = load_map(sys.argv[1]); "
         "print(g.n_edges, 'osmnx' in sys.modules, 'networkx' in sys.modules)"
     )
     out = subprocess.run(
@@ -157,8 +157,8 @@ def test_map_files_from_before_way_pieces_still_load(
 ) -> None:
     """A file written without the piece arrays (as before they existed) loads with one piece
     per edge, taken from the edge attributes."""
-    import mapmatch.graph.artifact as artifact
-    from mapmatch.graph.road_graph import ARRAY_FIELDS, PIECE_FIELDS
+    import graph.artifact as artifact
+    from graph.road_graph import ARRAY_FIELDS, PIECE_FIELDS
 
     old = tuple(k for k in ARRAY_FIELDS if k not in PIECE_FIELDS)
     monkeypatch.setattr(artifact, "ARRAY_FIELDS", old)
@@ -192,7 +192,7 @@ def test_the_manifest_crs_is_checked_and_a_utm_zone_needs_no_pyproj(tiny: RoadGr
     assert load_map(other).crs == "EPSG:3035"
     utm = tmp_path / "utm.map"
     save_map(tiny, utm)
-    code = "import sys; from mapmatch.graph.artifact import load_map; g = load_map(sys.argv[1]); "
+    code = "import sys; from graph.artifact import load_map; g = load_map(sys.argv[1]); "
     code += "print(g.crs, 'pyproj' in sys.modules)"
     out = subprocess.run(
         [sys.executable, "-c", code, str(utm)], cwd=ROOT, capture_output=True, text=True, check=True

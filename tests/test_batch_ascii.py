@@ -10,11 +10,11 @@ import numpy as np
 import pytest
 from ascii_helpers import at, names, track_from_xy
 
+from graph.ascii import AsciiMap, parse_ascii_map
 from mapmatch import batch
 from mapmatch.batch import BATCH_CONFIG as DEFAULT_CONFIG
 from mapmatch.batch import BatchMatcher
 from mapmatch.config import MatchConfig
-from mapmatch.graph.ascii import AsciiMap, parse_ascii_map
 from mapmatch.route_table import Ubodt
 from mapmatch.routing import shortest_route
 from mapmatch.types import PointStatus, Track, TrackMatch
@@ -931,7 +931,7 @@ def test_a_stray_fix_followed_by_another_is_dropped_not_the_good_fixes_after_the
 
 def _with_speeds(amap: AsciiMap, kph: dict[str, float]) -> AsciiMap:
     """The map with speed limits by road (``"ab": 80``; both directions), NaN elsewhere."""
-    from mapmatch.graph.road_graph import RoadGraph
+    from graph.road_graph import RoadGraph
 
     g = amap.graph
     inv = {v: k for k, v in amap.nodes.items()}

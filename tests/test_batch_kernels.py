@@ -8,11 +8,11 @@ import itertools
 import numpy as np
 import pytest
 
+from graph.ascii import parse_ascii_map
+from graph.index import EdgeIndex
+from graph.road_graph import RESTRICTION_ONLY, RoadGraph
 from mapmatch import model
 from mapmatch.batch import BATCH_CONFIG
-from mapmatch.graph.ascii import parse_ascii_map
-from mapmatch.graph.index import EdgeIndex
-from mapmatch.graph.road_graph import RESTRICTION_ONLY, RoadGraph
 from mapmatch.gridindex import GridIndex
 
 PLAIN = BATCH_CONFIG.replace(motion_heading_sigma=0.0, spike_speed=0.0)
@@ -392,9 +392,9 @@ def test_a_map_read_from_its_file_and_one_built_in_memory_share_one_compile(tmp_
 
     import numba
 
+    from graph.artifact import load_map, save_map
     from mapmatch.batch import BatchMatcher
     from mapmatch.batch.run import CompiledRun
-    from mapmatch.graph.artifact import load_map, save_map
     from mapmatch.types import Track
 
     m = parse_ascii_map(DRAWING, scale=7)
@@ -596,8 +596,8 @@ def test_the_projection_that_skips_far_pieces_gives_project_point_s_floats() -> 
     answer's piece: the same offset, distance and position as the full walk, bit for bit, with
     or without a hint, in UTM-sized coordinates, with repeated vertices, points equally near two
     pieces (the first wins) and one-vertex edges."""
+    from graph.index import project_point_compiled, project_point_near
     from mapmatch.batch.lattice import segment_lengths
-    from mapmatch.graph.index import project_point_compiled, project_point_near
 
     rng = np.random.default_rng(11)
     counts = rng.integers(1, 200, size=40)
@@ -639,8 +639,8 @@ def test_the_projection_that_skips_far_pieces_gives_project_point_s_floats() -> 
 
 def test_the_in_place_projection_back_to_lonlat_equals_to_lonlat() -> None:
     """The answer's geometry goes back to lon/lat through pyproj's in-place call: the same
-    numbers, bit for bit, as :func:`mapmatch.graph.projection.to_lonlat`, missing values too."""
-    from mapmatch.graph.projection import rows_to_lonlat, to_lonlat
+    numbers, bit for bit, as :func:`graph.projection.to_lonlat`, missing values too."""
+    from graph.projection import rows_to_lonlat, to_lonlat
 
     rng = np.random.default_rng(6)
     xy = np.c_[rng.uniform(3e5, 7e5, 40), rng.uniform(4.4e6, 6.6e6, 40)]
@@ -866,7 +866,7 @@ def test_a_route_table_over_its_memory_budget_gets_a_shorter_bound_and_the_same_
 def test_the_route_table_size_is_estimated_from_a_sample_of_rows(tmp_path) -> None:
     import json
 
-    from mapmatch.graph.build import build_map
+    from graph.build import build_map
     from mapmatch.route_table import ESTIMATE_SAMPLE, Ubodt, ubodt_estimate
 
     # a 40 x 40 street grid, 80 m blocks, drawn as GIS centre lines: more edges than the sample

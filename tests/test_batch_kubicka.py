@@ -30,7 +30,7 @@ def _score_module(shared: Path):  # the peers' scorer, used in place (never copi
 def test_kubicka_track_matches_its_true_route(
     kubicka_dir: Path, shared_dir: Path, track: str, S: int
 ) -> None:
-    from mapmatch.graph.build import build_map
+    from graph.build import build_map
 
     score = _score_module(shared_dir)
     d = kubicka_dir / track
@@ -53,8 +53,8 @@ def test_every_piece_of_a_route_torn_by_multipath_is_connected(kubicka_dir: Path
     (its route only touches a node) stays empty and does not merge its neighbours into one."""
     import random
 
-    from mapmatch.graph.build import build_map
-    from mapmatch.graph.projection import to_lonlat, to_xy
+    from graph.build import build_map
+    from graph.projection import to_lonlat, to_xy
 
     d = kubicka_dir / "00000035"
     graph = build_map(d / "roads.geojson")

@@ -18,12 +18,12 @@ import pytest
 import shapely
 from ascii_helpers import at, names
 
+from graph.ascii import ASCII_CRS, AsciiMap, parse_ascii_map
+from graph.build import build_map
+from graph.projection import to_lonlat, to_xy
 from mapmatch.batch import BATCH_CONFIG, BatchMatcher
 from mapmatch.batch.results import route_ways
 from mapmatch.config import MatchConfig
-from mapmatch.graph.ascii import ASCII_CRS, AsciiMap, parse_ascii_map
-from mapmatch.graph.build import build_map
-from mapmatch.graph.projection import to_lonlat, to_xy
 from mapmatch.types import PointStatus, Track, TrackMatch
 
 

@@ -16,9 +16,9 @@ import numpy as np
 import pandas as pd
 import pytest
 
+from graph.artifact import save_map
+from graph.ascii import AsciiMap, parse_ascii_map
 from mapmatch.cli import EXIT_CONNECT, EXIT_OK, EXIT_PARTIAL, EXIT_USAGE, build_parser, main
-from mapmatch.graph.artifact import save_map
-from mapmatch.graph.ascii import AsciiMap, parse_ascii_map
 from mapmatch.io import write_tracks
 from mapmatch.parallel import parts_dir_for
 from mapmatch.types import Track

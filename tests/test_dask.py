@@ -7,8 +7,8 @@ from pathlib import Path
 import pandas as pd
 import pytest
 
-from mapmatch.graph.artifact import save_map
-from mapmatch.graph.ascii import parse_ascii_map
+from graph.artifact import save_map
+from graph.ascii import parse_ascii_map
 from mapmatch.io import read_results, write_tracks
 from mapmatch.parallel import run_batch
 from tests.test_match_cli import DRAWING, make_tracks

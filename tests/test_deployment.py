@@ -11,10 +11,10 @@ import re
 import socket
 from pathlib import Path
 
-from mapmatch.graph.ascii import parse_ascii_map
+from graph.ascii import parse_ascii_map
 from mapmatch.healthcheck import check, main
-from mapmatch.service.config import ServerConfig
-from mapmatch.service.server import start_server
+from service.config import ServerConfig
+from service.server import start_server
 
 ROOT = Path(__file__).resolve().parents[1]
 

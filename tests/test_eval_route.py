@@ -8,9 +8,9 @@ from pathlib import Path
 
 import pytest
 
+from graph.artifact import save_map
+from graph.ascii import parse_ascii_map
 from mapmatch.cli import main
-from mapmatch.graph.artifact import save_map
-from mapmatch.graph.ascii import parse_ascii_map
 from mapmatch.route_score import read_route_geojson, score_route
 
 GRID = """
@@ -58,7 +58,7 @@ def test_eval_route_scores_a_kubicka_track_batch_and_online(
     kubicka_dir: Path, tmp_path: Path, capsys
 ) -> None:
     """REAL GPS (Kubicka track 00000007): batch and online output against the hand-checked route."""
-    from mapmatch.graph.build import build_map
+    from graph.build import build_map
 
     track = kubicka_dir / "00000007"
     map_path = tmp_path / "k.map"

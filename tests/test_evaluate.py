@@ -6,8 +6,8 @@ import numpy as np
 import pandas as pd
 import pytest
 
+from graph.ascii import parse_ascii_map
 from mapmatch.evaluate import edge_path, evaluate, intersection_score, matched_junctions, path_nodes
-from mapmatch.graph.ascii import parse_ascii_map
 from mapmatch.route_score import path_geometry, route_mismatch
 
 # b, c and f are junctions (three neighbours); e and the ends are not

@@ -10,8 +10,8 @@ import pandas as pd
 import pytest
 import shapely
 
+from graph.ascii import parse_ascii_map
 from mapmatch.batch import BatchMatcher
-from mapmatch.graph.ascii import parse_ascii_map
 from mapmatch.io import (
     Columns,
     TrackInputError,

@@ -10,7 +10,7 @@ from pathlib import Path
 
 import pytest
 
-from mapmatch.kernel_cache import STAMP_NAME, refresh
+from graph.kernel_cache import STAMP_NAME, refresh
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -81,7 +81,7 @@ def test_a_cached_kernel_compiles_anew_when_a_kernel_it_calls_changes(tmp_path: 
             """
             import os
             from pathlib import Path
-            from mapmatch.kernel_cache import refresh
+            from graph.kernel_cache import refresh
 
             if not os.environ.get("NO_REFRESH"):
                 refresh([Path(__file__).parent], Path(os.environ["NUMBA_CACHE_DIR"]) / "kpkg.stamp")

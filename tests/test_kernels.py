@@ -15,10 +15,11 @@ import pytest
 from conftest import helsinki_pbf
 from test_sim_demo import GRID  # the demo tests' map
 
+import graph.jit as jit
 import mapmatch.kernels as kernels
-from mapmatch.graph.ascii import parse_ascii_map
-from mapmatch.graph.build import build_map
-from mapmatch.graph.road_graph import RoadGraph
+from graph.ascii import parse_ascii_map
+from graph.build import build_map
+from graph.road_graph import RoadGraph
 from mapmatch.sim.demo import demo_drive
 from mapmatch.sim.kalman import filter_setup, new_carry, new_outputs, no_map_aid, run_steps
 from mapmatch.sim.profile import _limit_accel
@@ -36,14 +37,14 @@ def _same_graph(a: RoadGraph, b: RoadGraph) -> None:
 
 
 def test_small_inputs_run_the_python_function() -> None:
-    assert kernels.for_size(_limit_accel, 10) is _limit_accel.py_func
-    assert kernels.for_size(_limit_accel, kernels.PYTHON_MAX_ITEMS + 1) is _limit_accel
+    assert jit.for_size(_limit_accel, 10) is _limit_accel.py_func
+    assert jit.for_size(_limit_accel, jit.PYTHON_MAX_ITEMS + 1) is _limit_accel
 
 
 @pytest.mark.slow
 def test_helsinki_builds_the_same_with_compiled_kernels(monkeypatch: pytest.MonkeyPatch) -> None:
     python = build_map(helsinki_pbf())
-    monkeypatch.setattr(kernels, "PYTHON_MAX_ITEMS", -1)
+    monkeypatch.setattr(jit, "PYTHON_MAX_ITEMS", -1)
     compiled = build_map(helsinki_pbf())
     _same_graph(python, compiled)
     assert python.meta["report"]["strong_components"] == compiled.meta["report"]["strong_components"]
@@ -52,7 +53,7 @@ def test_helsinki_builds_the_same_with_compiled_kernels(monkeypatch: pytest.Monk
 def test_drive_is_the_same_with_the_compiled_speed_profile(monkeypatch: pytest.MonkeyPatch) -> None:
     g = parse_ascii_map(GRID, scale=25.0).graph
     python = demo_drive(g, length_km=1.5, outages="40:15", seed=5)
-    monkeypatch.setattr(kernels, "PYTHON_MAX_ITEMS", -1)
+    monkeypatch.setattr(jit, "PYTHON_MAX_ITEMS", -1)
     compiled = demo_drive(g, length_km=1.5, outages="40:15", seed=5)
     assert python.fixes.equals(compiled.fixes)
 
@@ -86,7 +87,7 @@ def test_background_compile_is_loaded_from_the_cache(tmp_path: Path) -> None:
         import sys
         import mapmatch.kernels as k
         from mapmatch.sim import kalman
-        from mapmatch.graph.ascii import parse_ascii_map
+        from graph.ascii import parse_ascii_map
         from mapmatch.sim.demo import demo_drive
 
         with k.compiling_in_background("simulator") as background:

@@ -9,15 +9,15 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from mapmatch.graph.ascii import parse_ascii_map
+from graph.ascii import parse_ascii_map
 from mapmatch.measurement import DEFAULT_MEASUREMENT, cross_track_sigma, road_width
 from mapmatch.online import OnlineMatcher
-from mapmatch.service import convert
 from mapmatch.sim.closed_loop import closed_loop_drive, in_process
 from mapmatch.sim.drive import position_error, simulate_drive
 from mapmatch.sim.routes import route_from_edges
 from mapmatch.sim.sensors import DEFAULT_SENSORS
 from mapmatch.types import MapAidedMeasurement, SnapResult, State
+from service import convert
 
 STRAIGHT = "a" + "-" * 100 + "b"  # 2.5 km at 25 m a character
 # a drifting gyro: dead reckoning alone goes well off the road in a minute and a half

@@ -7,9 +7,9 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
+from graph.artifact import save_map
+from graph.ascii import parse_ascii_map
 from mapmatch.cli import main
-from mapmatch.graph.artifact import save_map
-from mapmatch.graph.ascii import parse_ascii_map
 from mapmatch.measurement import AIDED_COLUMNS
 
 GRID = """
@@ -22,8 +22,8 @@ i-------j-------k-------l
 
 
 def test_map_aided_simulation_in_process_and_on_a_server_and_its_evaluation(tmp_path: Path, capsys) -> None:  # type: ignore[no-untyped-def]
-    from mapmatch.service.config import ServerConfig
-    from mapmatch.service.server import start_server
+    from service.config import ServerConfig
+    from service.server import start_server
 
     grid = parse_ascii_map(GRID, scale=25.0)
     mp = str(tmp_path / "grid.map")

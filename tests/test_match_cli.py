@@ -9,9 +9,9 @@ import numpy as np
 import pandas as pd
 import pytest
 
+from graph.artifact import save_map
+from graph.ascii import AsciiMap, parse_ascii_map
 from mapmatch.cli import main
-from mapmatch.graph.artifact import save_map
-from mapmatch.graph.ascii import AsciiMap, parse_ascii_map
 from mapmatch.io import read_results, write_tracks
 from mapmatch.parallel import parts_dir_for, run_batch
 from mapmatch.types import Track
@@ -247,7 +247,7 @@ def test_a_route_table_over_its_budget_is_built_shorter_with_the_same_results(
 def test_worker_processes_map_one_route_table_that_the_run_builds(
     setup: tuple[Path, Path, AsciiMap], tmp_path: Path
 ) -> None:
-    from mapmatch.graph.artifact import load_map
+    from graph.artifact import load_map
     from mapmatch.route_table import Ubodt
 
     map_path, tracks_path, _ = setup

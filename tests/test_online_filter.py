@@ -10,8 +10,8 @@ import numpy as np
 import pytest
 from service_util import city
 
+from graph.rules import legal_moves
 from mapmatch.config import DEFAULT_CONFIG
-from mapmatch.graph.rules import legal_moves
 from mapmatch.online.filter import best, filter_step, keep_best, normalise
 from mapmatch.online.road import RoadModel
 from mapmatch.online.state import Hypothesis

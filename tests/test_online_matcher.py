@@ -9,11 +9,11 @@ import math
 import numpy as np
 import pytest
 
+from graph.ascii import AsciiMap, parse_ascii_map
+from graph.index import project_to_edge
+from graph.projection import to_lonlat
 from mapmatch.config import DEFAULT_CONFIG
 from mapmatch.errors import ValidationError
-from mapmatch.graph.ascii import AsciiMap, parse_ascii_map
-from mapmatch.graph.index import project_to_edge
-from mapmatch.graph.projection import to_lonlat
 from mapmatch.online import OnlineMatcher, SessionState
 from mapmatch.types import Fix, SnapResult, State, Turn
 from tests.online_helpers import drive
@@ -342,7 +342,7 @@ def test_dead_reckoning_turn_re_anchors_the_distance_carried() -> None:
 
 
 def to_xy_one(m: AsciiMap, f: Fix) -> tuple[float, float]:
-    from mapmatch.graph.projection import point_to_xy
+    from graph.projection import point_to_xy
 
     return point_to_xy(m.graph.crs, f.lon, f.lat)
 
@@ -404,7 +404,7 @@ def test_state_round_trips_and_moves_between_matchers() -> None:
 def test_projection_entries_agree_with_shapely() -> None:
     import shapely
 
-    from mapmatch.graph.index import project_point_compiled, project_points
+    from graph.index import project_point_compiled, project_points
 
     m: AsciiMap = parse_ascii_map(CROSS, scale=10)
     g = m.graph

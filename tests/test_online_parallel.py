@@ -12,11 +12,11 @@ import math
 import numpy as np
 import pytest
 
+from graph.ascii import ASCII_CRS, AsciiMap, parse_ascii_map
+from graph.neighbours import edge_neighbours
+from graph.projection import to_lonlat
+from graph.road_graph import RoadGraph
 from mapmatch.config import DEFAULT_CONFIG, MatchConfig
-from mapmatch.graph.ascii import ASCII_CRS, AsciiMap, parse_ascii_map
-from mapmatch.graph.neighbours import edge_neighbours
-from mapmatch.graph.projection import to_lonlat
-from mapmatch.graph.road_graph import RoadGraph
 from mapmatch.online import OnlineMatcher
 from mapmatch.types import Fix, SnapResult
 from tests.online_helpers import drive
@@ -124,7 +124,7 @@ def test_frontage_road_with_gps_biased_towards_the_main_road(cfg: MatchConfig) -
 
 
 def to_xy(amap: AsciiMap, r: SnapResult) -> tuple[float, float]:
-    from mapmatch.graph.projection import point_to_xy
+    from graph.projection import point_to_xy
 
     return point_to_xy(amap.graph.crs, r.raw_lon, r.raw_lat)
 
@@ -180,14 +180,14 @@ def test_outage_ending_beside_a_parallel_road(cfg: MatchConfig) -> None:
 
 
 def _offset(amap: AsciiMap, f: Fix, dx: float, dy: float) -> tuple[list[float], list[float]]:
-    from mapmatch.graph.projection import point_to_xy
+    from graph.projection import point_to_xy
 
     x, y = point_to_xy(amap.graph.crs, f.lon, f.lat)
     return [x + dx], [y + dy]
 
 
 def _biased(g: RoadGraph, fixes: list[Fix], dy: float) -> list[Fix]:
-    from mapmatch.graph.projection import point_to_xy
+    from graph.projection import point_to_xy
 
     out = []
     for f in fixes:

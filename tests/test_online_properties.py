@@ -8,10 +8,10 @@ import numpy as np
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
+from graph.ascii import parse_ascii_map
+from graph.index import project_to_edge
+from graph.projection import point_to_xy, to_lonlat
 from mapmatch.errors import ValidationError
-from mapmatch.graph.ascii import parse_ascii_map
-from mapmatch.graph.index import project_to_edge
-from mapmatch.graph.projection import point_to_xy, to_lonlat
 from mapmatch.online import OnlineMatcher
 from mapmatch.types import Fix
 

@@ -10,8 +10,8 @@ from typing import TYPE_CHECKING
 
 import pytest
 
-from mapmatch.graph.ascii import AsciiMap, parse_ascii_map
-from mapmatch.graph.projection import to_lonlat
+from graph.ascii import AsciiMap, parse_ascii_map
+from graph.projection import to_lonlat
 from mapmatch.online import OnlineMatcher
 from mapmatch.types import Fix, SnapResult
 from tests.online_helpers import drive
@@ -44,7 +44,7 @@ def _shifted(m: AsciiMap, fixes: list[Fix], dx: float, dy: float, **kw: float) -
 
 
 def _xy(m: AsciiMap, f: Fix) -> tuple[float, float]:
-    from mapmatch.graph.projection import point_to_xy
+    from graph.projection import point_to_xy
 
     return point_to_xy(m.graph.crs, f.lon, f.lat)
 
@@ -205,7 +205,7 @@ def test_fix_beside_a_looping_ramp_is_placed_on_the_part_reached(tmp_path: Path)
     real drives a 10 Hz position once jumped 326 m ahead along a looping edge)."""
     import json
 
-    from mapmatch.graph.build import build_map
+    from graph.build import build_map
 
     #   a---------------------b--------+      (the ramp: east, south, west, north, west)
     #                  c------------+  |

@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from mapmatch.graph.ascii import parse_ascii_map
+from graph.ascii import parse_ascii_map
 from mapmatch.plots import LEGEND, draw_html, draw_png, plot_data
 
 DRAWING = """

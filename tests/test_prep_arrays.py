@@ -12,9 +12,9 @@ import pytest
 from conftest import helsinki_pbf
 from prep_checks import assert_same_map
 
-from mapmatch.graph.build import build_map
-from mapmatch.graph.road_graph import RoadGraph
-from mapmatch.graph.simplify import from_osmnx, to_osmnx
+from graph.build import build_map
+from graph.road_graph import RoadGraph
+from graph.simplify import from_osmnx, to_osmnx
 
 DATA = Path(__file__).parent / "data"
 

@@ -13,9 +13,9 @@ import pyogrio
 import pytest
 from conftest import helsinki_pbf
 
+from graph.artifact import load_map
+from graph.export import ROAD_COLUMNS
 from mapmatch.cli import build_parser, main
-from mapmatch.graph.artifact import load_map
-from mapmatch.graph.export import ROAD_COLUMNS
 
 ROOT = Path(__file__).resolve().parents[1]
 DATA = Path(__file__).parent / "data"

@@ -1,4 +1,4 @@
-"""``mapmatch export`` / ``mapmatch.graph.export``: every format round-trips through ``prep`` into the same
+"""``mapmatch export`` / ``graph.export``: every format round-trips through ``prep`` into the same
 map (each two-way road once, with its one-way flag; way pieces kept), and ``mapmatch info``."""
 
 from __future__ import annotations
@@ -10,11 +10,11 @@ import pyogrio
 import pytest
 from prep_checks import assert_same_map
 
+from graph.artifact import load_map, save_map
+from graph.build import build_map
+from graph.export import ROAD_COLUMNS, export_map, roads_frame
+from graph.road_graph import RoadGraph
 from mapmatch.cli import main
-from mapmatch.graph.artifact import load_map, save_map
-from mapmatch.graph.build import build_map
-from mapmatch.graph.export import ROAD_COLUMNS, export_map, roads_frame
-from mapmatch.graph.road_graph import RoadGraph
 
 DATA = Path(__file__).parent / "data"
 FORMATS = (".gpkg", ".geojson", ".parquet", ".fgb")
@@ -112,7 +112,7 @@ def test_export_and_info_commands(
     assert not (tmp_path / "x.txt").exists()
     assert main(["info", str(tmp_path / "missing.map")]) == 2
     # a corrupt array: info names it and fails
-    from mapmatch.graph.artifact import read_manifest
+    from graph.artifact import read_manifest
 
     raw = bytearray(m.read_bytes())
     hlen = int(np.frombuffer(bytes(raw[8:16]), dtype="<u8")[0])

@@ -13,10 +13,10 @@ import pytest
 import shapely
 from prep_checks import check_map, to_nx
 
-from mapmatch.graph.build import build_map
-from mapmatch.graph.errors import InputError
-from mapmatch.graph.gis import BOTH, FORWARD, REVERSE, GisOptions, OnewayConvention, lines_to_graph
-from mapmatch.graph.road_graph import RoadGraph
+from graph.build import build_map
+from graph.errors import InputError
+from graph.gis import BOTH, FORWARD, REVERSE, GisOptions, OnewayConvention, lines_to_graph
+from graph.road_graph import RoadGraph
 
 DATA = Path(__file__).parent / "data"
 FT_TF = DATA / "roads_ft_tf.geojson"

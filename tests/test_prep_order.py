@@ -1,4 +1,4 @@
-"""The prepared map's edges in spatial order (:mod:`mapmatch.graph.order`): a Hilbert curve
+"""The prepared map's edges in spatial order (:mod:`graph.order`): a Hilbert curve
 through the roads, both directions of a road side by side, the same map as the source's order."""
 
 from __future__ import annotations
@@ -7,9 +7,9 @@ import numpy as np
 import pytest
 from conftest import helsinki_pbf
 
-from mapmatch.graph.build import build_map
-from mapmatch.graph.order import hilbert_key, spatial_edge_order, take_edges
-from mapmatch.graph.road_graph import Labels, Pieces, RoadGraph
+from graph.build import build_map
+from graph.order import hilbert_key, spatial_edge_order, take_edges
+from graph.road_graph import Labels, Pieces, RoadGraph
 
 
 def test_the_hilbert_curve_visits_every_cell_once_stepping_to_a_neighbour() -> None:

@@ -11,10 +11,10 @@ import pytest
 from conftest import helsinki_pbf
 from prep_checks import assert_same_map, check_map
 
-from mapmatch.graph.build import build_map
-from mapmatch.graph.errors import InputError
-from mapmatch.graph.osm import TagFilter, is_oneway, network_filter, read_osm
-from mapmatch.graph.road_graph import RESTRICTION_NO, RESTRICTION_ONLY, RoadGraph
+from graph.build import build_map
+from graph.errors import InputError
+from graph.osm import TagFilter, is_oneway, network_filter, read_osm
+from graph.road_graph import RESTRICTION_NO, RESTRICTION_ONLY, RoadGraph
 
 DATA = Path(__file__).parent / "data"
 TINY = DATA / "prep_tiny.osm"
@@ -110,7 +110,7 @@ def _real_ids(raw: nx.MultiDiGraph) -> list[int]:
 def test_filters_are_osmnx_own() -> None:
     from osmnx import _overpass
 
-    from mapmatch.graph.osm import _DRIVE_FILTERS
+    from graph.osm import _DRIVE_FILTERS
 
     for kind, text in _DRIVE_FILTERS.items():
         assert text == _overpass._get_network_filter(kind), kind

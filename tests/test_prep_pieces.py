@@ -15,11 +15,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from graph.artifact import load_map, save_map
+from graph.build import build_map
+from graph.projection import to_lonlat
+from graph.road_graph import RoadGraph
 from mapmatch.batch import BatchMatcher, point_ways, route_ways
-from mapmatch.graph.artifact import load_map, save_map
-from mapmatch.graph.build import build_map
-from mapmatch.graph.projection import to_lonlat
-from mapmatch.graph.road_graph import RoadGraph
 from mapmatch.io import points_frame, results_table
 from mapmatch.online import OnlineMatcher
 from mapmatch.types import Fix, Track
@@ -250,7 +250,7 @@ def test_kubicka_way_ids_name_the_feature_under_the_point(kubicka_dir: Path) -> 
     import pandas as pd
     import shapely
 
-    from mapmatch.graph.projection import to_xy
+    from graph.projection import to_xy
 
     d = kubicka_dir / "00000014"
     g = build_map(d / "roads.geojson")

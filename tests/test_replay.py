@@ -9,10 +9,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from graph.artifact import save_map
+from graph.ascii import parse_ascii_map
 from mapmatch.cli import main
 from mapmatch.fixes import RESULT_COLUMNS, read_fixes_csv
-from mapmatch.graph.artifact import save_map
-from mapmatch.graph.ascii import parse_ascii_map
 from tests.online_helpers import drive
 
 CROSS = """
@@ -111,7 +111,7 @@ def test_read_fixes_csv_optional_columns_and_iso_times(tmp_path: Path) -> None:
 
 @pytest.mark.slow
 def test_replay_on_a_real_map(tmp_path: Path, kubicka_dir: Path) -> None:
-    from mapmatch.graph.build import build_map
+    from graph.build import build_map
     from mapmatch.sim.drive import simulate_drive, write_fixes_csv
     from mapmatch.sim.routes import random_route
 

@@ -5,10 +5,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from mapmatch.graph.ascii import parse_ascii_map
-from mapmatch.graph.errors import GraphError, InputError
-from mapmatch.graph.index import EdgeIndex, project_to_edge
-from mapmatch.graph.road_graph import RESTRICTION_NO, RoadGraph
+from graph.ascii import parse_ascii_map
+from graph.errors import GraphError, InputError
+from graph.index import EdgeIndex, project_to_edge
+from graph.road_graph import RESTRICTION_NO, RoadGraph
 
 CROSS = """
     a

@@ -14,10 +14,10 @@ from grpc_reflection.v1alpha import reflection_pb2, reflection_pb2_grpc
 from online_helpers import drive
 from service_util import city, local_config, requests, running, stub
 
-from mapmatch.graph.artifact import save_map
-from mapmatch.service import convert
-from mapmatch.service.gen import mapmatch_pb2 as pb
+from graph.artifact import save_map
 from mapmatch.types import Candidate, Correction, Fix, SnapResult, State, Turn
+from service import convert
+from service.gen import mapmatch_pb2 as pb
 
 AMAP = city()
 
@@ -273,7 +273,7 @@ def test_health_not_serving_until_a_map_is_loaded_and_warmed(tmp_path):
         for svc in ("", "mapmatch.v1.MapMatch"):
             st = health.Check(health_pb2.HealthCheckRequest(service=svc), timeout=5).status
             assert st == health_pb2.HealthCheckResponse.NOT_SERVING
-        from mapmatch.service.gen import mapmatch_pb2_grpc as pb_grpc
+        from service.gen import mapmatch_pb2_grpc as pb_grpc
 
         pb_grpc.MapMatchStub(ch).LoadMap(pb.LoadMapRequest(map_id="city", path="city.map"), timeout=60)
         st = health.Check(health_pb2.HealthCheckRequest(service="mapmatch.v1.MapMatch"), timeout=5).status

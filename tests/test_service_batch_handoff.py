@@ -16,11 +16,11 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from service_util import city, local_config, looped_track, running, stub
 
+from graph.artifact import save_map
 from mapmatch.errors import ConfigError
-from mapmatch.graph.artifact import save_map
-from mapmatch.service.batch_workers import PEEK_FIELDS, peek_track_request
-from mapmatch.service.config import add_arguments, config_from
-from mapmatch.service.gen import mapmatch_pb2 as pb
+from service.batch_workers import PEEK_FIELDS, peek_track_request
+from service.config import add_arguments, config_from
+from service.gen import mapmatch_pb2 as pb
 
 AMAP = city()
 

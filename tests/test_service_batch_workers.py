@@ -18,8 +18,8 @@ import pytest
 from online_helpers import drive
 from service_util import city, local_config, looped_track, requests, running, stub
 
-from mapmatch.graph.artifact import save_map
-from mapmatch.service.gen import mapmatch_pb2 as pb
+from graph.artifact import save_map
+from service.gen import mapmatch_pb2 as pb
 
 AMAP = city()
 OTHER = city(scale=12.0)

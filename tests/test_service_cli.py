@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import ast
 import filecmp
 import os
 import queue
@@ -18,28 +19,59 @@ from grpc_health.v1 import health_pb2, health_pb2_grpc
 from online_helpers import drive
 from service_util import city, local_config, requests, running, stub
 
+from graph.artifact import save_map
 from mapmatch.cli import main
 from mapmatch.errors import ConfigError
-from mapmatch.graph.artifact import save_map
-from mapmatch.service import gen_proto
-from mapmatch.service.config import ServerConfig, add_arguments, config_from
-from mapmatch.service.gen import mapmatch_pb2 as pb
-from mapmatch.service.server import start_server
+from service import gen_proto
+from service.config import ServerConfig, add_arguments, config_from
+from service.gen import mapmatch_pb2 as pb
+from service.server import start_server
 
 ROOT = Path(__file__).resolve().parents[1]
 AMAP = city()
 
 
 # ---------------------------------------------------------------------------------- stubs
+def _serialized_descriptor(pb2: Path) -> bytes:
+    """The serialized ``FileDescriptorProto`` a ``*_pb2.py`` registers: what the messages are."""
+    for node in ast.walk(ast.parse(pb2.read_text())):
+        if isinstance(node, ast.Call) and getattr(node.func, "attr", "") == "AddSerializedFile":
+            value = ast.literal_eval(node.args[0])
+            assert isinstance(value, bytes)
+            return value
+    raise AssertionError(f"{pb2} registers no descriptor")
+
+
+def _definitions(module: Path) -> set[str]:
+    """The classes, functions and methods a module defines, and each method's arguments."""
+    out: set[str] = set()
+    for node in ast.parse(module.read_text()).body:
+        if isinstance(node, ast.FunctionDef):
+            out.add(f"{node.name}({', '.join(a.arg for a in node.args.args)})")
+        elif isinstance(node, ast.ClassDef):
+            out.add(node.name)
+            for item in node.body:
+                if isinstance(item, ast.FunctionDef):
+                    out.add(f"{node.name}.{item.name}({', '.join(a.arg for a in item.args.args)})")
+    return out
+
+
 def test_committed_stubs_are_current(tmp_path):
+    """The committed stubs define what ``proto/`` says, whichever grpcio-tools made them (the
+    generator's version string and layout may differ; the descriptor and the API may not)."""
     made = gen_proto.generate(tmp_path)
-    assert any(p.name == "mapmatch_pb2_grpc.py" for p in made)
+    names = {p.name for p in made}
+    assert {"mapmatch_pb2.py", "mapmatch_pb2.pyi", "mapmatch_pb2_grpc.py"} <= names
+    stale = "stale: run `python -m service.gen_proto`"
     for rel in made:
-        committed = gen_proto.GEN_DIR / rel
-        assert committed.is_file(), f"{rel} missing: run `python -m mapmatch.service.gen_proto`"
-        assert committed.read_text() == (tmp_path / rel).read_text(), (
-            f"{rel} stale: run `python -m mapmatch.service.gen_proto`"
-        )
+        assert (gen_proto.GEN_DIR / rel).is_file(), f"{rel} missing: run `python -m service.gen_proto`"
+    for name in names:
+        committed, fresh = gen_proto.GEN_DIR / name, tmp_path / name
+        if name.endswith("_pb2.py"):
+            assert _serialized_descriptor(committed) == _serialized_descriptor(fresh), f"{name} {stale}"
+        elif name.endswith((".pyi", "_grpc.py")):
+            assert _definitions(committed) == _definitions(fresh), f"{name} {stale}"
+    assert _definitions(gen_proto.GEN_DIR / "mapmatch_pb2_grpc.py"), "no stubs parsed"
 
 
 # ---------------------------------------------------------------------------------- config

@@ -12,7 +12,7 @@ from hypothesis import strategies as st
 from online_helpers import drive
 from service_util import city, local_config, requests, running, stub
 
-from mapmatch.service.gen import mapmatch_pb2 as pb
+from service.gen import mapmatch_pb2 as pb
 
 AMAP = city()
 # the statuses README documents for the MapMatch methods

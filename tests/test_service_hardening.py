@@ -21,13 +21,13 @@ from grpc_health.v1 import health_pb2, health_pb2_grpc
 from online_helpers import drive
 from service_util import city, local_config, looped_track, requests, running, stub
 
+from graph.artifact import MAGIC, load_map, save_map
+from graph.errors import ArtifactError
 from mapmatch.cli import main
 from mapmatch.errors import ConfigError
-from mapmatch.graph.artifact import MAGIC, load_map, save_map
-from mapmatch.graph.errors import ArtifactError
-from mapmatch.service.config import add_arguments, config_from, read_config_file
-from mapmatch.service.gen import mapmatch_pb2 as pb
-from mapmatch.service.server import create_server, start_server
+from service.config import add_arguments, config_from, read_config_file
+from service.gen import mapmatch_pb2 as pb
+from service.server import create_server, start_server
 
 ROOT = Path(__file__).resolve().parents[1]
 DATA = Path(__file__).parent / "data"
@@ -135,7 +135,7 @@ def _empty_map(path: Path) -> None:
     """A map file with nodes but no roads (it loads; its warm-up fails)."""
     lone = city()
     g = lone.graph
-    from mapmatch.graph.road_graph import RoadGraph
+    from graph.road_graph import RoadGraph
 
     empty = RoadGraph(
         crs=g.crs,

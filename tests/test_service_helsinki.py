@@ -9,15 +9,15 @@ import pytest
 from conftest import helsinki_pbf
 from service_util import local_config, running, stub
 
-from mapmatch.graph.artifact import save_map
-from mapmatch.graph.projection import to_lonlat
-from mapmatch.graph.road_graph import RESTRICTION_NO, RESTRICTION_ONLY
-from mapmatch.service.gen import mapmatch_pb2 as pb
+from graph.artifact import save_map
+from graph.projection import to_lonlat
+from graph.road_graph import RESTRICTION_NO, RESTRICTION_ONLY
+from service.gen import mapmatch_pb2 as pb
 
 
 @pytest.fixture(scope="module")
 def helsinki(tmp_path_factory):
-    from mapmatch.graph.build import build_map
+    from graph.build import build_map
 
     g = build_map(helsinki_pbf())
     path = tmp_path_factory.mktemp("hel") / "helsinki.map"

@@ -17,9 +17,9 @@ from online_helpers import drive
 from service_util import city, local_config, running
 
 from mapmatch.errors import ConfigError
-from mapmatch.service.client import MapMatchClient
-from mapmatch.service.gen import mapmatch_pb2 as pb
-from mapmatch.service.gen import mapmatch_pb2_grpc as pb_grpc
+from service.client import MapMatchClient
+from service.gen import mapmatch_pb2 as pb
+from service.gen import mapmatch_pb2_grpc as pb_grpc
 
 AMAP = city()
 
@@ -88,7 +88,7 @@ def pki(tmp_path_factory) -> dict[str, Path]:
 
 
 def _fix_req() -> pb.FixRequest:
-    from mapmatch.service import convert
+    from service import convert
 
     return pb.FixRequest(vehicle_id="v", fix=convert.fix_to_proto(drive(AMAP, "ab")[0]))
 

@@ -7,7 +7,7 @@ import time
 
 import pytest
 
-from mapmatch.service.sessions import (
+from service.sessions import (
     SessionExistsError,
     SessionLimitError,
     SessionNotFoundError,

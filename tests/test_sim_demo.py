@@ -9,7 +9,7 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from mapmatch.graph.ascii import parse_ascii_map
+from graph.ascii import parse_ascii_map
 from mapmatch.sim.demo import demo_drive, evaluate_and_draw, prepare_helsinki
 from mapmatch.types import Fix, SnapResult, State
 

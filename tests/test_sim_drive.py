@@ -9,10 +9,10 @@ import numpy as np
 import pandas as pd
 import pytest
 
+from graph.artifact import save_map
+from graph.ascii import parse_ascii_map
 from mapmatch.cli import main
 from mapmatch.fixes import read_fixes_csv, write_results_csv
-from mapmatch.graph.artifact import save_map
-from mapmatch.graph.ascii import parse_ascii_map
 from mapmatch.sim.drive import FIX_COLUMNS, position_error, read_route, simulate_drive, write_truth
 from mapmatch.sim.routes import random_route
 from mapmatch.types import SnapResult, State
@@ -146,8 +146,8 @@ def test_command_errors_are_one_line(tmp_path: Path, capsys) -> None:  # type: i
 
 
 def test_simulate_replays_to_a_running_server(tmp_path: Path, grid, capsys) -> None:  # type: ignore[no-untyped-def]
-    from mapmatch.service.config import ServerConfig
-    from mapmatch.service.server import start_server
+    from service.config import ServerConfig
+    from service.server import start_server
 
     save_map(grid.graph, tmp_path / "grid.map")
     server, port = start_server(

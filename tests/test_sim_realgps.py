@@ -9,11 +9,11 @@ import numpy as np
 import pandas as pd
 import pytest
 
+from graph.ascii import parse_ascii_map
+from graph.build import build_map
+from graph.projection import to_lonlat
 from mapmatch.errors import ValidationError
 from mapmatch.evaluate import evaluate
-from mapmatch.graph.ascii import parse_ascii_map
-from mapmatch.graph.build import build_map
-from mapmatch.graph.projection import to_lonlat
 from mapmatch.online import OnlineMatcher
 from mapmatch.sim.drive import position_error, write_fixes_csv
 from mapmatch.sim.realgps import RealGpsConfig, _route_heading, isotonic, real_drive

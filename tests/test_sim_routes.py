@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from mapmatch.graph.ascii import parse_ascii_map
+from graph.ascii import parse_ascii_map
 from mapmatch.sim.profile import drive_profile
 from mapmatch.sim.routes import (
     RouteError,
@@ -111,7 +111,7 @@ def test_speed_profile_slows_at_turns_and_stops_at_ends(grid) -> None:  # type: 
 def test_foreign_truth_geometry_becomes_a_legal_route(kubicka_dir) -> None:  # type: ignore[no-untyped-def]
     import json
 
-    from mapmatch.graph.build import build_map
+    from graph.build import build_map
     from mapmatch.sim.drive import read_route
 
     track = kubicka_dir / "00000000"

@@ -1,4 +1,4 @@
-"""The wheel: one top-level package (`mapmatch`), the .proto inside, and `mapmatch.__version__`."""
+"""The wheel: the three packages as their folders are named, the .proto as data, and `mapmatch.__version__`."""
 
 from __future__ import annotations
 
@@ -30,20 +30,22 @@ def wheel(tmp_path_factory: pytest.TempPathFactory) -> Path:
     return whl
 
 
-def test_wheel_has_one_top_level_package_and_the_proto(wheel: Path) -> None:
+def test_wheel_has_the_three_packages_and_the_proto(wheel: Path) -> None:
     names = zipfile.ZipFile(wheel).namelist()
     tops = {n.split("/", 1)[0] for n in names}
-    assert {t for t in tops if not t.endswith(".dist-info")} == {"mapmatch"}, tops
-    assert not any(n.startswith(("graph/", "service/")) for n in names)
+    assert {t for t in tops if not t.endswith((".dist-info", ".data"))} == {"graph", "mapmatch", "service"}, tops
     for need in (
-        "mapmatch/graph/artifact.py",
-        "mapmatch/service/server.py",
-        "mapmatch/service/gen/mapmatch_pb2.py",
-        "mapmatch/service/gen/mapmatch_pb2_grpc.py",
-        "mapmatch/proto/mapmatch/v1/mapmatch.proto",
+        "graph/artifact.py",
+        "graph/py.typed",
+        "service/server.py",
+        "service/gen/mapmatch_pb2.py",
+        "service/gen/mapmatch_pb2_grpc.py",
+        "mapmatch/cli.py",
         "mapmatch/py.typed",
     ):
         assert need in names, need
+    assert any(n.endswith(".data/data/share/mapmatch/proto/mapmatch/v1/mapmatch.proto") for n in names)
+    assert not any(n.startswith(("mapmatch/graph/", "mapmatch/service/")) for n in names)
     assert not any("/gen/mapmatch/" in n for n in names), "stubs in a package named mapmatch"
     entry = next(n for n in names if n.endswith("entry_points.txt"))
     assert "mapmatch = mapmatch.cli:main" in zipfile.ZipFile(wheel).read(entry).decode()
@@ -53,8 +55,8 @@ def test_installed_wheel_imports_and_has_a_version(wheel: Path, tmp_path: Path) 
     site = tmp_path / "site"
     zipfile.ZipFile(wheel).extractall(site)  # a pure-Python wheel installs by unpacking
     code = (
-        "import importlib.util, mapmatch, mapmatch.graph.artifact, mapmatch.service.gen.mapmatch_pb2 as pb;"
-        "print(mapmatch.__version__); print(mapmatch.__file__); print(mapmatch.graph.artifact.__file__);"
+        "import importlib.util, mapmatch, graph.artifact, service.gen.mapmatch_pb2 as pb;"
+        "print(mapmatch.__version__); print(mapmatch.__file__); print(graph.artifact.__file__);"
         "print(pb.DESCRIPTOR.name); print(mapmatch.load_map.__module__)"
     )
     env = dict(os.environ, PYTHONPATH=str(site))
@@ -63,5 +65,5 @@ def test_installed_wheel_imports_and_has_a_version(wheel: Path, tmp_path: Path) 
     ).stdout.split()
     version = wheel.name.split("-")[1]
     assert out[0] == version
-    assert out[1].startswith(str(site)) and out[2].startswith(str(site / "mapmatch" / "graph"))
-    assert out[3] == "mapmatch/v1/mapmatch.proto" and out[4] == "mapmatch.graph.artifact"
+    assert out[1].startswith(str(site)) and out[2].startswith(str(site / "graph"))
+    assert out[3] == "mapmatch/v1/mapmatch.proto" and out[4] == "graph.artifact"

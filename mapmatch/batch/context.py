@@ -11,8 +11,10 @@ from __future__ import annotations
 
 from typing import Any
 
-from numba import njit, types
+from numba import types
 from numba.experimental import structref
+
+from graph.jit import njit
 
 CONTEXT_FIELDS = ("q", "r", "p", "geom", "roads", "router", "grid", "gsc", "ar")
 """The fields of a :class:`Context`: the query, rule and kernel parameters

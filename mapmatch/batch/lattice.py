@@ -10,8 +10,8 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from numba import njit
 
+from graph.jit import njit
 from mapmatch.arena import full_b1, full_f8, full_i8, take_b1, take_f8, take_i8, take_xy
 from mapmatch.batch.arrays import CandidateArrays, KernelParams, Lattice, TrackPoints
 from mapmatch.model import emission_logp_one

@@ -14,9 +14,9 @@ import math
 from typing import NamedTuple
 
 import numpy as np
-from numba import njit
 from numpy.typing import NDArray
 
+from graph.jit import njit
 from mapmatch.arena import UNCOUNTED, int64
 from mapmatch.batch.step import _joinable, _step_scale, _try_step, step_inputs
 from mapmatch.route_table import ubodt_lookup

@@ -21,8 +21,12 @@ from numpy.typing import ArrayLike, NDArray
 from pyproj import Transformer
 from pyproj.enums import TransformDirection
 
+from graph.index import Candidates, EdgeIndex
+from graph.jit import read_only
+from graph.projection import to_xy
+from graph.road_graph import RoadGraph
 from mapmatch import model
-from mapmatch.arena import Arena, read_only
+from mapmatch.arena import Arena
 from mapmatch.batch.arrays import CandidateArrays, EdgeGeometry, KernelParams, TrackPoints, kernel_params
 from mapmatch.batch.context import Context, new_context
 from mapmatch.batch.lattice import (
@@ -46,9 +50,6 @@ from mapmatch.batch.run import (
     run_track_in,
 )
 from mapmatch.config import BATCH_CONFIG, MatchConfig
-from mapmatch.graph.index import Candidates, EdgeIndex
-from mapmatch.graph.projection import to_xy
-from mapmatch.graph.road_graph import RoadGraph
 from mapmatch.gridindex import GridIndex, GridScratch
 from mapmatch.route_table import Ubodt
 from mapmatch.routing import NO_TABLE, RouteGraph, Router, RouteTable, Workspace, route_graph

@@ -9,9 +9,9 @@ from typing import Any
 
 import numpy as np
 
+from graph.projection import rows_to_lonlat
+from graph.road_graph import RoadGraph, merge_repeats
 from mapmatch.batch.run import Packed
-from mapmatch.graph.projection import rows_to_lonlat
-from mapmatch.graph.road_graph import RoadGraph, merge_repeats
 from mapmatch.types import MatchedPoint, PointStatus, TrackMatch
 
 

@@ -11,11 +11,11 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from numba import njit
 
+from graph.index import project_point_near
+from graph.jit import njit
 from mapmatch.arena import full_b1, full_f8, full_i8, int64, take_f8, take_i8, take_xy
 from mapmatch.batch.arrays import Assembly, EdgeGeometry, KernelParams, Lattice, TrackPoints
-from mapmatch.graph.index import project_point_near
 from mapmatch.gridindex import grow_array
 from mapmatch.route_table import path_into, path_place
 from mapmatch.routing import path_edges

@@ -16,9 +16,9 @@ from typing import Any, NamedTuple
 
 import numba
 import numpy as np
-from numba import njit
 from numpy.typing import NDArray
 
+from graph.jit import njit
 from mapmatch.arena import borrowed, full_b1, full_f8, full_i8, reset, take_b1, take_f8, take_i8, take_xy
 from mapmatch.batch.arrays import CandidateArrays, TrackPoints
 from mapmatch.batch.lattice import (

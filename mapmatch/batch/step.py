@@ -17,9 +17,9 @@ import math
 from typing import NamedTuple
 
 import numpy as np
-from numba import njit
 from numpy.typing import NDArray
 
+from graph.jit import njit
 from mapmatch.arena import UNCOUNTED, deref, ref
 from mapmatch.model import transition_logp_one
 from mapmatch.route_table import ubodt_lookup

@@ -10,8 +10,8 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from numba import njit
 
+from graph.jit import njit
 from mapmatch.arena import UNCOUNTED, full_b1, full_f8, full_i8, int64, take_b1, take_f8, take_i8
 from mapmatch.batch.arrays import KernelParams, Lattice
 from mapmatch.batch.leave_out import (

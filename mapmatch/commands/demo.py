@@ -70,11 +70,11 @@ def run(args: argparse.Namespace) -> int:
 
 def _demo(args: argparse.Namespace, kernels: BackgroundCompile) -> int:
     from mapmatch.evaluate import Metrics
-    from mapmatch.service.client import MapMatchClient
-    from mapmatch.service.config import ServerConfig
-    from mapmatch.service.server import start_server
     from mapmatch.sim.demo import demo_drive, evaluate_and_draw, prepare_helsinki
     from mapmatch.types import Fix, SnapResult
+    from service.client import MapMatchClient
+    from service.config import ServerConfig
+    from service.server import start_server
 
     t0 = time.perf_counter()
     out: Path = args.out

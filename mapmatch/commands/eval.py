@@ -120,9 +120,9 @@ def _csv_route(args: argparse.Namespace, path: Path, rebuild: Any) -> tuple[str,
     import numpy as np
     import pandas as pd
 
+    from graph.artifact import open_map
+    from graph.projection import to_lonlat
     from mapmatch.evaluate import edge_path, read_matched_csv
-    from mapmatch.graph.artifact import open_map
-    from mapmatch.graph.projection import to_lonlat
     from mapmatch.route_score import path_geometry
 
     graph = open_map(args.map)
@@ -146,9 +146,9 @@ def _csv_route(args: argparse.Namespace, path: Path, rebuild: Any) -> tuple[str,
 
 
 def run(args: argparse.Namespace) -> int:
+    from graph.artifact import open_map
+    from graph.projection import to_xy
     from mapmatch.evaluate import evaluate, read_matched_csv
-    from mapmatch.graph.artifact import open_map
-    from mapmatch.graph.projection import to_xy
     from mapmatch.plots import draw_html, draw_png, plot_data
     from mapmatch.sim.demo import title_for
     from mapmatch.sim.drive import truth_paths

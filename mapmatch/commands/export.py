@@ -37,9 +37,9 @@ def register(subparsers: Any) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from graph.artifact import open_map
+    from graph.export import EXPORT_SUFFIXES, export_map
     from mapmatch.cli import CommandError
-    from mapmatch.graph.artifact import open_map
-    from mapmatch.graph.export import EXPORT_SUFFIXES, export_map
 
     if args.output.suffix.lower() not in EXPORT_SUFFIXES:
         raise CommandError(f"unknown export format {args.output.name} (use {', '.join(EXPORT_SUFFIXES)})")

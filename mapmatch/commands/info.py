@@ -56,7 +56,7 @@ def summary(manifest: dict[str, Any], path: Path) -> str:
 
 
 def run(args: argparse.Namespace) -> int:
-    from mapmatch.graph.artifact import load_map, read_manifest
+    from graph.artifact import load_map, read_manifest
 
     manifest = read_manifest(args.map)
     if args.json:

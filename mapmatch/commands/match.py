@@ -143,8 +143,8 @@ def _check_map(path: Path) -> None:
     """Fail before anything is written when the map cannot be opened (no parts folder left behind)."""
     from pyproj import CRS
 
+    from graph.artifact import load_map
     from mapmatch.cli import CommandError
-    from mapmatch.graph.artifact import load_map
 
     if not path.is_file():
         raise CommandError(f"no such map file: {path}")
@@ -251,7 +251,7 @@ def _why_unmatched(inputs: list[Path], columns: Columns, map_path: str, track_id
     a file of at most :data:`HINT_MAX_BYTES` that can be read."""
     import numpy as np
 
-    from mapmatch.graph.artifact import read_manifest
+    from graph.artifact import read_manifest
     from mapmatch.io import read_tracks
 
     try:

@@ -166,10 +166,10 @@ def _parse_fields(text: str) -> tuple[str, str]:
 
 
 def run(args: argparse.Namespace) -> int:
+    from graph.artifact import save_map
+    from graph.build import build_map
+    from graph.export import EXPORT_SUFFIXES
     from mapmatch.cli import CommandError
-    from mapmatch.graph.artifact import save_map
-    from mapmatch.graph.build import build_map
-    from mapmatch.graph.export import EXPORT_SUFFIXES
 
     if args.source is None and args.place is None and args.bbox is None:
         raise CommandError("give a SOURCE file, --place or --bbox")
@@ -211,7 +211,7 @@ def run(args: argparse.Namespace) -> int:
         progress=progress,
     )
     if args.export is not None:
-        from mapmatch.graph.export import export_map
+        from graph.export import export_map
 
         progress(f"exporting nodes and edges to {args.export}")
         export_map(graph, args.export)
@@ -225,7 +225,7 @@ def summary(graph: Any, output: Path, export: Path | None = None) -> str:
     """The closing summary: sizes, km of road, components, restrictions, dropped features."""
     import numpy as np
 
-    from mapmatch.graph.components import weak_components
+    from graph.components import weak_components
 
     st = graph.stats()
     rep = graph.meta.get("report", {})

@@ -54,13 +54,13 @@ def register(subparsers: Any) -> None:
 
 def load_map_any(path: Path) -> Any:
     """A prepared map file, or an OSM/GIS source built on the fly."""
-    from mapmatch.graph.artifact import MAGIC, load_map
+    from graph.artifact import MAGIC, load_map
 
     with open(path, "rb") as f:
         head = f.read(len(MAGIC))
     if head[:-1] == MAGIC[:-1]:  # any format version: load_map reports a mismatch
         return load_map(path)
-    from mapmatch.graph.build import build_map  # heavy (osmnx); only for raw sources
+    from graph.build import build_map  # heavy (osmnx); only for raw sources
 
     return build_map(path)
 

@@ -56,7 +56,7 @@ def run_send(args: argparse.Namespace) -> int:
     from mapmatch.cli import EXIT_CONNECT, EXIT_OK, EXIT_PARTIAL, EXIT_USAGE, CommandError
     from mapmatch.commands._fixio import output_path, read_fixes_arg, rejected_failure, summary_stream
     from mapmatch.fixes import write_results_csv
-    from mapmatch.service.client import MapMatchClient, interleave_by_time
+    from service.client import MapMatchClient, interleave_by_time
 
     try:
         token = args.token or (args.token_file.read_text().strip() if args.token_file else None)

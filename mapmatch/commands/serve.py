@@ -30,7 +30,7 @@ examples:
 
 
 def register(subparsers: Any) -> None:
-    from mapmatch.service.config import add_arguments
+    from service.config import add_arguments
 
     p = subparsers.add_parser(
         "serve",
@@ -46,8 +46,8 @@ def register(subparsers: Any) -> None:
 def run_serve(args: argparse.Namespace) -> int:
     from mapmatch.cli import CommandError
     from mapmatch.errors import ConfigError
-    from mapmatch.service.config import config_from
-    from mapmatch.service.server import configure_logging, serve
+    from service.config import config_from
+    from service.server import configure_logging, serve
 
     try:
         config = config_from(args)

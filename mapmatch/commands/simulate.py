@@ -74,7 +74,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[ty
 def run(args: argparse.Namespace) -> int:
     import numpy as np
 
-    from mapmatch.graph.artifact import open_map
+    from graph.artifact import open_map
     from mapmatch.sim.drive import position_error, read_route, simulate_drive, write_fixes_csv, write_truth
     from mapmatch.sim.routes import random_route
     from mapmatch.sim.sensors import parse_outages
@@ -108,9 +108,13 @@ def run(args: argparse.Namespace) -> int:
 
         open_err = position_error(drive)
         try:
-            loop = run_map_aided(
-                graph, drive, server=args.server, vehicle_id=args.vehicle_id, map_id=args.map_id
-            )
+            if args.server is None:
+                loop = run_map_aided(graph, drive)
+            else:
+                from service.client import ServerMatcher
+
+                with ServerMatcher(args.server, vehicle_id=args.vehicle_id, map_id=args.map_id) as match:
+                    loop = run_map_aided(graph, drive, match=match)
         except grpc.RpcError as exc:
             raise CommandError(f"server {args.server}: {exc.code().name}: {exc.details()}", code=3) from None
         drive = loop.drive
@@ -177,7 +181,7 @@ def replay_to_server(
     timeout: float | None = None,
 ) -> list[tuple[str, Fix, SnapResult | None, str]]:
     """Stream the drive's fixes to a running server; one ``(vehicle, fix, result, error)`` per fix."""
-    from mapmatch.service.client import MapMatchClient
+    from service.client import MapMatchClient
 
     out: list[tuple[str, Fix, SnapResult | None, str]] = []
     pairs = [(vehicle_id, f) for f in drive.fix_objects()]

@@ -18,7 +18,7 @@ Where each mechanism lives:
 - :mod:`~mapmatch.online.codec`: ``to_bytes``/``from_bytes`` by named keys, validated, with the
   migration from version 1.
 - :mod:`~mapmatch.online.filter`: the generic filter step (knows nothing of roads).
-- :mod:`~mapmatch.online.road`: the road model: geometry, legal moves (:mod:`mapmatch.graph.rules`) and
+- :mod:`~mapmatch.online.road`: the road model: geometry, legal moves (:mod:`graph.rules`) and
   the emission, transition and turn scorers.
 - :mod:`~mapmatch.online.hypotheses`: initialise, join alternatives, extend, place.
 - :mod:`~mapmatch.online.along`: the position along a path (fix bias and turn anchor fused).

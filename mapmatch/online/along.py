@@ -7,9 +7,9 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from numba import njit
 from numpy.typing import NDArray
 
+from graph.jit import njit
 from mapmatch.online.geometry import RoadArrays, hypot, locate, straight
 from mapmatch.online.params import PlaceParams
 

@@ -7,10 +7,10 @@ import math
 from typing import NamedTuple
 
 import numpy as np
-from numba import njit
 from numpy.typing import NDArray
 
-from mapmatch.graph.index import project_point_compiled
+from graph.index import project_point_compiled
+from graph.jit import njit
 from mapmatch.turns import angle_diff
 
 # the same source as :func:`mapmatch.turns.angle_diff`, compiled

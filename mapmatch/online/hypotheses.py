@@ -6,8 +6,8 @@ from __future__ import annotations
 
 import math
 
+from graph.index import EdgeIndex
 from mapmatch.config import MatchConfig
-from mapmatch.graph.index import EdgeIndex
 from mapmatch.online.filter import filter_step, keep_best, normalise
 from mapmatch.online.placement import place_all
 from mapmatch.online.road import Projection, RoadModel

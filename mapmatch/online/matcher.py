@@ -6,10 +6,10 @@ from __future__ import annotations
 import dataclasses
 import math
 
+from graph.index import EdgeIndex
+from graph.neighbours import Neighbours, edge_neighbours
+from graph.road_graph import RoadGraph
 from mapmatch.config import DEFAULT_CONFIG, MatchConfig
-from mapmatch.graph.index import EdgeIndex
-from mapmatch.graph.neighbours import Neighbours, edge_neighbours
-from mapmatch.graph.road_graph import RoadGraph
 from mapmatch.measurement import DEFAULT_MEASUREMENT, MeasurementConfig
 from mapmatch.online import anchor, bias, hypotheses, region, report, stopline
 from mapmatch.online.correction import remember_live

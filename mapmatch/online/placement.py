@@ -13,9 +13,9 @@ import math
 from collections.abc import Sequence
 
 import numpy as np
-from numba import njit
 from numpy.typing import NDArray
 
+from graph.jit import njit
 from mapmatch.config import MatchConfig
 from mapmatch.model import emission_logp_one, transition_one_compiled
 from mapmatch.online.along import Pos, along_track, corrected_s

@@ -5,8 +5,8 @@ from __future__ import annotations
 
 import math
 
+from graph.projection import point_to_lonlat
 from mapmatch.config import MatchConfig
-from mapmatch.graph.projection import point_to_lonlat
 from mapmatch.measurement import DEFAULT_MEASUREMENT, MeasurementConfig, map_aided_measurement
 from mapmatch.online.filter import best as best_of
 from mapmatch.online.road import RoadModel

@@ -12,11 +12,11 @@ from bisect import bisect_left, bisect_right
 import numpy as np
 from numpy.typing import NDArray
 
-from mapmatch.arena import read_only
+from graph.index import project_point_compiled
+from graph.jit import read_only
+from graph.road_graph import RoadGraph
+from graph.rules import junctions, legal_moves
 from mapmatch.config import MatchConfig
-from mapmatch.graph.index import project_point_compiled
-from mapmatch.graph.road_graph import RoadGraph
-from mapmatch.graph.rules import junctions, legal_moves
 from mapmatch.model import emission_one, transition_one
 from mapmatch.online.geometry import RoadArrays, locate_on
 from mapmatch.online.state import Hypothesis, Step

@@ -5,9 +5,9 @@ from __future__ import annotations
 
 import math
 
+from graph.projection import point_to_xy
 from mapmatch.config import MatchConfig
 from mapmatch.errors import ValidationError
-from mapmatch.graph.projection import point_to_xy
 from mapmatch.online import anchor, bias
 from mapmatch.online.region import region_radius
 from mapmatch.online.road import RoadModel

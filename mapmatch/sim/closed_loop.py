@@ -13,17 +13,14 @@ from __future__ import annotations
 
 import dataclasses
 import math
-import queue
-import threading
-from collections.abc import Callable, Iterator
+from collections.abc import Callable
 from dataclasses import dataclass
-from types import TracebackType
 
 import numpy as np
 
+from graph.projection import point_to_xy, to_lonlat
+from graph.road_graph import RoadGraph
 from mapmatch.errors import ValidationError
-from mapmatch.graph.projection import point_to_xy, to_lonlat
-from mapmatch.graph.road_graph import RoadGraph
 from mapmatch.online import OnlineMatcher
 from mapmatch.sim.drive import Drive
 from mapmatch.sim.kalman import (
@@ -72,52 +69,6 @@ def in_process(matcher: OnlineMatcher) -> MatchFn:
             return None
 
     return match
-
-
-class ServerMatcher:
-    """A :data:`MatchFn` over one stream to a running server: each fix waits for its answer.
-
-    Use as a context manager; ``grpc.RpcError`` propagates (the caller maps it to exit code 3).
-    """
-
-    def __init__(self, target: str, *, vehicle_id: str, map_id: str = "", timeout: float | None = None):
-        from mapmatch.service.client import MapMatchClient
-
-        self._client = MapMatchClient(target)
-        self._queue: queue.Queue[Fix | None] = queue.Queue()
-        self._vehicle_id = vehicle_id
-        self._answers = self._client.stream(self._fixes(), map_id=map_id, timeout=timeout)
-        self._lock = threading.Lock()
-
-    def _fixes(self) -> Iterator[tuple[str, Fix]]:
-        while True:
-            f = self._queue.get()
-            if f is None:
-                return
-            yield self._vehicle_id, f
-
-    def __call__(self, fix: Fix) -> SnapResult | None:
-        with self._lock:
-            self._queue.put(fix)
-            return next(self._answers).result
-
-    def close(self) -> None:
-        self._queue.put(None)
-        for _ in self._answers:  # drain: the server ends the stream
-            pass
-        self._client.close()
-
-    def __enter__(self) -> ServerMatcher:
-        return self
-
-    def __exit__(
-        self, exc_type: type[BaseException] | None, exc: BaseException | None, tb: TracebackType | None
-    ) -> None:
-        if exc_type is None:
-            self.close()
-        else:  # end the request stream too, then drop the channel
-            self._queue.put(None)
-            self._client.close()
 
 
 def fused_rate(drive: Drive) -> float:

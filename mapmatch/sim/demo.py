@@ -16,9 +16,9 @@ from pathlib import Path
 
 import numpy as np
 
+from graph.files import atomic_path
+from graph.road_graph import RoadGraph
 from mapmatch.evaluate import Metrics, evaluate, results_frame
-from mapmatch.graph.files import atomic_path
-from mapmatch.graph.road_graph import RoadGraph
 from mapmatch.plots import draw_html, draw_png, plot_data
 from mapmatch.sim.drive import Drive, simulate_drive, write_fixes_csv, write_truth
 from mapmatch.sim.routes import random_route
@@ -34,7 +34,7 @@ def helsinki_source() -> Path:
 
 def prepare_helsinki(out_dir: str | os.PathLike[str]) -> tuple[RoadGraph, Path]:
     """Build (or reuse) the Helsinki map in ``out_dir``; return it and its file path."""
-    from mapmatch.graph.artifact import load_map, save_map
+    from graph.artifact import load_map, save_map
 
     path = Path(out_dir) / "helsinki.map"
     if path.exists():
@@ -42,7 +42,7 @@ def prepare_helsinki(out_dir: str | os.PathLike[str]) -> tuple[RoadGraph, Path]:
             return load_map(path), path
         except Exception:
             path.unlink(missing_ok=True)
-    from mapmatch.graph.build import build_map
+    from graph.build import build_map
 
     graph = build_map(helsinki_source())
     save_map(graph, path)

@@ -17,10 +17,10 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
+from graph.files import atomic_path
+from graph.projection import to_lonlat, to_xy
+from graph.road_graph import RoadGraph
 from mapmatch.errors import ValidationError
-from mapmatch.graph.files import atomic_path
-from mapmatch.graph.projection import to_lonlat, to_xy
-from mapmatch.graph.road_graph import RoadGraph
 from mapmatch.sim.kalman import DEFAULT_KALMAN, FusedStream, KalmanConfig, fused_stream, run_filter
 from mapmatch.sim.profile import DEFAULT_PROFILE, ProfileConfig, Trajectory, drive_profile
 from mapmatch.sim.routes import Route, route_from_edges, route_from_geometry

@@ -34,9 +34,9 @@ from dataclasses import dataclass, field
 from typing import NamedTuple
 
 import numpy as np
-from numba import njit
 from numpy.typing import NDArray
 
+from graph.jit import njit
 from mapmatch.sim.sensors import SensorData
 
 N_STATE = 8

@@ -14,11 +14,11 @@ from dataclasses import dataclass, field
 import numpy as np
 import pandas as pd
 
+from graph.projection import to_xy
+from graph.road_graph import RoadGraph
 from mapmatch.errors import ValidationError
 from mapmatch.evaluate import evaluate, results_frame
-from mapmatch.graph.projection import to_xy
-from mapmatch.graph.road_graph import RoadGraph
-from mapmatch.sim.closed_loop import ClosedLoop, MatchFn, ServerMatcher, closed_loop_drive, in_process
+from mapmatch.sim.closed_loop import ClosedLoop, MatchFn, closed_loop_drive, in_process
 from mapmatch.sim.drive import Drive
 from mapmatch.sim.kalman import DEFAULT_KALMAN, KalmanConfig
 from mapmatch.sim.sensors import SensorData
@@ -194,19 +194,16 @@ def run_map_aided(
     graph: RoadGraph,
     drive: Drive,
     *,
-    server: str | None = None,
-    vehicle_id: str = "sim-1",
-    map_id: str = "",
+    match: MatchFn | None = None,
     kalman: KalmanConfig = DEFAULT_KALMAN,
 ) -> ClosedLoop:
-    """The closed loop of ``drive`` with the matcher in process or, given ``server``
-    (``HOST:PORT``), on that server (``grpc.RpcError`` propagates)."""
-    if server is None:
+    """The closed loop of ``drive`` with ``match`` (for example a server's
+    :class:`service.client.ServerMatcher`), or by default the matcher in process."""
+    if match is None:
         from mapmatch.online import OnlineMatcher
 
-        return closed_loop_drive(graph, drive, in_process(OnlineMatcher(graph)), kalman=kalman)
-    with ServerMatcher(server, vehicle_id=vehicle_id, map_id=map_id) as match:
-        return closed_loop_drive(graph, drive, match, kalman=kalman)
+        match = in_process(OnlineMatcher(graph))
+    return closed_loop_drive(graph, drive, match, kalman=kalman)
 
 
 def summary_table(rows: Sequence[dict[str, object]]) -> pd.DataFrame:

@@ -12,11 +12,10 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from numba import njit
 from numpy.typing import NDArray
 
-from mapmatch.graph.road_graph import RoadGraph
-from mapmatch.kernels import for_size
+from graph.jit import for_size, njit
+from graph.road_graph import RoadGraph
 from mapmatch.sim.routes import Route, edge_speed_mps
 
 

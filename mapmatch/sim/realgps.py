@@ -73,10 +73,10 @@ import pandas as pd
 import shapely
 from numpy.typing import NDArray
 
+from graph.index import project_to_edge
+from graph.projection import to_lonlat, to_xy
+from graph.road_graph import RoadGraph
 from mapmatch.errors import ValidationError
-from mapmatch.graph.index import project_to_edge
-from mapmatch.graph.projection import to_lonlat, to_xy
-from mapmatch.graph.road_graph import RoadGraph
 from mapmatch.sim.drive import Drive, fixes_frame, truth_frame
 from mapmatch.sim.kalman import FusedStream
 from mapmatch.sim.profile import Trajectory, _moving_average

@@ -16,10 +16,10 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from graph.index import EdgeIndex
+from graph.road_graph import RoadGraph
+from graph.rules import moves_for
 from mapmatch.errors import MatchError
-from mapmatch.graph.index import EdgeIndex
-from mapmatch.graph.road_graph import RoadGraph
-from mapmatch.graph.rules import moves_for
 from mapmatch.routing import shortest_path
 
 # default speeds in km/h by OSM highway class, when an edge has none

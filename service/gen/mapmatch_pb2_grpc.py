@@ -3,7 +3,7 @@
 import grpc
 import warnings
 
-from mapmatch.service.gen import mapmatch_pb2 as mapmatch_dot_v1_dot_mapmatch__pb2
+from service.gen import mapmatch_pb2 as mapmatch_dot_v1_dot_mapmatch__pb2
 
 GRPC_GENERATED_VERSION = '1.85.1'
 GRPC_VERSION = grpc.__version__

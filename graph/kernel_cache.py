@@ -3,7 +3,8 @@
 numba checks a cached kernel against its own source file only: a kernel that calls one from
 another file keeps the old callee's machine code after that file changes (numba documents
 this), so after a ``git pull`` or an edit in an editable install the matcher would run old
-code. :func:`refresh`, run when ``mapmatch`` is imported, compares the sources with those of
+code. :func:`refresh_installed`, run by :func:`graph.jit.njit` before the first kernel of a process
+is defined (so before any cached kernel loads), compares the sources with those of
 the last run (a stamp file); when any changed, it deletes the cached kernels of every file
 that has kernels, wherever numba keeps them, so all of them compile anew on first use. An
 unchanged tree costs a ``stat`` per file.
@@ -18,6 +19,8 @@ from collections.abc import Iterable
 from pathlib import Path
 
 STAMP_NAME = "mapmatch-kernel-sources.stamp"
+KERNEL_PACKAGES = ("graph", "mapmatch")
+"""The top-level packages whose modules define kernels (siblings in one install)."""
 
 
 def source_files(dirs: Iterable[Path]) -> list[Path]:
@@ -100,23 +103,12 @@ def refresh(dirs: Iterable[Path], stamp: Path) -> bool:
     return changed
 
 
-def refresh_package() -> bool:
-    """:func:`refresh` for ``mapmatch`` (with ``mapmatch.graph`` and ``mapmatch.service``,
-    which an editable install keeps in folders of their own); the stamp goes where numba
-    caches (``NUMBA_CACHE_DIR``, else ``mapmatch/__pycache__``)."""
-    from importlib.machinery import PathFinder
-
+def refresh_installed() -> bool:
+    """:func:`refresh` for the packages that hold kernels: ``graph`` and its sibling ``mapmatch``
+    (found beside this package, installed or in a source tree, without importing it); the stamp
+    goes where numba caches (``NUMBA_CACHE_DIR``, else ``graph/__pycache__``)."""
     here = Path(__file__).resolve().parent
-    dirs = [here]
-    for sub in ("graph", "service"):
-        spec = PathFinder.find_spec(sub, [str(here)])
-        if spec is None:  # an editable install: the folder is mapped by the install's finder
-            import importlib.util
-
-            spec = importlib.util.find_spec(f"mapmatch.{sub}")
-        for loc in (spec.submodule_search_locations or []) if spec is not None else []:
-            if not Path(loc).resolve().is_relative_to(here):  # an installed copy: under ``here``
-                dirs.append(Path(loc).resolve())
+    dirs = [d for d in (here.parent / name for name in KERNEL_PACKAGES) if d.is_dir()]
     cache = os.environ.get("NUMBA_CACHE_DIR")
     stamp = Path(cache) / STAMP_NAME if cache else here / "__pycache__" / STAMP_NAME
     return refresh(dirs, stamp)
