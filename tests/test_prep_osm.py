@@ -13,6 +13,7 @@ from prep_checks import assert_same_map, check_map
 
 from graph.build import BuildOptions, OsmOptions, build_map
 from graph.errors import InputError
+from graph.gis import GisOptions
 from graph.osm import TagFilter, is_oneway, network_filter, read_osm
 from graph.road_graph import RESTRICTION_NO, RESTRICTION_ONLY, RoadGraph
 
@@ -82,6 +83,22 @@ def test_bbox_clips_the_extract() -> None:
     assert sorted(g.node_id.tolist()) == [1, 4]
     assert g.n_edges == 2 and len(g.edge_xy(0)) == 4
     assert g.meta["report"]["dropped"]["node references outside the bbox"] > 0
+    # an OSM build records the OSM options; the GIS ones do not apply
+    assert g.meta["build"] == {
+        "network_type": "drive",
+        "consolidate_tolerance": None,
+        "place": None,
+        "bbox": [24.9395, 60.1695, 24.9445, 60.1705],
+    }
+
+
+def test_options_that_do_not_fit_the_source_are_refused_before_any_reading() -> None:
+    with pytest.raises(InputError, match="place name or a bounding box"):
+        build_map(None)
+    with pytest.raises(InputError, match="a download is OpenStreetMap data"):
+        build_map(None, osm=OsmOptions(place="Monaco"), gis=GisOptions(directed=True))
+    with pytest.raises(InputError, match="unknown build engine 'networkx'"):
+        build_map(TINY, options=BuildOptions(engine="networkx"))
 
 
 def test_consolidation(helsinki: tuple[RoadGraph, nx.MultiDiGraph]) -> None:
