@@ -16,6 +16,7 @@ sends a fix again on a new stream when its stream breaks before the answer::
 
 from __future__ import annotations
 
+import collections
 import queue
 import threading
 import time
@@ -177,11 +178,17 @@ class MapMatchClient:
             yield _answer(vid, fix, resp)
 
     def vehicle(
-        self, vehicle_id: str, *, map_id: str = "", retries: int = 8, backoff: float = 0.05
+        self,
+        vehicle_id: str,
+        *,
+        map_id: str = "",
+        retries: int = 8,
+        backoff: float = 0.05,
+        replay: float = 3.0,
     ) -> VehicleStream:
         """A :class:`VehicleStream`: one vehicle's fixes, routed by ``x-vehicle-id``, resent
-        after a broken stream."""
-        return VehicleStream(self, vehicle_id, map_id=map_id, retries=retries, backoff=backoff)
+        (with the last ``replay`` seconds of fixes) after a broken stream."""
+        return VehicleStream(self, vehicle_id, map_id=map_id, retries=retries, backoff=backoff, replay=replay)
 
     def snap(
         self, vehicle_id: str, fix: Fix, *, map_id: str = "", timeout: float | None = 10.0
@@ -212,9 +219,16 @@ class VehicleStream:
     vehicle on one server. When the stream breaks before a fix is answered (its server died
     or is shutting down, the balancer reset it: a status in :data:`RETRY_CODES`), a new stream
     is opened and the fix sent again, at most ``retries`` times for one fix, after ``backoff``
-    s and twice as long before each next try. A server answers a resend of a fix it has
-    already applied with that fix's answer, so each fix gets exactly one answer: a result, or
-    an error for a rejected fix. Past the retries the last ``grpc.RpcError`` is raised.
+    s and twice as long before each next try.
+
+    Before the fix, the new stream replays the fixes answered in the last ``replay`` seconds
+    (their new answers are dropped): a server that died lost what its vehicles did since its
+    last checkpoint (at most its ``--checkpoint-interval``, 1 s by default), and the server
+    that resumes the session from the store catches up on them, so the session is as if
+    nothing had happened (replayed fixes it already holds are refused as not newer, and
+    change nothing). A server answers a resend of the fix it last applied with that fix's
+    answer. So each fix gets exactly one answer: a result, or an error for a rejected fix.
+    Past the retries the last ``grpc.RpcError`` is raised.
 
     ``timeout`` is each stream's deadline (None: none). Use as a context manager, or call
     :meth:`close`. Not thread-safe: one sender per vehicle.
@@ -228,16 +242,19 @@ class VehicleStream:
         map_id: str = "",
         retries: int = 8,
         backoff: float = 0.05,
+        replay: float = 3.0,
         timeout: float | None = None,
     ) -> None:
         self.client = client
         self.timeout = timeout
+        self.replay = replay
         self.vehicle_id = vehicle_id
         self.map_id = map_id
         self.retries = retries
         self.backoff = backoff
         self.reconnects = 0  # streams opened again after a failure
-        self.resent = 0  # fixes sent again
+        self.resent = 0  # fixes sent again (replayed ones included)
+        self._history: collections.deque[tuple[float, pb.FixRequest]] = collections.deque()
         self._metadata = (*client.metadata, (VEHICLE_HEADER, vehicle_header(vehicle_id)))
         self._call: Any = None
         self._queue: queue.SimpleQueue[pb.FixRequest | None] | None = None
@@ -267,21 +284,38 @@ class VehicleStream:
         )
         self._seq += 1
         for attempt in range(self.retries + 1):
+            replay: list[pb.FixRequest] = []
             if self._call is None:
                 self._open()
+                if attempt:
+                    replay = [r for _, r in self._history]
             assert self._queue is not None
+            for r in replay:
+                self._queue.put(r)
             self._queue.put(req)
             try:
-                return _answer(self.vehicle_id, fix, next(self._call))
+                for _ in replay:  # their answers were given before
+                    next(self._call)
+                answer = _answer(self.vehicle_id, fix, next(self._call))
             except (grpc.RpcError, StopIteration) as exc:
                 self._drop()
                 err = exc if isinstance(exc, grpc.RpcError) else StreamEnded()
                 if err.code() not in RETRY_CODES or attempt == self.retries:
                     raise err from None
+            else:
+                self._remember(req)
+                return answer
             time.sleep(self.backoff * 2**attempt)
             self.reconnects += 1
-            self.resent += 1
+            self.resent += 1 + len(self._history)
         raise AssertionError("unreachable")
+
+    def _remember(self, req: pb.FixRequest) -> None:
+        now = time.monotonic()
+        h = self._history
+        h.append((now, req))
+        while h and h[0][0] < now - self.replay:
+            h.popleft()
 
     def close(self) -> None:
         """End the stream (the server hands the vehicle's session over, when it has a store)."""

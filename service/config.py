@@ -46,7 +46,7 @@ environment variable          flag                        meaning
 ============================  ==========================  =================================
 MAPMATCH_SESSION_STORE        --session-store URL         Redis, ``redis://HOST:PORT/DB`` (off)
 MAPMATCH_CHECKPOINT_INTERVAL  --checkpoint-interval S     seconds between checkpoints (1)
-MAPMATCH_STORE_TIMEOUT        --store-timeout SECONDS     bound of a look-up (0.05)
+MAPMATCH_STORE_TIMEOUT        --store-timeout SECONDS     bound of a look-up (0.1)
 ============================  ==========================  =================================
 
 The TOML file uses the attribute names of :class:`ServerConfig` (``-`` or ``_``), maps as a
@@ -196,7 +196,7 @@ class ServerConfig:
     load_memory_bytes: int = 8 * 1024**3
     session_store: str | None = field(default=None, repr=False)  # the URL may hold a password
     checkpoint_interval: float = 1.0
-    store_timeout: float = 0.05
+    store_timeout: float = 0.1
 
     def __post_init__(self) -> None:
         if ":" not in self.address:
@@ -336,7 +336,7 @@ _LIMIT_FLAGS: tuple[tuple[str, type, str], ...] = (
     ("--batch-processes", int, "child processes for MatchTrack(s), 0: threads [MAPMATCH_BATCH_PROCESSES; 1]"),
     ("--batch-nice", int, "lower CPU priority of those, 0-19 [MAPMATCH_BATCH_NICE; 10]"),
     ("--checkpoint-interval", float, "seconds between checkpoints [MAPMATCH_CHECKPOINT_INTERVAL; 1]"),
-    ("--store-timeout", float, "seconds a look-up in the store may take [MAPMATCH_STORE_TIMEOUT; 0.05]"),
+    ("--store-timeout", float, "seconds a look-up in the store may take [MAPMATCH_STORE_TIMEOUT; 0.1]"),
 )
 _NUMBERS: dict[str, type[int] | type[float]] = {
     "max_sessions": int,

@@ -113,9 +113,8 @@ class RedisStore:
             )
         return self._async
 
-    async def read(self, key: bytes) -> bytes | None:
-        value = await self._aclient().get(key)
-        return None if value is None else bytes(value)
+    async def aping(self) -> None:
+        await self._aclient().ping()
 
     async def read_many(self, keys: Sequence[bytes]) -> list[bytes | None]:
         values = await self._aclient().mget(keys)

@@ -33,6 +33,7 @@ time, same position) with that fix's answer, so no fix is applied twice.
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import functools
 import logging
 import threading
@@ -49,7 +50,7 @@ from service.errors import SessionExistsError, SessionLimitError
 from service.gen import mapmatch_pb2 as pb
 from service.maps import MapEntry, MapRegistry
 from service.sessions import Session, SessionKey, SessionStore
-from service.store import RedisStore, pack, session_key, unpack
+from service.store import WRITE_TIMEOUT, RedisStore, pack, session_key, unpack
 
 log = logging.getLogger("mapmatch.service")
 
@@ -85,7 +86,7 @@ class CheckpointSettings:
 
     interval: float = 1.0
     ttl: float = 600.0
-    timeout: float = 0.05
+    timeout: float = 0.1
     max_vehicle_id: int = 128
 
 
@@ -130,12 +131,19 @@ class Checkpointer:
         self._forget: list[bytes] = []
         self._stopping = False
         self._thread: threading.Thread | None = None
+        self._asked: dict[bytes, list[asyncio.Future[bytes | None]]] = {}
+        self._tasks: set[asyncio.Task[Any]] = set()
         self._logged: dict[str, float] = {}
         self._logged_at = time.monotonic()
 
     # ------------------------------------------------------------------ lifecycle
     def start(self) -> None:
-        """Start the checkpoint thread (it first probes the store: health and a log line)."""
+        """Start the checkpoint thread (it first probes the store: health and a log line);
+        on an event loop, open the look-up connection too."""
+        with contextlib.suppress(RuntimeError):  # no running loop
+            task = asyncio.get_running_loop().create_task(self.warm())
+            self._tasks.add(task)
+            task.add_done_callback(self._tasks.discard)
         if self._thread is None:
             self._thread = threading.Thread(target=self._run, name="mapmatch-checkpoints", daemon=True)
             self._thread.start()
@@ -173,41 +181,70 @@ class Checkpointer:
             await self._restore(entry, req.vehicle_id)
 
     async def before_batch(self, reqs: Iterable[pb.FixRequest]) -> None:
-        """:meth:`before` for a batch's vehicles, in one round trip."""
+        """:meth:`before` for a batch's vehicles (their look-ups go in one round trip)."""
         todo: dict[SessionKey, MapEntry] = {}
         for req in reqs:
             entry = self._entry(req)
             if entry is not None and self.sessions.live((entry.map_id, req.vehicle_id)) is None:
                 todo[(entry.map_id, req.vehicle_id)] = entry
-        if not todo:
-            return
-        keys = [session_key(e.checksum, vid) for (_, vid), e in todo.items()]
-        self.counters.lookups += len(keys)
-        records = await self._read(self.store.read_many(keys), len(keys))
-        if records is not None:
-            for ((_, vid), entry), data in zip(todo.items(), records, strict=True):
-                self._install(entry, vid, data)
+        if todo:
+            await asyncio.gather(*(self._restore(e, vid) for (_, vid), e in todo.items()))
 
     async def _restore(self, entry: MapEntry, vehicle_id: str) -> None:
-        self.counters.lookups += 1
-        data = await self._read(self.store.read(session_key(entry.checksum, vehicle_id)), 1)
-        if data is not None:
-            self._install(entry, vehicle_id, data[0])
-
-    async def _read(self, call: Awaitable[Any], n: int) -> list[Any] | None:
-        """The look-up's result as a list, or None when the store failed or took too long."""
+        c = self.counters
+        c.lookups += 1
         try:
-            out = await asyncio.wait_for(call, self.settings.timeout)
+            data = await asyncio.wait_for(
+                self._lookup(session_key(entry.checksum, vehicle_id)), self.settings.timeout
+            )
         except TimeoutError:
-            self.counters.timeouts += n
+            c.timeouts += 1
             self._failed("a look-up took longer than store_timeout")
-            return None
+            return
         except Exception as exc:
-            self.counters.lookup_failures += n
+            c.lookup_failures += 1
             self._failed(f"a look-up failed: {type(exc).__name__}: {exc}")
-            return None
+            return
         self._ok()
-        return out if isinstance(out, list) else [out]
+        self._install(entry, vehicle_id, data)
+
+    def _lookup(self, key: bytes) -> asyncio.Future[bytes | None]:
+        """The record of ``key``: look-ups asked for in one turn of the event loop share one
+        round trip (after a failover, many vehicles arrive at once)."""
+        loop = asyncio.get_running_loop()
+        fut: asyncio.Future[bytes | None] = loop.create_future()
+        if not self._asked:
+            loop.call_soon(self._send_lookups)
+        self._asked.setdefault(key, []).append(fut)
+        return fut
+
+    def _send_lookups(self) -> None:
+        asked, self._asked = self._asked, {}
+        task = asyncio.ensure_future(self.store.read_many(list(asked)))
+        self._tasks.add(task)
+
+        def done(t: asyncio.Task[list[bytes | None]]) -> None:
+            self._tasks.discard(t)
+            exc = None if t.cancelled() else t.exception()
+            values = t.result() if not t.cancelled() and exc is None else [None] * len(asked)
+            for futs, value in zip(asked.values(), values, strict=True):
+                for f in futs:
+                    if f.done():  # its waiter gave up (timeout)
+                        continue
+                    if t.cancelled():
+                        f.cancel()
+                    elif exc is not None:
+                        f.set_exception(exc)
+                    else:
+                        f.set_result(value)
+
+        task.add_done_callback(done)
+
+    async def warm(self) -> None:
+        """Open the look-up connection before the first look-up needs it (failures ignored:
+        the checkpoint thread reports the store's state)."""
+        with contextlib.suppress(Exception):
+            await asyncio.wait_for(self.store.aping(), WRITE_TIMEOUT)
 
     def _install(self, entry: MapEntry, vehicle_id: str, data: bytes | None) -> None:
         if data is None:
