@@ -358,7 +358,8 @@ class ServerMatcher:
 
     def __init__(self, target: str, *, vehicle_id: str, map_id: str = "", timeout: float | None = None):
         self._client = MapMatchClient(target)
-        self._stream = VehicleStream(self._client, vehicle_id, map_id=map_id, timeout=timeout)
+        # a few resends: a server restarting behind a balancer; none that is down stays long
+        self._stream = VehicleStream(self._client, vehicle_id, map_id=map_id, retries=3, timeout=timeout)
         self._lock = threading.Lock()
 
     def __call__(self, fix: Fix) -> SnapResult | None:
