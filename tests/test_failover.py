@@ -5,12 +5,15 @@ and ``redis-server`` run on loopback ports, each with its configuration in a tem
 three ``mapmatch serve`` processes hold the session store. 50 vehicles stream real-GPS fused
 drives (the Kubicka tracks through :func:`mapmatch.sim.realgps.real_drive`, 1 Hz fixes sent
 at ``RATE`` per second, each vehicle on a :class:`~service.client.VehicleStream` of its own).
-Mid-drive the server holding the most vehicles is killed with SIGKILL. Then:
+Mid-drive the server holding the most vehicles is killed with SIGKILL; later the busier of the
+two left is stopped with SIGTERM, as a rolling restart stops it. Then:
 
 * every fix has exactly one answer, in order, and none is an error;
-* the killed server's vehicles were all found in the store by the others (no vehicle started
-  afresh), and each lost at most the checkpoint interval's worth of fixes: its record, read
-  just before the kill, lags its last answer by at most ``interval * RATE + 2`` fixes;
+* the vehicles of the killed and of the stopped server were all found in the store by the
+  next server (no vehicle started afresh); each killed one lost at most the checkpoint
+  interval's worth of fixes (its record, read just before the kill, lags its last answer by
+  at most ``interval * RATE + 2`` fixes), which its client replays; the stopped server wrote
+  its vehicles before it ended;
 * the affected drives' correct-road rate is within 0.2 points of one uninterrupted session
   per vehicle in one process, and the other vehicles' answers are that run's, fix for fix.
 """
@@ -55,7 +58,8 @@ SEEDS = (1, 2)  # two fused drives of each track (dead-reckoning errors and outa
 WINDOWS = 5  # vehicles per drive: windows starting at spread places along it
 FIXES = 150  # fixes per vehicle
 RATE = 4.0  # fixes sent per second per vehicle (1 Hz drive time, 4x faster than real time)
-KILL_AT = 0.4  # share of the run after which a server is killed
+KILL_AT = 0.35  # share of the run after which a server is killed (SIGKILL)
+STOP_AT = 0.65  # ... and another one is stopped (SIGTERM)
 INTERVAL = 1.0  # --checkpoint-interval
 # --store-timeout: a look-up on a loaded 2-core machine can take longer than the default's
 # 0.1 s; past it a vehicle starts afresh (counted), which this test must not see
@@ -176,7 +180,11 @@ def _rate(v: Vehicle, edges: list[int]) -> tuple[int, int]:
     return int(ok.sum()), int(v.known.sum())
 
 
-def test_a_killed_server_loses_no_vehicle(tmp_path: Path) -> None:
+def _wait_at(t: float) -> None:
+    time.sleep(max(0.0, t - time.monotonic()))
+
+
+def test_a_killed_server_and_a_stopped_one_lose_no_vehicle(tmp_path: Path) -> None:
     if not KUBICKA.is_dir():
         pytest.skip(
             f"needs the real Kubicka tracks in {KUBICKA}: set MAPMATCH_SHARED to the shared data folder"
@@ -185,47 +193,59 @@ def test_a_killed_server_loses_no_vehicle(tmp_path: Path) -> None:
     with redis_server(tmp_path / "redis") as rport:
         db = redis.Redis(port=rport)
         servers = _start_servers(maps, f"redis://127.0.0.1:{rport}/0", tmp_path, 3)
+        procs = {p: s for s, p, _ in servers}
         try:
             ports = [p for _, p, _ in servers]
+            checksums = {m: _checksum(ports[0], m) for m in maps}
             with nginx(tmp_path / "nginx", [f"127.0.0.1:{p}" for p in ports]) as lb:
                 client = MapMatchClient(f"127.0.0.1:{lb}")
                 t0 = time.monotonic() + 1.0
                 threads = [threading.Thread(target=_drive, args=(client, v, t0)) for v in vehicles]
                 for t in threads:
                     t.start()
-                time.sleep(max(0.0, t0 + KILL_AT * FIXES / RATE - 1.0 - time.monotonic()))
+                # SIGKILL the server holding the most vehicles
+                _wait_at(t0 + KILL_AT * FIXES / RATE - 1.0)
                 held = _holders(ports, vehicles)
-                victim = max(ports, key=lambda p: len(held[p]))
-                affected = held[victim]
-                checksums = {m: _checksum(ports[0], m) for m in maps}
+                killed = max(ports, key=lambda p: len(held[p]))
+                affected = held[killed]
                 keys = [session_key(checksums[v.map_id], v.vid) for v in affected]
                 records = db.mget(keys)  # just before the kill: what the others will find (or older)
                 kill_at = time.monotonic()
-                proc = next(s for s, p, _ in servers if p == victim)
-                proc.send_signal(signal.SIGKILL)
+                procs[killed].send_signal(signal.SIGKILL)
+                # later, SIGTERM the busier of the two left (a rolling restart's step)
+                _wait_at(t0 + STOP_AT * FIXES / RATE - 1.0)
+                left = [p for p in ports if p != killed]
+                held2 = _holders(left, vehicles)
+                stopped = max(left, key=lambda p: len(held2[p]))
+                procs[stopped].send_signal(signal.SIGTERM)
+                procs[stopped].wait(30)
                 for t in threads:
                     t.join(FIXES / RATE + 120)
                 client.close()
         finally:
-            for proc, _, _ in servers:
+            for proc in procs.values():
                 if proc.poll() is None:
                     proc.send_signal(signal.SIGTERM)
-            for proc, _, _ in servers:
+            for proc in procs.values():
                 proc.wait(30)
         db.close()
 
-    assert affected and len({v.vid for ps in held.values() for v in ps}) == len(vehicles)
+    moved = held2[stopped]
+    assert affected and moved and len({v.vid for ps in held.values() for v in ps}) == len(vehicles)
+    assert len({v.vid for ps in held2.values() for v in ps}) == len(vehicles)
+    assert {v.vid for v in affected} <= {v.vid for ps in held2.values() for v in ps}
     # every fix answered exactly once, in order, none rejected
     for v in vehicles:
         assert not v.error, (v.vid, v.error)
         assert [a.fix.time for a in v.answers] == [f.time for f in v.fixes], v.vid
         assert all(a.error is None for a in v.answers), (v.vid, [a.error for a in v.answers if a.error])
-    assert sum(v.resent for v in affected) >= 1  # the killed server's streams were resent
-    # nobody started afresh: the survivors found every affected vehicle in the store
-    counts = [_store_counts(log) for proc, p, log in servers if p != victim]
-    assert sum(c["restored"] for c in counts) == len(affected), counts
-    assert sum(c["timeouts"] + c["lookup_failures"] + c["bad_records"] for c in counts) == 0
-    # ... and lost at most the checkpoint interval's worth of fixes
+    assert all(v.resent for v in affected)  # the killed server's streams broke and were resent
+    # nobody started afresh: each time the next server found the vehicle in the store
+    counts = {p: _store_counts(log) for _, p, log in servers if p != killed}
+    assert sum(c["restored"] for c in counts.values()) == len(affected) + len(moved), counts
+    assert sum(c["timeouts"] + c["lookup_failures"] + c["bad_records"] for c in counts.values()) == 0
+    assert counts[stopped]["handed_over"] >= len(moved)  # the stop wrote its vehicles before it ended
+    # the SIGKILL lost at most the checkpoint interval's worth of fixes (replayed by the clients)
     allowed = math.ceil(INTERVAL * RATE) + 2
     lags = []
     for v, rec in zip(affected, records, strict=True):
@@ -234,17 +254,23 @@ def test_a_killed_server_loses_no_vehicle(tmp_path: Path) -> None:
         answered = zip(v.answers, v.answered_at, strict=True)
         lags.append(sum(1 for a, at in answered if at < kill_at and a.fix.time > t_rec))
     assert max(lags) <= allowed, lags
-    # the unaffected vehicles' answers are one process's, fix for fix
+    # the vehicles no server left are one process's, fix for fix
     for v in vehicles:
-        if v not in affected:
+        if v not in affected and v not in moved:
             assert [a.result.edge for a in v.answers] == reference[v.vid], v.vid
     # the affected drives' correct-road rate stays within 0.2 points of one process's
-    got = np.sum([_rate(v, [a.result.edge for a in v.answers]) for v in affected], axis=0)
-    ref = np.sum([_rate(v, reference[v.vid]) for v in affected], axis=0)
+    touched = [v for v in vehicles if v in affected or v in moved]
+    got = np.sum([_rate(v, [a.result.edge for a in v.answers]) for v in touched], axis=0)
+    ref = np.sum([_rate(v, reference[v.vid]) for v in touched], axis=0)
+    same = sum(
+        1 for v in touched for a, r in zip(v.answers, reference[v.vid], strict=True) if a.result.edge == r
+    )
     print(
-        f"\nfailover: {len(affected)} of {len(vehicles)} vehicles on the killed server, "
-        f"{sum(v.resent for v in affected)} fixes resent; records {max(lags)} fixes behind at most; "
-        f"correct road {100.0 * got[0] / got[1]:.2f} % against {100.0 * ref[0] / ref[1]:.2f} % in one process"
+        f"\nfailover: {len(affected)} of {len(vehicles)} vehicles on the killed server, {len(moved)} on the "
+        f"stopped one; {sum(v.resent for v in touched)} fixes resent; records at most {max(lags)} fixes "
+        f"behind at the kill; correct road {100.0 * got[0] / got[1]:.2f} % against "
+        f"{100.0 * ref[0] / ref[1]:.2f} % in one process; {same} of {FIXES * len(touched)} answers "
+        "as in one process"
     )
     assert abs(100.0 * got[0] / got[1] - 100.0 * ref[0] / ref[1]) <= 0.2, (got, ref)
 
