@@ -298,3 +298,23 @@ def test_store_settings_from_flags_environment_and_file(tmp_path: Path):
         ServerConfig(session_store="http://x")
     with pytest.raises(ConfigError, match="checkpoint_interval"):
         ServerConfig(checkpoint_interval=0)
+
+
+def test_the_session_table_lists_sessions_used_since_a_time_and_drops_only_unused_ones():
+    from service.sessions import SessionStore
+
+    now = [0.0]
+    table = SessionStore(max_sessions=10, ttl=100.0, clock=lambda: now[0])
+    for i, vid in enumerate("abc"):
+        now[0] = float(i + 1)
+        with table.use("m", vid, dict):
+            pass
+    assert [s.key[1] for s in table.used_since(1.5)] == ["c", "b"]  # latest first, "a" (1 s) left
+    now[0] = 5.0
+    with table.use("m", "a", dict):  # used again: to the end of the order
+        pass
+    assert [s.key[1] for s in table.used_since(4.0)] == ["a"]
+    a = table.live(("m", "a"))
+    assert a is not None
+    assert not table.drop_unused(a, 1.0)  # used after that: kept
+    assert table.drop_unused(a, a.last_used) and table.live(("m", "a")) is None
