@@ -20,6 +20,7 @@ PASS/FAIL line per target of issue #14.
     python bench/bench_batch.py --summary ~/.cache/mapmatch-peers/results/batch.jsonl
     python bench/bench_batch.py --routing --ids 0,28      # bounded search vs UBODT, in process
     python bench/bench_batch.py --fixed --ids 14,21       # time per call on tiny tracks, in process
+    python bench/bench_batch.py --docs     # also write the summary into the docs (bench/report.py)
 """
 
 from __future__ import annotations
@@ -334,8 +335,8 @@ def candidate_load(matcher: Any, lat: list[float], lon: list[float]) -> tuple[fl
 
     cfg = matcher.config
     xy = to_xy(matcher.graph.crs, np.asarray(lon, dtype=np.float64), np.asarray(lat, dtype=np.float64))
-    grid = GridIndex(matcher.index, cell=cfg.search_radius)
-    found = grid.query(xy, cfg.search_radius, k=cfg.max_candidates)
+    grid = GridIndex(matcher.index, cell=cfg.model.search_radius)
+    found = grid.query(xy, cfg.model.search_radius, k=cfg.model.max_candidates)
     n = np.bincount(found.point, minlength=len(xy)).astype(np.float64)
     return float(n.mean()), float(np.mean(n[1:] * n[:-1])) if len(n) > 1 else 0.0
 
@@ -460,6 +461,7 @@ def main() -> int:
         "--fixed", action="store_true", help="time per call on tiny tracks (fixed cost), in process"
     )
     ap.add_argument("--calls", type=int, default=2000, help="calls per tiny track for --fixed")
+    ap.add_argument("--docs", action="store_true", help="also write the summary to docs/benchmarks/batch.md")
     a = ap.parse_args()
     if a.routing:
         compare_routing(a.ids, a.S, a.deltas)
@@ -479,7 +481,14 @@ def main() -> int:
         timing = time_engines(a.ids, a.time_engines or a.engines, a.S, a.repeat, a.tag)
         print(f"load average after the repeated timing: {' '.join(f'{x:.2f}' for x in os.getloadavg())}")
     side = a.side_rounds if "custom" in a.engines.split(",") and not a.summary else 0
-    summarise(paths, timing, side_rounds=side)
+    if not a.docs:
+        summarise(paths, timing, side_rounds=side)
+        return 0
+    from report import capture, fenced, run_header, write_fragment
+
+    with capture() as out:
+        summarise(paths, timing, side_rounds=side)
+    print(f"wrote {write_fragment('batch', run_header() + fenced(out.getvalue()))}")
     return 0
 
 

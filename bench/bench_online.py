@@ -11,7 +11,7 @@ as reported live and after applying the matcher's corrections.
     python bench/bench_online.py                 # everything (~15 min on 2 cores)
     python bench/bench_online.py --quick         # one map, 1 Hz, σ 5 m
     python bench/bench_online.py --quick --breakdown   # also classify the wrong-edge fixes
-    python bench/bench_online.py --quick --set node_hold_ahead_sigmas=0   # an A/B of a config field
+    python bench/bench_online.py --quick --set online.node_hold_ahead_sigmas=0   # an A/B of a config field
 """
 
 from __future__ import annotations
@@ -300,7 +300,7 @@ def main() -> int:
     ap.add_argument("--maps", nargs="*", default=None)
     ap.add_argument("--json", type=Path, default=None, help="also write all rows here")
     ap.add_argument("--breakdown", action="store_true", help="classify the wrong-edge fixes")
-    ap.add_argument("--set", nargs="*", default=[], metavar="NAME=VALUE", help="matcher config overrides")
+    ap.add_argument("--set", nargs="*", default=[], metavar="SECTION.FIELD=VALUE", help="matcher parameters")
     args = ap.parse_args()
     try:
         cfg = DEFAULT_CONFIG.with_settings(args.set)

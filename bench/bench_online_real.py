@@ -28,6 +28,7 @@ reverse, other.
     python bench/bench_online_real.py                    # all 15 tracks, 1 + 10 Hz
     python bench/bench_online_real.py --rates 1 --breakdown
     python bench/bench_online_real.py --tracks 00000007 00000014 --rates 1
+    python bench/bench_online_real.py --docs       # also write the table into the docs (bench/report.py)
 """
 
 from __future__ import annotations
@@ -302,7 +303,8 @@ def main() -> int:
     ap.add_argument("--breakdown", action="store_true", help="classify the wrong-road fixes")
     ap.add_argument("--json", type=Path, default=None, help="also write all rows here")
     ap.add_argument("--map-cache", type=Path, default=None, help="keep the prepared maps in this folder")
-    ap.add_argument("--set", nargs="*", default=[], metavar="NAME=VALUE", help="matcher config overrides")
+    ap.add_argument("--set", nargs="*", default=[], metavar="SECTION.FIELD=VALUE", help="matcher parameters")
+    ap.add_argument("--docs", action="store_true", help="also write the table to docs/benchmarks/")
     args = ap.parse_args()
     try:
         cfg = DEFAULT_CONFIG.with_settings(args.set)
@@ -338,10 +340,16 @@ def main() -> int:
     print("\n## REAL GPS (Kubicka), summed over drives\n")
     print(table(rows))
     us = np.concatenate([np.asarray(r["us"]) for r in rows])
-    print(
-        f"\nper-fix update time (in-process, not the speed benchmark): median {np.median(us):.1f} µs, "
+    timing = (
+        f"per-fix update time (in-process, not the speed benchmark): median {np.median(us):.1f} µs, "
         f"p99 {np.percentile(us, 99):.1f} µs, {len(us)} fixes"
     )
+    print(f"\n{timing}")
+    if args.docs:
+        from report import run_header, write_fragment
+
+        fragment = f"{run_header()}{table(rows)}\n\n{timing}."
+        print(f"wrote {write_fragment('online_real', fragment)}")
     if args.breakdown:
         for tag in ("live", "fin"):
             for hz, with_out in sorted({(float(r["hz"]), bool(r["outages"])) for r in rows}):  # type: ignore[arg-type]

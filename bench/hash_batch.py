@@ -12,7 +12,7 @@ edge; routes and splits): the digest a change that moves distances by rounding a
     python bench/hash_batch.py                 # all 15 tracks, S = 1, 10, 30
     python bench/hash_batch.py --choices       # the matched edges, routes and splits only
     python bench/hash_batch.py --ids 0,14 --S 30
-    python bench/hash_batch.py --set detour_cost_max=20    # which answers a setting changes
+    python bench/hash_batch.py --set batch.detour_cost_max=20    # which answers a setting changes
 """
 
 from __future__ import annotations
@@ -83,7 +83,7 @@ def main() -> int:
     ap.add_argument("--ids", default="all", help="all, or comma-separated track numbers")
     ap.add_argument("--S", default="1,10,30")
     ap.add_argument("--choices", action="store_true", help="hash the choices only, not the floats")
-    ap.add_argument("--set", action="append", default=[], dest="settings", metavar="NAME=VALUE")
+    ap.add_argument("--set", action="append", default=[], dest="settings", metavar="SECTION.FIELD=VALUE")
     a = ap.parse_args()
     from mapmatch.batch import BATCH_CONFIG
 

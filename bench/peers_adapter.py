@@ -57,7 +57,7 @@ does."""
 
 
 SETTINGS_ENV = "MAPMATCH_BENCH_SET"
-"""``NAME=VALUE`` settings, comma-separated, applied to our batch config (``MatchConfig.with_settings``)."""
+"""``SECTION.FIELD=VALUE`` settings, comma-separated, for our batch config (``MatchConfig.with_settings``)."""
 
 
 def load(work: Path) -> BatchMatcher:
@@ -70,7 +70,7 @@ def load(work: Path) -> BatchMatcher:
         graph,
         config=config,
         ubodt=(
-            Ubodt.build(graph, UBODT_DELTA, turn_cost=config.turn_cost, max_bytes=UBODT_MAX_BYTES)
+            Ubodt.build(graph, UBODT_DELTA, turn_cost=config.batch.turn_cost, max_bytes=UBODT_MAX_BYTES)
             if UBODT_DELTA
             else None
         ),

@@ -1,19 +1,24 @@
 """Matcher configuration: nested, named, commented and validated defaults, overridable per call.
 
-:class:`MatchConfig` has three sections: :class:`ModelConfig` (the probabilistic model both
-inference modes share), :class:`OnlineConfig` (the per-vehicle filter) and :class:`BatchConfig`
-(whole-track matching). Every number that changes a result is a field of one of them.
+:class:`MatchConfig` has four sections: :class:`ModelConfig` (the probabilistic model both
+inference modes share), :class:`OnlineConfig` (the per-vehicle filter), :class:`BatchConfig`
+(whole-track matching) and :class:`MeasurementConfig` (the online answer's map-aided
+measurement). Every number that changes a result is a field of one of them.
 
-``config.replace(gps_sigma=8.0)`` changes a field by its name (names are unique across the
-sections); ``config.model.gps_sigma`` reads it (``config.gps_sigma`` is a read-only shorthand).
+A parameter's name is ``section.field``: ``config.model.gps_sigma`` reads it,
+``config.with_settings(["model.gps_sigma=8"])`` (the CLI's ``--set``) and
+``config.updated({"model": {"gps_sigma": 8}})`` (a TOML table) change it, and
+``config.replace(gps_sigma=8.0)`` changes it by its bare name (names are unique across the
+sections).
 """
 
 from __future__ import annotations
 
 import dataclasses
 import math
-from collections.abc import Sequence
-from dataclasses import dataclass, field
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field, fields
+from functools import cached_property
 from typing import Any
 
 from mapmatch.errors import ConfigError
@@ -593,29 +598,107 @@ class BatchConfig:
             raise ConfigError("outlier_lookahead must be 0 or 1")
 
 
-_SECTIONS = {"model": ModelConfig, "online": OnlineConfig, "batch": BatchConfig}
+# default carriageway width in metres per OSM highway class (all lanes, both directions on a
+# two-way road; one carriageway of a dual road drawn as one-way); unknown classes: 6 m
+ROAD_WIDTH_M: tuple[tuple[str, float], ...] = (
+    ("motorway", 7.5),
+    ("trunk", 7.5),
+    ("primary", 7.0),
+    ("secondary", 6.5),
+    ("tertiary", 6.0),
+    ("unclassified", 5.0),
+    ("residential", 5.5),
+    ("living_street", 4.5),
+    ("service", 3.5),
+    ("track", 3.0),
+    ("motorway_link", 4.0),
+    ("trunk_link", 4.0),
+    ("primary_link", 4.0),
+    ("secondary_link", 4.0),
+    ("tertiary_link", 4.0),
+)
+
+
+@dataclass(frozen=True)
+class MeasurementConfig:
+    """How the map-aided measurement is built and when it is usable.
+
+    min_probability : the reported road's probability below which the measurement is not usable.
+    resolved_probability : in an ambiguous region, the probability the reported road needs for
+        the region to count as resolved (usable).
+    settle_distance : metres driven after a (re)initialisation before the measurement is usable.
+    map_sigma : metres; 1-σ error of the map's centre line.
+    lane_width : metres per lane, for a road with a ``lanes`` tag but no ``width``.
+    default_width : metres; the road width for a class not in ``road_width``.
+    road_width : (class, metres) default carriageway width per OSM highway class.
+    road_heading_sigma : degrees; least σ of the road heading (lane changes, drawing).
+    node_heading_sigma : degrees added when one along-track σ reaches past the edge's end.
+    along_sigma_max : metres; the along-track σ is capped here (a very uncertain position is
+        as good as none, and keeps the covariance finite).
+    """
+
+    min_probability: float = 0.9
+    resolved_probability: float = 0.99
+    settle_distance: float = 100.0
+    map_sigma: float = 1.0
+    lane_width: float = 3.25
+    default_width: float = 6.0
+    road_width: tuple[tuple[str, float], ...] = ROAD_WIDTH_M
+    road_heading_sigma: float = 2.0
+    node_heading_sigma: float = 5.0
+    along_sigma_max: float = 1000.0
+
+    def __post_init__(self) -> None:
+        for f in fields(self):
+            v = getattr(self, f.name)
+            if f.name == "road_width":
+                if not all(isinstance(c, str) and math.isfinite(w) and w > 0 for c, w in v):
+                    raise ConfigError("road_width must be (class, positive metres) pairs")
+                continue
+            if isinstance(v, bool) or not isinstance(v, int | float) or not math.isfinite(v) or v < 0:
+                raise ConfigError(f"{f.name} must be a finite non-negative number, got {v!r}")
+        if self.min_probability > 1 or self.resolved_probability > 1:
+            raise ConfigError("min_probability and resolved_probability must be at most 1")
+        if min(self.map_sigma, self.lane_width, self.default_width, self.road_heading_sigma) <= 0:
+            raise ConfigError("map_sigma, lane_width, default_width and road_heading_sigma must be positive")
+
+    @cached_property
+    def width_of(self) -> dict[str, float]:
+        """``road_width`` as a mapping."""
+        return dict(self.road_width)
+
+    @cached_property
+    def cross_sigmas(self) -> dict[tuple[str, bool], float]:
+        """:func:`cross_track_sigma` of a road without width tags by (class, one-way), as
+        computed so far."""
+        return {}
+
+
+_SECTIONS: dict[str, type] = {
+    "model": ModelConfig,
+    "online": OnlineConfig,
+    "batch": BatchConfig,
+    "measurement": MeasurementConfig,
+}
 _OWNER = {f.name: sec for sec, cls in _SECTIONS.items() for f in dataclasses.fields(cls)}
 
 
 @dataclass(frozen=True)
 class MatchConfig:
-    """Parameters of the shared model and of both inference modes, in three sections."""
+    """Parameters of the shared model, of both inference modes and of the map-aided
+    measurement, in four sections. A parameter's full name is ``section.field``
+    (``model.gps_sigma``); field names are unique across the sections, so :meth:`replace`
+    also takes them bare."""
 
     model: ModelConfig = field(default_factory=ModelConfig)
     online: OnlineConfig = field(default_factory=OnlineConfig)
     batch: BatchConfig = field(default_factory=BatchConfig)
+    measurement: MeasurementConfig = field(default_factory=MeasurementConfig)
 
     def __post_init__(self) -> None:
         for name, cls in _SECTIONS.items():
             if not isinstance(getattr(self, name), cls):
                 raise ConfigError(f"{name} must be a {cls.__name__}")
-
-    def __getattr__(self, name: str) -> Any:
-        """Read-only shorthand: ``config.gps_sigma`` is ``config.model.gps_sigma``."""
-        sec = _OWNER.get(name)
-        if sec is None or name.startswith("__"):
-            raise AttributeError(f"{type(self).__name__} has no parameter {name!r}")
-        return getattr(object.__getattribute__(self, sec), name)
 
     def replace(self, **overrides: Any) -> MatchConfig:
         """A copy with some parameters changed (validated): by field name, or a whole section
@@ -626,38 +709,67 @@ class MatchConfig:
         parts: dict[str, Any] = {}
         for sec in _SECTIONS:
             cur = overrides.get(sec, getattr(self, sec))
-            if isinstance(cur, dict):
-                cur = _replace_section(getattr(self, sec), cur)
+            if isinstance(cur, Mapping):
+                cur = _replace_section(sec, getattr(self, sec), cur)
             flat = {k: v for k, v in overrides.items() if _OWNER.get(k) == sec}
-            parts[sec] = _replace_section(cur, flat) if flat else cur
+            parts[sec] = _replace_section(sec, cur, flat) if flat else cur
         return MatchConfig(**parts)
 
     def with_settings(self, settings: Sequence[str]) -> MatchConfig:
-        """A copy with ``NAME=VALUE`` settings (numbers, by field name) applied, as
-        :meth:`replace`; a setting without ``=`` or a value that is no number is a
-        :class:`ConfigError` naming it."""
-        over: dict[str, Any] = {}
+        """A copy with ``SECTION.FIELD=VALUE`` settings (numbers) applied; a setting without
+        ``=``, of an unknown name or with a value that is no number is a :class:`ConfigError`
+        naming it."""
+        nested: dict[str, dict[str, Any]] = {}
         for kv in settings:
             name, sep, value = kv.partition("=")
+            name = name.strip()
             if not sep:
-                raise ConfigError(f"{kv!r}: expected NAME=VALUE")
+                raise ConfigError(f"{kv!r}: expected SECTION.FIELD=VALUE (for example model.gps_sigma=8)")
+            sec, dot, leaf = name.partition(".")
+            if not dot:
+                hint = f"; did you mean {_OWNER[name]}.{name}?" if name in _OWNER else ""
+                raise ConfigError(f"{name!r}: expected SECTION.FIELD{hint}")
             try:  # "8" an integer (counts), "0.5" or "1e3" a float
-                over[name.strip()] = int(value) if value.strip().lstrip("+-").isdigit() else float(value)
+                number = int(value) if value.strip().lstrip("+-").isdigit() else float(value)
             except ValueError:
-                raise ConfigError(f"{name.strip()}: {value!r} is not a number") from None
-        return self.replace(**over)
+                raise ConfigError(f"{name}: {value!r} is not a number") from None
+            nested.setdefault(sec, {})[leaf] = number
+        return self.updated(nested)
+
+    def updated(self, nested: Mapping[str, Any], *, prefix: str = "") -> MatchConfig:
+        """A copy with the values of ``nested`` (``{section: {field: value}}``, as a TOML
+        table gives them) applied and validated; an unknown section or field is a
+        :class:`ConfigError` naming it with ``prefix`` (``match.`` in the server's file)."""
+        parts: dict[str, Any] = {}
+        for sec, values in nested.items():
+            if sec not in _SECTIONS:
+                known = ", ".join(_SECTIONS)
+                raise ConfigError(f"{prefix}{sec}: unknown section (the sections are {known})")
+            if not isinstance(values, Mapping):
+                raise ConfigError(f"{prefix}{sec}: expected a table of its fields")
+            parts[sec] = _replace_section(sec, getattr(self, sec), values, prefix=prefix)
+        return dataclasses.replace(self, **parts)
 
     def to_dict(self) -> dict[str, Any]:
         """Nested plain values, one mapping per section."""
         return dataclasses.asdict(self)
 
 
-def _replace_section(section: Any, changes: dict[str, Any]) -> Any:
+def _replace_section(name: str, section: Any, changes: Mapping[str, Any], *, prefix: str = "") -> Any:
     names = {f.name for f in dataclasses.fields(section)}
-    unknown = set(changes) - names
+    unknown = sorted(set(changes) - names)
     if unknown:
-        raise ConfigError(f"unknown parameter(s): {', '.join(sorted(unknown))}")
-    return dataclasses.replace(section, **changes)
+        raise ConfigError(f"unknown parameter(s): {', '.join(f'{prefix}{name}.{u}' for u in unknown)}")
+    values = dict(changes)
+    if "road_width" in values:  # a TOML table or list of pairs
+        rw = values["road_width"]
+        values["road_width"] = tuple(
+            (str(k), float(v)) for k, v in (rw.items() if isinstance(rw, Mapping) else rw)
+        )
+    try:
+        return dataclasses.replace(section, **values)
+    except TypeError as exc:  # a value of the wrong kind (a string for a number)
+        raise ConfigError(f"{prefix}{name}: {exc}") from None
 
 
 DEFAULT_CONFIG = MatchConfig()

@@ -15,8 +15,8 @@ back is safe (``usable``).
   drawing error ``map_sigma``: uniform over its half of a two-way road (rms offset
   ``(W/2)/√3``) or over the whole width of a one-way one (``W/√12``). ``W`` is the road width:
   from the map's ``width`` tag, else ``lanes · lane_width``, else the default of the road
-  class (:data:`ROAD_WIDTH_M`, the ``road_width`` config field).
-* **Heading**: the road bearing at the point, σ ``heading_sigma`` plus how much the bearing
+  class (the ``measurement.road_width`` config field).
+* **Heading**: the road bearing at the point, σ ``road_heading_sigma`` plus how much the bearing
   changes within one along-track σ (bends), plus ``node_heading_sigma`` when that reach
   crosses the end of the edge (the next road is not known yet).
 * **usable** is false off road, while (re)initialising, for the first ``settle_distance``
@@ -35,34 +35,12 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable
-from dataclasses import dataclass, fields
-from functools import cached_property
 
 import numpy as np
 
 from graph.road_graph import RoadGraph
-from mapmatch.errors import ConfigError
+from mapmatch.config import DEFAULT_CONFIG, MeasurementConfig
 from mapmatch.types import MapAidedMeasurement, State, new_measurement
-
-# default carriageway width in metres per OSM highway class (all lanes, both directions on a
-# two-way road; one carriageway of a dual road drawn as one-way); unknown classes: 6 m
-ROAD_WIDTH_M: tuple[tuple[str, float], ...] = (
-    ("motorway", 7.5),
-    ("trunk", 7.5),
-    ("primary", 7.0),
-    ("secondary", 6.5),
-    ("tertiary", 6.0),
-    ("unclassified", 5.0),
-    ("residential", 5.5),
-    ("living_street", 4.5),
-    ("service", 3.5),
-    ("track", 3.0),
-    ("motorway_link", 4.0),
-    ("trunk_link", 4.0),
-    ("primary_link", 4.0),
-    ("secondary_link", 4.0),
-    ("tertiary_link", 4.0),
-)
 
 # the measurement's columns in a results CSV (``mapmatch replay``), appended to its others
 AIDED_COLUMNS: tuple[str, ...] = (
@@ -89,62 +67,7 @@ BearingAt = Callable[[int, float], float]
 """``(edge, offset) -> bearing in degrees`` of the road there."""
 
 
-@dataclass(frozen=True)
-class MeasurementConfig:
-    """How the map-aided measurement is built and when it is usable.
-
-    min_probability : the reported road's probability below which the measurement is not usable.
-    resolved_probability : in an ambiguous region, the probability the reported road needs for
-        the region to count as resolved (usable).
-    settle_distance : metres driven after a (re)initialisation before the measurement is usable.
-    map_sigma : metres; 1-σ error of the map's centre line.
-    lane_width : metres per lane, for a road with a ``lanes`` tag but no ``width``.
-    default_width : metres; the road width for a class not in ``road_width``.
-    road_width : (class, metres) default carriageway width per OSM highway class.
-    heading_sigma : degrees; least σ of the road heading (lane changes, drawing).
-    node_heading_sigma : degrees added when one along-track σ reaches past the edge's end.
-    along_sigma_max : metres; the along-track σ is capped here (a very uncertain position is
-        as good as none, and keeps the covariance finite).
-    """
-
-    min_probability: float = 0.9
-    resolved_probability: float = 0.99
-    settle_distance: float = 100.0
-    map_sigma: float = 1.0
-    lane_width: float = 3.25
-    default_width: float = 6.0
-    road_width: tuple[tuple[str, float], ...] = ROAD_WIDTH_M
-    heading_sigma: float = 2.0
-    node_heading_sigma: float = 5.0
-    along_sigma_max: float = 1000.0
-
-    def __post_init__(self) -> None:
-        for f in fields(self):
-            v = getattr(self, f.name)
-            if f.name == "road_width":
-                if not all(isinstance(c, str) and math.isfinite(w) and w > 0 for c, w in v):
-                    raise ConfigError("road_width must be (class, positive metres) pairs")
-                continue
-            if isinstance(v, bool) or not isinstance(v, int | float) or not math.isfinite(v) or v < 0:
-                raise ConfigError(f"{f.name} must be a finite non-negative number, got {v!r}")
-        if self.min_probability > 1 or self.resolved_probability > 1:
-            raise ConfigError("min_probability and resolved_probability must be at most 1")
-        if min(self.map_sigma, self.lane_width, self.default_width, self.heading_sigma) <= 0:
-            raise ConfigError("map_sigma, lane_width, default_width and heading_sigma must be positive")
-
-    @cached_property
-    def width_of(self) -> dict[str, float]:
-        """``road_width`` as a mapping."""
-        return dict(self.road_width)
-
-    @cached_property
-    def cross_sigmas(self) -> dict[tuple[str, bool], float]:
-        """:func:`cross_track_sigma` of a road without width tags by (class, one-way), as
-        computed so far."""
-        return {}
-
-
-DEFAULT_MEASUREMENT = MeasurementConfig()
+DEFAULT_MEASUREMENT = DEFAULT_CONFIG.measurement
 
 
 def road_width(
@@ -267,7 +190,7 @@ def heading_sigma(
     b = abs((here - at(edge, length if length < ahead else ahead) + 180.0) % 360.0 - 180.0)
     bend = b if b > a else a
     node = config.node_heading_sigma if ahead > length else 0.0
-    return math.sqrt(config.heading_sigma**2 + bend**2 + node**2)
+    return math.sqrt(config.road_heading_sigma**2 + bend**2 + node**2)
 
 
 def map_aided_measurement(

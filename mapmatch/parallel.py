@@ -125,7 +125,7 @@ def match_partition(
     ubodt_path: str | None = None,
 ) -> tuple[int, int]:
     """Match one partition and write its results file atomically: ``(tracks, points)``."""
-    turn_cost = (config or BATCH_CONFIG).turn_cost
+    turn_cost = (config or BATCH_CONFIG).batch.turn_cost
     matcher = _matcher(map_path, ubodt_delta, turn_cost, ubodt_max_bytes, ubodt_path)
     tracks = list(part.tracks) if part.source is None else read_tracks(part.source, columns=columns)
     results = [matcher.match(t, config) for t in tracks]
@@ -261,7 +261,7 @@ def run_batch(
     in_process = scheduler is None and (workers == 1 or len(todo) <= 1)
     shared = None
     if ubodt_delta and todo and not in_process:  # built once, mapped by every worker
-        turn_cost = (config or BATCH_CONFIG).turn_cost
+        turn_cost = (config or BATCH_CONFIG).batch.turn_cost
         shared = _shared_route_table(pdir, map_s, ubodt_delta, ubodt_max_bytes, turn_cost)
     route_table = (ubodt_delta, ubodt_max_bytes, str(shared) if shared else None)
     done: Iterable[tuple[int, int]]

@@ -48,6 +48,7 @@ from typing import Any, NamedTuple
 
 import grpc
 
+from mapmatch.config import BATCH_CONFIG, MatchConfig
 from mapmatch.errors import ValidationError
 from service.errors import BatchWorkerError, LimitError, StatusError, log_internal, status_for
 from service.gen import mapmatch_pb2 as pb
@@ -260,10 +261,19 @@ class BatchWorkers:
         (:func:`lower_cpu_class`).
     """
 
-    def __init__(self, *, processes: int, limits: TrackLimits, nice: int = 10, sched: str = "idle") -> None:
+    def __init__(
+        self,
+        *,
+        processes: int,
+        limits: TrackLimits,
+        nice: int = 10,
+        sched: str = "idle",
+        match_config: MatchConfig = BATCH_CONFIG,
+    ) -> None:
         import multiprocessing as mp
 
         self.limits = limits
+        self.match_config = match_config
         self.nice = nice
         self.sched = sched
         self._ctx = mp.get_context("spawn")
@@ -373,7 +383,7 @@ class BatchWorkers:
             parent, child = self._ctx.Pipe(duplex=True)
             proc = self._ctx.Process(
                 target=worker_main,
-                args=(child, files, self.limits, os.getpid(), self.nice, self.sched),
+                args=(child, files, self.limits, os.getpid(), self.nice, self.sched, self.match_config),
                 name=f"mapmatch-batch-{slot.index}",
                 daemon=True,
             )
@@ -531,7 +541,7 @@ def _exit_reason(code: int | None) -> str:
 
 
 # ---------------------------------------------------------------------------------- child side
-def _load(mf: MapFile) -> Any:
+def _load(mf: MapFile, config: MatchConfig) -> Any:
     """A map entry (graph, index, batch matcher warmed up) from its file, checksum checked."""
     from graph.artifact import load_map
     from graph.index import EdgeIndex
@@ -548,29 +558,37 @@ def _load(mf: MapFile) -> Any:
             f"map_id: the file of map {mf.map_id!r} changed since the server loaded it; load it again",
         )
     entry = MapEntry(
-        map_id=mf.map_id, graph=graph, source="", checksum=mf.checksum, index=EdgeIndex(graph), online=None
+        map_id=mf.map_id,
+        graph=graph,
+        source="",
+        checksum=mf.checksum,
+        index=EdgeIndex(graph),
+        online=None,
+        batch_config=config,
     )
     warm_batch(entry)
     return entry
 
 
-def _refresh(held: dict[str, Any], files: tuple[MapFile, ...]) -> None:
+def _refresh(held: dict[str, Any], files: tuple[MapFile, ...], config: MatchConfig) -> None:
     keep = {(f.map_id, f.checksum) for f in files}
     for map_id in [k for k, e in held.items() if (k, e.checksum) not in keep]:
         del held[map_id]
     for f in files:
         if f.map_id not in held:
             try:
-                held[f.map_id] = _load(f)
+                held[f.map_id] = _load(f, config)
             except Exception as exc:  # reported by the first call that needs it
                 log.error("batch worker: map %s: %s", f.map_id, exc)
 
 
-def _run_job(held: dict[str, Any], header: tuple[Any, ...], data: bytes, limits: TrackLimits) -> bytes:
+def _run_job(
+    held: dict[str, Any], header: tuple[Any, ...], data: bytes, limits: TrackLimits, config: MatchConfig
+) -> bytes:
     _, kind, mf, prefix = header
     entry = held.get(mf.map_id)
     if entry is None or entry.checksum != mf.checksum:
-        entry = held[mf.map_id] = _load(mf)
+        entry = held[mf.map_id] = _load(mf, config)
     try:
         parse = pb.MatchTrackRequest.FromString if kind == "request" else pb.Track.FromString
         msg = parse(data)
@@ -623,6 +641,7 @@ def worker_main(
     parent: int,
     nice: int = 0,
     sched: str = "normal",
+    config: MatchConfig = BATCH_CONFIG,
 ) -> None:
     """A child process: load the maps, then answer jobs until the pipe closes."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the server's to handle
@@ -634,21 +653,21 @@ def worker_main(
     logging.basicConfig(stream=sys.stderr, level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
     threading.Thread(target=_watch_parent, args=(parent,), daemon=True).start()
     held: dict[str, Any] = {}
-    _refresh(held, files)
+    _refresh(held, files, config)
     with contextlib.suppress(EOFError, OSError):
         conn.send(("ready",))
     while True:
         try:
             header = conn.recv()
             if header[0] == "maps":
-                _refresh(held, header[1])
+                _refresh(held, header[1], config)
                 conn.send(("ready",))
                 continue
             data = conn.recv_bytes()
         except (EOFError, OSError):
             return
         try:
-            out = _run_job(held, header, data, limits)
+            out = _run_job(held, header, data, limits, config)
         except Exception as exc:
             code, fld, msg = status_for(exc)
             if code is grpc.StatusCode.INTERNAL:

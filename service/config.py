@@ -37,6 +37,7 @@ MAPMATCH_MAX_MAP_BYTES      --max-map-bytes N           largest map file LoadMap
 MAPMATCH_LOAD_TIMEOUT       --load-timeout SECONDS      time limit of a map build from source (300)
 MAPMATCH_LOAD_MEMORY_BYTES  --load-memory-bytes N       memory limit of a map build from source (8 GiB)
 MAPMATCH_CONFIG             --config FILE               TOML file with any of the above
+(none)                      --set SECTION.FIELD=VALUE   a matcher parameter (repeat), both matchers
 ==========================  ==========================  ===================================
 
 The session store (:mod:`service.store_checkpoints`):
@@ -57,6 +58,12 @@ table of ``name = "path"``; relative paths are taken from the file's folder::
     max_time_jump = 600
     [maps]
     hel = "helsinki.map"
+    [match.model]          # matcher parameters (mapmatch.config), for the online matcher
+    gps_sigma = 6.0        # over its defaults and the batch matcher over its own
+    [match.batch]
+    gap_time = 300
+
+``--set SECTION.FIELD=VALUE`` flags apply over the file's ``[match]`` tables.
 """
 
 from __future__ import annotations
@@ -70,6 +77,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from mapmatch.config import BATCH_CONFIG, DEFAULT_CONFIG, MatchConfig
 from mapmatch.errors import ConfigError
 
 ENV_PREFIX = "MAPMATCH_"
@@ -149,6 +157,10 @@ class ServerConfig:
         Largest file ``LoadMap`` (or a start-up map) reads.
     load_timeout : float
         Seconds a map build from an OSM/GIS source may take (in a child process).
+    matcher, batch_matcher : MatchConfig
+        The online and the batch matchers' parameters: each its own defaults
+        (:data:`~mapmatch.config.DEFAULT_CONFIG`, :data:`~mapmatch.config.BATCH_CONFIG`) with
+        the ``[match]`` tables of the config file and the ``--set`` flags applied.
     load_memory_bytes : int
         Address-space limit of that child process.
     session_store : str or None
@@ -194,6 +206,8 @@ class ServerConfig:
     max_map_bytes: int = 4 * 1024**3
     load_timeout: float = 300.0
     load_memory_bytes: int = 8 * 1024**3
+    matcher: MatchConfig = field(default=DEFAULT_CONFIG, repr=False)
+    batch_matcher: MatchConfig = field(default=BATCH_CONFIG, repr=False)
     session_store: str | None = field(default=None, repr=False)  # the URL may hold a password
     checkpoint_interval: float = 1.0
     store_timeout: float = 0.1
@@ -315,6 +329,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument("--config", type=Path, help="TOML file with server settings [MAPMATCH_CONFIG]")
     parser.add_argument(
+        "--set", action="append", default=None, metavar="SECTION.FIELD=VALUE", dest="settings",
+        help="a matcher parameter by its full name in mapmatch.config, for the online and the "
+        "batch matcher (repeatable; over the config file's [match] tables)",
+    )  # fmt: skip
+    parser.add_argument(
         "--map-dir", type=Path, help="LoadMap reads only files in here [MAPMATCH_MAP_DIR; off]"
     )
     for flag, kind, text in _LIMIT_FLAGS:
@@ -385,9 +404,19 @@ def read_config_file(path: Path) -> dict[str, Any]:
     out: dict[str, Any] = {}
     for raw_key, value in data.items():
         key = raw_key.replace("-", "_")
-        if key not in _FIELDS and key != "token_file":
+        if key in ("matcher", "batch_matcher") or (key not in _FIELDS and key not in ("token_file", "match")):
             raise ConfigError(f"config file {path}: unknown setting {raw_key!r}")
-        if key == "maps":
+        if key == "match":
+            if not isinstance(value, dict):
+                raise ConfigError(
+                    f"config file {path}: match must be a table of sections ([match.model], ...)"
+                )
+            try:
+                out["matcher"] = DEFAULT_CONFIG.updated(value, prefix="match.")
+                out["batch_matcher"] = BATCH_CONFIG.updated(value, prefix="match.")
+            except ConfigError as exc:
+                raise ConfigError(f"config file {path}: {exc}") from None
+        elif key == "maps":
             if not isinstance(value, dict) or not all(isinstance(v, str) for v in value.values()):
                 raise ConfigError(f'config file {path}: maps must be a table of name = "path"')
             out[key] = tuple((str(n), base / v) for n, v in value.items())
@@ -463,6 +492,12 @@ def config_from(
         specs = [s for s in text.split(",") if s.strip()]
     if specs:
         out["maps"] = tuple(parse_map_spec(s) for s in specs)
+    settings = ns.get("settings") or []
+    if settings:
+        for key, default in (("matcher", DEFAULT_CONFIG), ("batch_matcher", BATCH_CONFIG)):
+            base = out.get(key, default)
+            assert isinstance(base, MatchConfig)
+            out[key] = base.with_settings(settings)
     try:
         return ServerConfig(**out)  # type: ignore[arg-type]
     except TypeError as exc:

@@ -36,7 +36,7 @@ from graph.errors import GraphError
 from graph.index import EdgeIndex
 from graph.projection import point_to_lonlat
 from graph.road_graph import ARRAY_FIELDS, RoadGraph
-from mapmatch.config import DEFAULT_CONFIG, MatchConfig
+from mapmatch.config import BATCH_CONFIG, DEFAULT_CONFIG, MatchConfig
 from mapmatch.errors import ValidationError
 from mapmatch.types import Fix, State, Track
 from service.errors import LimitError, MapLoadError, MapNotFoundError, MapPathError
@@ -77,18 +77,19 @@ class MapEntry:
     index: EdgeIndex
     online: Any
     config: MatchConfig = DEFAULT_CONFIG
+    batch_config: MatchConfig = BATCH_CONFIG
     path: Path | None = None  # the map file it was loaded from (batch worker processes map it too)
     _batch: Any = field(default=None, repr=False)
     _lock: threading.Lock = field(default_factory=threading.Lock, repr=False)
 
     @property
     def batch(self) -> Any:
-        """The map's batch matcher (thread-safe, with the batch defaults), built on first use."""
+        """The map's batch matcher (thread-safe, with ``batch_config``), built on first use."""
         with self._lock:
             if self._batch is None:
                 from mapmatch.batch import BatchMatcher
 
-                self._batch = BatchMatcher(self.graph, index=self.index)
+                self._batch = BatchMatcher(self.graph, index=self.index, config=self.batch_config)
             return self._batch
 
     @property
@@ -119,9 +120,15 @@ def _no_paths(obj: Any) -> Any:
 
 
 def make_entry(
-    map_id: str, graph: RoadGraph, *, source: str = "", config: MatchConfig = DEFAULT_CONFIG
+    map_id: str,
+    graph: RoadGraph,
+    *,
+    source: str = "",
+    config: MatchConfig = DEFAULT_CONFIG,
+    batch_config: MatchConfig = BATCH_CONFIG,
 ) -> MapEntry:
-    """Build the index and matchers for a graph."""
+    """Build the index and matchers for a graph (``config`` the online matcher's parameters,
+    ``batch_config`` the batch matcher's)."""
     from mapmatch.online import OnlineMatcher
 
     index = EdgeIndex(graph)
@@ -134,6 +141,7 @@ def make_entry(
         index=index,
         online=online,
         config=config,
+        batch_config=batch_config,
     )
 
 
@@ -147,10 +155,13 @@ class MapRegistry:
     ``on_unload`` is called with a map id after it is removed (the session store drops its sessions).
     """
 
-    def __init__(self, *, config: MatchConfig = DEFAULT_CONFIG) -> None:
+    def __init__(
+        self, *, config: MatchConfig = DEFAULT_CONFIG, batch_config: MatchConfig = BATCH_CONFIG
+    ) -> None:
         self._maps: dict[str, MapEntry] = {}
         self._lock = threading.Lock()
         self.config = config
+        self.batch_config = batch_config
         self.on_unload: list[Callable[[str], int]] = []
 
     def add(
@@ -176,7 +187,7 @@ class MapRegistry:
         """A map's entry (index and matchers), not yet registered."""
         if not map_id or "/" in map_id:
             raise ValidationError("map_id", "must be a non-empty name without '/'")
-        return make_entry(map_id, graph, source=source, config=self.config)
+        return make_entry(map_id, graph, source=source, config=self.config, batch_config=self.batch_config)
 
     def install(self, entry: MapEntry) -> MapEntry:
         """Register a prepared (and warmed-up) entry, replacing any map of the same id."""

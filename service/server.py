@@ -89,6 +89,7 @@ class ServiceRuntime:
                 ),
                 nice=config.batch_nice,
                 sched=config.batch_sched,
+                match_config=config.batch_matcher,
             )
             if config.batch_processes > 0
             else None
@@ -475,11 +476,11 @@ def _credentials(config: ServerConfig) -> grpc.ServerCredentials | None:
     )
 
 
-def _registry(maps: MapsArg) -> tuple[MapRegistry, list[tuple[str, Path]]]:
-    """The registry, plus maps still to be loaded from files."""
+def _registry(maps: MapsArg, config: ServerConfig) -> tuple[MapRegistry, list[tuple[str, Path]]]:
+    """The registry (with the configured matcher parameters), plus maps still to be loaded."""
     if isinstance(maps, MapRegistry):
         return maps, []
-    reg = MapRegistry()
+    reg = MapRegistry(config=config.matcher, batch_config=config.batch_matcher)
     to_load: list[tuple[str, Path]] = []
     for name, m in (maps or {}).items():
         if isinstance(m, RoadGraph):
@@ -514,7 +515,7 @@ def create_server(config: ServerConfig, maps: MapsArg = None) -> ServiceRuntime:
     ConfigError
         A TLS file is unreadable or not PEM, or a map name is bad.
     """
-    registry, to_load = _registry(maps)
+    registry, to_load = _registry(maps, config)
     to_load += [(n, p) for n, p in config.maps if n not in registry]
     log.info("configuration checked (%s)", "TLS" if config.tls else "plain text")
     return ServiceRuntime(config=config, registry=registry, to_load=to_load)

@@ -172,7 +172,7 @@ def test_a_gap_driven_at_road_speed_is_bridged_by_its_route() -> None:
     )
     xy = [at(m, "a", 100, 3), at(m, "a", 300, -3), at(m, "a", 500, 2)]
     xy += [at(m, "b", -4, -300), at(m, "b", 3, -380)]
-    assert math.dist(xy[2], xy[3]) > DEFAULT_CONFIG.gap_distance
+    assert math.dist(xy[2], xy[3]) > DEFAULT_CONFIG.batch.gap_distance
     ll = np.array([m.lonlat(x, y) for x, y in xy])
     bridged = Track("t", np.array([0.0, 15.0, 30.0, 180.0, 190.0]), ll[:, 1], ll[:, 0])
     r = BatchMatcher(m.graph).match(bridged)
@@ -277,7 +277,7 @@ def test_turning_round_at_a_junction_after_a_stop() -> None:
     assert r.length_m == pytest.approx(150, abs=12)
     # without the stop rule the full U-turn penalty makes the loop win (either way round: the
     # same length and the same turns)
-    full = DEFAULT_CONFIG.replace(stop_uturn_penalty=DEFAULT_CONFIG.uturn_penalty)
+    full = DEFAULT_CONFIG.replace(stop_uturn_penalty=DEFAULT_CONFIG.model.uturn_penalty)
     r = BatchMatcher(m.graph).match(track, full)
     loops = ([["ab", "bc", "ce", "ed", "db", "ba"]], [["ab", "bd", "de", "ec", "cb", "ba"]])
     assert [names(m, piece) for piece in r.routes] in loops
@@ -1049,8 +1049,8 @@ def test_of_two_routes_of_one_length_the_one_with_fewer_turns_wins() -> None:
     flat = DEFAULT_CONFIG.replace(turn_cost=0)
     assert [names(m, piece) for piece in BatchMatcher(m.graph).match(track, flat).routes] == steps
     # the same with a route table built with the turn costs, and one without them (not used)
-    assert Ubodt.build(m.graph, 500.0).turn_cost == DEFAULT_CONFIG.turn_cost  # the default's
-    for cost in (DEFAULT_CONFIG.turn_cost, 0.0):
+    assert Ubodt.build(m.graph, 500.0).turn_cost == DEFAULT_CONFIG.batch.turn_cost  # the default's
+    for cost in (DEFAULT_CONFIG.batch.turn_cost, 0.0):
         table = Ubodt.build(m.graph, 500.0, turn_cost=cost)
         r = BatchMatcher(m.graph, ubodt=table).match(track)
         assert [names(m, piece) for piece in r.routes] == corner

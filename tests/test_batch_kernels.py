@@ -495,14 +495,14 @@ def test_one_compiled_call_matches_as_the_python_steps_do(rules: str) -> None:
         if i % 7 == 3:
             extra["distance"] = rng.uniform(0, 60, n)
         t = Track("r", np.arange(n) * 3.0, lat, lon, **extra)
-        q = matcher.index.query(xy, BATCH_CONFIG.search_radius) if n else None
+        q = matcher.index.query(xy, BATCH_CONFIG.model.search_radius) if n else None
         d = q.point if q is not None else np.zeros(0, dtype=int)
         lonely += n - len(np.unique(d))
         if q is not None and len(d):
             near = np.full(n, np.inf)
             np.minimum.at(near, q.point, q.dist)
-            own = model.track_sigma(near[np.isfinite(near)], cfg.gps_sigma, cfg.track_sigma_max)
-            raised += own > cfg.gps_sigma
+            own = model.track_sigma(near[np.isfinite(near)], cfg.model.gps_sigma, cfg.batch.track_sigma_max)
+            raised += own > cfg.model.gps_sigma
         a, b = matcher._match_compiled(t, cfg), matcher._match_steps(t, cfg)
         assert a.routes == b.routes and a.splits == b.splits
         assert a.length_m == b.length_m and a.confidence == b.confidence

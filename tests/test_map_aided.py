@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 
 from graph.ascii import parse_ascii_map
+from mapmatch.config import DEFAULT_CONFIG
 from mapmatch.measurement import DEFAULT_MEASUREMENT, cross_track_sigma, road_width
 from mapmatch.online import OnlineMatcher
 from mapmatch.sim.closed_loop import closed_loop_drive, in_process
@@ -117,7 +118,7 @@ def test_measurement_fields_and_usable_gating_on_a_drive() -> None:
     assert res[mid].map_aided.along_sigma > res[before].map_aided.along_sigma
     # a settling distance longer than the drive: never usable, and the matcher's answers
     # (edges, offsets, states) do not change
-    strict = OnlineMatcher(m.graph, measurement=replace(DEFAULT_MEASUREMENT, settle_distance=1e9))
+    strict = OnlineMatcher(m.graph, config=DEFAULT_CONFIG.replace(settle_distance=1e9))
     st2 = strict.new_session()
     res2 = [strict.update(st2, f) for f in drive.fix_objects()]
     assert not any(r.map_aided.usable for r in res2)

@@ -161,14 +161,17 @@ def test_match_command_sets_any_parameter_by_name(
     out = tmp_path / "points.csv"
     assert main([*base, "-o", str(out)]) == 0
     assert set(pd.read_csv(out)["status"]) == {"matched"}
-    assert main([*base, "-o", str(out), "--set", "outlier_distance=0.5", "--set", "search_radius=0.5"]) == 1
+    settings = ["--set", "batch.outlier_distance=0.5", "--set", "model.search_radius=0.5"]
+    assert main([*base, "-o", str(out), *settings]) == 1
     assert (pd.read_csv(out)["status"] == "unmatched").mean() > 0.5
     capsys.readouterr()
     for bad, says in (
-        ("nope=1", "unknown parameter(s): nope"),
-        ("gps_sigma=abc", "gps_sigma: 'abc' is not a number"),
-        ("gps_sigma", "expected NAME=VALUE"),
-        ("gps_sigma=-1", "gps_sigma must be a finite non-negative number"),
+        ("model.nope=1", "unknown parameter(s): model.nope"),
+        ("nosuch.gps_sigma=1", "nosuch: unknown section"),
+        ("gps_sigma=1", "did you mean model.gps_sigma?"),
+        ("model.gps_sigma=abc", "model.gps_sigma: 'abc' is not a number"),
+        ("model.gps_sigma", "expected SECTION.FIELD=VALUE"),
+        ("model.gps_sigma=-1", "gps_sigma must be a finite non-negative number"),
     ):
         assert main([*base, "-o", str(tmp_path / "bad.csv"), "--set", bad]) == 2
         err = capsys.readouterr().err

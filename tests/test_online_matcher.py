@@ -558,7 +558,7 @@ def test_online_tuning_constants_are_validated_config_fields() -> None:
     from mapmatch.errors import ConfigError
 
     cfg = DEFAULT_CONFIG.replace(max_hypotheses=8, stop_speed=0.3, node_hold_sigmas=2.0)
-    assert (cfg.max_hypotheses, cfg.stop_speed, cfg.node_hold_sigmas) == (8, 0.3, 2.0)
+    assert (cfg.online.max_hypotheses, cfg.online.stop_speed, cfg.online.node_hold_sigmas) == (8, 0.3, 2.0)
     for bad in (
         {"max_hypotheses": 0},
         {"max_hypotheses": 2.5},
@@ -568,23 +568,6 @@ def test_online_tuning_constants_are_validated_config_fields() -> None:
     ):
         with pytest.raises(ConfigError):
             DEFAULT_CONFIG.replace(**bad)
-
-
-def test_settings_by_name_and_value_as_the_benchmarks_take_them() -> None:
-    from mapmatch.errors import ConfigError
-
-    cfg = DEFAULT_CONFIG.with_settings(["step_from_corrected=0", " node_hold_sigmas = 2.5"])
-    assert (cfg.step_from_corrected, cfg.node_hold_sigmas) == (0.0, 2.5)
-    assert DEFAULT_CONFIG.with_settings([]) == DEFAULT_CONFIG
-    assert type(DEFAULT_CONFIG.with_settings(["max_hypotheses=8"]).max_hypotheses) is int
-    for bad, says in (
-        (["step_from_corrected"], "NAME=VALUE"),
-        (["node_hold_sigmas=wide"], "node_hold_sigmas"),
-        (["no_such_field=1"], "no_such_field"),
-        (["max_hypotheses=0"], "max_hypotheses"),
-    ):
-        with pytest.raises(ConfigError, match=says):
-            DEFAULT_CONFIG.with_settings(bad)
 
 
 TURN_THEN_CROSS = """
@@ -770,7 +753,7 @@ def test_odometer_scale_is_learnt_between_turns() -> None:
     for f in fixes:
         matcher.update(st, f)
     assert st.odo_k == pytest.approx(1.0 / 0.97 - 1.0, abs=0.01)
-    assert st.odo_kvar < DEFAULT_CONFIG.odo_scale_sigma**2 / 4.0
+    assert st.odo_kvar < DEFAULT_CONFIG.online.odo_scale_sigma**2 / 4.0
     # the learnt scale survives a move to another server
     assert SessionState.from_bytes(st.to_bytes()).odo_k == st.odo_k
 

@@ -1,4 +1,4 @@
-"""The wheel: the three packages as their folders are named, the .proto as data, and `mapmatch.__version__`."""
+"""The wheel: the three packages as their folders are named, the .proto as data, and the version."""
 
 from __future__ import annotations
 
@@ -33,7 +33,9 @@ def wheel(tmp_path_factory: pytest.TempPathFactory) -> Path:
 def test_wheel_has_the_three_packages_and_the_proto(wheel: Path) -> None:
     names = zipfile.ZipFile(wheel).namelist()
     tops = {n.split("/", 1)[0] for n in names}
-    assert {t for t in tops if not t.endswith((".dist-info", ".data"))} == {"graph", "mapmatch", "service"}, tops
+    assert {t for t in tops if not t.endswith((".dist-info", ".data"))} == {"graph", "mapmatch", "service"}, (
+        tops
+    )
     for need in (
         "graph/artifact.py",
         "graph/py.typed",

@@ -135,9 +135,9 @@ class BatchMatcher:
         self._table = ubodt.table if ubodt is not None else NO_TABLE
         self.index = index or EdgeIndex(graph)
         self.config = config or BATCH_CONFIG
-        self._grid = GridIndex(self.index, cell=self.config.search_radius)
-        self._rg = route_graph(graph, uturns="dead_end", turn_cost=self.config.turn_cost)
-        self._rg_by_cost: dict[float, RouteGraph] = {float(self.config.turn_cost): self._rg}
+        self._grid = GridIndex(self.index, cell=self.config.model.search_radius)
+        self._rg = route_graph(graph, uturns="dead_end", turn_cost=self.config.batch.turn_cost)
+        self._rg_by_cost: dict[float, RouteGraph] = {float(self.config.batch.turn_cost): self._rg}
         seg_xy = read_only(graph.seg_xy, F8)
         seg_ptr = read_only(graph.edge_seg_ptr, I8)
         self._geom = EdgeGeometry(seg_xy, seg_ptr, read_only(segment_lengths(seg_xy, seg_ptr), F8))
@@ -165,18 +165,18 @@ class BatchMatcher:
 
     def _table_for(self, cfg: MatchConfig) -> RouteTable:
         """The route table if it was built with ``cfg``'s turn cost, else none (every route searched)."""
-        if self.ubodt is not None and self.ubodt.turn_cost == cfg.turn_cost:
+        if self.ubodt is not None and self.ubodt.turn_cost == cfg.batch.turn_cost:
             return self._table
         return NO_TABLE
 
     def _router_for(self, st: _ThreadState, cfg: MatchConfig) -> Router:
         """This thread's router for ``cfg``'s turn cost (the moves' costs are the graph's)."""
-        rg = self._rg_by_cost.get(float(cfg.turn_cost))
+        rg = self._rg_by_cost.get(float(cfg.batch.turn_cost))
         if rg is None:
             if len(self._rg_by_cost) >= 8:
-                self._rg_by_cost = {float(self.config.turn_cost): self._rg}
-            rg = self._rg_by_cost[float(cfg.turn_cost)] = route_graph(
-                self.graph, uturns="dead_end", turn_cost=cfg.turn_cost
+                self._rg_by_cost = {float(self.config.batch.turn_cost): self._rg}
+            rg = self._rg_by_cost[float(cfg.batch.turn_cost)] = route_graph(
+                self.graph, uturns="dead_end", turn_cost=cfg.batch.turn_cost
             )
         if rg is st.router.g:
             return st.router
@@ -188,25 +188,25 @@ class BatchMatcher:
         if st is None or st.config is not cfg:
             sigma = float(model.position_sigma(np.nan, cfg))
             query = QueryParams(
-                radius=float(cfg.search_radius), outlier=float(cfg.outlier_distance),
-                k=int(cfg.max_candidates), min_dist=float(cfg.interpolate_distance),
+                radius=float(cfg.model.search_radius), outlier=float(cfg.batch.outlier_distance),
+                k=int(cfg.model.max_candidates), min_dist=float(cfg.batch.interpolate_distance),
             )  # fmt: skip
             rules = _Rules(
-                spike_sigmas=float(cfg.spike_sigmas), spike_speed=float(cfg.spike_speed),
-                spike_max_time=float(cfg.spike_max_time),
-                motion_heading_sigma=float(cfg.motion_heading_sigma),
-                motion_min_distance=float(cfg.motion_min_distance),
-                motion_end_leg_max=float(cfg.motion_end_leg_max),
-                straight_max_deg=float(cfg.straight_max_deg),
+                spike_sigmas=float(cfg.batch.spike_sigmas), spike_speed=float(cfg.batch.spike_speed),
+                spike_max_time=float(cfg.batch.spike_max_time),
+                motion_heading_sigma=float(cfg.batch.motion_heading_sigma),
+                motion_min_distance=float(cfg.batch.motion_min_distance),
+                motion_end_leg_max=float(cfg.batch.motion_end_leg_max),
+                straight_max_deg=float(cfg.model.straight_max_deg),
             )  # fmt: skip
             track_rules = RuleParams(
                 gps_sigma=sigma, spike_sigmas=rules.spike_sigmas, spike_speed=rules.spike_speed,
                 spike_max_time=rules.spike_max_time,
                 motion_sigma=rules.motion_heading_sigma, motion_min_distance=rules.motion_min_distance,
                 motion_end_leg_max=rules.motion_end_leg_max,
-                straight_max_deg=rules.straight_max_deg, heading_sigma=float(cfg.heading_sigma),
-                heading_min_speed=float(cfg.heading_min_speed),
-                track_sigma_max=float(cfg.track_sigma_max), thin_sigmas=float(cfg.thin_sigmas),
+                straight_max_deg=rules.straight_max_deg, heading_sigma=float(cfg.model.heading_sigma),
+                heading_min_speed=float(cfg.model.heading_min_speed),
+                track_sigma_max=float(cfg.batch.track_sigma_max), thin_sigmas=float(cfg.batch.thin_sigmas),
             )  # fmt: skip
             st = _Settings(cfg, kernel_params(cfg, sigma), query, sigma, rules, track_rules)
             if len(self._settings) >= 64:
@@ -316,8 +316,8 @@ class BatchMatcher:
         kept, kidx, cands = self._kept_candidates(xy, valid, q.min_dist, q)
         # the track's σ where its fixes lie further from the roads than the configured one says
         first = np.unique(cands.point, return_index=True)[1]  # each fix's nearest road
-        sigma0 = model.track_sigma(cands.dist[first], st.sigma, float(cfg.track_sigma_max))
-        far = float(cfg.thin_sigmas) * (sigma0 - st.sigma)
+        sigma0 = model.track_sigma(cands.dist[first], st.sigma, float(cfg.batch.track_sigma_max))
+        far = float(cfg.batch.thin_sigmas) * (sigma0 - st.sigma)
         if far > q.min_dist:
             kept, kidx, cands = self._kept_candidates(xy, valid, far, q)
         # jumps (a fix reached and left in opposite directions too fast) get no candidates

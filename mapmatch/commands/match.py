@@ -104,9 +104,9 @@ def register(subparsers: Any) -> None:
     model.add_argument("--interpolate-distance", type=float, default=None, metavar="M",
                        help="points closer than this to the previous one are interpolated")  # fmt: skip
     model.add_argument(
-        "--set", action="append", default=[], metavar="NAME=VALUE", dest="settings",
-        help="any other model or batch parameter by its name in mapmatch.config (repeatable), "
-        "e.g. --set gap_time=300 splits tracks at pauses over 5 minutes",
+        "--set", action="append", default=[], metavar="SECTION.FIELD=VALUE", dest="settings",
+        help="any other matcher parameter by its full name in mapmatch.config (repeatable), "
+        "e.g. --set batch.gap_time=300 splits tracks at pauses over 5 minutes",
     )  # fmt: skip
     p.set_defaults(func=run_match)
 

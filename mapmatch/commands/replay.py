@@ -49,6 +49,11 @@ def register(subparsers: Any) -> None:
     model.add_argument(
         "--reinit-time", type=float, default=None, metavar="S", help="seconds off road to reinit"
     )
+    model.add_argument(
+        "--set", action="append", default=[], metavar="SECTION.FIELD=VALUE", dest="settings",
+        help="any other matcher parameter by its full name in mapmatch.config (repeatable), "
+        "e.g. --set online.turn_window=40",
+    )  # fmt: skip
     p.set_defaults(func=run_replay)
 
 
@@ -69,7 +74,7 @@ def run_replay(args: argparse.Namespace) -> int:
     from mapmatch.cli import EXIT_OK, EXIT_PARTIAL, CommandError
     from mapmatch.commands._fixio import output_path, read_fixes_arg, rejected_failure, summary_stream
     from mapmatch.config import DEFAULT_CONFIG
-    from mapmatch.errors import ValidationError
+    from mapmatch.errors import ConfigError, ValidationError
     from mapmatch.fixes import write_results_csv
     from mapmatch.online import OnlineMatcher
     from mapmatch.types import Fix, SnapResult
@@ -85,7 +90,10 @@ def run_replay(args: argparse.Namespace) -> int:
         )
         if v is not None
     }
-    config = DEFAULT_CONFIG.replace(**over)
+    try:
+        config = DEFAULT_CONFIG.replace(**over).with_settings(args.settings)
+    except ConfigError as exc:
+        raise CommandError(str(exc)) from None
     vehicles = read_fixes_arg(args)
     graph = load_map_any(args.map)
     matcher = OnlineMatcher(graph, config=config)

@@ -10,7 +10,6 @@ from graph.index import EdgeIndex
 from graph.neighbours import Neighbours, edge_neighbours
 from graph.road_graph import RoadGraph
 from mapmatch.config import DEFAULT_CONFIG, MatchConfig
-from mapmatch.measurement import DEFAULT_MEASUREMENT, MeasurementConfig
 from mapmatch.online import anchor, bias, hypotheses, region, report, stopline
 from mapmatch.online.correction import remember_live
 from mapmatch.online.filter import best as best_of
@@ -32,9 +31,8 @@ class OnlineMatcher:
     index
         Its spatial index (built when omitted).
     config
-        Default parameters; :meth:`update` accepts a per-call override.
-    measurement
-        How each answer's map-aided measurement is built (:mod:`mapmatch.measurement`).
+        Default parameters (the map-aided measurement's among them); :meth:`update` accepts a
+        per-call override.
     """
 
     def __init__(
@@ -42,12 +40,10 @@ class OnlineMatcher:
         graph: RoadGraph,
         index: EdgeIndex | None = None,
         config: MatchConfig = DEFAULT_CONFIG,
-        measurement: MeasurementConfig = DEFAULT_MEASUREMENT,
     ):
         self.graph = graph
         self.index = index if index is not None else EdgeIndex(graph)
         self.config = config
-        self.measurement = measurement
         self.road = RoadModel(graph)
         o = config.online
         # parallel roads and slowly separating fork branches of every edge, looked up per fix
@@ -109,7 +105,6 @@ class OnlineMatcher:
             turn=turn,
             correction=corr,
             reinit=reinit,
-            measurement=self.measurement,
         )
 
     # ------------------------------------------------------------------ steps of update

@@ -7,7 +7,7 @@ import math
 
 from graph.projection import point_to_lonlat
 from mapmatch.config import MatchConfig
-from mapmatch.measurement import DEFAULT_MEASUREMENT, MeasurementConfig, map_aided_measurement
+from mapmatch.measurement import map_aided_measurement
 from mapmatch.online.filter import best as best_of
 from mapmatch.online.road import RoadModel
 from mapmatch.online.state import Hypothesis, SessionState, Step
@@ -103,7 +103,6 @@ def report(
     turn: Turn,
     correction: Correction | None,
     reinit: bool,
-    measurement: MeasurementConfig = DEFAULT_MEASUREMENT,
 ) -> SnapResult:
     """The result for ``fix``: ``shown``'s position, the way piece under it, the candidates,
     the state and the map-aided measurement."""
@@ -141,7 +140,7 @@ def report(
         road_class=road_class,
         one_way=road.rev[e] < 0,
         bearing_at=road.bearing_at,
-        config=measurement,
+        config=cfg.measurement,
     )
     return new_snap_result(
         fix.time,  # time
