@@ -34,7 +34,6 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from conftest import KUBICKA
 from failover_util import nginx, redis_server
 
 from graph.artifact import save_map
@@ -53,6 +52,7 @@ redis = pytest.importorskip("redis", reason="needs the redis client: pip install
 pytestmark = pytest.mark.slow
 
 ROOT = Path(__file__).resolve().parents[1]
+KUBICKA = Path(os.environ.get("MAPMATCH_SHARED", ROOT.parent / "shared")) / "data" / "kubicka"
 TRACKS = ("00000003", "00000007", "00000045", "00000070", "00000091")  # small maps, real drives
 SEEDS = (1, 2)  # two fused drives of each track (dead-reckoning errors and outages differ)
 WINDOWS = 5  # vehicles per drive: windows starting at spread places along it
