@@ -377,6 +377,7 @@ class Checkpointer:
                 blob = to_bytes(s.state)
                 answer = s.answer
                 used = s.last_used
+            time.sleep(0)  # hand the interpreter to a waiting fix between two sessions
             last = convert.snap_result_to_proto(answer).SerializeToString() if answer is not None else b""
             records.append((session_key(checksum, s.key[1]), pack(blob, last)))
             done.append((s, used))
