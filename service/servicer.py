@@ -28,7 +28,7 @@ import socket
 import threading
 from collections.abc import AsyncIterator, Callable, Sequence
 from concurrent.futures import Executor
-from typing import Any, TypeVar
+from typing import TYPE_CHECKING, Any, TypeVar
 
 import grpc
 from grpc import aio
@@ -52,6 +52,9 @@ from service.gen import mapmatch_pb2 as pb
 from service.gen import mapmatch_pb2_grpc as pb_grpc
 from service.maps import LoadLimits, MapEntry, MapRegistry, resolve_map_path
 from service.sessions import SessionStore
+
+if TYPE_CHECKING:
+    from service.store_checkpoints import Checkpointer
 
 T = TypeVar("T")
 SERVICE_NAME = pb.DESCRIPTOR.services_by_name["MapMatch"].full_name
@@ -150,6 +153,9 @@ def load_limits(config: ServerConfig) -> LoadLimits:
 class MapMatchServicer(pb_grpc.MapMatchServicer):
     """Serves the API over a map registry and a session store.
 
+    ``checkpoints`` (set by the server with ``--session-store``) brings unknown vehicles'
+    sessions from the store before their fixes and hands a stream's vehicles over when it ends.
+
     Parameters
     ----------
     maps
@@ -191,6 +197,7 @@ class MapMatchServicer(pb_grpc.MapMatchServicer):
         self.on_maps_changed = on_maps_changed
         self._short_id = self.config.max_vehicle_id // 4  # ids this long or shorter fit in any case
         self.server_id = f"{socket.gethostname()}:{os.getpid()}"
+        self.checkpoints: Checkpointer | None = None
 
     async def _offload(self, context: aio.ServicerContext | None, fn: Callable[[], T]) -> T:
         await self._check_deadline(context)
@@ -213,7 +220,9 @@ class MapMatchServicer(pb_grpc.MapMatchServicer):
 
         A fix more than ``max_time_jump`` seconds from the session's last accepted fix
         (either way) starts the session afresh and is answered ``reinitialised``; a rejected
-        fix leaves the session as it was (no new session, no refreshed idle timer).
+        fix leaves the session as it was (no new session, no refreshed idle timer). A resend
+        of the last accepted fix (same time and position: a client's retry) gets that fix's
+        answer again and changes nothing.
         """
         entry = self.maps.get(req.map_id)
         vehicle_id = req.vehicle_id
@@ -232,20 +241,20 @@ class MapMatchServicer(pb_grpc.MapMatchServicer):
         s = sessions.live((entry.map_id, vehicle_id))
         if s is not None and s.lock.acquire(blocking=False):  # a known vehicle, not busy
             try:
-                result, jumped = self._update(online, s, fix)
+                result, _ = self._update(online, s, fix)
             finally:
                 s.lock.release()
             sessions.touch(s)
         else:
             with sessions.use(entry.map_id, vehicle_id, online.new_session) as s:
-                result, jumped = self._update(online, s, fix)
-        if jumped:
-            result = dataclasses.replace(result, state=State.REINITIALISED)
+                result, _ = self._update(online, s, fix)
         return convert.snap_response(entry.map_id, vehicle_id, req.seq, result)
 
     def _update(self, online: Any, s: Any, fix: Any) -> tuple[Any, bool]:
         """The update of a locked session: (the result, whether the time jump restarted it)."""
         last = s.state.time
+        if fix.time == last and (a := s.answer) is not None and a.raw_lat == fix.lat and a.raw_lon == fix.lon:
+            return a, False  # a resend of the fix last answered (a client's retry)
         jumped = math.isfinite(last) and abs(fix.time - last) > self.config.max_time_jump
         state = online.new_session() if jumped else s.state
         try:
@@ -257,6 +266,9 @@ class MapMatchServicer(pb_grpc.MapMatchServicer):
             s.state = online.new_session()
             raise
         s.state = state
+        if jumped:
+            result = dataclasses.replace(result, state=State.REINITIALISED)
+        s.answer = result
         return result, jumped
 
     def answer(self, req: pb.FixRequest) -> pb.SnapResponse:
@@ -281,6 +293,11 @@ class MapMatchServicer(pb_grpc.MapMatchServicer):
         self, request_iterator: AsyncIterator[pb.FixRequest], context: aio.ServicerContext
     ) -> AsyncIterator[pb.SnapResponse]:
         answer = self.answer
+        if self.checkpoints is not None:  # sessions in the store: look-ups first, hand-over at the end
+            submit = None if self.config.inline_fixes else self.online.submit
+            async for resp in self.checkpoints.stream(request_iterator, context, answer, submit):
+                yield resp
+            return
         if self.config.inline_fixes:  # no thread hop: one fix is a bounded, short piece of work
             async for req in request_iterator:
                 yield answer(req)
@@ -299,6 +316,8 @@ class MapMatchServicer(pb_grpc.MapMatchServicer):
                 raise LimitError(
                     "max_batch_fixes", f"a FixBatch has {len(fixes)} fixes, over the server's limit of {cap}"
                 )
+            if self.checkpoints is not None:
+                await self.checkpoints.before_batch(fixes)
             out: list[pb.SnapResponse] = []
             for i in range(0, len(fixes), step):  # a slice at a time: other streams go in between
                 out += await self.online.submit(functools.partial(self.answer_all, fixes[i : i + step]))
@@ -308,6 +327,8 @@ class MapMatchServicer(pb_grpc.MapMatchServicer):
         left = context.time_remaining()
         if left is not None and left <= 0:
             await context.abort(grpc.StatusCode.DEADLINE_EXCEEDED, "deadline passed before work started")
+        if self.checkpoints is not None:
+            await self.checkpoints.before(request)
         if self.config.inline_fixes:
             return self.snap(request)
         return await self.online.submit(functools.partial(self.snap, request))
@@ -493,6 +514,8 @@ class MapMatchServicer(pb_grpc.MapMatchServicer):
     ) -> pb.EndSessionResponse:
         entry = self.maps.get(request.map_id)
         self._check_vehicle(request.vehicle_id)
+        if self.checkpoints is not None:
+            self.checkpoints.forget(entry.map_id, request.vehicle_id)
         return pb.EndSessionResponse(existed=self.sessions.drop(entry.map_id, request.vehicle_id))
 
 

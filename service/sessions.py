@@ -3,7 +3,9 @@
 Sessions hold only the online matcher's small state. They expire after ``ttl`` seconds
 without a fix, their number is capped (memory stays bounded), and each has its own lock so
 one vehicle's fixes are processed one at a time, in order, while other vehicles proceed.
-The store is thread-safe. State can be exported as bytes and imported on another server.
+The store is thread-safe. State can be exported as bytes and imported on another server;
+:meth:`SessionStore.used_since` lists the sessions a checkpoint pass writes to the session
+store (:mod:`service.store_checkpoints`).
 """
 
 from __future__ import annotations
@@ -31,6 +33,7 @@ class Session:
     last_used: float
     lock: threading.Lock = field(default_factory=threading.Lock)
     waiting: int = 0  # users of a provisional session (not yet stored)
+    answer: Any = None  # the last accepted fix's result: a resend of that fix gets it again
 
 
 class _Use:
@@ -207,8 +210,10 @@ class SessionStore:
         with s.lock:
             return bytes(s.state.to_bytes())
 
-    def put(self, map_id: str, vehicle_id: str, state: Any, *, replace: bool = False) -> None:
-        """Install a session (e.g. an imported one)."""
+    def put(
+        self, map_id: str, vehicle_id: str, state: Any, *, replace: bool = False, answer: Any = None
+    ) -> None:
+        """Install a session (e.g. an imported one), with its last fix's ``answer`` if known."""
         key = (map_id, vehicle_id)
         now = self._clock()
         with self._lock:
@@ -217,8 +222,32 @@ class SessionStore:
                 raise SessionExistsError(f"vehicle {vehicle_id!r} already has a session on map {map_id!r}")
             if old is None:
                 self._full_check_locked(now)
-            self._sessions[key] = Session(key=key, state=state, last_used=now)
+            self._sessions[key] = Session(key=key, state=state, last_used=now, answer=answer)
             self._sessions.move_to_end(key)
+
+    def now(self) -> float:
+        """The store's clock (the time base of ``Session.last_used``)."""
+        return self._clock()
+
+    def used_since(self, since: float) -> list[Session]:
+        """The stored sessions used after ``since`` (store clock), latest first: O(their
+        number), since the store keeps its sessions in order of use."""
+        out = []
+        with self._lock:
+            for s in reversed(self._sessions.values()):
+                if s.last_used <= since:
+                    break
+                out.append(s)
+        return out
+
+    def drop_unused(self, s: Session, last_used: float) -> bool:
+        """End the session ``s`` unless it was used after ``last_used`` (or replaced);
+        returns whether it was ended."""
+        with self._lock:
+            if self._sessions.get(s.key) is not s or s.last_used != last_used:
+                return False
+            del self._sessions[s.key]
+            return True
 
     def sweep(self) -> int:
         """Remove expired sessions now; returns how many."""
