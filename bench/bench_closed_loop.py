@@ -43,7 +43,7 @@ from graph.ascii import parse_ascii_map  # noqa: E402
 from graph.build import build_map  # noqa: E402
 from mapmatch.online import OnlineMatcher  # noqa: E402
 from mapmatch.sim.closed_loop import closed_loop_drive, in_process  # noqa: E402
-from mapmatch.sim.drive import Drive, position_error, read_route, simulate_drive  # noqa: E402
+from mapmatch.sim.drive import Drive, DriveConfig, position_error, read_route, simulate_drive  # noqa: E402
 from mapmatch.sim.kalman import DEFAULT_KALMAN  # noqa: E402
 from mapmatch.sim.loop_eval import compare_loops, real_sensors, summary_table  # noqa: E402
 from mapmatch.sim.routes import route_from_edges  # noqa: E402
@@ -137,7 +137,9 @@ def guard_drives(seeds: int) -> list[tuple[str, object, list[Drive]]]:
     rp = route_from_edges(par.graph, [par.edge("a", "b")], start_offset=10.0)
     sens = dataclasses.replace(sensors_for(10.0), gyro_bias=0.6)
     drives = [
-        simulate_drive(par.graph, rp, rate=1.0, outages=[(40.0, 40.0)], seed=s, sensors=sens)
+        simulate_drive(
+            par.graph, rp, rate=1.0, outages=[(40.0, 40.0)], seed=s, config=DriveConfig(sensors=sens)
+        )
         for s in range(seeds)
     ]
     out.append(("parallel roads 15 m apart, GPS σ 10 m, a 40 s outage", par, drives))
@@ -165,7 +167,7 @@ def guard_drives(seeds: int) -> list[tuple[str, object, list[Drive]]]:
                 rate=1.0,
                 outages=[(t_a, t_b - t_a)],
                 seed=s,
-                sensors=dataclasses.replace(sens, gyro_bias=1.0),
+                config=DriveConfig(sensors=dataclasses.replace(sens, gyro_bias=1.0)),
             )
         )
     out.append(("an outage ending 40 m past a fork (60° branch or straight on)", fk, drives))

@@ -36,7 +36,7 @@ from mapmatch.config import DEFAULT_CONFIG, MatchConfig  # noqa: E402
 from mapmatch.errors import ConfigError  # noqa: E402
 from mapmatch.evaluate import evaluate, path_nodes  # noqa: E402
 from mapmatch.online import OnlineMatcher  # noqa: E402
-from mapmatch.sim.drive import Drive, read_route, simulate_drive  # noqa: E402
+from mapmatch.sim.drive import Drive, DriveConfig, read_route, simulate_drive  # noqa: E402
 from mapmatch.sim.routes import Route, random_route  # noqa: E402
 from mapmatch.sim.sensors import DEFAULT_SENSORS, spread_outages  # noqa: E402
 from mapmatch.types import SnapResult  # noqa: E402
@@ -208,12 +208,12 @@ def score(graph: RoadGraph, drive: Drive, results: list[SnapResult]) -> dict[str
 
 
 def simulate(graph: RoadGraph, route: Route, *, rate: float, sigma: float, seed: int, outages: bool) -> Drive:
-    sens = sensors_for(sigma)
-    probe = simulate_drive(graph, route, rate=1.0, outages="none", seed=seed, sensors=sens)
+    sim = DriveConfig(sensors=sensors_for(sigma))
+    probe = simulate_drive(graph, route, rate=1.0, outages="none", seed=seed, config=sim)
     outs = spread_outages(probe.trajectory.duration) if outages else []
     if rate == 1.0 and not outs:
         return probe
-    return simulate_drive(graph, route, rate=rate, outages=outs or "none", seed=seed, sensors=sens)
+    return simulate_drive(graph, route, rate=rate, outages=outs or "none", seed=seed, config=sim)
 
 
 def speed_bench(

@@ -22,7 +22,7 @@ from numpy.typing import NDArray
 
 from graph.errors import InputError
 from graph.projection import to_lonlat
-from graph.road_graph import RESTRICTION_NO, RESTRICTION_ONLY, RoadGraph
+from graph.road_graph import RESTRICTION_NO, RESTRICTION_ONLY, Edges, Nodes, RoadGraph
 
 ASCII_CRS = "EPSG:32635"
 ASCII_ORIGIN = (385_000.0, 6_672_000.0)
@@ -86,19 +86,7 @@ def parse_ascii_map(
         Turn restrictions as ``(from_node, via_node, to_node, kind)`` with kind ``"no"`` or
         ``"only"``, e.g. ``("a", "b", "c", "no")`` forbids a->b->c.
     """
-    lines = [ln.rstrip() for ln in drawing.splitlines()]
-    while lines and not lines[0].strip():
-        lines.pop(0)
-    while lines and not lines[-1].strip():
-        lines.pop()
-    indent = min((len(ln) - len(ln.lstrip()) for ln in lines if ln.strip()), default=0)
-    grid = [ln[indent:] for ln in lines]
-
-    def at(r: int, c: int) -> str:
-        if 0 <= r < len(grid) and 0 <= c < len(grid[r]):
-            return grid[r][c]
-        return " "
-
+    grid = _grid(drawing)
     nodes: dict[str, int] = {}
     pos: list[tuple[float, float]] = []
     cells: dict[tuple[int, int], str] = {}
@@ -110,6 +98,44 @@ def parse_ascii_map(
                 nodes[ch] = len(pos)
                 pos.append((origin[0] + c * scale, origin[1] - r * 2 * scale))
                 cells[(r, c)] = ch
+    us, vs = _roads(grid, cells, nodes)
+    xy = np.array(pos, dtype=np.float64).reshape(-1, 2)
+    ll = to_lonlat(ASCII_CRS, xy[:, 0], xy[:, 1]) if len(xy) else np.empty((0, 2))
+    ids = np.array([ord(n) for n in nodes], dtype=np.int64)
+    nodes_in = Nodes(xy, ll, ids)
+    edges_in = Edges(us, vs, way_id=np.arange(1, len(us) + 1, dtype=np.int64))
+    amap = AsciiMap(graph=RoadGraph.from_edges(ASCII_CRS, nodes_in, edges_in), nodes=nodes, scale=scale)
+    rows = []
+    for src, via, dst, kind in restrictions:
+        k = {"no": RESTRICTION_NO, "only": RESTRICTION_ONLY}[kind]
+        rows.append((amap.edge(src, via), nodes[via], amap.edge(via, dst), k))
+    if rows:
+        g = RoadGraph.from_edges(ASCII_CRS, nodes_in, edges_in, restrictions=rows)
+        amap = AsciiMap(graph=g, nodes=nodes, scale=scale)
+    return amap
+
+
+def _grid(drawing: str) -> list[str]:
+    """The drawing's lines without leading and trailing blank lines and common indentation."""
+    lines = [ln.rstrip() for ln in drawing.splitlines()]
+    while lines and not lines[0].strip():
+        lines.pop(0)
+    while lines and not lines[-1].strip():
+        lines.pop()
+    indent = min((len(ln) - len(ln.lstrip()) for ln in lines if ln.strip()), default=0)
+    return [ln[indent:] for ln in lines]
+
+
+def _roads(
+    grid: list[str], cells: dict[tuple[int, int], str], nodes: dict[str, int]
+) -> tuple[list[int], list[int]]:
+    """The directed edges drawn between the intersections (``cells``: their places in ``grid``)."""
+
+    def at(r: int, c: int) -> str:
+        if 0 <= r < len(grid) and 0 <= c < len(grid[r]):
+            return grid[r][c]
+        return " "
+
     us: list[int] = []
     vs: list[int] = []
     seen: set[tuple[int, int, int, int]] = set()
@@ -140,28 +166,4 @@ def parse_ascii_map(
             if backward_ok:
                 us.append(b)
                 vs.append(a)
-    xy = np.array(pos, dtype=np.float64).reshape(-1, 2)
-    ll = to_lonlat(ASCII_CRS, xy[:, 0], xy[:, 1]) if len(xy) else np.empty((0, 2))
-    ids = np.array([ord(n) for n in nodes], dtype=np.int64)
-    way = np.arange(1, len(us) + 1, dtype=np.int64)
-    base = RoadGraph.from_edges(
-        crs=ASCII_CRS, node_xy=xy, node_lonlat=ll, node_id=ids, edge_u=us, edge_v=vs, edge_way_id=way
-    )
-    amap = AsciiMap(graph=base, nodes=nodes, scale=scale)
-    rows = []
-    for src, via, dst, kind in restrictions:
-        k = {"no": RESTRICTION_NO, "only": RESTRICTION_ONLY}[kind]
-        rows.append((amap.edge(src, via), nodes[via], amap.edge(via, dst), k))
-    if rows:
-        g = RoadGraph.from_edges(
-            crs=ASCII_CRS,
-            node_xy=xy,
-            node_lonlat=ll,
-            node_id=ids,
-            edge_u=us,
-            edge_v=vs,
-            edge_way_id=way,
-            restrictions=rows,
-        )
-        amap = AsciiMap(graph=g, nodes=nodes, scale=scale)
-    return amap
+    return us, vs

@@ -18,14 +18,16 @@ import time
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, NamedTuple
 
 from graph.errors import InputError
-from graph.gis import GIS_SUFFIXES, GisOptions, OnewayConvention
+from graph.gis import GIS_SUFFIXES, GisOptions
 from graph.road_graph import RoadGraph
 
 if TYPE_CHECKING:
     import networkx as nx
+
+    from graph.raw_network import RawNetwork, Simplified
 
 log = logging.getLogger(__name__)
 
@@ -106,30 +108,61 @@ def _without_gc(fn: Callable[..., RoadGraph]) -> Callable[..., RoadGraph]:
     return run
 
 
+@dataclass(frozen=True)
+class OsmOptions:
+    """Options for OpenStreetMap input: a file, or a download through osmnx.
+
+    Attributes
+    ----------
+    network_type
+        osmnx network type: ``"drive"`` (default) or ``"drive_service"``.
+    place
+        Download the network of this place name (with no source file).
+    bbox
+        ``(west, south, east, north)`` in degrees: the area to download, or the part of an
+        OSM file to keep.
+    """
+
+    network_type: str = "drive"
+    place: str | None = None
+    bbox: tuple[float, float, float, float] | None = None
+
+
+@dataclass(frozen=True)
+class BuildOptions:
+    """How a map is built from what was read.
+
+    Attributes
+    ----------
+    engine
+        ``"arrays"`` (default): simplify with whole-array steps; ``"osmnx"``: the reference, a
+        networkx graph simplified by :func:`osmnx.simplify_graph` (always used for downloads
+        and with ``consolidate_tolerance``). Both give the same map.
+    consolidate_tolerance
+        Merge complex intersections whose nodes lie within this many metres
+        (:func:`osmnx.consolidate_intersections`); ``None`` (default) keeps every node.
+    progress_interval
+        Seconds between two progress messages within a step.
+    """
+
+    engine: str = "arrays"
+    consolidate_tolerance: float | None = None
+    progress_interval: float = 1.0
+
+
+DEFAULT_GIS = GisOptions()
+DEFAULT_OSM = OsmOptions()
+DEFAULT_BUILD = BuildOptions()
+
+
 @_without_gc
 def build_map(
     source: str | Path | None,
     *,
-    place: str | None = None,
-    bbox: tuple[float, float, float, float] | None = None,
-    consolidate_tolerance: float | None = None,
-    snap_tolerance: float = 0.01,
-    node_crossings: bool = False,
-    oneway_field: str | None = None,
-    oneway_convention: OnewayConvention | str | None = None,
-    name_field: str | None = None,
-    speed_field: str | None = None,
-    highway_field: str | None = None,
-    id_field: str | None = None,
-    node_id_fields: tuple[str, str] | None = None,
-    topology: str = "auto",
-    directed: bool = False,
-    crs: str | None = None,
-    layer: str | None = None,
-    network_type: str = "drive",
+    gis: GisOptions = DEFAULT_GIS,
+    osm: OsmOptions = DEFAULT_OSM,
+    options: BuildOptions = DEFAULT_BUILD,
     progress: Progress | None = None,
-    progress_interval: float = 1.0,
-    engine: str = "arrays",
 ) -> RoadGraph:
     """Build a prepared road graph.
 
@@ -137,27 +170,17 @@ def build_map(
     ----------
     source
         An OSM file (``.osm.pbf``, ``.osm``, ``.osm.bz2``) or GIS lines (``.geojson``,
-        ``.gpkg``, ``.shp``). ``None`` with ``place`` or ``bbox`` downloads through osmnx.
-    place, bbox
-        Download by place name, or ``bbox=(west, south, east, north)`` in degrees; with an
-        OSM ``source`` the bbox clips it instead.
-    consolidate_tolerance
-        Merge complex intersections whose nodes lie within this many metres
-        (:func:`osmnx.consolidate_intersections`); ``None`` (default) keeps every node.
-    snap_tolerance, node_crossings, oneway_field, oneway_convention, name_field, speed_field,
-    highway_field, id_field, node_id_fields, topology, directed, crs, layer
-        GIS options, see :class:`graph.gis.GisOptions`.
-    network_type
-        osmnx network type for OSM input: ``"drive"`` (default) or ``"drive_service"``.
+        ``.gpkg``, ``.shp``, ``.fgb``, ``.parquet``). ``None`` downloads ``osm.place`` or
+        ``osm.bbox`` through osmnx.
+    gis
+        How GIS lines are read (:class:`graph.gis.GisOptions`); for GIS sources.
+    osm
+        OpenStreetMap options (:class:`OsmOptions`); for OSM files and downloads.
+    options
+        How the map is built (:class:`BuildOptions`).
     progress
         Called with a short message at the start of each step, and within the long ones
         (reading, simplifying, building) with how far they are.
-    progress_interval
-        Seconds between two messages within a step.
-    engine
-        ``"arrays"`` (default): read into arrays and simplify with compiled kernels;
-        ``"osmnx"``: the reference, a networkx graph simplified by :func:`osmnx.simplify_graph`
-        (always used for downloads and with ``consolidate_tolerance``). Both give the same map.
 
     Returns
     -------
@@ -170,169 +193,210 @@ def build_map(
     InputError
         Missing file, unknown format, corrupt data, no drivable roads, unreadable CRS.
     """
-    from graph.artifact import file_sha256
-    from graph.components import component_counts
-    from graph.raw_network import RawNetwork, raw_to_nx, road_graph_arrays, simplify_arrays
-    from graph.simplify import consolidate, simplify, to_road_graph
-
-    if engine not in ("arrays", "osmnx"):
-        raise InputError(f"unknown build engine {engine!r} (use arrays or osmnx)")
-
-    say = progress or (lambda msg: log.info("%s", msg))
+    if options.engine not in ("arrays", "osmnx"):
+        raise InputError(f"unknown build engine {options.engine!r} (use arrays or osmnx)")
+    step = _Steps(progress or (lambda msg: log.info("%s", msg)), options.progress_interval)
     report = BuildReport()
-    params: dict[str, Any] = {
-        "network_type": network_type,
-        "consolidate_tolerance": consolidate_tolerance,
-        "place": place,
-        "bbox": list(bbox) if bbox else None,
-    }
     t0 = time.perf_counter()
-    restrictions: list[tuple[int, int, int, int]] = []
-    src_meta: dict[str, Any]
-    raw_net: RawNetwork | None = None
-    G: nx.MultiDiGraph | None = None
     if source is None:
-        if place is None and bbox is None:
-            raise InputError("give a source file, a place name or a bounding box")
-        if directed:
-            raise InputError("directed lines are a GIS input option; a download is OpenStreetMap data")
-        from graph.osm import download_graph
-
-        say(f"downloading the {network_type} network from OpenStreetMap")
-        G, crs_out, dropped = download_graph(place=place, bbox=bbox, network_type=network_type)
-        report.source_format = "osm-download"
-        src_meta = {"format": "osm-download", "place": place, "bbox": list(bbox) if bbox else None}
+        read = _download(osm, gis, step=step, report=report)
     else:
-        path = Path(source)
-        if not path.exists():
-            raise InputError(f"no such file: {path}")
-        if path.is_dir():
-            raise InputError(f"{path} is a directory, not a road data file")
-        fmt = source_format(path)
-        if directed and fmt != "gis":
-            raise InputError(f"directed lines are a GIS input option; {path.name} is OpenStreetMap data")
-        report.source_format = fmt
-        say(f"checksumming {path.name}")
-        src_meta = {
-            "path": str(path),
-            "name": path.name,
-            "format": fmt,
-            "bytes": path.stat().st_size,
-            "sha256": file_sha256(path),
-        }
-        if fmt == "gis":
-            from graph.gis import lines_to_raw
-
-            conv = (
-                OnewayConvention.parse(oneway_convention)
-                if isinstance(oneway_convention, str)
-                else oneway_convention or OnewayConvention()
-            )
-            opts = GisOptions(
-                oneway_field=oneway_field,
-                oneway_convention=conv,
-                name_field=name_field,
-                speed_field=speed_field,
-                highway_field=highway_field,
-                id_field=id_field,
-                node_id_fields=node_id_fields,
-                topology=topology,
-                directed=directed,
-                snap_tolerance=snap_tolerance,
-                node_crossings=node_crossings,
-                crs=crs,
-                layer=layer,
-                bbox=bbox,
-            )
-            params.update(
-                {
-                    "snap_tolerance": snap_tolerance,
-                    "node_crossings": node_crossings,
-                    "oneway_field": oneway_field,
-                    "oneway_convention": {k: sorted(v) for k, v in asdict(conv).items()},
-                    "name_field": name_field,
-                    "speed_field": speed_field,
-                    "highway_field": highway_field,
-                    "id_field": id_field,
-                    "node_id_fields": list(node_id_fields) if node_id_fields else None,
-                    "topology": topology,
-                    "directed": directed,
-                    "crs": crs,
-                    "layer": layer,
-                }
-            )
-            say(f"reading GIS lines from {path.name}")
-            step = StepProgress(say, f"reading {path.name}", "features", interval=progress_interval)
-            raw_net, dropped, fields = lines_to_raw(path, opts, progress=step.update)
-            report.fields = fields
-        else:
-            from graph.osm import read_osm_raw
-
-            say(f"reading OSM {'PBF' if fmt == 'osm-pbf' else 'XML'} from {path.name}")
-            step = StepProgress(say, f"reading {path.name}", "roads kept", interval=progress_interval)
-            raw_net, dropped, restrictions = read_osm_raw(
-                path, network_type=network_type, bbox=bbox, progress=step.update
-            )
-            report.restrictions_read = len(restrictions)
-    report.dropped = dropped
+        read = _read_file(Path(source), gis, osm, step=step, report=report)
+    report.dropped = read.dropped
     report.seconds["read"] = time.perf_counter() - t0
-    meta = {"source": src_meta, "build": params}
-    use_nx = G is not None or engine == "osmnx" or bool(consolidate_tolerance and consolidate_tolerance > 0)
-    if raw_net is not None:
-        crs_out = raw_net.crs
-        report.raw_nodes, report.raw_edges = raw_net.n_nodes, raw_net.n_edges
-        if use_nx:
-            G = raw_to_nx(raw_net)
+    meta = {"source": read.source, "build": _build_params(read, gis, osm, options)}
+    tol = options.consolidate_tolerance
+    if read.raw is not None:
+        report.raw_nodes, report.raw_edges = read.raw.n_nodes, read.raw.n_edges
     else:
-        assert G is not None
-        report.raw_nodes, report.raw_edges = G.number_of_nodes(), G.number_of_edges()
+        assert read.graph is not None
+        report.raw_nodes, report.raw_edges = read.graph.number_of_nodes(), read.graph.number_of_edges()
     if report.raw_edges == 0:
-        raise InputError(f"{src_meta.get('name', 'the source')} has no drivable roads")
-    if not use_nx:
-        assert raw_net is not None
-        w, st = component_counts(raw_net.n_nodes, raw_net.edge_src, raw_net.edge_dst)
-        report.source_weak_components, report.source_strong_components = w, st
-        t1 = time.perf_counter()
-        say(f"simplifying {report.raw_nodes:,} nodes / {report.raw_edges:,} edges to intersections")
-        step = StepProgress(say, "simplifying", "paths still growing", interval=progress_interval)
-        simp = simplify_arrays(raw_net, on_step=step.update)
-        report.seconds["simplify"] = time.perf_counter() - t1
-        t2 = time.perf_counter()
-        say(f"building {len(simp.ptr) - 1:,} edges with their way pieces")
-        kw, info = road_graph_arrays(raw_net, simp, restrictions=restrictions, meta=meta)
-        del raw_net, simp  # the raw network goes before the graph's own arrays are made
-        say(f"deriving lengths, bearings, reverse edges and adjacency of {len(kw['edge_u']):,} edges")
-        rg = RoadGraph.from_edges(**kw)
-        del kw
-        report.weak_components, report.strong_components = component_counts(rg.n_nodes, rg.edge_u, rg.edge_v)
-    else:
-        assert G is not None
-        import networkx as nx
+        raise InputError(f"{read.source.get('name', 'the source')} has no drivable roads")
+    if read.raw is not None and options.engine == "arrays" and not (tol and tol > 0):
+        from graph.raw_network import road_graph_arrays
 
-        report.source_weak_components = nx.number_weakly_connected_components(G)
-        report.source_strong_components = nx.number_strongly_connected_components(G)
-        t1 = time.perf_counter()
-        say(f"simplifying {report.raw_nodes:,} nodes / {report.raw_edges:,} edges to intersections (osmnx)")
-        raw = G
-        G = simplify(G)
-        if consolidate_tolerance is not None and consolidate_tolerance > 0:
-            say(f"consolidating intersections within {consolidate_tolerance:g} m")
-            G = consolidate(G, consolidate_tolerance)
-            if G.number_of_edges() == 0:
-                raise InputError(
-                    f"no roads left after consolidating intersections within {consolidate_tolerance:g} m"
-                )
-        report.seconds["simplify"] = time.perf_counter() - t1
-        report.weak_components = nx.number_weakly_connected_components(G)
-        report.strong_components = nx.number_strongly_connected_components(G)
+        simp = _simplify_arrays(read.raw, step=step, report=report)
         t2 = time.perf_counter()
-        say(f"converting {G.number_of_nodes():,} nodes / {G.number_of_edges():,} edges to arrays")
-        rg, info = to_road_graph(G, crs=crs_out, restrictions=restrictions, meta=meta, raw=raw)
-        del raw, G
+        step.say(f"building {len(simp.ptr) - 1:,} edges with their way pieces")
+        kw, info = road_graph_arrays(read.raw, simp, restrictions=read.restrictions, meta=meta)
+        del read, simp  # the raw network goes before the graph's own arrays are made
+        rg = _graph_of(kw, step=step, report=report)
+        report.seconds["convert"] = time.perf_counter() - t2
+    else:
+        rg, info = _build_with_osmnx(read, meta, tol, step=step, report=report)
     report.restrictions_unmapped = int(info["restrictions_unmapped"])
     report.self_loops_split = int(info["self_loops_split"])
     report.self_loops_dropped = int(info["self_loops_dropped"])
-    report.seconds["convert"] = time.perf_counter() - t2
     report.seconds["total"] = time.perf_counter() - t0
     rg.meta["report"] = asdict(report)
     return rg
+
+
+class _Steps:
+    """The build's progress: a line at the start of each step, :class:`StepProgress` within one."""
+
+    def __init__(self, say: Progress, interval: float) -> None:
+        self.say, self.interval = say, interval
+
+    def within(self, label: str, unit: str) -> StepProgress:
+        return StepProgress(self.say, label, unit, interval=self.interval)
+
+
+class _Read(NamedTuple):
+    """What reading the source gave: a raw network of arrays (files) or a networkx graph
+    (downloads), what was dropped, the turn restrictions and the source's description."""
+
+    raw: RawNetwork | None
+    graph: nx.MultiDiGraph | None
+    crs: str
+    dropped: dict[str, int]
+    restrictions: list[tuple[int, int, int, int]]
+    source: dict[str, Any]
+    format: str
+
+
+def _download(osm: OsmOptions, gis: GisOptions, *, step: _Steps, report: BuildReport) -> _Read:
+    """Download ``osm.place`` or ``osm.bbox`` from OpenStreetMap as a raw networkx graph."""
+    if osm.place is None and osm.bbox is None:
+        raise InputError("give a source file, a place name or a bounding box")
+    if gis.directed:
+        raise InputError("directed lines are a GIS input option; a download is OpenStreetMap data")
+    from graph.osm import download_graph
+
+    step.say(f"downloading the {osm.network_type} network from OpenStreetMap")
+    G, crs, dropped = download_graph(place=osm.place, bbox=osm.bbox, network_type=osm.network_type)
+    report.source_format = "osm-download"
+    src = {"format": "osm-download", "place": osm.place, "bbox": list(osm.bbox) if osm.bbox else None}
+    return _Read(None, G, crs, dropped, [], src, "osm-download")
+
+
+def _read_file(path: Path, gis: GisOptions, osm: OsmOptions, *, step: _Steps, report: BuildReport) -> _Read:
+    """Read an OSM or GIS file into a raw network of arrays."""
+    from graph.artifact import file_sha256
+
+    if not path.exists():
+        raise InputError(f"no such file: {path}")
+    if path.is_dir():
+        raise InputError(f"{path} is a directory, not a road data file")
+    fmt = source_format(path)
+    if gis.directed and fmt != "gis":
+        raise InputError(f"directed lines are a GIS input option; {path.name} is OpenStreetMap data")
+    report.source_format = fmt
+    step.say(f"checksumming {path.name}")
+    src = {
+        "path": str(path),
+        "name": path.name,
+        "format": fmt,
+        "bytes": path.stat().st_size,
+        "sha256": file_sha256(path),
+    }
+    if fmt == "gis":
+        from graph.gis import lines_to_raw
+
+        step.say(f"reading GIS lines from {path.name}")
+        within = step.within(f"reading {path.name}", "features")
+        raw, dropped, fields = lines_to_raw(path, gis, progress=within.update)
+        report.fields = fields
+        return _Read(raw, None, raw.crs, dropped, [], src, fmt)
+    from graph.osm import read_osm_raw
+
+    step.say(f"reading OSM {'PBF' if fmt == 'osm-pbf' else 'XML'} from {path.name}")
+    within = step.within(f"reading {path.name}", "roads kept")
+    raw, dropped, restrictions = read_osm_raw(
+        path, network_type=osm.network_type, bbox=osm.bbox, progress=within.update
+    )
+    report.restrictions_read = len(restrictions)
+    return _Read(raw, None, raw.crs, dropped, restrictions, src, fmt)
+
+
+def _build_params(read: _Read, gis: GisOptions, osm: OsmOptions, options: BuildOptions) -> dict[str, Any]:
+    """The build parameters recorded in the map: the OSM ones, and the GIS ones for GIS lines."""
+    bbox = gis.bbox if read.format == "gis" else osm.bbox
+    params: dict[str, Any] = {
+        "network_type": osm.network_type,
+        "consolidate_tolerance": options.consolidate_tolerance,
+        "place": osm.place,
+        "bbox": list(bbox) if bbox else None,
+    }
+    if read.format == "gis":
+        params.update(
+            {
+                "snap_tolerance": gis.snap_tolerance,
+                "node_crossings": gis.node_crossings,
+                "oneway_field": gis.oneway_field,
+                "oneway_convention": {k: sorted(v) for k, v in asdict(gis.oneway_convention).items()},
+                "name_field": gis.name_field,
+                "speed_field": gis.speed_field,
+                "highway_field": gis.highway_field,
+                "id_field": gis.id_field,
+                "node_id_fields": list(gis.node_id_fields) if gis.node_id_fields else None,
+                "topology": gis.topology,
+                "directed": gis.directed,
+                "crs": gis.crs,
+                "layer": gis.layer,
+            }
+        )
+    return params
+
+
+def _simplify_arrays(raw: RawNetwork, *, step: _Steps, report: BuildReport) -> Simplified:
+    """Simplify the raw network with whole-array steps (the default engine)."""
+    from graph.components import component_counts
+    from graph.raw_network import simplify_arrays
+
+    w, st = component_counts(raw.n_nodes, raw.edge_src, raw.edge_dst)
+    report.source_weak_components, report.source_strong_components = w, st
+    t1 = time.perf_counter()
+    step.say(f"simplifying {report.raw_nodes:,} nodes / {report.raw_edges:,} edges to intersections")
+    simp = simplify_arrays(raw, on_step=step.within("simplifying", "paths still growing").update)
+    report.seconds["simplify"] = time.perf_counter() - t1
+    return simp
+
+
+def _graph_of(kw: dict[str, Any], *, step: _Steps, report: BuildReport) -> RoadGraph:
+    """The graph of :meth:`RoadGraph.from_edges` arguments, and its components counted."""
+    from graph.components import component_counts
+
+    step.say(f"deriving lengths, bearings, reverse edges and adjacency of {len(kw['edges'].u):,} edges")
+    rg = RoadGraph.from_edges(**kw)
+    report.weak_components, report.strong_components = component_counts(rg.n_nodes, rg.edge_u, rg.edge_v)
+    return rg
+
+
+def _build_with_osmnx(
+    read: _Read, meta: dict[str, Any], tolerance: float | None, *, step: _Steps, report: BuildReport
+) -> tuple[RoadGraph, dict[str, Any]]:
+    """Simplify (and consolidate) a networkx graph with osmnx and convert it (the reference)."""
+    import networkx as nx
+
+    from graph.simplify import consolidate, simplify, to_road_graph
+
+    if read.graph is not None:
+        raw = read.graph
+    else:
+        from graph.raw_network import raw_to_nx
+
+        assert read.raw is not None
+        raw = raw_to_nx(read.raw)
+    crs, restrictions = read.crs, read.restrictions
+    del read
+    report.source_weak_components = nx.number_weakly_connected_components(raw)
+    report.source_strong_components = nx.number_strongly_connected_components(raw)
+    t1 = time.perf_counter()
+    step.say(f"simplifying {report.raw_nodes:,} nodes / {report.raw_edges:,} edges to intersections (osmnx)")
+    G = simplify(raw)
+    if tolerance is not None and tolerance > 0:
+        step.say(f"consolidating intersections within {tolerance:g} m")
+        G = consolidate(G, tolerance)
+        if G.number_of_edges() == 0:
+            raise InputError(f"no roads left after consolidating intersections within {tolerance:g} m")
+    report.seconds["simplify"] = time.perf_counter() - t1
+    report.weak_components = nx.number_weakly_connected_components(G)
+    report.strong_components = nx.number_strongly_connected_components(G)
+    t2 = time.perf_counter()
+    step.say(f"converting {G.number_of_nodes():,} nodes / {G.number_of_edges():,} edges to arrays")
+    rg, info = to_road_graph(G, crs=crs, restrictions=restrictions, meta=meta, raw=raw)
+    del raw, G
+    report.seconds["convert"] = time.perf_counter() - t2
+    return rg, info

@@ -23,7 +23,7 @@ import shapely
 from numpy.typing import NDArray
 
 from graph.errors import InputError
-from graph.gis_network import BOTH, FORWARD, REVERSE, lines_to_network
+from graph.gis_network import BOTH, FORWARD, REVERSE, FieldChoice, lines_to_network
 
 if TYPE_CHECKING:
     import networkx as nx
@@ -207,24 +207,64 @@ def read_lines(
     ``want`` names the attribute fields to read (the others are not). Returns the lines
     and counts of dropped features by reason.
     """
-    from pyproj import CRS
-    from pyproj.exceptions import CRSError
+    cols = [c for c in dict.fromkeys(w for w in want if w is not None) if c in src.fields]
+    parts = _read_parts(src, cols, progress)
+    lonlat = _to_lonlat(parts.lonlat, src, opts)
+    counts, row, dropped = parts.counts, parts.row, parts.dropped
+    short = counts < 2
+    if opts.bbox is not None:  # keep the features with a part that meets the box
+        inside = _inside_bbox(lonlat, counts, row, short, opts.bbox, parts.n_rows, dropped)
+        if not inside.any():
+            raise InputError(f"{src.path.name} has no line features inside the bbox")
+        lonlat, counts, row, short = (
+            lonlat[np.repeat(inside, counts)],
+            counts[inside],
+            row[inside],
+            short[inside],
+        )
+    if short.any():
+        _count(dropped, "fewer than 2 points", int(short.sum()))
+        keep_pt = np.repeat(~short, counts)
+        lonlat, counts, row = lonlat[keep_pt], counts[~short], row[~short]
+    ptr = np.zeros(len(counts) + 1, dtype=np.int64)
+    np.cumsum(counts, out=ptr[1:])
+    reasons = ("no geometry", "not a line", "outside the bbox", "fewer than 2 points")
+    return Lines(
+        lonlat=np.ascontiguousarray(lonlat, dtype=np.float64),
+        ptr=ptr,
+        row=row,
+        columns=parts.columns,
+        fields=src.fields,
+    ), {k: dropped[k] for k in reasons if dropped.get(k)}
 
-    path, fields, src_crs, total, batches = src
-    cols = [c for c in dict.fromkeys(w for w in want if w is not None) if c in fields]
-    counts_by: dict[str, int] = {}
+
+class _Parts(NamedTuple):
+    """Line parts as read: coordinates in the source's CRS, point count and source row of each
+    part, the attribute columns, the number of source rows and the dropped features by reason."""
+
+    lonlat: NDArray[np.float64]
+    counts: NDArray[np.int64]
+    row: NDArray[np.int64]
+    columns: dict[str, Any]
+    n_rows: int
+    dropped: dict[str, int]
+
+
+def _count(dropped: dict[str, int], reason: str, n: int) -> None:
+    dropped[reason] = dropped.get(reason, 0) + n
+
+
+def _read_parts(src: Source, cols: list[str], progress: ReadProgress | None) -> _Parts:
+    """Every batch of ``src`` as line parts (multi-part lines split), with columns ``cols``."""
+    dropped: dict[str, int] = {}
     parts_ll: list[NDArray[np.float64]] = []
     parts_n: list[NDArray[np.int64]] = []
     parts_row: list[NDArray[np.int64]] = []
     col_parts: dict[str, list[Any]] = {c: [] for c in cols}
     n_rows = 0
     n_lines_in = 0
-
-    def _drop(reason: str, n: int) -> None:
-        counts_by[reason] = counts_by.get(reason, 0) + n
-
     try:
-        for attrs, wkb in batches(cols):
+        for attrs, wkb in src.batches(cols):
             for c in cols:
                 col_parts[c].append(attrs[c])
             n_batch = len(wkb)
@@ -235,62 +275,81 @@ def read_lines(
                 parts_n.append(n_pts)
                 parts_row.append(n_rows + np.arange(n_batch, dtype=np.int64))
                 n_lines_in += n_batch
-                n_rows += n_batch
-                if progress is not None:
-                    progress(n_rows, total)
-                continue
-            geom = shapely.from_wkb(wkb.to_numpy(zero_copy_only=False))
-            del wkb
-            types = shapely.get_type_id(geom)
-            is_line = (types == 1) | (types == 5)  # LineString, MultiLineString
-            missing = shapely.is_missing(geom)
-            _drop("no geometry", int(missing.sum()))
-            _drop("not a line", int((~is_line & ~missing).sum()))
-            n_lines_in += int(is_line.sum())
-            rows = np.nonzero(is_line)[0]
-            geom = geom[rows]
-            lines, part_of = shapely.get_parts(geom, return_index=True)
-            del geom
-            ll, owner = shapely.get_coordinates(lines, return_index=True)
-            del lines
-            parts_ll.append(ll)
-            parts_n.append(np.bincount(owner, minlength=len(part_of)).astype(np.int64))
-            parts_row.append(n_rows + rows[part_of])
-            n_rows += len(types)
+            else:
+                ll, n_pts, rows, n_line = _batch_parts(wkb, dropped)
+                del wkb
+                parts_ll.append(ll)
+                parts_n.append(n_pts)
+                parts_row.append(n_rows + rows)
+                n_lines_in += n_line
+            n_rows += n_batch
             if progress is not None:
-                progress(n_rows, total)
+                progress(n_rows, src.total)
     except InputError:
         raise
     except Exception as exc:
         msg = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
-        raise InputError(f"cannot read {path.name} as GIS data: {msg}") from exc
+        raise InputError(f"cannot read {src.path.name} as GIS data: {msg}") from exc
     if n_lines_in == 0:
-        raise InputError(f"{path.name} has no line features (LineString or MultiLineString)")
-    lonlat = np.concatenate(parts_ll) if parts_ll else np.zeros((0, 2))
-    counts = np.concatenate(parts_n) if parts_n else np.zeros(0, dtype=np.int64)
-    row = np.concatenate(parts_row) if parts_row else np.zeros(0, dtype=np.int64)
-    del parts_ll, parts_n, parts_row
+        raise InputError(f"{src.path.name} has no line features (LineString or MultiLineString)")
     import pyarrow as pa
 
-    columns = {
-        c: pa.concat_arrays([_chunk(x) for x in v]) if v else pa.array([]) for c, v in col_parts.items()
-    }
-    # CRS: the source's, the one given, or lon/lat when the coordinates fit
-    crs: Any = src_crs
+    return _Parts(
+        lonlat=np.concatenate(parts_ll) if parts_ll else np.zeros((0, 2)),
+        counts=np.concatenate(parts_n) if parts_n else np.zeros(0, dtype=np.int64),
+        row=np.concatenate(parts_row) if parts_row else np.zeros(0, dtype=np.int64),
+        columns={
+            c: pa.concat_arrays([_chunk(x) for x in v]) if v else pa.array([]) for c, v in col_parts.items()
+        },
+        n_rows=n_rows,
+        dropped=dropped,
+    )
+
+
+def _batch_parts(
+    wkb: Any, dropped: dict[str, int]
+) -> tuple[NDArray[np.float64], NDArray[np.int64], NDArray[np.int64], int]:
+    """One batch's WKB of any geometry types through shapely: the coordinates, point count and
+    row within the batch of each line part, and the number of line features (the rest counted
+    in ``dropped``)."""
+    geom = shapely.from_wkb(wkb.to_numpy(zero_copy_only=False))
+    types = shapely.get_type_id(geom)
+    is_line = (types == 1) | (types == 5)  # LineString, MultiLineString
+    missing = shapely.is_missing(geom)
+    _count(dropped, "no geometry", int(missing.sum()))
+    _count(dropped, "not a line", int((~is_line & ~missing).sum()))
+    rows = np.nonzero(is_line)[0]
+    geom = geom[rows]
+    lines, part_of = shapely.get_parts(geom, return_index=True)
+    del geom
+    ll, owner = shapely.get_coordinates(lines, return_index=True)
+    del lines
+    n_pts = np.bincount(owner, minlength=len(part_of)).astype(np.int64)
+    return ll, n_pts, rows[part_of], int(is_line.sum())
+
+
+def _to_lonlat(coords: NDArray[np.float64], src: Source, opts: GisOptions) -> NDArray[np.float64]:
+    """``coords`` in WGS84 lon/lat: from the source's CRS, the one given, or as they are when
+    there is none and they fit lon/lat."""
+    from pyproj import CRS
+    from pyproj.exceptions import CRSError
+
+    crs: Any = src.crs
     if opts.crs is not None:
         try:
             crs = CRS.from_user_input(opts.crs)
         except CRSError as exc:
             raise InputError(f"unreadable CRS {opts.crs!r}: {exc}") from exc
+    name = src.path.name
     if crs is None:
-        x0, y0 = np.nanmin(lonlat, axis=0) if len(lonlat) else (0.0, 0.0)
-        x1, y1 = np.nanmax(lonlat, axis=0) if len(lonlat) else (0.0, 0.0)
+        x0, y0 = np.nanmin(coords, axis=0) if len(coords) else (0.0, 0.0)
+        x1, y1 = np.nanmax(coords, axis=0) if len(coords) else (0.0, 0.0)
         if -180 <= x0 <= x1 <= 180 and -90 <= y0 <= y1 <= 90:
-            log.warning("%s has no CRS; its coordinates look like lon/lat, assuming EPSG:4326", path.name)
+            log.warning("%s has no CRS; its coordinates look like lon/lat, assuming EPSG:4326", name)
             crs = "EPSG:4326"
         else:
             raise InputError(
-                f"{path.name} has no readable CRS and its coordinates are not lon/lat; give the CRS (--crs)"
+                f"{name} has no readable CRS and its coordinates are not lon/lat; give the CRS (--crs)"
             )
     try:
         crs = CRS.from_user_input(crs)
@@ -298,47 +357,36 @@ def read_lines(
             from pyproj import Transformer
 
             tf = Transformer.from_crs(crs, "EPSG:4326", always_xy=True)
-            lon, lat = tf.transform(lonlat[:, 0], lonlat[:, 1])
-            lonlat = np.column_stack([lon, lat])
+            lon, lat = tf.transform(coords[:, 0], coords[:, 1])
+            coords = np.column_stack([lon, lat])
     except Exception as exc:
-        raise InputError(f"{path.name}: cannot transform from its CRS to lon/lat: {exc}") from exc
-    short = counts < 2
-    if opts.bbox is not None:  # keep the features with a part that meets the box
-        ok = ~short
-        part_lines = shapely.linestrings(
-            lonlat[np.repeat(ok, counts)], indices=np.repeat(np.arange(int(ok.sum())), counts[ok])
-        )
-        hit = np.zeros(n_rows, dtype=bool)
-        hit[row[ok][shapely.intersects(part_lines, shapely.box(*opts.bbox))]] = True
-        hit[row[short]] |= ~np.isin(row[short], row[ok])
-        del part_lines
-        had = np.zeros(n_rows, dtype=bool)
-        had[row] = True
-        _drop("outside the bbox", int((had & ~hit).sum()))
-        inside = hit[row]
-        if not inside.any():
-            raise InputError(f"{path.name} has no line features inside the bbox")
-        lonlat, counts, row, short = (
-            lonlat[np.repeat(inside, counts)],
-            counts[inside],
-            row[inside],
-            short[inside],
-        )
-    if short.any():
-        _drop("fewer than 2 points", int(short.sum()))
-        keep_pt = np.repeat(~short, counts)
-        lonlat, counts, row = lonlat[keep_pt], counts[~short], row[~short]
-    ptr = np.zeros(len(counts) + 1, dtype=np.int64)
-    np.cumsum(counts, out=ptr[1:])
-    reasons = ("no geometry", "not a line", "outside the bbox", "fewer than 2 points")
-    dropped = {k: counts_by[k] for k in reasons if counts_by.get(k)}
-    return Lines(
-        lonlat=np.ascontiguousarray(lonlat, dtype=np.float64),
-        ptr=ptr,
-        row=row,
-        columns=columns,
-        fields=fields,
-    ), dropped
+        raise InputError(f"{name}: cannot transform from its CRS to lon/lat: {exc}") from exc
+    return coords
+
+
+def _inside_bbox(
+    lonlat: NDArray[np.float64],
+    counts: NDArray[np.int64],
+    row: NDArray[np.int64],
+    short: NDArray[np.bool_],
+    bbox: tuple[float, float, float, float],
+    n_rows: int,
+    dropped: dict[str, int],
+) -> NDArray[np.bool_]:
+    """Per line part, whether its feature has a part that meets ``bbox`` (a feature of short
+    parts only is kept, to be dropped as such); the features outside counted in ``dropped``."""
+    ok = ~short
+    part_lines = shapely.linestrings(
+        lonlat[np.repeat(ok, counts)], indices=np.repeat(np.arange(int(ok.sum())), counts[ok])
+    )
+    hit = np.zeros(n_rows, dtype=bool)
+    hit[row[ok][shapely.intersects(part_lines, shapely.box(*bbox))]] = True
+    hit[row[short]] |= ~np.isin(row[short], row[ok])
+    del part_lines
+    had = np.zeros(n_rows, dtype=bool)
+    had[row] = True
+    _count(dropped, "outside the bbox", int((had & ~hit).sum()))
+    return hit[row]
 
 
 def _plain_linestrings(wkb: Any) -> tuple[NDArray[np.float64], NDArray[np.int64]] | None:
@@ -425,7 +473,7 @@ def lines_to_raw(
         speed_f = _pick(fields, opts.speed_field, ("maxspeed", "speed", "speed_kph"), "speed")
         hw_f = _pick(fields, opts.highway_field, ("highway", "class", "fclass"), "highway")
         id_f = _pick(fields, opts.id_field, ("id", "way_id", "osm_id", "fid"), "id")
-        uv_f = _node_id_fields(fields, opts)
+        chosen = FieldChoice(oneway_f, name_f, speed_f, hw_f, id_f, _node_id_fields(fields, opts))
         info: dict[str, Any] = {
             "directed": opts.directed,
             "oneway_field": oneway_f,
@@ -434,9 +482,12 @@ def lines_to_raw(
             "highway_field": hw_f,
         }
         lines, dropped = read_lines(
-            source, opts, want=(oneway_f, name_f, speed_f, hw_f, id_f, *(uv_f or ())), progress=progress
+            source,
+            opts,
+            want=(oneway_f, name_f, speed_f, hw_f, id_f, *(chosen.node_ids or ())),
+            progress=progress,
         )
-    return lines_to_network(lines, dropped, info, (oneway_f, name_f, speed_f, hw_f, id_f), uv_f, opts)
+    return lines_to_network(lines, dropped, info, chosen, opts)
 
 
 class Source(NamedTuple):

@@ -11,7 +11,7 @@ from __future__ import annotations
 import logging
 import math
 import re
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, NamedTuple
 
 import numpy as np
 import shapely
@@ -56,29 +56,118 @@ def parse_speed(value: Any) -> float:
     return v if v > 0 else math.nan
 
 
+class FieldChoice(NamedTuple):
+    """The attribute fields of GIS lines that the build reads (None: none)."""
+
+    oneway: str | None
+    name: str | None
+    speed: str | None
+    highway: str | None
+    id: str | None
+    node_ids: tuple[str, str] | None
+
+
+class _Features(NamedTuple):
+    """Per feature (a line, or a piece of one after noding): id, one-way direction
+    (``FORWARD``, ``REVERSE`` or ``BOTH``), name, class and speed in km/h (NaN unknown)."""
+
+    way_id: NDArray[np.int64]
+    direction: NDArray[np.int8]
+    name: Labels
+    highway: Labels
+    speed_kph: NDArray[np.float64]
+
+    def take(self, index: NDArray[np.int64]) -> _Features:
+        return _Features(
+            self.way_id[index],
+            self.direction[index],
+            self.name.take(index),
+            self.highway.take(index),
+            self.speed_kph[index],
+        )
+
+
+class _EndNodes(NamedTuple):
+    """The nodes at the features' ends: node of each end (first ends, then last ends), the
+    nodes' positions in metres and lon/lat, and their source ids (None: generated)."""
+
+    node_of_end: NDArray[np.int64]
+    xy: NDArray[np.float64]
+    lonlat: NDArray[np.float64]
+    ids: NDArray[np.int64] | None
+
+
 def lines_to_network(
-    lines: Lines,
-    dropped: dict[str, int],
-    info: dict[str, Any],
-    picked: tuple[str | None, ...],
-    uv_f: tuple[str, str] | None,
-    opts: GisOptions,
+    lines: Lines, dropped: dict[str, int], info: dict[str, Any], fields: FieldChoice, opts: GisOptions
 ) -> tuple[RawNetwork, dict[str, int], dict[str, Any]]:
-    """The raw network of lines read by :func:`graph.gis.lines_to_raw` (``picked``:
-    their one-way, name, speed, class and id fields; ``uv_f``: their node id fields)."""
+    """The raw network of lines read by :func:`graph.gis.lines_to_raw` with the attribute
+    ``fields`` chosen there; ``dropped`` and ``info`` are added to and returned."""
     from graph.projection import to_xy
 
-    oneway_f, name_f, speed_f, hw_f, id_f = picked
+    feats = _features(lines, fields, opts, dropped, info)
+    lo, hi = np.nanmin(lines.lonlat, axis=0), np.nanmax(lines.lonlat, axis=0)
+    crs = utm_crs(float((lo[0] + hi[0]) / 2), float((lo[1] + hi[1]) / 2))
+    src_ids = None
+    if fields.node_ids is not None and not opts.node_crossings and len(unique(lines.row)) == lines.n_lines:
+        src_ids = _endpoint_id_values(lines, fields.node_ids)
+    if opts.node_crossings:
+        owner0 = np.repeat(np.arange(lines.n_lines), np.diff(lines.ptr))
+        geoms, src = _node_lines(shapely.linestrings(lines.lonlat, indices=owner0))
+        feats = feats.take(src)
+        ll, owner = shapely.get_coordinates(geoms, return_index=True)
+        del geoms
+    else:
+        ll = lines.lonlat
+        owner = np.repeat(np.arange(lines.n_lines), np.diff(lines.ptr))
+    del lines
+    n_feat = len(feats.way_id)
+    xy = to_xy(crs, ll[:, 0], ll[:, 1])
+    start = np.zeros(n_feat + 1, dtype=np.int64)
+    np.cumsum(np.bincount(owner, minlength=n_feat), out=start[1:])
+    ends = np.concatenate([start[:-1], start[1:] - 1])  # every feature's first, then last vertex
+    end = _end_nodes(xy[ends], ll[ends], src_ids, opts, info)
+    n_end_nodes = len(end.xy)
+    # every vertex is a node: endpoints shared, interior vertices private to their feature
+    vnode = np.empty(len(xy), dtype=np.int64)
+    interior = np.ones(len(xy), dtype=bool)
+    interior[ends] = False
+    vnode[ends] = end.node_of_end
+    vnode[interior] = n_end_nodes + np.arange(int(interior.sum()))
+    all_xy = np.vstack([end.xy, xy[interior]])
+    all_ll = np.vstack([end.lonlat, ll[interior]])
+    del ll
+    # node keys are the source ids: u/v fields when they name the endpoints consistently,
+    # else 0..N-1; interior vertices get negative keys
+    info["node_ids"] = "u/v fields" if end.ids is not None else "generated"
+    keys = np.concatenate(
+        [
+            end.ids if end.ids is not None else np.arange(n_end_nodes, dtype=np.int64),
+            -1 - np.arange(int(interior.sum()), dtype=np.int64),
+        ]
+    )
+    del end, interior
+    raw, seg_len, seg_feat = _arcs(crs, (keys, all_xy, all_ll), xy, vnode, owner, feats)
+    # features that collapsed to one point
+    flen = np.bincount(seg_feat, weights=seg_len, minlength=n_feat)
+    collapsed = int((flen <= opts.snap_tolerance).sum())
+    if collapsed:
+        dropped["zero length after snapping"] = collapsed
+    return compact_raw(raw), dropped, info
 
+
+def _features(
+    lines: Lines, fields: FieldChoice, opts: GisOptions, dropped: dict[str, int], info: dict[str, Any]
+) -> _Features:
+    """Each line's id (its row number without an integer id field), direction, name, class and speed."""
     n_feat = lines.n_lines
-    fid = _int_column(lines, id_f) if id_f is not None else None
+    fid = _int_column(lines, fields.id) if fields.id is not None else None
     if fid is None and opts.id_field is not None:
         raise InputError(f"the id field {opts.id_field!r} does not hold integers on every line")
-    info["id_field"] = id_f if fid is not None else None  # None: ids are row numbers
+    info["id_field"] = fields.id if fid is not None else None  # None: ids are row numbers
     if fid is None:
         fid = np.arange(n_feat, dtype=np.int64)
-    if oneway_f is not None:
-        inv, uniq = _factorize(lines.column(oneway_f))
+    if fields.oneway is not None:
+        inv, uniq = _factorize(lines.column(fields.oneway))
         ucodes = [opts.oneway_convention.code(v) for v in uniq]
         bad = sum(int((inv == i).sum()) for i, c in enumerate(ucodes) if c is None)
         if bad:
@@ -86,41 +175,23 @@ def lines_to_network(
         direction = np.array([BOTH if c is None else c for c in ucodes], dtype=np.int8)[inv]
     else:
         direction = np.full(n_feat, FORWARD if opts.directed else BOTH, dtype=np.int8)
-    names = _labels(lines, name_f)
-    hws = _labels(lines, hw_f)
-    if speed_f:
-        inv, uniq = _factorize(lines.column(speed_f))
+    if fields.speed:
+        inv, uniq = _factorize(lines.column(fields.speed))
         speeds = np.array([parse_speed(v) for v in uniq], dtype=np.float64)[inv]
     else:
         speeds = np.full(n_feat, math.nan)
+    return _Features(fid, direction, _labels(lines, fields.name), _labels(lines, fields.highway), speeds)
 
-    lo, hi = np.nanmin(lines.lonlat, axis=0), np.nanmax(lines.lonlat, axis=0)
-    crs = utm_crs(float((lo[0] + hi[0]) / 2), float((lo[1] + hi[1]) / 2))
 
-    src_ids = None
-    if uv_f is not None and not opts.node_crossings and len(unique(lines.row)) == n_feat:
-        src_ids = _endpoint_id_values(lines, uv_f)
-    if opts.node_crossings:
-        import shapely
-
-        owner0 = np.repeat(np.arange(n_feat), np.diff(lines.ptr))
-        geoms, src = _node_lines(shapely.linestrings(lines.lonlat, indices=owner0))
-        fid, direction, speeds = fid[src], direction[src], speeds[src]
-        names, hws = names.take(src), hws.take(src)
-        n_feat = len(geoms)
-        ll, owner = shapely.get_coordinates(geoms, return_index=True)
-        del geoms
-    else:
-        ll = lines.lonlat
-        owner = np.repeat(np.arange(n_feat), np.diff(lines.ptr))
-    del lines
-    xy = to_xy(crs, ll[:, 0], ll[:, 1])
-    counts = np.bincount(owner, minlength=n_feat)
-    start = np.zeros(n_feat + 1, dtype=np.int64)
-    np.cumsum(counts, out=start[1:])
-    first, last = start[:-1], start[1:] - 1
-    ends = np.concatenate([first, last])
-    end_xy = xy[ends]
+def _end_nodes(
+    end_xy: NDArray[np.float64],
+    end_ll: NDArray[np.float64],
+    src_ids: NDArray[np.int64] | None,
+    opts: GisOptions,
+    info: dict[str, Any],
+) -> _EndNodes:
+    """The nodes at the line ends: from the node id fields (``src_ids``) when the topology
+    allows, else from shared endpoints within the snap tolerance; each at the mean of its ends."""
     place_of_end, places = _places(end_xy)
     node_of_end, end_ids = None, None
     if opts.topology == "ids" or (opts.topology == "auto" and src_ids is not None):
@@ -131,44 +202,35 @@ def lines_to_network(
         info["topology"] = "shared endpoints"
     else:
         info["topology"] = "node id fields"
-    n_end_nodes = int(node_of_end.max()) + 1 if len(node_of_end) else 0
-    # node position: mean of its endpoints
-    node_xy = np.zeros((n_end_nodes, 2))
+    n = int(node_of_end.max()) + 1 if len(node_of_end) else 0
+    node_xy = np.zeros((n, 2))
     np.add.at(node_xy, node_of_end, end_xy)
-    node_xy /= np.bincount(node_of_end, minlength=n_end_nodes)[:, None]
-    node_ll = ll[ends][unique_inverse(node_of_end)[1]]
-    info["merged_endpoints"] = len(places) - n_end_nodes
-    del place_of_end, places
+    node_xy /= np.bincount(node_of_end, minlength=n)[:, None]
+    info["merged_endpoints"] = len(places) - n
+    return _EndNodes(node_of_end, node_xy, end_ll[unique_inverse(node_of_end)[1]], end_ids)
 
-    # every vertex is a node: endpoints shared, interior vertices private to their feature
-    vnode = np.empty(len(xy), dtype=np.int64)
-    interior = np.ones(len(xy), dtype=bool)
-    interior[ends] = False
-    vnode[ends] = node_of_end
-    vnode[interior] = n_end_nodes + np.arange(int(interior.sum()))
-    all_xy = np.vstack([node_xy, xy[interior]])
-    all_ll = np.vstack([node_ll, ll[interior]])
-    del ll, node_ll, node_xy, end_xy
-    # node keys are the source ids: u/v fields when they name the endpoints consistently,
-    # else 0..N-1; interior vertices get negative keys
-    info["node_ids"] = "u/v fields" if end_ids is not None else "generated"
-    keys = np.concatenate(
-        [
-            end_ids if end_ids is not None else np.arange(n_end_nodes, dtype=np.int64),
-            -1 - np.arange(int(interior.sum()), dtype=np.int64),
-        ]
-    )
 
+def _arcs(
+    crs: str,
+    nodes: tuple[NDArray[np.int64], NDArray[np.float64], NDArray[np.float64]],
+    xy: NDArray[np.float64],
+    vnode: NDArray[np.int64],
+    owner: NDArray[np.int64],
+    feats: _Features,
+) -> tuple[RawNetwork, NDArray[np.float64], NDArray[np.int64]]:
+    """The raw network of one arc per segment and direction it may be driven (``nodes``: keys,
+    positions and lon/lat; vertex ``i`` at ``xy[i]`` is node ``vnode[i]`` of feature
+    ``owner[i]``), and each segment's length and feature (zero-length ones included)."""
     seg_a = np.arange(len(xy) - 1)
     seg_a = seg_a[owner[seg_a] == owner[seg_a + 1]]
     a_n, b_n = vnode[seg_a], vnode[seg_a + 1]
     f = owner[seg_a]
     d = xy[seg_a + 1] - xy[seg_a]
     seg_len = np.hypot(d[:, 0], d[:, 1])
-    del d, xy, vnode, interior
+    del d
     ok = a_n != b_n
     a_n, b_n, fo = a_n[ok], b_n[ok], f[ok]
-    dirn = direction[fo]
+    dirn = feats.direction[fo]
     fwd = (dirn == BOTH) | (dirn == FORWARD)
     bwd = (dirn == BOTH) | (dirn == REVERSE)
     # per segment: forward then backward, as the segments come
@@ -176,26 +238,22 @@ def lines_to_network(
     dst = np.stack([b_n, a_n], axis=1).ravel()
     feat = np.repeat(fo, 2)
     use = src >= 0
+    keys, node_xy, node_ll = nodes
     raw = RawNetwork(
         crs=crs,
         node_key=keys,
-        node_xy=all_xy,
-        node_lonlat=all_ll,
+        node_xy=node_xy,
+        node_lonlat=node_ll,
         edge_src=src[use].astype(np.int64, copy=False),
         edge_dst=dst[use].astype(np.int64, copy=False),
         edge_feat=feat[use].astype(np.int64, copy=False),
-        edge_oneway=(direction[feat[use]] != BOTH),
-        feat_way_id=fid.astype(np.int64, copy=False),
-        feat_name=names,
-        feat_highway=hws,
-        feat_speed_kph=speeds.astype(np.float64),
+        edge_oneway=(feats.direction[feat[use]] != BOTH),
+        feat_way_id=feats.way_id.astype(np.int64, copy=False),
+        feat_name=feats.name,
+        feat_highway=feats.highway,
+        feat_speed_kph=feats.speed_kph.astype(np.float64),
     )
-    # features that collapsed to one point
-    flen = np.bincount(f, weights=seg_len, minlength=n_feat)
-    collapsed = int((flen <= opts.snap_tolerance).sum())
-    if collapsed:
-        dropped["zero length after snapping"] = collapsed
-    return compact_raw(raw), dropped, info
+    return raw, seg_len, f
 
 
 def _factorize(column: Any) -> tuple[NDArray[np.int64], list[Any]]:

@@ -4,7 +4,7 @@ Matching reads per-edge arrays at the indices of the roads near each fix: the gr
 the route table's rows and the search's workspace. In source order (OSM way ids, GIS feature
 order) a street's neighbours lie anywhere in those arrays; in the order of a Hilbert curve
 through the edges' midpoints they mostly share cache lines and pages, which counts on large
-maps (REAL track 00000028, 36,879 edges: ×0.90–0.93 the batch time per point at S = 1 / 10 / 30).
+maps.
 The order decides only ties between equally good answers (equal distances, broken by index).
 """
 
@@ -15,7 +15,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from graph.road_graph import Labels, Pieces
+from graph.road_graph import Edges, Labels, Pieces, Polylines
 
 HILBERT_BITS = 16
 """Bits per axis of the curve's grid: cells of about 1.5 m on a 100 km map (finer changes little)."""
@@ -92,23 +92,27 @@ def _take_labels(v: Any, index: NDArray[np.int64]) -> Any:
 
 
 def take_edges(kw: dict[str, Any], order: NDArray[np.int64]) -> dict[str, Any]:
-    """:meth:`~graph.road_graph.RoadGraph.from_edges` arguments (``seg_xy`` and
-    ``edge_seg_ptr`` form) with the edges in ``order``: new edge ``i`` is old ``order[i]``
-    (geometry, attributes, way pieces and restrictions follow)."""
+    """:meth:`~graph.road_graph.RoadGraph.from_edges` arguments (edges with a
+    :class:`~graph.road_graph.Polylines` geometry) with the edges in ``order``: new edge ``i``
+    is old ``order[i]`` (geometry, attributes, way pieces and restrictions follow)."""
     out = dict(kw)
     e = len(order)
     inv = np.empty(e, dtype=np.int64)
     inv[order] = np.arange(e, dtype=np.int64)
-    out["edge_u"] = np.asarray(kw["edge_u"])[order]
-    out["edge_v"] = np.asarray(kw["edge_v"])[order]
-    ptr, items = _take_ragged(np.asarray(kw["edge_seg_ptr"], dtype=np.int64), order)
-    out["edge_seg_ptr"] = ptr
-    out["seg_xy"] = np.asarray(kw["seg_xy"])[items]
-    for k in ("edge_way_id", "edge_speed_kph"):
-        if kw.get(k) is not None:
-            out[k] = np.asarray(kw[k])[order]
-    for k in ("edge_names", "edge_highways"):
-        out[k] = _take_labels(kw.get(k), order)
+    edges: Edges = kw["edges"]
+    geom = edges.geometry
+    if not isinstance(geom, Polylines):
+        raise TypeError("take_edges needs the edges' geometry as Polylines")
+    ptr, items = _take_ragged(np.asarray(geom.ptr, dtype=np.int64), order)
+    out["edges"] = Edges(
+        u=np.asarray(edges.u)[order],
+        v=np.asarray(edges.v)[order],
+        geometry=Polylines(np.asarray(geom.xy)[items], ptr),
+        way_id=None if edges.way_id is None else np.asarray(edges.way_id)[order],
+        name=_take_labels(edges.name, order),
+        highway=_take_labels(edges.highway, order),
+        speed_kph=None if edges.speed_kph is None else np.asarray(edges.speed_kph)[order],
+    )
     rows = kw.get("restrictions")
     if rows is not None and len(rows):
         r = np.asarray(rows, dtype=np.int64).reshape(-1, 4).copy()

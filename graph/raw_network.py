@@ -19,7 +19,7 @@ from numpy.typing import NDArray
 
 from graph.keys import unique, unique_inverse
 from graph.order import spatial_edge_order, take_edges
-from graph.road_graph import Labels, Pieces, RoadGraph
+from graph.road_graph import Edges, Labels, Nodes, Pieces, Polylines, RoadGraph
 from graph.simplify import _map_restrictions, _split_loop
 
 if TYPE_CHECKING:
@@ -334,30 +334,80 @@ def road_graph_arrays(
     kept = np.nonzero(simp.kept)[0]
     index = np.full(raw.n_nodes, -1, dtype=np.int64)
     index[kept] = np.arange(len(kept))
+    final = _final_edges(raw, simp, kept, index, info)
+    counts = final.vb - final.va
+    edge_seg_ptr = np.zeros(len(final.va) + 1, dtype=np.int64)
+    np.cumsum(counts, out=edge_seg_ptr[1:])
+    flat_v = np.repeat(final.va - edge_seg_ptr[:-1], counts) + np.arange(int(edge_seg_ptr[-1]))
+    eu, ev, extra_nodes = final.eu, final.ev, final.extra_nodes
+    del final, counts
+    seg_xy = raw.node_xy[simp.nodes[flat_v]]
+    pieces, best_feat, end_feat = _edge_pieces(raw, simp, flat_v, edge_seg_ptr, seg_xy)
+    del flat_v
+    node_xy = np.vstack([raw.node_xy[kept], raw.node_xy[extra_nodes].reshape(-1, 2)])
+    node_ll = np.vstack([raw.node_lonlat[kept], raw.node_lonlat[extra_nodes].reshape(-1, 2)])
+    node_id = np.concatenate([raw.node_key[kept], raw.node_key[extra_nodes]])
+    del kept, index
+    restr = list(restrictions)
+    rrows, info["restrictions_unmapped"] = _edge_restrictions(raw, restr, (eu, ev), end_feat, node_id)
+    kw = {
+        "crs": raw.crs,
+        "nodes": Nodes(node_xy, node_ll, node_id),
+        "edges": Edges(
+            u=eu.astype(np.int32),
+            v=ev.astype(np.int32),
+            geometry=Polylines(seg_xy, edge_seg_ptr),
+            way_id=raw.feat_way_id[best_feat],
+            name=raw.feat_name.take(best_feat),
+            highway=raw.feat_highway.take(best_feat),
+            speed_kph=raw.feat_speed_kph[best_feat].astype(np.float32),
+        ),
+        "restrictions": rrows,
+        "pieces": pieces,
+        "meta": meta,
+        "copy": False,
+    }
+    # nearby roads at nearby indices (:mod:`graph.order`)
+    return take_edges(kw, spatial_edge_order(node_xy, eu, ev)), info
+
+
+class _FinalEdges(NamedTuple):
+    """The final edges: vertex ranges ``va:vb`` into ``simp.nodes``, end nodes ``eu``/``ev``
+    (indices of the graph's nodes), and the raw nodes added where loops were split (after the
+    kept ones)."""
+
+    va: NDArray[np.int64]
+    vb: NDArray[np.int64]
+    eu: NDArray[np.int64]
+    ev: NDArray[np.int64]
+    extra_nodes: NDArray[np.int64]
+
+
+def _final_edges(
+    raw: RawNetwork, simp: Simplified, kept: NDArray[np.int64], index: NDArray[np.int64], info: dict[str, Any]
+) -> _FinalEdges:
+    """The simplified edges with each loop split at the vertex nearest half its length (ties by
+    node order) into two, as :func:`graph.simplify.to_road_graph` does; counted in ``info``."""
     ptr, nodes = simp.ptr, simp.nodes
     u_raw, v_raw = nodes[ptr[:-1]], nodes[ptr[1:] - 1]
-    # loops: split at the vertex nearest half length (ties by node order), as to_road_graph
-    loops = np.nonzero(u_raw == v_raw)[0]
     extra: dict[int, int] = {}
     split_u: list[int] = []
     split_v: list[int] = []
     split_a: list[int] = []
     split_b: list[int] = []
     drop = np.zeros(len(u_raw), dtype=bool)
-    n_nodes = len(kept)
     order_key = {int(k): int(i) for i, k in enumerate(kept.tolist())}
-    for e in loops.tolist():
+    for e in np.nonzero(u_raw == v_raw)[0].tolist():
         a, b = int(ptr[e]), int(ptr[e + 1])
         path = nodes[a:b]
-        coords = raw.node_xy[path]
-        k = _split_loop(coords, path.tolist(), order_key)
+        k = _split_loop(raw.node_xy[path], path.tolist(), order_key)
         drop[e] = True
         if k is None:
             info["self_loops_dropped"] += 1
             continue
         mid = int(path[k])
         if mid not in extra:
-            extra[mid] = n_nodes + len(extra)
+            extra[mid] = len(kept) + len(extra)
         m = extra[mid]
         iu = int(index[path[0]])
         split_u += [iu, m]
@@ -366,56 +416,32 @@ def road_graph_arrays(
         split_b += [a + k + 1, b]
         info["self_loops_split"] += 1
     keep_e = np.nonzero(~drop)[0]
-    # vertex ranges of every final edge (into simp.nodes)
-    va = np.concatenate([ptr[keep_e], np.asarray(split_a, dtype=np.int64)])
-    vb = np.concatenate([ptr[keep_e + 1], np.asarray(split_b, dtype=np.int64)])
-    eu = np.concatenate([index[u_raw[keep_e]], np.asarray(split_u, dtype=np.int64)])
-    ev = np.concatenate([index[v_raw[keep_e]], np.asarray(split_v, dtype=np.int64)])
-    counts = vb - va
-    del ptr, u_raw, v_raw, drop, keep_e
-    edge_seg_ptr = np.zeros(len(va) + 1, dtype=np.int64)
-    np.cumsum(counts, out=edge_seg_ptr[1:])
-    flat_v = np.repeat(va - edge_seg_ptr[:-1], counts) + np.arange(int(edge_seg_ptr[-1]))
-    del va, vb
-    seg_xy = raw.node_xy[nodes[flat_v]]
-    pieces, best_feat, end_feat = _edge_pieces(raw, simp, flat_v, edge_seg_ptr, seg_xy)
-    del flat_v
-    extra_nodes = np.asarray(list(extra), dtype=np.int64)
-    node_xy = np.vstack([raw.node_xy[kept], raw.node_xy[extra_nodes].reshape(-1, 2)])
-    node_ll = np.vstack([raw.node_lonlat[kept], raw.node_lonlat[extra_nodes].reshape(-1, 2)])
-    node_id = np.concatenate([raw.node_key[kept], raw.node_key[extra_nodes]])
-    del kept, index
-    restr = list(restrictions)
-    if restr:  # per edge the way at its start and at its end (only where restrictions need them)
-        first_w = raw.feat_way_id[end_feat[0]].tolist()
-        last_w = raw.feat_way_id[end_feat[1]].tolist()
-        end_ways = _EndWays(first_w, last_w)
-        by_id = {int(k): i for i, k in enumerate(node_id.tolist())}
-        rrows, info["restrictions_unmapped"] = _map_restrictions(
-            restr, us=eu.tolist(), vs=ev.tolist(), end_ways=end_ways, by_id=by_id
-        )
-    else:
-        rrows, info["restrictions_unmapped"] = [], 0
-    kw = {
-        "crs": raw.crs,
-        "node_xy": node_xy,
-        "node_lonlat": node_ll,
-        "node_id": node_id,
-        "edge_u": eu.astype(np.int32),
-        "edge_v": ev.astype(np.int32),
-        "seg_xy": seg_xy,
-        "edge_seg_ptr": edge_seg_ptr,
-        "edge_way_id": raw.feat_way_id[best_feat],
-        "edge_names": raw.feat_name.take(best_feat),
-        "edge_highways": raw.feat_highway.take(best_feat),
-        "edge_speed_kph": raw.feat_speed_kph[best_feat].astype(np.float32),
-        "restrictions": rrows,
-        "pieces": pieces,
-        "meta": meta,
-        "copy": False,
-    }
-    # nearby roads at nearby indices (:mod:`graph.order`)
-    return take_edges(kw, spatial_edge_order(node_xy, eu, ev)), info
+    return _FinalEdges(
+        va=np.concatenate([ptr[keep_e], np.asarray(split_a, dtype=np.int64)]),
+        vb=np.concatenate([ptr[keep_e + 1], np.asarray(split_b, dtype=np.int64)]),
+        eu=np.concatenate([index[u_raw[keep_e]], np.asarray(split_u, dtype=np.int64)]),
+        ev=np.concatenate([index[v_raw[keep_e]], np.asarray(split_v, dtype=np.int64)]),
+        extra_nodes=np.asarray(list(extra), dtype=np.int64),
+    )
+
+
+def _edge_restrictions(
+    raw: RawNetwork,
+    restrictions: list[tuple[int, int, int, int]],
+    ends: tuple[NDArray[np.int64], NDArray[np.int64]],
+    end_feat: tuple[NDArray[np.int64], NDArray[np.int64]],
+    node_id: NDArray[np.int64],
+) -> tuple[list[tuple[int, int, int, int]], int]:
+    """The turn restrictions on the final edges (``ends``: their end nodes), and how many could
+    not be mapped."""
+    if not restrictions:
+        return [], 0
+    # per edge the way at its start and at its end (only where restrictions need them)
+    end_ways = _EndWays(raw.feat_way_id[end_feat[0]].tolist(), raw.feat_way_id[end_feat[1]].tolist())
+    by_id = {int(k): i for i, k in enumerate(node_id.tolist())}
+    return _map_restrictions(
+        restrictions, us=ends[0].tolist(), vs=ends[1].tolist(), end_ways=end_ways, by_id=by_id
+    )
 
 
 def _edge_pieces(

@@ -92,6 +92,58 @@ class Pieces(NamedTuple):
     speed_kph: NDArray[np.float32]
 
 
+class Nodes(NamedTuple):
+    """The nodes given to :meth:`RoadGraph.from_edges`.
+
+    Attributes
+    ----------
+    xy : (N, 2)
+        Positions in metres.
+    lonlat : (N, 2) or None
+        WGS84 positions; computed from ``xy`` with pyproj when None.
+    id : (N,) or None
+        External node ids; ``0..N-1`` when None.
+    """
+
+    xy: NDArray[np.float64] | Sequence[Sequence[float]]
+    lonlat: NDArray[np.float64] | Sequence[Sequence[float]] | None = None
+    id: NDArray[np.int64] | Sequence[int] | None = None
+
+
+class Polylines(NamedTuple):
+    """Edge polylines as one ragged array (shapely's layout): edge ``e`` runs through
+    ``xy[ptr[e]:ptr[e+1]]``, at least 2 points each."""
+
+    xy: NDArray[np.float64]
+    ptr: NDArray[np.int64]
+
+
+class Edges(NamedTuple):
+    """The directed edges given to :meth:`RoadGraph.from_edges`: node indices, geometry and
+    optional attributes.
+
+    Attributes
+    ----------
+    u, v : (E,)
+        Start and end node of each edge.
+    geometry : Polylines, sequence of (k, 2) arrays, or None
+        Each edge's polyline from ``u`` to ``v`` in metres (a polyline of fewer than 2
+        points is straight); straight lines when None.
+    way_id, speed_kph : (E,) or None
+        Way (or feature) id, -1 when None; speed in km/h, NaN when None.
+    name, highway : strings (None for none), :class:`Labels`, or None
+        Road name and class.
+    """
+
+    u: NDArray[np.integer] | Sequence[int]
+    v: NDArray[np.integer] | Sequence[int]
+    geometry: Polylines | Sequence[NDArray[np.float64]] | None = None
+    way_id: NDArray[np.int64] | Sequence[int] | None = None
+    name: Sequence[str | None] | Labels | None = None
+    highway: Sequence[str | None] | Labels | None = None
+    speed_kph: NDArray[np.floating] | Sequence[float] | None = None
+
+
 def merge_repeats(values: Sequence[Any]) -> list[Any]:
     """``values`` with runs of equal consecutive items merged into one."""
     out: list[Any] = []
@@ -216,22 +268,12 @@ class RoadGraph:
     @classmethod
     def from_edges(
         cls,
-        *,
         crs: str,
-        node_xy: NDArray[np.float64] | Sequence[Sequence[float]],
-        node_lonlat: NDArray[np.float64] | Sequence[Sequence[float]] | None = None,
-        node_id: NDArray[np.int64] | Sequence[int] | None = None,
-        edge_u: NDArray[np.integer] | Sequence[int],
-        edge_v: NDArray[np.integer] | Sequence[int],
-        edge_geoms: Sequence[NDArray[np.float64]] | None = None,
-        seg_xy: NDArray[np.float64] | None = None,
-        edge_seg_ptr: NDArray[np.int64] | None = None,
-        edge_way_id: NDArray[np.int64] | Sequence[int] | None = None,
-        edge_names: Sequence[str | None] | Labels | None = None,
-        edge_highways: Sequence[str | None] | Labels | None = None,
-        edge_speed_kph: NDArray[np.floating] | Sequence[float] | None = None,
-        restrictions: NDArray[np.integer] | Sequence[Sequence[int]] | None = None,
+        nodes: Nodes,
+        edges: Edges,
+        *,
         pieces: Pieces | None = None,
+        restrictions: NDArray[np.integer] | Sequence[Sequence[int]] | None = None,
         meta: dict[str, Any] | None = None,
         copy: bool = True,
     ) -> RoadGraph:
@@ -240,134 +282,37 @@ class RoadGraph:
         Parameters
         ----------
         crs
-            Projected CRS of ``node_xy`` and the geometries.
-        node_xy
-            (N, 2) node positions in metres.
-        node_lonlat
-            (N, 2) WGS84 positions; computed from ``node_xy`` with pyproj when omitted.
-        node_id
-            External node ids; defaults to ``0..N-1``.
-        edge_u, edge_v
-            Directed edges as node indices. A two-way road is two edges.
-        edge_geoms
-            Per edge an (k, 2) polyline from ``u`` to ``v`` in metres; straight when omitted.
-        seg_xy, edge_seg_ptr
-            The same as one ragged array (each polyline at least 2 points), instead of
-            ``edge_geoms``.
-        edge_way_id, edge_names, edge_highways, edge_speed_kph
-            Optional attributes per edge (names and classes as strings or :class:`Labels`).
-        restrictions
-            Rows ``(from_edge, via_node, to_edge, kind)``.
+            Projected CRS of the node positions and the geometries.
+        nodes
+            Positions, and optionally lon/lat and external ids (:class:`Nodes`).
+        edges
+            Directed edges as node indices (a two-way road is two edges), with their geometry
+            and attributes (:class:`Edges`). Each polyline's ends are set to its nodes.
         pieces
             The ways each edge is made of; one piece per edge (its own attributes) when omitted.
+        restrictions
+            Rows ``(from_edge, via_node, to_edge, kind)``.
         meta
             Build metadata.
         copy
-            False: ``seg_xy`` (float64, C order) is taken over and may be changed in place.
+            False: a :class:`Polylines` geometry (float64, C order) is taken over and may be
+            changed in place.
         """
-        xy = np.ascontiguousarray(node_xy, dtype=np.float64).reshape(-1, 2)
-        n = len(xy)
-        u = np.asarray(edge_u, dtype=np.int32).ravel()
-        v = np.asarray(edge_v, dtype=np.int32).ravel()
+        xy, lonlat, ids = _node_arrays(crs, nodes)
+        u, v = _edge_ends(edges, len(xy))
         e = len(u)
-        if len(v) != e:
-            raise GraphError("edge_u and edge_v differ in length")
-        if e and (u.min() < 0 or v.min() < 0 or u.max() >= n or v.max() >= n):
-            raise GraphError("edge endpoints must be node indices in 0..N-1")
-        if node_lonlat is None:
-            from pyproj import Transformer
-
-            tf = Transformer.from_crs(crs, "EPSG:4326", always_xy=True)
-            lon, lat = tf.transform(xy[:, 0], xy[:, 1])
-            lonlat = np.column_stack([lon, lat]).astype(np.float64)
-        else:
-            lonlat = np.ascontiguousarray(node_lonlat, dtype=np.float64).reshape(-1, 2)
-        ids = np.arange(n, dtype=np.int64) if node_id is None else np.asarray(node_id, dtype=np.int64)
-
-        # polylines, forcing exact node positions at both ends
-        if seg_xy is not None and edge_seg_ptr is not None:
-            ptr = np.asarray(edge_seg_ptr, dtype=np.int64)
-            if len(ptr) != e + 1 or (e and np.diff(ptr).min() < 2):
-                raise GraphError("edge_seg_ptr must have E+1 entries and every polyline 2 points")
-            seg = np.array(seg_xy, dtype=np.float64, copy=copy or None).reshape(-1, 2)
-            if e:
-                seg[ptr[:-1]] = xy[u]
-                seg[ptr[1:] - 1] = xy[v]
-        elif edge_geoms is None:
-            seg = np.empty((2 * e, 2), dtype=np.float64)
-            seg[0::2] = xy[u]
-            seg[1::2] = xy[v]
-            ptr = np.arange(0, 2 * e + 1, 2, dtype=np.int64)
-        else:
-            if len(edge_geoms) != e:
-                raise GraphError("edge_geoms must have one polyline per edge")
-            parts = []
-            for i, g in enumerate(edge_geoms):
-                a = np.asarray(g, dtype=np.float64).reshape(-1, 2)
-                if len(a) < 2:
-                    a = np.vstack([xy[u[i]], xy[v[i]]])
-                else:
-                    a = a.copy()
-                    a[0] = xy[u[i]]
-                    a[-1] = xy[v[i]]
-                parts.append(a)
-            lens = np.array([len(p) for p in parts], dtype=np.int64)
-            ptr = np.zeros(e + 1, dtype=np.int64)
-            np.cumsum(lens, out=ptr[1:])
-            seg = np.vstack(parts) if parts else np.empty((0, 2), dtype=np.float64)
-        # lengths: sum of segment lengths inside each edge (the joins between edges count 0)
-        seglen = np.hypot(seg[1:, 0] - seg[:-1, 0], seg[1:, 1] - seg[:-1, 1])
-        seglen[ptr[1:-1] - 1] = 0.0
-        cum = np.zeros(len(seglen) + 1)
-        np.cumsum(seglen, out=cum[1:])
-        del seglen
-        elen = cum[ptr[1:] - 1] - cum[ptr[:-1]] if e else np.empty(0)
-        del cum
+        seg, ptr = _polylines(xy, u, v, edges.geometry, copy=copy)
         b_start, b_end = _end_bearings(seg, ptr)
-
-        piece_arrays: dict[str, Any] = {}
-        p = 0
-        if pieces is not None:
-            pe = np.asarray(pieces.edge, dtype=np.int64)
-            ps = np.asarray(pieces.start, dtype=np.float64)
-            p = len(pe)
-            if len(ps) != p or len(pieces.way_id) != p or len(pieces.speed_kph) != p:
-                raise GraphError("piece arrays differ in length")
-            if p and (np.any(np.diff(pe) < 0) or pe.min() < 0 or pe.max() >= e):
-                raise GraphError("pieces must be ordered by edge index in 0..E-1")
-            pptr = np.zeros(e + 1, dtype=np.int64)
-            np.cumsum(np.bincount(pe, minlength=e), out=pptr[1:])
-            if e and (np.diff(pptr) == 0).any():
-                raise GraphError("every edge needs at least one piece")
-            firsts = pptr[:-1]
-            if p and (np.abs(ps[firsts]) > 1e-9).any():
-                raise GraphError("each edge's first piece must start at offset 0")
-            piece_arrays = {
-                "piece_ptr": pptr,
-                "piece_start": ps,
-                "piece_way_id": np.asarray(pieces.way_id, dtype=np.int64),
-                "piece_speed_kph": np.asarray(pieces.speed_kph, dtype=np.float32),
-            }
+        piece_arrays = _piece_arrays(pieces, e)
+        p = len(piece_arrays.get("piece_start", ()))
         # one table each for names and classes, in order of first use: edges, then pieces
-        name_idx, p_name, names = _tables(edge_names, e, pieces.name if pieces is not None else None, p)
-        hw_idx, p_hw, highways = _tables(edge_highways, e, pieces.highway if pieces is not None else None, p)
+        name_idx, p_name, names = _tables(edges.name, e, pieces.name if pieces is not None else None, p)
+        hw_idx, p_hw, highways = _tables(edges.highway, e, pieces.highway if pieces is not None else None, p)
         if pieces is not None:
             piece_arrays["piece_name_idx"] = p_name
             piece_arrays["piece_highway_idx"] = p_hw
-        way = np.full(e, -1, dtype=np.int64) if edge_way_id is None else np.asarray(edge_way_id, np.int64)
-        speed = (
-            np.full(e, np.nan, dtype=np.float32)
-            if edge_speed_kph is None
-            else np.asarray(edge_speed_kph, dtype=np.float32)
-        )
-        out_ptr, out_edges = _csr(u.astype(np.int64), n)
-        in_ptr, in_edges = _csr(v.astype(np.int64), n)
-        rev = _reverse_edges(u, v, seg, ptr)
-        r = (
-            np.empty((0, 4), dtype=np.int32)
-            if restrictions is None or len(restrictions) == 0
-            else np.asarray(restrictions, dtype=np.int32).reshape(-1, 4)
-        )
+        out_ptr, out_edges = _csr(u.astype(np.int64), len(xy))
+        in_ptr, in_edges = _csr(v.astype(np.int64), len(xy))
         return cls(
             crs=crs,
             node_xy=xy,
@@ -375,21 +320,21 @@ class RoadGraph:
             node_id=ids,
             edge_u=u,
             edge_v=v,
-            edge_len=np.asarray(elen, dtype=np.float64),
+            edge_len=_edge_lengths(seg, ptr),
             edge_bearing_start=b_start,
             edge_bearing_end=b_end,
-            edge_way_id=way,
+            edge_way_id=_column(edges.way_id, e, np.int64, -1),
             edge_name_idx=name_idx,
             edge_highway_idx=hw_idx,
-            edge_speed_kph=speed,
-            edge_reverse=rev,
+            edge_speed_kph=_column(edges.speed_kph, e, np.float32, np.nan),
+            edge_reverse=_reverse_edges(u, v, seg, ptr),
             seg_xy=seg,
             edge_seg_ptr=ptr,
             out_ptr=out_ptr,
             out_edges=out_edges,
             in_ptr=in_ptr,
             in_edges=in_edges,
-            restrictions=r,
+            restrictions=_restriction_rows(restrictions),
             names=names,
             highways=highways,
             meta=dict(meta or {}),
@@ -566,6 +511,126 @@ class RoadGraph:
             if a.shape != b.shape or a.dtype != b.dtype or not np.array_equal(a, b, equal_nan=True):
                 return False
         return True
+
+
+def _node_arrays(
+    crs: str, nodes: Nodes
+) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.int64]]:
+    """Positions, lon/lat (projected back from the positions when not given) and ids."""
+    xy = np.ascontiguousarray(nodes.xy, dtype=np.float64).reshape(-1, 2)
+    if nodes.lonlat is None:
+        from pyproj import Transformer
+
+        tf = Transformer.from_crs(crs, "EPSG:4326", always_xy=True)
+        lon, lat = tf.transform(xy[:, 0], xy[:, 1])
+        lonlat = np.column_stack([lon, lat]).astype(np.float64)
+    else:
+        lonlat = np.ascontiguousarray(nodes.lonlat, dtype=np.float64).reshape(-1, 2)
+    ids = np.arange(len(xy), dtype=np.int64) if nodes.id is None else np.asarray(nodes.id, dtype=np.int64)
+    return xy, lonlat, ids
+
+
+def _edge_ends(edges: Edges, n: int) -> tuple[NDArray[np.int32], NDArray[np.int32]]:
+    """The edges' start and end nodes, checked to be node indices in ``0..n-1``."""
+    u = np.asarray(edges.u, dtype=np.int32).ravel()
+    v = np.asarray(edges.v, dtype=np.int32).ravel()
+    if len(v) != len(u):
+        raise GraphError("edges.u and edges.v differ in length")
+    if len(u) and (u.min() < 0 or v.min() < 0 or u.max() >= n or v.max() >= n):
+        raise GraphError("edge endpoints must be node indices in 0..N-1")
+    return u, v
+
+
+def _restriction_rows(rows: NDArray[np.integer] | Sequence[Sequence[int]] | None) -> NDArray[np.int32]:
+    """Turn restrictions as an (R, 4) int32 array."""
+    if rows is None or len(rows) == 0:
+        return np.empty((0, 4), dtype=np.int32)
+    return np.asarray(rows, dtype=np.int32).reshape(-1, 4)
+
+
+def _polylines(
+    xy: NDArray[np.float64],
+    u: NDArray[np.int32],
+    v: NDArray[np.int32],
+    geometry: Polylines | Sequence[NDArray[np.float64]] | None,
+    *,
+    copy: bool,
+) -> tuple[NDArray[np.float64], NDArray[np.int64]]:
+    """The edges' polylines as one ragged array ``(seg_xy, edge_seg_ptr)``, each starting and
+    ending exactly at its nodes."""
+    e = len(u)
+    if isinstance(geometry, Polylines):
+        ptr = np.asarray(geometry.ptr, dtype=np.int64)
+        if len(ptr) != e + 1 or (e and np.diff(ptr).min() < 2):
+            raise GraphError("the polylines' ptr must have E+1 entries and every polyline 2 points")
+        seg = np.array(geometry.xy, dtype=np.float64, copy=copy or None).reshape(-1, 2)
+        if e:
+            seg[ptr[:-1]] = xy[u]
+            seg[ptr[1:] - 1] = xy[v]
+        return seg, ptr
+    if geometry is None:
+        seg = np.empty((2 * e, 2), dtype=np.float64)
+        seg[0::2] = xy[u]
+        seg[1::2] = xy[v]
+        return seg, np.arange(0, 2 * e + 1, 2, dtype=np.int64)
+    if len(geometry) != e:
+        raise GraphError("the geometry must have one polyline per edge")
+    parts = []
+    for i, g in enumerate(geometry):
+        a = np.asarray(g, dtype=np.float64).reshape(-1, 2)
+        if len(a) < 2:
+            a = np.vstack([xy[u[i]], xy[v[i]]])
+        else:
+            a = a.copy()
+            a[0] = xy[u[i]]
+            a[-1] = xy[v[i]]
+        parts.append(a)
+    lens = np.array([len(p) for p in parts], dtype=np.int64)
+    ptr = np.zeros(e + 1, dtype=np.int64)
+    np.cumsum(lens, out=ptr[1:])
+    seg = np.vstack(parts) if parts else np.empty((0, 2), dtype=np.float64)
+    return seg, ptr
+
+
+def _edge_lengths(seg: NDArray[np.float64], ptr: NDArray[np.int64]) -> NDArray[np.float64]:
+    """Sum of segment lengths inside each polyline (the joins between polylines count 0)."""
+    seglen = np.hypot(seg[1:, 0] - seg[:-1, 0], seg[1:, 1] - seg[:-1, 1])
+    seglen[ptr[1:-1] - 1] = 0.0
+    cum = np.zeros(len(seglen) + 1)
+    np.cumsum(seglen, out=cum[1:])
+    del seglen
+    elen = cum[ptr[1:] - 1] - cum[ptr[:-1]] if len(ptr) > 1 else np.empty(0)
+    return np.asarray(elen, dtype=np.float64)
+
+
+def _piece_arrays(pieces: Pieces | None, e: int) -> dict[str, Any]:
+    """The way-piece arrays but names and classes (checked); empty without pieces."""
+    if pieces is None:
+        return {}
+    pe = np.asarray(pieces.edge, dtype=np.int64)
+    ps = np.asarray(pieces.start, dtype=np.float64)
+    p = len(pe)
+    if len(ps) != p or len(pieces.way_id) != p or len(pieces.speed_kph) != p:
+        raise GraphError("piece arrays differ in length")
+    if p and (np.any(np.diff(pe) < 0) or pe.min() < 0 or pe.max() >= e):
+        raise GraphError("pieces must be ordered by edge index in 0..E-1")
+    pptr = np.zeros(e + 1, dtype=np.int64)
+    np.cumsum(np.bincount(pe, minlength=e), out=pptr[1:])
+    if e and (np.diff(pptr) == 0).any():
+        raise GraphError("every edge needs at least one piece")
+    if p and (np.abs(ps[pptr[:-1]]) > 1e-9).any():
+        raise GraphError("each edge's first piece must start at offset 0")
+    return {
+        "piece_ptr": pptr,
+        "piece_start": ps,
+        "piece_way_id": np.asarray(pieces.way_id, dtype=np.int64),
+        "piece_speed_kph": np.asarray(pieces.speed_kph, dtype=np.float32),
+    }
+
+
+def _column(values: Any, e: int, dtype: Any, missing: float) -> NDArray[Any]:
+    """An edge attribute as an array of ``dtype``; ``missing`` everywhere when None."""
+    return np.full(e, missing, dtype=dtype) if values is None else np.asarray(values, dtype=dtype)
 
 
 def _labels(vals: Sequence[str | None] | Labels | None, k: int) -> Labels:

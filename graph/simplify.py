@@ -6,7 +6,7 @@ edge per straight piece between consecutive vertices. Edges carry ``osmid`` (way
 id), and optionally ``name``, ``highway`` and ``speed_kph``. Every vertex is a node, as osmnx
 expects before :func:`osmnx.simplify_graph`.
 
-This is the reference path (``build_map(engine="osmnx")``) and the osmnx conversions
+This is the reference path (``BuildOptions(engine="osmnx")``) and the osmnx conversions
 (:func:`to_osmnx`, :func:`from_osmnx`); the default build does the same on arrays, in
 :mod:`graph.raw_network`, and shares this module's loop splitting and restriction
 mapping.
@@ -17,12 +17,13 @@ from __future__ import annotations
 import itertools
 import logging
 from collections.abc import Iterable, Sequence
-from typing import TYPE_CHECKING, Any
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING, Any, NamedTuple
 
 import numpy as np
 from numpy.typing import NDArray
 
-from graph.road_graph import Pieces, RoadGraph
+from graph.road_graph import Edges, Nodes, Pieces, RoadGraph
 
 if TYPE_CHECKING:
     import networkx as nx
@@ -247,121 +248,163 @@ def to_road_graph(
     """
     node_keys = list(G.nodes)
     node_order = {n: i for i, n in enumerate(node_keys)}
-    xy = [[G.nodes[n]["x"], G.nodes[n]["y"]] for n in node_keys]
-    lonlat = [[G.nodes[n].get("lon", np.nan), G.nodes[n].get("lat", np.nan)] for n in node_keys]
-    ids = [int(G.nodes[n].get("osmid", n)) for n in node_keys]
-    extra_nodes: dict[Any, int] = {}
+    nodes = _NodeLists(
+        xy=[[G.nodes[n]["x"], G.nodes[n]["y"]] for n in node_keys],
+        lonlat=[[G.nodes[n].get("lon", np.nan), G.nodes[n].get("lat", np.nan)] for n in node_keys],
+        ids=[int(G.nodes[n].get("osmid", n)) for n in node_keys],
+        extra={},
+    )
     info = {"self_loops_split": 0, "self_loops_dropped": 0}
-    us: list[int] = []
-    vs: list[int] = []
-    geoms: list[NDArray[np.float64]] = []
-    ways: list[int] = []
-    names: list[str | None] = []
-    hws: list[str | None] = []
-    speeds: list[float] = []
-    end_ways: list[tuple[set[int], set[int]]] = []  # ways touching u, ways touching v
-    p_edge: list[int] = []
-    p_start: list[float] = []
-    p_attrs: list[SegAttrs] = []
-
-    def _add(
-        u: int, v: int, g: NDArray[np.float64], segs: list[SegAttrs], exact: bool, d: dict[str, Any]
-    ) -> None:
-        e = len(us)
-        us.append(u)
-        vs.append(v)
-        geoms.append(g)
-        cum = np.concatenate([[0.0], np.cumsum(np.hypot(*np.diff(g, axis=0).T))])
-        keys = [(w, n, h, sp if sp == sp else -1.0) for w, n, h, sp in segs]  # NaN == NaN here
-        starts = [i for i in range(len(segs)) if i == 0 or keys[i] != keys[i - 1]]
-        bounds = [*starts, len(segs)]
-        best, best_len = 0, -1.0
-        for k, i in enumerate(starts):
-            p_edge.append(e)
-            p_start.append(float(cum[i]))
-            p_attrs.append(segs[i])
-            length = float(cum[bounds[k + 1]] - cum[i])
-            if length > best_len:
-                best, best_len = k, length
-        way, name, hw, sp = segs[starts[best]]
-        ways.append(way)
-        names.append(name)
-        hws.append(hw)
-        speeds.append(sp)
-        if exact:
-            end_ways.append(({segs[0][0]}, {segs[-1][0]}))
-        else:
-            w = d.get("osmid")
-            allw = {int(x) for x in (w if isinstance(w, list | tuple | set) else [w]) if x is not None}
-            end_ways.append((allw, allw))
-
+    out = _EdgeLists()
     for u, v, d in G.edges(data=True):
-        geom = d.get("geometry")
-        if geom is not None:
-            coords = np.asarray(geom.coords, dtype=np.float64)[:, :2]
-        else:
-            coords = np.array([xy[node_order[u]], xy[node_order[v]]], dtype=np.float64)
-        path = _path_nodes(u, d)
-        if path is None and geom is None:
-            path = [u, v]
-        if path is not None and "u_original" in d:  # consolidated: ends renamed, raw keys kept
-            path = [d["u_original"], *path[1:-1], d.get("v_original", path[-1])]
-        segs, exact = _seg_attrs(d, path, len(coords) - 1, raw, coords)
-        iu, iv = node_order[u], node_order[v]
-        if u != v:
-            _add(iu, iv, coords, segs, exact, d)
-            continue
-        k = _split_loop(coords, path, node_order)
-        if k is None:
-            info["self_loops_dropped"] += 1
-            continue
-        mid_key = path[k] if path is not None and len(path) == len(coords) else ("loop", u, k)
-        if mid_key not in extra_nodes:
-            extra_nodes[mid_key] = len(xy)
-            xy.append(coords[k].tolist())
-            # the split vertex was removed by simplification; raw node keys are source ids
-            lonlat.append([np.nan, np.nan])
-            ids.append(int(mid_key) if isinstance(mid_key, int | np.integer) else -len(extra_nodes))
-        m = extra_nodes[mid_key]
-        _add(iu, m, coords[: k + 1], segs[:k], exact, d)
-        _add(m, iv, coords[k:], segs[k:], exact, d)
-        info["self_loops_split"] += 1
-
-    node_xy = np.asarray(xy, dtype=np.float64).reshape(-1, 2)
-    node_ll = np.asarray(lonlat, dtype=np.float64).reshape(-1, 2)
+        _add_edge(out, nodes, (u, v, d), node_order, raw, info)
+    node_xy = np.asarray(nodes.xy, dtype=np.float64).reshape(-1, 2)
+    node_ll = np.asarray(nodes.lonlat, dtype=np.float64).reshape(-1, 2)
     if np.isnan(node_ll).any():
         from graph.projection import to_lonlat
 
         bad = np.isnan(node_ll).any(axis=1)
         node_ll[bad] = to_lonlat(crs, node_xy[bad, 0], node_xy[bad, 1])
     rrows, info["restrictions_unmapped"] = map_restrictions(
-        restrictions, us=us, vs=vs, end_ways=end_ways, node_keys=node_keys, node_ids=ids, G=G
-    )
-    pieces = Pieces(
-        edge=np.asarray(p_edge, dtype=np.int64),
-        start=np.asarray(p_start, dtype=np.float64),
-        way_id=np.asarray([a[0] for a in p_attrs], dtype=np.int64),
-        name=[a[1] for a in p_attrs],
-        highway=[a[2] for a in p_attrs],
-        speed_kph=np.asarray([a[3] for a in p_attrs], dtype=np.float32),
+        restrictions,
+        us=out.us,
+        vs=out.vs,
+        end_ways=out.end_ways,
+        node_keys=node_keys,
+        node_ids=nodes.ids,
+        G=G,
     )
     rg = RoadGraph.from_edges(
-        crs=crs,
-        node_xy=node_xy,
-        node_lonlat=node_ll,
-        node_id=np.asarray(ids, dtype=np.int64),
-        edge_u=np.asarray(us, dtype=np.int32),
-        edge_v=np.asarray(vs, dtype=np.int32),
-        edge_geoms=geoms,
-        edge_way_id=np.asarray(ways, dtype=np.int64),
-        edge_names=names,
-        edge_highways=hws,
-        edge_speed_kph=np.asarray(speeds, dtype=np.float32),
+        crs,
+        Nodes(node_xy, node_ll, np.asarray(nodes.ids, dtype=np.int64)),
+        Edges(
+            u=np.asarray(out.us, dtype=np.int32),
+            v=np.asarray(out.vs, dtype=np.int32),
+            geometry=out.geoms,
+            way_id=np.asarray(out.ways, dtype=np.int64),
+            name=out.names,
+            highway=out.hws,
+            speed_kph=np.asarray(out.speeds, dtype=np.float32),
+        ),
         restrictions=rrows,
-        pieces=pieces,
+        pieces=out.pieces(),
         meta=meta,
     )
     return rg, info
+
+
+class _NodeLists(NamedTuple):
+    """The converted graph's nodes as they are collected: positions, lon/lat and ids, and the
+    node added at each split loop's middle vertex (by its key)."""
+
+    xy: list[list[float]]
+    lonlat: list[list[float]]
+    ids: list[int]
+    extra: dict[Any, int]
+
+
+@dataclass
+class _EdgeLists:
+    """The converted graph's edges as they are collected, with their way pieces and, per
+    edge, the ways touching its start and its end (for the restrictions)."""
+
+    us: list[int] = field(default_factory=list)
+    vs: list[int] = field(default_factory=list)
+    geoms: list[NDArray[np.float64]] = field(default_factory=list)
+    ways: list[int] = field(default_factory=list)
+    names: list[str | None] = field(default_factory=list)
+    hws: list[str | None] = field(default_factory=list)
+    speeds: list[float] = field(default_factory=list)
+    end_ways: list[tuple[set[int], set[int]]] = field(default_factory=list)
+    p_edge: list[int] = field(default_factory=list)
+    p_start: list[float] = field(default_factory=list)
+    p_attrs: list[SegAttrs] = field(default_factory=list)
+
+    def add(
+        self, u: int, v: int, g: NDArray[np.float64], segs: list[SegAttrs], exact: bool, d: dict[str, Any]
+    ) -> None:
+        """One edge ``u -> v`` along ``g`` whose straight pieces have attributes ``segs``
+        (``exact``: each piece's own; else the simplified edge ``d``'s merged ones)."""
+        e = len(self.us)
+        self.us.append(u)
+        self.vs.append(v)
+        self.geoms.append(g)
+        cum = np.concatenate([[0.0], np.cumsum(np.hypot(*np.diff(g, axis=0).T))])
+        keys = [(w, n, h, sp if sp == sp else -1.0) for w, n, h, sp in segs]  # NaN == NaN here
+        starts = [i for i in range(len(segs)) if i == 0 or keys[i] != keys[i - 1]]
+        bounds = [*starts, len(segs)]
+        best, best_len = 0, -1.0
+        for k, i in enumerate(starts):
+            self.p_edge.append(e)
+            self.p_start.append(float(cum[i]))
+            self.p_attrs.append(segs[i])
+            length = float(cum[bounds[k + 1]] - cum[i])
+            if length > best_len:
+                best, best_len = k, length
+        way, name, hw, sp = segs[starts[best]]
+        self.ways.append(way)
+        self.names.append(name)
+        self.hws.append(hw)
+        self.speeds.append(sp)
+        if exact:
+            self.end_ways.append(({segs[0][0]}, {segs[-1][0]}))
+        else:
+            w = d.get("osmid")
+            allw = {int(x) for x in (w if isinstance(w, list | tuple | set) else [w]) if x is not None}
+            self.end_ways.append((allw, allw))
+
+    def pieces(self) -> Pieces:
+        return Pieces(
+            edge=np.asarray(self.p_edge, dtype=np.int64),
+            start=np.asarray(self.p_start, dtype=np.float64),
+            way_id=np.asarray([a[0] for a in self.p_attrs], dtype=np.int64),
+            name=[a[1] for a in self.p_attrs],
+            highway=[a[2] for a in self.p_attrs],
+            speed_kph=np.asarray([a[3] for a in self.p_attrs], dtype=np.float32),
+        )
+
+
+def _add_edge(
+    out: _EdgeLists,
+    nodes: _NodeLists,
+    edge: tuple[Any, Any, dict[str, Any]],
+    node_order: dict[Any, int],
+    raw: nx.MultiDiGraph | None,
+    info: dict[str, int],
+) -> None:
+    """Add one simplified edge ``(u, v, data)`` to ``out``: a self-loop as two edges through a
+    new node at its middle vertex (added to ``nodes``), or dropped when it has no length."""
+    u, v, d = edge
+    geom = d.get("geometry")
+    if geom is not None:
+        coords = np.asarray(geom.coords, dtype=np.float64)[:, :2]
+    else:
+        coords = np.array([nodes.xy[node_order[u]], nodes.xy[node_order[v]]], dtype=np.float64)
+    path = _path_nodes(u, d)
+    if path is None and geom is None:
+        path = [u, v]
+    if path is not None and "u_original" in d:  # consolidated: ends renamed, raw keys kept
+        path = [d["u_original"], *path[1:-1], d.get("v_original", path[-1])]
+    segs, exact = _seg_attrs(d, path, len(coords) - 1, raw, coords)
+    iu, iv = node_order[u], node_order[v]
+    if u != v:
+        out.add(iu, iv, coords, segs, exact, d)
+        return
+    k = _split_loop(coords, path, node_order)
+    if k is None:
+        info["self_loops_dropped"] += 1
+        return
+    mid_key = path[k] if path is not None and len(path) == len(coords) else ("loop", u, k)
+    if mid_key not in nodes.extra:
+        nodes.extra[mid_key] = len(nodes.xy)
+        nodes.xy.append(coords[k].tolist())
+        # the split vertex was removed by simplification; raw node keys are source ids
+        nodes.lonlat.append([np.nan, np.nan])
+        nodes.ids.append(int(mid_key) if isinstance(mid_key, int | np.integer) else -len(nodes.extra))
+    extra = nodes.extra[mid_key]
+    out.add(iu, extra, coords[: k + 1], segs[:k], exact, d)
+    out.add(extra, iv, coords[k:], segs[k:], exact, d)
+    info["self_loops_split"] += 1
 
 
 def map_restrictions(

@@ -40,7 +40,7 @@ import numpy as np
 
 from graph.road_graph import RoadGraph
 from mapmatch.config import DEFAULT_CONFIG, MeasurementConfig
-from mapmatch.types import MapAidedMeasurement, State, new_measurement
+from mapmatch.types import MapAidedMeasurement, State
 
 # the measurement's columns in a results CSV (``mapmatch replay``), appended to its others
 AIDED_COLUMNS: tuple[str, ...] = (
@@ -274,7 +274,7 @@ def map_aided_measurement(
         reason = "low_probability"
     else:
         reason = ""
-    return new_measurement(
+    return MapAidedMeasurement(  # by position, in field order
         lat,
         lon,
         var_e,

@@ -124,7 +124,7 @@ def _unset_or_non_negative(v: float) -> bool:
     return v != v or 0.0 <= v < math.inf
 
 
-@dataclass(frozen=True, slots=True)
+@dataclass(slots=True)
 class Candidate:
     """A road segment the vehicle may be on, with its probability."""
 
@@ -161,7 +161,7 @@ class Correction:
         return self.edges[j]
 
 
-@dataclass(frozen=True, slots=True)
+@dataclass(slots=True)
 class MapAidedMeasurement:
     """What a fusion node may feed back into its filter: the position on the road believed.
 
@@ -202,7 +202,7 @@ class MapAidedMeasurement:
     reason: str = "off_road"
 
 
-@dataclass(frozen=True, slots=True)
+@dataclass(slots=True)
 class SnapResult:
     """The online matcher's answer for one fix.
 
@@ -210,6 +210,13 @@ class SnapResult:
     Node ids ``u``/``v`` and ``way_id`` are the map's external ids (OSM ids). ``way_id``,
     ``name``, ``road_class`` and ``speed_kph`` describe the way piece under the snapped point
     (an edge can be made of several ways).
+
+    This record, :class:`Candidate` and :class:`MapAidedMeasurement` are plain slots
+    dataclasses (not frozen: a frozen one's constructor sets each field through
+    ``object.__setattr__``, a few µs per answer). The per-fix path builds them by position,
+    in field order (a call with keywords goes through a dict); a field added or moved must
+    change those calls too (:func:`mapmatch.online.report.report`,
+    :func:`mapmatch.measurement.map_aided_measurement`).
     """
 
     time: float
@@ -292,121 +299,3 @@ class Track:
 
     def __len__(self) -> int:
         return len(self.lat)
-
-
-# ------------------------------------------------------------------ fast construction
-# A frozen dataclass sets each field through ``object.__setattr__`` (about 0.15 µs a field, 3 µs
-# a SnapResult). The per-fix hot path builds its answers on a twin of the same slots instead,
-# then gives the object its real class: the same object as the constructor's, five times faster.
-# tests/test_types_fast.py checks every builder against its class's constructor.
-
-
-class _CandidateSlots:
-    __slots__ = Candidate.__slots__
-
-
-class _MeasurementSlots:
-    __slots__ = MapAidedMeasurement.__slots__
-
-
-class _SnapResultSlots:
-    __slots__ = SnapResult.__slots__
-
-
-def new_candidate(
-    edge: int, u: int, v: int, way_id: int, probability: float, offset: float, dist: float
-) -> Candidate:
-    """``Candidate(edge, u, v, way_id, probability, offset, dist)``, built fast."""
-    c: Any = _CandidateSlots()  # its slots are the class's, unknown to the type checker
-    c.edge = edge
-    c.u = u
-    c.v = v
-    c.way_id = way_id
-    c.probability = probability
-    c.offset = offset
-    c.dist = dist
-    c.__class__ = Candidate
-    return c
-
-
-def new_measurement(
-    lat: float,
-    lon: float,
-    var_e: float,
-    cov_en: float,
-    var_n: float,
-    along_sigma: float,
-    cross_sigma: float,
-    heading: float,
-    heading_sigma: float,
-    probability: float,
-    usable: bool,
-    reason: str,
-) -> MapAidedMeasurement:
-    """``MapAidedMeasurement`` of all its fields in order, built fast."""
-    m: Any = _MeasurementSlots()  # its slots are the class's, unknown to the type checker
-    m.lat = lat
-    m.lon = lon
-    m.var_e = var_e
-    m.cov_en = cov_en
-    m.var_n = var_n
-    m.along_sigma = along_sigma
-    m.cross_sigma = cross_sigma
-    m.heading = heading
-    m.heading_sigma = heading_sigma
-    m.probability = probability
-    m.usable = usable
-    m.reason = reason
-    m.__class__ = MapAidedMeasurement
-    return m
-
-
-def new_snap_result(
-    time: float,
-    state: State,
-    edge: int,
-    u: int,
-    v: int,
-    way_id: int,
-    offset: float,
-    lat: float,
-    lon: float,
-    bearing: float,
-    dist: float,
-    turn: Turn,
-    *,
-    candidates: tuple[Candidate, ...],
-    correction: Correction | None,
-    raw_lat: float,
-    raw_lon: float,
-    name: str,
-    road_class: str,
-    speed_kph: float,
-    map_aided: MapAidedMeasurement,
-) -> SnapResult:
-    """``SnapResult`` of all its fields, built fast (those up to ``turn`` may be given by position,
-    in field order: a call of positional arguments plus twice its keywords over 30 goes through
-    a dict, 1 µs more)."""
-    r: Any = _SnapResultSlots()  # its slots are the class's, unknown to the type checker
-    r.time = time
-    r.state = state
-    r.edge = edge
-    r.u = u
-    r.v = v
-    r.way_id = way_id
-    r.offset = offset
-    r.lat = lat
-    r.lon = lon
-    r.bearing = bearing
-    r.dist = dist
-    r.turn = turn
-    r.candidates = candidates
-    r.correction = correction
-    r.raw_lat = raw_lat
-    r.raw_lon = raw_lon
-    r.name = name
-    r.road_class = road_class
-    r.speed_kph = speed_kph
-    r.map_aided = map_aided
-    r.__class__ = SnapResult
-    return r

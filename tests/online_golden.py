@@ -166,17 +166,19 @@ _MAPS: dict[str, Any] = {}
 
 
 def bench_map(name: str) -> Any:
-    from graph.build import build_map
+    from graph.build import BuildOptions, build_map
 
     if name not in _MAPS:
         if name == "helsinki":
             from bench_online import helsinki_pbf
 
-            _MAPS[name] = build_map(helsinki_pbf(), engine="osmnx")
+            _MAPS[name] = build_map(helsinki_pbf(), options=BuildOptions(engine="osmnx"))
         elif name == "monaco":
-            _MAPS[name] = build_map(SHARED / "osm" / "monaco.osm.pbf", engine="osmnx")
+            _MAPS[name] = build_map(SHARED / "osm" / "monaco.osm.pbf", options=BuildOptions(engine="osmnx"))
         else:
-            _MAPS[name] = build_map(SHARED / "kubicka" / name / "roads.geojson", engine="osmnx")
+            _MAPS[name] = build_map(
+                SHARED / "kubicka" / name / "roads.geojson", options=BuildOptions(engine="osmnx")
+            )
     return _MAPS[name]
 
 

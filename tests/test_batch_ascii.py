@@ -931,7 +931,7 @@ def test_a_stray_fix_followed_by_another_is_dropped_not_the_good_fixes_after_the
 
 def _with_speeds(amap: AsciiMap, kph: dict[str, float]) -> AsciiMap:
     """The map with speed limits by road (``"ab": 80``; both directions), NaN elsewhere."""
-    from graph.road_graph import RoadGraph
+    from graph.road_graph import Edges, Nodes, RoadGraph
 
     g = amap.graph
     inv = {v: k for k, v in amap.nodes.items()}
@@ -940,9 +940,10 @@ def _with_speeds(amap: AsciiMap, kph: dict[str, float]) -> AsciiMap:
         for u, v in zip(g.edge_u, g.edge_v, strict=True)
     ]
     graph = RoadGraph.from_edges(
-        crs=g.crs, node_xy=g.node_xy, node_lonlat=g.node_lonlat, node_id=g.node_id, edge_u=g.edge_u,
-        edge_v=g.edge_v, edge_way_id=g.edge_way_id, edge_speed_kph=np.array(speed, dtype=np.float32),
-    )  # fmt: skip
+        g.crs,
+        Nodes(g.node_xy, g.node_lonlat, g.node_id),
+        Edges(g.edge_u, g.edge_v, way_id=g.edge_way_id, speed_kph=np.array(speed, dtype=np.float32)),
+    )
     return AsciiMap(graph=graph, nodes=amap.nodes, scale=amap.scale)
 
 

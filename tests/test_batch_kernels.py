@@ -10,7 +10,7 @@ import pytest
 
 from graph.ascii import parse_ascii_map
 from graph.index import EdgeIndex
-from graph.road_graph import RESTRICTION_ONLY, RoadGraph
+from graph.road_graph import RESTRICTION_ONLY, Edges, Nodes, RoadGraph
 from mapmatch import model
 from mapmatch.batch import BATCH_CONFIG
 from mapmatch.gridindex import GridIndex
@@ -187,10 +187,7 @@ def test_grid_index_with_many_roads_near_one_point() -> None:
     inner = np.column_stack([np.cos(ang), np.sin(ang)]) * 5 + [385_000.0, 6_672_000.0]
     outer = np.column_stack([np.cos(ang), np.sin(ang)]) * 30 + [385_000.0, 6_672_000.0]
     g = RoadGraph.from_edges(
-        crs="EPSG:32635",
-        node_xy=np.vstack([inner, outer]),
-        edge_u=np.arange(150),
-        edge_v=np.arange(150) + 150,
+        "EPSG:32635", Nodes(np.vstack([inner, outer])), Edges(np.arange(150), np.arange(150) + 150)
     )
     ix = EdgeIndex(g)
     grid = GridIndex(ix, cell=10.0)
@@ -209,10 +206,9 @@ def test_a_diagonal_road_is_listed_only_in_the_cells_it_crosses() -> None:
     # at the corners, beside them) still find exactly what the plain index finds
     o = np.array([385_000.0, 6_672_000.0])
     g = RoadGraph.from_edges(
-        crs="EPSG:32635",
-        node_xy=np.array([o, o + [100.0, 100.0], o + [0.0, 200.0], o + [100.0, 237.0]]),
-        edge_u=np.array([0, 2]),
-        edge_v=np.array([1, 3]),
+        "EPSG:32635",
+        Nodes(np.array([o, o + [100.0, 100.0], o + [0.0, 200.0], o + [100.0, 237.0]])),
+        Edges(np.array([0, 2]), np.array([1, 3])),
     )
     ix = EdgeIndex(g)
     grid = GridIndex(ix, cell=10.0)
@@ -244,10 +240,9 @@ def test_a_route_of_many_more_edges_than_fixes_is_whole(with_table: bool) -> Non
 
     x0, y0 = 385_000.0, 6_672_000.0
     g = RoadGraph.from_edges(
-        crs="EPSG:32635",
-        node_xy=np.column_stack([x0 + 10.0 * np.arange(80), np.full(80, y0)]),
-        edge_u=np.arange(79),
-        edge_v=np.arange(1, 80),
+        "EPSG:32635",
+        Nodes(np.column_stack([x0 + 10.0 * np.arange(80), np.full(80, y0)])),
+        Edges(np.arange(79), np.arange(1, 80)),
     )
     matcher = BatchMatcher(g, ubodt=Ubodt.build(g, 2000.0) if with_table else None)
     to_lonlat = Transformer.from_crs(g.crs, 4326, always_xy=True)

@@ -20,6 +20,7 @@ from ascii_helpers import at, names
 
 from graph.ascii import ASCII_CRS, AsciiMap, parse_ascii_map
 from graph.build import build_map
+from graph.gis import GisOptions
 from graph.projection import to_lonlat, to_xy
 from mapmatch.batch import BATCH_CONFIG, BatchMatcher
 from mapmatch.batch.results import route_ways
@@ -337,7 +338,8 @@ def test_fmm_example_trips_take_fmm_paths(tmp_path: Path) -> None:
     )
     arcs.to_file(tmp_path / "edges.geojson")
     g = build_map(
-        tmp_path / "edges.geojson", directed=True, id_field="id", node_id_fields=("source", "target")
+        tmp_path / "edges.geojson",
+        gis=GisOptions(directed=True, id_field="id", node_id_fields=("source", "target")),
     )
     matcher = BatchMatcher(g)
     for path, fixes in FMM_TRIPS.items():

@@ -14,7 +14,7 @@ from mapmatch.config import DEFAULT_CONFIG
 from mapmatch.measurement import DEFAULT_MEASUREMENT, cross_track_sigma, road_width
 from mapmatch.online import OnlineMatcher
 from mapmatch.sim.closed_loop import closed_loop_drive, in_process
-from mapmatch.sim.drive import position_error, simulate_drive
+from mapmatch.sim.drive import DriveConfig, position_error, simulate_drive
 from mapmatch.sim.routes import route_from_edges
 from mapmatch.sim.sensors import DEFAULT_SENSORS
 from mapmatch.types import MapAidedMeasurement, SnapResult, State
@@ -28,7 +28,9 @@ DRIFTY = replace(DEFAULT_SENSORS, gyro_bias=1.0, multipath_rate=0.0)
 def _straight_drive(rate: float, seed: int):  # type: ignore[no-untyped-def]
     m = parse_ascii_map(STRAIGHT, scale=25)
     route = route_from_edges(m.graph, [m.edge("a", "b")], start_offset=20.0)
-    drive = simulate_drive(m.graph, route, rate=rate, outages=[(40.0, 90.0)], seed=seed, sensors=DRIFTY)
+    drive = simulate_drive(
+        m.graph, route, rate=rate, outages=[(40.0, 90.0)], seed=seed, config=DriveConfig(sensors=DRIFTY)
+    )
     return m, drive
 
 
@@ -71,7 +73,7 @@ def test_a_wrong_road_is_not_fed_back_or_is_gated_and_does_not_pull_the_filter(a
         rate=1.0,
         outages="none",
         seed=2,
-        sensors=replace(DEFAULT_SENSORS, multipath_rate=0.0),
+        config=DriveConfig(sensors=replace(DEFAULT_SENSORS, multipath_rate=0.0)),
     )
     matcher = OnlineMatcher(wrong_map.graph)
     # the matcher's answers are on c-d (in the truth map's CRS both maps coincide)

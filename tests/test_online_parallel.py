@@ -15,7 +15,7 @@ import pytest
 from graph.ascii import ASCII_CRS, AsciiMap, parse_ascii_map
 from graph.neighbours import edge_neighbours
 from graph.projection import to_lonlat
-from graph.road_graph import RoadGraph
+from graph.road_graph import Edges, Nodes, RoadGraph
 from mapmatch.config import DEFAULT_CONFIG, MatchConfig
 from mapmatch.online import OnlineMatcher
 from mapmatch.types import Fix, SnapResult
@@ -140,7 +140,7 @@ def _exit_map() -> tuple[RoadGraph, dict[str, int]]:
         (x0 + 300.0 + 500.0 * math.cos(ang), y0 - 500.0 * math.sin(ang)),
     ]
     uv = [(0, 1), (1, 0), (1, 2), (2, 1), (1, 3), (3, 1)]
-    g = RoadGraph.from_edges(crs=ASCII_CRS, node_xy=xy, edge_u=[a for a, _ in uv], edge_v=[b for _, b in uv])
+    g = RoadGraph.from_edges(ASCII_CRS, Nodes(xy), Edges([a for a, _ in uv], [b for _, b in uv]))
     return g, {"ab": 0, "bc": 2, "bd": 4}
 
 
@@ -250,7 +250,7 @@ def _split_map(deg: float) -> tuple[RoadGraph, dict[str, int]]:
         (x0 + 400.0 + 1500.0 * math.cos(ang), y0 - 1500.0 * math.sin(ang)),
     ]
     uv = [(0, 1), (1, 2), (1, 3)]
-    g = RoadGraph.from_edges(crs=ASCII_CRS, node_xy=xy, edge_u=[a for a, _ in uv], edge_v=[b for _, b in uv])
+    g = RoadGraph.from_edges(ASCII_CRS, Nodes(xy), Edges([a for a, _ in uv], [b for _, b in uv]))
     return g, {"ab": 0, "bc": 1, "bd": 2}
 
 

@@ -12,7 +12,7 @@ import pytest
 from conftest import helsinki_pbf
 from prep_checks import assert_same_map
 
-from graph.build import build_map
+from graph.build import BuildOptions, build_map
 from graph.road_graph import RoadGraph
 from graph.simplify import from_osmnx, to_osmnx
 
@@ -35,7 +35,7 @@ def _restriction_keys(g: RoadGraph) -> list[tuple[int, int, int, int, int]]:
 
 def _same_as_osmnx(src: Path) -> RoadGraph:
     a = build_map(src)
-    b = build_map(src, engine="osmnx")
+    b = build_map(src, options=BuildOptions(engine="osmnx"))
     assert_same_map(a, b)
     assert _restriction_keys(a) == _restriction_keys(b)
     ra, rb = a.meta["report"], b.meta["report"]

@@ -13,7 +13,7 @@ import pytest
 import shapely
 from prep_checks import check_map, to_nx
 
-from graph.build import build_map
+from graph.build import BuildOptions, build_map
 from graph.errors import InputError
 from graph.gis import BOTH, FORWARD, REVERSE, GisOptions, OnewayConvention, lines_to_graph
 from graph.road_graph import RoadGraph
@@ -63,7 +63,7 @@ def test_ft_tf_oneways_and_fields() -> None:
 
 
 def test_noding_at_crossings_is_an_option() -> None:
-    g = build_map(FT_TF, node_crossings=True)
+    g = build_map(FT_TF, gis=GisOptions(node_crossings=True))
     assert nx.number_weakly_connected_components(to_nx(g)) == 1
     assert g.n_nodes == 9 and g.n_edges == 14
     raw, _, _, _ = lines_to_graph(FT_TF, GisOptions(node_crossings=True))
@@ -83,13 +83,13 @@ def test_oneway_conventions() -> None:
     with pytest.raises(InputError, match="unknown group"):
         OnewayConvention.parse("up=1")
     # a convention that reads FT as two-way and B as one-way changes the graph
-    g = build_map(FT_TF, oneway_convention="forward=B;both=FT,TF")
+    g = build_map(FT_TF, gis=GisOptions(oneway_convention=OnewayConvention.parse("forward=B;both=FT,TF")))
     assert len(_edges(g, (3, 0), (2, 0))) == 1 and _edges(g, (4, -1), (3, 0)) == []
 
 
 def test_missing_field_is_an_error() -> None:
     with pytest.raises(InputError, match="one-way field 'ONEWAY'"):
-        build_map(FT_TF, oneway_field="ONEWAY")
+        build_map(FT_TF, gis=GisOptions(oneway_field="ONEWAY"))
 
 
 def _frame() -> gpd.GeoDataFrame:
@@ -115,9 +115,9 @@ def test_geopackage_without_crs(tmp_path: Path) -> None:
     projected.to_file(p, driver="GPKG")
     with pytest.raises(InputError, match="no readable CRS"):
         build_map(p)
-    assert build_map(p, crs="EPSG:3035").n_edges == 10
+    assert build_map(p, gis=GisOptions(crs="EPSG:3035")).n_edges == 10
     with pytest.raises(InputError, match="unreadable CRS"):
-        build_map(p, crs="EPSG:not-a-crs")
+        build_map(p, gis=GisOptions(crs="EPSG:not-a-crs"))
     lonlat = tmp_path / "lonlat.gpkg"
     _frame().set_crs(None, allow_override=True).to_file(lonlat, driver="GPKG")
     assert build_map(lonlat).n_edges == 10  # coordinates fit lon/lat: assumed WGS84
@@ -130,7 +130,7 @@ def test_snap_tolerance(tmp_path: Path) -> None:
     p = tmp_path / "gap.geojson"
     gpd.GeoDataFrame({"oneway": [False, False]}, geometry=[a, b], crs="EPSG:4326").to_file(p)
     assert build_map(p).n_nodes == 4
-    g = build_map(p, snap_tolerance=1.0)
+    g = build_map(p, gis=GisOptions(snap_tolerance=1.0))
     assert g.n_nodes == 2 and g.n_edges == 2  # joined, and the joint simplified away
     assert g.meta["report"]["fields"]["merged_endpoints"] == 1
 
@@ -155,7 +155,7 @@ def test_topology_from_node_ids(tmp_path: Path) -> None:
     assert sorted(g.node_id.tolist()) == [1, 3, 4, 6]  # 2 and 5 only continue their road
     raw, _, _, _ = lines_to_graph(p, GisOptions())
     check_map(g, raw)
-    joined = build_map(p, topology="endpoints")
+    joined = build_map(p, gis=GisOptions(topology="endpoints"))
     assert nx.number_weakly_connected_components(to_nx(joined)) == 1 and joined.n_nodes == 5
     assert joined.meta["report"]["fields"]["node_ids"] == "generated"
     # ids that name far-apart ends are not node ids
@@ -163,9 +163,9 @@ def test_topology_from_node_ids(tmp_path: Path) -> None:
     df.to_file(p)
     assert build_map(p).meta["report"]["fields"]["topology"] == "shared endpoints"
     with pytest.raises(InputError, match="not node ids"):
-        build_map(p, topology="ids")
+        build_map(p, gis=GisOptions(topology="ids"))
     with pytest.raises(InputError, match="needs integer u/v"):
-        build_map(FT_TF, topology="ids")
+        build_map(FT_TF, gis=GisOptions(topology="ids"))
 
 
 def test_no_line_features(tmp_path: Path) -> None:
@@ -223,7 +223,7 @@ def test_progress_within_the_long_steps(tmp_path: Path) -> None:
     p = tmp_path / "roads.gpkg"
     _frame().to_file(p, driver="GPKG")
     said: list[str] = []
-    g = build_map(p, progress=said.append, progress_interval=0.0)
+    g = build_map(p, options=BuildOptions(progress_interval=0.0), progress=said.append)
     assert g.n_edges == 10
     assert "reading roads.gpkg: 6 of 6 features (100%)" in said
     walk = [m for m in said if m.startswith("simplifying: ")]
@@ -239,7 +239,7 @@ def test_directed_lines_are_one_way_arcs(tmp_path: Path) -> None:
     df = gpd.GeoDataFrame({"id": ["11", "12", "13"], "name": ["x", "x", "y"]}, geometry=lines, crs=4326)
     p = tmp_path / "arcs.geojson"
     df.to_file(p)
-    g = build_map(p, directed=True)
+    g = build_map(p, gis=GisOptions(directed=True))
     assert g.n_edges == 3
     ab, ba, bc = (_edges(g, x, y) for x, y in (((0, 0), (1, 0)), ((1, 0), (0, 0)), ((1, 0), (1, 1))))
     assert [g.edge_way_id[e] for e in ab + ba + bc] == [11, 12, 13]
@@ -250,8 +250,8 @@ def test_directed_lines_are_one_way_arcs(tmp_path: Path) -> None:
     # without the option every line is two-way: a-b is drawn twice
     assert build_map(p).n_edges == 6
     with pytest.raises(InputError, match="not both"):
-        build_map(p, directed=True, oneway_field="id")
+        build_map(p, gis=GisOptions(directed=True, oneway_field="id"))
     with pytest.raises(InputError, match="GIS input option"):
-        build_map(DATA / "prep_tiny.osm", directed=True)
+        build_map(DATA / "prep_tiny.osm", gis=GisOptions(directed=True))
     with pytest.raises(InputError, match="id field 'name' does not hold integers"):
-        build_map(p, id_field="name")
+        build_map(p, gis=GisOptions(id_field="name"))

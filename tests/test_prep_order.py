@@ -7,9 +7,9 @@ import numpy as np
 import pytest
 from conftest import helsinki_pbf
 
-from graph.build import build_map
+from graph.build import BuildOptions, build_map
 from graph.order import hilbert_key, spatial_edge_order, take_edges
-from graph.road_graph import Labels, Pieces, RoadGraph
+from graph.road_graph import Edges, Labels, Nodes, Pieces, Polylines, RoadGraph
 
 
 def test_the_hilbert_curve_visits_every_cell_once_stepping_to_a_neighbour() -> None:
@@ -36,7 +36,9 @@ def _neighbour_gap(g: RoadGraph, *, within: float = 150.0, sample: int = 400) ->
 
 def test_a_built_map_keeps_nearby_roads_at_nearby_indices() -> None:
     ordered = build_map(helsinki_pbf())
-    source = build_map(helsinki_pbf(), engine="osmnx")  # osmnx's order: by node, as read
+    source = build_map(
+        helsinki_pbf(), options=BuildOptions(engine="osmnx")
+    )  # osmnx's order: by node, as read
     assert ordered.n_edges == source.n_edges > 300
     # edges near each other in space are near each other in the arrays
     near_o, near_s = _neighbour_gap(ordered), _neighbour_gap(source)
@@ -53,17 +55,19 @@ def test_taking_edges_carries_geometry_attributes_pieces_and_restrictions() -> N
     #   0 --a--> 1 --b--> 2, and c back from 2 to 0; a restriction a -> b
     kw = {
         "crs": "EPSG:32635",
-        "node_xy": np.array([[0.0, 0.0], [100.0, 0.0], [100.0, 100.0]]),
-        "edge_u": np.array([0, 1, 2], dtype=np.int32),
-        "edge_v": np.array([1, 2, 0], dtype=np.int32),
-        "seg_xy": np.array(
-            [[0, 0], [50, 1], [100, 0], [100, 0], [100, 100], [100, 100], [0, 0]], dtype=float
+        "nodes": Nodes(np.array([[0.0, 0.0], [100.0, 0.0], [100.0, 100.0]])),
+        "edges": Edges(
+            u=np.array([0, 1, 2], dtype=np.int32),
+            v=np.array([1, 2, 0], dtype=np.int32),
+            geometry=Polylines(
+                np.array([[0, 0], [50, 1], [100, 0], [100, 0], [100, 100], [100, 100], [0, 0]], dtype=float),
+                np.array([0, 3, 5, 7]),
+            ),
+            way_id=np.array([10, 20, 30]),
+            name=Labels.of(["A", "B", None]),
+            highway=["primary", "residential", "service"],
+            speed_kph=np.array([50, 30, 20], dtype=np.float32),
         ),
-        "edge_seg_ptr": np.array([0, 3, 5, 7]),
-        "edge_way_id": np.array([10, 20, 30]),
-        "edge_names": Labels.of(["A", "B", None]),
-        "edge_highways": ["primary", "residential", "service"],
-        "edge_speed_kph": np.array([50, 30, 20], dtype=np.float32),
         "restrictions": [(0, 1, 1, 1)],
         "pieces": Pieces(
             edge=np.array([0, 0, 1, 2]),

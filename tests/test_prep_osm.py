@@ -11,8 +11,9 @@ import pytest
 from conftest import helsinki_pbf
 from prep_checks import assert_same_map, check_map
 
-from graph.build import build_map
+from graph.build import BuildOptions, OsmOptions, build_map
 from graph.errors import InputError
+from graph.gis import GisOptions
 from graph.osm import TagFilter, is_oneway, network_filter, read_osm
 from graph.road_graph import RESTRICTION_NO, RESTRICTION_ONLY, RoadGraph
 
@@ -77,16 +78,32 @@ def test_tiny_extract_checks_and_bz2(tmp_path: Path) -> None:
 
 
 def test_bbox_clips_the_extract() -> None:
-    g = build_map(TINY, bbox=(24.9395, 60.1695, 24.9445, 60.1705))
+    g = build_map(TINY, osm=OsmOptions(bbox=(24.9395, 60.1695, 24.9445, 60.1705)))
     # nodes 5, 6, 7 fall outside: node 3 becomes a bend of the road 1 - 4
     assert sorted(g.node_id.tolist()) == [1, 4]
     assert g.n_edges == 2 and len(g.edge_xy(0)) == 4
     assert g.meta["report"]["dropped"]["node references outside the bbox"] > 0
+    # an OSM build records the OSM options; the GIS ones do not apply
+    assert g.meta["build"] == {
+        "network_type": "drive",
+        "consolidate_tolerance": None,
+        "place": None,
+        "bbox": [24.9395, 60.1695, 24.9445, 60.1705],
+    }
+
+
+def test_options_that_do_not_fit_the_source_are_refused_before_any_reading() -> None:
+    with pytest.raises(InputError, match="place name or a bounding box"):
+        build_map(None)
+    with pytest.raises(InputError, match="a download is OpenStreetMap data"):
+        build_map(None, osm=OsmOptions(place="Monaco"), gis=GisOptions(directed=True))
+    with pytest.raises(InputError, match="unknown build engine 'networkx'"):
+        build_map(TINY, options=BuildOptions(engine="networkx"))
 
 
 def test_consolidation(helsinki: tuple[RoadGraph, nx.MultiDiGraph]) -> None:
     plain, _ = helsinki
-    g = build_map(helsinki_pbf(), consolidate_tolerance=10.0)
+    g = build_map(helsinki_pbf(), options=BuildOptions(consolidate_tolerance=10.0))
     assert g.n_nodes < 0.9 * plain.n_nodes
     assert g.meta["build"]["consolidate_tolerance"] == 10.0
     assert np.isfinite(g.node_lonlat).all() and (g.edge_u != g.edge_v).all()
@@ -98,9 +115,9 @@ def test_consolidation(helsinki: tuple[RoadGraph, nx.MultiDiGraph]) -> None:
     # merged nodes keep one of their OSM ids
     assert set(g.node_id.tolist()) <= set(_real_ids(helsinki[1]))
     # the tiny map has no nodes closer than 111 m: 40 m changes nothing, 60 m merges everything
-    assert_same_map(build_map(TINY, consolidate_tolerance=40.0), build_map(TINY))
+    assert_same_map(build_map(TINY, options=BuildOptions(consolidate_tolerance=40.0)), build_map(TINY))
     with pytest.raises(InputError, match="no roads left"):
-        build_map(TINY, consolidate_tolerance=60.0)
+        build_map(TINY, options=BuildOptions(consolidate_tolerance=60.0))
 
 
 def _real_ids(raw: nx.MultiDiGraph) -> list[int]:

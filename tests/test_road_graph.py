@@ -8,7 +8,7 @@ import pytest
 from graph.ascii import parse_ascii_map
 from graph.errors import GraphError, InputError
 from graph.index import EdgeIndex, project_to_edge
-from graph.road_graph import RESTRICTION_NO, RoadGraph
+from graph.road_graph import RESTRICTION_NO, Edges, Nodes, RoadGraph
 
 CROSS = """
     a
@@ -51,11 +51,9 @@ def test_stats_count_two_way_roads_once() -> None:
 
 def test_polyline_geometry_length_and_bearings() -> None:
     g = RoadGraph.from_edges(
-        crs="EPSG:32635",
-        node_xy=[[0.0, 0.0], [30.0, 40.0]],
-        edge_u=[0],
-        edge_v=[1],
-        edge_geoms=[np.array([[0.0, 0.0], [0.0, 40.0], [30.0, 40.0]])],
+        "EPSG:32635",
+        Nodes([[0.0, 0.0], [30.0, 40.0]]),
+        Edges([0], [1], geometry=[np.array([[0.0, 0.0], [0.0, 40.0], [30.0, 40.0]])]),
     )
     assert g.edge_len[0] == pytest.approx(70.0)
     assert g.edge_bearing_start[0] == pytest.approx(0.0)
@@ -66,7 +64,7 @@ def test_polyline_geometry_length_and_bearings() -> None:
 
 def test_bad_edges_are_rejected() -> None:
     with pytest.raises(GraphError):
-        RoadGraph.from_edges(crs="EPSG:32635", node_xy=[[0, 0]], edge_u=[0], edge_v=[3])
+        RoadGraph.from_edges("EPSG:32635", Nodes([[0, 0]]), Edges([0], [3]))
     with pytest.raises(InputError):
         parse_ascii_map("a---")
 

@@ -167,8 +167,9 @@ def _parse_fields(text: str) -> tuple[str, str]:
 
 def run(args: argparse.Namespace) -> int:
     from graph.artifact import save_map
-    from graph.build import build_map
+    from graph.build import BuildOptions, OsmOptions, build_map
     from graph.export import EXPORT_SUFFIXES
+    from graph.gis import GisOptions, OnewayConvention
     from mapmatch.cli import CommandError
 
     if args.source is None and args.place is None and args.bbox is None:
@@ -191,23 +192,24 @@ def run(args: argparse.Namespace) -> int:
 
     graph = build_map(
         args.source,
-        place=args.place,
-        bbox=bbox,
-        consolidate_tolerance=args.consolidate,
-        snap_tolerance=args.snap_tolerance,
-        node_crossings=args.node_crossings,
-        oneway_field=args.oneway_field,
-        oneway_convention=args.oneway_convention,
-        name_field=args.name_field,
-        speed_field=args.speed_field,
-        highway_field=args.highway_field,
-        id_field=args.id_field,
-        node_id_fields=_parse_fields(args.node_id_fields) if args.node_id_fields else None,
-        topology=args.topology,
-        directed=args.directed,
-        crs=args.crs,
-        layer=args.layer,
-        network_type=args.network_type,
+        gis=GisOptions(
+            oneway_field=args.oneway_field,
+            oneway_convention=OnewayConvention.parse(args.oneway_convention or ""),
+            name_field=args.name_field,
+            speed_field=args.speed_field,
+            highway_field=args.highway_field,
+            id_field=args.id_field,
+            snap_tolerance=args.snap_tolerance,
+            node_crossings=args.node_crossings,
+            crs=args.crs,
+            layer=args.layer,
+            bbox=bbox,
+            node_id_fields=_parse_fields(args.node_id_fields) if args.node_id_fields else None,
+            topology=args.topology,
+            directed=args.directed,
+        ),
+        osm=OsmOptions(network_type=args.network_type, place=args.place, bbox=bbox),
+        options=BuildOptions(consolidate_tolerance=args.consolidate),
         progress=progress,
     )
     if args.export is not None:

@@ -11,7 +11,7 @@ from mapmatch.measurement import map_aided_measurement
 from mapmatch.online.filter import best as best_of
 from mapmatch.online.road import RoadModel
 from mapmatch.online.state import Hypothesis, SessionState, Step
-from mapmatch.types import Candidate, Correction, Fix, SnapResult, State, Turn, new_candidate, new_snap_result
+from mapmatch.types import Candidate, Correction, Fix, SnapResult, State, Turn
 
 EdgeMass = dict[int, tuple[float, Hypothesis]]
 
@@ -77,7 +77,7 @@ def candidates(road: RoadModel, agg: EdgeMass) -> tuple[Candidate, ...]:
     total = sum([a[0] for a in agg.values()])
     return tuple(  # of a list: a generator is slower
         [
-            new_candidate(
+            Candidate(
                 ce,
                 road.u_id[ce],
                 road.v_id[ce],
@@ -142,7 +142,7 @@ def report(
         bearing_at=road.bearing_at,
         config=cfg.measurement,
     )
-    return new_snap_result(
+    return SnapResult(  # by position, in field order (see SnapResult)
         fix.time,  # time
         st,  # state
         e,  # edge
@@ -155,14 +155,14 @@ def report(
         shown.bearing,
         shown.dist,
         turn,
-        candidates=cands,
-        correction=correction,
-        raw_lat=fix.lat,
-        raw_lon=fix.lon,
-        name=name,
-        road_class=road_class,
-        speed_kph=speed_kph,
-        map_aided=aided,
+        cands,  # candidates
+        correction,
+        fix.lat,  # raw_lat
+        fix.lon,  # raw_lon
+        name,
+        road_class,
+        speed_kph,
+        aided,  # map_aided
     )
 
 

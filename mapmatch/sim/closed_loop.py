@@ -25,7 +25,10 @@ from mapmatch.online import OnlineMatcher
 from mapmatch.sim.drive import Drive
 from mapmatch.sim.kalman import (
     DEFAULT_KALMAN,
+    FilterSetup,
     KalmanConfig,
+    MapAid,
+    Outputs,
     filter_result,
     filter_setup,
     fused_stream,
@@ -34,7 +37,7 @@ from mapmatch.sim.kalman import (
     no_map_aid,
     run_steps,
 )
-from mapmatch.types import Fix, SnapResult
+from mapmatch.types import Fix, MapAidedMeasurement, SnapResult
 
 MatchFn = Callable[[Fix], SnapResult | None]
 """One fix in, the matcher's answer out (None: the fix was rejected)."""
@@ -113,40 +116,17 @@ def closed_loop_drive(
     idx = np.arange(0, n, step)
     if len(idx) != len(drive.fixes):
         raise ValidationError("drive", "its fixes do not match its sensors' filter grid")
-    dt_out = step * (t[1] - t[0]) if n > 1 else 1.0
     time0 = float(drive.fixes["time"].iloc[0] - drive.fused.time[0]) if len(idx) else 0.0
     carry = new_carry(setup.x0, setup.p0)
     out = new_outputs(n)
     aid = no_map_aid(n)
-    dodo = setup.streams.dodo
+    fixes = _FusedFixes(graph.crs, setup, out, time0=time0, dt_out=step * (t[1] - t[0]) if n > 1 else 1.0)
     results: list[SnapResult | None] = []
     fed = np.zeros(len(idx), dtype=bool)
-    corr = 0.0
-    corr_prev = math.nan
-    last_used = -math.inf
     k_prev = -1
     for i, k in enumerate(idx.tolist()):
         run_steps(setup, carry, aid, out, k_prev + 1, k + 1)
-        for j in range(k_prev + 1, k + 1):
-            corr += dodo[j] * (1.0 + out.state[j, 4])
-            if out.used[j]:
-                last_used = t[j]
-        distance = 0.0 if math.isnan(corr_prev) else corr - corr_prev
-        corr_prev = corr
-        x, y = float(out.state[k, 0]), float(out.state[k, 1])
-        ll = to_lonlat(graph.crs, np.array([x]), np.array([y]))
-        gps_valid = t[k] - last_used <= GPS_WINDOW_S
-        fix = Fix(
-            time=float(t[k]) + time0,
-            lat=float(ll[0, 1]),
-            lon=float(ll[0, 0]),
-            heading=float(np.degrees(out.state[k, 2]) % 360.0),
-            pos_sigma=float(np.sqrt(0.5 * (out.var[k, 0] + out.var[k, 1]))),
-            heading_sigma=float(np.degrees(np.sqrt(out.var[k, 2]))),
-            speed=distance / dt_out,
-            distance=distance,
-            gps_valid=bool(gps_valid),
-        )
+        fix = fixes.at(k_prev, k)
         res = match(fix)
         results.append(res)
         k_prev = k
@@ -156,19 +136,10 @@ def closed_loop_drive(
         if not math.isfinite(m.lat):
             continue
         fed[i] = True
-        kn = int(idx[i + 1])
-        mx, my = point_to_xy(graph.crs, m.lon, m.lat)
-        aid.mode[kn] = 1 if gps_valid else 2
-        aid.ref[kn] = k
-        aid.x[kn], aid.y[kn] = mx, my
-        aid.vee[kn], aid.ven[kn], aid.vnn[kn] = m.var_e, m.cov_en, m.var_n
-        aid.cross_var[kn] = m.cross_sigma**2
-        aid.bearing[kn] = math.radians(m.heading)
-        aid.head_var[kn] = math.radians(m.heading_sigma) ** 2
-    result = filter_result(setup, out)
-    fused = fused_stream(result, rate=rate)
+        _feed_back(aid, graph.crs, m, at=int(idx[i + 1]), ref=k, gps_valid=bool(fix.gps_valid))
+    fused = fused_stream(filter_result(setup, out), rate=rate)
     ll = to_lonlat(graph.crs, fused.x, fused.y)
-    fixes = drive.fixes.assign(
+    new_fixes = drive.fixes.assign(
         lat=ll[:, 1],
         lon=ll[:, 0],
         heading=fused.heading,
@@ -180,9 +151,57 @@ def closed_loop_drive(
     )
     nxt = np.r_[idx[1:], 0]
     return ClosedLoop(
-        drive=dataclasses.replace(drive, fused=fused, fixes=fixes),
+        drive=dataclasses.replace(drive, fused=fused, fixes=new_fixes),
         results=results,
         fed=fed,
         accepted=fed & out.map_used[nxt],
         rejected=fed & out.map_rejected[nxt],
     )
+
+
+class _FusedFixes:
+    """The fix a fusion node sends at a filter step, from the filter's outputs so far: its
+    state, the odometer distance corrected by the learnt scale since the last fix, and
+    whether GPS was used within :data:`GPS_WINDOW_S`."""
+
+    def __init__(self, crs: str, setup: FilterSetup, out: Outputs, *, time0: float, dt_out: float) -> None:
+        self.crs, self.setup, self.out, self.time0, self.dt_out = crs, setup, out, time0, dt_out
+        self.corr = 0.0
+        self.corr_prev = math.nan
+        self.last_used = -math.inf
+
+    def at(self, k_prev: int, k: int) -> Fix:
+        """The fix at step ``k``, the previous one having been at ``k_prev``."""
+        t, out, dodo = self.setup.t, self.out, self.setup.streams.dodo
+        for j in range(k_prev + 1, k + 1):
+            self.corr += dodo[j] * (1.0 + out.state[j, 4])
+            if out.used[j]:
+                self.last_used = t[j]
+        distance = 0.0 if math.isnan(self.corr_prev) else self.corr - self.corr_prev
+        self.corr_prev = self.corr
+        x, y = float(out.state[k, 0]), float(out.state[k, 1])
+        ll = to_lonlat(self.crs, np.array([x]), np.array([y]))
+        return Fix(
+            time=float(t[k]) + self.time0,
+            lat=float(ll[0, 1]),
+            lon=float(ll[0, 0]),
+            heading=float(np.degrees(out.state[k, 2]) % 360.0),
+            pos_sigma=float(np.sqrt(0.5 * (out.var[k, 0] + out.var[k, 1]))),
+            heading_sigma=float(np.degrees(np.sqrt(out.var[k, 2]))),
+            speed=distance / self.dt_out,
+            distance=distance,
+            gps_valid=bool(t[k] - self.last_used <= GPS_WINDOW_S),
+        )
+
+
+def _feed_back(aid: MapAid, crs: str, m: MapAidedMeasurement, *, at: int, ref: int, gps_valid: bool) -> None:
+    """Apply measurement ``m`` of the fix at step ``ref`` at step ``at``: the whole position
+    while GPS is valid, else the cross-track and heading constraint."""
+    mx, my = point_to_xy(crs, m.lon, m.lat)
+    aid.mode[at] = 1 if gps_valid else 2
+    aid.ref[at] = ref
+    aid.x[at], aid.y[at] = mx, my
+    aid.vee[at], aid.ven[at], aid.vnn[at] = m.var_e, m.cov_en, m.var_n
+    aid.cross_var[at] = m.cross_sigma**2
+    aid.bearing[at] = math.radians(m.heading)
+    aid.head_var[at] = math.radians(m.heading_sigma) ** 2

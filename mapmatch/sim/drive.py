@@ -12,10 +12,11 @@ import os
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 import pandas as pd
+from numpy.typing import NDArray
 
 from graph.files import atomic_path
 from graph.projection import to_lonlat, to_xy
@@ -108,44 +109,59 @@ def fixes_frame(graph: RoadGraph, fused: FusedStream, *, vehicle_id: str, time0:
     )
 
 
-def truth_frame(
-    graph: RoadGraph,
-    route: Route,
-    *,
-    vehicle_id: str,
-    time: np.ndarray,
-    x: np.ndarray,
-    y: np.ndarray,
-    route_s: np.ndarray,
-    heading: np.ndarray,
-    speed: np.ndarray,
-    gps_outage: np.ndarray,
-) -> pd.DataFrame:
-    """The truth rows (:data:`TRUTH_COLUMNS`) of true positions ``x``, ``y`` at ``route_s``
-    metres along ``route``: their place on the map, the way piece under them, heading and speed."""
-    edge, off = route.locate(route_s)
-    ll = to_lonlat(graph.crs, x, y)
+class TruthSamples(NamedTuple):
+    """The true motion at the fix times: time (written as is), position in metres, route
+    distance, heading (degrees), speed (m/s) and whether GPS was out."""
+
+    time: NDArray[np.float64]
+    x: NDArray[np.float64]
+    y: NDArray[np.float64]
+    route_s: NDArray[np.float64]
+    heading: NDArray[np.float64]
+    speed: NDArray[np.float64]
+    gps_outage: NDArray[np.bool_]
+
+
+def truth_frame(graph: RoadGraph, route: Route, truth: TruthSamples, *, vehicle_id: str) -> pd.DataFrame:
+    """The truth rows (:data:`TRUTH_COLUMNS`) of true positions ``truth.x``, ``truth.y`` at
+    ``truth.route_s`` metres along ``route``: their place on the map, the way piece under them,
+    heading and speed."""
+    edge, off = route.locate(truth.route_s)
+    ll = to_lonlat(graph.crs, truth.x, truth.y)
     piece = graph.piece_at(edge, off)
     return pd.DataFrame(
         {
-            "vehicle_id": [vehicle_id] * len(time),
-            "time": time,
+            "vehicle_id": [vehicle_id] * len(truth.time),
+            "time": truth.time,
             "lat": ll[:, 1],
             "lon": ll[:, 0],
-            "x": x,
-            "y": y,
+            "x": truth.x,
+            "y": truth.y,
             "edge": edge,
             "offset": off,
             "u": graph.node_id[graph.edge_u[edge]],
             "v": graph.node_id[graph.edge_v[edge]],
             "way_id": np.where(piece >= 0, graph.piece_way_id[np.maximum(piece, 0)], -1),
-            "heading": heading,
-            "speed": speed,
-            "route_s": route_s,
-            "gps_outage": np.asarray(gps_outage).astype(int),
+            "heading": truth.heading,
+            "speed": truth.speed,
+            "route_s": truth.route_s,
+            "gps_outage": np.asarray(truth.gps_outage).astype(int),
         },
         columns=list(TRUTH_COLUMNS),
     )
+
+
+@dataclass(frozen=True)
+class DriveConfig:
+    """The simulator's models: the driver (:class:`ProfileConfig`), the raw sensors' errors
+    (:class:`SensorConfig`) and the fusion filter (:class:`KalmanConfig`)."""
+
+    profile: ProfileConfig = DEFAULT_PROFILE
+    sensors: SensorConfig = DEFAULT_SENSORS
+    kalman: KalmanConfig = DEFAULT_KALMAN
+
+
+DEFAULT_DRIVE = DriveConfig()
 
 
 def simulate_drive(
@@ -157,9 +173,7 @@ def simulate_drive(
     seed: int = 0,
     vehicle_id: str = "sim-1",
     time0: float = 0.0,
-    profile: ProfileConfig = DEFAULT_PROFILE,
-    sensors: SensorConfig = DEFAULT_SENSORS,
-    kalman: KalmanConfig = DEFAULT_KALMAN,
+    config: DriveConfig = DEFAULT_DRIVE,
 ) -> Drive:
     """Drive ``route`` and return fused fixes at ``rate`` Hz (1 or 10) with the truth.
 
@@ -178,63 +192,58 @@ def simulate_drive(
         Seed of every random choice (driver, sensors).
     vehicle_id, time0
         The vehicle id and the time of the first fix written to the output.
+    config
+        The driver, sensor and filter models.
     """
     if rate not in (1, 1.0, 10, 10.0):
         raise ValidationError("rate", "must be 1 or 10 Hz")
     rng = np.random.default_rng(seed)
     outs = parse_outages(outages)
-    traj = drive_profile(graph, route, rng=rng, rate_hz=sensors.gyro_rate, config=profile)
-    raw = simulate_sensors(traj, rng=rng, outages=outs, config=sensors)
-    res = run_filter(raw, config=kalman)
-    fused = fused_stream(res, rate=float(rate))
-    n = len(fused.time)
-    fixes = fixes_frame(graph, fused, vehicle_id=vehicle_id, time0=time0)
+    traj = drive_profile(graph, route, rng=rng, rate_hz=config.sensors.gyro_rate, config=config.profile)
+    raw = simulate_sensors(traj, rng=rng, outages=outs, config=config.sensors)
+    fused = fused_stream(run_filter(raw, config=config.kalman), rate=float(rate))
     # truth at the fix times
     ft = fused.time
-    tx = np.interp(ft, traj.t, traj.x)
-    ty = np.interp(ft, traj.t, traj.y)
-    ts = np.interp(ft, traj.t, traj.s)
-    in_out = np.zeros(n, dtype=bool)
+    in_out = np.zeros(len(ft), dtype=bool)
     for a, d in outs:
         in_out |= (ft >= a) & (ft < a + d)
-    truth = truth_frame(
-        graph,
-        route,
-        vehicle_id=vehicle_id,
+    truth = TruthSamples(
         time=ft + time0,
-        x=tx,
-        y=ty,
-        route_s=ts,
+        x=np.interp(ft, traj.t, traj.x),
+        y=np.interp(ft, traj.t, traj.y),
+        route_s=np.interp(ft, traj.t, traj.s),
         heading=np.degrees(np.interp(ft, traj.t, traj.psi)) % 360.0,
         speed=np.interp(ft, traj.t, traj.speed),
         gps_outage=in_out,
     )
-    gll = to_lonlat(graph.crs, np.nan_to_num(raw.gps_x), np.nan_to_num(raw.gps_y))
-    have = ~np.isnan(raw.gps_x)
-    gps = pd.DataFrame(
-        {
-            "time": raw.gps_t + time0,
-            "lat": np.where(have, gll[:, 1], np.nan),
-            "lon": np.where(have, gll[:, 0], np.nan),
-            "x": raw.gps_x,
-            "y": raw.gps_y,
-            "outlier": raw.gps_outlier.astype(int),
-        }
-    )
-    nodes = route.nodes(graph)
-    # time each intersection is passed (the trajectory's route distance is monotonic)
-    node_t = np.interp(route.node_distance(), traj.s, traj.t) + time0
     return Drive(
         route=route,
         trajectory=traj,
         sensors=raw,
         fused=fused,
-        fixes=fixes,
-        truth=truth,
-        gps=gps,
-        node_index=nodes,
-        node_time=node_t,
+        fixes=fixes_frame(graph, fused, vehicle_id=vehicle_id, time0=time0),
+        truth=truth_frame(graph, route, truth, vehicle_id=vehicle_id),
+        gps=gps_frame(graph, raw, time0=time0),
+        node_index=route.nodes(graph),
+        # time each intersection is passed (the trajectory's route distance is monotonic)
+        node_time=np.interp(route.node_distance(), traj.s, traj.t) + time0,
         outages=outs,
+    )
+
+
+def gps_frame(graph: RoadGraph, sensors: SensorData, *, time0: float) -> pd.DataFrame:
+    """The raw receiver fixes: time, lon/lat and metres (NaN in outages), multipath flag."""
+    gll = to_lonlat(graph.crs, np.nan_to_num(sensors.gps_x), np.nan_to_num(sensors.gps_y))
+    have = ~np.isnan(sensors.gps_x)
+    return pd.DataFrame(
+        {
+            "time": sensors.gps_t + time0,
+            "lat": np.where(have, gll[:, 1], np.nan),
+            "lon": np.where(have, gll[:, 0], np.nan),
+            "x": sensors.gps_x,
+            "y": sensors.gps_y,
+            "outlier": sensors.gps_outlier.astype(int),
+        }
     )
 
 

@@ -279,9 +279,11 @@ def no_map_aid(n: int) -> MapAid:
 
 
 @njit(cache=True)
-def _map_update(X, P, k, m, out, gate_cross, gate_pos, gate_ang, inflate):  # type: ignore[no-untyped-def]
-    """Apply the map-aided measurement of step ``k`` (see :class:`MapAid`), its variances times
-    ``inflate`` (its error is correlated along the road); True when accepted."""
+def _map_update(X, P, k, m, out, p, inflate):  # type: ignore[no-untyped-def]
+    """Apply the map-aided measurement of step ``k`` (see :class:`MapAid`), gated by ``p``'s
+    (:class:`Params`) map and heading gates, its variances times ``inflate`` (its error is
+    correlated along the road); True when accepted."""
+    gate_cross, gate_pos, gate_ang = p.gate_map_cross, p.gate_map_pos, p.gate_ang
     ns = len(X)
     # move the measurement on by the dead reckoning since its fix
     dx = dy = dpsi = 0.0
@@ -489,7 +491,7 @@ def _ekf(k0, k1, c, st, p, m, o):  # type: ignore[no-untyped-def]
             # measurements closer than the map error's correlation distance are not independent
             gap = c.scalars[7] - c.scalars[6]
             inflate = min(p.map_corr_distance / max(gap, 1e-3), 1e6) if p.map_corr_distance > 0.0 else 1.0
-            if _map_update(X, P, k, m, o, p.gate_map_cross, p.gate_map_pos, gate_ang, max(inflate, 1.0)):
+            if _map_update(X, P, k, m, o, p, max(inflate, 1.0)):
                 o.map_used[k] = True
                 c.scalars[6] = c.scalars[7]
             else:

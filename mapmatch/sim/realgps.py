@@ -77,7 +77,7 @@ from graph.index import project_to_edge
 from graph.projection import to_lonlat, to_xy
 from graph.road_graph import RoadGraph
 from mapmatch.errors import ValidationError
-from mapmatch.sim.drive import Drive, fixes_frame, truth_frame
+from mapmatch.sim.drive import Drive, TruthSamples, fixes_frame, truth_frame
 from mapmatch.sim.kalman import FusedStream
 from mapmatch.sim.profile import Trajectory, _moving_average
 from mapmatch.sim.routes import Route, RouteError, route_from_edges, route_from_geometry
@@ -600,14 +600,16 @@ def real_drive(
     truth = truth_frame(
         graph,
         route,
+        TruthSamples(
+            time=ot + time0,
+            x=pos[idx, 0],
+            y=pos[idx, 1],
+            route_s=ts,
+            heading=np.degrees(psi[idx]) % 360.0,
+            speed=speed[idx],
+            gps_outage=~have[idx],  # injected outages and long track gaps
+        ),
         vehicle_id=vid,
-        time=ot + time0,
-        x=pos[idx, 0],
-        y=pos[idx, 1],
-        route_s=ts,
-        heading=np.degrees(psi[idx]) % 360.0,
-        speed=speed[idx],
-        gps_outage=~have[idx],  # injected outages and long track gaps
     )
     truth["truth_known"] = truth_known(route, fix_xy, t_fix, ot, config=cfg)
     gll = to_lonlat(graph.crs, fix_xy[:, 0], fix_xy[:, 1])

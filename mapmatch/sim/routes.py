@@ -16,9 +16,9 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from graph.index import EdgeIndex
+from graph.index import Candidates, EdgeIndex
 from graph.road_graph import RoadGraph
-from graph.rules import moves_for
+from graph.rules import LegalMoves, moves_for
 from mapmatch.errors import MatchError
 from mapmatch.routing import shortest_path
 
@@ -283,11 +283,18 @@ def route_from_geometry(
     if len(c) == 0:
         raise RouteError("the route geometry is not near any road")
     moves = moves_for(graph, uturns="never")
-    n = len(p)
+    chosen = _best_places(c, len(p), moves, step_m=step_m, sigma_m=sigma_m)
+    path = _joined(graph, moves, [e for e, _ in chosen])
+    return route_from_edges(graph, path, start_offset=chosen[0][1], end_offset=chosen[-1][1])
+
+
+def _best_places(
+    c: Candidates, n: int, moves: LegalMoves, *, step_m: float, sigma_m: float
+) -> list[tuple[int, float]]:
+    """The Viterbi path through the candidates ``c`` of ``n`` resampled points: per point with
+    candidates its (edge, offset)."""
     starts = np.searchsorted(c.point, np.arange(n + 1))
-    prev_e: NDArray[np.int32] | None = None
-    prev_off: NDArray[np.float64] | None = None
-    prev_score: NDArray[np.float64] | None = None
+    prev: tuple[NDArray[np.int32], NDArray[np.float64], NDArray[np.float64]] | None = None
     back: list[NDArray[np.int64]] = []
     layers: list[tuple[NDArray[np.int32], NDArray[np.float64]]] = []
     for i in range(n):
@@ -296,35 +303,53 @@ def route_from_geometry(
             continue
         e, off, dist = c.edge[a:b], c.offset[a:b], c.dist[a:b]
         emis = -0.5 * (dist / sigma_m) ** 2
-        if prev_e is None or prev_off is None or prev_score is None:
+        if prev is None:
             score = emis
             bp = np.full(len(e), -1, dtype=np.int64)
         else:
-            trans = np.full((len(prev_e), len(e)), -50.0)
-            for j, pe in enumerate(prev_e.tolist()):
-                succ = moves.after(pe)
-                for k, ce in enumerate(e.tolist()):
-                    if ce == pe:
-                        back_m = prev_off[j] - off[k]
-                        trans[j, k] = 0.0 if back_m < step_m else -50.0
-                    elif ce in succ:
-                        trans[j, k] = -0.5
-            tot = prev_score[:, None] + trans
+            tot = prev[2][:, None] + _transitions(prev[0], prev[1], e, off, moves, step_m)
             bp = np.argmax(tot, axis=0)
             score = tot[bp, np.arange(len(e))] + emis
         back.append(bp)
         layers.append((e, off))
-        prev_e, prev_off, prev_score = e, off, score
-    assert prev_score is not None
-    k = int(np.argmax(prev_score))
+        prev = (e, off, score)
+    assert prev is not None
+    k = int(np.argmax(prev[2]))
     chosen: list[tuple[int, float]] = []
     for layer in range(len(layers) - 1, -1, -1):
         le, loff = layers[layer]
         chosen.append((int(le[k]), float(loff[k])))
         k = int(back[layer][k])
     chosen.reverse()
-    path = [chosen[0][0]]
-    for ce, _ in chosen[1:]:
+    return chosen
+
+
+def _transitions(
+    prev_e: NDArray[np.int32],
+    prev_off: NDArray[np.float64],
+    e: NDArray[np.int32],
+    off: NDArray[np.float64],
+    moves: LegalMoves,
+    step_m: float,
+) -> NDArray[np.float64]:
+    """Log-score of each move from the previous point's candidates to this one's: staying on
+    the edge (not backwards by ``step_m`` or more), a legal successor, or a jump."""
+    trans = np.full((len(prev_e), len(e)), -50.0)
+    for j, pe in enumerate(prev_e.tolist()):
+        succ = moves.after(pe)
+        for k, ce in enumerate(e.tolist()):
+            if ce == pe:
+                back_m = prev_off[j] - off[k]
+                trans[j, k] = 0.0 if back_m < step_m else -50.0
+            elif ce in succ:
+                trans[j, k] = -0.5
+    return trans
+
+
+def _joined(graph: RoadGraph, moves: LegalMoves, edges: list[int]) -> list[int]:
+    """The chosen edges as one legal path: repeats merged, gaps closed with shortest paths."""
+    path = [edges[0]]
+    for ce in edges[1:]:
         if ce == path[-1]:
             continue
         if int(graph.edge_v[path[-1]]) == int(graph.edge_u[ce]) and ce in moves.after(path[-1]):
@@ -337,4 +362,4 @@ def route_from_geometry(
             raise RouteError("the route geometry does not follow legal roads")
         path.extend(gap)
         path.append(ce)
-    return route_from_edges(graph, path, start_offset=chosen[0][1], end_offset=chosen[-1][1])
+    return path

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
 from numpy.typing import NDArray
@@ -201,10 +202,50 @@ def simulate_sensors(
     outages: Sequence[tuple[float, float]] = (),
     config: SensorConfig = DEFAULT_SENSORS,
 ) -> SensorData:
-    """Raw sensor readings for the true motion ``traj``."""
-    T = traj.duration
-    # ---- GPS
-    gt = np.arange(0.0, T + 1e-9, 1.0 / config.gps_rate)
+    """Raw sensor readings for the true motion ``traj`` (GPS, gyro, odometer, then compass
+    draw from ``rng`` in that order)."""
+    gps = _gps(traj, rng, outages, config)
+    gyro_t, gyro, bias = _gyro(traj, rng, config)
+    odo_t, odo, scale = _odometer(traj, rng, config)
+    compass_t, compass = _compass(traj, rng, config)
+    return SensorData(
+        gps_t=gps.t,
+        gps_x=gps.x,
+        gps_y=gps.y,
+        gps_sigma=gps.sigma,
+        gps_speed=gps.speed,
+        gps_course=gps.course,
+        gps_outlier=gps.outlier,
+        gyro_t=gyro_t,
+        gyro=gyro,
+        odo_t=odo_t,
+        odo=odo,
+        compass_t=compass_t,
+        compass=compass,
+        true_gyro_bias=bias,
+        true_odo_scale=scale,
+        outages=tuple((float(a), float(b)) for a, b in outages),
+    )
+
+
+class _Gps(NamedTuple):
+    """Receiver fixes: time, position, reported 1-σ, Doppler speed and course (NaN in
+    outages), and which fixes multipath moved."""
+
+    t: NDArray[np.float64]
+    x: NDArray[np.float64]
+    y: NDArray[np.float64]
+    sigma: NDArray[np.float64]
+    speed: NDArray[np.float64]
+    course: NDArray[np.float64]
+    outlier: NDArray[np.bool_]
+
+
+def _gps(
+    traj: Trajectory, rng: np.random.Generator, outages: Sequence[tuple[float, float]], config: SensorConfig
+) -> _Gps:
+    """GPS fixes: correlated and white noise scaled by the dilution, multipath, outages."""
+    gt = np.arange(0.0, traj.duration + 1e-9, 1.0 / config.gps_rate)
     x, y, psi, v, _ = _sample(traj, gt)
     dtg = 1.0 / config.gps_rate
     ex = _gauss_markov(len(gt), dtg, config.gps_corr_time, config.gps_corr, rng)
@@ -237,25 +278,42 @@ def simulate_sensors(
     for arr in (gx, gy, sigma, gspeed, course):
         arr[off] = np.nan
     outlier &= ~off
-    # ---- gyro
-    wt = traj.t
-    yaw = traj.yaw_rate
-    n = len(wt)
-    dtw = traj.dt
+    return _Gps(gt, gx, gy, sigma, gspeed, course, outlier)
+
+
+def _gyro(
+    traj: Trajectory, rng: np.random.Generator, config: SensorConfig
+) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
+    """Gyro readings at the trajectory's times (rad/s), with the true bias at each."""
+    n = len(traj.t)
     b0 = np.radians(rng.normal(0.0, config.gyro_bias))
-    walk = np.cumsum(rng.normal(0.0, np.radians(config.gyro_bias_walk) * np.sqrt(dtw), n))
+    walk = np.cumsum(rng.normal(0.0, np.radians(config.gyro_bias_walk) * np.sqrt(traj.dt), n))
     bias = b0 + walk
-    gyro = yaw + bias + rng.normal(0.0, np.radians(config.gyro_noise) * np.sqrt(config.gyro_rate), n)
-    # ---- odometer
-    ot = np.arange(0.0, T + 1e-9, 1.0 / config.odo_rate)
+    gyro = (
+        traj.yaw_rate + bias + rng.normal(0.0, np.radians(config.gyro_noise) * np.sqrt(config.gyro_rate), n)
+    )
+    return traj.t, gyro, bias
+
+
+def _odometer(
+    traj: Trajectory, rng: np.random.Generator, config: SensorConfig
+) -> tuple[NDArray[np.float64], NDArray[np.float64], float]:
+    """Odometer times and cumulative distances (scale error, pulse quantisation), and the scale error."""
+    ot = np.arange(0.0, traj.duration + 1e-9, 1.0 / config.odo_rate)
     od = np.interp(ot, traj.t, traj.dist)
     scale = float(rng.normal(0.0, config.odo_scale))
     odo = np.floor(od * (1.0 + scale) / config.odo_quantum) * config.odo_quantum
-    # ---- compass
-    ct = np.arange(0.0, T + 1e-9, 1.0 / config.compass_rate)
+    return ot, odo, scale
+
+
+def _compass(
+    traj: Trajectory, rng: np.random.Generator, config: SensorConfig
+) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """Compass times and headings (degrees): noise, a constant offset and disturbance zones."""
+    ct = np.arange(0.0, traj.duration + 1e-9, 1.0 / config.compass_rate)
     cpsi = np.interp(ct, traj.t, traj.psi)
     cdist = np.interp(ct, traj.t, traj.dist)
-    dist_total = float(traj.dist[-1]) if n else 0.0
+    dist_total = float(traj.dist[-1]) if len(traj.t) else 0.0
     nz = rng.poisson(config.disturbance_per_km * dist_total / 1000.0)
     centre = rng.uniform(0.0, max(dist_total, 1.0), nz)
     width = rng.uniform(*config.disturbance_m, nz)
@@ -269,21 +327,4 @@ def simulate_sensors(
         + dist_err
         + rng.normal(0.0, config.compass_noise, len(ct))
     ) % 360.0
-    return SensorData(
-        gps_t=gt,
-        gps_x=gx,
-        gps_y=gy,
-        gps_sigma=sigma,
-        gps_speed=gspeed,
-        gps_course=course,
-        gps_outlier=outlier,
-        gyro_t=wt,
-        gyro=gyro,
-        odo_t=ot,
-        odo=odo,
-        compass_t=ct,
-        compass=comp,
-        true_gyro_bias=bias,
-        true_odo_scale=scale,
-        outages=tuple((float(a), float(b)) for a, b in outages),
-    )
+    return ct, comp
