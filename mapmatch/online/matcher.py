@@ -89,23 +89,12 @@ class OnlineMatcher:
         if not state.hyps:
             return report.off_road(fix)
         turn, corr = (Turn.NONE, None) if reinit else region.commit(self.road, state, step, cfg)
-        shown, agg = report.shown_hypothesis(state, cfg)
-        corr = stopline.back_at_stop_line(state, shown, held, step, corr)
-        state.shown = shown.edges[shown.k]
+        shown = report.shown_hypothesis(state, cfg)
+        corr = stopline.back_at_stop_line(state, shown.hypothesis, held, step, corr)
+        state.shown = shown.hypothesis.edges[shown.hypothesis.k]
         if len(state.hyps) > 1:
             remember_live(state, state.shown, step, cfg)
-        return report.report(
-            self.road,
-            state,
-            fix,
-            step,
-            shown,
-            agg,
-            cfg,
-            turn=turn,
-            correction=corr,
-            reinit=reinit,
-        )
+        return report.report(self.road, state, fix, step, shown, cfg, report.Outcome(turn, corr, reinit))
 
     # ------------------------------------------------------------------ steps of update
     def _take(self, state: SessionState, step: Step, cfg: MatchConfig) -> None:
