@@ -94,8 +94,8 @@ class OnlineConfig:
     commit_separation_sigmas : a node passed is committed only once every other path through
         it within ``commit_hold_log_ratio`` log units of the best lies at least this many fix σ
         from the best (the branches of a fork at a small angle separate slowly; 0 disables it),
-        or the best is ``ambiguous_max_radius`` past the node. Off by default: 2 σ helps on
-        drawn 10° exits but not on the real Kubicka tracks (-0.01 points of correct road).
+        or the best is ``ambiguous_max_radius`` past the node. Off by default: it helps on
+        exits drawn at a small angle, not on real drives.
     commit_hold_log_ratio : see ``commit_separation_sigmas``.
     switch_penalty : log-probability penalty of jumping to a road the filter did not follow.
     soft_reinit_sigmas : the index is searched for other roads when the fix is further than this
@@ -129,9 +129,9 @@ class OnlineConfig:
     --------------
     dr_sigma_growth : fraction of distance travelled since the last GPS-aided fix added to σ.
     drift_decay_time : seconds over which the dead-reckoning drift σ decays once GPS is back.
-        A fusion filter whose covariance grew in the outage takes most of the first fix: 4 s
-        (20 s left the matcher trusting the dead-reckoned road for half a minute after the
-        return; on 5 REAL Kubicka tracks with outages 98.49 -> 98.73 % correct road).
+        A fusion filter whose covariance grew in the outage takes most of the first fix, so
+        the decay is short: a long one leaves the matcher trusting the dead-reckoned road long
+        after GPS is back.
 
     Stop line and nodes
     -------------------
@@ -147,8 +147,8 @@ class OnlineConfig:
     stop_hold_distance : metres; a vehicle that stops less than this past a node it went
         straight through (or has not yet turned at, by its heading) is placed before the node:
         vehicles stop at stop lines, not in junctions. About the fixes' along-track error:
-        further, the vehicle is more likely to have stopped past the node (8 m put vehicles
-        stopped 4-11 m past a node back before it on REAL GPS; 4 m does not).
+        further, the vehicle is more likely to have stopped past the node, and a longer hold
+        would put such vehicles back before it.
     node_hold_sigmas : a vehicle past a node goes back across it only when the fix lies more
         than this many σ before it (no flicker at a crossing).
     still_distance : metres; moving less than this between fixes, the vehicle stands.
@@ -207,32 +207,33 @@ class OnlineConfig:
     revise_sigmas : a revised crossing moves only as far as its anchor is this many σ sure.
     report_back_ratio : reporting an edge behind the one reported needs this much more mass.
 
-    Stops on real GPS (issue #12, with GPS valid)
-    ---------------------------------------------
+    Stops with GPS
+    --------------
     stop_hold_fix_distance : metres; the stop line holds a stopped vehicle back before a node
         only when the fix's own projection, too, lies less than this past the node (the
-        position believed may lag the fix by its along-track correction, 4-9 m on REAL GPS;
+        position believed may lag the fix by its along-track correction, several metres;
         where the vehicle stands, the fixes show; checked only on GPS-aided fixes with no
         dead-reckoning drift left above their own σ). 0: not checked.
 
-    Forks and parallel roads (issue #12, with GPS valid)
-    ----------------------------------------------------
+    Forks and parallel roads with GPS
+    ---------------------------------
     bias_emission : share of the learnt fix bias's part across the road taken off a GPS-aided
         fix's distance from each road when the paths are weighed: the receiver's error lasts
         minutes, so a fix that has lain 10 m left of the road is no evidence for the road
-        10 m to the left (0 disables it). Half: the learnt bias is an estimate (1 and 0.5 are
-        alike on REAL GPS; 1 made a single-fix flip that cost a SIMULATED 10 Hz drive a
-        quarter of its live intersections).
+        10 m to the left (0 disables it). Half: the learnt bias is an estimate, and taking all
+        of it off lets a single fix flip the road believed.
     commit_hold_probability : a node is not committed while the paths its commit would drop
         (another branch of a fork) still hold more than this share of the probability, until
         the best path is ``ambiguous_max_radius`` past it: leaving the ambiguous circle is no
         evidence (0 disables it).
+
     Fix rate and outages (rate-independent rules)
     ---------------------------------------------
     speed_time : seconds; the transition's speed penalty judges the distance along the path over
         at least this long. Between fixes 0.1 s apart the positions' own noise (a lagging
         estimate catching up with its fix, 10 m in one step) would read as an impossible speed,
-        which one second of the same motion is not: at 10 Hz the vehicle stuck behind a node.
+        which one second of the same motion is not: at 10 Hz the vehicle would stick behind a
+        node.
     stopped_heading_weight : a stopped vehicle's fused heading (a fix with ``heading_sigma``,
         gyro-aided, which holds at a standstill where a GPS course does not) scores the paths
         with this share of the fix's time weight, the share its distance weight leaves out: a
@@ -246,12 +247,11 @@ class OnlineConfig:
         that node while it lies within this many σ along the next edge (the fix's along-track
         noise); further on (and at 0, at once) the next edge takes it. Held there the position
         moves by nothing while the odometer moves on, which at 10 Hz is under a metre a step:
-        the transition over one step keeps it there until the fix is this far past (REAL 10 Hz
-        fixes 2.5-4 m past a straight crossing are reported before it 18-25 % of the time, 1 Hz
-        3-7 %). 0 gives 5 % and REAL correct road live 99.07 -> 99.12 % at 10 Hz, 99.14 ->
-        99.16 % at 1 Hz, but SIMULATED (white fix noise) -0.11 points of correct edge, -0.14
-        live (0.25: -0.04/-0.08 on Helsinki and Monaco): the hold stays until a rule tells the
-        noise at a node from the 10 Hz lag (was ``node_hold_sigmas``).
+        the transition over one step keeps it there until the fix is this far past. A high
+        fix rate's lagging position a few metres past a straight crossing is then at times
+        reported before it; at 0 the next edge takes it at once, but so does white fix noise
+        at a node, too early. The hold stays until a rule tells the noise at a node from the
+        lag.
     step_from_corrected : with GPS, the step from a hypothesis's place (where the along-track
         correction put it: the fix's projection less the learnt fix bias along the road, fused
         with the turn anchor) to a candidate point is judged to the point's place corrected
@@ -259,7 +259,7 @@ class OnlineConfig:
         which counts the offset between a projection and its corrected place against every
         step, ten times a second at 10 Hz). A place the path's turn stops short of its
         estimate pays by the correction's miss, and its step is judged to the estimate by the
-        same share. REAL live correct road 1 Hz 99.142 -> 99.148 %, 10 Hz 99.085 -> 99.143 %.
+        same share.
     """
 
     drift_rate: float = 0.04
@@ -340,11 +340,12 @@ class OnlineConfig:
     revise_sigmas: float = 1.0
     report_back_ratio: float = 3.0
 
-    # stops on real GPS (issue #12, with GPS valid)
+    # stops with GPS
     stop_hold_fix_distance: float = 4.0
-    # forks and parallel roads (issue #12, with GPS valid)
+    # forks and parallel roads with GPS
     commit_hold_probability: float = 0.05
     bias_emission: float = 0.5
+    # fix rate and outages
     speed_time: float = 1.0
     outage_separation_sigmas: float = 2.0
     node_hold_ahead_sigmas: float = 0.5
