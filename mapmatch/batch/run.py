@@ -128,8 +128,8 @@ def _run(pt, cands, p, geom, router, ar):  # type: ignore[no-untyped-def]
 @njit(cache=True, nogil=True)
 def pack(a):  # type: ignore[no-untyped-def]
     """The assembly in one array, as :func:`mapmatch.batch.results.track_match` reads it (each
-    array handed back to Python costs about a microsecond: ten of them were a third of a small
-    track's call).
+    array handed back to Python costs about a microsecond: ten of them would be a good part of
+    a small track's call).
 
     Integers: ``n, splits, route edges, pieces, route points``, then ``p_edge, status, splits,
     route_e, route_ptr, rxy_ptr``; then, as float64 (:func:`packed_floats`): ``p_off, p_xy,
@@ -173,7 +173,8 @@ def run_track(ti, q, r, p, geom, roads, router, grid, gsc, ar):  # type: ignore[
     jumps (:func:`drop_spikes`), emissions with the fixes' σ and heading or the direction of
     travel (:func:`motion_heading`), then :func:`run`; working arrays from the arena ``ar``
     (:mod:`mapmatch.arena`). Compiled into :func:`run_track_in`, its one caller (a call of its
-    own copied its arguments, about 1.5 µs of a small track's match with :func:`_run`'s)."""
+    own would copy its arguments, as :func:`_run`'s would, a noticeable part of a small
+    track's match)."""
     reset(ar)
     pos = ti.pos
     n = pos.shape[1]
