@@ -475,6 +475,10 @@ class BatchConfig:
         close together share their error, so they are less evidence than their number says
         (0: never; ``bench/bench_batch_robust.py --sets noise`` adds error to real tracks to
         judge it).
+    track_pos_sigma_floor : metres; the least position σ of a fix's own accuracy (a reported σ near
+        zero would make one fix outweigh the whole track).
+    track_heading_sigma_floor_deg : the least heading σ (degrees) of a fix's own heading or of
+        the direction of travel.
     off_map_min_run : fewer fixes than this in a row with a road, between off-map fixes, are
         off the map too (a fix near some road amid a run off it is no evidence; 1 disables it).
     off_map_cut : metres; a run of fixes the route leaves out (off the map, or on roads the
@@ -547,6 +551,8 @@ class BatchConfig:
     off_map_sigmas: float = 5.0
     track_sigma_max: float = 30.0
     thin_sigmas: float = 6.0
+    track_pos_sigma_floor: float = 0.5
+    track_heading_sigma_floor_deg: float = 1.0
     off_map_cut: float = 200.0
     off_map_cut_fixes: int = 3
     off_map_cut_speed: float = 15.0
