@@ -39,6 +39,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from graph.angles import angle_diff, bearing
 from graph.road_graph import RoadGraph
 from mapmatch.config import DEFAULT_CONFIG, MeasurementConfig
 from mapmatch.types import MapAidedMeasurement, State
@@ -233,11 +234,11 @@ def _bearing_at(graph: RoadGraph, edge: int, offset: float) -> float:
         return float(graph.edge_bearing_start[edge])
     cum = np.cumsum(np.hypot(d[:, 0], d[:, 1]))
     i = min(int(np.searchsorted(cum, offset)), len(d) - 1)
-    return math.degrees(math.atan2(d[i, 0], d[i, 1])) % 360.0
+    return bearing(float(d[i, 0]), float(d[i, 1]))
 
 
 def _angle(a: float, b: float) -> float:
-    return abs((a - b + 180.0) % 360.0 - 180.0)
+    return abs(angle_diff(a, b))
 
 
 def heading_sigma(
@@ -257,8 +258,8 @@ def heading_sigma(
     length = float(graph.edge_len[edge])
     back, ahead = offset - along_sigma, offset + along_sigma
     # max(back, 0.0), min(ahead, length), _angle and max(_, _), inline (a per-fix path)
-    a = abs((here - at(edge, 0.0 if back < 0.0 else back) + 180.0) % 360.0 - 180.0)
-    b = abs((here - at(edge, length if length < ahead else ahead) + 180.0) % 360.0 - 180.0)
+    a = abs(angle_diff(here, at(edge, 0.0 if back < 0.0 else back)))
+    b = abs(angle_diff(here, at(edge, length if length < ahead else ahead)))
     bend = b if b > a else a
     node = config.node_heading_sigma if ahead > length else 0.0
     return math.sqrt(config.road_heading_sigma**2 + bend**2 + node**2)

@@ -11,6 +11,7 @@ import math
 
 import numpy as np
 
+from graph.angles import bearing_compiled
 from graph.jit import njit
 from mapmatch.arena import full_b1, full_f8, full_i8, take_b1, take_f8, take_i8, take_xy
 from mapmatch.batch.arrays import CandidateArrays, KernelParams, Lattice, TrackPoints
@@ -97,7 +98,7 @@ def segment_bearings(seg_xy, seg_ptr):  # type: ignore[no-untyped-def]
             dx = seg_xy[q + 1, 0] - seg_xy[q, 0]
             dy = seg_xy[q + 1, 1] - seg_xy[q, 1]
             if math.hypot(dx, dy) > 0:
-                b = math.degrees(math.atan2(dx, dy)) % 360.0
+                b = bearing_compiled(dx, dy)
             out[q] = b
     return out
 

@@ -6,13 +6,14 @@ from __future__ import annotations
 
 import math
 
+from graph.angles import angle_diff
 from graph.index import EdgeIndex
 from mapmatch.config import MatchConfig
 from mapmatch.online.filter import filter_step, keep_best, normalise
 from mapmatch.online.placement import place_all
 from mapmatch.online.road import Projection, RoadModel
 from mapmatch.online.state import Hypothesis, SessionState, Step
-from mapmatch.turns import angle_diff, heading_change
+from mapmatch.turns import heading_change
 
 
 def _candidates(

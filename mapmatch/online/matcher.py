@@ -6,6 +6,7 @@ from __future__ import annotations
 import dataclasses
 import math
 
+from graph.angles import angle_diff
 from graph.index import EdgeIndex
 from graph.neighbours import Neighbours, edge_neighbours
 from graph.road_graph import RoadGraph
@@ -17,7 +18,7 @@ from mapmatch.online.filter import normalise
 from mapmatch.online.road import RoadModel
 from mapmatch.online.state import Hypothesis, SessionState, Step
 from mapmatch.online.step import prepare
-from mapmatch.turns import add_sample, angle_diff
+from mapmatch.turns import add_sample
 from mapmatch.types import Fix, SnapResult, Turn
 
 
