@@ -305,7 +305,8 @@ class MapMatchServicer(pb_grpc.MapMatchServicer):
         answer = self.answer if caller is None else functools.partial(self.answer, caller=caller)
         if self.checkpoints is not None:  # sessions in the store: look-ups first, hand-over at the end
             submit = None if self.config.inline_fixes else self.online.submit
-            async for resp in self.checkpoints.stream(request_iterator, context, answer, submit):
+            allowed = None if caller is None else caller.may_act_for
+            async for resp in self.checkpoints.stream(request_iterator, context, answer, submit, allowed):
                 yield resp
             return
         if self.config.inline_fixes:  # no thread hop: one fix is a bounded, short piece of work
@@ -327,8 +328,9 @@ class MapMatchServicer(pb_grpc.MapMatchServicer):
                 raise LimitError(
                     "max_batch_fixes", f"a FixBatch has {len(fixes)} fixes, over the server's limit of {cap}"
                 )
-            if self.checkpoints is not None:
-                await self.checkpoints.before_batch(fixes)
+            if self.checkpoints is not None:  # only the caller's own vehicles are looked up
+                mine = fixes if caller is None else [f for f in fixes if caller.may_act_for(f.vehicle_id)]
+                await self.checkpoints.before_batch(mine)
             out: list[pb.SnapResponse] = []
             for i in range(0, len(fixes), step):  # a slice at a time: other streams go in between
                 out += await self.online.submit(

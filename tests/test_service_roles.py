@@ -405,3 +405,32 @@ def test_mutual_tls_client_certificate_names_the_identity(tmp_path):
             assert refused(api.ListMaps, pb.ListMapsRequest()).code() == grpc.StatusCode.UNAUTHENTICATED
             # a token wins over the certificate: the operator's token on a stranger's connection
             assert api.ListMaps(pb.ListMapsRequest(), timeout=10, metadata=md("op")).maps
+
+
+def test_a_refused_fix_does_not_move_another_vehicles_session_with_the_store(tmp_path):
+    pytest.importorskip("redis")
+    from failover_util import redis_server
+
+    path = _identities(tmp_path / "ids.json")
+    with redis_server(tmp_path / "redis") as rport:
+        cfg = local_config(
+            identities=path,
+            batch_processes=0,
+            session_store=f"redis://127.0.0.1:{rport}/0",
+            checkpoint_interval=0.1,
+        )
+        with (
+            running(cfg, {"city": AMAP.graph}) as (srv, port),
+            grpc.insecure_channel(f"127.0.0.1:{port}") as ch,
+        ):
+            api = pb_grpc.MapMatchStub(ch)
+            assert api.SnapFix(fix("car-b"), timeout=10, metadata=md("b")).vehicle_id == "car-b"
+            # A's stream names B's vehicle: refused, and B's session stays where it is (a
+            # stream's own vehicles are handed over to the store and dropped when it ends)
+            out = list(api.StreamFixes(iter([fix("car-a"), fix("car-b", 1)]), timeout=10, metadata=md("a")))
+            assert [r.HasField("error") for r in out] == [False, True]
+            deadline = time.monotonic() + 10
+            while srv.sessions.live(("city", "car-a")) is not None:  # A's own: handed over
+                assert time.monotonic() < deadline
+                time.sleep(0.05)
+            assert srv.sessions.live(("city", "car-b")) is not None
