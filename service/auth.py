@@ -12,7 +12,7 @@ A vehicle identity names its vehicle ids (``vehicles``) and/or id prefixes
 (``vehicle_prefixes``, for a fusion node that serves several vehicles). :data:`METHOD_RULES`
 states for every RPC who may call it; a vehicle may snap, stream, export and end only the
 sessions of its own vehicles (checked for every fix of a stream), and only the operator may
-load and unload maps and import sessions. A refusal is UNAUTHENTICATED (no or an unknown
+load and unload maps, import sessions and list them. A refusal is UNAUTHENTICATED (no or an unknown
 credential) or PERMISSION_DENIED naming the missing right; it never tells whether another
 vehicle's session exists. With neither a token nor an identities file every call is allowed
 (the server logs a warning).
@@ -185,6 +185,7 @@ METHOD_RULES: dict[str, Rule] = {
     _MM + "ExportSession": _OWN,
     _MM + "ImportSession": _OPERATOR,
     _MM + "EndSession": _OWN,
+    _MM + "ListSessions": _OPERATOR,
     "/grpc.health.v1.Health/Check": Rule(open=True),
     "/grpc.health.v1.Health/Watch": Rule(open=True),
     "/grpc.reflection.v1alpha.ServerReflection/ServerReflectionInfo": _ANY,

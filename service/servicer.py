@@ -534,6 +534,30 @@ class MapMatchServicer(pb_grpc.MapMatchServicer):
             self.checkpoints.forget(entry.map_id, request.vehicle_id)
         return pb.EndSessionResponse(existed=self.sessions.drop(entry.map_id, request.vehicle_id))
 
+    async def ListSessions(
+        self, request: pb.ListSessionsRequest, context: aio.ServicerContext
+    ) -> pb.ListSessionsResponse:
+        """The live sessions, most recently used first (built off the event loop; the answer
+        is bounded by ``max_answer_bytes``)."""
+        map_id = self.maps.get(request.map_id).map_id if request.map_id else ""
+        return await self._offload(context, functools.partial(self._list_sessions, request, map_id))
+
+    def _list_sessions(self, request: pb.ListSessionsRequest, map_id: str) -> pb.ListSessionsResponse:
+        now = self.sessions.now()
+        ttl, prefix, limit = self.sessions.ttl, request.vehicle_prefix, request.limit
+        out = pb.ListSessionsResponse()
+        total = 0
+        for s in self.sessions.used_since(now - ttl):  # live ones, most recently used first
+            m, vid = s.key
+            if (map_id and m != map_id) or not vid.startswith(prefix):
+                continue
+            total += 1
+            if not limit or len(out.sessions) < limit:
+                t = getattr(s.state, "time", math.nan)
+                out.sessions.add(map_id=m, vehicle_id=vid, idle_seconds=now - s.last_used, last_time=t)
+        out.total = total
+        return self._answer_size(out)
+
 
 async def _maybe_await(x: Any) -> None:
     if asyncio.iscoroutine(x):

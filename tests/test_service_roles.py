@@ -148,6 +148,21 @@ def test_only_the_operator_manages_maps_and_imports(server):
     assert api.UnloadMap(pb.UnloadMapRequest(map_id="spare"), timeout=10, metadata=md("op")) is not None
 
 
+def test_only_the_operator_lists_sessions(server):
+    _, _, api = server
+    for vid in ("node7/list-1", "node7/list-2", "node7/list-3"):
+        api.SnapFix(fix(vid), timeout=10, metadata=md("node"))
+    req = pb.ListSessionsRequest(map_id="city", vehicle_prefix="node7/list-", limit=2)
+    for who in ("node", "a"):
+        e = refused(api.ListSessions, req, metadata=md(who))
+        assert (e.code(), e.details()) == (DENIED, "ListSessions needs the operator role")
+    got = api.ListSessions(req, timeout=10, metadata=md("op"))
+    assert got.total == 3
+    assert [s.vehicle_id for s in got.sessions] == ["node7/list-3", "node7/list-2"]  # latest first
+    assert all(s.map_id == "city" and s.idle_seconds >= 0 and s.last_time == 0.0 for s in got.sessions)
+    assert api.ListSessions(pb.ListSessionsRequest(), timeout=10, metadata=md("op")).total >= 3
+
+
 def test_streams_check_every_fix_and_go_on(server):
     _, _, api = server
     reqs = [fix("car-a", 0), fix("car-b", 1), fix("car-a", 1)]
