@@ -449,3 +449,48 @@ def test_a_refused_fix_does_not_move_another_vehicles_session_with_the_store(tmp
                 assert time.monotonic() < deadline
                 time.sleep(0.05)
             assert srv.sessions.live(("city", "car-b")) is not None
+
+
+def test_sighup_reads_the_identities_file_again(tmp_path):
+    import signal
+    import subprocess
+    import sys
+
+    from graph.artifact import save_map
+
+    save_map(AMAP.graph, tmp_path / "city.map")
+    path = _identities(tmp_path / "ids.json")
+    cmd = [sys.executable, "-m", "mapmatch", "serve", "--map", f"city={tmp_path / 'city.map'}",
+           "--address", "127.0.0.1:0", "--identities", str(path), "--batch-processes", "0"]  # fmt: skip
+    env = {**os.environ, "PYTHONPATH": str(ROOT)}
+    proc = subprocess.Popen(
+        cmd, stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True, env=env, cwd=ROOT
+    )
+    try:
+        assert proc.stdout is not None
+        line = proc.stdout.readline()
+        assert "listening on" in line, line
+        port = int(line.split("listening on ")[1].split()[0].rsplit(":", 1)[1])
+        with grpc.insecure_channel(f"127.0.0.1:{port}") as ch:
+            api = pb_grpc.MapMatchStub(ch)
+            assert refused(api.SnapFix, fix("car-c"), metadata=md("a")).code() == DENIED
+            before = path.stat()
+            _identities(path, car_a={"vehicles": ["car-a", "car-c"]})
+            os.utime(path, ns=(before.st_atime_ns, before.st_mtime_ns))  # only the signal tells
+            time.sleep(1.2)
+            assert refused(api.SnapFix, fix("car-c"), metadata=md("a")).code() == DENIED
+            proc.send_signal(signal.SIGHUP)
+            deadline = time.monotonic() + 10
+            while True:
+                try:
+                    assert api.SnapFix(fix("car-c"), timeout=10, metadata=md("a")).vehicle_id == "car-c"
+                    break
+                except grpc.RpcError as exc:
+                    assert exc.code() == DENIED and time.monotonic() < deadline
+                    time.sleep(0.05)
+        proc.send_signal(signal.SIGTERM)
+        assert proc.wait(20) == 0
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
