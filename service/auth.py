@@ -206,9 +206,10 @@ CALLER: contextvars.ContextVar[Identity | None] = contextvars.ContextVar("mapmat
 def check_vehicle(caller: Identity | None, vehicle_id: str, fld: str = "vehicle_id") -> None:
     """Raise :class:`AccessError` unless ``caller`` may act for ``vehicle_id``.
 
-    The same refusal whether or not that vehicle has a session.
+    The same refusal whether or not that vehicle has a session. An empty id passes: the
+    request's own validation names the missing field.
     """
-    if caller is not None and not caller.may_act_for(vehicle_id):
+    if caller is not None and vehicle_id and not caller.may_act_for(vehicle_id):
         raise AccessError.vehicle(fld)
 
 
@@ -391,10 +392,14 @@ class IdentityTable:
 class Quotas:
     """Per-identity counts of concurrent streams and live sessions.
 
+    A vehicle identity without quotas of its own gets the defaults; an operator has no quota
+    unless the identities file gives it one (the ``--token`` of a server that predates the
+    identities file may stand for a whole fleet).
+
     Parameters
     ----------
     max_sessions, max_streams
-        Defaults for identities without quotas of their own.
+        Defaults for vehicle identities without quotas of their own.
     """
 
     def __init__(self, *, max_sessions: int, max_streams: int) -> None:
@@ -404,12 +409,17 @@ class Quotas:
         self._streams: dict[str, int] = {}
         self._sessions: dict[str, dict[tuple[str, str], None]] = {}
 
+    def _cap(self, who: Identity, own: int | None, default: int) -> int | None:
+        if own is not None:
+            return own
+        return None if who.operator else default
+
     def open_stream(self, who: Identity) -> None:
         """Count a stream of ``who``; :class:`LimitError` past its quota."""
-        cap = who.max_streams or self.max_streams
+        cap = self._cap(who, who.max_streams, self.max_streams)
         with self._lock:
             n = self._streams.get(who.name, 0)
-            if n >= cap:
+            if cap is not None and n >= cap:
                 raise LimitError(
                     "max_identity_streams", f"this credential has {n} streams open, its limit is {cap}"
                 )
@@ -429,7 +439,9 @@ class Quotas:
         ``live(key)`` tells whether a session counted before still lives (ended and expired
         ones are forgotten here when the quota is reached).
         """
-        cap = who.max_sessions or self.max_sessions
+        cap = self._cap(who, who.max_sessions, self.max_sessions)
+        if cap is None:
+            return
         with self._lock:
             mine = self._sessions.setdefault(who.name, {})
             if key in mine:

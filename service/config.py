@@ -119,11 +119,12 @@ class ServerConfig:
         as SHA-256; under mutual TLS a client certificate's name selects one. Read again on
         SIGHUP and when it changes. With neither this nor ``token``, every call is allowed.
     max_identity_sessions : int
-        Live sessions one identity may hold (its own ``max_sessions`` in the identities file
-        overrides it); one more gives RESOURCE_EXHAUSTED naming ``max_identity_sessions``.
+        Live sessions one vehicle identity may hold (its own ``max_sessions`` in the
+        identities file overrides it; an operator has no quota unless it has its own); one
+        more gives RESOURCE_EXHAUSTED naming ``max_identity_sessions``.
     max_identity_streams : int
-        Streams (``StreamFixes``, ``StreamFixBatches``, ``MatchTracks``) one identity may
-        have open at once (its own ``max_streams`` overrides it).
+        Streams (``StreamFixes``, ``StreamFixBatches``, ``MatchTracks``) one vehicle identity
+        may have open at once (its own ``max_streams`` overrides it; operators as above).
     max_watch_per_connection, max_watch_total : int
         Health ``Watch`` calls open at once on one connection, and in all; more are refused
         with RESOURCE_EXHAUSTED.

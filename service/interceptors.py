@@ -298,10 +298,11 @@ class AuthInterceptor(_Wrapping):
         try:
             yield _Access(caller, rule)
         finally:
-            CALLER.reset(token)
             if counted:
                 assert self.quotas is not None
                 self.quotas.close_stream(caller)
+            with contextlib.suppress(ValueError):  # a generator finalised in another context
+                CALLER.reset(token)
 
     def request(self, state: _Access | None, req: Any) -> Any:
         if state is None or state.rule.vehicle_field is None:

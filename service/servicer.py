@@ -36,7 +36,7 @@ from grpc import aio
 from mapmatch.errors import ValidationError
 from mapmatch.types import State
 from service import convert
-from service.auth import CALLER, AccessError, Identity, Quotas
+from service.auth import CALLER, Identity, Quotas, check_vehicle
 from service.batch_workers import (
     BatchWorkers,
     MapFile,
@@ -279,8 +279,8 @@ class MapMatchServicer(pb_grpc.MapMatchServicer):
         """Like :meth:`snap`, but a rejected fix becomes a response carrying its error; a fix
         for a vehicle ``caller`` may not act for is answered PERMISSION_DENIED."""
         try:
-            if caller is not None and not caller.may_act_for(req.vehicle_id):
-                raise AccessError.vehicle()
+            if caller is not None:
+                check_vehicle(caller, req.vehicle_id)
             return self.snap(req, caller)
         except Exception as exc:
             code, fld, msg = status_for(exc)

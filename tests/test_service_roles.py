@@ -494,3 +494,18 @@ def test_sighup_reads_the_identities_file_again(tmp_path):
         if proc.poll() is None:
             proc.kill()
             proc.wait()
+
+
+def test_the_operator_has_no_quota_unless_its_own(tmp_path):
+    path = _identities(tmp_path / "ids.json", car_a={"max_sessions": 1})
+    cfg = local_config(identities=path, token="fleet", max_identity_sessions=1, batch_processes=0)
+    with running(cfg, {"city": AMAP.graph}) as (_, port), grpc.insecure_channel(f"127.0.0.1:{port}") as ch:
+        api = pb_grpc.MapMatchStub(ch)
+        for i in range(3):  # the --token operator (a whole fleet, maybe): no default quota
+            assert api.SnapFix(fix(f"fleet-{i}"), timeout=10, metadata=md("fleet")).vehicle_id == f"fleet-{i}"
+        api.SnapFix(fix("node7/1"), timeout=10, metadata=md("node"))  # a vehicle: the default, 1
+        e = refused(api.SnapFix, fix("node7/2"), metadata=md("node"))
+        assert e.code() == grpc.StatusCode.RESOURCE_EXHAUSTED
+        # an empty vehicle id is named by the request's validation, not taken for another vehicle
+        e = refused(api.SnapFix, fix(""), metadata=md("node"))
+        assert (e.code(), e.details()) == (grpc.StatusCode.INVALID_ARGUMENT, "vehicle_id: is required")
