@@ -227,7 +227,7 @@ class AccessSettings:
 
     table: IdentityTable
     quotas: Quotas | None
-    max_watch_per_connection: int = 8
+    max_watch_per_connection: int = 16
     max_watch_total: int = 1000
 
 
