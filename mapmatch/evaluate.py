@@ -19,7 +19,7 @@ from __future__ import annotations
 import itertools
 import os
 from collections.abc import Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
@@ -308,6 +308,25 @@ class Metrics:
         return "\n".join([line] + [f"{k.ljust(w)}  {v}" for k, v in rows] + [line])
 
 
+@dataclass(frozen=True, slots=True)
+class Scoring:
+    """How :func:`evaluate` scores.
+
+    Attributes
+    ----------
+    tolerance_m : float
+        Tolerance of the route mismatch fraction (metres).
+    junctions_only : bool
+        Count only junctions in the intersection accuracy.
+    with_corrections : bool
+        Also score the results with the emitted corrections applied.
+    """
+
+    tolerance_m: float = 2.0
+    junctions_only: bool = True
+    with_corrections: bool = True
+
+
 def evaluate(
     graph: RoadGraph,
     *,
@@ -316,9 +335,7 @@ def evaluate(
     truth_path: Sequence[int] | None = None,
     truth_xy: ArrayLike | None = None,
     fixes: pd.DataFrame | None = None,
-    tolerance_m: float = 2.0,
-    junctions_only: bool = True,
-    with_corrections: bool = True,
+    scoring: Scoring = Scoring(),
 ) -> Metrics:
     """Score a match against the truth (as reported live and, when corrections were emitted,
     after applying them: :attr:`Metrics.corrected`).
@@ -337,12 +354,8 @@ def evaluate(
         The true edge path and route polyline; derived from the per-fix truth when omitted.
     fixes
         The fused input (``lat``, ``lon``), to report its own error too.
-    tolerance_m
-        Tolerance of the route mismatch fraction.
-    junctions_only
-        Count only junctions in the intersection accuracy.
-    with_corrections
-        Also score the results with the emitted corrections applied.
+    scoring
+        The route tolerance, which nodes count, and whether corrections are scored too.
     """
     for col in ("time", "edge"):
         if col not in truth.columns:
@@ -350,17 +363,13 @@ def evaluate(
     if "time" not in matched.columns:
         raise ValidationError("matched", "missing column 'time'")
     t_time = truth["time"].to_numpy(dtype=np.float64)
-    if "x" in truth.columns:
-        txy = truth[["x", "y"]].to_numpy(dtype=np.float64)
-    else:
-        txy = to_xy(graph.crs, truth["lon"].to_numpy(float), truth["lat"].to_numpy(float))
+    txy = _truth_xy(graph, truth)
     t_edge = truth["edge"].to_numpy(dtype=np.int64)
     outage = (
         truth["gps_outage"].to_numpy(dtype=bool)
         if "gps_outage" in truth.columns
         else np.zeros(len(truth), bool)
     )
-
     m_edge = matched_edges_dense(graph, matched)
     m_time = matched["time"].to_numpy(dtype=np.float64)
     mi = align_by_time(t_time, m_time)
@@ -373,13 +382,12 @@ def evaluate(
     def rate(mask: NDArray[np.bool_]) -> float:
         return float(correct[mask].mean()) if mask.any() else float("nan")
 
-    allm = np.ones(len(truth), dtype=bool)
     # junction sequences
     tpath = list(truth_path) if truth_path is not None else edge_path(graph, t_edge, times=t_time)
     mpath = edge_path(graph, m_edge, times=m_time)
     score = intersection_score(
-        path_nodes(graph, tpath, junctions_only=junctions_only),
-        path_nodes(graph, mpath, junctions_only=junctions_only),
+        path_nodes(graph, tpath, junctions_only=scoring.junctions_only),
+        path_nodes(graph, mpath, junctions_only=scoring.junctions_only),
     )
     # geometry
     if truth_xy is not None:
@@ -388,70 +396,33 @@ def evaluate(
         o0 = float(truth["offset"].iloc[0]) if "offset" in truth.columns else 0.0
         o1 = float(truth["offset"].iloc[-1]) if "offset" in truth.columns else None
         tgeo = path_geometry(graph, tpath, start_offset=o0, end_offset=o1)
-    if "lat" in matched.columns and "lon" in matched.columns:
-        lat = pd.to_numeric(matched["lat"], errors="coerce").to_numpy(float)
-        lon = pd.to_numeric(matched["lon"], errors="coerce").to_numpy(float)
-        have = ~np.isnan(lat) & ~np.isnan(lon)
-        sxy = np.full((len(matched), 2), np.nan)
-        if have.any():
-            sxy[have] = to_xy(graph.crs, lon[have], lat[have])
-    else:
-        sxy = np.full((len(matched), 2), np.nan)
-    mgeo = np.empty((0, 2))
-    if mpath:
-        valid = np.flatnonzero(m_edge >= 0)
-        i0, i1 = valid[0], valid[-1]
-        o0 = o1 = 0.0
-        if not np.isnan(sxy[i0, 0]):
-            o0 = project_to_edge(graph, int(m_edge[i0]), float(sxy[i0, 0]), float(sxy[i0, 1]))[0]
-        if not np.isnan(sxy[i1, 0]):
-            o1 = project_to_edge(graph, int(m_edge[i1]), float(sxy[i1, 0]), float(sxy[i1, 1]))[0]
-        else:
-            o1 = float(graph.edge_len[mpath[-1]])
-        if mpath[0] != int(m_edge[i0]):
-            o0 = 0.0
-        if mpath[-1] != int(m_edge[i1]):
-            o1 = float(graph.edge_len[mpath[-1]])
-        mgeo = path_geometry(graph, mpath, start_offset=o0, end_offset=o1)
-    rmf = route_mismatch(tgeo, mgeo, tolerance_m=tolerance_m)
+    sxy = _snapped_xy(graph, matched)
+    rmf = route_mismatch(tgeo, _matched_geometry(graph, mpath, m_edge, sxy), tolerance_m=scoring.tolerance_m)
     # snapped position error
     err = np.full(len(matched), np.nan)
     err[ok] = np.hypot(*(sxy[ok] - txy[mi[ok]]).T)
     e = err[~np.isnan(err)]
-    fused_mean = fused_out = float("nan")
-    if fixes is not None and len(fixes):
-        fi = align_by_time(t_time, fixes["time"].to_numpy(float))
-        fok = fi >= 0
-        fxy = to_xy(graph.crs, fixes["lon"].to_numpy(float), fixes["lat"].to_numpy(float))
-        fe = np.hypot(*(fxy[fok] - txy[fi[fok]]).T)
-        fused_mean = float(fe.mean()) if len(fe) else float("nan")
-        fo = outage[fi[fok]]
-        fused_out = float(fe[fo].max()) if fo.any() else float("nan")
-    ncorr = 0
-    if "correction" in matched.columns:
-        c = matched["correction"]
-        ncorr = int((c.notna() & (c.astype(str).str.strip() != "") & (c.astype(str) != "0")).sum())
+    fused_mean, fused_out = _fused_error(graph, fixes, t_time, txy, outage)
+    ncorr = _corrections(matched)
     corrected = None
-    if with_corrections and ncorr:
+    if scoring.with_corrections and ncorr:
         corrected = evaluate(
             graph,
             truth=truth,
             matched=apply_corrections(graph, matched),
             truth_path=truth_path,
             truth_xy=truth_xy,
-            tolerance_m=tolerance_m,
-            junctions_only=junctions_only,
-            with_corrections=False,
+            scoring=replace(scoring, with_corrections=False),
         )
     return Metrics(
         fixes=len(truth),
         intersections=score,
-        correct_edge_rate=rate(allm),
+        correct_edge_rate=rate(np.ones(len(truth), dtype=bool)),
         correct_edge_rate_gps=rate(~outage),
         correct_edge_rate_outage=rate(outage),
         unmatched_fraction=float((per_truth < 0).mean()) if len(truth) else float("nan"),
         rmf=rmf,
-        tolerance_m=tolerance_m,
+        tolerance_m=scoring.tolerance_m,
         snap_error_mean=float(e.mean()) if len(e) else float("nan"),
         snap_error_median=float(np.median(e)) if len(e) else float("nan"),
         snap_error_p95=float(np.percentile(e, 95)) if len(e) else float("nan"),
@@ -460,6 +431,75 @@ def evaluate(
         corrections=ncorr,
         corrected=corrected,
     )
+
+
+def _truth_xy(graph: RoadGraph, truth: pd.DataFrame) -> NDArray[np.float64]:
+    """The true positions in the map's CRS (``x``, ``y``, else ``lon``, ``lat`` projected)."""
+    if "x" in truth.columns:
+        return truth[["x", "y"]].to_numpy(dtype=np.float64)
+    return to_xy(graph.crs, truth["lon"].to_numpy(float), truth["lat"].to_numpy(float))
+
+
+def _snapped_xy(graph: RoadGraph, matched: pd.DataFrame) -> NDArray[np.float64]:
+    """The snapped positions in the map's CRS (NaN where not given)."""
+    sxy = np.full((len(matched), 2), np.nan)
+    if "lat" in matched.columns and "lon" in matched.columns:
+        lat = pd.to_numeric(matched["lat"], errors="coerce").to_numpy(float)
+        lon = pd.to_numeric(matched["lon"], errors="coerce").to_numpy(float)
+        have = ~np.isnan(lat) & ~np.isnan(lon)
+        if have.any():
+            sxy[have] = to_xy(graph.crs, lon[have], lat[have])
+    return sxy
+
+
+def _matched_geometry(
+    graph: RoadGraph, mpath: list[int], m_edge: NDArray[np.int64], sxy: NDArray[np.float64]
+) -> NDArray[np.float64]:
+    """The matched route's polyline, from the first matched fix's place to the last's."""
+    if not mpath:
+        return np.empty((0, 2))
+    valid = np.flatnonzero(m_edge >= 0)
+    i0, i1 = valid[0], valid[-1]
+    o0 = o1 = 0.0
+    if not np.isnan(sxy[i0, 0]):
+        o0 = project_to_edge(graph, int(m_edge[i0]), float(sxy[i0, 0]), float(sxy[i0, 1]))[0]
+    if not np.isnan(sxy[i1, 0]):
+        o1 = project_to_edge(graph, int(m_edge[i1]), float(sxy[i1, 0]), float(sxy[i1, 1]))[0]
+    else:
+        o1 = float(graph.edge_len[mpath[-1]])
+    if mpath[0] != int(m_edge[i0]):
+        o0 = 0.0
+    if mpath[-1] != int(m_edge[i1]):
+        o1 = float(graph.edge_len[mpath[-1]])
+    return path_geometry(graph, mpath, start_offset=o0, end_offset=o1)
+
+
+def _fused_error(
+    graph: RoadGraph,
+    fixes: pd.DataFrame | None,
+    t_time: NDArray[np.float64],
+    txy: NDArray[np.float64],
+    outage: NDArray[np.bool_],
+) -> tuple[float, float]:
+    """The fused input's mean error and its largest error in an outage (NaN: not known)."""
+    if fixes is None or not len(fixes):
+        return float("nan"), float("nan")
+    fi = align_by_time(t_time, fixes["time"].to_numpy(float))
+    fok = fi >= 0
+    fxy = to_xy(graph.crs, fixes["lon"].to_numpy(float), fixes["lat"].to_numpy(float))
+    fe = np.hypot(*(fxy[fok] - txy[fi[fok]]).T)
+    fo = outage[fi[fok]]
+    return (float(fe.mean()) if len(fe) else float("nan")), (
+        float(fe[fo].max()) if fo.any() else float("nan")
+    )
+
+
+def _corrections(matched: pd.DataFrame) -> int:
+    """How many answers emitted a correction."""
+    if "correction" not in matched.columns:
+        return 0
+    c = matched["correction"]
+    return int((c.notna() & (c.astype(str).str.strip() != "") & (c.astype(str) != "0")).sum())
 
 
 def results_frame(

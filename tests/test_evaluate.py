@@ -7,7 +7,7 @@ import pandas as pd
 import pytest
 
 from graph.ascii import parse_ascii_map
-from mapmatch.evaluate import edge_path, evaluate, intersection_score, matched_junctions, path_nodes
+from mapmatch.evaluate import Scoring, edge_path, evaluate, intersection_score, matched_junctions, path_nodes
 from mapmatch.route_score import path_geometry, route_mismatch
 
 # b, c and f are junctions (three neighbours); e and the ends are not
@@ -45,7 +45,7 @@ def test_perfect_match_scores_100_percent(amap) -> None:  # type: ignore[no-unty
     ab, bc, cd = amap.edge("a", "b"), amap.edge("b", "c"), amap.edge("c", "d")
     edges = [ab] * 4 + [bc] * 4 + [cd] * 4
     truth, matched = _frames(amap, edges, edges)
-    m = evaluate(amap.graph, truth=truth, matched=matched, tolerance_m=0.1)
+    m = evaluate(amap.graph, truth=truth, matched=matched, scoring=Scoring(tolerance_m=0.1))
     assert m.intersections.accuracy == 1.0
     assert m.intersections.precision == 1.0
     assert m.intersections.true == 2  # b and c
@@ -68,7 +68,7 @@ def test_one_wrong_turn_gives_its_known_value(amap) -> None:  # type: ignore[no-
         matched=matched,
         truth_path=[ab, bc, cd],
         truth_xy=path_geometry(g, [ab, bc, cd]),
-        tolerance_m=0.1,
+        scoring=Scoring(tolerance_m=0.1),
     )
     # true junctions b, c; matched b, f: one of two found
     assert (m.intersections.true, m.intersections.matched, m.intersections.correct) == (2, 2, 1)
@@ -151,7 +151,7 @@ def test_corrections_are_applied_in_the_corrected_score(amap) -> None:  # type: 
     matched["correction"] = ["", "", "", "", "", "", str(bc), ""]
     matched["correction_from"] = [np.nan] * 6 + [4.0, np.nan]
     matched["correction_to"] = [np.nan] * 6 + [5.0, np.nan]
-    m = evaluate(g, truth=truth, matched=matched, tolerance_m=0.1)
+    m = evaluate(g, truth=truth, matched=matched, scoring=Scoring(tolerance_m=0.1))
     assert m.correct_edge_rate == pytest.approx(6 / 8)
     assert m.corrections == 1
     assert m.corrected is not None
@@ -175,9 +175,9 @@ def test_correction_times_assign_each_revised_fix_by_its_time(amap) -> None:  # 
     matched["correction_from"] = [np.nan] * 5 + [2.0, np.nan, np.nan]
     matched["correction_to"] = [np.nan] * 5 + [4.0, np.nan, np.nan]
     # by position alone the revision cannot say which fixes were still on a->b
-    m = evaluate(g, truth=truth, matched=matched, tolerance_m=0.1)
+    m = evaluate(g, truth=truth, matched=matched, scoring=Scoring(tolerance_m=0.1))
     assert m.corrected is not None and m.corrected.correct_edge_rate == pytest.approx(6 / 8)
     matched["correction_times"] = [""] * 5 + ["2.0;4.0", "", ""]
-    m = evaluate(g, truth=truth, matched=matched, tolerance_m=0.1)
+    m = evaluate(g, truth=truth, matched=matched, scoring=Scoring(tolerance_m=0.1))
     assert m.correct_edge_rate == pytest.approx(6 / 8)
     assert m.corrected is not None and m.corrected.correct_edge_rate == 1.0

@@ -148,7 +148,7 @@ def _csv_route(args: argparse.Namespace, path: Path, rebuild: Any) -> tuple[str,
 def run(args: argparse.Namespace) -> int:
     from graph.artifact import open_map
     from graph.projection import to_xy
-    from mapmatch.evaluate import evaluate, read_matched_csv
+    from mapmatch.evaluate import Scoring, evaluate, read_matched_csv
     from mapmatch.plots import draw_html, draw_png, plot_data
     from mapmatch.sim.demo import title_for
     from mapmatch.sim.drive import truth_paths
@@ -189,8 +189,7 @@ def run(args: argparse.Namespace) -> int:
         truth_path=truth_path,
         truth_xy=truth_xy,
         fixes=fixes,
-        tolerance_m=args.tolerance,
-        junctions_only=not args.all_nodes,
+        scoring=Scoring(tolerance_m=args.tolerance, junctions_only=not args.all_nodes),
     )
     print(metrics.table())
     if args.closed:

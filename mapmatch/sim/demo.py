@@ -18,7 +18,7 @@ import numpy as np
 
 from graph.files import atomic_path
 from graph.road_graph import RoadGraph
-from mapmatch.evaluate import Metrics, evaluate, results_frame
+from mapmatch.evaluate import Metrics, Scoring, evaluate, results_frame
 from mapmatch.plots import draw_html, draw_png, plot_data
 from mapmatch.sim.drive import Drive, simulate_drive, write_fixes_csv, write_truth
 from mapmatch.sim.routes import random_route
@@ -109,7 +109,7 @@ def evaluate_and_draw(
         truth_path=drive.route.edges.tolist(),
         truth_xy=drive.route.xy,
         fixes=drive.fixes,
-        tolerance_m=tolerance_m,
+        scoring=Scoring(tolerance_m=tolerance_m),
     )
     if on_metrics is not None:
         on_metrics(metrics)
