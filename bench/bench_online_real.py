@@ -378,6 +378,10 @@ def run_cv(names: list[str], base: MatchConfig, args: argparse.Namespace) -> str
     settings.sort(key=lambda s: base.with_settings(list(s)) != base)  # the current default first
     load0 = os.getloadavg()
     scores = cv_scores(names, settings, base, args)
+    if args.json:  # every setting's rows of every track, to check or re-summarise the choice
+        args.json.write_text(
+            json.dumps({";".join(k) or "defaults": v for k, v in scores.items()}, default=str)
+        )
     fold_ids = folds.folds(names)
     result = crossval.cross_validate(scores, fold_ids, loss=online_loss)
     current = next((s for s in settings if base.with_settings(list(s)) == base), None)
