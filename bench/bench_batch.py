@@ -14,13 +14,19 @@ rounds of five calls on each: the check's figure, ``--side-rounds``) with each o
 tracks' candidates a fix and candidate pairs a step (which the time per point follows), and one
 PASS/FAIL line per target of issue #14.
 
-    python bench/bench_batch.py                       # all 15 tracks, S = 1, 10, 30
+    python bench/bench_batch.py                       # all tracks, S = 1, 10, 30
     python bench/bench_batch.py --ids 0,21 --engines custom,fastmm     # a quick check
     python bench/bench_batch.py --engines custom,fastmm --repeat 9      # speed only, 9 timed calls
     python bench/bench_batch.py --summary ~/.cache/mapmatch-peers/results/batch.jsonl
     python bench/bench_batch.py --routing --ids 0,28      # bounded search vs UBODT, in process
     python bench/bench_batch.py --fixed --ids 14,21       # time per call on tiny tracks, in process
     python bench/bench_batch.py --docs     # also write the summary into the docs (bench/report.py)
+    python bench/bench_batch.py --cv --grid model.gps_sigma=5,8,12   # out-of-fold RMF, in process
+
+``--cv`` matches every track at each S in process under every setting of ``--grid`` (on the
+batch defaults), scores it with the peers' ``score.py``, chooses on four of the folds of
+``bench/folds.py`` and scores the fifth (``bench/crossval.py``), and prints the out-of-fold mean
+and median RMF beside the in-sample ones (``--docs``: the fragment ``cv_batch``).
 """
 
 from __future__ import annotations
@@ -468,7 +474,7 @@ def batch_loss(records: list[dict[int, float]]) -> float:
     return statistics.fmean(statistics.fmean(r[s] for r in records) for s in records[0])
 
 
-def cv_batch(ids: str, S: str, grid_specs: list[str]) -> str:
+def cv_batch(ids: str, S: str, grid_specs: list[str], json_out: Path | None = None) -> str:
     """``--cv``: RMF of every grid setting on every track, cross-validated over the folds of
     ``bench/folds.py``; prints and returns the report."""
     import crossval  # type: ignore[import-not-found]
@@ -489,6 +495,8 @@ def cv_batch(ids: str, S: str, grid_specs: list[str]) -> str:
         for setting, per_s in cv_track(name, settings, Ss).items():
             scores[setting][name] = per_s
         print(f"# cv {n + 1}/{len(names)} {name}, load {os.getloadavg()[0]:.2f}", file=sys.stderr, flush=True)
+    if json_out is not None:  # every setting's RMF of every track at each S
+        json_out.write_text(json.dumps({";".join(k): v for k, v in scores.items()}))
     fold_ids = folds.folds(names)
     result = crossval.cross_validate(scores, fold_ids, loss=batch_loss)
     named = (
@@ -568,7 +576,7 @@ def main() -> int:
         from report import run_header, write_fragment
 
         try:
-            text = cv_batch(a.ids, a.S, a.grid)
+            text = cv_batch(a.ids, a.S, a.grid, a.json)
         except ValueError as exc:  # ConfigError is a ValueError too
             print(f"error: --grid: {exc}", file=sys.stderr)
             return 2

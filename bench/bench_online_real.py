@@ -1,4 +1,4 @@
-"""Online matcher on REAL GPS: the 15 shared Kubicka tracks as fused drives (``mapmatch.sim.realgps``).
+"""Online matcher on REAL GPS: the shared Kubicka tracks as fused drives (``mapmatch.sim.realgps``).
 
 Each track's real 1 Hz fixes are the GPS-aided positions; heading and odometer come from the true
 path with noise, bias and scale error; the seed papers' five outages (60, 90, 92, 83, 48 s,
@@ -25,10 +25,16 @@ the true one) at a straight crossing or at a turn, fork (a branch leaving the tr
 node near the vehicle), parallel road (a road off the route within 40 m at a similar bearing),
 reverse, other.
 
-    python bench/bench_online_real.py                    # all 15 tracks, 1 + 10 Hz
+    python bench/bench_online_real.py                    # all tracks, 1 + 10 Hz
     python bench/bench_online_real.py --rates 1 --breakdown
     python bench/bench_online_real.py --tracks 00000007 00000014 --rates 1
     python bench/bench_online_real.py --docs       # also write the table into the docs (bench/report.py)
+    python bench/bench_online_real.py --cv --grid model.beta=3,5,8   # out-of-fold beside in-sample
+
+``--cv`` scores every setting of ``--grid`` (on the current defaults and ``--set``) on every
+track's drive with the outages, chooses on four of the folds of ``bench/folds.py`` and scores
+the fifth (``bench/crossval.py``), and prints the out-of-fold table beside the in-sample ones
+(``--docs``: the fragment ``cv_online``; ``--json``: every setting's rows of every track).
 """
 
 from __future__ import annotations

@@ -90,6 +90,7 @@ class CvResult:
     in_sample : the setting of least loss over all tracks.
     in_sample_records : every track's record under ``in_sample``.
     losses : each setting's loss over all tracks.
+    oof_loss : the loss of ``oof_records``.
     """
 
     folds: tuple[FoldChoice, ...]
@@ -97,6 +98,7 @@ class CvResult:
     in_sample: Setting
     in_sample_records: list[Any]
     losses: dict[Setting, float]
+    oof_loss: float
 
 
 def _best(
@@ -147,6 +149,7 @@ def cross_validate(
         in_sample=in_sample,
         in_sample_records=[scores[in_sample][t] for t in tracks],
         losses={s: loss([per_track[t] for t in tracks]) for s, per_track in scores.items()},
+        oof_loss=loss(oof),
     )
 
 
@@ -163,4 +166,5 @@ def choice_table(result: CvResult, *, fmt: str = "{:.4f}") -> str:
     for s, v in result.losses.items():
         mark = " (least)" if s == result.in_sample else ""
         lines.append(f"| {label(s) or 'defaults'}{mark} | {fmt.format(v)} |")
+    lines.append(f"| out of fold (each fold's choice on its held tracks) | {fmt.format(result.oof_loss)} |")
     return "\n".join(lines)

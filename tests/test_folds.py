@@ -81,6 +81,7 @@ def test_each_fold_is_chosen_without_its_held_tracks_and_scored_on_them() -> Non
     # in sample "b" wins: mean 1.6 against 1.8, the figure the out-of-fold 2.6 is compared with
     assert res.in_sample == ("x=b",)
     assert res.losses == {("x=a",): pytest.approx(1.8), ("x=b",): pytest.approx(1.6)}
+    assert res.oof_loss == pytest.approx(2.6)
     with pytest.raises(ValueError, match="no record of track"):
         crossval.cross_validate({("x=a",): {"t0": 1.0}}, parts, loss=sum)
 
