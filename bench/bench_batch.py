@@ -566,6 +566,7 @@ def main() -> int:
         "--cv", action="store_true", help="cross-validate --grid over the folds of bench/folds.py, in process"
     )
     ap.add_argument("--grid", nargs="*", default=list(CV_GRID), metavar="SECTION.FIELD=V1,V2,...")
+    ap.add_argument("--json", type=Path, help="with --cv: also write every setting's RMF of every track here")
     ap.add_argument("--docs", action="store_true", help="also write the summary to docs/benchmarks/batch.md")
     a = ap.parse_args()
     if a.routing:
