@@ -14,13 +14,19 @@ rounds of five calls on each: the check's figure, ``--side-rounds``) with each o
 tracks' candidates a fix and candidate pairs a step (which the time per point follows), and one
 PASS/FAIL line per target of issue #14.
 
-    python bench/bench_batch.py                       # all 15 tracks, S = 1, 10, 30
+    python bench/bench_batch.py                       # all tracks, S = 1, 10, 30
     python bench/bench_batch.py --ids 0,21 --engines custom,fastmm     # a quick check
     python bench/bench_batch.py --engines custom,fastmm --repeat 9      # speed only, 9 timed calls
     python bench/bench_batch.py --summary ~/.cache/mapmatch-peers/results/batch.jsonl
     python bench/bench_batch.py --routing --ids 0,28      # bounded search vs UBODT, in process
     python bench/bench_batch.py --fixed --ids 14,21       # time per call on tiny tracks, in process
     python bench/bench_batch.py --docs     # also write the summary into the docs (bench/report.py)
+    python bench/bench_batch.py --cv --grid model.gps_sigma=5,8,12   # out-of-fold RMF, in process
+
+``--cv`` matches every track at each S in process under every setting of ``--grid`` (on the
+batch defaults), scores it with the peers' ``score.py``, chooses on four of the folds of
+``bench/folds.py`` and scores the fifth (``bench/crossval.py``), and prints the out-of-fold mean
+and median RMF beside the in-sample ones (``--docs``: the fragment ``cv_batch``).
 """
 
 from __future__ import annotations
@@ -426,6 +432,101 @@ def fixed_cost(ids: str, calls: int) -> None:
         print(f"{name} ({matcher.graph.n_edges} edges) us per call, least / median: " + "; ".join(row))
 
 
+CV_GRID = ("model.gps_sigma=5,8,12", "model.beta=3,5,8")
+"""The default grid of ``--cv``: the fixes' σ where a track gives none, and the transition scale β."""
+
+
+def cv_track(
+    name: str, settings: list[tuple[str, ...]], Ss: list[int]
+) -> dict[tuple[str, ...], dict[int, float]]:
+    """RMF of one track at each S under each setting (on the batch defaults), in process: the
+    adapter's map and route table (``peers_adapter.load``), the harness's sub-sampling and its
+    ``score.py`` against the truth, trimmed to the track's first and last fix as the harness does."""
+    import numpy as np
+
+    from mapmatch.batch import BATCH_CONFIG
+    from mapmatch.types import Track
+
+    peers_adapter, data, _ = _tracks("all")
+    if str(PEERS) not in sys.path:
+        sys.path.insert(0, str(PEERS))
+    import engines_kubicka as ek  # type: ignore[import-not-found]
+    import score as scoring  # type: ignore[import-not-found]
+
+    matcher = peers_adapter.load(data / name)
+    t, lat, lon = ek.read_track(data / name)
+    truth = json.loads((data / name / "truth.geojson").read_text())
+    first_last = ((lon[0], lat[0]), (lon[-1], lat[-1]))
+    out: dict[tuple[str, ...], dict[int, float]] = {}
+    for setting in settings:
+        config = BATCH_CONFIG.with_settings(list(setting))
+        out[setting] = {}
+        for s in Ss:
+            idx = ek.subsample(len(t), s)
+            track = Track("track", *(np.asarray([v[i] for i in idx], float) for v in (t, lat, lon)))
+            lines, _ = peers_adapter.convert(matcher, matcher.match(track, config, lonlat=False))
+            out[setting][s] = float(scoring.score(truth, lines, first_last)["rmf"])
+    return out
+
+
+def batch_loss(records: list[dict[int, float]]) -> float:
+    """What ``--cv`` minimises over tracks: the mean RMF over the tracks, averaged over the S."""
+    return statistics.fmean(statistics.fmean(r[s] for r in records) for s in records[0])
+
+
+def cv_batch(ids: str, S: str, grid_specs: list[str], json_out: Path | None = None) -> str:
+    """``--cv``: RMF of every grid setting on every track, cross-validated over the folds of
+    ``bench/folds.py``; prints and returns the report."""
+    import crossval  # type: ignore[import-not-found]
+    import folds  # type: ignore[import-not-found]
+
+    from mapmatch.batch import BATCH_CONFIG
+
+    _, _, names = _tracks(ids)
+    Ss = [int(x) for x in S.split(",")]
+    settings = crossval.settings_grid(crossval.parse_grid(grid_specs))
+    settings.sort(key=lambda s: BATCH_CONFIG.with_settings(list(s)) != BATCH_CONFIG)  # the default first
+    current = settings[0]
+    if BATCH_CONFIG.with_settings(list(current)) != BATCH_CONFIG:
+        raise ValueError("the grid must hold the current value of each field")
+    load0 = os.getloadavg()
+    scores: dict[tuple[str, ...], dict[str, dict[int, float]]] = {x: {} for x in settings}
+    for n, name in enumerate(names):
+        for setting, per_s in cv_track(name, settings, Ss).items():
+            scores[setting][name] = per_s
+        print(f"# cv {n + 1}/{len(names)} {name}, load {os.getloadavg()[0]:.2f}", file=sys.stderr, flush=True)
+    if json_out is not None:  # every setting's RMF of every track at each S
+        json_out.write_text(json.dumps({";".join(k): v for k, v in scores.items()}))
+    fold_ids = folds.folds(names)
+    result = crossval.cross_validate(scores, fold_ids, loss=batch_loss)
+    named = (
+        ("current defaults, all tracks", [scores[current][n] for n in names]),
+        (f"chosen on all {len(names)} tracks ({crossval.label(result.in_sample)})", result.in_sample_records),
+        ("out of fold (chosen on 4 folds, scored on the 5th)", result.oof_records),
+    )
+    lines = [
+        f"| | mean RMF, S = {' / '.join(map(str, Ss))} s | median RMF |",
+        "|---|---|---|",
+    ]
+    for label, recs in named:
+        mean = " / ".join(f"{statistics.fmean(r[s] for r in recs):.4f}" for s in Ss)
+        med = " / ".join(f"{statistics.median(r[s] for r in recs):.4f}" for s in Ss)
+        lines.append(f"| {label} | {mean} | {med} |")
+    text = (
+        f"REAL GPS: {len(names)} Kubicka tracks, batch matcher in process (the peers' sub-sampling and "
+        f"`score.py`); {len(fold_ids)} folds by track (`bench/folds.py`, seed {folds.SEED}); grid "
+        f"{'; '.join(f'`{g}`' for g in grid_specs)} ({len(settings)} settings) on the batch defaults; "
+        "chosen by the least mean RMF over the training tracks, averaged over the S. Load average "
+        f"{load0[0]:.2f} at the start, {os.getloadavg()[0]:.2f} at the end ({os.cpu_count()} cores).\n\n"
+        + "\n".join(lines)
+        + "\n\nThe choice of each fold, and each setting's loss (mean RMF averaged over the S) over all "
+        + "tracks:\n\n"
+        + crossval.choice_table(result)
+    )
+    print(text)
+    return text
+
+
 def _timed(m: object, track: object) -> float:
     import time
 
@@ -461,10 +562,27 @@ def main() -> int:
         "--fixed", action="store_true", help="time per call on tiny tracks (fixed cost), in process"
     )
     ap.add_argument("--calls", type=int, default=2000, help="calls per tiny track for --fixed")
+    ap.add_argument(
+        "--cv", action="store_true", help="cross-validate --grid over the folds of bench/folds.py, in process"
+    )
+    ap.add_argument("--grid", nargs="*", default=list(CV_GRID), metavar="SECTION.FIELD=V1,V2,...")
+    ap.add_argument("--json", type=Path, help="with --cv: also write every setting's RMF of every track here")
     ap.add_argument("--docs", action="store_true", help="also write the summary to docs/benchmarks/batch.md")
     a = ap.parse_args()
     if a.routing:
         compare_routing(a.ids, a.S, a.deltas)
+        return 0
+    if a.cv:
+        sys.path.insert(0, str(ROOT / "bench"))
+        from report import run_header, write_fragment
+
+        try:
+            text = cv_batch(a.ids, a.S, a.grid, a.json)
+        except ValueError as exc:  # ConfigError is a ValueError too
+            print(f"error: --grid: {exc}", file=sys.stderr)
+            return 2
+        if a.docs:
+            print(f"wrote {write_fragment('cv_batch', run_header() + text)}")
         return 0
     if a.fixed:
         print(f"load average: {' '.join(f'{x:.2f}' for x in os.getloadavg())} ({os.cpu_count()} cores)")

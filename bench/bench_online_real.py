@@ -1,4 +1,4 @@
-"""Online matcher on REAL GPS: the 15 shared Kubicka tracks as fused drives (``mapmatch.sim.realgps``).
+"""Online matcher on REAL GPS: the shared Kubicka tracks as fused drives (``mapmatch.sim.realgps``).
 
 Each track's real 1 Hz fixes are the GPS-aided positions; heading and odometer come from the true
 path with noise, bias and scale error; the seed papers' five outages (60, 90, 92, 83, 48 s,
@@ -25,16 +25,23 @@ the true one) at a straight crossing or at a turn, fork (a branch leaving the tr
 node near the vehicle), parallel road (a road off the route within 40 m at a similar bearing),
 reverse, other.
 
-    python bench/bench_online_real.py                    # all 15 tracks, 1 + 10 Hz
+    python bench/bench_online_real.py                    # all tracks, 1 + 10 Hz
     python bench/bench_online_real.py --rates 1 --breakdown
     python bench/bench_online_real.py --tracks 00000007 00000014 --rates 1
     python bench/bench_online_real.py --docs       # also write the table into the docs (bench/report.py)
+    python bench/bench_online_real.py --cv --grid model.beta=3,5,8   # out-of-fold beside in-sample
+
+``--cv`` scores every setting of ``--grid`` (on the current defaults and ``--set``) on every
+track's drive with the outages, chooses on four of the folds of ``bench/folds.py`` and scores
+the fifth (``bench/crossval.py``), and prints the out-of-fold table beside the in-sample ones
+(``--docs``: the fragment ``cv_online``; ``--json``: every setting's rows of every track).
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
 import time
 from pathlib import Path
@@ -46,6 +53,8 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "bench"))
 
+import crossval  # noqa: E402
+import folds  # noqa: E402
 from bench_online import corrected_edges, run_drive  # noqa: E402
 
 from graph.artifact import load_map, save_map  # noqa: E402
@@ -53,7 +62,7 @@ from graph.build import build_map  # noqa: E402
 from graph.index import project_to_edge  # noqa: E402
 from graph.projection import to_xy  # noqa: E402
 from graph.road_graph import RoadGraph  # noqa: E402
-from mapmatch.config import DEFAULT_CONFIG  # noqa: E402
+from mapmatch.config import DEFAULT_CONFIG, MatchConfig  # noqa: E402
 from mapmatch.errors import ConfigError  # noqa: E402
 from mapmatch.evaluate import edge_path, is_junction, matched_junctions, path_nodes  # noqa: E402
 from mapmatch.online import OnlineMatcher  # noqa: E402
@@ -214,6 +223,13 @@ def run_one(
     graph: RoadGraph, matcher: OnlineMatcher, folder: Path, *, rate: float, outages: bool, seed: int
 ) -> dict[str, object]:
     drive = real_drive(graph, folder, rate_hz=rate, outages=outages, seed=seed)
+    return score_drive(graph, matcher, drive, track=folder.name, rate=rate)
+
+
+def score_drive(
+    graph: RoadGraph, matcher: OnlineMatcher, drive: Drive, *, track: str, rate: float
+) -> dict[str, object]:
+    """Run ``drive`` through ``matcher`` and score it: one row of the table's sums."""
     res, dt = run_drive(matcher, drive)
     t = np.array([r.time for r in res])
     live = np.array([r.edge for r in res], dtype=np.int64)
@@ -224,7 +240,7 @@ def run_one(
     xy = snapped_xy(graph, res)
     xy2 = corrected_xy(graph, res, fin, xy)
     row: dict[str, object] = {
-        "track": folder.name,
+        "track": track,
         "hz": rate,
         "outages": len(drive.outages),
         "fixes": len(res),
@@ -258,6 +274,22 @@ def _q(v: list[float]) -> str:
     return f"{np.median(v):5.1f} m / {np.percentile(v, 90):5.1f} m" if v else "-"
 
 
+def cells(g: pd.DataFrame, tag: str) -> list[str]:
+    """The summed scores of rows ``g`` (live or ``fin``: corrections applied) as table cells:
+    intersections with GPS / in outages, correct road all / in outages, outage-end error
+    median / p90, 5 s after, strict."""
+    s = g.sum(numeric_only=True)
+    ends = [x for v in g[f"end_{tag}"] for x in v]
+    ends5 = [x for v in g[f"end5_{tag}"] for x in v]
+    return [
+        f"{_pct(s[f'jn_gps_{tag}'], s['jn_gps'])} / {_pct(s[f'jn_out_{tag}'], s['jn_out'])}",
+        f"{_pct(s[f'ok_{tag}'], s['scored'])} / {_pct(s[f'ok_out_{tag}'], s['fixes_out'])}",
+        _q(ends),
+        _q(ends5),
+        _pct(s[f"strict_{tag}"], s["scored"]),
+    ]
+
+
 def table(rows: list[dict[str, object]]) -> str:
     df = pd.DataFrame(rows)
     lines = [
@@ -267,21 +299,119 @@ def table(rows: list[dict[str, object]]) -> str:
     ]
     for (hz, no), g in df.groupby(["hz", df["outages"] > 0]):
         for tag, name in (("live", "live"), ("fin", "corrections applied")):
-            s = g.sum(numeric_only=True)
-            ends = [x for v in g[f"end_{tag}"] for x in v]
-            ends5 = [x for v in g[f"end5_{tag}"] for x in v]
-            lines.append(
-                f"| {hz:g} Hz | {'yes' if no else 'no'} | {name} | "
-                f"{_pct(s[f'jn_gps_{tag}'], s['jn_gps'])} / {_pct(s[f'jn_out_{tag}'], s['jn_out'])} | "
-                f"{_pct(s[f'ok_{tag}'], s['scored'])} / {_pct(s[f'ok_out_{tag}'], s['fixes_out'])} | "
-                f"{_q(ends)} | {_q(ends5)} | {_pct(s[f'strict_{tag}'], s['scored'])} |"
-            )
+            lines.append(f"| {hz:g} Hz | {'yes' if no else 'no'} | {name} | {' | '.join(cells(g, tag))} |")
     s = df.sum(numeric_only=True)
     lines.append(
         f"\ncorrect road is counted on {int(s['scored'])} of {int(s['fixes'])} fixes "
         f"(the truth is not known on the others)"
     )
     return "\n".join(lines)
+
+
+CV_GRID = ("model.beta=3,5,8", "online.switch_penalty=5,8,12")
+"""The default grid of ``--cv``: the transition scale β and the cost of jumping to a road the
+filter did not follow (the fixes carry their own σ, so ``model.gps_sigma`` is only a fallback)."""
+
+
+def online_loss(records: list[list[dict[str, object]]]) -> float:
+    """What ``--cv`` minimises over tracks' rows: the share of scored fixes on the wrong road
+    plus the share of true intersections missed, live."""
+    g = pd.DataFrame([r for rec in records for r in rec]).sum(numeric_only=True)
+    wrong = 1.0 - g["ok_live"] / max(g["scored"], 1)
+    missed = 1.0 - (g["jn_gps_live"] + g["jn_out_live"]) / max(g["jn_gps"] + g["jn_out"], 1)
+    return float(wrong + missed)
+
+
+def cv_scores(
+    names: list[str], settings: list[tuple[str, ...]], base: MatchConfig, args: argparse.Namespace
+) -> dict[tuple[str, ...], dict[str, list[dict[str, object]]]]:
+    """Every setting's rows of every track (its drives with the outages, at each rate): each
+    drive is made once and run through a matcher per setting."""
+    scores: dict[tuple[str, ...], dict[str, list[dict[str, object]]]] = {s: {} for s in settings}
+    configs = {s: base.with_settings(list(s)) for s in settings}
+    for n, name in enumerate(names):
+        folder = KUBICKA / name
+        graph = load_graph(folder, args.map_cache)
+        drives = [real_drive(graph, folder, rate_hz=r, outages=True, seed=int(name)) for r in args.rates]
+        for s in settings:
+            matcher = OnlineMatcher(graph, config=configs[s])
+            rows = [
+                score_drive(graph, matcher, d, track=name, rate=r)
+                for d, r in zip(drives, args.rates, strict=True)
+            ]
+            for r in rows:
+                r.pop("us")
+            scores[s][name] = rows
+        print(
+            f"# cv {n + 1}/{len(names)} {name}: {len(settings)} settings, load {os.getloadavg()[0]:.2f}",
+            flush=True,
+        )
+    return scores
+
+
+def cv_table(result: crossval.CvResult, defaults: list[dict[str, object]], *, n_tracks: int) -> str:
+    """In-sample (current defaults; the grid's best chosen on all tracks) beside out-of-fold."""
+    named = (
+        ("current defaults, all tracks", defaults),
+        (
+            f"chosen on all {n_tracks} tracks ({crossval.label(result.in_sample) or 'defaults'})",
+            [r for rec in result.in_sample_records for r in rec],
+        ),
+        (
+            "out of fold (chosen on 4 folds, scored on the 5th)",
+            [r for rec in result.oof_records for r in rec],
+        ),
+    )
+    lines = [
+        "| rate | | | intersections, with GPS / in outages | correct road per fix, all / in outages "
+        "| error at outage end, median / p90 | 5 s after GPS returns | correct road, strict |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
+    for hz in sorted({float(r["hz"]) for r in defaults}):  # type: ignore[arg-type]
+        for name, rows in named:
+            df = pd.DataFrame(rows)
+            g = df[df["hz"] == hz]
+            for tag, what in (("live", "live"), ("fin", "corrections applied")):
+                lines.append(f"| {hz:g} Hz | {name} | {what} | {' | '.join(cells(g, tag))} |")
+    return "\n".join(lines)
+
+
+def run_cv(names: list[str], base: MatchConfig, args: argparse.Namespace) -> str:
+    """``--cv``: score the grid on every track, cross-validate over the folds of
+    ``bench/folds.py``, print and return the report."""
+    grid = crossval.parse_grid(args.grid)
+    settings = crossval.settings_grid(grid)
+    settings.sort(key=lambda s: base.with_settings(list(s)) != base)  # the current default first
+    load0 = os.getloadavg()
+    scores = cv_scores(names, settings, base, args)
+    if args.json:  # every setting's rows of every track, to check or re-summarise the choice
+        args.json.write_text(
+            json.dumps({";".join(k) or "defaults": v for k, v in scores.items()}, default=str)
+        )
+    fold_ids = folds.folds(names)
+    result = crossval.cross_validate(scores, fold_ids, loss=online_loss)
+    current = next((s for s in settings if base.with_settings(list(s)) == base), None)
+    if current is None:
+        raise SystemExit("error: --grid must hold the current value of each field")
+    defaults = [r for name in names for r in scores[current][name]]
+    rates = ", ".join(f"{r:g} Hz" for r in args.rates)
+    head = (
+        f"REAL GPS: {len(names)} Kubicka tracks as fused drives with the five outages ({rates}); "
+        f"{len(fold_ids)} folds by track (`bench/folds.py`, seed {folds.SEED}); grid "
+        f"{'; '.join(f'`{g}`' for g in args.grid)} ({len(settings)} settings); chosen by the least "
+        "share of wrong-road fixes plus share of missed intersections, live, summed over the "
+        f"training tracks. Load average {load0[0]:.2f} at the start, "
+        f"{os.getloadavg()[0]:.2f} at the end ({os.cpu_count()} cores).\n\n"
+    )
+    text = (
+        head
+        + cv_table(result, defaults, n_tracks=len(names))
+        + "\n\nThe choice of each fold, and each setting's loss (wrong share + missed share) "
+        + "over all tracks:\n\n"
+        + crossval.choice_table(result)
+    )
+    print(text)
+    return text
 
 
 def load_graph(folder: Path, cache: Path | None) -> RoadGraph:
@@ -298,13 +428,19 @@ def load_graph(folder: Path, cache: Path | None) -> RoadGraph:
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--tracks", nargs="*", default=None, help="track folder names (default: all)")
-    ap.add_argument("--rates", nargs="*", type=float, default=[1.0, 10.0])
+    ap.add_argument("--rates", nargs="*", type=float, default=None, help="Hz (default: 1 and 10)")
     ap.add_argument("--no-gps-only", action="store_true", help="skip the drives without outages")
     ap.add_argument("--breakdown", action="store_true", help="classify the wrong-road fixes")
     ap.add_argument("--json", type=Path, default=None, help="also write all rows here")
     ap.add_argument("--map-cache", type=Path, default=None, help="keep the prepared maps in this folder")
     ap.add_argument("--set", nargs="*", default=[], metavar="SECTION.FIELD=VALUE", help="matcher parameters")
     ap.add_argument("--docs", action="store_true", help="also write the table to docs/benchmarks/")
+    ap.add_argument(
+        "--cv",
+        action="store_true",
+        help="cross-validate --grid over the folds of bench/folds.py (outages; 1 Hz unless --rates)",
+    )
+    ap.add_argument("--grid", nargs="*", default=list(CV_GRID), metavar="SECTION.FIELD=V1,V2,...")
     args = ap.parse_args()
     try:
         cfg = DEFAULT_CONFIG.with_settings(args.set)
@@ -314,7 +450,20 @@ def main() -> int:
     if not KUBICKA.is_dir():
         print(f"error: needs the shared Kubicka tracks in {KUBICKA}", file=sys.stderr)
         return 2
-    names = args.tracks or sorted(p.name for p in KUBICKA.iterdir() if (p / "track.csv").is_file())
+    names = args.tracks or folds.track_ids(KUBICKA)
+    if args.rates is None:
+        args.rates = [1.0] if args.cv else [1.0, 10.0]
+    if args.cv:
+        try:
+            text = run_cv(names, cfg, args)
+        except (ConfigError, ValueError) as exc:
+            print(f"error: --grid: {exc}", file=sys.stderr)
+            return 2
+        if args.docs:
+            from report import run_header, write_fragment
+
+            print(f"wrote {write_fragment('cv_online', run_header() + text)}")
+        return 0
     rows: list[dict[str, object]] = []
     for name in names:
         folder = KUBICKA / name
