@@ -162,7 +162,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         level = logging.WARNING - 10 * min(0 if args.quiet else args.verbose, 2)
         from mapmatch.logs import configure
 
-        configure(level=level, log_format=args.log_format)
+        configure(level=level, log_format=getattr(args, "log_format", None) or "auto")
         rc = _run(args)
         if argv is None:
             sys.stdout.flush()  # a reader gone before the last bytes: a broken pipe here
@@ -185,6 +185,9 @@ def _run(args: argparse.Namespace) -> int:
 
     cmd = args.command
     try:
+        precheck = getattr(args, "precheck", None)
+        if precheck is not None:  # cheap input checks before the heavy imports and compiles
+            precheck(args)
         if not args.quiet and KERNELS.get(cmd):
             from mapmatch.kernels import announce
 

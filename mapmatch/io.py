@@ -26,6 +26,13 @@ from numpy.typing import NDArray
 from graph.files import atomic_path
 from graph.road_graph import RoadGraph
 from mapmatch.errors import MatchError
+from mapmatch.textbounds import MAX_COLUMNS as MAX_COLUMNS  # the readers' bounds, re-exported
+from mapmatch.textbounds import MAX_LINE_BYTES as MAX_LINE_BYTES
+from mapmatch.textbounds import MAX_QUOTE as MAX_QUOTE
+from mapmatch.textbounds import InputTooLargeError as InputTooLargeError
+from mapmatch.textbounds import LineBounds as LineBounds
+from mapmatch.textbounds import check_text_input, quote, spool_stdin
+from mapmatch.textbounds import clip as _clip
 from mapmatch.types import Track, TrackMatch
 
 
@@ -72,136 +79,6 @@ OUTPUT_SUFFIXES = (".geojson", ".json", ".csv", ".parquet", ".geoparquet")
 
 STDIO = "-"
 """The file name that means standard input (when read) or standard output (when written)."""
-
-
-# ---------------------------------------------------------------------- input bounds
-MAX_LINE_BYTES = 1 << 20
-"""The longest line a CSV input may hold (1 MiB): a longer one is refused before parsing."""
-MAX_COLUMNS = 1000
-"""The most columns a CSV header may name."""
-MAX_QUOTE = 200
-"""The most characters of the input an error message quotes."""
-_CHUNK = 1 << 20
-
-
-class InputTooLargeError(TrackInputError):
-    """A text input holds a line longer than :data:`MAX_LINE_BYTES` or a header with more than
-    :data:`MAX_COLUMNS` columns."""
-
-
-def quote(text: object, limit: int = MAX_QUOTE) -> str:
-    """``repr`` of at most ``limit`` characters of ``text``, then how many were left out."""
-    s = str(text)
-    if len(s) <= limit:
-        return repr(s)
-    return f"{s[:limit]!r}... ({len(s) - limit:,} more characters)"
-
-
-def _clip(text: str, limit: int = MAX_QUOTE) -> str:
-    """``text`` itself when it has at most ``limit`` characters, else its start and a count."""
-    return text if len(text) <= limit else f"{text[:limit]}... ({len(text) - limit:,} more characters)"
-
-
-class LineBounds:
-    """Checks a text stream, chunk by chunk, against :data:`MAX_LINE_BYTES` and :data:`MAX_COLUMNS`.
-
-    Feed it the bytes in order (:meth:`feed`), then call :meth:`close`; both raise
-    :class:`InputTooLargeError` as soon as a bound is passed, so a huge line is refused after
-    reading at most one chunk beyond the limit.
-    """
-
-    def __init__(self, name: str, *, max_line: int = MAX_LINE_BYTES, max_columns: int = MAX_COLUMNS) -> None:
-        self.name = name
-        self.max_line = max_line
-        self.max_columns = max_columns
-        self.line = 1  # the line being read, 1-based
-        self.current = 0  # its bytes so far
-        self.header = bytearray()
-        self.header_done = False
-
-    def _too_long(self) -> InputTooLargeError:
-        return InputTooLargeError(
-            f"{self.name}: line {self.line:,} is longer than {self.max_line:,} bytes, the limit "
-            "of a line; refused without reading it (is this a CSV file of tracks or fixes?)"
-        )
-
-    def feed(self, chunk: bytes) -> None:
-        """Check the next bytes of the stream."""
-        nl = np.flatnonzero(np.frombuffer(chunk, dtype=np.uint8) == 10)
-        if not self.header_done:
-            end = int(nl[0]) if len(nl) else len(chunk)
-            self.header += chunk[: min(end, self.max_line + 1)]
-            if len(nl):
-                self.header_done = True
-        if not len(nl):
-            self.current += len(chunk)
-            if self.current > self.max_line:
-                raise self._too_long()
-            return
-        if self.current + int(nl[0]) > self.max_line:
-            raise self._too_long()
-        if len(nl) > 1:
-            gaps = np.diff(nl) - 1
-            k = int(np.argmax(gaps))
-            if gaps[k] > self.max_line:
-                self.line += k + 1
-                raise self._too_long()
-        if self.header_done and self.line == 1:
-            self._check_header()
-        self.line += len(nl)
-        self.current = len(chunk) - int(nl[-1]) - 1
-        if self.current > self.max_line:
-            raise self._too_long()
-
-    def close(self) -> None:
-        """The stream ended: check a header that had no line end."""
-        if self.line == 1 and self.header:
-            self._check_header()
-
-    def _check_header(self) -> None:
-        import csv
-
-        text = bytes(self.header).decode("utf-8", errors="replace").rstrip("\r")
-        sep = ";" if ";" in text and "," not in text else ","
-        if text.count(sep) + 1 <= self.max_columns:
-            return
-        n = len(next(csv.reader([text], delimiter=sep), []))
-        if n > self.max_columns:
-            raise InputTooLargeError(
-                f"{self.name}: the header names {n:,} columns, more than the limit of "
-                f"{self.max_columns:,} (it begins {quote(text)})"
-            )
-
-
-def check_text_input(path: str | os.PathLike[str], *, name: str | None = None) -> None:
-    """Refuse a CSV file (plain or ``.gz``) with a line or header beyond the bounds (:class:`LineBounds`).
-
-    Raises
-    ------
-    InputTooLargeError
-        A line is longer than :data:`MAX_LINE_BYTES`, or the header names more than
-        :data:`MAX_COLUMNS` columns.
-    """
-    import gzip
-
-    bounds = LineBounds(name or str(path))
-    opener: Any = gzip.open if str(path).lower().endswith(".gz") else open
-    with opener(path, "rb") as f:
-        while chunk := f.read(_CHUNK):
-            bounds.feed(chunk)
-    bounds.close()
-
-
-def spool_stdin(dest: str | os.PathLike[str]) -> None:
-    """Copy standard input to the file ``dest``, checking it as :func:`check_text_input` does."""
-    import sys
-
-    bounds = LineBounds("standard input")
-    with open(dest, "wb") as out:
-        while chunk := sys.stdin.buffer.read(_CHUNK):
-            bounds.feed(chunk)
-            out.write(chunk)
-    bounds.close()
 
 
 # ---------------------------------------------------------------------- fused fixes

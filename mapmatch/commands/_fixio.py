@@ -56,6 +56,21 @@ def add_fix_options(p: argparse.ArgumentParser) -> None:
         )  # fmt: skip
 
 
+def check_csv_inputs(paths: list[Path]) -> None:
+    """Refuse a CSV input with a line or header beyond the bounds (:mod:`mapmatch.textbounds`)
+    before a command loads its heavier modules (a command's ``precheck``)."""
+    from mapmatch.textbounds import check_text_input
+
+    for path in paths:
+        if path.is_file() and path.name.lower().endswith((".csv", ".csv.gz")):
+            check_text_input(path)
+
+
+def precheck_fixes(args: argparse.Namespace) -> None:
+    """``replay`` and ``send``: :func:`check_csv_inputs` on the fixes file."""
+    check_csv_inputs([args.fixes])
+
+
 def fix_columns(args: argparse.Namespace) -> FixColumns:
     from mapmatch.io import FixColumns
 

@@ -108,7 +108,13 @@ def register(subparsers: Any) -> None:
         help="any other matcher parameter by its full name in mapmatch.config (repeatable), "
         "e.g. --set batch.gap_time=300 splits tracks at pauses over 5 minutes",
     )  # fmt: skip
-    p.set_defaults(func=run_match)
+    p.set_defaults(func=run_match, precheck=_precheck)
+
+
+def _precheck(args: argparse.Namespace) -> None:
+    from mapmatch.commands._fixio import check_csv_inputs
+
+    check_csv_inputs(list(args.inputs))
 
 
 def run_match(args: argparse.Namespace) -> int:

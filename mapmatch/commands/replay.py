@@ -68,7 +68,9 @@ def register(subparsers: Any) -> None:
         help="any other matcher parameter by its full name in mapmatch.config (repeatable), "
         "e.g. --set online.turn_window=40",
     )  # fmt: skip
-    p.set_defaults(func=run_replay)
+    from mapmatch.commands._fixio import precheck_fixes
+
+    p.set_defaults(func=run_replay, precheck=precheck_fixes)
 
 
 def load_map_any(path: Path) -> Any:

@@ -53,7 +53,9 @@ def register(subparsers: Any) -> None:
     p.add_argument(
         "--timeout", type=float, default=600.0, metavar="S", help="deadline of the whole stream (600)"
     )
-    p.set_defaults(func=run_send)
+    from mapmatch.commands._fixio import precheck_fixes
+
+    p.set_defaults(func=run_send, precheck=precheck_fixes)
 
 
 def run_send(args: argparse.Namespace) -> int:
