@@ -243,19 +243,41 @@ def test_html_map_is_self_contained_and_draws_roads_offline(
     # nothing is fetched from elsewhere: no script or stylesheet by URL, Leaflet inlined
     assert not re.search(r"<script[^>]+src=|<link[^>]+href=", html)
     assert "cdn" not in html.lower() and "leaflet" in html.lower()
-    # render offline: an empty proxy makes any network fetch fail
-    proc = subprocess.run(
-        [browser, "--headless", "--no-sandbox", "--disable-gpu", "--proxy-server=127.0.0.1:9",
-         "--virtual-time-budget=5000", "--dump-dom", page.as_uri()],
-        capture_output=True, timeout=120,
-    )  # fmt: skip
-    dom = proc.stdout.decode()
-    assert proc.returncode == 0, proc.stderr[-2000:]
+    dom = _render(browser, page)  # offline: an unreachable proxy fails any network fetch
     n_roads = len([e for e in range(m.graph.n_edges) if not 0 <= m.graph.edge_reverse[e] < e])
     drawn = re.findall(r'<path[^>]*class="[^"]*mm-road-graph', dom)
     assert len(drawn) == n_roads, (len(drawn), n_roads)
     assert re.search(r'<path[^>]*class="[^"]*mm-true-route', dom)
     assert re.search(r'<path[^>]*class="[^"]*mm-matched-route', dom)
+    # the map of a simulated drive (`eval --truth --html`, the demo's match.html) as well
+    dom = _render(browser, _drive_page(m, tmp_path / "drive.html"))
+    assert len(re.findall(r'<path[^>]*class="[^"]*mm-road-graph', dom)) == n_roads
+    assert len(re.findall(r'<path[^>]*class="[^"]*mm-snapped[ "]', dom)) > 10
+
+
+def _render(browser: str, page: Path) -> str:
+    """The DOM of ``page`` after headless Chromium ran its scripts, with no network."""
+    proc = subprocess.run(
+        [browser, "--headless", "--no-sandbox", "--disable-gpu", "--proxy-server=127.0.0.1:9",
+         "--virtual-time-budget=5000", "--dump-dom", page.as_uri()],
+        capture_output=True, timeout=120,
+    )  # fmt: skip
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    return proc.stdout.decode()
+
+
+def _drive_page(m: AsciiMap, out: Path) -> Path:
+    import pandas as pd
+
+    from mapmatch.plots import draw_html, plot_data
+
+    fixes = drive(m, "abs", speed=8, noise=1.0, seed=1)
+    frame = pd.DataFrame({"time": [f.time for f in fixes], "lat": [f.lat for f in fixes],
+                          "lon": [f.lon for f in fixes]})  # fmt: skip
+    matched = frame.assign(state="on_road", edge=m.edge("a", "b"))
+    route = np.array([m.xy("a"), m.xy("b"), m.xy("s")])
+    draw_html(m.graph, plot_data(m.graph, route_xy=route, fixes=frame, matched=matched), out, title="drive")
+    return out
 
 
 # ---------------------------------------------------------------------- | head
@@ -379,3 +401,48 @@ def test_a_bad_cell_is_quoted_at_most_200_characters(cross: tuple[AsciiMap, Path
     proc = run_cli("replay", "--map", str(map_path), str(src), "-o", str(tmp_path / "o.csv"))
     err = _one_line_bounded(proc, "replay", "z")
     assert "not a number on line 2" in err and "more characters" in err
+
+
+@pytest.mark.parametrize("terminal", [True, False])
+def test_serve_logs_text_on_a_terminal_and_json_into_a_pipe(
+    cross: tuple[AsciiMap, Path], terminal: bool
+) -> None:
+    import json
+    import select
+    import signal
+
+    _, map_path = cross
+    main_fd, tty_fd = pty.openpty() if terminal else os.pipe()
+    env = dict(os.environ, PYTHONPATH=str(ROOT))
+    env.pop("MAPMATCH_LOG_FORMAT", None)
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "mapmatch", "serve", "--map", f"cross={map_path}", "--address", "127.0.0.1:0",
+         "--grace", "1", "--batch-processes", "0"],
+        stdout=subprocess.PIPE, stderr=tty_fd, env=env, text=True,
+    )  # fmt: skip
+    os.close(tty_fd)
+    try:
+        assert proc.stdout is not None and "listening on" in proc.stdout.readline()
+        proc.send_signal(signal.SIGTERM)
+        assert proc.wait(30) == 0
+        out = b""
+        while select.select([main_fd], [], [], 2.0)[0]:
+            try:
+                chunk = os.read(main_fd, 65536)
+            except OSError:  # the terminal's other end closed
+                break
+            if not chunk:
+                break
+            out += chunk
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+        os.close(main_fd)
+    lines = [x for x in out.decode().splitlines() if x.strip()]
+    assert lines, "serve logged nothing"
+    if terminal:
+        assert not any(x.lstrip().startswith("{") for x in lines), lines
+        assert any(" INFO mapmatch.service: " in x for x in lines), lines
+    else:
+        assert all(json.loads(x)["logger"].startswith("mapmatch") for x in lines), lines
