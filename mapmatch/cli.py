@@ -17,6 +17,8 @@ import logging
 import sys
 from collections.abc import Sequence
 
+LOG_FORMATS = ("auto", "text", "json")  # as mapmatch.logs.LOG_FORMATS (--help stays instant)
+
 SUBCOMMANDS = ("prep", "export", "info", "replay", "match", "serve", "send", "simulate", "eval", "demo")
 KERNELS: dict[str, tuple[str, ...]] = {
     "match": ("batch",),
@@ -46,6 +48,7 @@ exit status:
   {EXIT_USAGE}  usage error or bad input (nothing is written)
   {EXIT_CONNECT}  cannot connect to the server, or cannot serve
   {EXIT_INTERRUPTED}  interrupted (Ctrl-C)
+  141  standard output closed by its reader (mapmatch ... | head): no message
 a failure is summed up in one line on stderr: "mapmatch COMMAND: error: ..." """
 
 
@@ -78,6 +81,11 @@ def add_common_options(p: argparse.ArgumentParser) -> None:
         p.add_argument(
             "-v", "--verbose", action="count", default=argparse.SUPPRESS, help="more log output (-vv: debug)"
         )
+    if "--log-format" not in have:
+        p.add_argument(
+            "--log-format", choices=LOG_FORMATS, default=argparse.SUPPRESS,
+            help="log lines as text or JSON (default auto: text on a terminal, JSON otherwise)",
+        )  # fmt: skip
     if "-q" not in have:
         p.add_argument(
             "-q", "--quiet", action="store_true", default=argparse.SUPPRESS,
@@ -95,6 +103,10 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--version", action="version", version=f"mapmatch {version()}")
     parser.add_argument("-v", "--verbose", action="count", default=0, help="more log output (-vv: debug)")
     parser.add_argument("-q", "--quiet", action="store_true", default=False, help="only warnings and errors")
+    parser.add_argument(
+        "--log-format", choices=LOG_FORMATS, default="auto",
+        help="log lines as text or JSON (default auto: text on a terminal, JSON otherwise)",
+    )  # fmt: skip
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
     for name in SUBCOMMANDS:
         try:
@@ -112,9 +124,32 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+MESSAGE_MAX = 600
+"""The longest error message printed (characters); a longer one is cut, saying so."""
+EXIT_PIPE = 141
+"""Standard output was closed by its reader (``mapmatch ... | head``): 128 + SIGPIPE, no message."""
+
+
 def _fail(command: str, message: str, code: int) -> int:
+    if len(message) > MESSAGE_MAX:
+        message = f"{message[:MESSAGE_MAX]}... ({len(message) - MESSAGE_MAX:,} more characters)"
     print(f"mapmatch {command}: error: {message}", file=sys.stderr)
     return code
+
+
+def _pipe_closed() -> int:
+    """Standard output's reader is gone (``| head``): exit quietly, as a killed writer would.
+
+    Standard output is pointed at /dev/null, so the interpreter's final flush finds no pipe.
+    """
+    import os
+
+    try:
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(devnull, sys.stdout.fileno())
+    except (OSError, ValueError):
+        pass
+    return EXIT_PIPE
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -125,11 +160,18 @@ def main(argv: Sequence[str] | None = None) -> int:
         args = parser.parse_args(argv)
         command = args.command
         level = logging.WARNING - 10 * min(0 if args.quiet else args.verbose, 2)
-        logging.basicConfig(level=level, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
-        return _run(args)
+        from mapmatch.logs import configure
+
+        configure(level=level, log_format=getattr(args, "log_format", None) or "auto")
+        rc = _run(args)
+        if argv is None:
+            sys.stdout.flush()  # a reader gone before the last bytes: a broken pipe here
+        return rc
     except KeyboardInterrupt:
         print(f"mapmatch {command}: interrupted", file=sys.stderr)
         return EXIT_INTERRUPTED
+    except BrokenPipeError:
+        return _pipe_closed()
     finally:
         if argv is None:
             # the process exits next: its teardown would run full garbage collections over
@@ -143,6 +185,9 @@ def _run(args: argparse.Namespace) -> int:
 
     cmd = args.command
     try:
+        precheck = getattr(args, "precheck", None)
+        if precheck is not None:  # cheap input checks before the heavy imports and compiles
+            precheck(args)
         if not args.quiet and KERNELS.get(cmd):
             from mapmatch.kernels import announce
 
@@ -153,6 +198,8 @@ def _run(args: argparse.Namespace) -> int:
         return _fail(cmd, str(exc), exc.code)
     except (GraphError, MatchError) as exc:
         return _fail(cmd, str(exc), EXIT_USAGE)
+    except BrokenPipeError:
+        raise
     except FileNotFoundError as exc:
         return _fail(cmd, f"no such file: {exc.filename}", EXIT_USAGE)
     except (PermissionError, IsADirectoryError, NotADirectoryError, FileExistsError) as exc:
@@ -165,6 +212,8 @@ def _run(args: argparse.Namespace) -> int:
     except Exception as exc:  # a library's error the command did not translate: still one line
         if _interrupted(exc):  # Ctrl-C inside compiled code surfaces as an error caused by it
             raise KeyboardInterrupt from None
+        if _caused_by(exc, BrokenPipeError):
+            raise BrokenPipeError from None
         logging.getLogger("mapmatch").debug("traceback", exc_info=True)
         kind = type(exc).__name__
         return _fail(
@@ -174,10 +223,15 @@ def _run(args: argparse.Namespace) -> int:
 
 def _interrupted(exc: BaseException) -> bool:
     """Whether ``exc`` was caused by a KeyboardInterrupt (anywhere in its chain)."""
+    return _caused_by(exc, KeyboardInterrupt)
+
+
+def _caused_by(exc: BaseException, kind: type[BaseException]) -> bool:
+    """Whether ``exc`` is or was caused by a ``kind`` (anywhere in its chain)."""
     seen: set[int] = set()
     cur: BaseException | None = exc
     while cur is not None and id(cur) not in seen:
-        if isinstance(cur, KeyboardInterrupt):
+        if isinstance(cur, kind):
             return True
         seen.add(id(cur))
         cur = cur.__cause__ or cur.__context__

@@ -61,7 +61,9 @@ def _numeric(df: pd.DataFrame, col: str) -> np.ndarray:
     bad = vals.isna() & raw.notna() & (raw.astype(str).str.strip() != "")
     if bad.any():
         row = int(np.flatnonzero(bad.to_numpy())[0]) + 2
-        raise ValidationError(col, f"not a number on line {row}: {raw[bad].iloc[0]!r}")
+        from mapmatch.textbounds import quote
+
+        raise ValidationError(col, f"not a number on line {row}: {quote(raw[bad].iloc[0])}")
     return vals.to_numpy(dtype=np.float64)
 
 

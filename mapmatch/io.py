@@ -26,6 +26,13 @@ from numpy.typing import NDArray
 from graph.files import atomic_path
 from graph.road_graph import RoadGraph
 from mapmatch.errors import MatchError
+from mapmatch.textbounds import MAX_COLUMNS as MAX_COLUMNS  # the readers' bounds, re-exported
+from mapmatch.textbounds import MAX_LINE_BYTES as MAX_LINE_BYTES
+from mapmatch.textbounds import MAX_QUOTE as MAX_QUOTE
+from mapmatch.textbounds import InputTooLargeError as InputTooLargeError
+from mapmatch.textbounds import LineBounds as LineBounds
+from mapmatch.textbounds import check_text_input, quote, spool_stdin
+from mapmatch.textbounds import clip as _clip
 from mapmatch.types import Track, TrackMatch
 
 
@@ -102,40 +109,109 @@ ColumnsT = TypeVar("ColumnsT", Columns, FixColumns)
 def read_fixes(
     source: str | os.PathLike[str], *, columns: FixColumns = FixColumns(), default_vehicle: str = ""
 ) -> dict[str, list[Any]]:
-    """Fused fixes per vehicle from a CSV file (``"-"``: standard input), with renamed columns.
+    """Fused fixes per vehicle from any file ``mapmatch match`` reads, with renamed columns.
+
+    CSV (``"-"``: standard input) and Parquet files hold the fix columns (:class:`FixColumns`,
+    common other names resolved as :func:`resolve_columns` does); GPX, GeoParquet points and
+    GIS line files hold tracks (:func:`read_tracks`), each track a vehicle, its points the
+    fixes (time, lat, lon, and heading, speed, pos_sigma and distance when recorded). A file
+    without vehicle ids is one vehicle: ``default_vehicle``, else the file's name, or
+    ``"stdin"`` for standard input. A CSV line or header beyond the bounds
+    (:data:`MAX_LINE_BYTES`, :data:`MAX_COLUMNS`) is refused before parsing.
 
     Raises
     ------
     mapmatch.errors.ValidationError
         A required column is missing (named, with the file's columns) or a cell is not a number.
+    TrackInputError
+        The file cannot be read, or passes a bound (:class:`InputTooLargeError`).
     """
+    import tempfile
+
+    if str(source) == STDIO:
+        with tempfile.TemporaryDirectory(prefix="mapmatch-") as tmp:
+            spooled = Path(tmp) / "stdin.csv"
+            spool_stdin(spooled)
+            df = _read_fix_csv(spooled, name="standard input")
+        return _fixes_from_frame(df, columns, default_vehicle or "stdin")
+    p = Path(source)
+    lower = p.name.lower()
+    default = default_vehicle or _stem(p)
+    if lower.endswith((".csv", ".csv.gz")):
+        check_text_input(p)
+        return _fixes_from_frame(_read_fix_csv(p, name=str(p)), columns, default)
+    if lower.endswith((".parquet", ".pq", ".geoparquet")):
+        try:
+            df = pd.read_parquet(p)
+        except Exception as exc:  # pyarrow raises several types for a bad file
+            raise TrackInputError(f"{p}: not a readable Parquet file ({exc})") from None
+        resolved = resolve_columns(df.columns, columns)
+        if resolved.lat in df.columns and resolved.lon in df.columns:
+            return _fixes_from_frame(df.astype(str), columns, default)
+    track_columns = Columns(
+        id=columns.vehicle_id, time=columns.time, lat=columns.lat, lon=columns.lon,
+        heading=columns.heading, speed=columns.speed, pos_sigma=columns.pos_sigma,
+        distance=columns.distance,
+    )  # fmt: skip
+    tracks = read_tracks(p, columns=track_columns)
+    stem = _stem(p)
+    return {(default if t.track_id == stem else str(t.track_id)): fixes_of_track(t) for t in tracks}
+
+
+def fixes_of_track(track: Track) -> list[Any]:
+    """The fixes of a track: its points, with heading, speed, pos_sigma and distance when recorded."""
+    from mapmatch.types import Fix
+
+    def col(a: NDArray[np.float64] | None) -> NDArray[np.float64]:
+        return np.full(len(track), np.nan) if a is None else np.asarray(a, dtype=np.float64)
+
+    heading, speed, sigma, dist = (col(track.heading), col(track.speed), col(track.pos_sigma),
+                                   col(track.distance))  # fmt: skip
+    out = []
+    for i in range(len(track)):
+        out.append(
+            Fix(
+                time=float(track.time[i]),
+                lat=float(track.lat[i]),
+                lon=float(track.lon[i]),
+                heading=float(heading[i]),
+                pos_sigma=float(sigma[i]),
+                speed=float(speed[i]),
+                distance=float(dist[i]),
+            )
+        )
+    return out
+
+
+def _read_fix_csv(path: Path, *, name: str) -> pd.DataFrame:
+    from mapmatch.errors import ValidationError
+
+    try:
+        return pd.read_csv(path, dtype=str, keep_default_na=False, skipinitialspace=True)
+    except pd.errors.EmptyDataError:
+        raise ValidationError("file", f"{name} is empty") from None
+    except (pd.errors.ParserError, UnicodeDecodeError) as exc:
+        raise ValidationError("file", f"{name} is not a readable CSV ({quote(exc)})") from None
+
+
+def _fixes_from_frame(df: pd.DataFrame, columns: FixColumns, default_vehicle: str) -> dict[str, list[Any]]:
+    """Fixes per vehicle from a table of text cells with the columns of ``columns``."""
     import io
-    import sys
 
     from mapmatch.errors import ValidationError
     from mapmatch.fixes import read_fixes_csv
 
-    name = "standard input" if str(source) == STDIO else str(source)
-    try:
-        df = pd.read_csv(
-            sys.stdin if str(source) == STDIO else source, dtype=str, keep_default_na=False,
-            skipinitialspace=True,
-        )  # fmt: skip
-    except pd.errors.EmptyDataError:
-        raise ValidationError("file", f"{name} is empty") from None
-    except (pd.errors.ParserError, UnicodeDecodeError) as exc:
-        raise ValidationError("file", f"{name} is not a readable CSV ({exc})") from None
     df.columns = [str(c).strip() for c in df.columns]
     columns = resolve_columns(df.columns, columns)
     for need in (columns.time, columns.lat, columns.lon):
         if need not in df.columns:
             raise ValidationError(
-                "columns", f"missing column {need!r} (columns are: {', '.join(df.columns) or 'none'})"
+                "columns", f"missing column {need!r} (columns are: {_clip(', '.join(df.columns)) or 'none'})"
             )
     wanted = {getattr(columns, f): f for f in FixColumns.__dataclass_fields__}
     df = df[[c for c in df.columns if c in wanted]].rename(columns=wanted)
     if "vehicle_id" not in df.columns:
-        df["vehicle_id"] = default_vehicle or (Path(str(source)).stem if name != "standard input" else "1")
+        df["vehicle_id"] = default_vehicle
     if "heading" not in df.columns:
         df["heading"] = ""
     buf = io.StringIO()
@@ -184,10 +260,11 @@ def read_tracks_csv(path: str | os.PathLike[str], *, columns: Columns = DEFAULT_
     ``wkt``) of LINESTRINGs gives one track per row, as FMM's trajectory files do (``;``
     between fields, times in a ``timestamp`` column, see :func:`read_tracks_lines`).
     """
+    check_text_input(path)
     try:
         df = pd.read_csv(path, sep=_csv_separator(path))
     except (pd.errors.ParserError, UnicodeDecodeError, pd.errors.EmptyDataError) as exc:
-        raise TrackInputError(f"{path}: not a readable CSV file ({exc})") from exc
+        raise TrackInputError(f"{path}: not a readable CSV file ({quote(exc)})") from exc
     columns = resolve_columns(df.columns, columns)
     wkt = next((c for c in df.columns if str(c).lower() in WKT_COLUMNS), None)
     if wkt is not None and not (columns.lat in df.columns and columns.lon in df.columns):
@@ -405,7 +482,7 @@ def tracks_from_frame(
         if need and need not in df.columns:
             hint = " (or an empty --time-col for tracks without times)" if need == columns.time else ""
             raise TrackInputError(
-                f"missing column {need!r}{hint} (columns are: {', '.join(map(str, df.columns))})"
+                f"missing column {need!r}{hint} (columns are: {_clip(', '.join(map(str, df.columns)))})"
             )
     n = len(df)
     ids = df[columns.id].astype(str).to_numpy() if columns.id in df.columns else np.full(n, default_id)

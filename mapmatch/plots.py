@@ -1,4 +1,4 @@
-"""Pictures of a match: a PNG map (matplotlib) and an interactive HTML map (folium).
+"""Pictures of a match: a PNG map (matplotlib) and an interactive HTML map (Leaflet, inlined).
 
 Both show the road graph, the true route, the raw GPS and fused fixes (fixes in GPS outages,
 i.e. dead reckoning, in red), the snapped positions (on the wrong edge in red), the fixes the
@@ -8,8 +8,11 @@ leaving one, and the fixes that carried a correction.
 
 from __future__ import annotations
 
+import html
+import json
 import os
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -315,25 +318,6 @@ LEGEND = (
 )
 
 
-def _legend_html() -> str:
-    items = []
-    shape = {
-        "line": "width:18px;height:4px;background:{c};vertical-align:middle",
-        "ring": "width:9px;height:9px;border:2px solid {c};border-radius:50%",
-        "dot": "width:11px;height:11px;background:{c};border-radius:50%",
-    }
-    for label, color, kind in LEGEND:
-        style = shape[kind].format(c=color)
-        mark = f"<span style='display:inline-block;{style}'></span>"
-        items.append(f"<div>{mark}&nbsp;{label}</div>")
-    return (
-        "<div style='position:fixed;bottom:24px;left:12px;z-index:9999;background:rgba(255,255,255,.9);"
-        "padding:6px 9px;border:1px solid #999;border-radius:4px;font:12px sans-serif;line-height:17px'>"
-        + "".join(items)
-        + "</div>"
-    )
-
-
 def draw_html(
     graph: RoadGraph,
     data: PlotData,
@@ -342,64 +326,24 @@ def draw_html(
     title: str = "",
     max_points: int = 20000,
 ) -> None:
-    """Write the interactive HTML map (folium, atomic): one toggleable GeoJSON layer per kind.
+    """Write the interactive HTML map (atomic): one toggleable GeoJSON layer per kind.
 
-    Every fix is a point of its layer's FeatureCollection (not a marker of its own), so the file
-    grows with the drive only by its coordinates and tooltip fields (time, state, edge, way,
-    probability, correction). A legend names the colours. Layers of more than ``max_points``
-    points are thinned evenly.
+    The page is self-contained (:func:`leaflet_page`): Leaflet is inlined from the package, so
+    the map, its roads and fixes show offline. Every fix is a point of its layer's
+    FeatureCollection (not a marker of its own), so the file grows with the drive only by its
+    coordinates and tooltip fields (time, state, edge, way, probability, correction). A legend
+    names the colours. Layers of more than ``max_points`` points are thinned evenly.
     """
-    from mapmatch.extras import require
-
-    folium = require("folium", extra="plots", needed_for="drawing the HTML map")
 
     def lonlat(xy: NDArray[np.float64]) -> NDArray[np.float64]:
         return np.round(to_lonlat(graph.crs, xy[:, 0], xy[:, 1]), 7) if len(xy) else np.empty((0, 2))
 
     route_ll = lonlat(data.route_xy[~np.isnan(data.route_xy[:, 0])])
-    centre = route_ll.mean(axis=0)[::-1].tolist() if len(route_ll) else [0.0, 0.0]
-    m = folium.Map(location=centre, zoom_start=15, tiles="OpenStreetMap", control_scale=True)
-    if title:
-        m.get_root().html.add_child(  # type: ignore[attr-defined]
-            folium.Element(f"<div style='font:12px monospace;white-space:pre'>{title}</div>")
-        )
-    m.get_root().html.add_child(folium.Element(_legend_html()))  # type: ignore[attr-defined]
     lo = data.route_xy.min(axis=0) - 300
     hi = data.route_xy.max(axis=0) + 300
-    road_feats = []
-    for e in range(graph.n_edges):
-        if graph.edge_reverse[e] >= 0 and graph.edge_reverse[e] < e:
-            continue
-        seg = graph.edge_xy(e)
-        if (seg.max(0) >= lo).all() and (seg.min(0) <= hi).all():
-            road_feats.append(
-                {
-                    "type": "Feature",
-                    "geometry": {"type": "LineString", "coordinates": lonlat(seg).tolist()},
-                    "properties": {
-                        "edge": int(e),
-                        "way": int(graph.edge_way_id[e]),
-                        "name": graph.edge_name(e),
-                    },
-                }
-            )
-
-    def lines(
-        name: str, feats: list[dict[str, Any]], color: str, weight: float, opacity: float, tip: list[str]
-    ) -> None:
-        if not feats:
-            return
-        folium.GeoJson(
-            {"type": "FeatureCollection", "features": feats},
-            name=name,
-            style_function=lambda _f, c=color, w=weight, o=opacity: {"color": c, "weight": w, "opacity": o},
-            tooltip=folium.GeoJsonTooltip(fields=tip) if tip else None,
-        ).add_to(m)
-
-    lines("road graph", road_feats, "#888888", 2, 0.6, ["edge", "way", "name"])
+    layers = [road_layer(graph, lo, hi)]
     if len(route_ll) >= 2:
-        lines("true route", [{"type": "Feature", "geometry": {"type": "LineString",
-              "coordinates": route_ll.tolist()}, "properties": {}}], "#2ca02c", 7, 0.5, [])  # fmt: skip
+        layers.append(line_layer("true route", [route_ll], color="#2ca02c", weight=7, opacity=0.5))
     info = data.info
     fields = ["time", "state", "edge", "way_id", "probability", "correction"]
 
@@ -424,25 +368,15 @@ def draw_html(
         if not len(rows):
             return
         rows = rows[:: max(1, len(rows) // max_points)]
-        ll = lonlat(xy[rows])
         feats = [
             {"type": "Feature", "geometry": {"type": "Point", "coordinates": c},
              "properties": props(int(i)) if tip else {}}
-            for i, c in zip(rows.tolist(), ll.tolist(), strict=True)
+            for i, c in zip(rows.tolist(), lonlat(xy[rows]).tolist(), strict=True)
         ]  # fmt: skip
-        marker = folium.CircleMarker(
-            radius=radius, color=color, fill=fill, fill_color=color, weight=1, fill_opacity=0.8
-        )
-        folium.GeoJson(
-            {"type": "FeatureCollection", "features": feats},
-            name=name,
-            marker=marker,
-            tooltip=(
-                folium.GeoJsonTooltip(fields=["fix", *fields] if info is not None else ["fix"])
-                if tip
-                else None
-            ),
-        ).add_to(m)
+        style = {"radius": radius, "color": color, "fill": fill, "fillColor": color, "weight": 1,
+                 "fillOpacity": 0.8}  # fmt: skip
+        tips = (["fix", *fields] if info is not None else ["fix"]) if tip else []
+        layers.append(_layer(name, "points", feats, style, tips))
 
     if len(data.gps_xy):
         points("raw GPS", data.gps_xy, None, "#555555", 1.5, tip=False)
@@ -455,6 +389,246 @@ def draw_html(
     points("ambiguous region", s, data.ambiguous, "#9467bd", 6, fill=False)
     points("decisions", s, data.decided, "#9467bd", 5)
     points("corrections", s, data.corrected, "#e377c2", 7)
-    folium.LayerControl(collapsed=False).add_to(m)
+    write_html(path, leaflet_page(layers, title=title, legend=LEGEND))
+
+
+# ---------------------------------------------------------------------- self-contained HTML
+TILES_URL = "https://tile.openstreetmap.org/{z}/{x}/{y}.png"
+"""The optional background layer of the HTML map (shown when online; the map works without it)."""
+
+
+def _layer(name: str, kind: str, features: list[dict[str, Any]], style: dict[str, Any],
+           tip: list[str]) -> dict[str, Any]:  # fmt: skip
+    css_class = "mm-" + "-".join("".join(c if c.isalnum() else " " for c in name.lower()).split())
+    style = {**style, "className": css_class}  # the SVG paths of a layer carry its class
+    return {"name": name, "kind": kind, "style": style, "tip": tip,
+            "data": {"type": "FeatureCollection", "features": features}}  # fmt: skip
+
+
+def line_layer(
+    name: str, parts: list[NDArray[np.float64]], *, color: str, weight: float, opacity: float = 0.8
+) -> dict[str, Any]:
+    """A layer of lines, each part an ``(n, 2)`` lon/lat array (parts of fewer than 2 points dropped)."""
+    feats = [
+        {"type": "Feature", "geometry": {"type": "LineString", "coordinates": np.round(p, 7).tolist()},
+         "properties": {}}
+        for p in parts if len(p) >= 2
+    ]  # fmt: skip
+    return _layer(name, "lines", feats, {"color": color, "weight": weight, "opacity": opacity}, [])
+
+
+def point_layer(name: str, lonlat: NDArray[np.float64], *, color: str, radius: float = 3.0) -> dict[str, Any]:
+    """A layer of points at ``(n, 2)`` lon/lat (NaN rows dropped), each with its index as tooltip."""
+    ll = np.asarray(lonlat, dtype=np.float64).reshape(-1, 2)
+    rows = np.flatnonzero(np.isfinite(ll).all(axis=1))
+    feats = [
+        {"type": "Feature", "geometry": {"type": "Point", "coordinates": np.round(ll[i], 7).tolist()},
+         "properties": {"fix": int(i)}}
+        for i in rows.tolist()
+    ]  # fmt: skip
+    style = {"radius": radius, "color": color, "fill": True, "fillColor": color, "weight": 1,
+             "fillOpacity": 0.8}  # fmt: skip
+    return _layer(name, "points", feats, style, ["fix"])
+
+
+def road_layer(graph: RoadGraph, lo: NDArray[np.float64], hi: NDArray[np.float64]) -> dict[str, Any]:
+    """The roads of ``graph`` inside the box ``lo``..``hi`` (map metres), one feature per road."""
+    feats = []
+    for e in range(graph.n_edges):
+        if graph.edge_reverse[e] >= 0 and graph.edge_reverse[e] < e:
+            continue
+        seg = graph.edge_xy(e)
+        if (seg.max(0) >= lo).all() and (seg.min(0) <= hi).all():
+            ll = np.round(to_lonlat(graph.crs, seg[:, 0], seg[:, 1]), 7)
+            feats.append(
+                {
+                    "type": "Feature",
+                    "geometry": {"type": "LineString", "coordinates": ll.tolist()},
+                    "properties": {
+                        "edge": int(e),
+                        "way": int(graph.edge_way_id[e]),
+                        "name": graph.edge_name(e),
+                    },
+                }
+            )
+    return _layer("road graph", "lines", feats, {"color": "#888888", "weight": 2, "opacity": 0.6},
+                  ["edge", "way", "name"])  # fmt: skip
+
+
+def leaflet_assets() -> tuple[str, str]:
+    """Leaflet's JavaScript and CSS as shipped in the package (``mapmatch/static/leaflet``)."""
+    from importlib.resources import files
+
+    root = files("mapmatch").joinpath("static", "leaflet")
+    js = root.joinpath("leaflet.js").read_text(encoding="utf-8")
+    css = root.joinpath("leaflet.css").read_text(encoding="utf-8")
+    js = "\n".join(line for line in js.splitlines() if not line.startswith("//# sourceMappingURL"))
+    return js, css
+
+
+_PAGE_SCRIPT = """
+const LAYERS = %s;
+const map = L.map("map", {zoomControl: true});
+const tiles = L.tileLayer("%s", {maxZoom: 19,
+  attribution: "&copy; OpenStreetMap contributors"});
+const overlays = {};
+let bounds = null;
+for (const l of LAYERS) {
+  const opts = {};
+  if (l.kind === "lines") { opts.style = () => l.style; }
+  else { opts.pointToLayer = (f, ll) => L.circleMarker(ll, l.style); }
+  if (l.tip.length) {
+    opts.onEachFeature = (f, layer) => layer.bindTooltip(
+      l.tip.map(k => k + ": " + f.properties[k]).join("<br>"));
+  }
+  const g = L.geoJSON(l.data, opts).addTo(map);
+  overlays[l.name] = g;
+  if (l.data.features.length) {
+    bounds = bounds ? bounds.extend(g.getBounds()) : g.getBounds();
+  }
+}
+L.control.layers({"no background": L.layerGroup().addTo(map), "OpenStreetMap tiles": tiles},
+  overlays, {collapsed: false}).addTo(map);
+L.control.scale().addTo(map);
+if (bounds) { map.fitBounds(bounds.pad(0.05)); } else { map.setView([0, 0], 2); }
+"""
+
+
+def _legend_rows(legend: tuple[tuple[str, str, str], ...]) -> str:
+    shape = {
+        "line": "width:18px;height:4px;background:{c};vertical-align:middle",
+        "ring": "width:9px;height:9px;border:2px solid {c};border-radius:50%",
+        "dot": "width:11px;height:11px;background:{c};border-radius:50%",
+    }
+    items = []
+    for label, color, kind in legend:
+        mark = f"<span style='display:inline-block;{shape[kind].format(c=color)}'></span>"
+        items.append(f"<div>{mark}&nbsp;{html.escape(label)}</div>")
+    return (
+        "<div style='position:fixed;bottom:24px;left:12px;z-index:9999;background:rgba(255,255,255,.9);"
+        "padding:6px 9px;border:1px solid #999;border-radius:4px;font:12px sans-serif;line-height:17px'>"
+        + "".join(items)
+        + "</div>"
+    )
+
+
+def leaflet_page(
+    layers: list[dict[str, Any]], *, title: str = "", legend: tuple[tuple[str, str, str], ...] = ()
+) -> str:
+    """A self-contained HTML page: Leaflet inlined, one toggleable GeoJSON layer per entry of
+    ``layers`` (:func:`line_layer`, :func:`point_layer`, :func:`road_layer`), a legend, a title.
+
+    Nothing is loaded from elsewhere except the optional OpenStreetMap background tiles.
+    """
+    js, css = leaflet_assets()
+    data = json.dumps(layers).replace("</", "<\\/")
+    script = _PAGE_SCRIPT % (data, TILES_URL)
+    head = (
+        "<!DOCTYPE html>\n<html><head><meta charset='utf-8'>"
+        "<meta name='viewport' content='width=device-width, initial-scale=1'>"
+        f"<title>{html.escape(title.splitlines()[0] if title else 'mapmatch')}</title>"
+        f"<style>{css}</style><style>html,body{{height:100%;margin:0}}#map{{height:100%}}</style>"
+        f"<script>{js}</script></head>"
+    )
+    caption = (
+        "<div style='position:fixed;top:8px;left:52px;z-index:9999;background:rgba(255,255,255,.85);"
+        f"font:12px monospace;white-space:pre;padding:4px'>{html.escape(title)}</div>"
+        if title
+        else ""
+    )
+    body = f"<body><div id='map'></div>{caption}{_legend_rows(legend)}<script>{script}</script></body>"
+    return f"{head}{body}</html>\n"
+
+
+def write_html(path: str | os.PathLike[str], page: str) -> None:
+    """Write an HTML page atomically."""
     with atomic_path(path) as tmp:
-        m.save(str(tmp))
+        Path(tmp).write_text(page, encoding="utf-8")
+
+
+# ---------------------------------------------------------------------- a matched route
+ROUTE_LEGEND = (
+    ("true route", "#2ca02c", "line"),
+    ("matched route", "#ff7f0e", "line"),
+    ("fix", "#1f77b4", "dot"),
+    ("road graph", "#888888", "line"),
+)
+
+
+@dataclass(frozen=True)
+class RoutePicture:
+    """What ``mapmatch eval --route`` draws, in lon/lat: the true route, the matched route (each
+    a list of ``(n, 2)`` parts), the fixes (``(n, 2)``, may be empty) and optionally the roads."""
+
+    truth: list[NDArray[np.float64]]
+    matched: list[NDArray[np.float64]]
+    fixes: NDArray[np.float64]
+    roads: list[NDArray[np.float64]]
+
+    def check(self) -> None:
+        """Raise :class:`ValueError` when there is nothing to draw."""
+        if not any(len(p) >= 2 for p in self.truth) and not any(len(p) >= 2 for p in self.matched):
+            raise ValueError("nothing to draw: neither the true nor the matched route has a line")
+
+
+def _metres(ll: NDArray[np.float64], lat0: float) -> NDArray[np.float64]:
+    """Local metres of lon/lat points (equirectangular about ``lat0``; enough for a picture)."""
+    ll = np.asarray(ll, dtype=np.float64).reshape(-1, 2)
+    return np.column_stack([ll[:, 0] * 111_320.0 * np.cos(np.radians(lat0)), ll[:, 1] * 110_574.0])
+
+
+def draw_route_png(pic: RoutePicture, path: str | os.PathLike[str], *, title: str = "") -> None:
+    """Draw a matched route against the true route, with the fixes (PNG, atomic write)."""
+    from mapmatch.extras import require
+
+    matplotlib = require("matplotlib", extra="plots", needed_for="drawing the PNG map")
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    from matplotlib.collections import LineCollection
+
+    pic.check()
+    lines = [p for p in (*pic.truth, *pic.matched) if len(p)]
+    lat0 = float(np.nanmean(np.vstack(lines)[:, 1]))
+    fig, ax = plt.subplots(figsize=(10, 8), dpi=110)
+    if pic.roads:
+        roads = [_metres(p, lat0) for p in pic.roads if len(p) >= 2]
+        ax.add_collection(
+            LineCollection(roads, colors="#b0b0b0", linewidths=0.8, zorder=1, label="road graph")
+        )
+    for k, part in enumerate(pic.truth):
+        xy = _metres(part, lat0)
+        ax.plot(*xy.T, color="#2ca02c", lw=6, alpha=0.45, zorder=2, solid_capstyle="round",
+                label="true route" if k == 0 else None)  # fmt: skip
+    for k, part in enumerate(pic.matched):
+        xy = _metres(part, lat0)
+        ax.plot(*xy.T, color="#ff7f0e", lw=2, zorder=3, label="matched route" if k == 0 else None)
+    if len(pic.fixes):
+        ax.plot(*_metres(pic.fixes, lat0).T, ".", color="#1f77b4", ms=3, zorder=4, label="fix")
+    allp = np.vstack([_metres(p, lat0) for p in lines])
+    lo, hi = np.nanmin(allp, axis=0) - 60.0, np.nanmax(allp, axis=0) + 60.0
+    ax.set_xlim(lo[0], hi[0])
+    ax.set_ylim(lo[1], hi[1])
+    ax.set_aspect("equal")
+    ax.set_xlabel("east, m")
+    ax.set_ylabel("north, m")
+    ax.ticklabel_format(useOffset=True, style="plain")
+    if title:
+        fig.suptitle(title, fontsize=9, x=0.01, ha="left", family="monospace")
+    ax.legend(loc="best", fontsize=8)
+    fig.tight_layout()
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, format="png")
+    plt.close(fig)
+
+
+def draw_route_html(pic: RoutePicture, path: str | os.PathLike[str], *, title: str = "") -> None:
+    """Draw a matched route against the true route, with the fixes (self-contained HTML, atomic)."""
+    pic.check()
+    layers = []
+    if pic.roads:
+        layers.append(line_layer("road graph", pic.roads, color="#888888", weight=2, opacity=0.6))
+    layers.append(line_layer("true route", pic.truth, color="#2ca02c", weight=7, opacity=0.5))
+    layers.append(line_layer("matched route", pic.matched, color="#ff7f0e", weight=3, opacity=0.9))
+    if len(pic.fixes):
+        layers.append(point_layer("fixes", pic.fixes, color="#1f77b4", radius=2.5))
+    write_html(path, leaflet_page(layers, title=title, legend=ROUTE_LEGEND))

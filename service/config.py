@@ -19,7 +19,7 @@ MAPMATCH_MAX_MESSAGE_BYTES  --max-message-bytes N       largest request message 
 MAPMATCH_WORKERS            --workers N                 threads for batch matching and map loads (2)
 MAPMATCH_GRACE              --grace SECONDS             drain time on shutdown (10)
 MAPMATCH_REUSE_PORT         --reuse-port                SO_REUSEPORT (off), for several processes
-MAPMATCH_LOG_FORMAT         --log-format json|text      log format: JSON lines or text (json)
+MAPMATCH_LOG_FORMAT         --log-format auto|json|text JSON lines or text logs (auto: text on a terminal)
 MAPMATCH_MAP_DIR            --map-dir DIR               LoadMap reads files only here (off)
 MAPMATCH_MAX_BATCH_FIXES    --max-batch-fixes N         fixes per FixBatch (1000)
 MAPMATCH_MAX_TRACK_POINTS   --max-track-points N        points per track (100000)
@@ -141,7 +141,8 @@ class ServerConfig:
     reuse_port : bool
         Set SO_REUSEPORT so several processes can share one port (off: a port in use is an error).
     log_format : str
-        ``"json"`` (one JSON object per line) or ``"text"`` logs.
+        ``"json"`` (one JSON object per line) or ``"text"`` logs; ``"auto"``: text when standard
+        error is a terminal, else JSON (``mapmatch serve`` resolves it before starting).
     map_dir : Path or None
         ``LoadMap`` reads only regular files inside this folder; None disables ``LoadMap`` of paths.
     max_batch_fixes : int
@@ -221,7 +222,7 @@ class ServerConfig:
     workers: int = 2
     grace: float = 10.0
     reuse_port: bool = False
-    log_format: str = "json"
+    log_format: str = "auto"
     map_dir: Path | None = None
     max_batch_fixes: int = 1000
     max_track_points: int = 100_000
@@ -258,8 +259,8 @@ class ServerConfig:
         if self.batch_sched not in BATCH_SCHED:
             classes = ", ".join(BATCH_SCHED)
             raise ConfigError(f"batch_sched must be one of {classes}, got {self.batch_sched!r}")
-        if self.log_format not in ("json", "text"):
-            raise ConfigError(f"log_format must be json or text, got {self.log_format!r}")
+        if self.log_format not in ("auto", "json", "text"):
+            raise ConfigError(f"log_format must be auto, json or text, got {self.log_format!r}")
         if self.token is not None and not self.token.strip():
             raise ConfigError("token must not be empty")
         for name in ("max_batch_fixes", "max_track_points", "max_answer_bytes", "max_vehicle_id",
@@ -345,7 +346,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="SO_REUSEPORT for several processes on one port [MAPMATCH_REUSE_PORT; off]",
     )
     parser.add_argument(
-        "--log-format", choices=("json", "text"), help="JSON lines or text logs [MAPMATCH_LOG_FORMAT; json]"
+        "--log-format",
+        choices=("auto", "json", "text"),
+        help="JSON lines or text logs; auto: text on a terminal [MAPMATCH_LOG_FORMAT; auto]",
     )
     parser.add_argument(
         "--inline-fixes",

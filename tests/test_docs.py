@@ -146,6 +146,35 @@ def test_cli_page_has_every_command() -> None:
     assert [c for c in SUBCOMMANDS if f"`mapmatch {c}`" not in headings] == []
 
 
+def _documented(option: str, text: str) -> bool:
+    return re.search(rf"(?<![\w-]){re.escape(option)}(?![\w-])", text) is not None
+
+
+def test_cli_page_has_every_flag() -> None:
+    """Every option of every command is named in its section of docs/cli.md, or among the common
+    options; `serve`'s may be in Deployment's settings table instead (cli.md points there). A
+    ``--no-X`` negation counts as documented with ``--X`` (and ``--[no-]X`` names both)."""
+    import argparse
+
+    from mapmatch.cli import build_parser
+
+    page = (DOCS / "cli.md").read_text(encoding="utf-8")
+    common = page.split("## Common options", 1)[1].split("\n## ", 1)[0]
+    subs = next(a for a in build_parser()._actions if isinstance(a, argparse._SubParsersAction))
+    missing = []
+    for name, parser in subs.choices.items():
+        section = page.split(f"## `mapmatch {name}`", 1)[1].split("\n## ", 1)[0]
+        if name == "serve":
+            section += (DOCS / "deployment.md").read_text(encoding="utf-8")
+        section = section.replace("--[no-]", "--")
+        for action in parser._actions:
+            opts = [o for o in action.option_strings if o not in ("-h", "--help")]
+            opts += [o.replace("--no-", "--", 1) for o in opts if o.startswith("--no-")]
+            if opts and not any(_documented(o, section) or _documented(o, common) for o in opts):
+                missing.append(f"{name} {'/'.join(action.option_strings)}")
+    assert missing == []
+
+
 def test_tuning_page_has_every_config_field() -> None:
     page = (DOCS / "tuning.md").read_text(encoding="utf-8")
     config = MatchConfig()

@@ -44,6 +44,9 @@ def test_wheel_has_the_three_packages_and_the_proto(wheel: Path) -> None:
         "service/gen/mapmatch_pb2_grpc.py",
         "mapmatch/cli.py",
         "mapmatch/py.typed",
+        "mapmatch/static/leaflet/leaflet.js",  # the HTML map works offline: Leaflet ships inside
+        "mapmatch/static/leaflet/leaflet.css",
+        "mapmatch/static/leaflet/LICENSE",
     ):
         assert need in names, need
     assert any(n.endswith(".data/data/share/mapmatch/proto/mapmatch/v1/mapmatch.proto") for n in names)

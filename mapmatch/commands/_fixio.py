@@ -18,7 +18,16 @@ STDIO = "-"  # as mapmatch.io.STDIO (not imported here: --help stays instant)
 
 def add_fix_options(p: argparse.ArgumentParser) -> None:
     """The input/output arguments and the column-name options (as ``match`` has them)."""
-    p.add_argument("fixes", type=Path, metavar="FIXES.csv", help="fused fixes ('-': standard input)")
+    p.add_argument(
+        "fixes", type=Path, metavar="FIXES.csv",
+        help="fused fixes: CSV ('-': standard input), or any track file `match` reads (GPX, "
+        "Parquet, GeoParquet, GeoJSON/GPKG/SHP/FGB lines)",
+    )  # fmt: skip
+    p.add_argument(
+        "--vehicle-id", metavar="ID",
+        help="the vehicle's id when the input is one vehicle (default: its vehicle column, else "
+        "the file's name, or 'stdin')",
+    )  # fmt: skip
     p.add_argument(
         "-o",
         "--output",
@@ -29,7 +38,7 @@ def add_fix_options(p: argparse.ArgumentParser) -> None:
     )
     cols = p.add_argument_group("input columns (vehicle and heading are optional)")
     for name, help_ in (
-        ("vehicle-id", "without it the file is one vehicle, named after the file"),
+        ("vehicle-id", "without it the file is one vehicle (see --vehicle-id)"),
         ("time", "required"),
         ("lat", "required"),
         ("lon", "required"),
@@ -47,6 +56,21 @@ def add_fix_options(p: argparse.ArgumentParser) -> None:
         )  # fmt: skip
 
 
+def check_csv_inputs(paths: list[Path]) -> None:
+    """Refuse a CSV input with a line or header beyond the bounds (:mod:`mapmatch.textbounds`)
+    before a command loads its heavier modules (a command's ``precheck``)."""
+    from mapmatch.textbounds import check_text_input
+
+    for path in paths:
+        if path.is_file() and path.name.lower().endswith((".csv", ".csv.gz")):
+            check_text_input(path)
+
+
+def precheck_fixes(args: argparse.Namespace) -> None:
+    """``replay`` and ``send``: :func:`check_csv_inputs` on the fixes file."""
+    check_csv_inputs([args.fixes])
+
+
 def fix_columns(args: argparse.Namespace) -> FixColumns:
     from mapmatch.io import FixColumns
 
@@ -54,18 +78,36 @@ def fix_columns(args: argparse.Namespace) -> FixColumns:
 
 
 def read_fixes_arg(args: argparse.Namespace) -> dict[str, list[Any]]:
-    """The fixes per vehicle from ``args.fixes`` (a file or ``-``); bad input is a CommandError."""
+    """The fixes per vehicle from ``args.fixes`` (a file or ``-``), the one vehicle renamed to
+    ``args.vehicle_id`` when given; bad input is a CommandError."""
     from mapmatch.cli import CommandError
     from mapmatch.errors import ValidationError
     from mapmatch.io import read_fixes
 
     src = args.fixes
-    if str(src) != STDIO and not src.is_file():
+    if str(src) != STDIO and not src.exists():
         raise CommandError(f"no such file: {src}")
+    name = "standard input" if str(src) == STDIO else str(src)
     try:
-        return read_fixes(src, columns=fix_columns(args))
+        vehicles = read_fixes(src, columns=fix_columns(args))
     except ValidationError as exc:
-        raise CommandError(f"{'standard input' if str(src) == STDIO else src}: {exc}") from None
+        raise CommandError(f"{name}: {exc}") from None
+    vid = getattr(args, "vehicle_id", None)
+    if vid is None:
+        return vehicles
+    if not vid.strip():
+        raise CommandError("--vehicle-id must not be empty")
+    if len(vehicles) > 1:
+        first = ", ".join(list(vehicles)[:3])
+        raise CommandError(
+            f"--vehicle-id names one vehicle, but {name} holds {len(vehicles):,} ({first}, ...): "
+            "drop --vehicle-id, or give one file per vehicle"
+        )
+    return {vid: next(iter(vehicles.values()), [])}
+
+
+TIME_REJECTED = "time: must increase"
+"""How a matcher's rejection of a fix whose time does not increase begins."""
 
 
 @contextlib.contextmanager

@@ -47,7 +47,6 @@ def _step(msg: str, t0: float) -> None:
 
 
 def _preload_drawing() -> None:
-    import folium  # noqa: F401
     import matplotlib
 
     matplotlib.use("Agg")
@@ -63,7 +62,7 @@ def run(args: argparse.Namespace) -> int:
     # prepares the map and starts the server (whose warm-up compiles the online kernels)
     from mapmatch.extras import require_installed
 
-    require_installed("pyrosm", "matplotlib", "folium", extra="demo", needed_for="mapmatch demo")
+    require_installed("pyrosm", "matplotlib", extra="demo", needed_for="mapmatch demo")
     with compiling_in_background("simulator") as kernels:
         return _demo(args, kernels)
 

@@ -47,7 +47,11 @@ def register(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[ty
     p.add_argument(
         "--matched", required=True, help="results: replay/send CSV, or match output (with --route)"
     )
-    p.add_argument("--fixes", help="the fused fixes CSV (to draw them and report their error)")
+    p.add_argument(
+        "--fixes",
+        help="the fixes (to draw them and report their error): the fused fixes CSV, or with --route "
+        "any track file `match` reads",
+    )
     p.add_argument("--vehicle-id", "--track-id", dest="vehicle_id",
                    help="the vehicle or track to score when the files hold several")  # fmt: skip
     p.add_argument("--tolerance", type=float, default=2.0, help="route mismatch tolerance, m (default 2)")
@@ -59,8 +63,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[ty
         help="compare open loop (--fixes, --matched) with a closed-loop run of the same drive: its fixes "
         "and results CSVs (mapmatch simulate --map-aided --matched)",
     )
-    p.add_argument("--png", help="write a PNG map")
-    p.add_argument("--html", help="write an interactive HTML map")
+    p.add_argument("--png", help="write a PNG map (with --route: true route, matched route and fixes)")
+    p.add_argument("--html", help="write an interactive HTML map (self-contained: works offline)")
     p.set_defaults(func=run)
 
 
@@ -93,7 +97,92 @@ def run_route(args: argparse.Namespace) -> int:
         unmatched_points=unmatched,
     )  # fmt: skip
     print(score.table())
+    if args.png or args.html:
+        title = f"track {track}: route mismatch {100 * score.rmf.fraction:.2f} % (tol {args.tolerance:g} m)"
+        _draw_route(args, truth, parts, track=track, title=title)
     return 0
+
+
+def _draw_route(
+    args: argparse.Namespace, truth: list[Any], matched: list[Any], *, track: str, title: str
+) -> None:
+    """``--route`` with ``--png``/``--html``: draw the true route, the matched route and the fixes."""
+    import sys
+
+    from mapmatch.plots import RoutePicture, draw_route_html, draw_route_png
+
+    fixes = _route_fixes(args, track)
+    if not len(fixes):
+        print("eval: no fixes to draw (give --fixes, the track file that was matched)", file=sys.stderr)
+    pic = RoutePicture(
+        truth=truth, matched=matched, fixes=fixes, roads=_roads_near(args.map, truth + matched)
+    )
+    for path, draw in ((args.png, draw_route_png), (args.html, draw_route_html)):
+        if not path:
+            continue
+        try:
+            draw(pic, path, title=title)
+        except ValueError as exc:
+            raise CommandError(f"cannot draw {path}: {exc}") from None
+        if not Path(path).is_file() or Path(path).stat().st_size == 0:
+            raise CommandError(f"cannot draw {path}: nothing was written")
+        print(f"wrote {path}")
+
+
+def _route_fixes(args: argparse.Namespace, track: str) -> Any:
+    """The fixes of ``track`` as ``(n, 2)`` lon/lat: from ``--fixes`` (any track file), else
+    the raw positions of online results (``raw_lat``/``raw_lon``); empty when neither has them."""
+    import numpy as np
+    import pandas as pd
+
+    from mapmatch.io import read_fixes
+
+    if args.fixes:
+        if not Path(args.fixes).exists():
+            raise CommandError(f"--fixes: no such file: {args.fixes}")
+        vehicles = read_fixes(args.fixes)
+        name = args.vehicle_id if args.vehicle_id is not None else track
+        fixes = vehicles.get(name) if len(vehicles) > 1 else next(iter(vehicles.values()), [])
+        if fixes is None:
+            raise CommandError(
+                f"--fixes {args.fixes}: no vehicle or track {name!r} ({len(vehicles)} in the file)"
+            )
+        return np.array([[f.lon, f.lat] for f in fixes], dtype=np.float64).reshape(-1, 2)
+    if str(args.matched).lower().endswith(".csv"):
+        head = pd.read_csv(args.matched, nrows=0).columns
+        if "raw_lat" in head and "raw_lon" in head:
+            df = pd.read_csv(
+                args.matched, usecols=[c for c in ("vehicle_id", "raw_lat", "raw_lon") if c in head]
+            )
+            if "vehicle_id" in df.columns and track:
+                df = df[df["vehicle_id"].astype(str) == track]
+            return df[["raw_lon", "raw_lat"]].to_numpy(dtype=np.float64)
+    return np.empty((0, 2))
+
+
+def _roads_near(map_path: str | None, parts: list[Any], margin_m: float = 300.0) -> list[Any]:
+    """The roads of ``--map`` (lon/lat parts) near the routes; none without a map."""
+    import numpy as np
+
+    from graph.artifact import open_map
+    from graph.projection import to_lonlat, to_xy
+
+    if not map_path:
+        return []
+    graph = open_map(map_path)
+    pts = np.vstack([p for p in parts if len(p)]) if any(len(p) for p in parts) else np.empty((0, 2))
+    if not len(pts):
+        return []
+    xy = to_xy(graph.crs, pts[:, 0], pts[:, 1])
+    lo, hi = np.nanmin(xy, axis=0) - margin_m, np.nanmax(xy, axis=0) + margin_m
+    out = []
+    for e in range(graph.n_edges):
+        if graph.edge_reverse[e] >= 0 and graph.edge_reverse[e] < e:
+            continue
+        seg = graph.edge_xy(e)
+        if (seg.max(0) >= lo).all() and (seg.min(0) <= hi).all():
+            out.append(to_lonlat(graph.crs, seg[:, 0], seg[:, 1]))
+    return out
 
 
 def _parquet_route(path: Path, track_id: str | None) -> tuple[str, list[Any], int, int]:

@@ -108,7 +108,13 @@ def register(subparsers: Any) -> None:
         help="any other matcher parameter by its full name in mapmatch.config (repeatable), "
         "e.g. --set batch.gap_time=300 splits tracks at pauses over 5 minutes",
     )  # fmt: skip
-    p.set_defaults(func=run_match)
+    p.set_defaults(func=run_match, precheck=_precheck)
+
+
+def _precheck(args: argparse.Namespace) -> None:
+    from mapmatch.commands._fixio import check_csv_inputs
+
+    check_csv_inputs(list(args.inputs))
 
 
 def run_match(args: argparse.Namespace) -> int:
@@ -127,8 +133,10 @@ def run_match(args: argparse.Namespace) -> int:
     with tempfile.TemporaryDirectory(prefix="mapmatch-match-") as tmp:
         inputs = list(args.inputs)
         if stdin:
+            from mapmatch.io import spool_stdin
+
             src = Path(tmp) / "stdin.csv"
-            src.write_bytes(sys.stdin.buffer.read())
+            spool_stdin(src)
             inputs = [src if str(i) == "-" else i for i in inputs]
         output = Path(tmp) / "stdout.csv" if to_stdout else args.output
         rc = _match(args, inputs, output, out=sys.stderr if to_stdout else sys.stdout)
@@ -148,7 +156,7 @@ def _match(args: argparse.Namespace, inputs: list[Path], output: Path, *, out: A
     from mapmatch.io import Columns
     from mapmatch.parallel import RunOptions, run_batch
 
-    for inp in inputs:
+    for inp in inputs:  # (CSV inputs were checked against the text bounds first: _precheck)
         if not inp.exists():
             raise CommandError(f"no such input: {inp}")
     if args.workers is not None and args.workers < 1:
@@ -237,13 +245,12 @@ def _why_unmatched(inputs: list[Path], columns: Columns, map_path: str, track_id
     (projected coordinates, wrong columns), off the map, or on it with lat and lon swapped; ""
     when they do not (the points are on the map but far from its roads) or the track is not in
     a file of at most :data:`HINT_MAX_BYTES` that can be read."""
-    import numpy as np
-
     from graph.artifact import read_manifest
+    from mapmatch.commands._hints import coordinate_hint
     from mapmatch.io import read_tracks
 
     try:
-        lon0, lat0, lon1, lat1 = (float(v) for v in read_manifest(map_path)["bbox"])
+        bbox = tuple(float(v) for v in read_manifest(map_path)["bbox"])
         track = None
         for inp in inputs:
             if str(inp) == "-" or not inp.is_file() or inp.stat().st_size > HINT_MAX_BYTES:
@@ -253,31 +260,9 @@ def _why_unmatched(inputs: list[Path], columns: Columns, map_path: str, track_id
                 break
     except Exception:  # a hint only: the run's own error is already reported
         return ""
-    if track is None or not len(track.lat):
+    if track is None or not len(track.lat) or len(bbox) != 4:
         return ""
-    lat = np.asarray(track.lat, dtype=np.float64)
-    lon = np.asarray(track.lon, dtype=np.float64)
-    ok = np.isfinite(lat) & np.isfinite(lon) & (np.abs(lat) <= 90) & (np.abs(lon) <= 180)
-    if not ok.any():
-        return (
-            "no point has lat/lon in degrees (lat within ±90, lon within ±180): projected "
-            "coordinates, or the wrong columns (--lat-col, --lon-col)?"
-        )
-    margin = 0.05  # degrees: a few kilometres round the map's roads
-
-    def on_map(la: Any, lo: Any) -> Any:
-        return (la >= lat0 - margin) & (la <= lat1 + margin) & (lo >= lon0 - margin) & (lo <= lon1 + margin)
-
-    if on_map(lat[ok], lon[ok]).any():
-        return ""
-    where = f"lat {np.median(lat[ok]):.4f}, lon {np.median(lon[ok]):.4f}"
-    extent = f"lat {lat0:.4f} to {lat1:.4f}, lon {lon0:.4f} to {lon1:.4f}"
-    if on_map(lon[ok], lat[ok]).any():
-        return (
-            f"its points ({where}) lie off the map ({extent}) but would lie on it with lat and lon "
-            "swapped: check --lat-col and --lon-col"
-        )
-    return f"its points ({where}) lie off the map ({extent}): another city's map?"
+    return coordinate_hint(track.lat, track.lon, bbox)  # type: ignore[arg-type]
 
 
 def _failure(counts: list[tuple[str, int, int]], max_unmatched: float) -> str:

@@ -14,7 +14,11 @@ time, as a fusion node sends them) and write one result row per fix, with the sa
 and output columns as `mapmatch replay`. A fix the server rejects gets a row with state
 "rejected" and the reason in "error", and the run exits 1. "-" reads the fixes from standard
 input, "-o -" writes the results to standard output. A server that cannot be reached (or
-fails the stream) exits 3."""
+fails the stream) exits 3.
+
+The server keeps each vehicle's session between runs (until it has been idle for its session
+timeout): sending the same drive again has every fix rejected, its time not after the session's
+last. --new-session ends each vehicle's session first; --vehicle-id sends under another name."""
 
 EPILOG = """\
 examples:
@@ -34,6 +38,10 @@ def register(subparsers: Any) -> None:
 
     add_fix_options(p)
     p.add_argument(
+        "--new-session", action="store_true",
+        help="end each vehicle's session on the server first (sending the same drive again)",
+    )  # fmt: skip
+    p.add_argument(
         "--server", default="127.0.0.1:50051", metavar="HOST:PORT", help="server (127.0.0.1:50051)"
     )
     p.add_argument("--map-id", default="", help="map to use (needed when the server holds several)")
@@ -45,7 +53,9 @@ def register(subparsers: Any) -> None:
     p.add_argument(
         "--timeout", type=float, default=600.0, metavar="S", help="deadline of the whole stream (600)"
     )
-    p.set_defaults(func=run_send)
+    from mapmatch.commands._fixio import precheck_fixes
+
+    p.set_defaults(func=run_send, precheck=precheck_fixes)
 
 
 def run_send(args: argparse.Namespace) -> int:
@@ -76,12 +86,19 @@ def run_send(args: argparse.Namespace) -> int:
             client_key=args.client_key,
             token=token,
         ) as client:
+            if args.new_session:
+                _end_sessions(client, vehicles, map_id=args.map_id)
+            started: set[str] = set()
             for a in client.stream(interleave_by_time(vehicles), map_id=args.map_id, timeout=args.timeout):
+                first_of_vehicle = a.vehicle_id not in started
+                started.add(a.vehicle_id)
                 if a.error is not None:
                     counts["rejected"] = counts.get("rejected", 0) + 1
                     # same wording as `mapmatch replay` (fields relative to the fix)
                     msg = a.error.message.removeprefix("fix.")
-                    first_error = first_error or f"vehicle {a.vehicle_id} at time {a.fix.time!r}: {msg}"
+                    if not first_error:
+                        hint = _time_hint(msg, first_of_vehicle=first_of_vehicle)
+                        first_error = f"vehicle {a.vehicle_id} at time {a.fix.time!r}: {msg}{hint}"
                     answers[a.vehicle_id].append((a.vehicle_id, a.fix, None, msg))
                     if a.error.code is not grpc.StatusCode.INVALID_ARGUMENT:
                         raise CommandError(f"server: {a.error.code.name}: {a.error.message}", EXIT_CONNECT)
@@ -114,3 +131,29 @@ def run_send(args: argparse.Namespace) -> int:
         print(f"mapmatch send: error: {failed}", file=sys.stderr)
         return EXIT_PARTIAL
     return EXIT_OK
+
+
+def _end_sessions(client: Any, vehicles: dict[str, list[Any]], *, map_id: str) -> None:
+    """End each vehicle's session on the server (``--new-session``)."""
+    from service.gen import mapmatch_pb2 as pb
+
+    for vid in vehicles:
+        req = pb.EndSessionRequest(map_id=map_id, vehicle_id=vid)
+        client.stub.EndSession(req, timeout=10.0, metadata=client.metadata)
+
+
+def _time_hint(message: str, *, first_of_vehicle: bool) -> str:
+    """What to do about a fix rejected for its time, or "" for another rejection."""
+    from mapmatch.commands._fixio import TIME_REJECTED
+
+    if not message.startswith(TIME_REJECTED):
+        return ""
+    if first_of_vehicle:
+        return (
+            "; the server still holds this vehicle's session (the drive sent before?): "
+            "--new-session ends it first, or --vehicle-id sends under another name"
+        )
+    return (
+        "; the vehicle's times go back in the file (drives joined?): send each drive with its own "
+        "--vehicle-id"
+    )

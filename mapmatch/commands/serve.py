@@ -57,6 +57,12 @@ def run_serve(args: argparse.Namespace) -> int:
     for name, path in config.maps:
         if not path.is_file():
             raise CommandError(f"map {name}: no such file: {path}")
+    if config.log_format == "auto":  # text on a terminal, JSON lines otherwise (also for children)
+        import dataclasses
+
+        from mapmatch.logs import resolve_format
+
+        config = dataclasses.replace(config, log_format=resolve_format("auto"))
     # lifecycle lines always; access lines (one per call) with -v
     configure_logging(config.log_format, access=getattr(args, "verbose", 0) > 0)
     try:
