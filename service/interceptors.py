@@ -10,8 +10,9 @@ and hooks, but a streamed message passes through one wrapper, not one per concer
 * :class:`AuthInterceptor`: when a token is configured, every call but health checks needs
   the metadata ``authorization: Bearer <token>``; otherwise UNAUTHENTICATED.
 * :class:`StatusInterceptor`: exceptions become precise statuses
-  (:func:`service.errors.status_for`), the offending field named in the details and in the
-  trailing metadata key ``mapmatch-field``; a request whose bytes do not decode gets
+  (:func:`service.errors.status_for`), the offending field named in the details, in the
+  trailing metadata key ``mapmatch-field`` and in a ``google.rpc.Status``
+  (:func:`service.errors.error_trailers`); a request whose bytes do not decode gets
   INVALID_ARGUMENT (not UNKNOWN or INTERNAL, and no traceback).
 """
 
@@ -34,11 +35,10 @@ import grpc
 from grpc import aio
 
 from mapmatch.errors import ValidationError
-from service.errors import log_internal, status_for
+from service.errors import FIELD_METADATA_KEY, error_trailers, log_internal, status_for
 
 log = logging.getLogger("mapmatch.access")
 
-FIELD_METADATA_KEY = "mapmatch-field"
 HEALTH_PREFIX = "/grpc.health.v1.Health/"
 LATENCY_RING = 512  # per-message latencies a stream's access-log line is drawn from
 
@@ -281,8 +281,7 @@ class StatusInterceptor(_Wrapping):
             code, fld, msg = status_for(exc)
             if code is grpc.StatusCode.INTERNAL:
                 log_internal(exc, details.method)
-            if fld:
-                context.set_trailing_metadata(((FIELD_METADATA_KEY, fld),))
+            context.set_trailing_metadata(error_trailers(code, fld, msg))
             await context.abort(code, msg)
 
 
