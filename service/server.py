@@ -339,7 +339,8 @@ class ServiceRuntime:
             log.info("stopped")
 
     def _shutdown_pools(self) -> None:
-        stop_builds()  # a map build in flight would hold the process past its grace
+        if n := stop_builds():  # a map build in flight would hold the process past its grace
+            log.info("stopped %d map build(s) in flight", n)
         self.executor.shutdown(wait=False, cancel_futures=True)
         self.online.shutdown()
         if self.batch_workers is not None:
