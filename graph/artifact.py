@@ -407,14 +407,22 @@ def open_map(path: str | os.PathLike[str]) -> RoadGraph:
     """
     p = Path(path)
     try:
-        with open(p, "rb") as f:
-            head = f.read(len(MAGIC))
+        fd = os.open(p, os.O_RDONLY | os.O_CLOEXEC | os.O_NONBLOCK)
     except FileNotFoundError:
         raise ArtifactError(f"no such map file: {p}") from None
     except OSError as exc:
         raise ArtifactError(f"cannot read map file {p}: {exc.strerror}") from exc
-    if head[:-1] == MAGIC[:-1]:  # any format version: load_map reports a mismatch
-        return load_map(p)
+    try:
+        mode = os.fstat(fd).st_mode
+        if stat.S_ISDIR(mode):
+            raise ArtifactError(f"cannot read map file {p}: Is a directory")
+        head = os.pread(fd, len(MAGIC), 0) if stat.S_ISREG(mode) else b""
+        if head[:-1] == MAGIC[:-1]:  # any format version: load_map_fd reports a mismatch
+            return load_map_fd(fd, name=str(p))  # the file that was checked, opened once
+    except OSError as exc:
+        raise ArtifactError(f"cannot read map file {p}: {exc.strerror}") from exc
+    finally:
+        os.close(fd)
     from graph.build import build_map
 
     return build_map(p)

@@ -400,6 +400,13 @@ def _relative_parts(map_dir: Path, requested: str) -> list[str]:
     return parts
 
 
+def _real_dir(map_dir: Path) -> str:
+    try:
+        return os.path.realpath(map_dir)
+    except (OSError, ValueError):
+        return os.path.abspath(map_dir)
+
+
 def resolve_map_path(map_dir: Path | None, requested: str) -> MapSource:
     """Open a client-named map file inside ``map_dir``: :class:`MapPathError` (one message
     for every reason) unless it is a regular file there.
@@ -424,7 +431,8 @@ def resolve_map_path(map_dir: Path | None, requested: str) -> MapSource:
             dir_fd = sub
         fd = os.open(parts[-1], _OPEN | os.O_NOFOLLOW, dir_fd=dir_fd)
         shown = "/".join(parts)
-        src = _source(fd, shown=shown, path=os.path.join(os.path.abspath(map_dir), shown))
+        # the path shown is under the folder's real path, as callers name the folder
+        src = _source(fd, shown=shown, path=os.path.join(_real_dir(map_dir), shown))
         if src is None:
             raise MapPathError()
         if parts[-1].lower().endswith(".shp"):
