@@ -304,11 +304,21 @@ def test_sigterm_during_a_build_stops_within_the_grace_and_leaves_nothing(tmp_pa
             proc.kill()
 
 
-def test_load_map_still_builds_from_a_source_through_its_descriptor(tmp_path):
-    data = ROOT / "tests" / "data" / "prep_tiny.osm"
-    (tmp_path / "tiny.osm").write_bytes(data.read_bytes())
+def test_load_map_builds_osm_and_shapefile_sources_through_their_descriptors(tmp_path):
+    import geopandas as gpd
+
+    from graph.build import build_map
+
+    data = ROOT / "tests" / "data"
+    (tmp_path / "tiny.osm").write_bytes((data / "prep_tiny.osm").read_bytes())
+    roads = gpd.read_file(data / "roads_ft_tf.geojson")
+    roads[roads.geometry.geom_type != "Point"].to_crs("EPSG:3035").to_file(tmp_path / "roads.shp")
+    want = build_map(tmp_path / "roads.shp").n_edges  # read by name, with its .shx, .dbf and .prj
     with running(local_config(map_dir=tmp_path, batch_processes=0), None) as (_, port):
         ch, api = stub(port)
         info = api.LoadMap(pb.LoadMapRequest(map_id="t", path="tiny.osm"), timeout=150)
         assert info.edge_count > 0 and info.source == "tiny.osm"
+        info = api.LoadMap(pb.LoadMapRequest(map_id="s", path="roads.shp"), timeout=150)
+        assert info.edge_count == want and info.source == "roads.shp"
         ch.close()
+    assert not _build_dirs(os.getpid())
