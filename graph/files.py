@@ -3,6 +3,7 @@ owned read-only descriptors."""
 
 from __future__ import annotations
 
+import contextlib
 import os
 import tempfile
 from collections.abc import Iterator
@@ -73,7 +74,8 @@ class ReadOnlyFile:
             os.close(fd)
 
     def __del__(self) -> None:
-        self.close()
+        with contextlib.suppress(Exception):  # at interpreter exit os may be gone
+            self.close()
 
     def __reduce__(self) -> Any:
         raise TypeError("a ReadOnlyFile is passed to another process as a descriptor, not pickled")

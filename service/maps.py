@@ -388,7 +388,7 @@ def _relative_parts(map_dir: Path, requested: str) -> list[str]:
     ``..``, an empty name, or an absolute path outside the folder."""
     rel = requested
     if os.path.isabs(requested):
-        for root in {os.path.abspath(map_dir), os.path.realpath(map_dir)}:
+        for root in {os.path.abspath(map_dir), _real_dir(map_dir)}:
             if requested.startswith(root.rstrip(os.sep) + os.sep):
                 rel = requested[len(root.rstrip(os.sep)) + 1 :]
                 break
