@@ -63,7 +63,8 @@ class Partition:
 
 @dataclass
 class RunSummary:
-    """What a run did."""
+    """What a run did; ``track_summaries`` has one row per track (resumed partitions' too), in
+    the order the partitions finished."""
 
     partitions: int = 0
     skipped: int = 0
@@ -73,44 +74,99 @@ class RunSummary:
     output: str = ""
     parts_dir: str = ""
     failed: list[str] = field(default_factory=list)
+    track_summaries: list[TrackSummary] = field(default_factory=list)
+
+
+@dataclass(frozen=True, slots=True)
+class TrackSummary:
+    """One matched track: its id, its points and how many of them are unmatched."""
+
+    track_id: str
+    points: int
+    unmatched: int
+
+
+@dataclass(frozen=True, slots=True)
+class RouteTableSpec:
+    """The route table a run's matchers use: none without ``delta``; built with ``delta`` (a
+    bound in metres) and ``max_bytes`` (about; ``None``: no limit), or mapped from ``path`` when
+    the run built it once for every worker."""
+
+    delta: float | None = None
+    max_bytes: int | None = UBODT_MAX_BYTES
+    path: str | None = None
+
+
+@dataclass(frozen=True, slots=True)
+class RunOptions:
+    """How a run is spread and what it precomputes.
+
+    Attributes
+    ----------
+    workers : int or None
+        Local processes (default: the machine's cores; 1 runs in this process).
+    scheduler : str, distributed.Client or None
+        ``tcp://host:port`` of a dask.distributed scheduler, or a ``distributed.Client``.
+    partition_size : int
+        Tracks per partition for non-Parquet inputs.
+    ubodt_delta : float or None
+        When given, a route table (:class:`mapmatch.route_table.Ubodt`) of this bound in metres
+        is precomputed: faster matching for more memory and start-up time. With worker
+        processes or Dask, the run builds it once into the parts folder and every worker maps
+        that file (one table's memory on a machine, however many workers); in process, it is
+        built there.
+    ubodt_max_bytes : int or None
+        The table's memory budget (about; ``None``: no limit). Where the bound's table would
+        not fit, a shorter bound is used; the matches are the same.
+    """
+
+    workers: int | None = None
+    scheduler: str | Any | None = None
+    partition_size: int = 64
+    ubodt_delta: float | None = None
+    ubodt_max_bytes: int | None = UBODT_MAX_BYTES
 
 
 # ---------------------------------------------------------------------- worker side
-_CACHE: dict[tuple[str, float, float, float, int | None, str | None], Any] = {}
+_GRAPHS: dict[tuple[str, int, int], Any] = {}
+_MATCHERS: dict[tuple[str, int, int, float, RouteTableSpec], Any] = {}
 
 
-def _matcher(
-    map_path: str,
-    ubodt_delta: float | None,
-    turn_cost: float,
-    ubodt_max_bytes: int | None = None,
-    ubodt_path: str | None = None,
-) -> Any:
-    """The process's matcher for a map file (and optional route table, its routes costing
-    ``turn_cost`` per turn back, of at most about ``ubodt_max_bytes``: mapped from
-    ``ubodt_path`` when the run built it once for every worker, else built here), loaded once."""
+def _file_key(map_path: str) -> tuple[str, int, int]:
+    st = os.stat(map_path)
+    return os.path.abspath(map_path), st.st_mtime_ns, st.st_size
+
+
+def load_run_map(map_path: str) -> Any:
+    """The process's road graph for a map file, loaded once (the run's check of the map and
+    its in-process matcher share it)."""
     from graph.artifact import load_map
+
+    key = _file_key(map_path)
+    g = _GRAPHS.get(key)
+    if g is None:
+        _GRAPHS.clear()
+        g = _GRAPHS[key] = load_map(map_path)
+    return g
+
+
+def _matcher(map_path: str, table: RouteTableSpec, turn_cost: float) -> Any:
+    """The process's matcher for a map file and route table (its routes costing ``turn_cost``
+    per turn back), made once."""
     from mapmatch.batch import BatchMatcher
     from mapmatch.route_table import Ubodt
 
-    key = (
-        os.path.abspath(map_path),
-        os.path.getmtime(map_path),
-        float(ubodt_delta or 0.0),
-        float(turn_cost),
-        ubodt_max_bytes,
-        ubodt_path,
-    )
-    m = _CACHE.get(key)
+    key = (*_file_key(map_path), float(turn_cost), table)
+    m = _MATCHERS.get(key)
     if m is None:
-        _CACHE.clear()
-        graph = load_map(map_path)
-        table = None
-        if ubodt_path:
-            table = Ubodt.load(ubodt_path)
-        elif ubodt_delta:
-            table = Ubodt.build(graph, ubodt_delta, turn_cost=turn_cost, max_bytes=ubodt_max_bytes)
-        m = _CACHE[key] = BatchMatcher(graph, ubodt=table)
+        _MATCHERS.clear()
+        graph = load_run_map(map_path)
+        ubodt = None
+        if table.path:
+            ubodt = Ubodt.load(table.path)
+        elif table.delta:
+            ubodt = Ubodt.build(graph, table.delta, turn_cost=turn_cost, max_bytes=table.max_bytes)
+        m = _MATCHERS[key] = BatchMatcher(graph, ubodt=ubodt)
     return m
 
 
@@ -120,17 +176,26 @@ def match_partition(
     out_file: str,
     config: MatchConfig | None = None,
     columns: Columns = DEFAULT_COLUMNS,
-    ubodt_delta: float | None = None,
-    ubodt_max_bytes: int | None = None,
-    ubodt_path: str | None = None,
-) -> tuple[int, int]:
-    """Match one partition and write its results file atomically: ``(tracks, points)``."""
+    table: RouteTableSpec = RouteTableSpec(delta=None),
+) -> list[TrackSummary]:
+    """Match one partition and write its results file atomically; one summary per track."""
     turn_cost = (config or BATCH_CONFIG).batch.turn_cost
-    matcher = _matcher(map_path, ubodt_delta, turn_cost, ubodt_max_bytes, ubodt_path)
+    matcher = _matcher(map_path, table, turn_cost)
     tracks = list(part.tracks) if part.source is None else read_tracks(part.source, columns=columns)
     results = [matcher.match(t, config) for t in tracks]
     write_geoparquet(out_file, results_table(results, matcher.graph))
-    return len(tracks), sum(len(t) for t in tracks)
+    return [
+        TrackSummary(str(r.track_id), len(r.points), sum(1 for q in r.points if str(q.status) == "unmatched"))
+        for r in results
+    ]
+
+
+def part_summaries(part_file: Path) -> list[TrackSummary]:
+    """The track summaries of a partition file written by an earlier run (a resumed run)."""
+    import pyarrow.parquet as pq
+
+    rows = pq.read_table(part_file, columns=["track_id", "n_points", "n_unmatched"]).to_pylist()
+    return [TrackSummary(str(r["track_id"]), int(r["n_points"]), int(r["n_unmatched"])) for r in rows]
 
 
 # ---------------------------------------------------------------------- planning
@@ -200,11 +265,7 @@ def run_batch(
     *,
     config: MatchConfig | None = None,
     columns: Columns = DEFAULT_COLUMNS,
-    workers: int | None = None,
-    scheduler: str | Any | None = None,
-    partition_size: int = 64,
-    ubodt_delta: float | None = None,
-    ubodt_max_bytes: int | None = UBODT_MAX_BYTES,
+    options: RunOptions = RunOptions(),
     progress: Callable[[int, int], None] | None = None,
     on_total: Callable[[int], None] | None = None,
 ) -> RunSummary:
@@ -216,98 +277,134 @@ def run_batch(
         Track files (CSV, GPX, Parquet) and folders of Parquet parts.
     map_path
         A map file written by ``mapmatch prep`` (read by every worker; on a cluster it must be
-        at the same path on every machine).
+        at the same path on every machine). It is checked before anything is written.
     out
         ``.geojson``, ``.csv``, ``.parquet``/``.geoparquet`` file, or a folder for
         partitioned GeoParquet output.
-    workers
-        Local processes (default: the machine's cores; 1 runs in this process).
-    scheduler
-        ``tcp://host:port`` of a dask.distributed scheduler, or a ``distributed.Client``.
-    partition_size
-        Tracks per partition for non-Parquet inputs.
-    ubodt_delta
-        When given, a route table (:class:`mapmatch.route_table.Ubodt`) of this bound in metres
-        is precomputed: faster matching for more memory and start-up time. With worker
-        processes or Dask, the run builds it once into the parts folder and every worker maps
-        that file (one table's memory on a machine, however many workers); in process, it is
-        built there.
-    ubodt_max_bytes
-        The table's memory budget (about; ``None``: no limit). Where the bound's
-        table would not fit, a shorter bound is used; the matches are the same.
+    options
+        Workers, Dask scheduler, partition size and route table (:class:`RunOptions`).
     progress
         Called with ``(points, tracks)`` as partitions finish (after resumed ones).
     on_total
         Called once with the total number of points to match.
+
+    Returns
+    -------
+    RunSummary
+        Counts, and a summary per track (points, unmatched points).
     """
     t0 = time.perf_counter()
     outp = Path(out)
     map_s = str(map_path)
+    _check_run(map_s, outp)
+    parts = plan_partitions(inputs, columns=columns, partition_size=options.partition_size)
+    pdir = parts_dir_for(outp)
+    _prepare_parts_dir(pdir, _fingerprint(inputs, map_s, config, columns, options.partition_size), len(parts))
+    files = [pdir / f"part-{p.index:05d}.parquet" for p in parts]
+    todo = [p for p, f in zip(parts, files, strict=True) if not f.exists()]
+    summary = RunSummary(partitions=len(parts), skipped=len(parts) - len(todo), parts_dir=str(pdir))
+    for f in files:
+        if f.exists():
+            summary.track_summaries.extend(part_summaries(f))
+    if on_total:
+        on_total(sum(p.n_points for p in todo))
+    in_process = options.scheduler is None and (options.workers == 1 or len(todo) <= 1)
+    table = RouteTableSpec(options.ubodt_delta, options.ubodt_max_bytes)
+    if options.ubodt_delta and todo and not in_process:  # built once, mapped by every worker
+        turn_cost = (config or BATCH_CONFIG).batch.turn_cost
+        shared = _shared_route_table(pdir, map_s, table, turn_cost)
+        table = RouteTableSpec(table.delta, table.max_bytes, str(shared))
+    job = _Job(map_s, config, columns, table)
+    done: Iterable[list[TrackSummary]]
+    if options.scheduler is not None:
+        done = _run_dask(options.scheduler, job, todo, files)
+    elif in_process:
+        done = (match_partition(map_s, p, str(files[p.index]), config, columns, table) for p in todo)
+    else:
+        done = _run_pool(options.workers, job, todo, files)
+    for rows in done:
+        summary.track_summaries.extend(rows)
+        summary.tracks += len(rows)
+        npts = sum(r.points for r in rows)
+        summary.points += npts
+        if progress:
+            progress(npts, len(rows))
+    if table.path is not None:
+        shutil.rmtree(table.path, ignore_errors=True)
+    if not _is_dir_output(outp):
+        _join_parts(outp, files, pdir)
+    summary.output = str(outp)
+    summary.seconds = time.perf_counter() - t0
+    return summary
+
+
+def _check_run(map_s: str, outp: Path) -> None:
+    """Refuse a run before anything is written: the map must load (its CRS too), the output
+    must have a known format."""
+    from pyproj import CRS
+
     if not Path(map_s).is_file():
         raise RunError(f"no such map file: {map_s}")
     if not _is_dir_output(outp) and not outp.name.lower().endswith(
         (".geojson", ".json", ".csv", ".parquet", ".geoparquet")
     ):
         raise RunError(f"{outp}: unknown output format (use .geojson, .csv, .parquet or a folder)")
-    parts = plan_partitions(inputs, columns=columns, partition_size=partition_size)
-    pdir = parts_dir_for(outp)
-    fp = _fingerprint(inputs, map_s, config, columns, partition_size)
-    _prepare_parts_dir(pdir, fp, len(parts))
-    files = [pdir / f"part-{p.index:05d}.parquet" for p in parts]
-    todo = [p for p, f in zip(parts, files, strict=True) if not f.exists()]
-    summary = RunSummary(partitions=len(parts), skipped=len(parts) - len(todo), parts_dir=str(pdir))
-    if on_total:
-        on_total(sum(p.n_points for p in todo))
-    in_process = scheduler is None and (workers == 1 or len(todo) <= 1)
-    shared = None
-    if ubodt_delta and todo and not in_process:  # built once, mapped by every worker
-        turn_cost = (config or BATCH_CONFIG).batch.turn_cost
-        shared = _shared_route_table(pdir, map_s, ubodt_delta, ubodt_max_bytes, turn_cost)
-    route_table = (ubodt_delta, ubodt_max_bytes, str(shared) if shared else None)
-    done: Iterable[tuple[int, int]]
-    if scheduler is not None:
-        done = _run_dask(scheduler, map_s, todo, files, config, columns, route_table)
-    elif in_process:
-        done = (match_partition(map_s, p, str(files[p.index]), config, columns, *route_table) for p in todo)
+    try:
+        CRS.from_user_input(load_run_map(map_s).crs)
+    except Exception as exc:  # corrupt manifest or arrays, bad CRS, not a map file: one line
+        raise RunError(f"map {map_s}: {type(exc).__name__}: {exc}") from None
+
+
+def _join_parts(outp: Path, files: list[Path], pdir: Path) -> None:
+    """The partition files joined into the one output file; the parts folder goes."""
+    if files:
+        table = pd.concat([read_results(f) for f in files], ignore_index=True)
     else:
-        done = _run_pool(workers, map_s, todo, files, config, columns, route_table)
-    for ntr, npts in done:
-        summary.tracks += ntr
-        summary.points += npts
-        if progress:
-            progress(npts, ntr)
-    if shared is not None:
-        shutil.rmtree(shared, ignore_errors=True)
-    if not _is_dir_output(outp):
-        if files:
-            table = pd.concat([read_results(f) for f in files], ignore_index=True)
-        else:
-            table = pd.DataFrame({c: [] for c in RESULT_COLUMNS})
-        write_results(outp, table)
-        shutil.rmtree(pdir, ignore_errors=True)
-    summary.output = str(outp)
-    summary.seconds = time.perf_counter() - t0
-    return summary
+        table = pd.DataFrame({c: [] for c in RESULT_COLUMNS})
+    write_results(outp, table)
+    shutil.rmtree(pdir, ignore_errors=True)
 
 
-def _shared_route_table(
-    pdir: Path, map_s: str, delta: float, max_bytes: int | None, turn_cost: float
-) -> Path:
+@dataclass(frozen=True, slots=True)
+class _Job:
+    """What every partition of a run is matched with."""
+
+    map_path: str
+    config: MatchConfig | None
+    columns: Columns
+    table: RouteTableSpec
+
+    def matching(self) -> tuple[MatchConfig | None, Columns, RouteTableSpec]:
+        """:func:`match_partition`'s arguments after the partition's."""
+        return self.config, self.columns, self.table
+
+
+def _shared_route_table(pdir: Path, map_s: str, table: RouteTableSpec, turn_cost: float) -> Path:
     """The run's route table in the parts folder, built once for every worker (each maps the
     same file, so N workers hold one table's memory, not N); kept for a resumed run."""
-    from graph.artifact import load_map
     from mapmatch.route_table import TABLE_FILE_VERSION, Ubodt
 
     st = os.stat(map_s)
     key = json.dumps(
-        [os.path.abspath(map_s), st.st_mtime_ns, st.st_size, delta, max_bytes, turn_cost, TABLE_FILE_VERSION]
+        [
+            os.path.abspath(map_s),
+            st.st_mtime_ns,
+            st.st_size,
+            table.delta,
+            table.max_bytes,
+            turn_cost,
+            TABLE_FILE_VERSION,
+        ]
     )
     folder = pdir / f"{ROUTE_TABLE_PREFIX}{hashlib.sha256(key.encode()).hexdigest()[:16]}"
     for old in pdir.glob(ROUTE_TABLE_PREFIX + "*"):
         if old != folder:
             shutil.rmtree(old, ignore_errors=True)
     if not (folder / "table.json").exists():
-        Ubodt.build(load_map(map_s), delta, turn_cost=turn_cost, max_bytes=max_bytes).save(folder)
+        assert table.delta is not None
+        Ubodt.build(load_run_map(map_s), table.delta, turn_cost=turn_cost, max_bytes=table.max_bytes).save(
+            folder
+        )
     return folder
 
 
@@ -331,35 +428,26 @@ def _prepare_parts_dir(pdir: Path, fingerprint: str, n: int) -> None:
 
 
 def _run_pool(
-    workers: int | None,
-    map_s: str,
-    todo: list[Partition],
-    files: list[Path],
-    config: MatchConfig | None,
-    columns: Columns,
-    table: tuple[float | None, int | None, str | None],
-) -> Iterable[tuple[int, int]]:
+    workers: int | None, job: _Job, todo: list[Partition], files: list[Path]
+) -> Iterable[list[TrackSummary]]:
     import multiprocessing as mp
 
     n = workers or os.cpu_count() or 1
     ctx = mp.get_context("spawn")  # no fork of a process holding threads
     with ProcessPoolExecutor(max_workers=min(n, len(todo)), mp_context=ctx) as ex:
-        futs: list[Future[tuple[int, int]]] = [
-            ex.submit(match_partition, map_s, p, str(files[p.index]), config, columns, *table) for p in todo
+        futs: list[Future[list[TrackSummary]]] = [
+            ex.submit(
+                match_partition, job.map_path, p, str(files[p.index]), job.config, job.columns, job.table
+            )
+            for p in todo
         ]
         for f in as_completed(futs):
             yield f.result()
 
 
 def _run_dask(
-    scheduler: str | Any,
-    map_s: str,
-    todo: list[Partition],
-    files: list[Path],
-    config: MatchConfig | None,
-    columns: Columns,
-    table: tuple[float | None, int | None, str | None],
-) -> Iterable[tuple[int, int]]:
+    scheduler: str | Any, job: _Job, todo: list[Partition], files: list[Path]
+) -> Iterable[list[TrackSummary]]:
     from distributed import Client
     from distributed import as_completed as dask_completed
 
@@ -369,12 +457,10 @@ def _run_dask(
         futs = [
             client.submit(
                 match_partition,
-                map_s,
+                job.map_path,
                 p,
                 str(files[p.index]),
-                config,
-                columns,
-                *table,
+                *job.matching(),
                 key=f"mapmatch-part-{p.index}-{id(p)}",
             )
             for p in todo

@@ -10,7 +10,7 @@ import pytest
 from graph.artifact import save_map
 from graph.ascii import parse_ascii_map
 from mapmatch.io import read_results, write_tracks
-from mapmatch.parallel import run_batch
+from mapmatch.parallel import RunOptions, run_batch
 from tests.test_match_cli import DRAWING, make_tracks
 
 distributed = pytest.importorskip("distributed")
@@ -26,7 +26,7 @@ def test_local_cluster_equals_local_run_on_partitioned_parquet(tmp_path: Path) -
     for i in range(3):  # partitioned Parquet input: one file per partition
         write_tracks(src / f"part-{i}.parquet", tracks[2 * i : 2 * i + 2])
     local = tmp_path / "local.parquet"
-    run_batch([src], map_path, local, workers=1)
+    run_batch([src], map_path, local, options=RunOptions(workers=1))
     out_dir = tmp_path / "out"
     with (
         distributed.LocalCluster(
@@ -34,9 +34,9 @@ def test_local_cluster_equals_local_run_on_partitioned_parquet(tmp_path: Path) -
         ) as cl,
         distributed.Client(cl) as client,
     ):
-        s = run_batch([src], map_path, out_dir, scheduler=client)
+        s = run_batch([src], map_path, out_dir, options=RunOptions(scheduler=client))
         assert s.partitions == 3 and s.tracks == 6
-        again = run_batch([src], map_path, out_dir, scheduler=client)
+        again = run_batch([src], map_path, out_dir, options=RunOptions(scheduler=client))
         assert again.skipped == 3 and again.tracks == 0
     parts = sorted(out_dir.glob("part-*.parquet"))
     assert len(parts) == 3

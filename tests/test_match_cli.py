@@ -13,7 +13,7 @@ from graph.artifact import save_map
 from graph.ascii import AsciiMap, parse_ascii_map
 from mapmatch.cli import main
 from mapmatch.io import read_results, write_tracks
-from mapmatch.parallel import parts_dir_for, run_batch
+from mapmatch.parallel import RunOptions, parts_dir_for, run_batch
 from mapmatch.types import Track
 
 DRAWING = """
@@ -79,7 +79,9 @@ def test_match_command_in_worker_processes_equals_in_process(
 def test_resumed_run_equals_uninterrupted_run(setup: tuple[Path, Path, AsciiMap], tmp_path: Path) -> None:
     map_path, tracks_path, _ = setup
     full = tmp_path / "full.parquet"
-    run_batch([tracks_path], map_path, full, workers=1, partition_size=2, ubodt_delta=300.0)
+    run_batch(
+        [tracks_path], map_path, full, options=RunOptions(workers=1, partition_size=2, ubodt_delta=300.0)
+    )
     # interrupted run: stop after the second partition has been written
     out = tmp_path / "resumed.parquet"
     calls = {"n": 0}
@@ -90,10 +92,12 @@ def test_resumed_run_equals_uninterrupted_run(setup: tuple[Path, Path, AsciiMap]
             raise KeyboardInterrupt
 
     with pytest.raises(KeyboardInterrupt):
-        run_batch([tracks_path], map_path, out, workers=1, partition_size=2, progress=boom)
+        run_batch(
+            [tracks_path], map_path, out, progress=boom, options=RunOptions(workers=1, partition_size=2)
+        )
     parts = sorted(parts_dir_for(out).glob("part-*.parquet"))
     assert len(parts) == 2 and not out.exists()
-    s = run_batch([tracks_path], map_path, out, workers=1, partition_size=2)
+    s = run_batch([tracks_path], map_path, out, options=RunOptions(workers=1, partition_size=2))
     # only the 3 tracks of the 2 missing partitions were matched again
     assert s.skipped == 2 and s.partitions == 4 and s.tracks == 3
     assert not parts_dir_for(out).exists()
@@ -234,9 +238,9 @@ def test_a_route_table_over_its_budget_is_built_shorter_with_the_same_results(
     assert main([*common, "-o", str(plain)]) == 0
     # a budget of 1 kB is far below the 500 m table of this map: a shorter bound is built
     assert main([*common, "-o", str(tabled), "--ubodt", "500", "--ubodt-max-mb", "0.001"]) == 0
-    from mapmatch.parallel import _CACHE  # one worker: this process's matcher
+    from mapmatch.parallel import _MATCHERS  # one worker: this process's matcher
 
-    (matcher,) = _CACHE.values()
+    (matcher,) = _MATCHERS.values()
     assert 0 < matcher.ubodt.delta < 500 and matcher.ubodt.nbytes <= int(0.001 * 2**20)
     assert "route table: 500 m would not fit in" in caplog.text and "MB; built for" in caplog.text
     pd.testing.assert_frame_equal(pd.read_csv(plain), pd.read_csv(tabled))
@@ -255,24 +259,37 @@ def test_worker_processes_map_one_route_table_that_the_run_builds(
 
     map_path, tracks_path, _ = setup
     plain = tmp_path / "plain.csv"
-    run_batch([tracks_path], map_path, plain, workers=1, partition_size=2)
+    run_batch([tracks_path], map_path, plain, options=RunOptions(workers=1, partition_size=2))
     out = tmp_path / "tabled.csv"
 
     def stop(points: int, tracks: int) -> None:
         raise KeyboardInterrupt
 
     with pytest.raises(KeyboardInterrupt):  # interrupted after the first partition
-        run_batch([tracks_path], map_path, out, workers=2, partition_size=2, ubodt_delta=300.0, progress=stop)
+        run_batch(
+            [tracks_path],
+            map_path,
+            out,
+            progress=stop,
+            options=RunOptions(workers=2, partition_size=2, ubodt_delta=300.0),
+        )
     (folder,) = parts_dir_for(out).glob("_route_table-*")
     shared, built = Ubodt.load(folder), Ubodt.build(load_map(map_path), 300.0)
     assert shared.delta == built.delta == 300.0 and shared.turn_cost == built.turn_cost
     for name in ("ptr", "tgt", "dist", "pred_pos"):
         np.testing.assert_array_equal(getattr(shared, name), getattr(built, name))
     # the resumed run maps the same table, and the finished run leaves nothing behind
-    s = run_batch([tracks_path], map_path, out, workers=2, partition_size=2, ubodt_delta=300.0)
+    s = run_batch(
+        [tracks_path], map_path, out, options=RunOptions(workers=2, partition_size=2, ubodt_delta=300.0)
+    )
     assert s.skipped >= 1 and not parts_dir_for(out).exists()
     pd.testing.assert_frame_equal(pd.read_csv(out), pd.read_csv(plain))
     # a folder output keeps its parts, not the table
     folder_out = tmp_path / "parts"
-    run_batch([tracks_path], map_path, folder_out, workers=2, partition_size=2, ubodt_delta=300.0)
+    run_batch(
+        [tracks_path],
+        map_path,
+        folder_out,
+        options=RunOptions(workers=2, partition_size=2, ubodt_delta=300.0),
+    )
     assert list(folder_out.glob("part-*.parquet")) and not list(folder_out.glob("_route_table-*"))

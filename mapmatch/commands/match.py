@@ -139,21 +139,6 @@ def run_match(args: argparse.Namespace) -> int:
         return rc
 
 
-def _check_map(path: Path) -> None:
-    """Fail before anything is written when the map cannot be opened (no parts folder left behind)."""
-    from pyproj import CRS
-
-    from graph.artifact import load_map
-    from mapmatch.cli import CommandError
-
-    if not path.is_file():
-        raise CommandError(f"no such map file: {path}")
-    try:
-        CRS.from_user_input(load_map(path).crs)
-    except Exception as exc:  # corrupt manifest or arrays, bad CRS, not a map file: one line
-        raise CommandError(f"map {path}: {type(exc).__name__}: {exc}") from None
-
-
 def _match(args: argparse.Namespace, inputs: list[Path], output: Path, *, out: Any) -> int:
     from tqdm import tqdm
 
@@ -161,7 +146,7 @@ def _match(args: argparse.Namespace, inputs: list[Path], output: Path, *, out: A
     from mapmatch.cli import EXIT_OK, EXIT_PARTIAL, CommandError
     from mapmatch.errors import ConfigError
     from mapmatch.io import Columns
-    from mapmatch.parallel import run_batch
+    from mapmatch.parallel import RunOptions, run_batch
 
     for inp in inputs:
         if not inp.exists():
@@ -178,7 +163,8 @@ def _match(args: argparse.Namespace, inputs: list[Path], output: Path, *, out: A
         from mapmatch.extras import require
 
         require("distributed", extra="dask", needed_for="--scheduler (matching on a Dask cluster)")
-    _check_map(args.map)
+    if not args.map.is_file():
+        raise CommandError(f"no such map file: {args.map}")
     if not getattr(args, "quiet", False) and args.scheduler is None:
         from mapmatch.kernels import announce
 
@@ -213,16 +199,18 @@ def _match(args: argparse.Namespace, inputs: list[Path], output: Path, *, out: A
             bar.update(points)
 
     try:
-        s = run_batch(
-            [str(i) for i in inputs], args.map, output, config=config, columns=columns,
+        options = RunOptions(
             workers=args.workers, scheduler=args.scheduler, partition_size=args.partition_size,
             ubodt_delta=args.ubodt, ubodt_max_bytes=int(args.ubodt_max_mb * 2**20),
+        )  # fmt: skip
+        s = run_batch(
+            [str(i) for i in inputs], args.map, output, config=config, columns=columns, options=options,
             progress=progress, on_total=on_total,
         )  # fmt: skip
     finally:
         if bar is not None:
             bar.close()
-    counts = unmatched_counts(output)
+    counts = [(t.track_id, t.points, t.unmatched) for t in s.track_summaries]
     resumed = f", {s.skipped} partition(s) resumed" if s.skipped else ""
     dest = "standard output" if str(args.output) == "-" else s.output
     if not quiet:
@@ -290,28 +278,6 @@ def _why_unmatched(inputs: list[Path], columns: Columns, map_path: str, track_id
             "swapped: check --lat-col and --lon-col"
         )
     return f"its points ({where}) lie off the map ({extent}): another city's map?"
-
-
-def unmatched_counts(output: Path) -> list[tuple[str, int, int]]:
-    """``(track_id, points, unmatched points)`` per track of a finished ``match`` output."""
-    import json
-
-    import pandas as pd
-    import pyarrow.parquet as pq
-
-    name = output.name.lower()
-    if output.is_dir() or name.endswith((".parquet", ".geoparquet")):
-        files = sorted(output.glob("part-*.parquet")) if output.is_dir() else [output]
-        cols = ["track_id", "n_points", "n_unmatched"]
-        rows = [r for f in files for r in pq.read_table(f, columns=cols).to_pylist()]
-        return [(str(r["track_id"]), int(r["n_points"]), int(r["n_unmatched"])) for r in rows]
-    if name.endswith(".csv"):
-        df = pd.read_csv(output, usecols=["track_id", "status"], dtype={"track_id": str})
-        g = df.groupby("track_id", sort=False)["status"]
-        return [(str(k), len(v), int((v == "unmatched").sum())) for k, v in g]
-    feats = json.loads(output.read_text())["features"]
-    return [(str(f["properties"]["track_id"]), int(f["properties"]["n_points"]),
-             int(f["properties"]["n_unmatched"])) for f in feats]  # fmt: skip
 
 
 def _failure(counts: list[tuple[str, int, int]], max_unmatched: float) -> str:
