@@ -12,7 +12,7 @@ checksum, the build parameters, the lookup tables, per array its dtype, shape, o
 SHA-256, and ``manifest_sha256``: the SHA-256 of the first ``16 + H`` bytes of the file
 (magic, length, manifest and its padding) with that digest written as 64 zeros. With the
 arrays' checksums and zero padding between them, every byte of the file is checked.
-Loading maps the file once (``numpy.memmap``, read-only), verifies every checksum and
+Loading opens the file once and memory-maps that descriptor (read-only), verifies every checksum and
 validates every manifest field it uses before allocating anything; it imports neither osmnx
 nor networkx.
 """
@@ -22,8 +22,10 @@ from __future__ import annotations
 import hashlib
 import json
 import math
+import mmap
 import os
 import re
+import stat
 import tempfile
 from collections.abc import Mapping
 from pathlib import Path
@@ -278,11 +280,31 @@ def read_manifest(path: str | os.PathLike[str]) -> dict[str, Any]:
         raise ArtifactError(f"cannot read map file {p}: {exc.strerror}") from exc
 
 
-def load_map(path: str | os.PathLike[str], *, verify: bool = True) -> RoadGraph:
-    """Load a map file written by :func:`save_map`.
+class _FdReader:
+    """``read`` and ``fileno`` over a descriptor with ``pread`` (the descriptor's offset,
+    which others may share, is left alone)."""
 
-    The arrays are read-only memory maps of the file. Every array's SHA-256 is checked
-    unless ``verify`` is False.
+    def __init__(self, fd: int) -> None:
+        self.fd, self.pos = fd, 0
+
+    def fileno(self) -> int:
+        return self.fd
+
+    def read(self, n: int) -> bytes:
+        parts: list[bytes] = []
+        while n > 0:
+            chunk = os.pread(self.fd, min(n, 1 << 24), self.pos)
+            if not chunk:
+                break
+            parts.append(chunk)
+            self.pos += len(chunk)
+            n -= len(chunk)
+        return b"".join(parts)
+
+
+def load_map(path: str | os.PathLike[str], *, verify: bool = True) -> RoadGraph:
+    """Load a map file written by :func:`save_map`: the file is opened once and
+    :func:`load_map_fd` maps that descriptor.
 
     Raises
     ------
@@ -291,36 +313,70 @@ def load_map(path: str | os.PathLike[str], *, verify: bool = True) -> RoadGraph:
     """
     p = Path(path)
     try:
-        with open(p, "rb") as f:
-            manifest, data_start = _read_head(f, p)
-        size = p.stat().st_size
+        fd = os.open(p, os.O_RDONLY | os.O_CLOEXEC | os.O_NONBLOCK)
     except FileNotFoundError as exc:
         raise ArtifactError(f"no such map file: {p}") from exc
-    except IsADirectoryError as exc:
-        raise ArtifactError(f"{p} is a directory, not a map file") from exc
+    except OSError as exc:
+        raise ArtifactError(f"cannot read map file {p}: {exc.strerror}") from exc
+    try:
+        return load_map_fd(fd, name=str(p), verify=verify)
+    finally:
+        os.close(fd)
+
+
+def load_map_fd(fd: int, *, name: str, verify: bool = True) -> RoadGraph:
+    """Load a map file from an open descriptor, never by name.
+
+    The descriptor is checked with ``fstat`` (a regular file; its size bounds every offset),
+    the manifest is read with ``pread``, and the arrays are read-only views of one memory map
+    of the descriptor: a file later replaced under the same name (a map prepared again over
+    it) does not change the map. The caller may close ``fd`` afterwards (the mapping stays).
+    Every array's SHA-256 is checked unless ``verify`` is False. ``name`` names the file in
+    messages.
+
+    Raises
+    ------
+    ArtifactError
+        Not a regular file, wrong format or version, truncated file, or a checksum mismatch.
+    """
+    p = Path(name)
+    try:
+        st = os.fstat(fd)
+        if stat.S_ISDIR(st.st_mode):
+            raise ArtifactError(f"{p} is a directory, not a map file")
+        if not stat.S_ISREG(st.st_mode):
+            raise ArtifactError(f"{p} is not a regular file")
+        size = st.st_size
+        manifest, data_start = _read_head(_FdReader(fd), p)
     except OSError as exc:
         raise ArtifactError(f"cannot read map file {p}: {exc.strerror}") from exc
     table = _checked_table(manifest, p, data_start, size)
     _check_fields(manifest, p)
-    # a plain ndarray view of the mapping: indexing a np.memmap subclass costs microseconds per scalar
-    mm = np.memmap(p, dtype=np.uint8, mode="r") if size else np.empty(0, np.uint8)
-    buf: NDArray[np.uint8] = mm.view(np.ndarray)
-    for name, t in table.items():  # the padding after each array is zeros
+    try:
+        # a plain ndarray over the mapping: indexing a np.memmap subclass costs microseconds per scalar
+        buf: NDArray[np.uint8] = (
+            np.frombuffer(mmap.mmap(fd, size, access=mmap.ACCESS_READ), dtype=np.uint8)
+            if size
+            else np.empty(0, np.uint8)
+        )
+    except (OSError, ValueError) as exc:
+        raise ArtifactError(f"cannot map map file {p}: {exc}") from exc
+    for name_, t in table.items():  # the padding after each array is zeros
         lo = data_start + t["offset"] + t["nbytes"]
         gap = buf[lo : lo + _pad(t["nbytes"])]
         if gap.any():
-            raise ArtifactError(f"{p}: corrupt padding after array {name} (file corrupt)")
+            raise ArtifactError(f"{p}: corrupt padding after array {name_} (file corrupt)")
     arrays: dict[str, NDArray[Any]] = {}
-    for name in (k for k in ARRAY_FIELDS if k in table):
-        t = table[name]
+    for key in (k for k in ARRAY_FIELDS if k in table):
+        t = table[key]
         lo = data_start + int(t["offset"])
         raw = buf[lo : lo + int(t["nbytes"])]
         if verify and hashlib.sha256(raw.data).hexdigest() != t["sha256"]:
-            raise ArtifactError(f"{p}: checksum mismatch in {name} (file corrupt)")
+            raise ArtifactError(f"{p}: checksum mismatch in {key} (file corrupt)")
         try:
-            arrays[name] = raw.view(np.dtype(t["dtype"])).reshape(t["shape"])
+            arrays[key] = raw.view(np.dtype(t["dtype"])).reshape(t["shape"])
         except (TypeError, ValueError) as exc:
-            raise ArtifactError(f"{p}: bad array {name}: {exc}") from exc
+            raise ArtifactError(f"{p}: bad array {key}: {exc}") from exc
     meta = manifest.get("meta", {})
     meta = {**meta, "artifact": {"path": str(p), "bytes": size}}
     try:
@@ -351,14 +407,22 @@ def open_map(path: str | os.PathLike[str]) -> RoadGraph:
     """
     p = Path(path)
     try:
-        with open(p, "rb") as f:
-            head = f.read(len(MAGIC))
+        fd = os.open(p, os.O_RDONLY | os.O_CLOEXEC | os.O_NONBLOCK)
     except FileNotFoundError:
         raise ArtifactError(f"no such map file: {p}") from None
     except OSError as exc:
         raise ArtifactError(f"cannot read map file {p}: {exc.strerror}") from exc
-    if head[:-1] == MAGIC[:-1]:  # any format version: load_map reports a mismatch
-        return load_map(p)
+    try:
+        mode = os.fstat(fd).st_mode
+        if stat.S_ISDIR(mode):
+            raise ArtifactError(f"cannot read map file {p}: Is a directory")
+        head = os.pread(fd, len(MAGIC), 0) if stat.S_ISREG(mode) else b""
+        if head[:-1] == MAGIC[:-1]:  # any format version: load_map_fd reports a mismatch
+            return load_map_fd(fd, name=str(p))  # the file that was checked, opened once
+    except OSError as exc:
+        raise ArtifactError(f"cannot read map file {p}: {exc.strerror}") from exc
+    finally:
+        os.close(fd)
     from graph.build import build_map
 
     return build_map(p)

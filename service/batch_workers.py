@@ -8,10 +8,16 @@ before the first request. The server passes the request bytes through and gets t
 bytes back (serialised in the child), so the online process neither parses the answer nor
 builds it.
 
-* Map replacement: every job names the map's file and checksum; a child loads a map it does
-  not hold (or holds in another version), and :meth:`BatchWorkers.set_maps` tells idle
-  children to load new maps and drop unloaded ones. A file changed on disk since the server
-  loaded it is refused (FAILED_PRECONDITION), not matched on another map.
+* Map files: the server opened each map file once and keeps its descriptor; every child
+  gets that descriptor (passed over its pipe, ``SCM_RIGHTS``), never the file's name, so
+  a file replaced on disk (a map prepared again over it) changes nothing: a restarted child
+  maps the version the server loaded.
+* Map replacement: every job names the map's id and checksum and carries its descriptor; a
+  child loads a map it does not hold (or holds in another version), and
+  :meth:`BatchWorkers.set_maps` tells idle children to load new maps and drop unloaded
+  ones. A child that cannot load a map (its file changed in place) reports it: the map is
+  in :attr:`BatchWorkers.failed` and ``on_failed`` is called (the server's health then says
+  NOT_SERVING for that map), and MatchTrack on it answers FAILED_PRECONDITION.
 * A child that dies (killed, out of memory) fails its call with UNAVAILABLE naming the
   cause, and a new child starts. A call the client abandons (cancelled, deadline passed)
   stops its child, which restarts: no work goes on for nobody.
@@ -23,7 +29,8 @@ builds it.
   ``nice``. They are also the kernel's first choice when memory runs out
   (``oom_score_adj`` 1000), not the server.
 * :meth:`BatchWorkers.stop` ends the children (SIGTERM, then SIGKILL); queued calls get
-  UNAVAILABLE. A child also ends when the server process is gone.
+  UNAVAILABLE. A child also ends when the server process is gone, however it ended (the
+  kernel's parent-death signal, :func:`service.children.die_with_parent`).
 
 Maps without a file (built in memory, or from an OSM/GIS source) are matched on the
 server's batch threads as before.
@@ -41,15 +48,18 @@ import socket
 import sys
 import threading
 import time
-from dataclasses import dataclass
+from collections.abc import Callable
+from dataclasses import dataclass, field, replace
 from multiprocessing.connection import Connection
-from pathlib import Path
+from multiprocessing.reduction import recv_handle, send_handle
 from typing import Any, NamedTuple
 
 import grpc
 
+from graph.files import ReadOnlyFile
 from mapmatch.config import BATCH_CONFIG, MatchConfig
 from mapmatch.errors import ValidationError
+from service.children import die_with_parent
 from service.errors import BatchWorkerError, LimitError, StatusError, log_internal, status_for
 from service.gen import mapmatch_pb2 as pb
 
@@ -70,11 +80,18 @@ __all__ = [
 
 @dataclass(frozen=True)
 class MapFile:
-    """A loaded map as a child process finds it: id, file and checksum."""
+    """A loaded map as a child process finds it: id, file name (for messages), checksum,
+    and the open descriptor it is read from (None: the one :meth:`BatchWorkers.set_maps`
+    gave for that id and checksum)."""
 
     map_id: str
     path: str
     checksum: str
+    file: ReadOnlyFile | None = field(default=None, compare=False, repr=False)
+
+    def wire(self) -> MapFile:
+        """This record as it is pickled to a child (the descriptor goes beside it)."""
+        return replace(self, file=None)
 
 
 @dataclass(frozen=True)
@@ -280,18 +297,49 @@ class BatchWorkers:
         self._q: queue.SimpleQueue[_Job | None] = queue.SimpleQueue()
         self._slots = [_Slot(i) for i in range(processes)]
         self._files: tuple[MapFile, ...] = ()
+        self._handles: dict[tuple[str, str], ReadOnlyFile] = {}  # this and the last set_maps
+        self._last: set[tuple[str, str]] = set()
         self._generation = 0
         self._lock = threading.Lock()
         self._stopping = threading.Event()
         self._started = False
         self.restarts = 0
+        self.failed: dict[str, str] = {}  # maps a child could not load: id -> why
+        self.on_failed: Callable[[dict[str, str]], None] = lambda failed: None
 
     # ------------------------------------------------------------------ control
     def set_maps(self, files: list[MapFile]) -> None:
-        """The maps now served (children load new ones and drop others when idle)."""
+        """The maps now served, each with its open descriptor (children load new ones and
+        drop others when idle)."""
         with self._lock:
-            self._files = tuple(files)
+            self._files = tuple(f for f in files if f.file is not None)
+            now = {(f.map_id, f.checksum): f.file for f in self._files if f.file is not None}
+            last = {k: v for k, v in self._handles.items() if k in self._last}
+            self._last = set(now)
+            self._handles = {**last, **now}  # a call that named the last version still finds it
             self._generation += 1
+            gone = [k for k in self.failed if k not in {f.map_id for f in self._files}]
+            for k in gone:
+                del self.failed[k]
+
+    def _file_of(self, mf: MapFile) -> ReadOnlyFile | None:
+        if mf.file is not None:
+            return mf.file
+        with self._lock:
+            return self._handles.get((mf.map_id, mf.checksum))
+
+    def _note(self, loaded: list[str], failed: dict[str, str]) -> None:
+        """A child's report of its map loads: :attr:`failed` and ``on_failed`` follow."""
+        with self._lock:
+            was = dict(self.failed)
+            for map_id in loaded:
+                self.failed.pop(map_id, None)
+            self.failed.update(failed)
+            now = dict(self.failed)
+        if now != was:
+            for map_id, why in failed.items():
+                log.error("batch worker cannot load map %s: %s", map_id, why)
+            self.on_failed(now)
 
     def start(self) -> None:
         """Start the children (once); each loads and warms the maps of :meth:`set_maps`."""
@@ -359,6 +407,7 @@ class BatchWorkers:
             try:
                 job = self._q.get(timeout=0.5)
             except queue.Empty:
+                self._drain_ready(slot)  # map loads reported while idle: health knows at once
                 continue
             if job is None:
                 return
@@ -372,6 +421,18 @@ class BatchWorkers:
             if result is not None:
                 _deliver(job, result)
 
+    def _drain_ready(self, slot: _Slot) -> None:
+        """Read the child's map-load reports that have arrived (it is idle: nothing else comes)."""
+        conn = slot.conn
+        if conn is None:
+            return
+        with contextlib.suppress(EOFError, OSError):
+            while slot.loading and conn.poll(0):
+                msg = conn.recv()
+                if msg[0] == "ready":
+                    slot.loading -= 1
+                    self._note(msg[1], msg[2])
+
     def _ensure_child(self, slot: _Slot) -> None:
         if slot.proc is not None and not slot.proc.is_alive():
             self._end_child(slot)
@@ -383,19 +444,19 @@ class BatchWorkers:
             parent, child = self._ctx.Pipe(duplex=True)
             proc = self._ctx.Process(
                 target=worker_main,
-                args=(child, files, self.limits, os.getpid(), self.nice, self.sched, self.match_config),
+                args=(child, self.limits, os.getpid(), self.nice, self.sched, self.match_config),
                 name=f"mapmatch-batch-{slot.index}",
                 daemon=True,
             )
             proc.start()
             child.close()
-            slot.proc, slot.conn, slot.generation, slot.loading = proc, parent, generation, 1
+            slot.proc, slot.conn, slot.generation, slot.loading = proc, parent, -1, 1
             log.info("batch worker %d started (pid %d, %d map(s))", slot.index, proc.pid, len(files))
-        elif slot.generation != generation:
-            assert slot.conn is not None
-            slot.conn.send(("maps", files))
+        if slot.generation != generation:
+            assert slot.conn is not None and slot.proc is not None
             slot.generation = generation
             slot.loading += 1
+            _send_maps(slot.conn, files, slot.proc.pid)
 
     def _call(self, slot: _Slot, job: _Job) -> bytes | BaseException | None:
         conn, proc = slot.conn, slot.proc
@@ -407,9 +468,16 @@ class BatchWorkers:
                 stop = self._wait(slot, job, working=False)
                 if stop is not None:
                     return stop.result
-                if conn.recv() == ("ready",):
+                msg = conn.recv()
+                if msg[0] == "ready":
                     slot.loading -= 1
-            conn.send(job.header)
+                    self._note(msg[1], msg[2])
+            _, kind, mf, prefix = job.header
+            file = self._file_of(mf)
+            if file is None or file.closed:
+                return BatchWorkerError(f"map {mf.map_id!r} was replaced during this call; retry")
+            conn.send(("match", kind, mf.wire(), prefix))
+            send_handle(conn, file.fileno(), proc.pid)
             conn.send_bytes(job.data)
             stop = self._wait(slot, job, working=True)
             if stop is not None:
@@ -417,8 +485,10 @@ class BatchWorkers:
             status, info = conn.recv()
             if status == "ok":
                 return recv_raw(conn, info)
-            code, fld, msg = info
-            return StatusError(grpc.StatusCode[code], fld, msg)
+            code, fld, text = info
+            if code == "FAILED_PRECONDITION" and fld == "map_id":  # the child cannot load the map
+                self._note([], {mf.map_id: text})
+            return StatusError(grpc.StatusCode[code], fld, text)
         except (EOFError, OSError):
             if self._stopping.is_set():
                 self._end_child(slot)
@@ -466,6 +536,14 @@ class BatchWorkers:
             if proc.is_alive():
                 proc.kill()
         proc.join(2.0)
+
+
+def _send_maps(conn: Connection, files: tuple[MapFile, ...], pid: int) -> None:
+    """Tell a child the maps now served: their records, then one descriptor each."""
+    conn.send(("maps", tuple(f.wire() for f in files)))
+    for f in files:
+        assert f.file is not None
+        send_handle(conn, f.file.fileno(), pid)
 
 
 def send_raw(conn: Connection, data: bytes) -> None:
@@ -541,21 +619,23 @@ def _exit_reason(code: int | None) -> str:
 
 
 # ---------------------------------------------------------------------------------- child side
-def _load(mf: MapFile, config: MatchConfig) -> Any:
-    """A map entry (graph, index, batch matcher warmed up) from its file, checksum checked."""
-    from graph.artifact import load_map
+def _load(mf: MapFile, fd: int, config: MatchConfig) -> Any:
+    """A map entry (graph, index, batch matcher warmed up) from the map's open descriptor,
+    checksum checked."""
+    from graph.artifact import load_map_fd
     from graph.index import EdgeIndex
     from service.maps import MapEntry, graph_checksum, warm_batch
 
     try:
-        graph = load_map(Path(mf.path))
+        graph = load_map_fd(fd, name=os.path.basename(mf.path))
     except Exception:
         graph = None
     if graph is None or graph_checksum(graph) != mf.checksum:
         raise StatusError(
             grpc.StatusCode.FAILED_PRECONDITION,
             "map_id",
-            f"map_id: the file of map {mf.map_id!r} changed since the server loaded it; load it again",
+            f"map_id: the file of map {mf.map_id!r} was changed in place since the server loaded it; "
+            "load it again",
         )
     entry = MapEntry(
         map_id=mf.map_id,
@@ -570,25 +650,43 @@ def _load(mf: MapFile, config: MatchConfig) -> Any:
     return entry
 
 
-def _refresh(held: dict[str, Any], files: tuple[MapFile, ...], config: MatchConfig) -> None:
+def _refresh(
+    held: dict[str, Any], files: tuple[MapFile, ...], fds: list[int], config: MatchConfig
+) -> tuple[list[str], dict[str, str]]:
+    """Hold the maps of ``files`` (read from ``fds``, closed here); returns the ids loaded
+    and the failures (id -> why)."""
     keep = {(f.map_id, f.checksum) for f in files}
     for map_id in [k for k, e in held.items() if (k, e.checksum) not in keep]:
         del held[map_id]
-    for f in files:
-        if f.map_id not in held:
-            try:
-                held[f.map_id] = _load(f, config)
-            except Exception as exc:  # reported by the first call that needs it
-                log.error("batch worker: map %s: %s", f.map_id, exc)
+    loaded: list[str] = []
+    failed: dict[str, str] = {}
+    for f, fd in zip(files, fds, strict=True):
+        try:
+            if f.map_id not in held:
+                held[f.map_id] = _load(f, fd, config)
+            loaded.append(f.map_id)
+        except Exception as exc:  # reported to the server (health) and by calls that need it
+            failed[f.map_id] = str(exc)
+        finally:
+            os.close(fd)
+    return loaded, failed
 
 
 def _run_job(
-    held: dict[str, Any], header: tuple[Any, ...], data: bytes, limits: TrackLimits, config: MatchConfig
+    held: dict[str, Any],
+    header: tuple[Any, ...],
+    fd: int,
+    data: bytes,
+    limits: TrackLimits,
+    config: MatchConfig,
 ) -> bytes:
     _, kind, mf, prefix = header
     entry = held.get(mf.map_id)
-    if entry is None or entry.checksum != mf.checksum:
-        entry = held[mf.map_id] = _load(mf, config)
+    try:
+        if entry is None or entry.checksum != mf.checksum:
+            entry = held[mf.map_id] = _load(mf, fd, config)
+    finally:
+        os.close(fd)
     try:
         parse = pb.MatchTrackRequest.FromString if kind == "request" else pb.Track.FromString
         msg = parse(data)
@@ -602,7 +700,7 @@ def _run_job(
     return out
 
 
-def _watch_parent(parent: int) -> None:
+def _watch_parent(parent: int) -> None:  # where the kernel has no parent-death signal
     while True:
         time.sleep(1.0)
         if os.getppid() != parent:
@@ -636,15 +734,16 @@ def lower_cpu_class(*, nice: int, sched: str) -> None:
 
 def worker_main(
     conn: Connection,
-    files: tuple[MapFile, ...],
     limits: TrackLimits,
     parent: int,
     nice: int = 0,
     sched: str = "normal",
     config: MatchConfig = BATCH_CONFIG,
 ) -> None:
-    """A child process: load the maps, then answer jobs until the pipe closes."""
+    """A child process: load the maps it is sent (each with its descriptor), then answer
+    jobs until the pipe closes; it dies with the server process ``parent``."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the server's to handle
+    die_with_parent(parent)
     lower_cpu_class(nice=nice, sched=sched)
     # when memory runs out, the kernel ends this process (its call fails UNAVAILABLE, a new
     # worker starts), not the server
@@ -653,21 +752,22 @@ def worker_main(
     logging.basicConfig(stream=sys.stderr, level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
     threading.Thread(target=_watch_parent, args=(parent,), daemon=True).start()
     held: dict[str, Any] = {}
-    _refresh(held, files, config)
     with contextlib.suppress(EOFError, OSError):
-        conn.send(("ready",))
+        conn.send(("ready", [], {}))
     while True:
         try:
             header = conn.recv()
             if header[0] == "maps":
-                _refresh(held, header[1], config)
-                conn.send(("ready",))
+                fds = [recv_handle(conn) for _ in header[1]]
+                loaded, failed = _refresh(held, header[1], fds, config)
+                conn.send(("ready", loaded, failed))
                 continue
+            fd = recv_handle(conn)
             data = conn.recv_bytes()
         except (EOFError, OSError):
             return
         try:
-            out = _run_job(held, header, data, limits, config)
+            out = _run_job(held, header, fd, data, limits, config)
         except Exception as exc:
             code, fld, msg = status_for(exc)
             if code is grpc.StatusCode.INTERNAL:

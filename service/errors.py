@@ -2,22 +2,34 @@
 
 Domain errors (:mod:`mapmatch.errors`, :mod:`graph.errors`) and the service's own errors below
 become precise statuses in :func:`status_for`; the offending field, or the limit, is named
-in the message and in the trailing metadata key ``mapmatch-field``. Anything else is
+in the message, in the trailing metadata key ``mapmatch-field`` and in a ``google.rpc.Status``
+(trailer ``grpc-status-details-bin``, read by ``grpc_status.rpc_status.from_call``, grpcurl
+and generated clients) with the details :func:`error_trailers` describes. Anything else is
 INTERNAL, logged with its traceback, and never reaches the client.
 """
 
 from __future__ import annotations
 
 import logging
+from typing import Any
 
 import grpc
+from google.protobuf import any_pb2
+from google.rpc import error_details_pb2, status_pb2
 
 from graph.errors import GraphError
 from mapmatch.errors import ConfigError, MatchError, ValidationError
 
 errlog = logging.getLogger("mapmatch.service")
 
+FIELD_METADATA_KEY = "mapmatch-field"
+STATUS_DETAILS_KEY = "grpc-status-details-bin"
+ERROR_DOMAIN = "mapmatch"
+
 __all__ = [
+    "ERROR_DOMAIN",
+    "FIELD_METADATA_KEY",
+    "STATUS_DETAILS_KEY",
     "BatchWorkerError",
     "LimitError",
     "MapLoadError",
@@ -28,6 +40,7 @@ __all__ = [
     "SessionLimitError",
     "SessionNotFoundError",
     "StatusError",
+    "error_trailers",
     "log_internal",
     "status_for",
 ]
@@ -147,3 +160,35 @@ def status_for(exc: BaseException) -> tuple[grpc.StatusCode, str, str]:
 def log_internal(exc: BaseException, where: str) -> None:
     """Log an unexpected exception with its traceback (the client sees only INTERNAL)."""
     errlog.error("unexpected error in %s: %r", where, exc, exc_info=exc)
+
+
+def error_trailers(code: grpc.StatusCode, field: str, message: str) -> tuple[tuple[str, str | bytes], ...]:
+    """The trailing metadata of an error: ``mapmatch-field`` (when a field is named) and a
+    ``google.rpc.Status`` of ``code`` and ``message`` whose details name the field.
+
+    The details: ``BadRequest.FieldViolation`` for INVALID_ARGUMENT, ``QuotaFailure`` (the
+    limit as subject) for RESOURCE_EXHAUSTED, ``PreconditionFailure`` for
+    FAILED_PRECONDITION, and for every error with a field an ``ErrorInfo`` (reason the
+    status name, domain ``mapmatch``, metadata ``field``).
+    """
+    status = status_pb2.Status(code=code.value[0], message=message)
+    details: list[Any] = []
+    ed = error_details_pb2
+    if field:
+        if code is grpc.StatusCode.INVALID_ARGUMENT:
+            violation = ed.BadRequest.FieldViolation(field=field, description=message)
+            details.append(ed.BadRequest(field_violations=[violation]))
+        elif code is grpc.StatusCode.RESOURCE_EXHAUSTED:
+            quota = ed.QuotaFailure.Violation(subject=field, description=message)
+            details.append(ed.QuotaFailure(violations=[quota]))
+        elif code is grpc.StatusCode.FAILED_PRECONDITION:
+            failed = ed.PreconditionFailure.Violation(type=code.name, subject=field, description=message)
+            details.append(ed.PreconditionFailure(violations=[failed]))
+        details.append(ed.ErrorInfo(reason=code.name, domain=ERROR_DOMAIN, metadata={"field": field}))
+    for d in details:
+        packed = any_pb2.Any()
+        packed.Pack(d)
+        status.details.append(packed)
+    out: list[tuple[str, str | bytes]] = [(FIELD_METADATA_KEY, field)] if field else []
+    out.append((STATUS_DETAILS_KEY, status.SerializeToString()))
+    return tuple(out)

@@ -11,8 +11,9 @@ and hooks, but a streamed message passes through one wrapper, not one per concer
   the method's rule (:mod:`service.auth`): UNAUTHENTICATED or PERMISSION_DENIED; per-identity
   stream quotas; health ``Watch`` calls capped per connection and in all.
 * :class:`StatusInterceptor`: exceptions become precise statuses
-  (:func:`service.errors.status_for`), the offending field named in the details and in the
-  trailing metadata key ``mapmatch-field``; a request whose bytes do not decode gets
+  (:func:`service.errors.status_for`), the offending field named in the details, in the
+  trailing metadata key ``mapmatch-field`` and in a ``google.rpc.Status``
+  (:func:`service.errors.error_trailers`); a request whose bytes do not decode gets
   INVALID_ARGUMENT (not UNKNOWN or INTERNAL, and no traceback).
 """
 
@@ -36,11 +37,10 @@ from grpc import aio
 
 from mapmatch.errors import ValidationError
 from service.auth import CALLER, AccessError, Identity, IdentityTable, Quotas, Rule, check_vehicle, rule_for
-from service.errors import LimitError, log_internal, status_for
+from service.errors import FIELD_METADATA_KEY, LimitError, error_trailers, log_internal, status_for
 
 log = logging.getLogger("mapmatch.access")
 
-FIELD_METADATA_KEY = "mapmatch-field"
 LATENCY_RING = 512  # per-message latencies a stream's access-log line is drawn from
 
 __all__ = [
@@ -282,18 +282,18 @@ class AuthInterceptor(_Wrapping):
             return
         caller = self.identify(details, context)
         if caller is None:
-            await context.abort(grpc.StatusCode.UNAUTHENTICATED, str(AccessError.unauthenticated()))
+            await abort(context, grpc.StatusCode.UNAUTHENTICATED, "", str(AccessError.unauthenticated()))
         assert caller is not None
         if rule.operator_only and not caller.operator:
             method = details.method.rsplit("/", 1)[-1]
-            await context.abort(grpc.StatusCode.PERMISSION_DENIED, str(AccessError.operator(method)))
+            await abort(context, grpc.StatusCode.PERMISSION_DENIED, "", str(AccessError.operator(method)))
         counted = rule.stream and self.quotas is not None
         if counted:
             assert self.quotas is not None
             try:
                 self.quotas.open_stream(caller)
             except LimitError as exc:
-                await context.abort(grpc.StatusCode.RESOURCE_EXHAUSTED, str(exc))
+                await abort(context, grpc.StatusCode.RESOURCE_EXHAUSTED, exc.field, str(exc))
         token = CALLER.set(caller)
         try:
             yield _Access(caller, rule)
@@ -330,8 +330,11 @@ class AuthInterceptor(_Wrapping):
                 self._watch_total += 1
         if full:
             limit = "max_watch_total" if n < s.max_watch_per_connection else "max_watch_per_connection"
-            await context.abort(
-                grpc.StatusCode.RESOURCE_EXHAUSTED, f"{limit}: too many health Watch calls open"
+            await abort(
+                context,
+                grpc.StatusCode.RESOURCE_EXHAUSTED,
+                limit,
+                f"{limit}: too many health Watch calls open",
             )
         try:
             yield
@@ -374,6 +377,13 @@ def _undecodable_error(msg: Undecodable) -> ValidationError:
     )
 
 
+async def abort(context: aio.ServicerContext, code: grpc.StatusCode, field: str, message: str) -> None:
+    """End the call with ``code`` and ``message``, the field named in its trailers
+    (``mapmatch-field`` and a ``google.rpc.Status``: :func:`service.errors.error_trailers`)."""
+    context.set_trailing_metadata(error_trailers(code, field, message))
+    await context.abort(code, message)
+
+
 class StatusInterceptor(_Wrapping):
     """Maps exceptions to statuses; undecodable requests to INVALID_ARGUMENT."""
 
@@ -406,9 +416,7 @@ class StatusInterceptor(_Wrapping):
             code, fld, msg = status_for(exc)
             if code is grpc.StatusCode.INTERNAL:
                 log_internal(exc, details.method)
-            if fld:
-                context.set_trailing_metadata(((FIELD_METADATA_KEY, fld),))
-            await context.abort(code, msg)
+            await abort(context, code, fld, msg)
 
 
 # ---------------------------------------------------------------------------------- access log

@@ -12,7 +12,7 @@ at least one map is loaded and has passed its warm-up; each loaded map also has 
 service name, ``mapmatch.v1.MapMatch/<map id>``. With a session store
 (``--session-store``), ``mapmatch.v1.SessionStore`` is SERVING while the store answers and
 NOT_SERVING while it fails (fixes are answered either way, so ``""`` stays SERVING; see
-:mod:`service.store_checkpoints`). Server reflection is on. Every start-up step is logged on
+:mod:`service.store_checkpoints`). Server reflection (v1 and v1alpha) is on. Every start-up step is logged on
 ``service``, and so is the moment the server is SERVING.
 """
 
@@ -39,7 +39,6 @@ import grpc
 from grpc import aio
 from grpc_health.v1 import health_pb2, health_pb2_grpc
 from grpc_health.v1.health import aio as health_aio
-from grpc_reflection.v1alpha import reflection
 
 from graph.road_graph import RoadGraph
 from mapmatch.errors import ConfigError
@@ -51,7 +50,8 @@ from service.errors import MapLoadError
 from service.gen import mapmatch_pb2 as pb
 from service.gen import mapmatch_pb2_grpc as pb_grpc
 from service.interceptors import AccessSettings, Metrics, interceptors
-from service.maps import MapRegistry, is_map_file, load_map_file, warm_batch, warm_up
+from service.maps import MapRegistry, load_map_file, open_map_path, stop_builds, warm_batch, warm_up
+from service.reflection import enable_reflection
 from service.servicer import SERVICE_NAME, MapMatchServicer, OnlineQueue, load_limits
 from service.sessions import SessionStore
 from service.store import RedisStore
@@ -123,6 +123,8 @@ class ServiceRuntime:
         self.ready: Future[None] = Future()
         self.checkpoints = _checkpointer(self) if config.session_store else None
         self.servicer.checkpoints = self.checkpoints
+        if self.batch_workers is not None:  # a map the batch workers cannot load: health says so
+            self.batch_workers.on_failed = lambda failed: self._health_soon()
 
     # ------------------------------------------------------------------ start
     def call(self, coro: Any, timeout: float | None = None) -> Any:
@@ -202,9 +204,8 @@ class ServiceRuntime:
         names = (
             pb.DESCRIPTOR.services_by_name["MapMatch"].full_name,
             health_pb2.DESCRIPTOR.services_by_name["Health"].full_name,
-            reflection.SERVICE_NAME,
         )
-        reflection.enable_server_reflection(names, srv)
+        enable_reflection(names, srv)  # v1 and v1alpha
         if not cfg.reuse_port:
             _check_port_free(cfg.address)
         try:
@@ -232,10 +233,13 @@ class ServiceRuntime:
         try:
             for name, path in self.to_load:
                 log.info("loading map %s from %s", name, path.name)
-                graph = load_map_file(path, limits=limits, name=path.name)
+                src = open_map_path(path)  # opened once: the map and the batch workers read this
+                graph = load_map_file(src, limits=limits, name=path.name)
                 log.info("warming up map %s (%d edges)", name, graph.n_edges)
-                file = path if is_map_file(path) else None
-                self.maps.add(name, graph, source=path.name, batch=False, path=file)
+                if src.is_map:
+                    self.maps.add(name, graph, source=path.name, batch=False, path=path, file=src.file)
+                else:
+                    self.maps.add(name, graph, source=path.name, batch=False)
             for entry in self.maps.entries():
                 if entry.map_id not in {n for n, _ in self.to_load}:
                     log.info("warming up map %s (%d edges)", entry.map_id, entry.graph.n_edges)
@@ -270,9 +274,9 @@ class ServiceRuntime:
         if self.batch_workers is None:
             return set()
         files = [
-            MapFile(map_id=e.map_id, path=str(e.path), checksum=e.checksum)
+            MapFile(map_id=e.map_id, path=str(e.path), checksum=e.checksum, file=e.file)
             for e in self.maps.entries()
-            if e.path is not None
+            if e.path is not None and e.file is not None
         ]
         self.batch_workers.set_maps(files)
         if files:
@@ -284,17 +288,26 @@ class ServiceRuntime:
         self._sync_workers()
         await self.update_health()
 
+    def _health_soon(self) -> None:
+        """:meth:`update_health` on the server's loop, from any thread."""
+        if self.loop is not None and not self._stopped.is_set():
+            with contextlib.suppress(RuntimeError):  # the loop has closed
+                asyncio.run_coroutine_threadsafe(self.update_health(), self.loop)
+
     async def update_health(self) -> None:
         """SERVING when maps are loaded (each has passed its warm-up), else NOT_SERVING; and
-        one service name per map."""
+        one service name per map, NOT_SERVING for a map the batch worker processes cannot
+        load (its MatchTrack would fail)."""
         ids = {e.map_id for e in self.maps.entries()}
+        broken = set(self.batch_workers.failed) if self.batch_workers is not None else set()
         ok = bool(ids) and not self._stopped.is_set()
         was = getattr(self, "_serving", None)
         for name in ("", SERVICE_NAME):
             await self.health.set(name, SERVING if ok else NOT_SERVING)
         for map_id in ids | self._health_names:
             await self.health.set(
-                f"{SERVICE_NAME}/{map_id}", SERVING if map_id in ids and ok else NOT_SERVING
+                f"{SERVICE_NAME}/{map_id}",
+                SERVING if map_id in ids and map_id not in broken and ok else NOT_SERVING,
             )
         self._health_names |= ids
         self._serving = ok
@@ -340,6 +353,8 @@ class ServiceRuntime:
             log.info("stopped")
 
     def _shutdown_pools(self) -> None:
+        if n := stop_builds():  # a map build in flight would hold the process past its grace
+            log.info("stopped %d map build(s) in flight", n)
         self.executor.shutdown(wait=False, cancel_futures=True)
         self.online.shutdown()
         if self.batch_workers is not None:
