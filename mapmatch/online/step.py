@@ -26,24 +26,16 @@ def prepare(road: RoadModel, state: SessionState, fix: Fix, cfg: MatchConfig) ->
     x, y = point_to_xy(road.graph.crs, fix.lon, fix.lat)
     if not (math.isfinite(x) and math.isfinite(y)) or road.far_off(x, y, cfg):
         return None
-    m, o = cfg.model, cfg.online
+    o = cfg.online
     dt = fix.time - state.time if not math.isnan(state.time) else math.nan
-    odo_known = True
-    if not math.isnan(fix.distance):
-        travelled = fix.distance * (1.0 + state.odo_k)
-    elif not math.isnan(fix.speed) and not math.isnan(dt):
-        # a speed says nothing of a long gap: at most the largest odometer step a fix may give
-        travelled = min(fix.speed * dt, LIMITS["distance"]) * (1.0 + state.odo_k)
-    else:
-        odo_known = False
-        travelled = math.hypot(x - state.x, y - state.y) if not math.isnan(state.x) else math.nan
+    travelled, odo_known = _travelled(state, fix, x, y, dt)
     gps = fix.gps_valid is not False
     own = own_sigma(state, fix, cfg)
     sigma = max(own, bias.drift_sigma(state, gps, travelled, dt, cfg))
     heading = 0.0 if fix.heading == 360.0 else fix.heading
     kappa = 0.0
-    if not math.isnan(heading) and (math.isnan(fix.speed) or fix.speed >= m.heading_min_speed):
-        hs = m.heading_sigma if math.isnan(fix.heading_sigma) else fix.heading_sigma
+    if not math.isnan(heading) and (math.isnan(fix.speed) or fix.speed >= cfg.model.heading_min_speed):
+        hs = cfg.model.heading_sigma if math.isnan(fix.heading_sigma) else fix.heading_sigma
         floor = o.heading_sigma_floor_deg if fix.gps_valid is not False else o.heading_sigma_floor_dr_deg
         kappa = heading_kappa_one(max(hs, math.sqrt(state.res_head2)), floor)
     # the fused error is correlated: evidence accrues with time and, when known, distance
@@ -78,9 +70,7 @@ def prepare(road: RoadModel, state: SessionState, fix: Fix, cfg: MatchConfig) ->
         still_kappa = heading_kappa_one(hs, o.heading_sigma_floor_deg)
         still_weight = o.stopped_heading_weight * max(per_time - weight, 0.0)
     odo = state.odo + (travelled if not math.isnan(travelled) else 0.0)
-    # positional up to ``r_a`` (in field order): a call of positional arguments plus twice its
-    # keywords over 30 goes through a dict, 1 µs more
-    return Step(
+    return Step(  # positional up to ``r_a``, in field order
         fix.time,  # time
         x,
         y,
@@ -104,6 +94,18 @@ def prepare(road: RoadModel, state: SessionState, fix: Fix, cfg: MatchConfig) ->
         still_weight=still_weight,
         speed=speed,
     )
+
+
+def _travelled(state: SessionState, fix: Fix, x: float, y: float, dt: float) -> tuple[float, bool]:
+    """Metres travelled since the last fix, and whether an odometer (distance or speed) gave
+    them: the distance, else the speed over the time (a speed says nothing of a long gap: at
+    most the largest odometer step a fix may give), each with the learnt odometer scale; else
+    the straight line between the fixes."""
+    if not math.isnan(fix.distance):
+        return fix.distance * (1.0 + state.odo_k), True
+    if not math.isnan(fix.speed) and not math.isnan(dt):
+        return min(fix.speed * dt, _DISTANCE) * (1.0 + state.odo_k), True
+    return (math.hypot(x - state.x, y - state.y) if not math.isnan(state.x) else math.nan), False
 
 
 def own_sigma(state: SessionState, fix: Fix, cfg: MatchConfig) -> float:
