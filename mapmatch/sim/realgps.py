@@ -92,7 +92,11 @@ class RealGpsConfig:
 
     Timing of the true motion: ``max_speed_mps`` the fastest the vehicle moves between fixes,
     ``timing_smooth_s`` the window smoothing the fixes' route distances, ``heading_base_m`` the
-    half-length of route over which the true heading is taken.
+    half-length of route over which the true heading is taken; the small Viterbi that places
+    each fix on the route (:func:`fix_route_distance`) looks ``timing_radius_m`` around it,
+    keeps the best projection per ``timing_bin_m`` of route, scores distance with σ
+    ``timing_sigma_m``, lets a step go back at most ``timing_back_m`` and costs
+    ``timing_jump_cost`` per metre moved and ``timing_back_cost`` more per metre back.
     GPS: ``max_interp_gap_s`` the longest gap between real fixes still interpolated (longer
     gaps are dead-reckoned), ``gps_sigma_m`` the receiver's nominal 1-σ, ``gps_sigma_var`` σ of
     its slowly varying log factor over ``gps_sigma_time_s``, ``blend_keep`` the share of the
@@ -112,6 +116,12 @@ class RealGpsConfig:
 
     max_speed_mps: float = 45.0
     timing_smooth_s: float = 5.0
+    timing_radius_m: float = 60.0
+    timing_sigma_m: float = 10.0
+    timing_back_m: float = 10.0
+    timing_jump_cost: float = 0.002
+    timing_back_cost: float = 0.2
+    timing_bin_m: float = 30.0
     heading_base_m: float = 4.0
     max_interp_gap_s: float = 2.5
     gps_sigma_m: float = 5.0
@@ -199,24 +209,20 @@ def fix_route_distance(
     t: NDArray[np.float64],
     *,
     config: RealGpsConfig = DEFAULT_REALGPS,
-    radius_m: float = 60.0,
-    sigma_m: float = 10.0,
-    back_m: float = 10.0,
-    jump_cost: float = 0.002,
-    back_cost: float = 0.2,
-    bin_m: float = 30.0,
 ) -> NDArray[np.float64]:
     """Route distance of each fix: a small Viterbi over its projections onto the route.
 
-    Candidates are the fix's projections within ``radius_m`` (the best per ``bin_m`` of route
-    distance, so each pass of a route that comes back is one candidate), scored by distance
-    (σ ``sigma_m``); a step may go back at most ``back_m`` and forward at most
-    ``max_speed_mps`` times the time step (plus 30 m), and costs ``jump_cost`` per metre (and
-    ``back_cost`` per metre back), so a later pass of the same place is not taken early and an
-    earlier one is not walked back along. Fixes with no candidate are interpolated
-    in time. The result is smoothed over ``timing_smooth_s`` and made non-decreasing by an
-    isotonic fit (:func:`isotonic`).
+    Candidates are the fix's projections within ``timing_radius_m`` (the best per
+    ``timing_bin_m`` of route distance, so each pass of a route that comes back is one
+    candidate), scored by distance (σ ``timing_sigma_m``); a step may go back at most
+    ``timing_back_m`` and forward at most ``max_speed_mps`` times the time step (plus 30 m), and
+    costs ``timing_jump_cost`` per metre (and ``timing_back_cost`` per metre back), so a later
+    pass of the same place is not taken early and an earlier one is not walked back along.
+    Fixes with no candidate are interpolated in time. The result is smoothed over
+    ``timing_smooth_s`` and made non-decreasing by an isotonic fit (:func:`isotonic`).
     """
+    radius_m, sigma_m, back_m = config.timing_radius_m, config.timing_sigma_m, config.timing_back_m
+    jump_cost, back_cost, bin_m = config.timing_jump_cost, config.timing_back_cost, config.timing_bin_m
     segs = shapely.linestrings(np.stack([route.xy[:-1], route.xy[1:]], axis=1))
     pi, si = shapely.STRtree(segs).query(shapely.points(xy), predicate="dwithin", distance=radius_m)
     a0 = route.xy[si]
@@ -450,21 +456,8 @@ def real_drive(
         raise ValidationError("rate_hz", "must be 1 or 10 Hz")
     folder = Path(track_dir)
     vid = vehicle_id if vehicle_id is not None else folder.name
-    track = read_track(folder / "track.csv")
-    t_fix = track["t"].to_numpy() - float(track["t"].iloc[0])
-    fix_xy = to_xy(graph.crs, track["lon"].to_numpy(), track["lat"].to_numpy())
-    truth_xy = read_truth_xy(graph, folder / "truth.geojson")
-    try:
-        full = route_from_truth(graph, truth_xy)
-    except RouteError:  # the truth is not drawn through this map's nodes: follow its geometry
-        full = route_from_geometry(graph, truth_xy)
-    s_full = fix_route_distance(full, fix_xy, t_fix, config=config)
-    s_from, s_to = float(s_full[0]), float(s_full[-1])
-    if s_to - s_from < 1.0:
-        raise ValidationError("truth", f"{folder}: the fixes do not move along the true route")
-    route = _trim(graph, full, s_from, s_to)
-    s_fix = np.clip(s_full - s_from, 0.0, route.length)
-    duration = float(t_fix[-1])
+    real = _real_fixes(graph, folder, config)
+    duration = float(real.t[-1])
     outs = (
         spread_outages(duration)
         if outages is True
@@ -473,22 +466,133 @@ def real_drive(
         else [(float(a), float(b)) for a, b in outages]
     )
     rng = np.random.default_rng(seed)
-    cfg = config
+    motion = _true_motion(real, duration, config)
+    gps = _gps_availability(real, motion.t, outs, config)
+    # the errors in this order (one generator): heading, odometer scale, σ, odometer noise
+    dr = _dead_reckoning(real.route, motion, gps.have, config, rng)
+    fx, fy = _fused_position(motion.t, gps, dr, config.blend_keep)
+    sig_gps, pos_sigma, head_sigma = _reported_sigma(motion.t, gps.have, dr, config, rng)
+    # ---- subsample to the output rate
+    step = max(1, round(BASE_RATE_HZ / float(rate_hz)))
+    idx = np.arange(0, len(motion.t), step)
+    ot = motion.t[idx]
+    od = dr.odo[idx]
+    dist = np.diff(od, prepend=od[0]) + np.where(
+        np.arange(len(idx)) > 0, rng.normal(0.0, config.odo_noise_m, len(idx)), 0.0
+    )
+    dist = np.maximum(dist, 0.0)
+    fused = FusedStream(
+        time=ot,
+        x=fx[idx],
+        y=fy[idx],
+        heading=np.degrees(dr.head[idx]) % 360.0,
+        pos_sigma=pos_sigma[idx],
+        heading_sigma=head_sigma[idx],
+        speed=dist / (step * motion.traj.dt),
+        distance=dist,
+        gps_valid=gps.have[idx],
+    )
+    truth = truth_frame(
+        graph,
+        real.route,
+        TruthSamples(
+            time=ot + time0,
+            x=motion.pos[idx, 0],
+            y=motion.pos[idx, 1],
+            route_s=motion.s[idx],
+            heading=np.degrees(motion.psi[idx]) % 360.0,
+            speed=motion.speed[idx],
+            gps_outage=~gps.have[idx],  # injected outages and long track gaps
+        ),
+        vehicle_id=vid,
+    )
+    truth["truth_known"] = truth_known(real.route, real.xy, real.t, ot, config=config)
+    return Drive(
+        route=real.route,
+        trajectory=motion.traj,
+        sensors=_sensor_data(real, motion, gps, dr, sig_gps, tuple(outs)),
+        fused=fused,
+        fixes=fixes_frame(graph, fused, vehicle_id=vid, time0=time0),
+        truth=truth,
+        gps=_gps_frame(graph, real, gps.fix_in_out, time0),
+        node_index=real.route.nodes(graph),
+        node_time=np.interp(real.route.node_distance(), motion.s, motion.t) + time0,
+        outages=list(outs),
+    )
 
-    # ---- true motion on the base grid
+
+@dataclass(frozen=True)
+class _RealFixes:
+    """A real track's fixes: times from the first (s), positions in the map's CRS, the true
+    route trimmed to the drive, and each fix's distance along it."""
+
+    t: NDArray[np.float64]
+    xy: NDArray[np.float64]
+    route: Route
+    s: NDArray[np.float64]
+
+
+def _real_fixes(graph: RoadGraph, folder: Path, cfg: RealGpsConfig) -> _RealFixes:
+    track = read_track(folder / "track.csv")
+    t_fix = track["t"].to_numpy() - float(track["t"].iloc[0])
+    fix_xy = to_xy(graph.crs, track["lon"].to_numpy(), track["lat"].to_numpy())
+    truth_xy = read_truth_xy(graph, folder / "truth.geojson")
+    try:
+        full = route_from_truth(graph, truth_xy)
+    except RouteError:  # the truth is not drawn through this map's nodes: follow its geometry
+        full = route_from_geometry(graph, truth_xy)
+    s_full = fix_route_distance(full, fix_xy, t_fix, config=cfg)
+    s_from, s_to = float(s_full[0]), float(s_full[-1])
+    if s_to - s_from < 1.0:
+        raise ValidationError("truth", f"{folder}: the fixes do not move along the true route")
+    route = _trim(graph, full, s_from, s_to)
+    return _RealFixes(t_fix, fix_xy, route, np.clip(s_full - s_from, 0.0, route.length))
+
+
+@dataclass(frozen=True)
+class _Motion:
+    """The true motion on the base grid: times, route distance, position, heading (rad) and
+    speed, and the trajectory record."""
+
+    t: NDArray[np.float64]
+    s: NDArray[np.float64]
+    pos: NDArray[np.float64]
+    psi: NDArray[np.float64]
+    speed: NDArray[np.float64]
+    yaw: NDArray[np.float64]
+    traj: Trajectory
+
+
+def _true_motion(real: _RealFixes, duration: float, cfg: RealGpsConfig) -> _Motion:
     dt = 1.0 / BASE_RATE_HZ
     tb = np.arange(0.0, duration + 1e-9, dt)
     n = len(tb)
-    sb = np.interp(tb, t_fix, s_fix)
-    pos = route.position(sb)
-    psi = _route_heading(route, sb, cfg.heading_base_m)
+    sb = np.interp(tb, real.t, real.s)
+    pos = real.route.position(sb)
+    psi = _route_heading(real.route, sb, cfg.heading_base_m)
     speed = np.gradient(sb, dt) if n > 1 else np.zeros(n)
     yaw = np.gradient(psi, dt) if n > 1 else np.zeros(n)
     traj = Trajectory(
         dt=dt, t=tb, x=pos[:, 0], y=pos[:, 1], psi=psi, yaw_rate=yaw, speed=speed, dist=sb, s=sb
     )
+    return _Motion(tb, sb, pos, psi, speed, yaw, traj)
 
-    # ---- GPS availability and position (real fixes, interpolated between close ones)
+
+@dataclass(frozen=True)
+class _Gps:
+    """Where the receiver gives a position on the base grid (``have``) and that position; which
+    real fixes the outages hide."""
+
+    have: NDArray[np.bool_]
+    xy: NDArray[np.float64]
+    fix_in_out: NDArray[np.bool_]
+
+
+def _gps_availability(
+    real: _RealFixes, tb: NDArray[np.float64], outs: list[tuple[float, float]], cfg: RealGpsConfig
+) -> _Gps:
+    """GPS availability and position: the real fixes, interpolated between close ones."""
+    t_fix, fix_xy, n = real.t, real.xy, len(tb)
     k = np.clip(np.searchsorted(t_fix, tb, side="right") - 1, 0, len(t_fix) - 1)
     k1 = np.minimum(k + 1, len(t_fix) - 1)
     exact = np.abs(t_fix[k] - tb) < 1e-6
@@ -504,9 +608,28 @@ def real_drive(
     have = (exact | between) & ~fix_in_out[k] & ~in_out
     frac = np.where(gap > 0, (tb - t_fix[k]) / np.where(gap > 0, gap, 1.0), 0.0)
     frac = np.where(exact, 0.0, frac)
-    gps = fix_xy[k] + frac[:, None] * (fix_xy[k1] - fix_xy[k])
+    return _Gps(have, fix_xy[k] + frac[:, None] * (fix_xy[k1] - fix_xy[k]), fix_in_out)
 
-    # ---- reported heading: lagged truth + bias + noise; gyro drift without GPS
+
+@dataclass(frozen=True)
+class _DeadReckoning:
+    """The reported heading (rad), the gyro's bias, seconds without GPS, the odometer's scale
+    error, its steps and its reading."""
+
+    head: NDArray[np.float64]
+    gyro_bias: NDArray[np.float64]
+    since: NDArray[np.float64]
+    scale: float
+    step_d: NDArray[np.float64]
+    odo: NDArray[np.float64]
+
+
+def _dead_reckoning(
+    route: Route, motion: _Motion, have: NDArray[np.bool_], cfg: RealGpsConfig, rng: np.random.Generator
+) -> _DeadReckoning:
+    """Reported heading (lagged truth, bias, noise, gyro drift without GPS) and odometer (the
+    length of the path driven, corners rounded, with a scale error)."""
+    psi, n, dt = motion.psi, len(motion.t), motion.traj.dt
     lag = psi.copy()
     if cfg.heading_lag_s > 0:
         alpha = 1.0 - math.exp(-dt / cfg.heading_lag_s)
@@ -527,131 +650,109 @@ def real_drive(
         if not have[i]:
             drift[i] = drift[i - 1] + gyro_bias[i] * dt
             since[i] = since[i - 1] + dt
-    head = lag + h_err + drift
-
-    # ---- odometer: the length of the path driven (corners rounded), with a scale error
     scale = float(rng.normal(0.0, cfg.odo_scale_sigma))
-    driven = driven_distance(route, sb, cfg.corner_smooth_m)
+    driven = driven_distance(route, motion.s, cfg.corner_smooth_m)
     step_d = np.diff(driven, prepend=driven[0]) * (1.0 + scale)
-    odo = np.cumsum(step_d)
+    return _DeadReckoning(lag + h_err + drift, gyro_bias, since, scale, step_d, np.cumsum(step_d))
 
-    # ---- fused position: GPS, dead reckoning without it, the offset blended out on return
+
+def _fused_position(
+    tb: NDArray[np.float64], gps: _Gps, dr: _DeadReckoning, blend_keep: float
+) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """The fused position: GPS, dead reckoning without it, the offset blended out on return."""
+    n, have, head, step_d = len(tb), gps.have, dr.head, dr.step_d
     fx = np.empty(n)
     fy = np.empty(n)
     off_x = off_y = 0.0
     back_t = -1.0
-    keep_rate = math.log(cfg.blend_keep) if cfg.blend_keep > 0 else -np.inf
+    keep_rate = math.log(blend_keep) if blend_keep > 0 else -np.inf
     for i in range(n):
         if have[i]:
             if i > 0 and not have[i - 1]:  # GPS is back: remember the dead-reckoning offset
                 px = fx[i - 1] + step_d[i] * math.sin(head[i])
                 py = fy[i - 1] + step_d[i] * math.cos(head[i])
-                off_x, off_y = px - gps[i, 0], py - gps[i, 1]
+                off_x, off_y = px - gps.xy[i, 0], py - gps.xy[i, 1]
                 back_t = tb[i]
             w = math.exp(keep_rate * (1.0 + tb[i] - back_t)) if back_t >= 0 else 0.0
-            fx[i] = gps[i, 0] + w * off_x
-            fy[i] = gps[i, 1] + w * off_y
+            fx[i] = gps.xy[i, 0] + w * off_x
+            fy[i] = gps.xy[i, 1] + w * off_y
         elif i == 0:
-            fx[i], fy[i] = gps[i, 0], gps[i, 1]
+            fx[i], fy[i] = gps.xy[i, 0], gps.xy[i, 1]
         else:
             hm = head[i]
             fx[i] = fx[i - 1] + step_d[i] * math.sin(hm)
             fy[i] = fy[i - 1] + step_d[i] * math.cos(hm)
+    return fx, fy
 
-    # ---- reported σ
+
+def _reported_sigma(
+    tb: NDArray[np.float64],
+    have: NDArray[np.bool_],
+    dr: _DeadReckoning,
+    cfg: RealGpsConfig,
+    rng: np.random.Generator,
+) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
+    """The receiver's σ on the base grid, and the fused position's and heading's reported σ."""
+    n, dt = len(tb), 1.0 / BASE_RATE_HZ
     sig_gps = cfg.gps_sigma_m * np.exp(_gauss_markov(n, dt, cfg.gps_sigma_time_s, cfg.gps_sigma_var, rng))
     dist_out = np.zeros(n)  # metres driven without GPS
     for i in range(1, n):
         if not have[i]:
-            dist_out[i] = dist_out[i - 1] + step_d[i]
+            dist_out[i] = dist_out[i - 1] + dr.step_d[i]
     h_sig0 = math.radians(math.hypot(cfg.heading_noise_deg, cfg.heading_bias_deg))
     g_sig = math.radians(cfg.gyro_bias_dps)
     pos_sigma = np.sqrt(
         sig_gps**2
         + (cfg.odo_scale_sigma * dist_out) ** 2
         + (h_sig0 * dist_out) ** 2
-        + (g_sig * since * dist_out / 2) ** 2
+        + (g_sig * dr.since * dist_out / 2) ** 2
     )
-    head_sigma = np.degrees(np.hypot(h_sig0, g_sig * since))
+    return sig_gps, pos_sigma, np.degrees(np.hypot(h_sig0, g_sig * dr.since))
 
-    # ---- subsample to the output rate
-    step = max(1, round(BASE_RATE_HZ / float(rate_hz)))
-    idx = np.arange(0, n, step)
-    ot = tb[idx]
-    od = odo[idx]
-    dist = np.diff(od, prepend=od[0]) + np.where(
-        np.arange(len(idx)) > 0, rng.normal(0.0, cfg.odo_noise_m, len(idx)), 0.0
-    )
-    dist = np.maximum(dist, 0.0)
-    dt_out = step * dt
-    fused = FusedStream(
-        time=ot,
-        x=fx[idx],
-        y=fy[idx],
-        heading=np.degrees(head[idx]) % 360.0,
-        pos_sigma=pos_sigma[idx],
-        heading_sigma=head_sigma[idx],
-        speed=dist / dt_out,
-        distance=dist,
-        gps_valid=have[idx],
-    )
-    fixes = fixes_frame(graph, fused, vehicle_id=vid, time0=time0)
-    ts = sb[idx]
-    truth = truth_frame(
-        graph,
-        route,
-        TruthSamples(
-            time=ot + time0,
-            x=pos[idx, 0],
-            y=pos[idx, 1],
-            route_s=ts,
-            heading=np.degrees(psi[idx]) % 360.0,
-            speed=speed[idx],
-            gps_outage=~have[idx],  # injected outages and long track gaps
-        ),
-        vehicle_id=vid,
-    )
-    truth["truth_known"] = truth_known(route, fix_xy, t_fix, ot, config=cfg)
-    gll = to_lonlat(graph.crs, fix_xy[:, 0], fix_xy[:, 1])
-    gps_df = pd.DataFrame(
+
+def _gps_frame(
+    graph: RoadGraph, real: _RealFixes, fix_in_out: NDArray[np.bool_], time0: float
+) -> pd.DataFrame:
+    """The real fixes the fusion saw (NaN where an outage hides them)."""
+    gll = to_lonlat(graph.crs, real.xy[:, 0], real.xy[:, 1])
+    return pd.DataFrame(
         {
-            "time": t_fix + time0,
+            "time": real.t + time0,
             "lat": np.where(fix_in_out, np.nan, gll[:, 1]),
             "lon": np.where(fix_in_out, np.nan, gll[:, 0]),
-            "x": np.where(fix_in_out, np.nan, fix_xy[:, 0]),
-            "y": np.where(fix_in_out, np.nan, fix_xy[:, 1]),
-            "outlier": np.zeros(len(t_fix), dtype=int),
+            "x": np.where(fix_in_out, np.nan, real.xy[:, 0]),
+            "y": np.where(fix_in_out, np.nan, real.xy[:, 1]),
+            "outlier": np.zeros(len(real.t), dtype=int),
         }
     )
-    nan_fix = np.where(fix_in_out, np.nan, 1.0)
-    sensors = SensorData(
+
+
+def _sensor_data(
+    real: _RealFixes,
+    motion: _Motion,
+    gps: _Gps,
+    dr: _DeadReckoning,
+    sig_gps: NDArray[np.float64],
+    outs: tuple[tuple[float, float], ...],
+) -> SensorData:
+    """The raw sensors behind the fused drive (for the closed-loop filter)."""
+    t_fix, tb = real.t, motion.t
+    nan_fix = np.where(gps.fix_in_out, np.nan, 1.0)
+    return SensorData(
         gps_t=t_fix,
-        gps_x=fix_xy[:, 0] * nan_fix,
-        gps_y=fix_xy[:, 1] * nan_fix,
+        gps_x=real.xy[:, 0] * nan_fix,
+        gps_y=real.xy[:, 1] * nan_fix,
         gps_sigma=np.interp(t_fix, tb, sig_gps) * nan_fix,
-        gps_speed=np.interp(t_fix, tb, speed) * nan_fix,
+        gps_speed=np.interp(t_fix, tb, motion.speed) * nan_fix,
         gps_course=np.full(len(t_fix), np.nan),
         gps_outlier=np.zeros(len(t_fix), dtype=bool),
         gyro_t=tb,
-        gyro=yaw + gyro_bias,
+        gyro=motion.yaw + dr.gyro_bias,
         odo_t=tb,
-        odo=odo,
+        odo=dr.odo,
         compass_t=np.empty(0),
         compass=np.empty(0),
-        true_gyro_bias=gyro_bias,
-        true_odo_scale=scale,
-        outages=tuple(outs),
-    )
-    node_t = np.interp(route.node_distance(), sb, tb) + time0
-    return Drive(
-        route=route,
-        trajectory=traj,
-        sensors=sensors,
-        fused=fused,
-        fixes=fixes,
-        truth=truth,
-        gps=gps_df,
-        node_index=route.nodes(graph),
-        node_time=node_t,
-        outages=list(outs),
+        true_gyro_bias=dr.gyro_bias,
+        true_odo_scale=dr.scale,
+        outages=outs,
     )
