@@ -357,52 +357,27 @@ def evaluate(
     scoring
         The route tolerance, which nodes count, and whether corrections are scored too.
     """
-    for col in ("time", "edge"):
-        if col not in truth.columns:
-            raise ValidationError("truth", f"missing column {col!r}")
-    if "time" not in matched.columns:
-        raise ValidationError("matched", "missing column 'time'")
-    t_time = truth["time"].to_numpy(dtype=np.float64)
-    txy = _truth_xy(graph, truth)
-    t_edge = truth["edge"].to_numpy(dtype=np.int64)
-    outage = (
-        truth["gps_outage"].to_numpy(dtype=bool)
-        if "gps_outage" in truth.columns
-        else np.zeros(len(truth), bool)
-    )
-    m_edge = matched_edges_dense(graph, matched)
-    m_time = matched["time"].to_numpy(dtype=np.float64)
-    mi = align_by_time(t_time, m_time)
-    # per-fix edge rate over the truth rows (a truth row without a match counts as unmatched)
-    per_truth = np.full(len(truth), -1, dtype=np.int64)
-    ok = mi >= 0
-    per_truth[mi[ok]] = m_edge[ok]
-    correct = per_truth == t_edge
+    a = _aligned(graph, truth, matched)
+    correct, outage = a.per_truth == a.t_edge, a.outage
 
     def rate(mask: NDArray[np.bool_]) -> float:
         return float(correct[mask].mean()) if mask.any() else float("nan")
 
-    # junction sequences
-    tpath = list(truth_path) if truth_path is not None else edge_path(graph, t_edge, times=t_time)
-    mpath = edge_path(graph, m_edge, times=m_time)
+    tpath = list(truth_path) if truth_path is not None else edge_path(graph, a.t_edge, times=a.t_time)
+    mpath = edge_path(graph, a.m_edge, times=a.m_time)
     score = intersection_score(
         path_nodes(graph, tpath, junctions_only=scoring.junctions_only),
         path_nodes(graph, mpath, junctions_only=scoring.junctions_only),
     )
-    # geometry
-    if truth_xy is not None:
-        tgeo = np.asarray(truth_xy, dtype=np.float64)
-    else:
-        o0 = float(truth["offset"].iloc[0]) if "offset" in truth.columns else 0.0
-        o1 = float(truth["offset"].iloc[-1]) if "offset" in truth.columns else None
-        tgeo = path_geometry(graph, tpath, start_offset=o0, end_offset=o1)
+    tgeo = _truth_geometry(graph, truth, tpath, truth_xy)
     sxy = _snapped_xy(graph, matched)
-    rmf = route_mismatch(tgeo, _matched_geometry(graph, mpath, m_edge, sxy), tolerance_m=scoring.tolerance_m)
-    # snapped position error
+    mgeo = _matched_geometry(graph, mpath, a.m_edge, sxy)
+    rmf = route_mismatch(tgeo, mgeo, tolerance_m=scoring.tolerance_m)
+    ok, mi = a.mi >= 0, a.mi
     err = np.full(len(matched), np.nan)
-    err[ok] = np.hypot(*(sxy[ok] - txy[mi[ok]]).T)
+    err[ok] = np.hypot(*(sxy[ok] - a.txy[mi[ok]]).T)
     e = err[~np.isnan(err)]
-    fused_mean, fused_out = _fused_error(graph, fixes, t_time, txy, outage)
+    fused_mean, fused_out = _fused_error(graph, fixes, a.t_time, a.txy, outage)
     ncorr = _corrections(matched)
     corrected = None
     if scoring.with_corrections and ncorr:
@@ -420,7 +395,7 @@ def evaluate(
         correct_edge_rate=rate(np.ones(len(truth), dtype=bool)),
         correct_edge_rate_gps=rate(~outage),
         correct_edge_rate_outage=rate(outage),
-        unmatched_fraction=float((per_truth < 0).mean()) if len(truth) else float("nan"),
+        unmatched_fraction=float((a.per_truth < 0).mean()) if len(truth) else float("nan"),
         rmf=rmf,
         tolerance_m=scoring.tolerance_m,
         snap_error_mean=float(e.mean()) if len(e) else float("nan"),
@@ -431,6 +406,56 @@ def evaluate(
         corrections=ncorr,
         corrected=corrected,
     )
+
+
+@dataclass(frozen=True)
+class _Aligned:
+    """The truth's and the match's per-fix arrays, and for each matched row its truth row
+    (``mi``, -1: none) and for each truth row its matched edge (``per_truth``, -1: none)."""
+
+    t_time: NDArray[np.float64]
+    txy: NDArray[np.float64]
+    t_edge: NDArray[np.int64]
+    outage: NDArray[np.bool_]
+    m_edge: NDArray[np.int64]
+    m_time: NDArray[np.float64]
+    mi: NDArray[np.int64]
+    per_truth: NDArray[np.int64]
+
+
+def _aligned(graph: RoadGraph, truth: pd.DataFrame, matched: pd.DataFrame) -> _Aligned:
+    for col in ("time", "edge"):
+        if col not in truth.columns:
+            raise ValidationError("truth", f"missing column {col!r}")
+    if "time" not in matched.columns:
+        raise ValidationError("matched", "missing column 'time'")
+    t_time = truth["time"].to_numpy(dtype=np.float64)
+    outage = (
+        truth["gps_outage"].to_numpy(dtype=bool)
+        if "gps_outage" in truth.columns
+        else np.zeros(len(truth), bool)
+    )
+    m_edge = matched_edges_dense(graph, matched)
+    m_time = matched["time"].to_numpy(dtype=np.float64)
+    mi = align_by_time(t_time, m_time)
+    # a truth row without a match counts as unmatched
+    per_truth = np.full(len(truth), -1, dtype=np.int64)
+    ok = mi >= 0
+    per_truth[mi[ok]] = m_edge[ok]
+    t_edge = truth["edge"].to_numpy(dtype=np.int64)
+    return _Aligned(t_time, _truth_xy(graph, truth), t_edge, outage, m_edge, m_time, mi, per_truth)
+
+
+def _truth_geometry(
+    graph: RoadGraph, truth: pd.DataFrame, tpath: list[int], truth_xy: ArrayLike | None
+) -> NDArray[np.float64]:
+    """The true route's polyline: as given, else along the true path from the first fix's
+    offset to the last's."""
+    if truth_xy is not None:
+        return np.asarray(truth_xy, dtype=np.float64)
+    o0 = float(truth["offset"].iloc[0]) if "offset" in truth.columns else 0.0
+    o1 = float(truth["offset"].iloc[-1]) if "offset" in truth.columns else None
+    return path_geometry(graph, tpath, start_offset=o0, end_offset=o1)
 
 
 def _truth_xy(graph: RoadGraph, truth: pd.DataFrame) -> NDArray[np.float64]:
