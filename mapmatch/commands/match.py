@@ -297,10 +297,11 @@ def unmatched_counts(output: Path) -> list[tuple[str, int, int]]:
     import json
 
     import pandas as pd
-    import pyarrow.parquet as pq
 
     name = output.name.lower()
     if output.is_dir() or name.endswith((".parquet", ".geoparquet")):
+        import pyarrow.parquet as pq
+
         files = sorted(output.glob("part-*.parquet")) if output.is_dir() else [output]
         cols = ["track_id", "n_points", "n_unmatched"]
         rows = [r for f in files for r in pq.read_table(f, columns=cols).to_pylist()]
