@@ -21,6 +21,8 @@ from service_util import city, local_config, looped_track, requests, running, st
 from graph.artifact import save_map
 from service.gen import mapmatch_pb2 as pb
 
+pytestmark = pytest.mark.slow  # tracks of many thousand points, in worker processes that compile
+
 AMAP = city()
 OTHER = city(scale=12.0)
 BIG = 50_000  # the largest track these servers allow

@@ -86,6 +86,7 @@ def _stream_latencies(port: int, vehicle: str, stop: threading.Event, out: list[
     ch.close()
 
 
+@pytest.mark.slow  # the largest batch and track, again until the stream has had its samples
 def test_a_good_stream_keeps_its_latency_during_the_largest_batch_and_track():
     """Relative bounds only (a shared 2-core machine); the bench measures the figures."""
     cfg = local_config(max_batch_fixes=1000, max_track_points=20_000, max_answer_bytes=64 << 20)
