@@ -37,7 +37,9 @@ MONACO = OSM_DIR / "monaco.osm.pbf"
 
 def _env(cache: Path | None, tree: Path = ROOT) -> dict[str, str]:
     """The environment of a step: ``tree`` on the path; numba's cache in ``cache``, or (None)
-    numba's default, ``__pycache__`` next to the tree's sources."""
+    numba's default, ``__pycache__`` next to the tree's sources. Steps run with ``tree`` as
+    their working folder too: ``python -m`` puts the working folder first on the path, so run
+    from another clone it would import (and time) that clone's warm kernels."""
     env = dict(os.environ, PYTHONPATH=str(tree))
     env.pop("NUMBA_CACHE_DIR", None)
     env.pop("PYTHONPYCACHEPREFIX", None)
@@ -79,7 +81,7 @@ def demo(tree: Path, out: Path) -> tuple[float, float, float]:
     c0, t0 = _children_cpu(), time.perf_counter()
     proc = subprocess.Popen(
         [sys.executable, "-m", "mapmatch", "demo", "--out", str(out)],
-        env=_env(None, tree), stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True,
+        env=_env(None, tree), cwd=tree, stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True,
     )  # fmt: skip
     assert proc.stdout is not None
     table = float("nan")
@@ -107,7 +109,7 @@ def serve(cache: Path | None, map_path: Path, tree: Path = ROOT) -> tuple[float,
     proc = subprocess.Popen(
         [sys.executable, "-m", "mapmatch", "serve", "--map", f"mco={map_path}",
          "--address", f"127.0.0.1:{port}"],
-        env=_env(cache, tree), stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+        env=_env(cache, tree), cwd=tree, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
     )  # fmt: skip
     try:
         while check(f"127.0.0.1:{port}", timeout=0.5)[0] != 0:
@@ -131,9 +133,8 @@ def serve(cache: Path | None, map_path: Path, tree: Path = ROOT) -> tuple[float,
 def timed(tree: Path, *argv: str) -> tuple[float, float]:
     """Seconds (wall, CPU) of ``python -m mapmatch ARGV`` run from ``tree`` to its exit."""
     c0, t0 = _children_cpu(), time.perf_counter()
-    proc = subprocess.run(
-        [sys.executable, "-m", "mapmatch", *argv], env=_env(None, tree), capture_output=True, text=True
-    )
+    cmd = [sys.executable, "-m", "mapmatch", *argv]
+    proc = subprocess.run(cmd, env=_env(None, tree), cwd=tree, capture_output=True, text=True)
     if proc.returncode != 0:
         raise RuntimeError(f"mapmatch {argv[0]} exited with {proc.returncode}: {proc.stderr[-2000:]}")
     return time.perf_counter() - t0, _children_cpu() - c0
