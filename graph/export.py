@@ -9,8 +9,8 @@ simplification joins the pieces of an edge again. Coordinates are WGS84 lon/lat.
 
 Formats by suffix: ``.gpkg`` (layers ``roads`` then ``nodes``), ``.geojson``/``.json``,
 ``.fgb`` (FlatGeobuf) and ``.parquet`` (GeoParquet), the last three with ``roads`` only.
-Written to a temporary file, then renamed. The columns are documented in README.md
-("Map preparation").
+Written to a temporary file, then renamed. The columns are documented in ``docs/formats.md``
+("Exported roads").
 """
 
 from __future__ import annotations

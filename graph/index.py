@@ -15,6 +15,7 @@ import shapely
 from numba.extending import register_jitable
 from numpy.typing import ArrayLike, NDArray
 
+from graph.angles import bearing_compiled
 from graph.jit import njit, read_only
 from graph.road_graph import RoadGraph
 
@@ -205,7 +206,7 @@ def project_point(
         acc += seg
         ax, ay = bx, by
     off = min(r_off, length)
-    brg = math.degrees(math.atan2(r_dx, r_dy)) % 360.0 if (r_dx != 0.0 or r_dy != 0.0) else bearing0
+    brg = bearing_compiled(r_dx, r_dy) if (r_dx != 0.0 or r_dy != 0.0) else bearing0
     return off, math.sqrt(best), r_x, r_y, brg
 
 

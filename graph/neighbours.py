@@ -15,6 +15,7 @@ import numpy as np
 import shapely
 from numpy.typing import NDArray
 
+from graph.angles import angle_diffs, bearings
 from graph.index import EdgeIndex
 from graph.road_graph import RoadGraph
 
@@ -34,7 +35,7 @@ class Neighbours:
 
 
 def _bearing(d: NDArray[np.float64]) -> NDArray[np.float64]:
-    return np.asarray(np.degrees(np.arctan2(d[:, 0], d[:, 1])) % 360.0)
+    return bearings(d[:, 0], d[:, 1])
 
 
 def edge_neighbours(
@@ -80,7 +81,7 @@ def edge_neighbours(
     i, j, ea, eb = i[ok], j[ok], ea[ok], eb[ok]
     d = idx.seg_b - idx.seg_a
     brg = _bearing(d)
-    ang = np.abs((brg[j] - brg[i] + 180.0) % 360.0 - 180.0)
+    ang = np.abs(angle_diffs(brg[j], brg[i]))
     same = ang <= max_angle_deg
     opposite = ang >= 180.0 - max_angle_deg
     sel = same | opposite

@@ -17,6 +17,7 @@ from typing import Any, NamedTuple
 import numpy as np
 from numpy.typing import NDArray
 
+from graph.angles import bearings
 from graph.errors import GraphError
 from graph.keys import unique_inverse
 
@@ -151,11 +152,6 @@ def merge_repeats(values: Sequence[Any]) -> list[Any]:
         if not out or out[-1] != v:
             out.append(v)
     return out
-
-
-def bearing_deg(dx: NDArray[np.float64], dy: NDArray[np.float64]) -> NDArray[np.float64]:
-    """Compass bearing in degrees (0 = north/+y, 90 = east/+x) of vectors ``(dx, dy)``."""
-    return np.degrees(np.arctan2(dx, dy)) % 360.0
 
 
 def _csr(keys: NDArray[np.int64], n: int) -> tuple[NDArray[np.int64], NDArray[np.int32]]:
@@ -688,8 +684,8 @@ def _end_bearings(
     bad_e = np.hypot(de[:, 0], de[:, 1]) < 1e-9
     ds[bad_s] = dc[bad_s]
     de[bad_e] = dc[bad_e]
-    start[:] = bearing_deg(ds[:, 0], ds[:, 1])
-    end[:] = bearing_deg(de[:, 0], de[:, 1])
+    start[:] = bearings(ds[:, 0], ds[:, 1])
+    end[:] = bearings(de[:, 0], de[:, 1])
     return start, end
 
 

@@ -1,11 +1,12 @@
 """One thread's scratch memory for the compiled match: the kernels take their working arrays from
-it instead of allocating each (a small track's call made about a hundred allocations).
+it instead of allocating each (a call works with about a hundred arrays, and allocating
+them would take a good part of a small track's call).
 
 A bump allocator: :func:`reset` at the start of a call, then each ``take_*`` hands out the next
 free piece of a buffer. Nothing is freed within a call, so pieces never overlap; a call's
 pieces are overwritten by the next call of the same thread, so they must not outlive it (the
 answer is copied out by :func:`mapmatch.batch.run.pack`). When a buffer is used up the piece
-is allocated as before, and ``top`` still counts it, so the caller can grow the arena
+is allocated on its own instead, and ``top`` still counts it, so the caller can grow the arena
 (:meth:`Arena.grown`) for the next call.
 
 Also two ways around numba's
@@ -46,7 +47,7 @@ int64: Callable[[int], int] = np.int64  # type: ignore[assignment]
 """``np.int64``, typed for mypy as returning an ``int``. In a kernel, ``int64(0)`` is an int64
 where a plain ``0`` is the literal 0: a kernel handed a literal (directly, or through a variable
 that starts as one, as ``t = 1`` before a loop) is compiled once more for that value, a copy
-no call uses (15 of them took 15 s of the batch kernels' 78 s compile)."""
+no call uses, which only adds to the compile time."""
 
 
 class Arena(NamedTuple):
@@ -71,10 +72,10 @@ class Arena(NamedTuple):
         """A larger arena when the last call needed more than this one holds, else None.
 
         The part of each buffer the last call used is mapped in here, one write a page: a new
-        buffer's pages are otherwise mapped on first write, inside the next call (REAL
-        00000000 at 1 Hz: 9-21 ms for that call against 4 ms after). The same pages are
-        mapped, only earlier: at the end of the call that grew the arena, which takes longer
-        by about that much (on the 2-core machine, by 0.2-18 ms on the REAL tracks)."""
+        buffer's pages are otherwise mapped on first write, inside the next call, which then
+        takes several times as long as the calls after it. The same pages are mapped, only
+        earlier: at the end of the call that grew the arena, which takes longer by about that
+        much."""
         used = self.top.tolist()
         need = max(used)
         if need <= len(self.f8) or len(self.f8) >= MAX_ITEMS:
@@ -220,10 +221,10 @@ def _ref(typingctx: Any, x: Any) -> Any:
     it calls: one word passed instead of the value.
 
     numba passes a tuple by value, every array in it as seven words: a call with a few dozen
-    arrays copied over a kilobyte of stack per call (REAL 00000021 at 30 s: the Viterbi step's,
-    once or twice a fix). How long that copy takes depends on where the compile happened to
-    put the two copies in the frame: 4 KB apart, each load waited on the store before it (4K
-    aliasing), and the whole match took twice as long. Made once, before a loop of calls, the
+    arrays copies over a kilobyte of stack per call (the Viterbi step's, once or twice a fix).
+    How long that copy takes depends on where the compile happens to put the two copies in the
+    frame: 4 KB apart, each load waits on the store before it (4K aliasing), which can make
+    the whole match take twice as long. Made once, before a loop of calls, the
     copy is made once. The pointer is valid until the kernel that made it returns: only for
     the kernels it calls, never returned or stored. So ``ref`` must be called in that kernel,
     or in a function compiled into it (``inline="always"``, as

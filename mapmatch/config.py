@@ -94,8 +94,8 @@ class OnlineConfig:
     commit_separation_sigmas : a node passed is committed only once every other path through
         it within ``commit_hold_log_ratio`` log units of the best lies at least this many fix σ
         from the best (the branches of a fork at a small angle separate slowly; 0 disables it),
-        or the best is ``ambiguous_max_radius`` past the node. Off by default: 2 σ helps on
-        drawn 10° exits but not on the real Kubicka tracks (-0.01 points of correct road).
+        or the best is ``ambiguous_max_radius`` past the node. Off by default: it helps on
+        exits drawn at a small angle, not on real drives.
     commit_hold_log_ratio : see ``commit_separation_sigmas``.
     switch_penalty : log-probability penalty of jumping to a road the filter did not follow.
     soft_reinit_sigmas : the index is searched for other roads when the fix is further than this
@@ -129,9 +129,9 @@ class OnlineConfig:
     --------------
     dr_sigma_growth : fraction of distance travelled since the last GPS-aided fix added to σ.
     drift_decay_time : seconds over which the dead-reckoning drift σ decays once GPS is back.
-        A fusion filter whose covariance grew in the outage takes most of the first fix: 4 s
-        (20 s left the matcher trusting the dead-reckoned road for half a minute after the
-        return; on 5 REAL Kubicka tracks with outages 98.49 -> 98.73 % correct road).
+        A fusion filter whose covariance grew in the outage takes most of the first fix, so
+        the decay is short: a long one leaves the matcher trusting the dead-reckoned road long
+        after GPS is back.
 
     Stop line and nodes
     -------------------
@@ -147,8 +147,8 @@ class OnlineConfig:
     stop_hold_distance : metres; a vehicle that stops less than this past a node it went
         straight through (or has not yet turned at, by its heading) is placed before the node:
         vehicles stop at stop lines, not in junctions. About the fixes' along-track error:
-        further, the vehicle is more likely to have stopped past the node (8 m put vehicles
-        stopped 4-11 m past a node back before it on REAL GPS; 4 m does not).
+        further, the vehicle is more likely to have stopped past the node, and a longer hold
+        would put such vehicles back before it.
     node_hold_sigmas : a vehicle past a node goes back across it only when the fix lies more
         than this many σ before it (no flicker at a crossing).
     still_distance : metres; moving less than this between fixes, the vehicle stands.
@@ -207,32 +207,33 @@ class OnlineConfig:
     revise_sigmas : a revised crossing moves only as far as its anchor is this many σ sure.
     report_back_ratio : reporting an edge behind the one reported needs this much more mass.
 
-    Stops on real GPS (issue #12, with GPS valid)
-    ---------------------------------------------
+    Stops with GPS
+    --------------
     stop_hold_fix_distance : metres; the stop line holds a stopped vehicle back before a node
         only when the fix's own projection, too, lies less than this past the node (the
-        position believed may lag the fix by its along-track correction, 4-9 m on REAL GPS;
+        position believed may lag the fix by its along-track correction, several metres;
         where the vehicle stands, the fixes show; checked only on GPS-aided fixes with no
         dead-reckoning drift left above their own σ). 0: not checked.
 
-    Forks and parallel roads (issue #12, with GPS valid)
-    ----------------------------------------------------
+    Forks and parallel roads with GPS
+    ---------------------------------
     bias_emission : share of the learnt fix bias's part across the road taken off a GPS-aided
         fix's distance from each road when the paths are weighed: the receiver's error lasts
         minutes, so a fix that has lain 10 m left of the road is no evidence for the road
-        10 m to the left (0 disables it). Half: the learnt bias is an estimate (1 and 0.5 are
-        alike on REAL GPS; 1 made a single-fix flip that cost a SIMULATED 10 Hz drive a
-        quarter of its live intersections).
+        10 m to the left (0 disables it). Half: the learnt bias is an estimate, and taking all
+        of it off lets a single fix flip the road believed.
     commit_hold_probability : a node is not committed while the paths its commit would drop
         (another branch of a fork) still hold more than this share of the probability, until
         the best path is ``ambiguous_max_radius`` past it: leaving the ambiguous circle is no
         evidence (0 disables it).
+
     Fix rate and outages (rate-independent rules)
     ---------------------------------------------
     speed_time : seconds; the transition's speed penalty judges the distance along the path over
         at least this long. Between fixes 0.1 s apart the positions' own noise (a lagging
         estimate catching up with its fix, 10 m in one step) would read as an impossible speed,
-        which one second of the same motion is not: at 10 Hz the vehicle stuck behind a node.
+        which one second of the same motion is not: at 10 Hz the vehicle would stick behind a
+        node.
     stopped_heading_weight : a stopped vehicle's fused heading (a fix with ``heading_sigma``,
         gyro-aided, which holds at a standstill where a GPS course does not) scores the paths
         with this share of the fix's time weight, the share its distance weight leaves out: a
@@ -246,12 +247,11 @@ class OnlineConfig:
         that node while it lies within this many σ along the next edge (the fix's along-track
         noise); further on (and at 0, at once) the next edge takes it. Held there the position
         moves by nothing while the odometer moves on, which at 10 Hz is under a metre a step:
-        the transition over one step keeps it there until the fix is this far past (REAL 10 Hz
-        fixes 2.5-4 m past a straight crossing are reported before it 18-25 % of the time, 1 Hz
-        3-7 %). 0 gives 5 % and REAL correct road live 99.07 -> 99.12 % at 10 Hz, 99.14 ->
-        99.16 % at 1 Hz, but SIMULATED (white fix noise) -0.11 points of correct edge, -0.14
-        live (0.25: -0.04/-0.08 on Helsinki and Monaco): the hold stays until a rule tells the
-        noise at a node from the 10 Hz lag (was ``node_hold_sigmas``).
+        the transition over one step keeps it there until the fix is this far past. A high
+        fix rate's lagging position a few metres past a straight crossing is then at times
+        reported before it; at 0 the next edge takes it at once, but so does white fix noise
+        at a node, too early. The hold stays until a rule tells the noise at a node from the
+        lag.
     step_from_corrected : with GPS, the step from a hypothesis's place (where the along-track
         correction put it: the fix's projection less the learnt fix bias along the road, fused
         with the turn anchor) to a candidate point is judged to the point's place corrected
@@ -259,7 +259,7 @@ class OnlineConfig:
         which counts the offset between a projection and its corrected place against every
         step, ten times a second at 10 Hz). A place the path's turn stops short of its
         estimate pays by the correction's miss, and its step is judged to the estimate by the
-        same share. REAL live correct road 1 Hz 99.142 -> 99.148 %, 10 Hz 99.085 -> 99.143 %.
+        same share.
     """
 
     drift_rate: float = 0.04
@@ -340,11 +340,12 @@ class OnlineConfig:
     revise_sigmas: float = 1.0
     report_back_ratio: float = 3.0
 
-    # stops on real GPS (issue #12, with GPS valid)
+    # stops with GPS
     stop_hold_fix_distance: float = 4.0
-    # forks and parallel roads (issue #12, with GPS valid)
+    # forks and parallel roads with GPS
     commit_hold_probability: float = 0.05
     bias_emission: float = 0.5
+    # fix rate and outages
     speed_time: float = 1.0
     outage_separation_sigmas: float = 2.0
     node_hold_ahead_sigmas: float = 0.5
@@ -376,25 +377,19 @@ class BatchConfig:
         search counts turn costs as metres).
     route_speed : m/s; a route may also be as long as this speed allows over the time between
         its two fixes: where fixes are far apart in time the road may go far round (a dual
-        carriageway's turning point, a one-way loop, a logger gap). REAL Kubicka tracks, mean
-        RMF with 0 and with 25: one fix per 60 / 120 s 0.038 / 0.058 and 0.024 / 0.047; 10 and
-        30 s (all start offsets) the same; 1 Hz 0.0033 and 0.0031 (the logger gaps of
-        00000042). A fix the route can reach is visited: 30 s apart, a fix beside a side road
+        carriageway's turning point, a one-way loop, a logger gap). It matters most for sparse
+        tracks. A fix the route can reach is visited: 30 s apart, a fix beside a side road
         becomes a trip up it (with 0 the bound is the distance's alone and it is left out).
     beta_per_s : metres added to the model's β per second of the step's driving time: the
         time between its two fixes over the number of the track's fix intervals between them
         (a stop, whose fixes are interpolated, is not driving). The longer a vehicle drives
         between two fixes, the further round it may have gone, whatever the straight line.
-        REAL Kubicka tracks, all start offsets, mean RMF at 10 / 30 s: 0.0051 / 0.0148 with 0,
-        0.0042 / 0.0138 with 0.5; 1 Hz unchanged (from 1.0 on its median grows).
     turn_cost : metres a route pays for turning back at a node (a U-turn at a dead end); a
         turn by θ pays ``(1 - cos θ) / 2`` of it, a right angle half. Between two fixes the
         route with fewer and gentler turns wins over one of about the same length, as drivers
-        do. REAL Kubicka tracks, all start offsets, mean RMF at 10 / 30 s: 0.0042 / 0.0138 with
-        0, 0.0036 / 0.0114 with 20; one fix per 60 / 120 s 0.050 / 0.078 -> 0.038 / 0.058; 1 Hz
-        0.0031 -> 0.0033. From 25 on the 1 Hz figures get worse. A route's turn costs count as
-        metres wherever its length is used (the transition, the search bound, the speed
-        checks). A route table (:class:`~mapmatch.route_table.Ubodt`) holds one turn cost; a
+        do; too high a cost makes dense tracks' routes avoid the turns they took. A route's
+        turn costs count as metres wherever its length is used (the transition, the search
+        bound, the speed checks). A route table (:class:`~mapmatch.route_table.Ubodt`) holds one turn cost; a
         matcher uses it only for configs with that turn cost.
     gap_time : seconds; fixes further apart in time than this are matched as separate pieces
         (a parked vehicle, a logger switched off), however near they are (0: time never
@@ -411,7 +406,7 @@ class BatchConfig:
         count as standing.
     route_lp_cut : routes are searched only as a fallback beyond the travelled distance plus
         this many β (the base ``beta``, without ``beta_per_m``'s growth: a wider first search
-        costs time on dense maps and changed no REAL match).
+        costs time on dense maps without changing the matches).
     max_skip : fixes in a row that may be left out as unreachable outliers before the track is
         split.
     outlier_lookahead : 1: where a fix cannot be reached from the previous kept fix, also try
@@ -438,11 +433,9 @@ class BatchConfig:
     stop_uturn_time : ... of at least this many seconds, ...
     stop_uturn_penalty : ... across which turning round at a junction costs this U-turn
         penalty (turning round there, e.g. in a yard off the mapped road, is common; mid-road
-        U-turns keep the full penalty). REAL Kubicka tracks, every start offset, and the
-        SIMULATED noise and jump sets (522 runs): 0.5 and 0 gave the same answers, 1.0 three
-        runs of 00000070 worse (a car that stops in a turning loop and turns back at its
-        junction matched round the loop, RMF 0.0023 -> 0.0120) and no run better; one fix per
-        60 / 120 / 300 s the same. 0.5 keeps a small preference for driving on.
+        U-turns keep the full penalty). 0.5 keeps a small preference for driving on; much more
+        and a car that stops in a turning loop and turns back at its junction is matched round
+        the loop.
     split_speed : m/s; a step whose route is longer than the straight line between its fixes
         by more than this times its time (plus ``split_slack`` metres of noise) is impossible:
         the fix is left out as an outlier, or the match splits there (0 disables the check).
@@ -458,12 +451,10 @@ class BatchConfig:
         than this many of the step's β (the detour's cost in the transition's log-probability)
         is impossible, whatever the time allows: the fix is left out as an outlier, or the
         match splits there (0: no limit). A fix beside some road where the map ends (a car park,
-        an unmapped lane) is then not joined to the route by a long way round. REAL Kubicka
-        tracks: the costliest detour of a matched step is 17 (a U-turn's penalty comes on top),
-        and no answer changes from 0 to 20. On them with the roads at the true route's ends
-        removed (SIMULATED, ``bench/bench_batch_ends.py``), the mean road added at S = 1 / 10 /
-        30 s is 659 / 947 / 974 m with 0 and 156 / 503 / 921 m with 25; 20 adds less at 10 and
-        30 s but more of the SIMULATED noise and jump sets' mismatch at 10 s.
+        an unmapped lane) is then not joined to the route by a long way round. The default
+        lies above the detours true routes take (a U-turn's penalty comes on top), so it cuts
+        only the ways round a map that lacks the road (``bench/bench_batch_ends.py`` removes
+        the roads at a true route's ends to see how much road a match adds there).
     spike_speed : m/s; a fix the track reaches and leaves in opposite directions, both legs
         longer than ``spike_sigmas`` σ, is dropped as a jump when visiting it needs more than
         this mean speed between its neighbours (turning round needs slowing down; 0 disables).
@@ -482,8 +473,12 @@ class BatchConfig:
     thin_sigmas : a track whose own σ exceeds ``gps_sigma`` is thinned (as by
         ``interpolate_distance``) at this many times the excess: a worse receiver's fixes
         close together share their error, so they are less evidence than their number says
-        (0: never). Chosen on the REAL tracks with SIMULATED extra error of
-        ``bench/bench_batch_robust.py --sets noise`` (2, 4, 6, 10 tried); no REAL run changes.
+        (0: never; ``bench/bench_batch_robust.py --sets noise`` adds error to real tracks to
+        judge it).
+    track_pos_sigma_floor : metres; the least position σ of a fix's own accuracy (a reported σ near
+        zero would make one fix outweigh the whole track).
+    track_heading_sigma_floor_deg : the least heading σ (degrees) of a fix's own heading or of
+        the direction of travel.
     off_map_min_run : fewer fixes than this in a row with a road, between off-map fixes, are
         off the map too (a fix near some road amid a run off it is no evidence; 1 disables it).
     off_map_cut : metres; a run of fixes the route leaves out (off the map, or on roads the
@@ -493,43 +488,23 @@ class BatchConfig:
     off_map_cut_fixes : ... if the run has at least this many fixes ...
     off_map_cut_speed : ... and is no faster than this from its first fix to its last (m/s; 0:
         any speed, and the duration rule below takes any duration). Cars leave the mapped roads
-        slowly (car parks, lanes, yards); two or three fixes left out at
-        speed are a fast road's interchange or ramp with GPS trouble, where the route is the
-        better guess. Before, only off-map fixes counted, and two of them 200 m apart cut at any
-        speed. REAL GPS on maps less the roads at the true route's ends (SIMULATED,
-        ``bench/bench_batch_ends.py``), road added at S = 1 / 10 / 30 s: 156 / 434 / 560 m
-        before, 156 / 164 / 201 m now (Valhalla 162 / 111 / 591); REAL, every start offset at
-        10 s: 0.0036 as before, 0.0041 with 2 fixes and any speed (a highway interchange of
-        00000028 cut), 0.0038 at 20 m/s; SIMULATED multipath bursts (3 %) at 1 / 10 s: 0.0196 /
-        0.0374 before, 0.0097 / 0.0240 now (fast bursts off the map no longer cut). A run
-        also cuts where it lasts as long as ``off_map_cut`` takes at this speed (13.3 s) and,
+        slowly (car parks, lanes, yards); two or three fixes left out at speed are a fast
+        road's interchange or ramp with GPS trouble, or a multipath burst, where the route is
+        the better guess. A run also cuts where it lasts as long as ``off_map_cut`` takes at
+        this speed (13.3 s at the defaults) and,
         with its legs from the route's fix before it and back to the one after it, travels
         ``off_map_cut``: sparse fixes in a yard off the map travel little among themselves
         (three fixes 20 s apart, 70 m) while the time allows a way round; a car parked beside
-        the road, its fixes drifting off the map, is not cut (short legs). REAL GPS on maps
-        less the roads at the true route's ends (SIMULATED), road added at S = 1 / 10 / 30 s:
-        156 / 164 / 201 m without it, 156 / 179 / 126 m with it (a duration of 10 to 20 s
-        gives the same answers); every REAL answer at offset 0 is unchanged, and the mean RMF
-        over every start offset at 10 / 30 s (0.0036 / 0.0115), with 8 runs of 00000084 now in
-        pieces where the car parks in a yard off the map; SIMULATED bursts (3 %) at 10 s:
-        0.0240 -> 0.0254.
+        the road, its fixes drifting off the map, is not cut (short legs).
     off_map_bridge_slack : metres; a run ``off_map_cut`` does not cut (a fast one: GPS trouble
         on a road, where the route is the better guess) is bridged only by a route at most this
         much longer than the path through its fixes, from the fix before it to the one after (0:
         any route). Its fixes still tell where the car went: a route kilometres round, where the
         map lacks the road they follow, is not it; the step then fails, as a step no route
         reaches, and the route is cut there. The default is twice ``off_map_cut``: fixes that
-        far off a road on both sides of the run. REAL GPS on maps less the roads about the true
-        route's midpoint (SIMULATED, ``bench/bench_batch_ends.py --at middle``), road added at S
-        = 1 / 10 / 30 s: 141 / 1032 / 1227 m without it, 141 / 278 / 644 m with it; at the ends
-        (``--at ends``): 156 / 180 / 90 m without, 156 / 116 / 90 m with. Every REAL answer is
-        unchanged (also one fix a minute or more apart), and every run of the robustness sets
-        (phases, gaps, noise, jumps). Taking every run of one fix or more (not only runs that
-        ``off_map_cut`` would count) made the middle and ends at 30 s better (567 and 17 m) but
-        changed REAL answers (a gap run of 00000084 worse) and a SIMULATED noisy run of 00000056
-        at 30 s (0.010 -> 0.046): one or two sparse fixes do not trace a winding road. At 200 m
-        the middle at 10 s gave 199 m, but REAL 00000028 at 10 s was cut where its fixes lie up
-        to 195 m off the true route (every start offset: 0.0036 -> 0.0041).
+        far off a road on both sides of the run; a smaller slack would also cut where a
+        track's fixes lie far off its true route. Only runs of at least ``off_map_cut_fixes``
+        fixes are held to it: one or two sparse fixes do not trace a winding road.
     speed_limit_factor : where the map has speed limits (posted, or the default of the road's
         class), a step faster on average than this times the higher limit of its two roads ...
     speed_limit_penalty : ... costs this log-probability per m/s beyond (0 disables it; maps
@@ -545,12 +520,7 @@ class BatchConfig:
         length). A turn at a junction soon after the first fix, or soon before the last, leaves
         both legs straight: over a long leg it goes unseen, and the direction it gives would put
         the fix on the road turned onto, across the corner. At 1 Hz (legs of up to 30 m) the
-        end fixes keep it; at one fix every 10 or 30 s they do not. REAL, every start offset at
-        10 and 30 s: 4 of 210 runs better (00000091 and 00000014 at 30 s, the first fix), none
-        worse; one fix every 60 / 120 / 300 s: 4 of 45 better, none worse; offset 0 at S = 1 /
-        10 / 30, the gaps set and the SIMULATED ends, middle and noise sets: the same answers;
-        SIMULATED bursts: 1 of 60 runs better, 1 worse by 0.0001. 150 m gave the same figures
-        but for 2 of the sparse runs (00000077 at 60 and 120 s).
+        end fixes keep it; at one fix every 10 or 30 s they do not.
     """
 
     max_route_factor: float = 3.0
@@ -581,6 +551,8 @@ class BatchConfig:
     off_map_sigmas: float = 5.0
     track_sigma_max: float = 30.0
     thin_sigmas: float = 6.0
+    track_pos_sigma_floor: float = 0.5
+    track_heading_sigma_floor_deg: float = 1.0
     off_map_cut: float = 200.0
     off_map_cut_fixes: int = 3
     off_map_cut_speed: float = 15.0

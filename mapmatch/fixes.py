@@ -3,7 +3,7 @@
 Input columns: ``vehicle_id``, ``time``, ``lat``, ``lon``, ``heading`` and optional
 ``pos_sigma``, ``heading_sigma``, ``speed``, ``distance``, ``gps_valid``. Times are seconds
 (any epoch) or ISO 8601 timestamps. Empty cells are "not given". Output columns:
-:data:`RESULT_COLUMNS` (documented in README, "Online matching and ``mapmatch replay``").
+:data:`RESULT_COLUMNS` (documented in ``docs/formats.md``, "Online results").
 """
 
 from __future__ import annotations

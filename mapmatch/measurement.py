@@ -35,9 +35,11 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable
+from dataclasses import dataclass
 
 import numpy as np
 
+from graph.angles import angle_diff, bearing
 from graph.road_graph import RoadGraph
 from mapmatch.config import DEFAULT_CONFIG, MeasurementConfig
 from mapmatch.types import MapAidedMeasurement, State
@@ -104,51 +106,121 @@ def cross_track_sigma(
     return math.hypot(spread, config.map_sigma)
 
 
-def along_track_sigma(
-    *,
-    gps: bool,
-    fix_sigma: float,
-    bias_along_var: float,
-    white_share: float,
-    anchor_sd: float,
-    odo_sigma: float,
-    dr_distance: float,
-    gps_sigma: float,
-    config: MeasurementConfig = DEFAULT_MEASUREMENT,
-) -> float:
-    """1-σ of the matcher's position along the road, metres.
+@dataclass(slots=True)
+class AlongEvidence:
+    """What the matcher knows of the position along the road, for one answer.
 
-    Parameters
+    Attributes
     ----------
-    gps
+    gps : bool
         Whether the fix was GPS-aided.
-    fix_sigma
+    fix_sigma : float
         The fix's position σ as the matcher uses it (m).
-    bias_along_var
-        Variance of the learnt fix bias along the road (m²; NaN when not learnt).
-    white_share
+    bias_cov : tuple of float
+        The learnt fix bias covariance ``(Pxx, Pxy, Pyy)`` (m²; NaN when not learnt).
+    white_share : float
         The share of the fix's σ that is white (not learnt as bias).
-    anchor_sd
+    anchor_sd : float
         σ of the turn anchor carried by the odometer (m; NaN when none).
-    odo_sigma
+    odo_sigma : float
         σ of the odometer's relative distance error after its learnt scale.
-    dr_distance
+    dr_distance : float
         Odometer metres since the last GPS-aided fix.
-    gps_sigma
+    gps_sigma : float
         The σ of the along-track position when GPS was lost (m), used in dead reckoning
         without an anchor.
     """
+
+    gps: bool
+    fix_sigma: float
+    bias_cov: tuple[float, float, float]
+    white_share: float
+    anchor_sd: float
+    odo_sigma: float
+    dr_distance: float
+    gps_sigma: float
+
+
+@dataclass(slots=True)
+class Placement:
+    """Where an answer puts the vehicle.
+
+    Attributes
+    ----------
+    state : State
+        The matcher's state.
+    edge : int
+        The reported edge (-1: none).
+    offset : float
+        Metres along it.
+    lat, lon : float
+        The snapped point, WGS84 degrees.
+    bearing : float
+        The road's bearing there, degrees.
+    probability : float
+        The probability of the reported edge.
+    since_init : float
+        Odometer metres since the last (re)initialisation.
+    """
+
+    state: State
+    edge: int
+    offset: float
+    lat: float
+    lon: float
+    bearing: float
+    probability: float
+    since_init: float
+
+
+@dataclass(slots=True)
+class RoadTags:
+    """What the map says of the road under an answer; every field optional.
+
+    Attributes
+    ----------
+    width, lanes : float
+        The road's ``width`` and ``lanes`` tags (NaN: not tagged).
+    road_class : str or None
+        The class of the way piece under the point (default: the edge's).
+    one_way : bool or None
+        Whether the edge is one-way (default: from the graph).
+    bearing_at : BearingAt or None
+        As in :func:`heading_sigma`.
+    """
+
+    width: float = math.nan
+    lanes: float = math.nan
+    road_class: str | None = None
+    one_way: bool | None = None
+    bearing_at: BearingAt | None = None
+
+
+_NO_TAGS = RoadTags()
+
+
+def along_track_sigma(
+    evidence: AlongEvidence,
+    *,
+    bias_along_var: float,
+    config: MeasurementConfig = DEFAULT_MEASUREMENT,
+) -> float:
+    """1-σ of the matcher's position along the road, metres, from ``evidence``;
+    ``bias_along_var`` is the variance of the learnt fix bias along the road (m²; NaN when not
+    learnt)."""
+    ev = evidence
+    anchor_sd, fix_sigma = ev.anchor_sd, ev.fix_sigma
     va = anchor_sd * anchor_sd if math.isfinite(anchor_sd) else math.inf
-    if gps:
+    if ev.gps:
         vf = (
-            bias_along_var + (white_share * fix_sigma) ** 2
+            bias_along_var + (ev.white_share * fix_sigma) ** 2
             if math.isfinite(bias_along_var)
             else fix_sigma * fix_sigma
         )
         v = vf if math.isinf(va) else vf * va / (vf + va)
     else:
         # in σ, capped before squaring: a long carry must not overflow
-        carry = min(math.hypot(gps_sigma, odo_sigma * max(dr_distance, 0.0)), config.along_sigma_max)
+        carry = min(math.hypot(ev.gps_sigma, ev.odo_sigma * max(ev.dr_distance, 0.0)), config.along_sigma_max)
         v = min(va, carry * carry)
     return min(math.sqrt(v), config.along_sigma_max)
 
@@ -162,11 +234,11 @@ def _bearing_at(graph: RoadGraph, edge: int, offset: float) -> float:
         return float(graph.edge_bearing_start[edge])
     cum = np.cumsum(np.hypot(d[:, 0], d[:, 1]))
     i = min(int(np.searchsorted(cum, offset)), len(d) - 1)
-    return math.degrees(math.atan2(d[i, 0], d[i, 1])) % 360.0
+    return bearing(float(d[i, 0]), float(d[i, 1]))
 
 
 def _angle(a: float, b: float) -> float:
-    return abs((a - b + 180.0) % 360.0 - 180.0)
+    return abs(angle_diff(a, b))
 
 
 def heading_sigma(
@@ -186,8 +258,8 @@ def heading_sigma(
     length = float(graph.edge_len[edge])
     back, ahead = offset - along_sigma, offset + along_sigma
     # max(back, 0.0), min(ahead, length), _angle and max(_, _), inline (a per-fix path)
-    a = abs((here - at(edge, 0.0 if back < 0.0 else back) + 180.0) % 360.0 - 180.0)
-    b = abs((here - at(edge, length if length < ahead else ahead) + 180.0) % 360.0 - 180.0)
+    a = abs(angle_diff(here, at(edge, 0.0 if back < 0.0 else back)))
+    b = abs(angle_diff(here, at(edge, length if length < ahead else ahead)))
     bend = b if b > a else a
     node = config.node_heading_sigma if ahead > length else 0.0
     return math.sqrt(config.road_heading_sigma**2 + bend**2 + node**2)
@@ -195,59 +267,27 @@ def heading_sigma(
 
 def map_aided_measurement(
     graph: RoadGraph,
-    state: State,
-    edge: int,
-    offset: float,
-    lat: float,
-    lon: float,
-    bearing: float,
-    probability: float,
-    gps: bool,
-    fix_sigma: float,
-    bias_cov: tuple[float, float, float],
-    white_share: float,
-    anchor_sd: float,
-    odo_sigma: float,
-    dr_distance: float,
-    gps_sigma: float,
-    since_init: float,
+    placement: Placement,
+    evidence: AlongEvidence,
+    tags: RoadTags | None = None,
     *,
-    width: float = math.nan,
-    lanes: float = math.nan,
-    road_class: str | None = None,
-    one_way: bool | None = None,
-    bearing_at: BearingAt | None = None,
     config: MeasurementConfig = DEFAULT_MEASUREMENT,
 ) -> MapAidedMeasurement:
-    """The measurement of one answer, from what the matcher knows (see the module docstring).
-
-    ``state``/``edge``/``offset``/``lat``/``lon``/``bearing`` are the answer's; ``probability``
-    that of the reported edge; ``bias_cov`` the learnt fix bias covariance ``(Pxx, Pxy, Pyy)``
-    (m²; NaN when not learnt); ``since_init`` odometer metres since the last (re)initialisation;
-    ``width``/``lanes`` the road's tags when the map has them; ``road_class`` that of the way
-    piece under the point (default: the edge's); ``one_way`` whether the edge is one-way
-    (default: from the graph); ``bearing_at`` as in :func:`heading_sigma`.
-    The rest as in :func:`along_track_sigma`. The inputs may be given by position, in order (the
-    per-fix path does: a call of positional arguments plus twice its keywords over 30 goes
-    through a dict, 1 µs more); the options are keywords.
-    """
+    """The measurement of one answer, from what the matcher knows (see the module docstring):
+    where it puts the vehicle, what it knows along the road, and the road's tags."""
+    state, edge, offset = placement.state, placement.edge, placement.offset
+    lat, lon, bearing, probability = placement.lat, placement.lon, placement.bearing, placement.probability
+    tags = tags or _NO_TAGS
+    width, lanes, one_way = tags.width, tags.lanes, tags.one_way
     if edge < 0 or not math.isfinite(lat):
         return MapAidedMeasurement()
     rad = math.radians(bearing)
     tx, ty = math.sin(rad), math.cos(rad)  # along the road (east, north)
-    pxx, pxy, pyy = bias_cov
+    pxx, pxy, pyy = evidence.bias_cov
     along = along_track_sigma(
-        gps=gps,
-        fix_sigma=fix_sigma,
-        bias_along_var=tx * tx * pxx + 2.0 * tx * ty * pxy + ty * ty * pyy,
-        white_share=white_share,
-        anchor_sd=anchor_sd,
-        odo_sigma=odo_sigma,
-        dr_distance=dr_distance,
-        gps_sigma=gps_sigma,
-        config=config,
+        evidence, bias_along_var=tx * tx * pxx + 2.0 * tx * ty * pxy + ty * ty * pyy, config=config
     )
-    highway = graph.edge_highway(edge) if road_class is None else road_class
+    highway = graph.edge_highway(edge) if tags.road_class is None else tags.road_class
     if one_way is None:
         one_way = int(graph.edge_reverse[edge]) < 0
     if width != width and lanes != lanes:  # no tags: one σ per class and direction
@@ -266,7 +306,7 @@ def map_aided_measurement(
         reason = "off_road"
     elif state in _STARTING:
         reason = "initialising"
-    elif since_init < config.settle_distance:
+    elif placement.since_init < config.settle_distance:
         reason = "settling"
     elif state == _AMBIGUOUS and probability < config.resolved_probability:
         reason = "ambiguous"
@@ -283,7 +323,7 @@ def map_aided_measurement(
         along,
         cross,
         bearing,
-        heading_sigma(graph, edge, offset, along, config=config, bearing_at=bearing_at),
+        heading_sigma(graph, edge, offset, along, config=config, bearing_at=tags.bearing_at),
         probability,
         reason == "",
         reason,

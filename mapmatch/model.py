@@ -6,13 +6,15 @@ Transition: log p(c_t | c_{t-1}) = −|route_dist − travelled| / β (Newson & 
 travelled is the odometer distance when given, else the straight-line distance; minus a
 U-turn penalty and a speed-plausibility penalty; forbidden moves are −inf.
 
-Every function takes and returns numpy arrays, so the same code scores one fix's few
-candidates online and a whole track's lattice in batch.
+Each formula is written once, as a scalar function in plain float math: the online filter
+calls it as it is, the batch kernels call its compiled form, and the numpy wrappers
+(:func:`emission_logp`, :func:`transition_logp`, :func:`heading_kappa`) apply it over arrays.
 """
 
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -26,25 +28,43 @@ MAD_TO_SIGMA = 1.4826
 """σ of a normal distribution over the median of its absolute values (1 / Φ⁻¹(3/4))."""
 
 
+def heading_kappa_one(sigma_deg: float, floor_deg: float) -> float:
+    """Concentration κ of the heading term for a heading σ in degrees, floored at ``floor_deg``
+    (the one formula: :func:`heading_kappa`, the batch kernels and the online step call it)."""
+    return 1.0 / math.radians(max(sigma_deg, floor_deg)) ** 2
+
+
+heading_kappa_compiled = njit(cache=True)(heading_kappa_one)
+
+
 def heading_kappa(
     heading: ArrayLike, heading_sigma: ArrayLike, speed: ArrayLike, config: MatchConfig
 ) -> NDArray[np.float64]:
-    """Concentration κ of the heading term per fix: 0 where the heading is missing or not trusted."""
-    h = np.asarray(heading, dtype=np.float64)
-    s = np.where(
-        np.isnan(heading_sigma), config.model.heading_sigma, np.asarray(heading_sigma, dtype=np.float64)
+    """Concentration κ of the heading term per fix: 0 where the heading is missing or not
+    trusted (the batch matcher's rules: ``model.heading_sigma`` by default, floored at
+    ``batch.track_heading_sigma_floor_deg``)."""
+    h, s, v = np.broadcast_arrays(
+        np.asarray(heading, dtype=np.float64),
+        np.asarray(heading_sigma, dtype=np.float64),
+        np.asarray(speed, dtype=np.float64),
     )
-    s = np.maximum(s, 1.0)
-    k = 1.0 / np.radians(s) ** 2
-    v = np.asarray(speed, dtype=np.float64)
+    s = np.where(np.isnan(s), config.model.heading_sigma, s)
+    k = _vector(heading_kappa_one)(s, config.batch.track_heading_sigma_floor_deg)
     slow = ~np.isnan(v) & (v < config.model.heading_min_speed)
-    return np.where(np.isnan(h) | slow, 0.0, k)
+    return np.asarray(np.where(np.isnan(h) | slow, 0.0, k), dtype=np.float64)
+
+
+def _vector(f: Callable[..., float]) -> Callable[..., NDArray[np.float64]]:
+    """The scalar model function ``f`` over arrays (broadcast), for the numpy wrappers."""
+    return np.vectorize(f, otypes=[np.float64])  # type: ignore[return-value]
 
 
 def position_sigma(pos_sigma: ArrayLike, config: MatchConfig) -> NDArray[np.float64]:
-    """σ in metres per fix: the fix's own accuracy, or the configured default."""
+    """σ in metres per fix: the fix's own accuracy (floored at ``batch.track_pos_sigma_floor``), or
+    the configured default."""
     s = np.asarray(pos_sigma, dtype=np.float64)
-    return np.where(np.isnan(s) | (s <= 0), config.model.gps_sigma, np.maximum(s, 0.5))
+    floored = np.maximum(s, config.batch.track_pos_sigma_floor)
+    return np.where(np.isnan(s) | (s <= 0), config.model.gps_sigma, floored)
 
 
 def track_sigma(nearest: NDArray[np.float64], sigma: float, most: float) -> float:
@@ -81,20 +101,19 @@ def emission_logp(
     kappa
         Heading concentration from :func:`heading_kappa` (0 disables the heading term).
     """
-    d = np.asarray(dist, dtype=np.float64)
-    s = np.asarray(sigma, dtype=np.float64)
-    k = np.asarray(kappa, dtype=np.float64)
-    dh = np.radians(np.asarray(heading, dtype=np.float64) - np.asarray(bearing, dtype=np.float64))
-    head = np.where(k > 0, k * (np.cos(dh) - 1.0), 0.0)
-    return -0.5 * (d / s) ** 2 - np.log(s) + np.nan_to_num(head, nan=0.0)
+    return _vector(emission_one)(dist, sigma, heading, bearing, kappa)
 
 
 def emission_one(dist: float, sigma: float, heading: float, bearing: float, kappa: float) -> float:
-    """:func:`emission_logp` for one candidate in plain float math (the online hot path);
-    :func:`emission_logp_one` is the same function compiled."""
+    """The emission log-probability of one candidate (unnormalised), in plain float math: the
+    one formula, which the online hot path calls as it is, the batch kernels compiled
+    (:func:`emission_logp_one`) and :func:`emission_logp` over arrays. The heading term counts
+    where it is known and finite."""
     head = 0.0
     if kappa > 0.0 and not math.isnan(heading):
-        head = kappa * (math.cos(math.radians(heading - bearing)) - 1.0)
+        t = kappa * (math.cos(math.radians(heading - bearing)) - 1.0)
+        if math.isfinite(t):
+            head = t
     return -0.5 * (dist / sigma) ** 2 - math.log(sigma) + head
 
 
@@ -145,15 +164,15 @@ def transition_logp(
     uturn
         True where the move reverses direction on the same road.
     """
-    r = np.asarray(route_dist, dtype=np.float64)
-    d = np.asarray(travelled, dtype=np.float64)
-    lp = -np.abs(r - d) / (config.model.beta + config.model.beta_per_m * d)
-    t = np.asarray(dt, dtype=np.float64)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        v = np.where((t > 0) & np.isfinite(r), r / np.where(t > 0, t, 1.0), 0.0)
-    lp = lp - config.model.speed_penalty * np.maximum(v - config.model.max_speed, 0.0)
-    lp = lp - config.model.uturn_penalty * np.asarray(uturn, dtype=np.float64)
-    return np.where(np.isfinite(r), lp, NEG_INF)
+    m = config.model
+
+    def one(r: float, d: float, t: float, u: bool) -> float:
+        if not math.isfinite(r):
+            return NEG_INF
+        lp = transition_one(r, d, t, m.beta, m.beta_per_m, m.max_speed, m.speed_penalty)
+        return lp - m.uturn_penalty if u else lp
+
+    return _vector(one)(route_dist, travelled, dt, uturn)
 
 
 def normalise_log(lp: ArrayLike) -> NDArray[np.float64]:

@@ -9,7 +9,7 @@ the batch matcher needs between the candidates of consecutive fixes:
   bound per source, see ``mapmatch.batch``);
 * :class:`mapmatch.route_table.Ubodt`: an FMM-style upper-bounded origin-destination table,
   precomputed once per map for a bound in metres, then looked up (``bench/bench_batch.py
-  --routing`` measures both).
+  --routing`` compares the two).
 
 The moves come from the map's table of legal moves (:mod:`graph.rules`, policy
 ``"dead_end"``: turning back at a node only at a dead end); a U-turn along the road is a
@@ -41,9 +41,9 @@ class RouteGraph(NamedTuple):
     :func:`_search_toward`). ``move_cost`` is each move's turn cost in metres, added to the
     route's length (:func:`turn_costs`).
 
-    Keep it at six arrays: with the start and end positions as two arrays (seven in all) every
-    batch call took about 20 % longer (interleaved A/B, REAL Kubicka tracks), as a thirteenth
-    :class:`~mapmatch.batch.arrays.Lattice` array did.
+    Keep it at six arrays (the start and end positions in one): the compiled batch calls are
+    sensitive to the number of arrays in the tuples they are handed, and each array added
+    slows every call, as one added to :class:`~mapmatch.batch.arrays.Lattice` does.
     """
 
     move_ptr: NDArray[np.int64]

@@ -13,13 +13,8 @@ import math
 import numpy as np
 from numpy.typing import NDArray
 
+from graph.angles import angle_diff, angle_diffs
 from mapmatch.types import Turn
-
-
-def angle_diff(a: float, b: float) -> float:
-    """Signed smallest difference ``a - b`` of two angles in degrees, in (-180, 180]."""
-    d = (a - b + 180.0) % 360.0 - 180.0
-    return 180.0 if d == -180.0 else d
 
 
 def add_sample(
@@ -120,7 +115,7 @@ def align_headings(
     w = np.minimum(np.diff(odo, prepend=odo[0] - correlation), correlation) / correlation
     shifts = np.arange(-search, search + 0.5 * resolution, resolution)
     s = odo[None, :] + offset + shifts[:, None]
-    d = (head[None, :] - np.interp(s, knots[0], knots[1]) + 180.0) % 360.0 - 180.0
+    d = angle_diffs(head[None, :], np.interp(s, knots[0], knots[1]))
     sq = d * d
     cost = (sq * w).sum(axis=1) / (2.0 * heading_sigma**2)
     best = int(np.argmin(cost))

@@ -165,7 +165,7 @@ class Correction:
 class MapAidedMeasurement:
     """What a fusion node may feed back into its filter: the position on the road believed.
 
-    See README, "For fusion-node developers: the map-aided measurement" (built by
+    See ``docs/fusion.md``, "The measurement" (built by
     :func:`mapmatch.measurement.map_aided_measurement`).
 
     Attributes

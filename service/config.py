@@ -50,6 +50,18 @@ MAPMATCH_CHECKPOINT_INTERVAL  --checkpoint-interval S     seconds between checkp
 MAPMATCH_STORE_TIMEOUT        --store-timeout SECONDS     bound of a look-up (0.1)
 ============================  ==========================  =================================
 
+Identities and caps (:mod:`service.auth`):
+
+=================================  ==============================  ==========================
+environment variable               flag                            meaning
+=================================  ==============================  ==========================
+MAPMATCH_IDENTITIES                --identities FILE               credentials (off)
+MAPMATCH_MAX_IDENTITY_SESSIONS     --max-identity-sessions N       sessions per identity
+MAPMATCH_MAX_IDENTITY_STREAMS      --max-identity-streams N        streams per identity
+MAPMATCH_MAX_WATCH_PER_CONNECTION  --max-watch-per-connection N    health Watch per connection
+MAPMATCH_MAX_WATCH_TOTAL           --max-watch-total N             health Watch in all
+=================================  ==============================  ==========================
+
 The TOML file uses the attribute names of :class:`ServerConfig` (``-`` or ``_``), maps as a
 table of ``name = "path"``; relative paths are taken from the file's folder::
 
@@ -100,7 +112,22 @@ class ServerConfig:
     client_ca : Path or None
         PEM CA bundle; when set, clients must present a certificate it signed (mutual TLS).
     token : str or None
-        When set, every call except health checks needs ``authorization: Bearer <token>``.
+        When set, every call except health checks needs ``authorization: Bearer <token>``;
+        that token is the operator (:mod:`service.auth`).
+    identities : Path or None
+        The identities file (TOML or JSON): vehicle and operator credentials, tokens stored
+        as SHA-256; under mutual TLS a client certificate's name selects one. Read again on
+        SIGHUP and when it changes. With neither this nor ``token``, every call is allowed.
+    max_identity_sessions : int
+        Live sessions one vehicle identity may hold (its own ``max_sessions`` in the
+        identities file overrides it; an operator has no quota unless it has its own); one
+        more gives RESOURCE_EXHAUSTED naming ``max_identity_sessions``.
+    max_identity_streams : int
+        Streams (``StreamFixes``, ``StreamFixBatches``, ``MatchTracks``) one vehicle identity
+        may have open at once (its own ``max_streams`` overrides it; operators as above).
+    max_watch_per_connection, max_watch_total : int
+        Health ``Watch`` calls open at once on one connection, and in all; more are refused
+        with RESOURCE_EXHAUSTED.
     max_sessions : int
         Live sessions over all maps; a new vehicle beyond it gets RESOURCE_EXHAUSTED.
     session_ttl : float
@@ -183,6 +210,11 @@ class ServerConfig:
     tls_key: Path | None = None
     client_ca: Path | None = None
     token: str | None = field(default=None, repr=False)
+    identities: Path | None = None
+    max_identity_sessions: int = 10_000
+    max_identity_streams: int = 256
+    max_watch_per_connection: int = 16
+    max_watch_total: int = 1000
     max_sessions: int = 100_000
     session_ttl: float = 600.0
     max_message_bytes: int = 4 * 1024 * 1024
@@ -232,7 +264,8 @@ class ServerConfig:
             raise ConfigError("token must not be empty")
         for name in ("max_batch_fixes", "max_track_points", "max_answer_bytes", "max_vehicle_id",
                      "online_workers", "batch_slice", "max_map_bytes", "load_memory_bytes",
-                     "processes"):  # fmt: skip
+                     "processes", "max_identity_sessions", "max_identity_streams",
+                     "max_watch_per_connection", "max_watch_total"):  # fmt: skip
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, int) or v < 1:
                 raise ConfigError(f"{name} must be a positive integer, got {v!r}")
@@ -295,6 +328,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--client-ca", type=Path, help="PEM CA: require client certs [MAPMATCH_CLIENT_CA]")
     parser.add_argument("--token", help="required bearer token [MAPMATCH_TOKEN]")
     parser.add_argument("--token-file", type=Path, help="file holding the bearer token [MAPMATCH_TOKEN_FILE]")
+    parser.add_argument(
+        "--identities",
+        type=Path,
+        help="vehicle/operator credentials, TOML or JSON, reloaded on SIGHUP [MAPMATCH_IDENTITIES]",
+    )
     parser.add_argument("--max-sessions", type=int, help="live sessions [MAPMATCH_MAX_SESSIONS; 100000]")
     parser.add_argument("--session-ttl", type=float, help="idle session seconds [MAPMATCH_SESSION_TTL; 600]")
     parser.add_argument("--max-message-bytes", type=int, help="largest request [MAPMATCH_MAX_MESSAGE_BYTES]")
@@ -356,6 +394,14 @@ _LIMIT_FLAGS: tuple[tuple[str, type, str], ...] = (
     ("--batch-nice", int, "lower CPU priority of those, 0-19 [MAPMATCH_BATCH_NICE; 10]"),
     ("--checkpoint-interval", float, "seconds between checkpoints [MAPMATCH_CHECKPOINT_INTERVAL; 1]"),
     ("--store-timeout", float, "seconds a look-up in the store may take [MAPMATCH_STORE_TIMEOUT; 0.1]"),
+    ("--max-identity-sessions", int, "sessions per identity [MAPMATCH_MAX_IDENTITY_SESSIONS; 10000]"),
+    ("--max-identity-streams", int, "open streams per identity [MAPMATCH_MAX_IDENTITY_STREAMS; 256]"),
+    (
+        "--max-watch-per-connection",
+        int,
+        "health Watch calls per connection [MAPMATCH_MAX_WATCH_PER_CONNECTION; 16]",
+    ),
+    ("--max-watch-total", int, "health Watch calls in all [MAPMATCH_MAX_WATCH_TOTAL; 1000]"),
 )
 _NUMBERS: dict[str, type[int] | type[float]] = {
     "max_sessions": int,
@@ -365,7 +411,7 @@ _NUMBERS: dict[str, type[int] | type[float]] = {
     "grace": float,
     **{f[2:].replace("-", "_"): k for f, k, _ in _LIMIT_FLAGS},
 }
-_PATHS = ("tls_cert", "tls_key", "client_ca", "map_dir")
+_PATHS = ("tls_cert", "tls_key", "client_ca", "map_dir", "identities")
 _BOOLS = ("reuse_port", "inline_fixes")
 _FIELDS = {f.name for f in dataclasses.fields(ServerConfig)}
 

@@ -7,8 +7,9 @@ and hooks, but a streamed message passes through one wrapper, not one per concer
   with method, peer, status, duration, message counts, the method's running call count and,
   for bidirectional streams, per-message latency (p50/max); ``json`` gives one JSON object
   per line.
-* :class:`AuthInterceptor`: when a token is configured, every call but health checks needs
-  the metadata ``authorization: Bearer <token>``; otherwise UNAUTHENTICATED.
+* :class:`AuthInterceptor`: the caller's identity (bearer token or client certificate) and
+  the method's rule (:mod:`service.auth`): UNAUTHENTICATED or PERMISSION_DENIED; per-identity
+  stream quotas; health ``Watch`` calls capped per connection and in all.
 * :class:`StatusInterceptor`: exceptions become precise statuses
   (:func:`service.errors.status_for`), the offending field named in the details and in the
   trailing metadata key ``mapmatch-field``; a request whose bytes do not decode gets
@@ -19,7 +20,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
-import hmac
+import dataclasses
 import inspect
 import json
 import logging
@@ -34,17 +35,18 @@ import grpc
 from grpc import aio
 
 from mapmatch.errors import ValidationError
-from service.errors import log_internal, status_for
+from service.auth import CALLER, AccessError, Identity, IdentityTable, Quotas, Rule, check_vehicle, rule_for
+from service.errors import LimitError, log_internal, status_for
 
 log = logging.getLogger("mapmatch.access")
 
 FIELD_METADATA_KEY = "mapmatch-field"
-HEALTH_PREFIX = "/grpc.health.v1.Health/"
 LATENCY_RING = 512  # per-message latencies a stream's access-log line is drawn from
 
 __all__ = [
     "FIELD_METADATA_KEY",
     "AccessLogInterceptor",
+    "AccessSettings",
     "AuthInterceptor",
     "Chain",
     "Metrics",
@@ -209,28 +211,151 @@ class _Call:
 
 
 # ---------------------------------------------------------------------------------- auth
+@dataclasses.dataclass(frozen=True, slots=True)
+class AccessSettings:
+    """What :class:`AuthInterceptor` enforces.
+
+    Attributes
+    ----------
+    table : IdentityTable
+        The credentials accepted (none configured: every call is allowed).
+    quotas : Quotas or None
+        Per-identity stream and session quotas.
+    max_watch_per_connection, max_watch_total : int
+        Concurrent health ``Watch`` calls on one connection, and in all.
+    """
+
+    table: IdentityTable
+    quotas: Quotas | None
+    max_watch_per_connection: int = 16
+    max_watch_total: int = 1000
+
+
+class _Access:
+    """One call's caller and rule (the state of :class:`AuthInterceptor`)."""
+
+    __slots__ = ("caller", "rule")
+
+    def __init__(self, caller: Identity | None, rule: Rule) -> None:
+        self.caller = caller
+        self.rule = rule
+
+
 class AuthInterceptor(_Wrapping):
-    """Bearer-token authentication (health checks are always allowed)."""
+    """Identities and roles (:mod:`service.auth`), quotas, and the cap on health ``Watch``.
 
-    def __init__(self, *, token: str) -> None:
-        self._expected = f"Bearer {token}".encode()
+    Each call's identity comes from its bearer token or its client certificate; the method's
+    :data:`~service.auth.METHOD_RULES` entry decides. A unary request naming a vehicle is
+    checked here; the fixes of a stream are checked by the servicer, which reads the caller
+    from :data:`service.auth.CALLER`.
+    """
 
-    def authorised(self, details: grpc.HandlerCallDetails) -> bool:
-        if details.method.startswith(HEALTH_PREFIX):
-            return True
+    def __init__(self, settings: AccessSettings) -> None:
+        self.settings = settings
+        self.table = settings.table
+        self.quotas = settings.quotas
+        self._watch_lock = threading.Lock()
+        self._watch: dict[str, int] = {}
+        self._watch_total = 0
+
+    def identify(self, details: grpc.HandlerCallDetails, context: aio.ServicerContext) -> Identity | None:
+        """The caller's identity, or None when it has no (known) credential."""
         for key, value in details.invocation_metadata or ():
             if key == "authorization":
                 v = value.encode() if isinstance(value, str) else value
-                return hmac.compare_digest(v, self._expected)
-        return False
+                if v[:7].lower() != b"bearer ":
+                    return None
+                return self.table.by_token(v[7:].strip())
+        return self.table.by_names(_cert_names(context))
 
     @contextlib.asynccontextmanager
     async def around(
         self, details: grpc.HandlerCallDetails, context: aio.ServicerContext
+    ) -> AsyncIterator[_Access | None]:
+        rule = rule_for(details.method)
+        if rule.open:
+            async with self._watch_slot(details, context):
+                yield None
+            return
+        if not self.table.enabled:
+            yield None
+            return
+        caller = self.identify(details, context)
+        if caller is None:
+            await context.abort(grpc.StatusCode.UNAUTHENTICATED, str(AccessError.unauthenticated()))
+        assert caller is not None
+        if rule.operator_only and not caller.operator:
+            method = details.method.rsplit("/", 1)[-1]
+            await context.abort(grpc.StatusCode.PERMISSION_DENIED, str(AccessError.operator(method)))
+        counted = rule.stream and self.quotas is not None
+        if counted:
+            assert self.quotas is not None
+            try:
+                self.quotas.open_stream(caller)
+            except LimitError as exc:
+                await context.abort(grpc.StatusCode.RESOURCE_EXHAUSTED, str(exc))
+        token = CALLER.set(caller)
+        try:
+            yield _Access(caller, rule)
+        finally:
+            if counted:
+                assert self.quotas is not None
+                self.quotas.close_stream(caller)
+            with contextlib.suppress(ValueError):  # a generator finalised in another context
+                CALLER.reset(token)
+
+    def request(self, state: _Access | None, req: Any) -> Any:
+        if state is None or state.rule.vehicle_field is None:
+            return req
+        vid = getattr(req, state.rule.vehicle_field, None)
+        if isinstance(vid, str):
+            check_vehicle(state.caller, vid, state.rule.vehicle_field)
+        return req
+
+    @contextlib.asynccontextmanager
+    async def _watch_slot(
+        self, details: grpc.HandlerCallDetails, context: aio.ServicerContext
     ) -> AsyncIterator[None]:
-        if not self.authorised(details):
-            await context.abort(grpc.StatusCode.UNAUTHENTICATED, "missing or invalid bearer token")
-        yield
+        """Health ``Watch`` calls are capped per connection (peer) and in all."""
+        if not details.method.endswith("/Watch"):
+            yield
+            return
+        peer = context.peer()
+        s = self.settings
+        with self._watch_lock:
+            n = self._watch.get(peer, 0)
+            full = n >= s.max_watch_per_connection or self._watch_total >= s.max_watch_total
+            if not full:
+                self._watch[peer] = n + 1
+                self._watch_total += 1
+        if full:
+            limit = "max_watch_total" if n < s.max_watch_per_connection else "max_watch_per_connection"
+            await context.abort(
+                grpc.StatusCode.RESOURCE_EXHAUSTED, f"{limit}: too many health Watch calls open"
+            )
+        try:
+            yield
+        finally:
+            with self._watch_lock:
+                self._watch_total -= 1
+                left = self._watch.get(peer, 1) - 1
+                if left > 0:
+                    self._watch[peer] = left
+                else:
+                    self._watch.pop(peer, None)
+
+
+def _cert_names(context: aio.ServicerContext) -> list[str]:
+    """The common name and subject alternative names of the client certificate, if any."""
+    try:
+        auth = context.auth_context()
+    except Exception:  # no transport security
+        return []
+    out: list[str] = []
+    for key in ("x509_common_name", "x509_subject_alternative_name"):
+        for v in auth.get(key, ()):
+            out.append(v.decode("utf-8", "replace") if isinstance(v, bytes) else str(v))
+    return out
 
 
 # ---------------------------------------------------------------------------------- status mapping
@@ -432,10 +557,11 @@ def _code_name(context: aio.ServicerContext) -> str:
     return str(code) if code is not None else "UNKNOWN"
 
 
-def interceptors(*, token: str | None, metrics: Metrics, log_format: str) -> list[aio.ServerInterceptor]:
+def interceptors(*, access: AccessSettings, metrics: Metrics, log_format: str) -> list[aio.ServerInterceptor]:
     """The server's interceptors: one :class:`Chain` of the concerns, outermost first."""
-    concerns: list[_Wrapping] = [AccessLogInterceptor(metrics=metrics, log_format=log_format)]
-    if token:
-        concerns.append(AuthInterceptor(token=token))
-    concerns.append(StatusInterceptor())
+    concerns: list[_Wrapping] = [
+        AccessLogInterceptor(metrics=metrics, log_format=log_format),
+        AuthInterceptor(access),
+        StatusInterceptor(),
+    ]
     return [Chain(concerns)]

@@ -44,12 +44,13 @@ from grpc_reflection.v1alpha import reflection
 from graph.road_graph import RoadGraph
 from mapmatch.errors import ConfigError
 from mapmatch.extras import MissingExtraError
+from service.auth import IdentityTable, Quotas
 from service.batch_workers import BatchWorkers, MapFile, TrackLimits
 from service.config import ServerConfig
 from service.errors import MapLoadError
 from service.gen import mapmatch_pb2 as pb
 from service.gen import mapmatch_pb2_grpc as pb_grpc
-from service.interceptors import Metrics, interceptors
+from service.interceptors import AccessSettings, Metrics, interceptors
 from service.maps import MapRegistry, is_map_file, load_map_file, warm_batch, warm_up
 from service.servicer import SERVICE_NAME, MapMatchServicer, OnlineQueue, load_limits
 from service.sessions import SessionStore
@@ -96,6 +97,10 @@ class ServiceRuntime:
         )
         self.metrics = Metrics()
         self.credentials = _credentials(config)
+        self.identities = IdentityTable(path=config.identities, token=config.token)
+        self.quotas = Quotas(
+            max_sessions=config.max_identity_sessions, max_streams=config.max_identity_streams
+        )
         self.servicer = MapMatchServicer(
             maps=registry,
             sessions=self.sessions,
@@ -105,6 +110,7 @@ class ServiceRuntime:
             config=config,
             on_maps_changed=self.maps_changed,
         )
+        self.servicer.quotas = self.quotas
         self.port = 0
         self.loop: asyncio.AbstractEventLoop | None = None
         self.thread: threading.Thread | None = None
@@ -179,8 +185,16 @@ class ServiceRuntime:
             ("grpc.keepalive_permit_without_calls", 1),
             ("grpc.http2.min_ping_interval_without_data_ms", 10_000),
         ]
+        access = AccessSettings(
+            table=self.identities,
+            quotas=self.quotas,
+            max_watch_per_connection=cfg.max_watch_per_connection,
+            max_watch_total=cfg.max_watch_total,
+        )
+        if not self.identities.enabled:
+            log.warning("no --token and no --identities: every client may call every method")
         srv = aio.server(
-            interceptors=interceptors(token=cfg.token, metrics=self.metrics, log_format=cfg.log_format),
+            interceptors=interceptors(access=access, metrics=self.metrics, log_format=cfg.log_format),
             options=options,
         )
         add_servicer(self.servicer, srv)
@@ -609,9 +623,11 @@ def _serve_one(config: ServerConfig, maps: MapsArg, *, on_ready: Any) -> int:
         done.set()
 
     old = {s: signal.signal(s, on_signal) for s in (signal.SIGTERM, signal.SIGINT)}
+    hup = signal.getsignal(signal.SIGHUP)
     try:
         log.info("starting (pid %d)", os.getpid())
         runtime = create_server(config, maps)
+        signal.signal(signal.SIGHUP, lambda signum, frame: runtime.identities.reload())
         port = runtime.start(wait_ready=False)
         while not done.wait(0.2):
             if runtime.ready.done():
@@ -631,6 +647,8 @@ def _serve_one(config: ServerConfig, maps: MapsArg, *, on_ready: Any) -> int:
     finally:
         for s, h in old.items():
             signal.signal(s, h)
+        if hup is not None:
+            signal.signal(signal.SIGHUP, hup)
     return 0
 
 
@@ -676,7 +694,13 @@ def _serve_processes(config: ServerConfig) -> int:
         log.info("signal %d: stopping %d server processes", signum, len(procs))
         done.set()
 
+    def on_hup(signum: int, frame: Any) -> None:  # each process reads its identities again
+        for p in procs:
+            if p.is_alive() and p.pid is not None:
+                os.kill(p.pid, signal.SIGHUP)
+
     old = {s: signal.signal(s, on_signal) for s in (signal.SIGTERM, signal.SIGINT)}
+    old[signal.SIGHUP] = signal.signal(signal.SIGHUP, on_hup)
     try:
         log.info("starting %d server processes on port %d", len(procs), port)
         for p in procs:

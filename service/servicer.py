@@ -36,6 +36,7 @@ from grpc import aio
 from mapmatch.errors import ValidationError
 from mapmatch.types import State
 from service import convert
+from service.auth import CALLER, Identity, Quotas, check_vehicle
 from service.batch_workers import (
     BatchWorkers,
     MapFile,
@@ -198,6 +199,7 @@ class MapMatchServicer(pb_grpc.MapMatchServicer):
         self._short_id = self.config.max_vehicle_id // 4  # ids this long or shorter fit in any case
         self.server_id = f"{socket.gethostname()}:{os.getpid()}"
         self.checkpoints: Checkpointer | None = None
+        self.quotas: Quotas | None = None  # per-identity session quotas (set by the server)
 
     async def _offload(self, context: aio.ServicerContext | None, fn: Callable[[], T]) -> T:
         await self._check_deadline(context)
@@ -215,7 +217,7 @@ class MapMatchServicer(pb_grpc.MapMatchServicer):
         if n > self.config.max_vehicle_id:
             raise ValidationError(field, f"is {n} bytes long, over the limit of {self.config.max_vehicle_id}")
 
-    def snap(self, req: pb.FixRequest) -> pb.SnapResponse:
+    def snap(self, req: pb.FixRequest, caller: Identity | None = None) -> pb.SnapResponse:
         """One fix through the vehicle's session (raises domain errors; runs off the loop).
 
         A fix more than ``max_time_jump`` seconds from the session's last accepted fix
@@ -246,6 +248,8 @@ class MapMatchServicer(pb_grpc.MapMatchServicer):
                 s.lock.release()
             sessions.touch(s)
         else:
+            if caller is not None and self.quotas is not None:
+                self.quotas.claim_session(caller, (entry.map_id, vehicle_id), sessions.live)
             with sessions.use(entry.map_id, vehicle_id, online.new_session) as s:
                 result, _ = self._update(online, s, fix)
         return convert.snap_response(entry.map_id, vehicle_id, req.seq, result)
@@ -271,10 +275,13 @@ class MapMatchServicer(pb_grpc.MapMatchServicer):
         s.answer = result
         return result, jumped
 
-    def answer(self, req: pb.FixRequest) -> pb.SnapResponse:
-        """Like :meth:`snap`, but a rejected fix becomes a response carrying its error."""
+    def answer(self, req: pb.FixRequest, caller: Identity | None = None) -> pb.SnapResponse:
+        """Like :meth:`snap`, but a rejected fix becomes a response carrying its error; a fix
+        for a vehicle ``caller`` may not act for is answered PERMISSION_DENIED."""
         try:
-            return self.snap(req)
+            if caller is not None:
+                check_vehicle(caller, req.vehicle_id)
+            return self.snap(req, caller)
         except Exception as exc:
             code, fld, msg = status_for(exc)
             if code is grpc.StatusCode.INTERNAL:
@@ -286,16 +293,20 @@ class MapMatchServicer(pb_grpc.MapMatchServicer):
                 error=convert.error_to_proto(code.value[0], fld, msg),
             )
 
-    def answer_all(self, reqs: Sequence[pb.FixRequest]) -> list[pb.SnapResponse]:
-        return [self.answer(r) for r in reqs]
+    def answer_all(
+        self, reqs: Sequence[pb.FixRequest], caller: Identity | None = None
+    ) -> list[pb.SnapResponse]:
+        return [self.answer(r, caller) for r in reqs]
 
     async def StreamFixes(
         self, request_iterator: AsyncIterator[pb.FixRequest], context: aio.ServicerContext
     ) -> AsyncIterator[pb.SnapResponse]:
-        answer = self.answer
+        caller = CALLER.get()
+        answer = self.answer if caller is None else functools.partial(self.answer, caller=caller)
         if self.checkpoints is not None:  # sessions in the store: look-ups first, hand-over at the end
             submit = None if self.config.inline_fixes else self.online.submit
-            async for resp in self.checkpoints.stream(request_iterator, context, answer, submit):
+            allowed = None if caller is None else caller.may_act_for
+            async for resp in self.checkpoints.stream(request_iterator, context, answer, submit, allowed):
                 yield resp
             return
         if self.config.inline_fixes:  # no thread hop: one fix is a bounded, short piece of work
@@ -310,17 +321,21 @@ class MapMatchServicer(pb_grpc.MapMatchServicer):
         self, request_iterator: AsyncIterator[pb.FixBatch], context: aio.ServicerContext
     ) -> AsyncIterator[pb.SnapBatch]:
         cap, step = self.config.max_batch_fixes, self.config.batch_slice
+        caller = CALLER.get()
         async for batch in request_iterator:
             fixes = batch.fixes
             if len(fixes) > cap:
                 raise LimitError(
                     "max_batch_fixes", f"a FixBatch has {len(fixes)} fixes, over the server's limit of {cap}"
                 )
-            if self.checkpoints is not None:
-                await self.checkpoints.before_batch(fixes)
+            if self.checkpoints is not None:  # only the caller's own vehicles are looked up
+                mine = fixes if caller is None else [f for f in fixes if caller.may_act_for(f.vehicle_id)]
+                await self.checkpoints.before_batch(mine)
             out: list[pb.SnapResponse] = []
             for i in range(0, len(fixes), step):  # a slice at a time: other streams go in between
-                out += await self.online.submit(functools.partial(self.answer_all, fixes[i : i + step]))
+                out += await self.online.submit(
+                    functools.partial(self.answer_all, fixes[i : i + step], caller)
+                )
             yield self._answer_size(pb.SnapBatch(responses=out))
 
     async def SnapFix(self, request: pb.FixRequest, context: aio.ServicerContext) -> pb.SnapResponse:
@@ -329,9 +344,10 @@ class MapMatchServicer(pb_grpc.MapMatchServicer):
             await context.abort(grpc.StatusCode.DEADLINE_EXCEEDED, "deadline passed before work started")
         if self.checkpoints is not None:
             await self.checkpoints.before(request)
+        caller = CALLER.get()  # its right to this vehicle is checked by the interceptor
         if self.config.inline_fixes:
-            return self.snap(request)
-        return await self.online.submit(functools.partial(self.snap, request))
+            return self.snap(request, caller)
+        return await self.online.submit(functools.partial(self.snap, request, caller))
 
     # ------------------------------------------------------------------ batch
     def _worker_map(self, entry: MapEntry) -> MapFile | None:
@@ -517,6 +533,30 @@ class MapMatchServicer(pb_grpc.MapMatchServicer):
         if self.checkpoints is not None:
             self.checkpoints.forget(entry.map_id, request.vehicle_id)
         return pb.EndSessionResponse(existed=self.sessions.drop(entry.map_id, request.vehicle_id))
+
+    async def ListSessions(
+        self, request: pb.ListSessionsRequest, context: aio.ServicerContext
+    ) -> pb.ListSessionsResponse:
+        """The live sessions, most recently used first (built off the event loop; the answer
+        is bounded by ``max_answer_bytes``)."""
+        map_id = self.maps.get(request.map_id).map_id if request.map_id else ""
+        return await self._offload(context, functools.partial(self._list_sessions, request, map_id))
+
+    def _list_sessions(self, request: pb.ListSessionsRequest, map_id: str) -> pb.ListSessionsResponse:
+        now = self.sessions.now()
+        ttl, prefix, limit = self.sessions.ttl, request.vehicle_prefix, request.limit
+        out = pb.ListSessionsResponse()
+        total = 0
+        for s in self.sessions.used_since(now - ttl):  # live ones, most recently used first
+            m, vid = s.key
+            if (map_id and m != map_id) or not vid.startswith(prefix):
+                continue
+            total += 1
+            if not limit or len(out.sessions) < limit:
+                t = getattr(s.state, "time", math.nan)
+                out.sessions.add(map_id=m, vehicle_id=vid, idle_seconds=now - s.last_used, last_time=t)
+        out.total = total
+        return self._answer_size(out)
 
 
 async def _maybe_await(x: Any) -> None:

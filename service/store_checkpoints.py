@@ -276,9 +276,12 @@ class Checkpointer:
         context: Any,
         answer: Callable[[pb.FixRequest], pb.SnapResponse],
         submit: Callable[[Callable[[], pb.SnapResponse]], Awaitable[pb.SnapResponse]] | None = None,
+        allowed: Callable[[str], bool] | None = None,
     ) -> AsyncIterator[pb.SnapResponse]:
         """``StreamFixes`` with the store: look up unknown vehicles, hand the stream's
-        vehicles over when it ends (or, while draining, before its next fix)."""
+        vehicles over when it ends (or, while draining, before its next fix). A fix for a
+        vehicle the caller may not act for (``allowed`` false) is only answered: its vehicle
+        is neither looked up nor handed over."""
         seen: set[tuple[str, str]] = set()
         try:
             async for req in requests:
@@ -289,8 +292,9 @@ class Checkpointer:
                         grpc.StatusCode.UNAVAILABLE,
                         "the server is shutting down: send this fix again (its session is in the store)",
                     )
-                seen.add((req.map_id, req.vehicle_id))
-                await self.before(req)
+                if allowed is None or allowed(req.vehicle_id):
+                    seen.add((req.map_id, req.vehicle_id))
+                    await self.before(req)
                 yield answer(req) if submit is None else await submit(functools.partial(answer, req))
         finally:
             if seen:

@@ -369,11 +369,9 @@ def test_compiled_entry_point_sees_the_types_it_was_compiled_for() -> None:
     with unittest.mock.patch.object(CompiledRun, "__call__", spy):
         for t in tracks:
             assert matcher.match(t).routes and matcher.match(t, PLAIN).routes
-            assert matcher._match_steps(t, matcher.config).routes
-    kernels = {id(matcher._run): matcher._run, id(matcher._run_track): matcher._run_track}
-    assert set(seen) == set(kernels)  # both kernels ran
+    kernels = {id(matcher._run_track): matcher._run_track}
+    assert set(seen) == set(kernels)
     assert len(seen[id(matcher._run_track)]) == 2 * len(tracks)  # every match() is one call
-    assert len(seen[id(matcher._run)]) == len(tracks)
     for k, sigs in seen.items():
         assert all(s == kernels[k].signature for s in sigs), sigs
 
@@ -447,69 +445,6 @@ def test_goal_directed_search_settles_the_targets_as_the_search_does() -> None:
     assert reached > 300 and cut > 100  # both cases are exercised
 
 
-@pytest.mark.parametrize("rules", ["default", "plain"])
-def test_one_compiled_call_matches_as_the_python_steps_do(rules: str) -> None:
-    """Every track is matched in one compiled call (validity, thinning, jumps, candidates with
-    the outlier re-query, the direction of travel, the fixes' σ, heading and speed): the same
-    answer, to the last bit, as the Python steps with the shared model then ``run``; with bad
-    points, repeated fixes, fixes away from every road, jumps and speed limits on the map."""
-    from mapmatch.batch import BatchMatcher
-    from mapmatch.types import Track
-
-    cfg = BATCH_CONFIG if rules == "default" else PLAIN
-    m = parse_ascii_map(DRAWING, scale=7)
-    m.graph.edge_speed_kph[:] = np.where(np.arange(m.graph.n_edges) % 3 == 0, np.nan, 30.0)
-    matcher = BatchMatcher(m.graph, config=cfg)
-    assert len(matcher._limit)  # the speed-limit term is exercised
-    rng = np.random.default_rng(4)
-    lo, hi = m.graph.node_xy.min(axis=0) - 60, m.graph.node_xy.max(axis=0) + 60
-    lonely = headed = raised = 0
-    for i in range(60):
-        n = int(rng.integers(0, 12))
-        if i % 2:  # a drive along the roads with noise and a jump
-            path = m.graph.node_xy[rng.integers(m.graph.n_nodes, size=2)]
-            f = np.linspace(0, 1, n)[:, None]
-            xy = path[0] + f * (path[1] - path[0]) + rng.normal(0, 4, (n, 2))
-            if n > 4:
-                xy[n // 2 : n // 2 + (2 if i % 4 == 1 else 1)] += 150.0  # a jump, or a burst of two
-        else:
-            xy = lo + rng.random((n, 2)) * (hi - lo)
-        if n > 3:
-            xy[2] = xy[1] + 1.0  # thinned out (interpolated afterwards)
-        ll = np.array([m.lonlat(x, y) for x, y in xy]).reshape(-1, 2)
-        lat, lon = ll[:, 1].copy(), ll[:, 0].copy()
-        if n > 5:
-            lat[4], lon[5] = np.nan, 200.0  # invalid fixes
-        extra: dict[str, np.ndarray] = {}
-        if i % 3 == 1:
-            extra["heading"] = np.where(rng.random(n) < 0.3, np.nan, rng.uniform(0, 360, n))
-            extra["speed"] = rng.uniform(0, 3, n)
-            headed += 1
-        if i % 5 == 2:
-            extra["pos_sigma"] = np.where(rng.random(n) < 0.3, np.nan, rng.uniform(-1, 12, n))
-        if i % 7 == 3:
-            extra["distance"] = rng.uniform(0, 60, n)
-        t = Track("r", np.arange(n) * 3.0, lat, lon, **extra)
-        q = matcher.index.query(xy, BATCH_CONFIG.model.search_radius) if n else None
-        d = q.point if q is not None else np.zeros(0, dtype=int)
-        lonely += n - len(np.unique(d))
-        if q is not None and len(d):
-            near = np.full(n, np.inf)
-            np.minimum.at(near, q.point, q.dist)
-            own = model.track_sigma(near[np.isfinite(near)], cfg.model.gps_sigma, cfg.batch.track_sigma_max)
-            raised += own > cfg.model.gps_sigma
-        a, b = matcher._match_compiled(t, cfg), matcher._match_steps(t, cfg)
-        assert a.routes == b.routes and a.splits == b.splits
-        assert a.length_m == b.length_m and a.confidence == b.confidence
-        assert a.point_arrays is not None and b.point_arrays is not None
-        for u, v in zip(a.point_arrays, b.point_arrays, strict=True):
-            np.testing.assert_array_equal(u, v)
-        for u, v in zip(a.route_xy, b.route_xy, strict=True):
-            np.testing.assert_array_equal(u, v)
-    assert lonely > 10 and headed > 10  # fixes beyond the search radius were looked for again
-    assert raised > 10  # tracks whose fixes lie far from the roads got their own σ
-
-
 def test_a_track_s_sigma_is_the_robust_spread_of_its_distances_to_the_roads() -> None:
     """1.4826 times the median distance to the nearest road, never below the configured σ,
     never above the most, and the configured σ when the most is 0."""
@@ -559,7 +494,7 @@ def test_bearing_by_binary_search_is_the_walk_along_the_polyline() -> None:
     """Headings are scored against the bearing of the segment under each candidate: found by a
     binary search over the segments' end distances, it is the walk's answer, with repeated
     vertices, offsets at vertices, beyond the edge, negative and NaN, and one-vertex edges."""
-    from mapmatch.batch.lattice import along_lengths, bearing_at, bearing_on, segment_bearings
+    from mapmatch.batch.lattice import along_lengths, bearing_on, segment_bearings
 
     rng = np.random.default_rng(7)
     counts = rng.integers(1, 9, size=60)
@@ -575,14 +510,11 @@ def test_bearing_by_binary_search_is_the_walk_along_the_polyline() -> None:
     at_vertex = [e for e in edges[50:100] if counts[e] > 2]
     edges[50 : 50 + len(at_vertex)] = at_vertex
     offs[50 : 50 + len(at_vertex)] = [ends[seg_ptr[e]] for e in at_vertex]  # at the first inner vertex
-    got = bearing_at(edges, offs, seg_xy, seg_ptr, ends)
+    table = segment_bearings(seg_xy, seg_ptr)
+    got = bearing_on(edges, offs, seg_ptr, ends, table, np.empty(len(edges)))
     want = [_bearing_by_walking(int(e), float(o), seg_xy, seg_ptr) for e, o in zip(edges, offs, strict=True)]
     # the same segment's bearing: equal to the last bits the compiled atan2 may round differently
     np.testing.assert_allclose(got, want, rtol=0, atol=1e-9)
-    # the per-map table of bearings gives the same bits as the search (the batch call's path)
-    table = segment_bearings(seg_xy, seg_ptr)
-    looked_up = bearing_on(edges, offs, seg_ptr, ends, table, np.empty(len(edges)))
-    np.testing.assert_array_equal(looked_up, got)
 
 
 def test_the_projection_that_skips_far_pieces_gives_project_point_s_floats() -> None:
@@ -744,16 +676,17 @@ def test_a_ref_hands_a_kernel_the_callers_tuple_by_one_pointer() -> None:
 
 
 def test_the_jump_rule_drops_a_burst_not_the_good_fixes_around_it() -> None:
-    """Runs of jumps (``drop_spikes``): at 30 m/s a two-fix burst 190 m to the side is dropped
+    """Runs of jumps (``drop_spikes_into``): at 30 m/s a two-fix burst 190 m to the side is dropped
     and the fixes before it are kept (their legs are as long as the burst's inner one); a stopped
     vehicle's burst is dropped though its thinned fixes leave the kept neighbours far apart in
     time; a drive that turns round over 20 s is not a jump."""
-    from mapmatch.batch.lattice import drop_spikes, thin
+    from mapmatch.batch.lattice import drop_spikes_into, thin_into
 
     def dropped(xy: np.ndarray, t: np.ndarray, min_dist: float = 0.0) -> list[int]:
         valid = np.ones(len(t), dtype=np.bool_)
-        kept = thin(xy, valid, min_dist)
-        return np.flatnonzero(~drop_spikes(xy, t, kept, valid, 5.0, 3.0, 20.0, 5.0)).tolist()
+        kidx = np.flatnonzero(thin_into(xy, valid, min_dist, np.zeros(len(t), dtype=np.bool_)))
+        out = drop_spikes_into(xy, t, kidx, 5.0, 3.0, 20.0, 5.0, valid.copy())
+        return np.flatnonzero(~out).tolist()
 
     t = np.arange(12, dtype=np.float64)
     fast = np.column_stack([30.0 * t, np.zeros(12)])
@@ -802,16 +735,17 @@ def test_a_grown_arena_is_sized_from_the_last_call_and_has_its_pages_mapped_in()
 
 
 def test_the_direction_of_travel_reaches_the_end_fixes_only_over_short_legs() -> None:
-    """``motion_heading``: every fix of a straight drive east gets 90°; the first and last take
+    """``motion_heading_into``: every fix of a straight drive east gets 90°; the first and last take
     it only where their own leg is at most ``end_leg_max`` (0: any length), while the fixes
     inside keep theirs; a turn of more than ``max_turn`` at a fix leaves it and its end
     neighbour without one."""
-    from mapmatch.batch.lattice import motion_heading
+    from mapmatch.batch.lattice import motion_heading_into
 
     east = np.column_stack([np.array([0.0, 100.0, 120.0, 140.0, 300.0]), np.zeros(5)])
 
     def heading(xy: np.ndarray, end_leg_max: float) -> list[float]:
-        return motion_heading(xy, np.arange(len(xy)), 8.0, 30.0, end_leg_max).round(6).tolist()
+        out = np.full(len(xy), np.nan)
+        return motion_heading_into(xy, np.arange(len(xy)), 8.0, 30.0, end_leg_max, out).round(6).tolist()
 
     assert heading(east, 0.0) == [90.0] * 5
     assert heading(east, 160.0) == [90.0] * 5

@@ -445,27 +445,41 @@ def test_one_matcher_serves_many_threads() -> None:
     assert got == expected * 4
 
 
-def test_scalar_model_twins_agree_with_the_shared_model() -> None:
+def test_the_model_s_array_forms_are_its_scalar_formulas_over_arrays() -> None:
+    """One formula each: the array forms give, element by element and broadcast, the scalar
+    functions' floats, and the formulas' own cases (heading term only where known, unreachable
+    is -inf, U-turn and speed penalties)."""
+    import math
+
     from mapmatch.config import DEFAULT_CONFIG
-    from mapmatch.model import emission_logp, emission_one, transition_logp, transition_one
+    from mapmatch.model import emission_logp, emission_one, heading_kappa, heading_kappa_one, transition_logp
 
-    C = DEFAULT_CONFIG.replace(beta_per_m=0.04)  # β growing with the step, as the batch default
-
+    C = DEFAULT_CONFIG.replace(beta_per_m=0.04)
+    m = C.model
     rng = np.random.default_rng(1)
-    for _ in range(200):
-        d, s, h, b, k = (
-            rng.uniform(0, 50),
-            rng.uniform(0.5, 20),
-            rng.uniform(0, 360),
-            rng.uniform(0, 360),
-            8.0,
-        )
-        assert emission_one(d, s, h, b, k) == pytest.approx(float(emission_logp(d, s, h, b, k)))
-        r, t, dt = rng.uniform(-20, 200), rng.uniform(0, 100), rng.uniform(0.1, 2)
-        ref = float(transition_logp(r, t, dt, C))
-        m = C.model
-        got = transition_one(r, t, dt, m.beta, m.beta_per_m, m.max_speed, m.speed_penalty)
-        assert got == pytest.approx(ref)
+    d, s, h, b = (
+        rng.uniform(0, 50, 200),
+        rng.uniform(0.5, 20, 200),
+        rng.uniform(0, 360, 200),
+        rng.uniform(0, 360, 200),
+    )
+    h[:20] = np.nan
+    got = emission_logp(d, s, h, b, 8.0)
+    assert got.tolist() == [emission_one(*x, 8.0) for x in zip(d, s, h, b, strict=True)]
+    assert emission_one(3.0, 2.0, np.nan, 90.0, 8.0) == -0.5 * 1.5**2 - math.log(2.0)  # no heading term
+    assert emission_one(0.0, 1.0, 90.0, 270.0, 1.0) == -2.0  # facing against the road: κ(cos π - 1)
+    # transitions: |route - travelled| / β, the speed penalty past max_speed, U-turns, -inf
+    lp = transition_logp(
+        [10.0, 10.0, np.inf, 200.0], 10.0, [1.0, 1.0, 1.0, 1.0], C, uturn=[False, True, False, False]
+    )
+    assert lp[0] == 0.0 and lp[1] == -m.uturn_penalty and lp[2] == -np.inf
+    beta = m.beta + m.beta_per_m * 10.0
+    assert lp[3] == pytest.approx(-190.0 / beta - m.speed_penalty * (200.0 - m.max_speed))
+    # κ: floored heading σ, none where the heading is unknown or the fix too slow
+    k = heading_kappa([90.0, np.nan, 90.0, 90.0], [0.1, 5.0, np.nan, 5.0], [5.0, 5.0, 5.0, 0.0], C)
+    floor = C.batch.track_heading_sigma_floor_deg
+    assert k.tolist() == [heading_kappa_one(0.1, floor), 0.0, heading_kappa_one(m.heading_sigma, floor), 0.0]
+    assert heading_kappa_one(0.1, floor) == 1.0 / math.radians(floor) ** 2
 
 
 def _fix_at(m: AsciiMap, xy: np.ndarray, t: float, heading: float, **kw: float) -> Fix:

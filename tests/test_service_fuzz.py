@@ -159,7 +159,7 @@ def test_fuzzed_session_blobs(api, blob, data):
 
 
 METHODS = ["SnapFix", "MatchTrack", "ListMaps", "GetMapInfo", "LoadMap", "UnloadMap", "ExportSession",
-           "ImportSession", "EndSession"]  # fmt: skip
+           "ImportSession", "EndSession", "ListSessions"]  # fmt: skip
 
 
 @FUZZ

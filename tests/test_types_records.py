@@ -84,16 +84,15 @@ def test_positional_orders() -> None:
     """The per-fix path passes these by position, in this order (a call of positional arguments
     plus twice its keywords over 30 goes through a dict): a field or parameter moved or put in
     between must change those calls too (``prepare``, ``report``)."""
-    from mapmatch.measurement import map_aided_measurement
+    from mapmatch.measurement import AlongEvidence, Placement, map_aided_measurement
     from mapmatch.online.state import Step
 
     step = ("time", "x", "y", "sigma", "heading", "kappa", "travelled", "odo", "odo_known", "dt", "gps")
     assert tuple(f.name for f in dataclasses.fields(Step))[:14] == (*step, "weight", "stopped", "r_a")
+    placement = ("state", "edge", "offset", "lat", "lon", "bearing", "probability", "since_init")
+    assert tuple(f.name for f in dataclasses.fields(Placement)) == placement
+    evidence = ("gps", "fix_sigma", "bias_cov", "white_share", "anchor_sd", "odo_sigma", "dr_distance")
+    assert tuple(f.name for f in dataclasses.fields(AlongEvidence)) == (*evidence, "gps_sigma")
     aided = inspect.signature(map_aided_measurement).parameters
-    assert tuple(aided)[:18] == (
-        *("graph", "state", "edge", "offset", "lat", "lon", "bearing", "probability", "gps"),
-        *("fix_sigma", "bias_cov", "white_share", "anchor_sd", "odo_sigma", "dr_distance", "gps_sigma"),
-        "since_init",
-        "width",
-    )
-    assert aided["width"].kind is inspect.Parameter.KEYWORD_ONLY
+    assert tuple(aided) == ("graph", "placement", "evidence", "tags", "config")
+    assert aided["config"].kind is inspect.Parameter.KEYWORD_ONLY

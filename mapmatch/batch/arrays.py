@@ -50,9 +50,8 @@ class CandidateArrays(NamedTuple):
 class Lattice(NamedTuple):
     """The pruned candidates by lattice point (``ptr``) and the lattice points' measurements.
 
-    Keep it at these twelve arrays: a thirteenth (the time since the track's previous fix, even
-    unused) made every call about 20 % slower (interleaved A/B, REAL tracks 00000007 and
-    00000028, S = 1 / 10 / 30); derive what a step needs from these, as its driving time."""
+    Keep it at these twelve arrays: each array added, even unused, slows every compiled call
+    that is handed the tuple; derive what a step needs from these, as its driving time."""
 
     ptr: NDArray[np.int64]
     edge: NDArray[np.int64]

@@ -11,6 +11,7 @@ import math
 
 import numpy as np
 
+from graph.angles import bearing_compiled
 from graph.jit import njit
 from mapmatch.arena import full_b1, full_f8, full_i8, take_b1, take_f8, take_i8, take_xy
 from mapmatch.batch.arrays import CandidateArrays, KernelParams, Lattice, TrackPoints
@@ -18,14 +19,9 @@ from mapmatch.model import emission_logp_one
 
 
 @njit(cache=True, nogil=True)
-def thin(xy, valid, min_dist):  # type: ignore[no-untyped-def]
-    """Keep valid points at least ``min_dist`` from the previously kept one (always the last)."""
-    return thin_into(xy, valid, min_dist, np.zeros(len(valid), dtype=np.bool_))
-
-
-@njit(cache=True, nogil=True)
 def thin_into(xy, valid, min_dist, kept):  # type: ignore[no-untyped-def]
-    """:func:`thin` into ``kept`` (all False on entry)."""
+    """Keep valid points at least ``min_dist`` from the previously kept one (always the last):
+    flags into ``kept`` (all False on entry)."""
     n = len(valid)
     last = -1
     for i in range(n):
@@ -91,33 +87,10 @@ def segment_at(seg_ptr, seg_end, e, off):  # type: ignore[no-untyped-def]
 
 
 @njit(cache=True, nogil=True)
-def bearing_at(edges, offs, seg_xy, seg_ptr, seg_end):  # type: ignore[no-untyped-def]
-    """Compass bearing (degrees) of the edge polyline segment at each offset: the first segment
-    ending at or beyond it (the last one when beyond the edge), or the nearest non-degenerate
-    segment before it; ``seg_end`` from :func:`along_lengths`. A binary search per offset."""
-    out = np.empty(len(edges))
-    for i in range(len(edges)):
-        a0 = seg_ptr[edges[i]]
-        lo = segment_at(seg_ptr, seg_end, edges[i], offs[i])
-        if lo < 0:
-            out[i] = 0.0
-            continue
-        b = 0.0
-        for q in range(lo, a0 - 1, -1):
-            dx = seg_xy[q + 1, 0] - seg_xy[q, 0]
-            dy = seg_xy[q + 1, 1] - seg_xy[q, 1]
-            if math.hypot(dx, dy) > 0:
-                b = math.degrees(math.atan2(dx, dy)) % 360.0
-                break
-        out[i] = b
-    return out
-
-
-@njit(cache=True, nogil=True)
 def segment_bearings(seg_xy, seg_ptr):  # type: ignore[no-untyped-def]
-    """Per polyline segment (indexed by its first vertex), the bearing :func:`bearing_at` gives on
-    it: its own, else that of the nearest non-degenerate segment before it on its edge (0 if
-    none); the same float steps, computed once per map."""
+    """Per polyline segment (indexed by its first vertex), its compass bearing in degrees: its
+    own, else that of the nearest non-degenerate segment before it on its edge (0 if none);
+    computed once per map."""
     out = np.zeros(len(seg_xy))
     for e in range(len(seg_ptr) - 1):
         b = 0.0
@@ -125,15 +98,18 @@ def segment_bearings(seg_xy, seg_ptr):  # type: ignore[no-untyped-def]
             dx = seg_xy[q + 1, 0] - seg_xy[q, 0]
             dy = seg_xy[q + 1, 1] - seg_xy[q, 1]
             if math.hypot(dx, dy) > 0:
-                b = math.degrees(math.atan2(dx, dy)) % 360.0
+                b = bearing_compiled(dx, dy)
             out[q] = b
     return out
 
 
 @njit(cache=True, nogil=True)
 def bearing_on(edges, offs, seg_ptr, seg_end, seg_bearing, out):  # type: ignore[no-untyped-def]
-    """:func:`bearing_at` into ``out`` with the bearings of :func:`segment_bearings` (a look-up
-    instead of an arctangent per candidate)."""
+    """Compass bearing (degrees) of the edge polyline segment at each offset, into ``out``: the
+    first segment ending at or beyond it (the last one when beyond the edge), found by a binary
+    search over ``seg_end`` (:func:`along_lengths`), with the bearings of
+    :func:`segment_bearings` (a look-up instead of an arctangent per candidate); 0 where the
+    edge has no segment."""
     for i in range(len(edges)):
         lo = segment_at(seg_ptr, seg_end, edges[i], offs[i])
         out[i] = 0.0 if lo < 0 else seg_bearing[lo]
@@ -319,20 +295,15 @@ def left_out_runs(pt: TrackPoints, has, ar):  # type: ignore[no-untyped-def]
 
 
 @njit(cache=True, nogil=True)
-def motion_heading(xy, kidx, min_leg, max_turn, end_leg_max):  # type: ignore[no-untyped-def]
+def motion_heading_into(xy, kidx, min_leg, max_turn, end_leg_max, out):  # type: ignore[no-untyped-def]
     """Direction of travel (compass degrees) at each kept point from its two legs (to the
     previous and the next kept point; at the ends the first or last two legs), where both
-    are at least ``min_leg`` metres and turn by at most ``max_turn`` degrees; NaN elsewhere.
+    are at least ``min_leg`` metres and turn by at most ``max_turn`` degrees; NaN elsewhere
+    (``out`` is all NaN on entry).
 
     The first and last point take the direction only where their own leg is at most
     ``end_leg_max`` metres (0: any length): a turn at a junction soon after the first fix (or
     soon before the last) leaves both legs straight, so over a long leg it goes unseen."""
-    return motion_heading_into(xy, kidx, min_leg, max_turn, end_leg_max, np.full(len(kidx), np.nan))
-
-
-@njit(cache=True, nogil=True)
-def motion_heading_into(xy, kidx, min_leg, max_turn, end_leg_max, out):  # type: ignore[no-untyped-def]
-    """:func:`motion_heading` into ``out`` (all NaN on entry)."""
     k = len(kidx)
     if k < 3:
         return out
@@ -377,22 +348,15 @@ def _wrap360(h):  # type: ignore[no-untyped-def]
 
 
 @njit(cache=True, nogil=True)
-def drop_spikes(xy, time, kept, valid, sigma, min_sigmas, max_speed, max_time):  # type: ignore[no-untyped-def]
+def drop_spikes_into(xy, time, kidx, sigma, min_sigmas, max_speed, max_time, out):  # type: ignore[no-untyped-def]
     """Valid flags with jumps cleared: a kept point, or a run of them lasting at most
     ``max_time`` seconds, that the track reaches and leaves in opposite directions (legs longer
     than ``min_sigmas * sigma``; for a run also longer than any leg within it, the way back
     undoing the way out: together they move less than either) where visiting it needs more
     than ``max_speed`` m/s on average between the neighbours (0 disables it): from the last
     valid fix before the run (a thinned fix is near the kept one before it) to the kept one
-    after. The shortest such run is dropped."""
-    kidx = np.flatnonzero(kept)
-    return drop_spikes_into(xy, time, kidx, sigma, min_sigmas, max_speed, max_time, valid.copy())
-
-
-@njit(cache=True, nogil=True)
-def drop_spikes_into(xy, time, kidx, sigma, min_sigmas, max_speed, max_time, out):  # type: ignore[no-untyped-def]
-    """:func:`drop_spikes` into ``out`` (a copy of the valid flags on entry); ``kidx``: the kept
-    points' indices."""
+    after. The shortest such run is dropped. ``kidx``: the kept points' indices; ``out``: a copy
+    of the valid flags on entry."""
     if max_speed <= 0:
         return out
     noise = min_sigmas * sigma

@@ -2,12 +2,12 @@
 
 The call (:func:`mapmatch.batch.run.run_track_in`) does every step: validity and thinning, the
 batch rules on the fixes (jumps, the direction of travel), the grid candidate search,
-emissions and transitions of the shared :mod:`mapmatch.model` (compiled twins, the same
-floats), route distances from bounded edge-based search or the route table
+emissions and transitions of the shared :mod:`mapmatch.model` (its scalar functions,
+compiled), route distances from bounded edge-based search or the route table
 (:mod:`mapmatch.routing`), lattice (:mod:`~mapmatch.batch.lattice`), Viterbi
 (:mod:`~mapmatch.batch.viterbi`) and route assembly (:mod:`~mapmatch.batch.route`).
-:meth:`BatchMatcher._match_steps` does the steps before the lattice in numpy: the reference
-the compiled call is tested against.
+The answers' reference is the digests of ``bench/hash_batch.py``, the peers' cases and the
+ASCII-map tests.
 """
 
 from __future__ import annotations
@@ -21,22 +21,17 @@ from numpy.typing import ArrayLike, NDArray
 from pyproj import Transformer
 from pyproj.enums import TransformDirection
 
-from graph.index import Candidates, EdgeIndex
+from graph.index import EdgeIndex
 from graph.jit import read_only
-from graph.projection import to_xy
 from graph.road_graph import RoadGraph
 from mapmatch import model
 from mapmatch.arena import Arena
-from mapmatch.batch.arrays import CandidateArrays, EdgeGeometry, KernelParams, TrackPoints, kernel_params
+from mapmatch.batch.arrays import EdgeGeometry, KernelParams, kernel_params
 from mapmatch.batch.context import Context, new_context
 from mapmatch.batch.lattice import (
     along_lengths,
-    bearing_at,
-    drop_spikes,
-    motion_heading,
     segment_bearings,
     segment_lengths,
-    thin,
 )
 from mapmatch.batch.results import fill_route_lonlat, track_match
 from mapmatch.batch.run import (
@@ -81,18 +76,6 @@ class _ThreadState(NamedTuple):
     with this thread's scratch (the arena's growth starts a new dict)."""
 
 
-class _Rules(NamedTuple):
-    """The batch rules' settings the Python steps read (config look-ups cost microseconds)."""
-
-    spike_sigmas: float
-    spike_speed: float
-    spike_max_time: float
-    motion_heading_sigma: float
-    motion_min_distance: float
-    motion_end_leg_max: float
-    straight_max_deg: float
-
-
 class _Settings(NamedTuple):
     """What a config turns into for the kernels (built once per config object)."""
 
@@ -100,7 +83,6 @@ class _Settings(NamedTuple):
     params: KernelParams
     query: QueryParams
     sigma: float
-    rules: _Rules
     track_rules: RuleParams
 
 
@@ -146,7 +128,6 @@ class BatchMatcher:
         # speed limits (m/s) where the map has any (posted, or by road class)
         self._limit = read_only(kph / 3.6 if np.isfinite(kph).any() else np.zeros(0), F8)
         self._roads = RoadArrays(self._seg_end, self._limit, read_only(segment_bearings(seg_xy, seg_ptr), F8))
-        self._run = CompiledRun()
         self._run_track = CompiledRun(run_track_in)
         self._local = threading.local()
         self._settings: dict[int, _Settings] = {}
@@ -191,24 +172,20 @@ class BatchMatcher:
                 radius=float(cfg.model.search_radius), outlier=float(cfg.batch.outlier_distance),
                 k=int(cfg.model.max_candidates), min_dist=float(cfg.batch.interpolate_distance),
             )  # fmt: skip
-            rules = _Rules(
-                spike_sigmas=float(cfg.batch.spike_sigmas), spike_speed=float(cfg.batch.spike_speed),
-                spike_max_time=float(cfg.batch.spike_max_time),
-                motion_heading_sigma=float(cfg.batch.motion_heading_sigma),
+            track_rules = RuleParams(
+                gps_sigma=sigma, spike_sigmas=float(cfg.batch.spike_sigmas),
+                spike_speed=float(cfg.batch.spike_speed), spike_max_time=float(cfg.batch.spike_max_time),
+                motion_sigma=float(cfg.batch.motion_heading_sigma),
                 motion_min_distance=float(cfg.batch.motion_min_distance),
                 motion_end_leg_max=float(cfg.batch.motion_end_leg_max),
                 straight_max_deg=float(cfg.model.straight_max_deg),
-            )  # fmt: skip
-            track_rules = RuleParams(
-                gps_sigma=sigma, spike_sigmas=rules.spike_sigmas, spike_speed=rules.spike_speed,
-                spike_max_time=rules.spike_max_time,
-                motion_sigma=rules.motion_heading_sigma, motion_min_distance=rules.motion_min_distance,
-                motion_end_leg_max=rules.motion_end_leg_max,
-                straight_max_deg=rules.straight_max_deg, heading_sigma=float(cfg.model.heading_sigma),
+                heading_sigma=float(cfg.model.heading_sigma),
                 heading_min_speed=float(cfg.model.heading_min_speed),
                 track_sigma_max=float(cfg.batch.track_sigma_max), thin_sigmas=float(cfg.batch.thin_sigmas),
+                pos_sigma_floor=float(cfg.batch.track_pos_sigma_floor),
+                heading_sigma_floor=float(cfg.batch.track_heading_sigma_floor_deg),
             )  # fmt: skip
-            st = _Settings(cfg, kernel_params(cfg, sigma), query, sigma, rules, track_rules)
+            st = _Settings(cfg, kernel_params(cfg, sigma), query, sigma, track_rules)
             if len(self._settings) >= 64:
                 self._settings.clear()
             self._settings[id(cfg)] = st
@@ -286,126 +263,12 @@ class BatchMatcher:
         if big is not None:
             self._local.state = st._replace(arena=big, contexts={})
 
-    def _match_steps(self, track: Track, cfg: MatchConfig) -> TrackMatch:
-        """The same match as :meth:`match` in Python steps (:meth:`_steps_packed`): the reference
-        the one compiled call is tested against."""
-        packed = self._steps_packed(track, cfg)
-        if len(track) > 1 and packed[-2] == 0:  # as in _match_compiled
-            packed = _joined(packed, lambda: self._steps_packed(track, self._joining(cfg)))
-        return track_match(str(track.track_id), packed)
-
-    def _steps_packed(self, track: Track, cfg: MatchConfig) -> Packed:
-        """:meth:`_match_steps`' packed answer: candidates, rules and emissions in numpy with the
-        shared :mod:`mapmatch.model`, then :func:`run`."""
-        g = self.graph
-        n = len(track)
-        st = self._settings_for(cfg)
-        q, rules = st.query, st.rules
-        lat = np.asarray(track.lat, dtype=F8)
-        lon = np.asarray(track.lon, dtype=F8)
-        valid = np.isfinite(lat) & np.isfinite(lon) & (np.abs(lat) <= 90) & (np.abs(lon) <= 180)
-        if valid.all():
-            xy = to_xy(g.crs, lon, lat)
-        else:
-            xy = np.full((n, 2), np.nan)
-            if valid.any():
-                xy[valid] = to_xy(g.crs, lon[valid], lat[valid])
-        xy = fresh(xy, F8)
-        time = fresh(_opt(track.time, n), F8)
-        # points closer than the noise to the previous kept point are interpolated afterwards
-        kept, kidx, cands = self._kept_candidates(xy, valid, q.min_dist, q)
-        # the track's σ where its fixes lie further from the roads than the configured one says
-        first = np.unique(cands.point, return_index=True)[1]  # each fix's nearest road
-        sigma0 = model.track_sigma(cands.dist[first], st.sigma, float(cfg.batch.track_sigma_max))
-        far = float(cfg.batch.thin_sigmas) * (sigma0 - st.sigma)
-        if far > q.min_dist:
-            kept, kidx, cands = self._kept_candidates(xy, valid, far, q)
-        # jumps (a fix reached and left in opposite directions too fast) get no candidates
-        spikes = (rules.spike_sigmas, rules.spike_speed, rules.spike_max_time)
-        jump = valid & ~drop_spikes(xy, time, kept, valid, sigma0, *spikes)
-        if jump.any():
-            cands = _subset(cands, ~jump[kidx][cands.point])
-        # emissions (shared model); pruning of hopeless candidates happens in the kernel
-        sigma: float | NDArray[np.float64] = sigma0
-        if track.pos_sigma is not None:
-            own = np.asarray(track.pos_sigma, dtype=F8)[kidx]
-            sigma = np.where(np.isnan(own) | (own <= 0), sigma0, model.position_sigma(own, cfg))[cands.point]
-        heading = None if track.heading is None else np.asarray(track.heading, dtype=F8)[kidx]
-        head_sigma: float | NDArray[np.float64] = np.nan
-        if rules.motion_heading_sigma > 0:
-            # the direction of travel where the track gives no heading
-            mh = motion_heading(
-                xy, kidx, rules.motion_min_distance, rules.straight_max_deg, rules.motion_end_leg_max
-            )
-            use = np.isfinite(mh) if heading is None else np.isfinite(mh) & ~np.isfinite(heading)
-            heading = mh if heading is None else np.where(use, mh, heading)
-            head_sigma = np.where(use, rules.motion_heading_sigma, np.nan)
-        if heading is not None and np.isfinite(heading).any():
-            speed = _opt(track.speed, n)[kidx]
-            kappa = model.heading_kappa(heading, head_sigma, speed, cfg)[cands.point]
-            geo = self._geom
-            bearing = bearing_at(cands.edge, cands.offset, geo.seg_xy, geo.seg_ptr, self._seg_end)
-            emis = model.emission_logp(cands.dist, sigma, heading[cands.point], bearing, kappa)
-        elif np.ndim(sigma):
-            emis = model.emission_logp(cands.dist, sigma, np.nan, 0.0, 0.0)
-        else:
-            emis = np.zeros(0)  # one σ, no heading: computed in the compiled kernel
-        odo = NO_ODO if track.distance is None else _odometer(track.distance)
-        pt = TrackPoints(
-            valid=fresh(valid, np.bool_), kept=fresh(kept, np.bool_), xy=xy,
-            time=time, odo=fresh(odo, F8), kidx=fresh(kidx, I8),
-        )  # fmt: skip
-        ca = CandidateArrays(
-            point=fresh(cands.point, I8), edge=fresh(cands.edge, I8), offset=fresh(cands.offset, F8),
-            xy=fresh(cands.xy, F8), dist=fresh(cands.dist, F8), emis=fresh(emis, F8),
-            sigma=fresh(sigma if np.ndim(sigma) else np.zeros(0), F8),
-            limit=fresh(self._limit[cands.edge] if len(self._limit) else self._limit, F8),
-        )  # fmt: skip
-        params = st.params._replace(sigma=sigma if isinstance(sigma, float) else 0.0)
-        st_ = self._state()
-        router = self._router_for(st_, cfg)
-        return self._run(pt, ca, params, self._geom, router, st_.arena)  # type: ignore[no-any-return]
-
-    def _kept_candidates(
-        self, xy: NDArray[np.float64], valid: NDArray[np.bool_], min_dist: float, q: QueryParams
-    ) -> tuple[NDArray[np.bool_], NDArray[np.int64], Candidates]:
-        """The fixes kept by thinning at ``min_dist`` and their candidates, looked for again up
-        to the outlier distance for fixes with no road in the search radius (the reference of
-        :func:`mapmatch.batch.run.kept_candidates`)."""
-        kept = thin(xy, valid, min_dist)
-        kidx = np.flatnonzero(kept)
-        cands = self._grid.query(xy[kidx], q.radius, k=q.k)
-        lonely = np.flatnonzero(np.bincount(cands.point, minlength=len(kidx)) == 0)
-        if len(lonely) and q.outlier > q.radius:
-            more = self._grid.query(xy[kidx[lonely]], q.outlier, k=q.k)
-            cands = _merge_candidates(cands, more, lonely)
-        return kept, kidx, cands
-
 
 def match_track(
     graph: RoadGraph, track: Track, *, index: EdgeIndex | None = None, config: MatchConfig | None = None
 ) -> TrackMatch:
     """Match one track (builds a :class:`BatchMatcher`; reuse one for many tracks)."""
     return BatchMatcher(graph, index, config).match(track)
-
-
-def _merge_candidates(a: Candidates, b: Candidates, b_points: NDArray[np.int64]) -> Candidates:
-    """Candidates of ``a`` plus those of ``b`` (queried for the points ``b_points``), by point."""
-    point = np.concatenate([a.point, b_points[b.point]])
-    order = np.argsort(point, kind="stable")
-    return Candidates(
-        point=point[order],
-        edge=np.concatenate([a.edge, b.edge])[order],
-        dist=np.concatenate([a.dist, b.dist])[order],
-        offset=np.concatenate([a.offset, b.offset])[order],
-        xy=np.concatenate([a.xy, b.xy])[order],
-    )
-
-
-def _subset(c: Candidates, keep: NDArray[np.bool_]) -> Candidates:
-    return Candidates(
-        point=c.point[keep], edge=c.edge[keep], dist=c.dist[keep], offset=c.offset[keep], xy=c.xy[keep]
-    )
 
 
 def _projector(tr: Transformer) -> Callable[[NDArray[np.float64]], None]:

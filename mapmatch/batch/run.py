@@ -32,7 +32,7 @@ from mapmatch.batch.lattice import (
 from mapmatch.batch.route import assemble
 from mapmatch.batch.viterbi import solve
 from mapmatch.gridindex import query_grid
-from mapmatch.model import track_sigma_compiled
+from mapmatch.model import emission_logp_one, heading_kappa_compiled, track_sigma_compiled
 
 Packed = NDArray[np.int64]
 """What the kernels return: the assembly packed by :func:`pack`."""
@@ -92,6 +92,10 @@ class RuleParams(NamedTuple):
     """The most σ a track's own residuals may give (:func:`track_sigma`); 0: ``gps_sigma``."""
     thin_sigmas: float
     """Fixes are thinned at this many times the track's σ beyond ``gps_sigma``."""
+    pos_sigma_floor: float
+    """The least σ (metres) of a fix's own accuracy."""
+    heading_sigma_floor: float
+    """The least heading σ (degrees)."""
 
 
 class RoadArrays(NamedTuple):
@@ -103,16 +107,6 @@ class RoadArrays(NamedTuple):
     """Speed limit per edge (m/s, NaN unknown); empty: the map has none."""
     seg_bearing: NDArray[np.float64]
     """:func:`mapmatch.batch.lattice.segment_bearings`."""
-
-
-@njit(cache=True, nogil=True)
-def run(pt, cands, p, geom, router, ar):  # type: ignore[no-untyped-def]
-    """Lattice (:func:`build_lattice`), Viterbi (:func:`solve`) and route assembly (:func:`assemble`),
-    working in the arena ``ar`` (:mod:`mapmatch.arena`); every array :func:`~mapmatch.arena.borrowed`
-    (the caller holds them for the call)."""
-    ar = borrowed(ar)
-    reset(ar)
-    return pack(_run(borrowed(pt), borrowed(cands), borrowed(p), borrowed(geom), borrowed(router), ar))
 
 
 @njit(cache=True, nogil=True, inline="always")
@@ -128,8 +122,8 @@ def _run(pt, cands, p, geom, router, ar):  # type: ignore[no-untyped-def]
 @njit(cache=True, nogil=True)
 def pack(a):  # type: ignore[no-untyped-def]
     """The assembly in one array, as :func:`mapmatch.batch.results.track_match` reads it (each
-    array handed back to Python costs about a microsecond: ten of them were a third of a small
-    track's call).
+    array handed back to Python costs about a microsecond: ten of them would be a good part of
+    a small track's call).
 
     Integers: ``n, splits, route edges, pieces, route points``, then ``p_edge, status, splits,
     route_e, route_ptr, rxy_ptr``; then, as float64 (:func:`packed_floats`): ``p_off, p_xy,
@@ -170,10 +164,11 @@ def run_track(ti, q, r, p, geom, roads, router, grid, gsc, ar):  # type: ignore[
     """The whole match of one track: validity, thinning and the candidate search
     (:func:`kept_candidates`), the track's own σ (:func:`track_sigma`) and, where it exceeds
     the configured one, the thinning and search again at ``thin_sigmas`` times the excess,
-    jumps (:func:`drop_spikes`), emissions with the fixes' σ and heading or the direction of
-    travel (:func:`motion_heading`), then :func:`run`; working arrays from the arena ``ar``
+    jumps (:func:`drop_spikes_into`), emissions with the fixes' σ and heading or the direction of
+    travel (:func:`motion_heading_into`), then :func:`run`; working arrays from the arena ``ar``
     (:mod:`mapmatch.arena`). Compiled into :func:`run_track_in`, its one caller (a call of its
-    own copied its arguments, about 1.5 µs of a small track's match with :func:`_run`'s)."""
+    own would copy its arguments, as :func:`_run`'s would, a noticeable part of a small
+    track's match)."""
     reset(ar)
     pos = ti.pos
     n = pos.shape[1]
@@ -320,7 +315,7 @@ def candidate_emissions(ti, kidx, xy, cp, ce, co, cq, cd, sigma, r, p, geom, roa
     if len(ti.pos_sigma):
         for k in range(nk):
             s = ti.pos_sigma[kidx[k]]
-            sig[k] = sigma if math.isnan(s) or s <= 0 else max(s, 0.5)
+            sig[k] = sigma if math.isnan(s) or s <= 0 else max(s, r.pos_sigma_floor)
     head = full_f8(ar, nk, np.nan)
     kappa = full_f8(ar, nk, 0.0)
     mh = head
@@ -339,7 +334,7 @@ def candidate_emissions(ti, kidx, xy, cp, ce, co, cq, cd, sigma, r, p, geom, roa
         if math.isnan(h) or slow:
             continue
         head[k] = h
-        kappa[k] = 1.0 / math.radians(max(hs, 1.0)) ** 2
+        kappa[k] = heading_kappa_compiled(hs, r.heading_sigma_floor)
         any_head = True
     bearing = full_f8(ar, nc, 0.0)
     if any_head:
@@ -350,12 +345,7 @@ def candidate_emissions(ti, kidx, xy, cp, ce, co, cq, cd, sigma, r, p, geom, roa
     for i in range(nc):
         k = cp[i]
         s = sig[k]
-        e = -0.5 * (cd[i] / s) ** 2 - math.log(s)
-        if kappa[k] > 0:
-            t = kappa[k] * (math.cos(math.radians(head[k] - bearing[i])) - 1.0)
-            if math.isfinite(t):
-                e += t
-        emis[i] = e
+        emis[i] = emission_logp_one(cd[i], s, head[k], bearing[i], kappa[k])
         if len(csig):
             csig[i] = s
     limit = take_f8(ar, nc if len(roads.limit) else 0)
@@ -377,7 +367,7 @@ def fresh(a: Any, dtype: Any) -> Any:
 
 
 class CompiledRun:
-    """Calls a compiled kernel (:func:`run` unless told) through its entry point, resolved on
+    """Calls a compiled kernel (:func:`run_track_in`) through its entry point, resolved on
     the first call.
 
     numba's entry point does not check argument types, so every call must pass the types of
@@ -385,8 +375,8 @@ class CompiledRun:
     and the per-call arrays are built by :func:`fresh` with fixed dtypes and ranks.
     """
 
-    def __init__(self, kernel: Any = None) -> None:
-        self._kernel = run if kernel is None else kernel
+    def __init__(self, kernel: Any) -> None:
+        self._kernel = kernel
         self._entry: Any = None
         self.signature: tuple[Any, ...] = ()
         self._lock = threading.Lock()

@@ -249,11 +249,9 @@ def _try_step(prev, t, d, lat, p, inputs):  # type: ignore[no-untyped-def]
     ``inputs``: the caller's :func:`step_inputs`.
 
     Compiled into its callers, as the search is into :func:`_step`: one call less per step and
-    per search (about 5 % fewer instructions per point at 30 s, callgrind on REAL track
-    00000021). Its callers and :func:`_step` are compiled without reference counting
+    per search. Its callers and :func:`_step` are compiled without reference counting
     (:data:`~mapmatch.arena.UNCOUNTED`): inlined, it copies every tuple it is handed, and
-    numba counted a reference to each of their arrays, about 300 calls a step (REAL 00000028
-    at 30 s)."""
+    numba would count a reference to each of their arrays, a few hundred calls a step."""
     trav, dt, beta0 = _step_scale(prev, t, d, lat, p)
     vcap = np.inf  # the longest route the time between the fixes allows: the straight line
     if p.split_speed > 0 and dt > 0:  # plus the detour that time allows
@@ -264,7 +262,7 @@ def _try_step(prev, t, d, lat, p, inputs):  # type: ignore[no-untyped-def]
     if p.detour_cost_max > 0:  # and the longest detour the transition allows
         vcap = min(vcap, trav + (beta0 + p.transition[4] * trav) * p.detour_cost_max)
     # a run of fixes off the map is bridged only near the path its fixes trace (the count
-    # here, the rest a call: compiled into every caller, it made calls up to 25 % slower)
+    # here, the rest a call: compiled into every caller, it would slow every call)
     if lat.run[t, 2] - lat.run[prev, 3] + 1 >= p.off_map_cut_fixes:
         vcap = min(vcap, _run_path(prev, t, lat, p) + p.off_map_bridge_slack)
     reach = p.route_factor * trav + p.route_slack

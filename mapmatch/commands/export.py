@@ -12,8 +12,8 @@ Write the roads of a prepared map (or of a source file, built on the fly) to a G
 .gpkg (layers roads and nodes), .geojson, .fgb (FlatGeobuf) or .parquet (GeoParquet).
 
 Each road is one line per way piece, a two-way road once with oneway=false, so
-`mapmatch prep FILE` gives the same map back. The columns are listed in README.md
-("Map preparation"). The file is written atomically."""
+`mapmatch prep FILE` gives the same map back. The columns are listed in docs/formats.md
+("Exported roads"). The file is written atomically."""
 
 
 def register(subparsers: Any) -> None:

@@ -10,9 +10,10 @@ Serve online matching (live streams and single fixes), batch track matching, map
 and session export/import over gRPC (API: proto/mapmatch/v1/mapmatch.proto).
 
 Every flag has a MAPMATCH_* environment variable, and every setting can be given in a TOML
-file (--config); flags win over the environment, which wins over the file. See README,
-"gRPC service". By default the server listens in plain text on 127.0.0.1:50051, refuses a
-port in use (--reuse-port to share one) and does not load maps named by clients (--map-dir).
+file (--config); flags win over the environment, which wins over the file. See
+docs/deployment.md, "Settings". By default the server listens in plain text on
+127.0.0.1:50051, refuses a port in use (--reuse-port to share one) and does not load maps
+named by clients (--map-dir).
 Health checking (grpc.health.v1) reports NOT_SERVING until the maps are loaded and warmed
 up; each start-up step is logged, and so is SERVING. SIGTERM or Ctrl-C shuts down
 gracefully (in-flight calls get --grace seconds).

@@ -9,10 +9,11 @@ import math
 
 import numpy as np
 
+from graph.angles import angle_diff
 from mapmatch.config import MatchConfig
 from mapmatch.online.road import RoadModel
 from mapmatch.online.state import Hypothesis, SessionState, Step, TrailPoint
-from mapmatch.turns import align_headings, angle_diff, bearing_profile
+from mapmatch.turns import align_headings, bearing_profile
 from mapmatch.types import Correction
 
 

@@ -5,9 +5,9 @@ from __future__ import annotations
 
 import math
 
+from graph.angles import angle_diff
 from mapmatch.config import MatchConfig
 from mapmatch.online.state import FixBias, Hypothesis, SessionState, Step
-from mapmatch.turns import angle_diff
 
 
 def drift_sigma(state: SessionState, gps: bool, travelled: float, dt: float, cfg: MatchConfig) -> float:

@@ -9,12 +9,11 @@ from typing import NamedTuple
 import numpy as np
 from numpy.typing import NDArray
 
+from graph.angles import angle_diff_compiled, bearing_compiled
 from graph.index import project_point_compiled
 from graph.jit import njit
-from mapmatch.turns import angle_diff
 
-# the same source as :func:`mapmatch.turns.angle_diff`, compiled
-angle_diff_c = njit(cache=True)(angle_diff)
+angle_diff_c = angle_diff_compiled
 
 
 class RoadArrays(NamedTuple):
@@ -67,7 +66,7 @@ def locate_on(seg_xy, lo, hi, off, bearing_end):  # type: ignore[no-untyped-def]
         seg = math.hypot(dx, dy)
         if acc + seg >= off and seg > 0.0:
             t = (off - acc) / seg
-            return ax + t * dx, ay + t * dy, math.degrees(math.atan2(dx, dy)) % 360.0
+            return ax + t * dx, ay + t * dy, bearing_compiled(dx, dy)
         acc += seg
         ax, ay = bx, by
     return ax, ay, bearing_end

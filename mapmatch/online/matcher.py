@@ -6,6 +6,7 @@ from __future__ import annotations
 import dataclasses
 import math
 
+from graph.angles import angle_diff
 from graph.index import EdgeIndex
 from graph.neighbours import Neighbours, edge_neighbours
 from graph.road_graph import RoadGraph
@@ -17,7 +18,7 @@ from mapmatch.online.filter import normalise
 from mapmatch.online.road import RoadModel
 from mapmatch.online.state import Hypothesis, SessionState, Step
 from mapmatch.online.step import prepare
-from mapmatch.turns import add_sample, angle_diff
+from mapmatch.turns import add_sample
 from mapmatch.types import Fix, SnapResult, Turn
 
 
@@ -89,23 +90,12 @@ class OnlineMatcher:
         if not state.hyps:
             return report.off_road(fix)
         turn, corr = (Turn.NONE, None) if reinit else region.commit(self.road, state, step, cfg)
-        shown, agg = report.shown_hypothesis(state, cfg)
-        corr = stopline.back_at_stop_line(state, shown, held, step, corr)
-        state.shown = shown.edges[shown.k]
+        shown = report.shown_hypothesis(state, cfg)
+        corr = stopline.back_at_stop_line(state, shown.hypothesis, held, step, corr)
+        state.shown = shown.hypothesis.edges[shown.hypothesis.k]
         if len(state.hyps) > 1:
             remember_live(state, state.shown, step, cfg)
-        return report.report(
-            self.road,
-            state,
-            fix,
-            step,
-            shown,
-            agg,
-            cfg,
-            turn=turn,
-            correction=corr,
-            reinit=reinit,
-        )
+        return report.report(self.road, state, fix, step, shown, cfg, report.Outcome(turn, corr, reinit))
 
     # ------------------------------------------------------------------ steps of update
     def _take(self, state: SessionState, step: Step, cfg: MatchConfig) -> None:

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import math
 
+from graph.angles import angle_diff
 from mapmatch.config import MatchConfig
 from mapmatch.online.anchor import learn_scale, revise_crossings, turn_anchor
 from mapmatch.online.correction import correction, merge
@@ -14,7 +15,7 @@ from mapmatch.online.filter import normalise
 from mapmatch.online.hypotheses import move_to
 from mapmatch.online.road import RoadModel
 from mapmatch.online.state import BackEdge, Hypothesis, SessionState, Step
-from mapmatch.turns import angle_diff, classify_turn, corner_cut
+from mapmatch.turns import classify_turn, corner_cut
 from mapmatch.types import Correction, Turn
 
 _NO_TURN = Turn.NONE  # as a module value: an enum member's look-up on its class takes 0.1 µs

@@ -4,10 +4,11 @@ state. Pure: nothing here writes the state."""
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 
 from graph.projection import point_to_lonlat
 from mapmatch.config import MatchConfig
-from mapmatch.measurement import map_aided_measurement
+from mapmatch.measurement import AlongEvidence, Placement, RoadTags, map_aided_measurement
 from mapmatch.online.filter import best as best_of
 from mapmatch.online.road import RoadModel
 from mapmatch.online.state import Hypothesis, SessionState, Step
@@ -36,7 +37,16 @@ def edge_mass(hyps: list[Hypothesis]) -> EdgeMass:
     return out
 
 
-def shown_hypothesis(state: SessionState, cfg: MatchConfig) -> tuple[Hypothesis, EdgeMass]:
+@dataclass(slots=True)
+class Shown:
+    """The hypothesis to report and the probability mass per edge (empty for a single
+    hypothesis)."""
+
+    hypothesis: Hypothesis
+    mass: EdgeMass
+
+
+def shown_hypothesis(state: SessionState, cfg: MatchConfig) -> Shown:
     """The hypothesis to report: on the edge of highest total probability (best for the
     per-fix edge), its most probable one; back to an edge behind the one reported last only
     on clear evidence (no flicker). Also the mass per edge (empty for a single hypothesis)."""
@@ -53,7 +63,7 @@ def shown_hypothesis(state: SessionState, cfg: MatchConfig) -> tuple[Hypothesis,
                 top = shown
         if top != best.edges[best.k]:
             best = best_of([h for h in hyps if h.edges[h.k] == top])
-    return best, agg
+    return Shown(best, agg)
 
 
 def state_of(state: SessionState, reinit: bool) -> State:
@@ -91,55 +101,63 @@ def candidates(road: RoadModel, agg: EdgeMass) -> tuple[Candidate, ...]:
     )
 
 
+@dataclass(slots=True)
+class Outcome:
+    """What the update decided for a fix, besides the hypothesis shown.
+
+    Attributes
+    ----------
+    turn : Turn
+        The turn committed at this fix.
+    correction : Correction or None
+        The correction of earlier answers, if any.
+    reinit : bool
+        Whether the matcher re-initialised at this fix.
+    """
+
+    turn: Turn
+    correction: Correction | None
+    reinit: bool
+
+
 def report(
     road: RoadModel,
     state: SessionState,
     fix: Fix,
     step: Step,
-    shown: Hypothesis,
-    agg: EdgeMass,
+    shown: Shown,
     cfg: MatchConfig,
-    *,
-    turn: Turn,
-    correction: Correction | None,
-    reinit: bool,
+    outcome: Outcome,
 ) -> SnapResult:
-    """The result for ``fix``: ``shown``'s position, the way piece under it, the candidates,
-    the state and the map-aided measurement."""
+    """The result for ``fix``: the shown hypothesis's position, the way piece under it, the
+    candidates, the state and the map-aided measurement."""
+    agg, turn, correction, reinit = shown.mass, outcome.turn, outcome.correction, outcome.reinit
+    shown_hyp = shown.hypothesis
     g = road.graph
-    e = shown.edges[shown.k]
-    lon, lat = point_to_lonlat(g.crs, shown.px, shown.py)
+    e = shown_hyp.edges[shown_hyp.k]
+    lon, lat = point_to_lonlat(g.crs, shown_hyp.px, shown_hyp.py)
     st = state_of(state, reinit)
     cands = candidates(road, agg) if len(state.hyps) > 1 else ()
-    way_id, name, road_class, speed_kph = road.piece(e, shown.off)
+    way_id, name, road_class, speed_kph = road.piece(e, shown_hyp.off)
     probability = 1.0
     for c in cands:
         if c.edge == e:
             probability = c.probability
             break
-    # the inputs by position (in order): a call of positional arguments plus twice its keywords
-    # over 30 goes through a dict, 1 µs more
     aided = map_aided_measurement(
         g,
-        st,  # state
-        e,  # edge
-        shown.off,  # offset
-        lat,
-        lon,
-        shown.bearing,
-        probability,
-        step.gps,
-        step.sigma,  # fix_sigma
-        step.bias[2:],  # bias_cov: (pxx, pxy, pyy)
-        cfg.online.bias_white_fraction,  # white_share
-        shown.anc_sd,  # anchor_sd
-        step.odo_sigma,
-        step.dr,  # dr_distance
-        cfg.model.gps_sigma,
-        state.odo - state.init_odo,  # since_init
-        road_class=road_class,
-        one_way=road.rev[e] < 0,
-        bearing_at=road.bearing_at,
+        Placement(st, e, shown_hyp.off, lat, lon, shown_hyp.bearing, probability, state.odo - state.init_odo),
+        AlongEvidence(
+            step.gps,
+            step.sigma,  # fix_sigma
+            step.bias[2:],  # bias_cov: (pxx, pxy, pyy)
+            cfg.online.bias_white_fraction,  # white_share
+            shown_hyp.anc_sd,  # anchor_sd
+            step.odo_sigma,
+            step.dr,  # dr_distance
+            cfg.model.gps_sigma,
+        ),
+        RoadTags(road_class=road_class, one_way=road.rev[e] < 0, bearing_at=road.bearing_at),
         config=cfg.measurement,
     )
     return SnapResult(  # by position, in field order (see SnapResult)
@@ -149,11 +167,11 @@ def report(
         road.u_id[e],  # u
         road.v_id[e],  # v
         way_id,
-        shown.off,  # offset
+        shown_hyp.off,  # offset
         lat,
         lon,
-        shown.bearing,
-        shown.dist,
+        shown_hyp.bearing,
+        shown_hyp.dist,
         turn,
         cands,  # candidates
         correction,

@@ -12,6 +12,7 @@ from bisect import bisect_left, bisect_right
 import numpy as np
 from numpy.typing import NDArray
 
+from graph.angles import angle_diff, bearing, bearings
 from graph.index import project_point_compiled
 from graph.jit import read_only
 from graph.road_graph import RoadGraph
@@ -20,7 +21,6 @@ from mapmatch.config import MatchConfig
 from mapmatch.model import emission_one, transition_one
 from mapmatch.online.geometry import RoadArrays, locate_on
 from mapmatch.online.state import Hypothesis, Step
-from mapmatch.turns import angle_diff
 
 Projection = tuple[float, float, float, float, float]  # offset, dist, px, py, bearing
 
@@ -39,7 +39,7 @@ def _piece_table(seg_xy: NDArray[np.float64], ptr: list[int]) -> tuple[list[floa
         acc = 0.0
         for q in range(ptr[e] + 1, ptr[e + 1]):
             cum[q] = acc + seg_len[q]
-            brg[q] = math.degrees(math.atan2(dx[q], dy[q])) % 360.0
+            brg[q] = bearing(dx[q], dy[q])
             acc += seg_len[q]
     return cum, seg_len, brg
 
@@ -78,7 +78,7 @@ class RoadModel:
         # every piece of every polyline: length and bearing (the last row of each edge is unused)
         d = np.diff(graph.seg_xy, axis=0) if len(graph.seg_xy) else np.zeros((0, 2))
         self.piece_len = np.hypot(d[:, 0], d[:, 1])
-        self.piece_brg = np.degrees(np.arctan2(d[:, 0], d[:, 1])) % 360.0
+        self.piece_brg = bearings(d[:, 0], d[:, 1])
         # what the report reads per fix, as Python values: node ids and the way pieces
         ids = graph.node_id
         self.u_id: list[int] = ids[graph.edge_u].tolist()

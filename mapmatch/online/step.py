@@ -8,6 +8,7 @@ import math
 from graph.projection import point_to_xy
 from mapmatch.config import MatchConfig
 from mapmatch.errors import ValidationError
+from mapmatch.model import heading_kappa_one
 from mapmatch.online import anchor, bias
 from mapmatch.online.region import region_radius
 from mapmatch.online.road import RoadModel
@@ -44,8 +45,7 @@ def prepare(road: RoadModel, state: SessionState, fix: Fix, cfg: MatchConfig) ->
     if not math.isnan(heading) and (math.isnan(fix.speed) or fix.speed >= m.heading_min_speed):
         hs = m.heading_sigma if math.isnan(fix.heading_sigma) else fix.heading_sigma
         floor = o.heading_sigma_floor_deg if fix.gps_valid is not False else o.heading_sigma_floor_dr_deg
-        hs = max(hs, floor, math.sqrt(state.res_head2))
-        kappa = 1.0 / math.radians(hs) ** 2
+        kappa = heading_kappa_one(max(hs, math.sqrt(state.res_head2)), floor)
     # the fused error is correlated: evidence accrues with time and, when known, distance
     per_time = 1.0 if math.isnan(dt) else min(1.0, dt / o.evidence_time)
     weight = per_time
@@ -74,8 +74,8 @@ def prepare(road: RoadModel, state: SessionState, fix: Fix, cfg: MatchConfig) ->
         and not math.isnan(fix.heading_sigma)
         and not math.isnan(heading)
     ):
-        hs = max(fix.heading_sigma, o.heading_sigma_floor_deg, math.sqrt(state.res_head2))
-        still_kappa = 1.0 / math.radians(hs) ** 2
+        hs = max(fix.heading_sigma, math.sqrt(state.res_head2))
+        still_kappa = heading_kappa_one(hs, o.heading_sigma_floor_deg)
         still_weight = o.stopped_heading_weight * max(per_time - weight, 0.0)
     odo = state.odo + (travelled if not math.isnan(travelled) else 0.0)
     # positional up to ``r_a`` (in field order): a call of positional arguments plus twice its

@@ -8,11 +8,11 @@ import math
 
 import numpy as np
 
+from graph.angles import angle_diff
 from mapmatch.config import MatchConfig
 from mapmatch.online.correction import merge
 from mapmatch.online.road import RoadModel
 from mapmatch.online.state import Hypothesis, SessionState, Step
-from mapmatch.turns import angle_diff
 from mapmatch.types import Correction
 
 

@@ -14,6 +14,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import pandas as pd
 
+from graph.angles import angle_diffs
 from graph.projection import to_xy
 from graph.road_graph import RoadGraph
 from mapmatch.errors import ValidationError
@@ -75,7 +76,7 @@ def frame_metrics(
     row indices of each outage scored (default: each run of ``gps_outage``)."""
     err = np.hypot(x - truth["x"].to_numpy(), y - truth["y"].to_numpy())
     outage = truth["gps_outage"].to_numpy() > 0
-    dh = np.abs((heading - truth["heading"].to_numpy() + 180.0) % 360.0 - 180.0)
+    dh = np.abs(angle_diffs(heading, truth["heading"].to_numpy()))
     runs = outage_runs(outage) if outages is None else outages
     m = evaluate(graph, truth=truth, matched=matched, truth_path=truth_path)
     fin = m.corrected or m

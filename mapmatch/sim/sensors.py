@@ -19,6 +19,7 @@ from typing import NamedTuple
 import numpy as np
 from numpy.typing import NDArray
 
+from graph.angles import bearings
 from mapmatch.errors import ValidationError
 from mapmatch.sim.profile import Trajectory
 
@@ -269,7 +270,7 @@ def _gps(
     gspeed = np.maximum(v + rng.normal(0.0, config.gps_speed_sigma, len(gt)), 0.0)
     ve = v * np.sin(psi) + rng.normal(0.0, config.gps_speed_sigma, len(gt))
     vn = v * np.cos(psi) + rng.normal(0.0, config.gps_speed_sigma, len(gt))
-    course = np.degrees(np.arctan2(ve, vn)) % 360.0
+    course = bearings(ve, vn)
     course[v < 1.0] = np.nan
     gx, gy = x + ex, y + ey
     off = np.zeros(len(gt), dtype=bool)

@@ -436,3 +436,33 @@ class EndSessionResponse(_message.Message):
     EXISTED_FIELD_NUMBER: _ClassVar[int]
     existed: bool
     def __init__(self, existed: _Optional[bool] = ...) -> None: ...
+
+class ListSessionsRequest(_message.Message):
+    __slots__ = ("map_id", "vehicle_prefix", "limit")
+    MAP_ID_FIELD_NUMBER: _ClassVar[int]
+    VEHICLE_PREFIX_FIELD_NUMBER: _ClassVar[int]
+    LIMIT_FIELD_NUMBER: _ClassVar[int]
+    map_id: str
+    vehicle_prefix: str
+    limit: int
+    def __init__(self, map_id: _Optional[str] = ..., vehicle_prefix: _Optional[str] = ..., limit: _Optional[int] = ...) -> None: ...
+
+class SessionSummary(_message.Message):
+    __slots__ = ("map_id", "vehicle_id", "idle_seconds", "last_time")
+    MAP_ID_FIELD_NUMBER: _ClassVar[int]
+    VEHICLE_ID_FIELD_NUMBER: _ClassVar[int]
+    IDLE_SECONDS_FIELD_NUMBER: _ClassVar[int]
+    LAST_TIME_FIELD_NUMBER: _ClassVar[int]
+    map_id: str
+    vehicle_id: str
+    idle_seconds: float
+    last_time: float
+    def __init__(self, map_id: _Optional[str] = ..., vehicle_id: _Optional[str] = ..., idle_seconds: _Optional[float] = ..., last_time: _Optional[float] = ...) -> None: ...
+
+class ListSessionsResponse(_message.Message):
+    __slots__ = ("sessions", "total")
+    SESSIONS_FIELD_NUMBER: _ClassVar[int]
+    TOTAL_FIELD_NUMBER: _ClassVar[int]
+    sessions: _containers.RepeatedCompositeFieldContainer[SessionSummary]
+    total: int
+    def __init__(self, sessions: _Optional[_Iterable[_Union[SessionSummary, _Mapping]]] = ..., total: _Optional[int] = ...) -> None: ...

@@ -5,7 +5,7 @@ import warnings
 
 from service.gen import mapmatch_pb2 as mapmatch_dot_v1_dot_mapmatch__pb2
 
-GRPC_GENERATED_VERSION = '1.85.1'
+GRPC_GENERATED_VERSION = '1.85.4'
 GRPC_VERSION = grpc.__version__
 _version_not_supported = False
 
@@ -94,6 +94,11 @@ class MapMatchStub:
                 '/mapmatch.v1.MapMatch/EndSession',
                 request_serializer=mapmatch_dot_v1_dot_mapmatch__pb2.EndSessionRequest.SerializeToString,
                 response_deserializer=mapmatch_dot_v1_dot_mapmatch__pb2.EndSessionResponse.FromString,
+                _registered_method=True)
+        self.ListSessions = channel.unary_unary(
+                '/mapmatch.v1.MapMatch/ListSessions',
+                request_serializer=mapmatch_dot_v1_dot_mapmatch__pb2.ListSessionsRequest.SerializeToString,
+                response_deserializer=mapmatch_dot_v1_dot_mapmatch__pb2.ListSessionsResponse.FromString,
                 _registered_method=True)
 
 
@@ -189,6 +194,13 @@ class MapMatchServicer:
         context.set_details('Method not implemented!')
         raise NotImplementedError('Method not implemented!')
 
+    def ListSessions(self, request, context):
+        """The live sessions, most recently used first (the operator only).
+        """
+        context.set_code(grpc.StatusCode.UNIMPLEMENTED)
+        context.set_details('Method not implemented!')
+        raise NotImplementedError('Method not implemented!')
+
 
 def add_MapMatchServicer_to_server(servicer, server):
     rpc_method_handlers = {
@@ -251,6 +263,11 @@ def add_MapMatchServicer_to_server(servicer, server):
                     servicer.EndSession,
                     request_deserializer=mapmatch_dot_v1_dot_mapmatch__pb2.EndSessionRequest.FromString,
                     response_serializer=mapmatch_dot_v1_dot_mapmatch__pb2.EndSessionResponse.SerializeToString,
+            ),
+            'ListSessions': grpc.unary_unary_rpc_method_handler(
+                    servicer.ListSessions,
+                    request_deserializer=mapmatch_dot_v1_dot_mapmatch__pb2.ListSessionsRequest.FromString,
+                    response_serializer=mapmatch_dot_v1_dot_mapmatch__pb2.ListSessionsResponse.SerializeToString,
             ),
     }
     generic_handler = grpc.method_handlers_generic_handler(
@@ -578,6 +595,33 @@ class MapMatch:
             '/mapmatch.v1.MapMatch/EndSession',
             mapmatch_dot_v1_dot_mapmatch__pb2.EndSessionRequest.SerializeToString,
             mapmatch_dot_v1_dot_mapmatch__pb2.EndSessionResponse.FromString,
+            options,
+            channel_credentials,
+            insecure,
+            call_credentials,
+            compression,
+            wait_for_ready,
+            timeout,
+            metadata,
+            _registered_method=True)
+
+    @staticmethod
+    def ListSessions(request,
+            target,
+            options=(),
+            channel_credentials=None,
+            call_credentials=None,
+            insecure=False,
+            compression=None,
+            wait_for_ready=None,
+            timeout=None,
+            metadata=None):
+        return grpc.experimental.unary_unary(
+            request,
+            target,
+            '/mapmatch.v1.MapMatch/ListSessions',
+            mapmatch_dot_v1_dot_mapmatch__pb2.ListSessionsRequest.SerializeToString,
+            mapmatch_dot_v1_dot_mapmatch__pb2.ListSessionsResponse.FromString,
             options,
             channel_credentials,
             insecure,
