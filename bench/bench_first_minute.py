@@ -204,6 +204,9 @@ def main() -> int:
         warm = commands(tree, work, args.monaco, "warm")
         for (name, load, cw, cc), (_, _, ww, wc) in zip(cold, warm, strict=True):
             print(f"| {name} | {cw:.1f} | {cc:.1f} | {ww:.1f} | {wc:.1f} | {load} |", flush=True)
+        load = _load()
+        wall, cpu = serve(None, work / "cold" / "city.map", fresh_tree(work / "tree-serve"))
+        print(f"| serve to SERVING, alone in a fresh copy | {wall:.1f} | {cpu:.1f} | | | {load} |")
         if not args.skip_demo:
             runs = []
             demo_tree = fresh_tree(work / "tree-demo")  # cold: none of the kernels compiled above
