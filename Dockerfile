@@ -2,16 +2,21 @@
 #   docker build -t mapmatch .
 #   docker run -p 50051:50051 -v "$PWD/maps:/maps:ro" -e MAPMATCH_MAPS=city=/maps/city.map mapmatch
 # (README, "Deployment"). Stage 1 installs the package into a venv; stage 2 copies only that
-# venv, runs as an unprivileged user, compiles the batch and online kernels once at build time (so the
+# venv (the core install: no map preparation), runs as an unprivileged user, compiles the batch and online kernels once at build time (so the
 # first MatchTrack and the first fixes are fast) and checks health through grpc.health.v1.
 
-FROM python:3.11-slim AS build
+# The base image is pinned by digest (the same for both stages): a rebuild gets the same
+# Python and Debian. To move it on: `docker buildx imagetools inspect python:3.11-slim` and
+# put the index digest here. The package's versions come from requirements/constraints.txt.
+ARG BASE=python:3.11-slim@sha256:9c900dea9e8fb7e16277c179b555cc72d29a352dbc33cff48ad5a0412fd5bfc7
+
+FROM ${BASE} AS build
 WORKDIR /src
 COPY . .
 RUN python -m venv /opt/mapmatch \
- && /opt/mapmatch/bin/python -m pip install --no-cache-dir .
+ && /opt/mapmatch/bin/python -m pip install --no-cache-dir -c requirements/constraints.txt .
 
-FROM python:3.11-slim
+FROM ${BASE}
 RUN useradd --create-home --uid 10001 mapmatch
 COPY --from=build --chown=mapmatch:mapmatch /opt/mapmatch /opt/mapmatch
 ENV PATH=/opt/mapmatch/bin:$PATH \

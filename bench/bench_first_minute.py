@@ -1,14 +1,19 @@
-"""A user's first minute: README's first command (the demo) and `serve` to SERVING, cold and warm.
+"""A user's first minute: cold and warm CPU and wall to the first answer of every command, and
+the size of each install.
 
 Cold = a fresh copy of the source tree (its tracked files as they are now: no ``__pycache__``,
 so neither Python bytecode nor compiled kernels, exactly as on a fresh clone), with numba's
 default cache (``__pycache__`` in that copy; ``NUMBA_CACHE_DIR`` is unset); warm = the same
-copy again. Each step runs as its own process, one after the other. The demo is timed to its
-table (the first table line on stdout) and to its exit. Prints wall and CPU seconds and the
-machine's load average, which decides the wall times on a shared machine.
+commands again in the same copy. The commands run one after the other, each as its own
+process, in a user's order: ``prep`` (Monaco), ``simulate`` (a 1,000-fix drive on it),
+``replay`` and ``match`` of that drive, ``serve`` to SERVING, and ``demo`` (timed to its table
+and to its exit). A command's kernels shared with an earlier one are already compiled when it
+runs. ``--install`` also times ``pip install -c requirements/constraints.txt`` of the core, of
+``[prep]`` and of README's ``-e '.[dev]'`` into new virtual environments (pip's cache as it is)
+and measures their sizes. Prints a Markdown table with the machine's load average, which
+decides the wall times on a shared machine.
 
-    python bench/bench_first_minute.py [--monaco PATH.osm.pbf] [--skip-demo] [--skip-serve] [--skip-batch]
-                                       [--repeat N]
+    python bench/bench_first_minute.py [--monaco PATH.osm.pbf] [--skip-demo] [--install]
 """
 
 from __future__ import annotations
@@ -24,12 +29,17 @@ import time
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
-MONACO = ROOT.parent / "shared" / "data" / "osm" / "monaco.osm.pbf"
+sys.path.insert(0, str(ROOT / "tests"))
+from shared_data import OSM_DIR  # noqa: E402  (MAPMATCH_SHARED)
+
+MONACO = OSM_DIR / "monaco.osm.pbf"
 
 
 def _env(cache: Path | None, tree: Path = ROOT) -> dict[str, str]:
     """The environment of a step: ``tree`` on the path; numba's cache in ``cache``, or (None)
-    numba's default, ``__pycache__`` next to the tree's sources."""
+    numba's default, ``__pycache__`` next to the tree's sources. Steps run with ``tree`` as
+    their working folder too: ``python -m`` puts the working folder first on the path, so run
+    from another clone it would import (and time) that clone's warm kernels."""
     env = dict(os.environ, PYTHONPATH=str(tree))
     env.pop("NUMBA_CACHE_DIR", None)
     env.pop("PYTHONPYCACHEPREFIX", None)
@@ -71,7 +81,7 @@ def demo(tree: Path, out: Path) -> tuple[float, float, float]:
     c0, t0 = _children_cpu(), time.perf_counter()
     proc = subprocess.Popen(
         [sys.executable, "-m", "mapmatch", "demo", "--out", str(out)],
-        env=_env(None, tree), stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True,
+        env=_env(None, tree), cwd=tree, stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True,
     )  # fmt: skip
     assert proc.stdout is not None
     table = float("nan")
@@ -99,7 +109,7 @@ def serve(cache: Path | None, map_path: Path, tree: Path = ROOT) -> tuple[float,
     proc = subprocess.Popen(
         [sys.executable, "-m", "mapmatch", "serve", "--map", f"mco={map_path}",
          "--address", f"127.0.0.1:{port}"],
-        env=_env(cache, tree), stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+        env=_env(cache, tree), cwd=tree, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
     )  # fmt: skip
     try:
         while check(f"127.0.0.1:{port}", timeout=0.5)[0] != 0:
@@ -120,54 +130,101 @@ def serve(cache: Path | None, map_path: Path, tree: Path = ROOT) -> tuple[float,
         proc.wait(30)
 
 
+def timed(tree: Path, *argv: str) -> tuple[float, float]:
+    """Seconds (wall, CPU) of ``python -m mapmatch ARGV`` run from ``tree`` to its exit."""
+    c0, t0 = _children_cpu(), time.perf_counter()
+    cmd = [sys.executable, "-m", "mapmatch", *argv]
+    proc = subprocess.run(cmd, env=_env(None, tree), cwd=tree, capture_output=True, text=True)
+    if proc.returncode != 0:
+        raise RuntimeError(f"mapmatch {argv[0]} exited with {proc.returncode}: {proc.stderr[-2000:]}")
+    return time.perf_counter() - t0, _children_cpu() - c0
+
+
+def commands(tree: Path, work: Path, source: Path, label: str) -> list[tuple[str, str, float, float]]:
+    """``(command, load, wall, CPU)`` of prep, simulate, replay, match and serve, in that order."""
+    out: list[tuple[str, str, float, float]] = []
+    d = work / label
+    d.mkdir()
+    m = d / "city.map"
+    steps: list[tuple[str, list[str]]] = [
+        ("prep", ["prep", str(source), "-o", str(m), "-q"]),
+        ("simulate", ["simulate", "--map", str(m), "--random-route", "--length-km", "10", "--seed", "1",
+                      "-o", str(d / "fixes.csv")]),
+        ("replay", ["replay", "--map", str(m), str(d / "fixes.csv"), "-o", str(d / "online.csv")]),
+        ("match", ["match", "--map", str(m), str(d / "fixes.csv"), "--id-col", "vehicle_id",
+                   "-o", str(d / "points.csv"), "--workers", "1", "--no-progress"]),
+    ]  # fmt: skip
+    for name, argv in steps:
+        load = _load()
+        wall, cpu = timed(tree, *argv)
+        if name == "simulate":
+            n = len((d / "fixes.csv").read_text().splitlines()) - 1
+            name = f"simulate ({n:,} fixes)"
+        out.append((name, load, wall, cpu))
+    load = _load()
+    wall, cpu = serve(None, m, tree)
+    out.append(("serve to SERVING", load, wall, cpu))
+    return out
+
+
+def installs(work: Path, tree: Path) -> list[tuple[str, str, float, float, int]]:
+    """``(install, load, wall, CPU, MB)`` of the core, ``[prep]`` and README's ``-e '.[dev]'``,
+    each into a new virtual environment with pip and the constraints file."""
+    out = []
+    for name, spec in (("core", "."), ("prep", ".[prep]"), ("dev (README)", "-e .[dev]")):
+        venv = work / f"venv-{name.split()[0]}"
+        load = _load()
+        c0, t0 = _children_cpu(), time.perf_counter()
+        subprocess.run([sys.executable, "-m", "venv", str(venv)], check=True)
+        subprocess.run(
+            [str(venv / "bin" / "pip"), "install", "-q", "-c", "requirements/constraints.txt", *spec.split()],
+            cwd=tree, check=True, stdout=subprocess.DEVNULL,
+        )  # fmt: skip
+        wall, cpu = time.perf_counter() - t0, _children_cpu() - c0
+        size = sum(f.stat().st_size for f in venv.rglob("*") if f.is_file() and not f.is_symlink())
+        out.append((name, load, wall, cpu, size >> 20))
+    return out
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--monaco", type=Path, default=MONACO)
+    ap.add_argument("--monaco", type=Path, default=MONACO, help="the OSM source prepared first")
     ap.add_argument("--skip-demo", action="store_true")
-    ap.add_argument("--skip-serve", action="store_true")
-    ap.add_argument(
-        "--skip-batch", action="store_true", help="no serve row with batch kernels compiled (long)"
-    )
-    ap.add_argument("--repeat", type=int, default=1, help="cold/warm pairs of the demo, each on a fresh copy")
+    ap.add_argument("--install", action="store_true", help="also time the three installs and measure them")
     args = ap.parse_args()
-
-    def row(label: str, load: str, *figures: str) -> None:
-        print(f"{label:50s} {'  '.join(figures)}  (load {load})", flush=True)
-
+    if not args.monaco.is_file():
+        print(f"error: no {args.monaco} (set MAPMATCH_SHARED or give --monaco)", file=sys.stderr)
+        return 2
+    print("| step | cold wall (s) | cold CPU (s) | warm wall (s) | warm CPU (s) | load (1, 5, 15 min) |")
+    print("|---|---|---|---|---|---|")
     with tempfile.TemporaryDirectory(prefix="first-minute-") as tmp:
         work = Path(tmp)
+        tree = fresh_tree(work / "tree")
+        cold = commands(tree, work, args.monaco, "cold")
+        warm = commands(tree, work, args.monaco, "warm")
+        for (name, load, cw, cc), (_, _, ww, wc) in zip(cold, warm, strict=True):
+            print(f"| {name} | {cw:.1f} | {cc:.1f} | {ww:.1f} | {wc:.1f} | {load} |", flush=True)
+        load = _load()
+        wall, cpu = serve(None, work / "cold" / "city.map", fresh_tree(work / "tree-serve"))
+        print(f"| serve to SERVING, alone in a fresh copy | {wall:.1f} | {cpu:.1f} | | | {load} |")
         if not args.skip_demo:
-            for i in range(args.repeat):
-                tree = fresh_tree(work / f"tree-demo-{i}")
-                for label in ("cold", "warm"):
-                    out = work / f"demo-{i}-{label}"  # a fresh folder: the map is prepared again each time
-                    load = _load()
-                    table, wall, cpu = demo(tree, out)
-                    figures = f"{table:6.1f} s to the table", f"{wall:6.1f} s to the exit"
-                    row(f"mapmatch demo, {label}", load, *figures, f"{cpu:6.1f} s CPU")
-        if args.skip_serve:
-            pass
-        elif args.monaco.is_file():
-            map_path = work / "monaco.map"
-            subprocess.run(
-                [sys.executable, "-m", "mapmatch", "prep", str(args.monaco), "-o", str(map_path), "-q"],
-                env=_env(work / "numba-prep"), check=True, stdout=subprocess.DEVNULL,
-            )  # fmt: skip
-            tree = fresh_tree(work / "tree-serve")
-            labels = ("cold", "warm") if args.skip_batch else ("cold", "warm", "warm, batch kernels compiled")
-            for label in labels:
-                cache = None
-                if label.endswith("compiled"):  # a machine that has matched tracks before
-                    cache = ROOT / ".bench-numba-cache"
-                    subprocess.run(
-                        [sys.executable, "-m", "mapmatch.kernels", "batch"], env=_env(cache), check=True
-                    )
+            runs = []
+            demo_tree = fresh_tree(work / "tree-demo")  # cold: none of the kernels compiled above
+            for label in ("cold", "warm"):
                 load = _load()
-                wall, cpu = serve(cache, map_path, tree if cache is None else ROOT)
-                row(f"serve Monaco to SERVING, {label}", load, f"{wall:6.1f} s wall", f"{cpu:6.1f} s CPU")
-        else:
-            print(f"no {args.monaco}: serve not measured")
-    print(f"targets: demo cold <= 20 s; serve cold <= 10 s, warm <= 2 s; {os.cpu_count()} cores")
+                runs.append((load, *demo(demo_tree, work / f"demo-{label}")))
+            (load, ct, cw, cc), (_, wt, ww, wc) = runs
+            print(f"| demo, to its table | {ct:.1f} | | {wt:.1f} | | {load} |")
+            print(f"| demo, to its exit | {cw:.1f} | {cc:.1f} | {ww:.1f} | {wc:.1f} | {load} |", flush=True)
+        if args.install:
+            print()
+            print("| install | wall (s) | CPU (s) | size (MB) | load (1, 5, 15 min) |")
+            print("|---|---|---|---|---|")
+            for name, load, wall, cpu, mb in installs(work, tree):
+                print(f"| {name} | {wall:.1f} | {cpu:.1f} | {mb:,} | {load} |", flush=True)
+    print(f"\n{os.cpu_count()} cores; targets: demo cold <= 20 s wall and <= 15 s CPU; first match of "
+          "a 1,000-point track <= 15 s CPU; serve cold <= 10 s; core install <= 350 MB; README's "
+          "first command <= 90 s")  # fmt: skip
     return 0
 
 

@@ -21,6 +21,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any, NamedTuple
 
 from graph.errors import InputError
+from graph.extras import require_prep
 from graph.gis import GIS_SUFFIXES, GisOptions
 from graph.road_graph import RoadGraph
 
@@ -192,7 +193,10 @@ def build_map(
     ------
     InputError
         Missing file, unknown format, corrupt data, no drivable roads, unreadable CRS.
+    MissingExtraError
+        The ``prep`` extra is not installed.
     """
+    require_prep(needed_for="map preparation")
     if options.engine not in ("arrays", "osmnx"):
         raise InputError(f"unknown build engine {options.engine!r} (use arrays or osmnx)")
     step = _Steps(progress or (lambda msg: log.info("%s", msg)), options.progress_interval)

@@ -11,3 +11,8 @@ class InputError(GraphError):
 
 class ArtifactError(GraphError):
     """A prepared map artifact is missing, of an unsupported version, or fails its checksum."""
+
+
+class MissingExtraError(GraphError, ImportError):
+    """A dependency of map preparation (the ``prep`` extra) is not installed; the message says
+    ``pip install 'mapmatch[prep]'``."""

@@ -24,6 +24,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from graph.errors import GraphError
+from graph.extras import require_prep
 from graph.projection import to_lonlat
 from graph.road_graph import RoadGraph
 
@@ -143,8 +144,10 @@ def export_map(graph: RoadGraph, path: str | os.PathLike[str]) -> None:
     Raises
     ------
     GraphError
-        Unknown suffix, or the file cannot be written.
+        Unknown suffix, or the file cannot be written; :class:`graph.errors.MissingExtraError`
+        when the ``prep`` extra is not installed.
     """
+    require_prep(needed_for="map export", modules=("geopandas", "pyogrio"))
     import pyogrio
 
     dest = Path(path)

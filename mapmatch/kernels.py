@@ -20,6 +20,7 @@ import importlib
 import os
 import subprocess
 import sys
+import threading
 import time
 from collections.abc import Iterator
 from contextlib import contextmanager
@@ -120,12 +121,32 @@ def announce(group: str, *, stream: TextIO | None = None) -> bool:
     _announced.add(group)
     if is_cached(group):
         return False
-    print(
-        f"preparing compiled kernels ({group}), once, about {COMPILE_SECONDS[group]:.0f} s",
-        file=stream or sys.stderr,
-        flush=True,
-    )
+    out = stream or sys.stderr
+    about = COMPILE_SECONDS[group]
+    print(f"preparing compiled kernels ({group}), once, about {about:.0f} s", file=out, flush=True)
+    threading.Thread(target=_heartbeat, args=(group, out), name=f"kernels-{group}", daemon=True).start()
     return True
+
+
+HEARTBEAT_SECONDS = 15.0
+"""How often a compile that :func:`announce` announced says it is still going."""
+
+
+def _heartbeat(group: str, out: TextIO) -> None:
+    """Every :data:`HEARTBEAT_SECONDS`, a line saying the group is still compiling (a busy
+    machine can take several times the announced time), and one when its cache is written;
+    quiet after ten times the announced time."""
+    t0 = time.monotonic()
+    while time.monotonic() - t0 < 10 * COMPILE_SECONDS[group]:
+        time.sleep(HEARTBEAT_SECONDS)
+        try:
+            done = is_cached(group)
+            what = "ready after" if done else "still preparing, so far"
+            print(f"compiled kernels ({group}): {what} {time.monotonic() - t0:.0f} s", file=out, flush=True)
+        except Exception:  # the process is ending (stream closed, modules going): say nothing more
+            return
+        if done:
+            return
 
 
 BACKGROUND_WAIT_SECONDS = 300.0

@@ -1,13 +1,14 @@
-"""Shared fixtures: where the real data lives, and skips with a reason when it is absent."""
+"""Shared fixtures: where the real data lives (``MAPMATCH_SHARED``, :mod:`shared_data`), and skips
+naming that setting when it is absent."""
 
 from __future__ import annotations
 
-import os
 from importlib import resources
 from pathlib import Path
 
 import pytest
 from hypothesis import settings
+from shared_data import KUBICKA, OSM_DIR, ROOT, SHARED, reason
 
 # Property tests replay the same examples on every run, so that a run fails for the code, not by
 # the luck of the draw; `pytest --hypothesis-profile=explore` draws new examples to hunt for bugs.
@@ -15,10 +16,7 @@ settings.register_profile("default", derandomize=True)
 settings.register_profile("explore", derandomize=False)
 settings.load_profile("default")
 
-ROOT = Path(__file__).resolve().parents[1]
-SHARED = Path(os.environ.get("MAPMATCH_SHARED", ROOT.parent / "shared"))
-KUBICKA = SHARED / "data" / "kubicka"
-OSM_DIR = SHARED / "data" / "osm"
+__all__ = ["KUBICKA", "OSM_DIR", "ROOT", "SHARED", "helsinki_pbf"]
 
 
 def helsinki_pbf() -> Path:
@@ -29,19 +27,19 @@ def helsinki_pbf() -> Path:
 @pytest.fixture(scope="session")
 def shared_dir() -> Path:
     if not SHARED.is_dir():
-        pytest.skip(f"needs the shared data folder {SHARED} (absent in a user's fresh clone)")
+        pytest.skip(reason(SHARED))
     return SHARED
 
 
 @pytest.fixture(scope="session")
 def kubicka_dir(shared_dir: Path) -> Path:
     if not KUBICKA.is_dir():
-        pytest.skip(f"needs {KUBICKA}")
+        pytest.skip(reason(KUBICKA))
     return KUBICKA
 
 
 @pytest.fixture(scope="session")
 def osm_dir(shared_dir: Path) -> Path:
     if not OSM_DIR.is_dir():
-        pytest.skip(f"needs {OSM_DIR}")
+        pytest.skip(reason(OSM_DIR))
     return OSM_DIR

@@ -34,7 +34,8 @@ for p in (str(TESTS), str(ROOT / "bench")):
     if p not in sys.path:
         sys.path.insert(0, p)
 
-SHARED = ROOT.parent / "shared" / "data"
+from shared_data import DATA as SHARED  # noqa: E402  (MAPMATCH_SHARED, default ../shared)
+
 GOLDEN_DIR = TESTS / "data" / "online_golden"
 TOL = 1e-9
 

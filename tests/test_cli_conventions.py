@@ -324,6 +324,7 @@ def _startup_seconds() -> float:
     return time.perf_counter() - t0
 
 
+@pytest.mark.slow  # three processes matching 400 tracks each
 @pytest.mark.parametrize("after", [0.2, 0.6, 2.0])
 def test_ctrl_c_at_any_time_is_one_line(grid: tuple[AsciiMap, Path], tmp_path: Path, after: float) -> None:
     m, map_path = grid

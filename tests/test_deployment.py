@@ -36,12 +36,17 @@ def test_dockerfile_installs_and_starts_what_readme_documents() -> None:
     stages = [i for i in ins if i.startswith("FROM ")]
     assert len(stages) >= 2, "multi-stage"
     assert any(i.startswith("USER ") and "root" not in i for i in ins), "non-root"
+    # every stage on the base image pinned by digest; versions from the constraints file
+    base = next(i for i in ins if i.startswith("ARG BASE="))
+    assert re.fullmatch(r"ARG BASE=python:3\.11-slim@sha256:[0-9a-f]{64}", base), base
+    assert all(i.split()[1] == "${BASE}" for i in stages), stages
     docs = _readme_deployment()
     # install: the one pip command of the build stage, as README gives it
     pip = [i for i in ins if i.startswith("RUN ") and "pip install" in i]
     assert len(pip) == 1
     install = "pip install " + pip[0].split("pip install ", 1)[1].strip()
     assert install in docs, install
+    assert "-c requirements/constraints.txt" in install and (ROOT / "requirements/constraints.txt").is_file()
     # start: ENTRYPOINT + CMD
     entry = json.loads(next(i for i in ins if i.startswith("ENTRYPOINT "))[len("ENTRYPOINT ") :])
     cmd = json.loads(next(i for i in ins if i.startswith("CMD "))[len("CMD ") :])

@@ -18,7 +18,10 @@ ROOT = Path(__file__).resolve().parents[1]
 README = ROOT / "README.md"
 DOCS = ROOT / "docs"
 
-SETUP_AND_DEMO = "python3 -m venv .venv && .venv/bin/pip install -e '.[dev]' && .venv/bin/mapmatch demo"
+SETUP_AND_DEMO = (
+    "python3 -m venv .venv && .venv/bin/pip install -c requirements/constraints.txt -e '.[dev]'"
+    " && .venv/bin/mapmatch demo"
+)
 TESTS = ".venv/bin/python -m pytest -q"
 
 FENCE = re.compile(r"^(```|~~~).*?^\1[^\n]*$", re.M | re.S)

@@ -35,6 +35,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 from failover_util import nginx, redis_server
+from shared_data import KUBICKA, reason
 
 from graph.artifact import save_map
 from graph.build import build_map
@@ -52,7 +53,6 @@ redis = pytest.importorskip("redis", reason="needs the redis client: pip install
 pytestmark = pytest.mark.slow
 
 ROOT = Path(__file__).resolve().parents[1]
-KUBICKA = Path(os.environ.get("MAPMATCH_SHARED", ROOT.parent / "shared")) / "data" / "kubicka"
 TRACKS = ("00000003", "00000007", "00000045", "00000070", "00000091")  # small maps, real drives
 SEEDS = (1, 2)  # two fused drives of each track (dead-reckoning errors and outages differ)
 WINDOWS = 5  # vehicles per drive: windows starting at spread places along it
@@ -186,9 +186,7 @@ def _wait_at(t: float) -> None:
 
 def test_a_killed_server_and_a_stopped_one_lose_no_vehicle(tmp_path: Path) -> None:
     if not KUBICKA.is_dir():
-        pytest.skip(
-            f"needs the real Kubicka tracks in {KUBICKA}: set MAPMATCH_SHARED to the shared data folder"
-        )
+        pytest.skip(reason(KUBICKA))
     maps, vehicles, reference = _fleet(tmp_path)
     with redis_server(tmp_path / "redis") as rport:
         db = redis.Redis(port=rport)

@@ -8,6 +8,7 @@ import os
 import subprocess
 import sys
 import textwrap
+import threading
 from pathlib import Path
 
 import numpy as np
@@ -179,3 +180,27 @@ def test_a_group_whose_cache_was_written_for_other_source_is_not_cached(tmp_path
         "from numba import njit\n\n@njit(cache=True)\ndef f(x):\n    return x + 2\n"
     )
     assert run() == ["False", "True"]  # the index is there, but for the old source
+
+
+def test_a_compile_says_it_is_still_going_and_when_it_is_ready(monkeypatch: pytest.MonkeyPatch) -> None:
+    import io
+
+    import mapmatch.kernels as k
+
+    answers = iter([False, False, True])
+    monkeypatch.setattr(k, "is_cached", lambda group: next(answers, True))
+    monkeypatch.setattr(k, "HEARTBEAT_SECONDS", 0.01)
+    monkeypatch.setitem(k.COMPILE_SECONDS, "probe", 60.0)
+    monkeypatch.setattr(k, "_announced", set())
+    out = io.StringIO()
+    assert k.announce("probe", stream=out) is True
+    for t in list(threading.enumerate()):
+        if t.name == "kernels-probe":
+            t.join(10)
+    lines = out.getvalue().splitlines()
+    assert lines[0] == "preparing compiled kernels (probe), once, about 60 s"
+    assert [x.split(":")[1].rsplit(" ", 2)[0] for x in lines[1:]] == [
+        " still preparing, so far",
+        " ready after",
+    ]
+    assert k.announce("probe", stream=out) is False  # once per process

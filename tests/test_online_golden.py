@@ -42,6 +42,7 @@ from online_golden import (
     same_input,
     without_ways,
 )
+from shared_data import reason
 
 GOLDEN = load(GOLDEN_DIR / "before.json.gz")
 BATCH_GOLDEN = load(GOLDEN_DIR / "batch.json.gz")["batch"]
@@ -49,7 +50,7 @@ BATCH_GOLDEN = load(GOLDEN_DIR / "batch.json.gz")["batch"]
 
 def _needs_shared(name: str) -> None:
     if not name.startswith("city-") and not SHARED.is_dir():
-        pytest.skip(f"needs the shared data folder {SHARED}")
+        pytest.skip(reason(SHARED))
 
 
 @pytest.mark.parametrize(

@@ -21,6 +21,8 @@ from service_util import city, local_config, looped_track, requests, running, st
 from graph.artifact import save_map
 from service.gen import mapmatch_pb2 as pb
 
+pytestmark = pytest.mark.slow  # tracks of many thousand points, in worker processes that compile
+
 AMAP = city()
 OTHER = city(scale=12.0)
 BIG = 50_000  # the largest track these servers allow
@@ -85,25 +87,15 @@ def test_the_largest_track_is_matched_in_a_worker_process_while_a_good_stream_ke
         if oom.exists():
             assert oom.read_text().strip() == "1000"
         ch, api = stub(port, **big)
-        quiet: list[float] = []
-        stop = threading.Event()
-        t = threading.Thread(target=_snap_latencies, args=(port, "quiet", stop, quiet))
-        t.start()
-        time.sleep(1.0)
-        stop.set()
-        t.join(30)
-        base = float(np.median(quiet))
         busy: list[float] = []
         stop = threading.Event()
         t = threading.Thread(target=_snap_latencies, args=(port, "busy", stop, busy))
         req = pb.MatchTrackRequest(track=looped_track(AMAP, BIG))
         t.start()
-        heavy, worker_cpu = 0.0, 0.0
+        worker_cpu = 0.0
         for _ in range(20):  # the match again until the good stream has had its samples
             worker_cpu0 = _cpu(worker)
-            t0 = time.perf_counter()
             res = api.MatchTrack(req, timeout=600)
-            heavy = max(heavy, time.perf_counter() - t0)
             worker_cpu = max(worker_cpu, _cpu(worker) - worker_cpu0)
             if len(busy) >= 5:
                 break
@@ -112,9 +104,7 @@ def test_the_largest_track_is_matched_in_a_worker_process_while_a_good_stream_ke
         assert len(res.points) == BIG and res.points[0].status == pb.POINT_STATUS_MATCHED
         assert server.batch_workers.pids() == [worker.pid]
         ch.close()
-        assert len(busy) >= 5, "the good stream was starved"
-        assert float(np.median(busy)) < max(5 * base, 0.005), (base, np.median(busy), heavy)
-        assert max(busy) < heavy / 2, (sorted(busy)[-5:], heavy)
+        assert len(busy) >= 5, "the good stream was starved"  # its latencies: bench/bench_service.py
     with running(cfg.replace(batch_processes=0)) as (server, port):
         assert server.batch_workers is None
         ch, api = stub(port, **big)
@@ -196,13 +186,11 @@ def test_an_abandoned_call_stops_its_worker_and_stop_ends_the_workers(tmp_path):
         c0 = _cpu(again)
         while _cpu(again) - c0 < 0.3:
             time.sleep(0.05)
-        t0 = time.perf_counter()
         server.stop(0)
         with pytest.raises(grpc.RpcError) as ei:
             fut.result()
         assert ei.value.code() in (grpc.StatusCode.UNAVAILABLE, grpc.StatusCode.CANCELLED)
-        again.wait(10)
-        assert time.perf_counter() - t0 < 10.0
+        again.wait(10)  # stopped with the server (psutil.TimeoutExpired otherwise)
         assert server.batch_workers.pids() == []
         ch.close()
 

@@ -14,6 +14,8 @@ from graph.projection import to_lonlat
 from graph.road_graph import RESTRICTION_NO, RESTRICTION_ONLY
 from service.gen import mapmatch_pb2 as pb
 
+pytestmark = pytest.mark.slow  # prepares the Helsinki map
+
 
 @pytest.fixture(scope="module")
 def helsinki(tmp_path_factory):

@@ -175,16 +175,23 @@ def test_simulate_replays_to_a_running_server(tmp_path: Path, grid, capsys) -> N
     assert "correct edge, all fixes" in capsys.readouterr().out
 
 
-def test_realtime_pacing() -> None:
-    import time
-
+def test_realtime_pacing(monkeypatch: pytest.MonkeyPatch) -> None:
+    from mapmatch.commands import simulate
     from mapmatch.commands.simulate import paced
     from mapmatch.types import Fix
 
+    clock = [0.0]  # a clock that moves only when the pacing sleeps: no wall time measured
+    monkeypatch.setattr(simulate.time, "monotonic", lambda: clock[0])
+    slept: list[float] = []
+
+    def sleep(s: float) -> None:
+        slept.append(s)
+        clock[0] += s
+
+    monkeypatch.setattr(simulate.time, "sleep", sleep)
     fixes = [("v", Fix(time=100.0 + i * 0.5, lat=60.0, lon=25.0)) for i in range(5)]
-    t0 = time.monotonic()
     assert list(paced(fixes, realtime=True, speedup=10.0)) == fixes
-    assert time.monotonic() - t0 >= 0.19  # 2 s of fixes at 10x
-    t0 = time.monotonic()
-    list(paced(fixes, realtime=False))
-    assert time.monotonic() - t0 < 0.1
+    assert slept == pytest.approx([0.05] * 4) and clock[0] == pytest.approx(0.2)  # 2 s of fixes at 10x
+    slept.clear()
+    assert list(paced(fixes, realtime=False)) == fixes
+    assert slept == []

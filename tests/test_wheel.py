@@ -11,6 +11,8 @@ from pathlib import Path
 
 import pytest
 
+pytestmark = pytest.mark.slow  # builds the wheel and installs it into a new environment
+
 ROOT = Path(__file__).resolve().parents[1]
 
 
@@ -50,6 +52,7 @@ def test_wheel_has_the_three_packages_and_the_proto(wheel: Path) -> None:
     ):
         assert need in names, need
     assert any(n.endswith(".data/data/share/mapmatch/proto/mapmatch/v1/mapmatch.proto") for n in names)
+    assert any(n.endswith(".dist-info/licenses/LICENSE") for n in names), "the MIT licence text"
     assert not any(n.startswith(("mapmatch/graph/", "mapmatch/service/")) for n in names)
     assert not any("/gen/mapmatch/" in n for n in names), "stubs in a package named mapmatch"
     entry = next(n for n in names if n.endswith("entry_points.txt"))
