@@ -147,14 +147,9 @@ def run_match(args: argparse.Namespace) -> int:
         return rc
 
 
-def _match(args: argparse.Namespace, inputs: list[Path], output: Path, *, out: Any) -> int:
-    from tqdm import tqdm
-
-    from mapmatch.batch import BATCH_CONFIG
-    from mapmatch.cli import EXIT_OK, EXIT_PARTIAL, CommandError
-    from mapmatch.errors import ConfigError
-    from mapmatch.io import Columns
-    from mapmatch.parallel import RunOptions, run_batch
+def _check_args(args: argparse.Namespace, inputs: list[Path]) -> None:
+    """Refuse bad options and missing files before anything runs."""
+    from mapmatch.cli import CommandError
 
     for inp in inputs:  # (CSV inputs were checked against the text bounds first: _precheck)
         if not inp.exists():
@@ -173,10 +168,14 @@ def _match(args: argparse.Namespace, inputs: list[Path], output: Path, *, out: A
         require("distributed", extra="dask", needed_for="--scheduler (matching on a Dask cluster)")
     if not args.map.is_file():
         raise CommandError(f"no such map file: {args.map}")
-    if not getattr(args, "quiet", False) and args.scheduler is None:
-        from mapmatch.kernels import announce
 
-        announce("batch")
+
+def _config(args: argparse.Namespace) -> Any:
+    """The batch config with the command's shortcuts and ``--set`` settings."""
+    from mapmatch.batch import BATCH_CONFIG
+    from mapmatch.cli import CommandError
+    from mapmatch.errors import ConfigError
+
     over = {
         k: v
         for k, v in (
@@ -187,9 +186,24 @@ def _match(args: argparse.Namespace, inputs: list[Path], output: Path, *, out: A
         if v is not None
     }
     try:
-        config = BATCH_CONFIG.replace(**over).with_settings(args.settings)
+        return BATCH_CONFIG.replace(**over).with_settings(args.settings)
     except ConfigError as exc:
         raise CommandError(str(exc)) from None
+
+
+def _match(args: argparse.Namespace, inputs: list[Path], output: Path, *, out: Any) -> int:
+    from tqdm import tqdm
+
+    from mapmatch.cli import EXIT_OK, EXIT_PARTIAL
+    from mapmatch.io import Columns
+    from mapmatch.parallel import RunOptions, run_batch
+
+    _check_args(args, inputs)
+    if not getattr(args, "quiet", False) and args.scheduler is None:
+        from mapmatch.kernels import announce
+
+        announce("batch")
+    config = _config(args)
     columns = Columns(
         id=args.id_col, time=args.time_col, lat=args.lat_col, lon=args.lon_col, heading=args.heading_col,
         speed=args.speed_col,
