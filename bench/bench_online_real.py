@@ -35,6 +35,19 @@ reverse, other.
 track's drive with the outages, chooses on four of the folds of ``bench/folds.py`` and scores
 the fifth (``bench/crossval.py``), and prints the out-of-fold table beside the in-sample ones
 (``--docs``: the fragment ``cv_online``; ``--json``: every setting's rows of every track).
+
+``--calibration`` runs every track's drive with the outages at each rate (1 and 10 Hz unless
+``--rates``) and measures the reported road probability (``map_aided.probability``) against
+whether the fix is on the right road (as scored above, where the truth is known and the fix is
+placed on a road): the reliability table, the ECE, the wrong share among the fixes marked
+``usable`` and the share of right fixes marked usable (``bench/calibration.py``); then the same
+after an isotonic calibration of the probability, fitted per rate on all tracks (in-sample)
+and on four folds of ``bench/folds.py`` and applied to the fifth (out of fold), with the
+matcher's usable test re-applied to the calibrated probability. The matcher and the probability
+it serves are unchanged. ``--save-fixes`` writes the per-fix table (CSV), ``--load-fixes``
+reports from one without running (``--docs``: the fragment ``calibration``).
+
+    python bench/bench_online_real.py --calibration --docs
 """
 
 from __future__ import annotations
@@ -499,8 +512,13 @@ def calibration_summary(g: pd.DataFrame, cfg: MatchConfig) -> tuple[str, list[di
         usable = g["usable"].to_numpy() if name == "as reported" else calibrated_gate(g, q, cfg)
         wrong, kept = calibration.usable_shares(usable, right)
         figures.append(
-            {"probability": name, "ece": calibration.ece(q, right), "usable": int(usable.sum()),
-             "wrong_usable": wrong, "right_usable": kept}
+            {
+                "probability": name,
+                "ece": calibration.ece(q, right),
+                "usable": int(usable.sum()),
+                "wrong_usable": wrong,
+                "right_usable": kept,
+            }
         )
         text += [f"\n{name}:\n", *_reliability_lines(q, right)]
     return "\n".join(text), figures
