@@ -35,6 +35,19 @@ reverse, other.
 track's drive with the outages, chooses on four of the folds of ``bench/folds.py`` and scores
 the fifth (``bench/crossval.py``), and prints the out-of-fold table beside the in-sample ones
 (``--docs``: the fragment ``cv_online``; ``--json``: every setting's rows of every track).
+
+``--calibration`` runs every track's drive with the outages at each rate (1 and 10 Hz unless
+``--rates``) and measures the reported road probability (``map_aided.probability``) against
+whether the fix is on the right road (as scored above, where the truth is known and the fix is
+placed on a road): the reliability table, the ECE, the wrong share among the fixes marked
+``usable`` and the share of right fixes marked usable (``bench/calibration.py``); then the same
+after an isotonic calibration of the probability, fitted per rate on all tracks (in-sample)
+and on four folds of ``bench/folds.py`` and applied to the fifth (out of fold), with the
+matcher's usable test re-applied to the calibrated probability. The matcher and the probability
+it serves are unchanged. ``--save-fixes`` writes the per-fix table (CSV), ``--load-fixes``
+reports from one without running (``--docs``: the fragment ``calibration``).
+
+    python bench/bench_online_real.py --calibration --docs
 """
 
 from __future__ import annotations
@@ -53,6 +66,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "bench"))
 
+import calibration  # noqa: E402
 import crossval  # noqa: E402
 import folds  # noqa: E402
 from bench_online import corrected_edges, run_drive  # noqa: E402
@@ -68,7 +82,7 @@ from mapmatch.evaluate import edge_path, is_junction, matched_junctions, path_no
 from mapmatch.online import OnlineMatcher  # noqa: E402
 from mapmatch.sim.drive import Drive  # noqa: E402
 from mapmatch.sim.realgps import real_drive  # noqa: E402
-from mapmatch.types import SnapResult  # noqa: E402
+from mapmatch.types import SnapResult, State  # noqa: E402
 
 KUBICKA = ROOT.parent / "shared" / "data" / "kubicka"
 STARTUP_S = 30.0
@@ -414,6 +428,150 @@ def run_cv(names: list[str], base: MatchConfig, args: argparse.Namespace) -> str
     return text
 
 
+CALIB_COLUMNS = ("track", "hz", "fold", "p", "right", "usable", "gate", "ambiguous")
+"""The per-fix table of ``--calibration``: the track, rate and fold; the reported road
+probability; whether the answer is on the right road; the matcher's ``usable``; whether the
+answer passes the gate's tests that do not look at the probability (on a road, not
+(re)initialising, settled); and whether the matcher was in an ambiguous region."""
+
+
+def calibration_fixes(drive: Drive, results: list[SnapResult]) -> dict[str, np.ndarray]:
+    """The columns ``p`` .. ``ambiguous`` of :data:`CALIB_COLUMNS` for a drive's fixes that
+    are placed on a road where the truth is known."""
+    edges = np.array([r.edge for r in results], dtype=np.int64)
+    known = drive.truth["truth_known"].to_numpy(dtype=bool)
+    keep = known & (edges >= 0)
+    aided = [r.map_aided for r in results]
+    reason = np.array([m.reason for m in aided])
+    cols = {
+        "p": np.array([m.probability for m in aided], dtype=float),
+        "right": right_road(drive, edges),
+        "usable": np.array([m.usable for m in aided], dtype=bool),
+        "gate": ~np.isin(reason, ("off_road", "initialising", "settling")),
+        "ambiguous": np.array([r.state == State.AMBIGUOUS for r in results], dtype=bool),
+    }
+    return {k: v[keep] for k, v in cols.items()}
+
+
+def collect_calibration(names: list[str], cfg: MatchConfig, args: argparse.Namespace) -> pd.DataFrame:
+    """Run every track's drive with the outages at each rate; the per-fix table of
+    :data:`CALIB_COLUMNS` (the fold from ``bench/folds.py``)."""
+    fold = folds.assign_folds(names)
+    parts = []
+    for n, name in enumerate(names):
+        folder = KUBICKA / name
+        graph = load_graph(folder, args.map_cache)
+        matcher = OnlineMatcher(graph, config=cfg)
+        for rate in args.rates:
+            drive = real_drive(graph, folder, rate_hz=rate, outages=True, seed=int(name))
+            res, _ = run_drive(matcher, drive)
+            cols = calibration_fixes(drive, res)
+            df = pd.DataFrame(cols)
+            df.insert(0, "fold", fold[name])
+            df.insert(0, "hz", rate)
+            df.insert(0, "track", name)
+            parts.append(df)
+        print(f"# calibration {n + 1}/{len(names)} {name}: load {os.getloadavg()[0]:.2f}", flush=True)
+    return pd.concat(parts, ignore_index=True)[list(CALIB_COLUMNS)]
+
+
+def calibrated_gate(g: pd.DataFrame, q: np.ndarray, cfg: MatchConfig) -> np.ndarray:
+    """The matcher's usable gate with probability ``q`` in place of the reported one."""
+    m = cfg.measurement
+    amb = g["ambiguous"].to_numpy()
+    return g["gate"].to_numpy() & (q >= m.min_probability) & (~amb | (q >= m.resolved_probability))
+
+
+def _reliability_lines(p: np.ndarray, right: np.ndarray) -> list[str]:
+    lines = ["| reported p | fixes | mean p | right share |", "|---|---|---|---|"]
+    for b in calibration.reliability(p, right):
+        hi = "]" if b.hi == 1.0 else ")"
+        mp = f"{b.mean_p:.4f}" if b.fixes else "-"
+        rs = f"{b.right_share:.4f}" if b.fixes else "-"
+        lines.append(f"| [{b.lo:g}, {b.hi:g}{hi} | {b.fixes} | {mp} | {rs} |")
+    return lines
+
+
+def calibration_summary(g: pd.DataFrame, cfg: MatchConfig) -> tuple[str, list[dict[str, object]]]:
+    """One rate's reliability tables (as reported, isotonic in-sample, isotonic out of fold)
+    and a figures row per probability: ECE, wrong share among usable, right share usable."""
+    p = g["p"].to_numpy()
+    right = g["right"].to_numpy()
+    probs = {
+        "as reported": p,
+        "isotonic, in-sample (fit on all tracks)": calibration.isotonic_apply(
+            calibration.isotonic_fit(p, right), p
+        ),
+        "isotonic, out of fold (fit on 4 folds, applied to the 5th)": calibration.out_of_fold(
+            p, right, g["fold"].to_numpy()
+        ),
+    }
+    text: list[str] = []
+    figures: list[dict[str, object]] = []
+    for name, q in probs.items():
+        usable = g["usable"].to_numpy() if name == "as reported" else calibrated_gate(g, q, cfg)
+        wrong, kept = calibration.usable_shares(usable, right)
+        figures.append(
+            {
+                "probability": name,
+                "ece": calibration.ece(q, right),
+                "usable": int(usable.sum()),
+                "wrong_usable": wrong,
+                "right_usable": kept,
+            }
+        )
+        text += [f"\n{name}:\n", *_reliability_lines(q, right)]
+    return "\n".join(text), figures
+
+
+def calibration_report(df: pd.DataFrame, cfg: MatchConfig, *, load0: float) -> str:
+    """``--calibration``: the figures and reliability tables of each rate, as markdown."""
+    n_tracks = df["track"].nunique()
+    head = (
+        f"REAL GPS: {n_tracks} Kubicka tracks as fused drives with the five outages, at "
+        f"{', '.join(f'{h:g} Hz' for h in sorted(df['hz'].unique()))}; scored on the fixes placed "
+        f"on a road where the truth is known; isotonic fits per rate, out of fold over "
+        f"{df['fold'].nunique()} folds by track (`bench/folds.py`, seed {folds.SEED}). The "
+        f"calibrated gate is the matcher's usable test with the calibrated probability "
+        f"(`measurement.min_probability` {cfg.measurement.min_probability:g}, "
+        f"`measurement.resolved_probability` {cfg.measurement.resolved_probability:g} when "
+        f"ambiguous). Load average {load0:.2f} at the start, {os.getloadavg()[0]:.2f} at the end "
+        f"({os.cpu_count()} cores).\n"
+    )
+    summary = [
+        "| rate | probability | fixes | ECE | usable fixes | wrong share among usable "
+        "| share of right fixes usable |",
+        "|---|---|---|---|---|---|---|",
+    ]
+    tables = []
+    for hz, g in df.groupby("hz"):
+        text, figures = calibration_summary(g, cfg)
+        for f in figures:
+            summary.append(
+                f"| {hz:g} Hz | {f['probability']} | {len(g)} | {f['ece']:.4f} | {f['usable']} "
+                f"| {100 * f['wrong_usable']:.3f} % | {100 * f['right_usable']:.2f} % |"  # type: ignore[operator]
+            )
+        tables.append(f"\nReliability at {hz:g} Hz ({len(g)} fixes):\n{text}")
+    return head + "\n" + "\n".join(summary) + "\n" + "\n".join(tables) + "\n"
+
+
+def run_calibration(names: list[str], cfg: MatchConfig, args: argparse.Namespace) -> str:
+    """``--calibration``: collect (or load with ``--load-fixes``) the per-fix table, print and
+    return the report."""
+    load0 = os.getloadavg()[0]
+    if args.load_fixes is not None:
+        df = pd.read_csv(args.load_fixes, dtype={"track": str})
+    else:
+        df = collect_calibration(names, cfg, args)
+    if args.save_fixes is not None:
+        tmp = args.save_fixes.with_name(f".{args.save_fixes.name}.tmp")
+        df.to_csv(tmp, index=False)
+        os.replace(tmp, args.save_fixes)
+    text = calibration_report(df, cfg, load0=load0)
+    print(text)
+    return text
+
+
 def load_graph(folder: Path, cache: Path | None) -> RoadGraph:
     """The map of a track, built from its ``roads.geojson`` (saved in and read from ``cache``)."""
     if cache is not None and (cache / f"{folder.name}.map").is_file():
@@ -441,6 +599,13 @@ def main() -> int:
         help="cross-validate --grid over the folds of bench/folds.py (outages; 1 Hz unless --rates)",
     )
     ap.add_argument("--grid", nargs="*", default=list(CV_GRID), metavar="SECTION.FIELD=V1,V2,...")
+    ap.add_argument(
+        "--calibration",
+        action="store_true",
+        help="reliability of the reported road probability, in-sample and out of fold (outages)",
+    )
+    ap.add_argument("--save-fixes", type=Path, default=None, help="--calibration: write the per-fix table")
+    ap.add_argument("--load-fixes", type=Path, default=None, help="--calibration: read it instead of running")
     args = ap.parse_args()
     try:
         cfg = DEFAULT_CONFIG.with_settings(args.set)
@@ -453,6 +618,13 @@ def main() -> int:
     names = args.tracks or folds.track_ids(KUBICKA)
     if args.rates is None:
         args.rates = [1.0] if args.cv else [1.0, 10.0]
+    if args.calibration:
+        text = run_calibration(names, cfg, args)
+        if args.docs:
+            from report import run_header, write_fragment
+
+            print(f"wrote {write_fragment('calibration', run_header() + text)}")
+        return 0
     if args.cv:
         try:
             text = run_cv(names, cfg, args)

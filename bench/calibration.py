@@ -1,0 +1,150 @@
+"""Calibration of a reported probability: reliability table, ECE, the usable gate, isotonic fit.
+
+A probability is calibrated when answers reported at ``p`` are right a share ``p`` of the
+time. The reliability table bins the fixes by reported ``p`` and gives, per bin, the fixes,
+their mean ``p`` and the share of them that is right; the expected calibration error (ECE) is
+the fix-weighted mean over the bins of ``|mean p - right share|``. The usable gate is scored
+by the share of wrong answers among the fixes it lets through and the share of right answers
+it lets through.
+
+Isotonic regression (pool-adjacent-violators) maps a reported ``p`` to the right share of
+fixes reported near it, under the one constraint that the map does not decrease. Fitted
+out of fold (:func:`out_of_fold`), it is scored on fixes it has never seen.
+
+    rows = reliability(p, right)             # list of Bin
+    e = ece(p, right)
+    iso = isotonic_fit(p, right); q = isotonic_apply(iso, p)
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+BINS = (0.0, 0.5, 0.7, 0.9, 0.99, 0.999, 1.0)
+"""Edges of the reliability table's bins; each bin is ``[lo, hi)``, the last ``[lo, 1]``."""
+
+
+@dataclass(frozen=True)
+class Bin:
+    """One row of a reliability table: fixes reported in ``[lo, hi)``."""
+
+    lo: float
+    hi: float
+    fixes: int
+    mean_p: float
+    right_share: float
+
+
+@dataclass(frozen=True)
+class Isotonic:
+    """A non-decreasing step map: ``value[k]`` for reported ``p`` from ``start[k]`` on."""
+
+    start: NDArray[np.float64]
+    value: NDArray[np.float64]
+
+
+def _bin_index(p: NDArray[np.float64], edges: tuple[float, ...]) -> NDArray[np.intp]:
+    inner = np.asarray(edges[1:-1], dtype=float)
+    return np.searchsorted(inner, p, side="right")
+
+
+def reliability(p: ArrayLike, right: ArrayLike, *, edges: tuple[float, ...] = BINS) -> list[Bin]:
+    """The reliability table of probabilities ``p`` against outcomes ``right``.
+
+    Parameters
+    ----------
+    p : reported probabilities in [0, 1].
+    right : per fix, whether the answer was right (bool or 0/1).
+    edges : the bins' edges, increasing, from 0 to 1.
+
+    Returns
+    -------
+    list
+        One :class:`Bin` per bin, empty bins included (their mean and share NaN).
+    """
+    pa = np.asarray(p, dtype=float)
+    ra = np.asarray(right, dtype=float)
+    k = _bin_index(pa, edges)
+    out = []
+    for b in range(len(edges) - 1):
+        sel = k == b
+        n = int(sel.sum())
+        mp = float(pa[sel].mean()) if n else float("nan")
+        rs = float(ra[sel].mean()) if n else float("nan")
+        out.append(Bin(edges[b], edges[b + 1], n, mp, rs))
+    return out
+
+
+def ece(p: ArrayLike, right: ArrayLike, *, edges: tuple[float, ...] = BINS) -> float:
+    """Expected calibration error: ``sum_b n_b / N * |mean p_b - right share_b|`` (0 when empty)."""
+    rows = reliability(p, right, edges=edges)
+    n = sum(r.fixes for r in rows)
+    if n == 0:
+        return 0.0
+    return float(sum(r.fixes * abs(r.mean_p - r.right_share) for r in rows if r.fixes) / n)
+
+
+def usable_shares(usable: ArrayLike, right: ArrayLike) -> tuple[float, float]:
+    """(wrong share among the usable fixes, share of the right fixes that are usable); NaN
+    where there is no usable or no right fix."""
+    u = np.asarray(usable, dtype=bool)
+    r = np.asarray(right, dtype=bool)
+    wrong = float((u & ~r).sum() / u.sum()) if u.any() else float("nan")
+    kept = float((u & r).sum() / r.sum()) if r.any() else float("nan")
+    return wrong, kept
+
+
+def isotonic_fit(p: ArrayLike, right: ArrayLike) -> Isotonic:
+    """The non-decreasing step map of ``p`` that is closest to ``right`` in least squares
+    (pool-adjacent-violators over the distinct values of ``p``).
+
+    Parameters
+    ----------
+    p : reported probabilities (at least one).
+    right : per fix, 0/1 or bool.
+
+    Returns
+    -------
+    Isotonic
+        Each block's smallest ``p`` and its value (the right share of its fixes).
+    """
+    pa = np.asarray(p, dtype=float)
+    ux, inv = np.unique(pa, return_inverse=True)
+    w = np.bincount(inv, minlength=len(ux)).astype(float)
+    s = np.bincount(inv, weights=np.asarray(right, dtype=float), minlength=len(ux))
+    starts: list[int] = []
+    sums: list[float] = []
+    weights: list[float] = []
+    for i in range(len(ux)):  # a stack of blocks, merged while the means decrease
+        starts.append(i)
+        sums.append(float(s[i]))
+        weights.append(float(w[i]))
+        while len(sums) > 1 and sums[-2] * weights[-1] >= sums[-1] * weights[-2]:
+            top_s, top_w = sums.pop(), weights.pop()
+            sums[-1] += top_s
+            weights[-1] += top_w
+            starts.pop()
+    value = np.asarray(sums) / np.asarray(weights)
+    return Isotonic(start=ux[np.asarray(starts, dtype=np.intp)], value=value)
+
+
+def isotonic_apply(iso: Isotonic, p: ArrayLike) -> NDArray[np.float64]:
+    """The fitted map at ``p``: the value of the last block starting at or below ``p`` (the
+    first block's value below its start)."""
+    k = np.searchsorted(iso.start, np.asarray(p, dtype=float), side="right") - 1
+    return iso.value[np.clip(k, 0, len(iso.value) - 1)]
+
+
+def out_of_fold(p: ArrayLike, right: ArrayLike, fold: ArrayLike) -> NDArray[np.float64]:
+    """Each fix's probability mapped by an isotonic fit on the fixes of the other folds."""
+    pa = np.asarray(p, dtype=float)
+    ra = np.asarray(right, dtype=float)
+    fa = np.asarray(fold)
+    out = np.full(len(pa), np.nan)
+    for f in np.unique(fa):
+        held = fa == f
+        out[held] = isotonic_apply(isotonic_fit(pa[~held], ra[~held]), pa[held])
+    return out

@@ -1,0 +1,86 @@
+"""The calibration figures of the online bench (bench/calibration.py): reliability table, ECE,
+the usable gate's shares, and the isotonic fit in sample and out of fold, on tiny arrays whose
+answers are worked out by hand."""
+
+from __future__ import annotations
+
+import importlib
+import math
+import sys
+from pathlib import Path
+from types import ModuleType
+
+import numpy as np
+import pytest
+
+BENCH = Path(__file__).resolve().parents[1] / "bench"
+
+
+def _bench(name: str) -> ModuleType:
+    sys.path.insert(0, str(BENCH))
+    try:
+        return importlib.import_module(name)
+    finally:
+        sys.path.remove(str(BENCH))
+
+
+cal = _bench("calibration")
+
+P = [0.1, 0.3, 0.6, 0.95, 0.95, 1.0]
+RIGHT = [0, 1, 1, 1, 0, 1]
+
+
+def test_reliability_bins_fixes_mean_and_right_share() -> None:
+    rows = cal.reliability(P, RIGHT)
+    assert [(r.lo, r.hi) for r in rows] == list(zip(cal.BINS[:-1], cal.BINS[1:], strict=True))
+    assert [r.fixes for r in rows] == [2, 1, 0, 2, 0, 1]
+    full = [r for r in rows if r.fixes]
+    assert [r.mean_p for r in full] == pytest.approx([0.2, 0.6, 0.95, 1.0])
+    assert [r.right_share for r in full] == pytest.approx([0.5, 1.0, 0.5, 1.0])
+    assert all(math.isnan(r.mean_p) and math.isnan(r.right_share) for r in rows if not r.fixes)
+
+
+def test_bin_edges_are_closed_below_and_the_last_bin_holds_one() -> None:
+    rows = cal.reliability([0.5, 0.999, 1.0, 0.49], [1, 1, 1, 1])
+    assert [r.fixes for r in rows] == [1, 1, 0, 0, 0, 2]
+
+
+def test_ece_is_the_fix_weighted_gap() -> None:
+    # bins: 2 fixes |0.2 - 0.5|, 1 fix |0.6 - 1|, 2 fixes |0.95 - 0.5|, 1 fix |1 - 1|
+    assert cal.ece(P, RIGHT) == pytest.approx((2 * 0.3 + 0.4 + 2 * 0.45) / 6)
+    assert cal.ece([], []) == 0.0
+    assert cal.ece([0.75, 0.75, 0.75, 0.75], [1, 1, 1, 0]) == pytest.approx(0.0)
+
+
+def test_usable_shares() -> None:
+    wrong, kept = cal.usable_shares([1, 1, 0, 1], [1, 0, 1, 1])
+    assert wrong == pytest.approx(1 / 3)  # one of three usable fixes is wrong
+    assert kept == pytest.approx(2 / 3)  # two of three right fixes are usable
+    wrong, kept = cal.usable_shares([0, 0], [0, 0])
+    assert math.isnan(wrong) and math.isnan(kept)
+
+
+def test_isotonic_pools_adjacent_violators() -> None:
+    iso = cal.isotonic_fit([0.1, 0.2, 0.3, 0.4], [1, 0, 0, 1])
+    assert iso.start.tolist() == [0.1, 0.4]
+    assert iso.value.tolist() == pytest.approx([1 / 3, 1.0])
+    got = cal.isotonic_apply(iso, [0.05, 0.25, 0.4, 0.9])
+    assert got.tolist() == pytest.approx([1 / 3, 1 / 3, 1.0, 1.0])
+
+
+def test_isotonic_groups_equal_probabilities_and_is_monotone() -> None:
+    iso = cal.isotonic_fit([0.9, 0.5, 0.5], [1, 1, 0])
+    assert iso.start.tolist() == [0.5, 0.9]
+    assert iso.value.tolist() == pytest.approx([0.5, 1.0])
+    rng = np.random.default_rng(1)
+    p = rng.random(500)
+    y = rng.random(500) < p
+    q = cal.isotonic_apply(cal.isotonic_fit(p, y), np.sort(p))
+    assert np.all(np.diff(q) >= 0)
+    assert q.mean() == pytest.approx(y.mean())  # the fit keeps the overall right share
+
+
+def test_out_of_fold_never_sees_the_held_fold() -> None:
+    # fold 0 is mapped by a fit on fold 1 (both right: 1, 1) and fold 1 by a fit on fold 0
+    q = cal.out_of_fold([0.2, 0.8, 0.2, 0.8], [0, 1, 1, 1], [0, 0, 1, 1])
+    assert q.tolist() == pytest.approx([1.0, 1.0, 0.0, 1.0])
