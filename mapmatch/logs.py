@@ -63,11 +63,17 @@ def formatter(log_format: str, stream: TextIO | None = None) -> logging.Formatte
 
 
 def configure(*, level: int, log_format: str = "auto") -> None:
-    """Send the root logger's records at ``level`` and above to standard error in ``log_format``."""
+    """Send the root logger's records at ``level`` and above to standard error in ``log_format``
+    (replacing the handler an earlier call added; other handlers, a host's or a test's, stay)."""
     handler = logging.StreamHandler(sys.stderr)
     handler.setFormatter(formatter(log_format, sys.stderr))
+    handler.set_name(_HANDLER_NAME)
     root = logging.getLogger()
     for old in list(root.handlers):
-        root.removeHandler(old)
+        if old.get_name() == _HANDLER_NAME:
+            root.removeHandler(old)
     root.addHandler(handler)
     root.setLevel(level)
+
+
+_HANDLER_NAME = "mapmatch.stderr"

@@ -236,9 +236,7 @@ def _csv_route(args: argparse.Namespace, path: Path, rebuild: Any) -> tuple[str,
 
 def run(args: argparse.Namespace) -> int:
     from graph.artifact import open_map
-    from graph.projection import to_xy
     from mapmatch.evaluate import Scoring, evaluate, read_matched_csv
-    from mapmatch.plots import draw_html, draw_png, plot_data
     from mapmatch.sim.demo import title_for
     from mapmatch.sim.drive import truth_paths
 
@@ -261,16 +259,7 @@ def run(args: argparse.Namespace) -> int:
             fixes = fixes[fixes["vehicle_id"].astype(str) == args.vehicle_id].reset_index(drop=True)
     if len(truth) == 0 or len(matched) == 0:
         raise CommandError("nothing to score: the truth or the results are empty for this vehicle")
-    truth_path = truth_xy = None
-    if gj_path.exists():
-        props = json.loads(Path(gj_path).read_text())
-        edges = props.get("properties", {}).get("edges")
-        if edges and max(edges) < graph.n_edges:
-            truth_path = edges
-            ll = props["geometry"]["coordinates"]
-            lon = [c[0] for c in ll]
-            lat = [c[1] for c in ll]
-            truth_xy = to_xy(graph.crs, lon, lat)
+    truth_path, truth_xy = _true_route(graph, gj_path)
     metrics = evaluate(
         graph,
         truth=truth,
@@ -298,31 +287,51 @@ def run(args: argparse.Namespace) -> int:
         print("\nopen vs closed loop (outage figures over the drive's outages, metres; heading degrees)")
         print(table.round(3).to_string(index=False))
     if args.png or args.html:
-        from mapmatch.evaluate import edge_path
-        from mapmatch.route_score import path_geometry
-
-        route_xy = (
-            truth_xy
-            if truth_xy is not None
-            else path_geometry(
-                graph, edge_path(graph, truth["edge"].to_numpy(), times=truth["time"].to_numpy())
-            )
-        )
-        data = plot_data(
-            graph,
-            route_xy=route_xy,
-            fixes=fixes if fixes is not None else _fixes_from_results(matched, truth),
-            matched=matched,
-            truth=truth,
-        )
-        title = title_for(metrics)
-        if args.png:
-            draw_png(graph, data, args.png, title=title)
-            print(f"wrote {args.png}")
-        if args.html:
-            draw_html(graph, data, args.html, title=title)
-            print(f"wrote {args.html}")
+        _draw(args, graph, truth_xy, (truth, matched, fixes), title_for(metrics))
     return 0
+
+
+def _true_route(graph: Any, gj_path: Path) -> tuple[Any, Any]:
+    """The true edge path and polyline from the truth GeoJSON (None, None: not for this map)."""
+    from graph.projection import to_xy
+
+    if not gj_path.exists():
+        return None, None
+    props = json.loads(Path(gj_path).read_text())
+    edges = props.get("properties", {}).get("edges")
+    if not edges or max(edges) >= graph.n_edges:
+        return None, None
+    ll = props["geometry"]["coordinates"]
+    return edges, to_xy(graph.crs, [c[0] for c in ll], [c[1] for c in ll])
+
+
+def _draw(
+    args: argparse.Namespace, graph: Any, truth_xy: Any, frames: tuple[Any, Any, Any], title: str
+) -> None:
+    """``--png`` and ``--html`` of a scored drive: the true route, the match and the fixes."""
+    from mapmatch.evaluate import edge_path
+    from mapmatch.plots import draw_html, draw_png, plot_data
+    from mapmatch.route_score import path_geometry
+
+    truth, matched, fixes = frames
+    route_xy = (
+        truth_xy
+        if truth_xy is not None
+        else path_geometry(graph, edge_path(graph, truth["edge"].to_numpy(), times=truth["time"].to_numpy()))
+    )
+    data = plot_data(
+        graph,
+        route_xy=route_xy,
+        fixes=fixes if fixes is not None else _fixes_from_results(matched, truth),
+        matched=matched,
+        truth=truth,
+    )
+    if args.png:
+        draw_png(graph, data, args.png, title=title)
+        print(f"wrote {args.png}")
+    if args.html:
+        draw_html(graph, data, args.html, title=title)
+        print(f"wrote {args.html}")
 
 
 def _read_csv(path: Path) -> pd.DataFrame:

@@ -56,6 +56,20 @@ def register(subparsers: Any) -> None:
         metavar="W,S,E,N",
         help="lon/lat box: download it when no SOURCE is given, else keep only roads inside it",
     )
+    _add_graph_options(p)
+    _add_gis_options(p)
+    out = p.add_argument_group("output")
+    out.add_argument(
+        "--export",
+        type=Path,
+        metavar="FILE",
+        help="also write the roads (see mapmatch export) to FILE.gpkg, .geojson, .fgb or .parquet",
+    )
+    out.add_argument("-q", "--quiet", action="store_true", help="no progress lines on stderr")
+    p.set_defaults(func=run)
+
+
+def _add_graph_options(p: Any) -> None:
     graph_opts = p.add_argument_group("graph")
     graph_opts.add_argument(
         "--network-type",
@@ -70,6 +84,9 @@ def register(subparsers: Any) -> None:
         metavar="METRES",
         help="merge intersection nodes within METRES (osmnx consolidate_intersections); default off",
     )
+
+
+def _add_gis_options(p: Any) -> None:
     gis = p.add_argument_group("GIS input")
     gis.add_argument(
         "--snap-tolerance",
@@ -133,15 +150,6 @@ def register(subparsers: Any) -> None:
         help="CRS of the input when the file has none (e.g. EPSG:3067); lon/lat is assumed if it fits",
     )
     gis.add_argument("--layer", metavar="NAME", help="layer to read from a multi-layer file (GeoPackage)")
-    out = p.add_argument_group("output")
-    out.add_argument(
-        "--export",
-        type=Path,
-        metavar="FILE",
-        help="also write the roads (see mapmatch export) to FILE.gpkg, .geojson, .fgb or .parquet",
-    )
-    out.add_argument("-q", "--quiet", action="store_true", help="no progress lines on stderr")
-    p.set_defaults(func=run)
 
 
 def _parse_bbox(text: str) -> tuple[float, float, float, float]:

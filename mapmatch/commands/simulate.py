@@ -7,7 +7,7 @@ import functools
 import time
 from collections.abc import Iterator
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 from mapmatch.cli import EXIT_CONNECT, CommandError
 from mapmatch.commands._fixio import STDIO, output_path, summary_stream
@@ -100,23 +100,10 @@ def run(args: argparse.Namespace) -> int:
         vehicle_id=args.vehicle_id,
         time0=args.time0,
     )
-    loop = None
+    loop = open_err = None
     if args.map_aided:
-        import grpc
-
-        from mapmatch.sim.loop_eval import run_map_aided
-
         open_err = position_error(drive)
-        try:
-            if args.server is None:
-                loop = run_map_aided(graph, drive)
-            else:
-                from service.client import ServerMatcher
-
-                with ServerMatcher(args.server, vehicle_id=args.vehicle_id, map_id=args.map_id) as match:
-                    loop = run_map_aided(graph, drive, match=match)
-        except grpc.RpcError as exc:
-            raise CommandError(f"server {args.server}: {exc.code().name}: {exc.details()}", code=3) from None
+        loop = _map_aided(args, graph, drive)
         drive = loop.drive
     with output_path(Path(args.output)) as out:
         write_fixes_csv(drive, out)
@@ -135,7 +122,7 @@ def run(args: argparse.Namespace) -> int:
         f"fused position error: {err[valid].mean():.1f} m mean with GPS"
         + (f", {err[~valid].max():.1f} m max without" if (~valid).any() else "")
     )
-    if loop is not None:
+    if loop is not None and open_err is not None:
         say(
             f"map-aided: {int(loop.fed.sum())} of {len(loop.fed)} answers fed back, "
             f"{int(loop.rejected.sum())} rejected by the filter's gate; open loop "
@@ -154,6 +141,24 @@ def run(args: argparse.Namespace) -> int:
     if args.server:
         return _replay(args, drive)
     return 0
+
+
+def _map_aided(args: argparse.Namespace, graph: Any, drive: Any) -> Any:
+    """The drive run again with the matcher's answers fed back into its filter (in process, or
+    through ``--server``)."""
+    import grpc
+
+    from mapmatch.sim.loop_eval import run_map_aided
+
+    try:
+        if args.server is None:
+            return run_map_aided(graph, drive)
+        from service.client import ServerMatcher
+
+        with ServerMatcher(args.server, vehicle_id=args.vehicle_id, map_id=args.map_id) as match:
+            return run_map_aided(graph, drive, match=match)
+    except grpc.RpcError as exc:
+        raise CommandError(f"server {args.server}: {exc.code().name}: {exc.details()}", code=3) from None
 
 
 def paced(fixes: list[tuple[str, Fix]], *, realtime: bool, speedup: float = 1.0) -> Iterator[tuple[str, Fix]]:
