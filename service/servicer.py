@@ -50,6 +50,7 @@ from service.config import ServerConfig
 from service.errors import LimitError, MapPathError, log_internal, status_for
 from service.gen import mapmatch_pb2 as pb
 from service.gen import mapmatch_pb2_grpc as pb_grpc
+from service.interceptors import Undecodable, undecodable_error
 from service.maps import LoadLimits, MapEntry, MapRegistry, resolve_map_path
 from service.sessions import SessionStore
 
@@ -271,19 +272,19 @@ class MapMatchServicer(pb_grpc.MapMatchServicer):
         s.answer = result
         return result, jumped
 
-    def answer(self, req: pb.FixRequest) -> pb.SnapResponse:
-        """Like :meth:`snap`, but a rejected fix becomes a response carrying its error."""
+    def answer(self, req: pb.FixRequest | Undecodable) -> pb.SnapResponse:
+        """Like :meth:`snap`, but a rejected fix (or a message whose bytes did not decode)
+        becomes a response carrying its error."""
+        if isinstance(req, Undecodable):
+            return pb.SnapResponse(error=_error_of(undecodable_error(req)))
         try:
             return self.snap(req)
         except Exception as exc:
-            code, fld, msg = status_for(exc)
-            if code is grpc.StatusCode.INTERNAL:
-                log_internal(exc, "StreamFixes")
             return pb.SnapResponse(
                 map_id=req.map_id,
                 vehicle_id=req.vehicle_id[: self.config.max_vehicle_id],
                 seq=req.seq,
-                error=convert.error_to_proto(code.value[0], fld, msg),
+                error=_error_of(exc, "StreamFixes"),
             )
 
     def answer_all(self, reqs: Sequence[pb.FixRequest]) -> list[pb.SnapResponse]:
@@ -311,6 +312,9 @@ class MapMatchServicer(pb_grpc.MapMatchServicer):
     ) -> AsyncIterator[pb.SnapBatch]:
         cap, step = self.config.max_batch_fixes, self.config.batch_slice
         async for batch in request_iterator:
+            if isinstance(batch, Undecodable):  # answered, and the stream goes on
+                yield pb.SnapBatch(error=_error_of(undecodable_error(batch)))
+                continue
             fixes = batch.fixes
             if len(fixes) > cap:
                 raise LimitError(
@@ -357,7 +361,7 @@ class MapMatchServicer(pb_grpc.MapMatchServicer):
                 if not peek.has_track:
                     raise ValidationError("track", "is required")
                 if peek.points is not None:
-                    check_point_count(peek.points, self.config.max_track_points)
+                    check_point_count(peek.points, self.track_limits)
                 await self._check_deadline(context)
                 return await self.batch_workers.match(mf, data, kind="request", prefix="track")
         if isinstance(request, bytes):
@@ -371,7 +375,7 @@ class MapMatchServicer(pb_grpc.MapMatchServicer):
         entry = self.maps.get(request.map_id)
         if not request.HasField("track"):
             raise ValidationError("track", "is required")
-        check_points(request.track, self.config.max_track_points)
+        check_points(request.track, self.track_limits)
         mf = self._worker_map(entry)
         if mf is not None and self.batch_workers is not None:
             await self._check_deadline(context)
@@ -400,7 +404,7 @@ class MapMatchServicer(pb_grpc.MapMatchServicer):
             prefix = f"tracks[{i}]"
             try:
                 if mf is not None and self.batch_workers is not None:
-                    check_points(t, self.config.max_track_points)
+                    check_points(t, self.track_limits)
                     await self._check_deadline(context)
                     yield await self.batch_workers.match(
                         mf, t.SerializeToString(), kind="track", prefix=prefix
@@ -495,10 +499,15 @@ class MapMatchServicer(pb_grpc.MapMatchServicer):
                 f"session was made on another version of map {entry.map_id!r} "
                 f"({blob.map_checksum}, this server has {entry.checksum})",
             )
-        from mapmatch.online.codec import from_bytes
+        from mapmatch.online.codec import StateCaps, from_bytes
 
+        decode = functools.partial(
+            from_bytes, blob.state, n_edges=entry.graph.n_edges, caps=StateCaps.of(entry.online.config)
+        )
         try:
-            state = from_bytes(blob.state, n_edges=entry.graph.n_edges)
+            # off the event loop: other streams are answered while a blob of up to
+            # ``max_message_bytes`` parses (its lists are bounded by the matcher's caps)
+            state = await asyncio.to_thread(decode)
         except ValidationError as exc:
             fld = f"session.{exc.field}" if exc.field.startswith("state") else f"session.state.{exc.field}"
             raise ValidationError(fld, exc.reason) from None
@@ -517,6 +526,14 @@ class MapMatchServicer(pb_grpc.MapMatchServicer):
         if self.checkpoints is not None:
             self.checkpoints.forget(entry.map_id, request.vehicle_id)
         return pb.EndSessionResponse(existed=self.sessions.drop(entry.map_id, request.vehicle_id))
+
+
+def _error_of(exc: Exception, method: str = "") -> pb.Error:
+    """The ``Error`` message of an exception (an unexpected one logged as INTERNAL)."""
+    code, fld, msg = status_for(exc)
+    if code is grpc.StatusCode.INTERNAL:
+        log_internal(exc, method)
+    return convert.error_to_proto(code.value[0], fld, msg)
 
 
 async def _maybe_await(x: Any) -> None:

@@ -4,14 +4,18 @@ Version 2 names every field. Version 1 (positional lists, the format before the 
 package) is migrated explicitly on reading. :func:`from_bytes` checks every value (types,
 lengths, finite numbers, non-negative variances and σ, edge indices) and raises
 :class:`~mapmatch.errors.ValidationError` naming the offending key, e.g. ``state.hyps[0].k``.
+Every list is bounded by the matcher configuration's own caps (:class:`StateCaps`), checked
+before its items are read: decoding a blob costs at most what the matcher's own sessions hold.
 """
 
 from __future__ import annotations
 
 import json
 import math
+from dataclasses import dataclass
 from typing import Any
 
+from mapmatch.config import DEFAULT_CONFIG, MatchConfig
 from mapmatch.errors import ValidationError
 from mapmatch.online.state import BackEdge, FixBias, Hypothesis, LiveFix, SessionState, TrailPoint
 
@@ -22,6 +26,40 @@ MAX_MAGNITUDE = 1e100
 _NAN = math.nan
 _HYP = ("edges", "k", "off", "s", "logp", "enter", "dist", "px", "py", "bearing", "anc", "anc_sd")
 _LIVE = ("time", "edge", "x", "y", "heading", "sigma", "kappa", "gps")
+
+
+@dataclass(frozen=True)
+class StateCaps:
+    """The most items each list of a session state may hold (the matcher never keeps more).
+
+    ``hyps``: the hypotheses kept plus a search's candidates; ``path_edges``: the edges of a
+    hypothesis's path (and its entry times) and of the edges since the last turn anchor;
+    ``live``, ``headings``, ``trail``: the fixes, heading samples and odometer points kept.
+    """
+
+    hyps: int
+    path_edges: int
+    live: int
+    headings: int
+    trail: int
+
+    @classmethod
+    def of(cls, config: MatchConfig) -> StateCaps:
+        """The caps of a matcher configuration."""
+        o = config.online
+        return cls(
+            hyps=o.max_hypotheses + config.model.max_candidates,
+            path_edges=o.max_path_edges,
+            live=o.max_live,
+            headings=max(o.turn_max_samples, 2),
+            trail=o.trail_max,
+        )
+
+
+def check_length(v: Any, name: str, cap: int) -> None:
+    """:class:`ValidationError` naming ``name`` when the list ``v`` holds more than ``cap`` items."""
+    if isinstance(v, list) and len(v) > cap:
+        raise ValidationError(name, f"holds {len(v)} items, over the limit of {cap}")
 
 
 def to_bytes(st: SessionState) -> bytes:
@@ -59,21 +97,44 @@ def to_bytes(st: SessionState) -> bytes:
     return json.dumps(d, separators=(",", ":"), allow_nan=True).encode()
 
 
-def from_bytes(data: bytes, *, n_edges: int | None = None) -> SessionState:
+def from_bytes(data: bytes, *, n_edges: int | None = None, caps: StateCaps | None = None) -> SessionState:
     """Decode :func:`to_bytes` (version 2) or version 1; edges must be below ``n_edges`` when
-    given. Raises :class:`ValidationError` naming the key on anything else."""
+    given, and every list within ``caps`` (default: those of
+    :data:`~mapmatch.config.DEFAULT_CONFIG`). Raises :class:`ValidationError` naming the key on
+    anything else, e.g. ``state.headings`` for a list over its cap."""
+    caps = caps if caps is not None else _DEFAULT_CAPS
     try:
         d = json.loads(data)
-    except (ValueError, TypeError) as exc:
+    except (ValueError, TypeError, RecursionError) as exc:
         raise ValidationError("state", f"not a valid session state ({exc})") from None
     if not isinstance(d, dict):
         raise ValidationError("state", "not a valid session state (not an object)")
     version = d.get("version", d.get("v"))
     if version == 1:
+        _check_lengths(d, _V1_LISTS, caps)
         d = migrate_v1(d)
     elif version != VERSION:
         raise ValidationError("state.version", f"unknown session state version {version!r}")
-    return _decode(_Reader(d, "state"), n_edges)
+    _check_lengths(d, _V2_LISTS, caps)
+    return _decode(_Reader(d, "state"), n_edges, caps)
+
+
+_DEFAULT_CAPS = StateCaps.of(DEFAULT_CONFIG)
+# the lists of each version's top level: (key, the name errors use, the cap's name)
+_V2_LISTS = (
+    ("hyps", "hyps", "hyps"),
+    ("live", "live", "live"),
+    ("headings", "headings", "headings"),
+    ("trail", "trail", "trail"),
+    ("back", "back", "path_edges"),
+)
+_V1_LISTS = (("h", "hyps", "hyps"), ("live", "live", "live"), ("hd", "headings", "headings"),
+             ("tr", "trail", "trail"), ("bk", "back", "path_edges"))  # fmt: skip
+
+
+def _check_lengths(d: dict[str, Any], lists: tuple[tuple[str, str, str], ...], caps: StateCaps) -> None:
+    for key, name, cap in lists:
+        check_length(d.get(key), f"state.{name}", getattr(caps, cap))
 
 
 def migrate_v1(d: dict[str, Any]) -> dict[str, Any]:
@@ -202,7 +263,7 @@ def _pairs(seq: list[Any], name: str) -> list[tuple[Any, Any]]:
     return out
 
 
-def _decode(r: _Reader, n_edges: int | None) -> SessionState:
+def _decode(r: _Reader, n_edges: int | None, caps: StateCaps) -> SessionState:
     bias = _Reader(r.get("bias"), r.name("bias"))
     st = SessionState(
         time=r.num("time", nan=True),
@@ -214,7 +275,10 @@ def _decode(r: _Reader, n_edges: int | None) -> SessionState:
         bad_odo=r.num("bad_odo", nan=True),
         init_pending=_bool(r.get("init_pending"), r.name("init_pending")),
         init_odo=r.num("init_odo"),
-        hyps=[_hyp(_Reader(a, f"{r.name('hyps')}[{i}]"), n_edges) for i, a in enumerate(r.list_("hyps"))],
+        hyps=[
+            _hyp(_Reader(a, f"{r.name('hyps')}[{i}]"), n_edges, caps.path_edges)
+            for i, a in enumerate(r.list_("hyps"))
+        ],
         live=_live(r, n_edges),
         headings=[
             [_num(o, f"{r.name('headings')}[{i}]"), _num(h, f"{r.name('headings')}[{i}]")]
@@ -258,7 +322,9 @@ def _bool(v: Any, name: str) -> bool:
     return v
 
 
-def _hyp(r: _Reader, n_edges: int | None) -> Hypothesis:
+def _hyp(r: _Reader, n_edges: int | None, most_edges: int) -> Hypothesis:
+    check_length(r.get("edges"), r.name("edges"), most_edges)
+    check_length(r.get("enter"), r.name("enter"), most_edges)
     edges = [_int(e, f"{r.name('edges')}[{i}]", low=0, high=n_edges) for i, e in enumerate(r.list_("edges"))]
     if not edges:
         raise ValidationError(r.name("edges"), "must not be empty")

@@ -5,7 +5,7 @@ import warnings
 
 from service.gen import mapmatch_pb2 as mapmatch_dot_v1_dot_mapmatch__pb2
 
-GRPC_GENERATED_VERSION = '1.85.1'
+GRPC_GENERATED_VERSION = '1.85.4'
 GRPC_VERSION = grpc.__version__
 _version_not_supported = False
 
