@@ -66,8 +66,13 @@ def test_a_blob_with_200000_headings_is_refused_naming_the_list():
 
 
 def test_every_list_over_its_cap_is_refused_naming_it():
-    names = {"hyps": "session.state.hyps", "edges": "session.state.hyps[0].edges",
-             "live": "session.state.live", "trail": "session.state.trail", "back": "session.state.back"}  # fmt: skip
+    names = {
+        "hyps": "session.state.hyps",
+        "edges": "session.state.hyps[0].edges",
+        "live": "session.state.live",
+        "trail": "session.state.trail",
+        "back": "session.state.back",
+    }
     with running(local_config(), {"city": AMAP.graph}) as (_, port):
         ch, api = stub(port)
         blob = _session(api, "v1")
