@@ -217,3 +217,20 @@ def test_add_sample_trims_as_one_pop_at_a_time_did() -> None:
             add_sample(a, odo, 10.0, window=30.0, max_samples=48)
             _add_sample_by_pop(b, odo, 10.0, 30.0, 48)
             assert a == b
+
+
+def test_a_blob_larger_than_the_caps_allow_is_refused_before_parsing() -> None:
+    from mapmatch.config import DEFAULT_CONFIG
+    from mapmatch.online.codec import VALUE_BYTES, StateCaps, max_values
+
+    _, st, _ = _session()
+    most = max_values(StateCaps.of(DEFAULT_CONFIG))
+    padded = st.to_bytes()[:-1] + b" " * (most * VALUE_BYTES) + b"}"
+    with pytest.raises(ValidationError) as ei:
+        from_bytes(padded)
+    assert ei.value.field == "state" and "over the limit" in ei.value.reason
+    d = json.loads(st.to_bytes())
+    d["trail"] = [[float(i), float(i)] for i in range(most)]
+    with pytest.raises(ValidationError) as ei:
+        from_bytes(json.dumps(d).encode())
+    assert ei.value.field == "state.trail"

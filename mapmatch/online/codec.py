@@ -103,6 +103,7 @@ def from_bytes(data: bytes, *, n_edges: int | None = None, caps: StateCaps | Non
     :data:`~mapmatch.config.DEFAULT_CONFIG`). Raises :class:`ValidationError` naming the key on
     anything else, e.g. ``state.headings`` for a list over its cap."""
     caps = caps if caps is not None else _DEFAULT_CAPS
+    _check_size(data, caps)
     try:
         d = json.loads(data)
     except (ValueError, TypeError, RecursionError) as exc:
@@ -120,6 +121,48 @@ def from_bytes(data: bytes, *, n_edges: int | None = None, caps: StateCaps | Non
 
 
 _DEFAULT_CAPS = StateCaps.of(DEFAULT_CONFIG)
+# the longest JSON text one value (with its key) of a state takes: a float's repr is at most
+# 24 characters; the longest key is 12 ("init_pending") with quotes and a colon
+VALUE_BYTES = 48
+# the keys of the state's lists, both versions, as they appear in its JSON text
+_LIST_KEYS = (
+    *((k, k) for k in ("hyps", "live", "headings", "trail", "back")),
+    *(("h", "hyps"), ("hd", "headings"), ("tr", "trail"), ("bk", "back")),
+)
+
+
+def max_values(caps: StateCaps) -> int:
+    """The most values (numbers, strings, keys) a state within ``caps`` holds: its JSON text
+    has fewer commas than this."""
+    per_hyp = len(_HYP) + 2 * caps.path_edges + 1
+    lists = caps.hyps * per_hyp + caps.live * (len(_LIVE) + 1) + 3 * (caps.headings + caps.trail)
+    return lists + 3 * caps.path_edges + 64
+
+
+def _check_size(data: bytes, caps: StateCaps) -> None:
+    """Before parsing (which holds the GIL for as long as the text is long): a blob with more
+    values, or more bytes, than a state within ``caps`` can hold is refused, naming the list
+    that holds most of its values."""
+    most = max_values(caps)
+    if not isinstance(data, bytes | bytearray):
+        return
+    if len(data) > most * VALUE_BYTES:
+        raise ValidationError(
+            "state", f"the blob is {len(data)} bytes, over the limit of {most * VALUE_BYTES} that the "
+            "matcher's caps allow",
+        )  # fmt: skip
+    n = data.count(b",")
+    if n < most:
+        return
+    where = sorted((i, name) for key, name in _LIST_KEYS if (i := data.find(f'"{key}"'.encode())) >= 0)
+    ends = [i for i, _ in where[1:]] + [len(data)]
+    spans = [(data.count(b",", i, end), name) for (i, name), end in zip(where, ends, strict=True)]
+    raise ValidationError(
+        f"state.{max(spans)[1]}" if spans else "state",
+        f"the blob holds {n + 1} values, over the limit of {most} that the matcher's caps allow",
+    )
+
+
 # the lists of each version's top level: (key, the name errors use, the cap's name)
 _V2_LISTS = (
     ("hyps", "hyps", "hyps"),
@@ -325,11 +368,11 @@ def _bool(v: Any, name: str) -> bool:
 def _hyp(r: _Reader, n_edges: int | None, most_edges: int) -> Hypothesis:
     check_length(r.get("edges"), r.name("edges"), most_edges)
     check_length(r.get("enter"), r.name("enter"), most_edges)
-    edges = [_int(e, f"{r.name('edges')}[{i}]", low=0, high=n_edges) for i, e in enumerate(r.list_("edges"))]
+    edges = _edge_list(r.list_("edges"), r.name("edges"), n_edges)
     if not edges:
         raise ValidationError(r.name("edges"), "must not be empty")
     k = r.int_("k", low=0, high=len(edges))
-    enter = [_num(t, f"{r.name('enter')}[{i}]") for i, t in enumerate(r.list_("enter"))]
+    enter = _time_list(r.list_("enter"), r.name("enter"))
     if len(enter) != k + 1:
         raise ValidationError(r.name("enter"), f"must hold k + 1 = {k + 1} times")
     return Hypothesis(
@@ -346,6 +389,22 @@ def _hyp(r: _Reader, n_edges: int | None, most_edges: int) -> Hypothesis:
         anc=r.num("anc", nan=True),
         anc_sd=r.num("anc_sd", nan=True, low=0.0),
     )
+
+
+def _edge_list(v: list[Any], name: str, n_edges: int | None) -> list[int]:
+    """Edge indices; all plain ints in range checked in one pass (a path may hold
+    ``max_path_edges``), else item by item, naming the first bad one."""
+    if all(type(e) is int for e in v) and (not v or (min(v) >= 0 and (n_edges is None or max(v) < n_edges))):
+        return list(v)
+    return [_int(e, f"{name}[{i}]", low=0, high=n_edges) for i, e in enumerate(v)]
+
+
+def _time_list(v: list[Any], name: str) -> list[float]:
+    """Finite numbers; all floats with a finite sum (so each is finite) checked in one pass,
+    else item by item, naming the first bad one."""
+    if all(type(t) is float for t in v) and math.isfinite(sum(v)):
+        return list(v)
+    return [_num(t, f"{name}[{i}]") for i, t in enumerate(v)]
 
 
 def _live(r: _Reader, n_edges: int | None) -> list[LiveFix]:
