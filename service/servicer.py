@@ -12,7 +12,8 @@ streams' fixes are served in between. Every message's work is bounded by the con
 limits (fixes per batch, points per track, bytes per answer), each refused with
 RESOURCE_EXHAUSTED naming the limit. Exceptions propagate to
 :class:`service.interceptors.StatusInterceptor`, which maps them to statuses; in the live
-streams a bad fix is answered with an ``error`` for that fix and the stream goes on.
+streams a bad fix, or a message whose bytes do not decode, is answered with an ``error`` and
+the stream goes on. ``ImportSession`` decodes its blob off the event loop.
 """
 
 from __future__ import annotations
