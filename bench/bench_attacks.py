@@ -110,11 +110,13 @@ def attacker(port: int, start: float, imports: int, out: Any) -> None:
             s = pb.SessionBlob(
                 map_id=blob.map_id, vehicle_id="big2", map_checksum=blob.map_checksum, state=over
             )
+            t0 = time.perf_counter()
             try:
                 api.ImportSession(pb.ImportSessionRequest(session=s, replace=True), timeout=60)
                 refused = "IMPORTED (not refused)"
             except grpc.RpcError as err:
-                refused = f"{err.code().name}: {err.details()[:80]}"
+                ms = 1000.0 * (time.perf_counter() - t0)
+                refused = f"{err.code().name} in {ms:.1f} ms: {err.details()[:60]}"
     out.put({"import_s": times, "fixes_s": fix_times, "worst_bytes": len(worst), "over_bytes": len(over),
              "refused": refused, "end": time.time()})  # fmt: skip
     ch.close()

@@ -113,7 +113,7 @@ def test_the_worst_allowed_blob_imports_and_every_stream_is_answered():
         answers = list(api.StreamFixes(iter(requests(later, "big")), timeout=60))
         t.join(120)
         assert len(got) == len(fixes) and not any(r.HasField("error") for r in got)
-        assert len(answers) == len(later)
+        assert len(answers) == len(later) and not any(r.HasField("error") for r in answers)
         st = json.loads(api.ExportSession(pb.ExportSessionRequest(vehicle_id="big"), timeout=10).state)
         o = DEFAULT_CONFIG.online
         assert len(st["headings"]) <= o.turn_max_samples and len(st["trail"]) <= o.trail_max
