@@ -204,6 +204,10 @@ class OnlineConfig:
     trail_step : metres; the odometer trail for re-timing crossings keeps a point this often ...
     trail_max : ... at most this many points ...
     trail_max_distance : ... and crossings at most this many metres back.
+    max_path_edges : most edges an imported session may hold in one path list (a hypothesis's
+        path, the edges since the last turn anchor): with ``max_hypotheses``,
+        ``max_candidates``, ``max_live``, ``turn_max_samples`` and ``trail_max`` it bounds the
+        work one imported session can cost (the matcher's own paths hold a few dozen edges).
     revise_sigmas : a revised crossing moves only as far as its anchor is this many σ sure.
     report_back_ratio : reporting an edge behind the one reported needs this much more mass.
 
@@ -337,6 +341,7 @@ class OnlineConfig:
     trail_step: float = 2.0
     trail_max: int = 150
     trail_max_distance: float = 300.0
+    max_path_edges: int = 1024
     revise_sigmas: float = 1.0
     report_back_ratio: float = 3.0
 
@@ -354,8 +359,14 @@ class OnlineConfig:
 
     def __post_init__(self) -> None:
         _check_numbers(self)
-        if self.max_hypotheses < 1 or self.max_hops < 1 or self.max_live < 1 or self.trail_max < 2:
-            raise ConfigError("max_hypotheses, max_hops and max_live must be at least 1, trail_max 2")
+        if (
+            min(self.max_hypotheses, self.max_hops, self.max_live) < 1
+            or self.trail_max < 2
+            or self.max_path_edges < 2
+        ):
+            raise ConfigError(
+                "max_hypotheses, max_hops and max_live must be at least 1, trail_max and max_path_edges 2"
+            )
         if self.init_commit_probability > 1:
             raise ConfigError("init_commit_probability must be at most 1")
         times = (self.evidence_time, self.drift_decay_time, self.stop_time)

@@ -33,8 +33,11 @@ def add_sample(
         return
     samples.append([odo, heading])
     horizon = odo - 2.0 * window
-    while len(samples) > 2 and (samples[1][0] <= horizon or len(samples) > max_samples):
-        samples.pop(0)
+    n, drop = len(samples), 0
+    while n - drop > 2 and (samples[drop + 1][0] <= horizon or n - drop > max_samples):
+        drop += 1
+    if drop:  # one deletion however many go: O(len) per fix, never O(len²)
+        del samples[:drop]
 
 
 def heading_change(samples: list[list[float]], odo: float, *, window: float) -> tuple[float, float]:

@@ -5,7 +5,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, field
 from enum import StrEnum
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 from numpy.typing import NDArray
@@ -82,7 +82,7 @@ class Fix:
         """Raise :class:`ValidationError` naming the first bad field."""
         inf = math.inf
         h, ps, hs, sp, d = self.heading, self.pos_sigma, self.heading_sigma, self.speed, self.distance
-        if (  # all good (the common case, in one expression): the checks below name a bad field
+        if (  # all good (the common case: FIELD_RULES unrolled); the loop below names a bad field
             -inf < self.time < inf
             and -90.0 <= self.lat <= 90.0
             and -180.0 <= self.lon <= 180.0
@@ -94,34 +94,62 @@ class Fix:
             and self.pos_cov is None
         ):
             return
-        if not math.isfinite(self.time):
-            raise ValidationError("time", "must be a finite number of seconds")
-        if not (math.isfinite(self.lat) and -90.0 <= self.lat <= 90.0):
-            raise ValidationError("lat", "must be a finite latitude in [-90, 90]")
-        if not (math.isfinite(self.lon) and -180.0 <= self.lon <= 180.0):
-            raise ValidationError("lon", "must be a finite longitude in [-180, 180]")
-        if not math.isnan(self.heading) and not (
-            math.isfinite(self.heading) and 0.0 <= self.heading <= 360.0
-        ):
-            raise ValidationError("heading", "must be in [0, 360] degrees or unset")
-        if not (
-            _unset_or_non_negative(self.pos_sigma)
-            and _unset_or_non_negative(self.heading_sigma)
-            and _unset_or_non_negative(self.speed)
-            and _unset_or_non_negative(self.distance)
-        ):
-            for name in ("pos_sigma", "heading_sigma", "speed", "distance"):  # the first bad one
-                if not _unset_or_non_negative(getattr(self, name)):
-                    raise ValidationError(name, "must be a finite non-negative number or unset")
+        for name in FIX_FIELDS:  # the first bad one, by the rules every entry shares
+            if not field_ok(name, getattr(self, name)):
+                raise ValidationError(name, FIELD_RULES[name].text)
         if self.pos_cov is not None:
             ve, cen, vn = self.pos_cov
             if not all(math.isfinite(x) for x in self.pos_cov) or ve < 0 or vn < 0 or cen * cen > ve * vn:
                 raise ValidationError("pos_cov", "must be a finite positive semi-definite 2x2 covariance")
 
 
-def _unset_or_non_negative(v: float) -> bool:
-    """NaN (unset), or a finite number at least 0."""
-    return v != v or 0.0 <= v < math.inf
+class FieldRule(NamedTuple):
+    """What one numeric field of a fix or a track point may hold: a finite number in
+    ``[low, high]``, or NaN (not given) when ``unset``; ``text`` is the error's reason."""
+
+    low: float
+    high: float
+    unset: bool
+    text: str
+
+
+_NON_NEGATIVE = FieldRule(0.0, math.inf, True, "must be a finite non-negative number or unset")
+# one table for every entry: a Fix (SnapFix, the streams, the CLI) and a Track's arrays
+# (MatchTrack, MatchTracks, ``mapmatch match``) are checked by the same rules
+FIELD_RULES: dict[str, FieldRule] = {
+    "time": FieldRule(-math.inf, math.inf, False, "must be a finite number of seconds"),
+    "lat": FieldRule(-90.0, 90.0, False, "must be a finite latitude in [-90, 90]"),
+    "lon": FieldRule(-180.0, 180.0, False, "must be a finite longitude in [-180, 180]"),
+    "heading": FieldRule(0.0, 360.0, True, "must be in [0, 360] degrees or unset"),
+    "pos_sigma": _NON_NEGATIVE,
+    "heading_sigma": _NON_NEGATIVE,
+    "speed": _NON_NEGATIVE,
+    "distance": _NON_NEGATIVE,
+}
+FIX_FIELDS = ("time", "lat", "lon", "heading", "pos_sigma", "heading_sigma", "speed", "distance")
+
+
+def field_ok(name: str, v: float) -> bool:
+    """Whether ``v`` obeys :data:`FIELD_RULES` ``[name]``."""
+    r = FIELD_RULES[name]
+    if v != v:
+        return r.unset
+    return math.isfinite(v) and r.low <= v <= r.high
+
+
+def check_field_array(name: str, values: Any, *, prefix: str, unset: bool | None = None) -> None:
+    """Raise :class:`ValidationError` naming ``prefix.name[i]`` at the first value of
+    ``values`` that breaks :data:`FIELD_RULES` ``[name]`` (``unset`` overrides whether NaN
+    may stand for a value not given)."""
+    r = FIELD_RULES[name]
+    a = np.asarray(values, dtype=np.float64)
+    with np.errstate(invalid="ignore"):
+        ok = np.isfinite(a) & (a >= r.low) & (a <= r.high)
+    if r.unset if unset is None else unset:
+        ok |= np.isnan(a)
+    if not ok.all():
+        i = int(np.argmin(ok))
+        raise ValidationError(f"{prefix}.{name}[{i}]", f"{r.text}, got {float(a[i])!r}")
 
 
 @dataclass(slots=True)

@@ -66,6 +66,7 @@ from service.gen import mapmatch_pb2 as pb
 log = logging.getLogger("mapmatch.service")
 
 __all__ = [
+    "POINT_ANSWER_BYTES",
     "BatchWorkers",
     "MapFile",
     "RequestPeek",
@@ -199,15 +200,38 @@ def peek_track_request(data: bytes) -> RequestPeek | None:
         return None
 
 
-def check_points(msg: pb.Track, limit: int) -> None:
-    """:class:`LimitError` naming ``max_track_points`` when the track is over ``limit``."""
-    check_point_count(max(len(msg.lat), len(msg.lon), len(msg.time)), limit)
+def _point_answer_bytes() -> int:
+    """The most bytes one point adds to a ``TrackResult`` (its ``MatchedPoint`` at the widest
+    values, with the repeated field's tag and length)."""
+    widest = pb.MatchedPoint(
+        index=2**31 - 1, status=pb.POINT_STATUS_UNMATCHED, edge=-1, offset=1.0, lat=1.0, lon=1.0, dist=1.0
+    )
+    return widest.ByteSize() + 2
 
 
-def check_point_count(n: int, limit: int) -> None:
-    """:class:`LimitError` naming ``max_track_points`` when ``n`` points are over ``limit``."""
-    if n > limit:
-        raise LimitError("max_track_points", f"a track has {n} points, over the server's limit of {limit}")
+# a fact of the wire format, not a setting: an answer holds at least this many bytes a point
+POINT_ANSWER_BYTES = _point_answer_bytes()
+
+
+def check_points(msg: pb.Track, limits: TrackLimits) -> None:
+    """:func:`check_point_count` for a track message."""
+    check_point_count(max(len(msg.lat), len(msg.lon), len(msg.time)), limits)
+
+
+def check_point_count(n: int, limits: TrackLimits) -> None:
+    """Before any work: :class:`LimitError` naming ``max_track_points`` when ``n`` points are
+    over it, or ``max_answer_bytes`` when their points alone (:data:`POINT_ANSWER_BYTES` each)
+    cannot fit in an answer."""
+    if n > limits.max_track_points:
+        most = limits.max_track_points
+        raise LimitError("max_track_points", f"a track has {n} points, over the server's limit of {most}")
+    if n * POINT_ANSWER_BYTES > limits.max_answer_bytes:
+        most = limits.max_answer_bytes // POINT_ANSWER_BYTES
+        raise LimitError(
+            "max_answer_bytes",
+            f"the answer to a track of {n} points would be at least {n * POINT_ANSWER_BYTES} bytes, "
+            f"over the server's limit of {limits.max_answer_bytes}; send at most {most} points a track",
+        )
 
 
 def check_answer_bytes(n: int, limit: int) -> None:
@@ -224,7 +248,7 @@ def match_track(entry: Any, msg: pb.Track, *, prefix: str, limits: TrackLimits) 
     """One track through a map entry's batch matcher, as a ``TrackResult`` (limits checked)."""
     from service import convert
 
-    check_points(msg, limits.max_track_points)
+    check_points(msg, limits)
     track = convert.track_from_proto(msg, prefix=prefix)
     try:
         m = entry.batch.match(track)
@@ -302,6 +326,7 @@ class BatchWorkers:
         self._generation = 0
         self._lock = threading.Lock()
         self._stopping = threading.Event()
+        self._warm = threading.Event()  # a child has loaded and warmed its maps
         self._started = False
         self.restarts = 0
         self.failed: dict[str, str] = {}  # maps a child could not load: id -> why
@@ -352,6 +377,11 @@ class BatchWorkers:
                 target=self._run, args=(slot,), name=f"mapmatch-batch-feed-{slot.index}", daemon=True
             )
             slot.thread.start()
+
+    def wait_warm(self, timeout: float) -> bool:
+        """Block until a child has loaded and warmed up the maps of :meth:`set_maps` (so a
+        call can be answered without waiting for a start-up); False after ``timeout`` s."""
+        return self._warm.wait(timeout)
 
     def pids(self) -> list[int]:
         """The children's process ids (those running)."""
@@ -404,6 +434,8 @@ class BatchWorkers:
                 log.error("cannot start a batch worker process: %s", exc)
                 time.sleep(1.0)
                 continue
+            if slot.loading and not self._take_ready(slot):
+                continue  # still loading: no job yet (another child may be ready for it)
             try:
                 job = self._q.get(timeout=0.5)
             except queue.Empty:
@@ -458,6 +490,22 @@ class BatchWorkers:
             slot.loading += 1
             _send_maps(slot.conn, files, slot.proc.pid)
 
+    def _take_ready(self, slot: _Slot) -> bool:
+        """Read a loading child's "ready" when it has come (waiting up to 0.2 s); True when
+        the child has loaded everything it was told to."""
+        conn = slot.conn
+        if conn is None:
+            return False
+        with contextlib.suppress(EOFError, OSError):  # a child that died: restarted next round
+            if conn.poll(0.2):
+                msg = conn.recv()
+                if msg[0] == "ready":
+                    slot.loading -= 1
+                    self._note(msg[1], msg[2])
+        if not slot.loading:
+            self._warm.set()
+        return not slot.loading
+
     def _call(self, slot: _Slot, job: _Job) -> bytes | BaseException | None:
         conn, proc = slot.conn, slot.proc
         assert conn is not None and proc is not None
@@ -472,6 +520,7 @@ class BatchWorkers:
                 if msg[0] == "ready":
                     slot.loading -= 1
                     self._note(msg[1], msg[2])
+            self._warm.set()
             _, kind, mf, prefix = job.header
             file = self._file_of(mf)
             if file is None or file.closed:

@@ -22,7 +22,7 @@ MAPMATCH_REUSE_PORT         --reuse-port                SO_REUSEPORT (off), for 
 MAPMATCH_LOG_FORMAT         --log-format auto|json|text JSON lines or text logs (auto: text on a terminal)
 MAPMATCH_MAP_DIR            --map-dir DIR               LoadMap reads files only here (off)
 MAPMATCH_MAX_BATCH_FIXES    --max-batch-fixes N         fixes per FixBatch (1000)
-MAPMATCH_MAX_TRACK_POINTS   --max-track-points N        points per track (100000)
+MAPMATCH_MAX_TRACK_POINTS   --max-track-points N        points per track (50000)
 MAPMATCH_MAX_ANSWER_BYTES   --max-answer-bytes N        largest answer message (4 MiB)
 MAPMATCH_MAX_VEHICLE_ID     --max-vehicle-id N          vehicle_id length, UTF-8 bytes (128)
 MAPMATCH_MAX_TIME_JUMP      --max-time-jump SECONDS     larger time jumps restart a session (3600)
@@ -148,7 +148,10 @@ class ServerConfig:
     max_batch_fixes : int
         Fixes in one ``FixBatch``; more give RESOURCE_EXHAUSTED naming ``max_batch_fixes``.
     max_track_points : int
-        Points in one track; more give RESOURCE_EXHAUSTED naming ``max_track_points``.
+        Points in one track; more give RESOURCE_EXHAUSTED naming ``max_track_points``, before
+        any work. The default's answer fits in the default ``max_answer_bytes`` (a point
+        takes at most 57 bytes of it); a track whose points alone cannot fit is refused before
+        any work too, naming ``max_answer_bytes``.
     max_answer_bytes : int
         Largest answer message; a larger answer gives RESOURCE_EXHAUSTED naming ``max_answer_bytes``.
     max_vehicle_id : int
@@ -225,7 +228,7 @@ class ServerConfig:
     log_format: str = "auto"
     map_dir: Path | None = None
     max_batch_fixes: int = 1000
-    max_track_points: int = 100_000
+    max_track_points: int = 50_000
     max_answer_bytes: int = 4 * 1024 * 1024
     max_vehicle_id: int = 128
     max_time_jump: float = 3600.0
@@ -383,7 +386,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 _LIMIT_FLAGS: tuple[tuple[str, type, str], ...] = (
     ("--max-batch-fixes", int, "fixes per FixBatch [MAPMATCH_MAX_BATCH_FIXES; 1000]"),
-    ("--max-track-points", int, "points per track [MAPMATCH_MAX_TRACK_POINTS; 100000]"),
+    ("--max-track-points", int, "points per track [MAPMATCH_MAX_TRACK_POINTS; 50000]"),
     ("--max-answer-bytes", int, "largest answer message [MAPMATCH_MAX_ANSWER_BYTES; 4 MiB]"),
     ("--max-vehicle-id", int, "vehicle_id length in bytes [MAPMATCH_MAX_VEHICLE_ID; 128]"),
     ("--max-time-jump", float, "seconds; larger jumps restart a session [MAPMATCH_MAX_TIME_JUMP; 3600]"),

@@ -26,6 +26,7 @@ from mapmatch.types import (
     Track,
     TrackMatch,
     Turn,
+    check_field_array,
 )
 from service.gen import mapmatch_pb2 as pb
 
@@ -211,7 +212,9 @@ _TRACK_OPTIONAL = ("heading", "speed", "pos_sigma", "distance")
 
 
 def track_from_proto(msg: pb.Track, *, prefix: str = "track") -> Track:
-    """A domain :class:`Track`; raises :class:`ValidationError` naming a bad array."""
+    """A domain :class:`Track`; raises :class:`ValidationError` naming a bad array, or the
+    first bad value (``track.pos_sigma[3]``) by the rules of a fix's fields
+    (:data:`mapmatch.types.FIELD_RULES`)."""
     lat = np.asarray(msg.lat, dtype=np.float64)
     lon = np.asarray(msg.lon, dtype=np.float64)
     n = len(lat)
@@ -219,15 +222,14 @@ def track_from_proto(msg: pb.Track, *, prefix: str = "track") -> Track:
         raise ValidationError(f"{prefix}.lat", "a track needs at least one point")
     if len(lon) != n:
         raise ValidationError(f"{prefix}.lon", f"has {len(lon)} values for {n} latitudes")
-    if not (np.isfinite(lat).all() and (np.abs(lat) <= 90).all()):
-        raise ValidationError(f"{prefix}.lat", "must be finite latitudes in [-90, 90]")
-    if not (np.isfinite(lon).all() and (np.abs(lon) <= 180).all()):
-        raise ValidationError(f"{prefix}.lon", "must be finite longitudes in [-180, 180]")
+    check_field_array("lat", lat, prefix=prefix)
+    check_field_array("lon", lon, prefix=prefix)
     time = np.asarray(msg.time, dtype=np.float64) if len(msg.time) else np.full(n, np.nan)
     if len(time) != n:
         raise ValidationError(
             f"{prefix}.time", f"has {len(time)} values for {n} points (give none or one each)"
         )
+    check_field_array("time", time, prefix=prefix, unset=True)  # a track's times may be unknown
     opt: dict[str, Any] = {}
     for name in _TRACK_OPTIONAL:
         vals = getattr(msg, name)
@@ -239,6 +241,7 @@ def track_from_proto(msg: pb.Track, *, prefix: str = "track") -> Track:
             raise ValidationError(
                 f"{prefix}.{name}", f"has {len(a)} values for {n} points (give none or one each)"
             )
+        check_field_array(name, a, prefix=prefix)  # the rules a fix's field obeys (SnapFix)
         opt[name] = a
     return Track(track_id=msg.track_id, time=time, lat=lat, lon=lon, **opt)
 

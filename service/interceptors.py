@@ -51,8 +51,10 @@ __all__ = [
     "Chain",
     "Metrics",
     "StatusInterceptor",
+    "Undecodable",
     "log_internal",
     "status_for",
+    "undecodable_error",
 ]
 
 Around = Callable[[grpc.HandlerCallDetails, aio.ServicerContext], contextlib.AbstractAsyncContextManager[Any]]
@@ -371,7 +373,8 @@ class Undecodable:
         self.reason = reason
 
 
-def _undecodable_error(msg: Undecodable) -> ValidationError:
+def undecodable_error(msg: Undecodable) -> ValidationError:
+    """The INVALID_ARGUMENT error of a message whose bytes did not parse."""
     return ValidationError(
         "request", f"the message does not decode as the method's request type ({msg.reason})"
     )
@@ -384,8 +387,16 @@ async def abort(context: aio.ServicerContext, code: grpc.StatusCode, field: str,
     await context.abort(code, message)
 
 
+# streams whose servicer answers an undecodable message with an error and goes on
+ANSWERS_UNDECODABLE = frozenset(
+    {"/mapmatch.v1.MapMatch/StreamFixes", "/mapmatch.v1.MapMatch/StreamFixBatches"}
+)
+
+
 class StatusInterceptor(_Wrapping):
-    """Maps exceptions to statuses; undecodable requests to INVALID_ARGUMENT."""
+    """Maps exceptions to statuses; undecodable requests to INVALID_ARGUMENT, except in the
+    live streams (:data:`ANSWERS_UNDECODABLE`), whose servicer gets the :class:`Undecodable`
+    and answers it with an error, the stream going on."""
 
     def deserializer(self, inner: Any) -> Any:
         if inner is None:
@@ -400,16 +411,16 @@ class StatusInterceptor(_Wrapping):
         return parse
 
     def request(self, state: Any, req: Any) -> Any:
-        if isinstance(req, Undecodable):
-            raise _undecodable_error(req)
+        if isinstance(req, Undecodable) and state not in ANSWERS_UNDECODABLE:
+            raise undecodable_error(req)
         return req
 
     @contextlib.asynccontextmanager
     async def around(
         self, details: grpc.HandlerCallDetails, context: aio.ServicerContext
-    ) -> AsyncIterator[None]:
+    ) -> AsyncIterator[str]:
         try:
-            yield
+            yield details.method
         except (asyncio.CancelledError, aio.AbortError):
             raise
         except Exception as exc:

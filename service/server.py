@@ -2,13 +2,15 @@
 
 :func:`create_server` only builds: it checks the configuration (TLS files, maps) and returns
 a :class:`ServiceRuntime`, which then starts (event-loop thread, bound port), warms up (loads
-every map and runs a warm-up query on it; then the batch worker processes start), sweeps
+every map and runs a warm-up query on it; then the batch worker processes start and warm up
+their batch matchers, before health says SERVING), sweeps
 idle sessions and stops (the batch workers too): health goes
 NOT_SERVING, new calls are refused and in-flight calls get ``grace`` seconds to finish.
 :func:`start_server` does both; :func:`serve` runs a server until SIGTERM/SIGINT.
 
 Health (``grpc.health.v1``) is NOT_SERVING for ``""`` and ``mapmatch.v1.MapMatch`` until
-at least one map is loaded and has passed its warm-up; each loaded map also has its own
+at least one map is loaded and has passed its warm-up, online and batch (a batch worker
+process has loaded it and matched a track on it); each loaded map also has its own
 service name, ``mapmatch.v1.MapMatch/<map id>``. With a session store
 (``--session-store``), ``mapmatch.v1.SessionStore`` is SERVING while the store answers and
 NOT_SERVING while it fails (fixes are answered either way, so ``""`` stays SERVING; see
@@ -249,8 +251,18 @@ class ServiceRuntime:
             log.error("map loading or warm-up failed, health stays NOT_SERVING: %s", exc)
             raise
         self.to_load = []
+        # SERVING only once every kind of call can be answered: the batch matchers are warm
+        # too (a first MatchTrack would otherwise wait for a worker's start within its deadline)
+        self._warm_batch()
         self.call(self.update_health())
+
+    def _warm_batch(self) -> None:
+        """Start the batch worker processes and wait (up to ``load_timeout``) until one has
+        warmed up its maps; warm up the batch matchers of the maps matched in this process."""
         in_workers = self._sync_workers()
+        workers = self.batch_workers
+        if in_workers and workers is not None and not workers.wait_warm(self.config.load_timeout):
+            log.error("the batch worker processes did not warm up in %.0f s", self.config.load_timeout)
         from mapmatch.kernels import COMPILE_SECONDS, is_cached
 
         if not is_cached("batch"):
@@ -259,7 +271,6 @@ class ServiceRuntime:
                 COMPILE_SECONDS["batch"],
             )
             return
-        # the batch matchers warm up after SERVING: online streams need not wait for them
         for entry in self.maps.entries():
             if entry.map_id in in_workers:
                 continue  # matched (and warmed up) in the batch worker processes

@@ -12,7 +12,8 @@ streams' fixes are served in between. Every message's work is bounded by the con
 limits (fixes per batch, points per track, bytes per answer), each refused with
 RESOURCE_EXHAUSTED naming the limit. Exceptions propagate to
 :class:`service.interceptors.StatusInterceptor`, which maps them to statuses; in the live
-streams a bad fix is answered with an ``error`` for that fix and the stream goes on.
+streams a bad fix, or a message whose bytes do not decode, is answered with an ``error`` and
+the stream goes on. ``ImportSession`` decodes its blob off the event loop.
 """
 
 from __future__ import annotations
@@ -51,6 +52,7 @@ from service.config import ServerConfig
 from service.errors import LimitError, MapPathError, log_internal, status_for
 from service.gen import mapmatch_pb2 as pb
 from service.gen import mapmatch_pb2_grpc as pb_grpc
+from service.interceptors import Undecodable, undecodable_error
 from service.maps import LoadLimits, MapEntry, MapRegistry, resolve_map_path
 from service.sessions import SessionStore
 
@@ -275,26 +277,26 @@ class MapMatchServicer(pb_grpc.MapMatchServicer):
         s.answer = result
         return result, jumped
 
-    def answer(self, req: pb.FixRequest, caller: Identity | None = None) -> pb.SnapResponse:
-        """Like :meth:`snap`, but a rejected fix becomes a response carrying its error; a fix
-        for a vehicle ``caller`` may not act for is answered PERMISSION_DENIED."""
+    def answer(self, req: pb.FixRequest | Undecodable, caller: Identity | None = None) -> pb.SnapResponse:
+        """Like :meth:`snap`, but a rejected fix (or a message whose bytes did not decode)
+        becomes a response carrying its error; a fix for a vehicle ``caller`` may not act for is
+        answered PERMISSION_DENIED."""
+        if isinstance(req, Undecodable):
+            return pb.SnapResponse(error=_error_of(undecodable_error(req)))
         try:
             if caller is not None:
                 check_vehicle(caller, req.vehicle_id)
             return self.snap(req, caller)
         except Exception as exc:
-            code, fld, msg = status_for(exc)
-            if code is grpc.StatusCode.INTERNAL:
-                log_internal(exc, "StreamFixes")
             return pb.SnapResponse(
                 map_id=req.map_id,
                 vehicle_id=req.vehicle_id[: self.config.max_vehicle_id],
                 seq=req.seq,
-                error=convert.error_to_proto(code.value[0], fld, msg),
+                error=_error_of(exc, "StreamFixes"),
             )
 
     def answer_all(
-        self, reqs: Sequence[pb.FixRequest], caller: Identity | None = None
+        self, reqs: Sequence[pb.FixRequest | Undecodable], caller: Identity | None = None
     ) -> list[pb.SnapResponse]:
         return [self.answer(r, caller) for r in reqs]
 
@@ -323,6 +325,9 @@ class MapMatchServicer(pb_grpc.MapMatchServicer):
         cap, step = self.config.max_batch_fixes, self.config.batch_slice
         caller = CALLER.get()
         async for batch in request_iterator:
+            if isinstance(batch, Undecodable):  # answered, and the stream goes on
+                yield pb.SnapBatch(error=_error_of(undecodable_error(batch)))
+                continue
             fixes = batch.fixes
             if len(fixes) > cap:
                 raise LimitError(
@@ -373,7 +378,7 @@ class MapMatchServicer(pb_grpc.MapMatchServicer):
                 if not peek.has_track:
                     raise ValidationError("track", "is required")
                 if peek.points is not None:
-                    check_point_count(peek.points, self.config.max_track_points)
+                    check_point_count(peek.points, self.track_limits)
                 await self._check_deadline(context)
                 return await self.batch_workers.match(mf, data, kind="request", prefix="track")
         if isinstance(request, bytes):
@@ -387,7 +392,7 @@ class MapMatchServicer(pb_grpc.MapMatchServicer):
         entry = self.maps.get(request.map_id)
         if not request.HasField("track"):
             raise ValidationError("track", "is required")
-        check_points(request.track, self.config.max_track_points)
+        check_points(request.track, self.track_limits)
         mf = self._worker_map(entry)
         if mf is not None and self.batch_workers is not None:
             await self._check_deadline(context)
@@ -416,7 +421,7 @@ class MapMatchServicer(pb_grpc.MapMatchServicer):
             prefix = f"tracks[{i}]"
             try:
                 if mf is not None and self.batch_workers is not None:
-                    check_points(t, self.config.max_track_points)
+                    check_points(t, self.track_limits)
                     await self._check_deadline(context)
                     yield await self.batch_workers.match(
                         mf, t.SerializeToString(), kind="track", prefix=prefix
@@ -511,10 +516,15 @@ class MapMatchServicer(pb_grpc.MapMatchServicer):
                 f"session was made on another version of map {entry.map_id!r} "
                 f"({blob.map_checksum}, this server has {entry.checksum})",
             )
-        from mapmatch.online.codec import from_bytes
+        from mapmatch.online.codec import StateCaps, from_bytes
 
+        decode = functools.partial(
+            from_bytes, blob.state, n_edges=entry.graph.n_edges, caps=StateCaps.of(entry.online.config)
+        )
         try:
-            state = from_bytes(blob.state, n_edges=entry.graph.n_edges)
+            # off the event loop: other streams are answered while a blob of up to
+            # ``max_message_bytes`` parses (its lists are bounded by the matcher's caps)
+            state = await asyncio.to_thread(decode)
         except ValidationError as exc:
             fld = f"session.{exc.field}" if exc.field.startswith("state") else f"session.state.{exc.field}"
             raise ValidationError(fld, exc.reason) from None
@@ -557,6 +567,14 @@ class MapMatchServicer(pb_grpc.MapMatchServicer):
                 out.sessions.add(map_id=m, vehicle_id=vid, idle_seconds=now - s.last_used, last_time=t)
         out.total = total
         return self._answer_size(out)
+
+
+def _error_of(exc: Exception, method: str = "") -> pb.Error:
+    """The ``Error`` message of an exception (an unexpected one logged as INTERNAL)."""
+    code, fld, msg = status_for(exc)
+    if code is grpc.StatusCode.INTERNAL:
+        log_internal(exc, method)
+    return convert.error_to_proto(code.value[0], fld, msg)
 
 
 async def _maybe_await(x: Any) -> None:

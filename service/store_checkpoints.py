@@ -44,7 +44,7 @@ from typing import Any
 
 import grpc
 
-from mapmatch.online.codec import from_bytes, to_bytes
+from mapmatch.online.codec import StateCaps, from_bytes, to_bytes
 from service import convert
 from service.errors import SessionExistsError, SessionLimitError
 from service.gen import mapmatch_pb2 as pb
@@ -252,7 +252,7 @@ class Checkpointer:
             return
         try:
             blob, answer_bytes = unpack(data)
-            state = from_bytes(blob, n_edges=entry.graph.n_edges)
+            state = from_bytes(blob, n_edges=entry.graph.n_edges, caps=StateCaps.of(entry.online.config))
             answer = (
                 convert.snap_result_from_proto(pb.SnapResult.FromString(answer_bytes))
                 if answer_bytes
@@ -285,6 +285,9 @@ class Checkpointer:
         seen: set[tuple[str, str]] = set()
         try:
             async for req in requests:
+                if not isinstance(req, pb.FixRequest):  # bytes that did not decode: an error answer
+                    yield answer(req)
+                    continue
                 if self.draining:
                     await asyncio.to_thread(self._hand_over, self._keys(seen))
                     seen.clear()

@@ -148,3 +148,89 @@ def test_edges_beyond_the_map_are_rejected_when_the_map_is_known() -> None:
 def test_not_a_state_at_all(blob: bytes) -> None:
     with pytest.raises(ValidationError):
         SessionState.from_bytes(blob)
+
+
+# ---------------------------------------------------------------------------------- caps
+LISTS = {"hyps": "state.hyps", "edges": "state.hyps[0].edges", "live": "state.live",
+         "headings": "state.headings", "trail": "state.trail", "back": "state.back"}  # fmt: skip
+
+
+def test_the_largest_state_the_caps_allow_decodes_with_bounded_lists() -> None:
+    from stall_util import worst_case_blob
+
+    from mapmatch.config import DEFAULT_CONFIG
+    from mapmatch.online.codec import StateCaps
+
+    _, st, _ = _session()
+    caps = StateCaps.of(DEFAULT_CONFIG)
+    blob = worst_case_blob(st.to_bytes(), caps, n_edges=AMAP.graph.n_edges)
+    got = from_bytes(blob, n_edges=AMAP.graph.n_edges, caps=caps)
+    assert len(got.hyps) == caps.hyps and len(got.live) == caps.live
+    assert len(got.headings) == caps.headings and len(got.trail) == caps.trail
+    assert len(got.back) == caps.path_edges and len(got.hyps[0].edges) == caps.path_edges
+
+
+@pytest.mark.parametrize("over", sorted(LISTS))
+def test_a_list_over_its_cap_is_refused_naming_it(over: str) -> None:
+    from stall_util import worst_case_blob
+
+    from mapmatch.config import DEFAULT_CONFIG
+    from mapmatch.online.codec import StateCaps
+
+    _, st, _ = _session()
+    caps = StateCaps.of(DEFAULT_CONFIG)
+    blob = worst_case_blob(st.to_bytes(), caps, n_edges=AMAP.graph.n_edges, over=over)
+    with pytest.raises(ValidationError) as ei:
+        from_bytes(blob, n_edges=AMAP.graph.n_edges, caps=caps)
+    assert ei.value.field == LISTS[over] and "over the limit" in ei.value.reason
+
+
+def test_version_1_lists_are_capped_before_migration() -> None:
+    d = {"v": 1, "t": 0.0, "h": [], "live": [], "hd": [[float(i), 0.0] for i in range(200_000)]}
+    with pytest.raises(ValidationError) as ei:
+        from_bytes(json.dumps(d).encode())
+    assert ei.value.field == "state.headings"
+
+
+def _add_sample_by_pop(
+    samples: list[list[float]], odo: float, heading: float, window: float, most: int
+) -> None:
+    """The trimming rule, one ``pop(0)`` at a time (what :func:`add_sample` must equal)."""
+    if math.isnan(heading) or (samples and odo - samples[-1][0] < 1.0):
+        return
+    samples.append([odo, heading])
+    while len(samples) > 2 and (samples[1][0] <= odo - 2.0 * window or len(samples) > most):
+        samples.pop(0)
+
+
+def test_add_sample_trims_as_one_pop_at_a_time_did() -> None:
+    import random
+
+    from mapmatch.turns import add_sample
+
+    rng = random.Random(3)
+    for _ in range(200):
+        start = [[float(o), 0.0] for o in sorted(rng.uniform(0, 400) for _ in range(rng.randrange(0, 120)))]
+        a, b = [list(s) for s in start], [list(s) for s in start]
+        for _ in range(20):
+            odo = (a[-1][0] if a else 0.0) + rng.choice([0.5, 2.0, 30.0, 200.0])
+            add_sample(a, odo, 10.0, window=30.0, max_samples=48)
+            _add_sample_by_pop(b, odo, 10.0, 30.0, 48)
+            assert a == b
+
+
+def test_a_blob_larger_than_the_caps_allow_is_refused_before_parsing() -> None:
+    from mapmatch.config import DEFAULT_CONFIG
+    from mapmatch.online.codec import VALUE_BYTES, StateCaps, max_values
+
+    _, st, _ = _session()
+    most = max_values(StateCaps.of(DEFAULT_CONFIG))
+    padded = st.to_bytes()[:-1] + b" " * (most * VALUE_BYTES) + b"}"
+    with pytest.raises(ValidationError) as ei:
+        from_bytes(padded)
+    assert ei.value.field == "state" and "over the limit" in ei.value.reason
+    d = json.loads(st.to_bytes())
+    d["trail"] = [[float(i), float(i)] for i in range(most)]
+    with pytest.raises(ValidationError) as ei:
+        from_bytes(json.dumps(d).encode())
+    assert ei.value.field == "state.trail"

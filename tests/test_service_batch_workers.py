@@ -133,15 +133,19 @@ def test_the_largest_track_is_matched_in_a_worker_process_while_a_good_stream_ke
 
 def test_a_worker_that_dies_fails_its_call_with_unavailable_and_is_replaced(tmp_path):
     path = _map_file(tmp_path)
-    cfg = local_config(maps=(("city", path),), max_track_points=BIG, max_answer_bytes=256 << 20)
-    big = {"options": [("grpc.max_receive_message_length", -1)]}
+    long = 6 * BIG  # a match of a few seconds: the worker is warm, one of BIG points may end first
+    cfg = local_config(
+        maps=(("city", path),), max_track_points=long, max_answer_bytes=256 << 20, max_message_bytes=64 << 20
+    )
+    big = {"options": [("grpc.max_receive_message_length", -1), ("grpc.max_send_message_length", -1)]}
     with running(cfg) as (server, port):
         (worker,) = _workers(server)
         ch, api = stub(port, **big)
-        fut = api.MatchTrack.future(pb.MatchTrackRequest(track=looped_track(AMAP, BIG)), timeout=600)
+        fut = api.MatchTrack.future(pb.MatchTrackRequest(track=looped_track(AMAP, long)), timeout=600)
         c0 = _cpu(worker)
-        while _cpu(worker) - c0 < 0.3:  # the match is under way in the worker
+        while _cpu(worker) - c0 < 0.3 and not fut.done():  # the match is under way in the worker
             time.sleep(0.05)
+        assert not fut.done(), "the match ended before the worker could be killed"
         os.kill(worker.pid, signal.SIGKILL)
         with pytest.raises(grpc.RpcError) as ei:
             fut.result()

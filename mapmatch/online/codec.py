@@ -4,14 +4,18 @@ Version 2 names every field. Version 1 (positional lists, the format before the 
 package) is migrated explicitly on reading. :func:`from_bytes` checks every value (types,
 lengths, finite numbers, non-negative variances and σ, edge indices) and raises
 :class:`~mapmatch.errors.ValidationError` naming the offending key, e.g. ``state.hyps[0].k``.
+Every list is bounded by the matcher configuration's own caps (:class:`StateCaps`), checked
+before its items are read: decoding a blob costs at most what the matcher's own sessions hold.
 """
 
 from __future__ import annotations
 
 import json
 import math
+from dataclasses import dataclass
 from typing import Any
 
+from mapmatch.config import DEFAULT_CONFIG, MatchConfig
 from mapmatch.errors import ValidationError
 from mapmatch.online.state import BackEdge, FixBias, Hypothesis, LiveFix, SessionState, TrailPoint
 
@@ -22,6 +26,40 @@ MAX_MAGNITUDE = 1e100
 _NAN = math.nan
 _HYP = ("edges", "k", "off", "s", "logp", "enter", "dist", "px", "py", "bearing", "anc", "anc_sd")
 _LIVE = ("time", "edge", "x", "y", "heading", "sigma", "kappa", "gps")
+
+
+@dataclass(frozen=True)
+class StateCaps:
+    """The most items each list of a session state may hold (the matcher never keeps more).
+
+    ``hyps``: the hypotheses kept plus a search's candidates; ``path_edges``: the edges of a
+    hypothesis's path (and its entry times) and of the edges since the last turn anchor;
+    ``live``, ``headings``, ``trail``: the fixes, heading samples and odometer points kept.
+    """
+
+    hyps: int
+    path_edges: int
+    live: int
+    headings: int
+    trail: int
+
+    @classmethod
+    def of(cls, config: MatchConfig) -> StateCaps:
+        """The caps of a matcher configuration."""
+        o = config.online
+        return cls(
+            hyps=o.max_hypotheses + config.model.max_candidates,
+            path_edges=o.max_path_edges,
+            live=o.max_live,
+            headings=max(o.turn_max_samples, 2),
+            trail=o.trail_max,
+        )
+
+
+def check_length(v: Any, name: str, cap: int) -> None:
+    """:class:`ValidationError` naming ``name`` when the list ``v`` holds more than ``cap`` items."""
+    if isinstance(v, list) and len(v) > cap:
+        raise ValidationError(name, f"holds {len(v)} items, over the limit of {cap}")
 
 
 def to_bytes(st: SessionState) -> bytes:
@@ -59,21 +97,87 @@ def to_bytes(st: SessionState) -> bytes:
     return json.dumps(d, separators=(",", ":"), allow_nan=True).encode()
 
 
-def from_bytes(data: bytes, *, n_edges: int | None = None) -> SessionState:
+def from_bytes(data: bytes, *, n_edges: int | None = None, caps: StateCaps | None = None) -> SessionState:
     """Decode :func:`to_bytes` (version 2) or version 1; edges must be below ``n_edges`` when
-    given. Raises :class:`ValidationError` naming the key on anything else."""
+    given, and every list within ``caps`` (default: those of
+    :data:`~mapmatch.config.DEFAULT_CONFIG`). Raises :class:`ValidationError` naming the key on
+    anything else, e.g. ``state.headings`` for a list over its cap."""
+    caps = caps if caps is not None else _DEFAULT_CAPS
+    _check_size(data, caps)
     try:
         d = json.loads(data)
-    except (ValueError, TypeError) as exc:
+    except (ValueError, TypeError, RecursionError) as exc:
         raise ValidationError("state", f"not a valid session state ({exc})") from None
     if not isinstance(d, dict):
         raise ValidationError("state", "not a valid session state (not an object)")
     version = d.get("version", d.get("v"))
     if version == 1:
+        _check_lengths(d, _V1_LISTS, caps)
         d = migrate_v1(d)
     elif version != VERSION:
         raise ValidationError("state.version", f"unknown session state version {version!r}")
-    return _decode(_Reader(d, "state"), n_edges)
+    _check_lengths(d, _V2_LISTS, caps)
+    return _decode(_Reader(d, "state"), n_edges, caps)
+
+
+_DEFAULT_CAPS = StateCaps.of(DEFAULT_CONFIG)
+# the longest JSON text one value (with its key) of a state takes: a float's repr is at most
+# 24 characters; the longest key is 12 ("init_pending") with quotes and a colon
+VALUE_BYTES = 48
+# the keys of the state's lists, both versions, as they appear in its JSON text
+_LIST_KEYS = (
+    *((k, k) for k in ("hyps", "live", "headings", "trail", "back")),
+    *(("h", "hyps"), ("hd", "headings"), ("tr", "trail"), ("bk", "back")),
+)
+
+
+def max_values(caps: StateCaps) -> int:
+    """The most values (numbers, strings, keys) a state within ``caps`` holds: its JSON text
+    has fewer commas than this."""
+    per_hyp = len(_HYP) + 2 * caps.path_edges + 1
+    lists = caps.hyps * per_hyp + caps.live * (len(_LIVE) + 1) + 3 * (caps.headings + caps.trail)
+    return lists + 3 * caps.path_edges + 64
+
+
+def _check_size(data: bytes, caps: StateCaps) -> None:
+    """Before parsing (which holds the GIL for as long as the text is long): a blob with more
+    values, or more bytes, than a state within ``caps`` can hold is refused, naming the list
+    that holds most of its values."""
+    most = max_values(caps)
+    if not isinstance(data, bytes | bytearray):
+        return
+    if len(data) > most * VALUE_BYTES:
+        raise ValidationError(
+            "state", f"the blob is {len(data)} bytes, over the limit of {most * VALUE_BYTES} that the "
+            "matcher's caps allow",
+        )  # fmt: skip
+    n = data.count(b",")
+    if n < most:
+        return
+    where = sorted((i, name) for key, name in _LIST_KEYS if (i := data.find(f'"{key}"'.encode())) >= 0)
+    ends = [i for i, _ in where[1:]] + [len(data)]
+    spans = [(data.count(b",", i, end), name) for (i, name), end in zip(where, ends, strict=True)]
+    raise ValidationError(
+        f"state.{max(spans)[1]}" if spans else "state",
+        f"the blob holds {n + 1} values, over the limit of {most} that the matcher's caps allow",
+    )
+
+
+# the lists of each version's top level: (key, the name errors use, the cap's name)
+_V2_LISTS = (
+    ("hyps", "hyps", "hyps"),
+    ("live", "live", "live"),
+    ("headings", "headings", "headings"),
+    ("trail", "trail", "trail"),
+    ("back", "back", "path_edges"),
+)
+_V1_LISTS = (("h", "hyps", "hyps"), ("live", "live", "live"), ("hd", "headings", "headings"),
+             ("tr", "trail", "trail"), ("bk", "back", "path_edges"))  # fmt: skip
+
+
+def _check_lengths(d: dict[str, Any], lists: tuple[tuple[str, str, str], ...], caps: StateCaps) -> None:
+    for key, name, cap in lists:
+        check_length(d.get(key), f"state.{name}", getattr(caps, cap))
 
 
 def migrate_v1(d: dict[str, Any]) -> dict[str, Any]:
@@ -202,7 +306,7 @@ def _pairs(seq: list[Any], name: str) -> list[tuple[Any, Any]]:
     return out
 
 
-def _decode(r: _Reader, n_edges: int | None) -> SessionState:
+def _decode(r: _Reader, n_edges: int | None, caps: StateCaps) -> SessionState:
     bias = _Reader(r.get("bias"), r.name("bias"))
     st = SessionState(
         time=r.num("time", nan=True),
@@ -214,7 +318,10 @@ def _decode(r: _Reader, n_edges: int | None) -> SessionState:
         bad_odo=r.num("bad_odo", nan=True),
         init_pending=_bool(r.get("init_pending"), r.name("init_pending")),
         init_odo=r.num("init_odo"),
-        hyps=[_hyp(_Reader(a, f"{r.name('hyps')}[{i}]"), n_edges) for i, a in enumerate(r.list_("hyps"))],
+        hyps=[
+            _hyp(_Reader(a, f"{r.name('hyps')}[{i}]"), n_edges, caps.path_edges)
+            for i, a in enumerate(r.list_("hyps"))
+        ],
         live=_live(r, n_edges),
         headings=[
             [_num(o, f"{r.name('headings')}[{i}]"), _num(h, f"{r.name('headings')}[{i}]")]
@@ -258,12 +365,14 @@ def _bool(v: Any, name: str) -> bool:
     return v
 
 
-def _hyp(r: _Reader, n_edges: int | None) -> Hypothesis:
-    edges = [_int(e, f"{r.name('edges')}[{i}]", low=0, high=n_edges) for i, e in enumerate(r.list_("edges"))]
+def _hyp(r: _Reader, n_edges: int | None, most_edges: int) -> Hypothesis:
+    check_length(r.get("edges"), r.name("edges"), most_edges)
+    check_length(r.get("enter"), r.name("enter"), most_edges)
+    edges = _edge_list(r.list_("edges"), r.name("edges"), n_edges)
     if not edges:
         raise ValidationError(r.name("edges"), "must not be empty")
     k = r.int_("k", low=0, high=len(edges))
-    enter = [_num(t, f"{r.name('enter')}[{i}]") for i, t in enumerate(r.list_("enter"))]
+    enter = _time_list(r.list_("enter"), r.name("enter"))
     if len(enter) != k + 1:
         raise ValidationError(r.name("enter"), f"must hold k + 1 = {k + 1} times")
     return Hypothesis(
@@ -280,6 +389,22 @@ def _hyp(r: _Reader, n_edges: int | None) -> Hypothesis:
         anc=r.num("anc", nan=True),
         anc_sd=r.num("anc_sd", nan=True, low=0.0),
     )
+
+
+def _edge_list(v: list[Any], name: str, n_edges: int | None) -> list[int]:
+    """Edge indices; all plain ints in range checked in one pass (a path may hold
+    ``max_path_edges``), else item by item, naming the first bad one."""
+    if all(type(e) is int for e in v) and (not v or (min(v) >= 0 and (n_edges is None or max(v) < n_edges))):
+        return list(v)
+    return [_int(e, f"{name}[{i}]", low=0, high=n_edges) for i, e in enumerate(v)]
+
+
+def _time_list(v: list[Any], name: str) -> list[float]:
+    """Finite numbers; all floats with a finite sum (so each is finite) checked in one pass,
+    else item by item, naming the first bad one."""
+    if all(type(t) is float for t in v) and math.isfinite(sum(v)):
+        return list(v)
+    return [_num(t, f"{name}[{i}]") for i, t in enumerate(v)]
 
 
 def _live(r: _Reader, n_edges: int | None) -> list[LiveFix]:

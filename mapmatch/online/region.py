@@ -168,8 +168,13 @@ def _commit_node(
                 corr = revise_crossings(road, state, best, (mid, cut, anchor_sd), step, cfg)
     if math.isnan(anchor_odo):
         state.back.append(BackEdge(e0, best.enter[0]))
-        while sum(road.elen[b.edge] for b in state.back) > cfg.online.trail_max_distance:
-            del state.back[0]
+        # the oldest edges go while those kept are longer than the distance: each tail's sum
+        # over a list of lengths, in C (an imported session may hold many edges)
+        lens = [road.elen[b.edge] for b in state.back]
+        drop = 0
+        while sum(lens[drop:]) > cfg.online.trail_max_distance:
+            drop += 1
+        del state.back[:drop]
     else:
         state.back = []
     state.live = [x for x in state.live if x.edge != e0]

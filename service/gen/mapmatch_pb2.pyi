@@ -102,10 +102,12 @@ class FixBatch(_message.Message):
     def __init__(self, fixes: _Optional[_Iterable[_Union[FixRequest, _Mapping]]] = ...) -> None: ...
 
 class SnapBatch(_message.Message):
-    __slots__ = ("responses",)
+    __slots__ = ("responses", "error")
     RESPONSES_FIELD_NUMBER: _ClassVar[int]
+    ERROR_FIELD_NUMBER: _ClassVar[int]
     responses: _containers.RepeatedCompositeFieldContainer[SnapResponse]
-    def __init__(self, responses: _Optional[_Iterable[_Union[SnapResponse, _Mapping]]] = ...) -> None: ...
+    error: Error
+    def __init__(self, responses: _Optional[_Iterable[_Union[SnapResponse, _Mapping]]] = ..., error: _Optional[_Union[Error, _Mapping]] = ...) -> None: ...
 
 class Candidate(_message.Message):
     __slots__ = ("edge", "u", "v", "way_id", "probability", "offset", "dist")
