@@ -45,6 +45,7 @@ from grpc_health.v1.health import aio as health_aio
 from graph.road_graph import RoadGraph
 from mapmatch.errors import ConfigError
 from mapmatch.extras import MissingExtraError
+from mapmatch.logs import resolve_format
 from service.auth import IdentityTable, Quotas
 from service.batch_workers import BatchWorkers, MapFile, TrackLimits
 from service.config import ServerConfig
@@ -198,7 +199,9 @@ class ServiceRuntime:
         if not self.identities.enabled:
             log.warning("no --token and no --identities: every client may call every method")
         srv = aio.server(
-            interceptors=interceptors(access=access, metrics=self.metrics, log_format=cfg.log_format),
+            interceptors=interceptors(
+                access=access, metrics=self.metrics, log_format=resolve_format(cfg.log_format, sys.stderr)
+            ),
             options=options,
         )
         add_servicer(self.servicer, srv)
@@ -608,7 +611,7 @@ def configure_logging(log_format: str, *, access: bool) -> None:
     Replaces the root handlers' format for the ``mapmatch`` loggers with a handler of its own.
     """
     handler: logging.Handler = _StderrHandler()
-    if log_format == "json":
+    if resolve_format(log_format, sys.stderr) == "json":
         handler.setFormatter(JsonLinesFormatter())
     else:
         handler.setFormatter(logging.Formatter("%(asctime)s %(levelname)s %(name)s: %(message)s"))
