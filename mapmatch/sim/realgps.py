@@ -457,16 +457,9 @@ def real_drive(
     folder = Path(track_dir)
     vid = vehicle_id if vehicle_id is not None else folder.name
     real = _real_fixes(graph, folder, config)
-    duration = float(real.t[-1])
-    outs = (
-        spread_outages(duration)
-        if outages is True
-        else []
-        if outages is False
-        else [(float(a), float(b)) for a, b in outages]
-    )
+    outs = _outage_list(outages, float(real.t[-1]))
     rng = np.random.default_rng(seed)
-    motion = _true_motion(real, duration, config)
+    motion = _true_motion(real, float(real.t[-1]), config)
     gps = _gps_availability(real, motion.t, outs, config)
     # the errors in this order (one generator): heading, odometer scale, σ, odometer noise
     dr = _dead_reckoning(real.route, motion, gps.have, config, rng)
@@ -492,21 +485,7 @@ def real_drive(
         distance=dist,
         gps_valid=gps.have[idx],
     )
-    truth = truth_frame(
-        graph,
-        real.route,
-        TruthSamples(
-            time=ot + time0,
-            x=motion.pos[idx, 0],
-            y=motion.pos[idx, 1],
-            route_s=motion.s[idx],
-            heading=np.degrees(motion.psi[idx]) % 360.0,
-            speed=motion.speed[idx],
-            gps_outage=~gps.have[idx],  # injected outages and long track gaps
-        ),
-        vehicle_id=vid,
-    )
-    truth["truth_known"] = truth_known(real.route, real.xy, real.t, ot, config=config)
+    truth = _truth(graph, real, motion, (idx, gps.have[idx]), time0=time0, vehicle_id=vid, config=config)
     return Drive(
         route=real.route,
         trajectory=motion.traj,
@@ -519,6 +498,48 @@ def real_drive(
         node_time=np.interp(real.route.node_distance(), motion.s, motion.t) + time0,
         outages=list(outs),
     )
+
+
+def _outage_list(outages: bool | Sequence[tuple[float, float]], duration: float) -> list[tuple[float, float]]:
+    """``(start, duration)`` of each outage: the seed papers' five spread over the drive (True),
+    none (False) or as given."""
+    if outages is True:
+        return spread_outages(duration)
+    if outages is False:
+        return []
+    return [(float(a), float(b)) for a, b in outages]
+
+
+def _truth(
+    graph: RoadGraph,
+    real: _RealFixes,
+    motion: _Motion,
+    out: tuple[NDArray[np.int64], NDArray[np.bool_]],
+    *,
+    time0: float,
+    vehicle_id: str,
+    config: RealGpsConfig,
+) -> pd.DataFrame:
+    """The per-fix truth at the output samples ``out`` (base-grid indices, GPS there), with
+    where it is known."""
+    idx, have = out
+    ot = motion.t[idx]
+    truth = truth_frame(
+        graph,
+        real.route,
+        TruthSamples(
+            time=ot + time0,
+            x=motion.pos[idx, 0],
+            y=motion.pos[idx, 1],
+            route_s=motion.s[idx],
+            heading=np.degrees(motion.psi[idx]) % 360.0,
+            speed=motion.speed[idx],
+            gps_outage=~have,  # injected outages and long track gaps
+        ),
+        vehicle_id=vehicle_id,
+    )
+    truth["truth_known"] = truth_known(real.route, real.xy, real.t, ot, config=config)
+    return truth
 
 
 @dataclass(frozen=True)
