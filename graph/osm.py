@@ -268,9 +268,54 @@ def _ways_to_raw(
     """Ways -> raw network: each way cut at missing (or, with ``bbox``, outside) nodes into
     runs of at least two nodes; a run is one feature, its consecutive node pairs its edges
     (both directions unless one-way; reversed ways run backwards)."""
-    n_ref = len(ways.ref)
-    n_way = len(ways.ids)
-    way_of = np.repeat(np.arange(n_way), np.diff(ways.ptr))
+    ok = _usable_refs(ways, bbox, dropped)
+    runs = _runs(ways, ok, dropped)
+    # nodes: every usable reference, in order of first appearance (its last location wins)
+    ok_pos = np.nonzero(ok)[0]
+    ids, first, inv = unique_inverse(ways.ref[ok_pos])
+    if len(ids) == 0:
+        return _empty_raw()
+    order = np.argsort(first, kind="stable")
+    rank = np.empty(len(ids), dtype=np.int64)
+    rank[order] = np.arange(len(ids))
+    last = np.zeros(len(ids), dtype=np.int64)
+    last[inv.ravel()] = ok_pos  # later positions overwrite earlier ones
+    ll = np.column_stack([ways.lon[last], ways.lat[last]])[order]
+    crs = utm_crs(float(np.median(ll[:, 0])), float(np.median(ll[:, 1])))
+    node = rank[np.searchsorted(ids, ways.ref[runs.pos])]
+    # features: the long runs
+    keep_pos = runs.long_run[runs.g]
+    node, g = node[keep_pos], runs.g[keep_pos]
+    feat_runs = np.nonzero(runs.long_run)[0]
+    feat_of_run = np.full(len(runs.long_run), -1, dtype=np.int64)
+    feat_of_run[feat_runs] = np.arange(len(feat_runs))
+    fw = runs.way[feat_runs]
+    tags = {k: v.take(fw) for k, v in ways.tags.items()}
+    ow, junction = tags["oneway"], tags["junction"]
+    oneway = _flag(ow, ONEWAY_VALUES) | _flag(junction, {"roundabout"})  # osmnx's rule, see is_oneway
+    src, dst, feat = _feature_edges(node, feat_of_run[g], oneway, _flag(ow, REVERSED_VALUES))
+    raw = RawNetwork(
+        crs=crs,
+        node_key=ids[order].astype(np.int64, copy=False),
+        node_xy=to_xy(crs, ll[:, 0], ll[:, 1]),
+        node_lonlat=ll,
+        edge_src=src,
+        edge_dst=dst,
+        edge_feat=feat,
+        edge_oneway=oneway[feat],
+        feat_way_id=np.asarray(ways.ids, dtype=np.int64)[fw],
+        feat_name=tags["name"],
+        feat_highway=tags["highway"],
+        feat_speed_kph=_per_value(tags["maxspeed"], _maxspeed),
+    )
+    return compact_raw(raw)
+
+
+def _usable_refs(
+    ways: Ways, bbox: tuple[float, float, float, float] | None, dropped: dict[str, int]
+) -> NDArray[np.bool_]:
+    """Which node references are usable: known in the extract and, with ``bbox``, inside it
+    (the others counted in ``dropped``)."""
     ok = ways.ok.copy()
     n_dangling = int((~ok).sum())
     n_outside = 0
@@ -282,7 +327,25 @@ def _ways_to_raw(
         dropped["dangling node references (missing from the extract)"] = n_dangling
     if n_outside:
         dropped["node references outside the bbox"] = n_outside
-    # runs: a new one at each way start and after each unusable node
+    return ok
+
+
+class _Runs(NamedTuple):
+    """The runs of usable references: the kept references' positions ``pos`` and runs ``g``
+    (a node repeated in a row kept once), which runs have at least two nodes, and each run's
+    way."""
+
+    pos: NDArray[np.int64]
+    g: NDArray[np.int64]
+    long_run: NDArray[np.bool_]
+    way: NDArray[np.int64]
+
+
+def _runs(ways: Ways, ok: NDArray[np.bool_], dropped: dict[str, int]) -> _Runs:
+    """A new run at each way start and after each unusable node; ways with no run of two known
+    nodes are counted in ``dropped``."""
+    n_ref, n_way = len(ways.ref), len(ways.ids)
+    way_of = np.repeat(np.arange(n_way), np.diff(ways.ptr))
     start = np.zeros(n_ref, dtype=bool)
     start[ways.ptr[:-1][np.diff(ways.ptr) > 0]] = True
     start[1:] |= ~ok[:-1]
@@ -295,44 +358,21 @@ def _ways_to_raw(
     pos, g = pos[~dup], g[~dup]
     run_len = np.bincount(g, minlength=int(grp.max()) + 1 if n_ref else 0)
     long_run = run_len >= 2
-    # ways with no run of two known nodes
     run_way = np.full(len(run_len), -1, dtype=np.int64)
     run_way[grp[start]] = way_of[start]
     has = np.zeros(n_way, dtype=bool)
     has[run_way[long_run]] = True
     if (~has).any():
-        dropped["way with fewer than 2 known nodes"] = dropped.get(
-            "way with fewer than 2 known nodes", 0
-        ) + int((~has).sum())
-    # nodes: every usable reference, in order of first appearance (its last location wins)
-    ok_pos = np.nonzero(ok)[0]
-    ids, first, inv = unique_inverse(ways.ref[ok_pos])
-    if len(ids) == 0:
-        return _empty_raw()
-    order = np.argsort(first, kind="stable")
-    rank = np.empty(len(ids), dtype=np.int64)
-    rank[order] = np.arange(len(ids))
-    last = np.zeros(len(ids), dtype=np.int64)
-    last[inv.ravel()] = ok_pos  # later positions overwrite earlier ones
-    ll = np.column_stack([ways.lon[last], ways.lat[last]])[order]
-    node_ids = ids[order]
-    crs = utm_crs(float(np.median(ll[:, 0])), float(np.median(ll[:, 1])))
-    xy = to_xy(crs, ll[:, 0], ll[:, 1])
-    node_of_ref = np.searchsorted(ids, ways.ref[pos])
-    node = rank[node_of_ref]
-    # features: the long runs
-    keep_pos = long_run[g]
-    node, g = node[keep_pos], g[keep_pos]
-    feat_runs = np.nonzero(long_run)[0]
-    feat_of_run = np.full(len(run_len), -1, dtype=np.int64)
-    feat_of_run[feat_runs] = np.arange(len(feat_runs))
-    f = feat_of_run[g]
-    fw = run_way[feat_runs]
-    tags = {k: v.take(fw) for k, v in ways.tags.items()}
-    ow, junction = tags["oneway"], tags["junction"]
-    oneway = _flag(ow, ONEWAY_VALUES) | _flag(junction, {"roundabout"})  # osmnx's rule, see is_oneway
-    backwards = _flag(ow, REVERSED_VALUES)
-    # reversed ways run from their last node to their first
+        key = "way with fewer than 2 known nodes"
+        dropped[key] = dropped.get(key, 0) + int((~has).sum())
+    return _Runs(pos, g, long_run, run_way)
+
+
+def _feature_edges(
+    node: NDArray[np.int64], f: NDArray[np.int64], oneway: NDArray[np.bool_], backwards: NDArray[np.bool_]
+) -> tuple[NDArray[np.int64], NDArray[np.int64], NDArray[np.int64]]:
+    """The directed edges ``(src, dst, feature)`` of the features' consecutive node pairs:
+    both ways unless one-way; reversed ways run from their last node to their first."""
     k = np.arange(len(node))
     order_k = np.lexsort((np.where(backwards[f], -k, k), f))
     node, f = node[order_k], f[order_k]
@@ -343,21 +383,8 @@ def _ways_to_raw(
     dst = np.stack([b, a], axis=1).ravel()
     feat = np.repeat(fe, 2)
     use = src >= 0
-    raw = RawNetwork(
-        crs=crs,
-        node_key=node_ids.astype(np.int64, copy=False),
-        node_xy=xy,
-        node_lonlat=ll,
-        edge_src=src[use].astype(np.int64, copy=False),
-        edge_dst=dst[use].astype(np.int64, copy=False),
-        edge_feat=feat[use].astype(np.int64, copy=False),
-        edge_oneway=oneway[feat[use]],
-        feat_way_id=np.asarray(ways.ids, dtype=np.int64)[fw],
-        feat_name=tags["name"],
-        feat_highway=tags["highway"],
-        feat_speed_kph=_per_value(tags["maxspeed"], _maxspeed),
-    )
-    return compact_raw(raw)
+    i8 = np.int64
+    return src[use].astype(i8, copy=False), dst[use].astype(i8, copy=False), feat[use].astype(i8, copy=False)
 
 
 def _flag(labels: Labels, values: frozenset[str] | set[str]) -> NDArray[np.bool_]:
