@@ -691,10 +691,30 @@ def _child_main(config: ServerConfig, reports: Any, log_format: str, access: boo
         sys.exit(3)
 
 
+def _wait_ready(procs: list[Any], reports: Any, done: threading.Event) -> list[tuple[str, Any, int]]:
+    """The server processes' start-up reports, until each has reported, one has ended, or a
+    signal came; a reported error is raised as a :class:`ConfigError`."""
+    import queue as queue_mod
+
+    ready: list[tuple[str, Any, int]] = []
+    while len(ready) < len(procs) and not done.is_set():
+        try:
+            ready.append(reports.get(timeout=0.2))
+        except queue_mod.Empty:
+            if any(p.exitcode is not None for p in procs):
+                with contextlib.suppress(queue_mod.Empty):  # its report may still be on the way
+                    ready.append(reports.get(timeout=1.0))
+                if not any(r[0] == "error" for r in ready):
+                    break
+        failed = [r for r in ready if r[0] == "error"]
+        if failed:
+            raise ConfigError(str(failed[0][1]))
+    return ready
+
+
 def _serve_processes(config: ServerConfig) -> int:
     """Start ``config.processes`` servers on one port and supervise them until a signal."""
     import multiprocessing as mp
-    import queue as queue_mod
 
     host, _, port_text = config.address.rpartition(":")
     if not config.reuse_port:
@@ -734,19 +754,7 @@ def _serve_processes(config: ServerConfig) -> int:
         log.info("starting %d server processes on port %d", len(procs), port)
         for p in procs:
             p.start()
-        ready: list[tuple[str, Any, int]] = []
-        while len(ready) < len(procs) and not done.is_set():
-            try:
-                ready.append(reports.get(timeout=0.2))
-            except queue_mod.Empty:
-                if any(p.exitcode is not None for p in procs):
-                    with contextlib.suppress(queue_mod.Empty):  # its report may still be on the way
-                        ready.append(reports.get(timeout=1.0))
-                    if not any(r[0] == "error" for r in ready):
-                        break
-            failed = [r for r in ready if r[0] == "error"]
-            if failed:
-                raise ConfigError(str(failed[0][1]))
+        ready = _wait_ready(procs, reports, done)
         if not done.is_set():
             if len(ready) < len(procs):
                 raise ConfigError("cannot serve: a server process ended during start-up")
