@@ -41,6 +41,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import logging
+import math
 import os
 import queue
 import signal
@@ -266,6 +267,17 @@ class _Job:
     fut: asyncio.Future[bytes]
     header: tuple[Any, ...]
     data: bytes
+    deadline: float = math.inf
+    """``time.monotonic()`` by which the call must be answered (inf: no deadline)."""
+
+
+PREPARING = (
+    "the batch worker is still preparing its maps (on a machine's first run it compiles the batch "
+    "kernels, once, about a minute); retry"
+)
+PREPARING_MARGIN = 0.5
+"""Seconds before a call's deadline at which a call still waiting for a preparing child is
+answered UNAVAILABLE (so the answer arrives before the deadline)."""
 
 
 class _Stop(NamedTuple):
@@ -331,6 +343,7 @@ class BatchWorkers:
         self.restarts = 0
         self.failed: dict[str, str] = {}  # maps a child could not load: id -> why
         self.on_failed: Callable[[dict[str, str]], None] = lambda failed: None
+        self.on_warm: Callable[[], None] = lambda: None  # the first child is warm
 
     # ------------------------------------------------------------------ control
     def set_maps(self, files: list[MapFile]) -> None:
@@ -378,6 +391,21 @@ class BatchWorkers:
             )
             slot.thread.start()
 
+    def _set_warm(self) -> None:
+        if not self._warm.is_set():
+            self._warm.set()
+            self.on_warm()
+
+    @property
+    def started(self) -> bool:
+        """Whether the children have been started (by the first map with a file)."""
+        return self._started
+
+    @property
+    def warm(self) -> bool:
+        """Whether a child has loaded and warmed up its maps (a call is answered at once)."""
+        return self._warm.is_set()
+
     def wait_warm(self, timeout: float) -> bool:
         """Block until a child has loaded and warmed up the maps of :meth:`set_maps` (so a
         call can be answered without waiting for a start-up); False after ``timeout`` s."""
@@ -406,9 +434,14 @@ class BatchWorkers:
                 _deliver(job, BatchWorkerError("the server is shutting down; retry on another server"))
 
     # ------------------------------------------------------------------ calls
-    async def match(self, map_file: MapFile, data: bytes, *, kind: str, prefix: str) -> bytes:
+    async def match(
+        self, map_file: MapFile, data: bytes, *, kind: str, prefix: str, time_left: float | None = None
+    ) -> bytes:
         """Match in a child: ``data`` is a serialised ``MatchTrackRequest`` (``kind`` "request")
-        or ``Track`` (``kind`` "track"); returns a serialised ``TrackResult``.
+        or ``Track`` (``kind`` "track"); returns a serialised ``TrackResult``. With
+        ``time_left`` (the call's seconds to its deadline), a call that would wait past it for a
+        child still preparing its maps (on a machine's first run, compiling the batch kernels) is
+        answered UNAVAILABLE just before it, not left to expire.
 
         Raises
         ------
@@ -422,7 +455,8 @@ class BatchWorkers:
             self.start()
         loop = asyncio.get_running_loop()
         fut: asyncio.Future[bytes] = loop.create_future()
-        self._q.put(_Job(loop, fut, ("match", kind, map_file, prefix), data))
+        deadline = math.inf if time_left is None else time.monotonic() + time_left - PREPARING_MARGIN
+        self._q.put(_Job(loop, fut, ("match", kind, map_file, prefix), data, deadline))
         return await fut  # cancelled with the call: the feeding thread then stops the child
 
     # ------------------------------------------------------------------ feeding threads
@@ -503,7 +537,7 @@ class BatchWorkers:
                     slot.loading -= 1
                     self._note(msg[1], msg[2])
         if not slot.loading:
-            self._warm.set()
+            self._set_warm()
         return not slot.loading
 
     def _call(self, slot: _Slot, job: _Job) -> bytes | BaseException | None:
@@ -520,7 +554,7 @@ class BatchWorkers:
                 if msg[0] == "ready":
                     slot.loading -= 1
                     self._note(msg[1], msg[2])
-            self._warm.set()
+            self._set_warm()
             _, kind, mf, prefix = job.header
             file = self._file_of(mf)
             if file is None or file.closed:
@@ -559,6 +593,8 @@ class BatchWorkers:
         conn, proc = slot.conn, slot.proc
         assert conn is not None and proc is not None
         while not conn.poll(0.2):
+            if not working and time.monotonic() >= job.deadline:
+                return _Stop(StatusError(grpc.StatusCode.UNAVAILABLE, "", PREPARING))
             if job.fut.cancelled():  # the client gave up
                 if working:  # stop the work
                     log.info("batch worker %d: call abandoned, restarting the worker", slot.index)
@@ -695,7 +731,7 @@ def _load(mf: MapFile, fd: int, config: MatchConfig) -> Any:
         online=None,
         batch_config=config,
     )
-    warm_batch(entry)
+    warm_batch(entry, compile=True)  # a child compiles the kernels before it says "ready"
     return entry
 
 

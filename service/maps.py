@@ -664,13 +664,14 @@ def warm_up(entry: MapEntry, *, batch: bool = True) -> None:
         warm_batch(entry)
 
 
-def warm_batch(entry: MapEntry) -> None:
-    """One batch match along the map's longest road when the batch kernels are compiled (on a
-    machine's first run the first MatchTrack compiles them, about a minute, and nothing need
-    wait for that); raises :class:`MapLoadError` when it fails."""
+def warm_batch(entry: MapEntry, *, compile: bool = False) -> None:
+    """One batch match along the map's longest road when the batch kernels are compiled, or
+    with ``compile`` also when they are not (a batch worker process compiles them before it
+    reports ready; the server process itself never waits for that); raises
+    :class:`MapLoadError` when it fails."""
     from mapmatch.kernels import is_cached
 
-    if not is_cached("batch"):
+    if not compile and not is_cached("batch"):
         return
     g = entry.graph
     e = int(g.edge_len.argmax())

@@ -62,6 +62,10 @@ from service.store_checkpoints import STORE_HEALTH, Checkpointer, CheckpointSett
 
 log = logging.getLogger("mapmatch.service")
 
+BATCH_HEALTH = "mapmatch.v1.MapMatch.Batch"
+"""Health name of batch matching: SERVING once a ``MatchTrack`` is answered without waiting for
+a batch worker process to prepare (on a machine's first run, to compile the batch kernels)."""
+
 MapsArg = MapRegistry | Mapping[str, RoadGraph | Path | str] | None
 SERVING = health_pb2.HealthCheckResponse.SERVING
 NOT_SERVING = health_pb2.HealthCheckResponse.NOT_SERVING
@@ -128,6 +132,7 @@ class ServiceRuntime:
         self.servicer.checkpoints = self.checkpoints
         if self.batch_workers is not None:  # a map the batch workers cannot load: health says so
             self.batch_workers.on_failed = lambda failed: self._health_soon()
+            self.batch_workers.on_warm = self._health_soon
 
     # ------------------------------------------------------------------ start
     def call(self, coro: Any, timeout: float | None = None) -> Any:
@@ -222,7 +227,7 @@ class ServiceRuntime:
             port = 0
         if not port:
             raise ConfigError(f"cannot listen on {cfg.address} (address in use or not available)")
-        for name in ("", SERVICE_NAME) + ((STORE_HEALTH,) if self.checkpoints else ()):
+        for name in ("", SERVICE_NAME, BATCH_HEALTH) + ((STORE_HEALTH,) if self.checkpoints else ()):
             await self.health.set(name, NOT_SERVING)
         await srv.start()
         self.aio_server = srv
@@ -262,18 +267,21 @@ class ServiceRuntime:
     def _warm_batch(self) -> None:
         """Start the batch worker processes and wait (up to ``load_timeout``) until one has
         warmed up its maps; warm up the batch matchers of the maps matched in this process."""
-        in_workers = self._sync_workers()
-        workers = self.batch_workers
-        if in_workers and workers is not None and not workers.wait_warm(self.config.load_timeout):
-            log.error("the batch worker processes did not warm up in %.0f s", self.config.load_timeout)
         from mapmatch.kernels import COMPILE_SECONDS, is_cached
 
+        in_workers = self._sync_workers()
+        workers = self.batch_workers
         if not is_cached("batch"):
             log.info(
-                "batch kernels not compiled yet: the first MatchTrack compiles them, once, about %.0f s",
+                "batch kernels not compiled yet: the batch worker processes compile them, once, about "
+                "%.0f s; until then MatchTrack answers UNAVAILABLE before its deadline and health "
+                "%s is NOT_SERVING",
                 COMPILE_SECONDS["batch"],
+                BATCH_HEALTH,
             )
             return
+        if in_workers and workers is not None and not workers.wait_warm(self.config.load_timeout):
+            log.error("the batch worker processes did not warm up in %.0f s", self.config.load_timeout)
         for entry in self.maps.entries():
             if entry.map_id in in_workers:
                 continue  # matched (and warmed up) in the batch worker processes
@@ -318,6 +326,9 @@ class ServiceRuntime:
         was = getattr(self, "_serving", None)
         for name in ("", SERVICE_NAME):
             await self.health.set(name, SERVING if ok else NOT_SERVING)
+        workers = self.batch_workers
+        batch_ok = ok and (workers is None or not workers.started or workers.warm)
+        await self.health.set(BATCH_HEALTH, SERVING if batch_ok else NOT_SERVING)
         for map_id in ids | self._health_names:
             await self.health.set(
                 f"{SERVICE_NAME}/{map_id}",

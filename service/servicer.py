@@ -380,7 +380,9 @@ class MapMatchServicer(pb_grpc.MapMatchServicer):
                 if peek.points is not None:
                     check_point_count(peek.points, self.track_limits)
                 await self._check_deadline(context)
-                return await self.batch_workers.match(mf, data, kind="request", prefix="track")
+                return await self.batch_workers.match(
+                    mf, data, kind="request", prefix="track", time_left=_time_left(context)
+                )
         if isinstance(request, bytes):
             try:
                 request = pb.MatchTrackRequest.FromString(data)
@@ -397,7 +399,11 @@ class MapMatchServicer(pb_grpc.MapMatchServicer):
         if mf is not None and self.batch_workers is not None:
             await self._check_deadline(context)
             return await self.batch_workers.match(
-                mf, data or request.SerializeToString(), kind="request", prefix="track"
+                mf,
+                data or request.SerializeToString(),
+                kind="request",
+                prefix="track",
+                time_left=_time_left(context),
             )
         track = request.track
         return await self._offload(
@@ -424,7 +430,7 @@ class MapMatchServicer(pb_grpc.MapMatchServicer):
                     check_points(t, self.track_limits)
                     await self._check_deadline(context)
                     yield await self.batch_workers.match(
-                        mf, t.SerializeToString(), kind="track", prefix=prefix
+                        mf, t.SerializeToString(), kind="track", prefix=prefix, time_left=_time_left(context)
                     )
                 else:
                     fn = functools.partial(match_track, entry, t, prefix=prefix, limits=self.track_limits)
@@ -567,6 +573,11 @@ class MapMatchServicer(pb_grpc.MapMatchServicer):
                 out.sessions.add(map_id=m, vehicle_id=vid, idle_seconds=now - s.last_used, last_time=t)
         out.total = total
         return self._answer_size(out)
+
+
+def _time_left(context: aio.ServicerContext | None) -> float | None:
+    """Seconds to the call's deadline (None: no deadline)."""
+    return None if context is None else context.time_remaining()
 
 
 def _error_of(exc: Exception, method: str = "") -> pb.Error:

@@ -151,26 +151,76 @@ def test_an_undecodable_message_is_answered_and_the_stream_goes_on(map_server):
 
 # ---------------------------------------------------------------------------------- probe 10
 def test_serving_means_match_track_is_answered_at_once(tmp_path):
+    """Batch readiness has its own health name: once it is SERVING a batch worker is warm and
+    a MatchTrack is answered at once (with the kernels cached, the server's own SERVING waits
+    for that too; on a machine's first run it does not wait for the compile)."""
+    from mapmatch.kernels import is_cached
+    from service.server import BATCH_HEALTH
+
     path = tmp_path / "city.map"
     save_map(AMAP.graph, path)
     cfg = local_config(maps=(("city", path),), batch_processes=1)
+    cached = is_cached("batch")
     srv, port = start_server(cfg, wait_ready=False)
     try:
         ch = grpc.insecure_channel(f"127.0.0.1:{port}")
         health = health_pb2_grpc.HealthStub(ch)
         api = stub(port)[1]
-        for _ in range(1200):
-            if (
-                health.Check(health_pb2.HealthCheckRequest(), timeout=5).status
-                == health_pb2.HealthCheckResponse.SERVING
-            ):
+        serving = health_pb2.HealthCheckResponse.SERVING
+
+        def status(name: str) -> int:
+            return health.Check(health_pb2.HealthCheckRequest(service=name), timeout=5).status
+
+        for _ in range(6000):
+            if status("") == serving:
                 break
             time.sleep(0.05)
         else:
             raise AssertionError("never SERVING")
+        if cached:
+            assert status(BATCH_HEALTH) == serving
+        for _ in range(12000):  # a first run: the worker compiles the batch kernels (minutes, loaded)
+            if status(BATCH_HEALTH) == serving:
+                break
+            time.sleep(0.05)
+        else:
+            raise AssertionError(f"{BATCH_HEALTH} never SERVING")
         assert srv.batch_workers is not None and srv.batch_workers.wait_warm(0)
         res = api.MatchTrack(pb.MatchTrackRequest(track=looped_track(AMAP, 20)), timeout=10)
         assert len(res.points) == 20
         ch.close()
     finally:
         srv.stop(0)
+
+
+def test_a_call_waiting_for_a_preparing_worker_is_answered_unavailable_before_its_deadline():
+    """A batch worker still preparing its maps (on a first run, compiling) says nothing; a call
+    waiting for it gets UNAVAILABLE at its deadline's margin, not a silent expiry, and the
+    worker is left to finish."""
+    import asyncio
+    import multiprocessing
+
+    from service.batch_workers import PREPARING, BatchWorkers, StatusError, TrackLimits, _Job, _Slot
+
+    workers = BatchWorkers(processes=1, limits=TrackLimits(1000, 1 << 20))
+    parent, child = multiprocessing.Pipe()
+
+    class Alive:
+        pid = 1
+
+        def is_alive(self) -> bool:
+            return True
+
+    slot = _Slot(0)
+    slot.conn, slot.proc, slot.loading = parent, Alive(), 1
+    loop = asyncio.new_event_loop()
+    try:
+        job = _Job(loop, loop.create_future(), ("match", "track", None, "track"), b"", time.monotonic() + 0.3)
+        got = workers._call(slot, job)
+    finally:
+        loop.close()
+        parent.close()
+        child.close()
+    assert isinstance(got, StatusError) and got.code is grpc.StatusCode.UNAVAILABLE
+    assert PREPARING in str(got)
+    assert slot.loading == 1 and slot.conn is parent  # the worker was not stopped
