@@ -1,0 +1,164 @@
+"""Checks that need no truth, on the shared Kubicka tracks: the count of violations per check.
+
+**Denser input covers sparser input (batch).** Each track is matched in process at full rate
+and sub-sampled every S seconds (S = 10 and 30 by default; the harness's sub-sampling: every
+S-th fix and the last), on the adapter's map and route table (``bench/peers_adapter.py``). The
+sparse route, cut before the projection of the first fix and after that of the last (as the
+peers' scorer trims the truth), must lie within ``--buffer`` metres of the full-rate route: a
+stretch of it farther than that and longer than ``--min-length`` metres is a stretch the
+full-rate match lost, a violation. Prints per S the number of tracks that violate, and per
+violating track the stretches' lengths and the routes' pieces.
+
+    python bench/bench_consistency.py                  # all tracks, S = 10 and 30
+    python bench/bench_consistency.py --ids 0,21 --S 10
+    python bench/bench_consistency.py --docs           # also write docs/benchmarks/consistency.md
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+
+ROOT = Path(__file__).resolve().parents[1]
+if str(ROOT) not in sys.path:  # this tree's mapmatch, not the installed one
+    sys.path.insert(0, str(ROOT))
+if str(ROOT / "bench") not in sys.path:
+    sys.path.insert(0, str(ROOT / "bench"))
+SHARED = Path(os.environ.get("MAPMATCH_SHARED") or ROOT.parent / "shared")
+KUBICKA = SHARED / "data" / "kubicka"
+PEERS = SHARED / "peers"
+
+
+@dataclass(frozen=True, kw_only=True)
+class CoverOptions:
+    """How the sparse route is compared with the full-rate one."""
+
+    buffer_m: float = 5.0
+    """A point of the sparse route this close to the full-rate route is covered."""
+    min_length_m: float = 30.0
+    """An uncovered stretch longer than this is a violation."""
+
+
+@dataclass(kw_only=True)
+class TrackCover:
+    """One track's result: per S the uncovered stretches' lengths, and the routes' pieces."""
+
+    track: str
+    fixes: int
+    full_pieces: int
+    missing_m: dict[int, list[float]] = field(default_factory=dict)
+    pieces: dict[int, int] = field(default_factory=dict)
+
+
+def subsample(n: int, s: int) -> list[int]:
+    """The harness's sub-sampling (``engines_kubicka.subsample``): every ``s``-th index and the last."""
+    if str(PEERS) not in sys.path:
+        sys.path.insert(0, str(PEERS))
+    import engines_kubicka as ek  # type: ignore[import-not-found]
+
+    return list(ek.subsample(n, s))
+
+
+def check_track(track_dir: Path, Ss: list[int], options: CoverOptions) -> TrackCover:
+    """Match one track at full rate and at every S in ``Ss`` and compare the routes."""
+    import peers_adapter  # type: ignore[import-not-found]
+
+    from graph.projection import to_xy
+    from mapmatch.io import Columns, read_tracks
+    from mapmatch.route_score import trim_route_ends, uncovered_stretches
+    from mapmatch.types import Track
+
+    matcher = peers_adapter.load(track_dir)
+    (t,) = read_tracks(track_dir / "track.csv", columns=Columns(time="t"))
+    xy = to_xy(matcher.graph.crs, t.lon, t.lat)
+
+    def route(idx: list[int]) -> Any:
+        sub = Track(track_dir.name, t.time[idx], t.lat[idx], t.lon[idx])
+        return matcher.match(sub, lonlat=False)
+
+    full = route(list(range(len(t))))
+    out = TrackCover(track=track_dir.name, fixes=len(t), full_pieces=len(full.route_xy))
+    for s in Ss:
+        sparse = route(subsample(len(t), s))
+        trimmed = trim_route_ends(sparse.route_xy, first_xy=xy[0], last_xy=xy[-1])
+        gaps = uncovered_stretches(
+            full.route_xy, trimmed, buffer_m=options.buffer_m, min_length_m=options.min_length_m
+        )
+        out.missing_m[s] = [g.length_m for g in gaps]
+        out.pieces[s] = len(sparse.route_xy)
+    return out
+
+
+def summary(results: list[TrackCover], Ss: list[int], options: CoverOptions) -> str:
+    """The violation counts per check and the violating tracks, as printed text."""
+    lines = [
+        f"{len(results)} tracks; a violation: a stretch of the route at S longer than "
+        f"{options.min_length_m:g} m farther than {options.buffer_m:g} m from the full-rate route",
+        "",
+        f"{'check':40s} {'violations':>10s} {'stretches':>9s} {'missing m':>9s}",
+    ]
+    for s in Ss:
+        bad = [r for r in results if r.missing_m[s]]
+        n = sum(len(r.missing_m[s]) for r in bad)
+        m = sum(sum(r.missing_m[s]) for r in bad)
+        lines.append(f"{f'full rate covers S = {s} s':40s} {len(bad):10d} {n:9d} {m:9.0f}")
+    lines.append("")
+    for s in Ss:
+        for r in results:
+            if r.missing_m[s]:
+                gaps = ", ".join(f"{g:.0f}" for g in sorted(r.missing_m[s], reverse=True))
+                lines.append(
+                    f"S = {s:2d} s  track {r.track}: {len(r.missing_m[s])} stretch(es) missing at full "
+                    f"rate, m: {gaps}  (pieces: full rate {r.full_pieces}, S = {s} s {r.pieces[s]})"
+                )
+    if all(not r.missing_m[s] for r in results for s in Ss):
+        lines.append("no track violates")
+    return "\n".join(lines)
+
+
+def track_dirs(ids: str) -> list[Path]:
+    """The Kubicka track folders: all, or those of comma-separated numbers."""
+    dirs = sorted(p for p in KUBICKA.iterdir() if p.is_dir() and p.name.isdigit())
+    if ids != "all":
+        wanted = {int(x) for x in ids.split(",")}
+        dirs = [p for p in dirs if int(p.name) in wanted]
+    return dirs
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--ids", default="all", help="all, or comma-separated track numbers")
+    ap.add_argument("--S", default="10,30", help="the sparse sub-samplings, seconds, comma-separated")
+    ap.add_argument("--buffer", type=float, default=CoverOptions.buffer_m, help="metres")
+    ap.add_argument("--min-length", type=float, default=CoverOptions.min_length_m, help="metres")
+    ap.add_argument("--docs", action="store_true", help="also write docs/benchmarks/consistency.md")
+    a = ap.parse_args()
+    if not KUBICKA.is_dir() or not PEERS.is_dir():
+        print(f"needs {KUBICKA} and {PEERS} (set MAPMATCH_SHARED)", file=sys.stderr)
+        return 2
+    Ss = [int(x) for x in a.S.split(",")]
+    options = CoverOptions(buffer_m=a.buffer, min_length_m=a.min_length)
+    results = []
+    for d in track_dirs(a.ids):
+        r = check_track(d, Ss, options)
+        results.append(r)
+        print(f"checked {d.name}: missing m {r.missing_m}, pieces {r.full_pieces} {r.pieces}", file=sys.stderr, flush=True)
+    from report import capture, fenced, run_header
+
+    with capture() as out:
+        print(summary(results, Ss, options))
+        print(f"load average: {' '.join(f'{x:.2f}' for x in os.getloadavg())} ({os.cpu_count()} cores)")
+    if a.docs:
+        from report import write_fragment
+
+        print(f"wrote {write_fragment('consistency', run_header() + fenced(out.getvalue()))}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
