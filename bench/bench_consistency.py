@@ -23,12 +23,9 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-
 ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:  # this tree's mapmatch, not the installed one
     sys.path.insert(0, str(ROOT))
-if str(ROOT / "bench") not in sys.path:
-    sys.path.insert(0, str(ROOT / "bench"))
 SHARED = Path(os.environ.get("MAPMATCH_SHARED") or ROOT.parent / "shared")
 KUBICKA = SHARED / "data" / "kubicka"
 PEERS = SHARED / "peers"
@@ -66,6 +63,8 @@ def subsample(n: int, s: int) -> list[int]:
 
 def check_track(track_dir: Path, Ss: list[int], options: CoverOptions) -> TrackCover:
     """Match one track at full rate and at every S in ``Ss`` and compare the routes."""
+    if str(ROOT / "bench") not in sys.path:  # the adapter and the report helpers
+        sys.path.insert(0, str(ROOT / "bench"))
     import peers_adapter  # type: ignore[import-not-found]
 
     from graph.projection import to_xy
@@ -147,14 +146,18 @@ def main() -> int:
     for d in track_dirs(a.ids):
         r = check_track(d, Ss, options)
         results.append(r)
-        print(f"checked {d.name}: missing m {r.missing_m}, pieces {r.full_pieces} {r.pieces}", file=sys.stderr, flush=True)
-    from report import capture, fenced, run_header
+        print(
+            f"checked {d.name}: missing m {r.missing_m}, pieces {r.full_pieces} {r.pieces}",
+            file=sys.stderr,
+            flush=True,
+        )
+    from report import capture, fenced, run_header  # type: ignore[import-not-found]
 
     with capture() as out:
         print(summary(results, Ss, options))
         print(f"load average: {' '.join(f'{x:.2f}' for x in os.getloadavg())} ({os.cpu_count()} cores)")
     if a.docs:
-        from report import write_fragment
+        from report import write_fragment  # type: ignore[import-not-found]
 
         print(f"wrote {write_fragment('consistency', run_header() + fenced(out.getvalue()))}")
     return 0
