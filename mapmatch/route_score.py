@@ -272,10 +272,10 @@ def score_route(
 
 @dataclass(frozen=True)
 class Stretch:
-    """A stretch of one route that another route does not cover: its length and where it starts."""
+    """A stretch of one route that another route does not cover: its length and its polyline."""
 
     length_m: float
-    start_xy: tuple[float, float]
+    xy: NDArray[np.float64]
 
 
 def trim_route_ends(
@@ -324,6 +324,18 @@ def uncovered_stretches(
         for g in shapely.get_parts(rest):
             length = float(shapely.length(g))
             if length > min_length_m:
-                x, y = shapely.get_coordinates(g)[0]
-                out.append(Stretch(length_m=length, start_xy=(float(x), float(y))))
+                out.append(Stretch(length_m=length, xy=np.asarray(shapely.get_coordinates(g))))
     return out
+
+
+def farthest_from(route: Sequence[ArrayLike], xy: ArrayLike, *, step_m: float = 5.0) -> float:
+    """The greatest distance from the polyline ``xy`` (sampled every ``step_m`` metres) to the
+    route's pieces; infinite for an empty route."""
+    lines = [np.asarray(p, dtype=np.float64).reshape(-1, 2) for p in route]
+    geoms = [shapely.linestrings(p) for p in lines if len(np.unique(p, axis=0)) >= 2]
+    if not geoms:
+        return float("inf")
+    line = shapely.linestrings(np.asarray(xy, dtype=np.float64).reshape(-1, 2))
+    n = max(2, int(np.ceil(float(shapely.length(line)) / step_m)) + 1)
+    pts = shapely.line_interpolate_point(line, np.linspace(0.0, 1.0, n), normalized=True)
+    return float(shapely.distance(pts, shapely.multilinestrings(geoms)).max())

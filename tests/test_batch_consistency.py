@@ -13,7 +13,7 @@ from types import ModuleType
 import numpy as np
 import pytest
 
-from mapmatch.route_score import trim_route_ends, uncovered_stretches
+from mapmatch.route_score import farthest_from, trim_route_ends, uncovered_stretches
 
 BENCH = Path(__file__).resolve().parents[1] / "bench"
 
@@ -31,7 +31,9 @@ def test_a_detour_the_covering_route_lacks_is_one_stretch_of_its_length() -> Non
     covered = [np.array([[0.0, 0.0], [50.0, 0.0], [50.0, 80.0], [100.0, 80.0]])]
     (gap,) = uncovered_stretches(covering, covered, buffer_m=5.0, min_length_m=30.0)
     assert gap.length_m == pytest.approx(75.0 + 50.0)
-    assert gap.start_xy == pytest.approx((50.0, 5.0))
+    assert gap.xy[0] == pytest.approx([50.0, 5.0]) and gap.xy[-1] == pytest.approx([100.0, 80.0])
+    assert farthest_from(covering, gap.xy) == pytest.approx(80.0)
+    assert farthest_from(covered, gap.xy) == pytest.approx(0.0)
     assert uncovered_stretches(covered, covered, buffer_m=5.0, min_length_m=30.0) == []
     # a stretch no longer than the minimum is not one
     short = [np.array([[0.0, 0.0], [50.0, 0.0], [50.0, 20.0]])]
