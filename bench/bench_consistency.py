@@ -12,9 +12,17 @@ a track has one (``truth.geojson``), each stretch's greatest distance from the t
 printed beside it, to tell a stretch the full-rate match lost (on the true route) from a detour
 of the sparse match (off it).
 
+**10 Hz is never worse than 1 Hz (online, ``--online``).** Each track's drive with the seed
+papers' five outages (``bench/bench_online_real.py``: the same seed at both rates) runs through
+the online matcher at 1 Hz and at 10 Hz; a track whose correct road per fix at 10 Hz is more than
+``--worse`` points below its figure at 1 Hz (live, as reported) is a violation. This check scores
+against the drive's own true path.
+
     python bench/bench_consistency.py                  # all tracks, S = 10 and 30
     python bench/bench_consistency.py --ids 0,21 --S 10
-    python bench/bench_consistency.py --docs           # also write docs/benchmarks/consistency.md
+    python bench/bench_consistency.py --online --ids 7,14   # also 10 Hz against 1 Hz online
+    python bench/bench_consistency.py --S "" --online  # only the online check
+    python bench/bench_consistency.py --online --docs  # also write docs/benchmarks/consistency*.md
 """
 
 from __future__ import annotations
@@ -135,6 +143,60 @@ def summary(results: list[TrackCover], Ss: list[int], options: CoverOptions) -> 
     return "\n".join(lines)
 
 
+@dataclass(frozen=True, kw_only=True)
+class RateCompare:
+    """One track's correct road per fix (percent of the scored fixes) online at 1 and 10 Hz."""
+
+    track: str
+    live_1hz: float
+    live_10hz: float
+    corrected_1hz: float
+    corrected_10hz: float
+
+
+def compare_rates(track_dir: Path) -> RateCompare:
+    """Run one track's drive with the outages at 1 Hz and at 10 Hz through the online matcher."""
+    if str(ROOT / "bench") not in sys.path:
+        sys.path.insert(0, str(ROOT / "bench"))
+    import bench_online_real as bor  # type: ignore[import-not-found]
+
+    graph = bor.load_graph(track_dir, None)
+    matcher = bor.OnlineMatcher(graph, config=bor.DEFAULT_CONFIG)
+    pct: dict[tuple[str, int], float] = {}
+    for rate in (1, 10):
+        row = bor.run_one(graph, matcher, track_dir, rate=float(rate), outages=True, seed=int(track_dir.name))
+        for tag in ("live", "fin"):
+            pct[(tag, rate)] = 100.0 * row[f"ok_{tag}"] / max(row["scored"], 1)
+    return RateCompare(
+        track=track_dir.name,
+        live_1hz=pct[("live", 1)],
+        live_10hz=pct[("live", 10)],
+        corrected_1hz=pct[("fin", 1)],
+        corrected_10hz=pct[("fin", 10)],
+    )
+
+
+def rate_summary(results: list[RateCompare], *, worse: float) -> str:
+    """The violations of "10 Hz is never worse than 1 Hz", as printed text."""
+    bad = [r for r in results if r.live_10hz < r.live_1hz - worse]
+    lines = [
+        f"{len(results)} tracks, drives with the five outages; a violation: correct road per fix "
+        f"(live) at 10 Hz more than {worse:g} points below 1 Hz",
+        "",
+        f"{'check':30s} {'violations':>10s}",
+        f"{'10 Hz not worse than 1 Hz':30s} {len(bad):10d}",
+        "",
+        f"{'track':8s} {'live 1 Hz':>9s} {'live 10 Hz':>10s} {'corr. 1 Hz':>10s} {'corr. 10 Hz':>11s}",
+    ]
+    for r in results:
+        mark = "  violation" if r in bad else ""
+        lines.append(
+            f"{r.track:8s} {r.live_1hz:8.2f}% {r.live_10hz:9.2f}% {r.corrected_1hz:9.2f}% "
+            f"{r.corrected_10hz:10.2f}%{mark}"
+        )
+    return "\n".join(lines)
+
+
 def track_dirs(ids: str) -> list[Path]:
     """The Kubicka track folders: all, or those of comma-separated numbers."""
     dirs = sorted(p for p in KUBICKA.iterdir() if p.is_dir() and p.name.isdigit())
@@ -147,34 +209,49 @@ def track_dirs(ids: str) -> list[Path]:
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--ids", default="all", help="all, or comma-separated track numbers")
-    ap.add_argument("--S", default="10,30", help="the sparse sub-samplings, seconds, comma-separated")
+    ap.add_argument(
+        "--S",
+        default="10,30",
+        help="the sparse sub-samplings, seconds, comma-separated (empty: no batch check)",
+    )
     ap.add_argument("--buffer", type=float, default=CoverOptions.buffer_m, help="metres")
     ap.add_argument("--min-length", type=float, default=CoverOptions.min_length_m, help="metres")
-    ap.add_argument("--docs", action="store_true", help="also write docs/benchmarks/consistency.md")
+    ap.add_argument("--online", action="store_true", help="also compare 10 Hz with 1 Hz online")
+    ap.add_argument("--worse", type=float, default=0.5, help="points of correct road (--online)")
+    ap.add_argument(
+        "--docs",
+        action="store_true",
+        help="also write docs/benchmarks/consistency.md (and consistency_online.md)",
+    )
     a = ap.parse_args()
     if not KUBICKA.is_dir() or not PEERS.is_dir():
         print(f"needs {KUBICKA} and {PEERS} (set MAPMATCH_SHARED)", file=sys.stderr)
         return 2
-    Ss = [int(x) for x in a.S.split(",")]
+    Ss = [int(x) for x in a.S.split(",") if x.strip()]
     options = CoverOptions(buffer_m=a.buffer, min_length_m=a.min_length)
     results = []
-    for d in track_dirs(a.ids):
+    for d in track_dirs(a.ids) if Ss else []:
         r = check_track(d, Ss, options)
         results.append(r)
         print(
-            f"checked {d.name}: missing m {r.missing_m}, pieces {r.full_pieces} {r.pieces}",
-            file=sys.stderr,
-            flush=True,
+            f"checked {d.name}: missing m {r.missing_m}, pieces {r.full_pieces} {r.pieces}", file=sys.stderr
         )
-    from report import capture, fenced, run_header  # type: ignore[import-not-found]
+    rates = []
+    for d in track_dirs(a.ids) if a.online else []:
+        rates.append(compare_rates(d))
+        print(f"online {d.name}: {rates[-1]}", file=sys.stderr, flush=True)
+    texts = {}
+    if Ss:
+        texts["consistency"] = summary(results, Ss, options)
+    if a.online:
+        texts["consistency_online"] = rate_summary(rates, worse=a.worse)
+    load = f"load average: {' '.join(f'{x:.2f}' for x in os.getloadavg())} ({os.cpu_count()} cores)"
+    for name, text in texts.items():
+        print(f"{text}\n{load}\n")
+        if a.docs:
+            from report import fenced, run_header, write_fragment  # type: ignore[import-not-found]
 
-    with capture() as out:
-        print(summary(results, Ss, options))
-        print(f"load average: {' '.join(f'{x:.2f}' for x in os.getloadavg())} ({os.cpu_count()} cores)")
-    if a.docs:
-        from report import write_fragment  # type: ignore[import-not-found]
-
-        print(f"wrote {write_fragment('consistency', run_header() + fenced(out.getvalue()))}")
+            print(f"wrote {write_fragment(name, run_header() + fenced(text + chr(10) + load))}")
     return 0
 
 
