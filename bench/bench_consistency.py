@@ -34,6 +34,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:  # this tree's mapmatch, not the installed one
     sys.path.insert(0, str(ROOT))
@@ -62,6 +64,8 @@ class TrackCover:
     missing_m: dict[int, list[float]] = field(default_factory=dict)
     off_truth_m: dict[int, list[float]] = field(default_factory=dict)
     """Per S, each stretch's greatest distance from the true route (NaN without a truth)."""
+    near_fix: dict[int, list[int]] = field(default_factory=dict)
+    """Per S, the index of the fix nearest to each stretch's start."""
     pieces: dict[int, int] = field(default_factory=dict)
 
 
@@ -106,6 +110,7 @@ def check_track(track_dir: Path, Ss: list[int], options: CoverOptions) -> TrackC
             full.route_xy, trimmed, buffer_m=options.buffer_m, min_length_m=options.min_length_m
         )
         out.missing_m[s] = [g.length_m for g in gaps]
+        out.near_fix[s] = [int(np.hypot(*(xy - g.xy[0]).T).argmin()) for g in gaps]
         out.off_truth_m[s] = [farthest_from(truth, g.xy) if truth else float("nan") for g in gaps]
         out.pieces[s] = len(sparse.route_xy)
     return out
@@ -131,8 +136,10 @@ def summary(results: list[TrackCover], Ss: list[int], options: CoverOptions) -> 
         for r in results:
             if r.missing_m[s]:
                 gaps = ", ".join(
-                    f"{g:.0f} m (at most {d:.0f} m from the truth)"
-                    for g, d in sorted(zip(r.missing_m[s], r.off_truth_m[s], strict=True), reverse=True)
+                    f"{g:.0f} m from fix {k} of {r.fixes} (at most {d:.0f} m from the truth)"
+                    for g, k, d in sorted(
+                        zip(r.missing_m[s], r.near_fix[s], r.off_truth_m[s], strict=True), reverse=True
+                    )
                 )
                 lines.append(
                     f"S = {s:2d} s  track {r.track}: missing at full rate {gaps}; "
