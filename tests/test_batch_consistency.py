@@ -5,13 +5,13 @@ geometry it rests on (``mapmatch.route_score.uncovered_stretches``, ``trim_route
 from __future__ import annotations
 
 import importlib
-import os
 import sys
 from pathlib import Path
 from types import ModuleType
 
 import numpy as np
 import pytest
+from shared_data import KUBICKA, SHARED, reason
 
 from mapmatch.route_score import farthest_from, trim_route_ends, uncovered_stretches
 
@@ -59,10 +59,10 @@ def test_route_ends_are_cut_at_the_projections_of_the_first_and_last_fix() -> No
 @pytest.mark.slow
 @pytest.mark.parametrize("track", ["00000007", "00000045", "00000052"])
 def test_the_full_rate_route_covers_the_routes_at_10_and_30_s(track: str) -> None:
+    d = KUBICKA / track
+    for needed in (d / "track.csv", SHARED / "peers" / "engines_kubicka.py"):
+        if not needed.is_file():
+            pytest.skip(reason(needed))
     bench = _bench("bench_consistency")
-    shared = Path(os.environ.get("MAPMATCH_SHARED") or bench.SHARED)
-    d = shared / "data" / "kubicka" / track
-    if not (d / "track.csv").is_file() or not (shared / "peers" / "engines_kubicka.py").is_file():
-        pytest.skip(f"needs the Kubicka track {track} and the peers harness under MAPMATCH_SHARED ({shared})")
     r = bench.check_track(d, [10, 30], bench.CoverOptions())
     assert r.missing_m == {10: [], 30: []}, r
