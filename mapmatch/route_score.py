@@ -268,3 +268,74 @@ def score_route(
         track_id=track_id, crs=crs, truth_m=rmf.truth_m, matched_m=float(ml.sum()), rmf=rmf,
         tolerance_m=tolerance_m, points=points, unmatched_points=unmatched_points,
     )  # fmt: skip
+
+
+@dataclass(frozen=True)
+class Stretch:
+    """A stretch of one route that another route does not cover: its length and its polyline."""
+
+    length_m: float
+    xy: NDArray[np.float64]
+
+
+def trim_route_ends(
+    parts: Sequence[ArrayLike], *, first_xy: ArrayLike, last_xy: ArrayLike
+) -> list[NDArray[np.float64]]:
+    """A route's pieces with the first piece cut before the projection of ``first_xy`` and the
+    last piece cut after the projection of ``last_xy`` (as the peers' scorer trims the truth).
+
+    Pieces with fewer than two vertices are left out; a single piece whose projections come in
+    reverse order is left whole.
+    """
+    lines = [np.asarray(p, dtype=np.float64).reshape(-1, 2) for p in parts]
+    lines = [p for p in lines if len(p) >= 2]
+    if not lines:
+        return []
+    first = shapely.linestrings(lines[0])
+    s0 = float(shapely.line_locate_point(first, shapely.points(np.asarray(first_xy, dtype=np.float64))))
+    last = shapely.linestrings(lines[-1])
+    s1 = float(shapely.line_locate_point(last, shapely.points(np.asarray(last_xy, dtype=np.float64))))
+    if len(lines) == 1:
+        if s0 <= s1:
+            lines[0] = np.asarray(shapely.get_coordinates(substring(first, s0, s1)))
+        return [p for p in lines if len(p) >= 2]
+    lines[0] = np.asarray(shapely.get_coordinates(substring(first, s0, float(shapely.length(first)))))
+    lines[-1] = np.asarray(shapely.get_coordinates(substring(last, 0.0, s1)))
+    return [p for p in lines if len(p) >= 2]
+
+
+def uncovered_stretches(
+    covering: Sequence[ArrayLike], covered: Sequence[ArrayLike], *, buffer_m: float, min_length_m: float
+) -> list[Stretch]:
+    """The stretches of the route ``covered`` farther than ``buffer_m`` from the route
+    ``covering``, longer than ``min_length_m`` (both routes as pieces of (k, 2) polylines in
+    metres). Geometric, so direction is not seen; an empty ``covering`` covers nothing.
+    """
+    lines = [np.asarray(p, dtype=np.float64).reshape(-1, 2) for p in covering]
+    geoms = [shapely.linestrings(p) for p in lines if len(np.unique(p, axis=0)) >= 2]
+    buf = shapely.buffer(shapely.multilinestrings(geoms), buffer_m) if geoms else None
+    out: list[Stretch] = []
+    for part in covered:
+        xy = np.asarray(part, dtype=np.float64).reshape(-1, 2)
+        if len(np.unique(xy, axis=0)) < 2:
+            continue
+        line = shapely.linestrings(xy)
+        rest = line if buf is None else shapely.line_merge(shapely.difference(line, buf))
+        for g in shapely.get_parts(rest):
+            length = float(shapely.length(g))
+            if length > min_length_m:
+                out.append(Stretch(length_m=length, xy=np.asarray(shapely.get_coordinates(g))))
+    return out
+
+
+def farthest_from(route: Sequence[ArrayLike], xy: ArrayLike, *, step_m: float = 5.0) -> float:
+    """The greatest distance from the polyline ``xy`` (sampled every ``step_m`` metres) to the
+    route's pieces; infinite for an empty route."""
+    lines = [np.asarray(p, dtype=np.float64).reshape(-1, 2) for p in route]
+    geoms = [shapely.linestrings(p) for p in lines if len(np.unique(p, axis=0)) >= 2]
+    if not geoms:
+        return float("inf")
+    line = shapely.linestrings(np.asarray(xy, dtype=np.float64).reshape(-1, 2))
+    n = max(2, int(np.ceil(float(shapely.length(line)) / step_m)) + 1)
+    pts = shapely.line_interpolate_point(line, np.linspace(0.0, 1.0, n), normalized=True)
+    return float(shapely.distance(pts, shapely.multilinestrings(geoms)).max())

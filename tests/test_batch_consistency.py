@@ -1,0 +1,68 @@
+"""Checks that need no truth: the full-rate batch route covers the route of the same track
+sampled every 10 s and 30 s (``bench/bench_consistency.py``), on real shared tracks, and the
+geometry it rests on (``mapmatch.route_score.uncovered_stretches``, ``trim_route_ends``)."""
+
+from __future__ import annotations
+
+import importlib
+import sys
+from pathlib import Path
+from types import ModuleType
+
+import numpy as np
+import pytest
+from shared_data import KUBICKA, SHARED, reason
+
+from mapmatch.route_score import farthest_from, trim_route_ends, uncovered_stretches
+
+BENCH = Path(__file__).resolve().parents[1] / "bench"
+
+
+def _bench(name: str) -> ModuleType:
+    sys.path.insert(0, str(BENCH))
+    try:
+        return importlib.import_module(name)
+    finally:
+        sys.path.remove(str(BENCH))
+
+
+def test_a_detour_the_covering_route_lacks_is_one_stretch_of_its_length() -> None:
+    covering = [np.array([[0.0, 0.0], [100.0, 0.0]])]
+    covered = [np.array([[0.0, 0.0], [50.0, 0.0], [50.0, 80.0], [100.0, 80.0]])]
+    (gap,) = uncovered_stretches(covering, covered, buffer_m=5.0, min_length_m=30.0)
+    assert gap.length_m == pytest.approx(75.0 + 50.0)
+    assert gap.xy[0] == pytest.approx([50.0, 5.0]) and gap.xy[-1] == pytest.approx([100.0, 80.0])
+    assert farthest_from(covering, gap.xy) == pytest.approx(80.0)
+    assert farthest_from(covered, gap.xy) == pytest.approx(0.0)
+    assert uncovered_stretches(covered, covered, buffer_m=5.0, min_length_m=30.0) == []
+    # a stretch no longer than the minimum is not one
+    short = [np.array([[0.0, 0.0], [50.0, 0.0], [50.0, 20.0]])]
+    assert uncovered_stretches(covering, short, buffer_m=5.0, min_length_m=30.0) == []
+
+
+def test_an_empty_covering_route_covers_nothing() -> None:
+    covered = [np.array([[0.0, 0.0], [40.0, 0.0]]), np.array([[0.0, 10.0], [0.0, 20.0]])]
+    gaps = uncovered_stretches([], covered, buffer_m=5.0, min_length_m=30.0)
+    assert [g.length_m for g in gaps] == [40.0]
+
+
+def test_route_ends_are_cut_at_the_projections_of_the_first_and_last_fix() -> None:
+    one = [np.array([[0.0, 0.0], [100.0, 0.0]])]
+    (cut,) = trim_route_ends(one, first_xy=(10.0, 3.0), last_xy=(70.0, -2.0))
+    assert cut[0] == pytest.approx([10.0, 0.0]) and cut[-1] == pytest.approx([70.0, 0.0])
+    two = [np.array([[0.0, 0.0], [100.0, 0.0]]), np.array([[200.0, 0.0], [300.0, 0.0]])]
+    a, b = trim_route_ends(two, first_xy=(20.0, 1.0), last_xy=(250.0, 1.0))
+    assert a[0] == pytest.approx([20.0, 0.0]) and a[-1] == pytest.approx([100.0, 0.0])
+    assert b[0] == pytest.approx([200.0, 0.0]) and b[-1] == pytest.approx([250.0, 0.0])
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("track", ["00000007", "00000045", "00000052"])
+def test_the_full_rate_route_covers_the_routes_at_10_and_30_s(track: str) -> None:
+    d = KUBICKA / track
+    for needed in (d / "track.csv", SHARED / "peers" / "engines_kubicka.py"):
+        if not needed.is_file():
+            pytest.skip(reason(needed))
+    bench = _bench("bench_consistency")
+    r = bench.check_track(d, [10, 30], bench.CoverOptions())
+    assert r.missing_m == {10: [], 30: []}, r
