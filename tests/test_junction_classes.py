@@ -117,6 +117,20 @@ def test_ramp_at_10_degrees_with_gps_biased_across_it(route: str, settle: float,
     _check_batch(m, route, drv)
 
 
+@pytest.mark.parametrize("route", ["abc", "abd"])
+@pytest.mark.parametrize("seed", SEEDS)
+def test_y_fork_and_ramp_at_10_hz_batch(route: str, seed: int) -> None:
+    """The batch matcher on the Y fork and the ramp at 10 Hz, the GPS errors correlated over
+    5 s as a receiver's are: the route driven, nothing unmatched."""
+    y = _fork(left=7.5, right=7.5)
+    gps = Gps(noise=3.0 + 0.5 * seed, tau=5.0, heading_noise=3.0)
+    _check_batch(y, route, simulate(y, route, gps=gps, seed=seed, dt=0.1))
+    ramp = _fork(left=0.0, right=10.0)
+    north = -1.0 if route == "abc" else 1.0
+    gps = Gps(noise=1.5, tau=5.0, bias=(0.0, north * (3.0 + 0.25 * seed)), heading_noise=2.0)
+    _check_batch(ramp, route, simulate(ramp, route, gps=gps, seed=seed, dt=0.1))
+
+
 def _outage_drive(m: AsciiMap, route: str, *, seed: int, dt: float) -> Drive:
     """12 m/s with correlated GPS errors (σ 3 m, 5 s), heading σ 1°; GPS lost from 100 m before
     the junction to 150 m past it, the odometer reading 3 % high and the heading off by 1° (to
