@@ -92,6 +92,7 @@ def test_every_subcommand_takes_q_and_v_and_documents_the_exit_statuses() -> Non
 
 
 # ---------------------------------------------------------------------- replay
+@pytest.mark.slow  # several replay processes
 def test_replay_exit_statuses(cross: tuple[AsciiMap, Path], tmp_path: Path, capsys) -> None:
     m, map_path = cross
     good, bad = fixes_csv(m, tmp_path / "good.csv"), fixes_csv(m, tmp_path / "bad.csv", bad=True)
@@ -357,6 +358,7 @@ def test_exit_statuses_are_in_readme() -> None:
 
 
 # ---------------------------------------------------------------------- simulate and prep
+@pytest.mark.slow  # simulate processes
 def test_simulate_writes_fixes_to_stdout(grid: tuple[AsciiMap, Path], tmp_path: Path) -> None:
     _, map_path = grid
     ref = tmp_path / "ref.csv"

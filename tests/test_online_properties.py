@@ -62,6 +62,7 @@ def fixes(draw: st.DrawFn) -> list[Fix]:
     return out
 
 
+@pytest.mark.slow  # 300 generated fix sequences
 @settings(max_examples=300, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 @given(fixes())
 def test_only_validation_errors_and_snaps_on_the_road(seq: list[Fix]) -> None:

@@ -126,6 +126,7 @@ def _idle_class(pid: int) -> bool:
     return os.sched_getscheduler(pid) == os.SCHED_IDLE
 
 
+@pytest.mark.slow  # a server with batch worker processes and many calls
 def test_statuses_of_requests_handed_to_a_worker(tmp_path):
     cfg = local_config(maps=(("city", _map_file(tmp_path)),), max_track_points=50)
     with running(cfg) as (server, port):
