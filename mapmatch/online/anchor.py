@@ -12,14 +12,28 @@ import numpy as np
 from graph.angles import angle_diff
 from mapmatch.config import MatchConfig
 from mapmatch.online.road import RoadModel
-from mapmatch.online.state import Hypothesis, SessionState, Step, TrailPoint
+from mapmatch.online.state import (
+    NO_BASE,
+    AnchorState,
+    BackEdge,
+    CrossingTrail,
+    Hypothesis,
+    SessionState,
+    Step,
+    TrailPoint,
+)
 from mapmatch.turns import align_headings, bearing_profile
 from mapmatch.types import Correction
 
 
-def odo_kvar(state: SessionState, cfg: MatchConfig) -> float:
+def odo_kvar(a: AnchorState, cfg: MatchConfig) -> float:
     """Variance of the learnt odometer scale (the configured prior until learnt)."""
-    return cfg.online.odo_scale_sigma**2 if math.isnan(state.odo_kvar) else state.odo_kvar
+    return cfg.online.odo_scale_sigma**2 if math.isnan(a.odo_kvar) else a.odo_kvar
+
+
+def drop_baseline(a: AnchorState) -> None:
+    """No straight GPS baseline (the fixes have left the road): it starts again on one."""
+    a.base = NO_BASE
 
 
 def turn_anchor(
@@ -41,7 +55,8 @@ def turn_anchor(
     node = road.elen[best.edges[0]]
     c0 = best.s - step.odo
     samples = [x for x in state.headings if x[0] + c0 >= 0.0]
-    hs = min(max(math.sqrt(state.res_head2), o.align_heading_sigma_min_deg), o.learned_heading_sigma_max_deg)
+    hs = math.sqrt(state.bias.res_head2)
+    hs = min(max(hs, o.align_heading_sigma_min_deg), o.learned_heading_sigma_max_deg)
     search = min(o.align_search + o.align_search_sigmas * step.sigma, o.align_search_max)
     c, sd, rms = align_headings(
         samples, bearing_profile(lengths, bearings), c0, search=search, heading_sigma=hs
@@ -58,7 +73,7 @@ def turn_anchor(
 
 def learn_scale(
     road: RoadModel,
-    state: SessionState,
+    a: AnchorState,
     best: Hypothesis,
     odo_in: float,
     odo_out: float,
@@ -69,12 +84,12 @@ def learn_scale(
     against this one (both at nodes of the path driven). ``odo_in`` and ``odo_out`` are the
     odometer readings at the node for the way in and the way out."""
     o = cfg.online
-    prev_odo, prev_sd = state.anc_odo, state.anc_sd
-    state.anc_odo, state.anc_sd = odo_out, anchor_sd
+    prev_odo, prev_sd = a.anc_odo, a.anc_sd
+    a.anc_odo, a.anc_sd = odo_out, anchor_sd
     dist = odo_in - prev_odo
     if math.isnan(best.anc) or not o.scale_min_distance <= dist <= o.scale_max_distance:
         return
-    kvar = odo_kvar(state, cfg)
+    kvar = odo_kvar(a, cfg)
     nu = road.elen[best.edges[0]] - (best.anc + odo_in)  # path metres the odometer missed
     # the map's path length differs from the road's by a little too
     r = prev_sd**2 + anchor_sd**2 + (o.scale_path_error * dist) ** 2
@@ -84,39 +99,40 @@ def learn_scale(
     lim = 2.0 * math.sqrt(sv)
     nu = min(max(nu, -lim), lim)  # robust: one odd pair of anchors must not teach much
     gain = kvar * dist / sv
-    state.odo_k = min(max(state.odo_k + gain * nu, -o.odo_scale_max), o.odo_scale_max)
-    state.odo_kvar = kvar * (1.0 - gain * dist)
+    a.odo_k = min(max(a.odo_k + gain * nu, -o.odo_scale_max), o.odo_scale_max)
+    a.odo_kvar = kvar * (1.0 - gain * dist)
 
 
-def learn_scale_gps(state: SessionState, best: Hypothesis, step: Step, cfg: MatchConfig) -> None:
+def learn_scale_gps(
+    a: AnchorState, best: Hypothesis, step: Step, cfg: MatchConfig, *, drift_sigma: float
+) -> None:
     """Kalman update of the odometer scale from the GPS on a straight road: the distance the
     odometer gives between the two ends of a baseline against the straight line between the
     fixes there (their slowly varying error mostly cancels; on a straight road the chord is
     the path). The baseline starts again at every bend, without GPS or while the
-    dead-reckoning drift is still blending out."""
+    dead-reckoning drift (``drift_sigma``) is still blending out."""
     o = cfg.online
-    none = (math.nan, math.nan, math.nan, math.nan)
     if o.scale_baseline <= 0.0:
         return
     if (
         not (step.gps and step.odo_known)
-        or state.drift_sigma > 0.5 * step.fix_sigma
+        or drift_sigma > 0.5 * step.fix_sigma
         or math.isnan(best.bearing)
         or (step.kappa > 0.0 and abs(angle_diff(step.heading, best.bearing)) > 4.0 * o.scale_straight_deg)
     ):
-        state.base = none
+        a.base = NO_BASE
         return
-    b_odo, bx, by, b_brg = state.base
-    here = (state.odo, step.x, step.y, best.bearing)
+    b_odo, bx, by, b_brg = a.base
+    here = (step.odo, step.x, step.y, best.bearing)
     if math.isnan(b_odo) or abs(angle_diff(best.bearing, b_brg)) > o.scale_straight_deg:
-        state.base = here
+        a.base = here
         return
-    dist = state.odo - b_odo
+    dist = step.odo - b_odo
     if dist < o.scale_baseline:
         return
-    state.base = here
+    a.base = here
     nu = math.hypot(step.x - bx, step.y - by) - dist  # metres the odometer missed
-    kvar = odo_kvar(state, cfg)
+    kvar = odo_kvar(a, cfg)
     r = 2.0 * step.fix_sigma**2 + (o.scale_path_error * dist) ** 2
     sv = dist * dist * kvar + r
     if nu * nu > 9.0 * sv:
@@ -124,8 +140,8 @@ def learn_scale_gps(state: SessionState, best: Hypothesis, step: Step, cfg: Matc
     lim = 2.0 * math.sqrt(sv)
     nu = min(max(nu, -lim), lim)
     gain = kvar * dist / sv
-    state.odo_k = min(max(state.odo_k + gain * nu, -o.odo_scale_max), o.odo_scale_max)
-    state.odo_kvar = kvar * (1.0 - gain * dist)
+    a.odo_k = min(max(a.odo_k + gain * nu, -o.odo_scale_max), o.odo_scale_max)
+    a.odo_kvar = kvar * (1.0 - gain * dist)
 
 
 def add_trail(trail: list[TrailPoint], time: float, odo: float, standing: bool, cfg: MatchConfig) -> None:
@@ -141,9 +157,21 @@ def add_trail(trail: list[TrailPoint], time: float, odo: float, standing: bool, 
         del trail[0]
 
 
+def keep_back(road: RoadModel, c: CrossingTrail, edge: int, entered: float, cfg: MatchConfig) -> None:
+    """An edge committed without a turn anchor (entered at time ``entered``), kept for the next
+    anchor's revision: the oldest go while those kept are longer than ``trail_max_distance``."""
+    c.back.append(BackEdge(edge, entered))
+    # each tail's sum over a list of lengths, in C (an imported session may hold many edges)
+    lens = [road.elen[b.edge] for b in c.back]
+    drop = 0
+    while sum(lens[drop:]) > cfg.online.trail_max_distance:
+        drop += 1
+    del c.back[:drop]
+
+
 def revise_crossings(
     road: RoadModel,
-    state: SessionState,
+    c: CrossingTrail,
     best: Hypothesis,
     anchor: tuple[float, float, float],
     step: Step,
@@ -152,12 +180,12 @@ def revise_crossings(
     """This turn and the straight crossings since the previous one, timed again from the
     turn's ``anchor`` (odometer at the node, corner cut, σ) carried back by the odometer: a
     correction when they differ from what was reported."""
-    if len(state.trail) < 2:
+    if len(c.trail) < 2:
         return None
     odo_at_node, cut, anchor_sd = anchor
-    t_tr = [x.time for x in state.trail]
-    o_tr = [x.odo for x in state.trail]
-    path = [(b.edge, b.time) for b in state.back] + [(best.edges[0], best.enter[0])]
+    t_tr = [x.time for x in c.trail]
+    o_tr = [x.odo for x in c.trail]
+    path = [(b.edge, b.time) for b in c.back] + [(best.edges[0], best.enter[0])]
     crossings: list[tuple[float, float]] = []  # (old time, new time), latest first
     if odo_at_node >= o_tr[0]:
         path.append((best.edges[1], best.enter[1]))

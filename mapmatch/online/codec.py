@@ -17,7 +17,18 @@ from typing import Any
 
 from mapmatch.config import DEFAULT_CONFIG, MatchConfig
 from mapmatch.errors import ValidationError
-from mapmatch.online.state import BackEdge, FixBias, Hypothesis, LiveFix, SessionState, TrailPoint
+from mapmatch.online.state import (
+    AnchorState,
+    BackEdge,
+    BiasState,
+    CrossingTrail,
+    FixBias,
+    Hypothesis,
+    LiveFix,
+    RegionState,
+    SessionState,
+    TrailPoint,
+)
 
 VERSION = 2
 # the largest σ, variance or distance a state may hold: squares and products of imported
@@ -64,6 +75,7 @@ def check_length(v: Any, name: str, cap: int) -> None:
 
 def to_bytes(st: SessionState) -> bytes:
     """Compact JSON (a few kilobytes); the trail is rounded to ms and cm."""
+    anc, fb, cr, rg = st.anchor, st.bias, st.crossings, st.region
     d = {
         "version": VERSION,
         "time": st.time,
@@ -73,26 +85,26 @@ def to_bytes(st: SessionState) -> bytes:
         "gps_odo": st.gps_odo,
         "bad_time": st.bad_time,
         "bad_odo": st.bad_odo,
-        "init_pending": st.init_pending,
-        "init_odo": st.init_odo,
+        "init_pending": rg.init_pending,
+        "init_odo": rg.init_odo,
         "hyps": [{k: getattr(h, k) for k in _HYP} for h in st.hyps],
-        "live": [[getattr(f, k) for k in _LIVE] for f in st.live],
+        "live": [[getattr(f, k) for k in _LIVE] for f in rg.live],
         "live_fields": list(_LIVE),
         "headings": st.headings,
-        "res_pos2": st.res_pos2,
-        "res_head2": st.res_head2,
-        "drift_sigma": st.drift_sigma,
+        "res_pos2": fb.res_pos2,
+        "res_head2": fb.res_head2,
+        "drift_sigma": fb.drift_sigma,
         "speed": st.speed,
         "search_time": st.search_time,
         "shown": st.shown,
-        "bias": st.bias._asdict(),
-        "odo_k": st.odo_k,
-        "odo_kvar": st.odo_kvar,
-        "anc_odo": st.anc_odo,
-        "base": list(st.base),
-        "anc_sd": st.anc_sd,
-        "trail": [[round(p.time, 3), round(p.odo, 2)] for p in st.trail],
-        "back": [[b.edge, b.time] for b in st.back],
+        "bias": fb.vector._asdict(),
+        "odo_k": anc.odo_k,
+        "odo_kvar": anc.odo_kvar,
+        "anc_odo": anc.anc_odo,
+        "base": list(anc.base),
+        "anc_sd": anc.anc_sd,
+        "trail": [[round(p.time, 3), round(p.odo, 2)] for p in cr.trail],
+        "back": [[b.edge, b.time] for b in cr.back],
     }
     return json.dumps(d, separators=(",", ":"), allow_nan=True).encode()
 
@@ -307,44 +319,53 @@ def _pairs(seq: list[Any], name: str) -> list[tuple[Any, Any]]:
 
 
 def _decode(r: _Reader, n_edges: int | None, caps: StateCaps) -> SessionState:
+    # every value is read in the order of the keys, so that the first bad one is named
     bias = _Reader(r.get("bias"), r.name("bias"))
-    st = SessionState(
-        time=r.num("time", nan=True),
-        x=r.num("x", nan=True),
-        y=r.num("y", nan=True),
-        odo=r.num("odo"),
-        gps_odo=r.num("gps_odo"),
-        bad_time=r.num("bad_time", nan=True),
-        bad_odo=r.num("bad_odo", nan=True),
-        init_pending=_bool(r.get("init_pending"), r.name("init_pending")),
-        init_odo=r.num("init_odo"),
-        hyps=[
-            _hyp(_Reader(a, f"{r.name('hyps')}[{i}]"), n_edges, caps.path_edges)
-            for i, a in enumerate(r.list_("hyps"))
-        ],
-        live=_live(r, n_edges),
-        headings=[
-            [_num(o, f"{r.name('headings')}[{i}]"), _num(h, f"{r.name('headings')}[{i}]")]
-            for i, (o, h) in enumerate(_pairs(r.list_("headings"), r.name("headings")))
-        ],
-        res_pos2=r.num("res_pos2", low=0.0),
-        res_head2=r.num("res_head2", low=0.0),
-        drift_sigma=r.num("drift_sigma", low=0.0),
-        speed=r.num("speed", nan=True, low=0.0) if "speed" in r.d else _NAN,  # absent in older blobs
-        search_time=r.num("search_time", nan=True),
-        shown=r.int_("shown", low=-1, high=n_edges),
-        bias=FixBias(
-            bias.num("bx"),
-            bias.num("by"),
-            bias.num("pxx", nan=True, low=0.0),
-            bias.num("pxy", spread=True),
-            bias.num("pyy", nan=True, low=0.0),
-        ),
+    time, x, y = r.num("time", nan=True), r.num("x", nan=True), r.num("y", nan=True)
+    odo, gps_odo = r.num("odo"), r.num("gps_odo")
+    bad_time, bad_odo = r.num("bad_time", nan=True), r.num("bad_odo", nan=True)
+    init_pending = _bool(r.get("init_pending"), r.name("init_pending"))
+    init_odo = r.num("init_odo")
+    hyps = [
+        _hyp(_Reader(a, f"{r.name('hyps')}[{i}]"), n_edges, caps.path_edges)
+        for i, a in enumerate(r.list_("hyps"))
+    ]
+    region = RegionState(live=_live(r, n_edges), init_pending=init_pending, init_odo=init_odo)
+    headings = [
+        [_num(o, f"{r.name('headings')}[{i}]"), _num(h, f"{r.name('headings')}[{i}]")]
+        for i, (o, h) in enumerate(_pairs(r.list_("headings"), r.name("headings")))
+    ]
+    res_pos2, res_head2 = r.num("res_pos2", low=0.0), r.num("res_head2", low=0.0)
+    drift_sigma = r.num("drift_sigma", low=0.0)
+    speed = r.num("speed", nan=True, low=0.0) if "speed" in r.d else _NAN  # absent in older blobs
+    search_time = r.num("search_time", nan=True)
+    shown = r.int_("shown", low=-1, high=n_edges)
+    vector = FixBias(
+        bias.num("bx"),
+        bias.num("by"),
+        bias.num("pxx", nan=True, low=0.0),
+        bias.num("pxy", spread=True),
+        bias.num("pyy", nan=True, low=0.0),
+    )
+    anchor = AnchorState(
         odo_k=r.num("odo_k"),
         odo_kvar=r.num("odo_kvar", nan=True, low=0.0),
         anc_odo=r.num("anc_odo", nan=True),
         anc_sd=r.num("anc_sd", nan=True, low=0.0),
         base=_base(r),
+    )
+    return SessionState(
+        time=time, x=x, y=y, odo=odo, gps_odo=gps_odo, speed=speed,
+        bad_time=bad_time, bad_odo=bad_odo, search_time=search_time, shown=shown,
+        hyps=hyps, headings=headings, anchor=anchor,
+        bias=BiasState(vector=vector, res_pos2=res_pos2, res_head2=res_head2, drift_sigma=drift_sigma),
+        crossings=_crossings(r, n_edges),
+        region=region,
+    )  # fmt: skip
+
+
+def _crossings(r: _Reader, n_edges: int | None) -> CrossingTrail:
+    return CrossingTrail(
         trail=[
             TrailPoint(_num(t, f"{r.name('trail')}[{i}]"), _num(o, f"{r.name('trail')}[{i}]"))
             for i, (t, o) in enumerate(_pairs(r.list_("trail"), r.name("trail")))
@@ -356,7 +377,6 @@ def _decode(r: _Reader, n_edges: int | None, caps: StateCaps) -> SessionState:
             for i, (e, t) in enumerate(_pairs(r.list_("back"), r.name("back")))
         ],
     )
-    return st
 
 
 def _bool(v: Any, name: str) -> bool:

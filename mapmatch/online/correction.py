@@ -7,33 +7,34 @@ import math
 
 from mapmatch.config import MatchConfig
 from mapmatch.online.road import RoadModel
-from mapmatch.online.state import Hypothesis, LiveFix, SessionState, Step
+from mapmatch.online.state import Hypothesis, LiveFix, RegionState, Step
 from mapmatch.types import Correction
 
 
-def remember_live(state: SessionState, edge: int, step: Step, cfg: MatchConfig) -> None:
+def remember_live(rg: RegionState, edge: int, step: Step, cfg: MatchConfig) -> None:
     """Keep this fix of the ambiguous region (what a correction may revise): at most
     ``max_live``, one per ``live_spacing`` seconds unless the edge reported changed."""
-    last = state.live[-1] if state.live else None
+    last = rg.live[-1] if rg.live else None
     if last is None or (
-        len(state.live) < cfg.online.max_live
+        len(rg.live) < cfg.online.max_live
         and (last.edge != edge or step.time - last.time >= cfg.online.live_spacing)
     ):
-        state.live.append(
+        rg.live.append(
             LiveFix(step.time, edge, step.x, step.y, step.heading, step.sigma, step.kappa, step.gps)
         )
 
 
-def correction(road: RoadModel, state: SessionState, best: Hypothesis, cfg: MatchConfig) -> Correction | None:
-    """Compare what was reported live with the committed path's timeline."""
+def correction(road: RoadModel, rg: RegionState, best: Hypothesis, cfg: MatchConfig) -> Correction | None:
+    """Compare what was reported live with the committed path's timeline (the live fixes
+    revised to it)."""
     # fixes from before the committed path began cannot be judged by it: they stay as reported
-    state.live = [x for x in state.live if x.time >= best.enter[0]]
-    if not state.live:
+    rg.live = [x for x in rg.live if x.time >= best.enter[0]]
+    if not rg.live:
         return None
     mism: list[tuple[float, int, int]] = []
-    assigned, cost = smooth(road, state.live, best)
+    assigned, cost = smooth(road, rg.live, best)
     path = best.edges[: best.k + 1]
-    for entry, j, row in zip(state.live, assigned, cost, strict=True):
+    for entry, j, row in zip(rg.live, assigned, cost, strict=True):
         t, rep = entry.time, entry.edge
         now = best.edges[j]
         if (

@@ -46,10 +46,8 @@ def initialise(road: RoadModel, index: EdgeIndex, state: SessionState, step: Ste
         lp = road.emission(dist, step.sigma, step.heading, brg, step.kappa)
         hyps.append(Hypothesis([e], 0, off, off, lp, [step.time], dist, px, py, brg))
     state.hyps = normalise(hyps, prune_log_ratio=o.prune_log_ratio)
-    state.init_pending = len({h.edges[0] for h in state.hyps}) > 1
-    state.init_odo = state.odo
-    state.live = []
-    state.back = []
+    state.region.restart(pending=len({h.edges[0] for h in state.hyps}) > 1, odo=state.odo)
+    state.crossings.restart()
     state.bad_time = state.bad_odo = math.nan
 
 

@@ -73,9 +73,8 @@ class OnlineMatcher:
         # the first GPS-aided fix after dead reckoning, and those while its drift blends out:
         # they are the truth, not outliers
         first = state.odo - state.gps_odo > 0.0
-        blending = (
-            state.drift_sigma > step.fix_sigma and not step.time - state.search_time < cfg.online.search_every
-        )
+        searched = step.time - state.search_time < cfg.online.search_every
+        blending = state.bias.drift_sigma > step.fix_sigma and not searched
         returned = step.gps and step.kappa > 0.0 and (first or blending)
         self._take(state, step, cfg)
         held: list[tuple[Hypothesis, float]] = []
@@ -94,7 +93,7 @@ class OnlineMatcher:
         corr = stopline.back_at_stop_line(state, shown.hypothesis, held, step, corr)
         state.shown = shown.hypothesis.edges[shown.hypothesis.k]
         if len(state.hyps) > 1:
-            remember_live(state, state.shown, step, cfg)
+            remember_live(state.region, state.shown, step, cfg)
         return report.report(self.road, state, fix, step, shown, cfg, report.Outcome(turn, corr, reinit))
 
     # ------------------------------------------------------------------ steps of update
@@ -105,9 +104,8 @@ class OnlineMatcher:
         if step.gps:
             state.gps_odo = state.odo
         state.speed = step.speed
-        state.drift_sigma = bias.drift_sigma(state, step.gps, 0.0, step.dt, cfg) if step.gps else step.sigma
+        bias.take(state.bias, step, cfg)
         state.time, state.x, state.y = step.time, step.x, step.y
-        state.bias = step.bias
         if step.kappa > 0.0:
             o = cfg.online
             add_sample(
@@ -116,7 +114,7 @@ class OnlineMatcher:
             )  # fmt: skip
         if step.odo_known:
             anchor.add_trail(
-                state.trail, step.time, state.odo, step.travelled <= cfg.online.still_distance, cfg
+                state.crossings.trail, step.time, state.odo, step.travelled <= cfg.online.still_distance, cfg
             )
 
     def _filter(
@@ -160,7 +158,7 @@ class OnlineMatcher:
         o = cfg.online
         best = best_of(state.hyps)
         if best.dist > o.reinit_sigmas * step.sigma:
-            state.base = (math.nan, math.nan, math.nan, math.nan)  # no scale baseline off the road
+            anchor.drop_baseline(state.anchor)
             if math.isnan(state.bad_time):
                 state.bad_time, state.bad_odo = step.time, state.odo
             elif step.stopped and not math.isnan(step.dt):
@@ -170,8 +168,8 @@ class OnlineMatcher:
                 return True
             return False
         state.bad_time = state.bad_odo = math.nan
-        if len(state.hyps) == 1 and not state.init_pending:
-            bias.learn_residuals(state, best, step, cfg)
-            bias.learn_bias(state, best, step, cfg)
-        anchor.learn_scale_gps(state, best, step, cfg)
+        if len(state.hyps) == 1 and not state.region.init_pending:
+            bias.learn_residuals(state.bias, best, step, cfg)
+            bias.learn_bias(state.bias, best, step, cfg)
+        anchor.learn_scale_gps(state.anchor, best, step, cfg, drift_sigma=state.bias.drift_sigma)
         return False

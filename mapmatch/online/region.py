@@ -8,13 +8,13 @@ import math
 
 from graph.angles import angle_diff
 from mapmatch.config import MatchConfig
-from mapmatch.online.anchor import learn_scale, revise_crossings, turn_anchor
+from mapmatch.online.anchor import keep_back, learn_scale, revise_crossings, turn_anchor
 from mapmatch.online.correction import correction, merge
 from mapmatch.online.filter import best as best_of
 from mapmatch.online.filter import normalise
 from mapmatch.online.hypotheses import move_to
 from mapmatch.online.road import RoadModel
-from mapmatch.online.state import BackEdge, Hypothesis, SessionState, Step
+from mapmatch.online.state import Hypothesis, SessionState, Step
 from mapmatch.turns import classify_turn, corner_cut
 from mapmatch.types import Correction, Turn
 
@@ -36,24 +36,25 @@ def commit(
     best = best_of(state.hyps)
     corr: Correction | None = None
     turn = _NO_TURN
-    if state.init_pending:
+    rg = state.region
+    if rg.init_pending:
         if not _commit_start(road, state, best, step, cfg):
             return turn, None
-        corr = correction(road, state, best, cfg)
+        corr = correction(road, rg, best, cfg)
         state.hyps = [h for h in state.hyps if h.edges[0] == best.edges[0]]
-        state.init_pending = False
+        rg.init_pending = False
     while best.k >= 1 and best.s - road.elen[best.edges[0]] >= step.r_a:
         if _branches_close(road, state, best, step, cfg) or _branch_probable(road, state, best, step, cfg):
             break  # the evidence cannot tell the branches apart yet
-        if state.live:
-            c = correction(road, state, best, cfg)
+        if rg.live:
+            c = correction(road, rg, best, cfg)
             corr = c if corr is None else merge(corr, c)
         turn, corr = _commit_node(road, state, best, step, cfg, turn, corr)
-    if len(state.hyps) == 1 and state.live:
+    if len(state.hyps) == 1 and rg.live:
         # the alternatives died out: that decision is final too
-        c = correction(road, state, state.hyps[0], cfg)
+        c = correction(road, rg, state.hyps[0], cfg)
         corr = c if corr is None else merge(corr, c)
-        state.live = []
+        rg.live = []
     return turn, corr
 
 
@@ -124,7 +125,7 @@ def _commit_start(
     """Whether the start-up road is sure enough (or enough was driven) to commit."""
     total = sum(math.exp(h.logp) for h in state.hyps)
     group = sum(math.exp(h.logp) for h in state.hyps if h.edges[0] == best.edges[0]) / total
-    return group >= cfg.online.init_commit_probability or state.odo - state.init_odo >= max(
+    return group >= cfg.online.init_commit_probability or state.odo - state.region.init_odo >= max(
         2.0 * step.r_a, cfg.online.turn_window
     )
 
@@ -162,22 +163,15 @@ def _commit_node(
             # odometer reads as if it had been at the node a little later on the way
             # in and a little earlier on the way out
             cut = 0.5 * corner_cut(angle, road.elen[e0], road.elen[e1])
-            learn_scale(road, state, best, mid + cut, mid - cut, anchor_sd, cfg)
+            learn_scale(road, state.anchor, best, mid + cut, mid - cut, anchor_sd, cfg)
             anchor_odo = mid - cut
             if corr is None:
-                corr = revise_crossings(road, state, best, (mid, cut, anchor_sd), step, cfg)
+                corr = revise_crossings(road, state.crossings, best, (mid, cut, anchor_sd), step, cfg)
     if math.isnan(anchor_odo):
-        state.back.append(BackEdge(e0, best.enter[0]))
-        # the oldest edges go while those kept are longer than the distance: each tail's sum
-        # over a list of lengths, in C (an imported session may hold many edges)
-        lens = [road.elen[b.edge] for b in state.back]
-        drop = 0
-        while sum(lens[drop:]) > cfg.online.trail_max_distance:
-            drop += 1
-        del state.back[:drop]
+        keep_back(road, state.crossings, e0, best.enter[0], cfg)
     else:
-        state.back = []
-    state.live = [x for x in state.live if x.edge != e0]
+        state.crossings.restart()
+    state.region.live = [x for x in state.region.live if x.edge != e0]
     for h in hyps:
         _drop_first_edge(road, h, road.elen[e0], step, anchor_odo, anchor_sd)
     state.hyps = normalise(hyps, prune_log_ratio=cfg.online.prune_log_ratio)

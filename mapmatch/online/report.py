@@ -72,7 +72,7 @@ def state_of(state: SessionState, reinit: bool) -> State:
         return _REINITIALISED
     if not math.isnan(state.bad_time):
         return _OFF_ROAD
-    if state.init_pending:
+    if state.region.init_pending:
         return _INITIALISING
     return _AMBIGUOUS if len(state.hyps) > 1 else _ON_ROAD
 
@@ -146,7 +146,9 @@ def report(
             break
     aided = map_aided_measurement(
         g,
-        Placement(st, e, shown_hyp.off, lat, lon, shown_hyp.bearing, probability, state.odo - state.init_odo),
+        Placement(
+            st, e, shown_hyp.off, lat, lon, shown_hyp.bearing, probability, state.odo - state.region.init_odo
+        ),
         AlongEvidence(
             step.gps,
             step.sigma,  # fix_sigma

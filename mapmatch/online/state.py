@@ -97,31 +97,14 @@ class BackEdge(NamedTuple):
     time: float
 
 
-@dataclass
-class SessionState:
-    """Everything the matcher remembers about one vehicle (small, serialisable)."""
+NO_BASE = (math.nan, math.nan, math.nan, math.nan)
 
-    time: float = math.nan
-    x: float = math.nan
-    y: float = math.nan
-    odo: float = 0.0
-    gps_odo: float = 0.0  # odometer at the last GPS-aided fix
-    bad_time: float = math.nan  # since when the fixes are inconsistent with the road ...
-    bad_odo: float = math.nan  # ... and the odometer then
-    init_pending: bool = True
-    init_odo: float = 0.0
-    hyps: list[Hypothesis] = field(default_factory=list)
-    live: list[LiveFix] = field(default_factory=list)  # the fixes of the ambiguous region
-    headings: list[list[float]] = field(default_factory=list)  # [odometer, heading] samples
-    res_pos2: float = 25.0  # running mean of squared distance to the road (m²), on road
-    res_head2: float = 400.0  # running mean of squared heading residual (deg²), on road
-    drift_sigma: float = 0.0  # dead-reckoning drift σ (m), decaying after GPS returns
-    speed: float = math.nan  # the odometer's speed averaged over ``stop_time`` (m/s; nan: unknown)
-    search_time: float = math.nan  # time of the last soft re-initialisation search
-    shown: int = -1  # the edge reported last
-    # learnt from the fix's offsets across roads of other directions; along a road it is
-    # invisible, so this is what tells the along-track error after a turn
-    bias: FixBias = field(default_factory=FixBias)
+
+@dataclass(slots=True)
+class AnchorState:
+    """The odometer's scale and the turn anchor it is learnt from (written by
+    :mod:`mapmatch.online.anchor` only)."""
+
     # the odometer's scale error learnt between turn anchors: path metres = odometer · (1 + k)
     odo_k: float = 0.0
     odo_kvar: float = math.nan  # its variance (nan: the configured prior)
@@ -129,10 +112,115 @@ class SessionState:
     anc_sd: float = math.nan  # ... and its σ (m)
     # the start of the straight GPS baseline the odometer scale is also learnt on:
     # (odometer, x, y, road bearing); nan when none
-    base: tuple[float, float, float, float] = (math.nan, math.nan, math.nan, math.nan)
-    # for revising straight crossings once the next turn tells where the vehicle was
-    trail: list[TrailPoint] = field(default_factory=list)
-    back: list[BackEdge] = field(default_factory=list)
+    base: tuple[float, float, float, float] = NO_BASE
+
+
+@dataclass(slots=True)
+class BiasState:
+    """The fix's slowly varying error (written by :mod:`mapmatch.online.bias` only)."""
+
+    # learnt from the fix's offsets across roads of other directions; along a road it is
+    # invisible, so this is what tells the along-track error after a turn
+    vector: FixBias = field(default_factory=FixBias)
+    res_pos2: float = 25.0  # running mean of squared distance to the road (m²), on road
+    res_head2: float = 400.0  # running mean of squared heading residual (deg²), on road
+    drift_sigma: float = 0.0  # dead-reckoning drift σ (m), decaying after GPS returns
+
+
+@dataclass(slots=True)
+class CrossingTrail:
+    """What re-times the straight crossings once the next turn tells where the vehicle was
+    (written by :mod:`mapmatch.online.anchor` only)."""
+
+    trail: list[TrailPoint] = field(default_factory=list)  # the odometer against time
+    back: list[BackEdge] = field(default_factory=list)  # the edges committed since the last anchor
+
+    def restart(self) -> None:
+        """A new start: no edges committed yet (the odometer trail goes on)."""
+        self.back = []
+
+
+@dataclass(slots=True)
+class RegionState:
+    """The ambiguous region (written by :mod:`mapmatch.online.region` and the corrections it
+    makes, :mod:`mapmatch.online.correction` and :mod:`mapmatch.online.stopline`)."""
+
+    live: list[LiveFix] = field(default_factory=list)  # the fixes of the ambiguous region
+    init_pending: bool = True  # the start-up road is not committed yet ...
+    init_odo: float = 0.0  # ... and the odometer when the hypotheses started
+
+    def restart(self, *, pending: bool, odo: float) -> None:
+        """A new start: no live fixes, the start-up road pending when ``pending``."""
+        self.live = []
+        self.init_pending = pending
+        self.init_odo = odo
+
+
+@dataclass(slots=True)
+class SessionState:
+    """Everything the matcher remembers about one vehicle (small, serialisable).
+
+    The vehicle's kinematics and lifecycle (written by :mod:`mapmatch.online.matcher` and
+    :mod:`mapmatch.online.hypotheses`) and one record per mechanism: ``anchor``, ``bias``,
+    ``crossings``, ``region``. The flat names ``odo_k``, ``odo_kvar``, ``base``, ``res_pos2``,
+    ``live``, ``trail`` and ``back`` read those records.
+    """
+
+    time: float = math.nan
+    x: float = math.nan
+    y: float = math.nan
+    odo: float = 0.0
+    gps_odo: float = 0.0  # odometer at the last GPS-aided fix
+    speed: float = math.nan  # the odometer's speed averaged over ``stop_time`` (m/s; nan: unknown)
+    bad_time: float = math.nan  # since when the fixes are inconsistent with the road ...
+    bad_odo: float = math.nan  # ... and the odometer then
+    search_time: float = math.nan  # time of the last soft re-initialisation search
+    shown: int = -1  # the edge reported last
+    hyps: list[Hypothesis] = field(default_factory=list)
+    headings: list[list[float]] = field(default_factory=list)  # [odometer, heading] samples
+    anchor: AnchorState = field(default_factory=AnchorState)
+    bias: BiasState = field(default_factory=BiasState)
+    crossings: CrossingTrail = field(default_factory=CrossingTrail)
+    region: RegionState = field(default_factory=RegionState)
+
+    @property
+    def odo_k(self) -> float:
+        """The learnt odometer scale error (``anchor.odo_k``)."""
+        return self.anchor.odo_k
+
+    @property
+    def odo_kvar(self) -> float:
+        """Its variance (``anchor.odo_kvar``)."""
+        return self.anchor.odo_kvar
+
+    @property
+    def base(self) -> tuple[float, float, float, float]:
+        """The straight GPS baseline's start (``anchor.base``)."""
+        return self.anchor.base
+
+    @base.setter
+    def base(self, value: tuple[float, float, float, float]) -> None:
+        self.anchor.base = value
+
+    @property
+    def res_pos2(self) -> float:
+        """The running mean of squared distance to the road (``bias.res_pos2``)."""
+        return self.bias.res_pos2
+
+    @property
+    def live(self) -> list[LiveFix]:
+        """The fixes of the ambiguous region (``region.live``)."""
+        return self.region.live
+
+    @property
+    def trail(self) -> list[TrailPoint]:
+        """The odometer trail (``crossings.trail``)."""
+        return self.crossings.trail
+
+    @property
+    def back(self) -> list[BackEdge]:
+        """The edges committed since the last turn anchor (``crossings.back``)."""
+        return self.crossings.back
 
     def to_bytes(self) -> bytes:
         """Compact JSON encoding (a few kilobytes); see :mod:`mapmatch.online.codec`."""

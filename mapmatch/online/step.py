@@ -31,13 +31,14 @@ def prepare(road: RoadModel, state: SessionState, fix: Fix, cfg: MatchConfig) ->
     travelled, odo_known = _travelled(state, fix, x, y, dt)
     gps = fix.gps_valid is not False
     own = own_sigma(state, fix, cfg)
-    sigma = max(own, bias.drift_sigma(state, gps, travelled, dt, cfg))
+    dr = state.odo + (travelled if not math.isnan(travelled) else 0.0) - state.gps_odo
+    sigma = max(own, bias.drift_sigma(state.bias, gps, dr, dt, cfg))
     heading = 0.0 if fix.heading == 360.0 else fix.heading
     kappa = 0.0
     if not math.isnan(heading) and (math.isnan(fix.speed) or fix.speed >= cfg.model.heading_min_speed):
         hs = cfg.model.heading_sigma if math.isnan(fix.heading_sigma) else fix.heading_sigma
         floor = o.heading_sigma_floor_deg if fix.gps_valid is not False else o.heading_sigma_floor_dr_deg
-        kappa = heading_kappa_one(max(hs, math.sqrt(state.res_head2)), floor)
+        kappa = heading_kappa_one(max(hs, math.sqrt(state.bias.res_head2)), floor)
     # the fused error is correlated: evidence accrues with time and, when known, distance
     per_time = 1.0 if math.isnan(dt) else min(1.0, dt / o.evidence_time)
     weight = per_time
@@ -66,7 +67,7 @@ def prepare(road: RoadModel, state: SessionState, fix: Fix, cfg: MatchConfig) ->
         and not math.isnan(fix.heading_sigma)
         and not math.isnan(heading)
     ):
-        hs = max(fix.heading_sigma, math.sqrt(state.res_head2))
+        hs = max(fix.heading_sigma, math.sqrt(state.bias.res_head2))
         still_kappa = heading_kappa_one(hs, o.heading_sigma_floor_deg)
         still_weight = o.stopped_heading_weight * max(per_time - weight, 0.0)
     odo = state.odo + (travelled if not math.isnan(travelled) else 0.0)
@@ -86,8 +87,8 @@ def prepare(road: RoadModel, state: SessionState, fix: Fix, cfg: MatchConfig) ->
         stopped,
         region_radius(road, sigma, cfg),  # r_a
         dr=0.0 if gps else odo - state.gps_odo,
-        bias=bias.predict_bias(state.bias, sigma, dt, cfg),
-        odo_sigma=math.sqrt(anchor.odo_kvar(state, cfg) + o.odo_scale_floor**2),
+        bias=bias.predict_bias(state.bias.vector, sigma, dt, cfg),
+        odo_sigma=math.sqrt(anchor.odo_kvar(state.anchor, cfg) + o.odo_scale_floor**2),
         fix_sigma=own,
         turn_weight=turn_weight,
         still_kappa=still_kappa,
@@ -102,9 +103,9 @@ def _travelled(state: SessionState, fix: Fix, x: float, y: float, dt: float) -> 
     most the largest odometer step a fix may give), each with the learnt odometer scale; else
     the straight line between the fixes."""
     if not math.isnan(fix.distance):
-        return fix.distance * (1.0 + state.odo_k), True
+        return fix.distance * (1.0 + state.anchor.odo_k), True
     if not math.isnan(fix.speed) and not math.isnan(dt):
-        return min(fix.speed * dt, _DISTANCE) * (1.0 + state.odo_k), True
+        return min(fix.speed * dt, _DISTANCE) * (1.0 + state.anchor.odo_k), True
     return (math.hypot(x - state.x, y - state.y) if not math.isnan(state.x) else math.nan), False
 
 
@@ -117,7 +118,7 @@ def own_sigma(state: SessionState, fix: Fix, cfg: MatchConfig) -> float:
         sigma = cfg.model.gps_sigma
     else:
         sigma = fix.pos_sigma
-    return max(sigma, cfg.online.pos_sigma_floor, math.sqrt(state.res_pos2))
+    return max(sigma, cfg.online.pos_sigma_floor, math.sqrt(state.bias.res_pos2))
 
 
 def validate(road: RoadModel, state: SessionState, fix: Fix) -> None:

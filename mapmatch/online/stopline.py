@@ -43,7 +43,8 @@ def hold_before_node(
     the time it had crossed the node (nan: not put back)."""
     hold = cfg.online.stop_hold_distance
     prev, cur = h.edges[h.k - 1], h.edges[h.k]
-    if h.off >= hold or road.elen[cur] - h.off <= hold or len(state.trail) < 2:
+    trail = state.crossings.trail
+    if h.off >= hold or road.elen[cur] - h.off <= hold or len(trail) < 2:
         return math.nan
     fix_hold = cfg.online.stop_hold_fix_distance
     own = step.gps and step.sigma <= step.fix_sigma  # no dead-reckoning drift left above its own σ
@@ -52,8 +53,8 @@ def hold_before_node(
         # believed may lag it (along-track correction), but where it stands the fix tells
         return math.nan
     crossed = h.enter[h.k]
-    t_tr = [x.time for x in state.trail]
-    if crossed < t_tr[0] or state.odo - float(np.interp(crossed, t_tr, [x.odo for x in state.trail])) >= hold:
+    t_tr = [x.time for x in trail]
+    if crossed < t_tr[0] or state.odo - float(np.interp(crossed, t_tr, [x.odo for x in trail])) >= hold:
         return math.nan  # it has driven further since: not a stop on the way in
     if not road.straight(prev, cur, cfg):
         last = state.headings[-1][1] if state.headings else math.nan
@@ -86,7 +87,7 @@ def back_at_stop_line(
     stop = Correction(
         time_from=crossed, time_to=step.time, edges=(e,), replaced_edges=(state.shown,), edge_times=(crossed,)
     )
-    for x in state.live:
+    for x in state.region.live:
         if x.time >= crossed and x.edge == state.shown:
             x.edge = e
     return stop if correction is None else merge(stop, correction)
