@@ -4,6 +4,10 @@ decoded blob goes on exactly as the live session did."""
 
 from __future__ import annotations
 
+import ast
+import json
+from pathlib import Path
+
 from session_blobs import blobs, drives, pinned
 
 from mapmatch.online import SessionState
@@ -30,3 +34,83 @@ def test_a_decoded_pinned_blob_goes_on_as_the_live_session_did() -> None:
             st = SessionState.from_bytes(run[i])
             m.update(st, fixes[i + 1])
             assert st.to_bytes() == run[i + 1], f"fix {i + 1}"
+
+
+def test_each_key_of_the_blob_comes_from_its_record() -> None:
+    blob = pinned()[1][-1]
+    d = json.loads(blob)
+    st = SessionState.from_bytes(blob)
+    a, b, c, r = st.anchor, st.bias, st.crossings, st.region
+    assert (a.odo_k, a.anc_odo, list(a.base)) == (d["odo_k"], d["anc_odo"], d["base"])
+    assert (b.res_pos2, b.res_head2, b.drift_sigma) == (d["res_pos2"], d["res_head2"], d["drift_sigma"])
+    assert b.vector._asdict() == d["bias"]
+    assert [[p.time, p.odo] for p in c.trail] == d["trail"] and len(c.back) == len(d["back"])
+    assert (r.init_pending, r.init_odo, len(r.live)) == (d["init_pending"], d["init_odo"], len(d["live"]))
+    assert (st.odo_k, st.base, st.res_pos2, st.trail) == (a.odo_k, a.base, b.res_pos2, c.trail)
+
+
+# the modules that write each record of a session (assignments, deletions and list mutations
+# of its fields, by any function of the module)
+OWNERS = {
+    "AnchorState": {"anchor.py"},
+    "BiasState": {"bias.py"},
+    "CrossingTrail": {"anchor.py"},
+    "RegionState": {"region.py", "correction.py"},
+}
+_FIELD = {"anchor": "AnchorState", "bias": "BiasState", "crossings": "CrossingTrail", "region": "RegionState"}
+_MUTATE = {"append", "extend", "insert", "pop", "remove", "clear"}
+
+
+def _record(node: ast.expr, typed: dict[str, str]) -> str | None:
+    """The record whose field ``node`` (an attribute, perhaps subscripted) is, if any."""
+    while isinstance(node, ast.Subscript):
+        node = node.value
+    if not isinstance(node, ast.Attribute):
+        return None
+    base = node.value
+    if isinstance(base, ast.Name) and base.id in typed:
+        return typed[base.id]
+    if isinstance(base, ast.Attribute) and base.attr in _FIELD:
+        return _FIELD[base.attr]
+    return None
+
+
+def _targets(node: ast.AST) -> list[ast.expr]:
+    """What ``node`` writes: assignment and deletion targets, the list a mutating call changes."""
+    if isinstance(node, ast.Assign | ast.Delete):
+        targets = node.targets
+    elif isinstance(node, ast.AugAssign | ast.AnnAssign):
+        targets = [node.target]
+    elif isinstance(node, ast.Call) and isinstance(node.func, ast.Attribute) and node.func.attr in _MUTATE:
+        targets = [node.func.value]
+    else:
+        return []
+    return [one for t in targets for one in (t.elts if isinstance(t, ast.Tuple) else [t])]
+
+
+def _writes(path: Path) -> set[str]:
+    """The records whose fields the module at ``path`` writes: through ``<state>.<record>.<field>``
+    or through a parameter annotated with the record's type."""
+    out: set[str] = set()
+    for fn in ast.walk(ast.parse(path.read_text())):
+        if isinstance(fn, ast.FunctionDef):
+            typed = {
+                a.arg: ast.unparse(a.annotation)
+                for a in [*fn.args.args, *fn.args.kwonlyargs]
+                if a.annotation is not None and ast.unparse(a.annotation) in OWNERS
+            }
+            out |= {r for node in ast.walk(fn) for t in _targets(node) if (r := _record(t, typed))}
+    return out
+
+
+def test_each_record_is_written_only_by_its_own_modules() -> None:
+    import mapmatch.online
+
+    folder = Path(mapmatch.online.__file__).parent
+    writers: dict[str, set[str]] = {name: set() for name in OWNERS}
+    for path in sorted(folder.glob("*.py")):
+        if path.name in ("state.py", "codec.py"):  # the records themselves; decoding builds them
+            continue
+        for rec in _writes(path):
+            writers[rec].add(path.name)
+    assert writers == OWNERS

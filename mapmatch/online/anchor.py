@@ -157,9 +157,15 @@ def add_trail(trail: list[TrailPoint], time: float, odo: float, standing: bool, 
         del trail[0]
 
 
-def keep_back(road: RoadModel, c: CrossingTrail, edge: int, entered: float, cfg: MatchConfig) -> None:
-    """An edge committed without a turn anchor (entered at time ``entered``), kept for the next
-    anchor's revision: the oldest go while those kept are longer than ``trail_max_distance``."""
+def keep_back(
+    road: RoadModel, c: CrossingTrail, edge: int, entered: float, cfg: MatchConfig, *, anchored: bool
+) -> None:
+    """An edge committed (entered at time ``entered``): after a turn anchor (``anchored``) none
+    is kept; else it is kept for the next anchor's revision, and the oldest go while those kept
+    are longer than ``trail_max_distance``."""
+    if anchored:
+        c.restart()
+        return
     c.back.append(BackEdge(edge, entered))
     # each tail's sum over a list of lengths, in C (an imported session may hold many edges)
     lens = [road.elen[b.edge] for b in c.back]

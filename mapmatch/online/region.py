@@ -167,10 +167,7 @@ def _commit_node(
             anchor_odo = mid - cut
             if corr is None:
                 corr = revise_crossings(road, state.crossings, best, (mid, cut, anchor_sd), step, cfg)
-    if math.isnan(anchor_odo):
-        keep_back(road, state.crossings, e0, best.enter[0], cfg)
-    else:
-        state.crossings.restart()
+    keep_back(road, state.crossings, e0, best.enter[0], cfg, anchored=not math.isnan(anchor_odo))
     state.region.live = [x for x in state.region.live if x.edge != e0]
     for h in hyps:
         _drop_first_edge(road, h, road.elen[e0], step, anchor_odo, anchor_sd)
