@@ -14,7 +14,9 @@ Where each mechanism lives:
 - :mod:`~mapmatch.online.step`: the per-fix step (validation, σ floors, drift, the fix in map
   coordinates).
 - :mod:`~mapmatch.online.state`: the named records (hypotheses, live fixes, trail points,
-  path positions, the fix bias) and :class:`SessionState`.
+  path positions, the fix bias), each mechanism's own record of the session (anchor, bias,
+  crossings, region, each written only by its module) and :class:`SessionState`, which
+  composes them.
 - :mod:`~mapmatch.online.codec`: ``to_bytes``/``from_bytes`` by named keys, validated, with the
   migration from version 1.
 - :mod:`~mapmatch.online.filter`: the generic filter step (knows nothing of roads).
