@@ -4,26 +4,12 @@ geometry it rests on (``mapmatch.route_score.uncovered_stretches``, ``trim_route
 
 from __future__ import annotations
 
-import importlib
-import sys
-from pathlib import Path
-from types import ModuleType
-
 import numpy as np
 import pytest
+from bench_modules import bench_module
 from shared_data import KUBICKA, SHARED, reason
 
 from mapmatch.route_score import farthest_from, trim_route_ends, uncovered_stretches
-
-BENCH = Path(__file__).resolve().parents[1] / "bench"
-
-
-def _bench(name: str) -> ModuleType:
-    sys.path.insert(0, str(BENCH))
-    try:
-        return importlib.import_module(name)
-    finally:
-        sys.path.remove(str(BENCH))
 
 
 def test_a_detour_the_covering_route_lacks_is_one_stretch_of_its_length() -> None:
@@ -63,6 +49,6 @@ def test_the_full_rate_route_covers_the_routes_at_10_and_30_s(track: str) -> Non
     for needed in (d / "track.csv", SHARED / "peers" / "engines_kubicka.py"):
         if not needed.is_file():
             pytest.skip(reason(needed))
-    bench = _bench("bench_consistency")
+    bench = bench_module("bench_consistency")
     r = bench.check_track(d, [10, 30], bench.CoverOptions())
     assert r.missing_m == {10: [], 30: []}, r

@@ -4,27 +4,13 @@ answers are worked out by hand."""
 
 from __future__ import annotations
 
-import importlib
 import math
-import sys
-from pathlib import Path
-from types import ModuleType
 
 import numpy as np
 import pytest
+from bench_modules import bench_module
 
-BENCH = Path(__file__).resolve().parents[1] / "bench"
-
-
-def _bench(name: str) -> ModuleType:
-    sys.path.insert(0, str(BENCH))
-    try:
-        return importlib.import_module(name)
-    finally:
-        sys.path.remove(str(BENCH))
-
-
-cal = _bench("calibration")
+cal = bench_module("calibration")
 
 P = [0.1, 0.3, 0.6, 0.95, 0.95, 1.0]
 RIGHT = [0, 1, 1, 1, 0, 1]

@@ -7,26 +7,13 @@ look at the held fold's tracks.
 
 from __future__ import annotations
 
-import importlib
-import sys
 from pathlib import Path
-from types import ModuleType
 
 import pytest
+from bench_modules import bench_module
 
-BENCH = Path(__file__).resolve().parents[1] / "bench"
-
-
-def _bench(name: str) -> ModuleType:
-    sys.path.insert(0, str(BENCH))
-    try:
-        return importlib.import_module(name)
-    finally:
-        sys.path.remove(str(BENCH))
-
-
-folds = _bench("folds")
-crossval = _bench("crossval")
+folds = bench_module("folds")
+crossval = bench_module("crossval")
 
 IDS = [f"{i:08d}" for i in range(100) if i % 7 in (0, 3)]  # the shared set's 29 ids
 
