@@ -1,4 +1,4 @@
-"""gRPC conventions (issue 50): server reflection v1 beside v1alpha, and errors that carry a
+"""gRPC conventions: server reflection v1 beside v1alpha, and errors that carry a
 ``google.rpc.Status`` naming the field, on a real server on a loopback port."""
 
 from __future__ import annotations

@@ -1,5 +1,5 @@
 """One validation for every entry, limits that agree, streams that go on, readiness that
-tells the truth (issue 49, probes 7-10), on a real server on a loopback port."""
+tells the truth, on a real server on a loopback port."""
 
 from __future__ import annotations
 
@@ -61,7 +61,7 @@ def map_server(tmp_path_factory):
         yield srv, port
 
 
-# ---------------------------------------------------------------------------------- probe 7
+# ---------------------------------------------------------------------------------- entries
 @pytest.mark.parametrize(("name", "i", "value"), BAD_POINTS)
 def test_match_track_arrays_obey_the_rules_of_a_fix(map_server, name, i, value):
     _, port = map_server
@@ -94,7 +94,7 @@ def test_sigma_inf_no_longer_gives_nan_confidence(map_server):
     ch.close()
 
 
-# ---------------------------------------------------------------------------------- probe 8
+# ---------------------------------------------------------------------------------- limits
 def test_default_limits_agree():
     cfg = ServerConfig()
     assert cfg.max_track_points * POINT_ANSWER_BYTES <= cfg.max_answer_bytes
@@ -124,7 +124,7 @@ def test_a_track_whose_answer_cannot_fit_is_refused_before_any_work(tmp_path, in
         ch.close()
 
 
-# ---------------------------------------------------------------------------------- probe 9
+# ---------------------------------------------------------------------------------- streams
 def test_an_undecodable_message_is_answered_and_the_stream_goes_on(map_server):
     _, port = map_server
     ch = grpc.insecure_channel(f"127.0.0.1:{port}")
@@ -149,7 +149,7 @@ def test_an_undecodable_message_is_answered_and_the_stream_goes_on(map_server):
     ch.close()
 
 
-# ---------------------------------------------------------------------------------- probe 10
+# ---------------------------------------------------------------------------------- readiness
 def test_serving_means_match_track_is_answered_at_once(tmp_path):
     """Batch readiness has its own health name: once it is SERVING a batch worker is warm and
     a MatchTrack is answered at once (with the kernels cached, the server's own SERVING waits

@@ -1,4 +1,4 @@
-"""Map files opened once and children that die with the server (issue 49, probes 4-6), on
+"""Map files opened once and children that die with the server, on
 real files, real processes and a real server on a loopback port: a map file swapped for a
 symlink while LoadMap reads it, a map prepared again over a served file, a batch worker
 that cannot load its map, and a server killed or stopped during a build."""

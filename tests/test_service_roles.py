@@ -4,8 +4,6 @@ vehicles, only the operator manages maps and imports sessions, quotas per identi
 
 from __future__ import annotations
 
-import datetime as dt
-import ipaddress
 import json
 import os
 import re
@@ -333,50 +331,20 @@ def test_bad_identities_files_are_refused_with_a_clear_line(tmp_path):
 # ---------------------------------------------------------------------------------- mutual TLS
 def _pki(d: Path) -> dict[str, Path]:
     from cryptography import x509
-    from cryptography.hazmat.primitives import hashes, serialization
-    from cryptography.hazmat.primitives.asymmetric import ec
-    from cryptography.x509.oid import NameOID
-
-    now = dt.datetime.now(dt.UTC)
-
-    def cert(cn: str, key, issuer=None, issuer_key=None, san=None):
-        name = x509.Name([x509.NameAttribute(NameOID.COMMON_NAME, cn)])
-        b = (
-            x509.CertificateBuilder()
-            .subject_name(name)
-            .issuer_name(issuer.subject if issuer else name)
-            .public_key(key.public_key())
-            .serial_number(x509.random_serial_number())
-            .not_valid_before(now - dt.timedelta(minutes=5))
-            .not_valid_after(now + dt.timedelta(hours=1))
-            .add_extension(x509.BasicConstraints(ca=issuer is None, path_length=None), critical=True)
-        )
-        if san:
-            b = b.add_extension(x509.SubjectAlternativeName(san), critical=False)
-        return b.sign(issuer_key or key, hashes.SHA256())
-
-    def write(stem: str, c, k) -> None:
-        out[stem + "_crt"] = d / f"{stem}.crt"
-        out[stem + "_crt"].write_bytes(c.public_bytes(serialization.Encoding.PEM))
-        out[stem + "_key"] = d / f"{stem}.key"
-        fmt = serialization.PrivateFormat.PKCS8
-        out[stem + "_key"].write_bytes(
-            k.private_bytes(serialization.Encoding.PEM, fmt, serialization.NoEncryption())
-        )
+    from tls_util import local_names, new_cert, new_key, write_pem
 
     out: dict[str, Path] = {}
-    ca_key = ec.generate_private_key(ec.SECP256R1())
-    ca = cert("roles test CA", ca_key)
-    write("ca", ca, ca_key)
-    local = [x509.DNSName("localhost"), x509.IPAddress(ipaddress.ip_address("127.0.0.1"))]
+    ca_key = new_key()
+    ca = new_cert("roles test CA", ca_key)
+    out["ca_crt"], out["ca_key"] = write_pem(d / "ca", ca, ca_key)
     for stem, cn, san in (
-        ("server", "localhost", local),
+        ("server", "localhost", local_names()),
         ("node", "fleet node", [x509.DNSName("node-7.fleet")]),  # named by its SAN
         ("car", "car-a", None),  # named by its CN
         ("stranger", "stranger", None),
     ):
-        k = ec.generate_private_key(ec.SECP256R1())
-        write(stem, cert(cn, k, ca, ca_key, san), k)
+        k = new_key()
+        out[stem + "_crt"], out[stem + "_key"] = write_pem(d / stem, new_cert(cn, k, ca, ca_key, san=san), k)
     return out
 
 

@@ -2,19 +2,14 @@
 
 from __future__ import annotations
 
-import datetime as dt
-import ipaddress
 from pathlib import Path
 
 import grpc
 import pytest
-from cryptography import x509
-from cryptography.hazmat.primitives import hashes, serialization
-from cryptography.hazmat.primitives.asymmetric import ec
-from cryptography.x509.oid import NameOID
 from grpc_health.v1 import health_pb2, health_pb2_grpc
 from online_helpers import drive
 from service_util import city, local_config, running
+from tls_util import local_names, new_cert, new_key, write_pem
 
 from mapmatch.errors import ConfigError
 from service.client import MapMatchClient
@@ -24,65 +19,26 @@ from service.gen import mapmatch_pb2_grpc as pb_grpc
 AMAP = city()
 
 
-def _key() -> ec.EllipticCurvePrivateKey:
-    return ec.generate_private_key(ec.SECP256R1())
-
-
-def _cert(
-    subject: str, key: ec.EllipticCurvePrivateKey, issuer: x509.Certificate | None, issuer_key, *, ca: bool
-) -> x509.Certificate:
-    now = dt.datetime.now(dt.UTC)
-    name = x509.Name([x509.NameAttribute(NameOID.COMMON_NAME, subject)])
-    b = (
-        x509.CertificateBuilder()
-        .subject_name(name)
-        .issuer_name(issuer.subject if issuer else name)
-        .public_key(key.public_key())
-        .serial_number(x509.random_serial_number())
-        .not_valid_before(now - dt.timedelta(minutes=5))
-        .not_valid_after(now + dt.timedelta(hours=1))
-        .add_extension(x509.BasicConstraints(ca=ca, path_length=None), critical=True)
-    )
-    if not ca:
-        b = b.add_extension(
-            x509.SubjectAlternativeName(
-                [x509.DNSName("localhost"), x509.IPAddress(ipaddress.ip_address("127.0.0.1"))]
-            ),
-            critical=False,
-        )
-    return b.sign(issuer_key, hashes.SHA256())
-
-
-def _write(path: Path, cert: x509.Certificate, key: ec.EllipticCurvePrivateKey) -> tuple[Path, Path]:
-    c, k = path.with_suffix(".crt"), path.with_suffix(".key")
-    c.write_bytes(cert.public_bytes(serialization.Encoding.PEM))
-    k.write_bytes(
-        key.private_bytes(
-            serialization.Encoding.PEM, serialization.PrivateFormat.PKCS8, serialization.NoEncryption()
-        )
-    )
-    return c, k
-
-
 @pytest.fixture(scope="module")
 def pki(tmp_path_factory) -> dict[str, Path]:
     d = tmp_path_factory.mktemp("pki")
-    ca_key = _key()
-    ca = _cert("test CA", ca_key, None, ca_key, ca=True)
-    other_key = _key()
-    other_ca = _cert("other CA", other_key, None, other_key, ca=True)
+    ca_key = new_key()
+    ca = new_cert("test CA", ca_key)
+    other_key = new_key()
+    other_ca = new_cert("other CA", other_key)
     out: dict[str, Path] = {}
-    out["ca"], _ = _write(d / "ca", ca, ca_key)
-    out["other_ca"], _ = _write(d / "other_ca", other_ca, other_key)
-    sk, ck, rk = _key(), _key(), _key()
-    out["server_crt"], out["server_key"] = _write(
-        d / "server", _cert("localhost", sk, ca, ca_key, ca=False), sk
+    out["ca"], _ = write_pem(d / "ca", ca, ca_key)
+    out["other_ca"], _ = write_pem(d / "other_ca", other_ca, other_key)
+    sk, ck, rk = new_key(), new_key(), new_key()
+    local = local_names()
+    out["server_crt"], out["server_key"] = write_pem(
+        d / "server", new_cert("localhost", sk, ca, ca_key, san=local), sk
     )
-    out["client_crt"], out["client_key"] = _write(
-        d / "client", _cert("vehicle-node-1", ck, ca, ca_key, ca=False), ck
+    out["client_crt"], out["client_key"] = write_pem(
+        d / "client", new_cert("vehicle-node-1", ck, ca, ca_key, san=local), ck
     )
-    out["rogue_crt"], out["rogue_key"] = _write(
-        d / "rogue", _cert("rogue", rk, other_ca, other_key, ca=False), rk
+    out["rogue_crt"], out["rogue_key"] = write_pem(
+        d / "rogue", new_cert("rogue", rk, other_ca, other_key, san=local), rk
     )
     return out
 

@@ -1,4 +1,4 @@
-"""No client can stall another (issue 49, probe 2), on a real server on a loopback port.
+"""No client can stall another, on a real server on a loopback port.
 
 A session blob is bounded by the matcher's own caps (a list over its cap is refused with
 INVALID_ARGUMENT naming it) and decoded off the event loop; the largest blob the caps allow
