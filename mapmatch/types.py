@@ -41,9 +41,9 @@ class PointStatus(StrEnum):
     UNMATCHED = "unmatched"
 
 
-@dataclass(frozen=True, slots=True)
-class Fix:
-    """One fused position from a vehicle's fusion node.
+class Fix(NamedTuple):
+    """One fused position from a vehicle's fusion node (immutable; ``fix._replace(...)`` gives a
+    changed copy).
 
     Attributes
     ----------

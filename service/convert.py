@@ -55,34 +55,26 @@ _NAN = math.nan
 
 
 # ---------------------------------------------------------------------------------- fixes
-class _FixSlots:
-    __slots__ = Fix.__slots__
-
-
 def fix_from_proto(msg: pb.Fix) -> Fix:
-    """A domain :class:`Fix`; unset optional fields are NaN/None. Not validated here.
-
-    Runs once per fix: the fields are set on a twin of :class:`Fix`'s slots, which then gets
-    its real class (a frozen dataclass's constructor sets each field through
-    ``object.__setattr__``; this is 3 times faster and gives an equal object)."""
+    """A domain :class:`Fix`; unset optional fields are NaN/None. Not validated here."""
     has = msg.HasField
-    f: Any = _FixSlots()
-    f.time = msg.time
-    f.lat = msg.lat
-    f.lon = msg.lon
-    f.heading = msg.heading if has("heading") else _NAN
-    f.pos_sigma = msg.pos_sigma if has("pos_sigma") else _NAN
-    f.heading_sigma = msg.heading_sigma if has("heading_sigma") else _NAN
-    f.speed = msg.speed if has("speed") else _NAN
-    f.distance = msg.distance if has("distance") else _NAN
-    f.gps_valid = msg.gps_valid if has("gps_valid") else None
     if has("pos_cov"):
         c = msg.pos_cov
-        f.pos_cov = (c.var_e, c.cov_en, c.var_n)
+        cov: tuple[float, float, float] | None = (c.var_e, c.cov_en, c.var_n)
     else:
-        f.pos_cov = None
-    f.__class__ = Fix
-    return f  # type: ignore[no-any-return]
+        cov = None
+    return Fix(
+        msg.time,
+        msg.lat,
+        msg.lon,
+        msg.heading if has("heading") else _NAN,
+        msg.pos_sigma if has("pos_sigma") else _NAN,
+        msg.heading_sigma if has("heading_sigma") else _NAN,
+        msg.speed if has("speed") else _NAN,
+        msg.distance if has("distance") else _NAN,
+        msg.gps_valid if has("gps_valid") else None,
+        cov,
+    )
 
 
 def fix_to_proto(fix: Fix) -> pb.Fix:

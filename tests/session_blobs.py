@@ -3,7 +3,6 @@
 
 from __future__ import annotations
 
-import dataclasses
 import gzip
 from pathlib import Path
 
@@ -24,9 +23,9 @@ def drives() -> tuple[OnlineMatcher, list[list[Fix]]]:
     wander = drive(amap, "abefcd", speed=12.0, dt=1.0, noise=6.0, seed=11, sigma=2.0, heading_noise=8.0)
     for i, f in enumerate(wander):
         if 8 <= i < 20:  # dead reckoning only
-            wander[i] = dataclasses.replace(f, gps_valid=False)
+            wander[i] = f._replace(gps_valid=False)
         elif 24 <= i < 30:
-            wander[i] = dataclasses.replace(f, lat=f.lat + 0.0007)
+            wander[i] = f._replace(lat=f.lat + 0.0007)
     return OnlineMatcher(amap.graph), [plain, wander]
 
 

@@ -9,7 +9,6 @@ The drawings give the roads; :func:`bent` turns the branches to true angles (a d
 
 from __future__ import annotations
 
-import dataclasses
 import math
 
 import numpy as np
@@ -205,12 +204,10 @@ def _stopped(drv: Drive, *, at: float, seconds: float, seed: int) -> Drive:
     f0 = drv.fixes[i]
     walk = np.cumsum(rng.normal(0.0, 2e-6, (k, 2)), axis=0)
     stand = [
-        dataclasses.replace(
-            f0, time=f0.time + (j + 1) * dt, lat=f0.lat + walk[j, 0], lon=f0.lon + 2.0 * walk[j, 1]
-        )
+        f0._replace(time=f0.time + (j + 1) * dt, lat=f0.lat + walk[j, 0], lon=f0.lon + 2.0 * walk[j, 1])
         for j in range(k)
     ]
-    later = [dataclasses.replace(f, time=f.time + k * dt) for f in drv.fixes[i + 1 :]]
+    later = [f._replace(time=f.time + k * dt) for f in drv.fixes[i + 1 :]]
     return Drive(
         drv.fixes[: i + 1] + stand + later, np.concatenate([drv.s[: i + 1], np.full(k, at), drv.s[i + 1 :]])
     )

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import dataclasses
 import itertools
 import math
 
@@ -329,7 +328,7 @@ def test_dead_reckoning_turn_re_anchors_the_distance_carried() -> None:
     bc = m.edge("b", "c")
     fixes = truth[:3]
     for f in truth[3:]:  # GPS lost: the odometer over-reads by 8 %
-        fixes.append(dataclasses.replace(f, speed=10.8, distance=10.8, gps_valid=False))
+        fixes.append(f._replace(speed=10.8, distance=10.8, gps_valid=False))
     res = run(matcher, fixes)
     ab_len = m.xy("b")[0] - m.xy("a")[0]
     late = [(i, r) for i, r in enumerate(res) if r.edge == bc and 10.0 * i - ab_len > 60.0]
@@ -724,7 +723,7 @@ def test_next_turn_revises_a_straight_crossing_passed_late() -> None:
     # at c times the vehicle there, and carried back by the odometer it times the crossing too
     m = parse_ascii_map(CROSS_THEN_TURN, scale=10)
     fixes, true_s = biased_drive(m, "abcd", bias_x=-8.0, speed=8.0, dt=0.5)
-    fixes = [dataclasses.replace(f, pos_sigma=10.0) for f in fixes]
+    fixes = [f._replace(pos_sigma=10.0) for f in fixes]
     res = run(OnlineMatcher(m.graph), fixes)
     ab, bc = m.edge("a", "b"), m.edge("b", "c")
     b = m.xy("b")[0] - m.xy("a")[0]
@@ -761,7 +760,7 @@ def test_odometer_scale_is_learnt_between_turns() -> None:
         scale=30,
     )
     fixes = drive(m, "abcdabcda", speed=10.0, dt=1.0)
-    fixes = [dataclasses.replace(f, distance=f.distance * 0.97, speed=9.7) for f in fixes]
+    fixes = [f._replace(distance=f.distance * 0.97, speed=9.7) for f in fixes]
     matcher = OnlineMatcher(m.graph)
     st = matcher.new_session()
     for f in fixes:
@@ -835,7 +834,7 @@ def test_vehicle_stopped_at_the_stop_line_is_before_the_crossing() -> None:
     assert [r.edge for r in loose[-15:]] == [bc] * 15
     st = OnlineMatcher(m.graph).new_session()
     go = drive(m, "bc", speed=5, t0=fixes[-1].time + 1.0, start_offset=5.0)
-    go[0] = dataclasses.replace(go[0], distance=8.0)
+    go[0] = go[0]._replace(distance=8.0)
     out = run(OnlineMatcher(m.graph), fixes + go, st)
     assert committed_edges(out) == [ab, bc]
     assert out[-1].edge == bc
@@ -874,7 +873,7 @@ def test_turn_anchor_re_times_the_turn_after_dead_reckoning_ran_ahead() -> None:
     ab, bc = m.edge("a", "b"), m.edge("b", "c")
     fixes, true_s = biased_drive(m, "abc", bias_x=0.0, speed=8.0, dt=1.0)
     fixes = [
-        dataclasses.replace(f, gps_valid=False, distance=1.1 * f.distance) if s > 40.0 else f
+        f._replace(gps_valid=False, distance=1.1 * f.distance) if s > 40.0 else f
         for f, s in zip(fixes, true_s, strict=True)
     ]
     res = run(OnlineMatcher(m.graph), fixes)
@@ -916,7 +915,7 @@ c-----------------------d
     assert all(r.edge == ab for r in res[-60:])
     assert all(r.state is not State.REINITIALISED for r in res)
     # the same fixes from a vehicle that moves slowly: it has left a-b for c-d
-    moving = [dataclasses.replace(f, speed=1.0, distance=1.0) if f.time > t else f for f in fixes]
+    moving = [f._replace(speed=1.0, distance=1.0) if f.time > t else f for f in fixes]
     res = run(OnlineMatcher(m.graph), moving)
     assert res[-1].edge == cd
 
@@ -928,8 +927,7 @@ def test_odometer_scale_is_learnt_from_the_gps_on_a_straight_road() -> None:
     #   a------------------------------------------------------------b   (3 km)
     m = parse_ascii_map("a" + "-" * 59 + "b", scale=50)
     fixes = [
-        dataclasses.replace(f, distance=f.distance * 1.02)
-        for f in drive(m, "ab", speed=20, noise=3.0, seed=4, sigma=5.0)
+        f._replace(distance=f.distance * 1.02) for f in drive(m, "ab", speed=20, noise=3.0, seed=4, sigma=5.0)
     ]
     st = SessionState()
     run(OnlineMatcher(m.graph), fixes, st)
@@ -965,7 +963,7 @@ def test_stop_line_hold_needs_the_fix_too_when_the_belief_lags_it() -> None:
     bc, cd = m.edge("b", "c"), m.edge("c", "d")
     stop_s = float(m.xy("n")[1] - m.xy("b")[1]) + float(m.xy("c")[0] - m.xy("b")[0]) + 6.0
     fixes = [
-        dataclasses.replace(f, distance=0.9 * f.distance, speed=0.9 * f.speed)
+        f._replace(distance=0.9 * f.distance, speed=0.9 * f.speed)
         for f in _stop_drive(m, "nbcd", stop_s=stop_s, bias_x=0.0, bias_y=0.0)
     ]
     res = run(OnlineMatcher(m.graph), fixes)
@@ -1001,13 +999,13 @@ def test_stopped_vehicle_faces_the_way_its_fused_heading_says() -> None:
     ]
     res = run(OnlineMatcher(m.graph), fixes)
     assert all(r.edge == m.edge("b", "a") for r in res[-10:])
-    facing_east = [dataclasses.replace(f, heading=90.0) for f in fixes]
+    facing_east = [f._replace(heading=90.0) for f in fixes]
     assert all(r.edge == m.edge("a", "b") for r in run(OnlineMatcher(m.graph), facing_east)[-10:])
     # neither a GPS course (no heading σ) nor the rule switched off can tell at a standstill
     off = DEFAULT_CONFIG.replace(stopped_heading_weight=0.0)
     for matcher, fs in (
         (OnlineMatcher(m.graph, config=off), fixes),
-        (OnlineMatcher(m.graph), [dataclasses.replace(f, heading_sigma=math.nan) for f in fixes]),
+        (OnlineMatcher(m.graph), [f._replace(heading_sigma=math.nan) for f in fixes]),
     ):
         res = run(matcher, fs)
         assert [r.edge for r in res[-10:]] == [run(matcher, facing_east)[-1].edge] * 10

@@ -6,7 +6,6 @@ are drawn along it with the bias a real receiver has: minutes long, towards the 
 
 from __future__ import annotations
 
-import dataclasses
 import math
 
 import numpy as np
@@ -169,8 +168,8 @@ def test_outage_ending_beside_a_parallel_road(cfg: MatchConfig) -> None:
     for i, f in enumerate(fixes):
         if i0 <= i < i1:
             lon, lat = to_lonlat(amap.graph.crs, *_offset(amap, f, 0.0, -1.3 * (i - i0 + 1)))[0]
-            f = dataclasses.replace(
-                f, lat=float(lat), lon=float(lon), gps_valid=False, pos_sigma=4.0 + 0.04 * 10.0 * (i - i0)
+            f = f._replace(
+                lat=float(lat), lon=float(lon), gps_valid=False, pos_sigma=4.0 + 0.04 * 10.0 * (i - i0)
             )
         out.append(f)
     res = run(m, out)
@@ -193,7 +192,7 @@ def _biased(g: RoadGraph, fixes: list[Fix], dy: float) -> list[Fix]:
     for f in fixes:
         x, y = point_to_xy(g.crs, f.lon, f.lat)
         lon, lat = to_lonlat(g.crs, [x], [y + dy])[0]
-        out.append(dataclasses.replace(f, lon=float(lon), lat=float(lat)))
+        out.append(f._replace(lon=float(lon), lat=float(lat)))
     return out
 
 

@@ -3,7 +3,6 @@
 
 from __future__ import annotations
 
-import dataclasses
 import math
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -39,7 +38,7 @@ def _shifted(m: AsciiMap, fixes: list[Fix], dx: float, dy: float, **kw: float) -
     for f in fixes:
         x, y = _xy(m, f)
         lon, lat = to_lonlat(m.graph.crs, [x + dx], [y + dy])[0]
-        out.append(dataclasses.replace(f, lon=float(lon), lat=float(lat), **kw))
+        out.append(f._replace(lon=float(lon), lat=float(lat), **kw))
     return out
 
 
@@ -194,7 +193,7 @@ def test_stopped_vehicle_stays_stopped_through_odometer_noise_at_10_hz() -> None
     assert per_fix[-1].edge == m.edge("b", "n")
     # at 1 Hz the same stop is one either way
     slow = moving[::10] + standing[9::10]
-    slow = [dataclasses.replace(f, distance=0.0, speed=0.0) if f in standing else f for f in slow]
+    slow = [f._replace(distance=0.0, speed=0.0) if f in standing else f for f in slow]
     assert {r.edge for r in _run(OnlineMatcher(m.graph), slow)[-30:]} == {ab}
 
 
