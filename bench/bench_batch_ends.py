@@ -13,7 +13,7 @@ middle`` the roads go about the true route's midpoint instead (``--cut`` metres 
 the map lacks mid-drive, whose fixes should be left unmatched and the route cut there.
 
     python bench/bench_batch_ends.py                      # cut 300 m, buffer 25 m, S = 1, 10, 30
-    python bench/bench_batch_ends.py --cut 500 --buffer 3 --set batch.off_map_sigmas=4
+    python bench/bench_batch_ends.py --cut 500 --buffer 3 --set batch.outliers.off_map_sigmas=4
     python bench/bench_batch_ends.py --at middle          # a road missing mid-route instead
     python bench/bench_batch_ends.py --engines custom,valhalla,osrm,fastmm   # the peers too
 

@@ -27,7 +27,7 @@ and for phases the mean of offset 0 alone (the main bench's draw). One JSON line
     python bench/bench_batch_robust.py --sets phases --S 60,120,300 --step 1000   # sparse tracks
     python bench/bench_batch_robust.py --sets noise --noise 10,20                 # a worse receiver
     python bench/bench_batch_robust.py --sets jumps --jumps 1,3                   # multipath bursts
-    python bench/bench_batch_robust.py --engines custom --set batch.route_speed=0 --sets phases --S 120
+    python bench/bench_batch_robust.py --engines custom --set batch.route.route_speed=0 --sets phases --S 120
 """
 
 from __future__ import annotations
@@ -172,7 +172,7 @@ def main() -> int:
     ap.add_argument("--summary", type=Path, help="only summarise this file of an earlier run")
     ap.add_argument(
         "--set", action="append", default=[], metavar="SECTION.FIELD=VALUE",
-        help="a setting of our batch config (repeatable), e.g. --set batch.route_speed=25",
+        help="a setting of our batch config (repeatable), e.g. --set batch.route.route_speed=25",
     )  # fmt: skip
     add_run_args(ap)
     a = ap.parse_args()

@@ -322,7 +322,7 @@ def table(rows: list[dict[str, object]]) -> str:
     return "\n".join(lines)
 
 
-CV_GRID = ("model.beta=3,5,8", "online.switch_penalty=5,8,12")
+CV_GRID = ("model.beta=3,5,8", "online.region.switch_penalty=5,8,12")
 """The default grid of ``--cv``: the transition scale β and the cost of jumping to a road the
 filter did not follow (the fixes carry their own σ, so ``model.gps_sigma`` is only a fallback)."""
 

@@ -70,7 +70,7 @@ def load(work: Path) -> BatchMatcher:
         graph,
         config=config,
         ubodt=(
-            Ubodt.build(graph, UBODT_DELTA, turn_cost=config.batch.turn_cost, max_bytes=UBODT_MAX_BYTES)
+            Ubodt.build(graph, UBODT_DELTA, turn_cost=config.batch.route.turn_cost, max_bytes=UBODT_MAX_BYTES)
             if UBODT_DELTA
             else None
         ),

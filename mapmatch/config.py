@@ -3,20 +3,23 @@
 :class:`MatchConfig` has four sections: :class:`ModelConfig` (the probabilistic model both
 inference modes share), :class:`OnlineConfig` (the per-vehicle filter), :class:`BatchConfig`
 (whole-track matching) and :class:`MeasurementConfig` (the online answer's map-aided
-measurement). Every number that changes a result is a field of one of them.
+measurement). ``online`` and ``batch`` are made of sub-sections, one per mechanism (``online``:
+``region``, ``reinit``, ``evidence``, ``bias``, ``stop``, ``anchor``, ``odometer``,
+``corrections``; ``batch``: ``route``, ``track``, ``outliers``, ``split``). Every number that
+changes a result is a field of one of them.
 
-A parameter's name is ``section.field``: ``config.model.gps_sigma`` reads it,
-``config.with_settings(["model.gps_sigma=8"])`` (the CLI's ``--set``) and
-``config.updated({"model": {"gps_sigma": 8}})`` (a TOML table) change it, and
-``config.replace(gps_sigma=8.0)`` changes it by its bare name (names are unique across the
-sections).
+A parameter's name is its dotted path: ``config.online.region.max_hypotheses`` reads it,
+``config.with_settings(["online.region.max_hypotheses=16"])`` (the CLI's ``--set``) and
+``config.updated({"online": {"region": {"max_hypotheses": 16}}})`` (a TOML table) change it,
+and ``config.replace(max_hypotheses=16)`` changes it by its bare name (names are unique across
+all sections).
 """
 
 from __future__ import annotations
 
 import dataclasses
 import math
-from collections.abc import Mapping, Sequence
+from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import dataclass, field, fields
 from functools import cached_property
 from typing import Any
@@ -24,19 +27,45 @@ from typing import Any
 from mapmatch.errors import ConfigError
 
 
+def _full_name(name: str) -> str:
+    """A field's dotted path (``online.region.max_hops``) from its bare name."""
+    return ".".join(_PATHS.get(name, (name,)))
+
+
 def _check_numbers(section: object) -> None:
     """Every field a finite non-negative number; whole numbers where the default is an int."""
     for f in dataclasses.fields(section):  # type: ignore[arg-type]
         v = getattr(section, f.name)
         if isinstance(v, bool) or not isinstance(v, int | float) or not math.isfinite(v) or v < 0:
-            raise ConfigError(f"{f.name} must be a finite non-negative number, got {v!r}")
+            raise ConfigError(f"{_full_name(f.name)} must be a finite non-negative number, got {v!r}")
         if isinstance(f.default, int) and v != int(v):
-            raise ConfigError(f"{f.name} must be a whole number, got {v!r}")
+            raise ConfigError(f"{_full_name(f.name)} must be a whole number, got {v!r}")
+
+
+def _at_least(section: object, least: float, *names: str) -> None:
+    """A :class:`ConfigError` naming the fields of ``names`` below ``least``."""
+    low = [_full_name(n) for n in names if getattr(section, n) < least]
+    if low:
+        raise ConfigError(f"{', '.join(low)} must be at least {least:g}")
+
+
+def _positive(section: object, *names: str) -> None:
+    """A :class:`ConfigError` naming the fields of ``names`` that are zero."""
+    zero = [_full_name(n) for n in names if getattr(section, n) <= 0]
+    if zero:
+        raise ConfigError(f"{', '.join(zero)} must be positive")
+
+
+def _at_most_one(section: object, *names: str) -> None:
+    """A :class:`ConfigError` naming the probabilities of ``names`` above 1."""
+    high = [_full_name(n) for n in names if getattr(section, n) > 1]
+    if high:
+        raise ConfigError(f"{', '.join(high)} must be at most 1")
 
 
 @dataclass(frozen=True)
 class ModelConfig:
-    """The shared probabilistic model (emission, transition) and the candidate search.
+    """The shared probabilistic model (emission, transition) and the candidate search (``model``).
 
     gps_sigma : default 1-σ position error in metres when a fix gives none.
     heading_sigma : default 1-σ heading error in degrees when a fix gives a heading but no accuracy.
@@ -69,18 +98,14 @@ class ModelConfig:
 
     def __post_init__(self) -> None:
         _check_numbers(self)
-        if self.max_candidates < 1:
-            raise ConfigError("max_candidates must be at least 1")
-        if self.gps_sigma <= 0 or self.beta <= 0 or self.heading_sigma <= 0:
-            raise ConfigError("gps_sigma, beta and heading_sigma must be positive")
+        _at_least(self, 1, "max_candidates")
+        _positive(self, "gps_sigma", "beta", "heading_sigma")
 
 
 @dataclass(frozen=True)
-class OnlineConfig:
-    """The online filter (:mod:`mapmatch.online`), grouped by mechanism.
+class RegionConfig:
+    """The path hypotheses, the ambiguous region and when a road is committed (``online.region``).
 
-    Hypotheses and the ambiguous region
-    -----------------------------------
     drift_rate : expected dead-reckoning drift as a fraction of distance (thesis: 0.04).
     ambiguous_min_radius : lower bound of the ambiguous-region radius in metres.
     ambiguous_sigma_factor : the region grows to this many position σ.
@@ -97,173 +122,16 @@ class OnlineConfig:
         or the best is ``ambiguous_max_radius`` past the node. Off by default: it helps on
         exits drawn at a small angle, not on real drives.
     commit_hold_log_ratio : see ``commit_separation_sigmas``.
-    switch_penalty : log-probability penalty of jumping to a road the filter did not follow.
-    soft_reinit_sigmas : the index is searched for other roads when the fix is further than this
-        many σ from the road believed ...
-    against_heading_deg : ... or the fix heads against that road by more than this.
-    search_every : seconds between two such searches at least.
-    reinit_time : seconds of inconsistency before re-initialising.
-    reinit_distance : metres travelled while inconsistent before re-initialising.
-    reinit_sigmas : a fix is inconsistent when further than this many σ from the road.
-    far_off : metres; a fix further than this from the map's bounds is not placed.
-
-    Evidence
-    --------
-    turn_window : odometer metres over which the heading step is measured.
-    turn_sample_spacing : odometer metres between two heading samples kept for it.
-    turn_max_samples : heading samples kept at most (a memory bound per vehicle).
-    turn_threshold : degrees of heading change that count as a turn.
-    turn_sigma : degrees; spread of the observed heading change around a path's predicted one.
-    evidence_time : seconds of fixes that count as one independent observation (the fused
-        position's error is correlated in time, so 10 Hz fixes must not count ten times).
-    evidence_distance : metres travelled that count as one independent observation, when the
-        distance travelled is known (a stopped vehicle's repeated fixes add no evidence).
-    pos_sigma_floor : metres; the least position σ of a fix (reported ones are optimistic).
-    heading_sigma_floor_deg : the least heading σ of a GPS-aided fix ...
-    heading_sigma_floor_dr_deg : ... and of a dead-reckoning one.
-    residual_time : seconds over which the road residuals (position, heading) are averaged.
-    learned_pos_sigma_max : metres; most position σ the residuals may teach.
-    learned_heading_sigma_max_deg : most heading σ the residuals may teach.
-
-    Dead reckoning
-    --------------
-    dr_sigma_growth : fraction of distance travelled since the last GPS-aided fix added to σ.
-    drift_decay_time : seconds over which the dead-reckoning drift σ decays once GPS is back.
-        A fusion filter whose covariance grew in the outage takes most of the first fix, so
-        the decay is short: a long one leaves the matcher trusting the dead-reckoned road long
-        after GPS is back.
-
-    Stop line and nodes
-    -------------------
-    stop_speed : m/s; below this (from the odometer) the vehicle is stopped: its position may
-        move back along the path but never on across a node (no flicker at a stop line).
-    stop_time : seconds; the speed compared with ``stop_speed`` is the odometer's averaged over
-        this long (exponentially), whatever the fix rate: over 0.1 s an odometer's noise of a
-        few centimetres reads as walking pace, and a parked vehicle at 10 Hz kept moving on.
-    zero_speed : m/s; below this odometer speed (averaged over ``stop_time``) the vehicle
-        stands and the fix's distance counts as zero (a zero-velocity update): a speed sensor's
-        noise at a standstill is never negative, so at 10 Hz its sum crept a parked vehicle
-        forward by metres a minute, carrying the along-track anchor ahead of it (0 disables it).
-    stop_hold_distance : metres; a vehicle that stops less than this past a node it went
-        straight through (or has not yet turned at, by its heading) is placed before the node:
-        vehicles stop at stop lines, not in junctions. About the fixes' along-track error:
-        further, the vehicle is more likely to have stopped past the node, and a longer hold
-        would put such vehicles back before it.
-    node_hold_sigmas : a vehicle past a node goes back across it only when the fix lies more
-        than this many σ before it (no flicker at a crossing).
-    still_distance : metres; moving less than this between fixes, the vehicle stands.
-
-    Fix bias
-    --------
-    bias_time : seconds; correlation time of the fix's position error, learnt across roads
-        of different directions to correct the along-track position (0 disables it).
-    bias_white_fraction : the share of the fix's σ that is white (not learnt as bias).
-
-    Turn anchor and odometer scale
-    ------------------------------
-    turn_anchor_sigma : metres; the least σ of the along-path position a turn gives (the fused
-        headings aligned with the path's bearing profile); 0 disables the anchor.
-    anchor_gate : a turn anchor further than this many σ from the fix is dropped.
-    align_search : metres; a turn's heading profile is searched within this plus ...
-    align_search_sigmas : ... this many fix σ of the position believed, up to ...
-    align_search_max : ... this many metres.
-    align_heading_sigma_min_deg : the least heading σ the alignment assumes.
-    align_rms_max_deg : a worse fit: the path is not what the vehicle drove, no anchor.
-    align_cover : metres; the heading samples must reach this far either side of the node.
-    odo_scale_sigma : prior σ of the odometer's relative distance error. The turn anchor is
-        carried along the path by the odometer, whose scale is learnt from anchor to anchor;
-        the anchor's σ grows by the learnt scale's σ of the distance.
-    odo_scale_floor : relative odometer error left after learning its scale.
-    odo_scale_max : the largest relative scale error learnt.
-    scale_min_distance : metres; turn anchors closer than this teach nothing about the scale ...
-    scale_max_distance : ... and further apart the path between them is more likely wrong.
-    scale_path_error : relative error of a path's length between turn anchors.
-    scale_baseline : metres; the odometer scale is also learnt from the GPS: the straight line
-        between two GPS-aided fixes this far apart by the odometer, on a road whose bearing
-        stays within ``scale_straight_deg`` all the way (0 disables it).
-    scale_straight_deg : see ``scale_baseline``.
-
-    Parallel roads and the return of GPS
-    ------------------------------------
-    neighbour_band : metres; roads this close to an edge at a similar bearing (parallel roads,
-        fork branches) are its neighbours, tabled once per map (read when the matcher is made).
-    neighbour_sigmas : the neighbours of the road believed join the filter when a GPS-aided fix
-        is further than this many σ from it (0 disables it).
-    return_sigmas : on the first GPS-aided fix with a heading after dead reckoning (and, at most
-        every ``search_every``, on those after it while the drift σ blends out), when it is
-        further than this many of its own σ from the road believed, the roads near it join the
-        filter at once, weighed at its own σ (not the drift's): it is the truth, not an outlier
-        (0 disables it).
-
-    Corrections and the report
-    --------------------------
-    max_live : most fixes of an ambiguous region remembered for corrections ...
-    live_spacing : ... at most one per this many seconds, or on an edge change.
-    correction_margin : a fix reported on an edge of the committed path stays as reported while
-        the smoother's cost there is within this of its own choice.
-    trail_step : metres; the odometer trail for re-timing crossings keeps a point this often ...
-    trail_max : ... at most this many points ...
-    trail_max_distance : ... and crossings at most this many metres back.
-    max_path_edges : most edges an imported session may hold in one path list (a hypothesis's
-        path, the edges since the last turn anchor): with ``max_hypotheses``,
-        ``max_candidates``, ``max_live``, ``turn_max_samples`` and ``trail_max`` it bounds the
-        work one imported session can cost (the matcher's own paths hold a few dozen edges).
-    revise_sigmas : a revised crossing moves only as far as its anchor is this many σ sure.
-    report_back_ratio : reporting an edge behind the one reported needs this much more mass.
-
-    Stops with GPS
-    --------------
-    stop_hold_fix_distance : metres; the stop line holds a stopped vehicle back before a node
-        only when the fix's own projection, too, lies less than this past the node (the
-        position believed may lag the fix by its along-track correction, several metres;
-        where the vehicle stands, the fixes show; checked only on GPS-aided fixes with no
-        dead-reckoning drift left above their own σ). 0: not checked.
-
-    Forks and parallel roads with GPS
-    ---------------------------------
-    bias_emission : share of the learnt fix bias's part across the road taken off a GPS-aided
-        fix's distance from each road when the paths are weighed: the receiver's error lasts
-        minutes, so a fix that has lain 10 m left of the road is no evidence for the road
-        10 m to the left (0 disables it). Half: the learnt bias is an estimate, and taking all
-        of it off lets a single fix flip the road believed.
     commit_hold_probability : a node is not committed while the paths its commit would drop
         (another branch of a fork) still hold more than this share of the probability, until
         the best path is ``ambiguous_max_radius`` past it: leaving the ambiguous circle is no
         evidence (0 disables it).
-
-    Fix rate and outages (rate-independent rules)
-    ---------------------------------------------
-    speed_time : seconds; the transition's speed penalty judges the distance along the path over
-        at least this long. Between fixes 0.1 s apart the positions' own noise (a lagging
-        estimate catching up with its fix, 10 m in one step) would read as an impossible speed,
-        which one second of the same motion is not: at 10 Hz the vehicle would stick behind a
-        node.
-    stopped_heading_weight : a stopped vehicle's fused heading (a fix with ``heading_sigma``,
-        gyro-aided, which holds at a standstill where a GPS course does not) scores the paths
-        with this share of the fix's time weight, the share its distance weight leaves out: a
-        vehicle turning round while stopped at a node shows which road it faces (0 disables it).
     outage_separation_sigmas : ``commit_separation_sigmas`` for a node passed without GPS: the
         dead-reckoned position cannot tell branches a few metres apart, while their headings
         soon will (a ramp curving off a straight road), so they stay alive until the evidence or
         the returning GPS decides, or the best is ``ambiguous_max_radius`` past the node
         (0 disables it).
-    node_hold_ahead_sigmas : a fix past the end node of the edge the vehicle is on keeps it at
-        that node while it lies within this many σ along the next edge (the fix's along-track
-        noise); further on (and at 0, at once) the next edge takes it. Held there the position
-        moves by nothing while the odometer moves on, which at 10 Hz is under a metre a step:
-        the transition over one step keeps it there until the fix is this far past. A high
-        fix rate's lagging position a few metres past a straight crossing is then at times
-        reported before it; at 0 the next edge takes it at once, but so does white fix noise
-        at a node, too early. The hold stays until a rule tells the noise at a node from the
-        lag.
-    step_from_corrected : with GPS, the step from a hypothesis's place (where the along-track
-        correction put it: the fix's projection less the learnt fix bias along the road, fused
-        with the turn anchor) to a candidate point is judged to the point's place corrected
-        alike, by this share of the correction (0: to the point's uncorrected projection,
-        which counts the offset between a projection and its corrected place against every
-        step, ten times a second at 10 Hz). A place the path's turn stops short of its
-        estimate pays by the correction's miss, and its step is judged to the estimate by the
-        same share.
+    switch_penalty : log-probability penalty of jumping to a road the filter did not follow.
     """
 
     drift_rate: float = 0.04
@@ -278,14 +146,76 @@ class OnlineConfig:
     init_commit_probability: float = 0.99
     commit_separation_sigmas: float = 0.0
     commit_hold_log_ratio: float = 7.0
+    commit_hold_probability: float = 0.05
+    outage_separation_sigmas: float = 2.0
     switch_penalty: float = 8.0
+
+    def __post_init__(self) -> None:
+        _check_numbers(self)
+        _at_least(self, 1, "max_hypotheses", "max_hops")
+        _at_most_one(self, "init_commit_probability")
+
+
+@dataclass(frozen=True)
+class ReinitConfig:
+    """When the filter searches the map again: inconsistent fixes, re-initialisation, parallel
+    roads and the return of GPS (``online.reinit``).
+
+    soft_reinit_sigmas : the index is searched for other roads when the fix is further than this
+        many σ from the road believed ...
+    against_heading_deg : ... or the fix heads against that road by more than this.
+    search_every : seconds between two such searches at least.
+    reinit_sigmas : a fix is inconsistent when further than this many σ from the road.
+    reinit_time : seconds of inconsistency before re-initialising.
+    reinit_distance : metres travelled while inconsistent before re-initialising.
+    far_off : metres; a fix further than this from the map's bounds is not placed.
+    neighbour_band : metres; roads this close to an edge at a similar bearing (parallel roads,
+        fork branches) are its neighbours, tabled once per map (read when the matcher is made).
+    neighbour_sigmas : the neighbours of the road believed join the filter when a GPS-aided fix
+        is further than this many σ from it (0 disables it).
+    return_sigmas : on the first GPS-aided fix with a heading after dead reckoning (and, at most
+        every ``search_every``, on those after it while the drift σ blends out), when it is
+        further than this many of its own σ from the road believed, the roads near it join the
+        filter at once, weighed at its own σ (not the drift's): it is the truth, not an outlier
+        (0 disables it).
+    """
+
     soft_reinit_sigmas: float = 3.0
     against_heading_deg: float = 100.0
     search_every: float = 1.0
+    reinit_sigmas: float = 4.0
     reinit_time: float = 10.0
     reinit_distance: float = 100.0
-    reinit_sigmas: float = 4.0
     far_off: float = 100_000.0
+    neighbour_band: float = 40.0
+    neighbour_sigmas: float = 0.0
+    return_sigmas: float = 2.0
+
+    def __post_init__(self) -> None:
+        _check_numbers(self)
+
+
+@dataclass(frozen=True)
+class EvidenceConfig:
+    """What a fix weighs: the turn seen, its evidence weight and its least σ (``online.evidence``).
+
+    turn_window : odometer metres over which the heading step is measured.
+    turn_sample_spacing : odometer metres between two heading samples kept for it.
+    turn_max_samples : heading samples kept at most (a memory bound per vehicle).
+    turn_threshold : degrees of heading change that count as a turn.
+    turn_sigma : degrees; spread of the observed heading change around a path's predicted one.
+    evidence_time : seconds of fixes that count as one independent observation (the fused
+        position's error is correlated in time, so 10 Hz fixes must not count ten times).
+    evidence_distance : metres travelled that count as one independent observation, when the
+        distance travelled is known (a stopped vehicle's repeated fixes add no evidence).
+    stopped_heading_weight : a stopped vehicle's fused heading (a fix with ``heading_sigma``,
+        gyro-aided, which holds at a standstill where a GPS course does not) scores the paths
+        with this share of the fix's time weight, the share its distance weight leaves out: a
+        vehicle turning round while stopped at a node shows which road it faces (0 disables it).
+    pos_sigma_floor : metres; the least position σ of a fix (reported ones are optimistic).
+    heading_sigma_floor_deg : the least heading σ of a GPS-aided fix ...
+    heading_sigma_floor_dr_deg : ... and of a dead-reckoning one.
+    """
 
     turn_window: float = 30.0
     turn_sample_spacing: float = 1.0
@@ -294,25 +224,133 @@ class OnlineConfig:
     turn_sigma: float = 20.0
     evidence_time: float = 1.0
     evidence_distance: float = 5.0
+    stopped_heading_weight: float = 1.0
     pos_sigma_floor: float = 2.0
     heading_sigma_floor_deg: float = 10.0
     heading_sigma_floor_dr_deg: float = 15.0
-    residual_time: float = 20.0
-    learned_pos_sigma_max: float = 10.0
-    learned_heading_sigma_max_deg: float = 30.0
+
+    def __post_init__(self) -> None:
+        _check_numbers(self)
+        _positive(self, "turn_sigma", "evidence_time", "evidence_distance")
+
+
+@dataclass(frozen=True)
+class BiasConfig:
+    """The fix's error: dead-reckoning drift, the learnt fix bias and residuals, and the
+    along-track correction (``online.bias``).
+
+    dr_sigma_growth : fraction of distance travelled since the last GPS-aided fix added to σ.
+    drift_decay_time : seconds over which the dead-reckoning drift σ decays once GPS is back.
+        A fusion filter whose covariance grew in the outage takes most of the first fix, so
+        the decay is short: a long one leaves the matcher trusting the dead-reckoned road long
+        after GPS is back.
+    bias_time : seconds; correlation time of the fix's position error, learnt across roads
+        of different directions to correct the along-track position (0 disables it).
+    bias_white_fraction : the share of the fix's σ that is white (not learnt as bias).
+    bias_emission : share of the learnt fix bias's part across the road taken off a GPS-aided
+        fix's distance from each road when the paths are weighed: the receiver's error lasts
+        minutes, so a fix that has lain 10 m left of the road is no evidence for the road
+        10 m to the left (0 disables it). Half: the learnt bias is an estimate, and taking all
+        of it off lets a single fix flip the road believed.
+    residual_time : seconds over which the road residuals (position, heading) are averaged.
+    learned_pos_sigma_max : metres; most position σ the residuals may teach.
+    learned_heading_sigma_max_deg : most heading σ the residuals may teach.
+    step_from_corrected : with GPS, the step from a hypothesis's place (where the along-track
+        correction put it: the fix's projection less the learnt fix bias along the road, fused
+        with the turn anchor) to a candidate point is judged to the point's place corrected
+        alike, by this share of the correction (0: to the point's uncorrected projection,
+        which counts the offset between a projection and its corrected place against every
+        step, ten times a second at 10 Hz). A place the path's turn stops short of its
+        estimate pays by the correction's miss, and its step is judged to the estimate by the
+        same share.
+    """
 
     dr_sigma_growth: float = 0.04
     drift_decay_time: float = 4.0
+    bias_time: float = 30.0
+    bias_white_fraction: float = 0.5
+    bias_emission: float = 0.5
+    residual_time: float = 20.0
+    learned_pos_sigma_max: float = 10.0
+    learned_heading_sigma_max_deg: float = 30.0
+    step_from_corrected: float = 1.0
+
+    def __post_init__(self) -> None:
+        _check_numbers(self)
+        _positive(self, "drift_decay_time", "residual_time", "bias_white_fraction")
+
+
+@dataclass(frozen=True)
+class StopConfig:
+    """Stops, nodes, and the rules that hold at any fix rate (``online.stop``).
+
+    stop_speed : m/s; below this (from the odometer) the vehicle is stopped: its position may
+        move back along the path but never on across a node (no flicker at a stop line).
+    stop_time : seconds; the speed compared with ``stop_speed`` is the odometer's averaged over
+        this long (exponentially), whatever the fix rate: over 0.1 s an odometer's noise of a
+        few centimetres reads as walking pace, and a parked vehicle at 10 Hz kept moving on.
+    zero_speed : m/s; below this odometer speed (averaged over ``stop_time``) the vehicle
+        stands and the fix's distance counts as zero (a zero-velocity update): a speed sensor's
+        noise at a standstill is never negative, so at 10 Hz its sum crept a parked vehicle
+        forward by metres a minute, carrying the along-track anchor ahead of it (0 disables it).
+    still_distance : metres; moving less than this between fixes, the vehicle stands.
+    stop_hold_distance : metres; a vehicle that stops less than this past a node it went
+        straight through (or has not yet turned at, by its heading) is placed before the node:
+        vehicles stop at stop lines, not in junctions. About the fixes' along-track error:
+        further, the vehicle is more likely to have stopped past the node, and a longer hold
+        would put such vehicles back before it.
+    stop_hold_fix_distance : metres; the stop line holds a stopped vehicle back before a node
+        only when the fix's own projection, too, lies less than this past the node (the
+        position believed may lag the fix by its along-track correction, several metres;
+        where the vehicle stands, the fixes show; checked only on GPS-aided fixes with no
+        dead-reckoning drift left above their own σ). 0: not checked.
+    node_hold_sigmas : a vehicle past a node goes back across it only when the fix lies more
+        than this many σ before it (no flicker at a crossing).
+    node_hold_ahead_sigmas : a fix past the end node of the edge the vehicle is on keeps it at
+        that node while it lies within this many σ along the next edge (the fix's along-track
+        noise); further on (and at 0, at once) the next edge takes it. Held there the position
+        moves by nothing while the odometer moves on, which at 10 Hz is under a metre a step:
+        the transition over one step keeps it there until the fix is this far past. A high
+        fix rate's lagging position a few metres past a straight crossing is then at times
+        reported before it; at 0 the next edge takes it at once, but so does white fix noise
+        at a node, too early. The hold stays until a rule tells the noise at a node from the
+        lag.
+    speed_time : seconds; the transition's speed penalty judges the distance along the path over
+        at least this long. Between fixes 0.1 s apart the positions' own noise (a lagging
+        estimate catching up with its fix, 10 m in one step) would read as an impossible speed,
+        which one second of the same motion is not: at 10 Hz the vehicle would stick behind a
+        node.
+    """
 
     stop_speed: float = 0.5
     stop_time: float = 1.0
     zero_speed: float = 0.2
-    stop_hold_distance: float = 4.0
-    node_hold_sigmas: float = 0.5
     still_distance: float = 0.05
+    stop_hold_distance: float = 4.0
+    stop_hold_fix_distance: float = 4.0
+    node_hold_sigmas: float = 0.5
+    node_hold_ahead_sigmas: float = 0.5
+    speed_time: float = 1.0
 
-    bias_time: float = 30.0
-    bias_white_fraction: float = 0.5
+    def __post_init__(self) -> None:
+        _check_numbers(self)
+        _positive(self, "stop_time")
+
+
+@dataclass(frozen=True)
+class AnchorConfig:
+    """The turn anchor: the along-path position a turn gives (``online.anchor``).
+
+    turn_anchor_sigma : metres; the least σ of the along-path position a turn gives (the fused
+        headings aligned with the path's bearing profile); 0 disables the anchor.
+    anchor_gate : a turn anchor further than this many σ from the fix is dropped.
+    align_search : metres; a turn's heading profile is searched within this plus ...
+    align_search_sigmas : ... this many fix σ of the position believed, up to ...
+    align_search_max : ... this many metres.
+    align_heading_sigma_min_deg : the least heading σ the alignment assumes.
+    align_rms_max_deg : a worse fit: the path is not what the vehicle drove, no anchor.
+    align_cover : metres; the heading samples must reach this far either side of the node.
+    """
 
     turn_anchor_sigma: float = 1.0
     anchor_gate: float = 3.0
@@ -322,6 +360,29 @@ class OnlineConfig:
     align_heading_sigma_min_deg: float = 3.0
     align_rms_max_deg: float = 20.0
     align_cover: float = 3.0
+
+    def __post_init__(self) -> None:
+        _check_numbers(self)
+
+
+@dataclass(frozen=True)
+class OdometerConfig:
+    """The odometer's scale, learnt from turn anchors and from GPS baselines (``online.odometer``).
+
+    odo_scale_sigma : prior σ of the odometer's relative distance error. The turn anchor is
+        carried along the path by the odometer, whose scale is learnt from anchor to anchor;
+        the anchor's σ grows by the learnt scale's σ of the distance.
+    odo_scale_floor : relative odometer error left after learning its scale.
+    odo_scale_max : the largest relative scale error learnt.
+    scale_min_distance : metres; turn anchors closer than this teach nothing about the scale ...
+    scale_max_distance : ... and further apart the path between them is more likely wrong.
+    scale_path_error : relative error of a path's length between turn anchors.
+    scale_baseline : metres; the odometer scale is also learnt from the GPS: the straight line
+        between two GPS-aided fixes this far apart by the odometer, on a road whose bearing
+        stays within ``scale_straight_deg`` all the way (0 disables it).
+    scale_straight_deg : see ``scale_baseline``.
+    """
+
     odo_scale_sigma: float = 0.02
     odo_scale_floor: float = 0.002
     odo_scale_max: float = 0.2
@@ -331,9 +392,28 @@ class OnlineConfig:
     scale_baseline: float = 300.0
     scale_straight_deg: float = 3.0
 
-    neighbour_band: float = 40.0
-    neighbour_sigmas: float = 0.0
-    return_sigmas: float = 2.0
+    def __post_init__(self) -> None:
+        _check_numbers(self)
+
+
+@dataclass(frozen=True)
+class CorrectionsConfig:
+    """The corrections of an ambiguous region, re-timed crossings and the report (``online.corrections``).
+
+    max_live : most fixes of an ambiguous region remembered for corrections ...
+    live_spacing : ... at most one per this many seconds, or on an edge change.
+    correction_margin : a fix reported on an edge of the committed path stays as reported while
+        the smoother's cost there is within this of its own choice.
+    trail_step : metres; the odometer trail for re-timing crossings keeps a point this often ...
+    trail_max : ... at most this many points ...
+    trail_max_distance : ... and crossings at most this many metres back.
+    max_path_edges : most edges an imported session may hold in one path list (a hypothesis's
+        path, the edges since the last turn anchor): with ``max_hypotheses``,
+        ``max_candidates``, ``max_live``, ``turn_max_samples`` and ``trail_max`` it bounds the
+        work one imported session can cost (the matcher's own paths hold a few dozen edges).
+    revise_sigmas : a revised crossing moves only as far as its anchor is this many σ sure.
+    report_back_ratio : reporting an edge behind the one reported needs this much more mass.
+    """
 
     max_live: int = 48
     live_spacing: float = 0.5
@@ -345,43 +425,48 @@ class OnlineConfig:
     revise_sigmas: float = 1.0
     report_back_ratio: float = 3.0
 
-    # stops with GPS
-    stop_hold_fix_distance: float = 4.0
-    # forks and parallel roads with GPS
-    commit_hold_probability: float = 0.05
-    bias_emission: float = 0.5
-    # fix rate and outages
-    speed_time: float = 1.0
-    outage_separation_sigmas: float = 2.0
-    node_hold_ahead_sigmas: float = 0.5
-    stopped_heading_weight: float = 1.0
-    step_from_corrected: float = 1.0
-
     def __post_init__(self) -> None:
         _check_numbers(self)
-        if (
-            min(self.max_hypotheses, self.max_hops, self.max_live) < 1
-            or self.trail_max < 2
-            or self.max_path_edges < 2
-        ):
-            raise ConfigError(
-                "max_hypotheses, max_hops and max_live must be at least 1, trail_max and max_path_edges 2"
-            )
-        if self.init_commit_probability > 1:
-            raise ConfigError("init_commit_probability must be at most 1")
-        times = (self.evidence_time, self.drift_decay_time, self.stop_time)
-        if min(self.turn_sigma, self.evidence_distance, *times) <= 0:
-            raise ConfigError(
-                "turn_sigma, evidence_time, evidence_distance, drift_decay_time and stop_time "
-                "must be positive"
-            )
-        if min(self.residual_time, self.bias_white_fraction, self.trail_step) <= 0:
-            raise ConfigError("residual_time, bias_white_fraction and trail_step must be positive")
+        _at_least(self, 1, "max_live")
+        _at_least(self, 2, "trail_max", "max_path_edges")
+        _positive(self, "trail_step")
 
 
 @dataclass(frozen=True)
-class BatchConfig:
-    """Whole-track matching (:mod:`mapmatch.batch`).
+class OnlineConfig:
+    """The online filter (:mod:`mapmatch.online`): one sub-section per mechanism.
+
+    region : the path hypotheses, the ambiguous region and when a road is committed
+        (:mod:`mapmatch.online.region`, :mod:`mapmatch.online.hypotheses`).
+    reinit : when the filter searches the map again: inconsistent fixes, re-initialisation,
+        parallel roads and the return of GPS (:mod:`mapmatch.online.matcher`).
+    evidence : what a fix weighs: the turn seen, the evidence weight of a fix, the σ floors
+        (:mod:`mapmatch.online.step`, :mod:`mapmatch.online.placement`).
+    bias : the fix's error: dead-reckoning drift, the learnt bias and residuals, the
+        along-track correction (:mod:`mapmatch.online.bias`).
+    stop : stops, nodes and the fix rate (:mod:`mapmatch.online.stopline`, the transition).
+    anchor : the turn anchor (:mod:`mapmatch.online.anchor`).
+    odometer : the odometer's learnt scale (:mod:`mapmatch.online.anchor`).
+    corrections : the corrections of an ambiguous region, re-timed crossings and the report
+        (:mod:`mapmatch.online.correction`, :mod:`mapmatch.online.report`).
+    """
+
+    region: RegionConfig = field(default_factory=RegionConfig)
+    reinit: ReinitConfig = field(default_factory=ReinitConfig)
+    evidence: EvidenceConfig = field(default_factory=EvidenceConfig)
+    bias: BiasConfig = field(default_factory=BiasConfig)
+    stop: StopConfig = field(default_factory=StopConfig)
+    anchor: AnchorConfig = field(default_factory=AnchorConfig)
+    odometer: OdometerConfig = field(default_factory=OdometerConfig)
+    corrections: CorrectionsConfig = field(default_factory=CorrectionsConfig)
+
+    def __post_init__(self) -> None:
+        _check_sections(self)
+
+
+@dataclass(frozen=True)
+class RouteConfig:
+    """The route between two fixes: its search bounds and its costs (``batch.route``).
 
     max_route_factor : routes longer than this times the straight line (+ ``route_slack``) are cut.
     route_slack : metres added to the bound of each routing search (and ``turn_cost``: the
@@ -402,22 +487,107 @@ class BatchConfig:
         turn costs count as metres wherever its length is used (the transition, the search
         bound, the speed checks). A route table (:class:`~mapmatch.route_table.Ubodt`) holds one turn cost; a
         matcher uses it only for configs with that turn cost.
-    gap_time : seconds; fixes further apart in time than this are matched as separate pieces
-        (a parked vehicle, a logger switched off), however near they are (0: time never
-        splits; the route is then cut only by distance, off-map runs and impossible steps).
-    gap_distance : metres between consecutive fixes beyond which a step faster on average than
-        ``split_speed`` splits the track (a jump: two drives joined, a clock error); a slower
-        one was driven (a logger off, a sparse track) and its route is searched as any step's
-        (0: distance never splits).
-    outlier_distance : a fix further than this from every road is unmatched.
-    interpolate_distance : fixes closer than this to the previous kept fix are interpolated.
-    emission_prune : candidates whose emission log-probability is this far below their fix's
-        best are dropped.
-    reverse_tolerance : metres a candidate may fall behind the previous one on the same edge and
-        count as standing.
     route_lp_cut : routes are searched only as a fallback beyond the travelled distance plus
         this many β (the base ``beta``, without ``beta_per_m``'s growth: a wider first search
         costs time on dense maps without changing the matches).
+    reverse_tolerance : metres a candidate may fall behind the previous one on the same edge and
+        count as standing.
+    stop_uturn_speed : m/s; a step slower than this on average (over at least
+        ``stop_uturn_time``) spans a stop ...
+    stop_uturn_time : ... of at least this many seconds, ...
+    stop_uturn_penalty : ... across which turning round at a junction costs this U-turn
+        penalty (turning round there, e.g. in a yard off the mapped road, is common; mid-road
+        U-turns keep the full penalty). 0.5 keeps a small preference for driving on; much more
+        and a car that stops in a turning loop and turns back at its junction is matched round
+        the loop.
+    speed_limit_factor : where the map has speed limits (posted, or the default of the road's
+        class), a step faster on average than this times the higher limit of its two roads ...
+    speed_limit_penalty : ... costs this log-probability per m/s beyond (0 disables it; maps
+        without limits are unaffected).
+    """
+
+    max_route_factor: float = 3.0
+    route_slack: float = 100.0
+    route_speed: float = 25.0
+    beta_per_s: float = 0.5
+    turn_cost: float = 20.0
+    route_lp_cut: float = 30.0
+    reverse_tolerance: float = 10.0
+    stop_uturn_speed: float = 1.0
+    stop_uturn_time: float = 5.0
+    stop_uturn_penalty: float = 0.5
+    speed_limit_factor: float = 1.5
+    speed_limit_penalty: float = 0.5
+
+    def __post_init__(self) -> None:
+        _check_numbers(self)
+
+
+@dataclass(frozen=True)
+class TrackConfig:
+    """The track's own σ, thinning, the fixes' σ floors and the direction of travel (``batch.track``).
+
+    interpolate_distance : fixes closer than this to the previous kept fix are interpolated.
+    track_sigma_max : metres; a track's fixes without their own accuracy take the larger of
+        ``gps_sigma`` and the track's own σ, up to this: 1.4826 times the median distance of its
+        fixes to their nearest road (Newson and Krumm's robust estimate: a worse receiver
+        shows in how far its fixes lie from the roads). 0: always ``gps_sigma``. The σ counts
+        in the emissions, the off-map limit and the jump rule.
+    thin_sigmas : a track whose own σ exceeds ``gps_sigma`` is thinned (as by
+        ``interpolate_distance``) at this many times the excess: a worse receiver's fixes
+        close together share their error, so they are less evidence than their number says
+        (0: never; ``bench/bench_batch_robust.py --sets noise`` adds error to real tracks to
+        judge it).
+    track_pos_sigma_floor : metres; the least position σ of a fix's own accuracy (a reported σ near
+        zero would make one fix outweigh the whole track).
+    track_heading_sigma_floor_deg : the least heading σ (degrees) of a fix's own heading or of
+        the direction of travel.
+    motion_heading_sigma : degrees; where a fix has no heading, the direction of travel from
+        its neighbours (both legs at least ``motion_min_distance`` metres, turning by at most
+        ``straight_max_deg``) is its heading with this σ against the road's bearing and
+        one-way direction (0 disables it).
+    motion_min_distance : see ``motion_heading_sigma``. Short: consecutive fixes share most of
+        their error, so even a slow vehicle's legs of a few metres tell its direction.
+    motion_end_leg_max : metres; the track's first and last fix take the direction of travel
+        of their neighbour's two legs only where their own leg is at most this long (0: any
+        length). A turn at a junction soon after the first fix, or soon before the last, leaves
+        both legs straight: over a long leg it goes unseen, and the direction it gives would put
+        the fix on the road turned onto, across the corner. At 1 Hz (legs of up to 30 m) the
+        end fixes keep it; at one fix every 10 or 30 s they do not.
+    """
+
+    interpolate_distance: float = 0.0
+    track_sigma_max: float = 30.0
+    thin_sigmas: float = 6.0
+    track_pos_sigma_floor: float = 0.5
+    track_heading_sigma_floor_deg: float = 1.0
+    motion_heading_sigma: float = 30.0
+    motion_min_distance: float = 8.0
+    motion_end_leg_max: float = 50.0
+
+    def __post_init__(self) -> None:
+        _check_numbers(self)
+
+
+@dataclass(frozen=True)
+class OutliersConfig:
+    """Fixes off the map, jumps, and the fixes left out as outliers (``batch.outliers``).
+
+    outlier_distance : a fix further than this from every road is unmatched.
+    off_map_sigmas : a fix further than this many σ from every road is off the map: unmatched,
+        never routed to a far road (``outlier_distance`` caps it).
+    off_map_min_run : fewer fixes than this in a row with a road, between off-map fixes, are
+        off the map too (a fix near some road amid a run off it is no evidence; 1 disables it).
+    emission_prune : candidates whose emission log-probability is this far below their fix's
+        best are dropped.
+    spike_speed : m/s; a fix the track reaches and leaves in opposite directions, both legs
+        longer than ``spike_sigmas`` σ, is dropped as a jump when visiting it needs more than
+        this mean speed between its neighbours (turning round needs slowing down; 0 disables).
+    spike_sigmas : see ``spike_speed``.
+    spike_max_time : seconds; a jump may also be a run of fixes lasting up to this (a
+        multipath burst): such a run, reached and left in opposite directions, is dropped as
+        one when visiting it needs more than ``spike_speed`` (the shortest such run; 0: single
+        fixes only). Short, as a car cannot turn round at that speed within a few seconds.
     max_skip : fixes in a row that may be left out as unreachable outliers before the track is
         split.
     outlier_lookahead : 1: where a fix cannot be reached from the previous kept fix, also try
@@ -439,14 +609,36 @@ class BatchConfig:
     leave_out_cost : log-probability each fix left out as an outlier costs where leaving fixes
         out competes with visiting them (``outlier_lookahead``): 12.5 = ½ 5², a fix at the
         off-map limit of 5 σ. The other choice is taken only if it wins by more than this.
-    stop_uturn_speed : m/s; a step slower than this on average (over at least
-        ``stop_uturn_time``) spans a stop ...
-    stop_uturn_time : ... of at least this many seconds, ...
-    stop_uturn_penalty : ... across which turning round at a junction costs this U-turn
-        penalty (turning round there, e.g. in a yard off the mapped road, is common; mid-road
-        U-turns keep the full penalty). 0.5 keeps a small preference for driving on; much more
-        and a car that stops in a turning loop and turns back at its junction is matched round
-        the loop.
+    """
+
+    outlier_distance: float = 100.0
+    off_map_sigmas: float = 5.0
+    off_map_min_run: int = 2
+    emission_prune: float = 12.5
+    spike_speed: float = 20.0
+    spike_sigmas: float = 3.0
+    spike_max_time: float = 5.0
+    max_skip: int = 8
+    outlier_lookahead: int = 1
+    leave_out_cost: float = 12.5
+
+    def __post_init__(self) -> None:
+        _check_numbers(self)
+        if self.outlier_lookahead not in (0, 1):
+            raise ConfigError(f"{_full_name('outlier_lookahead')} must be 0 or 1")
+
+
+@dataclass(frozen=True)
+class SplitConfig:
+    """Where a track is split into pieces or its route cut (``batch.split``).
+
+    gap_time : seconds; fixes further apart in time than this are matched as separate pieces
+        (a parked vehicle, a logger switched off), however near they are (0: time never
+        splits; the route is then cut only by distance, off-map runs and impossible steps).
+    gap_distance : metres between consecutive fixes beyond which a step faster on average than
+        ``split_speed`` splits the track (a jump: two drives joined, a clock error); a slower
+        one was driven (a logger off, a sparse track) and its route is searched as any step's
+        (0: distance never splits).
     split_speed : m/s; a step whose route is longer than the straight line between its fixes
         by more than this times its time (plus ``split_slack`` metres of noise) is impossible:
         the fix is left out as an outlier, or the match splits there (0 disables the check).
@@ -466,32 +658,6 @@ class BatchConfig:
         lies above the detours true routes take (a U-turn's penalty comes on top), so it cuts
         only the ways round a map that lacks the road (``bench/bench_batch_ends.py`` removes
         the roads at a true route's ends to see how much road a match adds there).
-    spike_speed : m/s; a fix the track reaches and leaves in opposite directions, both legs
-        longer than ``spike_sigmas`` σ, is dropped as a jump when visiting it needs more than
-        this mean speed between its neighbours (turning round needs slowing down; 0 disables).
-    spike_sigmas : see ``spike_speed``.
-    spike_max_time : seconds; a jump may also be a run of fixes lasting up to this (a
-        multipath burst): such a run, reached and left in opposite directions, is dropped as
-        one when visiting it needs more than ``spike_speed`` (the shortest such run; 0: single
-        fixes only). Short, as a car cannot turn round at that speed within a few seconds.
-    off_map_sigmas : a fix further than this many σ from every road is off the map: unmatched,
-        never routed to a far road (``outlier_distance`` caps it).
-    track_sigma_max : metres; a track's fixes without their own accuracy take the larger of
-        ``gps_sigma`` and the track's own σ, up to this: 1.4826 times the median distance of its
-        fixes to their nearest road (Newson and Krumm's robust estimate: a worse receiver
-        shows in how far its fixes lie from the roads). 0: always ``gps_sigma``. The σ counts
-        in the emissions, the off-map limit and the jump rule.
-    thin_sigmas : a track whose own σ exceeds ``gps_sigma`` is thinned (as by
-        ``interpolate_distance``) at this many times the excess: a worse receiver's fixes
-        close together share their error, so they are less evidence than their number says
-        (0: never; ``bench/bench_batch_robust.py --sets noise`` adds error to real tracks to
-        judge it).
-    track_pos_sigma_floor : metres; the least position σ of a fix's own accuracy (a reported σ near
-        zero would make one fix outweigh the whole track).
-    track_heading_sigma_floor_deg : the least heading σ (degrees) of a fix's own heading or of
-        the direction of travel.
-    off_map_min_run : fewer fixes than this in a row with a road, between off-map fixes, are
-        off the map too (a fix near some road amid a run off it is no evidence; 1 disables it).
     off_map_cut : metres; a run of fixes the route leaves out (off the map, or on roads the
         route cannot reach in time: unreachable outliers) travelling at least this far among
         themselves (the track leaves the route's roads and comes back) cuts the route there,
@@ -516,69 +682,40 @@ class BatchConfig:
         far off a road on both sides of the run; a smaller slack would also cut where a
         track's fixes lie far off its true route. Only runs of at least ``off_map_cut_fixes``
         fixes are held to it: one or two sparse fixes do not trace a winding road.
-    speed_limit_factor : where the map has speed limits (posted, or the default of the road's
-        class), a step faster on average than this times the higher limit of its two roads ...
-    speed_limit_penalty : ... costs this log-probability per m/s beyond (0 disables it; maps
-        without limits are unaffected).
-    motion_heading_sigma : degrees; where a fix has no heading, the direction of travel from
-        its neighbours (both legs at least ``motion_min_distance`` metres, turning by at most
-        ``straight_max_deg``) is its heading with this σ against the road's bearing and
-        one-way direction (0 disables it).
-    motion_min_distance : see ``motion_heading_sigma``. Short: consecutive fixes share most of
-        their error, so even a slow vehicle's legs of a few metres tell its direction.
-    motion_end_leg_max : metres; the track's first and last fix take the direction of travel
-        of their neighbour's two legs only where their own leg is at most this long (0: any
-        length). A turn at a junction soon after the first fix, or soon before the last, leaves
-        both legs straight: over a long leg it goes unseen, and the direction it gives would put
-        the fix on the road turned onto, across the corner. At 1 Hz (legs of up to 30 m) the
-        end fixes keep it; at one fix every 10 or 30 s they do not.
     """
 
-    max_route_factor: float = 3.0
-    route_slack: float = 100.0
-    route_speed: float = 25.0
-    beta_per_s: float = 0.5
-    turn_cost: float = 20.0
     gap_time: float = 0.0
     gap_distance: float = 2000.0
-    outlier_distance: float = 100.0
-    interpolate_distance: float = 0.0
-    emission_prune: float = 12.5
-    reverse_tolerance: float = 10.0
-    route_lp_cut: float = 30.0
-    max_skip: int = 8
-    outlier_lookahead: int = 1
-    leave_out_cost: float = 12.5
-    stop_uturn_speed: float = 1.0
-    stop_uturn_time: float = 5.0
-    stop_uturn_penalty: float = 0.5
     split_speed: float = 50.0
     split_slack: float = 50.0
     split_route_speed: float = 50.0
     detour_cost_max: float = 25.0
-    spike_speed: float = 20.0
-    spike_sigmas: float = 3.0
-    spike_max_time: float = 5.0
-    off_map_sigmas: float = 5.0
-    track_sigma_max: float = 30.0
-    thin_sigmas: float = 6.0
-    track_pos_sigma_floor: float = 0.5
-    track_heading_sigma_floor_deg: float = 1.0
     off_map_cut: float = 200.0
     off_map_cut_fixes: int = 3
     off_map_cut_speed: float = 15.0
     off_map_bridge_slack: float = 400.0
-    off_map_min_run: int = 2
-    speed_limit_factor: float = 1.5
-    speed_limit_penalty: float = 0.5
-    motion_heading_sigma: float = 30.0
-    motion_min_distance: float = 8.0
-    motion_end_leg_max: float = 50.0
 
     def __post_init__(self) -> None:
         _check_numbers(self)
-        if self.outlier_lookahead not in (0, 1):
-            raise ConfigError("outlier_lookahead must be 0 or 1")
+
+
+@dataclass(frozen=True)
+class BatchConfig:
+    """Whole-track matching (:mod:`mapmatch.batch`): one sub-section per concern.
+
+    route : the route between two fixes: its search bounds and its costs.
+    track : the track's own σ, thinning, the fixes' σ floors and the direction of travel.
+    outliers : fixes off the map, jumps and the fixes left out as outliers.
+    split : where a track is split into pieces or its route cut.
+    """
+
+    route: RouteConfig = field(default_factory=RouteConfig)
+    track: TrackConfig = field(default_factory=TrackConfig)
+    outliers: OutliersConfig = field(default_factory=OutliersConfig)
+    split: SplitConfig = field(default_factory=SplitConfig)
+
+    def __post_init__(self) -> None:
+        _check_sections(self)
 
 
 # default carriageway width in metres per OSM highway class (all lanes, both directions on a
@@ -604,7 +741,7 @@ ROAD_WIDTH_M: tuple[tuple[str, float], ...] = (
 
 @dataclass(frozen=True)
 class MeasurementConfig:
-    """How the map-aided measurement is built and when it is usable.
+    """How the map-aided measurement is built and when it is usable (``measurement``).
 
     min_probability : the reported road's probability below which the measurement is not usable.
     resolved_probability : in an ambiguous region, the probability the reported road needs for
@@ -636,14 +773,12 @@ class MeasurementConfig:
             v = getattr(self, f.name)
             if f.name == "road_width":
                 if not all(isinstance(c, str) and math.isfinite(w) and w > 0 for c, w in v):
-                    raise ConfigError("road_width must be (class, positive metres) pairs")
+                    raise ConfigError(f"{_full_name('road_width')} must be (class, positive metres) pairs")
                 continue
             if isinstance(v, bool) or not isinstance(v, int | float) or not math.isfinite(v) or v < 0:
-                raise ConfigError(f"{f.name} must be a finite non-negative number, got {v!r}")
-        if self.min_probability > 1 or self.resolved_probability > 1:
-            raise ConfigError("min_probability and resolved_probability must be at most 1")
-        if min(self.map_sigma, self.lane_width, self.default_width, self.road_heading_sigma) <= 0:
-            raise ConfigError("map_sigma, lane_width, default_width and road_heading_sigma must be positive")
+                raise ConfigError(f"{_full_name(f.name)} must be a finite non-negative number, got {v!r}")
+        _at_most_one(self, "min_probability", "resolved_probability")
+        _positive(self, "map_sigma", "lane_width", "default_width", "road_heading_sigma")
 
     @cached_property
     def width_of(self) -> dict[str, float]:
@@ -657,21 +792,48 @@ class MeasurementConfig:
         return {}
 
 
-_SECTIONS: dict[str, type] = {
-    "model": ModelConfig,
-    "online": OnlineConfig,
-    "batch": BatchConfig,
-    "measurement": MeasurementConfig,
-}
-_OWNER = {f.name: sec for sec, cls in _SECTIONS.items() for f in dataclasses.fields(cls)}
+def _sub_sections(cls: type) -> dict[str, type]:
+    """The sub-sections of a section class by name (empty for a section of plain fields)."""
+    out: dict[str, type] = {}
+    for f in dataclasses.fields(cls):
+        factory = f.default_factory
+        if isinstance(factory, type) and dataclasses.is_dataclass(factory):
+            out[f.name] = factory
+    return out
+
+
+def _check_sections(section: object) -> None:
+    """Each sub-section of ``section`` an instance of its class."""
+    for name, cls in _sub_sections(type(section)).items():
+        if not isinstance(getattr(section, name), cls):
+            raise ConfigError(f"{_SECTION_PATH.get(type(section), '')}{name} must be a {cls.__name__}")
+
+
+def _walk(cls: type, path: tuple[str, ...]) -> Iterator[tuple[type, tuple[str, ...], bool]]:
+    """Every section class under ``cls`` (itself first) with its path, and whether it is a leaf."""
+    subs = _sub_sections(cls)
+    yield cls, path, not subs
+    for name, sub in subs.items():
+        yield from _walk(sub, (*path, name))
+
+
+def _leaf_paths() -> dict[str, tuple[str, ...]]:
+    """Every field's dotted path by its bare name; a name used twice is an error."""
+    out: dict[str, tuple[str, ...]] = {}
+    for cls, path, leaf in _walk(MatchConfig, ()):
+        for f in dataclasses.fields(cls) if leaf else ():
+            if f.name in out:
+                raise ConfigError(f"{f.name} is a field of two sections")  # keeps bare names unique
+            out[f.name] = (*path, f.name)
+    return out
 
 
 @dataclass(frozen=True)
 class MatchConfig:
     """Parameters of the shared model, of both inference modes and of the map-aided
-    measurement, in four sections. A parameter's full name is ``section.field``
-    (``model.gps_sigma``); field names are unique across the sections, so :meth:`replace`
-    also takes them bare."""
+    measurement, in four sections (``online`` and ``batch`` of sub-sections). A parameter's full
+    name is its dotted path (``model.gps_sigma``, ``online.region.max_hypotheses``); field names
+    are unique across all sections, so :meth:`replace` also takes them bare."""
 
     model: ModelConfig = field(default_factory=ModelConfig)
     online: OnlineConfig = field(default_factory=OnlineConfig)
@@ -679,71 +841,96 @@ class MatchConfig:
     measurement: MeasurementConfig = field(default_factory=MeasurementConfig)
 
     def __post_init__(self) -> None:
-        for name, cls in _SECTIONS.items():
-            if not isinstance(getattr(self, name), cls):
-                raise ConfigError(f"{name} must be a {cls.__name__}")
+        _check_sections(self)
 
     def replace(self, **overrides: Any) -> MatchConfig:
-        """A copy with some parameters changed (validated): by field name, or a whole section
-        (a section instance or a mapping of its fields)."""
-        unknown = set(overrides) - set(_OWNER) - set(_SECTIONS)
+        """A copy with some parameters changed (validated): by bare field name, or a whole
+        top-level section (a section instance or a nested mapping of its fields)."""
+        sections = _sub_sections(MatchConfig)
+        unknown = sorted(set(overrides) - set(_PATHS) - set(sections))
         if unknown:
-            raise ConfigError(f"unknown parameter(s): {', '.join(sorted(unknown))}")
-        parts: dict[str, Any] = {}
-        for sec in _SECTIONS:
-            cur = overrides.get(sec, getattr(self, sec))
-            if isinstance(cur, Mapping):
-                cur = _replace_section(sec, getattr(self, sec), cur)
-            flat = {k: v for k, v in overrides.items() if _OWNER.get(k) == sec}
-            parts[sec] = _replace_section(sec, cur, flat) if flat else cur
-        return MatchConfig(**parts)
+            raise ConfigError(f"unknown parameter(s): {', '.join(unknown)}")
+        whole = {k: v for k, v in overrides.items() if k in sections and not isinstance(v, Mapping)}
+        cfg = dataclasses.replace(self, **whole)
+        nested: dict[str, Any] = {
+            k: v for k, v in overrides.items() if isinstance(v, Mapping) and k in sections
+        }
+        cfg = cfg.updated(nested) if nested else cfg
+        flat: dict[str, Any] = {}
+        for name, value in overrides.items():
+            if name in _PATHS:
+                _put(flat, _PATHS[name], value)
+        return cfg.updated(flat) if flat else cfg
 
     def with_settings(self, settings: Sequence[str]) -> MatchConfig:
-        """A copy with ``SECTION.FIELD=VALUE`` settings (numbers) applied; a setting without
-        ``=``, of an unknown name or with a value that is no number is a :class:`ConfigError`
-        naming it."""
-        nested: dict[str, dict[str, Any]] = {}
+        """A copy with ``SECTION.FIELD=VALUE`` settings (numbers; ``online.region.max_hops=6``)
+        applied; a setting without ``=``, of an unknown name or with a value that is no number
+        is a :class:`ConfigError` naming it (a bare or misplaced field name with its full
+        name)."""
+        nested: dict[str, Any] = {}
         for kv in settings:
             name, sep, value = kv.partition("=")
             name = name.strip()
             if not sep:
                 raise ConfigError(f"{kv!r}: expected SECTION.FIELD=VALUE (for example model.gps_sigma=8)")
-            sec, dot, leaf = name.partition(".")
-            if not dot:
-                hint = f"; did you mean {_OWNER[name]}.{name}?" if name in _OWNER else ""
-                raise ConfigError(f"{name!r}: expected SECTION.FIELD{hint}")
+            path = tuple(name.split("."))
+            if len(path) < 2:
+                raise ConfigError(f"{name!r}: expected SECTION.FIELD{_hint(name)}")
             try:  # "8" an integer (counts), "0.5" or "1e3" a float
                 number = int(value) if value.strip().lstrip("+-").isdigit() else float(value)
             except ValueError:
                 raise ConfigError(f"{name}: {value!r} is not a number") from None
-            nested.setdefault(sec, {})[leaf] = number
+            _put(nested, path, number)
         return self.updated(nested)
 
     def updated(self, nested: Mapping[str, Any], *, prefix: str = "") -> MatchConfig:
-        """A copy with the values of ``nested`` (``{section: {field: value}}``, as a TOML
-        table gives them) applied and validated; an unknown section or field is a
-        :class:`ConfigError` naming it with ``prefix`` (``match.`` in the server's file)."""
-        parts: dict[str, Any] = {}
-        for sec, values in nested.items():
-            if sec not in _SECTIONS:
-                known = ", ".join(_SECTIONS)
-                raise ConfigError(f"{prefix}{sec}: unknown section (the sections are {known})")
-            if not isinstance(values, Mapping):
-                raise ConfigError(f"{prefix}{sec}: expected a table of its fields")
-            parts[sec] = _replace_section(sec, getattr(self, sec), values, prefix=prefix)
-        return dataclasses.replace(self, **parts)
+        """A copy with the values of ``nested`` (``{section: {sub-section: {field: value}}}``,
+        as a TOML table gives them) applied and validated; an unknown section or field is a
+        :class:`ConfigError` naming its dotted path with ``prefix`` (``match.`` in the server's
+        file)."""
+        return _updated(self, nested, (), prefix)
 
     def to_dict(self) -> dict[str, Any]:
-        """Nested plain values, one mapping per section."""
+        """Nested plain values, one mapping per section and sub-section."""
         return dataclasses.asdict(self)
 
 
-def _replace_section(name: str, section: Any, changes: Mapping[str, Any], *, prefix: str = "") -> Any:
+def _put(nested: dict[str, Any], path: tuple[str, ...], value: Any) -> None:
+    """Set ``value`` at ``path`` in a nested mapping."""
+    for part in path[:-1]:
+        nested = nested.setdefault(part, {})
+        if not isinstance(nested, dict):
+            raise ConfigError(f"{'.'.join(path)}: {part} is a field, not a section")
+    nested[path[-1]] = value
+
+
+def _hint(name: str, prefix: str = "") -> str:
+    """``; did you mean SECTION.FIELD?`` for a known field's bare name, else nothing."""
+    return f"; did you mean {prefix}{'.'.join(_PATHS[name])}?" if name in _PATHS else ""
+
+
+def _updated(section: Any, changes: Any, path: tuple[str, ...], prefix: str) -> Any:
+    """``section`` (at ``path``) with the nested ``changes`` applied, validated."""
+    where = prefix + ".".join(path)
+    if not isinstance(changes, Mapping):
+        raise ConfigError(f"{where}: expected a table of its fields")
+    subs = _sub_sections(type(section))
     names = {f.name for f in dataclasses.fields(section)}
-    unknown = sorted(set(changes) - names)
+    unknown = [k for k in changes if k not in names]
+    if unknown and subs:
+        key = unknown[0]
+        of = f" of {where}" if path else ""
+        raise ConfigError(
+            f"{prefix}{'.'.join((*path, key))}: unknown section (the sections{of} are "
+            f"{', '.join(subs)}){_hint(key, prefix)}"
+        )
     if unknown:
-        raise ConfigError(f"unknown parameter(s): {', '.join(f'{prefix}{name}.{u}' for u in unknown)}")
-    values = dict(changes)
+        full = ", ".join(prefix + ".".join((*path, k)) for k in unknown)
+        raise ConfigError(f"unknown parameter(s): {full}{''.join(_hint(k, prefix) for k in unknown[:1])}")
+    values = {
+        k: _updated(getattr(section, k), v, (*path, k), prefix) if k in subs else v
+        for k, v in changes.items()
+    }
     if "road_width" in values:  # a TOML table or list of pairs
         rw = values["road_width"]
         values["road_width"] = tuple(
@@ -752,7 +939,15 @@ def _replace_section(name: str, section: Any, changes: Mapping[str, Any], *, pre
     try:
         return dataclasses.replace(section, **values)
     except TypeError as exc:  # a value of the wrong kind (a string for a number)
-        raise ConfigError(f"{prefix}{name}: {exc}") from None
+        raise ConfigError(f"{where}: {exc}") from None
+
+
+_PATHS: dict[str, tuple[str, ...]] = _leaf_paths()
+"""Every field's dotted path by its bare name."""
+_SECTION_PATH: dict[type, str] = {
+    cls: "".join(f"{p}." for p in path) for cls, path, _ in _walk(MatchConfig, ())
+}
+"""Every section class's dotted path with a trailing dot (``online.region.``; ``""`` for the root)."""
 
 
 DEFAULT_CONFIG = MatchConfig()

@@ -42,14 +42,14 @@ def heading_kappa(
 ) -> NDArray[np.float64]:
     """Concentration κ of the heading term per fix: 0 where the heading is missing or not
     trusted (the batch matcher's rules: ``model.heading_sigma`` by default, floored at
-    ``batch.track_heading_sigma_floor_deg``)."""
+    ``batch.track.track_heading_sigma_floor_deg``)."""
     h, s, v = np.broadcast_arrays(
         np.asarray(heading, dtype=np.float64),
         np.asarray(heading_sigma, dtype=np.float64),
         np.asarray(speed, dtype=np.float64),
     )
     s = np.where(np.isnan(s), config.model.heading_sigma, s)
-    k = _vector(heading_kappa_one)(s, config.batch.track_heading_sigma_floor_deg)
+    k = _vector(heading_kappa_one)(s, config.batch.track.track_heading_sigma_floor_deg)
     slow = ~np.isnan(v) & (v < config.model.heading_min_speed)
     return np.asarray(np.where(np.isnan(h) | slow, 0.0, k), dtype=np.float64)
 
@@ -60,10 +60,10 @@ def _vector(f: Callable[..., float]) -> Callable[..., NDArray[np.float64]]:
 
 
 def position_sigma(pos_sigma: ArrayLike, config: MatchConfig) -> NDArray[np.float64]:
-    """σ in metres per fix: the fix's own accuracy (floored at ``batch.track_pos_sigma_floor``), or
+    """σ in metres per fix: the fix's own accuracy (floored at ``batch.track.track_pos_sigma_floor``), or
     the configured default."""
     s = np.asarray(pos_sigma, dtype=np.float64)
-    floored = np.maximum(s, config.batch.track_pos_sigma_floor)
+    floored = np.maximum(s, config.batch.track.track_pos_sigma_floor)
     return np.where(np.isnan(s) | (s <= 0), config.model.gps_sigma, floored)
 
 

@@ -179,7 +179,7 @@ def match_partition(
     table: RouteTableSpec = RouteTableSpec(delta=None),
 ) -> list[TrackSummary]:
     """Match one partition and write its results file atomically; one summary per track."""
-    turn_cost = (config or BATCH_CONFIG).batch.turn_cost
+    turn_cost = (config or BATCH_CONFIG).batch.route.turn_cost
     matcher = _matcher(map_path, table, turn_cost)
     tracks = list(part.tracks) if part.source is None else read_tracks(part.source, columns=columns)
     results = [matcher.match(t, config) for t in tracks]
@@ -311,7 +311,7 @@ def run_batch(
     in_process = options.scheduler is None and (options.workers == 1 or len(todo) <= 1)
     table = RouteTableSpec(options.ubodt_delta, options.ubodt_max_bytes)
     if options.ubodt_delta and todo and not in_process:  # built once, mapped by every worker
-        turn_cost = (config or BATCH_CONFIG).batch.turn_cost
+        turn_cost = (config or BATCH_CONFIG).batch.route.turn_cost
         shared = _shared_route_table(pdir, map_s, table, turn_cost)
         table = RouteTableSpec(table.delta, table.max_bytes, str(shared))
     job = _Job(map_s, config, columns, table)

@@ -64,7 +64,7 @@ class Ubodt:
     ) -> Ubodt:
         """Precompute the table for ``delta`` metres (time and memory grow fast with it), routes
         costing ``turn_cost`` metres per turn back (:func:`mapmatch.routing.turn_costs`; by default the batch
-        matcher's, ``BATCH_CONFIG.batch.turn_cost``).
+        matcher's, ``BATCH_CONFIG.batch.route.turn_cost``).
 
         With ``max_bytes``, the bound is first lowered until the table's estimated size
         (:func:`ubodt_estimate`) fits: a dense map then gets a shorter table, not an
@@ -76,7 +76,7 @@ class Ubodt:
         if max_bytes is not None and not max_bytes > 0:
             raise ValueError(f"max_bytes must be a positive number of bytes, got {max_bytes!r}")
         if turn_cost is None:
-            turn_cost = float(BATCH_CONFIG.batch.turn_cost)
+            turn_cost = float(BATCH_CONFIG.batch.route.turn_cost)
         ws = Workspace.new(graph.n_edges)
         rg = route_graph(graph, turn_cost=turn_cost)
         asked = float(delta)
@@ -169,7 +169,7 @@ def ubodt_estimate(graph: RoadGraph, delta: float, *, turn_cost: float | None = 
     prepared by :func:`graph.build.build_map` stores them in spatial order, so the
     sample spreads over the map)."""
     if turn_cost is None:
-        turn_cost = float(BATCH_CONFIG.batch.turn_cost)
+        turn_cost = float(BATCH_CONFIG.batch.route.turn_cost)
     rg = route_graph(graph, turn_cost=turn_cost)
     entries = _estimate_entries(float(delta), graph.n_edges, rg, Workspace.new(graph.n_edges))
     return _table_bytes(entries, graph.n_edges)

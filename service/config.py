@@ -72,10 +72,13 @@ table of ``name = "path"``; relative paths are taken from the file's folder::
     hel = "helsinki.map"
     [match.model]          # matcher parameters (mapmatch.config), for the online matcher
     gps_sigma = 6.0        # over its defaults and the batch matcher over its own
-    [match.batch]
+    [match.online.region]  # a sub-section's table: the field's dotted path
+    max_hypotheses = 16
+    [match.batch.split]
     gap_time = 300
 
-``--set SECTION.FIELD=VALUE`` flags apply over the file's ``[match]`` tables.
+``--set SECTION.FIELD=VALUE`` flags (``--set batch.split.gap_time=300``) apply over the file's
+``[match]`` tables.
 """
 
 from __future__ import annotations

@@ -172,7 +172,7 @@ def test_a_gap_driven_at_road_speed_is_bridged_by_its_route() -> None:
     )
     xy = [at(m, "a", 100, 3), at(m, "a", 300, -3), at(m, "a", 500, 2)]
     xy += [at(m, "b", -4, -300), at(m, "b", 3, -380)]
-    assert math.dist(xy[2], xy[3]) > DEFAULT_CONFIG.batch.gap_distance
+    assert math.dist(xy[2], xy[3]) > DEFAULT_CONFIG.batch.split.gap_distance
     ll = np.array([m.lonlat(x, y) for x, y in xy])
     bridged = Track("t", np.array([0.0, 15.0, 30.0, 180.0, 190.0]), ll[:, 1], ll[:, 0])
     r = BatchMatcher(m.graph).match(bridged)
@@ -314,7 +314,11 @@ def test_batch_tuning_constants_are_validated_config_fields() -> None:
     from mapmatch.errors import ConfigError
 
     cfg = DEFAULT_CONFIG.replace(emission_prune=5.0, max_skip=3, stop_uturn_time=2.0)
-    assert (cfg.batch.emission_prune, cfg.batch.max_skip, cfg.batch.stop_uturn_time) == (5.0, 3, 2.0)
+    assert (
+        cfg.batch.outliers.emission_prune,
+        cfg.batch.outliers.max_skip,
+        cfg.batch.route.stop_uturn_time,
+    ) == (5.0, 3, 2.0)
     bads = [{"max_skip": 2.5}, {"reverse_tolerance": -1.0}, {"route_lp_cut": math.inf}]
     for bad in [*bads, {"detour_cost_max": -1.0}, {"off_map_cut_fixes": 1.5}]:
         with pytest.raises(ConfigError):
@@ -1050,8 +1054,8 @@ def test_of_two_routes_of_one_length_the_one_with_fewer_turns_wins() -> None:
     flat = DEFAULT_CONFIG.replace(turn_cost=0)
     assert [names(m, piece) for piece in BatchMatcher(m.graph).match(track, flat).routes] == steps
     # the same with a route table built with the turn costs, and one without them (not used)
-    assert Ubodt.build(m.graph, 500.0).turn_cost == DEFAULT_CONFIG.batch.turn_cost  # the default's
-    for cost in (DEFAULT_CONFIG.batch.turn_cost, 0.0):
+    assert Ubodt.build(m.graph, 500.0).turn_cost == DEFAULT_CONFIG.batch.route.turn_cost  # the default's
+    for cost in (DEFAULT_CONFIG.batch.route.turn_cost, 0.0):
         table = Ubodt.build(m.graph, 500.0, turn_cost=cost)
         r = BatchMatcher(m.graph, ubodt=table).match(track)
         assert [names(m, piece) for piece in r.routes] == corner

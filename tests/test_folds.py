@@ -74,10 +74,10 @@ def test_each_fold_is_chosen_without_its_held_tracks_and_scored_on_them() -> Non
 
 
 def test_the_grid_is_every_combination_in_order_and_a_bad_spec_is_named() -> None:
-    grid = crossval.parse_grid(["model.beta=3,5", "online.switch_penalty=8"])
+    grid = crossval.parse_grid(["model.beta=3,5", "online.region.switch_penalty=8"])
     assert crossval.settings_grid(grid) == [
-        ("model.beta=3", "online.switch_penalty=8"),
-        ("model.beta=5", "online.switch_penalty=8"),
+        ("model.beta=3", "online.region.switch_penalty=8"),
+        ("model.beta=5", "online.region.switch_penalty=8"),
     ]
     with pytest.raises(ValueError, match=r"model\.beta=x"):
         crossval.parse_grid(["model.beta=x"])

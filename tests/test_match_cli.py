@@ -165,7 +165,7 @@ def test_match_command_sets_any_parameter_by_name(
     out = tmp_path / "points.csv"
     assert main([*base, "-o", str(out)]) == 0
     assert set(pd.read_csv(out)["status"]) == {"matched"}
-    settings = ["--set", "batch.outlier_distance=0.5", "--set", "model.search_radius=0.5"]
+    settings = ["--set", "batch.outliers.outlier_distance=0.5", "--set", "model.search_radius=0.5"]
     assert main([*base, "-o", str(out), *settings]) == 1
     assert (pd.read_csv(out)["status"] == "unmatched").mean() > 0.5
     capsys.readouterr()

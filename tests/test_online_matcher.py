@@ -476,7 +476,7 @@ def test_the_model_s_array_forms_are_its_scalar_formulas_over_arrays() -> None:
     assert lp[3] == pytest.approx(-190.0 / beta - m.speed_penalty * (200.0 - m.max_speed))
     # κ: floored heading σ, none where the heading is unknown or the fix too slow
     k = heading_kappa([90.0, np.nan, 90.0, 90.0], [0.1, 5.0, np.nan, 5.0], [5.0, 5.0, 5.0, 0.0], C)
-    floor = C.batch.track_heading_sigma_floor_deg
+    floor = C.batch.track.track_heading_sigma_floor_deg
     assert k.tolist() == [heading_kappa_one(0.1, floor), 0.0, heading_kappa_one(m.heading_sigma, floor), 0.0]
     assert heading_kappa_one(0.1, floor) == 1.0 / math.radians(floor) ** 2
 
@@ -571,7 +571,11 @@ def test_online_tuning_constants_are_validated_config_fields() -> None:
     from mapmatch.errors import ConfigError
 
     cfg = DEFAULT_CONFIG.replace(max_hypotheses=8, stop_speed=0.3, node_hold_sigmas=2.0)
-    assert (cfg.online.max_hypotheses, cfg.online.stop_speed, cfg.online.node_hold_sigmas) == (8, 0.3, 2.0)
+    assert (
+        cfg.online.region.max_hypotheses,
+        cfg.online.stop.stop_speed,
+        cfg.online.stop.node_hold_sigmas,
+    ) == (8, 0.3, 2.0)
     for bad in (
         {"max_hypotheses": 0},
         {"max_hypotheses": 2.5},
@@ -766,7 +770,7 @@ def test_odometer_scale_is_learnt_between_turns() -> None:
     for f in fixes:
         matcher.update(st, f)
     assert st.odo_k == pytest.approx(1.0 / 0.97 - 1.0, abs=0.01)
-    assert st.odo_kvar < DEFAULT_CONFIG.online.odo_scale_sigma**2 / 4.0
+    assert st.odo_kvar < DEFAULT_CONFIG.online.odometer.odo_scale_sigma**2 / 4.0
     # the learnt scale survives a move to another server
     assert SessionState.from_bytes(st.to_bytes()).odo_k == st.odo_k
 
@@ -967,7 +971,7 @@ def test_stop_line_hold_needs_the_fix_too_when_the_belief_lags_it() -> None:
         for f in _stop_drive(m, "nbcd", stop_s=stop_s, bias_x=0.0, bias_y=0.0)
     ]
     res = run(OnlineMatcher(m.graph), fixes)
-    assert 0.0 < res[-20].offset < DEFAULT_CONFIG.online.stop_hold_distance  # the belief lags
+    assert 0.0 < res[-20].offset < DEFAULT_CONFIG.online.stop.stop_hold_distance  # the belief lags
     assert [r.edge for r in res[-19:]] == [cd] * 19
     # held by the belief alone (the old rule), it is put back before c
     old = run(OnlineMatcher(m.graph, config=DEFAULT_CONFIG.replace(stop_hold_fix_distance=0.0)), fixes)

@@ -263,7 +263,7 @@ def test_motorway_split_keeps_the_other_branch_after_a_forced_commit() -> None:
                         ` ` ` ` ` ` ` ` d
     """
     g, e = _split_map(1.5)
-    hold = DEFAULT_CONFIG.online.commit_hold_probability
+    hold = DEFAULT_CONFIG.online.region.commit_hold_probability
     old = DEFAULT_CONFIG.replace(commit_hold_probability=0.0)
     dropped = _wrong_at_fork(g, e, old, seeds=4, speed=30.0, bias=0.0, end=False)
     kept = _wrong_at_fork(g, e, DEFAULT_CONFIG, seeds=4, speed=30.0, bias=0.0, end=True)
@@ -283,6 +283,6 @@ def test_learnt_bias_is_no_evidence_for_the_branch_it_points_to() -> None:
         share: _wrong_at_fork(
             g, e, DEFAULT_CONFIG.replace(bias_emission=share), seeds=6, speed=25.0, bias=5.0, end=False
         )
-        for share in (0.0, DEFAULT_CONFIG.online.bias_emission)
+        for share in (0.0, DEFAULT_CONFIG.online.bias.bias_emission)
     }
-    assert wrong[DEFAULT_CONFIG.online.bias_emission] < 0.6 * wrong[0.0]
+    assert wrong[DEFAULT_CONFIG.online.bias.bias_emission] < 0.6 * wrong[0.0]

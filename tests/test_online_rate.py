@@ -183,7 +183,7 @@ def test_stopped_vehicle_stays_stopped_through_odometer_noise_at_10_hz() -> None
             Fix(time=t + 0.1 * (i + 1), lat=float(lat), lon=float(lon), heading=90.0, speed=10.0 * d,
                 distance=d, gps_valid=True)
         )  # fmt: skip
-    stop_speed = DEFAULT_CONFIG.online.stop_speed
+    stop_speed = DEFAULT_CONFIG.online.stop.stop_speed
     assert (noise > 0.1 * stop_speed).any()  # some fixes alone read as moving
     ab = m.edge("a", "b")
     res = _run(OnlineMatcher(m.graph), moving + standing)
@@ -365,7 +365,7 @@ def test_step_is_judged_between_corrected_places_at_10_hz() -> None:
     road = RoadModel(m.graph)
     ab, bc = m.edge("a", "b"), m.edge("b", "c")
     le = float(road.elen[ab])
-    assert DEFAULT_CONFIG.online.step_from_corrected == 1.0
+    assert DEFAULT_CONFIG.online.bias.step_from_corrected == 1.0
 
     def place(share: float) -> float:
         px, py, brg = road.locate(ab, le - 1.0)

@@ -116,6 +116,8 @@ def test_the_worst_allowed_blob_imports_and_every_stream_is_answered():
         assert len(answers) == len(later) and not any(r.HasField("error") for r in answers)
         st = json.loads(api.ExportSession(pb.ExportSessionRequest(vehicle_id="big"), timeout=10).state)
         o = DEFAULT_CONFIG.online
-        assert len(st["headings"]) <= o.turn_max_samples and len(st["trail"]) <= o.trail_max
-        assert len(st["hyps"]) <= CAPS.hyps and len(st["live"]) <= o.max_live
+        assert (
+            len(st["headings"]) <= o.evidence.turn_max_samples and len(st["trail"]) <= o.corrections.trail_max
+        )
+        assert len(st["hyps"]) <= CAPS.hyps and len(st["live"]) <= o.corrections.max_live
         ch.close()

@@ -118,8 +118,8 @@ class BatchMatcher:
         self.index = index or EdgeIndex(graph)
         self.config = config or BATCH_CONFIG
         self._grid = GridIndex(self.index, cell=self.config.model.search_radius)
-        self._rg = route_graph(graph, uturns="dead_end", turn_cost=self.config.batch.turn_cost)
-        self._rg_by_cost: dict[float, RouteGraph] = {float(self.config.batch.turn_cost): self._rg}
+        self._rg = route_graph(graph, uturns="dead_end", turn_cost=self.config.batch.route.turn_cost)
+        self._rg_by_cost: dict[float, RouteGraph] = {float(self.config.batch.route.turn_cost): self._rg}
         seg_xy = read_only(graph.seg_xy, F8)
         seg_ptr = read_only(graph.edge_seg_ptr, I8)
         self._geom = EdgeGeometry(seg_xy, seg_ptr, read_only(segment_lengths(seg_xy, seg_ptr), F8))
@@ -146,18 +146,18 @@ class BatchMatcher:
 
     def _table_for(self, cfg: MatchConfig) -> RouteTable:
         """The route table if it was built with ``cfg``'s turn cost, else none (every route searched)."""
-        if self.ubodt is not None and self.ubodt.turn_cost == cfg.batch.turn_cost:
+        if self.ubodt is not None and self.ubodt.turn_cost == cfg.batch.route.turn_cost:
             return self._table
         return NO_TABLE
 
     def _router_for(self, st: _ThreadState, cfg: MatchConfig) -> Router:
         """This thread's router for ``cfg``'s turn cost (the moves' costs are the graph's)."""
-        rg = self._rg_by_cost.get(float(cfg.batch.turn_cost))
+        rg = self._rg_by_cost.get(float(cfg.batch.route.turn_cost))
         if rg is None:
             if len(self._rg_by_cost) >= 8:
-                self._rg_by_cost = {float(self.config.batch.turn_cost): self._rg}
-            rg = self._rg_by_cost[float(cfg.batch.turn_cost)] = route_graph(
-                self.graph, uturns="dead_end", turn_cost=cfg.batch.turn_cost
+                self._rg_by_cost = {float(self.config.batch.route.turn_cost): self._rg}
+            rg = self._rg_by_cost[float(cfg.batch.route.turn_cost)] = route_graph(
+                self.graph, uturns="dead_end", turn_cost=cfg.batch.route.turn_cost
             )
         if rg is st.router.g:
             return st.router
@@ -169,21 +169,23 @@ class BatchMatcher:
         if st is None or st.config is not cfg:
             sigma = float(model.position_sigma(np.nan, cfg))
             query = QueryParams(
-                radius=float(cfg.model.search_radius), outlier=float(cfg.batch.outlier_distance),
-                k=int(cfg.model.max_candidates), min_dist=float(cfg.batch.interpolate_distance),
+                radius=float(cfg.model.search_radius), outlier=float(cfg.batch.outliers.outlier_distance),
+                k=int(cfg.model.max_candidates), min_dist=float(cfg.batch.track.interpolate_distance),
             )  # fmt: skip
             track_rules = RuleParams(
-                gps_sigma=sigma, spike_sigmas=float(cfg.batch.spike_sigmas),
-                spike_speed=float(cfg.batch.spike_speed), spike_max_time=float(cfg.batch.spike_max_time),
-                motion_sigma=float(cfg.batch.motion_heading_sigma),
-                motion_min_distance=float(cfg.batch.motion_min_distance),
-                motion_end_leg_max=float(cfg.batch.motion_end_leg_max),
+                gps_sigma=sigma, spike_sigmas=float(cfg.batch.outliers.spike_sigmas),
+                spike_speed=float(cfg.batch.outliers.spike_speed),
+                spike_max_time=float(cfg.batch.outliers.spike_max_time),
+                motion_sigma=float(cfg.batch.track.motion_heading_sigma),
+                motion_min_distance=float(cfg.batch.track.motion_min_distance),
+                motion_end_leg_max=float(cfg.batch.track.motion_end_leg_max),
                 straight_max_deg=float(cfg.model.straight_max_deg),
                 heading_sigma=float(cfg.model.heading_sigma),
                 heading_min_speed=float(cfg.model.heading_min_speed),
-                track_sigma_max=float(cfg.batch.track_sigma_max), thin_sigmas=float(cfg.batch.thin_sigmas),
-                pos_sigma_floor=float(cfg.batch.track_pos_sigma_floor),
-                heading_sigma_floor=float(cfg.batch.track_heading_sigma_floor_deg),
+                track_sigma_max=float(cfg.batch.track.track_sigma_max),
+                thin_sigmas=float(cfg.batch.track.thin_sigmas),
+                pos_sigma_floor=float(cfg.batch.track.track_pos_sigma_floor),
+                heading_sigma_floor=float(cfg.batch.track.track_heading_sigma_floor_deg),
             )  # fmt: skip
             st = _Settings(cfg, kernel_params(cfg, sigma), query, sigma, track_rules)
             if len(self._settings) >= 64:

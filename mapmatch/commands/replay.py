@@ -66,7 +66,7 @@ def register(subparsers: Any) -> None:
     model.add_argument(
         "--set", action="append", default=[], metavar="SECTION.FIELD=VALUE", dest="settings",
         help="any other matcher parameter by its full name in mapmatch.config (repeatable), "
-        "e.g. --set online.turn_window=40",
+        "e.g. --set online.evidence.turn_window=40",
     )  # fmt: skip
     from mapmatch.commands._fixio import precheck_fixes
 

@@ -28,7 +28,7 @@ from mapmatch.types import Correction
 
 def odo_kvar(a: AnchorState, cfg: MatchConfig) -> float:
     """Variance of the learnt odometer scale (the configured prior until learnt)."""
-    return cfg.online.odo_scale_sigma**2 if math.isnan(a.odo_kvar) else a.odo_kvar
+    return cfg.online.odometer.odo_scale_sigma**2 if math.isnan(a.odo_kvar) else a.odo_kvar
 
 
 def drop_baseline(a: AnchorState) -> None:
@@ -56,19 +56,19 @@ def turn_anchor(
     c0 = best.s - step.odo
     samples = [x for x in state.headings if x[0] + c0 >= 0.0]
     hs = math.sqrt(state.bias.res_head2)
-    hs = min(max(hs, o.align_heading_sigma_min_deg), o.learned_heading_sigma_max_deg)
-    search = min(o.align_search + o.align_search_sigmas * step.sigma, o.align_search_max)
+    hs = min(max(hs, o.anchor.align_heading_sigma_min_deg), o.bias.learned_heading_sigma_max_deg)
+    search = min(o.anchor.align_search + o.anchor.align_search_sigmas * step.sigma, o.anchor.align_search_max)
     c, sd, rms = align_headings(
         samples, bearing_profile(lengths, bearings), c0, search=search, heading_sigma=hs
     )
     if (
         math.isnan(c)
-        or rms > o.align_rms_max_deg
-        or samples[0][0] + c > node - o.align_cover
-        or samples[-1][0] + c < node + o.align_cover
+        or rms > o.anchor.align_rms_max_deg
+        or samples[0][0] + c > node - o.anchor.align_cover
+        or samples[-1][0] + c < node + o.anchor.align_cover
     ):
         return math.nan, math.nan
-    return node - c, math.hypot(sd, o.turn_anchor_sigma)
+    return node - c, math.hypot(sd, o.anchor.turn_anchor_sigma)
 
 
 def learn_scale(
@@ -87,19 +87,19 @@ def learn_scale(
     prev_odo, prev_sd = a.anc_odo, a.anc_sd
     a.anc_odo, a.anc_sd = odo_out, anchor_sd
     dist = odo_in - prev_odo
-    if math.isnan(best.anc) or not o.scale_min_distance <= dist <= o.scale_max_distance:
+    if math.isnan(best.anc) or not o.odometer.scale_min_distance <= dist <= o.odometer.scale_max_distance:
         return
     kvar = odo_kvar(a, cfg)
     nu = road.elen[best.edges[0]] - (best.anc + odo_in)  # path metres the odometer missed
     # the map's path length differs from the road's by a little too
-    r = prev_sd**2 + anchor_sd**2 + (o.scale_path_error * dist) ** 2
+    r = prev_sd**2 + anchor_sd**2 + (o.odometer.scale_path_error * dist) ** 2
     sv = dist * dist * kvar + r
     if nu * nu > 9.0 * sv:
         return  # not the same path, or a bad anchor: learn nothing
     lim = 2.0 * math.sqrt(sv)
     nu = min(max(nu, -lim), lim)  # robust: one odd pair of anchors must not teach much
     gain = kvar * dist / sv
-    a.odo_k = min(max(a.odo_k + gain * nu, -o.odo_scale_max), o.odo_scale_max)
+    a.odo_k = min(max(a.odo_k + gain * nu, -o.odometer.odo_scale_max), o.odometer.odo_scale_max)
     a.odo_kvar = kvar * (1.0 - gain * dist)
 
 
@@ -112,48 +112,51 @@ def learn_scale_gps(
     the path). The baseline starts again at every bend, without GPS or while the
     dead-reckoning drift (``drift_sigma``) is still blending out."""
     o = cfg.online
-    if o.scale_baseline <= 0.0:
+    if o.odometer.scale_baseline <= 0.0:
         return
     if (
         not (step.gps and step.odo_known)
         or drift_sigma > 0.5 * step.fix_sigma
         or math.isnan(best.bearing)
-        or (step.kappa > 0.0 and abs(angle_diff(step.heading, best.bearing)) > 4.0 * o.scale_straight_deg)
+        or (
+            step.kappa > 0.0
+            and abs(angle_diff(step.heading, best.bearing)) > 4.0 * o.odometer.scale_straight_deg
+        )
     ):
         a.base = NO_BASE
         return
     b_odo, bx, by, b_brg = a.base
     here = (step.odo, step.x, step.y, best.bearing)
-    if math.isnan(b_odo) or abs(angle_diff(best.bearing, b_brg)) > o.scale_straight_deg:
+    if math.isnan(b_odo) or abs(angle_diff(best.bearing, b_brg)) > o.odometer.scale_straight_deg:
         a.base = here
         return
     dist = step.odo - b_odo
-    if dist < o.scale_baseline:
+    if dist < o.odometer.scale_baseline:
         return
     a.base = here
     nu = math.hypot(step.x - bx, step.y - by) - dist  # metres the odometer missed
     kvar = odo_kvar(a, cfg)
-    r = 2.0 * step.fix_sigma**2 + (o.scale_path_error * dist) ** 2
+    r = 2.0 * step.fix_sigma**2 + (o.odometer.scale_path_error * dist) ** 2
     sv = dist * dist * kvar + r
     if nu * nu > 9.0 * sv:
         return
     lim = 2.0 * math.sqrt(sv)
     nu = min(max(nu, -lim), lim)
     gain = kvar * dist / sv
-    a.odo_k = min(max(a.odo_k + gain * nu, -o.odo_scale_max), o.odo_scale_max)
+    a.odo_k = min(max(a.odo_k + gain * nu, -o.odometer.odo_scale_max), o.odometer.odo_scale_max)
     a.odo_kvar = kvar * (1.0 - gain * dist)
 
 
 def add_trail(trail: list[TrailPoint], time: float, odo: float, standing: bool, cfg: MatchConfig) -> None:
     """Keep the odometer every ``trail_step`` metres, and both ends of a stop."""
     if standing:
-        if len(trail) >= 2 and odo - trail[-2].odo <= cfg.online.still_distance:
+        if len(trail) >= 2 and odo - trail[-2].odo <= cfg.online.stop.still_distance:
             trail[-1].time = time  # still standing: the stop goes on
             return
-    elif trail and odo - trail[-1].odo < cfg.online.trail_step:
+    elif trail and odo - trail[-1].odo < cfg.online.corrections.trail_step:
         return
     trail.append(TrailPoint(time, odo))
-    if len(trail) > cfg.online.trail_max:
+    if len(trail) > cfg.online.corrections.trail_max:
         del trail[0]
 
 
@@ -170,7 +173,7 @@ def keep_back(
     # each tail's sum over a list of lengths, in C (an imported session may hold many edges)
     lens = [road.elen[b.edge] for b in c.back]
     drop = 0
-    while sum(lens[drop:]) > cfg.online.trail_max_distance:
+    while sum(lens[drop:]) > cfg.online.corrections.trail_max_distance:
         drop += 1
     del c.back[:drop]
 
@@ -227,7 +230,7 @@ def sure_time(
     ``old`` (the time of the first fix reported past the node) moved only as far as the
     reading is sure, so that fixes within ``revise_sigmas`` σ of the node keep what was
     reported; not moved back by less than the fix interval ``dt`` (no fix in between)."""
-    k = cfg.online.revise_sigmas
+    k = cfg.online.corrections.revise_sigmas
     lo = float(np.interp(odo - k * sd, o_tr, t_tr))
     hi = float(np.interp(odo + k * sd, o_tr, t_tr))
     new = min(max(old, lo), hi)

@@ -15,10 +15,10 @@ def drift_sigma(b: BiasState, gps: bool, dr: float, dt: float, cfg: MatchConfig)
     fix and decays over ``drift_decay_time`` once GPS is back (the fusion filter needs time to
     converge)."""
     if not gps:
-        return max(b.drift_sigma, cfg.model.gps_sigma + cfg.online.dr_sigma_growth * dr)
+        return max(b.drift_sigma, cfg.model.gps_sigma + cfg.online.bias.dr_sigma_growth * dr)
     if b.drift_sigma <= 0.0 or math.isnan(dt):
         return 0.0
-    return b.drift_sigma * math.exp(-dt / cfg.online.drift_decay_time)
+    return b.drift_sigma * math.exp(-dt / cfg.online.bias.drift_decay_time)
 
 
 def take(b: BiasState, step: Step, cfg: MatchConfig) -> None:
@@ -30,9 +30,9 @@ def take(b: BiasState, step: Step, cfg: MatchConfig) -> None:
 def predict_bias(b: FixBias, sigma: float, dt: float, cfg: MatchConfig) -> FixBias:
     """The fix bias a step on: it decays towards zero, its covariance towards σ²."""
     bx, by, pxx, pxy, pyy = b
-    if cfg.online.bias_time <= 0.0 or math.isnan(pxx) or math.isnan(dt):
+    if cfg.online.bias.bias_time <= 0.0 or math.isnan(pxx) or math.isnan(dt):
         return FixBias(0.0, 0.0, sigma * sigma, 0.0, sigma * sigma)
-    a = math.exp(-dt / cfg.online.bias_time)
+    a = math.exp(-dt / cfg.online.bias.bias_time)
     q = sigma * sigma * (1.0 - a * a)
     return FixBias(a * bx, a * by, a * a * pxx + q, a * a * pxy, a * a * pyy + q)
 
@@ -46,7 +46,7 @@ def learn_bias(b: BiasState, best: Hypothesis, step: Step, cfg: MatchConfig) -> 
     nx, ny = math.cos(rad), -math.sin(rad)  # normal to the road (bearing clockwise from north)
     z = (step.x - best.px) * nx + (step.y - best.py) * ny
     pnx, pny = pxx * nx + pxy * ny, pxy * nx + pyy * ny
-    r = (cfg.online.bias_white_fraction * step.sigma) ** 2 / step.weight
+    r = (cfg.online.bias.bias_white_fraction * step.sigma) ** 2 / step.weight
     sv = nx * pnx + ny * pny + r
     nu = z - (bx * nx + by * ny)
     lim = 3.0 * math.sqrt(sv)
@@ -58,11 +58,11 @@ def learn_bias(b: BiasState, best: Hypothesis, step: Step, cfg: MatchConfig) -> 
 def learn_residuals(b: BiasState, best: Hypothesis, step: Step, cfg: MatchConfig) -> None:
     """Running estimate of the real position and heading error, from on-road fixes."""
     o = cfg.online
-    a = 1.0 if math.isnan(step.dt) else min(1.0, step.dt / o.residual_time)
+    a = 1.0 if math.isnan(step.dt) else min(1.0, step.dt / o.bias.residual_time)
     # clipped (robust) and bounded, so that a wrong road cannot teach a large σ
     if step.gps:
         d = min(best.dist, 2.5 * math.sqrt(b.res_pos2))
-        b.res_pos2 = min(b.res_pos2 + a * (d * d - b.res_pos2), o.learned_pos_sigma_max**2)
+        b.res_pos2 = min(b.res_pos2 + a * (d * d - b.res_pos2), o.bias.learned_pos_sigma_max**2)
     if step.kappa > 0.0:
         dh = min(abs(angle_diff(step.heading, best.bearing)), 2.5 * math.sqrt(b.res_head2))
-        b.res_head2 = min(b.res_head2 + a * (dh * dh - b.res_head2), o.learned_heading_sigma_max_deg**2)
+        b.res_head2 = min(b.res_head2 + a * (dh * dh - b.res_head2), o.bias.learned_heading_sigma_max_deg**2)

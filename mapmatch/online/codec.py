@@ -59,11 +59,11 @@ class StateCaps:
         """The caps of a matcher configuration."""
         o = config.online
         return cls(
-            hyps=o.max_hypotheses + config.model.max_candidates,
-            path_edges=o.max_path_edges,
-            live=o.max_live,
-            headings=max(o.turn_max_samples, 2),
-            trail=o.trail_max,
+            hyps=o.region.max_hypotheses + config.model.max_candidates,
+            path_edges=o.corrections.max_path_edges,
+            live=o.corrections.max_live,
+            headings=max(o.evidence.turn_max_samples, 2),
+            trail=o.corrections.trail_max,
         )
 
 

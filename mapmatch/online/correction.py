@@ -16,8 +16,8 @@ def remember_live(rg: RegionState, edge: int, step: Step, cfg: MatchConfig) -> N
     ``max_live``, one per ``live_spacing`` seconds unless the edge reported changed."""
     last = rg.live[-1] if rg.live else None
     if last is None or (
-        len(rg.live) < cfg.online.max_live
-        and (last.edge != edge or step.time - last.time >= cfg.online.live_spacing)
+        len(rg.live) < cfg.online.corrections.max_live
+        and (last.edge != edge or step.time - last.time >= cfg.online.corrections.live_spacing)
     ):
         rg.live.append(
             LiveFix(step.time, edge, step.x, step.y, step.heading, step.sigma, step.kappa, step.gps)
@@ -40,7 +40,7 @@ def correction(road: RoadModel, rg: RegionState, best: Hypothesis, cfg: MatchCon
         if (
             now != rep
             and rep in path
-            and (not entry.gps or row[path.index(rep)] - row[j] < cfg.online.correction_margin)
+            and (not entry.gps or row[path.index(rep)] - row[j] < cfg.online.corrections.correction_margin)
         ):
             # dead reckoning, or about as likely where it was reported on the committed path: keep it
             continue

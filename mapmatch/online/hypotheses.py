@@ -31,7 +31,7 @@ def _candidates(
     out = []
     for e in edges:
         pr = road.project(e, step.x, step.y)
-        if step.kappa > 0.0 and abs(angle_diff(step.heading, pr[4])) > cfg.online.init_max_heading_deg:
+        if step.kappa > 0.0 and abs(angle_diff(step.heading, pr[4])) > cfg.online.region.init_max_heading_deg:
             continue
         out.append((e, pr))
     return out
@@ -40,12 +40,15 @@ def _candidates(
 def initialise(road: RoadModel, index: EdgeIndex, state: SessionState, step: Step, cfg: MatchConfig) -> None:
     """Start again from a spatial-index search around the fix."""
     m, o = cfg.model, cfg.online
-    radius = min(max(m.search_radius, o.reinit_sigmas * step.sigma), max(o.init_max_radius, m.search_radius))
+    radius = min(
+        max(m.search_radius, o.reinit.reinit_sigmas * step.sigma),
+        max(o.region.init_max_radius, m.search_radius),
+    )
     hyps = []
     for e, (off, dist, px, py, brg) in _candidates(road, index, step, radius, cfg):
         lp = road.emission(dist, step.sigma, step.heading, brg, step.kappa)
         hyps.append(Hypothesis([e], 0, off, off, lp, [step.time], dist, px, py, brg))
-    state.hyps = normalise(hyps, prune_log_ratio=o.prune_log_ratio)
+    state.hyps = normalise(hyps, prune_log_ratio=o.region.prune_log_ratio)
     state.region.restart(pending=len({h.edges[0] for h in state.hyps}) > 1, odo=state.odo)
     state.crossings.restart()
     state.bad_time = state.bad_odo = math.nan
@@ -65,7 +68,7 @@ def add_alternatives(
     the spatial index (or the given ``edges``) join the filter with a switching penalty;
     evidence decides."""
     m, o = cfg.model, cfg.online
-    radius = min(max(m.search_radius, o.reinit_sigmas * step.sigma), o.init_max_radius)
+    radius = min(max(m.search_radius, o.reinit.reinit_sigmas * step.sigma), o.region.init_max_radius)
     have = {h.edges[h.k] for h in state.hyps}
     base = road.emission(best.dist, step.sigma, step.heading, best.bearing, step.kappa)
     for e, (off, dist, px, py, brg) in _candidates(road, index, step, radius, cfg, edges):
@@ -73,12 +76,12 @@ def add_alternatives(
             continue
         lp = (
             best.logp
-            - o.switch_penalty
+            - o.region.switch_penalty
             + step.weight * (road.emission(dist, step.sigma, step.heading, brg, step.kappa) - base)
         )
         state.hyps.append(Hypothesis([e], 0, off, off, lp, [step.time], dist, px, py, brg))
-    state.hyps = normalise(state.hyps, prune_log_ratio=o.prune_log_ratio)
-    keep_best(state.hyps, o.max_hypotheses)
+    state.hyps = normalise(state.hyps, prune_log_ratio=o.region.prune_log_ratio)
+    keep_best(state.hyps, o.region.max_hypotheses)
 
 
 def extend(road: RoadModel, h: Hypothesis, reach: float, cfg: MatchConfig, out: list[Hypothesis]) -> None:
@@ -87,7 +90,7 @@ def extend(road: RoadModel, h: Hypothesis, reach: float, cfg: MatchConfig, out: 
     total = 0.0
     for e in h.edges:
         total += road.elen[e]
-    if total >= reach or len(h.edges) - h.k >= cfg.online.max_hops:
+    if total >= reach or len(h.edges) - h.k >= cfg.online.region.max_hops:
         out.append(h)
         return
     kids = road.children(h.edges[-1], cfg)
@@ -112,10 +115,10 @@ def advance(road: RoadModel, state: SessionState, step: Step, cfg: MatchConfig) 
             if math.isnan(grow):
                 h.anc = math.nan
         extend(road, h, h.s + ahead, cfg, hyps)
-    keep_best(hyps, o.max_hypotheses)
+    keep_best(hyps, o.region.max_hypotheses)
     turn_obs, covered = (math.nan, 0.0)
     if len(hyps) > 1 and step.kappa > 0.0:
-        turn_obs, covered = heading_change(state.headings, state.odo, window=o.turn_window)
+        turn_obs, covered = heading_change(state.headings, state.odo, window=o.evidence.turn_window)
     filter_step(
         hyps,
         weight=step.weight,

@@ -49,8 +49,8 @@ class OnlineMatcher:
         o = config.online
         # parallel roads and slowly separating fork branches of every edge, looked up per fix
         self.neighbours: Neighbours | None = (
-            edge_neighbours(graph, band_m=o.neighbour_band, index=self.index)
-            if o.neighbour_sigmas > 0.0 and o.neighbour_band > 0.0
+            edge_neighbours(graph, band_m=o.reinit.neighbour_band, index=self.index)
+            if o.reinit.neighbour_sigmas > 0.0 and o.reinit.neighbour_band > 0.0
             else None
         )
         self.edge_len_ref = self.road.edge_len_ref
@@ -73,7 +73,7 @@ class OnlineMatcher:
         # the first GPS-aided fix after dead reckoning, and those while its drift blends out:
         # they are the truth, not outliers
         first = state.odo - state.gps_odo > 0.0
-        searched = step.time - state.search_time < cfg.online.search_every
+        searched = step.time - state.search_time < cfg.online.reinit.search_every
         blending = state.bias.drift_sigma > step.fix_sigma and not searched
         returned = step.gps and step.kappa > 0.0 and (first or blending)
         self._take(state, step, cfg)
@@ -107,14 +107,18 @@ class OnlineMatcher:
         bias.take(state.bias, step, cfg)
         state.time, state.x, state.y = step.time, step.x, step.y
         if step.kappa > 0.0:
-            o = cfg.online
+            ev = cfg.online.evidence
             add_sample(
                 state.headings, state.odo, step.heading,
-                window=o.turn_window, spacing=o.turn_sample_spacing, max_samples=o.turn_max_samples,
+                window=ev.turn_window, spacing=ev.turn_sample_spacing, max_samples=ev.turn_max_samples,
             )  # fmt: skip
         if step.odo_known:
             anchor.add_trail(
-                state.crossings.trail, step.time, state.odo, step.travelled <= cfg.online.still_distance, cfg
+                state.crossings.trail,
+                step.time,
+                state.odo,
+                step.travelled <= cfg.online.stop.still_distance,
+                cfg,
             )
 
     def _filter(
@@ -124,26 +128,28 @@ class OnlineMatcher:
         has just returned away from it), the search for other roads."""
         hyps = hypotheses.advance(self.road, state, step, cfg)
         held = stopline.hold_stopped(self.road, hyps, state, step, cfg)
-        state.hyps = normalise(hyps, prune_log_ratio=cfg.online.prune_log_ratio)
+        state.hyps = normalise(hyps, prune_log_ratio=cfg.online.region.prune_log_ratio)
         best = best_of(state.hyps)
         o = cfg.online
-        against = step.kappa > 0.0 and abs(angle_diff(step.heading, best.bearing)) > o.against_heading_deg
-        searched = step.time - state.search_time < o.search_every
-        if returned and o.return_sigmas > 0.0 and best.dist > o.return_sigmas * step.fix_sigma:
+        against = (
+            step.kappa > 0.0 and abs(angle_diff(step.heading, best.bearing)) > o.reinit.against_heading_deg
+        )
+        searched = step.time - state.search_time < o.reinit.search_every
+        if returned and o.reinit.return_sigmas > 0.0 and best.dist > o.reinit.return_sigmas * step.fix_sigma:
             # weigh the roads near the returning fix against it at its own σ, at once
             state.search_time = step.time
             own = dataclasses.replace(step, sigma=step.fix_sigma)
             hypotheses.add_alternatives(self.road, self.index, state, own, best, cfg)
         elif step.stopped:
             pass  # a stopped vehicle has not left its road, however far its fixes wander
-        elif step.gps and (best.dist > o.soft_reinit_sigmas * step.sigma or against) and not searched:
+        elif step.gps and (best.dist > o.reinit.soft_reinit_sigmas * step.sigma or against) and not searched:
             state.search_time = step.time
             hypotheses.add_alternatives(self.road, self.index, state, step, best, cfg)
         elif (
             step.gps
             and self.neighbours is not None
-            and o.neighbour_sigmas > 0.0
-            and best.dist > o.neighbour_sigmas * step.sigma
+            and o.reinit.neighbour_sigmas > 0.0
+            and best.dist > o.reinit.neighbour_sigmas * step.sigma
             and not searched
         ):  # a parallel road or a fork branch may fit the fix better: a table look-up
             nb = self.neighbours.of(best.edges[best.k])
@@ -157,13 +163,16 @@ class OnlineMatcher:
         did); learn the fix's residuals and bias while on one road."""
         o = cfg.online
         best = best_of(state.hyps)
-        if best.dist > o.reinit_sigmas * step.sigma:
+        if best.dist > o.reinit.reinit_sigmas * step.sigma:
             anchor.drop_baseline(state.anchor)
             if math.isnan(state.bad_time):
                 state.bad_time, state.bad_odo = step.time, state.odo
             elif step.stopped and not math.isnan(step.dt):
                 state.bad_time += step.dt  # the clock runs only while moving: fixes wander at a stop
-            if step.time - state.bad_time >= o.reinit_time or state.odo - state.bad_odo >= o.reinit_distance:
+            if (
+                step.time - state.bad_time >= o.reinit.reinit_time
+                or state.odo - state.bad_odo >= o.reinit.reinit_distance
+            ):
                 hypotheses.initialise(self.road, self.index, state, step, cfg)
                 return True
             return False

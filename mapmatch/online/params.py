@@ -62,18 +62,18 @@ def _config_part(cfg: MatchConfig) -> tuple[float, ...]:
     return tuple(
         float(v)
         for v in (
-            o.bias_emission,
-            o.bias_white_fraction,
-            o.step_from_corrected,
-            o.anchor_gate,
+            o.bias.bias_emission,
+            o.bias.bias_white_fraction,
+            o.bias.step_from_corrected,
+            o.anchor.anchor_gate,
             m.straight_max_deg,
-            o.pos_sigma_floor,
+            o.evidence.pos_sigma_floor,
             m.beta,
             m.beta_per_m,
             m.max_speed,
             m.speed_penalty,
-            o.turn_window,
-            o.turn_sigma,
+            o.evidence.turn_window,
+            o.evidence.turn_sigma,
         )
     )
 
@@ -114,9 +114,9 @@ def param_values(
         float(b.pyy),
         step.odo_sigma,
         step.dr,
-        float(max(step.dt, o.speed_time)),
-        float(o.node_hold_sigmas * step.sigma),
-        float(o.node_hold_ahead_sigmas * step.sigma),
+        float(max(step.dt, o.stop.speed_time)),
+        float(o.stop.node_hold_sigmas * step.sigma),
+        float(o.stop.node_hold_ahead_sigmas * step.sigma),
         float(turn_obs),
         float(covered),
         float(step.r_a),

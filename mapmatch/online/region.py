@@ -24,8 +24,12 @@ _NO_TURN = Turn.NONE  # as a module value: an enum member's look-up on its class
 def region_radius(road: RoadModel, sigma: float, cfg: MatchConfig) -> float:
     """Ambiguous-region radius in metres for a fix of position σ (DR growth included)."""
     o = cfg.online
-    r = max(o.ambiguous_min_radius, o.drift_rate * road.edge_len_ref, o.ambiguous_sigma_factor * sigma)
-    return min(r, max(o.ambiguous_max_radius, o.ambiguous_min_radius))
+    r = max(
+        o.region.ambiguous_min_radius,
+        o.region.drift_rate * road.edge_len_ref,
+        o.region.ambiguous_sigma_factor * sigma,
+    )
+    return min(r, max(o.region.ambiguous_max_radius, o.region.ambiguous_min_radius))
 
 
 def commit(
@@ -66,13 +70,13 @@ def _branches_close(
     without GPS; until ``best`` is
     ``ambiguous_max_radius`` past the node)."""
     o = cfg.online
-    sep = (o.commit_separation_sigmas if step.gps else o.outage_separation_sigmas) * step.sigma
-    if sep <= 0.0 or best.s - road.elen[best.edges[0]] >= o.ambiguous_max_radius:
+    sep = (o.region.commit_separation_sigmas if step.gps else o.region.outage_separation_sigmas) * step.sigma
+    if sep <= 0.0 or best.s - road.elen[best.edges[0]] >= o.region.ambiguous_max_radius:
         return False
     e1 = best.edges[1]
     return any(
         (len(h.edges) < 2 or h.edges[1] != e1)
-        and h.logp > -o.commit_hold_log_ratio
+        and h.logp > -o.region.commit_hold_log_ratio
         and math.hypot(h.px - best.px, h.py - best.py) < sep
         for h in state.hyps
     )
@@ -87,9 +91,9 @@ def _branch_probable(
     no evidence."""
     o = cfg.online
     if (
-        o.commit_hold_probability <= 0.0
+        o.region.commit_hold_probability <= 0.0
         or not step.gps  # dead reckoning: the turn's anchor at the commit carries the vehicle
-        or best.s - road.elen[best.edges[0]] >= o.ambiguous_max_radius
+        or best.s - road.elen[best.edges[0]] >= o.region.ambiguous_max_radius
     ):
         return False
     e1 = best.edges[1]
@@ -99,7 +103,7 @@ def _branch_probable(
         total += p
         if len(h.edges) < 2 or h.edges[1] != e1:
             drop += p
-    return drop > o.commit_hold_probability * total
+    return drop > o.region.commit_hold_probability * total
 
 
 def _branches_kept(state: SessionState, e1: int, step: Step, cfg: MatchConfig) -> list[Hypothesis]:
@@ -108,10 +112,10 @@ def _branches_kept(state: SessionState, e1: int, step: Step, cfg: MatchConfig) -
     distance (the branches of a motorway split may run within a few metres for a kilometre)
     does not end them; they go on as paths of their own, and the evidence decides."""
     o = cfg.online
-    if o.commit_hold_probability <= 0.0 or not step.gps:
+    if o.region.commit_hold_probability <= 0.0 or not step.gps:
         return []
     total = sum(math.exp(h.logp) for h in state.hyps)
-    floor = o.commit_hold_probability * total
+    floor = o.region.commit_hold_probability * total
     return [
         h
         for h in state.hyps
@@ -125,8 +129,8 @@ def _commit_start(
     """Whether the start-up road is sure enough (or enough was driven) to commit."""
     total = sum(math.exp(h.logp) for h in state.hyps)
     group = sum(math.exp(h.logp) for h in state.hyps if h.edges[0] == best.edges[0]) / total
-    return group >= cfg.online.init_commit_probability or state.odo - state.region.init_odo >= max(
-        2.0 * step.r_a, cfg.online.turn_window
+    return group >= cfg.online.region.init_commit_probability or state.odo - state.region.init_odo >= max(
+        2.0 * step.r_a, cfg.online.evidence.turn_window
     )
 
 
@@ -156,7 +160,7 @@ def _commit_node(
     if road.branching[road.ev[e0]] or is_rev:
         turn = kind
     # a turn, or a bend where no other road joins, tells where the vehicle is
-    if kind in (Turn.LEFT, Turn.RIGHT) and cfg.online.turn_anchor_sigma > 0.0 and step.odo_known:
+    if kind in (Turn.LEFT, Turn.RIGHT) and cfg.online.anchor.turn_anchor_sigma > 0.0 and step.odo_known:
         mid, anchor_sd = turn_anchor(road, state, best, step, cfg)
         if not math.isnan(mid):
             # rounding the corner, the vehicle drives less than the centre line: the
@@ -171,7 +175,7 @@ def _commit_node(
     state.region.live = [x for x in state.region.live if x.edge != e0]
     for h in hyps:
         _drop_first_edge(road, h, road.elen[e0], step, anchor_odo, anchor_sd)
-    state.hyps = normalise(hyps, prune_log_ratio=cfg.online.prune_log_ratio)
+    state.hyps = normalise(hyps, prune_log_ratio=cfg.online.region.prune_log_ratio)
     return turn, corr
 
 

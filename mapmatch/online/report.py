@@ -57,7 +57,11 @@ def shown_hypothesis(state: SessionState, cfg: MatchConfig) -> Shown:
         mass = {e: a[0] for e, a in agg.items()}
         top = max(mass, key=mass.__getitem__)
         shown = state.shown
-        if top != shown and shown in mass and mass[top] < cfg.online.report_back_ratio * mass[shown]:
+        if (
+            top != shown
+            and shown in mass
+            and mass[top] < cfg.online.corrections.report_back_ratio * mass[shown]
+        ):
             hs = best_of([h for h in hyps if h.edges[h.k] == shown])
             if top in hs.edges[: hs.k]:
                 top = shown
@@ -153,7 +157,7 @@ def report(
             step.gps,
             step.sigma,  # fix_sigma
             step.bias[2:],  # bias_cov: (pxx, pxy, pyy)
-            cfg.online.bias_white_fraction,  # white_share
+            cfg.online.bias.bias_white_fraction,  # white_share
             shown_hyp.anc_sd,  # anchor_sd
             step.odo_sigma,
             step.dr,  # dr_distance

@@ -167,7 +167,7 @@ class RoadModel:
             return False  # inside (the common case): distance 0, never over far_off (≥ 0)
         dx = max(b[0] - x, 0.0, x - b[2])
         dy = max(b[1] - y, 0.0, y - b[3])
-        return math.hypot(dx, dy) > cfg.online.far_off
+        return math.hypot(dx, dy) > cfg.online.reinit.far_off
 
     # ------------------------------------------------------------------ road rules
     def children(self, e: int, cfg: MatchConfig) -> list[tuple[int, float]]:
@@ -185,7 +185,7 @@ class RoadModel:
         """Log-probability of ``route_dist`` metres along the path for this step's travel (its
         speed judged over at least ``speed_time``, whatever the fix rate)."""
         m = cfg.model
-        dt = max(step.dt, cfg.online.speed_time)
+        dt = max(step.dt, cfg.online.stop.speed_time)
         return transition_one(
             route_dist, step.travelled, dt, m.beta, m.beta_per_m, m.max_speed, m.speed_penalty
         )

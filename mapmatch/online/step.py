@@ -37,10 +37,14 @@ def prepare(road: RoadModel, state: SessionState, fix: Fix, cfg: MatchConfig) ->
     kappa = 0.0
     if not math.isnan(heading) and (math.isnan(fix.speed) or fix.speed >= cfg.model.heading_min_speed):
         hs = cfg.model.heading_sigma if math.isnan(fix.heading_sigma) else fix.heading_sigma
-        floor = o.heading_sigma_floor_deg if fix.gps_valid is not False else o.heading_sigma_floor_dr_deg
+        floor = (
+            o.evidence.heading_sigma_floor_deg
+            if fix.gps_valid is not False
+            else o.evidence.heading_sigma_floor_dr_deg
+        )
         kappa = heading_kappa_one(max(hs, math.sqrt(state.bias.res_head2)), floor)
     # the fused error is correlated: evidence accrues with time and, when known, distance
-    per_time = 1.0 if math.isnan(dt) else min(1.0, dt / o.evidence_time)
+    per_time = 1.0 if math.isnan(dt) else min(1.0, dt / o.evidence.evidence_time)
     weight = per_time
     stopped = False
     speed = state.speed
@@ -50,11 +54,11 @@ def prepare(road: RoadModel, state: SessionState, fix: Fix, cfg: MatchConfig) ->
         speed = min(travelled / dt, _SPEED)  # fixes a hair apart in time: no absurd speed
         now = speed
         if not math.isnan(state.speed):
-            speed = state.speed + min(1.0, dt / o.stop_time) * (speed - state.speed)
-        stopped = min(now, speed) < o.stop_speed
-        if speed < o.zero_speed:
+            speed = state.speed + min(1.0, dt / o.stop.stop_time) * (speed - state.speed)
+        stopped = min(now, speed) < o.stop.stop_speed
+        if speed < o.stop.zero_speed:
             travelled = 0.0  # standing: the odometer's rectified noise is no distance
-        weight = min(weight, travelled / o.evidence_distance)
+        weight = min(weight, travelled / o.evidence.evidence_distance)
     # the turn score is already per metre driven: weighed per fix only by the distance share,
     # or it would count ten times less at 10 Hz than at 1 Hz
     turn_weight = weight / per_time if per_time > 0.0 else 0.0
@@ -63,13 +67,13 @@ def prepare(road: RoadModel, state: SessionState, fix: Fix, cfg: MatchConfig) ->
     still_kappa = still_weight = 0.0
     if (
         stopped
-        and o.stopped_heading_weight > 0.0
+        and o.evidence.stopped_heading_weight > 0.0
         and not math.isnan(fix.heading_sigma)
         and not math.isnan(heading)
     ):
         hs = max(fix.heading_sigma, math.sqrt(state.bias.res_head2))
-        still_kappa = heading_kappa_one(hs, o.heading_sigma_floor_deg)
-        still_weight = o.stopped_heading_weight * max(per_time - weight, 0.0)
+        still_kappa = heading_kappa_one(hs, o.evidence.heading_sigma_floor_deg)
+        still_weight = o.evidence.stopped_heading_weight * max(per_time - weight, 0.0)
     odo = state.odo + (travelled if not math.isnan(travelled) else 0.0)
     return Step(  # positional up to ``r_a``, in field order
         fix.time,  # time
@@ -88,7 +92,7 @@ def prepare(road: RoadModel, state: SessionState, fix: Fix, cfg: MatchConfig) ->
         region_radius(road, sigma, cfg),  # r_a
         dr=0.0 if gps else odo - state.gps_odo,
         bias=bias.predict_bias(state.bias.vector, sigma, dt, cfg),
-        odo_sigma=math.sqrt(anchor.odo_kvar(state.anchor, cfg) + o.odo_scale_floor**2),
+        odo_sigma=math.sqrt(anchor.odo_kvar(state.anchor, cfg) + o.odometer.odo_scale_floor**2),
         fix_sigma=own,
         turn_weight=turn_weight,
         still_kappa=still_kappa,
@@ -118,7 +122,7 @@ def own_sigma(state: SessionState, fix: Fix, cfg: MatchConfig) -> float:
         sigma = cfg.model.gps_sigma
     else:
         sigma = fix.pos_sigma
-    return max(sigma, cfg.online.pos_sigma_floor, math.sqrt(state.bias.res_pos2))
+    return max(sigma, cfg.online.evidence.pos_sigma_floor, math.sqrt(state.bias.res_pos2))
 
 
 def validate(road: RoadModel, state: SessionState, fix: Fix) -> None:

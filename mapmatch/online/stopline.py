@@ -41,12 +41,12 @@ def hold_before_node(
     own, no dead-reckoning drift above it, within ``stop_hold_fix_distance``), with the next
     node further than that, and without a turn there that its heading shows taken. Returns
     the time it had crossed the node (nan: not put back)."""
-    hold = cfg.online.stop_hold_distance
+    hold = cfg.online.stop.stop_hold_distance
     prev, cur = h.edges[h.k - 1], h.edges[h.k]
     trail = state.crossings.trail
     if h.off >= hold or road.elen[cur] - h.off <= hold or len(trail) < 2:
         return math.nan
-    fix_hold = cfg.online.stop_hold_fix_distance
+    fix_hold = cfg.online.stop.stop_hold_fix_distance
     own = step.gps and step.sigma <= step.fix_sigma  # no dead-reckoning drift left above its own σ
     if fix_hold > 0.0 and own and road.project(cur, step.x, step.y)[0] >= fix_hold:
         # the fix itself shows the stop further past the node than a stop line: the position
