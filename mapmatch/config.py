@@ -208,7 +208,7 @@ class EvidenceConfig:
         position's error is correlated in time, so 10 Hz fixes must not count ten times).
     evidence_distance : metres travelled that count as one independent observation, when the
         distance travelled is known (a stopped vehicle's repeated fixes add no evidence).
-    stopped_heading_weight : a stopped vehicle's fused heading (a fix with ``heading_sigma``,
+    stopped_heading_weight : a stopped vehicle's fused heading (a fix with ``model.heading_sigma``,
         gyro-aided, which holds at a standstill where a GPS course does not) scores the paths
         with this share of the fix's time weight, the share its distance weight leaves out: a
         vehicle turning round while stopped at a node shows which road it faces (0 disables it).
@@ -408,8 +408,9 @@ class CorrectionsConfig:
     trail_max : ... at most this many points ...
     trail_max_distance : ... and crossings at most this many metres back.
     max_path_edges : most edges an imported session may hold in one path list (a hypothesis's
-        path, the edges since the last turn anchor): with ``max_hypotheses``,
-        ``max_candidates``, ``max_live``, ``turn_max_samples`` and ``trail_max`` it bounds the
+        path, the edges since the last turn anchor): with ``online.region.max_hypotheses``,
+        ``model.max_candidates``, ``max_live``, ``online.evidence.turn_max_samples`` and
+        ``trail_max`` it bounds the
         work one imported session can cost (the matcher's own paths hold a few dozen edges).
     revise_sigmas : a revised crossing moves only as far as its anchor is this many σ sure.
     report_back_ratio : reporting an edge behind the one reported needs this much more mass.
@@ -488,7 +489,7 @@ class RouteConfig:
         bound, the speed checks). A route table (:class:`~mapmatch.route_table.Ubodt`) holds one turn cost; a
         matcher uses it only for configs with that turn cost.
     route_lp_cut : routes are searched only as a fallback beyond the travelled distance plus
-        this many β (the base ``beta``, without ``beta_per_m``'s growth: a wider first search
+        this many β (the base ``model.beta``, without ``model.beta_per_m``'s growth: a wider first search
         costs time on dense maps without changing the matches).
     reverse_tolerance : metres a candidate may fall behind the previous one on the same edge and
         count as standing.
@@ -529,11 +530,11 @@ class TrackConfig:
 
     interpolate_distance : fixes closer than this to the previous kept fix are interpolated.
     track_sigma_max : metres; a track's fixes without their own accuracy take the larger of
-        ``gps_sigma`` and the track's own σ, up to this: 1.4826 times the median distance of its
+        ``model.gps_sigma`` and the track's own σ, up to this: 1.4826 times the median distance of its
         fixes to their nearest road (Newson and Krumm's robust estimate: a worse receiver
-        shows in how far its fixes lie from the roads). 0: always ``gps_sigma``. The σ counts
+        shows in how far its fixes lie from the roads). 0: always ``model.gps_sigma``. The σ counts
         in the emissions, the off-map limit and the jump rule.
-    thin_sigmas : a track whose own σ exceeds ``gps_sigma`` is thinned (as by
+    thin_sigmas : a track whose own σ exceeds ``model.gps_sigma`` is thinned (as by
         ``interpolate_distance``) at this many times the excess: a worse receiver's fixes
         close together share their error, so they are less evidence than their number says
         (0: never; ``bench/bench_batch_robust.py --sets noise`` adds error to real tracks to
@@ -544,7 +545,7 @@ class TrackConfig:
         the direction of travel.
     motion_heading_sigma : degrees; where a fix has no heading, the direction of travel from
         its neighbours (both legs at least ``motion_min_distance`` metres, turning by at most
-        ``straight_max_deg``) is its heading with this σ against the road's bearing and
+        ``model.straight_max_deg``) is its heading with this σ against the road's bearing and
         one-way direction (0 disables it).
     motion_min_distance : see ``motion_heading_sigma``. Short: consecutive fixes share most of
         their error, so even a slow vehicle's legs of a few metres tell its direction.

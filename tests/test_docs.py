@@ -178,10 +178,31 @@ def test_cli_page_has_every_flag() -> None:
     assert missing == []
 
 
+def _config_sections(section: object, path: str) -> dict[str, object]:
+    """Every section and sub-section under ``section`` by its dotted path."""
+    out: dict[str, object] = {}
+    for f in dataclasses.fields(section):  # type: ignore[arg-type]
+        v = getattr(section, f.name)
+        if dataclasses.is_dataclass(v):
+            full = f"{path}.{f.name}" if path else f.name
+            out[full] = v
+            out |= _config_sections(v, full)
+    return out
+
+
 def test_tuning_page_has_every_config_field() -> None:
+    """A heading per section and sub-section (``## online:``, ``### online.region:``) and a table
+    row per field, under its own section's heading."""
     page = (DOCS / "tuning.md").read_text(encoding="utf-8")
-    config = MatchConfig()
-    sections = [f.name for f in dataclasses.fields(config)]
-    assert [s for s in sections if f"## {s}:" not in page] == []
-    names = [f.name for sec in sections for f in dataclasses.fields(getattr(config, sec))]
-    assert [n for n in names if f"| `{n}` |" not in page] == []
+    sections = _config_sections(MatchConfig(), "")
+    heads = {s: re.search(rf"^#+ {re.escape(s)}:", page, re.M) for s in sections}
+    assert [s for s, m in heads.items() if m is None] == []
+    misplaced = []
+    for s, sec in sections.items():
+        start = heads[s].end()  # type: ignore[union-attr]
+        nxt = re.search(r"^#+ ", page[start:], re.M)
+        body = page[start : start + nxt.start()] if nxt else page[start:]
+        for f in dataclasses.fields(sec):  # type: ignore[arg-type]
+            if not dataclasses.is_dataclass(getattr(sec, f.name)) and f"| `{f.name}` |" not in body:
+                misplaced.append(f"{s}.{f.name}")
+    assert misplaced == []
