@@ -18,6 +18,7 @@ all sections).
 from __future__ import annotations
 
 import dataclasses
+import difflib
 import math
 from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import dataclass, field, fields
@@ -906,8 +907,10 @@ def _put(nested: dict[str, Any], path: tuple[str, ...], value: Any) -> None:
 
 
 def _hint(name: str, prefix: str = "") -> str:
-    """``; did you mean SECTION.FIELD?`` for a known field's bare name, else nothing."""
-    return f"; did you mean {prefix}{'.'.join(_PATHS[name])}?" if name in _PATHS else ""
+    """``; did you mean SECTION.FIELD?`` for a known field's bare name or a near miss of one
+    (``max_hypothesis``), else nothing."""
+    near = [name] if name in _PATHS else difflib.get_close_matches(name, _PATHS, n=1, cutoff=0.85)
+    return f"; did you mean {prefix}{'.'.join(_PATHS[near[0]])}?" if near else ""
 
 
 def _updated(section: Any, changes: Any, path: tuple[str, ...], prefix: str) -> Any:

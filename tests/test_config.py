@@ -78,6 +78,7 @@ def test_settings_by_full_name_as_the_cli_takes_them() -> None:
             ["online.no_such_field=1"],
             r"online\.no_such_field: unknown section \(the sections of online are region",
         ),
+        (["online.region.max_hypothesis=8"], r"did you mean online\.region\.max_hypotheses\?"),
         (["online.region.no_such_field=1"], r"unknown parameter\(s\): online\.region\.no_such_field"),
         (["nosuch.gps_sigma=1"], "nosuch: unknown section"),
         (["gps_sigma=1"], r"did you mean model\.gps_sigma\?"),
