@@ -173,6 +173,8 @@ def test_match_command_sets_any_parameter_by_name(
         ("model.nope=1", "unknown parameter(s): model.nope"),
         ("nosuch.gps_sigma=1", "nosuch: unknown section"),
         ("gps_sigma=1", "did you mean model.gps_sigma?"),
+        ("batch.gap_time=300", "did you mean batch.split.gap_time?"),
+        ("batch.route.gap_time=300", "did you mean batch.split.gap_time?"),
         ("model.gps_sigma=abc", "model.gps_sigma: 'abc' is not a number"),
         ("model.gps_sigma", "expected SECTION.FIELD=VALUE"),
         ("model.gps_sigma=-1", "gps_sigma must be a finite non-negative number"),
