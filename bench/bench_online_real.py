@@ -173,18 +173,24 @@ def junction_hits(
     return found, gout[k]
 
 
-def classify(graph: RoadGraph, drive: Drive, edges: np.ndarray) -> dict[str, int]:
-    """Wrong-road fixes by class (see the module docstring)."""
+def outage_clock(drive: Drive) -> tuple[np.ndarray, np.ndarray]:
+    """Per fix: whether it is in an outage, and seconds since the last outage fix (inf before
+    the first)."""
+    tr = drive.truth
+    t = tr["time"].to_numpy() - float(tr["time"].iloc[0])
+    gout = tr["gps_outage"].to_numpy() > 0
+    last = np.where(gout, t, -np.inf)
+    out_end = np.maximum.accumulate(last) if len(t) else last
+    return gout, t - out_end
+
+
+def wrong_kinds(graph: RoadGraph, drive: Drive, edges: np.ndarray) -> np.ndarray:
+    """Per fix, the class of a wrong-road fix (see the module docstring), prefixed ``gps`` or
+    ``outage``; empty for a right one or where the truth is not known."""
     tr = drive.truth
     te = tr["edge"].to_numpy()
     t = tr["time"].to_numpy() - float(tr["time"].iloc[0])
-    gout = tr["gps_outage"].to_numpy() > 0
-    out_end = np.full(len(t), -np.inf)
-    last = -np.inf
-    for i in range(len(t)):
-        if gout[i]:
-            last = t[i]
-        out_end[i] = last
+    gout, since = outage_clock(drive)
     route = drive.route.edges
     pos: dict[int, list[int]] = {}
     for i, e in enumerate(route.tolist()):
@@ -195,13 +201,13 @@ def classify(graph: RoadGraph, drive: Drive, edges: np.ndarray) -> dict[str, int
         (graph.edge_bearing_start[route[1:]] - graph.edge_bearing_end[route[:-1]] + 180.0) % 360.0 - 180.0
     )
     known = tr["truth_known"].to_numpy(dtype=bool)
-    res: dict[str, int] = {}
+    res = np.full(len(t), "", dtype=object)
     for i in np.flatnonzero(~right_road(drive, edges) & known).tolist():
         e, k = int(edges[i]), int(ridx[i])
         gps = "outage" if gout[i] else "gps"
         if t[i] < STARTUP_S:
             kind = "start-up"
-        elif gout[i] or t[i] - out_end[i] <= RECOVERY_S:
+        elif gout[i] or since[i] <= RECOVERY_S:
             kind = "outage drift" if gout[i] else "outage recovery"
         elif e < 0:
             kind = "unmatched"
@@ -228,8 +234,16 @@ def classify(graph: RoadGraph, drive: Drive, edges: np.ndarray) -> dict[str, int
                 b = float(tr["heading"].iloc[i])
                 be = float(graph.edge_bearing_start[e])
                 kind = "parallel" if dist <= PARALLEL_M and _angle(b, be) <= PARALLEL_DEG else "other"
-        key = f"{gps:6} {kind}"
-        res[key] = res.get(key, 0) + 1
+        res[i] = f"{gps:6} {kind}"
+    return res
+
+
+def classify(graph: RoadGraph, drive: Drive, edges: np.ndarray) -> dict[str, int]:
+    """Wrong-road fixes by class (see the module docstring)."""
+    res: dict[str, int] = {}
+    for key in wrong_kinds(graph, drive, edges).tolist():
+        if key:
+            res[key] = res.get(key, 0) + 1
     return res
 
 
@@ -428,27 +442,71 @@ def run_cv(names: list[str], base: MatchConfig, args: argparse.Namespace) -> str
     return text
 
 
-CALIB_COLUMNS = ("track", "hz", "fold", "p", "right", "usable", "gate", "ambiguous")
+CALIB_COLUMNS = (
+    "track",
+    "hz",
+    "fold",
+    "p",
+    "right",
+    "usable",
+    "gate",
+    "ambiguous",
+    "kind",
+    "adjacent",
+    "node_dist",
+    "along_sigma",
+    "cross_dist",
+    "gps",
+    "since_outage",
+    "n_cands",
+    "true_dist",
+)
 """The per-fix table of ``--calibration``: the track, rate and fold; the reported road
 probability; whether the answer is on the right road; the matcher's ``usable``; whether the
 answer passes the gate's tests that do not look at the probability (on a road, not
-(re)initialising, settled); and whether the matcher was in an ambiguous region."""
+(re)initialising, settled); and whether the matcher was in an ambiguous region. Then the
+diagnostics: the class of a wrong fix (``wrong_kinds``; empty when right); whether the
+reported edge shares a node with the true one (not being it); the answer's distance along the
+reported edge to its nearer end; the measurement's along-track σ; the fix's distance to the
+reported road; GPS-aided or not; seconds since the last outage fix; the number of candidate
+edges; the true position's distance to the reported edge (wrong fixes only)."""
 
 
-def calibration_fixes(drive: Drive, results: list[SnapResult]) -> dict[str, np.ndarray]:
-    """The columns ``p`` .. ``ambiguous`` of :data:`CALIB_COLUMNS` for a drive's fixes that
+def calibration_fixes(graph: RoadGraph, drive: Drive, results: list[SnapResult]) -> dict[str, np.ndarray]:
+    """The columns ``p`` .. ``true_dist`` of :data:`CALIB_COLUMNS` for a drive's fixes that
     are placed on a road where the truth is known."""
     edges = np.array([r.edge for r in results], dtype=np.int64)
     known = drive.truth["truth_known"].to_numpy(dtype=bool)
     keep = known & (edges >= 0)
     aided = [r.map_aided for r in results]
     reason = np.array([m.reason for m in aided])
+    right = right_road(drive, edges)
+    te = drive.truth["edge"].to_numpy()
+    e0 = np.maximum(edges, 0)
+    t0 = np.maximum(te, 0)
+    eu, ev = graph.edge_u[e0], graph.edge_v[e0]
+    tu, tv = graph.edge_u[t0], graph.edge_v[t0]
+    offset = np.array([r.offset for r in results], dtype=float)
+    gout, since = outage_clock(drive)
+    true_dist = np.full(len(edges), np.nan)
+    txy = drive.truth[["x", "y"]].to_numpy()
+    for i in np.flatnonzero(~right & keep).tolist():
+        true_dist[i] = project_to_edge(graph, int(edges[i]), float(txy[i, 0]), float(txy[i, 1]))[1]
     cols = {
         "p": np.array([m.probability for m in aided], dtype=float),
-        "right": right_road(drive, edges),
+        "right": right,
         "usable": np.array([m.usable for m in aided], dtype=bool),
         "gate": ~np.isin(reason, ("off_road", "initialising", "settling")),
         "ambiguous": np.array([r.state == State.AMBIGUOUS for r in results], dtype=bool),
+        "kind": np.array([k.split(" ", 1)[-1].strip() for k in wrong_kinds(graph, drive, edges)]),
+        "adjacent": (edges != te) & ((eu == tu) | (eu == tv) | (ev == tu) | (ev == tv)),
+        "node_dist": np.minimum(offset, graph.edge_len[e0] - offset),
+        "along_sigma": np.array([m.along_sigma for m in aided], dtype=float),
+        "cross_dist": np.array([r.dist for r in results], dtype=float),
+        "gps": ~gout,
+        "since_outage": since,
+        "n_cands": np.array([len(r.candidates) for r in results], dtype=np.int64),
+        "true_dist": true_dist,
     }
     return {k: v[keep] for k, v in cols.items()}
 
@@ -465,7 +523,7 @@ def collect_calibration(names: list[str], cfg: MatchConfig, args: argparse.Names
         for rate in args.rates:
             drive = real_drive(graph, folder, rate_hz=rate, outages=True, seed=int(name))
             res, _ = run_drive(matcher, drive)
-            cols = calibration_fixes(drive, res)
+            cols = calibration_fixes(graph, drive, res)
             df = pd.DataFrame(cols)
             df.insert(0, "fold", fold[name])
             df.insert(0, "hz", rate)
@@ -524,6 +582,49 @@ def calibration_summary(g: pd.DataFrame, cfg: MatchConfig) -> tuple[str, list[di
     return "\n".join(text), figures
 
 
+def _shares(x: pd.Series, n: int) -> str:
+    return ", ".join(f"{k} {100.0 * v / max(n, 1):.1f} %" for k, v in x.value_counts().items())
+
+
+def wrong_breakdown(g: pd.DataFrame) -> str:
+    """What the wrong fixes reported at ``p >= 0.999`` and the wrong usable fixes are: shares
+    by class, by whether the reported edge is next to the true one, GPS-aided or not, and by
+    the answer's distance to the nearer node of its edge in along-track σ."""
+    if "kind" not in g.columns:
+        return ""
+    wrong = g[~g["right"].astype(bool)]
+    lines = []
+    for name, sel in (
+        ("wrong at p >= 0.999", wrong[wrong["p"] >= 0.999]),
+        ("wrong and usable", wrong[wrong["usable"].astype(bool)]),
+    ):
+        n = len(sel)
+        z = sel["node_dist"] / sel["along_sigma"]
+        zb = pd.cut(
+            z, [-np.inf, 0.5, 1.0, 2.0, 3.0, np.inf], labels=["<0.5σ", "0.5-1σ", "1-2σ", "2-3σ", ">3σ"]
+        )
+        nd = pd.cut(
+            sel["node_dist"],
+            [-np.inf, 5, 10, 20, 40, np.inf],
+            labels=["<5m", "5-10m", "10-20m", "20-40m", ">40m"],
+        )
+        td = pd.cut(sel["true_dist"], [-np.inf, 3, 10, 30, np.inf], labels=["<3m", "3-10m", "10-30m", ">30m"])
+        lines += [
+            f"- {name}: {n} fixes ({100.0 * n / max(len(g), 1):.2f} % of all)",
+            f"  - class: {_shares(sel['kind'].fillna('').replace('', 'right?'), n)}",
+            f"  - edge next to the true one: {_shares(sel['adjacent'].map({True: 'adjacent', False: 'not adjacent'}), n)}",
+            f"  - GPS: {_shares(sel['gps'].map({True: 'GPS-aided', False: 'outage'}), n)}",
+            f"  - distance to the nearer node, in along-track σ: {_shares(zb.astype(str), n)}",
+            f"  - distance to the nearer node: {_shares(nd.astype(str), n)}",
+            f"  - true position's distance to the reported edge: {_shares(td.astype(str), n)}",
+            f"  - along-track σ median {sel['along_sigma'].median():.1f} m (all fixes "
+            f"{g['along_sigma'].median():.1f} m); fix to road median {sel['cross_dist'].median():.1f} m "
+            f"(all {g['cross_dist'].median():.1f} m); candidates > 1: "
+            f"{100.0 * (sel['n_cands'] > 1).mean() if n else 0:.1f} %",
+        ]
+    return "\n".join(lines)
+
+
 def calibration_report(df: pd.DataFrame, cfg: MatchConfig, *, load0: float) -> str:
     """``--calibration``: the figures and reliability tables of each rate, as markdown."""
     n_tracks = df["track"].nunique()
@@ -552,6 +653,9 @@ def calibration_report(df: pd.DataFrame, cfg: MatchConfig, *, load0: float) -> s
                 f"| {100 * f['wrong_usable']:.3f} % | {100 * f['right_usable']:.2f} % |"  # type: ignore[operator]
             )
         tables.append(f"\nReliability at {hz:g} Hz ({len(g)} fixes):\n{text}")
+        diag = wrong_breakdown(g)
+        if diag:
+            tables.append(f"\nWrong fixes at {hz:g} Hz:\n\n{diag}")
     return head + "\n" + "\n".join(summary) + "\n" + "\n".join(tables) + "\n"
 
 
@@ -560,7 +664,7 @@ def run_calibration(names: list[str], cfg: MatchConfig, args: argparse.Namespace
     return the report."""
     load0 = os.getloadavg()[0]
     if args.load_fixes is not None:
-        df = pd.read_csv(args.load_fixes, dtype={"track": str})
+        df = pd.read_csv(args.load_fixes, dtype={"track": str, "kind": str})
     else:
         df = collect_calibration(names, cfg, args)
     if args.save_fixes is not None:
