@@ -757,6 +757,9 @@ class MeasurementConfig:
     node_heading_sigma : degrees added when one along-track σ reaches past the edge's end.
     along_sigma_max : metres; the along-track σ is capped here (a very uncertain position is
         as good as none, and keeps the covariance finite).
+    straddle : metres; a vehicle this far past a node is on both roads (half a car length):
+        the road's probability counts the along-track position's share on the edge widened
+        by this at each end.
     """
 
     min_probability: float = 0.9
@@ -769,6 +772,7 @@ class MeasurementConfig:
     road_heading_sigma: float = 2.0
     node_heading_sigma: float = 5.0
     along_sigma_max: float = 1000.0
+    straddle: float = 2.5
 
     def __post_init__(self) -> None:
         for f in fields(self):

@@ -19,6 +19,14 @@ back is safe (``usable``).
 * **Heading**: the road bearing at the point, σ ``road_heading_sigma`` plus how much the bearing
   changes within one along-track σ (bends), plus ``node_heading_sigma`` when that reach
   crosses the end of the edge (the next road is not known yet).
+* **Probability** of the reported road: the probability of the path the answer is on (the
+  filter's mass of the edge). In dead reckoning, and whenever the answer is held at a node
+  of its edge (its path has not taken the next edge yet), times the share of the along-track
+  position's distribution (normal, σ the along-track σ above) that lies on the edge, widened
+  at each end by ``straddle`` (a vehicle that far past a node is on both roads): the
+  position is the answer's offset, or, held at a node with GPS, the fix's along-track
+  estimate beyond it. A GPS-aided answer inside its edge is the fix's own projection and
+  keeps the path's probability.
 * **usable** is false off road, while (re)initialising, for the first ``settle_distance``
   metres after a (re)initialisation, inside an unresolved ambiguous region (the reported
   road's probability below ``resolved_probability``) and whenever the probability is below
@@ -161,6 +169,10 @@ class Placement:
         The probability of the reported edge.
     since_init : float
         Odometer metres since the last (re)initialisation.
+    beyond : float
+        Metres by which the fix's along-track estimate lies past the end of the edge the
+        answer is held at (positive: past its end node, negative: before its start node; 0
+        when the answer is not held at a node or the fix is not GPS-aided).
     """
 
     state: State
@@ -171,6 +183,7 @@ class Placement:
     bearing: float
     probability: float
     since_init: float
+    beyond: float = 0.0
 
 
 @dataclass(slots=True)
@@ -223,6 +236,21 @@ def along_track_sigma(
         carry = min(math.hypot(ev.gps_sigma, ev.odo_sigma * max(ev.dr_distance, 0.0)), config.along_sigma_max)
         v = min(va, carry * carry)
     return min(math.sqrt(v), config.along_sigma_max)
+
+
+_SQRT1_2 = math.sqrt(0.5)
+_AT_NODE = 1e-6  # metres: an answer this close to an end of its edge is held at the node
+
+
+def on_edge_share(along: float, length: float, sigma: float, straddle: float) -> float:
+    """The share of the along-track position's distribution, normal about ``along`` (metres
+    from the edge's start) with σ ``sigma``, that lies on the edge of ``length`` metres,
+    widened by ``straddle`` at each end (a vehicle that far past a node is on both roads)."""
+    if not sigma > 0.0:
+        return 1.0 if -straddle <= along <= length + straddle else 0.0
+    k = _SQRT1_2 / sigma
+    # Φ(a) - Φ(b) = (erf(a/√2) - erf(b/√2)) / 2
+    return 0.5 * (math.erf((length + straddle - along) * k) - math.erf((-straddle - along) * k))
 
 
 def _bearing_at(graph: RoadGraph, edge: int, offset: float) -> float:
@@ -297,6 +325,12 @@ def map_aided_measurement(
             cross = config.cross_sigmas[key] = cross_track_sigma(highway, one_way=one_way, config=config)
     else:
         cross = cross_track_sigma(highway, one_way=one_way, width=width, lanes=lanes, config=config)
+    # in dead reckoning, or held at a node, the road's probability is the path's times the
+    # share of the along-track position on the reported edge (the rest is past its end node
+    # or not yet at its start node)
+    length = float(graph.edge_len[edge])
+    if not evidence.gps or offset <= _AT_NODE or offset >= length - _AT_NODE:
+        probability *= on_edge_share(offset + placement.beyond, length, along, config.straddle)
     va, vc = along * along, cross * cross
     # rotate diag(along², cross²) from (along, across) to (east, north); across = (ty, -tx)
     var_e = va * tx * tx + vc * ty * ty

@@ -105,6 +105,21 @@ def candidates(road: RoadModel, agg: EdgeMass) -> tuple[Candidate, ...]:
     )
 
 
+def held_beyond(road: RoadModel, h: Hypothesis, step: Step) -> float:
+    """Metres by which a GPS-aided fix's along-track estimate (its projection on the road's
+    tangent less the learnt bias) lies past the node ``h`` is held at: past the end of its
+    edge (positive) or before its start (negative); 0 when ``h`` is not at a node."""
+    off, length = h.off, road.elen[h.edges[h.k]]
+    at_end = off >= length - 1e-6
+    if not at_end and off > 1e-6:
+        return 0.0
+    rad = math.radians(h.bearing)
+    tx, ty = math.sin(rad), math.cos(rad)
+    b = step.bias
+    a = (step.x - h.px - b[0]) * tx + (step.y - h.py - b[1]) * ty
+    return max(a, 0.0) if at_end else min(a, 0.0)
+
+
 @dataclass(slots=True)
 class Outcome:
     """What the update decided for a fix, besides the hypothesis shown.
@@ -148,10 +163,19 @@ def report(
         if c.edge == e:
             probability = c.probability
             break
+    beyond = held_beyond(road, shown_hyp, step) if step.gps else 0.0
     aided = map_aided_measurement(
         g,
         Placement(
-            st, e, shown_hyp.off, lat, lon, shown_hyp.bearing, probability, state.odo - state.region.init_odo
+            st,
+            e,
+            shown_hyp.off,
+            lat,
+            lon,
+            shown_hyp.bearing,
+            probability,
+            state.odo - state.region.init_odo,
+            beyond,
         ),
         AlongEvidence(
             step.gps,
