@@ -582,6 +582,9 @@ def calibration_summary(g: pd.DataFrame, cfg: MatchConfig) -> tuple[str, list[di
     return "\n".join(text), figures
 
 
+_ADJACENT = {True: "adjacent", False: "not adjacent"}
+
+
 def _shares(x: pd.Series, n: int) -> str:
     return ", ".join(f"{k} {100.0 * v / max(n, 1):.1f} %" for k, v in x.value_counts().items())
 
@@ -611,8 +614,8 @@ def wrong_breakdown(g: pd.DataFrame) -> str:
         td = pd.cut(sel["true_dist"], [-np.inf, 3, 10, 30, np.inf], labels=["<3m", "3-10m", "10-30m", ">30m"])
         lines += [
             f"- {name}: {n} fixes ({100.0 * n / max(len(g), 1):.2f} % of all)",
-            f"  - class: {_shares(sel['kind'].fillna('').replace('', 'right?'), n)}",
-            f"  - edge next to the true one: {_shares(sel['adjacent'].map({True: 'adjacent', False: 'not adjacent'}), n)}",
+            f"  - class: {_shares(sel['kind'].fillna(''), n)}",
+            f"  - edge next to the true one: {_shares(sel['adjacent'].map(_ADJACENT), n)}",
             f"  - GPS: {_shares(sel['gps'].map({True: 'GPS-aided', False: 'outage'}), n)}",
             f"  - distance to the nearer node, in along-track σ: {_shares(zb.astype(str), n)}",
             f"  - distance to the nearer node: {_shares(nd.astype(str), n)}",
