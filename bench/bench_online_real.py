@@ -44,8 +44,11 @@ placed on a road): the reliability table, the ECE, the wrong share among the fix
 after an isotonic calibration of the probability, fitted per rate on all tracks (in-sample)
 and on four folds of ``bench/folds.py`` and applied to the fifth (out of fold), with the
 matcher's usable test re-applied to the calibrated probability. The matcher and the probability
-it serves are unchanged. ``--save-fixes`` writes the per-fix table (CSV), ``--load-fixes``
-reports from one without running (``--docs``: the fragment ``calibration``).
+it serves are unchanged. The wrong fixes reported at ``p >= 0.999`` and the wrong usable ones
+are broken down by class, by whether the reported edge is next to the true one, GPS or outage,
+distance to the nearer node and whether another road lies near (:data:`CALIB_COLUMNS`).
+``--save-fixes`` writes the per-fix table (CSV), ``--load-fixes`` reports from one without
+running (``--docs``: the fragment ``calibration``).
 
     python bench/bench_online_real.py --calibration --docs
 """
@@ -460,6 +463,7 @@ CALIB_COLUMNS = (
     "since_outage",
     "n_cands",
     "true_dist",
+    "alt_dist",
 )
 """The per-fix table of ``--calibration``: the track, rate and fold; the reported road
 probability; whether the answer is on the right road; the matcher's ``usable``; whether the
@@ -469,7 +473,37 @@ diagnostics: the class of a wrong fix (``wrong_kinds``; empty when right); wheth
 reported edge shares a node with the true one (not being it); the answer's distance along the
 reported edge to its nearer end; the measurement's along-track σ; the fix's distance to the
 reported road; GPS-aided or not; seconds since the last outage fix; the number of candidate
-edges; the true position's distance to the reported edge (wrong fixes only)."""
+edges; the true position's distance to the reported edge (wrong fixes only); the fix's
+distance to the nearest other road within ``PARALLEL_M`` at a bearing within ``PARALLEL_DEG``
+of the reported one (:func:`alternative_dist`; NaN: none)."""
+
+
+def alternative_dist(graph: RoadGraph, drive: Drive, edges: np.ndarray) -> np.ndarray:
+    """Per fix, the distance from the fused fix to the nearest road other than the reported
+    edge and its reverse, within ``PARALLEL_M`` and at a bearing within ``PARALLEL_DEG`` of the
+    reported edge's there; an edge sharing a node with it counts only where the fix projects
+    inside it (not onto the shared node). NaN where there is none or no edge is reported."""
+    from graph.index import EdgeIndex
+
+    xy = np.column_stack([drive.fused.x, drive.fused.y])
+    c = EdgeIndex(graph).query(xy, PARALLEL_M, k=24)
+    out = np.full(len(edges), np.nan)
+    rev = graph.edge_reverse
+    for pt, e2, d, off in zip(
+        c.point.tolist(), c.edge.tolist(), c.dist.tolist(), c.offset.tolist(), strict=True
+    ):
+        e = int(edges[pt])
+        if e < 0 or e2 == e or e2 == int(rev[e]) or not (d < out[pt] or np.isnan(out[pt])):
+            continue
+        nodes = {int(graph.edge_u[e]), int(graph.edge_v[e])}
+        if {int(graph.edge_u[e2]), int(graph.edge_v[e2])} & nodes and (
+            off < 1.0 or off > float(graph.edge_len[e2]) - 1.0
+        ):
+            continue
+        if _angle(float(graph.edge_bearing_start[e2]), float(graph.edge_bearing_start[e])) > PARALLEL_DEG:
+            continue
+        out[pt] = d
+    return out
 
 
 def calibration_fixes(graph: RoadGraph, drive: Drive, results: list[SnapResult]) -> dict[str, np.ndarray]:
@@ -507,6 +541,7 @@ def calibration_fixes(graph: RoadGraph, drive: Drive, results: list[SnapResult])
         "since_outage": since,
         "n_cands": np.array([len(r.candidates) for r in results], dtype=np.int64),
         "true_dist": true_dist,
+        "alt_dist": alternative_dist(graph, drive, edges),
     }
     return {k: v[keep] for k, v in cols.items()}
 
@@ -620,6 +655,11 @@ def wrong_breakdown(g: pd.DataFrame) -> str:
             f"  - distance to the nearer node, in along-track σ: {_shares(zb.astype(str), n)}",
             f"  - distance to the nearer node: {_shares(nd.astype(str), n)}",
             f"  - true position's distance to the reported edge: {_shares(td.astype(str), n)}",
+            f"  - another road at a similar bearing within {PARALLEL_M:g} m: "
+            f"{100.0 * np.isfinite(sel['alt_dist']).mean() if n else 0:.1f} % (all fixes "
+            f"{100.0 * np.isfinite(g['alt_dist']).mean():.1f} %), nearer to the fix than the "
+            f"answer: {100.0 * (sel['alt_dist'] <= sel['cross_dist']).mean() if n else 0:.1f} % "
+            f"(all {100.0 * (g['alt_dist'] <= g['cross_dist']).mean():.1f} %)",
             f"  - along-track σ median {sel['along_sigma'].median():.1f} m (all fixes "
             f"{g['along_sigma'].median():.1f} m); fix to road median {sel['cross_dist'].median():.1f} m "
             f"(all {g['cross_dist'].median():.1f} m); candidates > 1: "
