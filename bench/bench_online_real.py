@@ -464,6 +464,7 @@ CALIB_COLUMNS = (
     "n_cands",
     "true_dist",
     "alt_dist",
+    "along_err",
 )
 """The per-fix table of ``--calibration``: the track, rate and fold; the reported road
 probability; whether the answer is on the right road; the matcher's ``usable``; whether the
@@ -475,7 +476,17 @@ reported edge to its nearer end; the measurement's along-track σ; the fix's dis
 reported road; GPS-aided or not; seconds since the last outage fix; the number of candidate
 edges; the true position's distance to the reported edge (wrong fixes only); the fix's
 distance to the nearest other road within ``PARALLEL_M`` at a bearing within ``PARALLEL_DEG``
-of the reported one (:func:`alternative_dist`; NaN: none)."""
+of the reported one (:func:`alternative_dist`; NaN: none); the true position's signed distance
+along the road from the answer (positive: the vehicle is ahead of it)."""
+
+
+def along_error(graph: RoadGraph, drive: Drive, results: list[SnapResult]) -> np.ndarray:
+    """Per fix, the true position's signed distance along the road's bearing at the answer
+    from the answer (positive: the vehicle is ahead of it)."""
+    xy = snapped_xy(graph, results)
+    rad = np.radians(np.array([r.bearing for r in results], dtype=float))
+    txy = drive.truth[["x", "y"]].to_numpy()
+    return (txy[:, 0] - xy[:, 0]) * np.sin(rad) + (txy[:, 1] - xy[:, 1]) * np.cos(rad)
 
 
 def alternative_dist(graph: RoadGraph, drive: Drive, edges: np.ndarray) -> np.ndarray:
@@ -542,6 +553,7 @@ def calibration_fixes(graph: RoadGraph, drive: Drive, results: list[SnapResult])
         "n_cands": np.array([len(r.candidates) for r in results], dtype=np.int64),
         "true_dist": true_dist,
         "alt_dist": alternative_dist(graph, drive, edges),
+        "along_err": along_error(graph, drive, results),
     }
     return {k: v[keep] for k, v in cols.items()}
 
