@@ -1,0 +1,150 @@
+"""The compiled match's answer in one array (:func:`pack`), and its one reading as a typed
+record (:func:`decode`, a :class:`TrackResult`).
+
+Each array a compiled call hands back to Python costs about a microsecond, ten of them a good
+part of a small track's call, so the kernel returns one int64 array (any process can ship it as
+it is). Its layout, in int64 words (the float part's words are float64 bits):
+
+- header (:data:`HEADER` words): ``n`` points, ``ns`` splits, ``ne`` route edges, ``nseg``
+  pieces, ``nxy`` route geometry points;
+- integers: ``p_edge[n]``, ``status[n]``, ``splits[ns]``, ``route_e[ne]``,
+  ``route_ptr[nseg + 1]``, ``rxy_ptr[nseg + 1]``;
+- floats: ``p_off[n]``, ``p_xy[n, 2]``, ``p_dist[n]``, ``xy_all[nxy, 2]``, ``length``,
+  ``confidence``.
+
+Nothing else reads the array: readers take the :class:`TrackResult`'s fields.
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import numpy as np
+from numpy.typing import NDArray
+
+from graph.jit import njit
+
+Packed = NDArray[np.int64]
+"""What the kernels return: the assembly packed by :func:`pack`."""
+
+_I8 = NDArray[np.int64]
+_F8 = NDArray[np.float64]
+PointArrays = tuple[_I8, _I8, _F8, _F8, _F8]
+"""Per point ``status, edge, offset, xy, dist``."""
+
+HEADER = 5
+"""Words before the integer part: ``n, ns, ne, nseg, nxy``."""
+
+
+@njit(cache=True, nogil=True)
+def pack(a):  # type: ignore[no-untyped-def]
+    """The :class:`~mapmatch.batch.arrays.Assembly` ``a`` in one array, laid out as this
+    module says."""
+    n = len(a.p_edge)
+    ns = len(a.splits)
+    ne = len(a.route_e)
+    nseg = len(a.route_ptr) - 1
+    nxy = len(a.xy_all)
+    ni = HEADER + 2 * n + ns + ne + 2 * (nseg + 1)
+    out = np.empty(ni + 4 * n + 2 * nxy + 2, dtype=np.int64)
+    ints = out[:ni]
+    ints[0], ints[1], ints[2], ints[3], ints[4] = n, ns, ne, nseg, nxy
+    ints[HEADER : HEADER + n] = a.p_edge
+    for i in range(n):
+        ints[HEADER + n + i] = a.status[i]
+    k = HEADER + 2 * n
+    for arr in (a.splits, a.route_e, a.route_ptr, a.rxy_ptr):
+        ints[k : k + len(arr)] = arr
+        k += len(arr)
+    floats = out[ni:].view(np.float64)
+    floats[:n] = a.p_off
+    for i in range(n):
+        floats[n + 2 * i] = a.p_xy[i, 0]
+        floats[n + 2 * i + 1] = a.p_xy[i, 1]
+    floats[3 * n : 4 * n] = a.p_dist
+    for i in range(nxy):
+        floats[4 * n + 2 * i] = a.xy_all[i, 0]
+        floats[4 * n + 2 * i + 1] = a.xy_all[i, 1]
+    floats[4 * n + 2 * nxy] = a.length
+    floats[4 * n + 2 * nxy + 1] = a.conf
+    return out
+
+
+class TrackResult(NamedTuple):
+    """One track's compiled answer (:func:`decode`); the arrays are views into the packed
+    array."""
+
+    point_edge: NDArray[np.int64]
+    """Per input point, the matched edge (-1: none)."""
+    status: NDArray[np.int64]
+    """Per input point: 0 unmatched, 1 matched, 2 interpolated."""
+    point_offset: NDArray[np.float64]
+    """Per input point, metres along its edge."""
+    point_xy: NDArray[np.float64]
+    """(n, 2): per input point, its place on the road in the map's CRS."""
+    point_dist: NDArray[np.float64]
+    """Per input point, metres from the fix to its place."""
+    splits: NDArray[np.int64]
+    """The input points where a new piece of the route starts."""
+    route_edges: NDArray[np.int64]
+    """Every piece's edges, piece ``s`` being ``route_edges[route_ptr[s]:route_ptr[s + 1]]``."""
+    route_ptr: NDArray[np.int64]
+    route_xy: NDArray[np.float64]
+    """(nxy, 2): every piece's geometry in the map's CRS, piece ``s`` being
+    ``route_xy[route_xy_ptr[s]:route_xy_ptr[s + 1]]``."""
+    route_xy_ptr: NDArray[np.int64]
+    length: float
+    """Metres of route."""
+    confidence: float
+
+    @property
+    def placed(self) -> int:
+        """How many points have a place on the road."""
+        return int(np.count_nonzero(self.point_edge >= 0))
+
+    def routes(self) -> list[list[int]]:
+        """Each piece's edges."""
+        edges = self.route_edges.tolist()
+        ptr = self.route_ptr.tolist()
+        return [edges[ptr[s] : ptr[s + 1]] for s in range(len(ptr) - 1)]
+
+    def pieces_xy(self) -> list[NDArray[np.float64]]:
+        """Each piece's geometry (a piece of one point twice: a line has two)."""
+        ptr = self.route_xy_ptr.tolist()
+        out = []
+        for s in range(len(ptr) - 1):
+            seg = self.route_xy[ptr[s] : ptr[s + 1]]
+            out.append(np.vstack([seg, seg]) if len(seg) == 1 else seg)
+        return out
+
+    def point_arrays(self) -> PointArrays:
+        """Per point ``status, edge, offset, xy, dist``, as
+        :attr:`~mapmatch.types.TrackMatch.point_arrays` holds them."""
+        return self.status, self.point_edge, self.point_offset, self.point_xy, self.point_dist
+
+
+def decode(packed: Packed) -> TrackResult:
+    """The :class:`TrackResult` of a :func:`pack`\\ ed array (views into it: no copy)."""
+    n, ns, ne, nseg, nxy = packed[:HEADER].tolist()
+    k = HEADER + 2 * n  # the splits
+    e = k + ns  # the route edges
+    r = e + ne  # the route pointers
+    x = r + nseg + 1  # the geometry pointers
+    ni = x + nseg + 1  # the float part
+    floats = packed.view(np.float64)
+    f = ni + 4 * n  # the route geometry
+    length, confidence = floats[f + 2 * nxy :].tolist()
+    return TrackResult(
+        point_edge=packed[HEADER : HEADER + n],
+        status=packed[HEADER + n : k],
+        point_offset=floats[ni : ni + n],
+        point_xy=floats[ni + n : ni + 3 * n].reshape(n, 2),
+        point_dist=floats[ni + 3 * n : f],
+        splits=packed[k:e],
+        route_edges=packed[e:r],
+        route_ptr=packed[r:x],
+        route_xy=floats[f : f + 2 * nxy].reshape(nxy, 2),
+        route_xy_ptr=packed[x:ni],
+        length=length,
+        confidence=confidence,
+    )
