@@ -46,6 +46,7 @@ def test_every_field_comes_back_by_name_with_its_bits() -> None:
     assert res.placed == 3
     status, edge, off, xy, dist = res.point_arrays()
     assert status is res.status and edge is res.point_edge and xy is res.point_xy
+    assert off is res.point_offset and dist is res.point_dist
 
 
 def test_an_answer_with_no_route_has_no_pieces() -> None:
