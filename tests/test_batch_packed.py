@@ -45,8 +45,11 @@ def test_every_field_comes_back_by_name_with_its_bits() -> None:
     assert res.length == 123.456 and res.confidence == 0.875
     assert res.placed == 3
     status, edge, off, xy, dist = res.point_arrays()
-    assert status is res.status and edge is res.point_edge and xy is res.point_xy
-    assert off is res.point_offset and dist is res.point_dist
+    assert status.tolist() == a.status.tolist() and edge.tolist() == a.p_edge.tolist()
+    assert off.tobytes() == a.p_off.tobytes() and xy.tobytes() == a.p_xy.tobytes()
+    assert dist.tobytes() == a.p_dist.tobytes()
+    assert all(np.shares_memory(x, res.packed) for x in (status, edge, off, xy, dist))  # views, no copy
+    assert (res.n, res.n_splits, res.n_route_edges, res.n_pieces, res.n_route_xy) == (4, 1, 3, 2, 4)
 
 
 def test_an_answer_with_no_route_has_no_pieces() -> None:

@@ -12,7 +12,8 @@ out, each a public policy the forward pass (:mod:`mapmatch.batch.viterbi`) asks.
   where visiting them costs more than leaving them out.
 
 Each fix left out costs ``leave_out_cost`` where leaving out competes with visiting. The rules
-read a :class:`Search` and write the forward pass's :class:`Pieces`. Compiled without reference
+read a :class:`Search`, by one pointer (:func:`~mapmatch.arena.ref`: no copy of its arrays per
+call), and write the forward pass's :class:`Pieces`. Compiled without reference
 counting (:data:`~mapmatch.arena.UNCOUNTED`), as the forward pass that calls them.
 """
 
@@ -25,7 +26,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from graph.jit import njit
-from mapmatch.arena import UNCOUNTED, int64
+from mapmatch.arena import UNCOUNTED, deref, int64
 from mapmatch.batch.arrays import KernelParams, Lattice
 from mapmatch.batch.split import far_gap, joinable, left_the_route
 from mapmatch.batch.step import Trellis, _step_scale, _try_step, step_inputs
@@ -100,8 +101,9 @@ def accept(prev, t, bound, fw):  # type: ignore[no-untyped-def]
 
 
 @njit(cache=True, nogil=True, inline="always")
-def start_piece(t, s, fw):  # type: ignore[no-untyped-def]
+def start_piece(t, sr, fw):  # type: ignore[no-untyped-def]
     """Point ``t`` kept, starting a piece: its candidates score their emissions."""
+    s = deref(sr)
     fw.accepted[t] = True
     fw.seg_start[t] = True
     ptr = s.lat.ptr
@@ -140,7 +142,7 @@ def best_score(score, a, b):  # type: ignore[no-untyped-def]
 
 
 @njit(**UNCOUNTED)
-def drop_one(q, prev, t, s):  # type: ignore[no-untyped-def]
+def drop_one(q, prev, t, sr):  # type: ignore[no-untyped-def]
     """``t`` is unreachable from ``prev``: leave out ``t`` (step ``prev`` -> ``t + 1``) or
     ``prev`` (steps ``q`` -> ``t`` -> ``t + 1``; ``q`` -1: ``prev`` starts its piece, and ``t``
     starts it instead), whichever scores higher at ``t + 1`` (``s``: the :class:`Search`).
@@ -148,6 +150,7 @@ def drop_one(q, prev, t, s):  # type: ignore[no-untyped-def]
     Returns the point kept of the two (-1: neither reaches ``t + 1``; scores at ``t`` and
     ``t + 1`` are then to be recomputed). ``saved.bound`` gets the chosen steps' route bounds.
     """
+    s = deref(sr)
     lat, p, tr, saved = s.lat, s.p, s.tr, s.saved
     inputs = step_inputs(lat, tr, p, s.router)
     ptr = lat.ptr
@@ -185,12 +188,13 @@ def drop_one(q, prev, t, s):  # type: ignore[no-untyped-def]
 
 
 @njit(**UNCOUNTED)
-def leave_out_one(prev, t, s, fw):  # type: ignore[no-untyped-def]
+def leave_out_one(prev, t, sr, fw):  # type: ignore[no-untyped-def]
     """``t`` is unreachable from ``prev``: :func:`drop_one` leaves out one of them if then
     ``t + 1`` is reached, and the steps chosen go into ``fw`` (:class:`Pieces`). Returns
     whether it did (the search goes on after ``t + 1``)."""
+    s = deref(sr)
     q = -1 if fw.seg_start[prev] else fw.prev_pt[prev]
-    kept = drop_one(q, prev, t, s)
+    kept = drop_one(q, prev, t, sr)
     if kept < 0:
         return False
     if kept == t:
@@ -208,18 +212,19 @@ def leave_out_one(prev, t, s, fw):  # type: ignore[no-untyped-def]
 
 
 @njit(cache=True, nogil=True, inline="always")
-def reconsider_prev(prev, t, nskip, s0, s, fw):  # type: ignore[no-untyped-def]
+def reconsider_prev(prev, t, nskip, s0, sr, fw):  # type: ignore[no-untyped-def]
     """``t`` was just reached from ``prev`` (after ``nskip`` points left out from ``s0``): maybe
     ``prev`` was the outlier, not the points after it. After a run left out, the points from
     ``s0`` to ``t`` stepped to from the point before ``prev`` (:func:`leave_out_prev`); after
     none, a ``prev`` the route bent to that is clearly dearer than stepping past it
     (:func:`leave_out_visited`, tried only where the bound allows a gain). ``fw`` gets the
     steps kept. Compiled into the forward pass, as it is asked at every step."""
+    s = deref(sr)
     p = s.p
     if not p.outlier_lookahead or fw.seg_start[prev]:
         return
     q = fw.prev_pt[prev]
-    if nskip > 1 and leave_out_prev(q, s0, t, s):
+    if nskip > 1 and leave_out_prev(q, s0, t, sr):
         fw.accepted[prev] = False
         r = t
         while r >= s0:
@@ -232,7 +237,7 @@ def reconsider_prev(prev, t, nskip, s0, s, fw):  # type: ignore[no-untyped-def]
     # the step past ``prev`` scores at most its start plus ``t``'s best emission
     reach = best_score(s.tr.score, ptr[q], ptr[q + 1]) + best_score(s.lat.emis, ptr[t], ptr[t + 1])
     if best_score(s.tr.score, ptr[t], ptr[t + 1]) < reach - 2.0 * p.leave_out_cost and leave_out_visited(
-        q, prev, t, s
+        q, prev, t, sr
     ):
         # visiting ``prev`` cost clearly more than leaving it out: a stray the route bent to
         fw.accepted[prev] = False
@@ -241,12 +246,13 @@ def reconsider_prev(prev, t, nskip, s0, s, fw):  # type: ignore[no-untyped-def]
 
 
 @njit(**UNCOUNTED)
-def leave_out_before_split(prev, s0, s, fw):  # type: ignore[no-untyped-def]
+def leave_out_before_split(prev, s0, sr, fw):  # type: ignore[no-untyped-def]
     """A run of points from ``s0`` is unreachable from ``prev`` and would start a new piece:
     maybe the last points kept were the outliers (a drift onto a road that does not lead on).
     Reach ``s0`` from up to ``max_skip`` points before ``prev``, leaving out the points between
     (not across a jump, even spread over its steps, nor a run off the route). Returns whether
     it did (``fw`` then has the step)."""
+    s = deref(sr)
     lat, p = s.lat, s.p
     inputs = step_inputs(lat, s.tr, p, s.router)
     pxy, ptime = lat.pxy, lat.ptime
@@ -268,13 +274,14 @@ def leave_out_before_split(prev, s0, s, fw):  # type: ignore[no-untyped-def]
 
 
 @njit(**UNCOUNTED)
-def leave_out_visited(q, prev, t, s):  # type: ignore[no-untyped-def]
+def leave_out_visited(q, prev, t, sr):  # type: ignore[no-untyped-def]
     """``t`` was reached from ``prev``, and ``prev`` from ``q``, so dearly that the step from
     ``q`` straight to ``t`` could win (:func:`reconsider_prev` checks the bound): score ``t``
     from ``q`` too, leaving ``prev`` out at ``p.leave_out_cost``, and keep that if it scores
     higher by more than the cost (a clear gain, as in :func:`leave_out_prev`). Returns whether
     it did (``saved.bound[0]`` gets the step's route bound); if not, the scores at ``t`` are as
     they were."""
+    s = deref(sr)
     lat, p, tr, saved = s.lat, s.p, s.tr, s.saved
     inputs = step_inputs(lat, tr, p, s.router)
     ptr = lat.ptr
@@ -298,11 +305,12 @@ def emission_cost(c, t, lat, sig):  # type: ignore[no-untyped-def]
 
 
 @njit(**UNCOUNTED)
-def detour_cost(a, i, b, j, uturn, bound, s):  # type: ignore[no-untyped-def]
+def detour_cost(a, i, b, j, uturn, bound, sr):  # type: ignore[no-untyped-def]
     """The detour of the step from lattice point ``a`` (candidate ``i``) to ``b`` (candidate
     ``j``; ``uturn``: an along-road U-turn; ``bound``: its route bound) over the distance
     travelled, in β: the transition's cost without its speed terms, which tell of the
     timestamps, not of the road (0 if no route is found)."""
+    s = deref(sr)
     lat, p, router = s.lat, s.p, s.router
     d = math.hypot(lat.pxy[b, 0] - lat.pxy[a, 0], lat.pxy[b, 1] - lat.pxy[a, 1])
     trav, _dt, beta0 = _step_scale(a, b, d, lat, p)
@@ -330,11 +338,12 @@ def detour_cost(a, i, b, j, uturn, bound, s):  # type: ignore[no-untyped-def]
 
 
 @njit(**UNCOUNTED)
-def track_end(t, s, sig, fw):  # type: ignore[no-untyped-def]
+def track_end(t, sr, sig, fw):  # type: ignore[no-untyped-def]
     """The track's last kept point, its last being lattice point ``t``: points at its end are
     left out while visiting one costs more than ``leave_out_cost``, its emission's cost plus
     its step's detour (a fix in a car park by some road, reached by a way round). ``fw``: the
     forward pass's :class:`Pieces`."""
+    s = deref(sr)
     ptr = s.lat.ptr
     tr = s.tr
     while not fw.seg_start[t]:
@@ -343,7 +352,7 @@ def track_end(t, s, sig, fw):  # type: ignore[no-untyped-def]
         if tr.bp[j] < 0 or a < 0:
             break
         cost = emission_cost(j, t, s.lat, sig)
-        cost += detour_cost(a, tr.bp[j], t, j, tr.bpu[j], fw.used_bound[t], s)
+        cost += detour_cost(a, tr.bp[j], t, j, tr.bpu[j], fw.used_bound[t], sr)
         if cost <= s.p.leave_out_cost:
             break
         t = a
@@ -351,13 +360,14 @@ def track_end(t, s, sig, fw):  # type: ignore[no-untyped-def]
 
 
 @njit(**UNCOUNTED)
-def track_start(ch, s, sig):  # type: ignore[no-untyped-def]
+def track_start(ch, sr, sig):  # type: ignore[no-untyped-def]
     """The mirror of :func:`track_end`, on the chosen path (``ch``: :class:`Chosen`): the
     track's first points are left out while visiting one costs more than ``leave_out_cost``
     (its emission's cost plus its step's detour: a fix in a car park by some road, left by a
     way round). The next point then starts the route, its candidate chosen again for the step
     after it, as the Viterbi search would from a track starting there. A first piece left with
     one point beside another piece is left out (one fix makes no route)."""
+    s = deref(sr)
     lat, p, tr = s.lat, s.p, s.tr
     inputs = step_inputs(lat, tr, p, s.router)
     choice, seg_start, via_u = ch.choice, ch.seg_start, ch.via_u
@@ -373,7 +383,7 @@ def track_start(ch, s, sig):  # type: ignore[no-untyped-def]
             return
         i, j = choice[st], choice[n]
         cost = emission_cost(i, st, lat, sig)
-        cost += detour_cost(st, i, n, j, via_u[n], ch.used_bound[n], s)
+        cost += detour_cost(st, i, n, j, via_u[n], ch.used_bound[n], sr)
         if cost <= p.leave_out_cost:
             return
         choice[st] = -1
@@ -401,7 +411,7 @@ def track_start(ch, s, sig):  # type: ignore[no-untyped-def]
 
 
 @njit(**UNCOUNTED)
-def leave_out_prev(q, s0, t, s):  # type: ignore[no-untyped-def]
+def leave_out_prev(q, s0, t, sr):  # type: ignore[no-untyped-def]
     """``t`` was reached from ``prev = s0 - 1`` leaving out the points ``s0 .. t - 1``: try
     leaving out ``prev`` instead, stepping from ``q`` (the point before it) through those
     points to ``t``, each step from whichever earlier point scores best at it, each point left
@@ -409,6 +419,7 @@ def leave_out_prev(q, s0, t, s):  # type: ignore[no-untyped-def]
     that cost (a choice made at ``t`` binds the points after it: only a clear gain is taken),
     with the chosen steps in ``s.detour`` (:class:`Detour`); if not, the scores at ``t`` are as
     they were."""
+    s = deref(sr)
     lat, p, tr, dt = s.lat, s.p, s.tr, s.detour
     inputs = step_inputs(lat, tr, p, s.router)
     ptr = lat.ptr

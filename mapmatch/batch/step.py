@@ -128,10 +128,10 @@ def _step(a0, a1, b0, b1, inputs, leg, bound):  # type: ignore[no-untyped-def]
     the result stays exact. Returns whether any target was reached. Compiled without reference
     counting (:data:`~mapmatch.arena.UNCOUNTED`).
     """
-    x = deref(inputs)
-    tr = x.tr
-    ws = x.router.ws
-    cedge = x.cand.edge
+    cand, tr, _params, _rules, router = deref(inputs)
+    ws = router.ws
+    cedge = cand.edge
+    edge_len = router.g.edge_len
     sources_best_first(tr.score, a0, a1, tr.order)
     open_column(tr.best, tr.bp, b0, b1)
     nuniq = 0
@@ -151,22 +151,23 @@ def _step(a0, a1, b0, b1, inputs, leg, bound):  # type: ignore[no-untyped-def]
         lim = bound
         if worst > -np.inf:
             lim = min(bound, leg.trav + leg.beta * (si - worst))
-        need = _along_road(i, si, b0, b1, x, leg)
-        rest = x.router.g.edge_len[cedge[i]] - x.cand.offset[i]  # the way left along its edge
+        need = _along_road(i, si, b0, b1, inputs, leg)
+        rest = edge_len[cedge[i]] - cand.offset[i]  # the way left along its edge
         if need and not rest > lim:
-            _routed(i, si, lim, b0, b1, x, leg, nuniq)
+            _routed(i, si, lim, b0, b1, inputs, leg, nuniq)
     for j in range(b0, b1):
         ws.tgt[cedge[j]] = 0
-    return close_column(tr.best, tr.score, x.cand.emis, b0, b1)
+    return close_column(tr.best, tr.score, cand.emis, b0, b1)
 
 
 @njit(cache=True, nogil=True, inline="always")
-def _along_road(i, si, b0, b1, x, leg):  # type: ignore[no-untyped-def]
+def _along_road(i, si, b0, b1, inputs, leg):  # type: ignore[no-untyped-def]
     """The transitions from source candidate ``i`` (score ``si``) that need no route: to the
     targets ahead on its own edge (or behind it within ``reverse_tol``) and, turning round, on
-    its reverse edge, each relaxed (:func:`mapmatch.viterbi.relax`; ``x``: the
-    :class:`StepInputs`). Returns whether some target needs a route."""
-    cand, tr, params, rules, router = x
+    its reverse edge, each relaxed (:func:`mapmatch.viterbi.relax`; ``inputs``: the
+    :class:`StepInputs`, by :func:`~mapmatch.arena.ref`, as :func:`_step` has it, so that no
+    copy of it is made per source). Returns whether some target needs a route."""
+    cand, tr, params, rules, router = deref(inputs)
     g = router.g
     e = cand.edge[i]
     o = cand.offset[i]
@@ -198,12 +199,12 @@ def _along_road(i, si, b0, b1, x, leg):  # type: ignore[no-untyped-def]
 
 
 @njit(cache=True, nogil=True, inline="always")
-def _routed(i, si, lim, b0, b1, x, leg, nuniq):  # type: ignore[no-untyped-def]
+def _routed(i, si, lim, b0, b1, inputs, leg, nuniq):  # type: ignore[no-untyped-def]
     """The transitions from source candidate ``i`` (score ``si``) over routes of at most ``lim``
     metres to the targets :func:`_along_road` left (``nuniq`` distinct edges), each relaxed:
     from the route table where it holds every route within the bound, else by a bounded
     search."""
-    cand, tr, params, rules, router = x
+    cand, tr, params, rules, router = deref(inputs)
     g = router.g
     ws = router.ws
     table = router.table

@@ -19,7 +19,7 @@ import math
 import numpy as np
 
 from graph.jit import njit
-from mapmatch.arena import UNCOUNTED, full_b1, full_f8, full_i8, int64, take_b1, take_f8, take_i8
+from mapmatch.arena import UNCOUNTED, full_b1, full_f8, full_i8, int64, ref, take_b1, take_f8, take_i8
 from mapmatch.batch.arrays import KernelParams, Lattice
 from mapmatch.batch.leave_out import (
     Chosen,
@@ -96,8 +96,6 @@ def solve(lat: Lattice, p: KernelParams, router, ar, sig):  # type: ignore[no-un
     s = Search(lat, p, router, tr, saved, detour)
     _forward(s, fw)
     _backtrack(s, sig, fw, chosen)
-    if p.outlier_lookahead:
-        track_start(chosen, s, sig)
     return chosen
 
 
@@ -108,7 +106,9 @@ def _backtrack(s, sig, fw, chosen):  # type: ignore[no-untyped-def]
     out (:func:`~mapmatch.batch.leave_out.track_end`; a split's, beside a jump or a gap, are
     not: there the fixes are already in doubt), and a piece of one point at the track's start
     or end, beside another piece: one fix makes no route (a fix near some road before or after
-    a run off the route)."""
+    a run off the route). Then the track's first points
+    (:func:`~mapmatch.batch.leave_out.track_start`)."""
+    sr = ref(s)
     lat, p, tr = s.lat, s.p, s.tr
     ptr = lat.ptr
     choice = chosen.choice
@@ -116,7 +116,7 @@ def _backtrack(s, sig, fw, chosen):  # type: ignore[no-untyped-def]
     while not fw.accepted[t]:
         t -= 1
     if p.outlier_lookahead:
-        t = track_end(t, s, sig, fw)
+        t = track_end(t, sr, sig, fw)
     last = t
     while True:
         j = _piece_end(ptr[t], ptr[t + 1], tr, lat, s.router.g)
@@ -132,8 +132,10 @@ def _backtrack(s, sig, fw, chosen):  # type: ignore[no-untyped-def]
             choice[first] = -1
             fw.seg_start[first] = False
         if q < 0:
-            return
+            break
         t = q
+    if p.outlier_lookahead:
+        track_start(chosen, sr, sig)
 
 
 @njit(**UNCOUNTED)
@@ -146,12 +148,13 @@ def _forward(s, fw):  # type: ignore[no-untyped-def]
     :func:`solve`, which allocates: the inlined :func:`~mapmatch.batch.step._try_step` copies
     every tuple it is handed, and with reference counting each copy would cost a call per
     array, over a hundred a step."""
+    sr = ref(s)  # the rules' view of it: one pointer
     lat, p = s.lat, s.p
     inputs = step_inputs(lat, s.tr, p, s.router)
     pxy = lat.pxy
     m = len(lat.ptr) - 1
     prev = int64(0)  # not 0: one compile of each kernel it is handed to (``mapmatch.arena.int64``)
-    start_piece(prev, s, fw)
+    start_piece(prev, sr, fw)
     nskip = 0
     s0 = int64(-1)
     t = int64(1)
@@ -168,12 +171,12 @@ def _forward(s, fw):  # type: ignore[no-untyped-def]
             reached, bound = _try_step(prev, t, d, lat, p, inputs)
             if reached:
                 accept(prev, t, bound, fw)
-                reconsider_prev(prev, t, nskip, s0, s, fw)
+                reconsider_prev(prev, t, nskip, s0, sr, fw)
                 prev = t
                 nskip = 0
                 t += 1
                 continue
-            if nskip == 0 and p.outlier_lookahead and t + 1 < m and leave_out_one(prev, t, s, fw):
+            if nskip == 0 and p.outlier_lookahead and t + 1 < m and leave_out_one(prev, t, sr, fw):
                 prev = t + 1  # one of prev, t left out; t + 1 reached
                 t += 2
                 continue
@@ -184,13 +187,13 @@ def _forward(s, fw):  # type: ignore[no-untyped-def]
                 t += 1
                 continue
             restart = s0
-        if nskip > 0 and restart == s0 and leave_out_before_split(prev, s0, s, fw):
+        if nskip > 0 and restart == s0 and leave_out_before_split(prev, s0, sr, fw):
             prev = s0
             nskip = 0
             t = s0 + 1
             continue
         # a new piece starts at ``restart``
-        start_piece(restart, s, fw)
+        start_piece(restart, sr, fw)
         prev = restart
         nskip = 0
         t = restart + 1
