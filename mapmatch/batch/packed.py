@@ -85,11 +85,14 @@ class TrackResult(NamedTuple):
     n_route_xy: int
     """Points of the route's geometry."""
 
-    @property
-    def _floats(self) -> tuple[_F8, int]:
-        """The array as float64, and where its float part starts."""
-        ni = HEADER + 2 * self.n + self.n_splits + self.n_route_edges + 2 * (self.n_pieces + 1)
-        return self.packed.view(np.float64), ni
+    def _at(self) -> tuple[int, int, int, int, int]:
+        """Where the splits, the route edges, the route pointers, the geometry pointers and the
+        float part start."""
+        k = HEADER + 2 * self.n
+        e = k + self.n_splits
+        r = e + self.n_route_edges
+        x = r + self.n_pieces + 1
+        return k, e, r, x, x + self.n_pieces + 1
 
     @property
     def point_edge(self) -> _I8:
@@ -104,25 +107,30 @@ class TrackResult(NamedTuple):
     @property
     def splits(self) -> _I8:
         """The input points where a new piece of the route starts."""
-        k = HEADER + 2 * self.n
-        return self.packed[k : k + self.n_splits]
+        k, e, _, _, _ = self._at()
+        return self.packed[k:e]
 
     @property
     def route_edges(self) -> _I8:
         """Every piece's edges, piece ``s`` being ``route_edges[route_ptr[s]:route_ptr[s + 1]]``."""
-        k = HEADER + 2 * self.n + self.n_splits
-        return self.packed[k : k + self.n_route_edges]
+        _, e, r, _, _ = self._at()
+        return self.packed[e:r]
 
     @property
     def route_ptr(self) -> _I8:
-        k = HEADER + 2 * self.n + self.n_splits + self.n_route_edges
-        return self.packed[k : k + self.n_pieces + 1]
+        _, _, r, x, _ = self._at()
+        return self.packed[r:x]
 
     @property
     def route_xy_ptr(self) -> _I8:
         """Piece ``s``'s geometry is ``route_xy[route_xy_ptr[s]:route_xy_ptr[s + 1]]``."""
-        k = HEADER + 2 * self.n + self.n_splits + self.n_route_edges + self.n_pieces + 1
-        return self.packed[k : k + self.n_pieces + 1]
+        _, _, _, x, ni = self._at()
+        return self.packed[x:ni]
+
+    @property
+    def _floats(self) -> tuple[_F8, int]:
+        """The array as float64, and where its float part starts."""
+        return self.packed.view(np.float64), self._at()[4]
 
     @property
     def point_offset(self) -> _F8:
@@ -165,19 +173,41 @@ class TrackResult(NamedTuple):
 
     def routes(self) -> list[list[int]]:
         """Each piece's edges."""
-        edges = self.route_edges.tolist()
-        ptr = self.route_ptr.tolist()
-        return [edges[ptr[s] : ptr[s + 1]] for s in range(len(ptr) - 1)]
+        return self.unpacked()[0]
 
     def pieces_xy(self) -> list[_F8]:
         """Each piece's geometry (a piece of one point twice: a line has two)."""
-        ptr = self.route_xy_ptr.tolist()
-        xy = self.route_xy
-        out = []
-        for s in range(len(ptr) - 1):
-            seg = xy[ptr[s] : ptr[s + 1]]
-            out.append(np.vstack([seg, seg]) if len(seg) == 1 else seg)
-        return out
+        return self.unpacked()[4]
+
+    def unpacked(self) -> tuple[list[list[int]], list[int], float, float, list[_F8], PointArrays]:
+        """Every part at once, in one pass, as :class:`~mapmatch.types.TrackMatch` holds them:
+        each piece's edges, the splits, the length, the confidence, each piece's geometry (a
+        piece of one point twice: a line has two), and :meth:`point_arrays`."""
+        n, nseg, nxy = self.n, self.n_pieces, self.n_route_xy
+        k, e, r, _, ni = self._at()
+        packed = self.packed
+        rest = packed[k:ni].tolist()  # splits, route edges, their pointers, the geometry's pointers
+        floats = packed.view(np.float64)
+        f = ni + 4 * n
+        routes = []
+        pieces = []
+        if nseg:
+            edges = rest[e - k : r - k]
+            ptr = rest[r - k :]
+            xy_all = floats[f : f + 2 * nxy].reshape(nxy, 2)
+            for s in range(nseg):
+                routes.append(edges[ptr[s] : ptr[s + 1]])
+                seg = xy_all[ptr[nseg + 1 + s] : ptr[nseg + 2 + s]]
+                pieces.append(np.vstack([seg, seg]) if len(seg) == 1 else seg)
+        length, confidence = floats[f + 2 * nxy :].tolist()
+        pa = (
+            packed[HEADER + n : k],
+            packed[HEADER : HEADER + n],
+            floats[ni : ni + n],
+            floats[ni + n : ni + 3 * n].reshape(n, 2),
+            floats[ni + 3 * n : f],
+        )
+        return routes, rest[: e - k], length, confidence, pieces, pa
 
     def point_arrays(self) -> PointArrays:
         """Per point ``status, edge, offset, xy, dist``, as

@@ -21,21 +21,9 @@ def track_match(track_id: str, result: TrackResult) -> TrackMatch:
     return PackedMatch(track_id, result)
 
 
-def _fields(result: TrackResult) -> tuple[Any, ...]:
-    """Routes, splits, length, confidence, route geometry and point arrays, in :data:`_LAZY`'s
-    order."""
-    return (
-        result.routes(),
-        result.splits.tolist(),
-        result.length,
-        result.confidence,
-        result.pieces_xy(),
-        result.point_arrays(),
-    )
-
-
 _LAZY = ("routes", "splits", "length_m", "confidence", "route_xy", "point_arrays")
-"""The fields a :class:`PackedMatch` builds from its :class:`TrackResult`, in :func:`_fields`'s order."""
+"""The fields a :class:`PackedMatch` builds from its :class:`TrackResult`, in
+:meth:`TrackResult.unpacked`'s order."""
 _SLOT = {name: TrackMatch.__dict__[name] for name in _LAZY}
 """:class:`TrackMatch`'s own storage of those fields."""
 
@@ -57,7 +45,7 @@ class PackedMatch(TrackMatch):
     def _fill(self) -> None:
         result = getattr(self, "_result", None)
         self._result = None
-        values = _fields(result) if result is not None else ([], [], 0.0, 0.0, [], None)
+        values = result.unpacked() if result is not None else ([], [], 0.0, 0.0, [], None)
         for name, value in zip(_LAZY, values, strict=True):
             _SLOT[name].__set__(self, value)
 
