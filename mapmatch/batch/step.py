@@ -114,6 +114,20 @@ class StepLeg(NamedTuple):
     """The longest route the step allows (metres): longer ones are impossible."""
 
 
+class StepView(NamedTuple):
+    """What :func:`_along_road` and :func:`_routed` read of the candidates, the scores and the
+    rules, made once per step by :func:`_step` from its :class:`StepInputs`."""
+
+    edge: NDArray[np.int64]
+    offset: NDArray[np.float64]
+    limit: NDArray[np.float64]
+    best: NDArray[np.float64]
+    bp: NDArray[np.int64]
+    bpu: NDArray[np.bool_]
+    params: NDArray[np.float64]
+    rules: StepRules
+
+
 @njit(**UNCOUNTED)
 def _step(a0, a1, b0, b1, inputs, leg, bound):  # type: ignore[no-untyped-def]
     """One Viterbi step from candidates ``a0:a1`` to ``b0:b1`` of the candidates of ``inputs``
@@ -128,10 +142,11 @@ def _step(a0, a1, b0, b1, inputs, leg, bound):  # type: ignore[no-untyped-def]
     the result stays exact. Returns whether any target was reached. Compiled without reference
     counting (:data:`~mapmatch.arena.UNCOUNTED`).
     """
-    cand, tr, _params, _rules, router = deref(inputs)
+    cand, tr, params, rules, router = deref(inputs)
     ws = router.ws
     cedge = cand.edge
-    edge_len = router.g.edge_len
+    g = router.g
+    v = StepView(cedge, cand.offset, cand.limit, tr.best, tr.bp, tr.bpu, params, rules)
     sources_best_first(tr.score, a0, a1, tr.order)
     open_column(tr.best, tr.bp, b0, b1)
     nuniq = 0
@@ -151,65 +166,64 @@ def _step(a0, a1, b0, b1, inputs, leg, bound):  # type: ignore[no-untyped-def]
         lim = bound
         if worst > -np.inf:
             lim = min(bound, leg.trav + leg.beta * (si - worst))
-        need = _along_road(i, si, b0, b1, inputs, leg)
-        rest = edge_len[cedge[i]] - cand.offset[i]  # the way left along its edge
+        need = _along_road(i, si, b0, b1, v, g.edge_len, g.edge_rev, leg)
+        rest = g.edge_len[cedge[i]] - cand.offset[i]  # the way left along its edge
         if need and not rest > lim:
-            _routed(i, si, lim, b0, b1, inputs, leg, nuniq)
+            _routed(i, si, lim, (b0, b1, nuniq), v, router, leg)
     for j in range(b0, b1):
         ws.tgt[cedge[j]] = 0
     return close_column(tr.best, tr.score, cand.emis, b0, b1)
 
 
 @njit(cache=True, nogil=True, inline="always")
-def _along_road(i, si, b0, b1, inputs, leg):  # type: ignore[no-untyped-def]
+def _along_road(i, si, b0, b1, v, edge_len, edge_rev, leg):  # type: ignore[no-untyped-def]
     """The transitions from source candidate ``i`` (score ``si``) that need no route: to the
-    targets ahead on its own edge (or behind it within ``reverse_tol``) and, turning round, on
-    its reverse edge, each relaxed (:func:`mapmatch.viterbi.relax`; ``inputs``: the
-    :class:`StepInputs`, by :func:`~mapmatch.arena.ref`, as :func:`_step` has it, so that no
-    copy of it is made per source). Returns whether some target needs a route."""
-    cand, tr, params, rules, router = deref(inputs)
-    g = router.g
-    e = cand.edge[i]
-    o = cand.offset[i]
+    targets ``b0:b1`` ahead on its own edge (or behind it within ``reverse_tol``) and, turning
+    round, on its reverse edge, each relaxed (:func:`mapmatch.viterbi.relax`; ``v``: the
+    step's :class:`StepView`). Returns whether some target needs a route."""
+    rules = v.rules
+    params = v.params
+    e = v.edge[i]
+    o = v.offset[i]
     need = False
     for j in range(b0, b1):
-        f = cand.edge[j]
-        if f == e and cand.offset[j] >= o - rules.reverse_tol:
-            r = max(cand.offset[j] - o, 0.0)
+        f = v.edge[j]
+        if f == e and v.offset[j] >= o - rules.reverse_tol:
+            r = max(v.offset[j] - o, 0.0)
             lp = -np.inf
             if r <= leg.vcap:
                 lp = transition_logp_one(r, leg.trav, leg.dt, params, False, leg.beta0)
-            lp += _over_limit(r, leg.dt, cand.limit, i, j, rules.limit_factor, rules.limit_penalty)
-            if relax(tr.best, tr.bp, b0, j, i, si + lp):
-                tr.bpu[j] = False
+            lp += _over_limit(r, leg.dt, v.limit, i, j, rules.limit_factor, rules.limit_penalty)
+            if relax(v.best, v.bp, b0, j, i, si + lp):
+                v.bpu[j] = False
         else:
             need = True
-            r = abs(g.edge_len[e] - cand.offset[j] - o)
-            if f == g.edge_rev[e] and r <= leg.vcap:
+            r = abs(edge_len[e] - v.offset[j] - o)
+            if f == edge_rev[e] and r <= leg.vcap:
                 lp = transition_logp_one(r, leg.trav, leg.dt, params, True, leg.beta0) + _over_limit(
-                    r, leg.dt, cand.limit, i, j, rules.limit_factor, rules.limit_penalty
+                    r, leg.dt, v.limit, i, j, rules.limit_factor, rules.limit_penalty
                 )
-                near_end = g.edge_len[e] - o <= rules.reverse_tol and cand.offset[j] <= rules.reverse_tol
+                near_end = edge_len[e] - o <= rules.reverse_tol and v.offset[j] <= rules.reverse_tol
                 if leg.node_uturn < params[3] and near_end:
                     # turning round at the junction (within reverse_tol) after a stop
                     lp += params[3] - leg.node_uturn
-                if relax(tr.best, tr.bp, b0, j, i, si + lp):
-                    tr.bpu[j] = True
+                if relax(v.best, v.bp, b0, j, i, si + lp):
+                    v.bpu[j] = True
     return need
 
 
 @njit(cache=True, nogil=True, inline="always")
-def _routed(i, si, lim, b0, b1, inputs, leg, nuniq):  # type: ignore[no-untyped-def]
+def _routed(i, si, lim, targets, v, router, leg):  # type: ignore[no-untyped-def]
     """The transitions from source candidate ``i`` (score ``si``) over routes of at most ``lim``
-    metres to the targets :func:`_along_road` left (``nuniq`` distinct edges), each relaxed:
-    from the route table where it holds every route within the bound, else by a bounded
-    search."""
-    cand, tr, params, rules, router = deref(inputs)
+    metres to the targets :func:`_along_road` left (``targets``: ``b0, b1`` and how many
+    distinct edges they are on), each relaxed: from the route table where it holds every route
+    within the bound, else by a bounded search."""
+    b0, b1, nuniq = targets
     g = router.g
     ws = router.ws
     table = router.table
-    cedge = cand.edge
-    coff = cand.offset
+    cedge = v.edge
+    coff = v.offset
     exy = g.edge_xy
     e = cedge[i]
     o = coff[i]
@@ -221,7 +235,7 @@ def _routed(i, si, lim, b0, b1, inputs, leg, nuniq):  # type: ignore[no-untyped-
     xe, ye = exy[e, 2], exy[e, 3]
     for j in range(b0, b1):
         f = cedge[j]
-        if f == e and coff[j] >= o - rules.reverse_tol:
+        if f == e and coff[j] >= o - v.rules.reverse_tol:
             continue
         if via_table:
             # no look-up (cold memory) where even the straight line from e's end to f's start
@@ -229,16 +243,16 @@ def _routed(i, si, lim, b0, b1, inputs, leg, nuniq):  # type: ignore[no-untyped-
             # no route improves target j
             ex = xe - exy[f, 0]
             ey = ye - exy[f, 1]
-            lim_j = min(lim, leg.trav + leg.beta * (si - tr.best[j - b0]) + 1e-6)
+            lim_j = min(lim, leg.trav + leg.beta * (si - v.best[j - b0]) + 1e-6)
             if rest + math.sqrt(ex * ex + ey * ey) * LOWER_BOUND_SCALE + coff[j] > lim_j:
                 continue
         r = (rest + ubodt_lookup(table, e, f) if via_table else ws.dist[f]) + coff[j]
         if r <= lim:
-            lp = transition_logp_one(r, leg.trav, leg.dt, params, False, leg.beta0) + _over_limit(
-                r, leg.dt, cand.limit, i, j, rules.limit_factor, rules.limit_penalty
+            lp = transition_logp_one(r, leg.trav, leg.dt, v.params, False, leg.beta0) + _over_limit(
+                r, leg.dt, v.limit, i, j, v.rules.limit_factor, v.rules.limit_penalty
             )
-            if relax(tr.best, tr.bp, b0, j, i, si + lp):
-                tr.bpu[j] = False
+            if relax(v.best, v.bp, b0, j, i, si + lp):
+                v.bpu[j] = False
     if not via_table:
         _reset(nt, ws)
 
