@@ -5,7 +5,7 @@ them would take a good part of a small track's call).
 A bump allocator: :func:`reset` at the start of a call, then each ``take_*`` hands out the next
 free piece of a buffer. Nothing is freed within a call, so pieces never overlap; a call's
 pieces are overwritten by the next call of the same thread, so they must not outlive it (the
-answer is copied out by :func:`mapmatch.batch.run.pack`). When a buffer is used up the piece
+answer is copied out by :func:`mapmatch.batch.packed.pack`). When a buffer is used up the piece
 is allocated on its own instead, and ``top`` still counts it, so the caller can grow the arena
 (:meth:`Arena.grown`) for the next call.
 

@@ -31,10 +31,13 @@ GROUPS: dict[str, tuple[str, ...]] = {
     "simulator": ("mapmatch.sim.kalman:_ekf",),
     "batch": (
         "mapmatch.batch.lattice",
+        "mapmatch.viterbi",
+        "mapmatch.batch.split",
         "mapmatch.batch.step",
         "mapmatch.batch.leave_out",
         "mapmatch.batch.viterbi",
         "mapmatch.batch.route",
+        "mapmatch.batch.packed",
         "mapmatch.batch.run",
         "mapmatch.batch.context",
         "mapmatch.routing",

@@ -1204,11 +1204,11 @@ def test_a_lone_fix_near_a_road_amid_fixes_off_the_map_is_off_the_map_too() -> N
 
 
 def test_an_answer_read_late_equals_one_read_at_once_and_pickles_as_a_track_match() -> None:
-    """The answer's fields come from the kernel's packed array on first access: reading them in
-    any order, setting one first, or pickling gives what an eager unpack gives."""
+    """The answer's fields come from the kernel's typed result on first access: reading them in
+    any order, setting one first, or pickling gives what the result's own fields give."""
     import pickle
 
-    from mapmatch.batch.results import _LAZY, PackedMatch, _unpack
+    from mapmatch.batch.results import _LAZY, PackedMatch
 
     m = parse_ascii_map(
         """
@@ -1222,10 +1222,11 @@ def test_an_answer_read_late_equals_one_read_at_once_and_pickles_as_a_track_matc
     matcher = BatchMatcher(m.graph)
     track = track_from_xy(m, pts)
     first = matcher.match(track, lonlat=False)
-    assert isinstance(first, PackedMatch) and first._packed is not None
-    eager = _unpack(first._packed)
-    assert first.confidence == eager[3] and first._packed is None  # one read fills every field
-    assert first.routes == eager[0] and first.splits == eager[1] and first.length_m == eager[2]
+    assert isinstance(first, PackedMatch) and first._result is not None
+    eager = first._result
+    assert first.confidence == eager.confidence and first._result is None  # one read fills every field
+    assert first.routes == eager.routes() and first.splits == eager.splits.tolist()
+    assert first.length_m == eager.length and len(first.route_xy) == len(eager.pieces_xy())
     assert first.routes and first.length_m > 0
     other = matcher.match(track, lonlat=False)
     other.length_m = -1.0  # a write fills the rest first, then wins

@@ -5,11 +5,15 @@ The pipeline, one module a stage:
 - :mod:`~mapmatch.batch.matcher`: measurements → candidates (one index query) → emissions
   (the shared :mod:`mapmatch.model`);
 - :mod:`~mapmatch.batch.lattice`: thinning, pruning, the lattice (compiled);
-- :mod:`~mapmatch.batch.viterbi`: the Viterbi search (compiled), each step scored and routed by
-  :mod:`~mapmatch.batch.step`, the fixes left out chosen by :mod:`~mapmatch.batch.leave_out`;
+- :mod:`~mapmatch.batch.viterbi`: the Viterbi search's forward pass and backtrack (compiled), on
+  the generic search of :mod:`mapmatch.viterbi`: each step's costs supplied by
+  :mod:`~mapmatch.batch.step` (routing between candidates), the pieces split by
+  :mod:`~mapmatch.batch.split`, the fixes left out chosen by :mod:`~mapmatch.batch.leave_out`;
 - :mod:`~mapmatch.batch.route`: route assembly, the route's edges, geometry and per-point
   results (compiled);
 - :mod:`~mapmatch.batch.run`: the compiled stages as one call;
+- :mod:`~mapmatch.batch.packed`: the call's answer in one array and its typed reading, a
+  :class:`~mapmatch.batch.packed.TrackResult`;
 - :mod:`~mapmatch.batch.results`: the :class:`~mapmatch.types.TrackMatch`, way ids and names.
 
 The compiled kernels take the named tuples of :mod:`~mapmatch.batch.arrays`. The matched route

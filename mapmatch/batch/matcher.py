@@ -33,10 +33,10 @@ from mapmatch.batch.lattice import (
     segment_bearings,
     segment_lengths,
 )
+from mapmatch.batch.packed import Packed, TrackResult, decode
 from mapmatch.batch.results import fill_route_lonlat, track_match
 from mapmatch.batch.run import (
     CompiledRun,
-    Packed,
     QueryParams,
     RoadArrays,
     RuleParams,
@@ -238,10 +238,10 @@ class BatchMatcher:
             _column(track.pos_sigma, n, "pos_sigma"), _column(track.heading, n, "heading"),
             _column(track.speed, n, "speed"),
         )  # fmt: skip
-        packed = self._call(ti, cfg, st)
-        if n > 1 and packed[-2] == 0:  # no route (its length's float64 bits: 0.0 is all zero)
-            packed = _joined(packed, lambda: self._call(ti, self._joining(cfg), self._state()))
-        return track_match(str(track.track_id), packed)
+        res = decode(self._call(ti, cfg, st))
+        if n > 1 and res.length == 0.0:  # no route
+            res = _joined(res, lambda: decode(self._call(ti, self._joining(cfg), self._state())))
+        return track_match(str(track.track_id), res)
 
     def _call(self, ti: TrackInput, cfg: MatchConfig, st: _ThreadState) -> Packed:
         """One compiled call with this thread's scratch ``st``; its arena grown after a call
@@ -302,14 +302,14 @@ def _odometer(distance: NDArray[np.float64]) -> NDArray[np.float64]:
     return np.where(np.isfinite(d), np.cumsum(np.where(np.isfinite(d), d, 0.0)), np.nan)
 
 
-def _joined(packed: Packed, again: Callable[[], Packed]) -> Packed:
-    """A match with no route (:func:`mapmatch.batch.run.pack`), or, where it places at most one
-    fix, ``again()`` (the match without the rules that leave fixes out,
-    :meth:`BatchMatcher._joining`) if that has a route: one fix makes no route."""
-    if int(np.count_nonzero(packed[5 : 5 + int(packed[0])] >= 0)) > 1:
-        return packed
+def _joined(res: TrackResult, again: Callable[[], TrackResult]) -> TrackResult:
+    """A match with no route, or, where it places at most one fix, ``again()`` (the match
+    without the rules that leave fixes out, :meth:`BatchMatcher._joining`) if that has a route:
+    one fix makes no route."""
+    if res.placed > 1:
+        return res
     other = again()
-    return other if float(other[-2:].view(F8)[0]) > 0.0 else packed
+    return other if other.length > 0.0 else res
 
 
 def _column(a: ArrayLike | None, n: int, name: str, missing: float | None = None) -> NDArray[np.float64]:

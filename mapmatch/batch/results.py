@@ -11,69 +11,41 @@ import numpy as np
 
 from graph.projection import rows_to_lonlat
 from graph.road_graph import RoadGraph, merge_repeats
-from mapmatch.batch.run import Packed
+from mapmatch.batch.packed import TrackResult
 from mapmatch.types import MatchedPoint, PointStatus, TrackMatch
 
 
-def track_match(track_id: str, packed: Packed) -> TrackMatch:
-    """A :class:`TrackMatch` of the compiled kernel's packed array (:func:`mapmatch.batch.run.pack`):
-    its fields are read from the array on first access (:class:`PackedMatch`)."""
-    return PackedMatch(track_id, packed)
-
-
-def _unpack(packed: Packed) -> tuple[Any, ...]:
-    """Routes, splits, length, confidence, route geometry and point arrays (views into ``packed``)."""
-    n, ns, ne, nseg, nxy = packed[:5].tolist()
-    k = 5 + 2 * n
-    ni = k + ns + ne + 2 * (nseg + 1)
-    rest = packed[k:ni].tolist()  # splits, route edges, their pointers, the geometry's pointers
-    floats = packed.view(np.float64)  # the float part starts at ni
-    f = ni + 4 * n
-    routes = []
-    route_xy = []
-    if nseg:
-        route_e = rest[ns : ns + ne]
-        ptr = rest[ns + ne :]
-        xy_all = floats[f : f + 2 * nxy].reshape(nxy, 2)
-        for s in range(nseg):
-            routes.append(route_e[ptr[s] : ptr[s + 1]])
-            seg = xy_all[ptr[nseg + 1 + s] : ptr[nseg + 2 + s]]
-            route_xy.append(np.vstack([seg, seg]) if len(seg) == 1 else seg)
-    length, conf = floats[f + 2 * nxy :].tolist()
-    pa = (
-        packed[5 + n : k],
-        packed[5 : 5 + n],
-        floats[ni : ni + n],
-        floats[ni + n : ni + 3 * n].reshape(n, 2),
-        floats[ni + 3 * n : f],
-    )
-    return routes, rest[:ns], length, conf, route_xy, pa
+def track_match(track_id: str, result: TrackResult) -> TrackMatch:
+    """A :class:`TrackMatch` of the compiled kernel's answer (:func:`mapmatch.batch.packed.decode`):
+    its list fields are built on first access (:class:`PackedMatch`)."""
+    return PackedMatch(track_id, result)
 
 
 _LAZY = ("routes", "splits", "length_m", "confidence", "route_xy", "point_arrays")
-"""The fields a :class:`PackedMatch` reads from its packed array, in :func:`_unpack`'s order."""
+"""The fields a :class:`PackedMatch` builds from its :class:`TrackResult`, in
+:meth:`TrackResult.unpacked`'s order."""
 _SLOT = {name: TrackMatch.__dict__[name] for name in _LAZY}
 """:class:`TrackMatch`'s own storage of those fields."""
 
 
 class PackedMatch(TrackMatch):
-    """A :class:`TrackMatch` that keeps the kernel's packed answer and fills ``routes``,
+    """A :class:`TrackMatch` that keeps the kernel's :class:`TrackResult` and fills ``routes``,
     ``splits``, ``length_m``, ``confidence``, ``route_xy`` and ``point_arrays`` from it the first
     time any of them is read or set (a call whose answer is not read does not pay for them).
     Compares equal to a :class:`TrackMatch` with the same fields."""
 
-    __slots__ = ("_packed",)
+    __slots__ = ("_result",)
 
-    def __init__(self, track_id: str, packed: Packed) -> None:
-        self._packed: Packed | None = packed
+    def __init__(self, track_id: str, result: TrackResult) -> None:
+        self._result: TrackResult | None = result
         self.track_id = track_id
         self.points = []
         self.route_lonlat = []
 
     def _fill(self) -> None:
-        packed = getattr(self, "_packed", None)
-        self._packed = None
-        values = _unpack(packed) if packed is not None else ([], [], 0.0, 0.0, [], None)
+        result = getattr(self, "_result", None)
+        self._result = None
+        values = result.unpacked() if result is not None else ([], [], 0.0, 0.0, [], None)
         for name, value in zip(_LAZY, values, strict=True):
             _SLOT[name].__set__(self, value)
 
@@ -98,7 +70,7 @@ def _lazy_field(name: str) -> property:
             return slot.__get__(self)
 
     def put(self: PackedMatch, value: Any) -> None:
-        if getattr(self, "_packed", None) is not None:
+        if getattr(self, "_result", None) is not None:
             self._fill()
         slot.__set__(self, value)
 

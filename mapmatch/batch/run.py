@@ -5,7 +5,7 @@ their emissions, then :func:`run` (lattice, Viterbi, route assembly), which also
 Python reference steps. numba's dispatcher types every argument on every call, which for nested
 named tuples of arrays costs tens of microseconds; :class:`CompiledRun` resolves the compiled
 entry point once and then calls it directly. The answer comes back packed in one array
-(:func:`pack`), as each array handed to Python costs about a microsecond.
+(:func:`mapmatch.batch.packed.pack`), as each array handed to Python costs about a microsecond.
 """
 
 from __future__ import annotations
@@ -29,13 +29,11 @@ from mapmatch.batch.lattice import (
     motion_heading_into,
     thin_into,
 )
+from mapmatch.batch.packed import Packed, pack
 from mapmatch.batch.route import assemble
 from mapmatch.batch.viterbi import solve
 from mapmatch.gridindex import query_grid
 from mapmatch.model import emission_logp_one, heading_kappa_compiled, track_sigma_compiled
-
-Packed = NDArray[np.int64]
-"""What the kernels return: the assembly packed by :func:`pack`."""
 
 
 class TrackInput(NamedTuple):
@@ -117,46 +115,6 @@ def _run(pt, cands, p, geom, router, ar):  # type: ignore[no-untyped-def]
     sig = lattice_sigma(pt, cands, p.sigma, lat, ar)
     choice, seg_start, via_u, used_bound = solve(lat, p, router, ar, sig)
     return assemble(pt, lat, choice, seg_start, via_u, used_bound, p, geom, router, ar)
-
-
-@njit(cache=True, nogil=True)
-def pack(a):  # type: ignore[no-untyped-def]
-    """The assembly in one array, as :func:`mapmatch.batch.results.track_match` reads it (each
-    array handed back to Python costs about a microsecond: ten of them would be a good part of
-    a small track's call).
-
-    Integers: ``n, splits, route edges, pieces, route points``, then ``p_edge, status, splits,
-    route_e, route_ptr, rxy_ptr``; then, as float64 (:func:`packed_floats`): ``p_off, p_xy,
-    p_dist, xy_all, length, confidence``.
-    """
-    n = len(a.p_edge)
-    ns = len(a.splits)
-    ne = len(a.route_e)
-    nseg = len(a.route_ptr) - 1
-    nxy = len(a.xy_all)
-    ni = 5 + 2 * n + ns + ne + 2 * (nseg + 1)
-    out = np.empty(ni + 4 * n + 2 * nxy + 2, dtype=np.int64)
-    ints = out[:ni]
-    ints[0], ints[1], ints[2], ints[3], ints[4] = n, ns, ne, nseg, nxy
-    ints[5 : 5 + n] = a.p_edge
-    for i in range(n):
-        ints[5 + n + i] = a.status[i]
-    k = 5 + 2 * n
-    for arr in (a.splits, a.route_e, a.route_ptr, a.rxy_ptr):
-        ints[k : k + len(arr)] = arr
-        k += len(arr)
-    floats = out[ni:].view(np.float64)
-    floats[:n] = a.p_off
-    for i in range(n):
-        floats[n + 2 * i] = a.p_xy[i, 0]
-        floats[n + 2 * i + 1] = a.p_xy[i, 1]
-    floats[3 * n : 4 * n] = a.p_dist
-    for i in range(nxy):
-        floats[4 * n + 2 * i] = a.xy_all[i, 0]
-        floats[4 * n + 2 * i + 1] = a.xy_all[i, 1]
-    floats[4 * n + 2 * nxy] = a.length
-    floats[4 * n + 2 * nxy + 1] = a.conf
-    return out
 
 
 @njit(cache=True, nogil=True, inline="always")

@@ -6,9 +6,11 @@ Routes come from a table look-up within its bound (:mod:`mapmatch.route_table`),
 search whose bound shrinks as the targets' best scores rise (:mod:`mapmatch.routing`). A route
 longer than the time between the fixes allows, or whose detour costs more than
 ``detour_cost_max`` β, or longer than the path through a run of fixes off the map it
-bridges by ``off_map_bridge_slack``, is no route. :func:`_joinable`, :func:`_far_gap` and
-:func:`_left_the_route` (the fixes a step leaves out left the route's roads) say whether a step
-stays in one piece of the match.
+bridges by ``off_map_bridge_slack``, is no route (:mod:`mapmatch.batch.split` says whether a
+step stays in one piece of the match).
+
+This module is the search's step-cost provider: it works out each transition's
+log-probability, and :mod:`mapmatch.viterbi`'s relaxation keeps the best.
 """
 
 from __future__ import annotations
@@ -21,9 +23,11 @@ from numpy.typing import NDArray
 
 from graph.jit import njit
 from mapmatch.arena import UNCOUNTED, deref, ref
+from mapmatch.batch.split import run_path
 from mapmatch.model import transition_logp_one
 from mapmatch.route_table import ubodt_lookup
 from mapmatch.routing import LOWER_BOUND_SCALE, Router, _reset, search_toward_inlined
+from mapmatch.viterbi import close_column, open_column, relax, sources_best_first, worst_target
 
 
 class Trellis(NamedTuple):
@@ -93,12 +97,44 @@ def _over_limit(r, dt, limit, i, j, factor, penalty):  # type: ignore[no-untyped
     return -penalty * max(r / dt - factor * v, 0.0)
 
 
+class StepLeg(NamedTuple):
+    """One step's scale, as :func:`_try_step` works it out for :func:`_step`."""
+
+    trav: float
+    """Metres travelled between the fixes (the odometer's where it has one)."""
+    dt: float
+    """Seconds between the fixes."""
+    beta0: float
+    """The step's base β, grown with its driving time."""
+    beta: float
+    """The step's β: ``beta0`` grown with the distance travelled."""
+    node_uturn: float
+    """The log-probability cost of turning round at a junction (less after a stop)."""
+    vcap: float
+    """The longest route the step allows (metres): longer ones are impossible."""
+
+
+class StepView(NamedTuple):
+    """What :func:`_along_road` and :func:`_routed` read of the candidates, the scores and the
+    rules, made once per step by :func:`_step` from its :class:`StepInputs`."""
+
+    edge: NDArray[np.int64]
+    offset: NDArray[np.float64]
+    limit: NDArray[np.float64]
+    best: NDArray[np.float64]
+    bp: NDArray[np.int64]
+    bpu: NDArray[np.bool_]
+    params: NDArray[np.float64]
+    rules: StepRules
+
+
 @njit(**UNCOUNTED)
-def _step(a0, a1, b0, b1, inputs, node_uturn, trav, dt, beta0, bound, vcap):  # type: ignore[no-untyped-def]
+def _step(a0, a1, b0, b1, inputs, leg, bound):  # type: ignore[no-untyped-def]
     """One Viterbi step from candidates ``a0:a1`` to ``b0:b1`` of the candidates of ``inputs``
-    (:class:`StepInputs`, by :func:`~mapmatch.arena.ref`), routing as needed (routes longer
-    than ``vcap``, the most the step's time allows, are impossible; ``beta0``: the step's base
-    β, grown with its driving time).
+    (:class:`StepInputs`, by :func:`~mapmatch.arena.ref`): the generic relaxation of
+    :mod:`mapmatch.viterbi`, its transitions supplied along the road (:func:`_along_road`) and
+    by routing within ``bound`` metres (:func:`_routed`); ``leg``: the step's
+    :class:`StepLeg`.
 
     Sources are taken best score first. As every transition log-probability is <= 0, a source
     can only improve target ``j`` when its score beats ``best[j]``, and only through a route
@@ -107,123 +143,118 @@ def _step(a0, a1, b0, b1, inputs, node_uturn, trav, dt, beta0, bound, vcap):  # 
     counting (:data:`~mapmatch.arena.UNCOUNTED`).
     """
     cand, tr, params, rules, router = deref(inputs)
-    g = router.g
     ws = router.ws
-    table = router.table
     cedge = cand.edge
-    coff = cand.offset
-    score, bp, bpu, order, best = tr
-    edge_len = g.edge_len
-    edge_rev = g.edge_rev
-    exy = g.edge_xy
-    reverse_tol = rules.reverse_tol
-    limit = cand.limit
-    lf = rules.limit_factor
-    lpen = rules.limit_penalty
-    ka = a1 - a0
-    kb = b1 - b0
-    beta = beta0 + params[4] * trav  # the step's β (it grows with the distance)
-    for i in range(ka):
-        order[i] = a0 + i
-    # insertion sort by descending score (k is small)
-    for i in range(1, ka):
-        x = order[i]
-        q = i - 1
-        while q >= 0 and score[order[q]] < score[x]:
-            order[q + 1] = order[q]
-            q -= 1
-        order[q + 1] = x
-    for j in range(kb):
-        best[j] = -np.inf
-        bp[b0 + j] = -1
-        bpu[b0 + j] = False
+    g = router.g
+    v = StepView(cedge, cand.offset, cand.limit, tr.best, tr.bp, tr.bpu, params, rules)
+    sources_best_first(tr.score, a0, a1, tr.order)
+    open_column(tr.best, tr.bp, b0, b1)
     nuniq = 0
     for j in range(b0, b1):
+        tr.bpu[j] = False
         if ws.tgt[cedge[j]] == 0:
             ws.tgt[cedge[j]] = 1
             nuniq += 1
-    for oi in range(ka):
-        i = order[oi]
-        si = score[i]
+    for oi in range(a1 - a0):
+        i = tr.order[oi]
+        si = tr.score[i]
         if si == -np.inf:
             break
-        worst = np.inf
-        for j in range(kb):
-            worst = min(worst, best[j])
+        worst = worst_target(tr.best, b1 - b0)
         if worst >= si:
             break  # no remaining source can improve any target
         lim = bound
         if worst > -np.inf:
-            lim = min(bound, trav + beta * (si - worst))
-        e = cedge[i]
-        o = coff[i]
-        need = False
-        for j in range(b0, b1):
-            f = cedge[j]
-            if f == e and coff[j] >= o - reverse_tol:
-                r = max(coff[j] - o, 0.0)
-                lp = transition_logp_one(r, trav, dt, params, False, beta0) if r <= vcap else -np.inf
-                lp += _over_limit(r, dt, limit, i, j, lf, lpen)
-                if si + lp > best[j - b0]:
-                    best[j - b0] = si + lp
-                    bp[j] = i
-                    bpu[j] = False
-            else:
-                need = True
-                r = abs(edge_len[e] - coff[j] - o)
-                if f == edge_rev[e] and r <= vcap:
-                    lp = transition_logp_one(r, trav, dt, params, True, beta0) + _over_limit(
-                        r, dt, limit, i, j, lf, lpen
-                    )
-                    if node_uturn < params[3] and edge_len[e] - o <= reverse_tol and coff[j] <= reverse_tol:
-                        # turning round at the junction (within reverse_tol) after a stop
-                        lp += params[3] - node_uturn
-                    if si + lp > best[j - b0]:
-                        best[j - b0] = si + lp
-                        bp[j] = i
-                        bpu[j] = True
-        rest = edge_len[e] - o  # the way left along e to its end node
-        if not need or rest > lim:
-            continue
-        via_table = lim <= table.delta  # the table holds every route within the bound
-        nt = 0
-        if not via_table:
-            nt = search_toward_inlined(e, rest, lim, nuniq, cedge[b0:b1], g, ws)
-        xe, ye = exy[e, 2], exy[e, 3]
-        for j in range(b0, b1):
-            f = cedge[j]
-            if f == e and coff[j] >= o - reverse_tol:
-                continue
-            if via_table:
-                # no look-up (cold memory) where even the straight line from e's end to f's start
-                # is too long: beyond trav + beta * (si - best[j]), as lp <= -|r - trav| / beta,
-                # no route improves target j
-                ex = xe - exy[f, 0]
-                ey = ye - exy[f, 1]
-                lim_j = min(lim, trav + beta * (si - best[j - b0]) + 1e-6)
-                if rest + math.sqrt(ex * ex + ey * ey) * LOWER_BOUND_SCALE + coff[j] > lim_j:
-                    continue
-            r = (rest + ubodt_lookup(table, e, f) if via_table else ws.dist[f]) + coff[j]
-            if r <= lim:
-                lp = transition_logp_one(r, trav, dt, params, False, beta0) + _over_limit(
-                    r, dt, limit, i, j, lf, lpen
-                )
-                if si + lp > best[j - b0]:
-                    best[j - b0] = si + lp
-                    bp[j] = i
-                    bpu[j] = False
-        if not via_table:
-            _reset(nt, ws)
+            lim = min(bound, leg.trav + leg.beta * (si - worst))
+        need = _along_road(i, si, b0, b1, v, g.edge_len, g.edge_rev, leg)
+        rest = g.edge_len[cedge[i]] - cand.offset[i]  # the way left along its edge
+        if need and not rest > lim:
+            _routed(i, si, lim, (b0, b1, nuniq), v, router, leg)
     for j in range(b0, b1):
         ws.tgt[cedge[j]] = 0
-    reached = False
-    for j in range(kb):
-        if best[j] > -np.inf:
-            reached = True
-            score[b0 + j] = best[j] + cand.emis[b0 + j]
+    return close_column(tr.best, tr.score, cand.emis, b0, b1)
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _along_road(i, si, b0, b1, v, edge_len, edge_rev, leg):  # type: ignore[no-untyped-def]
+    """The transitions from source candidate ``i`` (score ``si``) that need no route: to the
+    targets ``b0:b1`` ahead on its own edge (or behind it within ``reverse_tol``) and, turning
+    round, on its reverse edge, each relaxed (:func:`mapmatch.viterbi.relax`; ``v``: the
+    step's :class:`StepView`). Returns whether some target needs a route."""
+    rules = v.rules
+    params = v.params
+    e = v.edge[i]
+    o = v.offset[i]
+    need = False
+    for j in range(b0, b1):
+        f = v.edge[j]
+        if f == e and v.offset[j] >= o - rules.reverse_tol:
+            r = max(v.offset[j] - o, 0.0)
+            lp = -np.inf
+            if r <= leg.vcap:
+                lp = transition_logp_one(r, leg.trav, leg.dt, params, False, leg.beta0)
+            lp += _over_limit(r, leg.dt, v.limit, i, j, rules.limit_factor, rules.limit_penalty)
+            if relax(v.best, v.bp, b0, j, i, si + lp):
+                v.bpu[j] = False
         else:
-            score[b0 + j] = -np.inf
-    return reached
+            need = True
+            r = abs(edge_len[e] - v.offset[j] - o)
+            if f == edge_rev[e] and r <= leg.vcap:
+                lp = transition_logp_one(r, leg.trav, leg.dt, params, True, leg.beta0) + _over_limit(
+                    r, leg.dt, v.limit, i, j, rules.limit_factor, rules.limit_penalty
+                )
+                near_end = edge_len[e] - o <= rules.reverse_tol and v.offset[j] <= rules.reverse_tol
+                if leg.node_uturn < params[3] and near_end:
+                    # turning round at the junction (within reverse_tol) after a stop
+                    lp += params[3] - leg.node_uturn
+                if relax(v.best, v.bp, b0, j, i, si + lp):
+                    v.bpu[j] = True
+    return need
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _routed(i, si, lim, targets, v, router, leg):  # type: ignore[no-untyped-def]
+    """The transitions from source candidate ``i`` (score ``si``) over routes of at most ``lim``
+    metres to the targets :func:`_along_road` left (``targets``: ``b0, b1`` and how many
+    distinct edges they are on), each relaxed: from the route table where it holds every route
+    within the bound, else by a bounded search."""
+    b0, b1, nuniq = targets
+    g = router.g
+    ws = router.ws
+    table = router.table
+    cedge = v.edge
+    coff = v.offset
+    exy = g.edge_xy
+    e = cedge[i]
+    o = coff[i]
+    rest = g.edge_len[e] - o  # the way left along e to its end node
+    via_table = lim <= table.delta  # the table holds every route within the bound
+    nt = 0
+    if not via_table:
+        nt = search_toward_inlined(e, rest, lim, nuniq, cedge[b0:b1], g, ws)
+    xe, ye = exy[e, 2], exy[e, 3]
+    for j in range(b0, b1):
+        f = cedge[j]
+        if f == e and coff[j] >= o - v.rules.reverse_tol:
+            continue
+        if via_table:
+            # no look-up (cold memory) where even the straight line from e's end to f's start
+            # is too long: beyond trav + beta * (si - best[j]), as lp <= -|r - trav| / beta,
+            # no route improves target j
+            ex = xe - exy[f, 0]
+            ey = ye - exy[f, 1]
+            lim_j = min(lim, leg.trav + leg.beta * (si - v.best[j - b0]) + 1e-6)
+            if rest + math.sqrt(ex * ex + ey * ey) * LOWER_BOUND_SCALE + coff[j] > lim_j:
+                continue
+        r = (rest + ubodt_lookup(table, e, f) if via_table else ws.dist[f]) + coff[j]
+        if r <= lim:
+            lp = transition_logp_one(r, leg.trav, leg.dt, v.params, False, leg.beta0) + _over_limit(
+                r, leg.dt, v.limit, i, j, v.rules.limit_factor, v.rules.limit_penalty
+            )
+            if relax(v.best, v.bp, b0, j, i, si + lp):
+                v.bpu[j] = False
+    if not via_table:
+        _reset(nt, ws)
 
 
 @njit(cache=True, nogil=True, inline="always")
@@ -264,7 +295,7 @@ def _try_step(prev, t, d, lat, p, inputs):  # type: ignore[no-untyped-def]
     # a run of fixes off the map is bridged only near the path its fixes trace (the count
     # here, the rest a call: compiled into every caller, it would slow every call)
     if lat.run[t, 2] - lat.run[prev, 3] + 1 >= p.off_map_cut_fixes:
-        vcap = min(vcap, _run_path(prev, t, lat, p) + p.off_map_bridge_slack)
+        vcap = min(vcap, run_path(prev, t, lat, p) + p.off_map_bridge_slack)
     reach = p.route_factor * trav + p.route_slack
     if dt > 0:
         reach = max(reach, p.route_speed * dt)
@@ -274,6 +305,7 @@ def _try_step(prev, t, d, lat, p, inputs):  # type: ignore[no-untyped-def]
     node_uturn = p.transition[3]
     if dt >= stop[1] and d < stop[0] * dt:
         node_uturn = min(node_uturn, stop[2])
+    leg = StepLeg(trav, dt, beta0, beta0 + p.transition[4] * trav, node_uturn, vcap)
     reached = False
     ptr = lat.ptr
     for npass in range(2):
@@ -281,81 +313,7 @@ def _try_step(prev, t, d, lat, p, inputs):  # type: ignore[no-untyped-def]
         if npass == 1 and lim <= tight:
             break
         a0, a1, b0, b1 = ptr[prev], ptr[prev + 1], ptr[t], ptr[t + 1]
-        reached = _step(a0, a1, b0, b1, inputs, node_uturn, trav, dt, beta0, lim, vcap)
+        reached = _step(a0, a1, b0, b1, inputs, leg, lim)
         if reached:
             break
     return reached, bound
-
-
-@njit(cache=True, nogil=True, inline="always")
-def _far_gap(d, dt, p, steps):  # type: ignore[no-untyped-def]
-    """Whether ``d`` metres in ``dt`` seconds, over ``steps`` steps, is a gap that splits the
-    track: longer than ``gap_distance`` a step, and faster on average than ``split_speed`` (a
-    slower gap, a logger off or a sparse track, is driven: its route is searched as any step's).
-    """
-    if d <= p.gap_distance * steps:
-        return False
-    return p.split_speed <= 0 or not dt > 0 or d > p.split_speed * dt
-
-
-@njit(cache=True, nogil=True)
-def _joinable(a, b, lat, p):  # type: ignore[no-untyped-def]
-    """Whether a step from lattice point ``a`` to ``b`` stays in one piece; and its distance."""
-    d = math.hypot(lat.pxy[b, 0] - lat.pxy[a, 0], lat.pxy[b, 1] - lat.pxy[a, 1])
-    gap_time = p.gap_time if p.gap_time > 0 else np.inf
-    dt = lat.ptime[b] - lat.ptime[a]
-    ok = not _far_gap(d, dt, p, 1) and not dt > gap_time  # no time (NaN) is no gap, as in the forward pass
-    # only the runs between consecutive lattice points (fixes off the map): the fixes a choice
-    # to leave out drops are weighed by their cost instead
-    for r in range(a + 1, b + 1):
-        ok = ok and not _left_the_route(r - 1, r, lat, p)
-    return ok, d
-
-
-@njit(cache=True, nogil=True)
-def _run_path(a, b, lat, p):  # type: ignore[no-untyped-def]
-    """The path of a step from lattice point ``a`` to ``b`` through the fixes it leaves out,
-    from fix ``a`` through them to fix ``b``, where they are a run :func:`_left_the_route`
-    weighs (``off_map_cut_fixes`` or more, travelling ``off_map_cut`` among themselves); else
-    inf."""
-    run = lat.run
-    if not (p.off_map_cut > 0 and run[b, 2] - run[a, 3] + 1 >= p.off_map_cut_fixes):
-        return np.inf
-    travel = run[b, 0] - run[a, 1]
-    if travel < p.off_map_cut:
-        return np.inf
-    return travel + _run_legs(a, b, lat)
-
-
-@njit(cache=True, nogil=True, inline="always")
-def _run_legs(a, b, lat):  # type: ignore[no-untyped-def]
-    """The legs from fix ``a`` to the first fix a step to ``b`` leaves out, and from its last
-    to fix ``b``."""
-    run = lat.run
-    return math.hypot(run[a, 8] - lat.pxy[a, 0], run[a, 9] - lat.pxy[a, 1]) + math.hypot(
-        lat.pxy[b, 0] - run[b, 6], lat.pxy[b, 1] - run[b, 7]
-    )
-
-
-@njit(cache=True, nogil=True, inline="always")
-def _left_the_route(a, b, lat, p):  # type: ignore[no-untyped-def]
-    """Whether the fixes a step from lattice point ``a`` to ``b`` leaves out (off the map, or
-    no road of the route reaches them), ``off_map_cut_fixes`` or more, travel ``off_map_cut``
-    among themselves, or last as long as that takes at ``off_map_cut_speed`` and travel it with
-    their legs to ``a`` and ``b``: the track left the route's roads and came back, and the
-    route is cut there, not routed round."""
-    run = lat.run
-    # most steps leave out no fix: the count first
-    if not (p.off_map_cut > 0 and run[b, 2] - run[a, 3] + 1 >= p.off_map_cut_fixes):
-        return False
-    travel = run[b, 0] - run[a, 1]
-    lasted = run[b, 4] - run[a, 5] >= p.off_map_cut / p.off_map_cut_speed
-    if not (travel >= p.off_map_cut or lasted):
-        return False
-    # a run that lasts but travels little: with its legs from and back to the route it must
-    # travel ``off_map_cut`` too (a car parked by the road is not cut off it)
-    if travel < p.off_map_cut and travel + _run_legs(a, b, lat) < p.off_map_cut:
-        return False
-    # the run's speed from its first fix to its last (its path would count the noise)
-    net = math.hypot(run[b, 6] - run[a, 8], run[b, 7] - run[a, 9])
-    return not net > p.off_map_cut_speed * (run[b, 4] - run[a, 5])

@@ -1,8 +1,15 @@
-"""Exact Viterbi over the lattice, routing each step as it goes (compiled).
+"""The batch Viterbi search over the lattice (compiled), as stages.
 
-Each step is :mod:`mapmatch.batch.step`'s; which fixes to leave out is
-:mod:`mapmatch.batch.leave_out`'s. A point no candidate of the previous point can reach is left
-out; a run of them splits the match.
+- The search itself is :mod:`mapmatch.viterbi`'s, which knows nothing of roads: each step is
+  its relaxation, the transitions supplied by the step-cost provider
+  :mod:`mapmatch.batch.step` (the transition model over routes between candidates).
+- The forward pass (:func:`_forward`), for each point: does the step start a new piece
+  (:mod:`mapmatch.batch.split`)? If not, try the step; reached, ask the leave-out policy
+  whether the point before was the outlier; unreachable, ask it what to leave out
+  (:mod:`mapmatch.batch.leave_out`). A point no candidate of the previous kept point can reach
+  is left out; after ``max_skip`` such points in a row a new piece starts at the first of them.
+- The backtrack (:func:`_backtrack`), each piece from its last point, the track's ends left
+  out where visiting them costs more than leaving them out.
 """
 
 from __future__ import annotations
@@ -12,19 +19,25 @@ import math
 import numpy as np
 
 from graph.jit import njit
-from mapmatch.arena import UNCOUNTED, full_b1, full_f8, full_i8, int64, take_b1, take_f8, take_i8
+from mapmatch.arena import UNCOUNTED, full_b1, full_f8, full_i8, int64, ref, take_b1, take_f8, take_i8
 from mapmatch.batch.arrays import KernelParams, Lattice
 from mapmatch.batch.leave_out import (
+    Chosen,
     Detour,
+    Pieces,
     Saved,
-    _best,
-    _drop_one,
-    _leave_out_prev,
-    _leave_out_visited,
-    _track_end,
-    _track_start,
+    Search,
+    accept,
+    leave_out_before_split,
+    leave_out_one,
+    reconsider_prev,
+    start_piece,
+    track_end,
+    track_start,
 )
-from mapmatch.batch.step import Trellis, _far_gap, _left_the_route, _try_step, step_inputs
+from mapmatch.batch.split import splits_before
+from mapmatch.batch.step import Trellis, _try_step, step_inputs
+from mapmatch.viterbi import backtrack
 
 
 @njit(cache=True, nogil=True)
@@ -50,31 +63,22 @@ def _piece_end(a, b, tr, lat, g):  # type: ignore[no-untyped-def]
 
 @njit(cache=True, nogil=True)
 def solve(lat: Lattice, p: KernelParams, router, ar, sig):  # type: ignore[no-untyped-def]
-    """Exact Viterbi over the lattice, routing each step as it goes.
-
-    A point no candidate of the previous accepted point can reach is left out (an outlier);
-    after ``max_skip`` such points in a row, or across a jump (:func:`_far_gap`), a new piece starts at
-    the first of them. The track's first and last points are left out where visiting them costs
-    more than leaving them out (:func:`_emission_cost` plus :func:`_detour_cost`; ``sig``: each
-    lattice point's σ). Returns
-    per lattice point the chosen candidate (-1 = left out), whether a piece starts there,
-    whether the step into it is an along-road U-turn, and its route bound.
+    """Exact Viterbi over the lattice, routing each step as it goes (:func:`_forward`, then
+    :func:`_backtrack`; ``sig``: each lattice point's σ; working arrays from the arena ``ar``).
+    Returns a :class:`~mapmatch.batch.leave_out.Chosen`: per lattice point the chosen
+    candidate (-1 = left out), whether a piece starts there, whether the step into it is an
+    along-road U-turn, and its route bound.
     """
-    cand_ptr = lat.ptr
     max_skip = p.max_skip
-    m = len(cand_ptr) - 1
+    m = len(lat.ptr) - 1
     nc = len(lat.emis)
-    prev_pt = full_i8(ar, m, -1)
-    accepted = full_b1(ar, m, False)
-    seg_start = full_b1(ar, m, False)
-    used_bound = full_f8(ar, m, 0.0)
-    choice = full_i8(ar, m, -1)
-    via_u = full_b1(ar, m, False)
+    fw = Pieces(full_i8(ar, m, -1), full_b1(ar, m, False), full_b1(ar, m, False), full_f8(ar, m, 0.0))
+    chosen = Chosen(full_i8(ar, m, -1), fw.seg_start, full_b1(ar, m, False), fw.used_bound)
     if m == 0:
-        return choice, seg_start, via_u, used_bound
+        return chosen
     kmax = 1
     for t in range(m):
-        kmax = max(kmax, cand_ptr[t + 1] - cand_ptr[t])
+        kmax = max(kmax, lat.ptr[t + 1] - lat.ptr[t])
     tr = Trellis(
         full_f8(ar, nc, -np.inf),
         full_i8(ar, nc, -1),
@@ -82,8 +86,6 @@ def solve(lat: Lattice, p: KernelParams, router, ar, sig):  # type: ignore[no-un
         take_i8(ar, kmax),
         take_f8(ar, kmax),
     )
-    bp = tr.bp
-    bpu = tr.bpu
     saved = Saved(take_f8(ar, kmax), take_i8(ar, kmax), take_b1(ar, kmax), take_f8(ar, 2))
     detour = Detour(
         take_i8(ar, max_skip + 1),
@@ -91,66 +93,68 @@ def solve(lat: Lattice, p: KernelParams, router, ar, sig):  # type: ignore[no-un
         take_f8(ar, max_skip + 1),
         take_f8(ar, max_skip + 1),
     )
-    _forward(lat, p, router, tr, saved, detour, prev_pt, accepted, seg_start, used_bound)
-    # backtrack, each piece from its last point; the track's own ends may be left out (a
-    # split's, beside a jump or a gap, are not: there the fixes are already in doubt)
-    t = m - 1
-    while not accepted[t]:
-        t -= 1
-    if p.outlier_lookahead:
-        t = _track_end(t, tr, lat, p, router, sig, prev_pt, seg_start, used_bound)
-    last = t
-    j = _piece_end(cand_ptr[t], cand_ptr[t + 1], tr, lat, router.g)
-    later = -1  # the point after ``t`` in its piece
-    while True:
-        choice[t] = j
-        if seg_start[t]:
-            q = t - 1
-            while q >= 0 and not accepted[q]:
-                q -= 1
-            # a piece of one point at the track's start or end, beside another piece: one
-            # fix makes no route (a fix near some road before or after a run off the route)
-            if p.outlier_lookahead and later < 0 and (q < 0) != (t == last):
-                choice[t] = -1
-                seg_start[t] = False
-            if q < 0:
-                break
-            t = q
-            j = _piece_end(cand_ptr[t], cand_ptr[t + 1], tr, lat, router.g)
-            later = -1
-        else:
-            via_u[t] = bpu[j]
-            later = t
-            j = bp[j]
-            t = prev_pt[t]
-    if p.outlier_lookahead:
-        _track_start(choice, seg_start, via_u, used_bound, tr, lat, p, router, sig)
-    return choice, seg_start, via_u, used_bound
+    s = Search(lat, p, router, tr, saved, detour)
+    _forward(s, fw)
+    _backtrack(s, sig, fw, chosen)
+    return chosen
 
 
 @njit(**UNCOUNTED)
-def _forward(lat, p, router, tr, saved, detour, prev_pt, accepted, seg_start, used_bound):  # type: ignore[no-untyped-def]
-    """:func:`solve`'s forward pass: every step scored, its points accepted or left out, and the
-    pieces started, into ``prev_pt``, ``accepted``, ``seg_start`` and ``used_bound``.
+def _backtrack(s, sig, fw, chosen):  # type: ignore[no-untyped-def]
+    """:func:`solve`'s backtrack, each piece from its last point (:func:`_piece_end`) by
+    :func:`mapmatch.viterbi.backtrack`, into ``chosen``. The track's last points may be left
+    out (:func:`~mapmatch.batch.leave_out.track_end`; a split's, beside a jump or a gap, are
+    not: there the fixes are already in doubt), and a piece of one point at the track's start
+    or end, beside another piece: one fix makes no route (a fix near some road before or after
+    a run off the route). Then the track's first points
+    (:func:`~mapmatch.batch.leave_out.track_start`)."""
+    sr = ref(s)
+    lat, p, tr = s.lat, s.p, s.tr
+    ptr = lat.ptr
+    choice = chosen.choice
+    t = len(ptr) - 2
+    while not fw.accepted[t]:
+        t -= 1
+    if p.outlier_lookahead:
+        t = track_end(t, sr, sig, fw)
+    last = t
+    while True:
+        j = _piece_end(ptr[t], ptr[t + 1], tr, lat, s.router.g)
+        first = backtrack(tr.bp, fw.prev_pt, fw.seg_start, t, j, choice)
+        r = t
+        while r != first:
+            chosen.via_u[r] = tr.bpu[choice[r]]
+            r = fw.prev_pt[r]
+        q = first - 1
+        while q >= 0 and not fw.accepted[q]:
+            q -= 1
+        if p.outlier_lookahead and first == t and (q < 0) != (first == last):
+            choice[first] = -1
+            fw.seg_start[first] = False
+        if q < 0:
+            break
+        t = q
+    if p.outlier_lookahead:
+        track_start(chosen, sr, sig)
+
+
+@njit(**UNCOUNTED)
+def _forward(s, fw):  # type: ignore[no-untyped-def]
+    """:func:`solve`'s forward pass over the :class:`~mapmatch.batch.leave_out.Search` ``s``:
+    every step scored, its points kept or left out and the pieces started, into ``fw``
+    (:class:`~mapmatch.batch.leave_out.Pieces`).
 
     Compiled without reference counting (:data:`~mapmatch.arena.UNCOUNTED`), apart from
     :func:`solve`, which allocates: the inlined :func:`~mapmatch.batch.step._try_step` copies
     every tuple it is handed, and with reference counting each copy would cost a call per
     array, over a hundred a step."""
-    inputs = step_inputs(lat, tr, p, router)
-    cand_ptr = lat.ptr
-    emis = lat.emis
+    sr = ref(s)  # the rules' view of it: one pointer
+    lat, p = s.lat, s.p
+    inputs = step_inputs(lat, s.tr, p, s.router)
     pxy = lat.pxy
-    gap_time = p.gap_time if p.gap_time > 0 else np.inf
-    ptime = lat.ptime
-    max_skip = p.max_skip
-    m = len(cand_ptr) - 1
-    score = tr.score
+    m = len(lat.ptr) - 1
     prev = int64(0)  # not 0: one compile of each kernel it is handed to (``mapmatch.arena.int64``)
-    accepted[0] = True
-    seg_start[0] = True
-    for j in range(cand_ptr[0], cand_ptr[1]):
-        score[j] = emis[j]
+    start_piece(prev, sr, fw)
     nskip = 0
     s0 = int64(-1)
     t = int64(1)
@@ -161,106 +165,35 @@ def _forward(lat, p, router, tr, saved, detour, prev_pt, accepted, seg_start, us
             restart = s0  # several trailing points unreachable: they form their own piece
         else:
             d = math.hypot(pxy[t, 0] - pxy[prev, 0], pxy[t, 1] - pxy[prev, 1])
-            dt = ptime[t] - ptime[prev]
-            if _far_gap(d, dt, p, 1) or _left_the_route(prev, t, lat, p) or dt > gap_time:
+            if splits_before(prev, t, d, lat, p):
                 restart = s0 if nskip > 0 else t
         if restart < 0:
             reached, bound = _try_step(prev, t, d, lat, p, inputs)
             if reached:
-                accepted[t] = True
-                prev_pt[t] = prev
-                used_bound[t] = bound
-                # maybe ``prev`` was the outlier, not the points after it
-                if (
-                    nskip > 1
-                    and p.outlier_lookahead
-                    and not seg_start[prev]
-                    and _leave_out_prev(prev_pt[prev], s0, t, lat, tr, p, router, saved, detour)
-                ):
-                    accepted[prev] = False
-                    r = t
-                    while r >= s0:
-                        accepted[r] = True
-                        prev_pt[r] = detour.pred[r - s0]
-                        used_bound[r] = detour.bound[r - s0]
-                        r = prev_pt[r]
-                elif (
-                    nskip == 0
-                    and p.outlier_lookahead
-                    and not seg_start[prev]
-                    # the step past ``prev`` scores at most its start plus ``t``'s best emission
-                    and _best(score, cand_ptr[t], cand_ptr[t + 1])
-                    < _best(score, cand_ptr[prev_pt[prev]], cand_ptr[prev_pt[prev] + 1])
-                    + _best(emis, cand_ptr[t], cand_ptr[t + 1])
-                    - 2.0 * p.leave_out_cost
-                    and _leave_out_visited(prev_pt[prev], prev, t, lat, tr, p, router, saved)
-                ):
-                    # visiting ``prev`` cost clearly more than leaving it out: a stray the route bent to
-                    accepted[prev] = False
-                    prev_pt[t] = prev_pt[prev]
-                    used_bound[t] = saved.bound[0]
+                accept(prev, t, bound, fw)
+                reconsider_prev(prev, t, nskip, s0, sr, fw)
                 prev = t
                 nskip = 0
                 t += 1
                 continue
-            if nskip == 0 and p.outlier_lookahead and t + 1 < m:
-                q = -1 if seg_start[prev] else prev_pt[prev]
-                kept = _drop_one(q, prev, t, lat, tr, p, router, saved)
-                if kept >= 0:  # one of prev, t left out; t + 1 reached
-                    if kept == t:
-                        accepted[prev] = False
-                        accepted[t] = True
-                        prev_pt[t] = q
-                        used_bound[t] = saved.bound[0]
-                        if seg_start[prev]:
-                            seg_start[prev] = False
-                            seg_start[t] = True
-                        prev_pt[t + 1] = t
-                    else:
-                        prev_pt[t + 1] = prev
-                    accepted[t + 1] = True
-                    used_bound[t + 1] = saved.bound[1]
-                    prev = t + 1
-                    nskip = 0
-                    t += 2
-                    continue
+            if nskip == 0 and p.outlier_lookahead and t + 1 < m and leave_out_one(prev, t, sr, fw):
+                prev = t + 1  # one of prev, t left out; t + 1 reached
+                t += 2
+                continue
             if nskip == 0:
                 s0 = t
             nskip += 1
-            if nskip <= max_skip:
+            if nskip <= p.max_skip:
                 t += 1
                 continue
             restart = s0
-        if nskip > 0 and restart == s0:
-            # before splitting: maybe the last accepted points were the outliers (a drift onto a
-            # road that does not lead on); reach s0 from up to max_skip points before them
-            q = prev_pt[prev]
-            back = 0
-            while q >= 0 and back < max_skip:
-                dq = math.hypot(pxy[s0, 0] - pxy[q, 0], pxy[s0, 1] - pxy[q, 1])
-                if _far_gap(dq, ptime[s0] - ptime[q], p, back + 2) or _left_the_route(q, s0, lat, p):
-                    break  # a jump even spread over its steps, or a run off the route
-                reached, bound = _try_step(q, s0, dq, lat, p, inputs)
-                if reached:
-                    for r in range(q + 1, s0):
-                        accepted[r] = False
-                    accepted[s0] = True
-                    prev_pt[s0] = q
-                    used_bound[s0] = bound
-                    restart = -1
-                    break
-                q = prev_pt[q]
-                back += 1
-            if restart < 0:
-                prev = s0
-                nskip = 0
-                t = s0 + 1
-                continue
+        if nskip > 0 and restart == s0 and leave_out_before_split(prev, s0, sr, fw):
+            prev = s0
+            nskip = 0
+            t = s0 + 1
+            continue
         # a new piece starts at ``restart``
-        accepted[restart] = True
-        seg_start[restart] = True
-        for j in range(cand_ptr[restart], cand_ptr[restart + 1]):
-            score[j] = emis[j]
+        start_piece(restart, sr, fw)
         prev = restart
         nskip = 0
         t = restart + 1
