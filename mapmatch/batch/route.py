@@ -16,7 +16,7 @@ from numpy.typing import NDArray
 
 from graph.index import project_point_near
 from graph.jit import njit
-from mapmatch.arena import full_b1, full_f8, full_i8, int64, take_f8, take_i8, take_xy
+from mapmatch.arena import UNCOUNTED, full_b1, full_f8, full_i8, int64, take_f8, take_i8, take_xy
 from mapmatch.batch.arrays import Assembly, EdgeGeometry, KernelParams, Lattice, TrackPoints
 from mapmatch.gridindex import grow_array
 from mapmatch.route_table import path_into, path_place
@@ -107,11 +107,12 @@ def _pieces_into(ch, router, t0, n, seg, pc):  # type: ignore[no-untyped-def]
     edge_len = router.g.edge_len
     table = router.table
     pe, ps, pend, pseg = pc
+    ch_edge, ch_off, kind, bound, bad = ch.edge, ch.off, ch.kind, ch.bound, ch.bad
     cap = len(pe)
-    for t in range(t0, len(ch.edge)):
-        e = ch.edge[t]
-        o = ch.off[t]
-        k = ch.kind[t]
+    for t in range(t0, len(ch_edge)):
+        e = ch_edge[t]
+        o = ch_off[t]
+        k = kind[t]
         if n + 4 >= cap:
             return t, n, seg, n + 4
         if k == STEP_SAME:
@@ -129,14 +130,14 @@ def _pieces_into(ch, router, t0, n, seg, pc):  # type: ignore[no-untyped-def]
             n += 1
             continue
         if k == STEP_ROUTE:
-            src = ch.edge[t - 1]
+            src = ch_edge[t - 1]
             place, nm = path_place(table, src, e) if table.delta > 0 else (-1, -1)
             got = None
             if place < 0:
-                got = path_edges(src, ch.off[t - 1], e, ch.bound[t] + 1.0, router.g, router.ws)
+                got = path_edges(src, ch_off[t - 1], e, bound[t] + 1.0, router.g, router.ws)
                 nm = -1 if got is None else len(got)
             if nm < 0:
-                ch.bad[t] = True
+                bad[t] = True
                 k = STEP_SPLIT
             else:
                 if n + nm + 4 >= cap:
@@ -164,7 +165,7 @@ def _pieces_into(ch, router, t0, n, seg, pc):  # type: ignore[no-untyped-def]
         pend[n] = o
         pseg[n] = seg
         n += 1
-    return len(ch.edge), n, seg, n
+    return len(ch_edge), n, seg, n
 
 
 @njit(cache=True, nogil=True)
@@ -264,27 +265,32 @@ def _trimmed(pc, ch, pm, router, ar):  # type: ignore[no-untyped-def]
                 head[pseg[i]] = i
             else:
                 tail[pseg[i]] = i
+    ch_edge, ch_off, kind, bad, pts = ch.edge, ch.off, ch.kind, ch.bad, ch.pts
+    p_edge, p_off = pm.edge, pm.off
     seg = -1
-    for c in range(len(ch.edge)):
-        if ch.kind[c] == STEP_SPLIT or ch.bad[c]:
+    for c in range(len(ch_edge)):
+        if kind[c] == STEP_SPLIT or bad[c]:
             seg += 1
         h = head[seg]
         t = tail[seg]
-        if h >= 0 and ch.edge[c] == pe[h] and ch.off[c] >= ps[h] - ON_NODE:
-            ch.edge[c], ch.off[c] = pe[h + 1], ps[h + 1]
-        elif t >= 0 and ch.edge[c] == pe[t] and ch.off[c] <= pend[t] + ON_NODE:
-            ch.edge[c], ch.off[c] = pe[t - 1], pend[t - 1]
+        if h >= 0 and ch_edge[c] == pe[h] and ch_off[c] >= ps[h] - ON_NODE:
+            ch_edge[c], ch_off[c] = pe[h + 1], ps[h + 1]
+        elif t >= 0 and ch_edge[c] == pe[t] and ch_off[c] <= pend[t] + ON_NODE:
+            ch_edge[c], ch_off[c] = pe[t - 1], pend[t - 1]
         else:
             continue
-        pm.edge[ch.pts[c]] = ch.edge[c]
-        pm.off[ch.pts[c]] = ch.off[c]
-    out = Pieces(take_i8(ar, k), take_f8(ar, k), take_f8(ar, k), take_i8(ar, k))
+        p_edge[pts[c]] = ch_edge[c]
+        p_off[pts[c]] = ch_off[c]
+    qe = take_i8(ar, k)
+    qs = take_f8(ar, k)
+    qend = take_f8(ar, k)
+    qseg = take_i8(ar, k)
     k = 0
     for i in range(n):
         if keep[i]:
-            out.edge[k], out.start[k], out.end[k], out.seg[k] = pe[i], ps[i], pend[i], pseg[i]
+            qe[k], qs[k], qend[k], qseg[k] = pe[i], ps[i], pend[i], pseg[i]
             k += 1
-    return out
+    return Pieces(qe, qs, qend, qseg)
 
 
 @njit(cache=True, nogil=True)
@@ -300,9 +306,10 @@ def assemble(
     # lattice points left out as unreachable outliers are unmatched
     acc = _accepted(dec.choice, ar)
     m = len(acc)
+    valid, status = pt.valid, pm.status
     nvalid = 0
     for i in range(n):
-        if pt.valid[i]:
+        if valid[i]:
             nvalid += 1
     if m == 0:
         return Assembly(
@@ -321,7 +328,7 @@ def assemble(
     # the matched fraction (interpolated points count) times the lattice points' mean
     nmatched = 0
     for i in range(n):
-        if pt.valid[i] and pm.status[i] != 0:
+        if valid[i] and status[i] != 0:
             nmatched += 1
     conf = nmatched / max(nvalid, 1) * post / m
     return Assembly(
@@ -345,11 +352,13 @@ def _accepted(choice, ar):  # type: ignore[no-untyped-def]
     return acc
 
 
-@njit(cache=True, nogil=True)
+@njit(**UNCOUNTED)
 def _choose(acc, lat, dec, reverse_tol, edge_rev, ch, pm):  # type: ignore[no-untyped-def]
     """The accepted lattice points ``acc``'s chosen candidates into ``ch`` (:class:`Chosen`,
     with the kind of step into each; ``bad`` untouched) and their points' matches into ``pm``
-    (:class:`PointMatch`); returns the sum of their confidences (:func:`_road_share`)."""
+    (:class:`PointMatch`); returns the sum of their confidences (:func:`_road_share`).
+    Allocates nothing (:data:`~mapmatch.arena.UNCOUNTED`: an inlined call handed a tuple of
+    arrays in a reference-counted loop would count every array in it)."""
     post = 0.0
     for i in range(len(acc)):
         t = acc[i]
@@ -405,15 +414,16 @@ def _road_share(lat, t, e, edge_rev):  # type: ignore[no-untyped-def]
 def _splits(ch, ar):  # type: ignore[no-untyped-def]
     """The points where a new piece of route starts after the first: a split, or a failed path
     (should not happen: Viterbi chose a reachable pair)."""
-    m = len(ch.kind)
+    kind, bad = ch.kind, ch.bad
+    m = len(kind)
     nsplit = 0
     for i in range(1, m):
-        if ch.kind[i] == STEP_SPLIT or ch.bad[i]:
+        if kind[i] == STEP_SPLIT or bad[i]:
             nsplit += 1
     splits = take_i8(ar, nsplit)
     q = 0
     for i in range(1, m):
-        if ch.kind[i] == STEP_SPLIT or ch.bad[i]:
+        if kind[i] == STEP_SPLIT or bad[i]:
             splits[q] = ch.pts[i]
             q += 1
     return splits
@@ -452,23 +462,26 @@ def _interpolate(pt, ch, geom, pm):  # type: ignore[no-untyped-def]
     projected onto the chosen edge of the nearer kept neighbour in ``ch`` (:class:`Chosen`);
     those thinned after an unmatched kept point (off the map, a jump) stay unmatched with it."""
     seg_xy, seg_len, seg_ptr = geom.seg_xy, geom.seg_len, geom.seg_ptr
-    m = len(ch.edge)
+    valid, kept, xy = pt.valid, pt.kept, pt.xy
+    ch_edge, pts = ch.edge, ch.pts
+    p_edge, p_off, p_xy, p_dist, status = pm
+    m = len(ch_edge)
     q = 0
     last_matched = True
     # the last projection's edge, piece and the piece's start: a stop's fixes share them
     # (``int64(-1)``, not -1: one compile of project_point_near, ``mapmatch.arena.int64``)
     hint_e, hint, hint_acc = -1, int64(-1), 0.0
-    for i in range(len(pt.valid)):
-        if pt.kept[i]:
-            last_matched = pm.status[i] == 1
-        if not pt.valid[i] or pt.kept[i] or not last_matched:
+    for i in range(len(valid)):
+        if kept[i]:
+            last_matched = status[i] == 1
+        if not valid[i] or kept[i] or not last_matched:
             continue
-        while q < m and ch.pts[q] < i:
+        while q < m and pts[q] < i:
             q += 1
         prv = max(q - 1, 0)
         nxt = min(q, m - 1)
-        x, y = pt.xy[i, 0], pt.xy[i, 1]
-        e1, e2 = ch.edge[prv], ch.edge[nxt]
+        x, y = xy[i, 0], xy[i, 1]
+        e1, e2 = ch_edge[prv], ch_edge[nxt]
         if e1 != hint_e:
             hint_e, hint = e1, int64(-1)
         o1, d1, x1, y1, hint, hint_acc = project_point_near(
@@ -479,7 +492,7 @@ def _interpolate(pt, ch, geom, pm):  # type: ignore[no-untyped-def]
             lo, hi = seg_ptr[e2], seg_ptr[e2 + 1]
             o2, d2, x2, y2, _, _ = project_point_near(seg_xy, seg_len, lo, hi, x, y, int64(-1), 0.0)
         if d2 < d1:
-            pm.edge[i], pm.off[i], pm.xy[i, 0], pm.xy[i, 1], pm.dist[i] = ch.edge[nxt], o2, x2, y2, d2
+            p_edge[i], p_off[i], p_xy[i, 0], p_xy[i, 1], p_dist[i] = ch_edge[nxt], o2, x2, y2, d2
         else:
-            pm.edge[i], pm.off[i], pm.xy[i, 0], pm.xy[i, 1], pm.dist[i] = ch.edge[prv], o1, x1, y1, d1
-        pm.status[i] = 2
+            p_edge[i], p_off[i], p_xy[i, 0], p_xy[i, 1], p_dist[i] = ch_edge[prv], o1, x1, y1, d1
+        status[i] = 2

@@ -323,7 +323,7 @@ def candidate_emissions(ti, fx, rows, r, p, geom, roads, ar):  # type: ignore[no
     track's, else its direction of travel (σ ``motion_sigma``); none where neither is known or
     the fix is slower than ``heading_min_speed``."""
     kidx, sigma = fx.kidx, fx.sigma
-    cp, ce, co = rows.point, rows.edge, rows.offset
+    cp, ce, co, cd = rows.point, rows.edge, rows.offset, rows.dist
     nk = len(kidx)
     nc = len(cp)
     # per kept point: σ, heading and its concentration κ
@@ -344,13 +344,13 @@ def candidate_emissions(ti, fx, rows, r, p, geom, roads, ar):  # type: ignore[no
     for i in range(nc):
         k = cp[i]
         s = sig[k]
-        emis[i] = emission_logp_one(rows.dist[i], s, head[k], bearing[i], kappa[k])
+        emis[i] = emission_logp_one(cd[i], s, head[k], bearing[i], kappa[k])
         if len(csig):
             csig[i] = s
     limit = take_f8(ar, nc if len(roads.limit) else 0)
     for i in range(len(limit)):
         limit[i] = roads.limit[ce[i]]
-    return CandidateArrays(cp, ce, co, rows.xy, rows.dist, emis, csig, limit)
+    return CandidateArrays(cp, ce, co, rows.xy, cd, emis, csig, limit)
 
 
 @njit(cache=True, nogil=True)
