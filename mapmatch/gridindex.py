@@ -72,6 +72,11 @@ class GridQuery(NamedTuple):
     pts: NDArray[np.float64]
     radius: float
     k: int
+    r2: float
+    """The squared-distance pre-check: beyond it, the distance exceeds ``radius`` too (its
+    margin far above rounding)."""
+    cells: int
+    """How many cells around a point's own cell the radius reaches."""
 
 
 class ScanRows(NamedTuple):
@@ -94,14 +99,15 @@ class NearRoads(NamedTuple):
     """The roads nearest first (filled once the scan is done)."""
 
 
-class Probe(NamedTuple):
-    """One point's scan: where, the radius, its square widened by rounding, the point's mark."""
+class RoadHit(NamedTuple):
+    """A segment within a point's radius: its edge, the distance and offset of its point
+    nearest the fix, and that point."""
 
+    edge: int
+    dist: float
+    off: float
     x: float
     y: float
-    radius: float
-    r2: float
-    stamp: int
 
 
 class GridIndex:
@@ -245,7 +251,7 @@ def query_grid(pts, radius, k, grid, sc, ar):  # type: ignore[no-untyped-def]
     edge): ``(point, edge, dist, offset, xy)`` as :class:`~graph.index.Candidates`.
     Working arrays and the answer come from the arena ``ar`` (:mod:`mapmatch.arena`)."""
     n = len(pts)
-    q = GridQuery(pts, radius, k)
+    q = GridQuery(pts, radius, k, radius * radius * (1.0 + 1e-9), math.ceil(radius / grid.cell))
     cap = 16 * n + 16
     rows = ScanRows(take_i8(ar, cap), take_i8(ar, cap), take_f8(ar, cap), take_f8(ar, cap), take_xy(ar, cap))
     room = 64  # roads near one point
@@ -284,7 +290,7 @@ def _scan_into(q, p0, m, grid, sc, near, rows):  # type: ignore[no-untyped-def]
         px, py = q.pts[p, 0], q.pts[p, 1]
         if not (math.isfinite(px) and math.isfinite(py)):
             continue
-        nl = _roads_near(px, py, q.radius, grid, sc, near)
+        nl = _roads_near(px, py, q, grid, sc, near)
         if nl < 0:
             return m, p, True
         if nl == 0:
@@ -297,17 +303,24 @@ def _scan_into(q, p0, m, grid, sc, near, rows):  # type: ignore[no-untyped-def]
 
 
 @njit(cache=True, nogil=True, inline="always")
-def _roads_near(px, py, radius, grid, sc, near):  # type: ignore[no-untyped-def]
-    """The roads within ``radius`` of ``(px, py)`` into ``near`` (:class:`NearRoads`), each
-    edge once at its nearest segment: how many, or -1 when ``near`` has no room for them.
-    Looks only at the grid cells within ``radius``; a fresh mark (``sc.stamp``) per call."""
-    origin, cell = grid.origin, grid.cell
-    r = math.ceil(radius / cell)
-    # squared-distance pre-check: beyond this, the distance exceeds ``radius`` too (margin >> rounding)
-    r2 = radius * radius * (1.0 + 1e-9)
+def _roads_near(px, py, q, grid, sc, near):  # type: ignore[no-untyped-def]
+    """The roads within the radius of the query ``q`` (:class:`GridQuery`) of ``(px, py)``
+    into ``near`` (:class:`NearRoads`), each edge once at its nearest segment
+    (:func:`_offer_road`): how many, or -1 when ``near`` has no room for them. Looks only at
+    the grid cells within the radius, each segment once (a fresh mark, ``sc.stamp``, per
+    call)."""
+    origin, cell, ny = grid.origin, grid.cell, grid.ny
+    cell_ptr, cell_seg, seg_a, seg_b, seg_len = (
+        grid.cell_ptr,
+        grid.cell_seg,
+        grid.seg_a,
+        grid.seg_b,
+        grid.seg_len,
+    )
+    stamp_seg = sc.stamp_seg
+    radius, r2, r = q.radius, q.r2, q.cells
     stamp = sc.stamp[0]
     sc.stamp[0] = stamp + 1  # a fresh mark for every attempt at a point
-    pr = Probe(px, py, radius, r2, stamp)
     cx0 = int((px - origin[0]) // cell)
     cy0 = int((py - origin[1]) // cell)
     nl = 0
@@ -315,71 +328,72 @@ def _roads_near(px, py, radius, grid, sc, near):  # type: ignore[no-untyped-def]
         # the point's distance to the cell's column, then to the cell (beyond: skipped)
         gx = max(origin[0] + cx * cell - px, px - (origin[0] + (cx + 1) * cell), 0.0)
         for cy in range(cy0 - r, cy0 + r + 1):
-            if cx < 0 or cy < 0 or cx >= grid.nx or cy >= grid.ny:
+            if cx < 0 or cy < 0 or cx >= grid.nx or cy >= ny:
                 continue
             gy = max(origin[1] + cy * cell - py, py - (origin[1] + (cy + 1) * cell), 0.0)
             if gx * gx + gy * gy > r2:
                 continue
-            nl = _scan_cell(grid, sc, near, pr, cx * grid.ny + cy, nl)
-            if nl < 0:
-                return nl
+            cid = cx * ny + cy
+            if len(cell_ptr):
+                lo = cell_ptr[cid]
+                end = cell_ptr[cid + 1]
+            else:
+                lo = np.searchsorted(grid.cell_ids, cid)
+                end = np.searchsorted(grid.cell_ids, cid, side="right")
+            while lo < end:
+                s = cell_seg[lo]
+                lo += 1
+                if stamp_seg[s] == stamp:
+                    continue
+                stamp_seg[s] = stamp
+                ax, ay = seg_a[s, 0], seg_a[s, 1]
+                dx, dy = seg_b[s, 0] - ax, seg_b[s, 1] - ay
+                L = seg_len[s]
+                t = 0.0
+                if L > 0:
+                    t = ((px - ax) * dx + (py - ay) * dy) / max(L * L, 1e-12)
+                    t = min(max(t, 0.0), 1.0)
+                qx, qy = ax + dx * t, ay + dy * t
+                ex, ey = px - qx, py - qy
+                if ex * ex + ey * ey > r2:
+                    continue
+                d = math.sqrt(ex * ex + ey * ey)
+                if d > radius:
+                    continue
+                hit = RoadHit(grid.seg_edge[s], d, grid.seg_off[s] + t * L, qx, qy)
+                nl = _offer_road(sc, near, stamp, nl, hit)
+                if nl < 0:
+                    return nl
     return nl
 
 
 @njit(cache=True, nogil=True, inline="always")
-def _scan_cell(grid, sc, near, pr, cid, nl):  # type: ignore[no-untyped-def]
-    """The segments of cell ``cid`` not yet seen for the probe ``pr`` (:class:`Probe`): a road
-    within its radius joins ``near`` after its ``nl`` roads, or moves nearer when already
-    there. The new count, or -1 when ``near`` has no room."""
-    if len(grid.cell_ptr):
-        lo = grid.cell_ptr[cid]
-        end = grid.cell_ptr[cid + 1]
-    else:
-        lo = np.searchsorted(grid.cell_ids, cid)
-        end = np.searchsorted(grid.cell_ids, cid, side="right")
-    while lo < end:
-        s = grid.cell_seg[lo]
-        lo += 1
-        if sc.stamp_seg[s] == pr.stamp:
-            continue
-        sc.stamp_seg[s] = pr.stamp
-        ax, ay = grid.seg_a[s, 0], grid.seg_a[s, 1]
-        dx, dy = grid.seg_b[s, 0] - ax, grid.seg_b[s, 1] - ay
-        L = grid.seg_len[s]
-        t = 0.0
-        if L > 0:
-            t = ((pr.x - ax) * dx + (pr.y - ay) * dy) / max(L * L, 1e-12)
-            t = min(max(t, 0.0), 1.0)
-        qx, qy = ax + dx * t, ay + dy * t
-        ex, ey = pr.x - qx, pr.y - qy
-        if ex * ex + ey * ey > pr.r2:
-            continue
-        d = math.sqrt(ex * ex + ey * ey)
-        if d > pr.radius:
-            continue
-        e = grid.seg_edge[s]
-        if sc.stamp_edge[e] == pr.stamp:
-            j = sc.best[e]
-            if d < near.feat[4 * j]:
-                _set_road(near.feat, j, d, grid.seg_off[s] + t * L, qx, qy)
-            continue
-        sc.stamp_edge[e] = pr.stamp
-        if nl == len(near.edge):
-            return -1
-        sc.best[e] = nl
-        near.edge[nl] = e
-        _set_road(near.feat, nl, d, grid.seg_off[s] + t * L, qx, qy)
-        nl += 1
-    return nl
+def _offer_road(sc, near, stamp, nl, hit):  # type: ignore[no-untyped-def]
+    """A segment's ``hit`` (:class:`RoadHit`) among the point's ``nl`` roads in ``near``: a new
+    road joins them, a road already there moves nearer when the hit is nearer. The new count,
+    or -1 when ``near`` has no room."""
+    e = hit.edge
+    if sc.stamp_edge[e] == stamp:
+        j = sc.best[e]
+        if hit.dist < near.feat[4 * j]:
+            _set_road(near.feat, j, hit)
+        return nl
+    sc.stamp_edge[e] = stamp
+    if nl == len(near.edge):
+        return -1
+    sc.best[e] = nl
+    near.edge[nl] = e
+    _set_road(near.feat, nl, hit)
+    return nl + 1
 
 
 @njit(cache=True, nogil=True, inline="always")
-def _set_road(feat, j, d, off, x, y):  # type: ignore[no-untyped-def]
+def _set_road(feat, j, hit):  # type: ignore[no-untyped-def]
     """Road ``j``'s distance, offset and nearest point in ``feat`` (four values a road)."""
-    feat[4 * j] = d
-    feat[4 * j + 1] = off
-    feat[4 * j + 2] = x
-    feat[4 * j + 3] = y
+    feat[4 * j] = hit.dist
+    feat[4 * j + 1] = hit.off
+    feat[4 * j + 2] = hit.x
+    feat[4 * j + 3] = hit.y
 
 
 @njit(cache=True, nogil=True, inline="always")
