@@ -18,6 +18,7 @@ from graph.index import project_point_near
 from graph.jit import njit
 from mapmatch.arena import UNCOUNTED, full_b1, full_f8, full_i8, int64, take_f8, take_i8, take_xy
 from mapmatch.batch.arrays import Assembly, EdgeGeometry, KernelParams, Lattice, TrackPoints
+from mapmatch.batch.leave_out import Chosen
 from mapmatch.gridindex import grow_array
 from mapmatch.route_table import path_into, path_place
 from mapmatch.routing import path_edges
@@ -26,20 +27,7 @@ STEP_SAME, STEP_UTURN, STEP_ROUTE, STEP_SPLIT = 0, 1, 2, 3
 ON_NODE = 1e-6  # metres: an offset this near an edge's end is at its node (float noise)
 
 
-class Decoded(NamedTuple):
-    """The Viterbi answer per lattice point, as :func:`assemble` reads it."""
-
-    choice: NDArray[np.int64]
-    """The chosen candidate (-1: left out)."""
-    seg_start: NDArray[np.bool_]
-    """Whether a piece of route starts there."""
-    via_u: NDArray[np.bool_]
-    """Whether the step into it is an along-road U-turn."""
-    bound: NDArray[np.float64]
-    """The route bound of the step into it."""
-
-
-class Chosen(NamedTuple):
+class RouteSteps(NamedTuple):
     """The accepted lattice points' chosen candidates, in track order."""
 
     edge: NDArray[np.int64]
@@ -54,7 +42,7 @@ class Chosen(NamedTuple):
     """A routed step whose path was not found (it becomes a split)."""
 
 
-class Pieces(NamedTuple):
+class RoutePieces(NamedTuple):
     """The route as pieces: an edge from a start to an end offset, and the piece of route
     (segment between splits) it belongs to."""
 
@@ -77,11 +65,11 @@ class PointMatch(NamedTuple):
 
 @njit(cache=True, nogil=True)
 def route_pieces(ch, router, ar):  # type: ignore[no-untyped-def]
-    """The route as :class:`Pieces` along the chosen candidates ``ch`` (:class:`Chosen`; its
+    """The route as :class:`RoutePieces` along the chosen candidates ``ch`` (:class:`RouteSteps`; its
     ``bad`` flags set where a path is not found)."""
     m = len(ch.edge)
     cap = 2 * m + 16
-    pc = Pieces(take_i8(ar, cap), take_f8(ar, cap), take_f8(ar, cap), take_i8(ar, cap))
+    pc = RoutePieces(take_i8(ar, cap), take_f8(ar, cap), take_f8(ar, cap), take_i8(ar, cap))
     n = int64(0)  # not 0: one compile of ``_pieces_into`` (``mapmatch.arena.int64``)
     seg = int64(-1)
     t = int64(0)
@@ -90,13 +78,13 @@ def route_pieces(ch, router, ar):  # type: ignore[no-untyped-def]
         t, n, seg, need = _pieces_into(ch, router, t, n, seg, pc)
         if t < m:
             cap = 2 * need
-            pc = Pieces(
+            pc = RoutePieces(
                 grow_array(pc.edge, cap),
                 grow_array(pc.start, cap),
                 grow_array(pc.end, cap),
                 grow_array(pc.seg, cap),
             )
-    return Pieces(pc.edge[:n], pc.start[:n], pc.end[:n], pc.seg[:n])
+    return RoutePieces(pc.edge[:n], pc.start[:n], pc.end[:n], pc.seg[:n])
 
 
 @njit(cache=True, nogil=True)
@@ -242,8 +230,8 @@ def pieces_xy(pe, ps, pend, geom, edge_len, ar):  # type: ignore[no-untyped-def]
 
 @njit(cache=True, nogil=True)
 def _trimmed(pc, ch, pm, router, ar):  # type: ignore[no-untyped-def]
-    """The route pieces ``pc`` (:class:`Pieces`) without those :func:`trim_ends` drops; the
-    chosen points ``ch`` (:class:`Chosen`) on a dropped piece move to the same node on the
+    """The route pieces ``pc`` (:class:`RoutePieces`) without those :func:`trim_ends` drops; the
+    chosen points ``ch`` (:class:`RouteSteps`) on a dropped piece move to the same node on the
     neighbouring piece (their edge and offset, and those of ``pm``, :class:`PointMatch`, in
     place)."""
     pe, ps, pend, pseg = pc
@@ -290,14 +278,15 @@ def _trimmed(pc, ch, pm, router, ar):  # type: ignore[no-untyped-def]
         if keep[i]:
             qe[k], qs[k], qend[k], qseg[k] = pe[i], ps[i], pend[i], pseg[i]
             k += 1
-    return Pieces(qe, qs, qend, qseg)
+    return RoutePieces(qe, qs, qend, qseg)
 
 
 @njit(cache=True, nogil=True)
 def assemble(
-    pt: TrackPoints, lat: Lattice, dec: Decoded, p: KernelParams, geom: EdgeGeometry, router, ar
+    pt: TrackPoints, lat: Lattice, dec: Chosen, p: KernelParams, geom: EdgeGeometry, router, ar
 ) -> Assembly:  # type: ignore[no-untyped-def]
-    """Per-point results, route pieces (edges and geometry), splits, length and confidence."""
+    """Per-point results, route pieces (edges and geometry), splits, length and confidence, from
+    the search's answer ``dec`` (:class:`~mapmatch.batch.leave_out.Chosen`)."""
     n = len(pt.valid)
     pm = PointMatch(
         full_i8(ar, n, -1), full_f8(ar, n, np.nan), full_f8(ar, 2 * n, np.nan).reshape((n, 2)),
@@ -316,7 +305,7 @@ def assemble(
             pm.edge, pm.off, pm.xy, pm.dist, pm.status, take_i8(ar, 0), take_i8(ar, 0),
             full_i8(ar, 1, 0), take_xy(ar, 0), full_i8(ar, 1, 0), 0.0, 0.0,
         )  # fmt: skip
-    ch = Chosen(
+    ch = RouteSteps(
         take_i8(ar, m), take_f8(ar, m), take_i8(ar, m), take_f8(ar, m), take_i8(ar, m), full_b1(ar, m, False)
     )
     post = _choose(acc, lat, dec, p.reverse_tol, router.g.edge_rev, ch, pm)
@@ -354,7 +343,7 @@ def _accepted(choice, ar):  # type: ignore[no-untyped-def]
 
 @njit(**UNCOUNTED)
 def _choose(acc, lat, dec, reverse_tol, edge_rev, ch, pm):  # type: ignore[no-untyped-def]
-    """The accepted lattice points ``acc``'s chosen candidates into ``ch`` (:class:`Chosen`,
+    """The accepted lattice points ``acc``'s chosen candidates into ``ch`` (:class:`RouteSteps`,
     with the kind of step into each; ``bad`` untouched) and their points' matches into ``pm``
     (:class:`PointMatch`); returns the sum of their confidences (:func:`_road_share`).
     Allocates nothing (:data:`~mapmatch.arena.UNCOUNTED`: an inlined call handed a tuple of
@@ -367,7 +356,7 @@ def _choose(acc, lat, dec, reverse_tol, edge_rev, ch, pm):  # type: ignore[no-un
         ch.edge[i] = e
         ch.off[i] = lat.offset[j]
         ch.pts[i] = lat.pts[t]
-        ch.bound[i] = dec.bound[t]
+        ch.bound[i] = dec.used_bound[t]
         same = i > 0 and e == ch.edge[i - 1] and lat.offset[j] >= ch.off[i - 1] - reverse_tol
         if i == 0 or dec.seg_start[t]:
             ch.kind[i] = STEP_SPLIT
@@ -459,7 +448,7 @@ def _route_edges(pc, xptr, nseg, ar):  # type: ignore[no-untyped-def]
 @njit(cache=True, nogil=True)
 def _interpolate(pt, ch, geom, pm):  # type: ignore[no-untyped-def]
     """The points thinned out before the match, into ``pm`` (:class:`PointMatch`): each
-    projected onto the chosen edge of the nearer kept neighbour in ``ch`` (:class:`Chosen`);
+    projected onto the chosen edge of the nearer kept neighbour in ``ch`` (:class:`RouteSteps`);
     those thinned after an unmatched kept point (off the map, a jump) stay unmatched with it."""
     seg_xy, seg_len, seg_ptr = geom.seg_xy, geom.seg_len, geom.seg_ptr
     valid, kept, xy = pt.valid, pt.kept, pt.xy

@@ -41,7 +41,7 @@ from mapmatch.batch.lattice import (
     thin_into,
 )
 from mapmatch.batch.packed import Packed, pack
-from mapmatch.batch.route import Decoded, assemble
+from mapmatch.batch.route import assemble
 from mapmatch.batch.viterbi import solve
 from mapmatch.gridindex import Grid, GridScratch, ScanRows, query_grid
 from mapmatch.model import emission_logp_one, heading_kappa_compiled, track_sigma_compiled
@@ -124,8 +124,7 @@ def _run(pt, cands, p, geom, router, ar):  # type: ignore[no-untyped-def]
     its arguments (hundreds of words of array structs) at every match."""
     lat = build_lattice(pt, cands, p, ar)
     sig = lattice_sigma(pt, cands, p.sigma, lat, ar)
-    choice, seg_start, via_u, used_bound = solve(lat, p, router, ar, sig)
-    return assemble(pt, lat, Decoded(choice, seg_start, via_u, used_bound), p, geom, router, ar)
+    return assemble(pt, lat, solve(lat, p, router, ar, sig), p, geom, router, ar)
 
 
 class MatchInputs(NamedTuple):
