@@ -75,7 +75,7 @@ def debiased(p: PlaceParams, dist: float, px: float, py: float, bearing: float) 
     return math.sqrt(max(dist * dist - z * z, 0.0) + zc * zc)
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")  # inlined: its record is then no argument to pass
 def _score(p: PlaceParams, at: RoadPoint, s: float, here: Pos, anc: float, anc_sd: float) -> float:
     """Log-score of the road point ``at`` (:class:`RoadPoint`), ``s`` along the path (emission,
     and transition from the hypothesis's place ``here``; ``anc``, ``anc_sd`` its turn anchor).
