@@ -361,7 +361,7 @@ class GpsTrack(NamedTuple):
     """The receiver's reported σ, smoothed."""
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def _work(ns):  # type: ignore[no-untyped-def]
     """A :class:`Work` for ``ns`` states."""
     h_pos = np.zeros((2, ns))
@@ -381,7 +381,8 @@ def _work(ns):  # type: ignore[no-untyped-def]
 def _ekf(k0, k1, c, st, p, m, o):  # type: ignore[no-untyped-def]
     """Run the filter over steps ``k0 .. k1 - 1`` from carry ``c`` (updated in place), writing
     ``o`` (:class:`Outputs`); ``st`` :class:`Streams`, ``p`` :class:`Params`, ``m`` :class:`MapAid`
-    or None (none at any step: numba then leaves the map-aided update out of this compile)."""
+    or None (none at any step: numba then leaves the map-aided update out of this compile).
+    Each step's parts are compiled into it (one compile instead of one per part)."""
     w = _work(len(c.X))
     crej_start = int(c.scalars[1])
     g = GpsTrack(int(c.scalars[0]), int(c.scalars[2]), int(c.scalars[3]), c.scalars[4], c.scalars[5])
@@ -412,7 +413,7 @@ def _ekf(k0, k1, c, st, p, m, o):  # type: ignore[no-untyped-def]
     c.scalars[5] = g.sig_s
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def _predict(k, c, st, p, w, o, var_corr):  # type: ignore[no-untyped-def]
     """The prediction into step ``k``: heading by the gyro less its bias, position by the
     odometer times its scale at the mid-step heading (the move into ``o.inc``), the error
@@ -462,7 +463,7 @@ def _predict(k, c, st, p, w, o, var_corr):  # type: ignore[no-untyped-def]
     P[7, 7] += p.q_comp
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def _compass_update(k, c, st, p, h_comp):  # type: ignore[no-untyped-def]
     """The compass reading of step ``k`` (heading plus the compass error), gated by
     ``gate_ang`` σ."""
@@ -475,7 +476,7 @@ def _compass_update(k, c, st, p, h_comp):  # type: ignore[no-untyped-def]
         _update(c.X, c.P, h_comp, nu, p.r_comp)
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def _course_update(k, c, st, p, h_head, crej_start):  # type: ignore[no-untyped-def]
     """The GPS course of step ``k``, gated by ``gate_ang`` σ; after ``reset_steps`` of
     rejected courses (since ``crej_start``, -1: none) the heading restarts at the course.
@@ -501,7 +502,7 @@ def _course_update(k, c, st, p, h_head, crej_start):  # type: ignore[no-untyped-
     return crej_start
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def _gps_noise(k, c, st, p, g):  # type: ignore[no-untyped-def]
     """The fix of step ``k``'s white noise variance, and ``g`` (:class:`GpsTrack`) with the
     correlated error following the receiver's (smoothed) reported σ: ``(r, g)``."""
@@ -530,7 +531,7 @@ def _gps_noise(k, c, st, p, g):  # type: ignore[no-untyped-def]
     return r, GpsTrack(g.rej_start, g.rejects, k, share * sig_s * sig_s, sig_s)
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def _gps_update(k, c, st, p, w, o, g):  # type: ignore[no-untyped-def]
     """The fix of step ``k``: its noise (:func:`_gps_noise`), then gated by χ² on its
     innovation; when fixes have been rejected for ``reset_steps`` (or ``max_rej`` of them)
@@ -578,7 +579,7 @@ def _gps_update(k, c, st, p, w, o, g):  # type: ignore[no-untyped-def]
     return GpsTrack(rej_start, rejects, g.k_fix, g.var_corr, g.sig_s)
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def _end_step(k, X, P, o):  # type: ignore[no-untyped-def]
     """The end of step ``k``: ``P`` made symmetric, the state, variances and x-y covariance
     into ``o``."""
