@@ -17,7 +17,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from graph.index import Candidates, EdgeIndex
 from graph.jit import njit, read_only
-from mapmatch.arena import Arena, int64, take_f8, take_i8, take_xy
+from mapmatch.arena import UNCOUNTED, Arena, int64, take_f8, take_i8, take_xy
 
 DENSE_MAX_CELLS = 1 << 23
 """Up to this many cells the grid keeps a dense cell table (8 bytes a cell)."""
@@ -64,6 +64,50 @@ class GridScratch(NamedTuple):
             np.zeros(n_edges, dtype=np.int64),
             np.zeros(1, dtype=np.int64),
         )
+
+
+class GridQuery(NamedTuple):
+    """A query as :func:`_scan_into` reads it: the points, the radius, how many roads (< 0: all)."""
+
+    pts: NDArray[np.float64]
+    radius: float
+    k: int
+    r2: float
+    """The squared-distance pre-check: beyond it, the distance exceeds ``radius`` too (its
+    margin far above rounding)."""
+    cells: int
+    """How many cells around a point's own cell the radius reaches."""
+
+
+class ScanRows(NamedTuple):
+    """The answer rows :func:`query_grid` writes (as :class:`~graph.index.Candidates`)."""
+
+    point: NDArray[np.int64]
+    edge: NDArray[np.int64]
+    dist: NDArray[np.float64]
+    offset: NDArray[np.float64]
+    xy: NDArray[np.float64]
+
+
+class NearRoads(NamedTuple):
+    """One point's roads while its cells are scanned (room for ``len(edge)``)."""
+
+    edge: NDArray[np.int64]
+    feat: NDArray[np.float64]
+    """Per road: distance, offset, x, y of its nearest point."""
+    order: NDArray[np.int64]
+    """The roads nearest first (filled once the scan is done)."""
+
+
+class RoadHit(NamedTuple):
+    """A segment within a point's radius: its edge, the distance and offset of its point
+    nearest the fix, and that point."""
+
+    edge: int
+    dist: float
+    off: float
+    x: float
+    y: float
 
 
 class GridIndex:
@@ -207,166 +251,208 @@ def query_grid(pts, radius, k, grid, sc, ar):  # type: ignore[no-untyped-def]
     edge): ``(point, edge, dist, offset, xy)`` as :class:`~graph.index.Candidates`.
     Working arrays and the answer come from the arena ``ar`` (:mod:`mapmatch.arena`)."""
     n = len(pts)
+    q = GridQuery(pts, radius, k, radius * radius * (1.0 + 1e-9), math.ceil(radius / grid.cell))
     cap = 16 * n + 16
-    op = take_i8(ar, cap)
-    oe = take_i8(ar, cap)
-    od = take_f8(ar, cap)
-    oo = take_f8(ar, cap)
-    oq = take_xy(ar, cap)
-    room = 64  # roads near one point; ``loc_f`` holds (distance, offset, x, y) for each
-    loc_e = take_i8(ar, room)
-    loc_f = take_f8(ar, 4 * room)
-    sel = take_i8(ar, room)
+    rows = ScanRows(take_i8(ar, cap), take_i8(ar, cap), take_f8(ar, cap), take_f8(ar, cap), take_xy(ar, cap))
+    room = 64  # roads near one point
+    near = NearRoads(take_i8(ar, room), take_f8(ar, 4 * room), take_i8(ar, room))
     m = int64(0)  # not 0: one compile of ``_scan_into`` (``mapmatch.arena.int64``)
     p = int64(0)
     while p < n:
         # the scan stops at the first point that does not fit; grow, and go on from there
-        m, p, more_loc = _scan_into(pts, p, m, radius, k, grid, sc, loc_e, loc_f, sel, op, oe, od, oo, oq)
+        m, p, more_loc = _scan_into(q, p, m, grid, sc, near, rows)
         if p >= n:
             break
         if more_loc:
             room *= 2
-            loc_e = np.empty(room, dtype=np.int64)
-            loc_f = np.empty(4 * room)
-            sel = np.empty(room, dtype=np.int64)
+            near = NearRoads(
+                np.empty(room, dtype=np.int64), np.empty(4 * room), np.empty(room, dtype=np.int64)
+            )
         else:
             cap *= 2
-            op = grow_array(op, cap)
-            oe = grow_array(oe, cap)
-            od = grow_array(od, cap)
-            oo = grow_array(oo, cap)
-            oq2 = np.empty((cap, 2))
-            oq2[:m] = oq[:m]
-            oq = oq2
-    return op[:m], oe[:m], od[:m], oo[:m], oq[:m]
+            oq = np.empty((cap, 2))
+            oq[:m] = rows.xy[:m]
+            rows = ScanRows(
+                grow_array(rows.point, cap), grow_array(rows.edge, cap), grow_array(rows.dist, cap),
+                grow_array(rows.offset, cap), oq,
+            )  # fmt: skip
+    return rows.point[:m], rows.edge[:m], rows.dist[:m], rows.offset[:m], rows.xy[:m]
 
 
-@njit(cache=True, nogil=True)
-def _scan_into(pts, p0, m, radius, k, grid, sc, loc_e, loc_f, sel, op, oe, od, oo, oq):  # type: ignore[no-untyped-def]
-    """:func:`query_grid`'s answer rows for points ``p0`` on, written from row ``m``, until a point
-    does not fit: ``(rows, next point, whether the per-point scratch was too small)`` (no array
-    is replaced in the loop, so none is reference-counted there)."""
-    origin, cell, nx, ny = grid.origin, grid.cell, grid.nx, grid.ny
-    cell_ptr, cell_ids, cell_seg = grid.cell_ptr, grid.cell_ids, grid.cell_seg
-    seg_a, seg_b, seg_len, seg_off = grid.seg_a, grid.seg_b, grid.seg_len, grid.seg_off
-    seg_edge, edge_rev, edge_len = grid.seg_edge, grid.edge_rev, grid.edge_len
-    stamp_seg, stamp_edge, best = sc.stamp_seg, sc.stamp_edge, sc.best
-    n = len(pts)
-    cap = len(op)
-    room = len(loc_e)
-    r = math.ceil(radius / cell)
-    # squared-distance pre-check: beyond this, the distance exceeds ``radius`` too (margin >> rounding)
-    r2 = radius * radius * (1.0 + 1e-9)
+@njit(**UNCOUNTED)
+def _scan_into(q, p0, m, grid, sc, near, rows):  # type: ignore[no-untyped-def]
+    """:func:`query_grid`'s answer rows for the points of ``q`` (:class:`GridQuery`) from ``p0``
+    on, written into ``rows`` (:class:`ScanRows`) from row ``m``, until a point does not fit:
+    ``(rows, next point, whether the per-point scratch near was too small)``. Allocates
+    nothing (:data:`~mapmatch.arena.UNCOUNTED`)."""
+    n = len(q.pts)
     for p in range(p0, n):
-        px, py = pts[p, 0], pts[p, 1]
+        px, py = q.pts[p, 0], q.pts[p, 1]
         if not (math.isfinite(px) and math.isfinite(py)):
             continue
-        stamp = sc.stamp[0]
-        sc.stamp[0] = stamp + 1  # a fresh mark for every attempt at a point
-        cx0 = int((px - origin[0]) // cell)
-        cy0 = int((py - origin[1]) // cell)
-        nl = 0
-        for cx in range(cx0 - r, cx0 + r + 1):
-            # the point's distance to the cell's column, then to the cell (beyond: skipped)
-            gx = max(origin[0] + cx * cell - px, px - (origin[0] + (cx + 1) * cell), 0.0)
-            for cy in range(cy0 - r, cy0 + r + 1):
-                if cx < 0 or cy < 0 or cx >= nx or cy >= ny:
-                    continue
-                gy = max(origin[1] + cy * cell - py, py - (origin[1] + (cy + 1) * cell), 0.0)
-                if gx * gx + gy * gy > r2:
-                    continue
-                cid = cx * ny + cy
-                if len(cell_ptr):
-                    lo = cell_ptr[cid]
-                    end = cell_ptr[cid + 1]
-                else:
-                    lo = np.searchsorted(cell_ids, cid)
-                    end = np.searchsorted(cell_ids, cid, side="right")
-                while lo < end:
-                    s = cell_seg[lo]
-                    lo += 1
-                    if stamp_seg[s] == stamp:
-                        continue
-                    stamp_seg[s] = stamp
-                    ax, ay = seg_a[s, 0], seg_a[s, 1]
-                    dx, dy = seg_b[s, 0] - ax, seg_b[s, 1] - ay
-                    L = seg_len[s]
-                    t = 0.0
-                    if L > 0:
-                        t = ((px - ax) * dx + (py - ay) * dy) / max(L * L, 1e-12)
-                        t = min(max(t, 0.0), 1.0)
-                    qx, qy = ax + dx * t, ay + dy * t
-                    ex, ey = px - qx, py - qy
-                    if ex * ex + ey * ey > r2:
-                        continue
-                    d = math.sqrt(ex * ex + ey * ey)
-                    if d > radius:
-                        continue
-                    e = seg_edge[s]
-                    if stamp_edge[e] == stamp:
-                        j = best[e]
-                        if d < loc_f[4 * j]:
-                            loc_f[4 * j] = d
-                            loc_f[4 * j + 1] = seg_off[s] + t * L
-                            loc_f[4 * j + 2] = qx
-                            loc_f[4 * j + 3] = qy
-                        continue
-                    stamp_edge[e] = stamp
-                    if nl == room:
-                        return m, p, True
-                    best[e] = nl
-                    loc_e[nl] = e
-                    loc_f[4 * nl] = d
-                    loc_f[4 * nl + 1] = seg_off[s] + t * L
-                    loc_f[4 * nl + 2] = qx
-                    loc_f[4 * nl + 3] = qy
-                    nl += 1
+        nl = _roads_near(px, py, q, grid, sc, near)
+        if nl < 0:
+            return m, p, True
         if nl == 0:
             continue
-        # nearest first (ties by edge), keep k roads, add reverse directions
-        for a in range(nl):
-            da, ea = loc_f[4 * a], loc_e[a]
-            b = a - 1
-            while b >= 0 and (loc_f[4 * sel[b]] > da or (loc_f[4 * sel[b]] == da and loc_e[sel[b]] > ea)):
-                sel[b + 1] = sel[b]
-                b -= 1
-            sel[b + 1] = a
-        kk = nl if k < 0 else min(k, nl)
-        if m + 2 * kk > cap:
+        end = _point_rows(p, nl, q.k, grid, near, rows, m)
+        if end < 0:
             return m, p, False
-        start = m
-        for a in range(kk):
-            j = sel[a]
-            e = loc_e[j]
-            dj, oj, xj, yj = loc_f[4 * j], loc_f[4 * j + 1], loc_f[4 * j + 2], loc_f[4 * j + 3]
-            op[m] = p
-            oe[m] = e
-            od[m] = dj
-            oo[m] = min(max(oj, 0.0), edge_len[e])
-            oq[m, 0] = xj
-            oq[m, 1] = yj
-            m += 1
-            rv = edge_rev[e]
-            if rv >= 0:
-                op[m] = p
-                oe[m] = rv
-                od[m] = dj
-                oo[m] = min(max(edge_len[rv] - oj, 0.0), edge_len[rv])
-                oq[m, 0] = xj
-                oq[m, 1] = yj
-                m += 1
-        # order this point's rows by (dist, edge)
-        for a in range(start + 1, m):
-            d0, e0 = od[a], oe[a]
-            o0, x0, y0 = oo[a], oq[a, 0], oq[a, 1]
-            b = a - 1
-            while b >= start and (od[b] > d0 or (od[b] == d0 and oe[b] > e0)):
-                od[b + 1], oe[b + 1], oo[b + 1] = od[b], oe[b], oo[b]
-                oq[b + 1, 0], oq[b + 1, 1] = oq[b, 0], oq[b, 1]
-                b -= 1
-            od[b + 1], oe[b + 1], oo[b + 1] = d0, e0, o0
-            oq[b + 1, 0], oq[b + 1, 1] = x0, y0
+        m = end
     return m, n, False
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _roads_near(px, py, q, grid, sc, near):  # type: ignore[no-untyped-def]
+    """The roads within the radius of the query ``q`` (:class:`GridQuery`) of ``(px, py)``
+    into ``near`` (:class:`NearRoads`), each edge once at its nearest segment
+    (:func:`_offer_road`): how many, or -1 when ``near`` has no room for them. Looks only at
+    the grid cells within the radius, each segment once (a fresh mark, ``sc.stamp``, per
+    call)."""
+    origin, cell, ny = grid.origin, grid.cell, grid.ny
+    cell_ptr, cell_seg, seg_a, seg_b, seg_len = (
+        grid.cell_ptr,
+        grid.cell_seg,
+        grid.seg_a,
+        grid.seg_b,
+        grid.seg_len,
+    )
+    stamp_seg = sc.stamp_seg
+    radius, r2, r = q.radius, q.r2, q.cells
+    stamp = sc.stamp[0]
+    sc.stamp[0] = stamp + 1  # a fresh mark for every attempt at a point
+    cx0 = int((px - origin[0]) // cell)
+    cy0 = int((py - origin[1]) // cell)
+    nl = 0
+    for cx in range(cx0 - r, cx0 + r + 1):
+        # the point's distance to the cell's column, then to the cell (beyond: skipped)
+        gx = max(origin[0] + cx * cell - px, px - (origin[0] + (cx + 1) * cell), 0.0)
+        for cy in range(cy0 - r, cy0 + r + 1):
+            if cx < 0 or cy < 0 or cx >= grid.nx or cy >= ny:
+                continue
+            gy = max(origin[1] + cy * cell - py, py - (origin[1] + (cy + 1) * cell), 0.0)
+            if gx * gx + gy * gy > r2:
+                continue
+            cid = cx * ny + cy
+            if len(cell_ptr):
+                lo = cell_ptr[cid]
+                end = cell_ptr[cid + 1]
+            else:
+                lo = np.searchsorted(grid.cell_ids, cid)
+                end = np.searchsorted(grid.cell_ids, cid, side="right")
+            while lo < end:
+                s = cell_seg[lo]
+                lo += 1
+                if stamp_seg[s] == stamp:
+                    continue
+                stamp_seg[s] = stamp
+                ax, ay = seg_a[s, 0], seg_a[s, 1]
+                dx, dy = seg_b[s, 0] - ax, seg_b[s, 1] - ay
+                L = seg_len[s]
+                t = 0.0
+                if L > 0:
+                    t = ((px - ax) * dx + (py - ay) * dy) / max(L * L, 1e-12)
+                    t = min(max(t, 0.0), 1.0)
+                qx, qy = ax + dx * t, ay + dy * t
+                ex, ey = px - qx, py - qy
+                if ex * ex + ey * ey > r2:
+                    continue
+                d = math.sqrt(ex * ex + ey * ey)
+                if d > radius:
+                    continue
+                hit = RoadHit(grid.seg_edge[s], d, grid.seg_off[s] + t * L, qx, qy)
+                nl = _offer_road(sc, near, stamp, nl, hit)
+                if nl < 0:
+                    return nl
+    return nl
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _offer_road(sc, near, stamp, nl, hit):  # type: ignore[no-untyped-def]
+    """A segment's ``hit`` (:class:`RoadHit`) among the point's ``nl`` roads in ``near``: a new
+    road joins them, a road already there moves nearer when the hit is nearer. The new count,
+    or -1 when ``near`` has no room."""
+    e = hit.edge
+    if sc.stamp_edge[e] == stamp:
+        j = sc.best[e]
+        if hit.dist < near.feat[4 * j]:
+            _set_road(near.feat, j, hit)
+        return nl
+    sc.stamp_edge[e] = stamp
+    if nl == len(near.edge):
+        return -1
+    sc.best[e] = nl
+    near.edge[nl] = e
+    _set_road(near.feat, nl, hit)
+    return nl + 1
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _set_road(feat, j, hit):  # type: ignore[no-untyped-def]
+    """Road ``j``'s distance, offset and nearest point in ``feat`` (four values a road)."""
+    feat[4 * j] = hit.dist
+    feat[4 * j + 1] = hit.off
+    feat[4 * j + 2] = hit.x
+    feat[4 * j + 3] = hit.y
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _point_rows(p, nl, k, grid, near, rows, m):  # type: ignore[no-untyped-def]
+    """Point ``p``'s answer rows from its ``nl`` roads in ``near``: the nearest ``k`` (ties by
+    edge; ``k < 0``: all) with their reverse twins, ordered by (distance, edge), written into
+    ``rows`` from row ``m``. The row after them, or -1 when they do not fit."""
+    edge_len, edge_rev = grid.edge_len, grid.edge_rev
+    loc_e, loc_f, sel = near.edge, near.feat, near.order
+    for a in range(nl):  # nearest first, ties by edge
+        da, ea = loc_f[4 * a], loc_e[a]
+        b = a - 1
+        while b >= 0 and (loc_f[4 * sel[b]] > da or (loc_f[4 * sel[b]] == da and loc_e[sel[b]] > ea)):
+            sel[b + 1] = sel[b]
+            b -= 1
+        sel[b + 1] = a
+    kk = nl if k < 0 else min(k, nl)
+    if m + 2 * kk > len(rows.point):
+        return -1
+    start = m
+    for a in range(kk):
+        j = sel[a]
+        e = loc_e[j]
+        dj, oj, xj, yj = loc_f[4 * j], loc_f[4 * j + 1], loc_f[4 * j + 2], loc_f[4 * j + 3]
+        _set_row(rows, m, p, e, dj, min(max(oj, 0.0), edge_len[e]), xj, yj)
+        m += 1
+        rv = edge_rev[e]
+        if rv >= 0:
+            _set_row(rows, m, p, rv, dj, min(max(edge_len[rv] - oj, 0.0), edge_len[rv]), xj, yj)
+            m += 1
+    _order_rows(rows, start, m)
+    return m
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _set_row(rows, m, p, e, d, off, x, y):  # type: ignore[no-untyped-def]
+    """Row ``m`` of ``rows``: point ``p`` on edge ``e``, ``d`` from it at offset ``off``, ``(x, y)``."""
+    rows.point[m] = p
+    rows.edge[m] = e
+    rows.dist[m] = d
+    rows.offset[m] = off
+    rows.xy[m, 0] = x
+    rows.xy[m, 1] = y
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _order_rows(rows, start, m):  # type: ignore[no-untyped-def]
+    """Rows ``start .. m - 1`` (one point's) ordered by (distance, edge), an insertion sort."""
+    od, oe, oo, oq = rows.dist, rows.edge, rows.offset, rows.xy
+    for a in range(start + 1, m):
+        d0, e0 = od[a], oe[a]
+        o0, x0, y0 = oo[a], oq[a, 0], oq[a, 1]
+        b = a - 1
+        while b >= start and (od[b] > d0 or (od[b] == d0 and oe[b] > e0)):
+            od[b + 1], oe[b + 1], oo[b + 1] = od[b], oe[b], oo[b]
+            oq[b + 1, 0], oq[b + 1, 1] = oq[b, 0], oq[b, 1]
+            b -= 1
+        od[b + 1], oe[b + 1], oo[b + 1] = d0, e0, o0
+        oq[b + 1, 0], oq[b + 1, 1] = x0, y0
 
 
 @njit(cache=True, nogil=True)

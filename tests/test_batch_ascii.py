@@ -1190,7 +1190,7 @@ def test_a_lone_fix_near_a_road_amid_fixes_off_the_map_is_off_the_map_too() -> N
     # five fixes: off, near a road (35 m), off, on, on (σ 8 m: 40 m is off the map)
     from mapmatch.arena import Arena
     from mapmatch.batch.arrays import CandidateArrays
-    from mapmatch.batch.lattice import prune
+    from mapmatch.batch.lattice import PruneRule, prune
 
     dist = np.array([45.0, 35.0, 50.0, 3.0, 4.0])
     empty = np.zeros(0)
@@ -1199,7 +1199,7 @@ def test_a_lone_fix_near_a_road_amid_fixes_off_the_map_is_off_the_map_too() -> N
         dist=dist, emis=-0.5 * (dist / 8.0) ** 2, sigma=empty, limit=empty,
     )  # fmt: skip
     for min_run, has in ((2, [False, False, False, True, True]), (1, [False, True, False, True, True])):
-        *_, got = prune(5, c, c.emis, 12.5, 100.0, 8.0, 5.0, min_run, Arena.new())
+        *_, got = prune(5, c, c.emis, PruneRule(12.5, 100.0, 8.0, 5.0, min_run), Arena.new())
         assert got.tolist() == has
 
 

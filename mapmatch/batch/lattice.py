@@ -8,6 +8,7 @@ distance, are pruned; a point left with none is not in the lattice.
 from __future__ import annotations
 
 import math
+from typing import NamedTuple
 
 import numpy as np
 
@@ -116,53 +117,42 @@ def bearing_on(edges, offs, seg_ptr, seg_end, seg_bearing, out):  # type: ignore
     return out
 
 
+class PruneRule(NamedTuple):
+    """How :func:`prune` drops candidates (from :class:`~mapmatch.batch.arrays.KernelParams`)."""
+
+    prune_lp: float
+    """Log-probability below the point's best emission beyond which a candidate goes."""
+    outlier: float
+    """Metres beyond which a candidate goes."""
+    sigma: float
+    """The σ of candidates without one of their own."""
+    off_map_sigmas: float
+    """Candidates beyond this many times their σ go (0: no σ limit)."""
+    min_run: int
+    """Runs of fewer points with roads between points off the map are off the map too."""
+
+
 @njit(cache=True, nogil=True)
-def prune(nk, c: CandidateArrays, emis, prune_lp, outlier, sigma, off_map_sigmas, min_run, ar):  # type: ignore[no-untyped-def]
+def prune(nk, c: CandidateArrays, emis, rule: PruneRule, ar):  # type: ignore[no-untyped-def]
     """Drop candidates far below their point's best emission, beyond ``outlier`` metres or
-    beyond ``off_map_sigmas`` times their σ (``c.sigma``, else ``sigma``; 0: no σ limit).
+    beyond ``off_map_sigmas`` times their σ (``c.sigma``, else ``sigma``), by the ``rule``
+    (:class:`PruneRule`).
 
     Candidates come sorted by point. Returns the kept ones with their per-point pointer (over
     the points that keep any) and which of the ``nk`` points keep any.
     """
     cpoint = c.point
     nc = len(cpoint)
-    best = full_f8(ar, nk, -np.inf)
-    for i in range(nc):
-        if emis[i] > best[cpoint[i]]:
-            best[cpoint[i]] = emis[i]
-    keep = full_b1(ar, nc, False)
-    counts = full_i8(ar, nk, 0)
-    nkeep = 0
-    for i in range(nc):
-        lim = outlier
-        if off_map_sigmas > 0:
-            s = c.sigma[i] if len(c.sigma) == len(cpoint) else sigma
-            lim = min(lim, off_map_sigmas * s)
-        if emis[i] >= best[cpoint[i]] - prune_lp and c.dist[i] <= lim:
-            keep[i] = True
-            counts[cpoint[i]] += 1
-            nkeep += 1
-    if off_map_sigmas > 0 and min_run > 1:
-        # runs of fewer than ``min_run`` points with roads, off-map points on both sides, are
-        # off the map too (a fix near some road amid a run off it is no evidence)
-        p = 0
-        while p < nk:
-            if counts[p] == 0:
-                p += 1
-                continue
-            q = p
-            while q < nk and counts[q] > 0:
-                q += 1
-            if p > 0 and q < nk and q - p < min_run:
-                for r in range(p, q):
-                    counts[r] = 0
-            p = q
-        nkeep = 0
+    keep, counts = _within_reach(nk, c, emis, rule, ar)
+    if rule.off_map_sigmas > 0 and rule.min_run > 1:
+        _drop_short_runs(counts, rule.min_run)
         for i in range(nc):
             if keep[i] and counts[cpoint[i]] == 0:
                 keep[i] = False
-            if keep[i]:
-                nkeep += 1
+    nkeep = 0
+    for i in range(nc):
+        if keep[i]:
+            nkeep += 1
     has = take_b1(ar, nk)
     m = 0
     for p in range(nk):
@@ -198,6 +188,49 @@ def prune(nk, c: CandidateArrays, emis, prune_lp, outlier, sigma, off_map_sigmas
 
 
 @njit(cache=True, nogil=True)
+def _within_reach(nk, c, emis, rule, ar):  # type: ignore[no-untyped-def]
+    """Which candidates are within ``rule.prune_lp`` of their point's best emission and within
+    the outlier distance and σ limit: the flags and the count per point."""
+    cpoint = c.point
+    nc = len(cpoint)
+    best = full_f8(ar, nk, -np.inf)
+    for i in range(nc):
+        if emis[i] > best[cpoint[i]]:
+            best[cpoint[i]] = emis[i]
+    keep = full_b1(ar, nc, False)
+    counts = full_i8(ar, nk, 0)
+    for i in range(nc):
+        lim = rule.outlier
+        if rule.off_map_sigmas > 0:
+            s = c.sigma[i] if len(c.sigma) == len(cpoint) else rule.sigma
+            lim = min(lim, rule.off_map_sigmas * s)
+        if emis[i] >= best[cpoint[i]] - rule.prune_lp and c.dist[i] <= lim:
+            keep[i] = True
+            counts[cpoint[i]] += 1
+    return keep, counts
+
+
+@njit(cache=True, nogil=True)
+def _drop_short_runs(counts, min_run):  # type: ignore[no-untyped-def]
+    """Runs of fewer than ``min_run`` points with roads (``counts`` per point), off-map points
+    on both sides, are off the map too (a fix near some road amid a run off it is no
+    evidence): their counts set to 0."""
+    nk = len(counts)
+    p = 0
+    while p < nk:
+        if counts[p] == 0:
+            p += 1
+            continue
+        q = p
+        while q < nk and counts[q] > 0:
+            q += 1
+        if p > 0 and q < nk and q - p < min_run:
+            for r in range(p, q):
+                counts[r] = 0
+        p = q
+
+
+@njit(cache=True, nogil=True)
 def build_lattice(pt: TrackPoints, c: CandidateArrays, p: KernelParams, ar) -> Lattice:  # type: ignore[no-untyped-def]
     """Emissions (distance-only with one σ when ``c.emis`` is empty), pruning, and the lattice
     points' positions, times and odometer readings."""
@@ -206,9 +239,8 @@ def build_lattice(pt: TrackPoints, c: CandidateArrays, p: KernelParams, ar) -> L
         emis = take_f8(ar, len(c.dist))
         for i in range(len(c.dist)):
             emis[i] = emission_logp_one(c.dist[i], p.sigma, 0.0, 0.0, 0.0)
-    ptr, ce, co, cx, cd, em, lim, has = prune(
-        len(pt.kidx), c, emis, p.prune, p.outlier, p.sigma, p.off_map_sigmas, p.off_map_min_run, ar
-    )
+    rule = PruneRule(p.prune, p.outlier, p.sigma, p.off_map_sigmas, p.off_map_min_run)
+    ptr, ce, co, cx, cd, em, lim, has = prune(len(pt.kidx), c, emis, rule, ar)
     m = len(ptr) - 1
     pts = take_i8(ar, m)
     q = 0

@@ -9,13 +9,16 @@ thinned out before the match are projected onto the chosen edge of the nearer ke
 from __future__ import annotations
 
 import math
+from typing import NamedTuple
 
 import numpy as np
+from numpy.typing import NDArray
 
 from graph.index import project_point_near
 from graph.jit import njit
-from mapmatch.arena import full_b1, full_f8, full_i8, int64, take_f8, take_i8, take_xy
+from mapmatch.arena import UNCOUNTED, full_b1, full_f8, full_i8, int64, take_f8, take_i8, take_xy
 from mapmatch.batch.arrays import Assembly, EdgeGeometry, KernelParams, Lattice, TrackPoints
+from mapmatch.batch.leave_out import Chosen
 from mapmatch.gridindex import grow_array
 from mapmatch.route_table import path_into, path_place
 from mapmatch.routing import path_edges
@@ -24,40 +27,75 @@ STEP_SAME, STEP_UTURN, STEP_ROUTE, STEP_SPLIT = 0, 1, 2, 3
 ON_NODE = 1e-6  # metres: an offset this near an edge's end is at its node (float noise)
 
 
+class RouteSteps(NamedTuple):
+    """The accepted lattice points' chosen candidates, in track order."""
+
+    edge: NDArray[np.int64]
+    off: NDArray[np.float64]
+    kind: NDArray[np.int64]
+    """How it is reached from the previous one (``STEP_*``)."""
+    bound: NDArray[np.float64]
+    """The route bound of the step into it."""
+    pts: NDArray[np.int64]
+    """Its index among the track's points."""
+    bad: NDArray[np.bool_]
+    """A routed step whose path was not found (it becomes a split)."""
+
+
+class RoutePieces(NamedTuple):
+    """The route as pieces: an edge from a start to an end offset, and the piece of route
+    (segment between splits) it belongs to."""
+
+    edge: NDArray[np.int64]
+    start: NDArray[np.float64]
+    end: NDArray[np.float64]
+    seg: NDArray[np.int64]
+
+
+class PointMatch(NamedTuple):
+    """Per track point: the matched edge, offset, road point and distance, and its status."""
+
+    edge: NDArray[np.int64]
+    off: NDArray[np.float64]
+    xy: NDArray[np.float64]
+    dist: NDArray[np.float64]
+    status: NDArray[np.int64]
+    """0 unmatched, 1 matched, 2 interpolated."""
+
+
 @njit(cache=True, nogil=True)
-def route_pieces(ch_edge, ch_off, kind, bound, router, ar):  # type: ignore[no-untyped-def]
-    """The route as pieces ``(edge, start offset, end offset, segment)`` along the chosen candidates."""
-    m = len(ch_edge)
+def route_pieces(ch, router, ar):  # type: ignore[no-untyped-def]
+    """The route as :class:`RoutePieces` along the chosen candidates ``ch`` (:class:`RouteSteps`; its
+    ``bad`` flags set where a path is not found)."""
+    m = len(ch.edge)
     cap = 2 * m + 16
-    pe = take_i8(ar, cap)
-    ps = take_f8(ar, cap)
-    pend = take_f8(ar, cap)
-    pseg = take_i8(ar, cap)
-    bad = full_b1(ar, m, False)
+    pc = RoutePieces(take_i8(ar, cap), take_f8(ar, cap), take_f8(ar, cap), take_i8(ar, cap))
     n = int64(0)  # not 0: one compile of ``_pieces_into`` (``mapmatch.arena.int64``)
     seg = int64(-1)
     t = int64(0)
     while t < m:
         # the pieces stop at the first step that does not fit; grow, and go on from there
-        t, n, seg, need = _pieces_into(
-            ch_edge, ch_off, kind, bound, router, t, n, seg, pe, ps, pend, pseg, bad
-        )
+        t, n, seg, need = _pieces_into(ch, router, t, n, seg, pc)
         if t < m:
             cap = 2 * need
-            pe = grow_array(pe, cap)
-            ps = grow_array(ps, cap)
-            pend = grow_array(pend, cap)
-            pseg = grow_array(pseg, cap)
-    return pe[:n], ps[:n], pend[:n], pseg[:n], bad
+            pc = RoutePieces(
+                grow_array(pc.edge, cap),
+                grow_array(pc.start, cap),
+                grow_array(pc.end, cap),
+                grow_array(pc.seg, cap),
+            )
+    return RoutePieces(pc.edge[:n], pc.start[:n], pc.end[:n], pc.seg[:n])
 
 
 @njit(cache=True, nogil=True)
-def _pieces_into(ch_edge, ch_off, kind, bound, router, t0, n, seg, pe, ps, pend, pseg, bad):  # type: ignore[no-untyped-def]
-    """:func:`route_pieces` from step ``t0`` on, written from piece ``n`` (``seg``: the current
-    piece of route), until a step does not fit: ``(next step, pieces, seg, room it needs)``
-    (no array is replaced in the loop, so none is reference-counted there)."""
+def _pieces_into(ch, router, t0, n, seg, pc):  # type: ignore[no-untyped-def]
+    """:func:`route_pieces` from step ``t0`` on, written into ``pc`` from piece ``n`` (``seg``:
+    the current piece of route), until a step does not fit: ``(next step, pieces, seg, room it
+    needs)`` (no array is replaced in the loop, so none is reference-counted there)."""
     edge_len = router.g.edge_len
     table = router.table
+    pe, ps, pend, pseg = pc
+    ch_edge, ch_off, kind, bound, bad = ch.edge, ch.off, ch.kind, ch.bound, ch.bad
     cap = len(pe)
     for t in range(t0, len(ch_edge)):
         e = ch_edge[t]
@@ -191,13 +229,12 @@ def pieces_xy(pe, ps, pend, geom, edge_len, ar):  # type: ignore[no-untyped-def]
 
 
 @njit(cache=True, nogil=True)
-def _trimmed(pieces, chosen, p_edge, p_off, router, ar):  # type: ignore[no-untyped-def]
-    """The route ``pieces`` (edge, start, end, segment) without those :func:`trim_ends` drops;
-    the ``chosen`` points (edge, offset, step kind, failed path, point index) on a dropped piece
-    move to the same node on the neighbouring piece (their edge and offset, and ``p_edge``,
-    ``p_off``, in place)."""
-    pe, ps, pend, pseg = pieces
-    ch_edge, ch_off, kind, bad, pts = chosen
+def _trimmed(pc, ch, pm, router, ar):  # type: ignore[no-untyped-def]
+    """The route pieces ``pc`` (:class:`RoutePieces`) without those :func:`trim_ends` drops; the
+    chosen points ``ch`` (:class:`RouteSteps`) on a dropped piece move to the same node on the
+    neighbouring piece (their edge and offset, and those of ``pm``, :class:`PointMatch`, in
+    place)."""
+    pe, ps, pend, pseg = pc
     keep = trim_ends(pe, ps, pend, pseg, router.g.edge_len, ar)
     n = len(pe)
     k = 0
@@ -205,7 +242,7 @@ def _trimmed(pieces, chosen, p_edge, p_off, router, ar):  # type: ignore[no-unty
         if keep[i]:
             k += 1
     if k == n:
-        return pe, ps, pend, pseg
+        return pc
     # each segment's dropped head (tail): the edge and offset its points move to
     nseg = pseg[n - 1] + 1
     head = full_i8(ar, nseg, -1)
@@ -216,6 +253,8 @@ def _trimmed(pieces, chosen, p_edge, p_off, router, ar):  # type: ignore[no-unty
                 head[pseg[i]] = i
             else:
                 tail[pseg[i]] = i
+    ch_edge, ch_off, kind, bad, pts = ch.edge, ch.off, ch.kind, ch.bad, ch.pts
+    p_edge, p_off = pm.edge, pm.off
     seg = -1
     for c in range(len(ch_edge)):
         if kind[c] == STEP_SPLIT or bad[c]:
@@ -239,116 +278,133 @@ def _trimmed(pieces, chosen, p_edge, p_off, router, ar):  # type: ignore[no-unty
         if keep[i]:
             qe[k], qs[k], qend[k], qseg[k] = pe[i], ps[i], pend[i], pseg[i]
             k += 1
-    return qe, qs, qend, qseg
+    return RoutePieces(qe, qs, qend, qseg)
 
 
 @njit(cache=True, nogil=True)
-def assemble(  # type: ignore[no-untyped-def]
-    pt: TrackPoints,
-    lat: Lattice,
-    choice_all,
-    seg_start,
-    via_u,
-    used_bound,
-    p: KernelParams,
-    geom: EdgeGeometry,
-    router,
-    ar,
-) -> Assembly:
-    """Per-point results, route pieces (edges and geometry), splits, length and confidence."""
-    valid = pt.valid
-    kept = pt.kept
-    xy = pt.xy
-    n = len(valid)
-    cand_ptr = lat.ptr
-    cedge = lat.edge
-    coff = lat.offset
-    cxy = lat.xy
-    cdist = lat.dist
-    emis = lat.emis
-    pts_all = lat.pts
-    seg_xy = geom.seg_xy
-    seg_len = geom.seg_len
-    seg_ptr = geom.seg_ptr
-    reverse_tol = p.reverse_tol
-    edge_rev = router.g.edge_rev
-    p_edge = full_i8(ar, n, -1)
-    p_off = full_f8(ar, n, np.nan)
-    p_xy = full_f8(ar, 2 * n, np.nan).reshape((n, 2))
-    p_dist = full_f8(ar, n, np.nan)
-    status = full_i8(ar, n, 0)  # 0 unmatched, 1 matched, 2 interpolated
+def assemble(
+    pt: TrackPoints, lat: Lattice, dec: Chosen, p: KernelParams, geom: EdgeGeometry, router, ar
+) -> Assembly:  # type: ignore[no-untyped-def]
+    """Per-point results, route pieces (edges and geometry), splits, length and confidence, from
+    the search's answer ``dec`` (:class:`~mapmatch.batch.leave_out.Chosen`)."""
+    n = len(pt.valid)
+    pm = PointMatch(
+        full_i8(ar, n, -1), full_f8(ar, n, np.nan), full_f8(ar, 2 * n, np.nan).reshape((n, 2)),
+        full_f8(ar, n, np.nan), full_i8(ar, n, 0),
+    )  # fmt: skip
     # lattice points left out as unreachable outliers are unmatched
-    m = 0
-    for t in range(len(choice_all)):
-        if choice_all[t] >= 0:
-            m += 1
-    acc = take_i8(ar, m)
-    q = 0
-    for t in range(len(choice_all)):
-        if choice_all[t] >= 0:
-            acc[q] = t
-            q += 1
+    acc = _accepted(dec.choice, ar)
+    m = len(acc)
+    valid, status = pt.valid, pm.status
     nvalid = 0
     for i in range(n):
         if valid[i]:
             nvalid += 1
     if m == 0:
         return Assembly(
-            p_edge, p_off, p_xy, p_dist, status, take_i8(ar, 0), take_i8(ar, 0),
+            pm.edge, pm.off, pm.xy, pm.dist, pm.status, take_i8(ar, 0), take_i8(ar, 0),
             full_i8(ar, 1, 0), take_xy(ar, 0), full_i8(ar, 1, 0), 0.0, 0.0,
         )  # fmt: skip
-    ch_edge = take_i8(ar, m)
-    ch_off = take_f8(ar, m)
-    kind = take_i8(ar, m)
-    bound = take_f8(ar, m)
-    pts = take_i8(ar, m)
+    ch = RouteSteps(
+        take_i8(ar, m), take_f8(ar, m), take_i8(ar, m), take_f8(ar, m), take_i8(ar, m), full_b1(ar, m, False)
+    )
+    post = _choose(acc, lat, dec, p.reverse_tol, router.g.edge_rev, ch, pm)
+    pc = _trimmed(route_pieces(ch, router, ar), ch, pm, router, ar)
+    splits = _splits(ch, ar)
+    xy_all, xptr = pieces_xy(pc.edge, pc.start, pc.end, geom, router.g.edge_len, ar)
+    route_e, route_ptr, rxy_ptr, length = _route_edges(pc, xptr, len(splits) + 1, ar)
+    _interpolate(pt, ch, geom, pm)
+    # the matched fraction (interpolated points count) times the lattice points' mean
+    nmatched = 0
+    for i in range(n):
+        if valid[i] and status[i] != 0:
+            nmatched += 1
+    conf = nmatched / max(nvalid, 1) * post / m
+    return Assembly(
+        pm.edge, pm.off, pm.xy, pm.dist, pm.status, splits, route_e, route_ptr, xy_all, rxy_ptr, length, conf
+    )
+
+
+@njit(cache=True, nogil=True)
+def _accepted(choice, ar):  # type: ignore[no-untyped-def]
+    """The lattice points with a chosen candidate (the others were left out), in order."""
+    m = 0
+    for t in range(len(choice)):
+        if choice[t] >= 0:
+            m += 1
+    acc = take_i8(ar, m)
+    q = 0
+    for t in range(len(choice)):
+        if choice[t] >= 0:
+            acc[q] = t
+            q += 1
+    return acc
+
+
+@njit(**UNCOUNTED)
+def _choose(acc, lat, dec, reverse_tol, edge_rev, ch, pm):  # type: ignore[no-untyped-def]
+    """The accepted lattice points ``acc``'s chosen candidates into ``ch`` (:class:`RouteSteps`,
+    with the kind of step into each; ``bad`` untouched) and their points' matches into ``pm``
+    (:class:`PointMatch`); returns the sum of their confidences (:func:`_road_share`).
+    Allocates nothing (:data:`~mapmatch.arena.UNCOUNTED`: an inlined call handed a tuple of
+    arrays in a reference-counted loop would count every array in it)."""
     post = 0.0
-    for i in range(m):
+    for i in range(len(acc)):
         t = acc[i]
-        j = choice_all[t]
-        e = cedge[j]
-        ch_edge[i] = e
-        ch_off[i] = coff[j]
-        pts[i] = pts_all[t]
-        bound[i] = used_bound[t]
-        same = i > 0 and e == ch_edge[i - 1] and coff[j] >= ch_off[i - 1] - reverse_tol
-        if i == 0 or seg_start[t]:
-            kind[i] = STEP_SPLIT
+        j = dec.choice[t]
+        e = lat.edge[j]
+        ch.edge[i] = e
+        ch.off[i] = lat.offset[j]
+        ch.pts[i] = lat.pts[t]
+        ch.bound[i] = dec.used_bound[t]
+        same = i > 0 and e == ch.edge[i - 1] and lat.offset[j] >= ch.off[i - 1] - reverse_tol
+        if i == 0 or dec.seg_start[t]:
+            ch.kind[i] = STEP_SPLIT
         elif same:
-            kind[i] = STEP_SAME
-        elif via_u[t]:
-            kind[i] = STEP_UTURN
+            ch.kind[i] = STEP_SAME
+        elif dec.via_u[t]:
+            ch.kind[i] = STEP_UTURN
         else:
-            kind[i] = STEP_ROUTE
-        pi = pts[i]
-        p_edge[pi] = e
-        p_off[pi] = coff[j]
-        p_xy[pi, 0] = cxy[j, 0]
-        p_xy[pi, 1] = cxy[j, 1]
-        p_dist[pi] = cdist[j]
-        status[pi] = 1
-        # confidence: normalised emission of the chosen road (both directions of a two-way
-        # road count as one) among the point's candidates
-        c0 = cand_ptr[t]
-        c1 = cand_ptr[t + 1]
-        mx = -np.inf
-        for c in range(c0, c1):
-            mx = max(mx, emis[c])
-        road = min(e, edge_rev[e]) if edge_rev[e] >= 0 else e
-        tot = 0.0
-        mine = 0.0
-        for c in range(c0, c1):
-            w = math.exp(emis[c] - mx)
-            tot += w
-            f = cedge[c]
-            rf = min(f, edge_rev[f]) if edge_rev[f] >= 0 else f
-            if rf == road:
-                mine += w
-        post += mine / tot
-    pe, ps, pend, pseg, bad = route_pieces(ch_edge, ch_off, kind, bound, router, ar)
-    chosen = (ch_edge, ch_off, kind, bad, pts)
-    pe, ps, pend, pseg = _trimmed((pe, ps, pend, pseg), chosen, p_edge, p_off, router, ar)
-    # a failed path (should not happen: Viterbi chose a reachable pair) becomes a split
+            ch.kind[i] = STEP_ROUTE
+        pi = ch.pts[i]
+        pm.edge[pi] = e
+        pm.off[pi] = lat.offset[j]
+        pm.xy[pi, 0] = lat.xy[j, 0]
+        pm.xy[pi, 1] = lat.xy[j, 1]
+        pm.dist[pi] = lat.dist[j]
+        pm.status[pi] = 1
+        post += _road_share(lat, t, e, edge_rev)
+    return post
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _road_share(lat, t, e, edge_rev):  # type: ignore[no-untyped-def]
+    """The confidence of edge ``e`` at lattice point ``t``: its road's share of the point's
+    normalised emissions (both directions of a two-way road count as one)."""
+    c0 = lat.ptr[t]
+    c1 = lat.ptr[t + 1]
+    mx = -np.inf
+    for c in range(c0, c1):
+        mx = max(mx, lat.emis[c])
+    road = min(e, edge_rev[e]) if edge_rev[e] >= 0 else e
+    tot = 0.0
+    mine = 0.0
+    for c in range(c0, c1):
+        w = math.exp(lat.emis[c] - mx)
+        tot += w
+        f = lat.edge[c]
+        rf = min(f, edge_rev[f]) if edge_rev[f] >= 0 else f
+        if rf == road:
+            mine += w
+    return mine / tot
+
+
+@njit(cache=True, nogil=True)
+def _splits(ch, ar):  # type: ignore[no-untyped-def]
+    """The points where a new piece of route starts after the first: a split, or a failed path
+    (should not happen: Viterbi chose a reachable pair)."""
+    kind, bad = ch.kind, ch.bad
+    m = len(kind)
     nsplit = 0
     for i in range(1, m):
         if kind[i] == STEP_SPLIT or bad[i]:
@@ -357,11 +413,19 @@ def assemble(  # type: ignore[no-untyped-def]
     q = 0
     for i in range(1, m):
         if kind[i] == STEP_SPLIT or bad[i]:
-            splits[q] = pts[i]
+            splits[q] = ch.pts[i]
             q += 1
-    xy_all, xptr = pieces_xy(pe, ps, pend, geom, router.g.edge_len, ar)
+    return splits
+
+
+@njit(cache=True, nogil=True)
+def _route_edges(pc, xptr, nseg, ar):  # type: ignore[no-untyped-def]
+    """The route's edges (consecutive pieces on one edge once) with their pointer per piece of
+    route, the geometry's pointer per piece of route (from ``xptr``, per piece) and the
+    length: ``route_e, route_ptr, rxy_ptr, length`` (``nseg`` pieces of route, a last one
+    trimmed to nothing too)."""
+    pe, ps, pend, pseg = pc
     npc = len(pe)
-    nseg = nsplit + 1  # every piece, a last one trimmed to nothing too
     route_e = take_i8(ar, npc)
     route_ptr = full_i8(ar, nseg + 1, 0)
     rxy_ptr = full_i8(ar, nseg + 1, 0)
@@ -378,14 +442,25 @@ def assemble(  # type: ignore[no-untyped-def]
     for s in range(nseg):  # a piece trimmed to nothing ends where the one before it ends
         route_ptr[s + 1] = max(route_ptr[s + 1], route_ptr[s])
         rxy_ptr[s + 1] = max(rxy_ptr[s + 1], rxy_ptr[s])
-    # interpolated points: projected onto the chosen edge of the nearer kept neighbour; those
-    # thinned after an unmatched kept point (off the map, a jump) stay unmatched with it
+    return route_e[:k], route_ptr, rxy_ptr, length
+
+
+@njit(cache=True, nogil=True)
+def _interpolate(pt, ch, geom, pm):  # type: ignore[no-untyped-def]
+    """The points thinned out before the match, into ``pm`` (:class:`PointMatch`): each
+    projected onto the chosen edge of the nearer kept neighbour in ``ch`` (:class:`RouteSteps`);
+    those thinned after an unmatched kept point (off the map, a jump) stay unmatched with it."""
+    seg_xy, seg_len, seg_ptr = geom.seg_xy, geom.seg_len, geom.seg_ptr
+    valid, kept, xy = pt.valid, pt.kept, pt.xy
+    ch_edge, pts = ch.edge, ch.pts
+    p_edge, p_off, p_xy, p_dist, status = pm
+    m = len(ch_edge)
     q = 0
     last_matched = True
     # the last projection's edge, piece and the piece's start: a stop's fixes share them
     # (``int64(-1)``, not -1: one compile of project_point_near, ``mapmatch.arena.int64``)
     hint_e, hint, hint_acc = -1, int64(-1), 0.0
-    for i in range(n):
+    for i in range(len(valid)):
         if kept[i]:
             last_matched = status[i] == 1
         if not valid[i] or kept[i] or not last_matched:
@@ -410,12 +485,3 @@ def assemble(  # type: ignore[no-untyped-def]
         else:
             p_edge[i], p_off[i], p_xy[i, 0], p_xy[i, 1], p_dist[i] = ch_edge[prv], o1, x1, y1, d1
         status[i] = 2
-    # the matched fraction (interpolated points count) times the lattice points' mean
-    nmatched = 0
-    for i in range(n):
-        if valid[i] and status[i] != 0:
-            nmatched += 1
-    conf = nmatched / max(nvalid, 1) * post / m
-    return Assembly(
-        p_edge, p_off, p_xy, p_dist, status, splits, route_e[:k], route_ptr, xy_all, rxy_ptr, length, conf
-    )

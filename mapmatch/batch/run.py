@@ -19,8 +19,19 @@ import numpy as np
 from numpy.typing import NDArray
 
 from graph.jit import njit
-from mapmatch.arena import borrowed, full_b1, full_f8, full_i8, reset, take_b1, take_f8, take_i8, take_xy
-from mapmatch.batch.arrays import CandidateArrays, TrackPoints
+from mapmatch.arena import (
+    Arena,
+    borrowed,
+    full_b1,
+    full_f8,
+    full_i8,
+    reset,
+    take_b1,
+    take_f8,
+    take_i8,
+    take_xy,
+)
+from mapmatch.batch.arrays import CandidateArrays, EdgeGeometry, KernelParams, TrackPoints
 from mapmatch.batch.lattice import (
     bearing_on,
     build_lattice,
@@ -32,7 +43,7 @@ from mapmatch.batch.lattice import (
 from mapmatch.batch.packed import Packed, pack
 from mapmatch.batch.route import assemble
 from mapmatch.batch.viterbi import solve
-from mapmatch.gridindex import query_grid
+from mapmatch.gridindex import Grid, GridScratch, ScanRows, query_grid
 from mapmatch.model import emission_logp_one, heading_kappa_compiled, track_sigma_compiled
 
 
@@ -113,22 +124,69 @@ def _run(pt, cands, p, geom, router, ar):  # type: ignore[no-untyped-def]
     its arguments (hundreds of words of array structs) at every match."""
     lat = build_lattice(pt, cands, p, ar)
     sig = lattice_sigma(pt, cands, p.sigma, lat, ar)
-    choice, seg_start, via_u, used_bound = solve(lat, p, router, ar, sig)
-    return assemble(pt, lat, choice, seg_start, via_u, used_bound, p, geom, router, ar)
+    return assemble(pt, lat, solve(lat, p, router, ar, sig), p, geom, router, ar)
+
+
+class MatchInputs(NamedTuple):
+    """What :func:`run_track` reads besides the track: a
+    :class:`~mapmatch.batch.context.Context`'s fields (see
+    :data:`~mapmatch.batch.context.CONTEXT_FIELDS`), its arrays borrowed."""
+
+    q: QueryParams
+    r: RuleParams
+    p: KernelParams
+    geom: EdgeGeometry
+    roads: RoadArrays
+    router: Any
+    """:class:`~mapmatch.routing.Router`."""
+    grid: Grid
+    gsc: GridScratch
+    ar: Arena
+
+
+class TrackFixes(NamedTuple):
+    """The track's fixes as the emissions read them: projected, the kept ones, the track's σ."""
+
+    xy: NDArray[np.float64]
+    kidx: NDArray[np.int64]
+    """The kept fixes' indices."""
+    sigma: float
+    """:func:`track_sigma`."""
 
 
 @njit(cache=True, nogil=True, inline="always")
-def run_track(ti, q, r, p, geom, roads, router, grid, gsc, ar):  # type: ignore[no-untyped-def]
-    """The whole match of one track: validity, thinning and the candidate search
-    (:func:`kept_candidates`), the track's own σ (:func:`track_sigma`) and, where it exceeds
-    the configured one, the thinning and search again at ``thin_sigmas`` times the excess,
-    jumps (:func:`drop_spikes_into`), emissions with the fixes' σ and heading or the direction of
-    travel (:func:`motion_heading_into`), then :func:`run`; working arrays from the arena ``ar``
-    (:mod:`mapmatch.arena`). Compiled into :func:`run_track_in`, its one caller (a call of its
-    own would copy its arguments, as :func:`_run`'s would, a noticeable part of a small
-    track's match)."""
+def run_track(ti, mi):  # type: ignore[no-untyped-def]
+    """The whole match of one track ``ti`` with ``mi`` (:class:`MatchInputs`): validity,
+    thinning and the candidate search (:func:`kept_candidates`), the track's own σ
+    (:func:`track_sigma`) and, where it exceeds the configured one, the thinning and search
+    again at ``thin_sigmas`` times the excess, jumps (:func:`drop_spikes_into`), emissions with
+    the fixes' σ and heading or the direction of travel (:func:`candidate_emissions`), then
+    :func:`_run`; working arrays from the arena ``mi.ar`` (:mod:`mapmatch.arena`). Compiled
+    into :func:`run_track_in`, its one caller (a call of its own would copy its arguments, as
+    :func:`_run`'s would, a noticeable part of a small track's match)."""
+    q, r, ar = mi.q, mi.r, mi.ar
     reset(ar)
-    pos = ti.pos
+    valid, xy = _valid_xy(ti.pos, ar)
+    kept, kidx, cp, ce, cd, co, cq = kept_candidates(xy, valid, q.min_dist, q, mi.grid, mi.gsc, ar)
+    sigma = track_sigma(cp, cd, len(kidx), r.gps_sigma, r.track_sigma_max, ar)
+    # a worse receiver's fixes close together share their error: thinned out further
+    far = r.thin_sigmas * (sigma - r.gps_sigma)
+    if far > q.min_dist:
+        kept, kidx, cp, ce, cd, co, cq = kept_candidates(xy, valid, far, q, mi.grid, mi.gsc, ar)
+    # jumps (a fix reached and left in opposite directions too fast) get no candidates
+    nojump = take_b1(ar, len(valid))
+    nojump[:] = valid
+    drop_spikes_into(xy, ti.time, kidx, sigma, r.spike_sigmas, r.spike_speed, r.spike_max_time, nojump)
+    rows = _without_jumps(ScanRows(cp, ce, cd, co, cq), kidx, nojump)
+    cands = candidate_emissions(ti, TrackFixes(xy, kidx, sigma), rows, r, mi.p, mi.geom, mi.roads, ar)
+    pt = TrackPoints(valid, kept, xy, ti.time, ti.odo, kidx)
+    return pack(_run(pt, cands, mi.p, mi.geom, mi.router, ar))
+
+
+@njit(cache=True, nogil=True)
+def _valid_xy(pos, ar):  # type: ignore[no-untyped-def]
+    """Which fixes are valid (finite WGS84 degrees in range) and their projected positions
+    (NaN where not valid), from :class:`TrackInput`'s ``pos``."""
     n = pos.shape[1]
     valid = full_b1(ar, n, False)
     xy = take_xy(ar, n)
@@ -141,32 +199,27 @@ def run_track(ti, q, r, p, geom, roads, router, grid, gsc, ar):  # type: ignore[
         else:
             xy[i, 0] = np.nan
             xy[i, 1] = np.nan
-    kept, kidx, cp, ce, cd, co, cq = kept_candidates(xy, valid, q.min_dist, q, grid, gsc, ar)
-    sigma = track_sigma(cp, cd, len(kidx), r.gps_sigma, r.track_sigma_max, ar)
-    # a worse receiver's fixes close together share their error: thinned out further
-    far = r.thin_sigmas * (sigma - r.gps_sigma)
-    if far > q.min_dist:
-        kept, kidx, cp, ce, cd, co, cq = kept_candidates(xy, valid, far, q, grid, gsc, ar)
-    # jumps (a fix reached and left in opposite directions too fast) get no candidates
-    nojump = take_b1(ar, n)
-    nojump[:] = valid
-    drop_spikes_into(xy, ti.time, kidx, sigma, r.spike_sigmas, r.spike_speed, r.spike_max_time, nojump)
-    # the jumps' candidates go
+    return valid, xy
+
+
+@njit(cache=True, nogil=True)
+def _without_jumps(rows, kidx, nojump):  # type: ignore[no-untyped-def]
+    """The candidate ``rows`` (:class:`~mapmatch.gridindex.ScanRows`, by kept point) of the
+    fixes that are no jump (``nojump``, by fix), compacted in place."""
+    cp, ce, cd, co, cq = rows
     nc = 0
     for i in range(len(cp)):
         if nojump[kidx[cp[i]]]:
             nc += 1
-    if nc < len(cp):
-        c = 0
-        for i in range(len(cp)):
-            if nojump[kidx[cp[i]]]:
-                cp[c], ce[c], cd[c], co[c] = cp[i], ce[i], cd[i], co[i]
-                cq[c, 0], cq[c, 1] = cq[i, 0], cq[i, 1]
-                c += 1
-        cp, ce, cd, co, cq = cp[:nc], ce[:nc], cd[:nc], co[:nc], cq[:nc]
-    cands = candidate_emissions(ti, kidx, xy, cp, ce, co, cq, cd, sigma, r, p, geom, roads, ar)
-    pt = TrackPoints(valid, kept, xy, ti.time, ti.odo, kidx)
-    return pack(_run(pt, cands, p, geom, router, ar))
+    if nc == len(cp):
+        return rows
+    c = 0
+    for i in range(len(cp)):
+        if nojump[kidx[cp[i]]]:
+            cp[c], ce[c], cd[c], co[c] = cp[i], ce[i], cd[i], co[i]
+            cq[c, 0], cq[c, 1] = cq[i, 0], cq[i, 1]
+            c += 1
+    return ScanRows(cp[:nc], ce[:nc], cd[:nc], co[:nc], cq[:nc])
 
 
 @njit(cache=True, nogil=True)
@@ -237,10 +290,11 @@ def run_track_in(ti, c):  # type: ignore[no-untyped-def]
     :class:`~mapmatch.batch.context.Context` (one pointer to unbox instead of some 80 values),
     all of them :func:`~mapmatch.arena.borrowed` (the caller holds the track and the context
     for the whole call; the answer is a new array, :func:`pack`)."""
-    return run_track(
-        borrowed(ti), c.q, c.r, borrowed(c.p), borrowed(c.geom), borrowed(c.roads), borrowed(c.router),
+    mi = MatchInputs(
+        c.q, c.r, borrowed(c.p), borrowed(c.geom), borrowed(c.roads), borrowed(c.router),
         borrowed(c.grid), borrowed(c.gsc), borrowed(c.ar),
     )  # fmt: skip
+    return run_track(borrowed(ti), mi)
 
 
 @njit(cache=True, nogil=True)
@@ -260,12 +314,15 @@ def track_sigma(point, dist, nk, sigma, most, ar):  # type: ignore[no-untyped-de
 
 
 @njit(cache=True, nogil=True)
-def candidate_emissions(ti, kidx, xy, cp, ce, co, cq, cd, sigma, r, p, geom, roads, ar):  # type: ignore[no-untyped-def]
-    """The candidates with their emissions (:func:`mapmatch.model.emission_logp`, computed
-    per candidate in the same float steps), σ (the fix's own when the track has them, else
-    ``sigma``, the track's: :func:`track_sigma`) and speed limit. A kept point's heading is the
+def candidate_emissions(ti, fx, rows, r, p, geom, roads, ar):  # type: ignore[no-untyped-def]
+    """The candidate ``rows`` (:class:`~mapmatch.gridindex.ScanRows`) of the kept fixes of
+    ``fx`` (:class:`TrackFixes`) with their emissions (:func:`mapmatch.model.emission_logp`,
+    computed per candidate in the same float steps), σ (the fix's own when the track ``ti``
+    has them, else the track's, ``fx.sigma``) and speed limit. A kept point's heading is the
     track's, else its direction of travel (σ ``motion_sigma``); none where neither is known or
     the fix is slower than ``heading_min_speed``."""
+    kidx, sigma = fx.kidx, fx.sigma
+    cp, ce, co, cd = rows.point, rows.edge, rows.offset, rows.dist
     nk = len(kidx)
     nc = len(cp)
     # per kept point: σ, heading and its concentration κ
@@ -276,24 +333,7 @@ def candidate_emissions(ti, kidx, xy, cp, ce, co, cq, cd, sigma, r, p, geom, roa
             sig[k] = sigma if math.isnan(s) or s <= 0 else max(s, r.pos_sigma_floor)
     head = full_f8(ar, nk, np.nan)
     kappa = full_f8(ar, nk, 0.0)
-    mh = head
-    if r.motion_sigma > 0:
-        mh = motion_heading_into(
-            xy, kidx, r.motion_min_distance, r.straight_max_deg, r.motion_end_leg_max, full_f8(ar, nk, np.nan)
-        )
-    any_head = False
-    for k in range(nk):
-        h = ti.heading[kidx[k]] if len(ti.heading) else np.nan
-        hs = r.heading_sigma
-        if r.motion_sigma > 0 and math.isfinite(mh[k]) and not math.isfinite(h):
-            h = mh[k]
-            hs = r.motion_sigma
-        slow = len(ti.speed) > 0 and ti.speed[kidx[k]] < r.heading_min_speed
-        if math.isnan(h) or slow:
-            continue
-        head[k] = h
-        kappa[k] = heading_kappa_compiled(hs, r.heading_sigma_floor)
-        any_head = True
+    any_head = _fix_headings(ti, fx, r, head, kappa, ar)
     bearing = full_f8(ar, nc, 0.0)
     if any_head:
         bearing_on(ce, co, geom.seg_ptr, roads.seg_end, roads.seg_bearing, bearing)
@@ -309,7 +349,41 @@ def candidate_emissions(ti, kidx, xy, cp, ce, co, cq, cd, sigma, r, p, geom, roa
     limit = take_f8(ar, nc if len(roads.limit) else 0)
     for i in range(len(limit)):
         limit[i] = roads.limit[ce[i]]
-    return CandidateArrays(cp, ce, co, cq, cd, emis, csig, limit)
+    return CandidateArrays(cp, ce, co, rows.xy, cd, emis, csig, limit)
+
+
+@njit(cache=True, nogil=True)
+def _fix_headings(ti, fx, r, head, kappa, ar):  # type: ignore[no-untyped-def]
+    """Each kept fix's heading and its concentration κ into ``head`` and ``kappa`` (left as
+    they are where it has none): the track's own, else the direction of travel (σ
+    ``motion_sigma``); none where the fix is slower than ``heading_min_speed``. Whether any
+    fix has one."""
+    kidx = fx.kidx
+    nk = len(kidx)
+    mh = head
+    if r.motion_sigma > 0:
+        mh = motion_heading_into(
+            fx.xy,
+            kidx,
+            r.motion_min_distance,
+            r.straight_max_deg,
+            r.motion_end_leg_max,
+            full_f8(ar, nk, np.nan),
+        )
+    any_head = False
+    for k in range(nk):
+        h = ti.heading[kidx[k]] if len(ti.heading) else np.nan
+        hs = r.heading_sigma
+        if r.motion_sigma > 0 and math.isfinite(mh[k]) and not math.isfinite(h):
+            h = mh[k]
+            hs = r.motion_sigma
+        slow = len(ti.speed) > 0 and ti.speed[kidx[k]] < r.heading_min_speed
+        if math.isnan(h) or slow:
+            continue
+        head[k] = h
+        kappa[k] = heading_kappa_compiled(hs, r.heading_sigma_floor)
+        any_head = True
+    return any_head
 
 
 def fresh(a: Any, dtype: Any) -> Any:

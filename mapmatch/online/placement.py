@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
+from typing import NamedTuple
 
 import numpy as np
 from numpy.typing import NDArray
@@ -40,6 +41,15 @@ OUT_SCORE, OUT_J, OUT_OFF, OUT_S, OUT_DIST, OUT_PX, OUT_PY, OUT_BRG, OUT_ANC, OU
 N_OUT = 11
 
 
+class RoadPoint(NamedTuple):
+    """A road point a fix is projected to: its distance from the fix, position and bearing."""
+
+    dist: float
+    x: float
+    y: float
+    bearing: float
+
+
 @njit(cache=True)
 def transition(p: PlaceParams, route_dist: float) -> float:
     """Log-probability of ``route_dist`` metres along the path for this step's travel (its
@@ -65,26 +75,17 @@ def debiased(p: PlaceParams, dist: float, px: float, py: float, bearing: float) 
     return math.sqrt(max(dist * dist - z * z, 0.0) + zc * zc)
 
 
-@njit(cache=True)
-def _score(  # type: ignore[no-untyped-def]
-    p: PlaceParams,
-    dist: float,
-    px: float,
-    py: float,
-    brg: float,
-    s: float,
-    here: Pos,
-    anc: float,
-    anc_sd: float,
-) -> float:
-    """Log-score of the road point ``(px, py)`` of bearing ``brg``, ``dist`` from the fix and
-    ``s`` along the path (emission, and transition from the hypothesis's place ``here``).
+@njit(cache=True, inline="always")  # inlined: its record is then no argument to pass
+def _score(p: PlaceParams, at: RoadPoint, s: float, here: Pos, anc: float, anc_sd: float) -> float:
+    """Log-score of the road point ``at`` (:class:`RoadPoint`), ``s`` along the path (emission,
+    and transition from the hypothesis's place ``here``; ``anc``, ``anc_sd`` its turn anchor).
     That place is where the along-track correction put it: with GPS the step is judged from
     there to the point's place corrected alike (``step_from_corrected`` of the correction),
     or the offset between a projection and its corrected place would count against every
     step (ten times a second at 10 Hz). Not stopped at the path's turns: a place held at a
     turn pays for that by the correction's miss, not twice."""
-    sc = emission_logp_one(debiased(p, dist, px, py, brg), p.sigma, p.heading, brg, p.kappa)
+    brg = at.bearing
+    sc = emission_logp_one(debiased(p, at.dist, at.x, at.y, brg), p.sigma, p.heading, brg, p.kappa)
     if not math.isnan(p.travelled):
         if p.gps and p.step_from_corrected > 0.0:
             s += p.step_from_corrected * (corrected_s(p, s, brg, anc, anc_sd) - s)
@@ -127,7 +128,7 @@ def nearest_on_path(  # type: ignore[no-untyped-def]
             # transition over one step's 0.7 m favours that fix after fix up to the margin)
             acc += le
             continue
-        sc = _score(p, dist, px, py, brg, s, here, anc, anc_sd)
+        sc = _score(p, RoadPoint(dist, px, py, brg), s, here, anc, anc_sd)
         if sc > best_sc + 1e-9:
             best_sc = sc
             best = (j, off, s, dist, px, py, brg)
@@ -139,7 +140,7 @@ def nearest_on_path(  # type: ignore[no-untyped-def]
             )
             if found:
                 s = acc + off
-                sc = _score(p, dist, px, py, brg, s, here, anc, anc_sd)
+                sc = _score(p, RoadPoint(dist, px, py, brg), s, here, anc, anc_sd)
                 if sc > best_sc + 1e-9:
                     best_sc = sc
                     best = (j, off, s, dist, px, py, brg)

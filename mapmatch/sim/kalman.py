@@ -334,21 +334,36 @@ def _map_update(X, P, k, m, out, p, inflate):  # type: ignore[no-untyped-def]
     return True
 
 
-@njit(cache=True)
-def _ekf(k0, k1, c, st, p, m, o):  # type: ignore[no-untyped-def]
-    """Run the filter over steps ``k0 .. k1 - 1`` from carry ``c`` (updated in place), writing
-    ``o`` (:class:`Outputs`); ``st`` :class:`Streams`, ``p`` :class:`Params`, ``m`` :class:`MapAid`
-    or None (none at any step: numba then leaves the map-aided update out of this compile)."""
-    dtheta, dodo, comp, gx, gy, gsig, gcourse, gcsig = st
-    dt, q, r_comp, a_comp, q_comp, share, a_gps = p.dt, p.q, p.r_comp, p.a_comp, p.q_comp, p.share, p.a_gps
-    white_steps, smooth_steps, gate_share, gate_pos = p.white_steps, p.smooth_steps, p.gate_share, p.gate_pos
-    gate_ang, reset_steps, max_rej = p.gate_ang, p.reset_steps, p.max_rej
-    X = c.X
-    P = c.P
-    ns = len(X)
-    out, var, cxy, used, rejected = o.state, o.var, o.cxy, o.used, o.rejected
-    F = np.zeros((ns, ns))  # set at every step
-    FP = np.zeros((ns, ns))
+class Work(NamedTuple):
+    """The filter's scratch: the transition matrix ``F`` (set at every step), ``F P``, and the
+    measurement rows of the fix (position plus its correlated error), the compass (heading
+    plus its error) and the heading."""
+
+    F: NDArray[np.float64]
+    FP: NDArray[np.float64]
+    h_pos: NDArray[np.float64]
+    h_comp: NDArray[np.float64]
+    h_head: NDArray[np.float64]
+
+
+class GpsTrack(NamedTuple):
+    """What the GPS update carries from fix to fix (kept in :class:`Carry`'s ``scalars``)."""
+
+    rej_start: int
+    """The step of the first of the fixes rejected in a row (-1: none)."""
+    rejects: int
+    """How many fixes were rejected in a row."""
+    k_fix: int
+    """The step of the last fix (-1: none yet)."""
+    var_corr: float
+    """The correlated error's variance (< 0 before the first fix)."""
+    sig_s: float
+    """The receiver's reported σ, smoothed."""
+
+
+@njit(cache=True, inline="always")
+def _work(ns):  # type: ignore[no-untyped-def]
+    """A :class:`Work` for ``ns`` states."""
     h_pos = np.zeros((2, ns))
     h_pos[0, 0] = 1.0
     h_pos[0, 5] = 1.0
@@ -359,158 +374,225 @@ def _ekf(k0, k1, c, st, p, m, o):  # type: ignore[no-untyped-def]
     h_comp[7] = 1.0
     h_head = np.zeros(ns)
     h_head[2] = 1.0
-    rej_start = int(c.scalars[0])
+    return Work(np.zeros((ns, ns)), np.zeros((ns, ns)), h_pos, h_comp, h_head)
+
+
+@njit(cache=True)
+def _ekf(k0, k1, c, st, p, m, o):  # type: ignore[no-untyped-def]
+    """Run the filter over steps ``k0 .. k1 - 1`` from carry ``c`` (updated in place), writing
+    ``o`` (:class:`Outputs`); ``st`` :class:`Streams`, ``p`` :class:`Params`, ``m`` :class:`MapAid`
+    or None (none at any step: numba then leaves the map-aided update out of this compile).
+    Each step's parts are compiled into it (one compile instead of one per part)."""
+    w = _work(len(c.X))
     crej_start = int(c.scalars[1])
-    rejects = int(c.scalars[2])
-    k_fix = int(c.scalars[3])
-    var_corr = c.scalars[4]
-    sig_s = c.scalars[5]
+    g = GpsTrack(int(c.scalars[0]), int(c.scalars[2]), int(c.scalars[3]), c.scalars[4], c.scalars[5])
     for k in range(k0, k1):
         if k > 0:
-            d0 = dodo[k]
-            dpsi = dtheta[k] - X[3] * dt
-            pm = X[2] + 0.5 * dpsi
-            d = d0 * (1.0 + X[4])
-            sn, cs = math.sin(pm), math.cos(pm)
-            X[0] += d * sn
-            X[1] += d * cs
-            X[2] += dpsi
-            o.inc[k, 0] = d * sn
-            o.inc[k, 1] = d * cs
-            o.inc[k, 2] = dpsi
-            X[5] *= a_gps
-            X[6] *= a_gps
-            X[7] *= a_comp
-            for a in range(ns):
-                for b in range(ns):
-                    F[a, b] = 1.0 if a == b else 0.0
-            F[0, 2] = d * cs
-            F[0, 3] = -0.5 * dt * d * cs
-            F[0, 4] = d0 * sn
-            F[1, 2] = -d * sn
-            F[1, 3] = 0.5 * dt * d * sn
-            F[1, 4] = d0 * cs
-            F[2, 3] = -dt
-            F[5, 5] = a_gps
-            F[6, 6] = a_gps
-            F[7, 7] = a_comp
-            _fpft(F, P, FP)
-            qpos = (q[0] * d0) ** 2 + q[1] ** 2 * dt
-            P[0, 0] += qpos
-            P[1, 1] += qpos
-            P[2, 2] += q[2] ** 2 * dt
-            P[3, 3] += q[3] ** 2 * dt
-            P[4, 4] += q[4] ** 2 * dt
-            if var_corr > 0.0:
-                qg = var_corr * (1.0 - a_gps * a_gps)
-                P[5, 5] += qg
-                P[6, 6] += qg
-            P[7, 7] += q_comp
-        if not math.isnan(comp[k]):
-            nu = _wrap(comp[k] - X[2] - X[7])
-            s = _quad(h_comp, P, h_comp) + r_comp
-            if nu * nu <= gate_ang * gate_ang * s:
-                _update(X, P, h_comp, nu, r_comp)
-        if not math.isnan(gcourse[k]):
-            r = gcsig[k] ** 2
-            nu = _wrap(gcourse[k] - X[2])
-            if nu * nu <= gate_ang * gate_ang * (P[2, 2] + r):
-                _update(X, P, h_head, nu, r)
-                crej_start = -1
-            elif crej_start < 0:
-                crej_start = k
-            elif k - crej_start >= reset_steps:  # the heading has lost it: restart at the course
-                for a in range(ns):
-                    P[2, a] = 0.0
-                    P[a, 2] = 0.0
-                P[2, 2] = r
-                X[2] += nu
-                crej_start = -1
-        if not math.isnan(gx[k]):
-            sig2 = gsig[k] ** 2
-            # fixes closer than the white error's correlation time are not independent
-            gap = white_steps if k_fix < 0 else min(k - k_fix, white_steps)
-            r = (1.0 - share) * sig2 * white_steps / max(gap, 1)
-            if var_corr < 0.0:  # first fix: the correlated error's prior
-                sig_s = gsig[k]
-                P[5, 5] = share * sig2
-                P[6, 6] = share * sig2
-            else:
-                # the dilution of precision scales the correlated error too: follow the
-                # (smoothed) reported σ by scaling the error states and their covariance
-                w = min(1.0, (k - k_fix) / smooth_steps)
-                ratio = (sig_s + w * (gsig[k] - sig_s)) / sig_s
-                sig_s *= ratio
-                for a in (5, 6):
-                    X[a] *= ratio
-                    for b in range(ns):
-                        P[a, b] *= ratio
-                        P[b, a] *= ratio
-            k_fix = k
-            var_corr = share * sig_s * sig_s
-            hx = h_pos[0]
-            hy = h_pos[1]
-            # gate with at least a share of the receiver's whole variance: robust when its
-            # error is whiter than assumed
-            rg = max(1.0 - share, gate_share) * sig2
-            s00 = _quad(hx, P, hx) + rg
-            s11 = _quad(hy, P, hy) + rg
-            s01 = _quad(hx, P, hy)
-            nx = gx[k] - X[0] - X[5]
-            ny = gy[k] - X[1] - X[6]
-            det = s00 * s11 - s01 * s01
-            d2 = (s11 * nx * nx - 2.0 * s01 * nx * ny + s00 * ny * ny) / det
-            too_long = (rej_start >= 0 and k - rej_start >= reset_steps) or (
-                max_rej > 0 and rejects >= max_rej
-            )
-            if d2 <= gate_pos or too_long:
-                if d2 > gate_pos:  # the filter has lost it: restart the position at the fix
-                    for a in range(ns):
-                        P[0, a] = 0.0
-                        P[1, a] = 0.0
-                        P[a, 0] = 0.0
-                        P[a, 1] = 0.0
-                    P[0, 0] = sig2
-                    P[1, 1] = sig2
-                    X[0] = gx[k] - X[5]
-                    X[1] = gy[k] - X[6]
-                else:
-                    _update(X, P, hx, gx[k] - X[0] - X[5], r)
-                    _update(X, P, hy, gy[k] - X[1] - X[6], r)
-                used[k] = True
-                rej_start = -1
-                rejects = 0
-            else:
-                rejected[k] = True
-                rejects += 1
-                if rej_start < 0:
-                    rej_start = k
+            _predict(k, c, st, p, w, o, g.var_corr)
+        _compass_update(k, c, st, p, w.h_comp)
+        crej_start = _course_update(k, c, st, p, w.h_head, crej_start)
+        if not math.isnan(st.gx[k]):
+            g = _gps_update(k, c, st, p, w, o, g)
         if k > 0:
-            c.scalars[7] += dodo[k] * (1.0 + X[4])
+            c.scalars[7] += st.dodo[k] * (1.0 + c.X[4])
         if m is not None and m.mode[k] > 0:
             # measurements closer than the map error's correlation distance are not independent
             gap = c.scalars[7] - c.scalars[6]
             inflate = min(p.map_corr_distance / max(gap, 1e-3), 1e6) if p.map_corr_distance > 0.0 else 1.0
-            if _map_update(X, P, k, m, o, p, max(inflate, 1.0)):
+            if _map_update(c.X, c.P, k, m, o, p, max(inflate, 1.0)):
                 o.map_used[k] = True
                 c.scalars[6] = c.scalars[7]
             else:
                 o.map_rejected[k] = True
-        for a in range(ns):
-            for b in range(a + 1, ns):
-                m_ = 0.5 * (P[a, b] + P[b, a])
-                P[a, b] = m_
-                P[b, a] = m_
-        for a in range(ns):  # element-wise: a slice assignment compiles numba's shape-error formatter
-            out[k, a] = X[a]
-            var[k, a] = P[a, a]
-        cxy[k] = P[0, 1]
-    c.scalars[0] = rej_start
+        _end_step(k, c.X, c.P, o)
+    c.scalars[0] = g.rej_start
     c.scalars[1] = crej_start
-    c.scalars[2] = rejects
-    c.scalars[3] = k_fix
-    c.scalars[4] = var_corr
-    c.scalars[5] = sig_s
+    c.scalars[2] = g.rejects
+    c.scalars[3] = g.k_fix
+    c.scalars[4] = g.var_corr
+    c.scalars[5] = g.sig_s
+
+
+@njit(cache=True, inline="always")
+def _predict(k, c, st, p, w, o, var_corr):  # type: ignore[no-untyped-def]
+    """The prediction into step ``k``: heading by the gyro less its bias, position by the
+    odometer times its scale at the mid-step heading (the move into ``o.inc``), the error
+    states decayed, and the covariance carried by ``F`` plus the process noise (``var_corr``:
+    the GPS correlated error's variance, < 0 before the first fix)."""
+    X, P, F = c.X, c.P, w.F
+    dt, q, a_gps, a_comp = p.dt, p.q, p.a_gps, p.a_comp
+    ns = len(X)
+    d0 = st.dodo[k]
+    dpsi = st.dtheta[k] - X[3] * dt
+    pm = X[2] + 0.5 * dpsi
+    d = d0 * (1.0 + X[4])
+    sn, cs = math.sin(pm), math.cos(pm)
+    X[0] += d * sn
+    X[1] += d * cs
+    X[2] += dpsi
+    o.inc[k, 0] = d * sn
+    o.inc[k, 1] = d * cs
+    o.inc[k, 2] = dpsi
+    X[5] *= a_gps
+    X[6] *= a_gps
+    X[7] *= a_comp
+    for a in range(ns):
+        for b in range(ns):
+            F[a, b] = 1.0 if a == b else 0.0
+    F[0, 2] = d * cs
+    F[0, 3] = -0.5 * dt * d * cs
+    F[0, 4] = d0 * sn
+    F[1, 2] = -d * sn
+    F[1, 3] = 0.5 * dt * d * sn
+    F[1, 4] = d0 * cs
+    F[2, 3] = -dt
+    F[5, 5] = a_gps
+    F[6, 6] = a_gps
+    F[7, 7] = a_comp
+    _fpft(F, P, w.FP)
+    qpos = (q[0] * d0) ** 2 + q[1] ** 2 * dt
+    P[0, 0] += qpos
+    P[1, 1] += qpos
+    P[2, 2] += q[2] ** 2 * dt
+    P[3, 3] += q[3] ** 2 * dt
+    P[4, 4] += q[4] ** 2 * dt
+    if var_corr > 0.0:
+        qg = var_corr * (1.0 - a_gps * a_gps)
+        P[5, 5] += qg
+        P[6, 6] += qg
+    P[7, 7] += p.q_comp
+
+
+@njit(cache=True, inline="always")
+def _compass_update(k, c, st, p, h_comp):  # type: ignore[no-untyped-def]
+    """The compass reading of step ``k`` (heading plus the compass error), gated by
+    ``gate_ang`` σ."""
+    comp = st.comp[k]
+    if math.isnan(comp):
+        return
+    nu = _wrap(comp - c.X[2] - c.X[7])
+    s = _quad(h_comp, c.P, h_comp) + p.r_comp
+    if nu * nu <= p.gate_ang * p.gate_ang * s:
+        _update(c.X, c.P, h_comp, nu, p.r_comp)
+
+
+@njit(cache=True, inline="always")
+def _course_update(k, c, st, p, h_head, crej_start):  # type: ignore[no-untyped-def]
+    """The GPS course of step ``k``, gated by ``gate_ang`` σ; after ``reset_steps`` of
+    rejected courses (since ``crej_start``, -1: none) the heading restarts at the course.
+    Returns the new ``crej_start``."""
+    gcourse = st.gcourse[k]
+    if math.isnan(gcourse):
+        return crej_start
+    X, P = c.X, c.P
+    r = st.gcsig[k] ** 2
+    nu = _wrap(gcourse - X[2])
+    if nu * nu <= p.gate_ang * p.gate_ang * (P[2, 2] + r):
+        _update(X, P, h_head, nu, r)
+        crej_start = -1
+    elif crej_start < 0:
+        crej_start = k
+    elif k - crej_start >= p.reset_steps:  # the heading has lost it: restart at the course
+        for a in range(len(X)):
+            P[2, a] = 0.0
+            P[a, 2] = 0.0
+        P[2, 2] = r
+        X[2] += nu
+        crej_start = -1
+    return crej_start
+
+
+@njit(cache=True, inline="always")
+def _gps_noise(k, c, st, p, g):  # type: ignore[no-untyped-def]
+    """The fix of step ``k``'s white noise variance, and ``g`` (:class:`GpsTrack`) with the
+    correlated error following the receiver's (smoothed) reported σ: ``(r, g)``."""
+    X, P = c.X, c.P
+    share, white_steps = p.share, p.white_steps
+    k_fix, sig_s = g.k_fix, g.sig_s
+    sig2 = st.gsig[k] ** 2
+    # fixes closer than the white error's correlation time are not independent
+    gap = white_steps if k_fix < 0 else min(k - k_fix, white_steps)
+    r = (1.0 - share) * sig2 * white_steps / max(gap, 1)
+    if g.var_corr < 0.0:  # first fix: the correlated error's prior
+        sig_s = st.gsig[k]
+        P[5, 5] = share * sig2
+        P[6, 6] = share * sig2
+    else:
+        # the dilution of precision scales the correlated error too: follow the
+        # (smoothed) reported σ by scaling the error states and their covariance
+        w = min(1.0, (k - k_fix) / p.smooth_steps)
+        ratio = (sig_s + w * (st.gsig[k] - sig_s)) / sig_s
+        sig_s *= ratio
+        for a in (5, 6):
+            X[a] *= ratio
+            for b in range(len(X)):
+                P[a, b] *= ratio
+                P[b, a] *= ratio
+    return r, GpsTrack(g.rej_start, g.rejects, k, share * sig_s * sig_s, sig_s)
+
+
+@njit(cache=True, inline="always")
+def _gps_update(k, c, st, p, w, o, g):  # type: ignore[no-untyped-def]
+    """The fix of step ``k``: its noise (:func:`_gps_noise`), then gated by χ² on its
+    innovation; when fixes have been rejected for ``reset_steps`` (or ``max_rej`` of them)
+    in a row the position restarts at the fix. Returns the new ``g`` (:class:`GpsTrack`)."""
+    X, P = c.X, c.P
+    r, g = _gps_noise(k, c, st, p, g)
+    rej_start, rejects = g.rej_start, g.rejects
+    sig2 = st.gsig[k] ** 2
+    gx, gy = st.gx[k], st.gy[k]
+    hx = w.h_pos[0]
+    hy = w.h_pos[1]
+    # gate with at least a share of the receiver's whole variance: robust when its
+    # error is whiter than assumed
+    rg = max(1.0 - p.share, p.gate_share) * sig2
+    s00 = _quad(hx, P, hx) + rg
+    s11 = _quad(hy, P, hy) + rg
+    s01 = _quad(hx, P, hy)
+    nx = gx - X[0] - X[5]
+    ny = gy - X[1] - X[6]
+    det = s00 * s11 - s01 * s01
+    d2 = (s11 * nx * nx - 2.0 * s01 * nx * ny + s00 * ny * ny) / det
+    too_long = (rej_start >= 0 and k - rej_start >= p.reset_steps) or (p.max_rej > 0 and rejects >= p.max_rej)
+    if d2 <= p.gate_pos or too_long:
+        if d2 > p.gate_pos:  # the filter has lost it: restart the position at the fix
+            for a in range(len(X)):
+                P[0, a] = 0.0
+                P[1, a] = 0.0
+                P[a, 0] = 0.0
+                P[a, 1] = 0.0
+            P[0, 0] = sig2
+            P[1, 1] = sig2
+            X[0] = gx - X[5]
+            X[1] = gy - X[6]
+        else:
+            _update(X, P, hx, gx - X[0] - X[5], r)
+            _update(X, P, hy, gy - X[1] - X[6], r)
+        o.used[k] = True
+        rej_start = -1
+        rejects = 0
+    else:
+        o.rejected[k] = True
+        rejects += 1
+        if rej_start < 0:
+            rej_start = k
+    return GpsTrack(rej_start, rejects, g.k_fix, g.var_corr, g.sig_s)
+
+
+@njit(cache=True, inline="always")
+def _end_step(k, X, P, o):  # type: ignore[no-untyped-def]
+    """The end of step ``k``: ``P`` made symmetric, the state, variances and x-y covariance
+    into ``o``."""
+    ns = len(X)
+    for a in range(ns):
+        for b in range(a + 1, ns):
+            m_ = 0.5 * (P[a, b] + P[b, a])
+            P[a, b] = m_
+            P[b, a] = m_
+    for a in range(ns):  # element-wise: a slice assignment compiles numba's shape-error formatter
+        o.state[k, a] = X[a]
+        o.var[k, a] = P[a, a]
+    o.cxy[k] = P[0, 1]
 
 
 def _at_grid(
