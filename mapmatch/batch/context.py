@@ -43,6 +43,7 @@ structref.define_boxing(ContextType, Context)
 
 
 @njit(cache=True)
-def new_context(q, r, p, geom, roads, router, grid, gsc, ar):  # type: ignore[no-untyped-def]
-    """A :class:`Context` of these named tuples (see :data:`CONTEXT_FIELDS`)."""
-    return Context(q, r, p, geom, roads, router, grid, gsc, ar)
+def new_context(mi):  # type: ignore[no-untyped-def]
+    """A :class:`Context` of a :class:`~mapmatch.batch.run.MatchInputs`'s fields (see
+    :data:`CONTEXT_FIELDS`)."""
+    return Context(mi.q, mi.r, mi.p, mi.geom, mi.roads, mi.router, mi.grid, mi.gsc, mi.ar)

@@ -37,6 +37,7 @@ from mapmatch.batch.packed import Packed, TrackResult, decode
 from mapmatch.batch.results import fill_route_lonlat, track_match
 from mapmatch.batch.run import (
     CompiledRun,
+    MatchInputs,
     QueryParams,
     RoadArrays,
     RuleParams,
@@ -213,8 +214,10 @@ class BatchMatcher:
             return got[1]
         s = self._settings_for(cfg)
         ctx = new_context(
-            s.query, s.track_rules, s.params, self._geom, self._roads, self._router_for(st, cfg),
-            self._grid.arrays, st.grid, st.arena,
+            MatchInputs(
+                s.query, s.track_rules, s.params, self._geom, self._roads, self._router_for(st, cfg),
+                self._grid.arrays, st.grid, st.arena,
+            )
         )  # fmt: skip
         if len(st.contexts) >= 64:
             st.contexts.clear()
