@@ -32,7 +32,7 @@ sys.path.insert(0, str(ROOT / "tests"))
 
 import grpc  # noqa: E402
 import numpy as np  # noqa: E402
-from online_helpers import drive  # noqa: E402
+from online_helpers import DriveSpec, drive  # noqa: E402
 from service_util import city, requests  # noqa: E402
 from stall_util import worst_case_blob  # noqa: E402
 
@@ -87,14 +87,14 @@ def attacker(port: int, start: float, imports: int, out: Any) -> None:
     """Another client: imports the largest allowed blob (and one over the caps), with fixes."""
     ch = grpc.insecure_channel(f"127.0.0.1:{port}", options=[("grpc.max_send_message_length", 64 << 20)])
     api = pbg.MapMatchStub(ch)
-    fixes = drive(AMAP, "abefc", speed=10.0, dt=1.0, noise=1.5, seed=7, sigma=3.0)
+    fixes = drive(AMAP, "abefc", DriveSpec(speed=10.0, dt=1.0, noise=1.5, seed=7, sigma=3.0))
     list(api.StreamFixes(iter(requests(fixes[:14], "seed")), timeout=60))
     blob = api.ExportSession(pb.ExportSessionRequest(vehicle_id="seed"), timeout=10)
     worst = worst_case_blob(blob.state, StateCaps.of(DEFAULT_CONFIG), n_edges=AMAP.graph.n_edges)
     d = json.loads(blob.state)
     d["headings"] = [[float(i), 90.0] for i in range(200_000)]
     over = json.dumps(d).encode()
-    later = requests(drive(AMAP, "abefc", speed=10.0, dt=1.0, seed=7, sigma=3.0)[14:24], "big")
+    later = requests(drive(AMAP, "abefc", DriveSpec(speed=10.0, dt=1.0, seed=7, sigma=3.0))[14:24], "big")
     while time.time() < start:
         time.sleep(0.01)
     times, fix_times, refused = [], [], ""
@@ -124,7 +124,7 @@ def attacker(port: int, start: float, imports: int, out: Any) -> None:
 
 def stream_50hz(port: int, rate: float, seconds: float) -> tuple[np.ndarray, np.ndarray]:
     """Send fixes at ``rate`` Hz for ``seconds``; returns (send times, answer times) (wall clock)."""
-    fixes = drive(AMAP, "abcfedghdabcfed", speed=10.0, dt=1.0 / rate, noise=0.5, seed=3, sigma=3.0)
+    fixes = drive(AMAP, "abcfedghdabcfed", DriveSpec(speed=10.0, dt=1.0 / rate, noise=0.5, seed=3, sigma=3.0))
     n = min(len(fixes), int(rate * seconds))
     reqs = requests(fixes[:n], "steady")
     sent = np.zeros(n)

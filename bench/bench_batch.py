@@ -149,9 +149,12 @@ def apply_timing(recs: list[dict], timing: Path) -> int:
     return n
 
 
-def summarise(paths: list[Path], timing: Path | None = None, *, side_rounds: int = 0) -> bool:
-    """Print the table, the speed figures and one pass/fail line per "Done means" target of
-    issue #14; returns whether all pass."""
+Check = tuple[str, bool | None, str]
+"""One "Done means" target: label, passed (``None``: not measured), figures."""
+
+
+def _load_records(paths: list[Path], timing: Path | None) -> list[dict]:
+    """The runs in ``paths`` that were not skipped, re-timed from ``timing`` when given."""
     recs = [json.loads(line) for p in paths for line in p.read_text().splitlines() if line.strip()]
     recs = [r for r in recs if not r.get("skipped")]
     if timing is not None:
@@ -165,10 +168,15 @@ def summarise(paths: list[Path], timing: Path | None = None, *, side_rounds: int
         )
     else:
         print("\ntiming: the harness's own (one warm call per track and S, after one first call)")
-    by: dict[tuple[str, int], list[dict]] = defaultdict(list)
-    for r in recs:
-        by[(r["engine"], int(r["S"]))].append(r)
-    Ss = sorted({s for _, s in by})
+    return recs
+
+
+RmfByRun = dict[tuple[str, int], float]
+"""An RMF figure per (engine, S)."""
+
+
+def _print_table(by: dict[tuple[str, int], list[dict]]) -> tuple[RmfByRun, RmfByRun]:
+    """Print one row per (engine, S); return the mean and the median RMF of each."""
     print(
         f"\n{'engine':10s} {'S':>3s} {'tracks':>6s} {'fail':>4s} {'mean RMF':>9s} {'median RMF':>10s} "
         f"{'points':>8s} {'match s':>8s} {'pts/s':>9s}"
@@ -186,9 +194,16 @@ def summarise(paths: list[Path], timing: Path | None = None, *, side_rounds: int
             f"{eng:10s} {s:3d} {len(g):6d} {fails:4d} {mean_rmf[(eng, s)]:9.4f} {med_rmf[(eng, s)]:10.4f} "
             f"{pts:8d} {secs:8.3f} {pts / secs if secs else 0:9.0f}"
         )
-    peers = sorted({e for e, _ in by} - {"custom"})
-    checks: list[tuple[str, bool | None, str]] = []
-    # RMF against the best peer at each S
+    return mean_rmf, med_rmf
+
+
+def _rmf_checks(
+    Ss: list[int],
+    peers: list[str],
+    mean_rmf: RmfByRun,
+    med_rmf: RmfByRun,
+) -> list[Check]:
+    """Mean and median RMF of ours against the best peer's at each S."""
     mean_txt, med_txt, mean_ok, med_ok = [], [], True, True
     for s in Ss:
         if ("custom", s) not in mean_rmf or not any((e, s) in mean_rmf for e in peers):
@@ -201,9 +216,14 @@ def summarise(paths: list[Path], timing: Path | None = None, *, side_rounds: int
         med_ok &= od <= bd
         mean_txt.append(f"S={s}: {om:.4f} vs best peer {bm:.4f}")
         med_txt.append(f"S={s}: {od:.4f} vs best peer {bd:.4f}")
-    checks.append(("mean RMF at most half the best peer's at every S", mean_ok, "; ".join(mean_txt)))
-    checks.append(("median RMF at or below the best peer's at every S", med_ok, "; ".join(med_txt)))
-    # speed: per track, our points/s over fastmm's (same points), geometric mean over tracks
+    return [
+        ("mean RMF at most half the best peer's at every S", mean_ok, "; ".join(mean_txt)),
+        ("median RMF at or below the best peer's at every S", med_ok, "; ".join(med_txt)),
+    ]
+
+
+def _speed_check(Ss: list[int], by: dict[tuple[str, int], list[dict]]) -> Check:
+    """Per track, our points/s over fastmm's (same points), geometric mean over tracks."""
     speed_txt, speed_ok = [], bool(Ss)
     for s in Ss:
         ours = {r["track"]: r["match_s"] for r in by.get(("custom", s), []) if r.get("match_s")}
@@ -222,10 +242,37 @@ def summarise(paths: list[Path], timing: Path | None = None, *, side_rounds: int
             f"max {max(ratios):.2f})"
         )
         speed_txt.append(f"S={s}: {gm:.2f}")
-    checks.append(
-        ("per-track geometric-mean speed at least 1.5x fastmm's at every S", speed_ok, "; ".join(speed_txt))
+    return (
+        "per-track geometric-mean speed at least 1.5x fastmm's at every S",
+        speed_ok,
+        "; ".join(speed_txt),
     )
-    # time per point at 30 s: largest map over smallest map
+
+
+def _growth_side(small: dict, big: dict, side_rounds: int) -> tuple[bool, str]:
+    """The growth check timed side by side in one process; print the figures."""
+    (ls, ms), (lb, mb) = growth_side_by_side(small["track"], big["track"], S=30, rounds=side_rounds)
+    side_ok = lb / ls < 2.0
+    side = (
+        f"side by side in one process ({side_rounds} rounds of 5 calls each, alternating): "
+        f"{ls:.2f} and {lb:.2f} us, ratio {lb / ls:.2f} "
+        f"(medians {ms:.2f} and {mb:.2f} us, ratio {mb / ms:.2f})"
+    )
+    print(f"S=30: our time per point, {side}")
+    # not the check: the same with SETTLE untimed calls first in each block
+    (ls, ms), (lb, mb) = growth_side_by_side(
+        small["track"], big["track"], S=30, rounds=side_rounds, settle=SETTLE
+    )
+    print(
+        f"S=30: our time per point, side by side, each block's first {SETTLE} calls untimed "
+        f"(not the check; see growth_side_by_side): {ls:.2f} and {lb:.2f} us, ratio {lb / ls:.2f} "
+        f"(medians {ms:.2f} and {mb:.2f} us, ratio {mb / ms:.2f})"
+    )
+    return side_ok, side
+
+
+def _growth_check(by: dict[tuple[str, int], list[dict]], side_rounds: int) -> Check:
+    """Time per point at 30 s: largest map over smallest map."""
     growth: bool | None = None
     growth_txt = "no S=30 run"
     ours30 = [r for r in by.get(("custom", 30), []) if r.get("match_s")]
@@ -244,27 +291,28 @@ def summarise(paths: list[Path], timing: Path | None = None, *, side_rounds: int
             growth_txt += f" (medians {ms:.2f} and {mb:.2f} us, ratio {mb / ms:.2f})"
         print(f"S=30: our time per point: {growth_txt}")
         if side_rounds > 0:
-            (ls, ms), (lb, mb) = growth_side_by_side(small["track"], big["track"], S=30, rounds=side_rounds)
-            growth = lb / ls < 2.0
-            side = (
-                f"side by side in one process ({side_rounds} rounds of 5 calls each, alternating): "
-                f"{ls:.2f} and {lb:.2f} us, ratio {lb / ls:.2f} "
-                f"(medians {ms:.2f} and {mb:.2f} us, ratio {mb / ms:.2f})"
-            )
-            print(f"S=30: our time per point, {side}")
+            growth, side = _growth_side(small, big, side_rounds)
             growth_txt = f"{side}; timed apart as above: ratio {ub / us:.2f}"
-            # not the check: the same with SETTLE untimed calls first in each block
-            (ls, ms), (lb, mb) = growth_side_by_side(
-                small["track"], big["track"], S=30, rounds=side_rounds, settle=SETTLE
-            )
-            print(
-                f"S=30: our time per point, side by side, each block's first {SETTLE} calls untimed "
-                f"(not the check; see growth_side_by_side): {ls:.2f} and {lb:.2f} us, ratio {lb / ls:.2f} "
-                f"(medians {ms:.2f} and {mb:.2f} us, ratio {mb / ms:.2f})"
-            )
-    checks.append(
-        ("time per point at 30 s grows less than 2x from the smallest to the largest map", growth, growth_txt)
+    return (
+        "time per point at 30 s grows less than 2x from the smallest to the largest map",
+        growth,
+        growth_txt,
     )
+
+
+def summarise(paths: list[Path], timing: Path | None = None, *, side_rounds: int = 0) -> bool:
+    """Print the table, the speed figures and one pass/fail line per "Done means" target of
+    issue #14; returns whether all pass."""
+    recs = _load_records(paths, timing)
+    by: dict[tuple[str, int], list[dict]] = defaultdict(list)
+    for r in recs:
+        by[(r["engine"], int(r["S"]))].append(r)
+    Ss = sorted({s for _, s in by})
+    mean_rmf, med_rmf = _print_table(by)
+    peers = sorted({e for e, _ in by} - {"custom"})
+    checks = _rmf_checks(Ss, peers, mean_rmf, med_rmf)
+    checks.append(_speed_check(Ss, by))
+    checks.append(_growth_check(by, side_rounds))
     print("\nissue #14, done means:")
     for label, ok, txt in checks:
         print(f"  {'PASS' if ok else 'FAIL'}  {label}: {txt}")

@@ -56,7 +56,15 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "bench"))
 
-from bench_service import ServerTree, _uptime, drives, helsinki_map, run_phase, start_server  # noqa: E402
+from bench_service import (  # noqa: E402
+    Phase,
+    ServerTree,
+    _uptime,
+    drives,
+    helsinki_map,
+    run_phase,
+    start_server,
+)
 
 
 # ---------------------------------------------------------------------------------- redis
@@ -130,9 +138,7 @@ def service_run(
         sp.settle(quiet=2.0, timeout=60.0)
         total = args.warmup + args.seconds
         s0 = set_calls(db) if db else 0
-        r = run_phase(
-            port, paced, rate=args.rate, window=1, seconds=total, clients=args.clients, tag="v", server=sp
-        )
+        r = run_phase(port, paced, Phase(args.rate, 1, total, args.clients, "v"), server=sp)
         s1 = set_calls(db) if db else 0
         lat = r["lat"] * 1000.0
         steady = (r["at"] >= args.warmup) & (r["at"] < total)
@@ -149,10 +155,8 @@ def service_run(
             "load": os.getloadavg()[0],
         }
         s0 = set_calls(db) if db else 0
-        r = run_phase(
-            port, peak, rate=None, window=args.window, seconds=args.peak_seconds, clients=args.peak_clients,
-            tag="p", server=sp,
-        )  # fmt: skip
+        phase = Phase(None, args.window, args.peak_seconds, args.peak_clients, "p")
+        r = run_phase(port, peak, phase, server=sp)
         s1 = set_calls(db) if db else 0
         lat = r["lat"] * 1000.0
         out["peak"] = {

@@ -742,7 +742,8 @@ def load_graph(folder: Path, cache: Path | None) -> RoadGraph:
     return graph
 
 
-def main() -> int:
+def parse_args() -> argparse.Namespace:
+    """The command line of this bench."""
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--tracks", nargs="*", default=None, help="track folder names (default: all)")
     ap.add_argument("--rates", nargs="*", type=float, default=None, help="Hz (default: 1 and 10)")
@@ -765,7 +766,73 @@ def main() -> int:
     )
     ap.add_argument("--save-fixes", type=Path, default=None, help="--calibration: write the per-fix table")
     ap.add_argument("--load-fixes", type=Path, default=None, help="--calibration: read it instead of running")
-    args = ap.parse_args()
+    return ap.parse_args()
+
+
+def run_drives(names: list[str], cfg: MatchConfig, args: argparse.Namespace) -> list[dict[str, object]]:
+    """Every track's drive at each rate, GPS-only and with the outages: one printed row each."""
+    rows: list[dict[str, object]] = []
+    for name in names:
+        folder = KUBICKA / name
+        t0 = time.perf_counter()
+        graph = load_graph(folder, args.map_cache)
+        matcher = OnlineMatcher(graph, config=cfg)
+        if not rows:  # warm-up: compile the kernels before anything is timed
+            run_drive(matcher, real_drive(graph, folder, rate_hz=1.0, outages=True, seed=0))
+        print(f"# {name}: {graph.n_edges} edges, built in {time.perf_counter() - t0:.1f} s", flush=True)
+        for rate in args.rates:
+            for outages in (False, True) if not args.no_gps_only else (True,):
+                row = run_one(graph, matcher, folder, rate=rate, outages=outages, seed=int(name))
+                rows.append(row)
+                print(
+                    f"{name} {rate:4.0f} Hz outages {row['outages']}: fixes {row['fixes']}, "
+                    f"junctions {row['jn_gps_live']}/{row['jn_gps']} gps, "
+                    f"{row['jn_out_live']}/{row['jn_out']} "
+                    f"outage (live); correct road {_pct(row['ok_live'], row['scored'])} live, "  # type: ignore[arg-type]
+                    f"{_pct(row['ok_fin'], row['scored'])} corrected (of {row['scored']} scored); "  # type: ignore[arg-type]
+                    f"outage end {_q(row['end_live'])}",  # type: ignore[arg-type]
+                    flush=True,
+                )
+    return rows
+
+
+def print_rows(rows: list[dict[str, object]], *, docs: bool) -> None:
+    """The table summed over drives and the per-fix update time (``docs``: also as a fragment)."""
+    print("\n## REAL GPS (Kubicka), summed over drives\n")
+    print(table(rows))
+    us = np.concatenate([np.asarray(r["us"]) for r in rows])
+    timing = (
+        f"per-fix update time (in-process, not the speed benchmark): median {np.median(us):.1f} µs, "
+        f"p99 {np.percentile(us, 99):.1f} µs, {len(us)} fixes"
+    )
+    print(f"\n{timing}")
+    if docs:
+        from report import run_header, write_fragment
+
+        fragment = f"{run_header()}{table(rows)}\n\n{timing}."
+        print(f"wrote {write_fragment('online_real', fragment)}")
+
+
+def print_breakdown(rows: list[dict[str, object]]) -> None:
+    """The wrong-road fixes by class, per rate, GPS-only or with outages, live and corrected."""
+    for tag in ("live", "fin"):
+        for hz, with_out in sorted({(float(r["hz"]), bool(r["outages"])) for r in rows}):  # type: ignore[arg-type]
+            kinds: dict[str, int] = {}
+            n = 0
+            for r in rows:
+                if r["hz"] != hz or bool(r["outages"]) != with_out:
+                    continue
+                n += int(r["scored"])  # type: ignore[call-overload]
+                for k, v in r[f"breakdown_{tag}"].items():  # type: ignore[attr-defined]
+                    kinds[k] = kinds.get(k, 0) + v
+            what = "with outages" if with_out else "GPS only"
+            print(f"\n## wrong-road fixes by class, {hz:g} Hz {what}, {tag}, of {n} scored fixes")
+            for k, v in sorted(kinds.items(), key=lambda kv: -kv[1]):
+                print(f"{v:7d} {100.0 * v / max(n, 1):5.2f} %  {k}")
+
+
+def run(args: argparse.Namespace) -> int:
+    """Check the options, then run the mode asked for; the exit status."""
     try:
         cfg = DEFAULT_CONFIG.with_settings(args.set)
     except ConfigError as exc:
@@ -795,61 +862,20 @@ def main() -> int:
 
             print(f"wrote {write_fragment('cv_online', run_header() + text)}")
         return 0
-    rows: list[dict[str, object]] = []
-    for name in names:
-        folder = KUBICKA / name
-        t0 = time.perf_counter()
-        graph = load_graph(folder, args.map_cache)
-        matcher = OnlineMatcher(graph, config=cfg)
-        if not rows:  # warm-up: compile the kernels before anything is timed
-            run_drive(matcher, real_drive(graph, folder, rate_hz=1.0, outages=True, seed=0))
-        print(f"# {name}: {graph.n_edges} edges, built in {time.perf_counter() - t0:.1f} s", flush=True)
-        for rate in args.rates:
-            for outages in (False, True) if not args.no_gps_only else (True,):
-                row = run_one(graph, matcher, folder, rate=rate, outages=outages, seed=int(name))
-                rows.append(row)
-                print(
-                    f"{name} {rate:4.0f} Hz outages {row['outages']}: fixes {row['fixes']}, "
-                    f"junctions {row['jn_gps_live']}/{row['jn_gps']} gps, "
-                    f"{row['jn_out_live']}/{row['jn_out']} "
-                    f"outage (live); correct road {_pct(row['ok_live'], row['scored'])} live, "  # type: ignore[arg-type]
-                    f"{_pct(row['ok_fin'], row['scored'])} corrected (of {row['scored']} scored); "  # type: ignore[arg-type]
-                    f"outage end {_q(row['end_live'])}",  # type: ignore[arg-type]
-                    flush=True,
-                )
-    print("\n## REAL GPS (Kubicka), summed over drives\n")
-    print(table(rows))
-    us = np.concatenate([np.asarray(r["us"]) for r in rows])
-    timing = (
-        f"per-fix update time (in-process, not the speed benchmark): median {np.median(us):.1f} µs, "
-        f"p99 {np.percentile(us, 99):.1f} µs, {len(us)} fixes"
-    )
-    print(f"\n{timing}")
-    if args.docs:
-        from report import run_header, write_fragment
-
-        fragment = f"{run_header()}{table(rows)}\n\n{timing}."
-        print(f"wrote {write_fragment('online_real', fragment)}")
+    rows = run_drives(names, cfg, args)
+    print_rows(rows, docs=args.docs)
     if args.breakdown:
-        for tag in ("live", "fin"):
-            for hz, with_out in sorted({(float(r["hz"]), bool(r["outages"])) for r in rows}):  # type: ignore[arg-type]
-                kinds: dict[str, int] = {}
-                n = 0
-                for r in rows:
-                    if r["hz"] != hz or bool(r["outages"]) != with_out:
-                        continue
-                    n += int(r["scored"])  # type: ignore[call-overload]
-                    for k, v in r[f"breakdown_{tag}"].items():  # type: ignore[attr-defined]
-                        kinds[k] = kinds.get(k, 0) + v
-                what = "with outages" if with_out else "GPS only"
-                print(f"\n## wrong-road fixes by class, {hz:g} Hz {what}, {tag}, of {n} scored fixes")
-                for k, v in sorted(kinds.items(), key=lambda kv: -kv[1]):
-                    print(f"{v:7d} {100.0 * v / max(n, 1):5.2f} %  {k}")
+        print_breakdown(rows)
     if args.json:
         for r in rows:
             r.pop("us")
         args.json.write_text(json.dumps(rows, indent=1, default=str))
     return 0
+
+
+def main() -> int:
+    """Parse the command line and run the bench."""
+    return run(parse_args())
 
 
 if __name__ == "__main__":

@@ -175,7 +175,8 @@ def peers(pbf: Path, tmp: Path) -> dict[str, tuple[float, float]]:
     return out
 
 
-def main() -> None:
+def _maps() -> tuple[Path, list[tuple[str, Path]]]:
+    """The largest shared Kubicka map's folder, and the maps to build: (label, source)."""
     from tests.conftest import KUBICKA, OSM_DIR, helsinki_pbf
 
     largest = max(
@@ -188,6 +189,106 @@ def main() -> None:
         (f"Kubicka {largest.name} GIS", largest / "roads.geojson"),
         (f"Kubicka {largest.name} PBF", largest / "map.osm.pbf"),
     ]
+    return largest, maps
+
+
+def _first_use(tmp: Path) -> Path:
+    """Build a tiny map twice from an empty numba cache; print both times; return the cache."""
+    # first use: every kernel compiled from an empty cache
+    cache = tmp / "numba-cache"
+    c = child(
+        COMPILE,
+        str(ROOT / "tests" / "data" / "prep_tiny.osm"),
+        env=dict(os.environ, NUMBA_CACHE_DIR=str(cache)),
+    )
+    w = child(
+        COMPILE,
+        str(ROOT / "tests" / "data" / "prep_tiny.osm"),
+        env=dict(os.environ, NUMBA_CACHE_DIR=str(cache)),
+    )
+    print(
+        f"first build with an empty numba cache: {c.get('first_build_s', float('nan')):.1f} s; "
+        f"again: {w.get('first_build_s', float('nan')):.2f} s (tiny map; the build compiles no kernels)"
+    )
+    return cache
+
+
+def _grids(tmp: Path) -> list[tuple[str, Path]]:
+    """Write the synthetic grids of about 300k and 1M directed edges."""
+    grids = []
+    for n, label in ((275, "grid 300k"), (500, "grid 1M")):
+        src = tmp / f"grid{n}.parquet"
+        subprocess.run(
+            [sys.executable, "-c", GRID, str(src), str(n)], cwd=ROOT, check=True, capture_output=True
+        )
+        grids.append((f"synthetic {label}", src))
+    return grids
+
+
+def _build_and_load(name: str, src: Path, tmp: Path) -> dict[str, object] | None:
+    """Build ``src`` and load the map, each in a fresh process; print its row (or why not)."""
+    if not src.exists():
+        print(f"{name:<24} missing: {src}")
+        return None
+    out = tmp / (src.name + ".map")
+    b = child(BUILD, str(src), str(out))
+    if "error" in b:
+        print(f"{name:<24} build failed: {b['error']}")
+        return None
+    ld = child(LOAD, str(out))
+    if "error" in ld:
+        print(f"{name:<24} load failed: {ld['error']}")
+        return None
+    mb = dict(b.get("step_mb", {}))  # type: ignore[call-overload]
+    steps = " ".join(
+        f"{k} {v} s/{mb.get(k, 0)} MB"
+        for k, v in dict(b["steps"]).items()  # type: ignore[call-overload]
+        if k != "total"
+    )
+    print(
+        f"{name:<24} {src.stat().st_size / 1e6:9.2f} {b['build_s']:7.2f} {b['rss_mb']:7.0f} "
+        f"{out.stat().st_size / 1e6:6.2f} {ld['load_s']:7.3f} {ld['index_s']:7.3f} "
+        f"{b['nodes']:8d} {b['edges']:8d} {b['pieces']:8d} {b['km']:8.1f}  {steps}"
+    )
+    assert not ld["osmnx"] and not ld["networkx"]
+    return b
+
+
+def _peer_lines(largest: Path, tmp: Path, ours: dict[str, object] | None) -> None:
+    """Prepare the largest Kubicka PBF with the peers; print their time and peak against ours."""
+    pbf = largest / "map.osm.pbf"
+    try:
+        pr = peers(pbf, tmp)
+    except (RuntimeError, subprocess.CalledProcessError, StopIteration) as exc:
+        print(f"peers failed: {exc}")
+        pr = {}
+    if not pr:
+        print(f"peers: no venvs in {PEER_VENVS} (run ../shared/peers/setup.sh)")
+    for eng, (s, m) in pr.items():
+        label = f"{eng} prep {pbf.parent.name} PBF"
+        line = f"{label:<24} {pbf.stat().st_size / 1e6:9.2f} {s:7.2f} {m:7.0f}"
+        if ours:
+            line += (
+                f"   ours/theirs: time {float(ours['build_s']) / s:.2f}x, "  # type: ignore[arg-type]
+                f"peak {float(ours['rss_mb']) / m:.2f}x"  # type: ignore[arg-type]
+            )
+        print(line)
+
+
+def _footer() -> None:
+    """The load average at the end and what each column means."""
+    load = os.getloadavg()
+    print(f"load average at end: {load[0]:.1f} {load[1]:.1f} {load[2]:.1f}")
+    print("build s: build_map in a fresh process (imports excluded); peak MB: that process (ru_maxrss);")
+    print("steps: seconds and peak RSS (sampled every 2 ms) of each build step, imports included;")
+    print("load s: load_map in a fresh process, all checksums verified; index s: EdgeIndex(graph) after it;")
+    print("peers: wall time and peak RSS of their preparation commands, same file, same run.")
+    print(f"load needs neither osmnx nor networkx. Python {sys.version.split()[0]}.")
+
+
+def main() -> None:
+    """Build, load and time every map (and the peers' preparation), one table row each."""
+    largest, maps = _maps()
     load = os.getloadavg()
     print(f"load average at start: {load[0]:.1f} {load[1]:.1f} {load[2]:.1f} on {os.cpu_count()} cores")
     head = (
@@ -196,84 +297,19 @@ def main() -> None:
     )
     with tempfile.TemporaryDirectory() as tmp_name:
         tmp = Path(tmp_name)
-        # first use: every kernel compiled from an empty cache
-        cache = tmp / "numba-cache"
-        c = child(
-            COMPILE,
-            str(ROOT / "tests" / "data" / "prep_tiny.osm"),
-            env=dict(os.environ, NUMBA_CACHE_DIR=str(cache)),
-        )
-        w = child(
-            COMPILE,
-            str(ROOT / "tests" / "data" / "prep_tiny.osm"),
-            env=dict(os.environ, NUMBA_CACHE_DIR=str(cache)),
-        )
-        print(
-            f"first build with an empty numba cache: {c.get('first_build_s', float('nan')):.1f} s; "
-            f"again: {w.get('first_build_s', float('nan')):.2f} s (tiny map; the build compiles no kernels)"
-        )
+        cache = _first_use(tmp)
         if "--skip-grid" not in sys.argv:
-            for n, label in ((275, "grid 300k"), (500, "grid 1M")):
-                src = tmp / f"grid{n}.parquet"
-                subprocess.run(
-                    [sys.executable, "-c", GRID, str(src), str(n)], cwd=ROOT, check=True, capture_output=True
-                )
-                maps.append((f"synthetic {label}", src))
+            maps += _grids(tmp)
         print(head)
         rows = {}
         for name, src in maps:
-            if not src.exists():
-                print(f"{name:<24} missing: {src}")
-                continue
-            out = tmp / (src.name + ".map")
-            b = child(BUILD, str(src), str(out))
-            if "error" in b:
-                print(f"{name:<24} build failed: {b['error']}")
-                continue
-            ld = child(LOAD, str(out))
-            if "error" in ld:
-                print(f"{name:<24} load failed: {ld['error']}")
-                continue
-            rows[name] = b
-            mb = dict(b.get("step_mb", {}))  # type: ignore[call-overload]
-            steps = " ".join(
-                f"{k} {v} s/{mb.get(k, 0)} MB"
-                for k, v in dict(b["steps"]).items()  # type: ignore[call-overload]
-                if k != "total"
-            )
-            print(
-                f"{name:<24} {src.stat().st_size / 1e6:9.2f} {b['build_s']:7.2f} {b['rss_mb']:7.0f} "
-                f"{out.stat().st_size / 1e6:6.2f} {ld['load_s']:7.3f} {ld['index_s']:7.3f} "
-                f"{b['nodes']:8d} {b['edges']:8d} {b['pieces']:8d} {b['km']:8.1f}  {steps}"
-            )
-            assert not ld["osmnx"] and not ld["networkx"]
+            b = _build_and_load(name, src, tmp)
+            if b is not None:
+                rows[name] = b
         if "--skip-peers" not in sys.argv:
-            pbf = largest / "map.osm.pbf"
-            try:
-                pr = peers(pbf, tmp)
-            except (RuntimeError, subprocess.CalledProcessError, StopIteration) as exc:
-                print(f"peers failed: {exc}")
-                pr = {}
-            if not pr:
-                print(f"peers: no venvs in {PEER_VENVS} (run ../shared/peers/setup.sh)")
-            ours = rows.get(f"Kubicka {largest.name} PBF")
-            for eng, (s, m) in pr.items():
-                label = f"{eng} prep {pbf.parent.name} PBF"
-                line = f"{label:<24} {pbf.stat().st_size / 1e6:9.2f} {s:7.2f} {m:7.0f}"
-                if ours:
-                    line += (
-                        f"   ours/theirs: time {float(ours['build_s']) / s:.2f}x, "  # type: ignore[arg-type]
-                        f"peak {float(ours['rss_mb']) / m:.2f}x"  # type: ignore[arg-type]
-                    )
-                print(line)
+            _peer_lines(largest, tmp, rows.get(f"Kubicka {largest.name} PBF"))
         shutil.rmtree(cache, ignore_errors=True)
-    load = os.getloadavg()
-    print(f"load average at end: {load[0]:.1f} {load[1]:.1f} {load[2]:.1f}")
-    print("build s: build_map in a fresh process (imports excluded); peak MB: that process (ru_maxrss);")
-    print("steps: seconds and peak RSS (sampled every 2 ms) of each build step, imports included;")
-    print("load s: load_map in a fresh process, all checksums verified; index s: EdgeIndex(graph) after it;")
-    print("peers: wall time and peak RSS of their preparation commands, same file, same run.")
-    print(f"load needs neither osmnx nor networkx. Python {sys.version.split()[0]}.")
+    _footer()
 
 
 if __name__ == "__main__":

@@ -48,6 +48,7 @@ import subprocess
 import sys
 import threading
 import time
+from dataclasses import dataclass
 from importlib import resources
 from pathlib import Path
 from types import SimpleNamespace
@@ -336,29 +337,49 @@ def client_process(args: tuple[Any, ...]) -> None:
     )
 
 
-def run_phase(
-    port: int,
-    vehicles: list[list[Any]],
-    *,
-    rate: float | None,
-    window: int,
-    seconds: float,
-    clients: int,
-    tag: str,
-    batch: int = 1,
-    server: Any = None,
-    rss_at: tuple[float, ...] = (),
-) -> dict[str, Any]:
+@dataclass(frozen=True)
+class Phase:
+    """One load phase: how the client processes drive the server.
+
+    Attributes
+    ----------
+    rate : float or None
+        Fixes per second per stream; ``None`` sends as fast as answered.
+    window : int
+        Fixes (or batches) in flight per stream.
+    seconds : float
+        How long the clients send.
+    clients : int
+        Client processes the streams are shared among.
+    tag : str
+        Prefix of the vehicle ids.
+    batch : int
+        Vehicles per gateway (``StreamFixBatches``); 1 streams each vehicle alone.
+    rss_at : tuple of float
+        Seconds into the phase at which to sample the online server's RSS.
+    """
+
+    rate: float | None
+    window: int
+    seconds: float
+    clients: int
+    tag: str
+    batch: int = 1
+    rss_at: tuple[float, ...] = ()
+
+
+def run_phase(port: int, vehicles: list[list[Any]], phase: Phase, *, server: Any = None) -> dict[str, Any]:
     """Run client processes; they connect, wait for a common start, then load the server."""
     ctx = mp.get_context("spawn")
     queue = ctx.Queue()
     ready, start = ctx.Semaphore(0), ctx.Event()
-    ser = [(f"{tag}-{i}", [f.SerializeToString() for f in fx]) for i, fx in enumerate(vehicles)]
-    per = math.ceil(len(ser) / clients)
-    parts = [ser[k * per : (k + 1) * per] for k in range(clients)]
+    ser = [(f"{phase.tag}-{i}", [f.SerializeToString() for f in fx]) for i, fx in enumerate(vehicles)]
+    per = math.ceil(len(ser) / phase.clients)
+    parts = [ser[k * per : (k + 1) * per] for k in range(phase.clients)]
     procs = [
         ctx.Process(
-            target=client_process, args=((port, p, rate, window, seconds, batch, queue, (ready, start)),)
+            target=client_process,
+            args=((port, p, phase.rate, phase.window, phase.seconds, phase.batch, queue, (ready, start)),),
         )
         for p in parts
     ]
@@ -370,7 +391,7 @@ def run_phase(
     c0, w0 = (sum(server.cpu_times()[:2]) if server else 0.0), time.perf_counter()
     o0 = server.cpu_of("server") if server else 0.0
     mid: dict[float, int] = {}
-    for at in rss_at if server is not None else ():  # the online server's RSS at these seconds
+    for at in phase.rss_at if server is not None else ():  # the online server's RSS at these seconds
         threading.Timer(at, lambda at=at: mid.setdefault(at, server.rss_of("server"))).start()
     results = [queue.get() for _ in procs]
     c1, w1 = (sum(server.cpu_times()[:2]) if server else 0.0), time.perf_counter()
@@ -563,10 +584,8 @@ def start_server(
 def phase1(args: argparse.Namespace, port: int, sp: Any, paced: list[list[Any]], rss0: int) -> None:
     """Paced load: every stream at ``--rate`` Hz; latency, RSS growth and CPU per update."""
     total = args.warmup + args.seconds
-    r = run_phase(
-        port, paced, rate=args.rate, window=1, seconds=total, clients=args.clients, tag="v", server=sp,
-        rss_at=(args.warmup, args.rss_steady),
-    )  # fmt: skip
+    phase = Phase(args.rate, 1, total, args.clients, "v", rss_at=(args.warmup, args.rss_steady))
+    r = run_phase(port, paced, phase, server=sp)
     rss1 = sp.rss_of("server")
     lat = r["lat"] * 1000.0
     steady = (r["at"] >= args.warmup) & (r["at"] < total)
@@ -673,9 +692,7 @@ def phase4(args: argparse.Namespace, port: int, sp: Any, paced: list[list[Any]])
     time.sleep(2.0)  # the first match is under way
     rss0, b0 = sp.rss_of("server"), sp.rss_of("batch")
     total = args.warmup + args.seconds
-    r = run_phase(
-        port, paced, rate=args.rate, window=1, seconds=total, clients=args.clients, tag="m", server=sp
-    )
+    r = run_phase(port, paced, Phase(args.rate, 1, total, args.clients, "m"), server=sp)
     rss1, b1 = sp.rss_of("server"), sp.rss_of("batch")
     stop.set()
     out = queue.get()
@@ -698,7 +715,8 @@ def phase4(args: argparse.Namespace, port: int, sp: Any, paced: list[list[Any]])
     _cpu_lines(r)
 
 
-def main() -> int:
+def parse_args() -> argparse.Namespace:
+    """The command line of this bench."""
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--vehicles", type=int, default=200)
     ap.add_argument("--rate", type=float, default=10.0, help="fixes per second per vehicle")
@@ -729,8 +747,58 @@ def main() -> int:
         default="",
         help="phases to skip, e.g. 23 (1: paced, 2: peak, 3: batched peak, 4: big match)",
     )
-    args = ap.parse_args()
+    return ap.parse_args()
 
+
+def phase2(args: argparse.Namespace, port: int, sp: Any, peak: list[list[Any]]) -> None:
+    """Peak load: every stream keeps ``--window`` fixes in flight."""
+    r2 = run_phase(port, peak, Phase(None, args.window, args.peak_seconds, args.peak_clients, "p"), server=sp)
+    lat2 = r2["lat"] * 1000.0
+    print("\n## phase 2: peak (as fast as answered)")
+    print(f"streams / in flight each  {args.vehicles} / {args.window}, {args.peak_clients} client processes")
+    print(f"updates answered          {r2['n']} in {r2['elapsed']:.1f} s")
+    print(f"errors                    {r2['errors']}")
+    print(f"peak updates/s            {r2['n'] / r2['elapsed']:.0f}  (target >= 5000 per process)")
+    if len(lat2):
+        print(f"latency p50 / p99         {np.percentile(lat2, 50):.2f} / {np.percentile(lat2, 99):.2f} ms")
+    _cpu_lines(r2)
+
+
+def phase3(args: argparse.Namespace, port: int, sp: Any, peak: list[list[Any]]) -> None:
+    """Batched peak load: fleet gateways of ``--batch`` vehicles, 2 batches in flight each."""
+    phase = Phase(None, 2, args.peak_seconds, args.peak_clients, "b", batch=args.batch)
+    r3 = run_phase(port, peak, phase, server=sp)
+    lat3 = r3["lat"] * 1000.0
+    print("\n## phase 3: peak, batched (StreamFixBatches: fleet gateways)")
+    n_gw = math.ceil(args.vehicles / args.batch)
+    print(f"gateways x vehicles each  {n_gw} x {args.batch}, 2 batches in flight each")
+    print(f"updates answered          {r3['n']} in {r3['elapsed']:.1f} s")
+    print(f"errors                    {r3['errors']}")
+    print(f"peak updates/s            {r3['n'] / r3['elapsed']:.0f}  (target >= 5000 per process)")
+    if len(lat3):
+        print(f"batch latency p50 / p99   {np.percentile(lat3, 50):.2f} / {np.percentile(lat3, 99):.2f} ms")
+    _cpu_lines(r3)
+
+
+def run_phases(
+    args: argparse.Namespace, port: int, sp: Any, streams: tuple[list[list[Any]], list[list[Any]]], rss0: int
+) -> None:
+    """The phases ``--skip`` leaves, then the server's end state (``streams``: paced, peak drives)."""
+    paced, peak = streams
+    if "1" not in args.skip:
+        phase1(args, port, sp, paced, rss0)
+    if "4" not in args.skip:
+        phase4(args, port, sp, paced)
+    if "2" in args.skip and "3" in args.skip:
+        return
+    phase2(args, port, sp, peak)
+    phase3(args, port, sp, peak)
+    print(f"server RSS end            {sp.memory_info().rss / 2**20:.1f} MiB")
+    print(f"load average after        {os.getloadavg()[0]:.2f}")
+
+
+def run(args: argparse.Namespace) -> int:
+    """Generate the drives, start the server, run the phases, stop the server."""
     map_path = helsinki_map()
     steps = int((args.warmup + args.seconds) * args.rate) + 10
     peak_steps = int(args.peak_seconds * 2000.0 / max(args.vehicles, 1)) + 2000
@@ -759,60 +827,7 @@ def main() -> int:
             f"shared with other jobs (load average {os.getloadavg()[0]:.2f})",
             flush=True,
         )
-        if "1" not in args.skip:
-            phase1(args, port, sp, paced, rss0)
-        if "4" not in args.skip:
-            phase4(args, port, sp, paced)
-        if "2" in args.skip and "3" in args.skip:
-            return 0
-        r2 = run_phase(
-            port,
-            peak,
-            rate=None,
-            window=args.window,
-            seconds=args.peak_seconds,
-            clients=args.peak_clients,
-            tag="p",
-            server=sp,
-        )
-        lat2 = r2["lat"] * 1000.0
-        print("\n## phase 2: peak (as fast as answered)")
-        print(
-            f"streams / in flight each  {args.vehicles} / {args.window}, {args.peak_clients} client processes"
-        )
-        print(f"updates answered          {r2['n']} in {r2['elapsed']:.1f} s")
-        print(f"errors                    {r2['errors']}")
-        print(f"peak updates/s            {r2['n'] / r2['elapsed']:.0f}  (target >= 5000 per process)")
-        if len(lat2):
-            print(
-                f"latency p50 / p99         {np.percentile(lat2, 50):.2f} / {np.percentile(lat2, 99):.2f} ms"
-            )
-        _cpu_lines(r2)
-        r3 = run_phase(
-            port,
-            peak,
-            rate=None,
-            window=2,
-            seconds=args.peak_seconds,
-            clients=args.peak_clients,
-            tag="b",
-            batch=args.batch,
-            server=sp,
-        )
-        lat3 = r3["lat"] * 1000.0
-        print("\n## phase 3: peak, batched (StreamFixBatches: fleet gateways)")
-        n_gw = math.ceil(args.vehicles / args.batch)
-        print(f"gateways x vehicles each  {n_gw} x {args.batch}, 2 batches in flight each")
-        print(f"updates answered          {r3['n']} in {r3['elapsed']:.1f} s")
-        print(f"errors                    {r3['errors']}")
-        print(f"peak updates/s            {r3['n'] / r3['elapsed']:.0f}  (target >= 5000 per process)")
-        if len(lat3):
-            print(
-                f"batch latency p50 / p99   {np.percentile(lat3, 50):.2f} / {np.percentile(lat3, 99):.2f} ms"
-            )
-        _cpu_lines(r3)
-        print(f"server RSS end            {sp.memory_info().rss / 2**20:.1f} MiB")
-        print(f"load average after        {os.getloadavg()[0]:.2f}")
+        run_phases(args, port, sp, (paced, peak), rss0)
     finally:
         proc.terminate()
         try:
@@ -820,6 +835,11 @@ def main() -> int:
         except subprocess.TimeoutExpired:
             proc.kill()
     return 0
+
+
+def main() -> int:
+    """Parse the command line and run the bench."""
+    return run(parse_args())
 
 
 if __name__ == "__main__":

@@ -113,13 +113,83 @@ def sweep(graph: RoadGraph, *, seeds: int) -> None:
             )
 
 
-def main() -> None:
+def parse_args() -> argparse.Namespace:
+    """The command line of this bench."""
     ap = argparse.ArgumentParser(description=__doc__)
     ap.add_argument("--seeds", type=int, default=3)
     ap.add_argument("--rate", type=int, choices=(1, 10), default=1)
     ap.add_argument("--map")
     ap.add_argument("--sweep", action="store_true", help="sweep GPS σ and fused rate instead")
-    args = ap.parse_args()
+    return ap.parse_args()
+
+
+def one_seed(
+    graph: RoadGraph, seed: int, rate: int, times: dict[str, float]
+) -> tuple[np.ndarray, list[tuple], float]:
+    """One random 40 km drive through the paper's outages: the fused error with GPS, one row
+    per outage, the simulated seconds; adds each part's time to ``times``."""
+    rows: list[tuple] = []
+    rng = np.random.default_rng(1000 + seed)
+    t = time.perf_counter()
+    route = random_route(graph, length_m=40_000.0, rng=rng)
+    times["route"] += time.perf_counter() - t
+    t = time.perf_counter()
+    traj = drive_profile(graph, route, rng=rng)
+    times["profile"] += time.perf_counter() - t
+    t = time.perf_counter()
+    raw = simulate_sensors(traj, rng=rng, outages=PAPER_OUTAGES)
+    times["sensors"] += time.perf_counter() - t
+    t = time.perf_counter()
+    res = run_filter(raw)
+    out = fused_stream(res, rate=float(rate))
+    times["filter"] += time.perf_counter() - t
+    tx = np.interp(out.time, traj.t, traj.x)
+    ty = np.interp(out.time, traj.t, traj.y)
+    err = np.hypot(out.x - tx, out.y - ty)
+    in_out = np.zeros(len(out.time), dtype=bool)
+    for a, d in PAPER_OUTAGES:
+        in_out |= (out.time >= a) & (out.time < a + d)
+    valid = err[~in_out & (out.time > 10)]
+    b0, b1 = np.degrees(raw.true_gyro_bias[[0, -1]])
+    print(
+        f"seed {seed}: {route.length / 1000:.1f} km, {traj.duration / 60:.1f} min, "
+        f"{len(traj.t)} gyro samples, gyro bias {b0:+.2f} deg/s, "
+        f"odometer scale {raw.true_odo_scale:+.3f}; "
+        f"estimated bias at end {np.degrees(res.state[-1, 3]):+.2f} (true {b1:+.2f})"
+    )
+    for k, (a, d) in enumerate(PAPER_OUTAGES, start=1):
+        if a + d > traj.duration:
+            continue
+
+        def at(sec: float, a: float = a, tt: np.ndarray = out.time, ee: np.ndarray = err) -> float:
+            return float(np.interp(a + sec, tt, ee))
+
+        dist = float(np.interp(a + d, traj.t, traj.dist) - np.interp(a, traj.t, traj.dist))
+        e_end = at(d - 1.0 / rate)
+        rows.append((seed, k, d, at(0.0), at(10.0), at(30.0), e_end, dist, 100.0 * e_end / max(dist, 1.0)))
+    return valid, rows, traj.duration
+
+
+def report(rate: int, valid_err: list[np.ndarray], rows: list[tuple]) -> None:
+    """Print the fused error with GPS and the error table of the outages."""
+    e = np.concatenate(valid_err)
+    print()
+    print(f"fused position error with GPS ({rate} Hz, {len(e)} fixes): mean {e.mean():.2f} m, "
+          f"median {np.median(e):.2f} m, p95 {np.percentile(e, 95):.2f} m, max {e.max():.2f} m")  # fmt: skip
+    print()
+    print("error in GPS outages (m): seed outage dur | start  +10s  +30s  end | driven m  end/driven")
+    for s, k, d, e0, e10, e30, ee, dist, pct in rows:
+        print(
+            f"  {s:4d} {k:6d} {d:4.0f}s | {e0:5.1f} {e10:5.1f} {e30:5.1f} {ee:5.1f} | "
+            f"{dist:8.0f}  {pct:5.2f} %"
+        )
+    arr = np.array([r[3:] for r in rows])
+    print(f"  mean                 | {arr[:, 0].mean():5.1f} {arr[:, 1].mean():5.1f} {arr[:, 2].mean():5.1f} "
+          f"{arr[:, 3].mean():5.1f} | {arr[:, 4].mean():8.0f}  {arr[:, 5].mean():5.2f} %")  # fmt: skip
+
+
+def run(args: argparse.Namespace) -> None:
+    """Load the map, then sweep or simulate ``--seeds`` drives and report."""
     t0 = time.perf_counter()
     graph = load(args.map)
     print(f"map: {graph.n_nodes} nodes, {graph.n_edges} edges ({time.perf_counter() - t0:.1f} s)")
@@ -132,68 +202,23 @@ def main() -> None:
     run_filter(simulate_sensors(tr, rng=np.random.default_rng(99)))
 
     valid_err: list[np.ndarray] = []
-    rows = []
+    rows: list[tuple] = []
     times = {"route": 0.0, "profile": 0.0, "sensors": 0.0, "filter": 0.0}
     total_s = 0.0
     for seed in range(args.seeds):
-        rng = np.random.default_rng(1000 + seed)
-        t = time.perf_counter()
-        route = random_route(graph, length_m=40_000.0, rng=rng)
-        times["route"] += time.perf_counter() - t
-        t = time.perf_counter()
-        traj = drive_profile(graph, route, rng=rng)
-        times["profile"] += time.perf_counter() - t
-        t = time.perf_counter()
-        raw = simulate_sensors(traj, rng=rng, outages=PAPER_OUTAGES)
-        times["sensors"] += time.perf_counter() - t
-        t = time.perf_counter()
-        res = run_filter(raw)
-        out = fused_stream(res, rate=float(args.rate))
-        times["filter"] += time.perf_counter() - t
-        total_s += traj.duration
-        tx = np.interp(out.time, traj.t, traj.x)
-        ty = np.interp(out.time, traj.t, traj.y)
-        err = np.hypot(out.x - tx, out.y - ty)
-        in_out = np.zeros(len(out.time), dtype=bool)
-        for a, d in PAPER_OUTAGES:
-            in_out |= (out.time >= a) & (out.time < a + d)
-        valid_err.append(err[~in_out & (out.time > 10)])
-        b0, b1 = np.degrees(raw.true_gyro_bias[[0, -1]])
-        print(
-            f"seed {seed}: {route.length / 1000:.1f} km, {traj.duration / 60:.1f} min, "
-            f"{len(traj.t)} gyro samples, gyro bias {b0:+.2f} deg/s, "
-            f"odometer scale {raw.true_odo_scale:+.3f}; "
-            f"estimated bias at end {np.degrees(res.state[-1, 3]):+.2f} (true {b1:+.2f})"
-        )
-        for k, (a, d) in enumerate(PAPER_OUTAGES, start=1):
-            if a + d > traj.duration:
-                continue
-
-            def at(sec: float, a: float = a, tt: np.ndarray = out.time, ee: np.ndarray = err) -> float:
-                return float(np.interp(a + sec, tt, ee))
-
-            dist = float(np.interp(a + d, traj.t, traj.dist) - np.interp(a, traj.t, traj.dist))
-            e_end = at(d - 1.0 / args.rate)
-            rows.append(
-                (seed, k, d, at(0.0), at(10.0), at(30.0), e_end, dist, 100.0 * e_end / max(dist, 1.0))
-            )
-    e = np.concatenate(valid_err)
-    print()
-    print(f"fused position error with GPS ({args.rate} Hz, {len(e)} fixes): mean {e.mean():.2f} m, "
-          f"median {np.median(e):.2f} m, p95 {np.percentile(e, 95):.2f} m, max {e.max():.2f} m")  # fmt: skip
-    print()
-    print("error in GPS outages (m): seed outage dur | start  +10s  +30s  end | driven m  end/driven")
-    for s, k, d, e0, e10, e30, ee, dist, pct in rows:
-        print(
-            f"  {s:4d} {k:6d} {d:4.0f}s | {e0:5.1f} {e10:5.1f} {e30:5.1f} {ee:5.1f} | "
-            f"{dist:8.0f}  {pct:5.2f} %"
-        )
-    arr = np.array([r[3:] for r in rows])
-    print(f"  mean                 | {arr[:, 0].mean():5.1f} {arr[:, 1].mean():5.1f} {arr[:, 2].mean():5.1f} "
-          f"{arr[:, 3].mean():5.1f} | {arr[:, 4].mean():8.0f}  {arr[:, 5].mean():5.2f} %")  # fmt: skip
+        valid, seed_rows, seconds = one_seed(graph, seed, args.rate, times)
+        valid_err.append(valid)
+        rows += seed_rows
+        total_s += seconds
+    report(args.rate, valid_err, rows)
     print()
     sim_h = total_s / 3600.0
     print("time per simulated hour: " + ", ".join(f"{k} {v / sim_h:.2f} s" for k, v in times.items()))
+
+
+def main() -> None:
+    """Parse the command line and run the bench."""
+    run(parse_args())
 
 
 if __name__ == "__main__":

@@ -145,7 +145,7 @@ def batch_record(graph: Any, track: Any) -> list[Any]:
 # ------------------------------------------------------------------ drives
 def service_drives() -> Iterator[Drive]:
     """The fixes the service tests stream (on their 3x3 city map)."""
-    from online_helpers import drive
+    from online_helpers import DriveSpec, drive
     from service_util import city
 
     amap = city()
@@ -160,7 +160,7 @@ def service_drives() -> Iterator[Drive]:
         ("abefcb", {"speed": 10.0, "dt": 1.0, "noise": 4.0, "seed": 11, "heading_noise": 8.0}),
     ]
     for route, kw in plans:
-        yield (f"city-{route}", lambda route=route, kw=kw: (amap.graph, drive(amap, route, **kw)))
+        yield (f"city-{route}", lambda route=route, kw=kw: (amap.graph, drive(amap, route, DriveSpec(**kw))))
 
 
 _MAPS: dict[str, Any] = {}
@@ -235,7 +235,7 @@ def drive_set(which: str) -> list[Drive]:
 
 def batch_cases(which: str) -> Iterator[tuple[str, Callable[[], tuple[Any, Any]]]]:
     """Batch matches: the service tests' city track, an ASCII-test map, Kubicka tracks."""
-    from online_helpers import drive
+    from online_helpers import DriveSpec, drive
     from service_util import city
 
     from mapmatch.types import Track
@@ -243,7 +243,7 @@ def batch_cases(which: str) -> Iterator[tuple[str, Callable[[], tuple[Any, Any]]
     amap = city()
 
     def city_track(route: str, noise: float) -> tuple[Any, Any]:
-        fx = drive(amap, route, speed=10.0, dt=2.0, noise=noise, seed=3)
+        fx = drive(amap, route, DriveSpec(speed=10.0, dt=2.0, noise=noise, seed=3))
         return amap.graph, Track(route, np.array([f.time for f in fx]), np.array([f.lat for f in fx]),
                                  np.array([f.lon for f in fx]))  # fmt: skip
 

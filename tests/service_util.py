@@ -61,9 +61,9 @@ def requests(fixes: list[Fix], vehicle: str, map_id: str = "", seq0: int = 0) ->
 
 def looped_track(amap: AsciiMap, n: int, track_id: str = "t") -> pb.Track:
     """An ``n``-point track at 1 Hz, driving a loop of the city over and over."""
-    from online_helpers import drive
+    from online_helpers import DriveSpec, drive
 
-    fixes = drive(amap, "abcfedghd", speed=10.0, dt=1.0)
+    fixes = drive(amap, "abcfedghd", DriveSpec(speed=10.0, dt=1.0))
     k = len(fixes)
     return pb.Track(
         track_id=track_id,

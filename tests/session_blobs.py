@@ -6,7 +6,7 @@ from __future__ import annotations
 import gzip
 from pathlib import Path
 
-from online_helpers import drive
+from online_helpers import DriveSpec, drive
 from service_util import city
 
 from mapmatch.online import OnlineMatcher
@@ -19,8 +19,10 @@ def drives() -> tuple[OnlineMatcher, list[list[Fix]]]:
     """A matcher on the city map and two drives: one GPS-aided; one losing GPS for a stretch
     and then wandering 80 m off the road."""
     amap = city()
-    plain = drive(amap, "abefc", speed=10.0, dt=1.0, noise=1.5, seed=7, sigma=3.0)
-    wander = drive(amap, "abefcd", speed=12.0, dt=1.0, noise=6.0, seed=11, sigma=2.0, heading_noise=8.0)
+    plain = drive(amap, "abefc", DriveSpec(speed=10.0, dt=1.0, noise=1.5, seed=7, sigma=3.0))
+    wander = drive(
+        amap, "abefcd", DriveSpec(speed=12.0, dt=1.0, noise=6.0, seed=11, sigma=2.0, heading_noise=8.0)
+    )
     for i, f in enumerate(wander):
         if 8 <= i < 20:  # dead reckoning only
             wander[i] = f._replace(gps_valid=False)

@@ -22,7 +22,7 @@ from mapmatch.cli import EXIT_CONNECT, EXIT_OK, EXIT_PARTIAL, EXIT_USAGE, build_
 from mapmatch.io import write_tracks
 from mapmatch.parallel import parts_dir_for
 from mapmatch.types import Track
-from tests.online_helpers import drive
+from tests.online_helpers import DriveSpec, drive
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -45,7 +45,7 @@ def cross(tmp_path: Path) -> tuple[AsciiMap, Path]:
 def fixes_csv(m: AsciiMap, path: Path, *, bad: bool = False, header: str = "") -> Path:
     cols = header or "vehicle_id,time,lat,lon,heading,pos_sigma,speed,distance,gps_valid"
     lines = [cols]
-    for f in drive(m, "abs", speed=8, noise=1.0, seed=1):
+    for f in drive(m, "abs", DriveSpec(speed=8, noise=1.0, seed=1)):
         dist = "" if np.isnan(f.distance) else f"{f.distance:.3f}"
         lines.append(f"car-1,{f.time},{f.lat:.8f},{f.lon:.8f},{f.heading:.2f},4.0,{f.speed},{dist},1")
     if bad:

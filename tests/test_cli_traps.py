@@ -22,7 +22,7 @@ from graph.ascii import AsciiMap, parse_ascii_map
 from mapmatch.cli import EXIT_OK, EXIT_PARTIAL, EXIT_USAGE, main
 from mapmatch.io import MAX_COLUMNS, MAX_LINE_BYTES, MAX_QUOTE, write_tracks
 from mapmatch.types import Track
-from tests.online_helpers import drive
+from tests.online_helpers import DriveSpec, drive
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -45,7 +45,7 @@ def cross(tmp_path: Path) -> tuple[AsciiMap, Path]:
 
 def fixes_lines(m: AsciiMap, vid: str = "car-1", *, swap: bool = False, t0: float = 0.0) -> list[str]:
     out = []
-    for f in drive(m, "abs", speed=8, noise=1.0, seed=1, t0=t0):
+    for f in drive(m, "abs", DriveSpec(speed=8, noise=1.0, seed=1, t0=t0)):
         dist = "" if np.isnan(f.distance) else f"{f.distance:.3f}"
         lat, lon = (f.lon, f.lat) if swap else (f.lat, f.lon)
         out.append(f"{vid},{f.time},{lat:.8f},{lon:.8f},{f.heading:.2f},4.0,{f.speed},{dist},1")
@@ -149,7 +149,7 @@ def test_replay_swapped_lat_lon_exits_1_and_explains(
 
 def test_replay_reads_gpx_and_parquet_as_match_does(cross: tuple[AsciiMap, Path], tmp_path: Path) -> None:
     m, map_path = cross
-    fixes = drive(m, "abs", speed=8, noise=1.0, seed=1, t0=1.7e9)
+    fixes = drive(m, "abs", DriveSpec(speed=8, noise=1.0, seed=1, t0=1.7e9))
     track = Track(
         "drive",
         np.array([f.time for f in fixes]),
@@ -271,7 +271,7 @@ def _drive_page(m: AsciiMap, out: Path) -> Path:
 
     from mapmatch.plots import draw_html, plot_data
 
-    fixes = drive(m, "abs", speed=8, noise=1.0, seed=1)
+    fixes = drive(m, "abs", DriveSpec(speed=8, noise=1.0, seed=1))
     frame = pd.DataFrame({"time": [f.time for f in fixes], "lat": [f.lat for f in fixes],
                           "lon": [f.lon for f in fixes]})  # fmt: skip
     matched = frame.assign(state="on_road", edge=m.edge("a", "b"))

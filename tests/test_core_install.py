@@ -16,7 +16,7 @@ import pandas as pd
 from graph.artifact import save_map
 from graph.extras import PREP_MODULES
 from mapmatch.io import write_tracks
-from tests.online_helpers import drive
+from tests.online_helpers import DriveSpec, drive
 from tests.service_util import city
 from tests.test_match_cli import make_tracks
 from tests.test_replay import fix_rows, write_fixes
@@ -76,7 +76,9 @@ def test_core_path_imports_no_extra(tmp_path: Path) -> None:
     save_map(m.graph, tmp_path / "city.map")
     tracks = make_tracks(m, 3)
     write_tracks(tmp_path / "fleet.csv", tracks)
-    write_fixes(tmp_path / "fixes.csv", fix_rows("car-1", drive(m, "abc", speed=8, noise=1.0, seed=1)))
+    write_fixes(
+        tmp_path / "fixes.csv", fix_rows("car-1", drive(m, "abc", DriveSpec(speed=8, noise=1.0, seed=1)))
+    )
     t = tracks[0]
     code = CHILD.format(blocked=BLOCKED, lat=[float(x) for x in t.lat[:4]], lon=[float(x) for x in t.lon[:4]])
     env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")])}

@@ -31,6 +31,7 @@ import threading
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
 import pytest
@@ -184,18 +185,28 @@ def _wait_at(t: float) -> None:
     time.sleep(max(0.0, t - time.monotonic()))
 
 
-def test_a_killed_server_and_a_stopped_one_lose_no_vehicle(tmp_path: Path) -> None:
-    if not KUBICKA.is_dir():
-        pytest.skip(reason(KUBICKA))
-    maps, vehicles, reference = _fleet(tmp_path)
-    with redis_server(tmp_path / "redis") as rport:
+class Failover(NamedTuple):
+    """What the failover run did and saw."""
+
+    servers: list[tuple[subprocess.Popen[str], int, Path]]
+    killed: int  # port of the server killed with SIGKILL
+    held: dict[int, list[Vehicle]]  # vehicles per server just before the kill
+    records: list[bytes | None]  # the killed server's vehicles' store records just before the kill
+    kill_at: float
+    stopped: int  # port of the server stopped with SIGTERM
+    held2: dict[int, list[Vehicle]]  # vehicles per server left just before the stop
+
+
+def _run_failover(folder: Path, maps: dict[str, Path], vehicles: list[Vehicle]) -> Failover:
+    """Stream every vehicle through nginx to 3 servers; SIGKILL one, later SIGTERM another."""
+    with redis_server(folder / "redis") as rport:
         db = redis.Redis(port=rport)
-        servers = _start_servers(maps, f"redis://127.0.0.1:{rport}/0", tmp_path, 3)
+        servers = _start_servers(maps, f"redis://127.0.0.1:{rport}/0", folder, 3)
         procs = {p: s for s, p, _ in servers}
         try:
             ports = [p for _, p, _ in servers]
             checksums = {m: _checksum(ports[0], m) for m in maps}
-            with nginx(tmp_path / "nginx", [f"127.0.0.1:{p}" for p in ports]) as lb:
+            with nginx(folder / "nginx", [f"127.0.0.1:{p}" for p in ports]) as lb:
                 client = MapMatchClient(f"127.0.0.1:{lb}")
                 t0 = time.monotonic() + 1.0
                 threads = [threading.Thread(target=_drive, args=(client, v, t0)) for v in vehicles]
@@ -228,6 +239,56 @@ def test_a_killed_server_and_a_stopped_one_lose_no_vehicle(tmp_path: Path) -> No
                 proc.wait(30)
         db.close()
 
+    return Failover(servers, killed, held, records, kill_at, stopped, held2)
+
+
+def _kill_lags(run: Failover) -> list[int]:
+    """Per vehicle of the killed server: answered fixes newer than its record, before the kill."""
+    lags = []
+    for v, rec in zip(run.held[run.killed], run.records, strict=True):
+        assert rec is not None, v.vid
+        t_rec = float(json.loads(unpack(rec)[0])["time"])
+        answered = zip(v.answers, v.answered_at, strict=True)
+        lags.append(sum(1 for a, at in answered if at < run.kill_at and a.fix.time > t_rec))
+    return lags
+
+
+def _assert_as_in_one_process(
+    vehicles: list[Vehicle],
+    left: tuple[list[Vehicle], list[Vehicle]],
+    reference: dict[str, list[int]],
+    lags: list[int],
+) -> None:
+    """The vehicles no server left (``left``: the killed server's, the stopped one's) are one
+    process's, fix for fix; the affected drives' correct-road rate stays within 0.2 points of
+    one process's."""
+    affected, moved = left
+    for v in vehicles:
+        if v not in affected and v not in moved:
+            assert [a.result.edge for a in v.answers] == reference[v.vid], v.vid
+    touched = [v for v in vehicles if v in affected or v in moved]
+    got = np.sum([_rate(v, [a.result.edge for a in v.answers]) for v in touched], axis=0)
+    ref = np.sum([_rate(v, reference[v.vid]) for v in touched], axis=0)
+    same = sum(
+        1 for v in touched for a, r in zip(v.answers, reference[v.vid], strict=True) if a.result.edge == r
+    )
+    print(
+        f"\nfailover: {len(affected)} of {len(vehicles)} vehicles on the killed server, {len(moved)} on the "
+        f"stopped one; {sum(v.resent for v in touched)} fixes resent; records at most {max(lags)} fixes "
+        f"behind at the kill; correct road {100.0 * got[0] / got[1]:.2f} % against "
+        f"{100.0 * ref[0] / ref[1]:.2f} % in one process; {same} of {FIXES * len(touched)} answers "
+        "as in one process"
+    )
+    assert abs(100.0 * got[0] / got[1] - 100.0 * ref[0] / ref[1]) <= 0.2, (got, ref)
+
+
+def test_a_killed_server_and_a_stopped_one_lose_no_vehicle(tmp_path: Path) -> None:
+    if not KUBICKA.is_dir():
+        pytest.skip(reason(KUBICKA))
+    maps, vehicles, reference = _fleet(tmp_path)
+    run = _run_failover(tmp_path, maps, vehicles)
+    servers, killed, held, held2, stopped = run.servers, run.killed, run.held, run.held2, run.stopped
+    affected = held[killed]
     moved = held2[stopped]
     assert affected and moved and len({v.vid for ps in held.values() for v in ps}) == len(vehicles)
     assert len({v.vid for ps in held2.values() for v in ps}) == len(vehicles)
@@ -245,32 +306,9 @@ def test_a_killed_server_and_a_stopped_one_lose_no_vehicle(tmp_path: Path) -> No
     assert counts[stopped]["handed_over"] >= len(moved)  # the stop wrote its vehicles before it ended
     # the SIGKILL lost at most the checkpoint interval's worth of fixes (replayed by the clients)
     allowed = math.ceil(INTERVAL * RATE) + 2
-    lags = []
-    for v, rec in zip(affected, records, strict=True):
-        assert rec is not None, v.vid
-        t_rec = float(json.loads(unpack(rec)[0])["time"])
-        answered = zip(v.answers, v.answered_at, strict=True)
-        lags.append(sum(1 for a, at in answered if at < kill_at and a.fix.time > t_rec))
+    lags = _kill_lags(run)
     assert max(lags) <= allowed, lags
-    # the vehicles no server left are one process's, fix for fix
-    for v in vehicles:
-        if v not in affected and v not in moved:
-            assert [a.result.edge for a in v.answers] == reference[v.vid], v.vid
-    # the affected drives' correct-road rate stays within 0.2 points of one process's
-    touched = [v for v in vehicles if v in affected or v in moved]
-    got = np.sum([_rate(v, [a.result.edge for a in v.answers]) for v in touched], axis=0)
-    ref = np.sum([_rate(v, reference[v.vid]) for v in touched], axis=0)
-    same = sum(
-        1 for v in touched for a, r in zip(v.answers, reference[v.vid], strict=True) if a.result.edge == r
-    )
-    print(
-        f"\nfailover: {len(affected)} of {len(vehicles)} vehicles on the killed server, {len(moved)} on the "
-        f"stopped one; {sum(v.resent for v in touched)} fixes resent; records at most {max(lags)} fixes "
-        f"behind at the kill; correct road {100.0 * got[0] / got[1]:.2f} % against "
-        f"{100.0 * ref[0] / ref[1]:.2f} % in one process; {same} of {FIXES * len(touched)} answers "
-        "as in one process"
-    )
-    assert abs(100.0 * got[0] / got[1] - 100.0 * ref[0] / ref[1]) <= 0.2, (got, ref)
+    _assert_as_in_one_process(vehicles, (affected, moved), reference, lags)
 
 
 def _checksum(port: int, map_id: str) -> str:

@@ -18,7 +18,7 @@ import grpc
 import pytest
 from failover_util import free_port, redis_server
 from grpc_health.v1 import health_pb2, health_pb2_grpc
-from online_helpers import drive
+from online_helpers import DriveSpec, drive
 from service_util import city, local_config, requests, running, stub
 
 from mapmatch.online import OnlineMatcher
@@ -34,7 +34,7 @@ from service.store_checkpoints import STORE_HEALTH
 redis = pytest.importorskip("redis", reason="needs the redis client: pip install 'mapmatch[redis]'")
 
 AMAP = city()
-FIXES = drive(AMAP, "abcfedghd", speed=10.0, dt=1.0, sigma=3.0)  # 40-odd fixes round the city
+FIXES = drive(AMAP, "abcfedghd", DriveSpec(speed=10.0, dt=1.0, sigma=3.0))  # 40-odd fixes round the city
 
 
 @pytest.fixture(scope="module")

@@ -7,7 +7,7 @@ import math
 from typing import Any
 
 import pytest
-from online_helpers import drive
+from online_helpers import DriveSpec, drive
 from service_util import city
 
 from mapmatch.errors import ValidationError
@@ -20,7 +20,7 @@ AMAP = city()
 def _session() -> tuple[OnlineMatcher, SessionState, list[Any]]:
     m = OnlineMatcher(AMAP.graph)
     st = m.new_session()
-    fixes = drive(AMAP, "abefc", speed=10.0, dt=1.0, noise=1.5, seed=7, sigma=3.0)
+    fixes = drive(AMAP, "abefc", DriveSpec(speed=10.0, dt=1.0, noise=1.5, seed=7, sigma=3.0))
     for i, f in enumerate(fixes):  # into an ambiguous region: hypotheses, live fixes, a trail
         m.update(st, f)
         if len(st.hyps) > 1 and len(st.live) > 1 and len(st.trail) > 2:

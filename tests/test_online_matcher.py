@@ -15,7 +15,7 @@ from mapmatch.config import DEFAULT_CONFIG
 from mapmatch.errors import ValidationError
 from mapmatch.online import OnlineMatcher, SessionState
 from mapmatch.types import Fix, SnapResult, State, Turn
-from tests.online_helpers import drive
+from tests.online_helpers import DriveSpec, drive
 
 CROSS = """
         n
@@ -63,7 +63,7 @@ def test_startup_without_heading_settles_on_the_direction_of_travel() -> None:
     matcher = OnlineMatcher(m.graph)
     fixes = [
         Fix(time=f.time, lat=f.lat, lon=f.lon, distance=f.distance, speed=f.speed)
-        for f in drive(m, "ab", speed=8)
+        for f in drive(m, "ab", DriveSpec(speed=8))
     ]
     res = run(matcher, fixes)
     assert res[0].state is State.INITIALISING
@@ -79,7 +79,7 @@ def test_startup_without_heading_settles_on_the_direction_of_travel() -> None:
 def test_startup_with_heading_is_on_road_at_once() -> None:
     m = parse_ascii_map(CROSS, scale=10)
     matcher = OnlineMatcher(m.graph)
-    res = run(matcher, drive(m, "cb", speed=10)[:3])
+    res = run(matcher, drive(m, "cb", DriveSpec(speed=10))[:3])
     assert res[0].state is State.ON_ROAD
     assert res[0].edge == m.edge("c", "b")
     assert res[0].bearing == pytest.approx(270.0)
@@ -88,7 +88,7 @@ def test_startup_with_heading_is_on_road_at_once() -> None:
 def test_between_intersections_projects_onto_the_current_edge_only() -> None:
     m = parse_ascii_map("a---------------------------------b", scale=10)
     matcher = OnlineMatcher(m.graph)
-    fixes = drive(m, "ab", speed=10, noise=3.0, seed=3)
+    fixes = drive(m, "ab", DriveSpec(speed=10, noise=3.0, seed=3))
     st = matcher.new_session()
     first = matcher.update(st, fixes[0])
     assert first.edge == m.edge("a", "b")
@@ -112,7 +112,7 @@ def test_between_intersections_projects_onto_the_current_edge_only() -> None:
 def test_turns_at_a_crossing(route: str, turn: Turn) -> None:
     m = parse_ascii_map(CROSS, scale=10)
     matcher = OnlineMatcher(m.graph)
-    res = run(matcher, drive(m, route, speed=8, noise=2.0, seed=7, heading_noise=3.0))
+    res = run(matcher, drive(m, route, DriveSpec(speed=8, noise=2.0, seed=7, heading_noise=3.0)))
     assert committed_edges(res) == [m.edge(route[0], route[1]), m.edge(route[1], route[2])]
     turns = [r.turn for r in res if r.turn is not Turn.NONE]
     assert turns == [turn]
@@ -133,7 +133,7 @@ def test_ambiguous_then_corrected_on_leaving() -> None:
     b, c, d = m.xy("b"), m.xy("c"), m.xy("d")
     east = (c - b) / np.linalg.norm(c - b)
     diag = (d - b) / np.linalg.norm(d - b)
-    fixes = drive(m, "ab", speed=8)
+    fixes = drive(m, "ab", DriveSpec(speed=8))
     t = fixes[-1].time
     pts = [(b + 8 * diag, 153.4)] + [(b + s * east, 90.0) for s in (16, 24, 32, 40)]
     for i, (p, hd) in enumerate(pts):
@@ -161,9 +161,9 @@ c-----------------------d
 
 
 def _jump_to_cd(m: AsciiMap) -> list[Fix]:
-    on_ab = drive(m, "ab", speed=10)[:8]
+    on_ab = drive(m, "ab", DriveSpec(speed=10))[:8]
     # from t=8 the fixes run along c-d (40 m away): far beyond 4 sigma of a-b
-    return on_ab + drive(m, "cd", speed=10, t0=on_ab[-1].time + 1, start_offset=80.0)
+    return on_ab + drive(m, "cd", DriveSpec(speed=10, t0=on_ab[-1].time + 1, start_offset=80.0))
 
 
 def test_reinitialises_when_the_fix_stays_off_the_road() -> None:
@@ -205,7 +205,7 @@ def test_one_way_is_never_matched_against_its_direction() -> None:
         scale=10,
     )
     matcher = OnlineMatcher(m.graph)
-    fixes = drive(m, "ba", speed=10, sigma=10.0)
+    fixes = drive(m, "ba", DriveSpec(speed=10, sigma=10.0))
     res = run(matcher, fixes)
     assert all(r.edge != m.edge("a", "b") for r in res)
     assert all(r.edge == m.edge("d", "c") for r in res)
@@ -227,7 +227,7 @@ def test_turn_restriction_decides_an_even_fork(kind: str, expected: str) -> None
     pts = [tuple(m.xy("a")), tuple(b), tuple(b + np.array([14.0, 14.0]))]
     fixes = [
         Fix(time=f.time, lat=f.lat, lon=f.lon, distance=f.distance, speed=f.speed)
-        for f in drive(m, "", points=pts, speed=5)  # type: ignore[arg-type]
+        for f in drive(m, "", DriveSpec(speed=5), points=pts)  # type: ignore[arg-type]
     ]
     res = run(matcher, fixes)
     after = [r.edge for r in res if r.edge not in (m.edge("a", "b"), m.edge("b", "a"))]
@@ -244,12 +244,12 @@ def test_u_turn_at_a_dead_end_and_at_a_crossing() -> None:
         scale=10,
     )
     matcher = OnlineMatcher(m.graph)
-    res = run(matcher, drive(m, "abcba", speed=8, noise=1.5, seed=2))
+    res = run(matcher, drive(m, "abcba", DriveSpec(speed=8, noise=1.5, seed=2)))
     seq = committed_edges(res)
     assert seq == [m.edge("a", "b"), m.edge("b", "c"), m.edge("c", "b"), m.edge("b", "a")]
     assert [r.turn for r in res if r.turn is not Turn.NONE] == [Turn.STRAIGHT, Turn.U_TURN, Turn.STRAIGHT]
     # U-turn at the crossing b itself (legal, penalised)
-    res = run(matcher, drive(m, "aba", speed=6, noise=1.0, seed=4))
+    res = run(matcher, drive(m, "aba", DriveSpec(speed=6, noise=1.0, seed=4)))
     assert committed_edges(res) == [m.edge("a", "b"), m.edge("b", "a")]
     assert [r.turn for r in res if r.turn is not Turn.NONE] == [Turn.U_TURN]
 
@@ -268,8 +268,8 @@ def test_gps_outage_carries_the_vehicle_by_distance() -> None:
         scale=10,
     )
     matcher = OnlineMatcher(m.graph)
-    truth = drive(m, "abc", speed=10)
-    ahead = drive(m, "abc", speed=11.5)  # dead reckoning runs 15 % ahead ...
+    truth = drive(m, "abc", DriveSpec(speed=10))
+    ahead = drive(m, "abc", DriveSpec(speed=11.5))  # dead reckoning runs 15 % ahead ...
     ab = m.edge("a", "b")
     fixes = truth[:5]
     for i in range(5, len(ahead)):
@@ -292,7 +292,7 @@ def test_gps_outage_carries_the_vehicle_by_distance() -> None:
 def test_dead_reckoning_at_10_hz_follows_the_odometer_not_a_lagging_fix() -> None:
     m = parse_ascii_map("a----------------------------------------b", scale=10)
     matcher = OnlineMatcher(m.graph)
-    truth = drive(m, "ab", speed=10, dt=0.1)
+    truth = drive(m, "ab", DriveSpec(speed=10, dt=0.1))
     fixes = truth[:50]
     for i in range(50, len(truth)):
         # the dead-reckoning fix runs 10 % slow: 0.1 m a step, far below any per-step tolerance
@@ -324,7 +324,7 @@ def test_dead_reckoning_turn_re_anchors_the_distance_carried() -> None:
         scale=10,
     )
     matcher = OnlineMatcher(m.graph)
-    truth = drive(m, "abc", speed=10)
+    truth = drive(m, "abc", DriveSpec(speed=10))
     bc = m.edge("b", "c")
     fixes = truth[:3]
     for f in truth[3:]:  # GPS lost: the odometer over-reads by 8 %
@@ -350,7 +350,7 @@ def test_far_off_fix_is_off_road_and_keeps_tracking() -> None:
     m = parse_ascii_map(CROSS, scale=10)
     matcher = OnlineMatcher(m.graph)
     st = matcher.new_session()
-    fixes = drive(m, "abc", speed=10)
+    fixes = drive(m, "abc", DriveSpec(speed=10))
     matcher.update(st, fixes[0])
     r = matcher.update(st, Fix(time=fixes[1].time, lat=10.0, lon=10.0))
     assert r.state is State.OFF_ROAD and r.edge == -1
@@ -361,7 +361,7 @@ def test_validation_errors_leave_the_state_unchanged() -> None:
     m = parse_ascii_map(CROSS, scale=10)
     matcher = OnlineMatcher(m.graph)
     st = matcher.new_session()
-    fixes = drive(m, "abc", speed=10)
+    fixes = drive(m, "abc", DriveSpec(speed=10))
     matcher.update(st, fixes[0])
     matcher.update(st, fixes[1])
     before = st.to_bytes()
@@ -384,7 +384,7 @@ def test_validation_errors_leave_the_state_unchanged() -> None:
 
 def test_state_round_trips_and_moves_between_matchers() -> None:
     m = parse_ascii_map(CROSS, scale=10)
-    fixes = drive(m, "abn", speed=8, noise=2.0, seed=11)
+    fixes = drive(m, "abn", DriveSpec(speed=8, noise=2.0, seed=11))
     one = OnlineMatcher(m.graph)
     ref = run(one, fixes)
     st = one.new_session()
@@ -433,7 +433,7 @@ def test_one_matcher_serves_many_threads() -> None:
     m = parse_ascii_map(CROSS, scale=10)
     matcher = OnlineMatcher(m.graph)
     routes = ["abc", "abn", "abs", "cba", "nbs", "sba", "nbc", "cbs"]
-    drives = [drive(m, r, speed=8, noise=2.0, seed=i) for i, r in enumerate(routes)]
+    drives = [drive(m, r, DriveSpec(speed=8, noise=2.0, seed=i)) for i, r in enumerate(routes)]
     expected = [[(x.edge, x.state, x.turn) for x in run(OnlineMatcher(m.graph), d)] for d in drives]
 
     def go(d: list[Fix]) -> list[tuple[int, State, Turn]]:
@@ -493,7 +493,7 @@ def test_stopped_vehicle_near_a_node_does_not_flip_edges() -> None:
     matcher = OnlineMatcher(m.graph)
     a, b = m.xy("a"), m.xy("b")
     east = (b - a) / np.linalg.norm(b - a)
-    fixes = [f for f in drive(m, "ab", speed=5) if np.dot(m.xy("b") - to_xy_arr(m, f), east) > 8.0]
+    fixes = [f for f in drive(m, "ab", DriveSpec(speed=5)) if np.dot(m.xy("b") - to_xy_arr(m, f), east) > 8.0]
     t = fixes[-1].time
     stop = b - 3.0 * east
     for i, jitter in enumerate([2.0, 5.0, -1.0, 6.0, 4.5, 0.5, 5.5, 3.5, -0.5, 6.5] * 2):
@@ -505,7 +505,7 @@ def test_stopped_vehicle_near_a_node_does_not_flip_edges() -> None:
     loose = run(OnlineMatcher(m.graph, config=DEFAULT_CONFIG.replace(stop_speed=0.0)), fixes)
     assert len({r.edge for r in loose[-20:]}) > 1
     # and it drives on through the crossing afterwards
-    go = drive(m, "bc", speed=5, t0=fixes[-1].time + 1, start_offset=0.0)
+    go = drive(m, "bc", DriveSpec(speed=5, t0=fixes[-1].time + 1, start_offset=0.0))
     st = matcher.new_session()
     out = run(matcher, fixes + go, st)
     assert committed_edges(out) == [m.edge("a", "b"), m.edge("b", "c")]
@@ -540,7 +540,7 @@ def test_fix_past_a_bend_is_not_held_back_at_the_node() -> None:
             speed=f.speed,
             distance=f.distance,
         )
-        for f in drive(m, "ab", speed=5)
+        for f in drive(m, "ab", DriveSpec(speed=5))
     ]
     b, c = m.xy("b"), m.xy("c")
     north = (c - b) / np.linalg.norm(c - b)
@@ -562,7 +562,9 @@ def test_crossing_at_10_hz_is_committed_without_flicker() -> None:
     m = parse_ascii_map(CROSS, scale=10)
     matcher = OnlineMatcher(m.graph)
     for seed in range(4):
-        res = run(matcher, drive(m, "abc", speed=10, dt=0.1, noise=2.0, seed=seed, heading_noise=2.0))
+        res = run(
+            matcher, drive(m, "abc", DriveSpec(speed=10, dt=0.1, noise=2.0, seed=seed, heading_noise=2.0))
+        )
         assert edges_of(res) == [m.edge("a", "b"), m.edge("b", "c")], seed
         assert committed_edges(res) == [m.edge("a", "b"), m.edge("b", "c")]
 
@@ -763,7 +765,7 @@ def test_odometer_scale_is_learnt_between_turns() -> None:
         """,
         scale=30,
     )
-    fixes = drive(m, "abcdabcda", speed=10.0, dt=1.0)
+    fixes = drive(m, "abcdabcda", DriveSpec(speed=10.0, dt=1.0))
     fixes = [f._replace(distance=f.distance * 0.97, speed=9.7) for f in fixes]
     matcher = OnlineMatcher(m.graph)
     st = matcher.new_session()
@@ -837,7 +839,7 @@ def test_vehicle_stopped_at_the_stop_line_is_before_the_crossing() -> None:
     loose = run(OnlineMatcher(m.graph, config=DEFAULT_CONFIG.replace(stop_hold_distance=0.0)), fixes)
     assert [r.edge for r in loose[-15:]] == [bc] * 15
     st = OnlineMatcher(m.graph).new_session()
-    go = drive(m, "bc", speed=5, t0=fixes[-1].time + 1.0, start_offset=5.0)
+    go = drive(m, "bc", DriveSpec(speed=5, t0=fixes[-1].time + 1.0, start_offset=5.0))
     go[0] = go[0]._replace(distance=8.0)
     out = run(OnlineMatcher(m.graph), fixes + go, st)
     assert committed_edges(out) == [ab, bc]
@@ -908,7 +910,7 @@ c-----------------------d
     ab, cd = m.edge("a", "b"), m.edge("c", "d")
     a, b, c = m.xy("a"), m.xy("b"), m.xy("c")
     east = (b - a) / np.linalg.norm(b - a)
-    fixes = [f for f in drive(m, "ab", speed=5) if np.dot(to_xy_arr(m, f) - a, east) < 200.0]
+    fixes = [f for f in drive(m, "ab", DriveSpec(speed=5)) if np.dot(to_xy_arr(m, f) - a, east) < 200.0]
     t = fixes[-1].time
     stop = a + 200.0 * east
     down = c - a
@@ -931,7 +933,8 @@ def test_odometer_scale_is_learnt_from_the_gps_on_a_straight_road() -> None:
     #   a------------------------------------------------------------b   (3 km)
     m = parse_ascii_map("a" + "-" * 59 + "b", scale=50)
     fixes = [
-        f._replace(distance=f.distance * 1.02) for f in drive(m, "ab", speed=20, noise=3.0, seed=4, sigma=5.0)
+        f._replace(distance=f.distance * 1.02)
+        for f in drive(m, "ab", DriveSpec(speed=20, noise=3.0, seed=4, sigma=5.0))
     ]
     st = SessionState()
     run(OnlineMatcher(m.graph), fixes, st)

@@ -18,7 +18,7 @@ from graph.road_graph import Edges, Nodes, RoadGraph
 from mapmatch.config import DEFAULT_CONFIG, MatchConfig
 from mapmatch.online import OnlineMatcher
 from mapmatch.types import Fix, SnapResult
-from tests.online_helpers import drive
+from tests.online_helpers import DriveSpec, drive
 
 # a divided road: two one-way carriageways 20 m apart, with a median opening e-f
 DIVIDED = """
@@ -51,7 +51,7 @@ def run(m: OnlineMatcher, fixes: list[Fix]) -> list[SnapResult]:
 def shifted(amap: AsciiMap, route: str, dx: float, dy: float, **kw: object) -> list[Fix]:
     """Fixes along ``route`` with a constant GPS bias (dx, dy) metres."""
     pts = [tuple(amap.xy(n) + (dx, dy)) for n in route]
-    return drive(amap, route, points=pts, **kw)  # type: ignore[arg-type]
+    return drive(amap, route, DriveSpec(**kw), points=pts)  # type: ignore[arg-type]
 
 
 def final_edges(results: list[SnapResult]) -> list[int]:
@@ -96,7 +96,7 @@ def test_divided_road_with_gps_biased_towards_the_other_carriageway(cfg: MatchCo
 def test_u_turn_across_the_median_opening(cfg: MatchConfig) -> None:
     amap = parse_ascii_map(DIVIDED, scale=10.0)
     m = OnlineMatcher(amap.graph, config=cfg)
-    res = run(m, drive(amap, "aefc", speed=8.0, sigma=4.0, noise=1.5, seed=4))
+    res = run(m, drive(amap, "aefc", DriveSpec(speed=8.0, sigma=4.0, noise=1.5, seed=4)))
     assert final_edges(res)[-2:] == [amap.edge("e", "f"), amap.edge("f", "c")]
     assert res[-1].edge == amap.edge("f", "c")
 
@@ -150,7 +150,7 @@ def test_ten_degree_exit(taken: bool, cfg: MatchConfig) -> None:
     route = "abd" if taken else "abc"
     res = run(
         OnlineMatcher(g, config=cfg),
-        drive(amap, route, speed=25.0, sigma=4.0, noise=2.0, seed=5, heading_noise=1.0),
+        drive(amap, route, DriveSpec(speed=25.0, sigma=4.0, noise=2.0, seed=5, heading_noise=1.0)),
     )
     want = [e["ab"], e["bd"] if taken else e["bc"]]
     assert final_edges(res) == want
@@ -161,7 +161,7 @@ def test_outage_ending_beside_a_parallel_road(cfg: MatchConfig) -> None:
     """Dead reckoning drifts onto the frontage road; the returning fix is on the main road."""
     amap = parse_ascii_map(FRONTAGE, scale=5.0)
     m = OnlineMatcher(amap.graph, config=cfg)
-    fixes = drive(amap, "ab", speed=10.0, sigma=4.0, noise=1.0, seed=6)
+    fixes = drive(amap, "ab", DriveSpec(speed=10.0, sigma=4.0, noise=1.0, seed=6))
     n = len(fixes)
     i0, i1 = n // 4, n // 4 + 15  # 15 s of dead reckoning drifting 1.3 m/s south
     out: list[Fix] = []
@@ -209,7 +209,9 @@ def _wrong_at_fork(
         route = "abd" if taken else "abc"
         other = e["bc"] if taken else e["bd"]
         for seed in range(seeds):
-            fixes = drive(amap, route, speed=speed, sigma=4.0, noise=2.0, seed=seed, heading_noise=1.0)
+            fixes = drive(
+                amap, route, DriveSpec(speed=speed, sigma=4.0, noise=2.0, seed=seed, heading_noise=1.0)
+            )
             res = run(m, _biased(g, fixes, bias if taken else -bias) if bias else fixes)
             n += sum(r.edge == other for r in res)
             if end:

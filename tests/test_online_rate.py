@@ -13,7 +13,7 @@ from graph.ascii import AsciiMap, parse_ascii_map
 from graph.projection import to_lonlat
 from mapmatch.online import OnlineMatcher
 from mapmatch.types import Fix, SnapResult
-from tests.online_helpers import drive
+from tests.online_helpers import DriveSpec, drive
 
 if TYPE_CHECKING:
     from mapmatch.online.state import FixBias, Step
@@ -111,7 +111,7 @@ def _outage_beside(m: AsciiMap) -> tuple[list[Fix], int]:
     short jog b-f away): the matcher follows b-c. The fusion filter then blends the offset out
     slowly: the first fix back keeps 80 % of it (8 m from b-c), each next one half the one
     before. Returns the fixes and the index of the first fix back."""
-    truth = drive(m, "abfd", speed=10, sigma=3.0)
+    truth = drive(m, "abfd", DriveSpec(speed=10, sigma=3.0))
     bx = m.xy("b")[0]
     gap = m.xy("b")[1] - m.xy("f")[1]
     lost = next(i for i, f in enumerate(truth) if _xy(m, f)[0] > bx - 100.0)
@@ -169,7 +169,9 @@ def test_stopped_vehicle_stays_stopped_through_odometer_noise_at_10_hz() -> None
     a, b, n = m.xy("a"), m.xy("b"), m.xy("n")
     east = (b - a) / np.linalg.norm(b - a)
     north = (n - b) / np.linalg.norm(n - b)
-    moving = [f for f in drive(m, "ab", speed=5, dt=0.1) if np.dot(b - np.array(_xy(m, f)), east) > 1.0]
+    moving = [
+        f for f in drive(m, "ab", DriveSpec(speed=5, dt=0.1)) if np.dot(b - np.array(_xy(m, f)), east) > 1.0
+    ]
     t = moving[-1].time
     stop = b - 1.0 * east
     rng = np.random.default_rng(1)
@@ -259,7 +261,9 @@ def test_parked_vehicle_in_an_outage_does_not_creep_forward_at_10_hz() -> None:
     m = parse_ascii_map(CROSSING, scale=10)
     a, b = m.xy("a"), m.xy("b")
     east = (b - a) / np.linalg.norm(b - a)
-    moving = [f for f in drive(m, "ab", speed=5, dt=0.1) if np.dot(b - np.array(_xy(m, f)), east) > 3.0]
+    moving = [
+        f for f in drive(m, "ab", DriveSpec(speed=5, dt=0.1)) if np.dot(b - np.array(_xy(m, f)), east) > 3.0
+    ]
     t = moving[-1].time
     stop = b - 3.0 * east
     rng = np.random.default_rng(2)
@@ -393,7 +397,7 @@ def test_twin_hypothesis_on_the_same_path_is_merged_at_10_hz() -> None:
     from mapmatch.types import State
 
     m = parse_ascii_map("\na--------------------b\n", scale=10)
-    fixes = drive(m, "ab", speed=10, dt=0.1, noise=1.0, seed=3)
+    fixes = drive(m, "ab", DriveSpec(speed=10, dt=0.1, noise=1.0, seed=3))
     matcher = OnlineMatcher(m.graph)
     st = matcher.new_session()
     before = [matcher.update(st, f) for f in fixes[:50]]

@@ -13,7 +13,7 @@ from graph.artifact import save_map
 from graph.ascii import parse_ascii_map
 from mapmatch.cli import main
 from mapmatch.fixes import RESULT_COLUMNS, read_fixes_csv
-from tests.online_helpers import drive
+from tests.online_helpers import DriveSpec, drive
 
 CROSS = """
         n
@@ -53,8 +53,8 @@ def fix_rows(vid: str, fixes: list) -> list[dict[str, object]]:  # type: ignore[
 def test_replay_two_vehicles(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     m = parse_ascii_map(CROSS, scale=10)
     save_map(m.graph, tmp_path / "cross.map")
-    one = fix_rows("car-1", drive(m, "abs", speed=8, noise=1.0, seed=1))
-    two = fix_rows("car-2", drive(m, "cbn", speed=8, noise=1.0, seed=2, t0=100.0))
+    one = fix_rows("car-1", drive(m, "abs", DriveSpec(speed=8, noise=1.0, seed=1)))
+    two = fix_rows("car-2", drive(m, "cbn", DriveSpec(speed=8, noise=1.0, seed=2, t0=100.0)))
     bad = dict(two[3], time=two[2]["time"])  # repeated time: rejected, session continues
     rows = [r for pair in zip(one, two[:3] + [bad] + two[3:], strict=False) for r in pair]
     write_fixes(tmp_path / "fixes.csv", rows)

@@ -11,7 +11,7 @@ import grpc
 import pytest
 from grpc_health.v1 import health_pb2, health_pb2_grpc
 from grpc_reflection.v1alpha import reflection_pb2, reflection_pb2_grpc
-from online_helpers import drive
+from online_helpers import DriveSpec, drive
 from service_util import city, local_config, requests, running, stub
 
 from graph.artifact import save_map
@@ -41,8 +41,8 @@ def _field(err: grpc.RpcError) -> str:
 
 # ---------------------------------------------------------------------------------- online
 def test_stream_one_result_per_fix_in_order_on_the_driven_roads(api):
-    fixes_1 = drive(AMAP, "abc", speed=10.0, dt=1.0, sigma=3.0)
-    fixes_2 = drive(AMAP, "adg", speed=10.0, dt=1.0, sigma=3.0)
+    fixes_1 = drive(AMAP, "abc", DriveSpec(speed=10.0, dt=1.0, sigma=3.0))
+    fixes_2 = drive(AMAP, "adg", DriveSpec(speed=10.0, dt=1.0, sigma=3.0))
     reqs = []  # two vehicles interleaved on one stream
     for pair in itertools.zip_longest(requests(fixes_1, "v1"), requests(fixes_2, "v2", seq0=1000)):
         reqs += [r for r in pair if r is not None]
@@ -72,7 +72,7 @@ def test_stream_one_result_per_fix_in_order_on_the_driven_roads(api):
 
 
 def test_stream_bad_fix_gets_an_error_result_and_the_stream_goes_on(api):
-    fixes = drive(AMAP, "abc", speed=10.0, dt=1.0)
+    fixes = drive(AMAP, "abc", DriveSpec(speed=10.0, dt=1.0))
     reqs = requests(fixes, "bad-stream")
     reqs[3].fix.lat = 123.0  # out of range
     reqs[5].vehicle_id = ""  # missing vehicle
@@ -91,7 +91,7 @@ def test_stream_bad_fix_gets_an_error_result_and_the_stream_goes_on(api):
 
 
 def test_stream_time_going_backwards_is_a_field_error(api):
-    fixes = drive(AMAP, "ab", speed=10.0, dt=1.0)
+    fixes = drive(AMAP, "ab", DriveSpec(speed=10.0, dt=1.0))
     reqs = requests(fixes[:4], "backwards")
     reqs[2].fix.time = reqs[1].fix.time - 5.0
     out = list(api.StreamFixes(iter(reqs), timeout=30))
@@ -100,7 +100,7 @@ def test_stream_time_going_backwards_is_a_field_error(api):
 
 
 def test_unary_fix_is_stateful_by_vehicle(api):
-    fixes = drive(AMAP, "abe", speed=10.0, dt=1.0, sigma=3.0)
+    fixes = drive(AMAP, "abe", DriveSpec(speed=10.0, dt=1.0, sigma=3.0))
     out = [api.SnapFix(r, timeout=10) for r in requests(fixes, "unary-1")]
     # the last fix lies on node e itself, where b-e ends: the one before is well inside b-e
     assert out[-2].result.edge == AMAP.edge("b", "e")
@@ -129,7 +129,7 @@ def test_unary_errors_name_the_field(api):
 
 # ---------------------------------------------------------------------------------- batch
 def _track(route: str, tid: str) -> pb.Track:
-    fixes = drive(AMAP, route, speed=10.0, dt=2.0, noise=2.0, seed=3)
+    fixes = drive(AMAP, route, DriveSpec(speed=10.0, dt=2.0, noise=2.0, seed=3))
     return pb.Track(
         track_id=tid,
         time=[f.time for f in fixes],
@@ -338,7 +338,7 @@ def test_sessions_expire_after_the_ttl():
 
 
 def test_session_moves_between_two_servers_and_continues_identically():
-    fixes = drive(AMAP, "abefc", speed=10.0, dt=1.0, noise=1.5, seed=7, sigma=3.0)
+    fixes = drive(AMAP, "abefc", DriveSpec(speed=10.0, dt=1.0, noise=1.5, seed=7, sigma=3.0))
     reqs = requests(fixes, "mover")
     half = len(reqs) // 2
     with (
@@ -384,7 +384,7 @@ def test_many_vehicles_in_parallel_streams_keep_their_own_order(server):
     def run(k: int) -> None:
         ch, api = stub(port)
         route = ["abc", "adg", "abe", "def"][k % 4]
-        reqs = requests(drive(AMAP, route, dt=0.5), f"par-{k}", seq0=k * 1000)
+        reqs = requests(drive(AMAP, route, DriveSpec(dt=0.5)), f"par-{k}", seq0=k * 1000)
         out = list(api.StreamFixes(iter(reqs), timeout=60))
         if [r.seq for r in out] != [r.seq for r in reqs] or any(r.HasField("error") for r in out):
             errors.append(f"vehicle {k}")
@@ -414,7 +414,7 @@ def test_reuseport_lets_two_servers_share_a_port():
 
 
 def test_convert_round_trips_fixes_and_results():
-    f = drive(AMAP, "ab", sigma=3.0, heading_noise=1.0)[1]
+    f = drive(AMAP, "ab", DriveSpec(sigma=3.0, heading_noise=1.0))[1]
     assert convert.fix_from_proto(convert.fix_to_proto(f)) == f or math.isnan(f.heading_sigma)
     bare = Fix(time=1.0, lat=60.0, lon=25.0, gps_valid=False, pos_cov=(4.0, 1.0, 9.0))
     back = convert.fix_from_proto(convert.fix_to_proto(bare))
@@ -446,15 +446,17 @@ def test_convert_round_trips_fixes_and_results():
 
 
 def test_batched_stream_answers_like_single_streams(api):
-    a = requests(drive(AMAP, "abc", sigma=3.0), "batch-a")
-    b = requests(drive(AMAP, "gda", sigma=3.0), "batch-b")
+    a = requests(drive(AMAP, "abc", DriveSpec(sigma=3.0)), "batch-a")
+    b = requests(drive(AMAP, "gda", DriveSpec(sigma=3.0)), "batch-b")
     n = min(len(a), len(b))
     batches = [pb.FixBatch(fixes=[a[k], b[k]]) for k in range(n)]
     batches[4].fixes[1].fix.lon = 500.0
     out = list(api.StreamFixBatches(iter(batches), timeout=30))
     assert [len(x.responses) for x in out] == [2] * n
     assert out[4].responses[1].error.field == "fix.lon"
-    ref = list(api.StreamFixes(iter(requests(drive(AMAP, "abc", sigma=3.0), "single-a")[:n]), timeout=30))
+    ref = list(
+        api.StreamFixes(iter(requests(drive(AMAP, "abc", DriveSpec(sigma=3.0)), "single-a")[:n]), timeout=30)
+    )
     got = [x.responses[0].result for x in out]
     assert [g.SerializeToString(deterministic=True) for g in got] == [
         r.result.SerializeToString(deterministic=True) for r in ref
@@ -507,7 +509,7 @@ def test_a_matcher_failure_is_internal_for_that_fix_only():
 
 
 def test_fixes_on_the_loop_and_on_the_online_thread_get_the_same_answers():
-    fixes = drive(AMAP, "abcf", speed=10.0, dt=1.0, sigma=3.0)
+    fixes = drive(AMAP, "abcf", DriveSpec(speed=10.0, dt=1.0, sigma=3.0))
     bad = Fix(time=1e9, lat=95.0, lon=0.0)  # rejected: answered with an error naming the field
     answers = []
     for inline in (True, False):

@@ -15,7 +15,7 @@ import grpc
 import numpy as np
 import psutil
 import pytest
-from online_helpers import drive
+from online_helpers import DriveSpec, drive
 from service_util import city, local_config, looped_track, requests, running, stub
 
 from graph.artifact import save_map
@@ -52,7 +52,7 @@ def _cpu(p: psutil.Process) -> float:
 
 def _snap_latencies(port: int, vehicle: str, stop: threading.Event, out: list[float]) -> None:
     ch, api = stub(port)
-    reqs = requests(drive(AMAP, "abcfedghdabc" * 20, speed=10.0, dt=1.0), vehicle)
+    reqs = requests(drive(AMAP, "abcfedghdabc" * 20, DriveSpec(speed=10.0, dt=1.0)), vehicle)
     for r in reqs:
         if stop.is_set():
             break

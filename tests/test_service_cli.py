@@ -16,7 +16,7 @@ from pathlib import Path
 import grpc
 import pytest
 from grpc_health.v1 import health_pb2, health_pb2_grpc
-from online_helpers import drive
+from online_helpers import DriveSpec, drive
 from service_util import city, local_config, requests, running, stub
 
 from graph.artifact import save_map
@@ -255,7 +255,7 @@ def test_a_second_server_on_a_port_in_use_exits_3_also_with_processes(tmp_path):
 def _fixes_csv(path: Path) -> None:
     lines = ["vehicle_id,time,lat,lon,heading,pos_sigma,speed,distance,gps_valid"]
     for vid, route in (("car-1", "abcf"), ("car-2", "gdab")):
-        for f in drive(AMAP, route, speed=10.0, dt=1.0, noise=1.0, seed=len(vid), sigma=3.0):
+        for f in drive(AMAP, route, DriveSpec(speed=10.0, dt=1.0, noise=1.0, seed=len(vid), sigma=3.0)):
             lines.append(f"{vid},{f.time},{f.lat:.8f},{f.lon:.8f},{f.heading:.2f},3.0,{f.speed},10.0,1")
     lines.append("car-1,1000,95.0,24.9,90,3.0,10,10,1")  # a bad fix: rejected, reported
     path.write_text("\n".join(lines) + "\n")

@@ -9,7 +9,7 @@ import time
 import grpc
 import pytest
 from grpc_health.v1 import health_pb2, health_pb2_grpc
-from online_helpers import drive
+from online_helpers import DriveSpec, drive
 from service_util import city, local_config, looped_track, requests, running, stub
 
 from graph.artifact import save_map
@@ -129,7 +129,7 @@ def test_an_undecodable_message_is_answered_and_the_stream_goes_on(map_server):
     _, port = map_server
     ch = grpc.insecure_channel(f"127.0.0.1:{port}")
     garbage = b"\xff\xff\xff\xff\x0f"
-    fixes = drive(AMAP, "abc", speed=10.0, dt=1.0)[:4]
+    fixes = drive(AMAP, "abc", DriveSpec(speed=10.0, dt=1.0))[:4]
     reqs = [r.SerializeToString() for r in requests(fixes, "v9")]
     call = ch.stream_stream(
         "/mapmatch.v1.MapMatch/StreamFixes", response_deserializer=pb.SnapResponse.FromString

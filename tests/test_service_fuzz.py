@@ -9,7 +9,7 @@ import grpc
 import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
-from online_helpers import drive
+from online_helpers import DriveSpec, drive
 from service_util import city, local_config, requests, running, stub
 
 from service.gen import mapmatch_pb2 as pb
@@ -153,7 +153,7 @@ def test_fuzzed_session_blobs(api, blob, data):
         lambda: api.ImportSession(pb.ImportSessionRequest(session=session, replace=True), timeout=10)
     )
     if code is grpc.StatusCode.OK:  # an accepted state must serve the next fixes
-        for r in requests(drive(AMAP, "abc", t0=1000.0)[:3], vid):
+        for r in requests(drive(AMAP, "abc", DriveSpec(t0=1000.0))[:3], vid):
             _code(lambda r=r: api.SnapFix(r, timeout=10))
         api.EndSession(pb.EndSessionRequest(vehicle_id=vid), timeout=10)
 

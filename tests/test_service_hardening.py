@@ -18,7 +18,7 @@ import grpc
 import numpy as np
 import pytest
 from grpc_health.v1 import health_pb2, health_pb2_grpc
-from online_helpers import drive
+from online_helpers import DriveSpec, drive
 from service_util import city, local_config, looped_track, requests, running, stub
 
 from graph.artifact import MAGIC, load_map, save_map
@@ -73,7 +73,7 @@ def test_limits_give_resource_exhausted_naming_the_limit():
 
 def _stream_latencies(port: int, vehicle: str, stop: threading.Event, out: list[float]) -> None:
     ch, api = stub(port)
-    fixes = drive(AMAP, "abcfedghdabc" * 20, speed=10.0, dt=1.0)
+    fixes = drive(AMAP, "abcfedghdabc" * 20, DriveSpec(speed=10.0, dt=1.0))
     reqs = requests(fixes, vehicle)
     i = 0
     while not stop.is_set() and i < len(reqs):
@@ -95,7 +95,7 @@ def test_a_good_stream_keeps_its_latency_during_the_largest_batch_and_track():
         stop = threading.Event()
         busy: list[float] = []
         t = threading.Thread(target=_stream_latencies, args=(port, "busy", stop, busy))
-        fixes = drive(AMAP, "abcfedghd" * 8, speed=5.0, dt=0.5)
+        fixes = drive(AMAP, "abcfedghd" * 8, DriveSpec(speed=5.0, dt=0.5))
         batch = pb.FixBatch(
             fixes=[r for k in range(1000 // len(fixes) + 1) for r in requests(fixes, f"b{k}")][:1000]
         )
@@ -238,7 +238,7 @@ def test_manifest_claiming_a_huge_array_or_a_bad_crs_is_refused_before_allocatin
 def test_a_future_timestamp_restarts_the_session_instead_of_locking_the_vehicle_out():
     with running(local_config(max_time_jump=600.0), {"city": AMAP.graph}) as (_, port):
         ch, api = stub(port)
-        reqs = requests(drive(AMAP, "abc", t0=1000.0), "fut")
+        reqs = requests(drive(AMAP, "abc", DriveSpec(t0=1000.0)), "fut")
         assert api.SnapFix(reqs[0], timeout=5).result.state != pb.STATE_REINITIALISED
         for jump in (86_400.0, 1e308):
             far = pb.FixRequest()

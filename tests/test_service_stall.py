@@ -13,7 +13,7 @@ import json
 import threading
 
 import grpc
-from online_helpers import drive
+from online_helpers import DriveSpec, drive
 from service_util import city, local_config, requests, running, stub
 from stall_util import worst_case_blob
 
@@ -31,7 +31,7 @@ def _field(err: grpc.RpcError) -> str:
 
 def _session(api, vehicle: str) -> pb.SessionBlob:
     """A real session of ``vehicle`` on the server (driven into an ambiguous region), exported."""
-    fixes = drive(AMAP, "abefc", speed=10.0, dt=1.0, noise=1.5, seed=7, sigma=3.0)
+    fixes = drive(AMAP, "abefc", DriveSpec(speed=10.0, dt=1.0, noise=1.5, seed=7, sigma=3.0))
     out = list(api.StreamFixes(iter(requests(fixes[:14], vehicle)), timeout=30))
     assert all(not r.HasField("error") for r in out)
     return api.ExportSession(pb.ExportSessionRequest(vehicle_id=vehicle), timeout=10)
@@ -95,7 +95,7 @@ def test_the_worst_allowed_blob_imports_and_every_stream_is_answered():
         ch, api = stub(port)
         blob = _session(api, "v1")
         worst = worst_case_blob(blob.state, CAPS, n_edges=AMAP.graph.n_edges)
-        fixes = drive(AMAP, "abcfed", speed=10.0, dt=0.02, noise=0.5, seed=3, sigma=3.0)[:400]
+        fixes = drive(AMAP, "abcfed", DriveSpec(speed=10.0, dt=0.02, noise=0.5, seed=3, sigma=3.0))[:400]
         got: list[pb.SnapResponse] = []
         ready = threading.Event()
 
@@ -109,7 +109,7 @@ def test_the_worst_allowed_blob_imports_and_every_stream_is_answered():
         t.start()
         ready.wait(30)
         _import(api, blob, worst, "big")
-        later = drive(AMAP, "abefc", speed=10.0, dt=1.0, t0=14.0, seed=7, sigma=3.0)[14:20]
+        later = drive(AMAP, "abefc", DriveSpec(speed=10.0, dt=1.0, t0=14.0, seed=7, sigma=3.0))[14:20]
         answers = list(api.StreamFixes(iter(requests(later, "big")), timeout=60))
         t.join(120)
         assert len(got) == len(fixes) and not any(r.HasField("error") for r in got)

@@ -10,7 +10,7 @@ import pickle
 from graph.ascii import parse_ascii_map
 from mapmatch.online import OnlineMatcher
 from mapmatch.types import Candidate, Correction, MapAidedMeasurement, SnapResult, State, Turn
-from tests.online_helpers import drive
+from tests.online_helpers import DriveSpec, drive
 
 
 def _values(cls: type) -> dict[str, object]:
@@ -55,7 +55,7 @@ def test_the_matchers_answers_hold_what_their_fields_name() -> None:
     g = amap.graph
     matcher = OnlineMatcher(g)
     state = matcher.new_session()
-    fixes = drive(amap, "abc", speed=10.0, sigma=3.0)
+    fixes = drive(amap, "abc", DriveSpec(speed=10.0, sigma=3.0))
     placed = 0
     for f in fixes:
         r = matcher.update(state, f)
