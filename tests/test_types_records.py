@@ -89,7 +89,7 @@ def test_positional_orders() -> None:
 
     step = ("time", "x", "y", "sigma", "heading", "kappa", "travelled", "odo", "odo_known", "dt", "gps")
     assert tuple(f.name for f in dataclasses.fields(Step))[:14] == (*step, "weight", "stopped", "r_a")
-    placement = ("state", "edge", "offset", "lat", "lon", "bearing", "probability", "since_init")
+    placement = ("state", "edge", "offset", "lat", "lon", "bearing", "probability", "since_init", "beyond")
     assert tuple(f.name for f in dataclasses.fields(Placement)) == placement
     evidence = ("gps", "fix_sigma", "bias_cov", "white_share", "anchor_sd", "odo_sigma", "dr_distance")
     assert tuple(f.name for f in dataclasses.fields(AlongEvidence)) == (*evidence, "gps_sigma")
