@@ -26,6 +26,7 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(ROOT / "tests"))
 PEER_VENVS = Path(os.environ.get("MM_PEERS_VENVS", Path.home() / ".cache" / "mapmatch-peers" / "venvs"))
 
 BUILD = r"""
@@ -177,7 +178,7 @@ def peers(pbf: Path, tmp: Path) -> dict[str, tuple[float, float]]:
 
 def _maps() -> tuple[Path, list[tuple[str, Path]]]:
     """The largest shared Kubicka map's folder, and the maps to build: (label, source)."""
-    from tests.conftest import KUBICKA, OSM_DIR, helsinki_pbf
+    from shared_data import KUBICKA, OSM_DIR, helsinki_pbf
 
     largest = max(
         (p for p in KUBICKA.glob("*/meta.json")), key=lambda p: json.loads(p.read_text()).get("arcs", 0)

