@@ -591,7 +591,12 @@ class OutliersConfig:
         one when visiting it needs more than ``spike_speed`` (the shortest such run; 0: single
         fixes only). Short, as a car cannot turn round at that speed within a few seconds.
     max_skip : fixes in a row that may be left out as unreachable outliers before the track is
-        split.
+        split ...
+    max_skip_time : ... and only once they reach this many seconds after the last fix kept
+        (0: the count alone). A run of fixes judged by its count alone would split a dense
+        track where the same drive sampled sparsely is bridged: the time a vehicle spends off
+        the route's roads is what the fixes tell, whatever their rate. Tracks without times
+        are judged by the count.
     outlier_lookahead : 1: where a fix cannot be reached from the previous kept fix, also try
         leaving out that previous fix instead, and keep whichever choice reaches the next fix
         with the higher score (a stray fix on a side road is dropped, not the good one after
@@ -621,6 +626,7 @@ class OutliersConfig:
     spike_sigmas: float = 3.0
     spike_max_time: float = 5.0
     max_skip: int = 8
+    max_skip_time: float = 60.0
     outlier_lookahead: int = 1
     leave_out_cost: float = 12.5
 

@@ -305,9 +305,43 @@ def test_drift_onto_a_dead_end_is_left_out_rather_than_splitting() -> None:
     status = [p.status for p in r.points]
     assert status[3:6] == [PointStatus.UNMATCHED] * 3
     assert all(s == PointStatus.MATCHED for s in status[:3] + status[6:])
-    # fewer fixes may be left out (max_skip, per call) than drifted: the track splits instead
-    few = BatchMatcher(m.graph).match(track_from_xy(m, pts + drift + on), DEFAULT_CONFIG.replace(max_skip=2))
+    # fewer fixes may be left out (max_skip, per call, judged by the count alone) than drifted:
+    # the track splits instead
+    few = BatchMatcher(m.graph).match(
+        track_from_xy(m, pts + drift + on), DEFAULT_CONFIG.replace(max_skip=2, max_skip_time=0.0)
+    )
     assert few.splits == [6] and [names(m, piece) for piece in few.routes] == [["ab", "bd"], ["bc"]]
+
+
+def test_a_dense_fast_track_off_the_road_for_a_stretch_is_one_piece_as_its_sparse_version() -> None:
+    # a fast road (30 m/s, a fix a second); for 15 s the fixes lie 55 m north of it (beyond
+    # 5 σ: off it), 25 m from a road the route cannot reach (xy, not joined to ab). Fifteen
+    # fixes in a row are unreachable, more than ``max_skip``, but they last 15 s, under
+    # ``max_skip_time``: they are left out and the route bridges them along ab, as it does
+    # for the same drive sampled every 10 s (where one or two fixes lie off the road)
+    m = parse_ascii_map(
+        """
+                                            x--------------------------------------------y
+
+
+
+        a------------------------------------------------------------------------------------------------------------------------b
+        """,
+        scale=10,
+    )
+    pts = [at(m, "a", x, 55 if 450 <= x < 900 else 1) for x in range(0, 1200, 30)]
+    full = BatchMatcher(m.graph).match(track_from_xy(m, pts, dt=1.0))
+    assert [names(m, piece) for piece in full.routes] == [["ab"]] and full.splits == []
+    off = [i for i, p in enumerate(full.points) if p.status != PointStatus.MATCHED]
+    assert off == list(range(15, 30))
+    sparse = BatchMatcher(m.graph).match(track_from_xy(m, pts[::10] + pts[-1:], dt=10.0))
+    assert [names(m, piece) for piece in sparse.routes] == [["ab"]] and sparse.splits == []
+    assert full.length_m == pytest.approx(sparse.length_m, abs=1.0)
+    # judged by the count of fixes alone, the dense track splits where the sparse one does not
+    by_count = DEFAULT_CONFIG.replace(max_skip_time=0.0)
+    count = BatchMatcher(m.graph).match(track_from_xy(m, pts, dt=1.0), by_count)
+    assert [names(m, piece) for piece in count.routes] == [["ab"], ["xy"], ["ab"]]
+    assert count.splits == [15, 30]
 
 
 def test_batch_tuning_constants_are_validated_config_fields() -> None:

@@ -100,6 +100,8 @@ class KernelParams(NamedTuple):
     gap_time: float
     """seconds; 0: time never splits."""
     max_skip: int
+    max_skip_time: float
+    """seconds after the last point kept before ``max_skip`` unreachable points split (0: none)."""
     outlier_lookahead: bool
     """Where a point is unreachable, also try leaving out the one before it."""
     leave_out_cost: float
@@ -162,6 +164,7 @@ def kernel_params(cfg: MatchConfig, sigma: float) -> KernelParams:
         gap_distance=float(b.split.gap_distance) if b.split.gap_distance > 0 else np.inf,
         gap_time=float(b.split.gap_time),
         max_skip=int(b.outliers.max_skip),
+        max_skip_time=float(b.outliers.max_skip_time),
         outlier_lookahead=bool(b.outliers.outlier_lookahead),
         leave_out_cost=float(b.outliers.leave_out_cost),
         reverse_tol=float(b.route.reverse_tolerance),

@@ -224,7 +224,7 @@ def reconsider_prev(prev, t, nskip, s0, sr, fw):  # type: ignore[no-untyped-def]
     if not p.outlier_lookahead or fw.seg_start[prev]:
         return
     q = fw.prev_pt[prev]
-    if nskip > 1 and leave_out_prev(q, s0, t, sr):
+    if 1 < nskip <= p.max_skip and leave_out_prev(q, s0, t, sr):
         fw.accepted[prev] = False
         r = t
         while r >= s0:
@@ -243,6 +243,18 @@ def reconsider_prev(prev, t, nskip, s0, sr, fw):  # type: ignore[no-untyped-def]
         fw.accepted[prev] = False
         fw.prev_pt[t] = q
         fw.used_bound[t] = s.saved.bound[0]
+
+
+@njit(cache=True, nogil=True, inline="always")
+def skip_more(prev, t, nskip, lat, p):  # type: ignore[no-untyped-def]
+    """Whether the run of ``nskip`` unreachable points up to lattice point ``t`` may still be
+    left out, not split from ``prev``, the last point kept: up to ``max_skip`` points, and beyond
+    them while ``t`` lies at most ``max_skip_time`` seconds after ``prev``. The time a vehicle
+    spends off the route's roads is what its fixes tell, whatever their rate: a dense track is
+    not split where the same drive sampled sparsely is bridged (no times: the count alone)."""
+    if nskip <= p.max_skip:
+        return True
+    return lat.ptime[t] - lat.ptime[prev] <= p.max_skip_time
 
 
 @njit(**UNCOUNTED)

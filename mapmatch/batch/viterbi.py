@@ -31,6 +31,7 @@ from mapmatch.batch.leave_out import (
     leave_out_before_split,
     leave_out_one,
     reconsider_prev,
+    skip_more,
     start_piece,
     track_end,
     track_start,
@@ -183,7 +184,7 @@ def _forward(s, fw):  # type: ignore[no-untyped-def]
             if nskip == 0:
                 s0 = t
             nskip += 1
-            if nskip <= p.max_skip:
+            if skip_more(prev, t, nskip, lat, p):
                 t += 1
                 continue
             restart = s0
