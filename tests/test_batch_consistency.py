@@ -43,7 +43,7 @@ def test_route_ends_are_cut_at_the_projections_of_the_first_and_last_fix() -> No
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("track", ["00000007", "00000045", "00000052"])
+@pytest.mark.parametrize("track", ["00000007", "00000028", "00000045", "00000052"])
 def test_the_full_rate_route_covers_the_routes_at_10_and_30_s(track: str) -> None:
     d = KUBICKA / track
     for needed in (d / "track.csv", SHARED / "peers" / "engines_kubicka.py"):
