@@ -6,6 +6,8 @@ out, each a public policy the forward pass (:mod:`mapmatch.batch.viterbi`) asks.
   to (:func:`leave_out_visited`).
 - :func:`leave_out_one`, when a point is unreachable: leave out it or the point before it,
   whichever reaches the next point better (:func:`drop_one`).
+- :func:`skip_more`, while points are unreachable: may the run of them grow, or does the
+  track split? (more than ``max_skip`` points reaching ``max_skip_time`` after the last kept).
 - :func:`leave_out_before_split`, before a run of unreachable points splits the match: maybe
   the last points kept were the outliers (a drift onto a road that does not lead on).
 - :func:`track_end` and :func:`track_start`: the track's first and last fixes are left out
@@ -214,7 +216,8 @@ def leave_out_one(prev, t, sr, fw):  # type: ignore[no-untyped-def]
 @njit(cache=True, nogil=True, inline="always")
 def reconsider_prev(prev, t, nskip, s0, sr, fw):  # type: ignore[no-untyped-def]
     """``t`` was just reached from ``prev`` (after ``nskip`` points left out from ``s0``): maybe
-    ``prev`` was the outlier, not the points after it. After a run left out, the points from
+    ``prev`` was the outlier, not the points after it. After a run left out (of at most
+    ``max_skip`` points: a longer one would cost a step per pair of its points), the points from
     ``s0`` to ``t`` stepped to from the point before ``prev`` (:func:`leave_out_prev`); after
     none, a ``prev`` the route bent to that is clearly dearer than stepping past it
     (:func:`leave_out_visited`, tried only where the bound allows a gain). ``fw`` gets the

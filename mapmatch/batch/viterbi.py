@@ -7,7 +7,8 @@
   (:mod:`mapmatch.batch.split`)? If not, try the step; reached, ask the leave-out policy
   whether the point before was the outlier; unreachable, ask it what to leave out
   (:mod:`mapmatch.batch.leave_out`). A point no candidate of the previous kept point can reach
-  is left out; after ``max_skip`` such points in a row a new piece starts at the first of them.
+  is left out; after more than ``max_skip`` such points in a row, lasting ``max_skip_time``
+  (:func:`~mapmatch.batch.leave_out.skip_more`), a new piece starts at the first of them.
 - The backtrack (:func:`_backtrack`), each piece from its last point, the track's ends left
   out where visiting them costs more than leaving them out.
 """
