@@ -6,8 +6,8 @@ out, each a public policy the forward pass (:mod:`mapmatch.batch.viterbi`) asks.
   to (:func:`leave_out_visited`).
 - :func:`leave_out_one`, when a point is unreachable: leave out it or the point before it,
   whichever reaches the next point better (:func:`drop_one`).
-- :func:`skip_more`, while points are unreachable: may the run of them grow, or does the
-  track split? (more than ``max_skip`` points reaching ``max_skip_time`` after the last kept).
+- :func:`skip_more`, once more than ``max_skip`` points in a row are unreachable: may the
+  run grow, or does the track split? (its time since the last point kept).
 - :func:`leave_out_before_split`, before a run of unreachable points splits the match: maybe
   the last points kept were the outliers (a drift onto a road that does not lead on).
 - :func:`track_end` and :func:`track_start`: the track's first and last fixes are left out
@@ -249,14 +249,13 @@ def reconsider_prev(prev, t, nskip, s0, sr, fw):  # type: ignore[no-untyped-def]
 
 
 @njit(cache=True, nogil=True, inline="always")
-def skip_more(prev, t, nskip, lat, p):  # type: ignore[no-untyped-def]
-    """Whether the run of ``nskip`` unreachable points up to lattice point ``t`` may still be
-    left out, not split from ``prev``, the last point kept: up to ``max_skip`` points, and beyond
-    them while ``t`` lies at most ``max_skip_time`` seconds after ``prev``. The time a vehicle
-    spends off the route's roads is what its fixes tell, whatever their rate: a dense track is
-    not split where the same drive sampled sparsely is bridged (no times: the count alone)."""
-    if nskip <= p.max_skip:
-        return True
+def skip_more(prev, t, lat, p):  # type: ignore[no-untyped-def]
+    """Whether a run of more than ``max_skip`` unreachable points, up to lattice point ``t``,
+    may still be left out rather than split from ``prev``, the last point kept: while ``t`` lies
+    at most ``max_skip_time`` seconds after ``prev`` (asked once the points kept before the run
+    are not the outliers, :func:`leave_out_before_split`). The time a vehicle spends off the
+    route's roads is what its fixes tell, whatever their rate: a dense track is not split where
+    the same drive sampled sparsely is bridged (no times: the count alone)."""
     return lat.ptime[t] - lat.ptime[prev] <= p.max_skip_time
 
 

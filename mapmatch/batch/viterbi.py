@@ -163,6 +163,7 @@ def _forward(s, fw):  # type: ignore[no-untyped-def]
     d = 0.0
     while t < m or nskip > 1:
         restart = -1
+        counted = False  # the run just passed ``max_skip`` points
         if t >= m:
             restart = s0  # several trailing points unreachable: they form their own piece
         else:
@@ -185,14 +186,18 @@ def _forward(s, fw):  # type: ignore[no-untyped-def]
             if nskip == 0:
                 s0 = t
             nskip += 1
-            if skip_more(prev, t, nskip, lat, p):
+            if nskip <= p.max_skip or (nskip > p.max_skip + 1 and skip_more(prev, t, lat, p)):
                 t += 1
                 continue
             restart = s0
+            counted = nskip == p.max_skip + 1
         if nskip > 0 and restart == s0 and leave_out_before_split(prev, s0, sr, fw):
             prev = s0
             nskip = 0
             t = s0 + 1
+            continue
+        if counted and skip_more(prev, t, lat, p):
+            t += 1  # the points kept lead on: the run is judged by its time
             continue
         # a new piece starts at ``restart``
         start_piece(restart, sr, fw)
