@@ -593,10 +593,11 @@ class OutliersConfig:
     max_skip : fixes in a row that may be left out as unreachable outliers before the track is
         split ...
     max_skip_time : ... and only once they reach this many seconds after the last fix kept
-        (0: the count alone). A run of fixes judged by its count alone would split a dense
-        track where the same drive sampled sparsely is bridged: the time a vehicle spends off
-        the route's roads is what the fixes tell, whatever their rate. Tracks without times
-        are judged by the count.
+        (0: the count alone; past ``max_skip`` fixes, those kept before them are first tried
+        as the outliers, a drift onto a road that leads nowhere). A run of fixes judged by
+        its count alone would split a dense track where the same drive sampled sparsely is
+        bridged: the time a vehicle spends off the route's roads is what the fixes tell,
+        whatever their rate. Tracks without times are judged by the count.
     outlier_lookahead : 1: where a fix cannot be reached from the previous kept fix, also try
         leaving out that previous fix instead, and keep whichever choice reaches the next fix
         with the higher score (a stray fix on a side road is dropped, not the good one after
