@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from enum import StrEnum
 from typing import Any, NamedTuple
@@ -267,6 +268,22 @@ class SnapResult:
     road_class: str = ""
     speed_kph: float = 0.0  # 0: unknown
     map_aided: MapAidedMeasurement = field(default_factory=MapAidedMeasurement)
+
+
+def corrected_edges(results: Sequence[SnapResult]) -> list[int]:
+    """Each answer's edge with the corrections issued later applied, in order: what the
+    matcher finally believes of each fix (-1 where it placed none). Later corrections override
+    earlier ones."""
+    edges = [r.edge for r in results]
+    times = [r.time for r in results]
+    for r in results:
+        c = r.correction
+        if c is None:
+            continue
+        for i, t in enumerate(times):
+            if c.time_from <= t <= c.time_to and edges[i] in c.replaced_edges:
+                edges[i] = c.edge_at(t)
+    return edges
 
 
 @dataclass(slots=True)

@@ -13,7 +13,7 @@ from numpy.typing import NDArray
 from graph.ascii import AsciiMap
 from graph.projection import to_lonlat
 from graph.road_graph import Edges, Nodes, RoadGraph
-from mapmatch.types import Fix, SnapResult
+from mapmatch.types import Fix
 
 
 def bent(amap: AsciiMap, places: dict[str, tuple[str, float, float]]) -> AsciiMap:
@@ -143,21 +143,6 @@ def _xy(amap: AsciiMap, f: Fix) -> tuple[float, float]:
     from graph.projection import point_to_xy
 
     return point_to_xy(amap.graph.crs, f.lon, f.lat)
-
-
-def revised(results: list[SnapResult]) -> list[int]:
-    """Each answer's edge with the corrections issued later applied (what the matcher finally
-    believes about that fix)."""
-    edges = [r.edge for r in results]
-    times = [r.time for r in results]
-    for r in results:
-        c = r.correction
-        if c is None:
-            continue
-        for i, t in enumerate(times):
-            if c.time_from <= t <= c.time_to and edges[i] in c.replaced_edges:
-                edges[i] = c.edge_at(t)
-    return edges
 
 
 def runs(edges: list[int]) -> list[int]:

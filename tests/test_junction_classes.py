@@ -17,9 +17,9 @@ import pytest
 from graph.ascii import AsciiMap, parse_ascii_map
 from mapmatch.batch import BatchMatcher
 from mapmatch.online import OnlineMatcher
-from mapmatch.types import PointStatus, SnapResult, Track, TrackMatch
+from mapmatch.types import PointStatus, SnapResult, Track, TrackMatch, corrected_edges
 from tests.ascii_helpers import names
-from tests.junction_drives import Drive, Gps, Outage, bent, revised, runs, settled_after, simulate
+from tests.junction_drives import Drive, Gps, Outage, bent, runs, settled_after, simulate
 
 SEEDS = range(5)
 
@@ -72,7 +72,7 @@ def _check_branch(m: AsciiMap, route: str, drv: Drive, *, settle: float) -> None
     ]
     assert early == [], f"left a-b this many metres before the fork: {early}"
     assert settled_after(live, drv.s, want, since=at_b) <= settle
-    rev = revised(res)
+    rev = corrected_edges(res)
     wrong = [
         round(float(s) - at_b, 1) for s, e in zip(drv.s, rev, strict=True) if s > at_b + 15.0 and e != want
     ]
@@ -161,7 +161,7 @@ def test_three_way_junction_in_an_outage_right_road_when_gps_returns(
     assert back < len(res) and drv.s[lost[0]] < at_b < drv.s[lost[-1]]
     after = [round(float(drv.s[i]) - at_b, 1) for i in range(back, len(res)) if res[i].edge != want]
     assert after == [], f"off the road driven this many metres past the junction with GPS back: {after}"
-    rev = revised(res)
+    rev = corrected_edges(res)
     wrong = [
         round(float(drv.s[i]) - at_b, 1)
         for i in lost
@@ -176,7 +176,7 @@ def test_three_way_junction_in_an_outage_committed_path_at_1_hz(route: str, seed
     """At 1 Hz the path the answers describe once corrected is a-b then the road driven."""
     m = _fork(**THREE_WAY)
     res = _online(m, _outage_drive(m, route, seed=seed, dt=1.0))
-    assert names(m, runs(revised(res))) == ["ab", route[1:]]
+    assert names(m, runs(corrected_edges(res))) == ["ab", route[1:]]
 
 
 DENSE = """

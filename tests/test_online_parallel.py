@@ -17,7 +17,7 @@ from graph.projection import to_lonlat
 from graph.road_graph import Edges, Nodes, RoadGraph
 from mapmatch.config import DEFAULT_CONFIG, MatchConfig
 from mapmatch.online import OnlineMatcher
-from mapmatch.types import Fix, SnapResult
+from mapmatch.types import Fix, SnapResult, corrected_edges
 from tests.online_helpers import DriveSpec, drive
 
 # a divided road: two one-way carriageways 20 m apart, with a median opening e-f
@@ -56,17 +56,8 @@ def shifted(amap: AsciiMap, route: str, dx: float, dy: float, **kw: object) -> l
 
 def final_edges(results: list[SnapResult]) -> list[int]:
     """Reported edges, corrections applied, in order without repeats."""
-    t = [r.time for r in results]
-    e = [r.edge for r in results]
-    for r in results:
-        c = r.correction
-        if c is None:
-            continue
-        for i, ti in enumerate(t):
-            if c.time_from <= ti <= c.time_to and e[i] in c.replaced_edges:
-                e[i] = c.edge_at(ti) if len(c.edge_times) == len(c.edges) else c.edges[0]
     out: list[int] = []
-    for x in e:
+    for x in corrected_edges(results):
         if x >= 0 and (not out or out[-1] != x):
             out.append(x)
     return out
