@@ -43,7 +43,11 @@ def require_installed(*modules: str, extra: str, needed_for: str) -> None:
     """Raise :class:`MissingExtraError` as :func:`require` does when a top-level module is not
     installed, without importing any (a quick check before a long job that imports them later)."""
     for module in modules:
-        if importlib.util.find_spec(module) is None:
+        try:
+            spec = importlib.util.find_spec(module)
+        except ImportError:  # an import hook that refuses the module: not installed here
+            spec = None
+        if spec is None:
             raise MissingExtraError(
                 f"{needed_for} needs {module}, which is not installed: pip install 'mapmatch[{extra}]'"
             )
