@@ -95,7 +95,7 @@ def test_resumed_run_equals_uninterrupted_run(setup: tuple[Path, Path, AsciiMap]
         run_batch(
             [tracks_path], map_path, out, progress=boom, options=RunOptions(workers=1, partition_size=2)
         )
-    parts = sorted(parts_dir_for(out).glob("part-*.parquet"))
+    parts = sorted(parts_dir_for(out).glob("part-*.json"))  # a file output's parts: JSON lines
     assert len(parts) == 2 and not out.exists()
     s = run_batch([tracks_path], map_path, out, options=RunOptions(workers=1, partition_size=2))
     # only the 3 tracks of the 2 missing partitions were matched again

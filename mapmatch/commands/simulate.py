@@ -11,6 +11,7 @@ from typing import TYPE_CHECKING, Any
 
 from mapmatch.cli import EXIT_CONNECT, CommandError
 from mapmatch.commands._fixio import STDIO, output_path, summary_stream
+from mapmatch.extras import EVAL_MODULES
 
 if TYPE_CHECKING:
     from mapmatch.types import Fix, SnapResult
@@ -72,6 +73,11 @@ def register(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[ty
 
 
 def run(args: argparse.Namespace) -> int:
+    from mapmatch.extras import require_installed
+
+    if args.map_aided:
+        require_installed(*EVAL_MODULES, extra="eval", needed_for="mapmatch simulate --map-aided")
+    require_installed("pandas", extra="tables", needed_for="mapmatch simulate")
     import numpy as np
 
     from graph.artifact import open_map
