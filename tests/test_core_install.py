@@ -68,7 +68,7 @@ SERVE = textwrap.dedent(
                           maps=(("city", d / "city.map"),), batch_processes=1)
     server, port = start_server(config)
     try:
-        with grpc.insecure_channel(f"127.0.0.1:{port}") as ch:
+        with grpc.insecure_channel(f"127.0.0.1:{{port}}") as ch:
             api = pb_grpc.MapMatchStub(ch)
             reqs = [pb.FixRequest(map_id="city", vehicle_id="car-1", seq=i, fix=convert.fix_to_proto(f))
                     for i, f in enumerate(fixes)]
