@@ -1,10 +1,13 @@
 """Track input (CSV, GPX, Parquet/GeoParquet) and batch-result output (GeoJSON, CSV, GeoParquet).
 
-Results travel as one table with a row per track (:func:`results_table`): the route geometry,
+Results travel as one table with a row per track (:func:`result_rows`): the route geometry,
 its edge sequence with OSM way ids and names, length, confidence, splits, and the per-point
-placements as list columns. Every writer goes through that table, so a partition written by a
-worker and the final file hold exactly the same values. Files are written to a temporary name
-and renamed, never left half-written.
+placements as lists. Every writer goes through that table, so a partition written by a worker
+and the final file hold exactly the same values. Files are written to a temporary name and
+renamed, never left half-written.
+
+CSV, GPX and GeoJSON need only the core install (CSV through :mod:`mapmatch.textcsv`);
+Parquet, GeoParquet and pandas frames need the ``tables`` extra, GIS line files ``prep``.
 """
 
 from __future__ import annotations

@@ -1,8 +1,9 @@
 """Running batch matching over many tracks: local process pool or a Dask cluster, resumable.
 
 Tracks are grouped into partitions. Each partition is matched by one worker (which loads the
-map once per process) and written as one GeoParquet file ``part-NNNNN.parquet`` in the parts
-folder, atomically; a restarted run skips the partitions already written, so nothing is done
+map once per process) and written as one file in the parts folder, atomically: JSON lines
+``part-NNNNN.json`` for a file output, GeoParquet ``part-NNNNN.parquet`` (the ``tables``
+extra) for a folder output; a restarted run skips the partitions already written, so nothing is done
 twice and no row is lost or duplicated. The final output (GeoJSON, CSV or GeoParquet file) is
 assembled from the parts; when the output is a folder, the parts are the output (partitioned
 Parquet, what a Dask run on a cluster writes).
