@@ -478,14 +478,16 @@ class Checkpointer:
         self, sessions: list[Session]
     ) -> tuple[list[tuple[bytes, bytes]], list[tuple[Session, float]], list[Session]]:
         """The records of ``sessions``, read without their locks: (records, each encoded
-        session with its use time, the sessions in the middle of an update, not encoded)."""
+        session with its use time, the sessions in the middle of an update, not encoded).
+        A session no longer in the table (handed over, ended, expired) is not written: its
+        vehicle's record may be another server's by now."""
         checksums = {e.map_id: e.checksum for e in self.maps.entries()}
         records: list[tuple[bytes, bytes]] = []
         done: list[tuple[Session, float]] = []
         busy: list[Session] = []
         for s in sessions:
             checksum = checksums.get(s.key[0])
-            if checksum is None:  # its map was unloaded
+            if checksum is None or self.sessions.live(s.key) is not s:  # unloaded map; handed over
                 continue
             got = read_session(s)
             if got is None:
