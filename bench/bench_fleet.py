@@ -12,6 +12,10 @@ driven by the client processes of ``bench_service.py`` (SIMULATED traffic: rando
 * peak: the same streams each keeping ``--window`` fixes in flight for ``--peak-seconds`` s:
   updates/s.
 
+``--stores off on idle`` adds a third store configuration, ``idle``: the store on (look-ups
+at the streams' start) but a checkpoint interval of an hour, so no pass runs during the
+phases: against ``on`` it tells what the checkpoint passes cost the fixes.
+
 Each phase reports the server's CPU seconds (summed over its processes) and the updates per
 server CPU-second: the client processes share the same cores, so wall-clock throughput on a
 2-core machine measures the clients as much as the server. With the store on, the Redis
