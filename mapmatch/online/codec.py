@@ -149,15 +149,14 @@ def _fields(
 def _trail_units(trail: list[TrailPoint]) -> tuple[list[int], list[int]] | None:
     """The trail as whole ms and cm, each after the first as the difference from the one
     before; None when a value is not finite or over :data:`MAX_TRAIL_UNITS` units."""
-    n = len(trail)
-    t = np.rint(np.fromiter((p.time for p in trail), np.float64, n) * 1000.0)
-    o = np.rint(np.fromiter((p.odo for p in trail), np.float64, n) * 100.0)
-    if n and not (np.abs(t).max() <= MAX_TRAIL_UNITS and np.abs(o).max() <= MAX_TRAIL_UNITS):
+    t = np.rint(np.array([p.time for p in trail], dtype=np.float64) * 1000.0)
+    o = np.rint(np.array([p.odo for p in trail], dtype=np.float64) * 100.0)
+    if trail and not (np.abs(t).max() <= MAX_TRAIL_UNITS and np.abs(o).max() <= MAX_TRAIL_UNITS):
         return None
-    return (
-        np.diff(t.astype(np.int64), prepend=0).tolist(),
-        np.diff(o.astype(np.int64), prepend=0).tolist(),
-    )
+    ti, oi = t.astype(np.int64), o.astype(np.int64)
+    ti[1:] -= ti[:-1].copy()
+    oi[1:] -= oi[:-1].copy()
+    return ti.tolist(), oi.tolist()
 
 
 def _f64(pairs: list[list[float]]) -> str:
