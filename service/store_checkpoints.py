@@ -128,6 +128,16 @@ class _Pass:
         return max(MIN_GAP, (self.end - time.monotonic()) / slices)
 
 
+@dataclass
+class _Encoded:
+    """Sessions encoded: their records, each with the use time it was read at, and the ones
+    an update was changing (not encoded)."""
+
+    records: list[tuple[bytes, bytes]] = field(default_factory=list)
+    done: list[tuple[Session, float]] = field(default_factory=list)
+    busy: list[Session] = field(default_factory=list)
+
+
 def read_session(s: Session) -> tuple[bytes, Any, float] | None:
     """A session's state blob, last answer and use time, read without its lock; None when an
     update was under way or began meanwhile (then what was read may be torn)."""
@@ -428,23 +438,25 @@ class Checkpointer:
         """Write the next slice of a pass (the sessions encoded in about :data:`SLICE_SECONDS`);
         returns whether the pass is over (all written, or the store failed)."""
         t0 = time.perf_counter()
-        take: list[Session] = []
-        while p.todo and len(take) < SLICE_MOST and time.perf_counter() - t0 < SLICE_SECONDS:
-            take.append(p.todo.pop())
-        records, _, busy = self._encode(take)
-        for s in busy:  # read again at the end of the pass, once (then its update's pass has it)
+        checksums = self._checksums()
+        out = _Encoded()
+        taken = 0
+        while p.todo and taken < SLICE_MOST and time.perf_counter() - t0 < SLICE_SECONDS:
+            self._encode_one(p.todo.pop(), checksums, out)
+            taken += 1
+        for s in out.busy:  # read again at the end of the pass, once (then its update's pass has it)
             if s.key not in p.again:
                 p.again.add(s.key)
                 p.todo.insert(0, s)
-        if records:
-            if self._send(records, time.perf_counter() - t0):
+        if out.records:
+            if self._send(out.records, time.perf_counter() - t0):
                 self.counters.passes += int(not p.wrote)
                 p.wrote = True
             else:
                 self.counters.write_failures += len(p.todo)  # nor will the rest be written
                 p.ok = False
                 p.todo.clear()
-        p.next_at = time.monotonic() + p.gap(len(take))
+        p.next_at = time.monotonic() + p.gap(taken)
         return not p.todo
 
     def _hand_over(self, keys: list[SessionKey]) -> None:
@@ -460,44 +472,45 @@ class Checkpointer:
         again, up to :data:`READ_TRIES` times); returns each written one with the use time it
         was encoded at, or None when the store failed."""
         t0 = time.perf_counter()
-        records, done, busy = self._encode(sessions)
+        out = self._encode(sessions)
         for _ in range(READ_TRIES - 1):
-            if not busy:
+            if not out.busy:
                 break
             time.sleep(0.0005)  # let the update end
-            more, more_done, busy = self._encode(busy)
-            records += more
-            done += more_done
-        if records:
-            if not self._send(records, time.perf_counter() - t0):
+            more = self._encode(out.busy)
+            out = _Encoded(out.records + more.records, out.done + more.done, more.busy)
+        if out.records:
+            if not self._send(out.records, time.perf_counter() - t0):
                 return None
             self.counters.passes += 1
-        return done
+        return out.done
 
-    def _encode(
-        self, sessions: list[Session]
-    ) -> tuple[list[tuple[bytes, bytes]], list[tuple[Session, float]], list[Session]]:
-        """The records of ``sessions``, read without their locks: (records, each encoded
-        session with its use time, the sessions in the middle of an update, not encoded).
-        A session no longer in the table (handed over, ended, expired) is not written: its
-        vehicle's record may be another server's by now."""
-        checksums = {e.map_id: e.checksum for e in self.maps.entries()}
-        records: list[tuple[bytes, bytes]] = []
-        done: list[tuple[Session, float]] = []
-        busy: list[Session] = []
+    def _encode(self, sessions: list[Session]) -> _Encoded:
+        """The records of ``sessions``, read without their locks (see :meth:`_encode_one`)."""
+        checksums = self._checksums()
+        out = _Encoded()
         for s in sessions:
-            checksum = checksums.get(s.key[0])
-            if checksum is None or self.sessions.live(s.key) is not s:  # unloaded map; handed over
-                continue
-            got = read_session(s)
-            if got is None:
-                busy.append(s)
-                continue
-            blob, answer, used = got
-            last = convert.snap_result_to_proto(answer).SerializeToString() if answer is not None else b""
-            records.append((session_key(checksum, s.key[1]), pack(blob, last)))
-            done.append((s, used))
-        return records, done, busy
+            self._encode_one(s, checksums, out)
+        return out
+
+    def _checksums(self) -> dict[str, str]:
+        return {e.map_id: e.checksum for e in self.maps.entries()}
+
+    def _encode_one(self, s: Session, checksums: dict[str, str], out: _Encoded) -> None:
+        """Add the session's record to ``out``, or the session to ``out.busy`` when an update
+        was under way. A session no longer in the table (handed over, ended, expired) is not
+        written: its vehicle's record may be another server's by now."""
+        checksum = checksums.get(s.key[0])
+        if checksum is None or self.sessions.live(s.key) is not s:  # unloaded map; handed over
+            return
+        got = read_session(s)
+        if got is None:
+            out.busy.append(s)
+            return
+        blob, answer, used = got
+        last = convert.snap_result_to_proto(answer).SerializeToString() if answer is not None else b""
+        out.records.append((session_key(checksum, s.key[1]), pack(blob, last)))
+        out.done.append((s, used))
 
     def _send(self, records: list[tuple[bytes, bytes]], spent: float) -> bool:
         """Write records (``spent``: the seconds their encoding took); False when the store
