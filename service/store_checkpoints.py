@@ -9,8 +9,9 @@ With ``--session-store``, a :class:`Checkpointer` runs beside the server:
   session's lock: a session is read without its lock (:func:`read_session`; what an update
   changed meanwhile is read again, or left to the next pass, which that update's use puts it
   in). The thread competes with the fixes only for the interpreter while it encodes, so a
-  pass is spread over half the interval in slices of about a millisecond of encoding, each
-  written in one pipelined round trip, with the fixes served between two slices.
+  pass is spread over half the interval in slices of about a millisecond of encoding, with
+  the fixes served between two slices; the records are written in pipelined round trips of
+  :data:`WRITE_EVERY` (and the pass's last ones).
 * **Hand-over when a stream ends.** The stream's vehicles are written at once and, once
   written and unused meanwhile, dropped from this process: their next stream, on whichever
   server, resumes from the store, never from an older copy left in some process's memory.
@@ -64,6 +65,7 @@ STATS_PERIOD = 60.0  # s between two log lines of the counters (when they change
 SPREAD = 0.5  # a checkpoint pass is spread over this share of the checkpoint interval ...
 SLICE_SECONDS = 0.001  # ... in slices that each encode for about this long, then write ...
 SLICE_MOST = 64  # ... at most this many sessions ...
+WRITE_EVERY = 32  # ... and their records are written once this many wait (or the pass ends) ...
 MIN_GAP = 0.001  # ... at least this many seconds apart (the fixes have the interpreter between)
 READ_TRIES = 3  # a hand-over reads a session in the middle of an update again, this many times
 
@@ -112,6 +114,8 @@ class _Pass:
     next_at: float = 0.0  # time.monotonic() of the next slice
     ok: bool = True  # False once the store failed: the next pass starts from ``since`` again
     wrote: bool = False
+    waiting: list[tuple[bytes, bytes]] = field(default_factory=list)  # records not yet written
+    spent: float = 0.0  # seconds spent encoding them
     again: set[SessionKey] = field(default_factory=set)  # read in the middle of an update once
 
     def due(self) -> bool:
@@ -448,14 +452,17 @@ class Checkpointer:
             if s.key not in p.again:
                 p.again.add(s.key)
                 p.todo.insert(0, s)
-        if out.records:
-            if self._send(out.records, time.perf_counter() - t0):
+        p.waiting += out.records
+        p.spent += time.perf_counter() - t0
+        if p.waiting and (len(p.waiting) >= WRITE_EVERY or not p.todo):
+            if self._send(p.waiting, p.spent):
                 self.counters.passes += int(not p.wrote)
                 p.wrote = True
             else:
                 self.counters.write_failures += len(p.todo)  # nor will the rest be written
                 p.ok = False
                 p.todo.clear()
+            p.waiting, p.spent = [], 0.0
         p.next_at = time.monotonic() + p.gap(taken)
         return not p.todo
 
