@@ -641,9 +641,6 @@ class OutliersConfig:
 class SplitConfig:
     """Where a track is split into pieces or its route cut (``batch.split``).
 
-    gap_time : seconds; fixes further apart in time than this are matched as separate pieces
-        (a parked vehicle, a logger switched off), however near they are (0: time never
-        splits; the route is then cut only by distance, off-map runs and impossible steps).
     gap_distance : metres between consecutive fixes beyond which a step faster on average than
         ``split_speed`` splits the track (a jump: two drives joined, a clock error); a slower
         one was driven (a logger off, a sparse track) and its route is searched as any step's
@@ -693,7 +690,6 @@ class SplitConfig:
         fixes are held to it: one or two sparse fixes do not trace a winding road.
     """
 
-    gap_time: float = 0.0
     gap_distance: float = 2000.0
     split_speed: float = 50.0
     split_slack: float = 50.0

@@ -185,24 +185,6 @@ def test_a_gap_driven_at_road_speed_is_bridged_by_its_route() -> None:
     assert never.splits == [] and [names(m, piece) for piece in never.routes] == [["ab", "bc"]]
 
 
-def test_a_long_pause_splits_the_track_when_gap_time_is_set() -> None:
-    # a----1-2-3-----------------4-5-6----b   fixes 3 and 4 are 180 m and 10 minutes apart
-    m = parse_ascii_map("a-----------------------------b", scale=10)
-    xs = [10, 30, 50, 230, 250, 270]
-    ll = np.array([m.lonlat(*at(m, "a", x, 1)) for x in xs])
-    times = np.array([0.0, 5.0, 10.0, 610.0, 615.0, 620.0])
-    track = Track("t", times, ll[:, 1], ll[:, 0])
-    matcher = BatchMatcher(m.graph)
-    r = matcher.match(track, DEFAULT_CONFIG.replace(gap_time=300.0))
-    assert r.splits == [3] and len(r.routes) == 2
-    assert r.length_m == pytest.approx(40 + 40, abs=1.0)
-    # off by default: the pause is driven through as one route
-    whole = matcher.match(track)
-    assert whole.splits == [] and whole.length_m == pytest.approx(260, abs=1.0)
-    # a pause shorter than gap_time does not split
-    assert matcher.match(track, DEFAULT_CONFIG.replace(gap_time=900.0)).splits == []
-
-
 def test_outlier_is_unmatched_and_does_not_break_the_route() -> None:
     m = parse_ascii_map("a--------------b", scale=10)
     pts = (

@@ -97,8 +97,6 @@ class KernelParams(NamedTuple):
     """Metres of β per second of a step's driving time (its mean fix interval)."""
     lp_cut_m: float
     gap_distance: float
-    gap_time: float
-    """seconds; 0: time never splits."""
     max_skip: int
     max_skip_time: float
     """seconds after the last point kept before ``max_skip`` unreachable points split (0: none)."""
@@ -162,7 +160,6 @@ def kernel_params(cfg: MatchConfig, sigma: float) -> KernelParams:
         beta_per_s=float(b.route.beta_per_s),
         lp_cut_m=float(cfg.model.beta * b.route.route_lp_cut),
         gap_distance=float(b.split.gap_distance) if b.split.gap_distance > 0 else np.inf,
-        gap_time=float(b.split.gap_time),
         max_skip=int(b.outliers.max_skip),
         max_skip_time=float(b.outliers.max_skip_time),
         outlier_lookahead=bool(b.outliers.outlier_lookahead),
