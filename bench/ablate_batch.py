@@ -39,7 +39,6 @@ VARIANTS: dict[str, tuple[str, ...]] = {
     "turn_cost_off": ("batch.route.turn_cost=0",),
     "reverse_tolerance_off": ("batch.route.reverse_tolerance=0",),
     "stop_uturn_off": ("batch.route.stop_uturn_speed=0",),
-    "speed_limit_off": ("batch.route.speed_limit_penalty=0",),
     "route_factor_wide": ("batch.route.max_route_factor=6",),
     # batch.track
     "interpolate_off": ("batch.track.interpolate_distance=0",),
@@ -49,14 +48,12 @@ VARIANTS: dict[str, tuple[str, ...]] = {
     "motion_end_leg_off": ("batch.track.motion_end_leg_max=0",),
     # batch.outliers
     "off_map_sigmas_off": ("batch.outliers.off_map_sigmas=0",),
-    "off_map_min_run_off": ("batch.outliers.off_map_min_run=1",),
     "spike_off": ("batch.outliers.spike_speed=0",),
     "spike_run_off": ("batch.outliers.spike_max_time=0",),
     "max_skip_time_off": ("batch.outliers.max_skip_time=0",),
     "lookahead_off": ("batch.outliers.outlier_lookahead=0",),
     "emission_prune_wide": ("batch.outliers.emission_prune=25",),
     # batch.split
-    "gap_time_on": ("batch.split.gap_time=60",),
     "gap_distance_off": ("batch.split.gap_distance=0",),
     "split_speed_off": ("batch.split.split_speed=0",),
     "split_route_speed_off": ("batch.split.split_route_speed=0",),
