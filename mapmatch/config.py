@@ -203,7 +203,6 @@ class EvidenceConfig:
     turn_window : odometer metres over which the heading step is measured.
     turn_sample_spacing : odometer metres between two heading samples kept for it.
     turn_max_samples : heading samples kept at most (a memory bound per vehicle).
-    turn_threshold : degrees of heading change that count as a turn.
     turn_sigma : degrees; spread of the observed heading change around a path's predicted one.
     evidence_time : seconds of fixes that count as one independent observation (the fused
         position's error is correlated in time, so 10 Hz fixes must not count ten times).
@@ -221,7 +220,6 @@ class EvidenceConfig:
     turn_window: float = 30.0
     turn_sample_spacing: float = 1.0
     turn_max_samples: int = 48
-    turn_threshold: float = 25.0
     turn_sigma: float = 20.0
     evidence_time: float = 1.0
     evidence_distance: float = 5.0
