@@ -74,7 +74,9 @@ MECHANISMS: tuple[Mechanism, ...] = (
         "soft_reinit_search",
         ("online.reinit.soft_reinit_sigmas=1000000", "online.reinit.against_heading_deg=181"),
     ),
-    Mechanism("hard_reinit", ("online.reinit.reinit_time=1000000000", "online.reinit.reinit_distance=1000000000")),
+    Mechanism(
+        "hard_reinit", ("online.reinit.reinit_time=1000000000", "online.reinit.reinit_distance=1000000000")
+    ),
     Mechanism("neighbours", ("online.reinit.neighbour_sigmas=1",), off_by_default=True),
     Mechanism("return_search", ("online.reinit.return_sigmas=0",)),
     Mechanism("turn_evidence", ("online.evidence.turn_sigma=1000000",)),
@@ -144,7 +146,9 @@ def score_all(
         drives = [real_drive(graph, folder, rate_hz=r, outages=True, seed=int(name)) for r in rates]
         for k, cfg in configs.items():
             matcher = OnlineMatcher(graph, config=cfg)
-            rows = [score_drive(graph, matcher, d, track=name, rate=r) for d, r in zip(drives, rates, strict=True)]
+            rows = [
+                score_drive(graph, matcher, d, track=name, rate=r) for d, r in zip(drives, rates, strict=True)
+            ]
             for r in rows:
                 r.pop("us")
             out[k][name] = rows
@@ -152,7 +156,9 @@ def score_all(
     return out
 
 
-def bootstrap_se(on: dict[str, Rows], off: dict[str, Rows], names: list[str], loss: object, n: int = 200) -> float:
+def bootstrap_se(
+    on: dict[str, Rows], off: dict[str, Rows], names: list[str], loss: object, n: int = 200
+) -> float:
     """Standard error of ``loss(off) - loss(on)`` over all tracks, by resampling the tracks."""
     rng = np.random.default_rng(48)
     f = loss  # type: ignore[assignment]
@@ -218,6 +224,9 @@ def parse_args() -> argparse.Namespace:
     ap.add_argument("--map-cache", type=Path, default=None, help="keep the prepared maps in this folder")
     ap.add_argument("--json", type=Path, default=None, help="write every setting's rows here")
     ap.add_argument("--load", nargs="*", type=Path, default=[], help="read rows written by --json instead")
+    ap.add_argument(
+        "--docs", action="store_true", help="also write the table as the fragment ablation_online"
+    )
     return ap.parse_args()
 
 
@@ -242,12 +251,16 @@ def main() -> int:
         scores[k] = {t: [r for r in rows if float(r["hz"]) in args.rates] for t, rows in scores[k].items()}  # type: ignore[arg-type]
     rows = [verdict_row(m, scores, names) for m in chosen]
     rates = ", ".join(f"{r:g} Hz" for r in args.rates)
-    print(
-        f"\nREAL GPS: {len(names)} Kubicka tracks with the five outages ({rates}); 5 folds by track "
+    text = (
+        f"REAL GPS: {len(names)} Kubicka tracks with the five outages ({rates}); 5 folds by track "
         f"(seed {folds.SEED}). Load average {load0:.2f} at the start, {os.getloadavg()[0]:.2f} at "
-        f"the end ({os.cpu_count()} cores).\n"
+        f"the end ({os.cpu_count()} cores).\n\n{table(rows)}"
     )
-    print(table(rows))
+    print(f"\n{text}")
+    if args.docs:
+        from report import run_header, write_fragment
+
+        print(f"wrote {write_fragment('ablation_online', run_header() + text)}")
     return 0
 
 

@@ -293,16 +293,6 @@ class StopConfig:
         noise at a standstill is never negative, so at 10 Hz its sum crept a parked vehicle
         forward by metres a minute, carrying the along-track anchor ahead of it (0 disables it).
     still_distance : metres; moving less than this between fixes, the vehicle stands.
-    stop_hold_distance : metres; a vehicle that stops less than this past a node it went
-        straight through (or has not yet turned at, by its heading) is placed before the node:
-        vehicles stop at stop lines, not in junctions. About the fixes' along-track error:
-        further, the vehicle is more likely to have stopped past the node, and a longer hold
-        would put such vehicles back before it.
-    stop_hold_fix_distance : metres; the stop line holds a stopped vehicle back before a node
-        only when the fix's own projection, too, lies less than this past the node (the
-        position believed may lag the fix by its along-track correction, several metres;
-        where the vehicle stands, the fixes show; checked only on GPS-aided fixes with no
-        dead-reckoning drift left above their own σ). 0: not checked.
     node_hold_sigmas : a vehicle past a node goes back across it only when the fix lies more
         than this many σ before it (no flicker at a crossing).
     node_hold_ahead_sigmas : a fix past the end node of the edge the vehicle is on keeps it at
@@ -325,8 +315,6 @@ class StopConfig:
     stop_time: float = 1.0
     zero_speed: float = 0.2
     still_distance: float = 0.05
-    stop_hold_distance: float = 4.0
-    stop_hold_fix_distance: float = 4.0
     node_hold_sigmas: float = 0.5
     node_hold_ahead_sigmas: float = 0.5
     speed_time: float = 1.0
@@ -444,7 +432,7 @@ class OnlineConfig:
         (:mod:`mapmatch.online.step`, :mod:`mapmatch.online.placement`).
     bias : the fix's error: dead-reckoning drift, the learnt bias and residuals, the
         along-track correction (:mod:`mapmatch.online.bias`).
-    stop : stops, nodes and the fix rate (:mod:`mapmatch.online.stopline`, the transition).
+    stop : stops, nodes and the fix rate (the placement and the transition).
     anchor : the turn anchor (:mod:`mapmatch.online.anchor`).
     odometer : the odometer's learnt scale (:mod:`mapmatch.online.anchor`).
     corrections : the corrections of an ambiguous region, re-timed crossings and the report
