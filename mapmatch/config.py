@@ -170,10 +170,6 @@ class ReinitConfig:
     reinit_time : seconds of inconsistency before re-initialising.
     reinit_distance : metres travelled while inconsistent before re-initialising.
     far_off : metres; a fix further than this from the map's bounds is not placed.
-    neighbour_band : metres; roads this close to an edge at a similar bearing (parallel roads,
-        fork branches) are its neighbours, tabled once per map (read when the matcher is made).
-    neighbour_sigmas : the neighbours of the road believed join the filter when a GPS-aided fix
-        is further than this many σ from it (0 disables it).
     return_sigmas : on the first GPS-aided fix with a heading after dead reckoning (and, at most
         every ``search_every``, on those after it while the drift σ blends out), when it is
         further than this many of its own σ from the road believed, the roads near it join the
@@ -188,8 +184,6 @@ class ReinitConfig:
     reinit_time: float = 10.0
     reinit_distance: float = 100.0
     far_off: float = 100_000.0
-    neighbour_band: float = 40.0
-    neighbour_sigmas: float = 0.0
     return_sigmas: float = 2.0
 
     def __post_init__(self) -> None:

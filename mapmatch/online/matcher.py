@@ -8,7 +8,6 @@ import math
 
 from graph.angles import angle_diff
 from graph.index import EdgeIndex
-from graph.neighbours import Neighbours, edge_neighbours
 from graph.road_graph import RoadGraph
 from mapmatch.config import DEFAULT_CONFIG, MatchConfig
 from mapmatch.online import anchor, bias, hypotheses, region, report
@@ -46,13 +45,6 @@ class OnlineMatcher:
         self.index = index if index is not None else EdgeIndex(graph)
         self.config = config
         self.road = RoadModel(graph)
-        o = config.online
-        # parallel roads and slowly separating fork branches of every edge, looked up per fix
-        self.neighbours: Neighbours | None = (
-            edge_neighbours(graph, band_m=o.reinit.neighbour_band, index=self.index)
-            if o.reinit.neighbour_sigmas > 0.0 and o.reinit.neighbour_band > 0.0
-            else None
-        )
         self.edge_len_ref = self.road.edge_len_ref
 
     def new_session(self) -> SessionState:
@@ -138,17 +130,6 @@ class OnlineMatcher:
         elif step.gps and (best.dist > o.reinit.soft_reinit_sigmas * step.sigma or against) and not searched:
             state.search_time = step.time
             hypotheses.add_alternatives(self.road, self.index, state, step, best, cfg)
-        elif (
-            step.gps
-            and self.neighbours is not None
-            and o.reinit.neighbour_sigmas > 0.0
-            and best.dist > o.reinit.neighbour_sigmas * step.sigma
-            and not searched
-        ):  # a parallel road or a fork branch may fit the fix better: a table look-up
-            nb = self.neighbours.of(best.edges[best.k])
-            if len(nb):
-                state.search_time = step.time
-                hypotheses.add_alternatives(self.road, self.index, state, step, best, cfg, edges=nb.tolist())
 
     def _check_road(self, state: SessionState, step: Step, cfg: MatchConfig) -> bool:
         """Re-initialise after the fixes have been off the road long enough (returns whether it
