@@ -117,21 +117,10 @@ class RegionConfig:
     init_max_radius : metres; the largest start-up search radius.
     init_max_heading_deg : no hypothesis starts (or joins) against the fix's heading by more.
     init_commit_probability : probability at which the start-up road is committed.
-    commit_separation_sigmas : a node passed is committed only once every other path through
-        it within ``commit_hold_log_ratio`` log units of the best lies at least this many fix σ
-        from the best (the branches of a fork at a small angle separate slowly; 0 disables it),
-        or the best is ``ambiguous_max_radius`` past the node. Off by default: it helps on
-        exits drawn at a small angle, not on real drives.
-    commit_hold_log_ratio : see ``commit_separation_sigmas``.
     commit_hold_probability : a node is not committed while the paths its commit would drop
         (another branch of a fork) still hold more than this share of the probability, until
         the best path is ``ambiguous_max_radius`` past it: leaving the ambiguous circle is no
         evidence (0 disables it).
-    outage_separation_sigmas : ``commit_separation_sigmas`` for a node passed without GPS: the
-        dead-reckoned position cannot tell branches a few metres apart, while their headings
-        soon will (a ramp curving off a straight road), so they stay alive until the evidence or
-        the returning GPS decides, or the best is ``ambiguous_max_radius`` past the node
-        (0 disables it).
     switch_penalty : log-probability penalty of jumping to a road the filter did not follow.
     """
 
@@ -145,10 +134,7 @@ class RegionConfig:
     init_max_radius: float = 200.0
     init_max_heading_deg: float = 100.0
     init_commit_probability: float = 0.99
-    commit_separation_sigmas: float = 0.0
-    commit_hold_log_ratio: float = 7.0
     commit_hold_probability: float = 0.05
-    outage_separation_sigmas: float = 2.0
     switch_penalty: float = 8.0
 
     def __post_init__(self) -> None:
