@@ -115,8 +115,6 @@ class RegionConfig:
     max_hops : most edges a path looks ahead of the vehicle's edge.
     prune_log_ratio : hypotheses this many log units below the best are dropped.
     init_max_radius : metres; the largest start-up search radius.
-    init_max_heading_deg : no hypothesis starts (or joins) against the fix's heading by more.
-    init_commit_probability : probability at which the start-up road is committed.
     commit_hold_probability : a node is not committed while the paths its commit would drop
         (another branch of a fork) still hold more than this share of the probability, until
         the best path is ``ambiguous_max_radius`` past it: leaving the ambiguous circle is no
@@ -132,15 +130,12 @@ class RegionConfig:
     max_hops: int = 4
     prune_log_ratio: float = 25.0
     init_max_radius: float = 200.0
-    init_max_heading_deg: float = 100.0
-    init_commit_probability: float = 0.99
     commit_hold_probability: float = 0.05
     switch_penalty: float = 8.0
 
     def __post_init__(self) -> None:
         _check_numbers(self)
         _at_least(self, 1, "max_hypotheses", "max_hops")
-        _at_most_one(self, "init_commit_probability")
 
 
 @dataclass(frozen=True)

@@ -583,7 +583,7 @@ def test_online_tuning_constants_are_validated_config_fields() -> None:
         {"max_hypotheses": 2.5},
         {"turn_sigma": 0.0},
         {"drift_decay_time": 0.0},
-        {"init_commit_probability": 1.5},
+        {"min_probability": 1.5},
     ):
         with pytest.raises(ConfigError):
             DEFAULT_CONFIG.replace(**bad)

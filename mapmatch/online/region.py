@@ -106,10 +106,8 @@ def _branches_kept(state: SessionState, e1: int, step: Step, cfg: MatchConfig) -
 def _commit_start(
     road: RoadModel, state: SessionState, best: Hypothesis, step: Step, cfg: MatchConfig
 ) -> bool:
-    """Whether the start-up road is sure enough (or enough was driven) to commit."""
-    total = sum(math.exp(h.logp) for h in state.hyps)
-    group = sum(math.exp(h.logp) for h in state.hyps if h.edges[0] == best.edges[0]) / total
-    return group >= cfg.online.region.init_commit_probability or state.odo - state.region.init_odo >= max(
+    """Whether the start-up road is the only one left, or enough was driven to commit it."""
+    return all(h.edges[0] == best.edges[0] for h in state.hyps) or state.odo - state.region.init_odo >= max(
         2.0 * step.r_a, cfg.online.evidence.turn_window
     )
 
