@@ -364,8 +364,6 @@ class CorrectionsConfig:
 
     max_live : most fixes of an ambiguous region remembered for corrections ...
     live_spacing : ... at most one per this many seconds, or on an edge change.
-    correction_margin : a fix reported on an edge of the committed path stays as reported while
-        the smoother's cost there is within this of its own choice.
     trail_step : metres; the odometer trail for re-timing crossings keeps a point this often ...
     trail_max : ... at most this many points ...
     trail_max_distance : ... and crossings at most this many metres back.
@@ -375,18 +373,15 @@ class CorrectionsConfig:
         ``trail_max`` it bounds the
         work one imported session can cost (the matcher's own paths hold a few dozen edges).
     revise_sigmas : a revised crossing moves only as far as its anchor is this many σ sure.
-    report_back_ratio : reporting an edge behind the one reported needs this much more mass.
     """
 
     max_live: int = 48
     live_spacing: float = 0.5
-    correction_margin: float = 2.0
     trail_step: float = 2.0
     trail_max: int = 150
     trail_max_distance: float = 300.0
     max_path_edges: int = 1024
     revise_sigmas: float = 1.0
-    report_back_ratio: float = 3.0
 
     def __post_init__(self) -> None:
         _check_numbers(self)

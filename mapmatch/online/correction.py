@@ -40,9 +40,9 @@ def correction(road: RoadModel, rg: RegionState, best: Hypothesis, cfg: MatchCon
         if (
             now != rep
             and rep in path
-            and (not entry.gps or row[path.index(rep)] - row[j] < cfg.online.corrections.correction_margin)
+            and (not entry.gps or row[path.index(rep)] < row[j])
         ):
-            # dead reckoning, or about as likely where it was reported on the committed path: keep it
+            # dead reckoning, or likelier where it was reported on the committed path: keep it
             continue
         if now != rep:
             mism.append((t, now, rep))
