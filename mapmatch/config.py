@@ -115,6 +115,7 @@ class RegionConfig:
     max_hops : most edges a path looks ahead of the vehicle's edge.
     prune_log_ratio : hypotheses this many log units below the best are dropped.
     init_max_radius : metres; the largest start-up search radius.
+    init_max_heading_deg : no hypothesis starts (or joins) against the fix's heading by more.
     commit_hold_probability : a node is not committed while the paths its commit would drop
         (another branch of a fork) still hold more than this share of the probability, until
         the best path is ``ambiguous_max_radius`` past it: leaving the ambiguous circle is no
@@ -130,6 +131,7 @@ class RegionConfig:
     max_hops: int = 4
     prune_log_ratio: float = 25.0
     init_max_radius: float = 200.0
+    init_max_heading_deg: float = 100.0
     commit_hold_probability: float = 0.05
     switch_penalty: float = 8.0
 
@@ -305,23 +307,19 @@ class AnchorConfig:
 
     turn_anchor_sigma : metres; the least σ of the along-path position a turn gives (the fused
         headings aligned with the path's bearing profile); 0 disables the anchor.
-    anchor_gate : a turn anchor further than this many σ from the fix is dropped.
     align_search : metres; a turn's heading profile is searched within this plus ...
     align_search_sigmas : ... this many fix σ of the position believed, up to ...
     align_search_max : ... this many metres.
     align_heading_sigma_min_deg : the least heading σ the alignment assumes.
     align_rms_max_deg : a worse fit: the path is not what the vehicle drove, no anchor.
-    align_cover : metres; the heading samples must reach this far either side of the node.
     """
 
     turn_anchor_sigma: float = 1.0
-    anchor_gate: float = 3.0
     align_search: float = 5.0
     align_search_sigmas: float = 2.5
     align_search_max: float = 40.0
     align_heading_sigma_min_deg: float = 3.0
     align_rms_max_deg: float = 20.0
-    align_cover: float = 3.0
 
     def __post_init__(self) -> None:
         _check_numbers(self)
@@ -373,6 +371,7 @@ class CorrectionsConfig:
         ``trail_max`` it bounds the
         work one imported session can cost (the matcher's own paths hold a few dozen edges).
     revise_sigmas : a revised crossing moves only as far as its anchor is this many σ sure.
+    report_back_ratio : reporting an edge behind the one reported needs this much more mass.
     """
 
     max_live: int = 48
@@ -382,6 +381,7 @@ class CorrectionsConfig:
     trail_max_distance: float = 300.0
     max_path_edges: int = 1024
     revise_sigmas: float = 1.0
+    report_back_ratio: float = 3.0
 
     def __post_init__(self) -> None:
         _check_numbers(self)

@@ -572,11 +572,11 @@ def test_crossing_at_10_hz_is_committed_without_flicker() -> None:
 def test_online_tuning_constants_are_validated_config_fields() -> None:
     from mapmatch.errors import ConfigError
 
-    cfg = DEFAULT_CONFIG.replace(max_hypotheses=8, stop_speed=0.3, node_hold_sigmas=2.0)
+    cfg = DEFAULT_CONFIG.replace(max_hypotheses=8, stop_speed=0.3, node_hold_ahead_sigmas=2.0)
     assert (
         cfg.online.region.max_hypotheses,
         cfg.online.stop.stop_speed,
-        cfg.online.stop.node_hold_sigmas,
+        cfg.online.stop.node_hold_ahead_sigmas,
     ) == (8, 0.3, 2.0)
     for bad in (
         {"max_hypotheses": 0},

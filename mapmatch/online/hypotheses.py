@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import math
 
+from graph.angles import angle_diff
 from graph.index import EdgeIndex
 from mapmatch.config import MatchConfig
 from mapmatch.online.filter import filter_step, keep_best, normalise
@@ -23,10 +24,17 @@ def _candidates(
     cfg: MatchConfig,
     edges: list[int] | None = None,
 ) -> list[tuple[int, Projection]]:
-    """Edges near the fix (or the given ``edges``), projected."""
+    """Edges near the fix (or the given ``edges``) not heading against it (never start against
+    one-ways), projected."""
     if edges is None:
         edges = index.query([[step.x, step.y]], radius, k=cfg.model.max_candidates).edge.tolist()
-    return [(e, road.project(e, step.x, step.y)) for e in edges]
+    out = []
+    for e in edges:
+        pr = road.project(e, step.x, step.y)
+        if step.kappa > 0.0 and abs(angle_diff(step.heading, pr[4])) > cfg.online.region.init_max_heading_deg:
+            continue
+        out.append((e, pr))
+    return out
 
 
 def initialise(road: RoadModel, index: EdgeIndex, state: SessionState, step: Step, cfg: MatchConfig) -> None:

@@ -78,7 +78,7 @@ class OnlineMatcher:
         if not state.hyps:
             return report.off_road(fix)
         turn, corr = (Turn.NONE, None) if reinit else region.commit(self.road, state, step, cfg)
-        shown = report.shown_hypothesis(state)
+        shown = report.shown_hypothesis(state, cfg)
         state.shown = shown.hypothesis.edges[shown.hypothesis.k]
         if len(state.hyps) > 1:
             remember_live(state.region, state.shown, step, cfg)

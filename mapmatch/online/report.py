@@ -46,16 +46,25 @@ class Shown:
     mass: EdgeMass
 
 
-def shown_hypothesis(state: SessionState) -> Shown:
+def shown_hypothesis(state: SessionState, cfg: MatchConfig) -> Shown:
     """The hypothesis to report: on the edge of highest total probability (best for the
-    per-fix edge), its most probable one. Also the mass per edge (empty for a single
-    hypothesis)."""
+    per-fix edge), its most probable one; back to an edge behind the one reported last only
+    on clear evidence (no flicker). Also the mass per edge (empty for a single hypothesis)."""
     hyps = state.hyps
     best = best_of(hyps)
     agg = edge_mass(hyps) if len(hyps) > 1 else {}
     if agg:
         mass = {e: a[0] for e, a in agg.items()}
         top = max(mass, key=mass.__getitem__)
+        shown = state.shown
+        if (
+            top != shown
+            and shown in mass
+            and mass[top] < cfg.online.corrections.report_back_ratio * mass[shown]
+        ):
+            hs = best_of([h for h in hyps if h.edges[h.k] == shown])
+            if top in hs.edges[: hs.k]:
+                top = shown
         if top != best.edges[best.k]:
             best = best_of([h for h in hyps if h.edges[h.k] == top])
     return Shown(best, agg)
