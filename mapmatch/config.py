@@ -190,8 +190,7 @@ class EvidenceConfig:
         with this share of the fix's time weight, the share its distance weight leaves out: a
         vehicle turning round while stopped at a node shows which road it faces (0 disables it).
     pos_sigma_floor : metres; the least position σ of a fix (reported ones are optimistic).
-    heading_sigma_floor_deg : the least heading σ of a GPS-aided fix ...
-    heading_sigma_floor_dr_deg : ... and of a dead-reckoning one.
+    heading_sigma_floor_deg : the least heading σ of a fix, GPS-aided or dead-reckoned.
     """
 
     turn_window: float = 30.0
@@ -203,7 +202,6 @@ class EvidenceConfig:
     stopped_heading_weight: float = 1.0
     pos_sigma_floor: float = 2.0
     heading_sigma_floor_deg: float = 10.0
-    heading_sigma_floor_dr_deg: float = 15.0
 
     def __post_init__(self) -> None:
         _check_numbers(self)
