@@ -64,8 +64,8 @@ def turn_anchor(
     if (
         math.isnan(c)
         or rms > o.anchor.align_rms_max_deg
-        or samples[0][0] + c > node
-        or samples[-1][0] + c < node
+        or samples[0][0] + c > node - o.anchor.align_cover
+        or samples[-1][0] + c < node + o.anchor.align_cover
     ):
         return math.nan, math.nan
     return node - c, math.hypot(sd, o.anchor.turn_anchor_sigma)
