@@ -116,22 +116,10 @@ class RegionConfig:
     prune_log_ratio : hypotheses this many log units below the best are dropped.
     init_max_radius : metres; the largest start-up search radius.
     init_max_heading_deg : no hypothesis starts (or joins) against the fix's heading by more.
-    init_commit_probability : probability at which the start-up road is committed.
-    commit_separation_sigmas : a node passed is committed only once every other path through
-        it within ``commit_hold_log_ratio`` log units of the best lies at least this many fix σ
-        from the best (the branches of a fork at a small angle separate slowly; 0 disables it),
-        or the best is ``ambiguous_max_radius`` past the node. Off by default: it helps on
-        exits drawn at a small angle, not on real drives.
-    commit_hold_log_ratio : see ``commit_separation_sigmas``.
     commit_hold_probability : a node is not committed while the paths its commit would drop
         (another branch of a fork) still hold more than this share of the probability, until
         the best path is ``ambiguous_max_radius`` past it: leaving the ambiguous circle is no
         evidence (0 disables it).
-    outage_separation_sigmas : ``commit_separation_sigmas`` for a node passed without GPS: the
-        dead-reckoned position cannot tell branches a few metres apart, while their headings
-        soon will (a ramp curving off a straight road), so they stay alive until the evidence or
-        the returning GPS decides, or the best is ``ambiguous_max_radius`` past the node
-        (0 disables it).
     switch_penalty : log-probability penalty of jumping to a road the filter did not follow.
     """
 
@@ -144,17 +132,12 @@ class RegionConfig:
     prune_log_ratio: float = 25.0
     init_max_radius: float = 200.0
     init_max_heading_deg: float = 100.0
-    init_commit_probability: float = 0.99
-    commit_separation_sigmas: float = 0.0
-    commit_hold_log_ratio: float = 7.0
     commit_hold_probability: float = 0.05
-    outage_separation_sigmas: float = 2.0
     switch_penalty: float = 8.0
 
     def __post_init__(self) -> None:
         _check_numbers(self)
         _at_least(self, 1, "max_hypotheses", "max_hops")
-        _at_most_one(self, "init_commit_probability")
 
 
 @dataclass(frozen=True)
@@ -170,10 +153,6 @@ class ReinitConfig:
     reinit_time : seconds of inconsistency before re-initialising.
     reinit_distance : metres travelled while inconsistent before re-initialising.
     far_off : metres; a fix further than this from the map's bounds is not placed.
-    neighbour_band : metres; roads this close to an edge at a similar bearing (parallel roads,
-        fork branches) are its neighbours, tabled once per map (read when the matcher is made).
-    neighbour_sigmas : the neighbours of the road believed join the filter when a GPS-aided fix
-        is further than this many σ from it (0 disables it).
     return_sigmas : on the first GPS-aided fix with a heading after dead reckoning (and, at most
         every ``search_every``, on those after it while the drift σ blends out), when it is
         further than this many of its own σ from the road believed, the roads near it join the
@@ -188,8 +167,6 @@ class ReinitConfig:
     reinit_time: float = 10.0
     reinit_distance: float = 100.0
     far_off: float = 100_000.0
-    neighbour_band: float = 40.0
-    neighbour_sigmas: float = 0.0
     return_sigmas: float = 2.0
 
     def __post_init__(self) -> None:
@@ -203,7 +180,6 @@ class EvidenceConfig:
     turn_window : odometer metres over which the heading step is measured.
     turn_sample_spacing : odometer metres between two heading samples kept for it.
     turn_max_samples : heading samples kept at most (a memory bound per vehicle).
-    turn_threshold : degrees of heading change that count as a turn.
     turn_sigma : degrees; spread of the observed heading change around a path's predicted one.
     evidence_time : seconds of fixes that count as one independent observation (the fused
         position's error is correlated in time, so 10 Hz fixes must not count ten times).
@@ -214,21 +190,18 @@ class EvidenceConfig:
         with this share of the fix's time weight, the share its distance weight leaves out: a
         vehicle turning round while stopped at a node shows which road it faces (0 disables it).
     pos_sigma_floor : metres; the least position σ of a fix (reported ones are optimistic).
-    heading_sigma_floor_deg : the least heading σ of a GPS-aided fix ...
-    heading_sigma_floor_dr_deg : ... and of a dead-reckoning one.
+    heading_sigma_floor_deg : the least heading σ of a fix, GPS-aided or dead-reckoned.
     """
 
     turn_window: float = 30.0
     turn_sample_spacing: float = 1.0
     turn_max_samples: int = 48
-    turn_threshold: float = 25.0
     turn_sigma: float = 20.0
     evidence_time: float = 1.0
     evidence_distance: float = 5.0
     stopped_heading_weight: float = 1.0
     pos_sigma_floor: float = 2.0
     heading_sigma_floor_deg: float = 10.0
-    heading_sigma_floor_dr_deg: float = 15.0
 
     def __post_init__(self) -> None:
         _check_numbers(self)
@@ -295,16 +268,6 @@ class StopConfig:
         noise at a standstill is never negative, so at 10 Hz its sum crept a parked vehicle
         forward by metres a minute, carrying the along-track anchor ahead of it (0 disables it).
     still_distance : metres; moving less than this between fixes, the vehicle stands.
-    stop_hold_distance : metres; a vehicle that stops less than this past a node it went
-        straight through (or has not yet turned at, by its heading) is placed before the node:
-        vehicles stop at stop lines, not in junctions. About the fixes' along-track error:
-        further, the vehicle is more likely to have stopped past the node, and a longer hold
-        would put such vehicles back before it.
-    stop_hold_fix_distance : metres; the stop line holds a stopped vehicle back before a node
-        only when the fix's own projection, too, lies less than this past the node (the
-        position believed may lag the fix by its along-track correction, several metres;
-        where the vehicle stands, the fixes show; checked only on GPS-aided fixes with no
-        dead-reckoning drift left above their own σ). 0: not checked.
     node_hold_sigmas : a vehicle past a node goes back across it only when the fix lies more
         than this many σ before it (no flicker at a crossing).
     node_hold_ahead_sigmas : a fix past the end node of the edge the vehicle is on keeps it at
@@ -327,8 +290,6 @@ class StopConfig:
     stop_time: float = 1.0
     zero_speed: float = 0.2
     still_distance: float = 0.05
-    stop_hold_distance: float = 4.0
-    stop_hold_fix_distance: float = 4.0
     node_hold_sigmas: float = 0.5
     node_hold_ahead_sigmas: float = 0.5
     speed_time: float = 1.0
@@ -344,7 +305,6 @@ class AnchorConfig:
 
     turn_anchor_sigma : metres; the least σ of the along-path position a turn gives (the fused
         headings aligned with the path's bearing profile); 0 disables the anchor.
-    anchor_gate : a turn anchor further than this many σ from the fix is dropped.
     align_search : metres; a turn's heading profile is searched within this plus ...
     align_search_sigmas : ... this many fix σ of the position believed, up to ...
     align_search_max : ... this many metres.
@@ -354,7 +314,6 @@ class AnchorConfig:
     """
 
     turn_anchor_sigma: float = 1.0
-    anchor_gate: float = 3.0
     align_search: float = 5.0
     align_search_sigmas: float = 2.5
     align_search_max: float = 40.0
@@ -403,8 +362,6 @@ class CorrectionsConfig:
 
     max_live : most fixes of an ambiguous region remembered for corrections ...
     live_spacing : ... at most one per this many seconds, or on an edge change.
-    correction_margin : a fix reported on an edge of the committed path stays as reported while
-        the smoother's cost there is within this of its own choice.
     trail_step : metres; the odometer trail for re-timing crossings keeps a point this often ...
     trail_max : ... at most this many points ...
     trail_max_distance : ... and crossings at most this many metres back.
@@ -419,7 +376,6 @@ class CorrectionsConfig:
 
     max_live: int = 48
     live_spacing: float = 0.5
-    correction_margin: float = 2.0
     trail_step: float = 2.0
     trail_max: int = 150
     trail_max_distance: float = 300.0
@@ -446,7 +402,7 @@ class OnlineConfig:
         (:mod:`mapmatch.online.step`, :mod:`mapmatch.online.placement`).
     bias : the fix's error: dead-reckoning drift, the learnt bias and residuals, the
         along-track correction (:mod:`mapmatch.online.bias`).
-    stop : stops, nodes and the fix rate (:mod:`mapmatch.online.stopline`, the transition).
+    stop : stops, nodes and the fix rate (the placement and the transition).
     anchor : the turn anchor (:mod:`mapmatch.online.anchor`).
     odometer : the odometer's learnt scale (:mod:`mapmatch.online.anchor`).
     corrections : the corrections of an ambiguous region, re-timed crossings and the report

@@ -56,9 +56,16 @@ def pinned(path: Path = PINNED) -> list[list[bytes]]:
 
 
 def write() -> None:
-    """Rewrite the pinned file from the matcher as it is (only when the format changes on purpose)."""
-    data = b"".join(b + b"\n" for run in blobs() for b in run)
+    """Rewrite the pinned files from the matcher as it is (only when the answers or the format
+    change on purpose): the blobs, and the same states in version 2."""
+    from mapmatch.online import SessionState
+    from mapmatch.online.codec import to_bytes
+
+    runs = blobs()
+    data = b"".join(b + b"\n" for run in runs for b in run)
     PINNED.write_bytes(gzip.compress(data, mtime=0))
+    old = b"".join(to_bytes(SessionState.from_bytes(b), version=2) + b"\n" for run in runs for b in run)
+    PINNED_V2.write_bytes(gzip.compress(old, mtime=0))
 
 
 if __name__ == "__main__":

@@ -12,7 +12,9 @@ is judged over a second, branches passed in an outage are kept alive, the return
 searched while the drift blends out, the drift σ decays over 4 s, and the turn score is
 weighed by distance only; and a stopped vehicle's fused heading scores the paths by time;
 and again (``record --set committed``, branch h12) when the step from a hypothesis's place
-came to be judged to the candidates' places corrected alike (``step_from_corrected``).
+came to be judged to the candidates' places corrected alike (``step_from_corrected``);
+and again when the online rules that do not win out of fold were removed
+(``bench/ablate_online.py``).
 They hold every ``SnapResult`` of the service tests' drives and of bench_online drives on
 shared maps, and a session exported half way (imported here and replayed). A few batch
 matches are in ``batch.json.gz``, recorded after #14 changed the batch model (off-map fixes,

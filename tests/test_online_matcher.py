@@ -572,18 +572,18 @@ def test_crossing_at_10_hz_is_committed_without_flicker() -> None:
 def test_online_tuning_constants_are_validated_config_fields() -> None:
     from mapmatch.errors import ConfigError
 
-    cfg = DEFAULT_CONFIG.replace(max_hypotheses=8, stop_speed=0.3, node_hold_sigmas=2.0)
+    cfg = DEFAULT_CONFIG.replace(max_hypotheses=8, stop_speed=0.3, node_hold_ahead_sigmas=2.0)
     assert (
         cfg.online.region.max_hypotheses,
         cfg.online.stop.stop_speed,
-        cfg.online.stop.node_hold_sigmas,
+        cfg.online.stop.node_hold_ahead_sigmas,
     ) == (8, 0.3, 2.0)
     for bad in (
         {"max_hypotheses": 0},
         {"max_hypotheses": 2.5},
         {"turn_sigma": 0.0},
         {"drift_decay_time": 0.0},
-        {"init_commit_probability": 1.5},
+        {"min_probability": 1.5},
     ):
         with pytest.raises(ConfigError):
             DEFAULT_CONFIG.replace(**bad)
@@ -823,34 +823,11 @@ def _stop_drive(m: AsciiMap, route: str, *, stop_s: float, bias_x: float, bias_y
     return fixes
 
 
-def test_vehicle_stopped_at_the_stop_line_is_before_the_crossing() -> None:
-    # the vehicle stops 3 m before the crossing b; its fixes lie 6 m ahead, past b: it stands
-    # at the stop line on a-b, not in the junction, and drives on through b afterwards
-    m = parse_ascii_map(CROSS, scale=10)
-    ab, bc = m.edge("a", "b"), m.edge("b", "c")
-    fixes = _stop_drive(m, "abc", stop_s=77.0, bias_x=6.0, bias_y=0.0)
-    res = run(OnlineMatcher(m.graph), fixes)
-    assert [r.edge for r in res[-15:]] == [ab] * 15
-    # what was reported past b before the vehicle stood is revised
-    held = [r.correction for r in res if r.correction is not None and bc in r.correction.replaced_edges]
-    assert held and held[0].edges == (ab,)
-    assert [r.edge for r in res if r.edge == bc] and committed_edges(res) == [ab]
-    # without the rule the fixes put it past the node
-    loose = run(OnlineMatcher(m.graph, config=DEFAULT_CONFIG.replace(stop_hold_distance=0.0)), fixes)
-    assert [r.edge for r in loose[-15:]] == [bc] * 15
-    st = OnlineMatcher(m.graph).new_session()
-    go = drive(m, "bc", DriveSpec(speed=5, t0=fixes[-1].time + 1.0, start_offset=5.0))
-    go[0] = go[0]._replace(distance=8.0)
-    out = run(OnlineMatcher(m.graph), fixes + go, st)
-    assert committed_edges(out) == [ab, bc]
-    assert out[-1].edge == bc
-
-
 @pytest.mark.parametrize(
     ("route", "stop_s", "beyond"),
     [
         ("abs", 85.0, "s"),  # turned right at b, stopped 5 m on: the heading shows the turn
-        ("abc", 92.0, "c"),  # straight on, stopped 12 m past b: beyond the stop-line rule
+        ("abc", 92.0, "c"),  # straight on, stopped 12 m past b
     ],
 )
 def test_vehicle_stopped_well_past_the_node_stays_there(route: str, stop_s: float, beyond: str) -> None:
@@ -956,29 +933,24 @@ b-----c-------d
 """
 
 
-def test_stop_line_hold_needs_the_fix_too_when_the_belief_lags_it() -> None:
+def test_vehicle_stopped_past_a_crossing_stays_past_it() -> None:
     # the odometer reads 10 % low: from the turn at b on, the position carried by it (the turn
     # anchor) lags the exact fixes. The vehicle stops 6 m past the straight crossing c, where
-    # its fixes lie: the belief is within the stop-line distance of c, the fix is not, so the
-    # vehicle is not held back before c.
+    # its fixes lie: it stands on c-d, not back before c.
     #
     #   n
     #   |
     #   b-----c-*-----d      *: stops 6 m past c (fixes there); the belief lags 3 m
     #         s
     m = parse_ascii_map(TURN_THEN_CROSSING, scale=10)
-    bc, cd = m.edge("b", "c"), m.edge("c", "d")
+    cd = m.edge("c", "d")
     stop_s = float(m.xy("n")[1] - m.xy("b")[1]) + float(m.xy("c")[0] - m.xy("b")[0]) + 6.0
     fixes = [
         f._replace(distance=0.9 * f.distance, speed=0.9 * f.speed)
         for f in _stop_drive(m, "nbcd", stop_s=stop_s, bias_x=0.0, bias_y=0.0)
     ]
     res = run(OnlineMatcher(m.graph), fixes)
-    assert 0.0 < res[-20].offset < DEFAULT_CONFIG.online.stop.stop_hold_distance  # the belief lags
     assert [r.edge for r in res[-19:]] == [cd] * 19
-    # held by the belief alone (the old rule), it is put back before c
-    old = run(OnlineMatcher(m.graph, config=DEFAULT_CONFIG.replace(stop_hold_fix_distance=0.0)), fixes)
-    assert [r.edge for r in old[-15:]] == [bc] * 15
 
 
 def test_stopped_vehicle_faces_the_way_its_fused_heading_says() -> None:

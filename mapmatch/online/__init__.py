@@ -27,7 +27,6 @@ Where each mechanism lives:
 - :mod:`~mapmatch.online.region`: the ambiguous region and its commit.
 - :mod:`~mapmatch.online.anchor`: the turn anchor, the odometer scale, re-timed crossings.
 - :mod:`~mapmatch.online.bias`: the fix bias, the road residuals, the dead-reckoning drift.
-- :mod:`~mapmatch.online.stopline`: the stop line before a node.
 - :mod:`~mapmatch.online.correction`: the fixed-lag smoother and the corrections.
 - :mod:`~mapmatch.online.report`: the pure report (a :class:`~mapmatch.types.SnapResult`).
 

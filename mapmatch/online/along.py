@@ -33,11 +33,9 @@ def along_track(  # type: ignore[no-untyped-def]
     allowed. Returns ``(moved, position, want, miss, anc, anc_sd)``: whether the position
     changed, the corrected position (``best`` when unchanged), the estimate's ``s`` (the
     position's unless a turn of the path stops it short), a log-penalty for that, and the
-    anchor (nan when inconsistent: forgotten)."""
+    anchor."""
     j0, off0, s0 = best[0], best[1], best[2]
-    s_f, vf, va, inconsistent = fuse_along(p, s0, best[6], anc, anc_sd)
-    if inconsistent:
-        anc = anc_sd = math.nan  # forget it
+    s_f, vf, va = fuse_along(p, s0, best[6], anc, anc_sd)
     if abs(s_f - s0) <= 0.01:
         return False, best, s0, 0.0, anc, anc_sd
     s_f = min(max(s_f, 0.0), acc)
@@ -54,21 +52,19 @@ def along_track(  # type: ignore[no-untyped-def]
 @njit(cache=True)
 def fuse_along(p: PlaceParams, s0: float, bearing: float, anc: float, anc_sd: float):  # type: ignore[no-untyped-def]
     """A projection ``s0`` on a road of ``bearing`` less the learnt bias along the road, fused
-    with the turn anchor (before the path's turns stop it). Returns ``(s, vf, va,
-    inconsistent)``: the corrected ``s``, the fix's and the anchor's variance along the road
-    (``va`` 0 without an anchor) and whether the anchor failed its gate (then not fused)."""
+    with the turn anchor (before the path's turns stop it). Returns ``(s, vf, va)``: the
+    corrected ``s`` and the fix's and the anchor's variance along the road (``va`` 0 without
+    an anchor)."""
     rad = math.radians(bearing)
     tx, ty = math.sin(rad), math.cos(rad)
     s_m = s0 - (p.bx * tx + p.by * ty)
     white = p.bias_white_fraction * p.sigma
     vf = tx * tx * p.pxx + 2.0 * tx * ty * p.pxy + ty * ty * p.pyy + white**2
     if math.isnan(anc_sd) or not p.odo_known:
-        return s_m, vf, 0.0, False
+        return s_m, vf, 0.0
     va = anc_sd * anc_sd
     innov = anc + p.odo - s_m
-    if innov * innov > p.anchor_gate**2 * (va + vf):
-        return s_m, vf, va, True
-    return s_m + innov * vf / (va + vf), vf, va, False
+    return s_m + innov * vf / (va + vf), vf, va
 
 
 @njit(cache=True)

@@ -37,12 +37,8 @@ def correction(road: RoadModel, rg: RegionState, best: Hypothesis, cfg: MatchCon
     for entry, j, row in zip(rg.live, assigned, cost, strict=True):
         t, rep = entry.time, entry.edge
         now = best.edges[j]
-        if (
-            now != rep
-            and rep in path
-            and (not entry.gps or row[path.index(rep)] - row[j] < cfg.online.corrections.correction_margin)
-        ):
-            # dead reckoning, or about as likely where it was reported on the committed path: keep it
+        if now != rep and rep in path and (not entry.gps or row[path.index(rep)] < row[j]):
+            # dead reckoning, or likelier where it was reported on the committed path: keep it
             continue
         if now != rep:
             mism.append((t, now, rep))

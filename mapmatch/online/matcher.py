@@ -8,15 +8,14 @@ import math
 
 from graph.angles import angle_diff
 from graph.index import EdgeIndex
-from graph.neighbours import Neighbours, edge_neighbours
 from graph.road_graph import RoadGraph
 from mapmatch.config import DEFAULT_CONFIG, MatchConfig
-from mapmatch.online import anchor, bias, hypotheses, region, report, stopline
+from mapmatch.online import anchor, bias, hypotheses, region, report
 from mapmatch.online.correction import remember_live
 from mapmatch.online.filter import best as best_of
 from mapmatch.online.filter import normalise
 from mapmatch.online.road import RoadModel
-from mapmatch.online.state import Hypothesis, SessionState, Step
+from mapmatch.online.state import SessionState, Step
 from mapmatch.online.step import prepare
 from mapmatch.turns import add_sample
 from mapmatch.types import Fix, SnapResult, Turn
@@ -46,13 +45,6 @@ class OnlineMatcher:
         self.index = index if index is not None else EdgeIndex(graph)
         self.config = config
         self.road = RoadModel(graph)
-        o = config.online
-        # parallel roads and slowly separating fork branches of every edge, looked up per fix
-        self.neighbours: Neighbours | None = (
-            edge_neighbours(graph, band_m=o.reinit.neighbour_band, index=self.index)
-            if o.reinit.neighbour_sigmas > 0.0 and o.reinit.neighbour_band > 0.0
-            else None
-        )
         self.edge_len_ref = self.road.edge_len_ref
 
     def new_session(self) -> SessionState:
@@ -77,20 +69,16 @@ class OnlineMatcher:
         blending = state.bias.drift_sigma > step.fix_sigma and not searched
         returned = step.gps and step.kappa > 0.0 and (first or blending)
         self._take(state, step, cfg)
-        held: list[tuple[Hypothesis, float]] = []
         reinit = False
         if state.hyps:
-            held = self._filter(state, step, cfg, returned=returned)
+            self._filter(state, step, cfg, returned=returned)
             reinit = self._check_road(state, step, cfg)
-            if reinit:
-                held = []
         else:
             hypotheses.initialise(self.road, self.index, state, step, cfg)
         if not state.hyps:
             return report.off_road(fix)
         turn, corr = (Turn.NONE, None) if reinit else region.commit(self.road, state, step, cfg)
         shown = report.shown_hypothesis(state, cfg)
-        corr = stopline.back_at_stop_line(state, shown.hypothesis, held, step, corr)
         state.shown = shown.hypothesis.edges[shown.hypothesis.k]
         if len(state.hyps) > 1:
             remember_live(state.region, state.shown, step, cfg)
@@ -121,13 +109,10 @@ class OnlineMatcher:
                 cfg,
             )
 
-    def _filter(
-        self, state: SessionState, step: Step, cfg: MatchConfig, *, returned: bool
-    ) -> list[tuple[Hypothesis, float]]:
-        """The filter step, the stop line and, when the fix has left the road believed (or GPS
-        has just returned away from it), the search for other roads."""
+    def _filter(self, state: SessionState, step: Step, cfg: MatchConfig, *, returned: bool) -> None:
+        """The filter step and, when the fix has left the road believed (or GPS has just
+        returned away from it), the search for other roads."""
         hyps = hypotheses.advance(self.road, state, step, cfg)
-        held = stopline.hold_stopped(self.road, hyps, state, step, cfg)
         state.hyps = normalise(hyps, prune_log_ratio=cfg.online.region.prune_log_ratio)
         best = best_of(state.hyps)
         o = cfg.online
@@ -145,18 +130,6 @@ class OnlineMatcher:
         elif step.gps and (best.dist > o.reinit.soft_reinit_sigmas * step.sigma or against) and not searched:
             state.search_time = step.time
             hypotheses.add_alternatives(self.road, self.index, state, step, best, cfg)
-        elif (
-            step.gps
-            and self.neighbours is not None
-            and o.reinit.neighbour_sigmas > 0.0
-            and best.dist > o.reinit.neighbour_sigmas * step.sigma
-            and not searched
-        ):  # a parallel road or a fork branch may fit the fix better: a table look-up
-            nb = self.neighbours.of(best.edges[best.k])
-            if len(nb):
-                state.search_time = step.time
-                hypotheses.add_alternatives(self.road, self.index, state, step, best, cfg, edges=nb.tolist())
-        return held
 
     def _check_road(self, state: SessionState, step: Step, cfg: MatchConfig) -> bool:
         """Re-initialise after the fixes have been off the road long enough (returns whether it

@@ -45,7 +45,6 @@ class PlaceParams(NamedTuple):
     bias_emission: float
     bias_white_fraction: float
     step_from_corrected: float
-    anchor_gate: float
     straight_max_deg: float
     pos_sigma_floor: float
     beta: float
@@ -65,7 +64,6 @@ def _config_part(cfg: MatchConfig) -> tuple[float, ...]:
             o.bias.bias_emission,
             o.bias.bias_white_fraction,
             o.bias.step_from_corrected,
-            o.anchor.anchor_gate,
             m.straight_max_deg,
             o.evidence.pos_sigma_floor,
             m.beta,

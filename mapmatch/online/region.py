@@ -48,7 +48,7 @@ def commit(
         state.hyps = [h for h in state.hyps if h.edges[0] == best.edges[0]]
         rg.init_pending = False
     while best.k >= 1 and best.s - road.elen[best.edges[0]] >= step.r_a:
-        if _branches_close(road, state, best, step, cfg) or _branch_probable(road, state, best, step, cfg):
+        if _branch_probable(road, state, best, step, cfg):
             break  # the evidence cannot tell the branches apart yet
         if rg.live:
             c = correction(road, rg, best, cfg)
@@ -60,26 +60,6 @@ def commit(
         corr = c if corr is None else merge(corr, c)
         rg.live = []
     return turn, corr
-
-
-def _branches_close(
-    road: RoadModel, state: SessionState, best: Hypothesis, step: Step, cfg: MatchConfig
-) -> bool:
-    """Whether a path the commit of ``best``'s first node would drop is still probable and
-    closer to ``best`` than ``commit_separation_sigmas`` fix σ (``outage_separation_sigmas``
-    without GPS; until ``best`` is
-    ``ambiguous_max_radius`` past the node)."""
-    o = cfg.online
-    sep = (o.region.commit_separation_sigmas if step.gps else o.region.outage_separation_sigmas) * step.sigma
-    if sep <= 0.0 or best.s - road.elen[best.edges[0]] >= o.region.ambiguous_max_radius:
-        return False
-    e1 = best.edges[1]
-    return any(
-        (len(h.edges) < 2 or h.edges[1] != e1)
-        and h.logp > -o.region.commit_hold_log_ratio
-        and math.hypot(h.px - best.px, h.py - best.py) < sep
-        for h in state.hyps
-    )
 
 
 def _branch_probable(
@@ -126,10 +106,8 @@ def _branches_kept(state: SessionState, e1: int, step: Step, cfg: MatchConfig) -
 def _commit_start(
     road: RoadModel, state: SessionState, best: Hypothesis, step: Step, cfg: MatchConfig
 ) -> bool:
-    """Whether the start-up road is sure enough (or enough was driven) to commit."""
-    total = sum(math.exp(h.logp) for h in state.hyps)
-    group = sum(math.exp(h.logp) for h in state.hyps if h.edges[0] == best.edges[0]) / total
-    return group >= cfg.online.region.init_commit_probability or state.odo - state.region.init_odo >= max(
+    """Whether the start-up road is the only one left, or enough was driven to commit it."""
+    return all(h.edges[0] == best.edges[0] for h in state.hyps) or state.odo - state.region.init_odo >= max(
         2.0 * step.r_a, cfg.online.evidence.turn_window
     )
 

@@ -143,7 +143,7 @@ class CrossingTrail:
 @dataclass(slots=True)
 class RegionState:
     """The ambiguous region (written by :mod:`mapmatch.online.region` and the corrections it
-    makes, :mod:`mapmatch.online.correction` and :mod:`mapmatch.online.stopline`)."""
+    makes, :mod:`mapmatch.online.correction`)."""
 
     live: list[LiveFix] = field(default_factory=list)  # the fixes of the ambiguous region
     init_pending: bool = True  # the start-up road is not committed yet ...

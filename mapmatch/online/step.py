@@ -37,11 +37,7 @@ def prepare(road: RoadModel, state: SessionState, fix: Fix, cfg: MatchConfig) ->
     kappa = 0.0
     if not math.isnan(heading) and (math.isnan(fix.speed) or fix.speed >= cfg.model.heading_min_speed):
         hs = cfg.model.heading_sigma if math.isnan(fix.heading_sigma) else fix.heading_sigma
-        floor = (
-            o.evidence.heading_sigma_floor_deg
-            if fix.gps_valid is not False
-            else o.evidence.heading_sigma_floor_dr_deg
-        )
+        floor = o.evidence.heading_sigma_floor_deg
         kappa = heading_kappa_one(max(hs, math.sqrt(state.bias.res_head2)), floor)
     # the fused error is correlated: evidence accrues with time and, when known, distance
     per_time = 1.0 if math.isnan(dt) else min(1.0, dt / o.evidence.evidence_time)
