@@ -44,10 +44,23 @@ def read_only(a: Any, dtype: Any) -> NDArray[Any]:
     return v
 
 
+def interpreted() -> bool:
+    """Whether kernels run as plain Python in this process (``NUMBA_DISABLE_JIT``, set by
+    :func:`mapmatch.kernels.choose_mode` before the first kernel is defined): ``njit`` then
+    returns each function itself, and the few numba-only constructs take their Python stand-ins."""
+    return bool(numba.config.DISABLE_JIT)
+
+
+def py_func(kernel: Any) -> Callable[..., Any]:
+    """The Python function of ``kernel``: a dispatcher's ``py_func``, or ``kernel`` itself when
+    kernels run interpreted (``NUMBA_DISABLE_JIT``: ``njit`` then returns the function)."""
+    return getattr(kernel, "py_func", kernel)  # type: ignore[no-any-return]
+
+
 def for_size(kernel: Any, items: int) -> Callable[..., Any]:
     """``kernel`` (a numba dispatcher) for an input of ``items`` items: its Python function when
     the input is small (no compile; the same code, so the same results), else the compiled kernel.
 
     Only for kernels that call no other compiled function (those would compile anyway).
     """
-    return kernel.py_func if items <= PYTHON_MAX_ITEMS else kernel  # type: ignore[no-any-return]
+    return py_func(kernel) if items <= PYTHON_MAX_ITEMS else kernel  # type: ignore[no-any-return]

@@ -39,7 +39,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[ty
         help="GPS outages as START:SECONDS[,START:SECONDS...] from the start of the drive",
     )
     p.add_argument("--rate", type=float, default=1.0, choices=[1.0, 10.0], help="fused output rate in Hz")
-    p.set_defaults(func=run)
+    from mapmatch.commands.simulate import drive_items
+
+    p.set_defaults(func=run, kernel_items=drive_items)
 
 
 def _step(msg: str, t0: float) -> None:

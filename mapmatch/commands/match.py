@@ -108,7 +108,15 @@ def register(subparsers: Any) -> None:
         help="any other matcher parameter by its full name in mapmatch.config (repeatable), "
         "e.g. --set batch.split.gap_time=300 splits tracks at pauses over 5 minutes",
     )  # fmt: skip
-    p.set_defaults(func=run_match, precheck=_precheck)
+    p.set_defaults(func=run_match, precheck=_precheck, kernel_items=_items)
+
+
+def _items(args: argparse.Namespace) -> int | None:
+    """The points to match, about (the kernel mode's job size); ``None`` on a Dask cluster,
+    whose workers choose their own mode."""
+    from mapmatch.commands._fixio import count_items
+
+    return None if args.scheduler else count_items(list(args.inputs))
 
 
 def _precheck(args: argparse.Namespace) -> None:
