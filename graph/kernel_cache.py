@@ -84,12 +84,27 @@ def cache_files(source: Path) -> list[Path]:
 
 def has_cached(source: Path, kernel: str) -> bool:
     """Whether numba's cache holds kernel ``kernel`` (a top-level function of ``source``)
-    compiled from the file's current contents, by this numba and Python: read from its cache
-    index, without importing the module (so before deciding how kernels run)."""
+    compiled from the file's current contents, by this numba and Python, where numba would look
+    first (``NUMBA_CACHE_DIR``, else ``__pycache__`` beside the file when writable, else the
+    user's cache folder): read from its cache index, without importing the module (so before
+    deciding how kernels run)."""
     from numba.core import caching
 
+    def probe() -> None:
+        """Stands for a kernel of ``source``."""
+
     pyver = f"py{sys.version_info[0]}{sys.version_info[1]}"
-    for locator in _locators(source):
+    try:
+        locators = caching.CacheImpl._locator_classes
+    except AttributeError:  # unknown numba internals: not cached
+        return False
+    for cls in locators:
+        try:
+            locator = cls.from_function(probe, str(source))
+        except Exception:
+            continue
+        if locator is None:
+            continue
         folder = Path(locator.get_cache_path())
         for index in folder.glob(f"{source.stem}.{kernel}-*.{pyver}*.nbi"):
             try:
@@ -98,6 +113,7 @@ def has_cached(source: Path, kernel: str) -> bool:
                     return True
             except Exception:  # unknown numba internals or an unreadable index: not cached
                 continue
+        return False  # numba uses the first locator that applies
     return False
 
 

@@ -67,12 +67,15 @@ GROUPS: dict[str, tuple[str, ...]] = {
 for a closed loop). Kernels called through :func:`graph.jit.for_size`, which compile only for large
 inputs, are in none."""
 
-COMPILE_SECONDS: dict[str, float] = {"simulator": 8.0, "batch": 63.0, "online": 12.0}
-"""About how long (CPU seconds) a group takes to compile on the 2-core development machine."""
+COMPILE_SECONDS: dict[str, float] = {"simulator": 5.0, "batch": 95.0, "online": 10.0}
+"""About how long (CPU seconds) a group takes to compile on the 2-core development machine
+(``bench/bench_compile.py``, ``bench/bench_first_minute.py``)."""
 
 INTERPRETED_SECONDS_PER_ITEM: dict[str, float] = {"simulator": 0.005, "batch": 0.0005, "online": 0.001}
-"""About how long (CPU seconds) a group's kernels take interpreted per item of work (a fix of
-a drive, a point of a track) on the 2-core development machine."""
+"""About how long (CPU seconds) a group's kernels take interpreted per item of work (a second
+of a simulated drive, a point of a track, a fix) on the 2-core development machine: with
+:data:`COMPILE_SECONDS`, ``auto`` runs interpreted below about 1,000 s of driving, 190,000
+points or 10,000 fixes (docs/design/dependencies.md)."""
 
 ENTRY_KERNELS: dict[str, str] = {
     "simulator": "mapmatch/sim/kalman.py:_ekf",
