@@ -144,9 +144,10 @@ def read_only(a: Any, dtype: Any) -> NDArray[Any]:
 
 def interpreted() -> bool:
     """Whether kernels run as plain Python in this process (``NUMBA_DISABLE_JIT``, set by
-    :func:`mapmatch.kernels.choose_mode` before the first kernel is defined): ``njit`` then
-    returns each function itself, and the few numba-only constructs take their Python stand-ins."""
-    return bool(numba.config.DISABLE_JIT)
+    :func:`mapmatch.kernels.set_mode` before the first kernel is defined): ``njit`` then
+    returns each function as numba computes it (:func:`as_compiled`), and the few numba-only
+    constructs take their Python stand-ins."""
+    return bool(numba.config.DISABLE_JIT)  # type: ignore[attr-defined]
 
 
 def py_func(kernel: Any) -> Callable[..., Any]:

@@ -95,7 +95,7 @@ def has_cached(source: Path, kernel: str) -> bool:
 
     pyver = f"py{sys.version_info[0]}{sys.version_info[1]}"
     try:
-        locators = caching.CacheImpl._locator_classes
+        locators: list[Any] = list(caching.CacheImpl._locator_classes)
     except AttributeError:  # unknown numba internals: not cached
         return False
     for cls in locators:
