@@ -71,10 +71,10 @@ COMPILE_SECONDS: dict[str, float] = {"simulator": 5.0, "batch": 95.0, "online": 
 """About how long (CPU seconds) a group takes to compile on the 2-core development machine
 (``bench/bench_compile.py``, ``bench/bench_first_minute.py``)."""
 
-INTERPRETED_SECONDS_PER_ITEM: dict[str, float] = {"simulator": 0.005, "batch": 0.001, "online": 0.001}
+INTERPRETED_SECONDS_PER_ITEM: dict[str, float] = {"simulator": 0.0025, "batch": 0.001, "online": 0.001}
 """About how long (CPU seconds) a group's kernels take interpreted per item of work (a second
 of a simulated drive, a point of a track, a fix) on the 2-core development machine: with
-:data:`COMPILE_SECONDS`, ``auto`` runs interpreted below about 1,000 s of driving, 95,000
+:data:`COMPILE_SECONDS`, ``auto`` runs interpreted below about 2,000 s of driving, 95,000
 points or 10,000 fixes (docs/design/dependencies.md)."""
 
 ENTRY_KERNELS: dict[str, str] = {
