@@ -6,6 +6,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import numpy as np
 import pytest
 from test_cli_traps import cross, fixes_lines, run_cli, write_csv  # noqa: F401  (cross: a fixture)
 from test_sim_demo import GRID  # the demo tests' map
@@ -17,7 +18,8 @@ from graph.ascii import AsciiMap, parse_ascii_map
 from mapmatch.cli import EXIT_USAGE
 
 LONG = 1800.0
-"""Seconds a compiled run may take: on a cold cache it compiles its kernels first."""
+"""Seconds a compiled run may take: on a cold cache it compiles its kernels first (the batch
+ones: about 100 s of CPU, several minutes on a busy machine)."""
 
 
 def _both(tmp_path: Path, name: str, *args: str) -> tuple[bytes, bytes]:
@@ -31,6 +33,7 @@ def _both(tmp_path: Path, name: str, *args: str) -> tuple[bytes, bytes]:
     return out[0], out[1]
 
 
+@pytest.mark.timeout(2 * LONG)
 def test_interpreted_replay_and_match_give_the_compiled_answers(
     cross: tuple[AsciiMap, Path],  # noqa: F811
     tmp_path: Path,
@@ -46,6 +49,7 @@ def test_interpreted_replay_and_match_give_the_compiled_answers(
     assert compiled == interpreted and b"matched" in compiled
 
 
+@pytest.mark.timeout(LONG)
 def test_interpreted_simulate_gives_the_compiled_drive(tmp_path: Path) -> None:
     save_map(parse_ascii_map(GRID, scale=25.0).graph, tmp_path / "grid.map")
     compiled, interpreted = _both(
@@ -73,6 +77,7 @@ def test_a_bad_kernel_mode_is_a_usage_error(cross: tuple[AsciiMap, Path], tmp_pa
     assert not out.exists()
 
 
+@pytest.mark.timeout(LONG)
 def test_auto_on_a_cold_cache_runs_a_small_job_interpreted_and_says_so(
     cross: tuple[AsciiMap, Path],  # noqa: F811
     tmp_path: Path,
@@ -144,3 +149,16 @@ def test_interpreted_powers_are_the_compiled_ones() -> None:
     fast = jit.as_compiled(k)
     assert fast is not k and getattr(fast, "py_func", None) is k
     assert all(fast(x, 0.3) == (x - 0.3) * (x - 0.3) + 1.0 for x in xs)
+
+
+def test_the_filters_interpreted_product_is_the_compiled_one() -> None:
+    from mapmatch.sim.kalman import _fpft, fpft_lists
+
+    rng = np.random.default_rng(3)
+    for scale in (1e-3, 1.0, 1e3):
+        f, p = rng.normal(size=(8, 8)) * scale, rng.normal(size=(8, 8))
+        p1, p2, fp1, fp2 = p.copy(), p.copy(), np.empty((8, 8)), np.empty((8, 8))
+        _fpft(f, p1, fp1)
+        fpft_lists(f, p2, fp2)
+        assert np.array_equal(p1, p2) and np.array_equal(fp1, fp2)
+        assert not np.array_equal(p1, p)
