@@ -161,10 +161,12 @@ def choose_mode(
     """
     if mode not in MODES:
         raise ValueError(f"kernel mode must be one of {', '.join(MODES)}, not {mode!r}")
-    if mode != "auto" or not groups:
+    if mode != "auto":
         return ModeChoice(mode == "interpreted")
     if is_interpreted():  # the environment asks for it (NUMBA_DISABLE_JIT)
         return ModeChoice(True)
+    if not groups:
+        return ModeChoice(False)
     cold = [g for g in groups if not compiled_on_disk(g)]
     if not cold or items is None:
         return ModeChoice(False)
