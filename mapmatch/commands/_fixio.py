@@ -89,9 +89,16 @@ def count_items(paths: list[Path]) -> int | None:
     return max(0, min(total, COUNT_MAX))
 
 
+def prepared_map(args: argparse.Namespace) -> bool:
+    """Whether ``--map`` names a prepared map file (``.map``), not a source to build first: a
+    large map built from its source, or a route table, is work of the kernels' own, which
+    :func:`count_items` does not count (so such a job compiles)."""
+    return str(getattr(args, "map", "")).endswith(".map")
+
+
 def fixes_items(args: argparse.Namespace) -> int | None:
-    """``replay``: :func:`count_items` of the fixes file."""
-    return count_items([args.fixes])
+    """``replay``: :func:`count_items` of the fixes file (``None`` with a map to build)."""
+    return count_items([args.fixes]) if prepared_map(args) else None
 
 
 def precheck_fixes(args: argparse.Namespace) -> None:

@@ -113,10 +113,12 @@ def register(subparsers: Any) -> None:
 
 def _items(args: argparse.Namespace) -> int | None:
     """The points to match, about (the kernel mode's job size); ``None`` on a Dask cluster,
-    whose workers choose their own mode."""
-    from mapmatch.commands._fixio import count_items
+    whose workers choose their own mode, and with a route table to build (``--ubodt``)."""
+    from mapmatch.commands._fixio import count_items, prepared_map
 
-    return None if args.scheduler else count_items(list(args.inputs))
+    if args.scheduler or args.ubodt is not None or not prepared_map(args):
+        return None
+    return count_items(list(args.inputs))
 
 
 def _precheck(args: argparse.Namespace) -> None:

@@ -78,9 +78,11 @@ random route's seconds of driving from its length (:func:`drive_items`)."""
 
 def drive_items(args: argparse.Namespace) -> int | None:
     """About the seconds of driving (the simulator's work, in 1 Hz fixes) of a random route of
-    ``--length-km``, for the kernel mode; ``None`` for a given route or a closed loop
-    (``--map-aided``, which also runs the online matcher)."""
+    ``--length-km``, for the kernel mode; ``None`` for a given route, a closed loop
+    (``--map-aided``, which also runs the online matcher) or a map to build from its source."""
     if not getattr(args, "random_route", True) or getattr(args, "map_aided", False):
+        return None
+    if hasattr(args, "map") and not str(args.map).endswith(".map"):  # a map to build first
         return None
     return max(0, round(args.length_km * 1000.0 / DRIVE_MPS))
 
