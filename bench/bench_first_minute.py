@@ -14,8 +14,9 @@ step's kernels ran, cold and warm (``interpreted`` when the command printed its 
 notice): a job run interpreted compiles nothing, so its warm run is interpreted too.
 ``--install`` also times ``pip install -c requirements/constraints.txt`` of the core, of
 ``[prep]`` and of README's ``-e '.[dev]'`` into new virtual environments (pip's cache as it is)
-and measures their sizes. Prints a Markdown table with the machine's load average, which
-decides the wall times on a shared machine.
+and measures their sizes (the whole environment, and what the install added to a new one).
+Prints a Markdown table with the machine's load average, which decides the wall times on a
+shared machine.
 
     python bench/bench_first_minute.py [--monaco PATH.osm.pbf] [--skip-demo] [--install]
                                        [--kernels auto|compiled|interpreted]
@@ -202,9 +203,19 @@ def commands(tree: Path, work: Path, source: Path, label: str) -> list[Step]:
     return out
 
 
-def installs(work: Path, tree: Path) -> list[tuple[str, str, float, float, int]]:
-    """``(install, load, wall, CPU, MB)`` of the core, ``[prep]`` and README's ``-e '.[dev]'``,
-    each into a new virtual environment with pip and the constraints file."""
+def _size(folder: Path) -> int:
+    """The bytes of the files under ``folder`` (links not followed)."""
+    return sum(f.stat().st_size for f in folder.rglob("*") if f.is_file() and not f.is_symlink())
+
+
+def installs(work: Path, tree: Path) -> list[tuple[str, str, float, float, int, int]]:
+    """``(install, load, wall, CPU, MB, MB added)`` of the core, ``[prep]`` and README's
+    ``-e '.[dev]'``, each into a new virtual environment with pip and the constraints file;
+    "added" leaves out what a new virtual environment holds before the install (pip, and on
+    Python 3.11 setuptools)."""
+    empty = work / "venv-empty"
+    subprocess.run([sys.executable, "-m", "venv", str(empty)], check=True)
+    base = _size(empty)
     out = []
     for name, spec in (("core", "."), ("prep", ".[prep]"), ("dev (README)", "-e .[dev]")):
         venv = work / f"venv-{name.split()[0]}"
@@ -216,8 +227,8 @@ def installs(work: Path, tree: Path) -> list[tuple[str, str, float, float, int]]
             cwd=tree, check=True, stdout=subprocess.DEVNULL,
         )  # fmt: skip
         wall, cpu = time.perf_counter() - t0, _children_cpu() - c0
-        size = sum(f.stat().st_size for f in venv.rglob("*") if f.is_file() and not f.is_symlink())
-        out.append((name, load, wall, cpu, size >> 20))
+        size = _size(venv)
+        out.append((name, load, wall, cpu, size >> 20, (size - base) >> 20))
     return out
 
 
@@ -267,10 +278,10 @@ def main() -> int:
             )
         if args.install:
             print()
-            print("| install | wall (s) | CPU (s) | size (MB) | load (1, 5, 15 min) |")
-            print("|---|---|---|---|---|")
-            for name, load, wall, cpu, mb in installs(work, tree):
-                print(f"| {name} | {wall:.1f} | {cpu:.1f} | {mb:,} | {load} |", flush=True)
+            print("| install | wall (s) | CPU (s) | venv (MB) | added (MB) | load (1, 5, 15 min) |")
+            print("|---|---|---|---|---|---|")
+            for name, load, wall, cpu, mb, added in installs(work, tree):
+                print(f"| {name} | {wall:.1f} | {cpu:.1f} | {mb:,} | {added:,} | {load} |", flush=True)
     print(f"\n{os.cpu_count()} cores; targets: demo cold <= 20 s wall and <= 15 s CPU; first match of "
           "a 1,000-point track <= 15 s CPU; serve cold <= 10 s; core install <= 350 MB; README's "
           "first command <= 90 s")  # fmt: skip

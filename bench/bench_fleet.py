@@ -12,6 +12,10 @@ driven by the client processes of ``bench_service.py`` (SIMULATED traffic: rando
 * peak: the same streams each keeping ``--window`` fixes in flight for ``--peak-seconds`` s:
   updates/s.
 
+``--stores off on idle`` adds a third store configuration, ``idle``: the store on (look-ups
+at the streams' start) but a checkpoint interval of an hour, so no pass runs during the
+phases: against ``on`` it tells what the checkpoint passes cost the fixes.
+
 Each phase reports the server's CPU seconds (summed over its processes) and the updates per
 server CPU-second: the client processes share the same cores, so wall-clock throughput on a
 2-core machine measures the clients as much as the server. With the store on, the Redis
@@ -114,26 +118,30 @@ def load() -> str:
 
 
 # ---------------------------------------------------------------------------------- part 1
+IDLE_INTERVAL = 3600.0  # s: the checkpoint interval of the "idle" store (no pass in a run)
+
+
 def service_run(
-    args: argparse.Namespace, *, processes: int, store: int | None, paced: Any, peak: Any
+    args: argparse.Namespace, *, processes: int, store: int | None, paced: Any, peak: Any, mode: str = "on"
 ) -> dict[str, Any]:
-    """One server (``processes``, store on a Redis port or off): paced and peak phases."""
+    """One server (``processes``, store on a Redis port or off): paced and peak phases.
+    ``mode`` "idle" runs the store with no checkpoint pass (look-ups only)."""
     import redis
 
     extra = ["--batch-processes", "0"]
     if store is not None:
-        extra += [
-            "--session-store",
-            f"redis://127.0.0.1:{store}/0",
-            "--checkpoint-interval",
-            str(args.interval),
-        ]
+        interval = IDLE_INTERVAL if mode == "idle" else args.interval
+        extra += ["--session-store", f"redis://127.0.0.1:{store}/0", "--checkpoint-interval", str(interval)]
     db = redis.Redis(port=store) if store is not None else None
     if db is not None:
         db.flushall()
     proc, port = start_server(helsinki_map(), 6 * args.vehicles, 1000, processes, tuple(extra))
     sp = ServerTree(proc.pid, processes)
-    out: dict[str, Any] = {"processes": processes, "store": store is not None, "load0": os.getloadavg()[0]}
+    out: dict[str, Any] = {
+        "processes": processes,
+        "store": mode if store is not None else "off",
+        "load0": os.getloadavg()[0],
+    }
     try:
         sp.settle(quiet=2.0, timeout=60.0)
         total = args.warmup + args.seconds
@@ -190,16 +198,15 @@ def part1(args: argparse.Namespace, store_port: int) -> None:
     peak = drives(helsinki_map(), args.vehicles, peak_steps, rate=args.rate, seed=2)
     print(f"# generated {args.vehicles} drives in {time.perf_counter() - t:.1f} s ({load()})", flush=True)
     rows = []
-    grid = [(p, st) for p in args.processes for st in (False, True)]
+    grid = [(p, st) for p in args.processes for st in args.stores]
     for k in range(args.rounds):  # rounds alternate their order: drift in the machine's load evens out
         for processes, store in grid if k % 2 == 0 else grid[::-1]:
-            row = service_run(
-                args, processes=processes, store=store_port if store else None, paced=paced, peak=peak
-            )
+            port = None if store == "off" else store_port
+            row = service_run(args, processes=processes, store=port, paced=paced, peak=peak, mode=store)
             rows.append(row)
             a, b = row["paced"], row["peak"]
             print(
-                f"# {processes} process(es), store {'on' if store else 'off'}: paced p99 {a['p99']:.2f} ms "
+                f"# {processes} process(es), store {store}: paced p99 {a['p99']:.2f} ms "
                 f"({a['errors']} errors), peak {b['ups']:.0f} updates/s, {b['per_cpu_s']:.0f} per server "
                 f"CPU-s ({load()})",
                 flush=True,
@@ -213,21 +220,21 @@ def part1(args: argparse.Namespace, store_port: int) -> None:
     for row in rows:
         a, b = row["paced"], row["peak"]
         print(
-            f"| {row['processes']} | {'on' if row['store'] else 'off'} | {a['p50']:.2f} / {a['p99']:.2f} / "
+            f"| {row['processes']} | {row['store']} | {a['p50']:.2f} / {a['p99']:.2f} / "
             f"{a['max']:.1f} | {a['errors'] + b['errors']} | {a['cpu_us']:.0f} µs | "
             f"{a['writes_s']:.0f} / {b['writes_s']:.0f} | {b['ups']:.0f} | {b['cpu_us']:.0f} µs | "
             f"{a['per_cpu_s']:.0f} / {b['per_cpu_s']:.0f} | {a['load']:.1f} / {b['load']:.1f} |"
         )
 
-    def median(processes: int, store: bool, phase: str) -> float:
+    def median(processes: int, store: str, phase: str) -> float:
         got = [r[phase]["per_cpu_s"] for r in rows if (r["processes"], r["store"]) == (processes, store)]
         return float(np.median(got)) if got else float("nan")
 
-    for store in (False, True):
+    for store in args.stores:
         if 1 in args.processes and 2 in args.processes:
             ratio = {ph: 100.0 * median(2, store, ph) / median(1, store, ph) for ph in ("paced", "peak")}
             print(
-                f"\nupdates per server CPU-second, 2 processes / 1, store {'on' if store else 'off'} "
+                f"\nupdates per server CPU-second, 2 processes / 1, store {store} "
                 f"(medians of {args.rounds} round(s)): paced {ratio['paced']:.1f} %, "
                 f"peak {ratio['peak']:.1f} % (target >= 90 %)"
             )
@@ -352,6 +359,13 @@ def main() -> int:
     ap.add_argument("--clients", type=int, default=2, help="client processes (paced)")
     ap.add_argument("--peak-clients", type=int, default=2)
     ap.add_argument("--processes", type=int, nargs="+", default=[1, 2])
+    ap.add_argument(
+        "--stores",
+        nargs="+",
+        default=["off", "on"],
+        choices=["off", "on", "idle"],
+        help="store configurations: off, on, idle (on, but no checkpoint pass during the run)",
+    )
     ap.add_argument("--interval", type=float, default=1.0, help="--checkpoint-interval of the servers")
     ap.add_argument("--rounds", type=int, default=1, help="runs of each configuration (part 1)")
     ap.add_argument("--checkpoint-sessions", type=int, default=200)

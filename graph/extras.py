@@ -10,7 +10,7 @@ import importlib.util
 
 from graph.errors import MissingExtraError
 
-PREP_MODULES = ("osmnx", "networkx", "geopandas", "pyogrio", "osmium")
+PREP_MODULES = ("osmnx", "networkx", "geopandas", "pyogrio", "osmium", "pandas", "pyarrow")
 """The top-level modules the ``prep`` extra installs."""
 
 
@@ -18,7 +18,11 @@ def require_prep(*, needed_for: str, modules: tuple[str, ...] = PREP_MODULES) ->
     """Raise :class:`MissingExtraError` naming ``pip install 'mapmatch[prep]'`` when one of
     ``modules`` is not installed, without importing any."""
     for module in modules:
-        if importlib.util.find_spec(module) is None:
+        try:
+            spec = importlib.util.find_spec(module)
+        except ImportError:  # an import hook that refuses the module: not installed here
+            spec = None
+        if spec is None:
             raise MissingExtraError(
                 f"{needed_for} needs {module}, which is not installed: pip install 'mapmatch[prep]'"
             )

@@ -502,10 +502,6 @@ class RouteConfig:
         U-turns keep the full penalty). 0.5 keeps a small preference for driving on; much more
         and a car that stops in a turning loop and turns back at its junction is matched round
         the loop.
-    speed_limit_factor : where the map has speed limits (posted, or the default of the road's
-        class), a step faster on average than this times the higher limit of its two roads ...
-    speed_limit_penalty : ... costs this log-probability per m/s beyond (0 disables it; maps
-        without limits are unaffected).
     """
 
     max_route_factor: float = 3.0
@@ -518,8 +514,6 @@ class RouteConfig:
     stop_uturn_speed: float = 1.0
     stop_uturn_time: float = 5.0
     stop_uturn_penalty: float = 0.5
-    speed_limit_factor: float = 1.5
-    speed_limit_penalty: float = 0.5
 
     def __post_init__(self) -> None:
         _check_numbers(self)
@@ -578,8 +572,6 @@ class OutliersConfig:
     outlier_distance : a fix further than this from every road is unmatched.
     off_map_sigmas : a fix further than this many σ from every road is off the map: unmatched,
         never routed to a far road (``outlier_distance`` caps it).
-    off_map_min_run : fewer fixes than this in a row with a road, between off-map fixes, are
-        off the map too (a fix near some road amid a run off it is no evidence; 1 disables it).
     emission_prune : candidates whose emission log-probability is this far below their fix's
         best are dropped.
     spike_speed : m/s; a fix the track reaches and leaves in opposite directions, both legs
@@ -621,7 +613,6 @@ class OutliersConfig:
 
     outlier_distance: float = 100.0
     off_map_sigmas: float = 5.0
-    off_map_min_run: int = 2
     emission_prune: float = 12.5
     spike_speed: float = 20.0
     spike_sigmas: float = 3.0
@@ -641,9 +632,6 @@ class OutliersConfig:
 class SplitConfig:
     """Where a track is split into pieces or its route cut (``batch.split``).
 
-    gap_time : seconds; fixes further apart in time than this are matched as separate pieces
-        (a parked vehicle, a logger switched off), however near they are (0: time never
-        splits; the route is then cut only by distance, off-map runs and impossible steps).
     gap_distance : metres between consecutive fixes beyond which a step faster on average than
         ``split_speed`` splits the track (a jump: two drives joined, a clock error); a slower
         one was driven (a logger off, a sparse track) and its route is searched as any step's
@@ -693,7 +681,6 @@ class SplitConfig:
         fixes are held to it: one or two sparse fixes do not trace a winding road.
     """
 
-    gap_time: float = 0.0
     gap_distance: float = 2000.0
     split_speed: float = 50.0
     split_slack: float = 50.0

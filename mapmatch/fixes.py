@@ -11,15 +11,15 @@ from __future__ import annotations
 import csv
 import math
 import os
-from collections.abc import Iterable
+from collections.abc import Iterable, Mapping, Sequence
 
 import numpy as np
-import pandas as pd
 
 from graph.files import atomic_path
 from graph.road_graph import RoadGraph
 from mapmatch.errors import ValidationError
 from mapmatch.measurement import AIDED_COLUMNS, aided_cells
+from mapmatch.textcsv import CsvError, EmptyCsvError, is_number, read_table, times
 from mapmatch.types import Fix, SnapResult
 
 REQUIRED_COLUMNS: tuple[str, ...] = ("vehicle_id", "time", "lat", "lon", "heading")
@@ -53,37 +53,45 @@ _TRUE = {"1", "true", "t", "yes", "y"}
 _FALSE = {"0", "false", "f", "no", "n"}
 
 
-def _numeric(df: pd.DataFrame, col: str) -> np.ndarray:
-    if col not in df.columns:
-        return np.full(len(df), np.nan)
-    raw = df[col]
-    vals = pd.to_numeric(raw, errors="coerce")
-    bad = vals.isna() & raw.notna() & (raw.astype(str).str.strip() != "")
-    if bad.any():
-        row = int(np.flatnonzero(bad.to_numpy())[0]) + 2
-        from mapmatch.textbounds import quote
-
-        raise ValidationError(col, f"not a number on line {row}: {quote(raw[bad].iloc[0])}")
-    return vals.to_numpy(dtype=np.float64)
+Cells = Mapping[str, Sequence[str | None]]
+"""A table of text cells by column name (``None`` or ``""``: not given), in file order."""
 
 
-def _times(df: pd.DataFrame) -> np.ndarray:
-    raw = df["time"]
-    vals = pd.to_numeric(raw, errors="coerce")
-    if vals.notna().all():
-        return vals.to_numpy(dtype=np.float64)
-    ts = pd.to_datetime(raw, errors="coerce", utc=True, format="ISO8601")
-    if ts.isna().any():
-        row = int(np.flatnonzero(ts.isna().to_numpy())[0]) + 2
-        raise ValidationError("time", f"neither seconds nor an ISO 8601 time on line {row}")
-    return (ts - pd.Timestamp(0, tz="UTC")).dt.total_seconds().to_numpy(dtype=np.float64)
+def _given(cell: str | None) -> bool:
+    return cell is not None and cell != ""
 
 
-def _gps_valid(df: pd.DataFrame) -> list[bool | None]:
-    if "gps_valid" not in df.columns:
-        return [None] * len(df)
+def _numeric(cells: Sequence[str | None] | None, n: int, col: str) -> np.ndarray:
+    if cells is None:
+        return np.full(n, np.nan)
+    out = np.full(n, np.nan)
+    for i, cell in enumerate(cells):
+        if cell is None or not cell.strip():
+            continue
+        if not is_number(cell):
+            from mapmatch.textbounds import quote
+
+            raise ValidationError(col, f"not a number on line {i + 2}: {quote(cell)}")
+        out[i] = float(cell)
+    return out
+
+
+def _times(cells: Sequence[str | None]) -> np.ndarray:
+    if all(_given(c) and is_number(c) for c in cells):
+        return np.array([float(c) for c in cells], dtype=np.float64)  # type: ignore[arg-type]
+    out = times([c if _given(c) else None for c in cells])
+    bad = np.flatnonzero(np.isnan(out))
+    if len(bad):
+        raise ValidationError("time", f"neither seconds nor an ISO 8601 time on line {int(bad[0]) + 2}")
+    return out
+
+
+def _gps_valid(cells: Sequence[str | None] | None, n: int) -> list[bool | None]:
+    if cells is None:
+        return [None] * n
     out: list[bool | None] = []
-    for i, v in enumerate(df["gps_valid"].astype(str).str.strip().str.lower()):
+    for i, cell in enumerate(cells):
+        v = str(cell if _given(cell) else None).strip().lower()
         if v in ("", "nan", "none"):
             out.append(None)
         elif v in _TRUE:
@@ -105,21 +113,32 @@ def read_fixes_csv(path: str | os.PathLike[str]) -> dict[str, list[Fix]]:
         validated by the matcher, fix by fix).
     """
     try:
-        df = pd.read_csv(path, dtype=str, keep_default_na=False, skipinitialspace=True)
-    except pd.errors.EmptyDataError:
+        table = read_table(path, strip_space=True)
+    except EmptyCsvError:
         raise ValidationError("file", f"{path} is empty") from None
-    except (pd.errors.ParserError, UnicodeDecodeError) as exc:
+    except (CsvError, UnicodeDecodeError) as exc:
         raise ValidationError("file", f"{path} is not a readable CSV ({exc})") from None
-    df.columns = [str(c).strip() for c in df.columns]
-    missing = [c for c in REQUIRED_COLUMNS if c not in df.columns]
+    cells = {name.strip(): table.columns[name] for name in table.names}
+    return fixes_from_cells(cells, table.rows)
+
+
+def fixes_from_cells(cells: Cells, n: int) -> dict[str, list[Fix]]:
+    """Fixes per vehicle, in row order, from ``n`` rows of text cells with the fix columns
+    (:data:`REQUIRED_COLUMNS`, and any of :data:`OPTIONAL_COLUMNS`).
+
+    Raises
+    ------
+    ValidationError
+        A required column is missing or a cell is not a number.
+    """
+    missing = [c for c in REQUIRED_COLUMNS if c not in cells]
     if missing:
         raise ValidationError("columns", f"missing {', '.join(missing)} (need {', '.join(REQUIRED_COLUMNS)})")
-    df = df.replace({"": None})
-    t = _times(df)
-    cols = {c: _numeric(df, c) for c in ("lat", "lon", "heading", *OPTIONAL_COLUMNS[:-1])}
-    gps = _gps_valid(df)
+    t = _times(cells["time"])
+    cols = {c: _numeric(cells.get(c), n, c) for c in ("lat", "lon", "heading", *OPTIONAL_COLUMNS[:-1])}
+    gps = _gps_valid(cells.get("gps_valid"), n)
     out: dict[str, list[Fix]] = {}
-    vids = df["vehicle_id"].astype(str).str.strip().tolist()
+    vids = [str(v if _given(v) else "nan").strip() for v in cells["vehicle_id"]]
     for i, vid in enumerate(vids):
         out.setdefault(vid, []).append(
             Fix(

@@ -1,10 +1,13 @@
 """Track input (CSV, GPX, Parquet/GeoParquet) and batch-result output (GeoJSON, CSV, GeoParquet).
 
-Results travel as one table with a row per track (:func:`results_table`): the route geometry,
+Results travel as one table with a row per track (:func:`result_rows`): the route geometry,
 its edge sequence with OSM way ids and names, length, confidence, splits, and the per-point
-placements as list columns. Every writer goes through that table, so a partition written by a
-worker and the final file hold exactly the same values. Files are written to a temporary name
-and renamed, never left half-written.
+placements as lists. Every writer goes through that table, so a partition written by a worker
+and the final file hold exactly the same values. Files are written to a temporary name and
+renamed, never left half-written.
+
+CSV, GPX and GeoJSON need only the core install (CSV through :mod:`mapmatch.textcsv`);
+Parquet, GeoParquet and pandas frames need the ``tables`` extra, GIS line files ``prep``.
 """
 
 from __future__ import annotations
@@ -13,14 +16,13 @@ import dataclasses
 import json
 import logging
 import os
-from collections.abc import Iterable, Sequence
+from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass
 from datetime import UTC, datetime
 from pathlib import Path
-from typing import Any, TypeVar
+from typing import TYPE_CHECKING, Any, TypeVar
 
 import numpy as np
-import pandas as pd
 from numpy.typing import NDArray
 
 from graph.files import atomic_path
@@ -34,7 +36,24 @@ from mapmatch.textbounds import InputTooLargeError as InputTooLargeError
 from mapmatch.textbounds import LineBounds as LineBounds
 from mapmatch.textbounds import check_text_input, quote, spool_stdin
 from mapmatch.textbounds import clip as _clip
+from mapmatch.textcsv import CsvError, EmptyCsvError, TextTable, inferred_text, numbers, read_table, times
 from mapmatch.types import Track, TrackMatch
+
+if TYPE_CHECKING:
+    import pandas as pd
+
+TABLES = "tables"
+"""The extra of Parquet and GeoParquet files and of tables as pandas frames (pandas, pyarrow)."""
+
+
+def _pandas(needed_for: str) -> Any:
+    """pandas, or :class:`~mapmatch.extras.MissingExtraError` naming the ``tables`` extra."""
+    return require("pandas", extra=TABLES, needed_for=needed_for)
+
+
+def _pyarrow(needed_for: str) -> Any:
+    """pyarrow.parquet, or :class:`~mapmatch.extras.MissingExtraError` naming ``tables``."""
+    return require("pyarrow.parquet", extra=TABLES, needed_for=needed_for)
 
 
 class TrackInputError(MatchError):
@@ -133,22 +152,24 @@ def read_fixes(
         with tempfile.TemporaryDirectory(prefix="mapmatch-") as tmp:
             spooled = Path(tmp) / "stdin.csv"
             spool_stdin(spooled)
-            df = _read_fix_csv(spooled, name="standard input")
-        return _fixes_from_frame(df, columns, default_vehicle or "stdin")
+            table = _read_fix_csv(spooled, name="standard input")
+        return _fixes_from_cells(table, columns, default_vehicle or "stdin")
     p = Path(source)
     lower = p.name.lower()
     default = default_vehicle or _stem(p)
     if lower.endswith((".csv", ".csv.gz")):
         check_text_input(p)
-        return _fixes_from_frame(_read_fix_csv(p, name=str(p)), columns, default)
+        return _fixes_from_cells(_read_fix_csv(p, name=str(p)), columns, default)
     if lower.endswith((".parquet", ".pq", ".geoparquet")):
+        pd = _pandas("reading Parquet files")
+        _pyarrow("reading Parquet files")
         try:
             df = pd.read_parquet(p)
         except Exception as exc:  # pyarrow raises several types for a bad file
             raise TrackInputError(f"{p}: not a readable Parquet file ({exc})") from None
         resolved = resolve_columns(df.columns, columns)
         if resolved.lat in df.columns and resolved.lon in df.columns:
-            return _fixes_from_frame(df.astype(str), columns, default)
+            return _fixes_from_cells(_frame_cells(df), columns, default)
     track_columns = Columns(
         id=columns.vehicle_id, time=columns.time, lat=columns.lat, lon=columns.lon,
         heading=columns.heading, speed=columns.speed, pos_sigma=columns.pos_sigma,
@@ -184,41 +205,47 @@ def fixes_of_track(track: Track) -> list[Any]:
     return out
 
 
-def _read_fix_csv(path: Path, *, name: str) -> pd.DataFrame:
+def _read_fix_csv(path: Path, *, name: str) -> TextTable:
     from mapmatch.errors import ValidationError
 
     try:
-        return pd.read_csv(path, dtype=str, keep_default_na=False, skipinitialspace=True)
-    except pd.errors.EmptyDataError:
+        return read_table(path, strip_space=True)
+    except EmptyCsvError:
         raise ValidationError("file", f"{name} is empty") from None
-    except (pd.errors.ParserError, UnicodeDecodeError) as exc:
+    except (CsvError, UnicodeDecodeError) as exc:
         raise ValidationError("file", f"{name} is not a readable CSV ({quote(exc)})") from None
 
 
-def _fixes_from_frame(df: pd.DataFrame, columns: FixColumns, default_vehicle: str) -> dict[str, list[Any]]:
+def _frame_cells(df: pd.DataFrame) -> TextTable:
+    """A pandas frame's cells as text (no value: ``None``)."""
+    cols = {
+        str(c): [None if v is None or (isinstance(v, float) and v != v) else str(v) for v in df[c].tolist()]
+        for c in df.columns
+    }
+    return TextTable(list(cols), cols, len(df))
+
+
+def _fixes_from_cells(table: TextTable, columns: FixColumns, default_vehicle: str) -> dict[str, list[Any]]:
     """Fixes per vehicle from a table of text cells with the columns of ``columns``."""
-    import io
-
     from mapmatch.errors import ValidationError
-    from mapmatch.fixes import read_fixes_csv
+    from mapmatch.fixes import fixes_from_cells
 
-    df.columns = [str(c).strip() for c in df.columns]
-    columns = resolve_columns(df.columns, columns)
+    names = [str(c).strip() for c in table.names]
+    cells = dict(zip(names, (table.columns[c] for c in table.names), strict=True))
+    columns = resolve_columns(names, columns)
     for need in (columns.time, columns.lat, columns.lon):
-        if need not in df.columns:
+        if need not in cells:
             raise ValidationError(
-                "columns", f"missing column {need!r} (columns are: {_clip(', '.join(df.columns)) or 'none'})"
+                "columns", f"missing column {need!r} (columns are: {_clip(', '.join(names)) or 'none'})"
             )
     wanted = {getattr(columns, f): f for f in FixColumns.__dataclass_fields__}
-    df = df[[c for c in df.columns if c in wanted]].rename(columns=wanted)
-    if "vehicle_id" not in df.columns:
-        df["vehicle_id"] = default_vehicle
-    if "heading" not in df.columns:
-        df["heading"] = ""
-    buf = io.StringIO()
-    df.to_csv(buf, index=False)
-    buf.seek(0)
-    return read_fixes_csv(buf)  # type: ignore[arg-type]
+    fields: dict[str, list[str | None]] = {}
+    for name in names:  # of two columns renamed alike, the first is read
+        if name in wanted and wanted[name] not in fields:
+            fields[wanted[name]] = [c if c else None for c in cells[name]]
+    fields.setdefault("vehicle_id", [default_vehicle] * table.rows)
+    fields.setdefault("heading", [None] * table.rows)
+    return fixes_from_cells(fields, table.rows)
 
 
 def copy_to_stdout(path: str | os.PathLike[str]) -> None:
@@ -263,20 +290,34 @@ def read_tracks_csv(path: str | os.PathLike[str], *, columns: Columns = DEFAULT_
     """
     check_text_input(path)
     try:
-        df = pd.read_csv(path, sep=_csv_separator(path))
-    except (pd.errors.ParserError, UnicodeDecodeError, pd.errors.EmptyDataError) as exc:
+        table = read_table(path, sep=_csv_separator(path), na=True)
+    except (CsvError, UnicodeDecodeError) as exc:
         raise TrackInputError(f"{path}: not a readable CSV file ({quote(exc)})") from exc
-    columns = resolve_columns(df.columns, columns)
-    wkt = next((c for c in df.columns if str(c).lower() in WKT_COLUMNS), None)
-    if wkt is not None and not (columns.lat in df.columns and columns.lon in df.columns):
+    columns = resolve_columns(table.names, columns)
+    wkt = next((c for c in table.names if c.lower() in WKT_COLUMNS), None)
+    if wkt is not None and not (columns.lat in table and columns.lon in table):
         import shapely
 
         try:
-            geoms = shapely.from_wkt(df[wkt].astype(str).to_numpy())
+            geoms = shapely.from_wkt(np.array(inferred_text(table.columns[wkt]), dtype=object))
         except shapely.errors.GEOSException as exc:
             raise TrackInputError(f"{path}: column {wkt!r} is not WKT ({exc})") from None
-        return _tracks_from_lines(df, geoms, columns=columns, default_id=_stem(path), where=str(path))
-    return tracks_from_frame(df, columns=columns, default_id=_stem(path))
+        fields = {c: inferred_text(v) if c == columns.id else v for c, v in table.columns.items()}
+        return _tracks_from_lines(fields, geoms, columns=columns, default_id=_stem(path), where=str(path))
+    _need_columns(table.names, columns)
+    cells = table.columns
+    opt = {k: getattr(columns, k) for k in ("heading", "speed", "pos_sigma", "distance")}
+    return split_tracks(
+        TrackColumns(
+            ids=np.array(inferred_text(cells[columns.id]), dtype=object)
+            if columns.id in cells
+            else np.full(table.rows, _stem(path), dtype=object),
+            time=times(cells[columns.time]) if columns.time else np.full(table.rows, np.nan),
+            lat=numbers(cells[columns.lat]),
+            lon=numbers(cells[columns.lon]),
+            optional={k: numbers(cells[c]) if c in cells else None for k, c in opt.items()},
+        )
+    )
 
 
 def _csv_separator(path: str | os.PathLike[str]) -> str:
@@ -310,13 +351,14 @@ def read_tracks_lines(path: str | os.PathLike[str], *, columns: Columns = DEFAUL
         raise TrackInputError(f"{path}: not a readable GIS file ({why})") from exc
     if df.crs is not None and not df.crs.is_geographic:
         df = df.to_crs(4326)
+    fields = {c: df[c].tolist() for c in df.columns if c != df.geometry.name}
     return _tracks_from_lines(
-        df, df.geometry.to_numpy(), columns=columns, default_id=_stem(path), where=str(path)
+        fields, df.geometry.to_numpy(), columns=columns, default_id=_stem(path), where=str(path)
     )
 
 
 def _tracks_from_lines(
-    df: pd.DataFrame, geoms: NDArray[Any], *, columns: Columns, default_id: str, where: str
+    fields: Mapping[str, Sequence[Any]], geoms: NDArray[Any], *, columns: Columns, default_id: str, where: str
 ) -> list[Track]:
     import shapely
 
@@ -331,20 +373,20 @@ def _tracks_from_lines(
             f"{names.get(kind, 'other')}s (points are rows of a CSV or Parquet file)"
         )
     rows = np.flatnonzero(keep)
-    has_id = columns.id in df.columns
-    tcol = next((c for c in (columns.time, *LINE_TIME_COLUMNS) if c and c in df.columns), None)
+    has_id = columns.id in fields
+    tcol = next((c for c in (columns.time, *LINE_TIME_COLUMNS) if c and c in fields), None)
     out = []
-    for k, i in enumerate(rows):
+    for k, i in enumerate(rows.tolist()):
         g = geoms[i]
         with_m = bool(shapely.has_m(g))
         xy = shapely.get_coordinates(g, include_m=with_m)
         if with_m:
             t = xy[:, 2].astype(np.float64)
         elif tcol is not None:
-            t = _vertex_times(df[tcol].iloc[i], len(xy), f"{where}: feature {i} field {tcol!r}")
+            t = _vertex_times(fields[tcol][i], len(xy), f"{where}: feature {i} field {tcol!r}")
         else:
             t = np.full(len(xy), np.nan)
-        tid = str(df[columns.id].iloc[i]) if has_id else default_id if len(rows) == 1 else f"{default_id}-{k}"
+        tid = str(fields[columns.id][i]) if has_id else default_id if len(rows) == 1 else f"{default_id}-{k}"
         out.append(Track(track_id=tid, time=t, lat=xy[:, 1].copy(), lon=xy[:, 0].copy()))
     return out
 
@@ -357,15 +399,15 @@ def _vertex_times(value: Any, n: int, what: str) -> NDArray[np.float64]:
     if len(items) != n:
         raise TrackInputError(f"{what}: {len(items)} time(s) for {n} vertices")
     try:
-        return _time_seconds(pd.Series([x.strip() if isinstance(x, str) else x for x in items]))
+        return times([x.strip() if isinstance(x, str) else x for x in items])
     except (TypeError, ValueError) as exc:
         raise TrackInputError(f"{what}: not times ({exc})") from None
 
 
 def read_tracks_parquet(path: str | os.PathLike[str], *, columns: Columns = DEFAULT_COLUMNS) -> list[Track]:
     """Tracks from Parquet; GeoParquet point geometry is used when there are no lat/lon columns."""
-    import pyarrow.parquet as pq
-
+    pq = _pyarrow("reading Parquet files")
+    _pandas("reading Parquet files")
     try:
         table = pq.read_table(path)
     except Exception as exc:  # pyarrow raises several types for a bad file
@@ -469,35 +511,31 @@ def resolve_columns(names: Iterable[Any], columns: ColumnsT) -> ColumnsT:
     return dataclasses.replace(columns, **changes) if changes else columns
 
 
-def tracks_from_frame(
-    df: pd.DataFrame, *, columns: Columns = DEFAULT_COLUMNS, default_id: str
-) -> list[Track]:
-    """Split a point table into tracks by the id column, in order of first appearance.
+@dataclass(frozen=True)
+class TrackColumns:
+    """A point table's values: the track id of each row, its time, lat, lon, and the optional
+    ``heading``, ``speed``, ``pos_sigma`` and ``distance`` (``None`` when absent)."""
 
-    The lat, lon and time columns are required (``columns.time == ""`` reads tracks without
-    times), under the names of ``columns`` (the readers first resolve common other names:
-    :func:`resolve_columns`); without the id column the table is one track named ``default_id``.
-    """
+    ids: NDArray[Any]
+    time: NDArray[np.float64]
+    lat: NDArray[np.float64]
+    lon: NDArray[np.float64]
+    optional: dict[str, NDArray[np.float64] | None]
+
+
+def _need_columns(names: Sequence[Any], columns: Columns) -> None:
+    """Refuse a point table without the lat, lon and time columns (named, with the table's)."""
     for need in (columns.lat, columns.lon, columns.time):
-        if need and need not in df.columns:
+        if need and need not in names:
             hint = " (or an empty --time-col for tracks without times)" if need == columns.time else ""
             raise TrackInputError(
-                f"missing column {need!r}{hint} (columns are: {_clip(', '.join(map(str, df.columns)))})"
+                f"missing column {need!r}{hint} (columns are: {_clip(', '.join(map(str, names)))})"
             )
-    n = len(df)
-    ids = df[columns.id].astype(str).to_numpy() if columns.id in df.columns else np.full(n, default_id)
-    time = _time_seconds(df[columns.time]) if columns.time else np.full(n, np.nan)
 
-    def num(col: str) -> NDArray[np.float64] | None:
-        if col not in df.columns:
-            return None
-        return pd.to_numeric(df[col], errors="coerce").to_numpy(dtype=np.float64)
 
-    lat, lon = num(columns.lat), num(columns.lon)
-    assert lat is not None and lon is not None
-    opt = {k: num(getattr(columns, k)) for k in ("heading", "speed", "pos_sigma", "distance")}
-    # group rows by id, keeping the order of first appearance and the row order inside
-    uniq, first, inv = np.unique(ids, return_index=True, return_inverse=True)
+def split_tracks(table: TrackColumns) -> list[Track]:
+    """The tracks of a point table, one per id in order of first appearance, rows in order."""
+    uniq, first, inv = np.unique(table.ids, return_index=True, return_inverse=True)
     order_ids = np.argsort(first, kind="stable")
     rank = np.empty(len(uniq), dtype=np.int64)
     rank[order_ids] = np.arange(len(uniq))
@@ -509,17 +547,50 @@ def tracks_from_frame(
         out.append(
             Track(
                 track_id=str(uniq[order_ids[k]]),
-                time=time[r],
-                lat=lat[r],
-                lon=lon[r],
-                **{name: (a[r] if a is not None else None) for name, a in opt.items()},
+                time=table.time[r],
+                lat=table.lat[r],
+                lon=table.lon[r],
+                **{name: (a[r] if a is not None else None) for name, a in table.optional.items()},
             )
         )
     return out
 
 
+def tracks_from_frame(
+    df: pd.DataFrame, *, columns: Columns = DEFAULT_COLUMNS, default_id: str
+) -> list[Track]:
+    """Split a point table (a pandas frame) into tracks by the id column, in order of first
+    appearance.
+
+    The lat, lon and time columns are required (``columns.time == ""`` reads tracks without
+    times), under the names of ``columns`` (the readers first resolve common other names:
+    :func:`resolve_columns`); without the id column the table is one track named ``default_id``.
+    """
+    pd = _pandas("tables as pandas frames")
+    _need_columns(list(df.columns), columns)
+    n = len(df)
+
+    def num(col: str) -> NDArray[np.float64] | None:
+        if col not in df.columns:
+            return None
+        return pd.to_numeric(df[col], errors="coerce").to_numpy(dtype=np.float64)
+
+    lat, lon = num(columns.lat), num(columns.lon)
+    assert lat is not None and lon is not None
+    return split_tracks(
+        TrackColumns(
+            ids=df[columns.id].astype(str).to_numpy() if columns.id in df.columns else np.full(n, default_id),
+            time=_time_seconds(df[columns.time]) if columns.time else np.full(n, np.nan),
+            lat=lat,
+            lon=lon,
+            optional={k: num(getattr(columns, k)) for k in ("heading", "speed", "pos_sigma", "distance")},
+        )
+    )
+
+
 def _time_seconds(s: pd.Series) -> NDArray[np.float64]:
     """Numeric seconds, or ISO-8601 / datetime values as seconds since the epoch."""
+    pd = _pandas("tables as pandas frames")
     if pd.api.types.is_numeric_dtype(s):
         return s.to_numpy(dtype=np.float64)
     if pd.api.types.is_datetime64_any_dtype(s):
@@ -545,6 +616,7 @@ def _stem(path: str | os.PathLike[str]) -> str:
 
 def tracks_to_frame(tracks: Iterable[Track], *, columns: Columns = DEFAULT_COLUMNS) -> pd.DataFrame:
     """The point table of some tracks (the inverse of :func:`tracks_from_frame`)."""
+    pd = _pandas("tables as pandas frames")
     frames = []
     for t in tracks:
         d: dict[str, Any] = {
@@ -592,14 +664,15 @@ def write_tracks(
         with atomic_path(p) as tmp:
             tmp.write_text(xml, encoding="utf-8")
         return
+    if not name.endswith((".parquet", ".geoparquet", ".pq", ".csv")):
+        raise TrackInputError(f"{p}: unknown track format")
     df = tracks_to_frame(tracks, columns=columns)
     with atomic_path(p) as tmp:
-        if name.endswith((".parquet", ".geoparquet", ".pq")):
-            df.to_parquet(tmp, index=False)
-        elif name.endswith(".csv"):
+        if name.endswith(".csv"):
             df.to_csv(tmp, index=False)
         else:
-            raise TrackInputError(f"{p}: unknown track format")
+            _pyarrow("writing Parquet files")
+            df.to_parquet(tmp, index=False)
 
 
 # ---------------------------------------------------------------------- results
@@ -610,7 +683,11 @@ RESULT_COLUMNS = (
 )  # fmt: skip
 
 
-def results_table(results: Iterable[TrackMatch], graph: RoadGraph) -> pd.DataFrame:
+ResultRows = list[dict[str, Any]]
+"""A results table as rows: one dict per track, keyed by :data:`RESULT_COLUMNS`."""
+
+
+def result_rows(results: Iterable[TrackMatch], graph: RoadGraph) -> ResultRows:
     """One row per track: route (WKB, lon/lat), edge sequence, way ids, names, and point lists.
 
     ``way_ids`` and ``names`` follow the way pieces the route runs along (consecutive repeats
@@ -620,7 +697,7 @@ def results_table(results: Iterable[TrackMatch], graph: RoadGraph) -> pd.DataFra
 
     from mapmatch.batch import point_ways, route_ways
 
-    rows: list[dict[str, Any]] = []
+    rows: ResultRows = []
     for r in results:
         edges = [e for piece in r.routes for e in piece]
         ways, names = route_ways(r, graph)
@@ -658,29 +735,51 @@ def results_table(results: Iterable[TrackMatch], graph: RoadGraph) -> pd.DataFra
                 "pt_name": pt_name,
             }
         )
+    return rows
+
+
+def results_table(results: Iterable[TrackMatch], graph: RoadGraph) -> pd.DataFrame:
+    """:func:`result_rows` as a pandas frame (the ``tables`` extra)."""
+    return _rows_frame(result_rows(results, graph))
+
+
+def _rows_frame(rows: ResultRows) -> pd.DataFrame:
+    pd = _pandas("results as a table")
     if not rows:
         return pd.DataFrame({c: [] for c in RESULT_COLUMNS})
     return pd.DataFrame(rows, columns=list(RESULT_COLUMNS))
 
 
-def points_frame(table: pd.DataFrame) -> pd.DataFrame:
+def _as_rows(table: pd.DataFrame | ResultRows) -> ResultRows:
+    if isinstance(table, list):
+        return table
+    return [{str(k): v for k, v in r.items()} for r in table.to_dict("records")]
+
+
+POINT_COLUMNS = ("track_id", "index", "status", "edge", "way_id", "name", "offset", "lat", "lon", "dist")
+"""The columns of the per-point results (CSV output, :func:`points_frame`)."""
+
+
+def points_frame(table: pd.DataFrame | ResultRows) -> pd.DataFrame:
     """The per-point rows of a results table (one row per input point)."""
-    if len(table) == 0:
-        cols = ["track_id", "index", "status", "edge", "way_id", "name", "offset", "lat", "lon", "dist"]
-        return pd.DataFrame({c: [] for c in cols})
-    n = table["n_points"].to_numpy(dtype=np.int64)
+    pd = _pandas("results as a table")
+    if not isinstance(table, list):
+        table = _as_rows(table)
+    if not table:
+        return pd.DataFrame({c: [] for c in POINT_COLUMNS})
+    n = np.array([int(r["n_points"]) for r in table], dtype=np.int64)
 
     def flat(col: str) -> NDArray[Any]:
-        return np.concatenate([np.asarray(v) for v in table[col]]) if n.sum() else np.empty(0)
+        return np.concatenate([np.asarray(r[col]) for r in table]) if n.sum() else np.empty(0)
 
     return pd.DataFrame(
         {
-            "track_id": np.repeat(table["track_id"].to_numpy(), n),
+            "track_id": np.repeat(np.array([r["track_id"] for r in table], dtype=object), n),
             "index": np.concatenate([np.arange(k) for k in n]),
             "status": flat("pt_status"),
             "edge": flat("pt_edge").astype(np.int64),
             "way_id": flat("pt_way_id").astype(np.int64),
-            "name": flat("pt_name").astype(object) if "pt_name" in table.columns else "",
+            "name": flat("pt_name").astype(object),
             "offset": flat("pt_offset"),
             "lat": flat("pt_lat"),
             "lon": flat("pt_lon"),
@@ -689,27 +788,80 @@ def points_frame(table: pd.DataFrame) -> pd.DataFrame:
     )
 
 
-def write_results(path: str | os.PathLike[str], table: pd.DataFrame) -> None:
-    """Write a results table as GeoJSON (a feature per track), CSV (a row per point) or GeoParquet."""
+def _cell(x: Any) -> str:
+    """A per-point number as CSV text: the shortest float that reads back, nothing for NaN."""
+    if x is None:
+        return ""
+    f = float(x)
+    return "" if f != f else repr(f)
+
+
+def write_points_csv(path: str | os.PathLike[str], table: pd.DataFrame | ResultRows) -> None:
+    """The per-point rows of a results table as CSV (:data:`POINT_COLUMNS`), atomically."""
+    import csv
+
+    with atomic_path(Path(path)) as tmp, open(tmp, "w", newline="", encoding="utf-8") as f:
+        w = csv.writer(f, lineterminator="\n")
+        w.writerow(POINT_COLUMNS)
+        for r in _as_rows(table):
+            cols = [r[c] for c in ("pt_status", "pt_edge", "pt_way_id", "pt_name", "pt_offset", "pt_lat",
+                                   "pt_lon", "pt_dist")]  # fmt: skip
+            tid = str(r["track_id"])
+            for k, (st, edge, way, name, *xs) in enumerate(zip(*cols, strict=True)):
+                w.writerow([tid, k, st, int(edge), int(way), "" if name is None else name, *map(_cell, xs)])
+
+
+def write_results(path: str | os.PathLike[str], table: pd.DataFrame | ResultRows) -> None:
+    """Write a results table (:func:`result_rows`, or its frame) as GeoJSON (a feature per
+    track), CSV (a row per point) or GeoParquet (the ``tables`` extra)."""
     p = Path(path)
     name = p.name.lower()
     if name.endswith((".geojson", ".json")):
         write_geojson(p, table)
     elif name.endswith(".csv"):
-        with atomic_path(p) as tmp:
-            points_frame(table).to_csv(tmp, index=False)
+        write_points_csv(p, table)
     elif name.endswith((".parquet", ".geoparquet")):
         write_geoparquet(p, table)
     else:
         raise TrackInputError(f"{p}: unknown output format (use one of {', '.join(OUTPUT_SUFFIXES)})")
 
 
-def write_geojson(path: str | os.PathLike[str], table: pd.DataFrame) -> None:
+def write_rows_json(path: str | os.PathLike[str], rows: ResultRows) -> None:
+    """Result rows as JSON lines, exactly (every float round-trips; the route as hex WKB),
+    atomically: a batch run's partition file."""
+    with atomic_path(Path(path)) as tmp, open(tmp, "w", encoding="utf-8") as f:
+        for r in rows:
+            f.write(json.dumps({**r, "route_wkb": bytes(r["route_wkb"]).hex()}, default=_json_value))
+            f.write("\n")
+
+
+def _json_value(x: Any) -> Any:
+    if isinstance(x, np.integer):
+        return int(x)
+    if isinstance(x, np.floating):
+        return float(x)
+    if isinstance(x, np.ndarray):
+        return x.tolist()
+    raise TypeError(f"not JSON: {type(x).__name__}")
+
+
+def read_rows_json(path: str | os.PathLike[str]) -> ResultRows:
+    """Result rows back from :func:`write_rows_json`."""
+    rows = []
+    with open(path, encoding="utf-8") as f:
+        for line in f:
+            r = json.loads(line)
+            r["route_wkb"] = bytes.fromhex(r["route_wkb"])
+            rows.append(r)
+    return rows
+
+
+def write_geojson(path: str | os.PathLike[str], table: pd.DataFrame | ResultRows) -> None:
     """A FeatureCollection with one (Multi)LineString feature per track."""
     import shapely
 
     feats = []
-    rows: list[dict[Any, Any]] = table.to_dict("records")
+    rows = _as_rows(table)
     for row in rows:
         geom = shapely.from_wkb(row["route_wkb"])
         feats.append(
@@ -735,12 +887,15 @@ def write_geojson(path: str | os.PathLike[str], table: pd.DataFrame) -> None:
         tmp.write_text(json.dumps({"type": "FeatureCollection", "features": feats}), encoding="utf-8")
 
 
-def write_geoparquet(path: str | os.PathLike[str], table: pd.DataFrame) -> None:
-    """GeoParquet: one row per track, the route as WKB ``geometry`` (EPSG:4326), all columns kept."""
+def write_geoparquet(path: str | os.PathLike[str], table: pd.DataFrame | ResultRows) -> None:
+    """GeoParquet: one row per track, the route as WKB ``geometry`` (EPSG:4326), all columns kept
+    (the ``tables`` extra)."""
+    pq = _pyarrow("GeoParquet output")
     import pyarrow as pa
-    import pyarrow.parquet as pq
     import shapely
 
+    if isinstance(table, list):
+        table = _rows_frame(table)
     df = table.rename(columns={"route_wkb": "geometry"})
     at = pa.Table.from_pandas(df, preserve_index=False)
     geoms = shapely.from_wkb(df["geometry"].to_numpy()) if len(df) else np.empty(0, dtype=object)
@@ -767,6 +922,8 @@ def write_geoparquet(path: str | os.PathLike[str], table: pd.DataFrame) -> None:
 
 def read_results(path: str | os.PathLike[str]) -> pd.DataFrame:
     """A results table back from GeoParquet written by :func:`write_geoparquet`."""
+    pd = _pandas("reading GeoParquet results")
+    _pyarrow("reading GeoParquet results")
     df = pd.read_parquet(path)
     df = df.rename(columns={"geometry": "route_wkb"})
     if "pt_name" not in df.columns:  # written before per-point names

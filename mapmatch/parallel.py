@@ -1,8 +1,9 @@
 """Running batch matching over many tracks: local process pool or a Dask cluster, resumable.
 
 Tracks are grouped into partitions. Each partition is matched by one worker (which loads the
-map once per process) and written as one GeoParquet file ``part-NNNNN.parquet`` in the parts
-folder, atomically; a restarted run skips the partitions already written, so nothing is done
+map once per process) and written as one file in the parts folder, atomically: JSON lines
+``part-NNNNN.json`` for a file output, GeoParquet ``part-NNNNN.parquet`` (the ``tables``
+extra) for a folder output; a restarted run skips the partitions already written, so nothing is done
 twice and no row is lost or duplicated. The final output (GeoJSON, CSV or GeoParquet file) is
 assembled from the parts; when the output is a folder, the parts are the output (partitioned
 Parquet, what a Dask run on a cluster writes).
@@ -25,26 +26,30 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
 
-import pandas as pd
-
 from graph.files import atomic_path
 from mapmatch.config import BATCH_CONFIG, UBODT_MAX_BYTES, MatchConfig
 from mapmatch.errors import MatchError
+from mapmatch.extras import require, require_installed
 from mapmatch.io import (
     DEFAULT_COLUMNS,
-    RESULT_COLUMNS,
+    TABLES,
     Columns,
-    read_results,
+    ResultRows,
+    read_rows_json,
     read_tracks,
-    results_table,
+    result_rows,
     write_geoparquet,
     write_results,
+    write_rows_json,
 )
 from mapmatch.types import Track
 
 MANIFEST = "_run.json"
 ROUTE_TABLE_PREFIX = "_route_table-"
 PARQUET_SUFFIXES = (".parquet", ".geoparquet", ".pq")
+PART_SUFFIXES = (".json", ".parquet")
+"""A partition file's suffix: JSON lines (:func:`mapmatch.io.write_rows_json`) for a file output,
+joined at the end; GeoParquet for a folder output, whose parts are the result."""
 
 
 class RunError(MatchError):
@@ -183,7 +188,11 @@ def match_partition(
     matcher = _matcher(map_path, table, turn_cost)
     tracks = list(part.tracks) if part.source is None else read_tracks(part.source, columns=columns)
     results = [matcher.match(t, config) for t in tracks]
-    write_geoparquet(out_file, results_table(results, matcher.graph))
+    rows = result_rows(results, matcher.graph)
+    if out_file.endswith(".json"):
+        write_rows_json(out_file, rows)
+    else:
+        write_geoparquet(out_file, rows)
     return [
         TrackSummary(str(r.track_id), len(r.points), sum(1 for q in r.points if str(q.status) == "unmatched"))
         for r in results
@@ -192,9 +201,11 @@ def match_partition(
 
 def part_summaries(part_file: Path) -> list[TrackSummary]:
     """The track summaries of a partition file written by an earlier run (a resumed run)."""
-    import pyarrow.parquet as pq
-
-    rows = pq.read_table(part_file, columns=["track_id", "n_points", "n_unmatched"]).to_pylist()
+    if part_file.suffix == ".json":
+        rows: ResultRows = read_rows_json(part_file)
+    else:
+        pq = require("pyarrow.parquet", extra=TABLES, needed_for="Parquet parts")
+        rows = pq.read_table(part_file, columns=["track_id", "n_points", "n_unmatched"]).to_pylist()
     return [TrackSummary(str(r["track_id"]), int(r["n_points"]), int(r["n_unmatched"])) for r in rows]
 
 
@@ -223,7 +234,7 @@ def plan_partitions(
 
 
 def _parquet_rows(path: Path) -> int:
-    import pyarrow.parquet as pq
+    pq = require("pyarrow.parquet", extra=TABLES, needed_for="reading Parquet folders")
 
     return int(pq.ParquetFile(path).metadata.num_rows)
 
@@ -300,7 +311,8 @@ def run_batch(
     parts = plan_partitions(inputs, columns=columns, partition_size=options.partition_size)
     pdir = parts_dir_for(outp)
     _prepare_parts_dir(pdir, _fingerprint(inputs, map_s, config, columns, options.partition_size), len(parts))
-    files = [pdir / f"part-{p.index:05d}.parquet" for p in parts]
+    suffix = PART_SUFFIXES[_is_dir_output(outp)]
+    files = [pdir / f"part-{p.index:05d}{suffix}" for p in parts]
     todo = [p for p, f in zip(parts, files, strict=True) if not f.exists()]
     summary = RunSummary(partitions=len(parts), skipped=len(parts) - len(todo), parts_dir=str(pdir))
     for f in files:
@@ -349,6 +361,8 @@ def _check_run(map_s: str, outp: Path) -> None:
         (".geojson", ".json", ".csv", ".parquet", ".geoparquet")
     ):
         raise RunError(f"{outp}: unknown output format (use .geojson, .csv, .parquet or a folder)")
+    if _is_dir_output(outp) or outp.name.lower().endswith((".parquet", ".geoparquet")):
+        require_installed("pandas", "pyarrow", extra=TABLES, needed_for="GeoParquet output")
     try:
         CRS.from_user_input(load_run_map(map_s).crs)
     except Exception as exc:  # corrupt manifest or arrays, bad CRS, not a map file: one line
@@ -357,11 +371,7 @@ def _check_run(map_s: str, outp: Path) -> None:
 
 def _join_parts(outp: Path, files: list[Path], pdir: Path) -> None:
     """The partition files joined into the one output file; the parts folder goes."""
-    if files:
-        table = pd.concat([read_results(f) for f in files], ignore_index=True)
-    else:
-        table = pd.DataFrame({c: [] for c in RESULT_COLUMNS})
-    write_results(outp, table)
+    write_results(outp, [r for f in files for r in read_rows_json(f)])
     shutil.rmtree(pdir, ignore_errors=True)
 
 
@@ -418,13 +428,17 @@ def _prepare_parts_dir(pdir: Path, fingerprint: str, n: int) -> None:
             old = {}
         if old.get("fingerprint") == fingerprint and old.get("partitions") == n:
             return
-        for f in pdir.glob("part-*.parquet"):
+        for f in _part_files(pdir):
             f.unlink()
-    elif pdir.is_dir() and any(pdir.glob("part-*.parquet")):
+    elif pdir.is_dir() and _part_files(pdir):
         raise RunError(f"{pdir} holds parts of an unknown run; remove them or choose another output")
     pdir.mkdir(parents=True, exist_ok=True)
     with atomic_path(man) as tmp:
         tmp.write_text(json.dumps({"fingerprint": fingerprint, "partitions": n}))
+
+
+def _part_files(pdir: Path) -> list[Path]:
+    return [f for f in pdir.glob("part-*") if f.suffix in PART_SUFFIXES]
 
 
 def _run_pool(

@@ -74,10 +74,10 @@ table of ``name = "path"``; relative paths are taken from the file's folder::
     gps_sigma = 6.0        # over its defaults and the batch matcher over its own
     [match.online.region]  # a sub-section's table: the field's dotted path
     max_hypotheses = 16
-    [match.batch.split]
-    gap_time = 300
+    [match.batch.route]
+    max_route_factor = 5
 
-``--set SECTION.FIELD=VALUE`` flags (``--set batch.split.gap_time=300``) apply over the file's
+``--set SECTION.FIELD=VALUE`` flags (``--set batch.route.max_route_factor=5``) apply over the file's
 ``[match]`` tables.
 """
 

@@ -263,6 +263,19 @@ class MapMatchServicer(pb_grpc.MapMatchServicer):
             return a, False  # a resend of the fix last answered (a client's retry)
         jumped = math.isfinite(last) and abs(fix.time - last) > self.config.max_time_jump
         state = online.new_session() if jumped else s.state
+        s.version += 1  # odd: a checkpoint that reads the session meanwhile drops what it read
+        try:
+            result = self._apply(online, s, state, fix)
+            if jumped:
+                result = dataclasses.replace(result, state=State.REINITIALISED)
+            s.answer = result
+        finally:
+            s.version += 1
+        return result, jumped
+
+    @staticmethod
+    def _apply(online: Any, s: Any, state: Any, fix: Any) -> Any:
+        """``online.update(state, fix)``, then ``state`` becomes the session's."""
         try:
             result = online.update(state, fix)
         except ValidationError as exc:
@@ -272,10 +285,7 @@ class MapMatchServicer(pb_grpc.MapMatchServicer):
             s.state = online.new_session()
             raise
         s.state = state
-        if jumped:
-            result = dataclasses.replace(result, state=State.REINITIALISED)
-        s.answer = result
-        return result, jumped
+        return result
 
     def answer(self, req: pb.FixRequest | Undecodable, caller: Identity | None = None) -> pb.SnapResponse:
         """Like :meth:`snap`, but a rejected fix (or a message whose bytes did not decode)

@@ -26,7 +26,12 @@ SessionKey = tuple[str, str]
 
 @dataclass(eq=False, slots=True)
 class Session:
-    """One vehicle's matcher state; hold ``lock`` while using ``state``."""
+    """One vehicle's matcher state; hold ``lock`` while using ``state``.
+
+    ``version`` counts the updates begun and ended on ``state`` (odd while one is under way):
+    a checkpoint reads the state without the lock and keeps what it read only when
+    ``version`` was even and did not change meanwhile.
+    """
 
     key: SessionKey
     state: Any
@@ -34,6 +39,7 @@ class Session:
     lock: threading.Lock = field(default_factory=threading.Lock)
     waiting: int = 0  # users of a provisional session (not yet stored)
     answer: Any = None  # the last accepted fix's result: a resend of that fix gets it again
+    version: int = 0  # updates begun plus updates ended (odd: an update is under way)
 
 
 class _Use:

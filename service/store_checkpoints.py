@@ -5,8 +5,13 @@ With ``--session-store``, a :class:`Checkpointer` runs beside the server:
 * **Checkpoints, behind the answer.** A thread of its own wakes every
   ``checkpoint_interval`` s, takes the sessions used since its last pass (the session table
   keeps them in order of use, so this costs what it writes) and writes each one's record
-  (:mod:`service.store`) in pipelined batches, with the session TTL. A fix never waits for
-  the store; the thread competes with the fixes only for the interpreter while it encodes.
+  (:mod:`service.store`), with the session TTL. A fix never waits for the store, nor for a
+  session's lock: a session is read without its lock (:func:`read_session`; what an update
+  changed meanwhile is read again, or left to the next pass, which that update's use puts it
+  in). The thread competes with the fixes only for the interpreter while it encodes, so a
+  pass is spread over half the interval in slices of about a millisecond of encoding, with
+  the fixes served between two slices; the records are written in pipelined round trips of
+  :data:`WRITE_EVERY` (and the pass's last ones).
 * **Hand-over when a stream ends.** The stream's vehicles are written at once and, once
   written and unused meanwhile, dropped from this process: their next stream, on whichever
   server, resumes from the store, never from an older copy left in some process's memory.
@@ -36,10 +41,11 @@ import asyncio
 import contextlib
 import functools
 import logging
+import math
 import threading
 import time
 from collections.abc import AsyncIterator, Awaitable, Callable, Iterable
-from dataclasses import dataclass, fields
+from dataclasses import dataclass, field, fields
 from typing import Any
 
 import grpc
@@ -56,6 +62,12 @@ log = logging.getLogger("mapmatch.service")
 
 STORE_HEALTH = "mapmatch.v1.SessionStore"  # health service name of the session store
 STATS_PERIOD = 60.0  # s between two log lines of the counters (when they changed)
+SPREAD = 0.5  # a checkpoint pass is spread over this share of the checkpoint interval ...
+SLICE_SECONDS = 0.001  # ... in slices that each encode for about this long, then write ...
+SLICE_MOST = 64  # ... at most this many sessions ...
+WRITE_EVERY = 32  # ... and their records are written once this many wait (or the pass ends) ...
+MIN_GAP = 0.001  # ... at least this many seconds apart (the fixes have the interpreter between)
+READ_TRIES = 3  # a hand-over reads a session in the middle of an update again, this many times
 
 
 @dataclass
@@ -88,6 +100,61 @@ class CheckpointSettings:
     ttl: float = 600.0
     timeout: float = 0.1
     max_vehicle_id: int = 128
+
+
+@dataclass
+class _Pass:
+    """A checkpoint pass under way: the sessions still to write (the next last), the store
+    times it covers (used after ``since``, up to ``until``), and when it should be done."""
+
+    todo: list[Session]
+    since: float
+    until: float
+    end: float  # time.monotonic() by which the pass should be written
+    next_at: float = 0.0  # time.monotonic() of the next slice
+    ok: bool = True  # False once the store failed: the next pass starts from ``since`` again
+    wrote: bool = False
+    waiting: list[tuple[bytes, bytes]] = field(default_factory=list)  # records not yet written
+    spent: float = 0.0  # seconds spent encoding them
+    again: set[SessionKey] = field(default_factory=set)  # read in the middle of an update once
+
+    def due(self) -> bool:
+        return time.monotonic() >= self.next_at
+
+    def wait(self) -> float:
+        return self.next_at - time.monotonic()
+
+    def gap(self, taken: int) -> float:
+        """Seconds to the next slice: what is left of the pass's time over the slices left."""
+        if not self.todo:
+            return 0.0
+        slices = math.ceil(len(self.todo) / max(taken, 1))
+        return max(MIN_GAP, (self.end - time.monotonic()) / slices)
+
+
+@dataclass
+class _Encoded:
+    """Sessions encoded: their records, each with the use time it was read at, and the ones
+    an update was changing (not encoded)."""
+
+    records: list[tuple[bytes, bytes]] = field(default_factory=list)
+    done: list[tuple[Session, float]] = field(default_factory=list)
+    busy: list[Session] = field(default_factory=list)
+
+
+def read_session(s: Session) -> tuple[bytes, Any, float] | None:
+    """A session's state blob, last answer and use time, read without its lock; None when an
+    update was under way or began meanwhile (then what was read may be torn)."""
+    version = s.version
+    if version & 1:
+        return None
+    try:
+        blob, answer, used = to_bytes(s.state), s.answer, s.last_used
+    except Exception:  # the update changed the state under the encoder
+        if s.version == version:
+            raise
+        return None
+    return (blob, answer, used) if s.version == version else None
 
 
 class Checkpointer:
@@ -333,8 +400,10 @@ class Checkpointer:
         self._probe()
         since = self.sessions.now()
         next_at = time.monotonic() + interval
+        current: _Pass | None = None
         while True:
-            self._wake.wait(max(0.0, next_at - time.monotonic()))
+            wait = current.wait() if current is not None else next_at - time.monotonic()
+            self._wake.wait(max(0.0, wait))
             self._wake.clear()
             stopping = self._stopping
             with self._lock:
@@ -344,22 +413,58 @@ class Checkpointer:
                 self._hand_over(list(handover))
             if forget:
                 self._delete(forget)
-            if stopping or time.monotonic() >= next_at:
-                since = self._pass(since)
+            if current is None and (stopping or time.monotonic() >= next_at):
+                current, since = self._begin(since, spread=0.0 if stopping else SPREAD * interval)
                 next_at = time.monotonic() + interval
-                self._log_counts()
-            if stopping:
+            while current is not None and (stopping or current.due()):
+                if self._slice(current):
+                    since = current.until if current.ok else current.since
+                    current = None
+                    self._log_counts()
+            if stopping:  # the last pass: every session used since
+                last, since = self._begin(since, spread=0.0)
+                while last is not None and not self._slice(last):
+                    pass
                 return
 
-    def _pass(self, since: float) -> float:
-        """Write the sessions used after ``since``; returns where the next pass starts."""
+    def _begin(self, since: float, *, spread: float) -> tuple[_Pass | None, float]:
+        """A pass over the sessions used after ``since`` (None when none was), spread over
+        ``spread`` s; returns it and where the next pass starts if it has nothing to write."""
         now = self.sessions.now()
         used = self.sessions.used_since(since)
         if not used:
             if self.healthy is False:
                 self._probe()
-            return now
-        return now if self._write(used) is not None else since
+            return None, now
+        return _Pass(todo=used[::-1], since=since, until=now, end=time.monotonic() + spread), now
+
+    def _slice(self, p: _Pass) -> bool:
+        """Write the next slice of a pass (the sessions encoded in about :data:`SLICE_SECONDS`);
+        returns whether the pass is over (all written, or the store failed)."""
+        t0 = time.perf_counter()
+        checksums = self._checksums()
+        out = _Encoded()
+        taken = 0
+        while p.todo and taken < SLICE_MOST and time.perf_counter() - t0 < SLICE_SECONDS:
+            self._encode_one(p.todo.pop(), checksums, out)
+            taken += 1
+        for s in out.busy:  # read again at the end of the pass, once (then its update's pass has it)
+            if s.key not in p.again:
+                p.again.add(s.key)
+                p.todo.insert(0, s)
+        p.waiting += out.records
+        p.spent += time.perf_counter() - t0
+        if p.waiting and (len(p.waiting) >= WRITE_EVERY or not p.todo):
+            if self._send(p.waiting, p.spent):
+                self.counters.passes += int(not p.wrote)
+                p.wrote = True
+            else:
+                self.counters.write_failures += len(p.todo)  # nor will the rest be written
+                p.ok = False
+                p.todo.clear()
+            p.waiting, p.spent = [], 0.0
+        p.next_at = time.monotonic() + p.gap(taken)
+        return not p.todo
 
     def _hand_over(self, keys: list[SessionKey]) -> None:
         """Write these sessions now and drop them here once written (if unused meanwhile)."""
@@ -370,37 +475,66 @@ class Checkpointer:
                 self.counters.handed_over += 1
 
     def _write(self, sessions: list[Session]) -> list[tuple[Session, float]] | None:
-        """Encode and write ``sessions``; returns each with the use time it was encoded at,
-        or None when the store failed."""
+        """Encode and write ``sessions`` now (a session in the middle of an update is read
+        again, up to :data:`READ_TRIES` times); returns each written one with the use time it
+        was encoded at, or None when the store failed."""
         t0 = time.perf_counter()
-        checksums = {e.map_id: e.checksum for e in self.maps.entries()}
-        records: list[tuple[bytes, bytes]] = []
-        done: list[tuple[Session, float]] = []
+        out = self._encode(sessions)
+        for _ in range(READ_TRIES - 1):
+            if not out.busy:
+                break
+            time.sleep(0.0005)  # let the update end
+            more = self._encode(out.busy)
+            out = _Encoded(out.records + more.records, out.done + more.done, more.busy)
+        if out.records:
+            if not self._send(out.records, time.perf_counter() - t0):
+                return None
+            self.counters.passes += 1
+        return out.done
+
+    def _encode(self, sessions: list[Session]) -> _Encoded:
+        """The records of ``sessions``, read without their locks (see :meth:`_encode_one`)."""
+        checksums = self._checksums()
+        out = _Encoded()
         for s in sessions:
-            checksum = checksums.get(s.key[0])
-            if checksum is None:  # its map was unloaded
-                continue
-            with s.lock:
-                blob = to_bytes(s.state)
-                answer = s.answer
-                used = s.last_used
-            time.sleep(0)  # hand the interpreter to a waiting fix between two sessions
-            last = convert.snap_result_to_proto(answer).SerializeToString() if answer is not None else b""
-            records.append((session_key(checksum, s.key[1]), pack(blob, last)))
-            done.append((s, used))
+            self._encode_one(s, checksums, out)
+        return out
+
+    def _checksums(self) -> dict[str, str]:
+        return {e.map_id: e.checksum for e in self.maps.entries()}
+
+    def _encode_one(self, s: Session, checksums: dict[str, str], out: _Encoded) -> None:
+        """Add the session's record to ``out``, or the session to ``out.busy`` when an update
+        was under way. A session no longer in the table (handed over, ended, expired) is not
+        written: its vehicle's record may be another server's by now."""
+        checksum = checksums.get(s.key[0])
+        if checksum is None or self.sessions.live(s.key) is not s:  # unloaded map; handed over
+            return
+        got = read_session(s)
+        if got is None:
+            out.busy.append(s)
+            return
+        blob, answer, used = got
+        last = convert.snap_result_to_proto(answer).SerializeToString() if answer is not None else b""
+        out.records.append((session_key(checksum, s.key[1]), pack(blob, last)))
+        out.done.append((s, used))
+
+    def _send(self, records: list[tuple[bytes, bytes]], spent: float) -> bool:
+        """Write records (``spent``: the seconds their encoding took); False when the store
+        failed (counted and reported)."""
+        t0 = time.perf_counter()
         try:
             sent = self.store.write(records, ttl_ms=self._ttl_ms)
         except Exception as exc:
             self.counters.write_failures += len(records)
             self._failed(f"a checkpoint failed: {type(exc).__name__}: {exc}")
-            return None
+            return False
         c = self.counters
-        c.passes += 1
         c.written += len(records)
         c.bytes_written += sent
-        c.write_seconds += time.perf_counter() - t0
+        c.write_seconds += spent + time.perf_counter() - t0
         self._ok()
-        return done
+        return True
 
     def _delete(self, keys: list[bytes]) -> None:
         try:

@@ -1,5 +1,6 @@
 """The fixed drives whose session blobs ``tests/data/session_blobs.txt.gz`` pins, byte for byte
-(one blob a line, after every fix of each drive in turn)."""
+(one blob a line, after every fix of each drive in turn); ``session_blobs_v2.txt.gz`` holds
+the same states in version 2 of the format."""
 
 from __future__ import annotations
 
@@ -13,6 +14,7 @@ from mapmatch.online import OnlineMatcher
 from mapmatch.types import Fix
 
 PINNED = Path(__file__).parent / "data" / "session_blobs.txt.gz"
+PINNED_V2 = Path(__file__).parent / "data" / "session_blobs_v2.txt.gz"
 
 
 def drives() -> tuple[OnlineMatcher, list[list[Fix]]]:
@@ -41,9 +43,9 @@ def blobs() -> list[list[bytes]]:
     return out
 
 
-def pinned() -> list[list[bytes]]:
-    """The pinned blobs, split by drive as :func:`blobs` returns them."""
-    lines = gzip.decompress(PINNED.read_bytes()).splitlines()
+def pinned(path: Path = PINNED) -> list[list[bytes]]:
+    """The pinned blobs (of ``path``), split by drive as :func:`blobs` returns them."""
+    lines = gzip.decompress(path.read_bytes()).splitlines()
     _, runs = drives()
     out, at = [], 0
     for fixes in runs:

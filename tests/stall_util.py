@@ -9,9 +9,12 @@ from mapmatch.online.codec import StateCaps
 
 
 def worst_case_blob(base: bytes, caps: StateCaps, *, n_edges: int, over: str = "") -> bytes:
-    """``base`` (a real session's bytes) with every list at its cap; ``over`` names one list
+    """``base`` (a real session's bytes) as version 2, with every list at its cap; ``over`` names one list
     (``hyps``, ``edges``, ``live``, ``headings``, ``trail``, ``back``) given one item more."""
     d: dict[str, Any] = json.loads(base)
+    for key in ("headings_f64", "trail_time_ms", "trail_odo_cm"):  # written as version 2's lists
+        d.pop(key, None)
+    d["version"] = 2
     t, odo = float(d["time"]), float(d["odo"])
 
     def n(name: str, cap: int) -> int:

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 from ascii_helpers import at, names, track_from_xy
 
-from graph.ascii import AsciiMap, parse_ascii_map
+from graph.ascii import parse_ascii_map
 from mapmatch import batch
 from mapmatch.batch import BATCH_CONFIG as DEFAULT_CONFIG
 from mapmatch.batch import BatchMatcher
@@ -183,24 +183,6 @@ def test_a_gap_driven_at_road_speed_is_bridged_by_its_route() -> None:
     # gap_distance 0: distance never splits, so even the jump is one piece
     never = BatchMatcher(m.graph).match(jump, DEFAULT_CONFIG.replace(gap_distance=0.0))
     assert never.splits == [] and [names(m, piece) for piece in never.routes] == [["ab", "bc"]]
-
-
-def test_a_long_pause_splits_the_track_when_gap_time_is_set() -> None:
-    # a----1-2-3-----------------4-5-6----b   fixes 3 and 4 are 180 m and 10 minutes apart
-    m = parse_ascii_map("a-----------------------------b", scale=10)
-    xs = [10, 30, 50, 230, 250, 270]
-    ll = np.array([m.lonlat(*at(m, "a", x, 1)) for x in xs])
-    times = np.array([0.0, 5.0, 10.0, 610.0, 615.0, 620.0])
-    track = Track("t", times, ll[:, 1], ll[:, 0])
-    matcher = BatchMatcher(m.graph)
-    r = matcher.match(track, DEFAULT_CONFIG.replace(gap_time=300.0))
-    assert r.splits == [3] and len(r.routes) == 2
-    assert r.length_m == pytest.approx(40 + 40, abs=1.0)
-    # off by default: the pause is driven through as one route
-    whole = matcher.match(track)
-    assert whole.splits == [] and whole.length_m == pytest.approx(260, abs=1.0)
-    # a pause shorter than gap_time does not split
-    assert matcher.match(track, DEFAULT_CONFIG.replace(gap_time=900.0)).splits == []
 
 
 def test_outlier_is_unmatched_and_does_not_break_the_route() -> None:
@@ -967,43 +949,6 @@ def test_a_stray_fix_followed_by_another_is_dropped_not_the_good_fixes_after_the
     assert [names(m, piece) for piece in greedy.routes] == [["ab", "bc"]]
 
 
-def _with_speeds(amap: AsciiMap, kph: dict[str, float]) -> AsciiMap:
-    """The map with speed limits by road (``"ab": 80``; both directions), NaN elsewhere."""
-    from graph.road_graph import Edges, Nodes, RoadGraph
-
-    g = amap.graph
-    inv = {v: k for k, v in amap.nodes.items()}
-    speed = [
-        kph.get("".join(sorted(inv[int(u)] + inv[int(v)])), np.nan)
-        for u, v in zip(g.edge_u, g.edge_v, strict=True)
-    ]
-    graph = RoadGraph.from_edges(
-        g.crs,
-        Nodes(g.node_xy, g.node_lonlat, g.node_id),
-        Edges(g.edge_u, g.edge_v, way_id=g.edge_way_id, speed_kph=np.array(speed, dtype=np.float32)),
-    )
-    return AsciiMap(graph=graph, nodes=amap.nodes, scale=amap.scale)
-
-
-def test_speed_limits_tell_parallel_roads_apart_at_sparse_sampling() -> None:
-    # a main road (80 km/h) and a residential street (30 km/h) 40 m apart; the fixes run
-    # between them, a little closer to the street, at 20 m/s: too fast for the street
-    drawing = """
-        a------------------------------------------------------------b
-        |                                                            |
-        c------------------------------------------------------------d
-        """
-    plain = parse_ascii_map(drawing, scale=10)
-    m = _with_speeds(plain, {"ab": 80.0, "cd": 30.0, "ac": 30.0, "bd": 30.0})
-    pts = [at(m, "a", x, -21) for x in (30, 180, 330, 480)]
-    fast = track_from_xy(m, pts, dt=7.5)
-    assert [names(m, piece) for piece in BatchMatcher(plain.graph).match(fast).routes] == [["cd"]]
-    assert [names(m, piece) for piece in BatchMatcher(m.graph).match(fast).routes] == [["ab"]]
-    # slowly (5 m/s) the street is plausible again, and nearer
-    slow = track_from_xy(m, pts, dt=30.0)
-    assert [names(m, piece) for piece in BatchMatcher(m.graph).match(slow).routes] == [["cd"]]
-
-
 def test_far_apart_fixes_follow_the_near_road_though_another_is_shorter() -> None:
     # a straight road b-c and a parallel one b-e-f-c 40 m south of it, 80 m longer; one fix
     # every 30 s (about 480 m apart), the middle one 5 m from the southern road and 35 m from
@@ -1213,14 +1158,12 @@ def test_a_noisy_receiver_is_matched_with_its_own_sigma_not_cut_off_the_map() ->
     unthinned = BatchMatcher(m.graph).match(track, DEFAULT_CONFIG.replace(thin_sigmas=0.0))
     assert [names(m, piece) for piece in unthinned.routes] == [["ab", "bc"]]
     assert all(p.status == PointStatus.MATCHED for p in unthinned.points)
-    # counterfactual: the configured σ alone leaves most fixes off the map and cuts the route
-    # (into pieces of one fix: no route at all)
+    # counterfactual: the configured σ alone leaves most fixes off the map
     fixed = BatchMatcher(m.graph).match(track, DEFAULT_CONFIG.replace(track_sigma_max=0.0))
-    assert fixed.routes == [] and fixed.length_m == 0
-    assert sum(p.status == PointStatus.MATCHED for p in fixed.points) < len(pts) // 2
+    assert sum(p.status == PointStatus.UNMATCHED for p in fixed.points) > len(pts) // 3
 
 
-def test_a_lone_fix_near_a_road_amid_fixes_off_the_map_is_off_the_map_too() -> None:
+def test_a_fix_further_than_off_map_sigmas_from_every_road_is_off_the_map() -> None:
     # five fixes: off, near a road (35 m), off, on, on (σ 8 m: 40 m is off the map)
     from mapmatch.arena import Arena
     from mapmatch.batch.arrays import CandidateArrays
@@ -1230,11 +1173,10 @@ def test_a_lone_fix_near_a_road_amid_fixes_off_the_map_is_off_the_map_too() -> N
     empty = np.zeros(0)
     c = CandidateArrays(
         point=np.arange(5), edge=np.zeros(5, dtype=np.int64), offset=np.zeros(5), xy=np.zeros((5, 2)),
-        dist=dist, emis=-0.5 * (dist / 8.0) ** 2, sigma=empty, limit=empty,
+        dist=dist, emis=-0.5 * (dist / 8.0) ** 2, sigma=empty,
     )  # fmt: skip
-    for min_run, has in ((2, [False, False, False, True, True]), (1, [False, True, False, True, True])):
-        *_, got = prune(5, c, c.emis, PruneRule(12.5, 100.0, 8.0, 5.0, min_run), Arena.new())
-        assert got.tolist() == has
+    *_, got = prune(5, c, c.emis, PruneRule(12.5, 100.0, 8.0, 5.0), Arena.new())
+    assert got.tolist() == [False, True, False, True, True]
 
 
 def test_an_answer_read_late_equals_one_read_at_once_and_pickles_as_a_track_match() -> None:

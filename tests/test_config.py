@@ -39,7 +39,7 @@ def test_every_parameter_has_one_full_name_and_no_shorthand() -> None:
     leaves = [n.rsplit(".", 1)[1] for n in names]
     assert len(set(leaves)) == len(leaves), "a field name is used by two sections"
     assert {n.split(".")[0] for n in names} == {"model", "online", "batch", "measurement"}
-    assert "online.region.max_hypotheses" in names and "batch.split.gap_time" in names
+    assert "online.region.max_hypotheses" in names and "batch.route.max_route_factor" in names
     with pytest.raises(AttributeError):
         DEFAULT_CONFIG.gps_sigma  # type: ignore[attr-defined]  # noqa: B018
     with pytest.raises(AttributeError):
@@ -104,14 +104,14 @@ def test_settings_by_full_name_as_the_cli_takes_them() -> None:
 
 
 def test_replace_takes_bare_names_and_whole_sections() -> None:
-    cfg = DEFAULT_CONFIG.replace(max_hypotheses=16, gap_time=300.0, gps_sigma=7.0)
-    assert (cfg.online.region.max_hypotheses, cfg.batch.split.gap_time, cfg.model.gps_sigma) == (
+    cfg = DEFAULT_CONFIG.replace(max_hypotheses=16, max_route_factor=300.0, gps_sigma=7.0)
+    assert (cfg.online.region.max_hypotheses, cfg.batch.route.max_route_factor, cfg.model.gps_sigma) == (
         16,
         300.0,
         7.0,
     )
     assert cfg == DEFAULT_CONFIG.with_settings(
-        ["online.region.max_hypotheses=16", "batch.split.gap_time=300", "model.gps_sigma=7"]
+        ["online.region.max_hypotheses=16", "batch.route.max_route_factor=300", "model.gps_sigma=7"]
     )
     # a whole section as a nested mapping, then bare names over it
     nested = DEFAULT_CONFIG.replace(online={"region": {"max_hops": 6}}, max_hypotheses=4)
@@ -137,13 +137,14 @@ def test_a_nested_table_changes_sections_and_names_what_is_wrong() -> None:
     cfg = BATCH_CONFIG.updated(
         {
             "model": {"gps_sigma": 6.0},
-            "batch": {"split": {"gap_time": 300}},
+            "batch": {"route": {"max_route_factor": 300}},
             "online": {"region": {"max_hypotheses": 16}},
         }
     )
-    assert (cfg.model.gps_sigma, cfg.batch.split.gap_time, cfg.online.region.max_hypotheses) == (6.0, 300, 16)
+    got = (cfg.model.gps_sigma, cfg.batch.route.max_route_factor, cfg.online.region.max_hypotheses)
+    assert got == (6.0, 300, 16)
     assert cfg.model.uturn_penalty == BATCH_CONFIG.model.uturn_penalty  # the rest as it was
-    assert cfg.batch.route == BATCH_CONFIG.batch.route
+    assert cfg.batch.split == BATCH_CONFIG.batch.split
     wide = DEFAULT_CONFIG.updated({"measurement": {"road_width": {"residential": 7.0}}})
     assert wide.measurement.road_width == (("residential", 7.0),)
     for bad, says in (
@@ -153,8 +154,8 @@ def test_a_nested_table_changes_sections_and_names_what_is_wrong() -> None:
         ({"online": {"region": 3}}, r"match\.online\.region: expected a table"),
         ({"online": {"regio": {}}}, r"match\.online\.regio: unknown section"),
         (
-            {"batch": {"gap_time": 300}},
-            r"match\.batch\.gap_time: .*did you mean match\.batch\.split\.gap_time\?",
+            {"batch": {"max_route_factor": 300}},
+            r"match\.batch\.max_route_factor: .*did you mean match\.batch\.route\.max_route_factor\?",
         ),
         (
             {"online": {"stop": {"max_hops": 2}}},
@@ -177,16 +178,16 @@ def _server(tmp_path: Path, toml: str, *flags: str):  # type: ignore[no-untyped-
 def test_the_servers_file_and_flags_set_both_matchers(tmp_path: Path) -> None:
     toml = (
         "[match.model]\ngps_sigma = 6.0\n[match.online.evidence]\nturn_window = 40\n"
-        "[match.batch.split]\ngap_time = 300\n"
+        "[match.batch.route]\nmax_route_factor = 300\n"
     )
     c = _server(tmp_path, toml)
     assert (c.matcher.model.gps_sigma, c.batch_matcher.model.gps_sigma) == (6.0, 6.0)
-    assert c.matcher.online.evidence.turn_window == 40 and c.batch_matcher.batch.split.gap_time == 300
+    assert c.matcher.online.evidence.turn_window == 40 and c.batch_matcher.batch.route.max_route_factor == 300
     # each matcher keeps its own defaults where the file says nothing
     assert c.batch_matcher.model.uturn_penalty == BATCH_CONFIG.model.uturn_penalty
     assert c.matcher.model.uturn_penalty == DEFAULT_CONFIG.model.uturn_penalty
-    flagged = _server(tmp_path, toml, "--set", "model.gps_sigma=7", "--set", "batch.split.gap_time=60")
-    assert (flagged.matcher.model.gps_sigma, flagged.batch_matcher.batch.split.gap_time) == (7.0, 60)
+    flagged = _server(tmp_path, toml, "--set", "model.gps_sigma=7", "--set", "batch.route.max_route_factor=6")
+    assert (flagged.matcher.model.gps_sigma, flagged.batch_matcher.batch.route.max_route_factor) == (7.0, 6)
     assert config_from(None, {}).matcher == DEFAULT_CONFIG
     for bad, says in (
         ("[match.model]\nnope = 1\n", "match.model.nope"),

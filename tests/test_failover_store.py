@@ -318,3 +318,79 @@ def test_the_session_table_lists_sessions_used_since_a_time_and_drops_only_unuse
     assert a is not None
     assert not table.drop_unused(a, 1.0)  # used after that: kept
     assert table.drop_unused(a, a.last_used) and table.live(("m", "a")) is None
+
+
+def _table_with_sessions(n: int):  # type: ignore[no-untyped-def]
+    """A map registry and a session table with ``n`` sessions, each after a few real fixes."""
+    from service.maps import MapRegistry
+    from service.sessions import SessionStore
+
+    maps = MapRegistry()
+    maps.install(maps.prepare("city", AMAP.graph, source="test"))
+    table = SessionStore(max_sessions=10 * n, ttl=600.0)
+    m = OnlineMatcher(AMAP.graph)
+    for i in range(n):
+        st = m.new_session()
+        for f in FIXES[: 5 + i % 7]:
+            last = m.update(st, f)
+        table.put("city", f"v{i}", st, answer=last)
+    return maps, table
+
+
+def test_a_pass_writes_sessions_without_their_locks_and_leaves_one_mid_update_to_the_next(db, redis_port):
+    from mapmatch.online.codec import from_bytes, to_bytes
+    from service.store import RedisStore
+    from service.store_checkpoints import Checkpointer, CheckpointSettings
+
+    maps, table = _table_with_sessions(30)
+    checksum = maps.get("city").checksum
+    held, busy = table.live(("city", "v0")), table.live(("city", "v1"))
+    assert held is not None and busy is not None
+    held.lock.acquire()  # a fix holds this one's lock for the whole pass
+    busy.version += 1  # an update of this one is under way
+    store = RedisStore(f"redis://127.0.0.1:{redis_port}/0", timeout=1.0)
+    ck = Checkpointer(store=store, sessions=table, maps=maps, settings=CheckpointSettings(interval=0.05))
+    ck.start()
+    try:
+        wait_until(lambda: ck.healthy, "the store's probe")
+        time.sleep(0.05)
+        for i in range(30):  # used since the checkpoint thread began
+            s = table.live(("city", f"v{i}"))
+            assert s is not None
+            table.touch(s)
+        others = [f"v{i}" for i in range(30) if i != 1]
+        wait_until(lambda: all(db.exists(session_key(checksum, v)) for v in others), "the pass")
+        assert not db.exists(session_key(checksum, "v1"))  # read mid-update: not written torn
+        for vid in ("v0", "v7"):
+            s = table.live(("city", vid))
+            assert s is not None
+            blob = unpack(db.get(session_key(checksum, vid)))[0]
+            assert to_bytes(from_bytes(blob)) == blob == to_bytes(s.state)
+        held.lock.release()
+        busy.version += 1  # the update ends, and counts as use: the next pass writes it
+        table.touch(busy)
+        wait_until(lambda: db.exists(session_key(checksum, "v1")), "the next pass")
+        assert unpack(db.get(session_key(checksum, "v1")))[0] == to_bytes(busy.state)
+    finally:
+        ck.stop()
+    assert ck.counters.written >= 30 and ck.counters.write_failures == 0
+
+
+def test_a_session_changed_while_it_is_read_is_not_kept(monkeypatch: pytest.MonkeyPatch):
+    from service import store_checkpoints
+    from service.store_checkpoints import read_session
+
+    _, table = _table_with_sessions(1)
+    s = table.live(("city", "v0"))
+    assert s is not None
+    got = read_session(s)
+    assert got is not None and got[0] == s.state.to_bytes() and got[2] == s.last_used
+
+    def racing(state):  # type: ignore[no-untyped-def]
+        s.version += 2  # an update began and ended while the encoder read the state
+        return b"{}"
+
+    monkeypatch.setattr(store_checkpoints, "to_bytes", racing)
+    assert read_session(s) is None
+    s.version += 1
+    assert read_session(s) is None  # odd: an update under way

@@ -95,7 +95,7 @@ def test_resumed_run_equals_uninterrupted_run(setup: tuple[Path, Path, AsciiMap]
         run_batch(
             [tracks_path], map_path, out, progress=boom, options=RunOptions(workers=1, partition_size=2)
         )
-    parts = sorted(parts_dir_for(out).glob("part-*.parquet"))
+    parts = sorted(parts_dir_for(out).glob("part-*.json"))  # a file output's parts: JSON lines
     assert len(parts) == 2 and not out.exists()
     s = run_batch([tracks_path], map_path, out, options=RunOptions(workers=1, partition_size=2))
     # only the 3 tracks of the 2 missing partitions were matched again
@@ -173,8 +173,8 @@ def test_match_command_sets_any_parameter_by_name(
         ("model.nope=1", "unknown parameter(s): model.nope"),
         ("nosuch.gps_sigma=1", "nosuch: unknown section"),
         ("gps_sigma=1", "did you mean model.gps_sigma?"),
-        ("batch.gap_time=300", "did you mean batch.split.gap_time?"),
-        ("batch.route.gap_time=300", "did you mean batch.split.gap_time?"),
+        ("batch.max_route_factor=300", "did you mean batch.route.max_route_factor?"),
+        ("batch.split.max_route_factor=300", "did you mean batch.route.max_route_factor?"),
         ("model.gps_sigma=abc", "model.gps_sigma: 'abc' is not a number"),
         ("model.gps_sigma", "expected SECTION.FIELD=VALUE"),
         ("model.gps_sigma=-1", "gps_sigma must be a finite non-negative number"),

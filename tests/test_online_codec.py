@@ -12,7 +12,7 @@ from service_util import city
 
 from mapmatch.errors import ValidationError
 from mapmatch.online import OnlineMatcher, SessionState
-from mapmatch.online.codec import VERSION, from_bytes
+from mapmatch.online.codec import VERSION, from_bytes, to_bytes
 
 AMAP = city()
 
@@ -31,8 +31,9 @@ def _session() -> tuple[OnlineMatcher, SessionState, list[Any]]:
 def test_named_keys_round_trip_and_go_on_identically() -> None:
     m, st, fixes = _session()
     d = json.loads(st.to_bytes())
-    assert d["version"] == VERSION == 2
+    assert d["version"] == VERSION == 3
     assert set(d["hyps"][0]) >= {"edges", "k", "off", "s", "logp", "enter", "anc", "anc_sd"}
+    assert set(d) >= {"headings_f64", "trail_time_ms", "trail_odo_cm"} and "trail" not in d
     assert len(st.hyps) > 1 and st.live and st.trail
     st2 = SessionState.from_bytes(st.to_bytes())
     assert st2.to_bytes() == st.to_bytes()
@@ -41,9 +42,62 @@ def test_named_keys_round_trip_and_go_on_identically() -> None:
     assert a and a == b
 
 
-def test_version_1_is_migrated() -> None:
+def _v2(st: SessionState) -> dict[str, Any]:
+    """The state as version 2's JSON object (the lists these tests edit as pairs)."""
+    d: dict[str, Any] = json.loads(to_bytes(st, version=2))
+    return d
+
+
+def test_version_2_decodes_to_the_state_version_3_holds() -> None:
+    m, st, fixes = _session()
+    v2 = to_bytes(st, version=2)
+    assert json.loads(v2)["version"] == 2
+    old = SessionState.from_bytes(v2)
+    assert old.to_bytes() == st.to_bytes() and to_bytes(old, version=2) == v2
+    assert [m.update(old, f) for f in fixes] == [m.update(st, f) for f in fixes]
+
+
+def test_version_3_writes_the_trail_in_whole_units_and_the_headings_exactly() -> None:
     _, st, _ = _session()
     d = json.loads(st.to_bytes())
+    times = [sum(d["trail_time_ms"][: i + 1]) / 1000.0 for i in range(len(d["trail_time_ms"]))]
+    assert times == [round(p.time, 3) for p in st.trail] and len(times) > 2
+    back = SessionState.from_bytes(st.to_bytes())
+    assert back.headings == st.headings and [p.odo for p in back.trail] == [round(p.odo, 2) for p in st.trail]
+    # a trail too large for whole units is written as version 2
+    st.crossings.trail[0].time = 1e14
+    assert json.loads(st.to_bytes())["version"] == 2
+    assert SessionState.from_bytes(st.to_bytes()).trail[0].time == 1e14
+
+
+@pytest.mark.parametrize(
+    ("change", "key"),
+    [
+        (lambda d: d.pop("trail_time_ms"), "state.trail_time_ms"),
+        (lambda d: d.update(trail_time_ms="12"), "state.trail_time_ms"),
+        (lambda d: d["trail_time_ms"].__setitem__(1, 2.5), "state.trail_time_ms[1]"),
+        (lambda d: d["trail_odo_cm"].__setitem__(0, True), "state.trail_odo_cm[0]"),
+        (lambda d: d["trail_odo_cm"].__setitem__(1, 2**60), "state.trail_odo_cm[1]"),
+        (lambda d: d["trail_odo_cm"].pop(), "state.trail_odo_cm"),
+        (lambda d: d.update(headings_f64=[1.0, 2.0]), "state.headings_f64"),
+        (lambda d: d.update(headings_f64="not base64!"), "state.headings_f64"),
+        (lambda d: d.update(headings_f64="AAAA"), "state.headings_f64"),  # 3 bytes: no whole pair
+        (lambda d: d.update(headings_f64="A" * 4_000), "state.headings_f64"),  # over the cap
+        (lambda d: d.update(headings_f64="AAAAAAAAAAAAAAAAAAD4fw=="), "state.headings[0]"),  # NaN
+    ],
+)
+def test_every_version_3_field_is_validated_and_named(change: Any, key: str) -> None:
+    _, st, _ = _session()
+    d = json.loads(st.to_bytes())
+    change(d)
+    with pytest.raises(ValidationError) as ei:
+        SessionState.from_bytes(json.dumps(d).encode())
+    assert ei.value.field == key
+
+
+def test_version_1_is_migrated() -> None:
+    _, st, _ = _session()
+    d = _v2(st)
     v1 = {
         "v": 1,
         "t": d["time"],
@@ -126,7 +180,7 @@ def test_version_1_is_migrated() -> None:
 )
 def test_every_field_is_validated_and_named(change: Any, key: str) -> None:
     _, st, _ = _session()
-    d = json.loads(st.to_bytes())
+    d = _v2(st)
     d["back"] = []
     d["trail"] = d["trail"][:2]
     change(d)
@@ -229,7 +283,7 @@ def test_a_blob_larger_than_the_caps_allow_is_refused_before_parsing() -> None:
     with pytest.raises(ValidationError) as ei:
         from_bytes(padded)
     assert ei.value.field == "state" and "over the limit" in ei.value.reason
-    d = json.loads(st.to_bytes())
+    d = _v2(st)
     d["trail"] = [[float(i), float(i)] for i in range(most)]
     with pytest.raises(ValidationError) as ei:
         from_bytes(json.dumps(d).encode())

@@ -1,16 +1,20 @@
 """The session blob format, pinned byte for byte: the fixed drives of :mod:`session_blobs`
 encode to the stored blobs, every stored blob decodes and re-encodes to the same bytes, and a
-decoded blob goes on exactly as the live session did."""
+decoded blob goes on exactly as the live session did; the same states stored in version 2
+decode to what version 3 holds."""
 
 from __future__ import annotations
 
 import ast
+import base64
 import json
 from pathlib import Path
 
-from session_blobs import blobs, drives, pinned
+import numpy as np
+from session_blobs import PINNED_V2, blobs, drives, pinned
 
 from mapmatch.online import SessionState
+from mapmatch.online.codec import to_bytes
 
 
 def test_the_fixed_drives_encode_to_the_pinned_bytes() -> None:
@@ -36,6 +40,16 @@ def test_a_decoded_pinned_blob_goes_on_as_the_live_session_did() -> None:
             assert st.to_bytes() == run[i + 1], f"fix {i + 1}"
 
 
+def test_version_2_blobs_of_the_same_states_decode_to_what_version_3_holds() -> None:
+    old, new = pinned(PINNED_V2), pinned()
+    assert [len(r) for r in old] == [len(r) for r in new]
+    for run_old, run_new in zip(old, new, strict=True):
+        for v2, v3 in zip(run_old, run_new, strict=True):
+            assert json.loads(v2)["version"] == 2 and json.loads(v3)["version"] == 3
+            st = SessionState.from_bytes(v2)
+            assert st.to_bytes() == v3 and to_bytes(SessionState.from_bytes(v3), version=2) == v2
+
+
 def test_each_key_of_the_blob_comes_from_its_record() -> None:
     blob = pinned()[1][-1]
     d = json.loads(blob)
@@ -44,7 +58,12 @@ def test_each_key_of_the_blob_comes_from_its_record() -> None:
     assert (a.odo_k, a.anc_odo, list(a.base)) == (d["odo_k"], d["anc_odo"], d["base"])
     assert (b.res_pos2, b.res_head2, b.drift_sigma) == (d["res_pos2"], d["res_head2"], d["drift_sigma"])
     assert b.vector._asdict() == d["bias"]
-    assert [[p.time, p.odo] for p in c.trail] == d["trail"] and len(c.back) == len(d["back"])
+    headings = np.frombuffer(base64.b64decode(d["headings_f64"]), "<f8").reshape(-1, 2).tolist()
+    assert st.headings == headings and len(st.headings) > 2
+    times = np.cumsum(d["trail_time_ms"]) / 1000.0
+    odos = np.cumsum(d["trail_odo_cm"]) / 100.0
+    assert [[p.time, p.odo] for p in c.trail] == np.column_stack([times, odos]).tolist()
+    assert len(c.trail) > 2 and len(c.back) == len(d["back"])
     assert (r.init_pending, r.init_odo, len(r.live)) == (d["init_pending"], d["init_odo"], len(d["live"]))
     assert (st.odo_k, st.base, st.res_pos2, st.trail) == (a.odo_k, a.base, b.res_pos2, c.trail)
 

@@ -43,14 +43,12 @@ class CandidateArrays(NamedTuple):
     """Emission log-probabilities; empty: distance-only with :attr:`KernelParams.sigma`."""
     sigma: NDArray[np.float64]
     """Position σ per candidate; empty: :attr:`KernelParams.sigma` for all."""
-    limit: NDArray[np.float64]
-    """Speed limit (m/s) of the candidate's road, NaN unknown; empty: the map has none."""
 
 
 class Lattice(NamedTuple):
     """The pruned candidates by lattice point (``ptr``) and the lattice points' measurements.
 
-    Keep it at these twelve arrays: each array added, even unused, slows every compiled call
+    Keep it at these eleven arrays: each array added, even unused, slows every compiled call
     that is handed the tuple; derive what a step needs from these, as its driving time."""
 
     ptr: NDArray[np.int64]
@@ -59,7 +57,6 @@ class Lattice(NamedTuple):
     xy: NDArray[np.float64]
     dist: NDArray[np.float64]
     emis: NDArray[np.float64]
-    limit: NDArray[np.float64]
     pts: NDArray[np.int64]
     """Track index of each lattice point."""
     pxy: NDArray[np.float64]
@@ -97,8 +94,6 @@ class KernelParams(NamedTuple):
     """Metres of β per second of a step's driving time (its mean fix interval)."""
     lp_cut_m: float
     gap_distance: float
-    gap_time: float
-    """seconds; 0: time never splits."""
     max_skip: int
     max_skip_time: float
     """seconds after the last point kept before ``max_skip`` unreachable points split (0: none)."""
@@ -120,11 +115,6 @@ class KernelParams(NamedTuple):
     off_map_cut_speed: float
     off_map_bridge_slack: float
     """metres; inf: any route bridges a run off the map."""
-    off_map_min_run: int
-    limit_factor: float
-    """A step faster than this times the higher speed limit of its two roads ..."""
-    limit_penalty: float
-    """... costs this log-probability per m/s beyond (0 disables it)."""
 
 
 class Assembly(NamedTuple):
@@ -162,7 +152,6 @@ def kernel_params(cfg: MatchConfig, sigma: float) -> KernelParams:
         beta_per_s=float(b.route.beta_per_s),
         lp_cut_m=float(cfg.model.beta * b.route.route_lp_cut),
         gap_distance=float(b.split.gap_distance) if b.split.gap_distance > 0 else np.inf,
-        gap_time=float(b.split.gap_time),
         max_skip=int(b.outliers.max_skip),
         max_skip_time=float(b.outliers.max_skip_time),
         outlier_lookahead=bool(b.outliers.outlier_lookahead),
@@ -179,7 +168,4 @@ def kernel_params(cfg: MatchConfig, sigma: float) -> KernelParams:
         off_map_bridge_slack=float(b.split.off_map_bridge_slack)
         if b.split.off_map_bridge_slack > 0
         else np.inf,
-        off_map_min_run=int(b.outliers.off_map_min_run),
-        limit_factor=float(b.route.speed_limit_factor),
-        limit_penalty=float(b.route.speed_limit_penalty),
     )

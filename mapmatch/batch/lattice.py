@@ -128,8 +128,6 @@ class PruneRule(NamedTuple):
     """The σ of candidates without one of their own."""
     off_map_sigmas: float
     """Candidates beyond this many times their σ go (0: no σ limit)."""
-    min_run: int
-    """Runs of fewer points with roads between points off the map are off the map too."""
 
 
 @njit(cache=True, nogil=True)
@@ -144,11 +142,6 @@ def prune(nk, c: CandidateArrays, emis, rule: PruneRule, ar):  # type: ignore[no
     cpoint = c.point
     nc = len(cpoint)
     keep, counts = _within_reach(nk, c, emis, rule, ar)
-    if rule.off_map_sigmas > 0 and rule.min_run > 1:
-        _drop_short_runs(counts, rule.min_run)
-        for i in range(nc):
-            if keep[i] and counts[cpoint[i]] == 0:
-                keep[i] = False
     nkeep = 0
     for i in range(nc):
         if keep[i]:
@@ -170,8 +163,6 @@ def prune(nk, c: CandidateArrays, emis, rule: PruneRule, ar):  # type: ignore[no
     ox = take_xy(ar, nkeep)
     od = take_f8(ar, nkeep)
     om = take_f8(ar, nkeep)
-    nl = nkeep if len(c.limit) == nc else 0
-    ol = take_f8(ar, nl)
     k = 0
     for i in range(nc):
         if keep[i]:
@@ -181,10 +172,8 @@ def prune(nk, c: CandidateArrays, emis, rule: PruneRule, ar):  # type: ignore[no
             ox[k, 1] = c.xy[i, 1]
             od[k] = c.dist[i]
             om[k] = emis[i]
-            if nl:
-                ol[k] = c.limit[i]
             k += 1
-    return ptr, oe, oo, ox, od, om, ol, has
+    return ptr, oe, oo, ox, od, om, has
 
 
 @njit(cache=True, nogil=True)
@@ -211,26 +200,6 @@ def _within_reach(nk, c, emis, rule, ar):  # type: ignore[no-untyped-def]
 
 
 @njit(cache=True, nogil=True)
-def _drop_short_runs(counts, min_run):  # type: ignore[no-untyped-def]
-    """Runs of fewer than ``min_run`` points with roads (``counts`` per point), off-map points
-    on both sides, are off the map too (a fix near some road amid a run off it is no
-    evidence): their counts set to 0."""
-    nk = len(counts)
-    p = 0
-    while p < nk:
-        if counts[p] == 0:
-            p += 1
-            continue
-        q = p
-        while q < nk and counts[q] > 0:
-            q += 1
-        if p > 0 and q < nk and q - p < min_run:
-            for r in range(p, q):
-                counts[r] = 0
-        p = q
-
-
-@njit(cache=True, nogil=True)
 def build_lattice(pt: TrackPoints, c: CandidateArrays, p: KernelParams, ar) -> Lattice:  # type: ignore[no-untyped-def]
     """Emissions (distance-only with one σ when ``c.emis`` is empty), pruning, and the lattice
     points' positions, times and odometer readings."""
@@ -239,8 +208,8 @@ def build_lattice(pt: TrackPoints, c: CandidateArrays, p: KernelParams, ar) -> L
         emis = take_f8(ar, len(c.dist))
         for i in range(len(c.dist)):
             emis[i] = emission_logp_one(c.dist[i], p.sigma, 0.0, 0.0, 0.0)
-    rule = PruneRule(p.prune, p.outlier, p.sigma, p.off_map_sigmas, p.off_map_min_run)
-    ptr, ce, co, cx, cd, em, lim, has = prune(len(pt.kidx), c, emis, rule, ar)
+    rule = PruneRule(p.prune, p.outlier, p.sigma, p.off_map_sigmas)
+    ptr, ce, co, cx, cd, em, has = prune(len(pt.kidx), c, emis, rule, ar)
     m = len(ptr) - 1
     pts = take_i8(ar, m)
     q = 0
@@ -258,7 +227,7 @@ def build_lattice(pt: TrackPoints, c: CandidateArrays, p: KernelParams, ar) -> L
         if len(pt.odo):
             podo[i] = pt.odo[pts[i]]
     run = left_out_runs(pt, has, ar)
-    return Lattice(ptr, ce, co, cx, cd, em, lim, pts, pxy, ptime, podo, run)
+    return Lattice(ptr, ce, co, cx, cd, em, pts, pxy, ptime, podo, run)
 
 
 @njit(cache=True, nogil=True)

@@ -125,10 +125,7 @@ class BatchMatcher:
         seg_ptr = read_only(graph.edge_seg_ptr, I8)
         self._geom = EdgeGeometry(seg_xy, seg_ptr, read_only(segment_lengths(seg_xy, seg_ptr), F8))
         self._seg_end = read_only(along_lengths(seg_xy, seg_ptr), F8)
-        kph = np.asarray(graph.edge_speed_kph, dtype=F8)
-        # speed limits (m/s) where the map has any (posted, or by road class)
-        self._limit = read_only(kph / 3.6 if np.isfinite(kph).any() else np.zeros(0), F8)
-        self._roads = RoadArrays(self._seg_end, self._limit, read_only(segment_bearings(seg_xy, seg_ptr), F8))
+        self._roads = RoadArrays(self._seg_end, read_only(segment_bearings(seg_xy, seg_ptr), F8))
         self._run_track = CompiledRun(run_track_in)
         self._local = threading.local()
         self._settings: dict[int, _Settings] = {}

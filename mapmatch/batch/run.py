@@ -112,8 +112,6 @@ class RoadArrays(NamedTuple):
 
     seg_end: NDArray[np.float64]
     """:func:`mapmatch.batch.lattice.along_lengths`."""
-    limit: NDArray[np.float64]
-    """Speed limit per edge (m/s, NaN unknown); empty: the map has none."""
     seg_bearing: NDArray[np.float64]
     """:func:`mapmatch.batch.lattice.segment_bearings`."""
 
@@ -318,7 +316,7 @@ def candidate_emissions(ti, fx, rows, r, p, geom, roads, ar):  # type: ignore[no
     """The candidate ``rows`` (:class:`~mapmatch.gridindex.ScanRows`) of the kept fixes of
     ``fx`` (:class:`TrackFixes`) with their emissions (:func:`mapmatch.model.emission_logp`,
     computed per candidate in the same float steps), σ (the fix's own when the track ``ti``
-    has them, else the track's, ``fx.sigma``) and speed limit. A kept point's heading is the
+    has them, else the track's, ``fx.sigma``). A kept point's heading is the
     track's, else its direction of travel (σ ``motion_sigma``); none where neither is known or
     the fix is slower than ``heading_min_speed``."""
     kidx, sigma = fx.kidx, fx.sigma
@@ -346,10 +344,7 @@ def candidate_emissions(ti, fx, rows, r, p, geom, roads, ar):  # type: ignore[no
         emis[i] = emission_logp_one(cd[i], s, head[k], bearing[i], kappa[k])
         if len(csig):
             csig[i] = s
-    limit = take_f8(ar, nc if len(roads.limit) else 0)
-    for i in range(len(limit)):
-        limit[i] = roads.limit[ce[i]]
-    return CandidateArrays(cp, ce, co, rows.xy, cd, emis, csig, limit)
+    return CandidateArrays(cp, ce, co, rows.xy, cd, emis, csig)
 
 
 @njit(cache=True, nogil=True)

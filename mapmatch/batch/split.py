@@ -1,8 +1,7 @@
 """Where the batch match splits into pieces (compiled): a step across a jump (:func:`far_gap`),
-a gap in time longer than ``gap_time``, or one whose left-out fixes left the route's roads
-and came back (:func:`left_the_route`) starts a new piece (:func:`splits_before`); a step
-that leaves out a run of fixes off the map is bridged only by a route near their path
-(:func:`run_path`).
+or one whose left-out fixes left the route's roads and came back (:func:`left_the_route`),
+starts a new piece (:func:`splits_before`); a step that leaves out a run of fixes off the map
+is bridged only by a route near their path (:func:`run_path`).
 
 The forward pass (:mod:`mapmatch.batch.viterbi`) asks :func:`splits_before` before each step,
 and the leave-out rules (:mod:`mapmatch.batch.leave_out`) :func:`joinable` before each step
@@ -21,11 +20,9 @@ from graph.jit import njit
 @njit(cache=True, nogil=True, inline="always")
 def splits_before(prev, t, d, lat, p):  # type: ignore[no-untyped-def]
     """Whether the step from lattice point ``prev`` to ``t`` (``d`` metres apart) starts a new
-    piece: a jump (:func:`far_gap`), a run off the route (:func:`left_the_route`), or more
-    than ``gap_time`` seconds (0: time never splits)."""
-    gap_time = p.gap_time if p.gap_time > 0 else np.inf
+    piece: a jump (:func:`far_gap`) or a run off the route (:func:`left_the_route`)."""
     dt = lat.ptime[t] - lat.ptime[prev]
-    return far_gap(d, dt, p, 1) or left_the_route(prev, t, lat, p) or dt > gap_time
+    return far_gap(d, dt, p, 1) or left_the_route(prev, t, lat, p)
 
 
 @njit(cache=True, nogil=True, inline="always")
@@ -43,9 +40,8 @@ def far_gap(d, dt, p, steps):  # type: ignore[no-untyped-def]
 def joinable(a, b, lat, p):  # type: ignore[no-untyped-def]
     """Whether a step from lattice point ``a`` to ``b`` stays in one piece; and its distance."""
     d = math.hypot(lat.pxy[b, 0] - lat.pxy[a, 0], lat.pxy[b, 1] - lat.pxy[a, 1])
-    gap_time = p.gap_time if p.gap_time > 0 else np.inf
     dt = lat.ptime[b] - lat.ptime[a]
-    ok = not far_gap(d, dt, p, 1) and not dt > gap_time  # no time (NaN) is no gap, as in the forward pass
+    ok = not far_gap(d, dt, p, 1)
     # only the runs between consecutive lattice points (fixes off the map): the fixes a choice
     # to leave out drops are weighed by their cost instead
     for r in range(a + 1, b + 1):

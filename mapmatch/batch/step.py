@@ -48,7 +48,6 @@ class StepCandidates(NamedTuple):
 
     edge: NDArray[np.int64]
     offset: NDArray[np.float64]
-    limit: NDArray[np.float64]
     emis: NDArray[np.float64]
 
 
@@ -57,8 +56,6 @@ class StepRules(NamedTuple):
     :class:`~mapmatch.batch.arrays.KernelParams`)."""
 
     reverse_tol: float
-    limit_factor: float
-    limit_penalty: float
 
 
 class StepInputs(NamedTuple):
@@ -78,23 +75,9 @@ def step_inputs(lat, tr, p, router):  # type: ignore[no-untyped-def]
     """:class:`StepInputs` in the calling kernel's frame, for its :func:`_try_step` calls
     (:func:`~mapmatch.arena.ref`): made once, before the steps, not copied for each. Compiled
     into its caller, whose frame holds the copy the pointer points to."""
-    sc = StepCandidates(lat.edge, lat.offset, lat.limit, lat.emis)
-    rules = StepRules(p.reverse_tol, p.limit_factor, p.limit_penalty)
+    sc = StepCandidates(lat.edge, lat.offset, lat.emis)
+    rules = StepRules(p.reverse_tol)
     return ref(StepInputs(sc, tr, p.transition, rules, router))
-
-
-@njit(cache=True, nogil=True, inline="always")
-def _over_limit(r, dt, limit, i, j, factor, penalty):  # type: ignore[no-untyped-def]
-    """Log-probability cost of a step of ``r`` metres in ``dt`` s beyond ``factor`` times the
-    higher speed limit of candidates ``i`` and ``j`` (0 without limits)."""
-    if penalty <= 0 or len(limit) == 0 or not dt > 0:
-        return 0.0
-    a = limit[i]
-    b = limit[j]
-    v = a if not np.isfinite(b) or (np.isfinite(a) and a > b) else b
-    if not np.isfinite(v):
-        return 0.0
-    return -penalty * max(r / dt - factor * v, 0.0)
 
 
 class StepLeg(NamedTuple):
@@ -120,7 +103,6 @@ class StepView(NamedTuple):
 
     edge: NDArray[np.int64]
     offset: NDArray[np.float64]
-    limit: NDArray[np.float64]
     best: NDArray[np.float64]
     bp: NDArray[np.int64]
     bpu: NDArray[np.bool_]
@@ -146,7 +128,7 @@ def _step(a0, a1, b0, b1, inputs, leg, bound):  # type: ignore[no-untyped-def]
     ws = router.ws
     cedge = cand.edge
     g = router.g
-    v = StepView(cedge, cand.offset, cand.limit, tr.best, tr.bp, tr.bpu, params, rules)
+    v = StepView(cedge, cand.offset, tr.best, tr.bp, tr.bpu, params, rules)
     sources_best_first(tr.score, a0, a1, tr.order)
     open_column(tr.best, tr.bp, b0, b1)
     nuniq = 0
@@ -193,16 +175,13 @@ def _along_road(i, si, b0, b1, v, edge_len, edge_rev, leg):  # type: ignore[no-u
             lp = -np.inf
             if r <= leg.vcap:
                 lp = transition_logp_one(r, leg.trav, leg.dt, params, False, leg.beta0)
-            lp += _over_limit(r, leg.dt, v.limit, i, j, rules.limit_factor, rules.limit_penalty)
             if relax(v.best, v.bp, b0, j, i, si + lp):
                 v.bpu[j] = False
         else:
             need = True
             r = abs(edge_len[e] - v.offset[j] - o)
             if f == edge_rev[e] and r <= leg.vcap:
-                lp = transition_logp_one(r, leg.trav, leg.dt, params, True, leg.beta0) + _over_limit(
-                    r, leg.dt, v.limit, i, j, rules.limit_factor, rules.limit_penalty
-                )
+                lp = transition_logp_one(r, leg.trav, leg.dt, params, True, leg.beta0)
                 near_end = edge_len[e] - o <= rules.reverse_tol and v.offset[j] <= rules.reverse_tol
                 if leg.node_uturn < params[3] and near_end:
                     # turning round at the junction (within reverse_tol) after a stop
@@ -248,9 +227,7 @@ def _routed(i, si, lim, targets, v, router, leg):  # type: ignore[no-untyped-def
                 continue
         r = (rest + ubodt_lookup(table, e, f) if via_table else ws.dist[f]) + coff[j]
         if r <= lim:
-            lp = transition_logp_one(r, leg.trav, leg.dt, v.params, False, leg.beta0) + _over_limit(
-                r, leg.dt, v.limit, i, j, v.rules.limit_factor, v.rules.limit_penalty
-            )
+            lp = transition_logp_one(r, leg.trav, leg.dt, v.params, False, leg.beta0)
             if relax(v.best, v.bp, b0, j, i, si + lp):
                 v.bpu[j] = False
     if not via_table:

@@ -8,6 +8,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from mapmatch.cli import CommandError
+from mapmatch.extras import EVAL_MODULES
 
 if TYPE_CHECKING:
     import pandas as pd
@@ -235,6 +236,9 @@ def _csv_route(args: argparse.Namespace, path: Path, rebuild: Any) -> tuple[str,
 
 
 def run(args: argparse.Namespace) -> int:
+    from mapmatch.extras import require_installed
+
+    require_installed(*EVAL_MODULES, extra="eval", needed_for="mapmatch eval")
     from graph.artifact import open_map
     from mapmatch.evaluate import Scoring, evaluate, read_matched_csv
     from mapmatch.sim.demo import title_for

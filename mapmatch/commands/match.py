@@ -106,7 +106,7 @@ def register(subparsers: Any) -> None:
     model.add_argument(
         "--set", action="append", default=[], metavar="SECTION.FIELD=VALUE", dest="settings",
         help="any other matcher parameter by its full name in mapmatch.config (repeatable), "
-        "e.g. --set batch.split.gap_time=300 splits tracks at pauses over 5 minutes",
+        "e.g. --set batch.route.max_route_factor=5 lets routes go further round",
     )  # fmt: skip
     p.set_defaults(func=run_match, precheck=_precheck, kernel_items=_items)
 

@@ -11,6 +11,7 @@ from typing import TYPE_CHECKING, Any
 
 from mapmatch.cli import EXIT_CONNECT, CommandError
 from mapmatch.commands._fixio import STDIO, output_path, summary_stream
+from mapmatch.extras import EVAL_MODULES
 
 if TYPE_CHECKING:
     from mapmatch.types import Fix, SnapResult
@@ -88,6 +89,11 @@ def drive_items(args: argparse.Namespace) -> int | None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from mapmatch.extras import require_installed
+
+    if args.map_aided:
+        require_installed(*EVAL_MODULES, extra="eval", needed_for="mapmatch simulate --map-aided")
+    require_installed("pandas", extra="tables", needed_for="mapmatch simulate")
     import numpy as np
 
     from graph.artifact import open_map

@@ -1,7 +1,13 @@
 """A session's state as bytes: JSON by named keys with a version, validated field by field.
 
-Version 2 names every field. Version 1 (positional lists, the format before the online
-package) is migrated explicitly on reading. :func:`from_bytes` checks every value (types,
+Version 3 (what :func:`to_bytes` writes) names every field and carries the two long lists
+compactly: the odometer trail as whole milliseconds and centimetres, each item the difference
+from the one before (``trail_time_ms``, ``trail_odo_cm``), and the heading samples as their
+float64 values, little-endian, in base64 (``headings_f64``, exact). Version 2 (the trail as
+``[time, odo]`` pairs rounded to ms and cm, the headings as ``[odo, heading]`` pairs) decodes
+to the same state; :func:`to_bytes` still writes it for a trail too large for whole units.
+Version 1 (positional lists, the format before the online package) is migrated explicitly on
+reading. :func:`from_bytes` checks every value (types,
 lengths, finite numbers, non-negative variances and σ, edge indices) and raises
 :class:`~mapmatch.errors.ValidationError` naming the offending key, e.g. ``state.hyps[0].k``.
 Every list is bounded by the matcher configuration's own caps (:class:`StateCaps`), checked
@@ -10,10 +16,14 @@ before its items are read: decoding a blob costs at most what the matcher's own 
 
 from __future__ import annotations
 
+import base64
+import binascii
 import json
 import math
 from dataclasses import dataclass
 from typing import Any
+
+import numpy as np
 
 from mapmatch.config import DEFAULT_CONFIG, MatchConfig
 from mapmatch.errors import ValidationError
@@ -30,7 +40,9 @@ from mapmatch.online.state import (
     TrailPoint,
 )
 
-VERSION = 2
+VERSION = 3
+# the largest whole number of ms or cm a version-3 trail holds (floats are exact up to it)
+MAX_TRAIL_UNITS = 2**53
 # the largest σ, variance or distance a state may hold: squares and products of imported
 # spreads stay finite (times, coordinates and the odometer need only be finite)
 MAX_MAGNITUDE = 1e100
@@ -73,11 +85,37 @@ def check_length(v: Any, name: str, cap: int) -> None:
         raise ValidationError(name, f"holds {len(v)} items, over the limit of {cap}")
 
 
-def to_bytes(st: SessionState) -> bytes:
-    """Compact JSON (a few kilobytes); the trail is rounded to ms and cm."""
-    anc, fb, cr, rg = st.anchor, st.bias, st.crossings, st.region
-    d = {
-        "version": VERSION,
+def to_bytes(st: SessionState, *, version: int = VERSION) -> bytes:
+    """Compact JSON (a few kilobytes); the trail is rounded to ms and cm. ``version`` 3 (the
+    default; 2 when the trail does not fit :data:`MAX_TRAIL_UNITS`) or 2."""
+    if version not in (2, VERSION):
+        raise ValueError(f"to_bytes writes versions 2 and {VERSION}, not {version!r}")
+    trail = st.crossings.trail
+    coded = _trail_units(trail) if version == VERSION else None
+    if coded is None:
+        d = _fields(
+            st,
+            2,
+            {"headings": st.headings},
+            {"trail": [[round(p.time, 3), round(p.odo, 2)] for p in trail]},
+        )
+    else:
+        d = _fields(
+            st,
+            VERSION,
+            {"headings_f64": _f64(st.headings)},
+            {"trail_time_ms": coded[0], "trail_odo_cm": coded[1]},
+        )
+    return json.dumps(d, separators=(",", ":"), allow_nan=True).encode()
+
+
+def _fields(
+    st: SessionState, version: int, headings: dict[str, Any], trail: dict[str, Any]
+) -> dict[str, Any]:
+    """The blob's keys in their order, with the version's own keys of the headings and trail."""
+    anc, fb, rg = st.anchor, st.bias, st.region
+    return {
+        "version": version,
         "time": st.time,
         "x": st.x,
         "y": st.y,
@@ -90,7 +128,7 @@ def to_bytes(st: SessionState) -> bytes:
         "hyps": [{k: getattr(h, k) for k in _HYP} for h in st.hyps],
         "live": [[getattr(f, k) for k in _LIVE] for f in rg.live],
         "live_fields": list(_LIVE),
-        "headings": st.headings,
+        **headings,
         "res_pos2": fb.res_pos2,
         "res_head2": fb.res_head2,
         "drift_sigma": fb.drift_sigma,
@@ -103,14 +141,32 @@ def to_bytes(st: SessionState) -> bytes:
         "anc_odo": anc.anc_odo,
         "base": list(anc.base),
         "anc_sd": anc.anc_sd,
-        "trail": [[round(p.time, 3), round(p.odo, 2)] for p in cr.trail],
-        "back": [[b.edge, b.time] for b in cr.back],
+        **trail,
+        "back": [[b.edge, b.time] for b in st.crossings.back],
     }
-    return json.dumps(d, separators=(",", ":"), allow_nan=True).encode()
+
+
+def _trail_units(trail: list[TrailPoint]) -> tuple[list[int], list[int]] | None:
+    """The trail as whole ms and cm, each after the first as the difference from the one
+    before; None when a value is not finite or over :data:`MAX_TRAIL_UNITS` units."""
+    t = np.rint(np.array([p.time for p in trail], dtype=np.float64) * 1000.0)
+    o = np.rint(np.array([p.odo for p in trail], dtype=np.float64) * 100.0)
+    if trail and not (np.abs(t).max() <= MAX_TRAIL_UNITS and np.abs(o).max() <= MAX_TRAIL_UNITS):
+        return None
+    ti, oi = t.astype(np.int64), o.astype(np.int64)
+    ti[1:] -= ti[:-1].copy()
+    oi[1:] -= oi[:-1].copy()
+    return ti.tolist(), oi.tolist()
+
+
+def _f64(pairs: list[list[float]]) -> str:
+    """Pairs of floats as their float64 values, little-endian, in base64."""
+    flat = np.fromiter((v for p in pairs for v in p), np.dtype("<f8"), 2 * len(pairs))
+    return base64.b64encode(flat.tobytes()).decode("ascii")
 
 
 def from_bytes(data: bytes, *, n_edges: int | None = None, caps: StateCaps | None = None) -> SessionState:
-    """Decode :func:`to_bytes` (version 2) or version 1; edges must be below ``n_edges`` when
+    """Decode :func:`to_bytes` (version 3 or 2) or version 1; edges must be below ``n_edges`` when
     given, and every list within ``caps`` (default: those of
     :data:`~mapmatch.config.DEFAULT_CONFIG`). Raises :class:`ValidationError` naming the key on
     anything else, e.g. ``state.headings`` for a list over its cap."""
@@ -126,7 +182,10 @@ def from_bytes(data: bytes, *, n_edges: int | None = None, caps: StateCaps | Non
     if version == 1:
         _check_lengths(d, _V1_LISTS, caps)
         d = migrate_v1(d)
-    elif version != VERSION:
+    elif version == VERSION:
+        _check_lengths(d, _V3_LISTS, caps)
+        d = v3_as_v2(d, caps)
+    elif version != 2:
         raise ValidationError("state.version", f"unknown session state version {version!r}")
     _check_lengths(d, _V2_LISTS, caps)
     return _decode(_Reader(d, "state"), n_edges, caps)
@@ -140,6 +199,7 @@ VALUE_BYTES = 48
 _LIST_KEYS = (
     *((k, k) for k in ("hyps", "live", "headings", "trail", "back")),
     *(("h", "hyps"), ("hd", "headings"), ("tr", "trail"), ("bk", "back")),
+    *((k, k) for k in ("trail_time_ms", "trail_odo_cm")),
 )
 
 
@@ -183,6 +243,13 @@ _V2_LISTS = (
     ("trail", "trail", "trail"),
     ("back", "back", "path_edges"),
 )
+_V3_LISTS = (
+    ("hyps", "hyps", "hyps"),
+    ("live", "live", "live"),
+    ("trail_time_ms", "trail_time_ms", "trail"),
+    ("trail_odo_cm", "trail_odo_cm", "trail"),
+    ("back", "back", "path_edges"),
+)
 _V1_LISTS = (("h", "hyps", "hyps"), ("live", "live", "live"), ("hd", "headings", "headings"),
              ("tr", "trail", "trail"), ("bk", "back", "path_edges"))  # fmt: skip
 
@@ -190,6 +257,58 @@ _V1_LISTS = (("h", "hyps", "hyps"), ("live", "live", "live"), ("hd", "headings",
 def _check_lengths(d: dict[str, Any], lists: tuple[tuple[str, str, str], ...], caps: StateCaps) -> None:
     for key, name, cap in lists:
         check_length(d.get(key), f"state.{name}", getattr(caps, cap))
+
+
+def v3_as_v2(d: dict[str, Any], caps: StateCaps) -> dict[str, Any]:
+    """Version 3's compact lists as version 2's pairs, checked, naming the version-3 key."""
+    out = {k: v for k, v in d.items() if k not in ("trail_time_ms", "trail_odo_cm", "headings_f64")}
+    times = _units(d, "trail_time_ms", 1000.0)
+    odos = _units(d, "trail_odo_cm", 100.0)
+    if len(odos) != len(times):
+        raise ValidationError("state.trail_odo_cm", f"must hold as many items as trail_time_ms, {len(times)}")
+    out["trail"] = [[t, o] for t, o in zip(times, odos, strict=True)]
+    out["headings"] = _f64_pairs(d, "headings_f64", caps.headings)
+    return out
+
+
+def _units(d: dict[str, Any], key: str, per: float) -> list[float]:
+    """A version-3 trail list: whole units, each after the first the difference from the one
+    before, as floats of ``1 / per`` of a unit's scale."""
+    if key not in d:
+        raise ValidationError(f"state.{key}", "missing")
+    v = d[key]
+    if not isinstance(v, list):
+        raise ValidationError(f"state.{key}", "must be a list")
+    out, total = [], 0
+    for i, step in enumerate(v):
+        if type(step) is not int:
+            raise ValidationError(f"state.{key}[{i}]", "must be a whole number")
+        total += step
+        if abs(total) > MAX_TRAIL_UNITS:
+            raise ValidationError(f"state.{key}[{i}]", f"sums to more than {MAX_TRAIL_UNITS} in magnitude")
+        out.append(total / per)
+    return out
+
+
+def _f64_pairs(d: dict[str, Any], key: str, cap: int) -> list[list[float]]:
+    """Pairs of floats from their float64 values in base64 (at most ``cap`` pairs)."""
+    if key not in d:
+        raise ValidationError(f"state.{key}", "missing")
+    v = d[key]
+    if not isinstance(v, str):
+        raise ValidationError(f"state.{key}", "must be a base64 string")
+    if len(v) > 4 * math.ceil(16 * cap / 3):  # checked before it is decoded
+        raise ValidationError(f"state.{key}", f"holds over {cap} pairs, over the limit of {cap}")
+    try:
+        raw = base64.b64decode(v, validate=True)
+    except (binascii.Error, ValueError):
+        raise ValidationError(f"state.{key}", "must be a base64 string") from None
+    if len(raw) % 16:
+        raise ValidationError(f"state.{key}", "must hold whole pairs of float64 values")
+    if len(raw) > 16 * cap:
+        raise ValidationError(f"state.{key}", f"holds {len(raw) // 16} pairs, over the limit of {cap}")
+    flat: list[float] = np.frombuffer(raw, dtype="<f8").tolist()
+    return [flat[i : i + 2] for i in range(0, len(flat), 2)]
 
 
 def migrate_v1(d: dict[str, Any]) -> dict[str, Any]:
