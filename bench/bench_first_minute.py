@@ -8,13 +8,18 @@ commands again in the same copy. The commands run one after the other, each as i
 process, in a user's order: ``prep`` (Monaco), ``simulate`` (a 1,000-fix drive on it),
 ``replay`` and ``match`` of that drive, ``serve`` to SERVING, and ``demo`` (timed to its table
 and to its exit). A command's kernels shared with an earlier one are already compiled when it
-runs. ``--install`` also times ``pip install -c requirements/constraints.txt`` of the core, of
+runs. Commands run in the default kernel mode, ``auto`` (a small job whose kernels are not
+compiled yet runs them interpreted), or the one ``--kernels`` gives; the table says how each
+step's kernels ran, cold and warm (``interpreted`` when the command printed its one-line
+notice): a job run interpreted compiles nothing, so its warm run is interpreted too.
+``--install`` also times ``pip install -c requirements/constraints.txt`` of the core, of
 ``[prep]`` and of README's ``-e '.[dev]'`` into new virtual environments (pip's cache as it is)
 and measures their sizes (the whole environment, and what the install added to a new one).
 Prints a Markdown table with the machine's load average, which decides the wall times on a
 shared machine.
 
     python bench/bench_first_minute.py [--monaco PATH.osm.pbf] [--skip-demo] [--install]
+                                       [--kernels auto|compiled|interpreted]
 """
 
 from __future__ import annotations
@@ -34,6 +39,10 @@ sys.path.insert(0, str(ROOT / "tests"))
 from shared_data import OSM_DIR  # noqa: E402  (MAPMATCH_SHARED)
 
 MONACO = OSM_DIR / "monaco.osm.pbf"
+KERNELS: str | None = None
+"""The kernel mode the commands run in (``--kernels``; None: the default, auto)."""
+NOTICE = "running interpreted"
+"""What a command's one-line notice says when ``auto`` runs it interpreted."""
 
 
 def _env(cache: Path | None, tree: Path = ROOT) -> dict[str, str]:
@@ -44,6 +53,10 @@ def _env(cache: Path | None, tree: Path = ROOT) -> dict[str, str]:
     env = dict(os.environ, PYTHONPATH=str(tree))
     env.pop("NUMBA_CACHE_DIR", None)
     env.pop("PYTHONPYCACHEPREFIX", None)
+    env.pop("NUMBA_DISABLE_JIT", None)
+    env.pop("MAPMATCH_KERNELS", None)
+    if KERNELS is not None:
+        env["MAPMATCH_KERNELS"] = KERNELS
     if cache is not None:
         env["NUMBA_CACHE_DIR"] = str(cache)
     return env
@@ -77,13 +90,29 @@ def _load() -> str:
     return " ".join(f"{x:.1f}" for x in os.getloadavg())
 
 
-def demo(tree: Path, out: Path) -> tuple[float, float, float]:
-    """Seconds (wall to the table, wall to the exit, CPU) of `mapmatch demo` run from ``tree``."""
+def _mode(stderr: str) -> str:
+    """How a command's kernels ran, from its stderr."""
+    if NOTICE in stderr or KERNELS == "interpreted":
+        return "interpreted"
+    return "compiled"
+
+
+def demo(tree: Path, out: Path) -> tuple[float, float, float, str]:
+    """Seconds (wall to the table, wall to the exit, CPU) of `mapmatch demo` run from ``tree``,
+    and how its kernels ran."""
     c0, t0 = _children_cpu(), time.perf_counter()
-    proc = subprocess.Popen(
-        [sys.executable, "-m", "mapmatch", "demo", "--out", str(out)],
-        env=_env(None, tree), cwd=tree, stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True,
-    )  # fmt: skip
+    err = out.with_name(out.name + ".stderr")
+    with open(err, "w") as err_f:
+        proc = subprocess.Popen(
+            [sys.executable, "-m", "mapmatch", "demo", "--out", str(out)],
+            env=_env(None, tree), cwd=tree, stdout=subprocess.PIPE, stderr=err_f, text=True,
+        )  # fmt: skip
+        return _demo_table(proc, t0, c0, err)
+
+
+def _demo_table(
+    proc: subprocess.Popen[str], t0: float, c0: float, err: Path
+) -> tuple[float, float, float, str]:
     assert proc.stdout is not None
     table = float("nan")
     lines = []
@@ -94,7 +123,7 @@ def demo(tree: Path, out: Path) -> tuple[float, float, float]:
     if proc.wait() != 0:
         raise RuntimeError(f"mapmatch demo exited with {proc.returncode}")
     assert any("route mismatch fraction" in x for x in lines), "".join(lines)
-    return table, time.perf_counter() - t0, _children_cpu() - c0
+    return table, time.perf_counter() - t0, _children_cpu() - c0, _mode(err.read_text())
 
 
 def serve(cache: Path | None, map_path: Path, tree: Path = ROOT) -> tuple[float, float]:
@@ -131,19 +160,25 @@ def serve(cache: Path | None, map_path: Path, tree: Path = ROOT) -> tuple[float,
         proc.wait(30)
 
 
-def timed(tree: Path, *argv: str) -> tuple[float, float]:
-    """Seconds (wall, CPU) of ``python -m mapmatch ARGV`` run from ``tree`` to its exit."""
+def timed(tree: Path, *argv: str) -> tuple[float, float, str]:
+    """Seconds (wall, CPU) of ``python -m mapmatch ARGV`` run from ``tree`` to its exit, and
+    how its kernels ran."""
     c0, t0 = _children_cpu(), time.perf_counter()
     cmd = [sys.executable, "-m", "mapmatch", *argv]
     proc = subprocess.run(cmd, env=_env(None, tree), cwd=tree, capture_output=True, text=True)
     if proc.returncode != 0:
         raise RuntimeError(f"mapmatch {argv[0]} exited with {proc.returncode}: {proc.stderr[-2000:]}")
-    return time.perf_counter() - t0, _children_cpu() - c0
+    return time.perf_counter() - t0, _children_cpu() - c0, _mode(proc.stderr)
 
 
-def commands(tree: Path, work: Path, source: Path, label: str) -> list[tuple[str, str, float, float]]:
-    """``(command, load, wall, CPU)`` of prep, simulate, replay, match and serve, in that order."""
-    out: list[tuple[str, str, float, float]] = []
+Step = tuple[str, str, float, float, str]
+"""A step's name, load average, wall and CPU seconds, and how its kernels ran."""
+
+
+def commands(tree: Path, work: Path, source: Path, label: str) -> list[Step]:
+    """``(command, load, wall, CPU, kernels)`` of prep, simulate, replay, match and serve, in
+    that order."""
+    out: list[Step] = []
     d = work / label
     d.mkdir()
     m = d / "city.map"
@@ -157,14 +192,14 @@ def commands(tree: Path, work: Path, source: Path, label: str) -> list[tuple[str
     ]  # fmt: skip
     for name, argv in steps:
         load = _load()
-        wall, cpu = timed(tree, *argv)
+        wall, cpu, mode = timed(tree, *argv)
         if name == "simulate":
             n = len((d / "fixes.csv").read_text().splitlines()) - 1
             name = f"simulate ({n:,} fixes)"
-        out.append((name, load, wall, cpu))
+        out.append((name, load, wall, cpu, "" if name == "prep" else mode))
     load = _load()
     wall, cpu = serve(None, m, tree)
-    out.append(("serve to SERVING", load, wall, cpu))
+    out.append(("serve to SERVING", load, wall, cpu, "compiled"))
     return out
 
 
@@ -202,31 +237,45 @@ def main() -> int:
     ap.add_argument("--monaco", type=Path, default=MONACO, help="the OSM source prepared first")
     ap.add_argument("--skip-demo", action="store_true")
     ap.add_argument("--install", action="store_true", help="also time the three installs and measure them")
+    ap.add_argument(
+        "--kernels", choices=("auto", "compiled", "interpreted"), help="kernel mode (default: auto)"
+    )
     args = ap.parse_args()
+    global KERNELS
+    KERNELS = args.kernels
     if not args.monaco.is_file():
         print(f"error: no {args.monaco} (set MAPMATCH_SHARED or give --monaco)", file=sys.stderr)
         return 2
-    print("| step | cold wall (s) | cold CPU (s) | warm wall (s) | warm CPU (s) | load (1, 5, 15 min) |")
-    print("|---|---|---|---|---|---|")
+    print(f"kernel mode: {args.kernels or 'auto (the default)'}\n")
+    print(
+        "| step | kernels (cold, warm) | cold wall (s) | cold CPU (s) | warm wall (s) | warm CPU (s) "
+        "| load (1, 5, 15 min) |"
+    )
+    print("|---|---|---|---|---|---|---|")
     with tempfile.TemporaryDirectory(prefix="first-minute-") as tmp:
         work = Path(tmp)
         tree = fresh_tree(work / "tree")
         cold = commands(tree, work, args.monaco, "cold")
         warm = commands(tree, work, args.monaco, "warm")
-        for (name, load, cw, cc), (_, _, ww, wc) in zip(cold, warm, strict=True):
-            print(f"| {name} | {cw:.1f} | {cc:.1f} | {ww:.1f} | {wc:.1f} | {load} |", flush=True)
+        for (name, load, cw, cc, mode), (_, _, ww, wc, wmode) in zip(cold, warm, strict=True):
+            mode = mode if mode == wmode else f"{mode}, {wmode}"
+            print(f"| {name} | {mode} | {cw:.1f} | {cc:.1f} | {ww:.1f} | {wc:.1f} | {load} |", flush=True)
         load = _load()
         wall, cpu = serve(None, work / "cold" / "city.map", fresh_tree(work / "tree-serve"))
-        print(f"| serve to SERVING, alone in a fresh copy | {wall:.1f} | {cpu:.1f} | | | {load} |")
+        print(f"| serve to SERVING, alone in a fresh copy | compiled | {wall:.1f} | {cpu:.1f} | | | {load} |")
         if not args.skip_demo:
             runs = []
             demo_tree = fresh_tree(work / "tree-demo")  # cold: none of the kernels compiled above
             for label in ("cold", "warm"):
                 load = _load()
                 runs.append((load, *demo(demo_tree, work / f"demo-{label}")))
-            (load, ct, cw, cc), (_, wt, ww, wc) = runs
-            print(f"| demo, to its table | {ct:.1f} | | {wt:.1f} | | {load} |")
-            print(f"| demo, to its exit | {cw:.1f} | {cc:.1f} | {ww:.1f} | {wc:.1f} | {load} |", flush=True)
+            (load, ct, cw, cc, mode), (_, wt, ww, wc, wmode) = runs
+            mode = mode if mode == wmode else f"{mode}, {wmode}"
+            print(f"| demo, to its table | {mode} | {ct:.1f} | | {wt:.1f} | | {load} |")
+            print(
+                f"| demo, to its exit | {mode} | {cw:.1f} | {cc:.1f} | {ww:.1f} | {wc:.1f} | {load} |",
+                flush=True,
+            )
         if args.install:
             print()
             print("| install | wall (s) | CPU (s) | venv (MB) | added (MB) | load (1, 5, 15 min) |")

@@ -12,11 +12,10 @@ from typing import Any
 
 import numpy as np
 import shapely
-from numba.extending import register_jitable
 from numpy.typing import ArrayLike, NDArray
 
 from graph.angles import bearing_compiled
-from graph.jit import njit, read_only
+from graph.jit import jitable, njit, read_only
 from graph.road_graph import RoadGraph
 
 
@@ -164,7 +163,7 @@ def project_to_edge(graph: RoadGraph, edge: int, x: float, y: float) -> tuple[fl
     return off, dist, px, py
 
 
-@register_jitable
+@jitable
 def onto_piece(
     ax: float, ay: float, bx: float, by: float, x: float, y: float
 ) -> tuple[float, float, float, float]:

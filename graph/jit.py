@@ -8,6 +8,9 @@ cached kernel loads; importing a package compiles or checks nothing.
 
 from __future__ import annotations
 
+import ast
+import inspect
+import textwrap
 from collections.abc import Callable
 from typing import Any
 
@@ -25,12 +28,107 @@ _refreshed = False
 
 
 def njit(*args: Any, **options: Any) -> Any:
-    """``numba.njit``, after the caches of changed sources are cleared (once per process)."""
+    """``numba.njit``, after the caches of changed sources are cleared (once per process).
+
+    When kernels run interpreted (:func:`interpreted`), the function as numba would compute it
+    (:func:`as_compiled`); its ``py_func`` is the function itself."""
     global _refreshed
     if not _refreshed:
         _refreshed = True
         refresh_installed()
+    if interpreted():
+        if len(args) == 1 and callable(args[0]) and not options:
+            return as_compiled(args[0])
+        return as_compiled
     return numba.njit(*args, **options)
+
+
+def jitable(func: Callable[..., Any]) -> Callable[..., Any]:
+    """``numba.extending.register_jitable``: ``func`` callable from plain Python (as it is) and
+    from kernels (compiled into them). When kernels run interpreted, kernels call its
+    :func:`as_compiled` copy and Python callers the function itself, as when compiled."""
+    if interpreted():
+        _JITABLE[func.__name__] = func
+        return func
+    from numba.extending import register_jitable
+
+    return register_jitable(func)  # type: ignore[no-any-return]
+
+
+_JITABLE: dict[str, Callable[..., Any]] = {}
+"""The :func:`jitable` functions by name (kernels run interpreted)."""
+
+
+def int_power(v: Any, n: int) -> Any:
+    """``v ** n`` for a constant whole ``n`` as a kernel computes it: by repeated
+    multiplication (numba unrolls the loop of ``static_power_impl``), where Python calls the
+    C library's ``pow``, which can differ in the last bit."""
+    res = type(v)(1)
+    val = v
+    e = abs(n)
+    while e:
+        if e & 1:
+            res = res * val
+        e >>= 1
+        val = val * val
+    return 1.0 / res if n < 0 else res
+
+
+class _AsCompiled(ast.NodeTransformer):
+    """Rewrites a kernel's source as numba computes it: ``x ** <int>`` to :func:`int_power`,
+    a call of a :func:`jitable` function to its compiled-as copy (``__jitable_NAME__``)."""
+
+    def __init__(self) -> None:
+        self.changed = False
+        self.jitables: set[str] = set()
+
+    def visit_BinOp(self, node: ast.BinOp) -> ast.AST:
+        self.generic_visit(node)
+        c = node.right
+        if isinstance(node.op, ast.Pow) and isinstance(c, ast.Constant) and type(c.value) is int:
+            self.changed = True
+            call = ast.Call(ast.Name("__int_power__", ast.Load()), [node.left, c], [])
+            return ast.copy_location(call, node)
+        return node
+
+    def visit_Name(self, node: ast.Name) -> ast.AST:
+        if isinstance(node.ctx, ast.Load) and node.id in _JITABLE:
+            self.changed = True
+            self.jitables.add(node.id)
+            return ast.copy_location(ast.Name(f"__jitable_{node.id}__", ast.Load()), node)
+        return node
+
+
+def as_compiled(func: Callable[..., Any]) -> Callable[..., Any]:
+    """``func`` as numba computes it, to run interpreted: its source rewritten by
+    :class:`_AsCompiled` (in its own module, so its globals are the module's), else ``func``
+    itself when nothing needs rewriting. ``py_func`` of the result is ``func``."""
+    try:
+        source = textwrap.dedent(inspect.getsource(func))
+        tree = ast.parse(source)
+    except (OSError, TypeError, SyntaxError):
+        return func
+    fdef = tree.body[0]
+    if not isinstance(fdef, ast.FunctionDef) or func.__code__.co_freevars:
+        return func
+    fdef.decorator_list = []
+    rewrite = _AsCompiled()
+    tree = ast.fix_missing_locations(rewrite.visit(tree))
+    if not rewrite.changed:
+        return func
+    ast.increment_lineno(tree, func.__code__.co_firstlineno - 1)
+    g = func.__globals__
+    g["__int_power__"] = int_power
+    for name in rewrite.jitables:
+        if f"__jitable_{name}__" not in g:
+            g[f"__jitable_{name}__"] = as_compiled(_JITABLE[name])
+    ns: dict[str, Any] = {}
+    exec(compile(tree, inspect.getsourcefile(func) or "<kernel>", "exec"), g, ns)
+    out: Any = ns[fdef.name]
+    out.__defaults__, out.__kwdefaults__ = func.__defaults__, func.__kwdefaults__
+    out.__qualname__, out.__doc__ = func.__qualname__, func.__doc__
+    out.py_func = func
+    return out  # type: ignore[no-any-return]
 
 
 def read_only(a: Any, dtype: Any) -> NDArray[Any]:
@@ -44,10 +142,24 @@ def read_only(a: Any, dtype: Any) -> NDArray[Any]:
     return v
 
 
+def interpreted() -> bool:
+    """Whether kernels run as plain Python in this process (``NUMBA_DISABLE_JIT``, set by
+    :func:`mapmatch.kernels.set_mode` before the first kernel is defined): ``njit`` then
+    returns each function as numba computes it (:func:`as_compiled`), and the few numba-only
+    constructs take their Python stand-ins."""
+    return bool(numba.config.DISABLE_JIT)  # type: ignore[attr-defined]
+
+
+def py_func(kernel: Any) -> Callable[..., Any]:
+    """The Python function of ``kernel``: a dispatcher's ``py_func``, or ``kernel`` itself when
+    kernels run interpreted (``NUMBA_DISABLE_JIT``: ``njit`` then returns the function)."""
+    return getattr(kernel, "py_func", kernel)  # type: ignore[no-any-return]
+
+
 def for_size(kernel: Any, items: int) -> Callable[..., Any]:
     """``kernel`` (a numba dispatcher) for an input of ``items`` items: its Python function when
     the input is small (no compile; the same code, so the same results), else the compiled kernel.
 
     Only for kernels that call no other compiled function (those would compile anyway).
     """
-    return kernel.py_func if items <= PYTHON_MAX_ITEMS else kernel  # type: ignore[no-any-return]
+    return py_func(kernel) if items <= PYTHON_MAX_ITEMS else kernel  # type: ignore[no-any-return]

@@ -15,8 +15,10 @@ from __future__ import annotations
 import contextlib
 import hashlib
 import os
+import sys
 from collections.abc import Iterable
 from pathlib import Path
+from typing import Any
 
 STAMP_NAME = "mapmatch-kernel-sources.stamp"
 KERNEL_PACKAGES = ("graph", "mapmatch")
@@ -46,27 +48,73 @@ def content_digest(files: Iterable[Path]) -> str:
     return h.hexdigest()
 
 
-def cache_files(source: Path) -> list[Path]:
-    """numba's cache files (index and data) of the kernels in ``source``, wherever its cache
-    locators would put them (``NUMBA_CACHE_DIR``, ``__pycache__`` beside the file, the user's
-    cache folder)."""
+def _locators(source: Path) -> list[Any]:
+    """numba's cache locators that could hold the kernels of ``source`` (``NUMBA_CACHE_DIR``,
+    ``__pycache__`` beside the file, the user's cache folder)."""
     from numba.core import caching, config
 
     def probe() -> None:
         """Stands for a kernel of ``source`` (a locator reads the line of its code)."""
 
     names = ("UserProvidedCacheLocator", "InTreeCacheLocator", "UserWideCacheLocator")
-    found: list[Path] = []
+    found: list[Any] = []
     for name in names:
         cls = getattr(caching, name, None) or getattr(caching, f"_{name}", None)
         if cls is None or (name.startswith("UserProvided") and not getattr(config, "CACHE_DIR", "")):
             continue
         try:
-            folder = Path(cls(probe, str(source)).get_cache_path())
+            locator = cls(probe, str(source))
+            locator.get_cache_path()
         except Exception:  # a locator this numba lacks or cannot place
             continue
+        found.append(locator)
+    return found
+
+
+def cache_files(source: Path) -> list[Path]:
+    """numba's cache files (index and data) of the kernels in ``source``, wherever its cache
+    locators would put them (``NUMBA_CACHE_DIR``, ``__pycache__`` beside the file, the user's
+    cache folder)."""
+    found: list[Path] = []
+    for locator in _locators(source):
+        folder = Path(locator.get_cache_path())
         found += [p for ext in ("nbi", "nbc") for p in folder.glob(f"{source.stem}.*.{ext}")]
     return found
+
+
+def has_cached(source: Path, kernel: str) -> bool:
+    """Whether numba's cache holds kernel ``kernel`` (a top-level function of ``source``)
+    compiled from the file's current contents, by this numba and Python, where numba would look
+    first (``NUMBA_CACHE_DIR``, else ``__pycache__`` beside the file when writable, else the
+    user's cache folder): read from its cache index, without importing the module (so before
+    deciding how kernels run)."""
+    from numba.core import caching
+
+    def probe() -> None:
+        """Stands for a kernel of ``source``."""
+
+    pyver = f"py{sys.version_info[0]}{sys.version_info[1]}"
+    try:
+        locators: list[Any] = list(caching.CacheImpl._locator_classes)
+    except AttributeError:  # unknown numba internals: not cached
+        return False
+    for cls in locators:
+        try:
+            locator = cls.from_function(probe, str(source))
+        except Exception:
+            continue
+        if locator is None:
+            continue
+        folder = Path(locator.get_cache_path())
+        for index in folder.glob(f"{source.stem}.{kernel}-*.{pyver}*.nbi"):
+            try:
+                cache = caching.IndexDataCacheFile(str(folder), index.name[:-4], locator.get_source_stamp())
+                if cache._load_index():  # empty: written for another source or numba version
+                    return True
+            except Exception:  # unknown numba internals or an unreadable index: not cached
+                continue
+        return False  # numba uses the first locator that applies
+    return False
 
 
 def refresh(dirs: Iterable[Path], stamp: Path) -> bool:

@@ -26,7 +26,7 @@ from numba.core.imputils import impl_ret_borrowed
 from numba.extending import intrinsic, register_model
 from numpy.typing import NDArray
 
-from graph.jit import njit
+from graph.jit import interpreted, njit
 
 MAX_ITEMS = 1 << 22
 """An arena grows to at most this many items per buffer (32 MB of floats); a call needing more
@@ -252,3 +252,12 @@ ref: Any = intrinsic(prefer_literal=False)(_ref)
 """See :func:`_ref` (an intrinsic: called from compiled code only)."""
 deref: Any = intrinsic(prefer_literal=False)(_deref)
 """See :func:`_deref` (an intrinsic: called from compiled code only)."""
+
+
+def _same(x: Any) -> Any:
+    """The Python stand-in of :func:`borrowed`, :func:`ref` and :func:`deref`: ``x`` itself."""
+    return x
+
+
+if interpreted():  # kernels run as Python: no reference counts, no frames to point into
+    borrowed = ref = deref = _same

@@ -18,6 +18,7 @@ import sys
 from collections.abc import Sequence
 
 LOG_FORMATS = ("auto", "text", "json")  # as mapmatch.logs.LOG_FORMATS (--help stays instant)
+KERNEL_MODES = ("auto", "compiled", "interpreted")  # as mapmatch.kernels.MODES
 
 SUBCOMMANDS = ("prep", "export", "info", "replay", "match", "serve", "send", "simulate", "eval", "demo")
 KERNELS: dict[str, tuple[str, ...]] = {
@@ -28,6 +29,13 @@ KERNELS: dict[str, tuple[str, ...]] = {
     "serve": ("online",),
 }
 """The compiled-kernel groups (:mod:`mapmatch.kernels`) each command compiles on a machine's first run."""
+ITEMS: dict[str, str] = {
+    "match": "points",
+    "simulate": "s of driving",
+    "demo": "s of driving",
+    "replay": "fixes",
+}
+"""What each command's job size (``kernel_items``, for the kernel mode) counts."""
 
 EXIT_OK = 0
 """Everything asked for was done."""
@@ -91,6 +99,25 @@ def add_common_options(p: argparse.ArgumentParser) -> None:
             "-q", "--quiet", action="store_true", default=argparse.SUPPRESS,
             help="only warnings and errors: no progress, no summary",
         )  # fmt: skip
+    _add_kernel_options(p, default=argparse.SUPPRESS)
+
+
+KERNELS_HELP = (
+    "how the compiled kernels run: compiled (numba, compiled once per machine), interpreted "
+    "(plain Python: no compile, slower per fix; the same answers) or auto: interpreted for a "
+    "small job whose kernels are not compiled yet (default; env MAPMATCH_KERNELS)"
+)
+BELOW_HELP = (
+    "with --kernels auto: run interpreted when the job has fewer than N fixes or points and its "
+    "kernels are not compiled yet (default: when that is estimated to cost less than compiling; "
+    "env MAPMATCH_INTERPRETED_BELOW). Speed only, never answers"
+)
+
+
+def _add_kernel_options(p: argparse.ArgumentParser, *, default: object) -> None:
+    if "--kernels" not in p._option_string_actions:
+        p.add_argument("--kernels", choices=KERNEL_MODES, default=default, help=KERNELS_HELP)
+        p.add_argument("--interpreted-below", type=int, default=default, metavar="N", help=BELOW_HELP)
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -107,6 +134,7 @@ def build_parser() -> argparse.ArgumentParser:
         "--log-format", choices=LOG_FORMATS, default="auto",
         help="log lines as text or JSON (default auto: text on a terminal, JSON otherwise)",
     )  # fmt: skip
+    _add_kernel_options(parser, default=None)
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
     for name in SUBCOMMANDS:
         try:
@@ -163,7 +191,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         from mapmatch.logs import configure
 
         configure(level=level, log_format=getattr(args, "log_format", None) or "auto")
-        rc = _run(args)
+        rc = _run(args, entry=argv is None)
         if argv is None:
             sys.stdout.flush()  # a reader gone before the last bytes: a broken pipe here
         return rc
@@ -179,7 +207,41 @@ def main(argv: Sequence[str] | None = None) -> int:
             gc.freeze()
 
 
-def _run(args: argparse.Namespace) -> int:
+def _kernel_mode(args: argparse.Namespace, *, entry: bool) -> bool:
+    """Choose how this process runs kernels (``--kernels``, else ``MAPMATCH_KERNELS``, else
+    auto) and set it before any kernel is defined; whether they run interpreted. ``auto``
+    decides only for a process started as the command (``entry``); a caller in process keeps
+    its mode. Prints the one-line notice of an automatic choice unless ``--quiet``."""
+    import os
+
+    from mapmatch.kernels import BELOW_ENV, MODE_ENV, choose_mode, is_interpreted, set_mode
+
+    mode = args.kernels or os.environ.get(MODE_ENV, "").strip() or "auto"
+    if mode not in KERNEL_MODES:
+        raise CommandError(f"{MODE_ENV}={mode!r}: must be one of {', '.join(KERNEL_MODES)}")
+    below = args.interpreted_below
+    if below is None and os.environ.get(BELOW_ENV, "").strip():
+        try:
+            below = int(os.environ[BELOW_ENV])
+        except ValueError:
+            raise CommandError(f"{BELOW_ENV}={os.environ[BELOW_ENV]!r}: must be a whole number") from None
+    if below is not None and below < 0:
+        raise CommandError("--interpreted-below must be >= 0")
+    if mode == "auto" and not entry:
+        return is_interpreted()
+    groups = KERNELS.get(args.command, ())
+    items_of = getattr(args, "kernel_items", None)
+    items = items_of(args) if mode == "auto" and groups and items_of is not None else None
+    choice = choose_mode(mode, groups, items, below=below, noun=ITEMS.get(args.command, "items"))
+    if not set_mode(interpreted=choice.interpreted):
+        other = "compiled" if choice.interpreted else "interpreted"
+        raise CommandError(f"--kernels {mode}: kernels already run {other} in this process")
+    if choice.notice and not args.quiet:
+        print(f"mapmatch {args.command}: {choice.notice}", file=sys.stderr, flush=True)
+    return choice.interpreted
+
+
+def _run(args: argparse.Namespace, *, entry: bool = False) -> int:
     from graph.errors import GraphError
     from mapmatch.errors import MatchError
 
@@ -188,7 +250,8 @@ def _run(args: argparse.Namespace) -> int:
         precheck = getattr(args, "precheck", None)
         if precheck is not None:  # cheap input checks before the heavy imports and compiles
             precheck(args)
-        if not args.quiet and KERNELS.get(cmd):
+        interpreted = _kernel_mode(args, entry=entry)
+        if not args.quiet and KERNELS.get(cmd) and not interpreted:
             from mapmatch.kernels import announce
 
             for group in KERNELS[cmd]:

@@ -9,6 +9,14 @@ the batch matcher, the online matcher (``replay``, ``serve``, ``demo``) its plac
 ``python -m mapmatch.kernels [GROUP...]`` compiles groups ahead of time (a container build
 does it, so a container's first start is warm).
 
+Kernels can also run *interpreted*: as the plain Python functions they are compiled from
+(numba's ``NUMBA_DISABLE_JIT``), the same code and so the same answers, slower per fix but
+with nothing to compile. The mode is chosen once per process, before the first kernel is
+defined (:func:`choose_mode`, :func:`set_mode`); worker processes inherit it through the
+environment. ``auto`` runs a job interpreted when a group it needs is not compiled yet and
+the job is small enough that interpreting it costs less than compiling
+(:data:`INTERPRETED_SECONDS_PER_ITEM`, :data:`COMPILE_SECONDS`).
+
 A kernel that runs once per job on an input of a size the job chose (a map's nodes, a route's
 metres) goes through :func:`graph.jit.for_size`: on a small input it runs as plain Python (the same code,
 so the same results), which takes milliseconds where compiling takes seconds.
@@ -25,7 +33,7 @@ import time
 from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
-from typing import Any, TextIO
+from typing import Any, NamedTuple, TextIO
 
 GROUPS: dict[str, tuple[str, ...]] = {
     "simulator": ("mapmatch.sim.kalman:_ekf",),
@@ -59,10 +67,120 @@ GROUPS: dict[str, tuple[str, ...]] = {
 for a closed loop). Kernels called through :func:`graph.jit.for_size`, which compile only for large
 inputs, are in none."""
 
-COMPILE_SECONDS: dict[str, float] = {"simulator": 8.0, "batch": 63.0, "online": 12.0}
-"""About how long (CPU seconds) a group takes to compile on the 2-core development machine."""
+COMPILE_SECONDS: dict[str, float] = {"simulator": 5.0, "batch": 95.0, "online": 10.0}
+"""About how long (CPU seconds) a group takes to compile on the 2-core development machine
+(``bench/bench_compile.py``, ``bench/bench_first_minute.py``)."""
+
+INTERPRETED_SECONDS_PER_ITEM: dict[str, float] = {"simulator": 0.0025, "batch": 0.001, "online": 0.001}
+"""About how long (CPU seconds) a group's kernels take interpreted per item of work (a second
+of a simulated drive, a point of a track, a fix) on the 2-core development machine: with
+:data:`COMPILE_SECONDS`, ``auto`` runs interpreted below about 2,000 s of driving, 95,000
+points or 10,000 fixes (docs/design/dependencies.md)."""
+
+ENTRY_KERNELS: dict[str, str] = {
+    "simulator": "mapmatch/sim/kalman.py:_ekf",
+    "batch": "mapmatch/batch/run.py:run_track_in",
+    "online": "mapmatch/online/placement.py:_place_all",
+}
+"""Per group, a kernel (source file under the package root, function) every job of the group
+compiles: its cache on disk tells whether the group was compiled, read before any kernel is
+defined (:func:`compiled_on_disk`)."""
+
+MODES = ("auto", "compiled", "interpreted")
+"""How kernels run: ``compiled`` (numba, compiled on first use and cached), ``interpreted``
+(plain Python, nothing compiled) or ``auto`` (interpreted for a small job whose kernels are
+not compiled yet, else compiled)."""
+MODE_ENV = "MAPMATCH_KERNELS"
+"""The environment variable of the mode (the ``--kernels`` option wins)."""
+BELOW_ENV = "MAPMATCH_INTERPRETED_BELOW"
+"""The environment variable of ``--interpreted-below``."""
 
 _announced: set[str] = set()
+
+
+def compiled_on_disk(group: str) -> bool:
+    """Whether the group's kernels are compiled and cached for the current sources, read from
+    numba's cache index of its entry kernel (:data:`ENTRY_KERNELS`) without importing any kernel
+    module, so before :func:`set_mode`. Cached kernels of changed sources are cleared first, as
+    the first kernel of a process would (:func:`graph.kernel_cache.refresh_installed`)."""
+    from graph.kernel_cache import has_cached, refresh_installed
+
+    refresh_installed()
+    path, _, kernel = ENTRY_KERNELS[group].partition(":")
+    return has_cached(Path(__file__).resolve().parents[1] / path, kernel)
+
+
+def is_interpreted() -> bool:
+    """Whether this process runs kernels interpreted (``NUMBA_DISABLE_JIT`` set), read from the
+    environment without importing numba."""
+    return os.environ.get("NUMBA_DISABLE_JIT", "0").strip() not in ("", "0")
+
+
+def kernels_defined() -> bool:
+    """Whether a kernel was defined in this process already (the mode is then fixed)."""
+    jit = sys.modules.get("graph.jit")
+    return bool(getattr(jit, "_refreshed", False))
+
+
+def set_mode(*, interpreted: bool) -> bool:
+    """Run kernels interpreted or compiled in this process and the processes it starts (through
+    ``NUMBA_DISABLE_JIT``). Only before the first kernel is defined: returns whether the mode
+    is now the one asked for."""
+    if kernels_defined():
+        return is_interpreted() == interpreted
+    os.environ["NUMBA_DISABLE_JIT"] = "1" if interpreted else "0"
+    numba = sys.modules.get("numba")
+    if numba is not None:
+        numba.config.DISABLE_JIT = int(interpreted)
+    return True
+
+
+class ModeChoice(NamedTuple):
+    """What :func:`choose_mode` decided: interpreted or not, and the one line saying why
+    (``None``: nothing to say)."""
+
+    interpreted: bool
+    notice: str | None = None
+
+
+def _estimates(groups: tuple[str, ...], cold: list[str], items: int) -> tuple[float, float]:
+    """CPU seconds of the job's kernels (interpreted, compiling the cold groups)."""
+    interp = items * sum(INTERPRETED_SECONDS_PER_ITEM[g] for g in groups)
+    return interp, sum(COMPILE_SECONDS[g] for g in cold)
+
+
+def choose_mode(
+    mode: str, groups: tuple[str, ...], items: int | None, *, below: int | None = None, noun: str = "items"
+) -> ModeChoice:
+    """Decide how a job that needs kernel ``groups`` runs, in ``mode`` (:data:`MODES`).
+
+    ``items`` is the job's size (``noun``: fixes or points; ``None``: unknown). ``auto`` runs the job
+    interpreted when some group is not compiled yet (:func:`compiled_on_disk`) and the job is
+    small: fewer items than ``below`` when given, else when interpreting its items is estimated
+    to cost less CPU than compiling those groups. Speed only: both modes give the same answers.
+    """
+    if mode not in MODES:
+        raise ValueError(f"kernel mode must be one of {', '.join(MODES)}, not {mode!r}")
+    if mode != "auto":
+        return ModeChoice(mode == "interpreted")
+    if is_interpreted():  # the environment asks for it (NUMBA_DISABLE_JIT)
+        return ModeChoice(True)
+    if not groups:
+        return ModeChoice(False)
+    cold = [g for g in groups if not compiled_on_disk(g)]
+    if not cold or items is None:
+        return ModeChoice(False)
+    interp, compile_s = _estimates(groups, cold, items)
+    small = items < below if below is not None else interp < compile_s
+    if not small:
+        return ModeChoice(False)
+    names = ", ".join(cold)
+    return ModeChoice(
+        True,
+        f"kernels ({names}) not compiled yet: running interpreted for {items:,} {noun} (about "
+        f"{interp:.0f} s, where compiling takes about {compile_s:.0f} s once; `python -m "
+        f"mapmatch.kernels` compiles them)",
+    )
 
 
 def _kernel(entry: str) -> Any:
@@ -93,7 +211,9 @@ only into their callers, never get a cache of their own."""
 
 def is_cached(group: str) -> bool:
     """Whether the group's kernels have an on-disk cache index valid for their source (compiled
-    before)."""
+    before). With kernels run interpreted, every group is ready: nothing compiles."""
+    if is_interpreted():
+        return True
     probes = CACHE_PROBES.get(group)
     kernels = dispatchers(group) if probes is None else [_kernel(e) for e in probes]
     for d in kernels:
@@ -191,13 +311,13 @@ def compiling_in_background(group: str) -> Iterator[BackgroundCompile]:
     other work (on the machine's second core). Call ``wait()`` on what it yields before the
     group's first use: this process then loads the kernels from the cache.
 
-    Nothing starts when the group is cached already. Should the child fail, take longer than
-    :data:`BACKGROUND_WAIT_SECONDS` or not save its kernels (an unwritable cache), this process
-    compiles them on first use as it would without a child: the results are the same. The child
-    is stopped when the block is left.
+    Nothing starts when the group is cached already, or when kernels run interpreted. Should
+    the child fail, take longer than :data:`BACKGROUND_WAIT_SECONDS` or not save its kernels
+    (an unwritable cache), this process compiles them on first use as it would without a child:
+    the results are the same. The child is stopped when the block is left.
     """
     child: subprocess.Popen[bytes] | None = None
-    if not is_cached(group):
+    if not is_interpreted() and not is_cached(group):
         package_root = str(Path(__file__).resolve().parents[1])  # the child imports this mapmatch
         path = os.pathsep.join(filter(None, [package_root, os.environ.get("PYTHONPATH")]))
         child = subprocess.Popen(
@@ -205,7 +325,7 @@ def compiling_in_background(group: str) -> Iterator[BackgroundCompile]:
             stdin=subprocess.DEVNULL,
             stdout=subprocess.DEVNULL,
             stderr=subprocess.DEVNULL,
-            env=dict(os.environ, PYTHONPATH=path),
+            env=dict(os.environ, PYTHONPATH=path, NUMBA_DISABLE_JIT="0"),
         )
     background = BackgroundCompile(child)
     try:
@@ -265,7 +385,11 @@ def compile_group(group: str) -> float:
 
 
 def main(argv: list[str] | None = None) -> int:
+    """Compile the groups named (default: all), whatever ``MAPMATCH_KERNELS`` says."""
     groups = (argv if argv is not None else sys.argv[1:]) or list(GROUPS)
+    if not set_mode(interpreted=False):
+        print("kernels run interpreted in this process: nothing to compile", file=sys.stderr)
+        return 2
     for group in groups:
         if group not in GROUPS:
             print(f"unknown kernel group {group!r} (groups: {', '.join(GROUPS)})", file=sys.stderr)

@@ -25,7 +25,7 @@ from typing import NamedTuple
 import numpy as np
 from numpy.typing import NDArray
 
-from graph.jit import njit, read_only
+from graph.jit import njit, py_func, read_only
 from graph.road_graph import RoadGraph
 from graph.rules import UTurnPolicy, moves_for
 from mapmatch.arena import int64
@@ -287,7 +287,7 @@ def _search_toward(  # type: ignore[no-untyped-def]
     return nt
 
 
-search_toward_inlined = njit(nogil=True, inline="always")(_search_toward.py_func)
+search_toward_inlined = njit(nogil=True, inline="always")(py_func(_search_toward))
 """:func:`_search_toward` compiled into its caller (the Viterbi step,
 :func:`mapmatch.batch.step._step`: one call less per search)."""
 

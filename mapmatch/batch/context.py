@@ -9,12 +9,12 @@ kernel), so a call passes the track's arrays and one pointer.
 
 from __future__ import annotations
 
-from typing import Any
+from typing import Any, NamedTuple
 
 from numba import types
 from numba.experimental import structref
 
-from graph.jit import njit
+from graph.jit import interpreted, njit
 
 CONTEXT_FIELDS = ("q", "r", "p", "geom", "roads", "router", "grid", "gsc", "ar")
 """The fields of a :class:`Context`: the query, rule and kernel parameters
@@ -42,8 +42,28 @@ structref.define_constructor(Context, ContextType, list(CONTEXT_FIELDS))
 structref.define_boxing(ContextType, Context)
 
 
+class PlainContext(NamedTuple):
+    """A :class:`Context`'s stand-in when kernels run as Python (a structref has no Python
+    implementation): the same fields (:data:`CONTEXT_FIELDS`)."""
+
+    q: Any
+    r: Any
+    p: Any
+    geom: Any
+    roads: Any
+    router: Any
+    grid: Any
+    gsc: Any
+    ar: Any
+
+
+_new: Any = PlainContext if interpreted() else Context
+"""What :func:`new_context` builds: a :class:`Context`, or with kernels run as Python a
+:class:`PlainContext`."""
+
+
 @njit(cache=True)
 def new_context(mi):  # type: ignore[no-untyped-def]
-    """A :class:`Context` of a :class:`~mapmatch.batch.run.MatchInputs`'s fields (see
-    :data:`CONTEXT_FIELDS`)."""
-    return Context(mi.q, mi.r, mi.p, mi.geom, mi.roads, mi.router, mi.grid, mi.gsc, mi.ar)
+    """A :class:`Context` (:class:`PlainContext` when kernels run as Python) of a
+    :class:`~mapmatch.batch.run.MatchInputs`'s fields (see :data:`CONTEXT_FIELDS`)."""
+    return _new(mi.q, mi.r, mi.p, mi.geom, mi.roads, mi.router, mi.grid, mi.gsc, mi.ar)

@@ -66,6 +66,41 @@ def check_csv_inputs(paths: list[Path]) -> None:
             check_text_input(path)
 
 
+COUNT_MAX = 1_000_000
+""":func:`count_items` stops counting at this many items (more than any job run interpreted)."""
+
+_ITEM_MARKS = {".csv": b"\n", ".gpx": b"<trkpt"}
+"""What :func:`count_items` counts in a file, by suffix: a CSV's lines, a GPX file's points."""
+
+
+def count_items(paths: list[Path]) -> int | None:
+    """About how many fixes or points the files hold (for the kernel mode, so speed only):
+    a CSV's lines after its header, a GPX file's points, at most :data:`COUNT_MAX`. ``None`` when unknown:
+    standard input, a folder, a compressed or binary file (Parquet, GIS)."""
+    total = 0
+    for path in paths:
+        mark = _ITEM_MARKS.get(path.suffix.lower())
+        if str(path) == STDIO or mark is None or not path.is_file():
+            return None
+        with open(path, "rb") as f:
+            while total < COUNT_MAX and (chunk := f.read(1 << 20)):
+                total += chunk.count(mark)
+        total -= mark == b"\n"  # the header
+    return max(0, min(total, COUNT_MAX))
+
+
+def prepared_map(args: argparse.Namespace) -> bool:
+    """Whether ``--map`` names a prepared map file (``.map``), not a source to build first: a
+    large map built from its source, or a route table, is work of the kernels' own, which
+    :func:`count_items` does not count (so such a job compiles)."""
+    return str(getattr(args, "map", "")).endswith(".map")
+
+
+def fixes_items(args: argparse.Namespace) -> int | None:
+    """``replay``: :func:`count_items` of the fixes file (``None`` with a map to build)."""
+    return count_items([args.fixes]) if prepared_map(args) else None
+
+
 def precheck_fixes(args: argparse.Namespace) -> None:
     """``replay`` and ``send``: :func:`check_csv_inputs` on the fixes file."""
     check_csv_inputs([args.fixes])

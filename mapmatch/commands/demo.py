@@ -39,7 +39,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[ty
         help="GPS outages as START:SECONDS[,START:SECONDS...] from the start of the drive",
     )
     p.add_argument("--rate", type=float, default=1.0, choices=[1.0, 10.0], help="fused output rate in Hz")
-    p.set_defaults(func=run)
+    from mapmatch.commands.simulate import drive_items
+
+    p.set_defaults(func=run, kernel_items=drive_items)
 
 
 def _step(msg: str, t0: float) -> None:
@@ -83,7 +85,9 @@ def _demo(args: argparse.Namespace, kernels: BackgroundCompile) -> int:
     s = graph.stats()
     size = f"{s['nodes']} intersections, {s['edges']} edges, {s['road_km']:.1f} km of road"
     _step(f"map {map_path}: {size}", t0)
-    server, port = start_server(ServerConfig(address="127.0.0.1:0"), {"helsinki": map_path})
+    # MatchTrack in threads: no batch worker process to start (and, on a first run, compile)
+    config = ServerConfig(address="127.0.0.1:0", batch_processes=0)
+    server, port = start_server(config, {"helsinki": map_path})
     try:
         _step(f"gRPC server on 127.0.0.1:{port} is SERVING", t0)
         _step(f"simulating a {args.length_km:g} km fused drive with GPS outage(s) {args.outage}", t0)

@@ -108,7 +108,17 @@ def register(subparsers: Any) -> None:
         help="any other matcher parameter by its full name in mapmatch.config (repeatable), "
         "e.g. --set batch.route.max_route_factor=5 lets routes go further round",
     )  # fmt: skip
-    p.set_defaults(func=run_match, precheck=_precheck)
+    p.set_defaults(func=run_match, precheck=_precheck, kernel_items=_items)
+
+
+def _items(args: argparse.Namespace) -> int | None:
+    """The points to match, about (the kernel mode's job size); ``None`` on a Dask cluster,
+    whose workers choose their own mode, and with a route table to build (``--ubodt``)."""
+    from mapmatch.commands._fixio import count_items, prepared_map
+
+    if args.scheduler or args.ubodt is not None or not prepared_map(args):
+        return None
+    return count_items(list(args.inputs))
 
 
 def _precheck(args: argparse.Namespace) -> None:

@@ -68,9 +68,9 @@ def register(subparsers: Any) -> None:
         help="any other matcher parameter by its full name in mapmatch.config (repeatable), "
         "e.g. --set online.evidence.turn_window=40",
     )  # fmt: skip
-    from mapmatch.commands._fixio import precheck_fixes
+    from mapmatch.commands._fixio import fixes_items, precheck_fixes
 
-    p.set_defaults(func=run_replay, precheck=precheck_fixes)
+    p.set_defaults(func=run_replay, precheck=precheck_fixes, kernel_items=fixes_items)
 
 
 def load_map_any(path: Path) -> Any:

@@ -69,7 +69,23 @@ def register(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[ty
         "--matched",
         help="with --server or --map-aided: results CSV to write (default with --server: OUTPUT.matched.csv)",
     )
-    p.set_defaults(func=run)
+    p.set_defaults(func=run, kernel_items=drive_items)
+
+
+DRIVE_MPS = 7.6
+"""About the mean speed of a simulated drive (m/s; 10.3 km in 1,343 s on Monaco), to tell a
+random route's seconds of driving from its length (:func:`drive_items`)."""
+
+
+def drive_items(args: argparse.Namespace) -> int | None:
+    """About the seconds of driving (the simulator's work, in 1 Hz fixes) of a random route of
+    ``--length-km``, for the kernel mode; ``None`` for a given route, a closed loop
+    (``--map-aided``, which also runs the online matcher) or a map to build from its source."""
+    if not getattr(args, "random_route", True) or getattr(args, "map_aided", False):
+        return None
+    if hasattr(args, "map") and not str(args.map).endswith(".map"):  # a map to build first
+        return None
+    return max(0, round(args.length_km * 1000.0 / DRIVE_MPS))
 
 
 def run(args: argparse.Namespace) -> int:
