@@ -49,7 +49,7 @@ def test_kubicka_track_matches_its_true_route(
 
 def test_every_piece_of_a_route_torn_by_multipath_is_connected(kubicka_dir: Path) -> None:
     """A REAL track with SIMULATED multipath bursts (a third of the 1 Hz fixes start one) splits
-    into dozens of pieces. Each piece is a connected run of edges: a piece trimmed to nothing
+    into several pieces. Each piece is a connected run of edges: a piece trimmed to nothing
     (its route only touches a node) stays empty and does not merge its neighbours into one."""
     import random
 
@@ -72,7 +72,7 @@ def test_every_piece_of_a_route_torn_by_multipath_is_connected(kubicka_dir: Path
         i += 1
     t.lon, t.lat = to_lonlat(graph.crs, x + ex, y + ey).T
     r = BatchMatcher(graph).match(t)
-    assert len(r.routes) == len(r.splits) + 1 > 20
+    assert len(r.routes) == len(r.splits) + 1 > 5
     assert any(not piece for piece in r.routes)  # the case this test is for
     for piece in r.routes:
         for a, b in itertools.pairwise(piece):
