@@ -325,12 +325,12 @@ def _startup_seconds() -> float:
     return time.perf_counter() - t0
 
 
-@pytest.mark.slow  # three processes matching 400 tracks each
+@pytest.mark.slow  # three processes matching 4,000 tracks each (interrupted)
 @pytest.mark.parametrize("after", [0.2, 0.6, 2.0])
 def test_ctrl_c_at_any_time_is_one_line(grid: tuple[AsciiMap, Path], tmp_path: Path, after: float) -> None:
     m, map_path = grid
     src = tmp_path / "t.csv"
-    write_tracks(src, [grid_track(m, f"v{i}") for i in range(400)])
+    write_tracks(src, [grid_track(m, f"v{i}") for i in range(4000)])
     env = dict(os.environ, PYTHONPATH=str(ROOT))
     delay = 1.5 * _startup_seconds() + after
     proc = subprocess.Popen(
