@@ -465,6 +465,19 @@ CALIB_COLUMNS = (
     "true_dist",
     "alt_dist",
     "along_err",
+    "p_path",
+    "p2",
+    "held",
+    "edge_len",
+    "fix_sigma",
+    "speed",
+    "head_diff",
+    "fix_along",
+    "since_gps",
+    "dr_dist",
+    "cross_sig",
+    "alongside",
+    "other_sig",
 )
 """The per-fix table of ``--calibration``: the track, rate and fold; the reported road
 probability; whether the answer is on the right road; the matcher's ``usable``; whether the
@@ -517,9 +530,12 @@ def alternative_dist(graph: RoadGraph, drive: Drive, edges: np.ndarray) -> np.nd
     return out
 
 
-def calibration_fixes(graph: RoadGraph, drive: Drive, results: list[SnapResult]) -> dict[str, np.ndarray]:
+def calibration_fixes(
+    matcher: OnlineMatcher, drive: Drive, results: list[SnapResult]
+) -> dict[str, np.ndarray]:
     """The columns ``p`` .. ``true_dist`` of :data:`CALIB_COLUMNS` for a drive's fixes that
     are placed on a road where the truth is known."""
+    graph = matcher.graph
     edges = np.array([r.edge for r in results], dtype=np.int64)
     known = drive.truth["truth_known"].to_numpy(dtype=bool)
     keep = known & (edges >= 0)
@@ -554,8 +570,69 @@ def calibration_fixes(graph: RoadGraph, drive: Drive, results: list[SnapResult])
         "true_dist": true_dist,
         "alt_dist": alternative_dist(graph, drive, edges),
         "along_err": along_error(graph, drive, results),
+        **answer_features(matcher, drive, results),
     }
     return {k: v[keep] for k, v in cols.items()}
+
+
+def answer_features(matcher: OnlineMatcher, drive: Drive, results: list[SnapResult]) -> dict[str, np.ndarray]:
+    """Per fix, what the matcher knows at answer time besides ``p``: the path's probability
+    (the reported edge's candidate share, 1 for a single hypothesis), the second-best edge's,
+    whether the answer is held at a node, the edge's length, the fix's σ, speed and heading
+    difference to the road, the fix's signed along-track distance from the answer, and the
+    time and odometer distance since the last GPS-aided fix; the fix's distance from the road
+    in its σ and whether a road runs alongside, as the matcher's confidence model sees them
+    (:func:`mapmatch.online.report.agreement`)."""
+    graph, cfg = matcher.graph, matcher.config
+    fixes = drive.fix_objects()
+    n = len(results)
+    p_path, p2 = np.ones(n), np.zeros(n)
+    for i, r in enumerate(results):
+        for c in r.candidates:
+            if c.edge == r.edge:
+                p_path[i] = c.probability
+            elif c.probability > p2[i]:
+                p2[i] = c.probability
+    e0 = np.maximum(np.array([r.edge for r in results], dtype=np.int64), 0)
+    off = np.array([r.offset for r in results], dtype=float)
+    elen = graph.edge_len[e0].astype(float)
+    held = (off <= 1e-6) | (off >= elen - 1e-6)
+    xy = snapped_xy(graph, results)
+    rad = np.radians(np.array([r.bearing for r in results], dtype=float))
+    fxy = np.column_stack([drive.fused.x, drive.fused.y])
+    fix_along = (fxy[:, 0] - xy[:, 0]) * np.sin(rad) + (fxy[:, 1] - xy[:, 1]) * np.cos(rad)
+    t = np.array([f.time for f in fixes], dtype=float)
+    gps = np.array([bool(f.gps_valid) for f in fixes])
+    dist = np.nan_to_num(np.array([f.distance for f in fixes], dtype=float))
+    last_t = np.maximum.accumulate(np.where(gps, t, -np.inf))
+    cum = np.cumsum(dist)
+    last_c = np.maximum.accumulate(np.where(gps, cum, -np.inf))
+    head = np.array([f.heading for f in fixes], dtype=float)
+    bear = np.array([r.bearing for r in results], dtype=float)
+    sig = np.array([f.pos_sigma for f in fixes], dtype=float)
+    sig = np.maximum(np.where(sig > 0, sig, cfg.model.gps_sigma), cfg.online.evidence.pos_sigma_floor)
+    m = cfg.confidence
+    par = matcher.parallel
+    beside = [r.edge >= 0 and bool(par.alongside(r.edge, r.offset, m)) for r in results]
+    other = [
+        par.nearest(r.edge, r.offset, float(x), float(y), m) if b else np.inf
+        for r, b, x, y in zip(results, beside, drive.fused.x, drive.fused.y, strict=True)
+    ]
+    return {
+        "other_sig": np.array(other, dtype=float) / sig,
+        "cross_sig": np.array([r.dist for r in results], dtype=float) / sig,
+        "alongside": np.array(beside, dtype=bool),
+        "p_path": p_path,
+        "p2": p2,
+        "held": held,
+        "edge_len": elen,
+        "fix_sigma": np.array([f.pos_sigma for f in fixes], dtype=float),
+        "speed": np.array([f.speed for f in fixes], dtype=float),
+        "head_diff": np.abs((head - bear + 180.0) % 360.0 - 180.0),
+        "fix_along": fix_along,
+        "since_gps": t - last_t,
+        "dr_dist": cum - last_c,
+    }
 
 
 def collect_calibration(names: list[str], cfg: MatchConfig, args: argparse.Namespace) -> pd.DataFrame:
@@ -566,11 +643,11 @@ def collect_calibration(names: list[str], cfg: MatchConfig, args: argparse.Names
     for n, name in enumerate(names):
         folder = KUBICKA / name
         graph = load_graph(folder, args.map_cache)
-        matcher = OnlineMatcher(graph, config=cfg)
+        matcher = OnlineMatcher(graph, config=cfg.with_settings(list(IDENTITY)))
         for rate in args.rates:
             drive = real_drive(graph, folder, rate_hz=rate, outages=True, seed=int(name))
             res, _ = run_drive(matcher, drive)
-            cols = calibration_fixes(graph, drive, res)
+            cols = calibration_fixes(matcher, drive, res)
             df = pd.DataFrame(cols)
             df.insert(0, "fold", fold[name])
             df.insert(0, "hz", rate)
@@ -597,24 +674,70 @@ def _reliability_lines(p: np.ndarray, right: np.ndarray) -> list[str]:
     return lines
 
 
-def calibration_summary(g: pd.DataFrame, cfg: MatchConfig) -> tuple[str, list[dict[str, object]]]:
-    """One rate's reliability tables (as reported, isotonic in-sample, isotonic out of fold)
-    and a figures row per probability: ECE, wrong share among usable, right share usable."""
+CONFIDENCE_TERMS = ("intercept", "log_odds", "heading", "cross", "parallel", "parallel_gap")
+"""The terms of the matcher's confidence model: ``confidence.coef_<term>``."""
+IDENTITY = tuple(f"confidence.coef_{t}={1 if t == 'log_odds' else 0}" for t in CONFIDENCE_TERMS)
+"""The confidence model switched off: the matcher reports the road's probability itself."""
+
+
+def confidence_features(g: pd.DataFrame) -> np.ndarray:
+    """The confidence model's features per fix, as :func:`mapmatch.measurement.confidence`
+    takes them: 1, the road probability's log-odds, the heading disagreement per 10° (at most
+    90°, 0 without a heading), the fix's distance from the road in σ (at most 10), whether a
+    road runs alongside and by how many σ it is nearer to the fix (5 less the gap in σ, the gap
+    within ±5; 0 without one)."""
+    p = np.clip(g["p"].to_numpy(dtype=float), 1e-6, 1.0 - 1e-6)
+    head = np.minimum(np.nan_to_num(g["head_diff"].to_numpy(dtype=float)), 90.0) * 0.1
+    cross_raw = g["cross_sig"].to_numpy(dtype=float)
+    other = g["other_sig"].to_numpy(dtype=float)
+    beside = np.isfinite(other)
+    gap = np.where(beside, 5.0 - np.clip(np.where(beside, other, 0.0) - cross_raw, -5.0, 5.0), 0.0)
+    return np.column_stack(
+        [np.ones(len(p)), np.log(p / (1.0 - p)), head, np.minimum(cross_raw, 10.0), beside, gap]
+    )
+
+
+def configured_coefficients(cfg: MatchConfig) -> np.ndarray:
+    """The confidence model's coefficients in ``cfg``, in the order of :data:`CONFIDENCE_TERMS`."""
+    m = cfg.confidence
+    return np.array([getattr(m, f"coef_{t}") for t in CONFIDENCE_TERMS], dtype=float)
+
+
+def calibration_probabilities(g: pd.DataFrame, cfg: MatchConfig) -> tuple[dict[str, np.ndarray], str]:
+    """One rate's probabilities to compare (the road's, the configured model's, isotonic out
+    of fold, the model fitted in-sample and out of fold) and the fitted coefficients as text."""
     p = g["p"].to_numpy()
     right = g["right"].to_numpy()
+    fold = g["fold"].to_numpy()
+    x = confidence_features(g)
+    b_in = calibration.logistic_fit(x, right)
+    q_oof, coefs = calibration.logistic_out_of_fold(x, right, fold)
     probs = {
-        "as reported": p,
-        "isotonic, in-sample (fit on all tracks)": calibration.isotonic_apply(
-            calibration.isotonic_fit(p, right), p
+        "road probability (model off)": p,
+        "isotonic on it, out of fold": calibration.out_of_fold(p, right, fold),
+        "confidence model, configured (as reported)": calibration.logistic_apply(
+            configured_coefficients(cfg), x
         ),
-        "isotonic, out of fold (fit on 4 folds, applied to the 5th)": calibration.out_of_fold(
-            p, right, g["fold"].to_numpy()
-        ),
+        "confidence model, fitted in-sample": calibration.logistic_apply(b_in, x),
+        "confidence model, fitted out of fold": q_oof,
     }
-    text: list[str] = []
+    head = " | ".join(CONFIDENCE_TERMS)
+    lines = [f"| fit | {head} |", "|---|" + "---|" * len(CONFIDENCE_TERMS)]
+    lines.append("| all tracks | " + " | ".join(f"{v:.3f}" for v in b_in) + " |")
+    for f, b in sorted(coefs.items()):
+        lines.append(f"| without fold {f} | " + " | ".join(f"{v:.3f}" for v in b) + " |")
+    return probs, "\n".join(lines)
+
+
+def calibration_summary(g: pd.DataFrame, cfg: MatchConfig) -> tuple[str, list[dict[str, object]]]:
+    """One rate's reliability tables and a figures row per probability: ECE, wrong share
+    among usable, right share usable (the matcher's usable test on each probability)."""
+    right = g["right"].to_numpy()
+    probs, coef_text = calibration_probabilities(g, cfg)
+    text: list[str] = [f"\nConfidence model coefficients ({', '.join(CONFIDENCE_TERMS)}):\n", coef_text]
     figures: list[dict[str, object]] = []
     for name, q in probs.items():
-        usable = g["usable"].to_numpy() if name == "as reported" else calibrated_gate(g, q, cfg)
+        usable = calibrated_gate(g, q, cfg)
         wrong, kept = calibration.usable_shares(usable, right)
         figures.append(
             {

@@ -148,3 +148,59 @@ def out_of_fold(p: ArrayLike, right: ArrayLike, fold: ArrayLike) -> NDArray[np.f
         held = fa == f
         out[held] = isotonic_apply(isotonic_fit(pa[~held], ra[~held]), pa[held])
     return out
+
+
+def logistic_fit(
+    x: ArrayLike, right: ArrayLike, *, ridge: float = 1e-3, steps: int = 50
+) -> NDArray[np.float64]:
+    """The coefficients of a logistic model of ``right`` on the columns of ``x`` (the first
+    a column of ones for the intercept), by Newton's method on the log-likelihood with a small
+    ridge (``ridge`` times the squared coefficients) that keeps it finite on separable data.
+
+    Parameters
+    ----------
+    x : (N, K) features.
+    right : per fix, 0/1 or bool.
+    ridge : weight of the ridge.
+    steps : at most this many Newton steps.
+
+    Returns
+    -------
+    ndarray
+        K coefficients.
+    """
+    xa = np.asarray(x, dtype=float)
+    y = np.asarray(right, dtype=float)
+    b = np.zeros(xa.shape[1])
+    for _ in range(steps):
+        mu = logistic_apply(b, xa)
+        w = mu * (1.0 - mu) + 1e-12
+        hess = xa.T @ (xa * w[:, None]) + ridge * np.eye(len(b))
+        step = np.linalg.solve(hess, xa.T @ (y - mu) - ridge * b)
+        b += step
+        if np.abs(step).max() < 1e-9:
+            break
+    return b
+
+
+def logistic_apply(b: ArrayLike, x: ArrayLike) -> NDArray[np.float64]:
+    """The logistic model's probability ``1 / (1 + exp(-x b))`` per row of ``x``."""
+    z = np.asarray(x, dtype=float) @ np.asarray(b, dtype=float)
+    return np.asarray(1.0 / (1.0 + np.exp(-np.clip(z, -700.0, 700.0))))
+
+
+def logistic_out_of_fold(
+    x: ArrayLike, right: ArrayLike, fold: ArrayLike
+) -> tuple[NDArray[np.float64], dict[int, NDArray[np.float64]]]:
+    """Each fix's probability from a logistic fit on the fixes of the other folds, and each
+    fold's coefficients."""
+    xa = np.asarray(x, dtype=float)
+    ra = np.asarray(right, dtype=float)
+    fa = np.asarray(fold)
+    out = np.full(len(ra), np.nan)
+    coefs: dict[int, NDArray[np.float64]] = {}
+    for f in np.unique(fa).tolist():
+        held = fa == f
+        coefs[int(f)] = logistic_fit(xa[~held], ra[~held])
+        out[held] = logistic_apply(coefs[int(f)], xa[held])
+    return out, coefs

@@ -1,9 +1,10 @@
 """Matcher configuration: nested, named, commented and validated defaults, overridable per call.
 
-:class:`MatchConfig` has four sections: :class:`ModelConfig` (the probabilistic model both
+:class:`MatchConfig` has five sections: :class:`ModelConfig` (the probabilistic model both
 inference modes share), :class:`OnlineConfig` (the per-vehicle filter), :class:`BatchConfig`
-(whole-track matching) and :class:`MeasurementConfig` (the online answer's map-aided
-measurement). ``online`` and ``batch`` are made of sub-sections, one per mechanism (``online``:
+(whole-track matching), :class:`MeasurementConfig` (the online answer's map-aided
+measurement) and :class:`ConfidenceConfig` (the probability the online answer reports).
+``online`` and ``batch`` are made of sub-sections, one per mechanism (``online``:
 ``region``, ``reinit``, ``evidence``, ``bias``, ``stop``, ``anchor``, ``odometer``,
 ``corrections``; ``batch``: ``route``, ``track``, ``outliers``, ``split``). Every number that
 changes a result is a field of one of them.
@@ -748,6 +749,48 @@ class MeasurementConfig:
         return {}
 
 
+@dataclass(frozen=True)
+class ConfidenceConfig:
+    """The probability an online answer reports: a logistic model of the answer being on the
+    right road (``confidence``), estimated on real drives (``bench/bench_online_real.py
+    --calibration``; the out-of-fold figures are in the calibration benchmark).
+
+    The model's log-odds are ``coef_intercept`` + ``coef_log_odds`` times the log-odds of the
+    road's probability (the filter's mass of the path, times the along-track position's share
+    on the edge where that applies) + ``coef_heading`` per 10° between the fix's heading and
+    the road's (at most 90°) + ``coef_cross`` per fix σ of the fix's distance from the road
+    (at most 10) + when another road runs alongside, ``coef_parallel`` plus
+    ``coef_parallel_gap`` per σ by which that road is nearer to the fix than the answer's,
+    counted from 5 σ further (0) to 5 σ nearer (10). Coefficients 0, 1, 0, 0, 0, 0 report the
+    road's probability itself.
+
+    coef_intercept, coef_log_odds, coef_heading, coef_cross, coef_parallel,
+    coef_parallel_gap : the model's coefficients (any sign).
+    parallel_radius : metres; a road within this of the answer's stretch of its edge, not
+        sharing the edge's nodes there, runs alongside it.
+    parallel_angle : degrees; ... and its bearing there is within this of the edge's.
+    parallel_spacing : metres; the length of the stretches an edge is looked at in.
+    """
+
+    coef_intercept: float = 0.0
+    coef_log_odds: float = 1.0
+    coef_heading: float = 0.0
+    coef_cross: float = 0.0
+    coef_parallel: float = 0.0
+    coef_parallel_gap: float = 0.0
+    parallel_radius: float = 40.0
+    parallel_angle: float = 30.0
+    parallel_spacing: float = 20.0
+
+    def __post_init__(self) -> None:
+        for f in fields(self):
+            v = getattr(self, f.name)
+            if isinstance(v, bool) or not isinstance(v, int | float) or not math.isfinite(v):
+                raise ConfigError(f"{_full_name(f.name)} must be a finite number, got {v!r}")
+            if not f.name.startswith("coef_") and v <= 0:
+                raise ConfigError(f"{_full_name(f.name)} must be positive")
+
+
 def _sub_sections(cls: type) -> dict[str, type]:
     """The sub-sections of a section class by name (empty for a section of plain fields)."""
     out: dict[str, type] = {}
@@ -795,6 +838,7 @@ class MatchConfig:
     online: OnlineConfig = field(default_factory=OnlineConfig)
     batch: BatchConfig = field(default_factory=BatchConfig)
     measurement: MeasurementConfig = field(default_factory=MeasurementConfig)
+    confidence: ConfidenceConfig = field(default_factory=ConfidenceConfig)
 
     def __post_init__(self) -> None:
         _check_sections(self)

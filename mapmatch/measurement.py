@@ -49,7 +49,7 @@ import numpy as np
 
 from graph.angles import angle_diff, bearing
 from graph.road_graph import RoadGraph
-from mapmatch.config import DEFAULT_CONFIG, MeasurementConfig
+from mapmatch.config import DEFAULT_CONFIG, ConfidenceConfig, MeasurementConfig
 from mapmatch.types import MapAidedMeasurement, State
 
 # the measurement's columns in a results CSV (``mapmatch replay``), appended to its others
@@ -78,6 +78,7 @@ BearingAt = Callable[[int, float], float]
 
 
 DEFAULT_MEASUREMENT = DEFAULT_CONFIG.measurement
+DEFAULT_CONFIDENCE = DEFAULT_CONFIG.confidence
 
 
 def road_width(
@@ -212,6 +213,58 @@ class RoadTags:
 _NO_TAGS = RoadTags()
 
 
+@dataclass(slots=True)
+class Agreement:
+    """How well the fix agrees with the answer, beyond the road's probability: what the
+    confidence model (:func:`confidence`) weighs.
+
+    Attributes
+    ----------
+    heading_diff : float
+        Degrees between the fix's heading and the road's bearing at the answer (NaN: no
+        heading).
+    cross_sigmas : float
+        The fix's distance from the road, in the fix's position σ.
+    other_sigmas : float
+        The fix's distance from the nearest road alongside the answer's stretch of its edge
+        (:mod:`mapmatch.online.parallel`), in the fix's position σ; inf when there is none.
+    """
+
+    heading_diff: float
+    cross_sigmas: float
+    other_sigmas: float = math.inf
+
+
+_P_FLOOR = 1e-6  # the road's probability is taken in [1e-6, 1 - 1e-6] for its log-odds
+_HEADING_CAP = 90.0  # degrees: a fix this far off the road's bearing says no more
+_CROSS_CAP = 10.0  # fix σ: a fix this far from the road says no more
+_GAP_CAP = 5.0  # fix σ: a road alongside nearer or further than this by as much says no more
+
+
+def confidence(probability: float, agreement: Agreement, model: ConfidenceConfig) -> float:
+    """The probability the answer is on the right road: the logistic model of ``model``
+    (``confidence.coef_*``) on the road's probability's log-odds, the heading
+    disagreement per 10° (at most 90°), the fix's distance from the road in σ (at most 10),
+    whether a road runs alongside and, if one does, by how many σ it is nearer to the fix than
+    the answer's road (from -5 to 5, counted from -5: 0 when it is 5 σ further)."""
+    c = model
+    p = min(max(probability, _P_FLOOR), 1.0 - _P_FLOOR)
+    head = agreement.heading_diff
+    head = 0.0 if head != head else min(abs(head), _HEADING_CAP)
+    cross = agreement.cross_sigmas
+    z = (
+        c.coef_intercept
+        + c.coef_log_odds * math.log(p / (1.0 - p))
+        + c.coef_heading * head * 0.1
+        + c.coef_cross * min(cross, _CROSS_CAP)
+    )
+    other = agreement.other_sigmas
+    if other < math.inf:
+        gap = min(max(other - cross, -_GAP_CAP), _GAP_CAP)
+        z += c.coef_parallel + c.coef_parallel_gap * (_GAP_CAP - gap)
+    return 1.0 / (1.0 + math.exp(-z)) if z > -700.0 else 0.0
+
+
 def along_track_sigma(
     evidence: AlongEvidence,
     *,
@@ -298,11 +351,15 @@ def map_aided_measurement(
     placement: Placement,
     evidence: AlongEvidence,
     tags: RoadTags | None = None,
+    agreement: Agreement | None = None,
     *,
     config: MeasurementConfig = DEFAULT_MEASUREMENT,
+    model: ConfidenceConfig = DEFAULT_CONFIDENCE,
 ) -> MapAidedMeasurement:
     """The measurement of one answer, from what the matcher knows (see the module docstring):
-    where it puts the vehicle, what it knows along the road, and the road's tags."""
+    where it puts the vehicle, what it knows along the road, the road's tags and, when given,
+    how the fix agrees with the answer (the probability is then :func:`confidence`'s, of
+    ``model``)."""
     state, edge, offset = placement.state, placement.edge, placement.offset
     lat, lon, bearing, probability = placement.lat, placement.lon, placement.bearing, placement.probability
     tags = tags or _NO_TAGS
@@ -331,6 +388,8 @@ def map_aided_measurement(
     length = float(graph.edge_len[edge])
     if not evidence.gps or offset <= _AT_NODE or offset >= length - _AT_NODE:
         probability *= on_edge_share(offset + placement.beyond, length, along, config.straddle)
+    if agreement is not None:
+        probability = confidence(probability, agreement, model)
     va, vc = along * along, cross * cross
     # rotate diag(along², cross²) from (along, across) to (east, north); across = (ty, -tx)
     var_e = va * tx * tx + vc * ty * ty

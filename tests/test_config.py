@@ -38,7 +38,7 @@ def test_every_parameter_has_one_full_name_and_no_shorthand() -> None:
     names = _leaves(DEFAULT_CONFIG, "")
     leaves = [n.rsplit(".", 1)[1] for n in names]
     assert len(set(leaves)) == len(leaves), "a field name is used by two sections"
-    assert {n.split(".")[0] for n in names} == {"model", "online", "batch", "measurement"}
+    assert {n.split(".")[0] for n in names} == {"model", "online", "batch", "measurement", "confidence"}
     assert "online.region.max_hypotheses" in names and "batch.route.max_route_factor" in names
     with pytest.raises(AttributeError):
         DEFAULT_CONFIG.gps_sigma  # type: ignore[attr-defined]  # noqa: B018

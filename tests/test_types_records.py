@@ -94,5 +94,5 @@ def test_positional_orders() -> None:
     evidence = ("gps", "fix_sigma", "bias_cov", "white_share", "anchor_sd", "odo_sigma", "dr_distance")
     assert tuple(f.name for f in dataclasses.fields(AlongEvidence)) == (*evidence, "gps_sigma")
     aided = inspect.signature(map_aided_measurement).parameters
-    assert tuple(aided) == ("graph", "placement", "evidence", "tags", "config")
+    assert tuple(aided) == ("graph", "placement", "evidence", "tags", "agreement", "config", "model")
     assert aided["config"].kind is inspect.Parameter.KEYWORD_ONLY

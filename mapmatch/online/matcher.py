@@ -14,6 +14,7 @@ from mapmatch.online import anchor, bias, hypotheses, region, report
 from mapmatch.online.correction import remember_live
 from mapmatch.online.filter import best as best_of
 from mapmatch.online.filter import normalise
+from mapmatch.online.parallel import ParallelRoads
 from mapmatch.online.road import RoadModel
 from mapmatch.online.state import SessionState, Step
 from mapmatch.online.step import prepare
@@ -45,6 +46,7 @@ class OnlineMatcher:
         self.index = index if index is not None else EdgeIndex(graph)
         self.config = config
         self.road = RoadModel(graph)
+        self.parallel = ParallelRoads(self.road, self.index)
         self.edge_len_ref = self.road.edge_len_ref
 
     def new_session(self) -> SessionState:
@@ -82,7 +84,15 @@ class OnlineMatcher:
         state.shown = shown.hypothesis.edges[shown.hypothesis.k]
         if len(state.hyps) > 1:
             remember_live(state.region, state.shown, step, cfg)
-        return report.report(self.road, state, fix, step, shown, cfg, report.Outcome(turn, corr, reinit))
+        h = shown.hypothesis
+        m = cfg.confidence
+        other = (
+            self.parallel.nearest(h.edges[h.k], h.off, step.x, step.y, m)
+            if m.coef_parallel != 0.0 or m.coef_parallel_gap != 0.0
+            else math.inf
+        )
+        outcome = report.Outcome(turn, corr, reinit, other)
+        return report.report(self.road, state, fix, step, shown, cfg, outcome)
 
     # ------------------------------------------------------------------ steps of update
     def _take(self, state: SessionState, step: Step, cfg: MatchConfig) -> None:

@@ -6,9 +6,10 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
+from graph.angles import angle_diff
 from graph.projection import point_to_lonlat
 from mapmatch.config import MatchConfig
-from mapmatch.measurement import AlongEvidence, Placement, RoadTags, map_aided_measurement
+from mapmatch.measurement import Agreement, AlongEvidence, Placement, RoadTags, map_aided_measurement
 from mapmatch.online.filter import best as best_of
 from mapmatch.online.road import RoadModel
 from mapmatch.online.state import Hypothesis, SessionState, Step
@@ -132,11 +133,26 @@ class Outcome:
         The correction of earlier answers, if any.
     reinit : bool
         Whether the matcher re-initialised at this fix.
+    other_dist : float
+        Metres from the fix to the nearest road alongside the shown answer (inf: none, or
+        not looked for; :class:`~mapmatch.online.parallel.ParallelRoads`).
     """
 
     turn: Turn
     correction: Correction | None
     reinit: bool
+    other_dist: float = math.inf
+
+
+def agreement(fix: Fix, step: Step, h: Hypothesis, cfg: MatchConfig, *, other_dist: float) -> Agreement:
+    """How the fix agrees with answer ``h``: its heading against the road's, and its distance
+    from the road and from the nearest road alongside (``other_dist``), in its reported σ
+    (the model's fallback σ when it reports none; at least the σ floor)."""
+    head = step.heading
+    sigma = fix.pos_sigma if fix.pos_sigma > 0.0 else cfg.model.gps_sigma  # NaN: not > 0
+    sigma = max(sigma, cfg.online.evidence.pos_sigma_floor)
+    diff = angle_diff(head, h.bearing) if head == head else math.nan
+    return Agreement(diff, h.dist / sigma, other_dist / sigma)
 
 
 def report(
@@ -188,7 +204,9 @@ def report(
             cfg.model.gps_sigma,
         ),
         RoadTags(road_class=road_class, one_way=road.rev[e] < 0, bearing_at=road.bearing_at),
+        agreement(fix, step, shown_hyp, cfg, other_dist=outcome.other_dist),
         config=cfg.measurement,
+        model=cfg.confidence,
     )
     return SnapResult(  # by position, in field order (see SnapResult)
         fix.time,  # time
