@@ -713,7 +713,7 @@ class MeasurementConfig:
         by this at each end.
     """
 
-    min_probability: float = 0.9
+    min_probability: float = 0.983
     resolved_probability: float = 0.99
     settle_distance: float = 100.0
     map_sigma: float = 1.0
@@ -772,12 +772,12 @@ class ConfidenceConfig:
     parallel_spacing : metres; the length of the stretches an edge is looked at in.
     """
 
-    coef_intercept: float = 0.0
-    coef_log_odds: float = 1.0
-    coef_heading: float = 0.0
-    coef_cross: float = 0.0
-    coef_parallel: float = 0.0
-    coef_parallel_gap: float = 0.0
+    coef_intercept: float = 4.255
+    coef_log_odds: float = 0.197
+    coef_heading: float = -0.502
+    coef_cross: float = -0.14
+    coef_parallel: float = -1.557
+    coef_parallel_gap: float = -0.287
     parallel_radius: float = 40.0
     parallel_angle: float = 30.0
     parallel_spacing: float = 20.0

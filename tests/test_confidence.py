@@ -1,0 +1,90 @@
+"""The probability an online answer reports (``confidence``) and the ``usable`` flag built on
+it, on ASCII maps through the real matcher."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from graph.ascii import parse_ascii_map
+from mapmatch.config import DEFAULT_CONFIG
+from mapmatch.measurement import Agreement, confidence
+from mapmatch.online import OnlineMatcher
+from mapmatch.online.parallel import ParallelRoads
+from tests.online_helpers import DriveSpec, drive
+
+# a road that ends at b, and the same with a road alongside it one row north (two scale units)
+DEAD_END = """
+a--------b
+"""
+ALONGSIDE = """
+c--------d
+a--------b
+"""
+
+
+def test_a_vehicle_held_at_a_node_with_its_fix_past_it_is_not_usable_mid_edge_it_is() -> None:
+    m = parse_ascii_map(DEAD_END, scale=25)
+    a, b = m.xy("a"), m.xy("b")
+    past = b + np.array([12.0, 0.0])
+    fixes = drive(m, [], DriveSpec(speed=10.0, sigma=3.0), points=[tuple(a), tuple(b), tuple(past)])
+    matcher = OnlineMatcher(m.graph)
+    state = matcher.new_session()
+    res = [matcher.update(state, f) for f in fixes]
+    e = m.edge("a", "b")
+    length = float(m.graph.edge_len[e])
+    mid = [r for r in res if r.edge == e and 120.0 <= r.offset <= length - 30.0]
+    assert mid and all(r.map_aided.usable for r in mid)
+    assert all(r.map_aided.probability > 0.99 for r in mid)
+    last = res[-1]
+    assert last.edge == e and last.offset == pytest.approx(length)  # held at b
+    assert not last.map_aided.usable
+    assert last.map_aided.reason == "low_probability"
+    assert last.map_aided.probability < DEFAULT_CONFIG.measurement.min_probability
+
+
+def test_a_road_alongside_nearer_to_the_fix_lowers_the_confidence() -> None:
+    model = DEFAULT_CONFIG.confidence
+    alone = confidence(1.0, Agreement(2.0, 0.5), model)
+    far = confidence(1.0, Agreement(2.0, 0.5, 8.0), model)
+    near = confidence(1.0, Agreement(2.0, 2.0, 0.5), model)
+    assert alone > far > near
+    assert confidence(1.0, Agreement(40.0, 0.5), model) < alone  # the fix heads off the road
+
+
+def test_the_identity_model_reports_the_road_probability() -> None:
+    ident = DEFAULT_CONFIG.with_settings(
+        [
+            "confidence.coef_intercept=0",
+            "confidence.coef_log_odds=1",
+            "confidence.coef_heading=0",
+            "confidence.coef_cross=0",
+            "confidence.coef_parallel=0",
+            "confidence.coef_parallel_gap=0",
+        ]
+    ).confidence
+    for p in (0.01, 0.3, 0.9, 0.999):
+        assert confidence(p, Agreement(30.0, 3.0, 0.1), ident) == pytest.approx(p)
+
+
+def test_roads_alongside_are_found_mid_edge_and_not_across_a_junction() -> None:
+    m = parse_ascii_map(ALONGSIDE, scale=15)  # 30 m apart
+    road = OnlineMatcher(m.graph)
+    par = ParallelRoads(road.road, road.index)
+    cfg = DEFAULT_CONFIG.confidence
+    e = m.edge("a", "b")
+    length = float(m.graph.edge_len[e])
+    beside = par.alongside(e, 0.5 * length, cfg)
+    assert m.edge("c", "d") in beside
+    a, b = m.xy("a"), m.xy("b")
+    mid = 0.5 * (a + b)
+    assert par.nearest(e, 0.5 * length, float(mid[0]), float(mid[1]) + 5.0, cfg) == pytest.approx(
+        float(m.xy("c")[1] - a[1]) - 5.0, abs=0.5
+    )
+    lone = parse_ascii_map(DEAD_END, scale=25)
+    solo = OnlineMatcher(lone.graph)
+    e1 = lone.edge("a", "b")
+    assert ParallelRoads(solo.road, solo.index).alongside(e1, 10.0, cfg) == ()
+    assert math.isinf(ParallelRoads(solo.road, solo.index).nearest(e1, 10.0, 0.0, 0.0, cfg))
