@@ -37,15 +37,17 @@ the fifth (``bench/crossval.py``), and prints the out-of-fold table beside the i
 (``--docs``: the fragment ``cv_online``; ``--json``: every setting's rows of every track).
 
 ``--calibration`` runs every track's drive with the outages at each rate (1 and 10 Hz unless
-``--rates``) and measures the reported road probability (``map_aided.probability``) against
-whether the fix is on the right road (as scored above, where the truth is known and the fix is
-placed on a road): the reliability table, the ECE, the wrong share among the fixes marked
-``usable`` and the share of right fixes marked usable (``bench/calibration.py``); then the same
-after an isotonic calibration of the probability, fitted per rate on all tracks (in-sample)
-and on four folds of ``bench/folds.py`` and applied to the fifth (out of fold), with the
-matcher's usable test re-applied to the calibrated probability. The matcher and the probability
-it serves are unchanged. The wrong fixes reported at ``p >= 0.999`` and the wrong usable ones
-are broken down by class, by whether the reported edge is next to the true one, GPS or outage,
+``--rates``) with the confidence model off (the matcher reports the road probability), keeps
+per fix the features the model weighs, and measures probabilities against whether the fix is
+on the right road (as scored above, where the truth is known and the fix is placed on a road):
+the reliability table, the ECE, the wrong share among the fixes marked ``usable`` and the share
+of right fixes marked usable (``bench/calibration.py``), for the road probability, it mapped by
+isotonic regression out of fold, the configured model (what the matcher reports: the same
+numbers, computed from the features), and the model's coefficients and usable threshold
+(:func:`choose_threshold`) fitted per rate on all tracks (in-sample) and on four folds of
+``bench/folds.py`` and applied to the fifth (out of fold), with the matcher's usable test on
+each. The wrong fixes at road probability ``>= 0.999`` and the wrong usable ones are broken
+down by class, by whether the reported edge is next to the true one, GPS or outage,
 distance to the nearer node and whether another road lies near (:data:`CALIB_COLUMNS`).
 ``--save-fixes`` writes the per-fix table (CSV), ``--load-fixes`` reports from one without
 running (``--docs``: the fragment ``calibration``).
@@ -657,11 +659,33 @@ def collect_calibration(names: list[str], cfg: MatchConfig, args: argparse.Names
     return pd.concat(parts, ignore_index=True)[list(CALIB_COLUMNS)]
 
 
-def calibrated_gate(g: pd.DataFrame, q: np.ndarray, cfg: MatchConfig) -> np.ndarray:
-    """The matcher's usable gate with probability ``q`` in place of the reported one."""
+def calibrated_gate(
+    g: pd.DataFrame, q: np.ndarray, cfg: MatchConfig, *, min_probability: float | None = None
+) -> np.ndarray:
+    """The matcher's usable gate with probability ``q`` in place of the reported one (and
+    ``min_probability`` in place of ``measurement.min_probability`` when given)."""
     m = cfg.measurement
+    least = m.min_probability if min_probability is None else min_probability
     amb = g["ambiguous"].to_numpy()
-    return g["gate"].to_numpy() & (q >= m.min_probability) & (~amb | (q >= m.resolved_probability))
+    return g["gate"].to_numpy() & (q >= least) & (~amb | (q >= max(m.resolved_probability, least)))
+
+
+WRONG_USABLE_TARGET = 0.001
+"""The wrong share among usable fixes ``measurement.min_probability`` is chosen for: the least
+threshold whose wrong share is at most this (issue #48's target)."""
+THRESHOLDS = np.round(np.arange(0.9, 0.9995, 0.001), 4)
+"""The thresholds :func:`choose_threshold` tries."""
+
+
+def choose_threshold(g: pd.DataFrame, q: np.ndarray, cfg: MatchConfig) -> float:
+    """The least threshold of :data:`THRESHOLDS` whose wrong share among the usable fixes of
+    ``g`` (probability ``q``) is at most :data:`WRONG_USABLE_TARGET` (the largest if none is)."""
+    right = g["right"].to_numpy()
+    for t in THRESHOLDS.tolist():
+        wrong, _ = calibration.usable_shares(calibrated_gate(g, q, cfg, min_probability=t), right)
+        if wrong <= WRONG_USABLE_TARGET:
+            return float(t)
+    return float(THRESHOLDS[-1])
 
 
 def _reliability_lines(p: np.ndarray, right: np.ndarray) -> list[str]:
@@ -703,41 +727,63 @@ def configured_coefficients(cfg: MatchConfig) -> np.ndarray:
     return np.array([getattr(m, f"coef_{t}") for t in CONFIDENCE_TERMS], dtype=float)
 
 
-def calibration_probabilities(g: pd.DataFrame, cfg: MatchConfig) -> tuple[dict[str, np.ndarray], str]:
-    """One rate's probabilities to compare (the road's, the configured model's, isotonic out
-    of fold, the model fitted in-sample and out of fold) and the fitted coefficients as text."""
+Scored = tuple[np.ndarray, np.ndarray]  # a probability per fix and the usable flag on it
+
+
+def calibration_probabilities(g: pd.DataFrame, cfg: MatchConfig) -> tuple[dict[str, Scored], str]:
+    """One rate's probabilities to compare, each with its usable flags: the road's (the model
+    off, usable at 0.9 as before the model), isotonic on it out of fold, the configured model
+    (what the matcher reports), the model and threshold fitted on all tracks (in-sample) and
+    on four folds and applied to the fifth (out of fold); and the coefficients and thresholds
+    as text."""
     p = g["p"].to_numpy()
     right = g["right"].to_numpy()
     fold = g["fold"].to_numpy()
     x = confidence_features(g)
     b_in = calibration.logistic_fit(x, right)
-    q_oof, coefs = calibration.logistic_out_of_fold(x, right, fold)
-    probs = {
-        "road probability (model off)": p,
-        "isotonic on it, out of fold": calibration.out_of_fold(p, right, fold),
-        "confidence model, configured (as reported)": calibration.logistic_apply(
-            configured_coefficients(cfg), x
+    q_in = calibration.logistic_apply(b_in, x)
+    t_in = choose_threshold(g, q_in, cfg)
+    q_oof = np.full(len(g), np.nan)
+    u_oof = np.zeros(len(g), dtype=bool)
+    rows = []
+    for f in sorted(np.unique(fold).tolist()):
+        held = fold == f
+        b = calibration.logistic_fit(x[~held], right[~held])
+        q_oof[held] = calibration.logistic_apply(b, x[held])
+        train = g[~held]
+        t = choose_threshold(train, calibration.logistic_apply(b, x[~held]), cfg)
+        u_oof[held] = calibrated_gate(g[held], q_oof[held], cfg, min_probability=t)
+        rows.append((f"without fold {f}", b, t))
+    iso = calibration.out_of_fold(p, right, fold)
+    q_cfg = calibration.logistic_apply(configured_coefficients(cfg), x)
+    probs: dict[str, Scored] = {
+        "road probability (model off, usable at 0.9)": (p, calibrated_gate(g, p, cfg, min_probability=0.9)),
+        "isotonic on it, out of fold": (iso, calibrated_gate(g, iso, cfg)),
+        "confidence model as configured (as reported)": (q_cfg, calibrated_gate(g, q_cfg, cfg)),
+        "confidence model and threshold fitted on all tracks (in-sample)": (
+            q_in,
+            calibrated_gate(g, q_in, cfg, min_probability=t_in),
         ),
-        "confidence model, fitted in-sample": calibration.logistic_apply(b_in, x),
-        "confidence model, fitted out of fold": q_oof,
+        "confidence model and threshold fitted on 4 folds, applied to the 5th (out of fold)": (q_oof, u_oof),
     }
     head = " | ".join(CONFIDENCE_TERMS)
-    lines = [f"| fit | {head} |", "|---|" + "---|" * len(CONFIDENCE_TERMS)]
-    lines.append("| all tracks | " + " | ".join(f"{v:.3f}" for v in b_in) + " |")
-    for f, b in sorted(coefs.items()):
-        lines.append(f"| without fold {f} | " + " | ".join(f"{v:.3f}" for v in b) + " |")
+    lines = [f"| fit | {head} | threshold |", "|---|" + "---|" * (len(CONFIDENCE_TERMS) + 1)]
+    for name, b, t in [("all tracks", b_in, t_in), *rows]:
+        lines.append(f"| {name} | " + " | ".join(f"{v:.3f}" for v in b) + f" | {t:.3f} |")
     return probs, "\n".join(lines)
 
 
 def calibration_summary(g: pd.DataFrame, cfg: MatchConfig) -> tuple[str, list[dict[str, object]]]:
     """One rate's reliability tables and a figures row per probability: ECE, wrong share
-    among usable, right share usable (the matcher's usable test on each probability)."""
+    among usable, right share usable."""
     right = g["right"].to_numpy()
     probs, coef_text = calibration_probabilities(g, cfg)
-    text: list[str] = [f"\nConfidence model coefficients ({', '.join(CONFIDENCE_TERMS)}):\n", coef_text]
+    text: list[str] = [
+        f"\nConfidence model coefficients ({', '.join(CONFIDENCE_TERMS)}) and usable threshold:\n",
+        coef_text,
+    ]
     figures: list[dict[str, object]] = []
-    for name, q in probs.items():
-        usable = calibrated_gate(g, q, cfg)
+    for name, (q, usable) in probs.items():
         wrong, kept = calibration.usable_shares(usable, right)
         figures.append(
             {
@@ -760,7 +806,8 @@ def _shares(x: pd.Series, n: int) -> str:
 
 
 def wrong_breakdown(g: pd.DataFrame) -> str:
-    """What the wrong fixes reported at ``p >= 0.999`` and the wrong usable fixes are: shares
+    """What the wrong fixes at road probability ``p >= 0.999`` and the wrong usable fixes
+    (``usable``: the configured model's) are: shares
     by class, by whether the reported edge is next to the true one, GPS-aided or not, and by
     the answer's distance to the nearer node of its edge in along-track σ."""
     if "kind" not in g.columns:
@@ -768,8 +815,8 @@ def wrong_breakdown(g: pd.DataFrame) -> str:
     wrong = g[~g["right"].astype(bool)]
     lines = []
     for name, sel in (
-        ("wrong at p >= 0.999", wrong[wrong["p"] >= 0.999]),
-        ("wrong and usable", wrong[wrong["usable"].astype(bool)]),
+        ("wrong at road probability >= 0.999", wrong[wrong["p"] >= 0.999]),
+        ("wrong and usable (the configured model)", wrong[wrong["usable"].astype(bool)]),
     ):
         n = len(sel)
         z = sel["node_dist"] / sel["along_sigma"]
@@ -809,13 +856,17 @@ def calibration_report(df: pd.DataFrame, cfg: MatchConfig, *, load0: float) -> s
     head = (
         f"REAL GPS: {n_tracks} Kubicka tracks as fused drives with the five outages, at "
         f"{', '.join(f'{h:g} Hz' for h in sorted(df['hz'].unique()))}; scored on the fixes placed "
-        f"on a road where the truth is known; isotonic fits per rate, out of fold over "
-        f"{df['fold'].nunique()} folds by track (`bench/folds.py`, seed {folds.SEED}). The "
-        f"calibrated gate is the matcher's usable test with the calibrated probability "
-        f"(`measurement.min_probability` {cfg.measurement.min_probability:g}, "
-        f"`measurement.resolved_probability` {cfg.measurement.resolved_probability:g} when "
-        f"ambiguous). Load average {load0:.2f} at the start, {os.getloadavg()[0]:.2f} at the end "
-        f"({os.cpu_count()} cores).\n"
+        f"on a road where the truth is known. The matcher runs with the confidence model off "
+        f"(it reports the road probability); the model's probability is computed from the same "
+        f"features per fix, as the matcher computes it. Fits per rate; out of fold over "
+        f"{df['fold'].nunique()} folds by track (`bench/folds.py`, seed {folds.SEED}): the "
+        f"coefficients and the threshold are fitted on four folds and applied to the fifth. The "
+        f"threshold is the least `measurement.min_probability` whose wrong share among usable "
+        f"fixes is at most {100 * WRONG_USABLE_TARGET:g} %; usable is the matcher's test on the "
+        f"probability (configured: `measurement.min_probability` "
+        f"{cfg.measurement.min_probability:g}, `measurement.resolved_probability` "
+        f"{cfg.measurement.resolved_probability:g} when ambiguous). Load average {load0:.2f} at "
+        f"the start, {os.getloadavg()[0]:.2f} at the end ({os.cpu_count()} cores).\n"
     )
     summary = [
         "| rate | probability | fixes | ECE | usable fixes | wrong share among usable "
@@ -831,7 +882,8 @@ def calibration_report(df: pd.DataFrame, cfg: MatchConfig, *, load0: float) -> s
                 f"| {100 * f['wrong_usable']:.3f} % | {100 * f['right_usable']:.2f} % |"  # type: ignore[operator]
             )
         tables.append(f"\nReliability at {hz:g} Hz ({len(g)} fixes):\n{text}")
-        diag = wrong_breakdown(g)
+        q_cfg = calibration.logistic_apply(configured_coefficients(cfg), confidence_features(g))
+        diag = wrong_breakdown(g.assign(usable=calibrated_gate(g, q_cfg, cfg)))
         if diag:
             tables.append(f"\nWrong fixes at {hz:g} Hz:\n\n{diag}")
     return head + "\n" + "\n".join(summary) + "\n" + "\n".join(tables) + "\n"

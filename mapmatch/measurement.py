@@ -26,10 +26,13 @@ back is safe (``usable``).
   at each end by ``straddle`` (a vehicle that far past a node is on both roads): the
   position is the answer's offset, or, held at a node with GPS, the fix's along-track
   estimate beyond it. A GPS-aided answer inside its edge is the fix's own projection and
-  keeps the path's probability.
+  keeps the path's probability. Given how the fix agrees with the answer (:class:`Agreement`),
+  the probability reported is the confidence model's (:func:`confidence`, the ``confidence``
+  section): calibrated on real drives, it weighs that road probability with the fix's heading
+  against the road's, its distance from the road and a road running alongside.
 * **usable** is false off road, while (re)initialising, for the first ``settle_distance``
   metres after a (re)initialisation, inside an unresolved ambiguous region (the reported
-  road's probability below ``resolved_probability``) and whenever the probability is below
+  probability below ``resolved_probability``) and whenever the probability is below
   ``min_probability``.
 
 Consistency: the measurement is not independent of the fix it came from (with GPS its
