@@ -70,3 +70,27 @@ def test_out_of_fold_never_sees_the_held_fold() -> None:
     # fold 0 is mapped by a fit on fold 1 (both right: 1, 1) and fold 1 by a fit on fold 0
     q = cal.out_of_fold([0.2, 0.8, 0.2, 0.8], [0, 1, 1, 1], [0, 0, 1, 1])
     assert q.tolist() == pytest.approx([1.0, 1.0, 0.0, 1.0])
+
+
+def test_logistic_fit_recovers_the_coefficients_that_drew_the_outcomes() -> None:
+    rng = np.random.default_rng(3)
+    n = 20000
+    x = np.column_stack([np.ones(n), rng.normal(size=n), rng.integers(0, 2, size=n)])
+    truth = np.array([2.0, 1.5, -2.5])
+    right = rng.random(n) < cal.logistic_apply(truth, x)
+    b = cal.logistic_fit(x, right)
+    assert b == pytest.approx(truth, abs=0.15)
+    q = cal.logistic_apply(b, x)
+    assert cal.ece(q, right) < 0.01
+
+
+def test_logistic_out_of_fold_fits_each_fold_without_it() -> None:
+    rng = np.random.default_rng(4)
+    n = 3000
+    x = np.column_stack([np.ones(n), rng.normal(size=n)])
+    right = rng.random(n) < cal.logistic_apply([1.0, 2.0], x)
+    fold = np.arange(n) % 3
+    q, coefs = cal.logistic_out_of_fold(x, right, fold)
+    assert sorted(coefs) == [0, 1, 2] and not np.isnan(q).any()
+    held = fold == 1
+    assert q[held] == pytest.approx(cal.logistic_apply(cal.logistic_fit(x[~held], right[~held]), x[held]))
