@@ -249,7 +249,7 @@ def confidence(probability: float, agreement: Agreement, model: ConfidenceConfig
     (``confidence.coef_*``) on the road's probability's log-odds, the heading
     disagreement per 10° (at most 90°), the fix's distance from the road in σ (at most 10),
     whether a road runs alongside and, if one does, by how many σ it is nearer to the fix than
-    the answer's road (from -5 to 5, counted from -5: 0 when it is 5 σ further)."""
+    the answer's road, within ±5 σ, counted from 5 σ further (0) to 5 σ nearer (10)."""
     c = model
     p = min(max(probability, _P_FLOOR), 1.0 - _P_FLOOR)
     head = agreement.heading_diff
