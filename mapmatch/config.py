@@ -770,6 +770,8 @@ class ConfidenceConfig:
         sharing the edge's nodes there, runs alongside it.
     parallel_angle : degrees; ... and its bearing there is within this of the edge's.
     parallel_spacing : metres; the length of the stretches an edge is looked at in.
+    parallel_node_gap : metres; a road sharing a node with the edge whose nearest point lies
+        within this of that node leaves at the junction and does not run alongside.
     """
 
     coef_intercept: float = 4.255
@@ -781,6 +783,7 @@ class ConfidenceConfig:
     parallel_radius: float = 40.0
     parallel_angle: float = 30.0
     parallel_spacing: float = 20.0
+    parallel_node_gap: float = 1.0
 
     def __post_init__(self) -> None:
         for f in fields(self):
