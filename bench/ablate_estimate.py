@@ -123,7 +123,6 @@ def second_config(cfg: Any, est: dict[str, float], kind: str, n0: float) -> Any:
 
 def score_track(name: str, variants: list[tuple[str, float]]) -> list[dict[str, Any]]:
     """One record per variant (and the defaults): RMF at each S, the coverage check, estimates."""
-    import ablate_batch
     import bench_batch
 
     from graph.projection import to_xy
@@ -175,7 +174,6 @@ def score_track(name: str, variants: list[tuple[str, float]]) -> list[dict[str, 
             recs[v]["missing"][str(s)] = [round(g.length_m, 1) for g in gaps]
         recs[v]["pieces"] = len(routes[v][1])
         recs[v]["secs"] = round(secs[v], 3)
-    del ablate_batch
     return list(recs.values())
 
 
