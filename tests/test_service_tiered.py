@@ -21,7 +21,7 @@ from graph.artifact import save_map
 from graph.build import build_map
 from mapmatch.types import Fix
 from service.gen import mapmatch_pb2 as pb
-from service.server import KERNELS_HEALTH
+from service.server import KERNELS_HEALTH, NOT_SERVING, SERVING
 
 TRACK = KUBICKA / "00000003"
 """A real drive (821 GPS points at 1 Hz) and its roads."""
@@ -80,14 +80,13 @@ def test_a_cold_server_answers_interpreted_then_switches_to_compiled_with_the_sa
         line = proc.stdout.readline()
         assert "listening on" in line, log.read_text()
         port = int(line.split("listening on ")[1].split()[0].rsplit(":", 1)[1])
-        serving, not_serving = health_pb2.HealthCheckResponse.SERVING, health_pb2.HealthCheckResponse.NOT_SERVING
-        assert _health(port, "") == serving
-        assert _health(port, KERNELS_HEALTH) == not_serving
+        assert _health(port, "") == SERVING
+        assert _health(port, KERNELS_HEALTH) == NOT_SERVING
         half = len(fixes) // 2
         first = _stream(port, requests(fixes[:half], "a"))
-        assert _health(port, KERNELS_HEALTH) == not_serving  # that half ran interpreted
+        assert _health(port, KERNELS_HEALTH) == NOT_SERVING  # that half ran interpreted
         t0 = time.monotonic()
-        while _health(port, KERNELS_HEALTH) != serving:
+        while _health(port, KERNELS_HEALTH) != SERVING:
             assert proc.poll() is None, log.read_text()
             assert time.monotonic() - t0 < SWITCH_TIMEOUT, log.read_text()
             time.sleep(0.5)
