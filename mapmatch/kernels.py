@@ -17,6 +17,9 @@ environment. ``auto`` runs a job interpreted when a group it needs is not compil
 the job is small enough that interpreting it costs less than compiling
 (:data:`INTERPRETED_SECONDS_PER_ITEM`, :data:`COMPILE_SECONDS`).
 
+A long-running process (``serve``) runs a cold group *tiered* (:class:`TieredGroup`):
+interpreted at once, while a child process compiles it, then compiled from the switch on.
+
 A kernel that runs once per job on an input of a size the job chose (a map's nodes, a route's
 metres) goes through :func:`graph.jit.for_size`: on a small input it runs as plain Python (the same code,
 so the same results), which takes milliseconds where compiling takes seconds.

@@ -15,7 +15,10 @@ service name, ``mapmatch.v1.MapMatch/<map id>``. With a session store
 (``--session-store``), ``mapmatch.v1.SessionStore`` is SERVING while the store answers and
 NOT_SERVING while it fails (fixes are answered either way, so ``""`` stays SERVING; see
 :mod:`service.store_checkpoints`). Server reflection (v1 and v1alpha) is on. Every start-up step is logged on
-``service``, and so is the moment the server is SERVING.
+``service``, and so is the moment the server is SERVING. Started by :func:`serve` cold (its
+online kernels not compiled yet, ``--kernels auto``), the server answers fixes interpreted
+while a child process compiles them, then switches to them (:class:`mapmatch.kernels.TieredGroup`);
+health ``mapmatch.v1.MapMatch.Compiled`` is SERVING once fixes are answered compiled.
 """
 
 from __future__ import annotations
