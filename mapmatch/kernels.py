@@ -370,9 +370,10 @@ class TieredGroup:
     waits for it, loads the compiled kernels in this process (a tiny job run compiled in that
     thread: :func:`graph.jit.compiled_calls`; other threads keep answering meanwhile), then
     switches every kernel to compiled (:func:`graph.jit.untier`) and calls ``on_switch``.
-    Should the child fail or take longer than :data:`BACKGROUND_WAIT_SECONDS`, that thread
-    compiles them in this process instead. Work in flight (sessions, streams) carries on across
-    the switch: only which code computes the next answer changes, not the answer.
+    Should the child fail, not save them (an unwritable cache) or take longer than
+    :data:`BACKGROUND_WAIT_SECONDS`, that thread compiles them in this process instead. Work
+    in flight (sessions, streams) carries on across the switch: only which code computes the
+    next answer changes, not the answer.
     """
 
     def __init__(self, group: str, *, on_switch: Callable[[TierReport], None] | None = None) -> None:
@@ -383,6 +384,7 @@ class TieredGroup:
         self._background = BackgroundCompile(None)
         self._tiered: list[Any] = []
         self._thread: threading.Thread | None = None
+        self._stopped = threading.Event()
 
     def start(self) -> None:
         """Tier the group's kernels and start compiling them (see the class)."""
@@ -397,8 +399,10 @@ class TieredGroup:
         from graph.jit import compiled_calls, untier
 
         t0 = time.monotonic()
-        ok = self._background.wait()
+        ok = self._background.wait() and compiled_on_disk(self.group)  # else: compile here
         t1 = time.monotonic()
+        if self._stopped.is_set():  # the process is ending: compile nothing
+            return
         try:
             with compiled_calls():
                 compile_group(self.group)
@@ -411,7 +415,9 @@ class TieredGroup:
             self.on_switch(self.report)
 
     def stop(self) -> None:
-        """Stop the child if it is still compiling (the kernels stay as they are)."""
+        """Stop the child if it is still compiling, and compile nothing in this process (the
+        kernels stay as they are)."""
+        self._stopped.set()
         self._background.stop()
 
 
