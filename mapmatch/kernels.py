@@ -369,16 +369,24 @@ class TieredGroup:
     them into numba's on-disk cache (``python -m mapmatch.kernels GROUP``), and a thread that
     waits for it, loads the compiled kernels in this process (a tiny job run compiled in that
     thread: :func:`graph.jit.compiled_calls`; other threads keep answering meanwhile), then
-    switches every kernel to compiled (:func:`graph.jit.untier`) and calls ``on_switch``.
+    switches every kernel to compiled (:func:`graph.jit.untier`) and calls ``on_switch``
+    (``on_failed`` if they cannot be compiled: they stay interpreted).
     Should the child fail, not save them (an unwritable cache) or take longer than
     :data:`BACKGROUND_WAIT_SECONDS`, that thread compiles them in this process instead. Work
     in flight (sessions, streams) carries on across the switch: only which code computes the
     next answer changes, not the answer.
     """
 
-    def __init__(self, group: str, *, on_switch: Callable[[TierReport], None] | None = None) -> None:
+    def __init__(
+        self,
+        group: str,
+        *,
+        on_switch: Callable[[TierReport], None] | None = None,
+        on_failed: Callable[[Exception], None] | None = None,
+    ) -> None:
         self.group = group
         self.on_switch = on_switch
+        self.on_failed = on_failed
         self.compiled = threading.Event()
         self.report: TierReport | None = None
         self._background = BackgroundCompile(None)
@@ -406,7 +414,9 @@ class TieredGroup:
         try:
             with compiled_calls():
                 compile_group(self.group)
-        except Exception:  # the process is ending (modules going): stay interpreted
+        except Exception as exc:  # the kernels stay interpreted (the same answers)
+            if self.on_failed is not None and not self._stopped.is_set():
+                self.on_failed(exc)
             return
         untier(self._tiered)
         self.report = TierReport(time.monotonic() - t0, time.monotonic() - t1, ok)

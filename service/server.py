@@ -288,7 +288,7 @@ class ServiceRuntime:
 
         if not tiered_wanted("online"):
             return
-        self.tiered = TieredGroup("online", on_switch=self._on_compiled)
+        self.tiered = TieredGroup("online", on_switch=self._on_compiled, on_failed=self._on_not_compiled)
         self.tiered.start()
         log.info(
             "online kernels not compiled yet: fixes are answered interpreted (the same answers, slower "
@@ -310,6 +310,16 @@ class ServiceRuntime:
         )
         gc.freeze()  # the compiled kernels are long-lived too (see _serve_one)
         self._health_soon()
+
+    @staticmethod
+    def _on_not_compiled(exc: Exception) -> None:
+        log.error(
+            "online kernels could not be compiled (%s: %s): fixes stay answered interpreted (the same "
+            "answers, slower per fix); health %s stays NOT_SERVING",
+            type(exc).__name__,
+            exc,
+            KERNELS_HEALTH,
+        )
 
     def _warm_batch(self) -> None:
         """Start the batch worker processes and wait (up to ``load_timeout``) until one has

@@ -197,3 +197,35 @@ def test_tiered_kernels_run_their_twins_from_python_until_untiered() -> None:
         jit.untier(tiered)
     assert type(_square_plus_one) is CPUDispatcher and type(_square) is CPUDispatcher
     assert all(_square_plus_one(x) == x * x + 1.0 for x in xs[:100])
+
+
+def test_a_tiered_group_that_cannot_compile_says_so_and_stays_interpreted(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    if jit.interpreted():
+        pytest.skip("kernels run interpreted in this process")
+    import subprocess
+    import sys
+
+    from mapmatch.online.placement import _place_all
+
+    def failing_child(group: str) -> subprocess.Popen[bytes]:
+        return subprocess.Popen([sys.executable, "-c", "raise SystemExit(1)"])
+
+    def no_compiler(group: str) -> float:
+        raise RuntimeError("no compiler")
+
+    monkeypatch.setattr(kernels, "_compile_child", failing_child)
+    monkeypatch.setattr(kernels, "compile_group", no_compiler)
+    failed: list[Exception] = []
+    group = kernels.TieredGroup("online", on_failed=failed.append)
+    group.start()
+    try:
+        assert group._thread is not None
+        group._thread.join(120)
+        assert [str(e) for e in failed] == ["no compiler"]
+        assert not group.compiled.is_set() and group.report is None
+        assert type(_place_all).__name__.startswith("Tiered")  # still answering interpreted
+    finally:
+        jit.untier(group._tiered)
+    assert type(_place_all).__name__ == "CPUDispatcher"
