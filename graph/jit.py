@@ -11,7 +11,9 @@ from __future__ import annotations
 import ast
 import inspect
 import textwrap
-from collections.abc import Callable
+import threading
+from collections.abc import Callable, Iterable, Iterator
+from contextlib import contextmanager
 from typing import Any
 
 import numba
@@ -47,8 +49,8 @@ def jitable(func: Callable[..., Any]) -> Callable[..., Any]:
     """``numba.extending.register_jitable``: ``func`` callable from plain Python (as it is) and
     from kernels (compiled into them). When kernels run interpreted, kernels call its
     :func:`as_compiled` copy and Python callers the function itself, as when compiled."""
+    _JITABLE[func.__name__] = func
     if interpreted():
-        _JITABLE[func.__name__] = func
         return func
     from numba.extending import register_jitable
 
@@ -56,7 +58,8 @@ def jitable(func: Callable[..., Any]) -> Callable[..., Any]:
 
 
 _JITABLE: dict[str, Callable[..., Any]] = {}
-"""The :func:`jitable` functions by name (kernels run interpreted)."""
+"""The :func:`jitable` functions by name (their :func:`as_compiled` copies are what interpreted
+kernels call)."""
 
 
 def int_power(v: Any, n: int) -> Any:
@@ -129,6 +132,98 @@ def as_compiled(func: Callable[..., Any]) -> Callable[..., Any]:
     out.__qualname__, out.__doc__ = func.__qualname__, func.__doc__
     out.py_func = func
     return out  # type: ignore[no-any-return]
+
+
+def kernels_called(funcs: Iterable[Any]) -> list[Any]:
+    """The numba dispatchers among ``funcs`` and every dispatcher they call, directly or through
+    :func:`jitable` functions, found by name in their modules' globals; each once."""
+    from numba.core.dispatcher import Dispatcher
+
+    seen: dict[int, Any] = {}
+    todo = list(funcs)
+    while todo:
+        f = todo.pop()
+        if id(f) in seen:
+            continue
+        seen[id(f)] = f
+        py = getattr(f, "py_func", f)
+        code, glob = getattr(py, "__code__", None), getattr(py, "__globals__", {})
+        codes = [code] if code is not None else []
+        while codes:
+            c = codes.pop()
+            codes += [k for k in c.co_consts if isinstance(k, type(c))]
+            for name in c.co_names:
+                v = glob.get(name)
+                if isinstance(v, Dispatcher) or (v is not None and _JITABLE.get(name) is v):
+                    todo.append(v)
+    return [f for f in seen.values() if isinstance(f, Dispatcher)]
+
+
+class _Tier(threading.local):
+    compiled = False
+
+
+_TIER = _Tier()
+"""Per thread: whether a tiered kernel's call from Python runs compiled (:func:`compiled_calls`)."""
+_TIERED_CLASSES: dict[type, type] = {}
+
+
+def _tiered_class(base: type) -> type:
+    """A subclass of the dispatcher class ``base`` whose call from Python runs the kernel's
+    :func:`as_compiled` twin, or (in a :func:`compiled_calls` block) the compiled kernel. Its
+    instances are still ``base`` dispatchers to numba: compiled callers call them compiled."""
+    cls = _TIERED_CLASSES.get(base)
+    if cls is None:
+        call = base.__call__  # type: ignore[operator]
+
+        def __call__(self: Any, *args: Any, **kwargs: Any) -> Any:
+            if _TIER.compiled:
+                return call(self, *args, **kwargs)
+            twin = self.__dict__.get("_mapmatch_twin")
+            if twin is None:
+                twin = self.__dict__["_mapmatch_twin"] = as_compiled(self.py_func)
+            return twin(*args, **kwargs)
+
+        cls = type(f"Tiered{base.__name__}", (base,), {"__call__": __call__, "__slots__": ()})
+        _TIERED_CLASSES[base] = cls
+    return cls
+
+
+def tier(kernels: Iterable[Any]) -> list[Any]:
+    """Run ``kernels`` (numba dispatchers) and every kernel they call interpreted when called
+    from Python, while they compile elsewhere: each is given a dispatcher class whose call from
+    Python runs its :func:`as_compiled` twin (the same answers, nothing compiled in this
+    process), whose own calls of kernels go to their twins in turn. Returns the kernels tiered,
+    for :func:`untier`. Compiled code calling them is unchanged."""
+    out = []
+    for d in kernels_called(kernels):
+        base = type(d)
+        if base in _TIERED_CLASSES.values():
+            continue
+        d.__class__ = _tiered_class(base)
+        out.append(d)
+    return out
+
+
+def untier(kernels: Iterable[Any]) -> None:
+    """Undo :func:`tier`: the kernels' calls from Python run compiled again (the plain
+    dispatcher class: no cost per call)."""
+    for d in kernels:
+        base = type(d).__mro__[1]
+        if type(d) is _TIERED_CLASSES.get(base):
+            d.__class__ = base
+
+
+@contextmanager
+def compiled_calls() -> Iterator[None]:
+    """In this block, this thread's calls of tiered kernels (:func:`tier`) run compiled: they
+    load from numba's cache or compile, while other threads keep running the twins."""
+    was = _TIER.compiled
+    _TIER.compiled = True
+    try:
+        yield
+    finally:
+        _TIER.compiled = was
 
 
 def read_only(a: Any, dtype: Any) -> NDArray[Any]:

@@ -29,6 +29,9 @@ KERNELS: dict[str, tuple[str, ...]] = {
     "serve": ("online",),
 }
 """The compiled-kernel groups (:mod:`mapmatch.kernels`) each command compiles on a machine's first run."""
+TIERED = ("serve",)
+"""Commands that, in mode ``auto`` on a cold cache, answer at once with their kernels interpreted
+while they compile in the background, then switch (:class:`mapmatch.kernels.TieredGroup`)."""
 ITEMS: dict[str, str] = {
     "match": "points",
     "simulate": "s of driving",
@@ -229,6 +232,8 @@ def _kernel_mode(args: argparse.Namespace, *, entry: bool) -> bool:
         raise CommandError("--interpreted-below must be >= 0")
     if mode == "auto" and not entry:
         return is_interpreted()
+    if entry and args.command in TIERED:
+        os.environ[MODE_ENV] = mode  # the server reads it (mapmatch.kernels.tiered_wanted)
     groups = KERNELS.get(args.command, ())
     items_of = getattr(args, "kernel_items", None)
     items = items_of(args) if mode == "auto" and groups and items_of is not None else None
@@ -252,10 +257,11 @@ def _run(args: argparse.Namespace, *, entry: bool = False) -> int:
             precheck(args)
         interpreted = _kernel_mode(args, entry=entry)
         if not args.quiet and KERNELS.get(cmd) and not interpreted:
-            from mapmatch.kernels import announce
+            from mapmatch.kernels import announce, tiered_wanted
 
             for group in KERNELS[cmd]:
-                announce(group)
+                if cmd not in TIERED or not tiered_wanted(group):  # else the server logs it
+                    announce(group)
         return int(args.func(args) or 0)
     except CommandError as exc:
         return _fail(cmd, str(exc), exc.code)

@@ -17,6 +17,9 @@ environment. ``auto`` runs a job interpreted when a group it needs is not compil
 the job is small enough that interpreting it costs less than compiling
 (:data:`INTERPRETED_SECONDS_PER_ITEM`, :data:`COMPILE_SECONDS`).
 
+A long-running process (``serve``) runs a cold group *tiered* (:class:`TieredGroup`):
+interpreted at once, while a child process compiles it, then compiled from the switch on.
+
 A kernel that runs once per job on an input of a size the job chose (a map's nodes, a route's
 metres) goes through :func:`graph.jit.for_size`: on a small input it runs as plain Python (the same code,
 so the same results), which takes milliseconds where compiling takes seconds.
@@ -30,7 +33,7 @@ import subprocess
 import sys
 import threading
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
 from typing import Any, NamedTuple, TextIO
@@ -316,22 +319,116 @@ def compiling_in_background(group: str) -> Iterator[BackgroundCompile]:
     (an unwritable cache), this process compiles them on first use as it would without a child:
     the results are the same. The child is stopped when the block is left.
     """
-    child: subprocess.Popen[bytes] | None = None
-    if not is_interpreted() and not is_cached(group):
-        package_root = str(Path(__file__).resolve().parents[1])  # the child imports this mapmatch
-        path = os.pathsep.join(filter(None, [package_root, os.environ.get("PYTHONPATH")]))
-        child = subprocess.Popen(
-            [sys.executable, "-m", "mapmatch.kernels", group],
-            stdin=subprocess.DEVNULL,
-            stdout=subprocess.DEVNULL,
-            stderr=subprocess.DEVNULL,
-            env=dict(os.environ, PYTHONPATH=path, NUMBA_DISABLE_JIT="0"),
-        )
+    child = _compile_child(group) if not is_interpreted() and not is_cached(group) else None
     background = BackgroundCompile(child)
     try:
         yield background
     finally:
         background.stop()
+
+
+def _compile_child(group: str) -> subprocess.Popen[bytes]:
+    """A child process compiling the group's kernels into numba's on-disk cache
+    (``python -m mapmatch.kernels GROUP``, this package first on its path)."""
+    package_root = str(Path(__file__).resolve().parents[1])  # the child imports this mapmatch
+    path = os.pathsep.join(filter(None, [package_root, os.environ.get("PYTHONPATH")]))
+    return subprocess.Popen(
+        [sys.executable, "-m", "mapmatch.kernels", group],
+        stdin=subprocess.DEVNULL,
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+        env=dict(os.environ, PYTHONPATH=path, NUMBA_DISABLE_JIT="0"),
+    )
+
+
+def tiered_wanted(group: str) -> bool:
+    """Whether a long-running process (``serve``) should run ``group`` tiered
+    (:class:`TieredGroup`): kernels run compiled in this process, the mode is ``auto``
+    (``MAPMATCH_KERNELS``, which ``mapmatch`` sets from ``--kernels`` for the command it runs;
+    unset: ``compiled``, so a server started in process compiles as it always did), and the
+    group is not compiled yet (:func:`compiled_on_disk`)."""
+    mode = os.environ.get(MODE_ENV, "").strip() or "compiled"
+    return mode == "auto" and not is_interpreted() and not compiled_on_disk(group)
+
+
+class TierReport(NamedTuple):
+    """What a :class:`TieredGroup` did: seconds from its start to the switch to compiled,
+    seconds loading the compiled kernels in this process, and whether a child compiled them
+    (False: it failed or took too long, and this process compiled them)."""
+
+    seconds: float
+    load_seconds: float
+    child_compiled: bool
+
+
+class TieredGroup:
+    """A group's kernels answering interpreted at once, then compiled without a restart.
+
+    :meth:`start` makes the group's kernels, called from Python, run their interpreted twins
+    (:func:`graph.jit.tier`: the same answers as compiled), starts a child process compiling
+    them into numba's on-disk cache (``python -m mapmatch.kernels GROUP``), and a thread that
+    waits for it, loads the compiled kernels in this process (a tiny job run compiled in that
+    thread: :func:`graph.jit.compiled_calls`; other threads keep answering meanwhile), then
+    switches every kernel to compiled (:func:`graph.jit.untier`) and calls ``on_switch``
+    (``on_failed`` if they cannot be compiled: they stay interpreted).
+    Should the child fail, not save them (an unwritable cache) or take longer than
+    :data:`BACKGROUND_WAIT_SECONDS`, that thread compiles them in this process instead. Work
+    in flight (sessions, streams) carries on across the switch: only which code computes the
+    next answer changes, not the answer.
+    """
+
+    def __init__(
+        self,
+        group: str,
+        *,
+        on_switch: Callable[[TierReport], None] | None = None,
+        on_failed: Callable[[Exception], None] | None = None,
+    ) -> None:
+        self.group = group
+        self.on_switch = on_switch
+        self.on_failed = on_failed
+        self.compiled = threading.Event()
+        self.report: TierReport | None = None
+        self._background = BackgroundCompile(None)
+        self._tiered: list[Any] = []
+        self._thread: threading.Thread | None = None
+        self._stopped = threading.Event()
+
+    def start(self) -> None:
+        """Tier the group's kernels and start compiling them (see the class)."""
+        from graph.jit import tier
+
+        self._tiered = tier(dispatchers(self.group))
+        self._background = BackgroundCompile(_compile_child(self.group))
+        self._thread = threading.Thread(target=self._run, name=f"kernels-{self.group}", daemon=True)
+        self._thread.start()
+
+    def _run(self) -> None:
+        from graph.jit import compiled_calls, untier
+
+        t0 = time.monotonic()
+        ok = self._background.wait() and compiled_on_disk(self.group)  # else: compile here
+        t1 = time.monotonic()
+        if self._stopped.is_set():  # the process is ending: compile nothing
+            return
+        try:
+            with compiled_calls():
+                compile_group(self.group)
+        except Exception as exc:  # the kernels stay interpreted (the same answers)
+            if self.on_failed is not None and not self._stopped.is_set():
+                self.on_failed(exc)
+            return
+        untier(self._tiered)
+        self.report = TierReport(time.monotonic() - t0, time.monotonic() - t1, ok)
+        self.compiled.set()
+        if self.on_switch is not None:
+            self.on_switch(self.report)
+
+    def stop(self) -> None:
+        """Stop the child if it is still compiling, and compile nothing in this process (the
+        kernels stay as they are)."""
+        self._stopped.set()
+        self._background.stop()
 
 
 def compile_group(group: str) -> float:

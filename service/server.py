@@ -15,7 +15,10 @@ service name, ``mapmatch.v1.MapMatch/<map id>``. With a session store
 (``--session-store``), ``mapmatch.v1.SessionStore`` is SERVING while the store answers and
 NOT_SERVING while it fails (fixes are answered either way, so ``""`` stays SERVING; see
 :mod:`service.store_checkpoints`). Server reflection (v1 and v1alpha) is on. Every start-up step is logged on
-``service``, and so is the moment the server is SERVING.
+``service``, and so is the moment the server is SERVING. Started by :func:`serve` cold (its
+online kernels not compiled yet, ``--kernels auto``), the server answers fixes interpreted
+while a child process compiles them, then switches to them (:class:`mapmatch.kernels.TieredGroup`);
+health ``mapmatch.v1.MapMatch.Compiled`` is SERVING once fixes are answered compiled.
 """
 
 from __future__ import annotations
@@ -65,6 +68,11 @@ log = logging.getLogger("mapmatch.service")
 BATCH_HEALTH = "mapmatch.v1.MapMatch.Batch"
 """Health name of batch matching: SERVING once a ``MatchTrack`` is answered without waiting for
 a batch worker process to prepare (on a machine's first run, to compile the batch kernels)."""
+
+KERNELS_HEALTH = "mapmatch.v1.MapMatch.Compiled"
+"""Health name of the online kernels: SERVING while fixes are answered by the compiled kernels;
+NOT_SERVING while they run interpreted (a cold start answers interpreted while they compile in
+the background: the same answers, slower per fix)."""
 
 MapsArg = MapRegistry | Mapping[str, RoadGraph | Path | str] | None
 SERVING = health_pb2.HealthCheckResponse.SERVING
@@ -128,6 +136,11 @@ class ServiceRuntime:
         self._stop_lock = threading.Lock()
         self._sweeper: asyncio.Task[None] | None = None
         self.ready: Future[None] = Future()
+        self.tier_kernels = False
+        """Whether :meth:`warm` answers interpreted at once while the online kernels compile in
+        the background, when they are not compiled yet and ``--kernels`` is ``auto``
+        (:func:`mapmatch.kernels.tiered_wanted`); set by :func:`serve`."""
+        self.tiered: Any = None  # the mapmatch.kernels.TieredGroup, when tiered
         self.checkpoints = _checkpointer(self) if config.session_store else None
         self.servicer.checkpoints = self.checkpoints
         if self.batch_workers is not None:  # a map the batch workers cannot load: health says so
@@ -240,6 +253,7 @@ class ServiceRuntime:
     def warm(self) -> None:
         """Load the maps still to be loaded, warm every map up, then report SERVING."""
         limits = load_limits(self.config)
+        self._tier_online()
         try:
             for name, path in self.to_load:
                 log.info("loading map %s from %s", name, path.name)
@@ -264,14 +278,57 @@ class ServiceRuntime:
         self._warm_batch()
         self.call(self.update_health())
 
+    def _tier_online(self) -> None:
+        """With :attr:`tier_kernels`, on a cold start: answer fixes interpreted at once while a
+        child process compiles the online kernels, then switch to them (logged, and health
+        :data:`KERNELS_HEALTH`)."""
+        if not self.tier_kernels or self.tiered is not None:
+            return
+        from mapmatch.kernels import COMPILE_SECONDS, TieredGroup, tiered_wanted
+
+        if not tiered_wanted("online"):
+            return
+        self.tiered = TieredGroup("online", on_switch=self._on_compiled, on_failed=self._on_not_compiled)
+        self.tiered.start()
+        log.info(
+            "online kernels not compiled yet: fixes are answered interpreted (the same answers, slower "
+            "per fix) while a child process compiles them, once, about %.0f s of CPU; health %s is "
+            "NOT_SERVING until they run compiled",
+            COMPILE_SECONDS["online"],
+            KERNELS_HEALTH,
+        )
+
+    def _on_compiled(self, report: Any) -> None:
+        """The online kernels run compiled from now on (a :class:`mapmatch.kernels.TierReport`)."""
+        how = "compiled by the child process" if report.child_compiled else "compiled in this process"
+        log.info(
+            "online kernels %s: fixes are answered compiled from now on (%.1f s after the start of "
+            "their compile; loading them took %.2f s)",
+            how,
+            report.seconds,
+            report.load_seconds,
+        )
+        gc.freeze()  # the compiled kernels are long-lived too (see _serve_one)
+        self._health_soon()
+
+    @staticmethod
+    def _on_not_compiled(exc: Exception) -> None:
+        log.error(
+            "online kernels could not be compiled (%s: %s): fixes stay answered interpreted (the same "
+            "answers, slower per fix); health %s stays NOT_SERVING",
+            type(exc).__name__,
+            exc,
+            KERNELS_HEALTH,
+        )
+
     def _warm_batch(self) -> None:
         """Start the batch worker processes and wait (up to ``load_timeout``) until one has
         warmed up its maps; warm up the batch matchers of the maps matched in this process."""
-        from mapmatch.kernels import COMPILE_SECONDS, is_cached
+        from mapmatch.kernels import COMPILE_SECONDS, compiled_on_disk, is_interpreted
 
         in_workers = self._sync_workers()
         workers = self.batch_workers
-        if not is_cached("batch"):
+        if not is_interpreted() and not compiled_on_disk("batch"):  # read without importing them
             log.info(
                 "batch kernels not compiled yet: the batch worker processes compile them, once, about "
                 "%.0f s; until then MatchTrack answers UNAVAILABLE before its deadline and health "
@@ -329,6 +386,7 @@ class ServiceRuntime:
         workers = self.batch_workers
         batch_ok = ok and (workers is None or not workers.started or workers.warm)
         await self.health.set(BATCH_HEALTH, SERVING if batch_ok else NOT_SERVING)
+        await self.health.set(KERNELS_HEALTH, SERVING if ok and self._compiled() else NOT_SERVING)
         for map_id in ids | self._health_names:
             await self.health.set(
                 f"{SERVICE_NAME}/{map_id}",
@@ -340,6 +398,12 @@ class ServiceRuntime:
             log.info("SERVING %d map(s) on port %d", len(ids), self.port)
         elif was and not ok:
             log.info("NOT_SERVING: no map loaded")
+
+    def _compiled(self) -> bool:
+        """Whether fixes are answered by the compiled online kernels."""
+        from mapmatch.kernels import is_interpreted
+
+        return not is_interpreted() and (self.tiered is None or self.tiered.compiled.is_set())
 
     # ------------------------------------------------------------------ stop
     def stop(self, grace: float | None = None) -> None:
@@ -382,6 +446,8 @@ class ServiceRuntime:
             log.info("stopped %d map build(s) in flight", n)
         self.executor.shutdown(wait=False, cancel_futures=True)
         self.online.shutdown()
+        if self.tiered is not None:
+            self.tiered.stop()
         if self.batch_workers is not None:
             self.batch_workers.stop()
 
@@ -667,6 +733,7 @@ def _serve_one(config: ServerConfig, maps: MapsArg, *, on_ready: Any) -> int:
     try:
         log.info("starting (pid %d)", os.getpid())
         runtime = create_server(config, maps)
+        runtime.tier_kernels = True
         signal.signal(signal.SIGHUP, lambda signum, frame: runtime.identities.reload())
         port = runtime.start(wait_ready=False)
         while not done.wait(0.2):

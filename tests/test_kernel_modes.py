@@ -6,6 +6,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import numba
 import numpy as np
 import pytest
 from test_cli_traps import cross, fixes_lines, run_cli, write_csv  # noqa: F401  (cross: a fixture)
@@ -162,3 +163,69 @@ def test_the_filters_interpreted_product_is_the_compiled_one() -> None:
         fpft_lists(f, p2, fp2)
         assert np.array_equal(p1, p2) and np.array_equal(fp1, fp2)
         assert not np.array_equal(p1, p)
+
+
+@numba.njit
+def _square(x):  # type: ignore[no-untyped-def]
+    return x**2
+
+
+@numba.njit
+def _square_plus_one(x):  # type: ignore[no-untyped-def]
+    return _square(x) + 1.0
+
+
+def test_tiered_kernels_run_their_twins_from_python_until_untiered() -> None:
+    """:func:`graph.jit.tier`: a kernel and the kernels it calls answer from Python as numba
+    would compute, with nothing compiled; in a ``compiled_calls`` block they compile; untiered,
+    they are plain dispatchers again."""
+    if jit.interpreted():
+        pytest.skip("kernels run interpreted in this process")
+    from numba.core.registry import CPUDispatcher
+
+    xs = [0.1 * k + 1e-3 for k in range(1, 200_000, 7)]
+    assert any(x**2 != x * x for x in xs)  # plain Python would differ from the kernel
+    tiered = jit.tier([_square_plus_one])
+    try:
+        assert {id(d) for d in tiered} == {id(_square_plus_one), id(_square)}
+        assert all(_square_plus_one(x) == x * x + 1.0 for x in xs)
+        assert not _square_plus_one.overloads and not _square.overloads  # nothing compiled
+        with jit.compiled_calls():
+            assert _square_plus_one(0.3) == 0.3 * 0.3 + 1.0
+        assert _square_plus_one.overloads
+    finally:
+        jit.untier(tiered)
+    assert type(_square_plus_one) is CPUDispatcher and type(_square) is CPUDispatcher
+    assert all(_square_plus_one(x) == x * x + 1.0 for x in xs[:100])
+
+
+def test_a_tiered_group_that_cannot_compile_says_so_and_stays_interpreted(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    if jit.interpreted():
+        pytest.skip("kernels run interpreted in this process")
+    import subprocess
+    import sys
+
+    from mapmatch.online.placement import _place_all
+
+    def failing_child(group: str) -> subprocess.Popen[bytes]:
+        return subprocess.Popen([sys.executable, "-c", "raise SystemExit(1)"])
+
+    def no_compiler(group: str) -> float:
+        raise RuntimeError("no compiler")
+
+    monkeypatch.setattr(kernels, "_compile_child", failing_child)
+    monkeypatch.setattr(kernels, "compile_group", no_compiler)
+    failed: list[Exception] = []
+    group = kernels.TieredGroup("online", on_failed=failed.append)
+    group.start()
+    try:
+        assert group._thread is not None
+        group._thread.join(120)
+        assert [str(e) for e in failed] == ["no compiler"]
+        assert not group.compiled.is_set() and group.report is None
+        assert type(_place_all).__name__.startswith("Tiered")  # still answering interpreted
+    finally:
+        jit.untier(group._tiered)
+    assert type(_place_all).__name__ == "CPUDispatcher"
