@@ -206,10 +206,14 @@ def dispatchers(group: str) -> list[Any]:
     return out
 
 
-CACHE_PROBES: dict[str, tuple[str, ...]] = {"batch": ("mapmatch.batch.run:run_track_in",)}
+CACHE_PROBES: dict[str, tuple[str, ...]] = {
+    "batch": ("mapmatch.batch.run:run_track_in",),
+    "online": ("mapmatch.online.placement:_place_all",),
+}
 """Per group, the entry kernels whose cache tells it was compiled (default: every kernel). The
-batch group's other entries (``run``, for tests) and its ``inline="always"`` helpers, compiled
-only into their callers, never get a cache of their own."""
+batch group's other entries (``run``, for tests), its ``inline="always"`` helpers and the
+online group's kernels called only from other kernels are compiled into their callers and
+never get a cache of their own."""
 
 
 def is_cached(group: str) -> bool:
