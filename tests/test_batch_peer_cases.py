@@ -399,7 +399,9 @@ def _along_ab(amap: AsciiMap, trace: str) -> list[tuple[float, float]]:
 
 
 @pytest.mark.parametrize(("trace", "length"), [("2431", 150), ("02431", 230)])
-def test_a_fix_a_little_back_along_a_one_way_is_standing_and_keeps_the_route_end(trace: str, length: float) -> None:
+def test_a_fix_a_little_back_along_a_one_way_is_standing_and_keeps_the_route_end(
+    trace: str, length: float
+) -> None:
     # Valhalla's BackwardTraceOnOnewayEdge, "forward then backward (shifted)": after 2 and 4,
     # the fix 3 lies 30 m back along the one-way; no car drives it backwards, so 3 is noise
     # about the place the car stands at (4), not a fix whose keeping cuts the route at 3 and
@@ -434,7 +436,9 @@ def test_one_fix_far_back_along_a_one_way_is_left_out_where_valhalla_splits(trac
     assert r.points[-2].status == PointStatus.UNMATCHED
 
 
-@pytest.mark.xfail(reason="two fixes far back on a one-way after a side road: left out, not split", strict=True)
+@pytest.mark.xfail(
+    reason="fixes far back on a one-way after a side road are left out, not split", strict=True
+)
 def test_a_jump_back_along_a_one_way_after_a_side_road_keeps_both_stretches() -> None:
     # Valhalla's "forward then backward" with 0 on the side road first: 0, 3, 4, then 1, 2
     # 150 m back. Valhalla answers da + ab to 4, then ab 1 to 2; here 3 and 4 are left out as
@@ -476,7 +480,7 @@ b--------------c
 """
 
 
-@pytest.mark.xfail(reason="the first fix beside a corner takes the road it is nearer to by route", strict=True)
+@pytest.mark.xfail(reason="a first fix by a corner takes the road nearer by route", strict=True)
 def test_a_first_fix_beside_a_corner_is_placed_on_the_road_the_next_fix_confirms() -> None:
     # OSRM's "waypoints trimming too much geometry" started at its second fix e: e lies 10 m
     # from ab and 10 m from bc, by the corner b; the next fix f lies 10 m past b down ab's
