@@ -449,7 +449,10 @@ class RouteConfig:
         this many β (the base ``model.beta``, without ``model.beta_per_m``'s growth: a wider first search
         costs time on dense maps without changing the matches).
     reverse_tolerance : metres a candidate may fall behind the previous one on the same edge and
-        count as standing.
+        count as standing. On a one-way edge, which no vehicle drives backwards, a candidate up
+        to ``model.search_radius`` behind counts as standing (noise about the place the vehicle
+        stands at, the fixes' distance apart charged by the transition), not as a fix to leave
+        out at the cost of the place the route reached.
     stop_uturn_speed : m/s; a step slower than this on average (over at least
         ``stop_uturn_time``) spans a stop ...
     stop_uturn_time : ... of at least this many seconds, ...
