@@ -436,6 +436,16 @@ def test_one_fix_far_back_along_a_one_way_is_left_out_where_valhalla_splits(trac
     assert r.points[-2].status == PointStatus.UNMATCHED
 
 
+def test_a_trace_backwards_along_a_one_way_drives_none_of_it() -> None:
+    # Valhalla's fully reversed trace 4, 3, 2, 1: Valhalla finds no route and fails; here each
+    # fix 30 m back is standing at the one before, 2 (120 m back) starts a new piece, and not a
+    # metre of the one-way is driven backwards
+    m = parse_ascii_map(ONE_WAY_AFTER_A_SIDE_ROAD, scale=10)
+    r = untimed(m, _along_ab(m, "4321"))
+    assert r.length_m == 0.0
+    assert all(piece == ["ab"] for piece in routes(m, r))
+
+
 @pytest.mark.xfail(
     reason="fixes far back on a one-way after a side road are left out, not split", strict=True
 )
