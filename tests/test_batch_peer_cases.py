@@ -1,10 +1,13 @@
 """The peers' own map-matching cases, drawn as ASCII maps: OSRM's
-(``features/testbot/matching.feature``) and Valhalla's (``test/gurka/test_match.cc``); and
+(``features/testbot/matching.feature``) and Valhalla's (``test/gurka/test_match.cc``,
+``test/gurka/test_trace_attributes.cc``); and
 FMM's example network and trips (``example/data``), built from lines as FMM's files are.
 
 They draw nodes on a grid and list the ways through them; here the roads are drawn and the
 fixes placed on the map in metres. They send these traces without timestamps, and so do the
 tests (every time NaN, unknown): the fixes' order and positions alone must give their answer.
+Where a peer's answer rests on a convention this project does not share, the test says so and
+checks this project's answer (``docs/benchmarks/batch_ends.md``, "Peers' cases").
 """
 
 from __future__ import annotations
