@@ -450,7 +450,10 @@ class RouteConfig:
         this many β (the base ``model.beta``, without ``model.beta_per_m``'s growth: a wider first search
         costs time on dense maps without changing the matches).
     reverse_tolerance : metres a candidate may fall behind the previous one on the same edge and
-        count as standing.
+        count as standing. On a one-way edge, which no vehicle drives backwards, a candidate up
+        to ``model.search_radius`` behind counts as standing (noise about the place the vehicle
+        stands at, the fixes' distance apart charged by the transition), not as a fix to leave
+        out at the cost of the place the route reached.
     stop_uturn_speed : m/s; a step slower than this on average (over at least
         ``stop_uturn_time``) spans a stop ...
     stop_uturn_time : ... of at least this many seconds, ...
@@ -486,6 +489,10 @@ class TrackConfig:
         fixes to their nearest road (Newson and Krumm's robust estimate: a worse receiver
         shows in how far its fixes lie from the roads). 0: always ``model.gps_sigma``. The σ counts
         in the emissions, the off-map limit and the jump rule.
+    track_sigma_min_fixes : a track with fewer fixes near a road than this keeps
+        ``model.gps_sigma``: a median of a few distances is no estimate of a receiver (four
+        fixes 10 m off their roads would give σ 15 m and thin out the fixes between the first
+        and last, the evidence of which road the first lies on).
     thin_sigmas : a track whose own σ exceeds ``model.gps_sigma`` is thinned (as by
         ``interpolate_distance``) at this many times the excess: a worse receiver's fixes
         close together share their error, so they are less evidence than their number says
@@ -511,6 +518,7 @@ class TrackConfig:
 
     interpolate_distance: float = 0.0
     track_sigma_max: float = 30.0
+    track_sigma_min_fixes: int = 10
     thin_sigmas: float = 6.0
     track_pos_sigma_floor: float = 0.5
     track_heading_sigma_floor_deg: float = 1.0

@@ -661,7 +661,7 @@ def test_a_ref_hands_a_kernel_the_callers_tuple_by_one_pointer() -> None:
         return total
 
     out = np.ones(5)
-    total = caller(out, StepRules(2.0), NO_TABLE)
+    total = caller(out, StepRules(2.0, 50.0), NO_TABLE)
     assert out.tolist() == [1.0 + 2.0 * i - 1.0 for i in range(5)]
     assert total == pytest.approx(out.sum())
     (sig,) = add.signatures

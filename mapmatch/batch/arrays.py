@@ -102,6 +102,9 @@ class KernelParams(NamedTuple):
     leave_out_cost: float
     """Log-probability cost of a point left out, where two ways of leaving points out compete."""
     reverse_tol: float
+    one_way_tol: float
+    """Metres a candidate may fall behind the previous one on a one-way edge and count as
+    standing (``model.search_radius``: the previous place lies among the fix's own)."""
     split_speed: float
     """m/s; 0: no speed check on steps."""
     split_slack: float
@@ -157,6 +160,7 @@ def kernel_params(cfg: MatchConfig, sigma: float) -> KernelParams:
         outlier_lookahead=bool(b.outliers.outlier_lookahead),
         leave_out_cost=float(b.outliers.leave_out_cost),
         reverse_tol=float(b.route.reverse_tolerance),
+        one_way_tol=max(float(cfg.model.search_radius), float(b.route.reverse_tolerance)),
         split_speed=float(b.split.split_speed),
         split_slack=float(b.split.split_slack),
         split_route_speed=float(b.split.split_route_speed),

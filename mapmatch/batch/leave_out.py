@@ -31,7 +31,7 @@ from graph.jit import njit
 from mapmatch.arena import UNCOUNTED, deref, int64
 from mapmatch.batch.arrays import KernelParams, Lattice
 from mapmatch.batch.split import far_gap, joinable, left_the_route
-from mapmatch.batch.step import Trellis, _step_scale, _try_step, step_inputs
+from mapmatch.batch.step import Trellis, _step_scale, _try_step, standing_tol, step_inputs
 from mapmatch.route_table import ubodt_lookup
 from mapmatch.routing import Router, _reset, _search
 from mapmatch.viterbi import start_column
@@ -333,7 +333,7 @@ def detour_cost(a, i, b, j, uturn, bound, sr):  # type: ignore[no-untyped-def]
     g = router.g
     if uturn:
         r = abs(g.edge_len[e] - of - o)
-    elif f == e and of >= o - p.reverse_tol:
+    elif f == e and of >= o - standing_tol(e, g.edge_rev, p.reverse_tol, p.one_way_tol):
         r = max(of - o, 0.0)
     else:
         r = np.inf

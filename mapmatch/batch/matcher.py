@@ -181,6 +181,7 @@ class BatchMatcher:
                 heading_sigma=float(cfg.model.heading_sigma),
                 heading_min_speed=float(cfg.model.heading_min_speed),
                 track_sigma_max=float(cfg.batch.track.track_sigma_max),
+                sigma_min_fixes=int(cfg.batch.track.track_sigma_min_fixes),
                 thin_sigmas=float(cfg.batch.track.thin_sigmas),
                 pos_sigma_floor=float(cfg.batch.track.track_pos_sigma_floor),
                 heading_sigma_floor=float(cfg.batch.track.track_heading_sigma_floor_deg),

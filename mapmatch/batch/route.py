@@ -19,6 +19,7 @@ from graph.jit import njit
 from mapmatch.arena import UNCOUNTED, full_b1, full_f8, full_i8, int64, take_f8, take_i8, take_xy
 from mapmatch.batch.arrays import Assembly, EdgeGeometry, KernelParams, Lattice, TrackPoints
 from mapmatch.batch.leave_out import Chosen
+from mapmatch.batch.step import standing_tol
 from mapmatch.gridindex import grow_array
 from mapmatch.route_table import path_into, path_place
 from mapmatch.routing import path_edges
@@ -308,7 +309,7 @@ def assemble(
     ch = RouteSteps(
         take_i8(ar, m), take_f8(ar, m), take_i8(ar, m), take_f8(ar, m), take_i8(ar, m), full_b1(ar, m, False)
     )
-    post = _choose(acc, lat, dec, p.reverse_tol, router.g.edge_rev, ch, pm)
+    post = _choose(acc, lat, dec, (p.reverse_tol, p.one_way_tol), router.g.edge_rev, ch, pm)
     pc = _trimmed(route_pieces(ch, router, ar), ch, pm, router, ar)
     splits = _splits(ch, ar)
     xy_all, xptr = pieces_xy(pc.edge, pc.start, pc.end, geom, router.g.edge_len, ar)
@@ -342,7 +343,7 @@ def _accepted(choice, ar):  # type: ignore[no-untyped-def]
 
 
 @njit(**UNCOUNTED)
-def _choose(acc, lat, dec, reverse_tol, edge_rev, ch, pm):  # type: ignore[no-untyped-def]
+def _choose(acc, lat, dec, tols, edge_rev, ch, pm):  # type: ignore[no-untyped-def]
     """The accepted lattice points ``acc``'s chosen candidates into ``ch`` (:class:`RouteSteps`,
     with the kind of step into each; ``bad`` untouched) and their points' matches into ``pm``
     (:class:`PointMatch`); returns the sum of their confidences (:func:`_road_share`).
@@ -357,7 +358,8 @@ def _choose(acc, lat, dec, reverse_tol, edge_rev, ch, pm):  # type: ignore[no-un
         ch.off[i] = lat.offset[j]
         ch.pts[i] = lat.pts[t]
         ch.bound[i] = dec.used_bound[t]
-        same = i > 0 and e == ch.edge[i - 1] and lat.offset[j] >= ch.off[i - 1] - reverse_tol
+        tol = standing_tol(e, edge_rev, tols[0], tols[1])
+        same = i > 0 and e == ch.edge[i - 1] and lat.offset[j] >= ch.off[i - 1] - tol
         if i == 0 or dec.seg_start[t]:
             ch.kind[i] = STEP_SPLIT
         elif same:

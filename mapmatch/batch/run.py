@@ -99,6 +99,8 @@ class RuleParams(NamedTuple):
     heading_min_speed: float
     track_sigma_max: float
     """The most σ a track's own residuals may give (:func:`track_sigma`); 0: ``gps_sigma``."""
+    sigma_min_fixes: int
+    """The fewest fixes near a road that give a track's own σ (fewer: ``gps_sigma``)."""
     thin_sigmas: float
     """Fixes are thinned at this many times the track's σ beyond ``gps_sigma``."""
     pos_sigma_floor: float
@@ -166,7 +168,7 @@ def run_track(ti, mi):  # type: ignore[no-untyped-def]
     reset(ar)
     valid, xy = _valid_xy(ti.pos, ar)
     kept, kidx, cp, ce, cd, co, cq = kept_candidates(xy, valid, q.min_dist, q, mi.grid, mi.gsc, ar)
-    sigma = track_sigma(cp, cd, len(kidx), r.gps_sigma, r.track_sigma_max, ar)
+    sigma = track_sigma(cp, cd, len(kidx), r.gps_sigma, (r.track_sigma_max, r.sigma_min_fixes), ar)
     # a worse receiver's fixes close together share their error: thinned out further
     far = r.thin_sigmas * (sigma - r.gps_sigma)
     if far > q.min_dist:
@@ -296,10 +298,12 @@ def run_track_in(ti, c):  # type: ignore[no-untyped-def]
 
 
 @njit(cache=True, nogil=True)
-def track_sigma(point, dist, nk, sigma, most, ar):  # type: ignore[no-untyped-def]
+def track_sigma(point, dist, nk, sigma, limits, ar):  # type: ignore[no-untyped-def]
     """The track's σ (:func:`mapmatch.model.track_sigma`) from the ``nk`` kept fixes' distances
     to their nearest candidate (rows sorted by point, nearest first); fixes without one do not
-    count."""
+    count. ``limits``: the most σ the track may give, and the fewest such fixes that give one
+    (fewer: ``sigma``)."""
+    most, min_fixes = limits
     if most <= sigma:
         return sigma
     near = take_f8(ar, nk)
@@ -308,6 +312,8 @@ def track_sigma(point, dist, nk, sigma, most, ar):  # type: ignore[no-untyped-de
         if i == 0 or point[i] != point[i - 1]:
             near[m] = dist[i]
             m += 1
+    if m < min_fixes:
+        return sigma
     return track_sigma_compiled(near[:m], sigma, most)
 
 

@@ -56,6 +56,7 @@ class StepRules(NamedTuple):
     :class:`~mapmatch.batch.arrays.KernelParams`)."""
 
     reverse_tol: float
+    one_way_tol: float
 
 
 class StepInputs(NamedTuple):
@@ -76,7 +77,7 @@ def step_inputs(lat, tr, p, router):  # type: ignore[no-untyped-def]
     (:func:`~mapmatch.arena.ref`): made once, before the steps, not copied for each. Compiled
     into its caller, whose frame holds the copy the pointer points to."""
     sc = StepCandidates(lat.edge, lat.offset, lat.emis)
-    rules = StepRules(p.reverse_tol)
+    rules = StepRules(p.reverse_tol, p.one_way_tol)
     return ref(StepInputs(sc, tr, p.transition, rules, router))
 
 
@@ -158,9 +159,21 @@ def _step(a0, a1, b0, b1, inputs, leg, bound):  # type: ignore[no-untyped-def]
 
 
 @njit(cache=True, nogil=True, inline="always")
+def standing_tol(e, edge_rev, reverse_tol, one_way_tol):  # type: ignore[no-untyped-def]
+    """Metres a candidate may fall behind the previous one on edge ``e`` and count as standing:
+    ``reverse_tol`` on a two-way road, where a U-turn is the other reading of a fix further
+    back; ``one_way_tol`` on a one-way edge, which no vehicle drives backwards: a fix a little
+    back along it is noise about the place the vehicle stands at, within the fix's search
+    radius (the transition charges the fixes' distance apart against the route's 0 m, and
+    leaving the fix out competes as for any fix), not a fix to leave out at the cost of the
+    place the vehicle reached."""
+    return reverse_tol if edge_rev[e] >= 0 else one_way_tol
+
+
+@njit(cache=True, nogil=True, inline="always")
 def _along_road(i, si, b0, b1, v, edge_len, edge_rev, leg):  # type: ignore[no-untyped-def]
     """The transitions from source candidate ``i`` (score ``si``) that need no route: to the
-    targets ``b0:b1`` ahead on its own edge (or behind it within ``reverse_tol``) and, turning
+    targets ``b0:b1`` ahead on its own edge (or behind it, standing: :func:`standing_tol`) and, turning
     round, on its reverse edge, each relaxed (:func:`mapmatch.viterbi.relax`; ``v``: the
     step's :class:`StepView`). Returns whether some target needs a route."""
     rules = v.rules
@@ -168,9 +181,10 @@ def _along_road(i, si, b0, b1, v, edge_len, edge_rev, leg):  # type: ignore[no-u
     e = v.edge[i]
     o = v.offset[i]
     need = False
+    tol = standing_tol(e, edge_rev, rules.reverse_tol, rules.one_way_tol)
     for j in range(b0, b1):
         f = v.edge[j]
-        if f == e and v.offset[j] >= o - rules.reverse_tol:
+        if f == e and v.offset[j] >= o - tol:
             r = max(v.offset[j] - o, 0.0)
             lp = -np.inf
             if r <= leg.vcap:
@@ -208,13 +222,14 @@ def _routed(i, si, lim, targets, v, router, leg):  # type: ignore[no-untyped-def
     o = coff[i]
     rest = g.edge_len[e] - o  # the way left along e to its end node
     via_table = lim <= table.delta  # the table holds every route within the bound
+    tol = standing_tol(e, g.edge_rev, v.rules.reverse_tol, v.rules.one_way_tol)
     nt = 0
     if not via_table:
         nt = search_toward_inlined(e, rest, lim, nuniq, cedge[b0:b1], g, ws)
     xe, ye = exy[e, 2], exy[e, 3]
     for j in range(b0, b1):
         f = cedge[j]
-        if f == e and coff[j] >= o - v.rules.reverse_tol:
+        if f == e and coff[j] >= o - tol:
             continue
         if via_table:
             # no look-up (cold memory) where even the straight line from e's end to f's start
