@@ -66,8 +66,9 @@ class _Wrapping:
     :meth:`around` is an async context manager per call (its value is the call's state);
     :meth:`request` sees each request message, :meth:`response` each response message, and
     :meth:`deserializer` may wrap the request deserializer. :class:`Chain` runs the concerns,
-    outermost first, in one wrapper per call: a streamed message passes through one generator
-    however many concerns there are.
+    outermost first, in one wrapper per call; a streamed message meets their hooks in the
+    call's deserializer (requests) and serializer (responses), so it passes through no
+    generator of the chain's, however many concerns there are.
     """
 
     def around(self, details: grpc.HandlerCallDetails, context: aio.ServicerContext) -> Any:
