@@ -13,7 +13,7 @@ latency and the load average; the last line the median difference over the round
     python bench/bench_service_ab.py --base /tmp/base --session-store redis://127.0.0.1:6379/0
 
 Both servers use this interpreter; ``--session-store`` gives both the same Redis (their
-vehicle ids differ).
+vehicle ids differ; its database is emptied before each round).
 """
 
 from __future__ import annotations
@@ -55,6 +55,11 @@ def start(tree: Path, extra: list[str]) -> tuple[subprocess.Popen[str], int]:
 def one_round(trees: list[Path], paced: list[list[Any]], args: argparse.Namespace) -> list[dict[str, float]]:
     """Both servers under the same paced load at once: CPU per update and p99 of each."""
     extra = [] if not args.session_store else ["--session-store", args.session_store]
+    if args.session_store:  # every round starts its vehicles afresh, not from the last round's records
+        import redis
+
+        with redis.Redis.from_url(args.session_store) as db:
+            db.flushdb()
     servers = [start(t, extra) for t in trees]
     try:
         tree_cpu = [ServerTree(p.pid, 1) for p, _ in servers]
