@@ -18,6 +18,7 @@ from __future__ import annotations
 import argparse
 import asyncio
 import multiprocessing as mp
+import random
 import sys
 import time
 from concurrent import futures
@@ -92,7 +93,7 @@ def serve(style: str, port_q: Any) -> None:
     asyncio.run(main())
 
 
-def client(port: int, streams: int, messages: int, out_q: Any) -> None:
+def client(port: int, streams: int, messages: int, out_q: Any, rate: float = 0.0) -> None:
     fix = pb.Fix(time=1.0, lat=60.1, lon=24.9, heading=90.0, speed=10.0)
     req = pb.FixRequest(map_id="hel", vehicle_id="v1", seq=1, fix=fix)
 
@@ -106,7 +107,10 @@ def client(port: int, streams: int, messages: int, out_q: Any) -> None:
             return n
 
         reader = asyncio.ensure_future(read())
-        for _ in range(messages):
+        t0 = time.perf_counter() + random.random() / rate if rate else 0.0
+        for k in range(messages):
+            if rate:  # paced: one fix every 1/rate s, as a vehicle sends them
+                await asyncio.sleep(max(0.0, t0 + k / rate - time.perf_counter()))
             await call.write(req)
         await call.done_writing()
         return await reader
@@ -121,7 +125,9 @@ def client(port: int, streams: int, messages: int, out_q: Any) -> None:
     asyncio.run(main())
 
 
-def measure(style: str, *, clients: int, streams: int, messages: int) -> tuple[int, float, float]:
+def measure(
+    style: str, *, clients: int, streams: int, messages: int, rate: float = 0.0
+) -> tuple[int, float, float]:
     """(messages answered, server CPU seconds per message, wall seconds)."""
     ctx = mp.get_context("spawn")
     port_q, out_q = ctx.Queue(), ctx.Queue()
@@ -135,7 +141,9 @@ def measure(style: str, *, clients: int, streams: int, messages: int) -> tuple[i
         out_q.get(timeout=120)
         warm.join()
         cpu0 = sum(ps.cpu_times()[:2])
-        procs = [ctx.Process(target=client, args=(port, streams, messages, out_q)) for _ in range(clients)]
+        procs = [
+            ctx.Process(target=client, args=(port, streams, messages, out_q, rate)) for _ in range(clients)
+        ]
         for p in procs:
             p.start()
         res = [out_q.get(timeout=600) for _ in procs]
@@ -155,12 +163,15 @@ def main() -> int:
     ap.add_argument("--clients", type=int, default=2, help="client processes")
     ap.add_argument("--streams", type=int, default=25, help="streams per client process")
     ap.add_argument("--messages", type=int, default=400, help="fixes per stream")
+    ap.add_argument(
+        "--rate", type=float, default=0.0, help="fixes per second per stream (0: as fast as answered)"
+    )
     ap.add_argument("--repeat", type=int, default=2, help="runs per style (the least CPU is printed)")
     a = ap.parse_args()
     load = " ".join(f"{x:.2f}" for x in psutil.getloadavg())
     print(f"load average before: {load} ({psutil.cpu_count()} cores)")
     for style in a.style.split(","):
-        kw = {"clients": a.clients, "streams": a.streams, "messages": a.messages}
+        kw = {"clients": a.clients, "streams": a.streams, "messages": a.messages, "rate": a.rate}
         runs = [measure(style, **kw) for _ in range(a.repeat)]
         n, per, wall = min(runs, key=lambda r: r[1])
         print(

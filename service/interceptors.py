@@ -66,8 +66,9 @@ class _Wrapping:
     :meth:`around` is an async context manager per call (its value is the call's state);
     :meth:`request` sees each request message, :meth:`response` each response message, and
     :meth:`deserializer` may wrap the request deserializer. :class:`Chain` runs the concerns,
-    outermost first, in one wrapper per call: a streamed message passes through one generator
-    however many concerns there are.
+    outermost first, in one wrapper per call; a streamed message meets their hooks in the
+    call's deserializer (requests) and serializer (responses), so it passes through no
+    generator of the chain's, however many concerns there are.
     """
 
     def around(self, details: grpc.HandlerCallDetails, context: aio.ServicerContext) -> Any:
@@ -128,9 +129,10 @@ class Chain(aio.ServerInterceptor):
             deserializer = c.deserializer(deserializer)
         if handler.request_streaming and self._requests:
             deserializer = call.streamed(deserializer)
-        return factory(
-            wrapped, request_deserializer=deserializer, response_serializer=handler.response_serializer
-        )
+        serializer = handler.response_serializer
+        if handler.response_streaming and self._responses:
+            serializer = call.answered(serializer)
+        return factory(wrapped, request_deserializer=deserializer, response_serializer=serializer)
 
     async def _enter(
         self, stack: contextlib.AsyncExitStack, d: grpc.HandlerCallDetails, context: aio.ServicerContext
@@ -153,49 +155,62 @@ class Chain(aio.ServerInterceptor):
     def _output(self, states: list[Any]) -> list[tuple[Callable[[Any, Any], None], Any]]:
         return [(self._arounds[i].response, states[i]) for i in reversed(self._responses)]
 
-    def _unary_out(self, call: _Call, inner: Any, *, streaming_in: bool) -> Any:
+    def _unary_out(self, call: _Call, inner: Any, *, streaming_in: bool, streaming_out: bool = False) -> Any:
         async def behaviour(request: Any, context: aio.ServicerContext) -> Any:
             async with contextlib.AsyncExitStack() as stack:
                 states = await self._enter(stack, call.details, context)
+                if streaming_out:  # reader/writer style: each written message meets the hooks
+                    call.out = self._output(states)  # in the call's serializer
                 result = inner(self._input(call, states, request, streaming_in), context)
                 if inspect.isawaitable(result):
                     result = await result
-                for hook, st in self._output(states):
-                    hook(st, result)
+                if not streaming_out:
+                    for hook, st in self._output(states):
+                        hook(st, result)
                 return result
             return None  # a concern handled an error (the call was aborted)
 
         return behaviour
 
     def _stream_out(self, call: _Call, inner: Any, *, streaming_in: bool) -> Any:
-        if not inspect.isasyncgenfunction(inner):  # reader/writer style (health Watch, reflection)
-            return self._unary_out(call, inner, streaming_in=streaming_in)
+        """A streamed answer's hooks run in the call's serializer (:meth:`_Call.answered`), as
+        gRPC sends each message: the wrapper adds no work per message of its own."""
+        if not inspect.isasyncgenfunction(inner):  # reader/writer style (StreamFixes, health Watch)
+            return self._unary_out(call, inner, streaming_in=streaming_in, streaming_out=True)
 
         async def behaviour(request: Any, context: aio.ServicerContext) -> AsyncIterator[Any]:
             async with contextlib.AsyncExitStack() as stack:
                 states = await self._enter(stack, call.details, context)
-                out = self._output(states)
-                requests = self._input(call, states, request, streaming_in)
-                if not out:
-                    async for resp in inner(requests, context):
-                        yield resp
-                    return
-                async for resp in inner(requests, context):
-                    for hook, st in out:
-                        hook(st, resp)
+                call.out = self._output(states)
+                async for resp in inner(self._input(call, states, request, streaming_in), context):
                     yield resp
 
         return behaviour
 
 
 class _Call:
-    """One call's place for its request hooks, bound once the concerns have entered."""
+    """One call's place for its request and response hooks, bound once the concerns have
+    entered."""
 
-    __slots__ = ("details", "hooks")
+    __slots__ = ("details", "hooks", "out")
 
     def __init__(self, details: grpc.HandlerCallDetails) -> None:
         self.details = details
         self.hooks: list[tuple[Callable[[Any, Any], Any], Any]] = []
+        self.out: list[tuple[Callable[[Any, Any], None], Any]] = []
+
+    def answered(self, inner: Any) -> Callable[[Any], Any]:
+        """The serializer of a streamed response: run the response hooks, then serialise.
+        gRPC calls it as the handler yields or writes each message, whichever the handler's
+        style."""
+        dump = inner if inner is not None else (lambda m: m)
+
+        def each(m: Any) -> Any:
+            for hook, st in self.out:
+                hook(st, m)
+            return dump(m)
+
+        return each
 
     def streamed(self, inner: Any) -> Callable[[bytes], Any]:
         """The deserializer of a streamed request: parse, then run the request hooks. gRPC

@@ -312,22 +312,23 @@ class MapMatchServicer(pb_grpc.MapMatchServicer):
 
     async def StreamFixes(
         self, request_iterator: AsyncIterator[pb.FixRequest], context: aio.ServicerContext
-    ) -> AsyncIterator[pb.SnapResponse]:
+    ) -> None:
+        """Reader/writer style (``context.read`` / ``context.write``): per fix, no async
+        generator of gRPC's, ours or the interceptors' between the wire and :meth:`answer`."""
         caller = CALLER.get()
         answer = self.answer if caller is None else functools.partial(self.answer, caller=caller)
+        submit = None if self.config.inline_fixes else self.online.submit
         if self.checkpoints is not None:  # sessions in the store: look-ups first, hand-over at the end
-            submit = None if self.config.inline_fixes else self.online.submit
             allowed = None if caller is None else caller.may_act_for
-            async for resp in self.checkpoints.stream(request_iterator, context, answer, submit, allowed):
-                yield resp
+            await self.checkpoints.serve(context, answer, submit, allowed)
             return
-        if self.config.inline_fixes:  # no thread hop: one fix is a bounded, short piece of work
-            async for req in request_iterator:
-                yield answer(req)
+        read, write, eof = context.read, context.write, aio.EOF
+        if submit is None:  # no thread hop: one fix is a bounded, short piece of work
+            while (req := await read()) is not eof:
+                await write(answer(req))
         else:
-            submit = self.online.submit
-            async for req in request_iterator:
-                yield await submit(functools.partial(answer, req))
+            while (req := await read()) is not eof:
+                await write(await submit(functools.partial(answer, req)))
 
     async def StreamFixBatches(
         self, request_iterator: AsyncIterator[pb.FixBatch], context: aio.ServicerContext

@@ -44,11 +44,12 @@ import logging
 import math
 import threading
 import time
-from collections.abc import AsyncIterator, Awaitable, Callable, Iterable
+from collections.abc import Awaitable, Callable, Iterable
 from dataclasses import dataclass, field, fields
 from typing import Any
 
 import grpc
+from grpc import aio
 
 from mapmatch.online.codec import StateCaps, from_bytes, to_bytes
 from service import convert
@@ -337,23 +338,23 @@ class Checkpointer:
             return
         self.counters.restored += 1
 
-    async def stream(
+    async def serve(
         self,
-        requests: AsyncIterator[pb.FixRequest],
         context: Any,
         answer: Callable[[pb.FixRequest], pb.SnapResponse],
         submit: Callable[[Callable[[], pb.SnapResponse]], Awaitable[pb.SnapResponse]] | None = None,
         allowed: Callable[[str], bool] | None = None,
-    ) -> AsyncIterator[pb.SnapResponse]:
-        """``StreamFixes`` with the store: look up unknown vehicles, hand the stream's
-        vehicles over when it ends (or, while draining, before its next fix). A fix for a
-        vehicle the caller may not act for (``allowed`` false) is only answered: its vehicle
-        is neither looked up nor handed over."""
+    ) -> None:
+        """``StreamFixes`` with the store, reading and writing on the call's ``context``: look
+        up unknown vehicles, hand the stream's vehicles over when it ends (or, while
+        draining, before its next fix). A fix for a vehicle the caller may not act for
+        (``allowed`` false) is only answered: its vehicle is neither looked up nor handed over."""
         seen: set[tuple[str, str]] = set()
+        read, write, eof = context.read, context.write, aio.EOF
         try:
-            async for req in requests:
+            while (req := await read()) is not eof:
                 if not isinstance(req, pb.FixRequest):  # bytes that did not decode: an error answer
-                    yield answer(req)
+                    await write(answer(req))
                     continue
                 if self.draining:
                     await asyncio.to_thread(self._hand_over, self._keys(seen))
@@ -365,7 +366,7 @@ class Checkpointer:
                 if allowed is None or allowed(req.vehicle_id):
                     seen.add((req.map_id, req.vehicle_id))
                     await self.before(req)
-                yield answer(req) if submit is None else await submit(functools.partial(answer, req))
+                await write(answer(req) if submit is None else await submit(functools.partial(answer, req)))
         finally:
             if seen:
                 self._queue_handover(self._keys(seen))
