@@ -19,10 +19,12 @@ README = ROOT / "README.md"
 DOCS = ROOT / "docs"
 
 SETUP_AND_DEMO = (
-    "python3 -m venv .venv && .venv/bin/pip install -c requirements/constraints.txt -e '.[dev]'"
-    " && .venv/bin/mapmatch demo"
+    "python3 -m venv .venv && .venv/bin/pip install --no-compile -c requirements/constraints.txt"
+    " -e '.[demo]' && .venv/bin/mapmatch demo"
 )
-TESTS = ".venv/bin/python -m pytest -q"
+TESTS = (
+    ".venv/bin/pip install -c requirements/constraints.txt -e '.[dev]' && .venv/bin/python -m pytest -q"
+)
 
 FENCE = re.compile(r"^(```|~~~).*?^\1[^\n]*$", re.M | re.S)
 CODE_SPAN = re.compile(r"(`+).+?\1", re.S)
