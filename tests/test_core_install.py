@@ -150,6 +150,7 @@ def test_match_and_replay_on_csv_and_gpx(core: tuple[Path, dict[str, str]]) -> N
         assert len(rows) > 5 and sum(r["edge"] not in ("", "-1") for r in rows) > len(rows) // 2
 
 
+@pytest.mark.slow  # a server and its batch worker under the import hook
 def test_serve_streams_and_batch_worker_without_extras(core: tuple[Path, dict[str, str]]) -> None:
     d, env = core
     code = SERVE.format(blocked=BLOCKED)
