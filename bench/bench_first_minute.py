@@ -14,9 +14,10 @@ job whose kernels are not compiled yet runs them interpreted), or the one ``--ke
 gives; the table says how each step's kernels ran, cold and warm (``interpreted`` when the
 command printed its one-line notice, or the server answered before its kernels were
 compiled): a job run interpreted compiles nothing, so its warm run is interpreted too.
-``--install`` also times ``pip install -c requirements/constraints.txt`` of the core, of
-``[prep]`` and of README's ``-e '.[dev]'`` into new virtual environments (pip's cache as it is)
-and measures their sizes (the whole environment, and what the install added to a new one).
+``--install`` also times ``pip install -c requirements/constraints.txt`` of the core and of
+``[prep]`` into new virtual environments, README's first command (its install of the ``demo``
+extra and the demo) and its second command's install of the ``dev`` extra (pip's cache as it
+is), and measures their sizes (the whole environment, and what the install added to a new one).
 Prints a Markdown table with the machine's load average, which decides the wall times on a
 shared machine.
 
@@ -231,24 +232,46 @@ def _size(folder: Path) -> int:
     return sum(f.stat().st_size for f in folder.rglob("*") if f.is_file() and not f.is_symlink())
 
 
+# the installs of README's two commands (tests/test_docs.py checks README gives these)
+FIRST_INSTALL = "--no-compile -c requirements/constraints.txt -e .[demo]"
+SECOND_INSTALL = "-c requirements/constraints.txt -e .[dev]"
+
+
+def _pip(venv: Path, tree: Path, spec: str) -> None:
+    subprocess.run(
+        [str(venv / "bin" / "pip"), "install", "-q", *spec.split()], cwd=tree, check=True,
+        stdout=subprocess.DEVNULL,
+    )  # fmt: skip
+
+
 def installs(work: Path, tree: Path) -> list[tuple[str, str, float, float, int, int]]:
-    """``(install, load, wall, CPU, MB, MB added)`` of the core, ``[prep]`` and README's
-    ``-e '.[dev]'``, each into a new virtual environment with pip and the constraints file;
-    "added" leaves out what a new virtual environment holds before the install (pip, and on
-    Python 3.11 setuptools)."""
+    """``(install, load, wall, CPU, MB, MB added)`` of the core and ``[prep]`` (pip and the
+    constraints file, each into a new virtual environment), of README's first command (a new
+    virtual environment, its install and ``mapmatch demo``) and of the install of README's
+    second command into that environment; "added" leaves out what a new virtual environment
+    holds before the install (pip, and on Python 3.11 setuptools)."""
     empty = work / "venv-empty"
     subprocess.run([sys.executable, "-m", "venv", str(empty)], check=True)
     base = _size(empty)
+    steps = (
+        ("core", "venv-core", "-c requirements/constraints.txt ."),
+        ("`[prep]`", "venv-prep", "-c requirements/constraints.txt .[prep]"),
+        ("README's first command: `-e '.[demo]'` and the demo", "venv-readme", FIRST_INSTALL),
+        ("README's second command's install: `-e '.[dev]'` added", "venv-readme", SECOND_INSTALL),
+    )
     out = []
-    for name, spec in (("core", "."), ("prep", ".[prep]"), ("dev (README)", "-e .[dev]")):
-        venv = work / f"venv-{name.split()[0]}"
+    for name, folder, spec in steps:
+        venv = work / folder
         load = _load()
         c0, t0 = _children_cpu(), time.perf_counter()
-        subprocess.run([sys.executable, "-m", "venv", str(venv)], check=True)
-        subprocess.run(
-            [str(venv / "bin" / "pip"), "install", "-q", "-c", "requirements/constraints.txt", *spec.split()],
-            cwd=tree, check=True, stdout=subprocess.DEVNULL,
-        )  # fmt: skip
+        if not venv.exists():
+            subprocess.run([sys.executable, "-m", "venv", str(venv)], check=True)
+        _pip(venv, tree, spec)
+        if spec == FIRST_INSTALL:
+            subprocess.run(
+                [str(venv / "bin" / "mapmatch"), "demo", "--out", str(work / "demo-readme")], cwd=tree,
+                check=True, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+            )  # fmt: skip
         wall, cpu = time.perf_counter() - t0, _children_cpu() - c0
         size = _size(venv)
         out.append((name, load, wall, cpu, size >> 20, (size - base) >> 20))
@@ -259,7 +282,7 @@ def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--monaco", type=Path, default=MONACO, help="the OSM source prepared first")
     ap.add_argument("--skip-demo", action="store_true")
-    ap.add_argument("--install", action="store_true", help="also time the three installs and measure them")
+    ap.add_argument("--install", action="store_true", help="also time the installs and measure them")
     ap.add_argument(
         "--kernels", choices=("auto", "compiled", "interpreted"), help="kernel mode (default: auto)"
     )

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import io
 import os
+import re
 import signal
 import socket
 import subprocess
@@ -325,24 +326,48 @@ def _startup_seconds() -> float:
     return time.perf_counter() - t0
 
 
-@pytest.mark.slow  # three processes matching 4,000 tracks each (interrupted)
-@pytest.mark.parametrize("after", [0.2, 0.6, 2.0])
-def test_ctrl_c_at_any_time_is_one_line(grid: tuple[AsciiMap, Path], tmp_path: Path, after: float) -> None:
+def _read_until_progress(proc: subprocess.Popen[bytes], *, timeout: float = 300) -> bytes:
+    """Read ``proc``'s stderr until its progress bar has counted matched points (the first
+    partition done, the rest still to match); what was read, for the final message."""
+    assert proc.stderr is not None
+    seen = b""
+    deadline = time.monotonic() + timeout
+    while not re.search(rb"matching: +\d+%\|[^|]*\| *[1-9][\d.]*k?/", seen):
+        assert time.monotonic() < deadline, seen
+        chunk = os.read(proc.stderr.fileno(), 4096)
+        assert chunk, f"stderr closed before any progress (exit {proc.wait()}): {seen!r}"
+        seen += chunk
+    return seen
+
+
+@pytest.mark.slow  # three processes started; one matches a partition of 4,000 tracks
+@pytest.mark.parametrize("when", ["start-up 0.2 s", "start-up 0.6 s", "matching"])
+def test_ctrl_c_at_any_time_is_one_line(grid: tuple[AsciiMap, Path], tmp_path: Path, when: str) -> None:
+    """A Ctrl-C during start-up (imports, then reading stdin, a pipe kept open: the run cannot
+    end before the signal) or during matching (after the progress bar has counted the first
+    partition, with thousands of tracks still to match) ends with the one line and exit 130."""
     m, map_path = grid
     src = tmp_path / "t.csv"
     write_tracks(src, [grid_track(m, f"v{i}") for i in range(4000)])
     env = dict(os.environ, PYTHONPATH=str(ROOT))
-    delay = 1.5 * _startup_seconds() + after
+    matching = when == "matching"
+    cmd = [sys.executable, "-m", "mapmatch", "match", "--map", str(map_path), str(src) if matching else "-",
+           "-o", str(tmp_path / "o.csv"), "--workers", "1", "--kernels", "interpreted"]  # fmt: skip
     proc = subprocess.Popen(
-        [sys.executable, "-m", "mapmatch", "match", "--map", str(map_path), str(src), "-o",
-         str(tmp_path / "o.csv"), "--workers", "1"],
-        stdout=subprocess.PIPE, stderr=subprocess.PIPE, env=env,
-    )  # fmt: skip
-    time.sleep(delay)
+        cmd, stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=subprocess.PIPE, env=env
+    )
+    assert proc.stdin is not None
+    if matching:
+        before = _read_until_progress(proc)
+    else:
+        proc.stdin.write(src.read_bytes()[:4096])  # part of the input; the pipe stays open
+        proc.stdin.flush()
+        time.sleep(1.5 * _startup_seconds() + float(when.split()[1]))
+        before = b""
+    assert proc.poll() is None, "the run ended before the signal"
     proc.send_signal(signal.SIGINT)
-    _, err = proc.communicate(timeout=60)
-    if proc.returncode == 0 or (tmp_path / "o.csv").exists():
-        pytest.skip("the run finished before the signal")
+    _, rest = proc.communicate(timeout=60)
+    err = before + rest
     # 130, or killed by SIGINT (-2) when the signal lands in compiled code and Python re-delivers
     # it at exit; either way the one line, never a traceback
     assert proc.returncode in (130, -signal.SIGINT), err

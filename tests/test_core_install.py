@@ -127,6 +127,7 @@ def test_the_hook_refuses_the_optional_libraries(core: tuple[Path, dict[str, str
     assert proc.returncode != 0 and "No module named 'pandas'" in proc.stderr
 
 
+@pytest.mark.slow  # six CLI processes under the core-install import hook
 def test_match_and_replay_on_csv_and_gpx(core: tuple[Path, dict[str, str]]) -> None:
     d, env = core
     m = str(d / "city.map")
@@ -149,6 +150,7 @@ def test_match_and_replay_on_csv_and_gpx(core: tuple[Path, dict[str, str]]) -> N
         assert len(rows) > 5 and sum(r["edge"] not in ("", "-1") for r in rows) > len(rows) // 2
 
 
+@pytest.mark.slow  # a server and its batch worker under the import hook
 def test_serve_streams_and_batch_worker_without_extras(core: tuple[Path, dict[str, str]]) -> None:
     d, env = core
     code = SERVE.format(blocked=BLOCKED)

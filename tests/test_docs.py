@@ -13,16 +13,17 @@ import pytest
 
 from mapmatch.cli import SUBCOMMANDS
 from mapmatch.config import MatchConfig
+from tests.bench_modules import bench_module
 
 ROOT = Path(__file__).resolve().parents[1]
 README = ROOT / "README.md"
 DOCS = ROOT / "docs"
 
 SETUP_AND_DEMO = (
-    "python3 -m venv .venv && .venv/bin/pip install -c requirements/constraints.txt -e '.[dev]'"
-    " && .venv/bin/mapmatch demo"
+    "python3 -m venv .venv && .venv/bin/pip install --no-compile -c requirements/constraints.txt"
+    " -e '.[demo]' && .venv/bin/mapmatch demo"
 )
-TESTS = ".venv/bin/python -m pytest -q"
+TESTS = ".venv/bin/pip install -c requirements/constraints.txt -e '.[dev]' && .venv/bin/python -m pytest -q"
 
 FENCE = re.compile(r"^(```|~~~).*?^\1[^\n]*$", re.M | re.S)
 CODE_SPAN = re.compile(r"(`+).+?\1", re.S)
@@ -91,6 +92,14 @@ def test_readme_keeps_the_two_commands_verbatim() -> None:
     blocks = [b.strip() for b in re.findall(r"^```[^\n]*\n(.*?)^```", section, re.M | re.S)]
     assert SETUP_AND_DEMO in blocks, blocks
     assert TESTS in blocks, blocks
+
+
+def test_first_minute_bench_times_readmes_installs() -> None:
+    """bench/bench_first_minute.py installs what README's two commands install."""
+    bench = bench_module("bench_first_minute")
+    for command, install in ((SETUP_AND_DEMO, bench.FIRST_INSTALL), (TESTS, bench.SECOND_INSTALL)):
+        pip = command.split("pip install ", 1)[1].split(" && ", 1)[0].replace("'", "")
+        assert pip == install, (pip, install)
 
 
 def test_readme_links_resolve() -> None:

@@ -183,6 +183,7 @@ def _stalling_server() -> tuple[socket.socket, threading.Event]:
     return lst, stop
 
 
+@pytest.mark.slow  # waits out a store look-up's timeout
 def test_a_look_up_that_times_out_starts_the_session_afresh_and_is_counted():
     lst, stop = _stalling_server()
     port = lst.getsockname()[1]

@@ -34,6 +34,7 @@ def _both(tmp_path: Path, name: str, *args: str) -> tuple[bytes, bytes]:
     return out[0], out[1]
 
 
+@pytest.mark.slow  # replay and match, compiled and interpreted
 @pytest.mark.timeout(2 * LONG)
 def test_interpreted_replay_and_match_give_the_compiled_answers(
     cross: tuple[AsciiMap, Path],  # noqa: F811
@@ -50,6 +51,7 @@ def test_interpreted_replay_and_match_give_the_compiled_answers(
     assert compiled == interpreted and b"matched" in compiled
 
 
+@pytest.mark.slow  # the drive simulated compiled and interpreted
 @pytest.mark.timeout(LONG)
 def test_interpreted_simulate_gives_the_compiled_drive(tmp_path: Path) -> None:
     save_map(parse_ascii_map(GRID, scale=25.0).graph, tmp_path / "grid.map")
@@ -78,6 +80,7 @@ def test_a_bad_kernel_mode_is_a_usage_error(cross: tuple[AsciiMap, Path], tmp_pa
     assert not out.exists()
 
 
+@pytest.mark.slow  # processes on a cold kernel cache
 @pytest.mark.timeout(LONG)
 def test_auto_on_a_cold_cache_runs_a_small_job_interpreted_and_says_so(
     cross: tuple[AsciiMap, Path],  # noqa: F811

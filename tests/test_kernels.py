@@ -150,6 +150,7 @@ def test_the_demo_checks_its_extras_without_importing_them() -> None:
         require_installed("json", "no_such_xyz", extra="demo", needed_for="mapmatch demo")
 
 
+@pytest.mark.slow  # compiles a group into a cold cache
 def test_a_group_whose_cache_was_written_for_other_source_is_not_cached(tmp_path: Path) -> None:
     """A cache index written for another version of a kernel's file does not count: the kernel
     compiles again, so the "preparing compiled kernels" line must be printed."""

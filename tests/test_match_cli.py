@@ -62,6 +62,7 @@ def test_match_command_writes_geojson(setup: tuple[Path, Path, AsciiMap], tmp_pa
     assert not parts_dir_for(out).exists()
 
 
+@pytest.mark.slow  # the run in worker processes
 def test_match_command_in_worker_processes_equals_in_process(
     setup: tuple[Path, Path, AsciiMap], tmp_path: Path
 ) -> None:
@@ -253,6 +254,7 @@ def test_a_route_table_over_its_budget_is_built_shorter_with_the_same_results(
     assert not (tmp_path / "x.csv").exists()
 
 
+@pytest.mark.slow  # worker processes and a route table built for them
 def test_worker_processes_map_one_route_table_that_the_run_builds(
     setup: tuple[Path, Path, AsciiMap], tmp_path: Path
 ) -> None:

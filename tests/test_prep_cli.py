@@ -202,6 +202,7 @@ def test_usage_errors(capsys: pytest.CaptureFixture[str], tmp_path: Path) -> Non
     assert list(tmp_path.iterdir()) == []
 
 
+@pytest.mark.slow  # two prep processes building a map from a GIS file
 def test_quiet_prep_says_nothing_on_stderr(tmp_path: Path) -> None:
     out = tmp_path / "tiny.map"
     r = _run(str(DATA / "roads_ft_tf.geojson"), "-o", str(out), "-q")

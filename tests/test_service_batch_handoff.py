@@ -174,6 +174,7 @@ def _autogroup(pid: int | str) -> list[str]:
     return words if len(words) == 3 and words[1] == "nice" else []
 
 
+@pytest.mark.slow  # a server and its batch worker processes
 def test_batch_workers_run_in_an_idle_cpu_class(tmp_path):
     path = _map_file(tmp_path)
     with running(local_config(maps=(("city", path),))) as (server, _port):  # "idle", the default

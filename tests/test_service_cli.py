@@ -183,6 +183,7 @@ def _serve_process(tmp_path: Path, *extra: str) -> tuple[subprocess.Popen, int]:
     return proc, int(line.split("listening on ")[1].split()[0].rsplit(":", 1)[1])
 
 
+@pytest.mark.slow  # a server process and its grace period
 def test_sigterm_shuts_down_gracefully(tmp_path):
     proc, port = _serve_process(tmp_path)
     try:
@@ -209,6 +210,7 @@ def test_sigterm_shuts_down_gracefully(tmp_path):
             proc.wait()
 
 
+@pytest.mark.slow  # several server processes on one port
 def test_processes_share_one_port_each_with_its_own_sessions(tmp_path):
     proc, port = _serve_process(tmp_path, "--processes", "2")
     try:
@@ -236,6 +238,7 @@ def test_processes_share_one_port_each_with_its_own_sessions(tmp_path):
             proc.wait()
 
 
+@pytest.mark.slow  # server processes with batch workers
 def test_a_second_server_on_a_port_in_use_exits_3_also_with_processes(tmp_path):
     proc, port = _serve_process(tmp_path)
     try:

@@ -140,6 +140,7 @@ def _until(cond, timeout: float = 60.0) -> bool:
     return False
 
 
+@pytest.mark.slow  # a server process building maps from sources
 def test_a_map_prepared_again_over_its_file_still_answers_matchtrack_from_a_restarted_worker(tmp_path):
     path = tmp_path / "city.map"
     save_map(AMAP.graph, path)
@@ -171,6 +172,7 @@ def _first_padding(path: Path) -> int:
     raise AssertionError("no array with padding")
 
 
+@pytest.mark.slow  # a server process building maps from sources
 def test_a_worker_that_cannot_load_its_map_turns_that_maps_health_not_serving(tmp_path):
     path = tmp_path / "city.map"
     save_map(AMAP.graph, path)
@@ -256,6 +258,7 @@ def _build_dirs(pid: int) -> list[Path]:
     return list(Path(tempfile.gettempdir()).glob(f"{BUILD_PREFIX}{pid}-*"))
 
 
+@pytest.mark.slow  # a server process building maps from sources
 def test_a_killed_server_takes_its_build_child_and_batch_worker_with_it(tmp_path):
     maps = tmp_path / "maps"
     maps.mkdir()
@@ -280,6 +283,7 @@ def test_a_killed_server_takes_its_build_child_and_batch_worker_with_it(tmp_path
             proc.kill()
 
 
+@pytest.mark.slow  # a server process building maps from sources
 def test_sigterm_during_a_build_stops_within_the_grace_and_leaves_nothing(tmp_path):
     maps = tmp_path / "maps"
     maps.mkdir()
@@ -304,6 +308,7 @@ def test_sigterm_during_a_build_stops_within_the_grace_and_leaves_nothing(tmp_pa
             proc.kill()
 
 
+@pytest.mark.slow  # a server process building maps from sources
 def test_load_map_builds_osm_and_shapefile_sources_through_their_descriptors(tmp_path):
     import geopandas as gpd
 
