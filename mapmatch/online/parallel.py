@@ -23,72 +23,61 @@ from mapmatch.online.road import RoadModel
 
 
 def stretch_roads(
-    road: RoadModel, index: EdgeIndex, edge: int, stretch: int, cfg: ConfidenceConfig
-) -> tuple[int, ...]:
-    """The edges that run alongside one stretch of ``edge`` (see the module docstring).
+    road: RoadModel, index: EdgeIndex, edge: int, cfg: ConfidenceConfig
+) -> list[tuple[int, ...]]:
+    """Per stretch of ``edge`` (see the module docstring), the edges that run alongside it.
 
     Parameters
     ----------
     road : the road model of the map.
     index : its spatial index.
     edge : the edge.
-    stretch : which stretch, counted from the edge's start (:func:`stretch_of`).
     cfg : the confidence section (``parallel_radius``, ``parallel_angle``,
         ``parallel_spacing``, ``parallel_node_gap``).
 
     Returns
     -------
-    tuple of int
-        The edges alongside, sorted (empty: none).
+    list of tuple of int
+        Per stretch, from the edge's start, the edges alongside (empty: none).
     """
     length = road.elen[edge]
-    n = stretch_count(length, cfg)
-    x, y, bearing = road.locate(edge, (stretch + 0.5) * length / n)
-    c = index.query(np.array([[x, y]]), cfg.parallel_radius)
-    found: set[int] = set()
+    n = max(1, math.ceil(length / cfg.parallel_spacing))
+    mids = [(k + 0.5) * length / n for k in range(n)]
+    pts = [road.locate(edge, s) for s in mids]
+    c = index.query(np.array([[p[0], p[1]] for p in pts]), cfg.parallel_radius)
+    found: list[set[int]] = [set() for _ in range(n)]
     nodes = {road.eu[edge], road.ev[edge]}
     rev = road.rev[edge]
-    gap = cfg.parallel_node_gap
-    for e2, off in zip(c.edge.tolist(), c.offset.tolist(), strict=True):
-        if e2 in (edge, rev) or e2 in found:
+    for k, e2, off in zip(c.point.tolist(), c.edge.tolist(), c.offset.tolist(), strict=True):
+        if e2 in (edge, rev) or e2 in found[k]:
             continue
-        if (road.eu[e2] in nodes or road.ev[e2] in nodes) and (off < gap or off > road.elen[e2] - gap):
+        if (road.eu[e2] in nodes or road.ev[e2] in nodes) and (
+            off < cfg.parallel_node_gap or off > road.elen[e2] - cfg.parallel_node_gap
+        ):
             continue
-        if abs(angle_diff(road.bearing_at(e2, off), bearing)) <= cfg.parallel_angle:
-            found.add(e2)
-    return tuple(sorted(found))
-
-
-def stretch_count(length: float, cfg: ConfidenceConfig) -> int:
-    """How many stretches an edge of ``length`` metres is cut into."""
-    return max(1, math.ceil(length / cfg.parallel_spacing))
-
-
-def stretch_of(length: float, offset: float, cfg: ConfidenceConfig) -> int:
-    """The stretch of an edge of ``length`` metres that holds ``offset``."""
-    n = stretch_count(length, cfg)
-    k = int(offset / length * n) if length > 0.0 else 0
-    return min(max(k, 0), n - 1)
+        if abs(angle_diff(road.bearing_at(e2, off), pts[k][2])) <= cfg.parallel_angle:
+            found[k].add(e2)
+    return [tuple(sorted(f)) for f in found]
 
 
 class ParallelRoads:
-    """The roads alongside each stretch of a map's edges, computed the first time an answer
-    lies on that stretch and kept (thread-safe: a race computes a stretch twice, with the
-    same result)."""
+    """The roads alongside each stretch of a map's edges, computed on first use and kept
+    (thread-safe: a race computes an edge's stretches twice, with the same result)."""
 
     def __init__(self, road: RoadModel, index: EdgeIndex) -> None:
         self.road = road
         self.index = index
-        self._roads: dict[tuple[int, int, ConfidenceConfig], tuple[int, ...]] = {}
+        self._roads: dict[tuple[int, float, float, float], list[tuple[int, ...]]] = {}
 
     def alongside(self, edge: int, offset: float, cfg: ConfidenceConfig) -> tuple[int, ...]:
         """The edges alongside ``edge`` at ``offset`` metres from its start (empty: none)."""
-        k = stretch_of(self.road.elen[edge], offset, cfg)
-        key = (edge, k, cfg)
+        key = (edge, cfg.parallel_radius, cfg.parallel_angle, cfg.parallel_spacing)
         roads = self._roads.get(key)
         if roads is None:
-            roads = self._roads[key] = stretch_roads(self.road, self.index, edge, k, cfg)
-        return roads
+            roads = self._roads[key] = stretch_roads(self.road, self.index, edge, cfg)
+        length = self.road.elen[edge]
+        k = int(offset / length * len(roads)) if length > 0.0 else 0
+        return roads[min(max(k, 0), len(roads) - 1)]
 
     def nearest(self, edge: int, offset: float, x: float, y: float, cfg: ConfidenceConfig) -> float:
         """Metres from the point ``(x, y)`` to the nearest road alongside ``edge`` at
