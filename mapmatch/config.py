@@ -697,8 +697,6 @@ class MeasurementConfig:
     """How the map-aided measurement is built and when it is usable (``measurement``).
 
     min_probability : the reported road's probability below which the measurement is not usable.
-    resolved_probability : in an ambiguous region, the probability the reported road needs for
-        the region to count as resolved (usable).
     settle_distance : metres driven after a (re)initialisation before the measurement is usable.
     map_sigma : metres; 1-σ error of the map's centre line.
     lane_width : metres per lane, for a road with a ``lanes`` tag but no ``width``.
@@ -713,8 +711,7 @@ class MeasurementConfig:
         by this at each end.
     """
 
-    min_probability: float = 0.983
-    resolved_probability: float = 0.99
+    min_probability: float = 0.986
     settle_distance: float = 100.0
     map_sigma: float = 1.0
     lane_width: float = 3.25
@@ -734,7 +731,7 @@ class MeasurementConfig:
                 continue
             if isinstance(v, bool) or not isinstance(v, int | float) or not math.isfinite(v) or v < 0:
                 raise ConfigError(f"{_full_name(f.name)} must be a finite non-negative number, got {v!r}")
-        _at_most_one(self, "min_probability", "resolved_probability")
+        _at_most_one(self, "min_probability")
         _positive(self, "map_sigma", "lane_width", "default_width", "road_heading_sigma")
 
     @cached_property
