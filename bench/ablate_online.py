@@ -59,7 +59,6 @@ class Mechanism:
 
 RATE_RULES = (
     "online.stop.zero_speed=0",
-    "online.stop.node_hold_ahead_sigmas=0",
     "online.evidence.evidence_time=0.1",
     "online.stop.stop_time=0.001",
     "online.stop.speed_time=0",
@@ -101,7 +100,6 @@ MECHANISMS: tuple[Mechanism, ...] = (
     Mechanism("drift_decay", ("online.bias.drift_decay_time=0.01",)),
     Mechanism("stop_detection", ("online.stop.stop_speed=0",)),
     Mechanism("node_hold_back", ("online.stop.node_hold_sigmas=0",)),
-    Mechanism("node_hold_ahead", ("online.stop.node_hold_ahead_sigmas=0",)),
     Mechanism("zero_velocity", ("online.stop.zero_speed=0",)),
     Mechanism("speed_time", ("online.stop.speed_time=0",)),
     Mechanism("stop_speed_average", ("online.stop.stop_time=0.001",)),
@@ -117,10 +115,6 @@ MECHANISMS: tuple[Mechanism, ...] = (
     Mechanism("crossing_revision", ("online.corrections.revise_sigmas=1000000",), loss="fin"),
     Mechanism("live_spacing", ("online.corrections.live_spacing=0",), loss="fin"),
     Mechanism("report_back_ratio", ("online.corrections.report_back_ratio=1",)),
-    Mechanism(
-        "rate_rules_held",
-        ("online.stop.zero_speed=0", "online.stop.node_hold_ahead_sigmas=0"),
-    ),
     Mechanism("rate_rules_all", RATE_RULES),
     Mechanism("rate_rules_all_fin", RATE_RULES, loss="fin"),
 )

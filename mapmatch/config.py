@@ -271,15 +271,6 @@ class StopConfig:
     still_distance : metres; moving less than this between fixes, the vehicle stands.
     node_hold_sigmas : a vehicle past a node goes back across it only when the fix lies more
         than this many σ before it (no flicker at a crossing).
-    node_hold_ahead_sigmas : a fix past the end node of the edge the vehicle is on keeps it at
-        that node while it lies within this many σ along the next edge (the fix's along-track
-        noise); further on (and at 0, at once) the next edge takes it. Held there the position
-        moves by nothing while the odometer moves on, which at 10 Hz is under a metre a step:
-        the transition over one step keeps it there until the fix is this far past. A high
-        fix rate's lagging position a few metres past a straight crossing is then at times
-        reported before it; at 0 the next edge takes it at once, but so does white fix noise
-        at a node, too early. The hold stays until a rule tells the noise at a node from the
-        lag.
     speed_time : seconds; the transition's speed penalty judges the distance along the path over
         at least this long. Between fixes 0.1 s apart the positions' own noise (a lagging
         estimate catching up with its fix, 10 m in one step) would read as an impossible speed,
@@ -292,7 +283,6 @@ class StopConfig:
     zero_speed: float = 0.2
     still_distance: float = 0.05
     node_hold_sigmas: float = 0.5
-    node_hold_ahead_sigmas: float = 0.5
     speed_time: float = 1.0
 
     def __post_init__(self) -> None:
