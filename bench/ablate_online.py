@@ -62,7 +62,6 @@ RATE_RULES = (
     "online.evidence.evidence_time=0.1",
     "online.stop.stop_time=0.001",
     "online.stop.speed_time=0",
-    "online.corrections.live_spacing=0",
 )
 """The rules that exist for the fix rate, all switched off at once (for a 10 Hz run: one
 setting instead of six)."""
@@ -113,7 +112,6 @@ MECHANISMS: tuple[Mechanism, ...] = (
         ("online.odometer.scale_min_distance=1000000000", "online.odometer.scale_baseline=0"),
     ),
     Mechanism("crossing_revision", ("online.corrections.revise_sigmas=1000000",), loss="fin"),
-    Mechanism("live_spacing", ("online.corrections.live_spacing=0",), loss="fin"),
     Mechanism("report_back_ratio", ("online.corrections.report_back_ratio=1",)),
     Mechanism("rate_rules_all", RATE_RULES),
     Mechanism("rate_rules_all_fin", RATE_RULES, loss="fin"),

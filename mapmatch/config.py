@@ -351,8 +351,8 @@ class OdometerConfig:
 class CorrectionsConfig:
     """The corrections of an ambiguous region, re-timed crossings and the report (``online.corrections``).
 
-    max_live : most fixes of an ambiguous region remembered for corrections ...
-    live_spacing : ... at most one per this many seconds, or on an edge change.
+    max_live : most fixes of an ambiguous region remembered for corrections (every fix until
+        then).
     trail_step : metres; the odometer trail for re-timing crossings keeps a point this often ...
     trail_max : ... at most this many points ...
     trail_max_distance : ... and crossings at most this many metres back.
@@ -366,7 +366,6 @@ class CorrectionsConfig:
     """
 
     max_live: int = 48
-    live_spacing: float = 0.5
     trail_step: float = 2.0
     trail_max: int = 150
     trail_max_distance: float = 300.0
