@@ -14,7 +14,8 @@ error of the all-track loss difference, by a bootstrap over tracks (paired: the 
 
     python bench/ablate_online.py                       # every mechanism, 1 Hz
     python bench/ablate_online.py --only bias_emission stop_line --rates 10
-    python bench/ablate_online.py --json out.json       # keep every setting's rows
+    python bench/ablate_online.py --json out.json       # keep every setting's rows (after each track)
+    python bench/ablate_online.py --only rate_rules_all rate_rules_all_fin --rates 10
     python bench/ablate_online.py --load out.json       # report from them without running
 """
 
@@ -56,6 +57,15 @@ class Mechanism:
     off_by_default: bool = False
 
 
+RATE_RULES = (
+    "online.stop.zero_speed=0",
+    "online.evidence.evidence_time=0.1",
+    "online.stop.stop_time=0.001",
+    "online.stop.speed_time=0",
+)
+"""The rules that exist for the fix rate, all switched off at once (for a 10 Hz run: one
+setting instead of six)."""
+
 MECHANISMS: tuple[Mechanism, ...] = (
     Mechanism("region_drift_term", ("online.region.drift_rate=0",)),
     Mechanism("region_sigma_term", ("online.region.ambiguous_sigma_factor=0",)),
@@ -89,7 +99,6 @@ MECHANISMS: tuple[Mechanism, ...] = (
     Mechanism("drift_decay", ("online.bias.drift_decay_time=0.01",)),
     Mechanism("stop_detection", ("online.stop.stop_speed=0",)),
     Mechanism("node_hold_back", ("online.stop.node_hold_sigmas=0",)),
-    Mechanism("node_hold_ahead", ("online.stop.node_hold_ahead_sigmas=0",)),
     Mechanism("zero_velocity", ("online.stop.zero_speed=0",)),
     Mechanism("speed_time", ("online.stop.speed_time=0",)),
     Mechanism("stop_speed_average", ("online.stop.stop_time=0.001",)),
@@ -103,8 +112,9 @@ MECHANISMS: tuple[Mechanism, ...] = (
         ("online.odometer.scale_min_distance=1000000000", "online.odometer.scale_baseline=0"),
     ),
     Mechanism("crossing_revision", ("online.corrections.revise_sigmas=1000000",), loss="fin"),
-    Mechanism("live_spacing", ("online.corrections.live_spacing=0",), loss="fin"),
     Mechanism("report_back_ratio", ("online.corrections.report_back_ratio=1",)),
+    Mechanism("rate_rules_all", RATE_RULES),
+    Mechanism("rate_rules_all_fin", RATE_RULES, loss="fin"),
 )
 """Every mechanism ablated, with the settings that switch it."""
 
@@ -126,9 +136,14 @@ def key(setting: tuple[str, ...]) -> str:
 
 
 def score_all(
-    names: list[str], settings: list[tuple[str, ...]], rates: list[float], cache: Path | None
+    names: list[str],
+    settings: list[tuple[str, ...]],
+    rates: list[float],
+    cache: Path | None,
+    save: Path | None,
 ) -> dict[str, dict[str, Rows]]:
-    """Every setting's rows of every track (each drive made once per rate)."""
+    """Every setting's rows of every track (each drive made once per rate); written to ``save``
+    after every track when given, so that a long run can be read back in part."""
     out: dict[str, dict[str, Rows]] = {key(s): {} for s in settings}
     configs: dict[str, MatchConfig] = {key(s): DEFAULT_CONFIG.with_settings(list(s)) for s in settings}
     for n, name in enumerate(names):
@@ -143,6 +158,8 @@ def score_all(
             for r in rows:
                 r.pop("us")
             out[k][name] = rows
+        if save:
+            save.write_text(json.dumps(out, default=str))
         print(f"# {n + 1}/{len(names)} {name}: load {os.getloadavg()[0]:.2f}", flush=True)
     return out
 
@@ -235,9 +252,7 @@ def main() -> int:
     want = [()] + [m.switch for m in chosen]
     todo = [s for s in want if key(s) not in scores]
     if todo:
-        scores.update(score_all(names, todo, args.rates, args.map_cache))
-        if args.json:
-            args.json.write_text(json.dumps({k: scores[k] for k in map(key, todo)}, default=str))
+        scores.update(score_all(names, todo, args.rates, args.map_cache, args.json))
     for k in scores:
         scores[k] = {t: [r for r in rows if float(r["hz"]) in args.rates] for t, rows in scores[k].items()}  # type: ignore[arg-type]
     rows = [verdict_row(m, scores, names) for m in chosen]

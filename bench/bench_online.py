@@ -11,7 +11,7 @@ as reported live and after applying the matcher's corrections.
     python bench/bench_online.py                 # everything (~15 min on 2 cores)
     python bench/bench_online.py --quick         # one map, 1 Hz, σ 5 m
     python bench/bench_online.py --quick --breakdown   # also classify the wrong-edge fixes
-    python bench/bench_online.py --quick --set online.stop.node_hold_ahead_sigmas=0   # an A/B of a field
+    python bench/bench_online.py --quick --set online.stop.node_hold_sigmas=0   # an A/B of a field
 """
 
 from __future__ import annotations

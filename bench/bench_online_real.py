@@ -664,10 +664,8 @@ def calibrated_gate(
 ) -> np.ndarray:
     """The matcher's usable gate with probability ``q`` in place of the reported one (and
     ``min_probability`` in place of ``measurement.min_probability`` when given)."""
-    m = cfg.measurement
-    least = m.min_probability if min_probability is None else min_probability
-    amb = g["ambiguous"].to_numpy()
-    return g["gate"].to_numpy() & (q >= least) & (~amb | (q >= max(m.resolved_probability, least)))
+    least = cfg.measurement.min_probability if min_probability is None else min_probability
+    return g["gate"].to_numpy() & (q >= least)
 
 
 WRONG_USABLE_TARGET = 0.001
@@ -864,8 +862,7 @@ def calibration_report(df: pd.DataFrame, cfg: MatchConfig, *, load0: float) -> s
         f"threshold is the least `measurement.min_probability` whose wrong share among usable "
         f"fixes is at most {100 * WRONG_USABLE_TARGET:g} %; usable is the matcher's test on the "
         f"probability (configured: `measurement.min_probability` "
-        f"{cfg.measurement.min_probability:g}, `measurement.resolved_probability` "
-        f"{cfg.measurement.resolved_probability:g} when ambiguous). Load average {load0:.2f} at "
+        f"{cfg.measurement.min_probability:g}). Load average {load0:.2f} at "
         f"the start, {os.getloadavg()[0]:.2f} at the end ({os.cpu_count()} cores).\n"
     )
     summary = [

@@ -271,15 +271,6 @@ class StopConfig:
     still_distance : metres; moving less than this between fixes, the vehicle stands.
     node_hold_sigmas : a vehicle past a node goes back across it only when the fix lies more
         than this many σ before it (no flicker at a crossing).
-    node_hold_ahead_sigmas : a fix past the end node of the edge the vehicle is on keeps it at
-        that node while it lies within this many σ along the next edge (the fix's along-track
-        noise); further on (and at 0, at once) the next edge takes it. Held there the position
-        moves by nothing while the odometer moves on, which at 10 Hz is under a metre a step:
-        the transition over one step keeps it there until the fix is this far past. A high
-        fix rate's lagging position a few metres past a straight crossing is then at times
-        reported before it; at 0 the next edge takes it at once, but so does white fix noise
-        at a node, too early. The hold stays until a rule tells the noise at a node from the
-        lag.
     speed_time : seconds; the transition's speed penalty judges the distance along the path over
         at least this long. Between fixes 0.1 s apart the positions' own noise (a lagging
         estimate catching up with its fix, 10 m in one step) would read as an impossible speed,
@@ -292,7 +283,6 @@ class StopConfig:
     zero_speed: float = 0.2
     still_distance: float = 0.05
     node_hold_sigmas: float = 0.5
-    node_hold_ahead_sigmas: float = 0.5
     speed_time: float = 1.0
 
     def __post_init__(self) -> None:
@@ -361,8 +351,8 @@ class OdometerConfig:
 class CorrectionsConfig:
     """The corrections of an ambiguous region, re-timed crossings and the report (``online.corrections``).
 
-    max_live : most fixes of an ambiguous region remembered for corrections ...
-    live_spacing : ... at most one per this many seconds, or on an edge change.
+    max_live : most fixes of an ambiguous region remembered for corrections (every fix until
+        then).
     trail_step : metres; the odometer trail for re-timing crossings keeps a point this often ...
     trail_max : ... at most this many points ...
     trail_max_distance : ... and crossings at most this many metres back.
@@ -376,7 +366,6 @@ class CorrectionsConfig:
     """
 
     max_live: int = 48
-    live_spacing: float = 0.5
     trail_step: float = 2.0
     trail_max: int = 150
     trail_max_distance: float = 300.0
@@ -705,8 +694,6 @@ class MeasurementConfig:
     """How the map-aided measurement is built and when it is usable (``measurement``).
 
     min_probability : the reported road's probability below which the measurement is not usable.
-    resolved_probability : in an ambiguous region, the probability the reported road needs for
-        the region to count as resolved (usable).
     settle_distance : metres driven after a (re)initialisation before the measurement is usable.
     map_sigma : metres; 1-σ error of the map's centre line.
     lane_width : metres per lane, for a road with a ``lanes`` tag but no ``width``.
@@ -721,8 +708,7 @@ class MeasurementConfig:
         by this at each end.
     """
 
-    min_probability: float = 0.983
-    resolved_probability: float = 0.99
+    min_probability: float = 0.986
     settle_distance: float = 100.0
     map_sigma: float = 1.0
     lane_width: float = 3.25
@@ -742,7 +728,7 @@ class MeasurementConfig:
                 continue
             if isinstance(v, bool) or not isinstance(v, int | float) or not math.isfinite(v) or v < 0:
                 raise ConfigError(f"{_full_name(f.name)} must be a finite non-negative number, got {v!r}")
-        _at_most_one(self, "min_probability", "resolved_probability")
+        _at_most_one(self, "min_probability")
         _positive(self, "map_sigma", "lane_width", "default_width", "road_heading_sigma")
 
     @cached_property

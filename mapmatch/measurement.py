@@ -31,9 +31,9 @@ back is safe (``usable``).
   section): calibrated on real drives, it weighs that road probability with the fix's heading
   against the road's, its distance from the road and a road running alongside.
 * **usable** is false off road, while (re)initialising, for the first ``settle_distance``
-  metres after a (re)initialisation, inside an unresolved ambiguous region (the reported
-  probability below ``resolved_probability``) and whenever the probability is below
-  ``min_probability``.
+  metres after a (re)initialisation and whenever the probability is below
+  ``min_probability`` (in an ambiguous region as elsewhere: the probability already says how
+  well the region is resolved).
 
 Consistency: the measurement is not independent of the fix it came from (with GPS its
 along-track position is the fix's own projection). A filter should use it, while GPS is valid,
@@ -73,7 +73,7 @@ AIDED_COLUMNS: tuple[str, ...] = (
 
 # the states the measurement tells apart, as module values: an enum member's look-up on its
 # class takes 0.1 µs (the per-fix path)
-_OFF_ROAD, _AMBIGUOUS = State.OFF_ROAD, State.AMBIGUOUS
+_OFF_ROAD = State.OFF_ROAD
 _STARTING = (State.INITIALISING, State.REINITIALISED)
 
 BearingAt = Callable[[int, float], float]
@@ -404,8 +404,6 @@ def map_aided_measurement(
         reason = "initialising"
     elif placement.since_init < config.settle_distance:
         reason = "settling"
-    elif state == _AMBIGUOUS and probability < config.resolved_probability:
-        reason = "ambiguous"
     elif probability < config.min_probability:
         reason = "low_probability"
     else:

@@ -213,8 +213,8 @@ class MapAidedMeasurement:
     usable : bool
         False when the answer must not be fed back (``reason`` says why).
     reason : str
-        Empty when usable; else ``off_road``, ``initialising``, ``settling``, ``ambiguous``
-        or ``low_probability``.
+        Empty when usable; else ``off_road``, ``initialising``, ``settling`` or
+        ``low_probability``.
     """
 
     lat: float = math.nan

@@ -81,7 +81,7 @@ def test_map_aided_simulation_in_process_and_on_a_server_and_its_evaluation(tmp_
     matched = pd.read_csv(tmp_path / "remote.matched.csv")
     assert set(AIDED_COLUMNS) <= set(matched.columns)
     assert matched["aided_usable"].mean() > 0.5 and set(matched["aided_reason"].fillna("")) <= {
-        "", "initialising", "settling", "ambiguous", "low_probability", "off_road"
+        "", "initialising", "settling", "low_probability", "off_road"
     }  # fmt: skip
     rc = main(
         ["eval", "--map", mp, "--truth", str(tmp_path / "truth.csv"), "--fixes", str(tmp_path / "open.csv"),

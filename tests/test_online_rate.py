@@ -309,14 +309,10 @@ def _east_step(x: float, y: float, *, travelled: float, dt: float, weight: float
     )
 
 
-def test_position_at_a_crossing_is_held_at_10_hz_only_within_the_ahead_margin() -> None:
-    """The vehicle's position is at the crossing b, its fix 2 (or 3.5) m past it on b-c. At 10 Hz
-    the odometer moved 0.7 m since the last fix: kept at b the position moves by nothing, on b-c
-    by 2 m, and the transition judged over that one step favours b, fix after fix, until the fix
-    is ``node_hold_ahead_sigmas`` σ (0.5: 4 m here) past (REAL 10 Hz fixes 2.5-4 m past a
-    crossing were reported before it 18-25 % of the time, 1 Hz 3-7 %). With the margin at 0 it
-    goes on to b-c, as at 1 Hz, where the step from 7 m before b covers the 9 m driven and the
-    margin makes no difference."""
+def test_fix_past_a_crossing_is_placed_on_the_next_edge_at_10_hz_as_at_1_hz() -> None:
+    """The vehicle's position is at the crossing b, its fix 2 to 4.5 m past it on b-c. At 10 Hz
+    the odometer moved 0.7 m since the last fix: the position goes on to b-c at the fix's
+    projection, as at 1 Hz, where the step from 7 m before b covers the 9 m driven."""
     import numpy as np
 
     from mapmatch.config import DEFAULT_CONFIG
@@ -329,25 +325,19 @@ def test_position_at_a_crossing_is_held_at_10_hz_only_within_the_ahead_margin() 
     ab, bc = m.edge("a", "b"), m.edge("b", "c")
     le = float(road.elen[ab])
 
-    def place(
-        before: float, past: float, travelled: float, dt: float, hold: float | None
-    ) -> tuple[int, float]:
+    def place(before: float, past: float, travelled: float, dt: float) -> tuple[int, float]:
         px, py, brg = road.locate(ab, le - before)
         h = Hypothesis([ab, bc], 0, le - before, le - before, 0.0, [0.0], 0.0, px, py, brg)
         x, y = m.xy("b") + np.array([past, 0.0])
         step = _east_step(x, y, travelled=travelled, dt=dt, weight=1.0, bias=FixBias())
-        cfg = DEFAULT_CONFIG if hold is None else DEFAULT_CONFIG.replace(node_hold_ahead_sigmas=hold)
-        place_all(road, [h], step, cfg)
+        place_all(road, [h], step, DEFAULT_CONFIG)
         return h.edges[h.k], h.off
 
-    for past in (2.0, 3.5):
-        edge, off = place(0.0, past, 0.7, 0.1, 0.0)
+    for past in (2.0, 3.5, 4.5):
+        edge, off = place(0.0, past, 0.7, 0.1)
         assert edge == bc and off == pytest.approx(past, abs=0.01)
-        assert place(0.0, past, 0.7, 0.1, None) == (ab, pytest.approx(le))  # held (0.5 σ)
-        assert place(0.0, 4.5, 0.7, 0.1, None)[0] == bc  # beyond the margin
-    for hold in (None, 0.0):  # 1 Hz: the same either way
-        edge, off = place(7.0, 2.0, 9.0, 1.0, hold)
-        assert edge == bc and off == pytest.approx(2.0, abs=0.01)
+    edge, off = place(7.0, 2.0, 9.0, 1.0)  # 1 Hz
+    assert edge == bc and off == pytest.approx(2.0, abs=0.01)
 
 
 def test_step_is_judged_between_corrected_places_at_10_hz() -> None:
@@ -355,9 +345,7 @@ def test_step_is_judged_between_corrected_places_at_10_hz() -> None:
     the vehicle's place is 3 m behind each fix's projection: 1 m before the crossing b. The next
     10 Hz fix, 0.7 m on, lies 2.7 m past b. Judged from that place to the candidates' corrected
     places, the point on b-c (corrected 0.3 m before b) is the 0.7 m the odometer drove and
-    the place moves on by that; judged to the uncorrected projections
-    (``step_from_corrected`` 0), the crossing b itself (1 m on) is nearer the odometer's 0.7 m
-    than b-c's 3.7 m, and b corrected by the bias puts the vehicle back 2 m."""
+    the place moves on by that, not back."""
     import numpy as np
 
     from mapmatch.config import DEFAULT_CONFIG
@@ -381,7 +369,6 @@ def test_step_is_judged_between_corrected_places_at_10_hz() -> None:
         return h.s
 
     assert place(1.0) == pytest.approx(le - 0.3, abs=0.01)  # on by the 0.7 m driven
-    assert place(0.0) == pytest.approx(le - 3.0, abs=0.01)  # back 2 m
 
 
 def test_twin_hypothesis_on_the_same_path_is_merged_at_10_hz() -> None:

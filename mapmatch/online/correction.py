@@ -12,13 +12,9 @@ from mapmatch.types import Correction
 
 
 def remember_live(rg: RegionState, edge: int, step: Step, cfg: MatchConfig) -> None:
-    """Keep this fix of the ambiguous region (what a correction may revise): at most
-    ``max_live``, one per ``live_spacing`` seconds unless the edge reported changed."""
-    last = rg.live[-1] if rg.live else None
-    if last is None or (
-        len(rg.live) < cfg.online.corrections.max_live
-        and (last.edge != edge or step.time - last.time >= cfg.online.corrections.live_spacing)
-    ):
+    """Keep this fix of the ambiguous region (what a correction may revise): the first
+    ``max_live`` fixes of the region."""
+    if not rg.live or len(rg.live) < cfg.online.corrections.max_live:
         rg.live.append(
             LiveFix(step.time, edge, step.x, step.y, step.heading, step.sigma, step.kappa, step.gps)
         )

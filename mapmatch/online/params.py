@@ -37,7 +37,6 @@ class PlaceParams(NamedTuple):
     dr: float
     speed_dt: float  # the step's dt, at least ``speed_time``: the transition's speed judged over it
     node_hold: float  # ``node_hold_sigmas`` · σ
-    node_hold_ahead: float  # ``node_hold_ahead_sigmas`` · σ
     turn_obs: float  # the heading change observed over the last ``covered`` metres (nan: none)
     covered: float
     reach: float  # the region radius: how far behind its place a hypothesis may be found
@@ -114,7 +113,6 @@ def param_values(
         step.dr,
         float(max(step.dt, o.stop.speed_time)),
         float(o.stop.node_hold_sigmas * step.sigma),
-        float(o.stop.node_hold_ahead_sigmas * step.sigma),
         float(turn_obs),
         float(covered),
         float(step.r_a),

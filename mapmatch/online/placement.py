@@ -102,7 +102,6 @@ def nearest_on_path(  # type: ignore[no-untyped-def]
     ``(score, position, furthest s allowed)``."""
     k, h_s = here[0], here[2]
     hold = p.node_hold
-    hold_ahead = p.node_hold_ahead + 1e-6
     best_sc = -math.inf
     best = here
     acc = 0.0
@@ -121,11 +120,10 @@ def nearest_on_path(  # type: ignore[no-untyped-def]
             # back across the node only when the fix is clearly behind it (no flicker)
             acc += le
             continue
-        if j < jmax - 1 and off >= le - 1e-6 and project(road, edges[j + 1], p.x, p.y)[0] > hold_ahead:
-            # the fix is past the end of an edge the path continues on: held at the node
-            # only within ``node_hold_ahead`` (its along-track noise); further on the next
-            # edge holds it (a position kept at the node moves by nothing, and at 10 Hz the
-            # transition over one step's 0.7 m favours that fix after fix up to the margin)
+        if j < jmax - 1 and off >= le - 1e-6 and project(road, edges[j + 1], p.x, p.y)[0] > 1e-6:
+            # the fix is past the end of an edge the path continues on: the next edge takes it
+            # (a position kept at the node would move by nothing, and at 10 Hz the transition
+            # over one step's 0.7 m would favour that fix after fix)
             acc += le
             continue
         sc = _score(p, RoadPoint(dist, px, py, brg), s, here, anc, anc_sd)
