@@ -321,6 +321,7 @@ def test_logs_are_text_on_a_terminal_and_json_otherwise() -> None:
     assert formatter("text").format(rec).endswith("INFO mapmatch.io: reading x")
 
 
+@pytest.mark.slow  # serve and match processes
 def test_log_format_flag_in_a_real_process(cross: tuple[AsciiMap, Path], tmp_path: Path) -> None:
     import json
 

@@ -316,6 +316,7 @@ def test_session_limit_is_resource_exhausted():
         ch.close()
 
 
+@pytest.mark.slow  # waits out a session TTL
 def test_sessions_expire_after_the_ttl():
     # a TTL long enough that a loaded machine cannot let "old" expire between two calls
     with running(local_config(session_ttl=1.0, max_sessions=1), {"city": AMAP.graph}) as (srv, port):

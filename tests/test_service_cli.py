@@ -264,6 +264,7 @@ def _fixes_csv(path: Path) -> None:
     path.write_text("\n".join(lines) + "\n")
 
 
+@pytest.mark.slow  # a real server, send and replay processes
 def test_send_writes_the_same_rows_as_replay(tmp_path, capsys):
     fixes = tmp_path / "fixes.csv"
     _fixes_csv(fixes)

@@ -482,6 +482,7 @@ def test_config_file_with_flags_and_environment_taking_precedence(tmp_path):
             read_config_file(cfg)
 
 
+@pytest.mark.slow  # a serve process to SERVING
 def test_serve_logs_start_up_steps_and_json_lines(tmp_path):
     save_map(AMAP.graph, tmp_path / "c.map")
     env = {**os.environ, "PYTHONPATH": str(ROOT)}

@@ -419,6 +419,7 @@ def test_a_refused_fix_does_not_move_another_vehicles_session_with_the_store(tmp
             assert srv.sessions.live(("city", "car-b")) is not None
 
 
+@pytest.mark.slow  # a serve process reloading its identities
 def test_sighup_reads_the_identities_file_again(tmp_path):
     import signal
     import subprocess
