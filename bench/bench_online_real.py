@@ -81,7 +81,7 @@ from graph.build import build_map  # noqa: E402
 from graph.index import project_to_edge  # noqa: E402
 from graph.projection import to_xy  # noqa: E402
 from graph.road_graph import RoadGraph  # noqa: E402
-from mapmatch.config import DEFAULT_CONFIG, MatchConfig  # noqa: E402
+from mapmatch.config import DEFAULT_CONFIG, ConfidenceConfig, MatchConfig  # noqa: E402
 from mapmatch.errors import ConfigError  # noqa: E402
 from mapmatch.evaluate import edge_path, is_junction, matched_junctions, path_nodes  # noqa: E402
 from mapmatch.online import OnlineMatcher  # noqa: E402
@@ -702,20 +702,23 @@ IDENTITY = tuple(f"confidence.coef_{t}={1 if t == 'log_odds' else 0}" for t in C
 """The confidence model switched off: the matcher reports the road's probability itself."""
 
 
-def confidence_features(g: pd.DataFrame) -> np.ndarray:
+def confidence_features(g: pd.DataFrame, model: ConfidenceConfig = DEFAULT_CONFIG.confidence) -> np.ndarray:
     """The confidence model's features per fix, as :func:`mapmatch.measurement.confidence`
-    takes them: 1, the road probability's log-odds, the heading disagreement per 10° (at most
-    90°, 0 without a heading), the fix's distance from the road in σ (at most 10), whether a
-    road runs alongside and by how many σ it is nearer to the fix (5 less the gap in σ, the gap
-    within ±5; 0 without one)."""
-    p = np.clip(g["p"].to_numpy(dtype=float), 1e-6, 1.0 - 1e-6)
-    head = np.minimum(np.nan_to_num(g["head_diff"].to_numpy(dtype=float)), 90.0) * 0.1
+    takes them, with ``model``'s caps: 1, the road probability's log-odds, the heading
+    disagreement per 10° (at most ``heading_cap``, 0 without a heading), the fix's distance
+    from the road in σ (at most ``cross_cap``), whether a road runs alongside and by how many σ
+    it is nearer to the fix (``gap_cap`` less the gap in σ, the gap within ±``gap_cap``; 0
+    without one)."""
+    m = model
+    p = np.clip(g["p"].to_numpy(dtype=float), m.probability_floor, 1.0 - m.probability_floor)
+    head = np.minimum(np.nan_to_num(g["head_diff"].to_numpy(dtype=float)), m.heading_cap) * 0.1
     cross_raw = g["cross_sig"].to_numpy(dtype=float)
     other = g["other_sig"].to_numpy(dtype=float)
     beside = np.isfinite(other)
-    gap = np.where(beside, 5.0 - np.clip(np.where(beside, other, 0.0) - cross_raw, -5.0, 5.0), 0.0)
+    near = np.clip(np.where(beside, other, 0.0) - cross_raw, -m.gap_cap, m.gap_cap)
+    gap = np.where(beside, m.gap_cap - near, 0.0)
     return np.column_stack(
-        [np.ones(len(p)), np.log(p / (1.0 - p)), head, np.minimum(cross_raw, 10.0), beside, gap]
+        [np.ones(len(p)), np.log(p / (1.0 - p)), head, np.minimum(cross_raw, m.cross_cap), beside, gap]
     )
 
 
@@ -879,7 +882,8 @@ def calibration_report(df: pd.DataFrame, cfg: MatchConfig, *, load0: float) -> s
                 f"| {100 * f['wrong_usable']:.3f} % | {100 * f['right_usable']:.2f} % |"  # type: ignore[operator]
             )
         tables.append(f"\nReliability at {hz:g} Hz ({len(g)} fixes):\n{text}")
-        q_cfg = calibration.logistic_apply(configured_coefficients(cfg), confidence_features(g))
+        x_cfg = confidence_features(g, cfg.confidence)
+        q_cfg = calibration.logistic_apply(configured_coefficients(cfg), x_cfg)
         diag = wrong_breakdown(g.assign(usable=calibrated_gate(g, q_cfg, cfg)))
         if diag:
             tables.append(f"\nWrong fixes at {hz:g} Hz:\n\n{diag}")

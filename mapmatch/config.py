@@ -752,10 +752,10 @@ class ConfidenceConfig:
     The model's log-odds are ``coef_intercept`` + ``coef_log_odds`` times the log-odds of the
     road's probability (the filter's mass of the path, times the along-track position's share
     on the edge where that applies) + ``coef_heading`` per 10° between the fix's heading and
-    the road's (at most 90°) + ``coef_cross`` per fix σ of the fix's distance from the road
-    (at most 10) + when another road runs alongside, ``coef_parallel`` plus
+    the road's (at most ``heading_cap``) + ``coef_cross`` per fix σ of the fix's distance from the road
+    (at most ``cross_cap``) + when another road runs alongside, ``coef_parallel`` plus
     ``coef_parallel_gap`` per σ by which that road is nearer to the fix than the answer's,
-    counted from 5 σ further (0) to 5 σ nearer (10). Coefficients 0, 1, 0, 0, 0, 0 report the
+    counted from ``gap_cap`` further (0) to ``gap_cap`` nearer. Coefficients 0, 1, 0, 0, 0, 0 report the
     road's probability itself.
 
     coef_intercept, coef_log_odds, coef_heading, coef_cross, coef_parallel,
@@ -766,6 +766,10 @@ class ConfidenceConfig:
     parallel_spacing : metres; the length of the stretches an edge is looked at in.
     parallel_node_gap : metres; a road sharing a node with the edge whose nearest point lies
         within this of that node leaves at the junction and does not run alongside.
+    probability_floor : the road's probability is taken in [floor, 1 - floor] for its log-odds.
+    heading_cap : degrees; a fix further off the road's bearing says no more.
+    cross_cap : fix σ; a fix further from the road says no more.
+    gap_cap : fix σ; a road alongside nearer or further than the answer's by more says no more.
     """
 
     coef_intercept: float = 4.255
@@ -778,6 +782,10 @@ class ConfidenceConfig:
     parallel_angle: float = 30.0
     parallel_spacing: float = 20.0
     parallel_node_gap: float = 1.0
+    probability_floor: float = 1e-6
+    heading_cap: float = 90.0
+    cross_cap: float = 10.0
+    gap_cap: float = 5.0
 
     def __post_init__(self) -> None:
         for f in fields(self):

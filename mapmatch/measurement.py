@@ -238,33 +238,28 @@ class Agreement:
     other_sigmas: float = math.inf
 
 
-_P_FLOOR = 1e-6  # the road's probability is taken in [1e-6, 1 - 1e-6] for its log-odds
-_HEADING_CAP = 90.0  # degrees: a fix this far off the road's bearing says no more
-_CROSS_CAP = 10.0  # fix σ: a fix this far from the road says no more
-_GAP_CAP = 5.0  # fix σ: a road alongside nearer or further than this by as much says no more
-
-
 def confidence(probability: float, agreement: Agreement, model: ConfidenceConfig) -> float:
     """The probability the answer is on the right road: the logistic model of ``model``
     (``confidence.coef_*``) on the road's probability's log-odds, the heading
-    disagreement per 10° (at most 90°), the fix's distance from the road in σ (at most 10),
-    whether a road runs alongside and, if one does, by how many σ it is nearer to the fix than
-    the answer's road, within ±5 σ, counted from 5 σ further (0) to 5 σ nearer (10)."""
+    disagreement per 10° (at most ``heading_cap``), the fix's distance from the road in σ (at
+    most ``cross_cap``), whether a road runs alongside and, if one does, by how many σ it is
+    nearer to the fix than the answer's road, within ±``gap_cap``, counted from ``gap_cap``
+    further (0) to ``gap_cap`` nearer (twice ``gap_cap``)."""
     c = model
-    p = min(max(probability, _P_FLOOR), 1.0 - _P_FLOOR)
+    p = min(max(probability, c.probability_floor), 1.0 - c.probability_floor)
     head = agreement.heading_diff
-    head = 0.0 if head != head else min(abs(head), _HEADING_CAP)
+    head = 0.0 if head != head else min(abs(head), c.heading_cap)
     cross = agreement.cross_sigmas
     z = (
         c.coef_intercept
         + c.coef_log_odds * math.log(p / (1.0 - p))
         + c.coef_heading * head * 0.1
-        + c.coef_cross * min(cross, _CROSS_CAP)
+        + c.coef_cross * min(cross, c.cross_cap)
     )
     other = agreement.other_sigmas
     if other < math.inf:
-        gap = min(max(other - cross, -_GAP_CAP), _GAP_CAP)
-        z += c.coef_parallel + c.coef_parallel_gap * (_GAP_CAP - gap)
+        gap = min(max(other - cross, -c.gap_cap), c.gap_cap)
+        z += c.coef_parallel + c.coef_parallel_gap * (c.gap_cap - gap)
     return 1.0 / (1.0 + math.exp(-z)) if z > -700.0 else 0.0
 
 
