@@ -794,6 +794,8 @@ class ConfidenceConfig:
                 raise ConfigError(f"{_full_name(f.name)} must be a finite number, got {v!r}")
             if not f.name.startswith("coef_") and v <= 0:
                 raise ConfigError(f"{_full_name(f.name)} must be positive")
+        if self.probability_floor >= 0.5:
+            raise ConfigError(f"{_full_name('probability_floor')} must be below 0.5")
 
 
 def _sub_sections(cls: type) -> dict[str, type]:

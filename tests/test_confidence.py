@@ -10,6 +10,7 @@ import pytest
 
 from graph.ascii import parse_ascii_map
 from mapmatch.config import DEFAULT_CONFIG
+from mapmatch.errors import ConfigError
 from mapmatch.measurement import Agreement, confidence
 from mapmatch.online import OnlineMatcher
 from mapmatch.online.parallel import ParallelRoads
@@ -88,3 +89,16 @@ def test_roads_alongside_are_found_mid_edge_and_not_across_a_junction() -> None:
     e1 = lone.edge("a", "b")
     assert ParallelRoads(solo.road, solo.index).alongside(e1, 10.0, cfg) == ()
     assert math.isinf(ParallelRoads(solo.road, solo.index).nearest(e1, 10.0, 0.0, 0.0, cfg))
+
+
+@pytest.mark.parametrize(
+    ("setting", "field"),
+    [
+        ("confidence.probability_floor=0.5", "confidence.probability_floor"),
+        ("confidence.gap_cap=0", "confidence.gap_cap"),
+        ("confidence.coef_heading=nan", "confidence.coef_heading"),
+    ],
+)
+def test_a_bad_confidence_setting_names_its_field(setting: str, field: str) -> None:
+    with pytest.raises(ConfigError, match=field.replace(".", r"\.")):
+        DEFAULT_CONFIG.with_settings([setting])
