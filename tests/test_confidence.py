@@ -61,7 +61,6 @@ def test_the_identity_model_reports_the_road_probability() -> None:
             "confidence.coef_intercept=0",
             "confidence.coef_log_odds=1",
             "confidence.coef_heading=0",
-            "confidence.coef_cross=0",
             "confidence.coef_parallel=0",
             "confidence.coef_parallel_gap=0",
         ]
