@@ -708,7 +708,7 @@ class MeasurementConfig:
         by this at each end.
     """
 
-    min_probability: float = 0.986
+    min_probability: float = 0.99
     settle_distance: float = 100.0
     map_sigma: float = 1.0
     lane_width: float = 3.25
@@ -770,11 +770,11 @@ class ConfidenceConfig:
     gap_cap : fix σ; a road alongside nearer or further than the answer's by more says no more.
     """
 
-    coef_intercept: float = 4.255
-    coef_log_odds: float = 0.197
-    coef_heading: float = -0.502
-    coef_parallel: float = -1.557
-    coef_parallel_gap: float = -0.287
+    coef_intercept: float = 4.025
+    coef_log_odds: float = 0.198
+    coef_heading: float = -0.543
+    coef_parallel: float = -1.167
+    coef_parallel_gap: float = -0.351
     parallel_radius: float = 40.0
     parallel_angle: float = 30.0
     parallel_spacing: float = 20.0
