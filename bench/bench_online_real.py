@@ -40,19 +40,24 @@ the fifth (``bench/crossval.py``), and prints the out-of-fold table beside the i
 ``--rates``) with the confidence model off (the matcher reports the road probability), keeps
 per fix the features the model weighs, and measures probabilities against whether the fix is
 on the right road (as scored above, where the truth is known and the fix is placed on a road):
-the reliability table, the ECE, the wrong share among the fixes marked ``usable`` and the share
-of right fixes marked usable (``bench/calibration.py``), for the road probability, it mapped by
-isotonic regression out of fold, the configured model (what the matcher reports: the same
-numbers, computed from the features), and the model's coefficients and usable threshold
-(:func:`choose_threshold`) fitted per rate on all tracks (in-sample) and on four folds of
-``bench/folds.py`` and applied to the fifth (out of fold), with the matcher's usable test on
-each. The wrong fixes at road probability ``>= 0.999`` and the wrong usable ones are broken
-down by class, by whether the reported edge is next to the true one, GPS or outage,
-distance to the nearer node and whether another road lies near (:data:`CALIB_COLUMNS`).
-``--save-fixes`` writes the per-fix table (CSV), ``--load-fixes`` reports from one without
-running (``--docs``: the fragment ``calibration``).
+the reliability table, the ECE (over its bins and over 20 bins of equal numbers of fixes), the
+log-loss, the wrong share among the fixes marked ``usable``, the share of right fixes marked
+usable and the trade-off curve (right fixes usable at a wrong share of 0.05-0.3 %)
+(``bench/calibration.py``), for the road probability, it mapped by isotonic regression out of
+fold, the configured model (what the matcher reports: the same numbers, computed from the
+features), and the model's coefficients and usable threshold fitted on all tracks (in-sample)
+and on four folds of ``bench/folds.py`` and applied to the fifth (out of fold), pooled over
+the rates unless ``--per-rate`` (``bench/confidence_fit.py``: the L2 prior chosen by CV, the
+threshold judged on out-of-fold probabilities), with the matcher's usable test on each, and
+the model out of fold with each term left out. The wrong fixes at road probability
+``>= 0.999`` and the wrong usable ones are broken down by class, by whether the reported edge
+is next to the true one, GPS or outage, distance to the nearer node and whether another road
+lies near (:data:`CALIB_COLUMNS`).
+``--save-fixes`` writes the per-fix table (CSV), ``--load-fixes`` reports from one or more
+(e.g. one per rate) without running (``--docs``: the fragment ``calibration``).
 
     python bench/bench_online_real.py --calibration --docs
+    python bench/bench_online_real.py --calibration --load-fixes 1hz.csv 10hz.csv --docs
 """
 
 from __future__ import annotations
@@ -590,7 +595,10 @@ def answer_features(matcher: OnlineMatcher, drive: Drive, results: list[SnapResu
     difference to the road, the fix's signed along-track distance from the answer, and the
     time and odometer distance since the last GPS-aided fix; the fix's distance from the road
     in its σ and whether a road runs alongside, as the matcher's confidence model sees them
-    (:func:`mapmatch.online.report.agreement`)."""
+    (:func:`mapmatch.online.report.agreement`); the seconds since the last answer in an
+    ambiguous region and since the reported edge last changed; and the second-best candidate's
+    distance from the fix and heading disagreement, less the answer's (in σ and degrees; inf
+    and NaN without one)."""
     graph, cfg = matcher.graph, matcher.config
     fixes = drive.fix_objects()
     n = len(results)
@@ -912,7 +920,8 @@ def run_calibration(names: list[str], cfg: MatchConfig, args: argparse.Namespace
     return the report."""
     load0 = os.getloadavg()[0]
     if args.load_fixes is not None:
-        df = pd.read_csv(args.load_fixes, dtype={"track": str, "kind": str})
+        parts = [pd.read_csv(f, dtype={"track": str, "kind": str}) for f in args.load_fixes]
+        df = pd.concat(parts, ignore_index=True)
     else:
         df = collect_calibration(names, cfg, args)
     if args.save_fixes is not None:
@@ -961,7 +970,9 @@ def parse_args() -> argparse.Namespace:
         "--per-rate", action="store_true", help="--calibration: fit per rate (default: pooled over the rates)"
     )
     ap.add_argument("--save-fixes", type=Path, default=None, help="--calibration: write the per-fix table")
-    ap.add_argument("--load-fixes", type=Path, default=None, help="--calibration: read it instead of running")
+    ap.add_argument(
+        "--load-fixes", type=Path, nargs="+", default=None, help="--calibration: read them instead of running"
+    )
     return ap.parse_args()
 
 
