@@ -205,9 +205,11 @@ def main() -> int:
         "--options",
         action="append",
         default=[],
-        help="a set of server options, name=int,name=int (repeat: each set is a variant of each style)",
+        help="a set of server options, name=value,... or env:NAME=value (repeat: each set is a variant)",
     )
-    ap.add_argument("--repeat", type=int, default=2, help="runs per variant, interleaved (the least CPU is printed)")
+    ap.add_argument(
+        "--repeat", type=int, default=2, help="runs per variant, interleaved (the least CPU is printed)"
+    )
     a = ap.parse_args()
     load = " ".join(f"{x:.2f}" for x in psutil.getloadavg())
     print(f"load average before: {load} ({psutil.cpu_count()} cores)")

@@ -317,13 +317,17 @@ async def _run_clients(
 
 def client_process(args: tuple[Any, ...]) -> None:
     """Entry point of a client process (fixes arrive serialised)."""
-    port, streams, rate, window, seconds, batch, queue, go = args
+    port, streams, rate, window, seconds, batch, queue, go, loop = args
     from service.gen import mapmatch_pb2 as pb
 
     decoded = [(vid, [pb.Fix.FromString(b) for b in fx]) for vid, fx in streams]
-    stats = asyncio.run(
-        _run_clients(port, decoded, rate=rate, window=window, seconds=seconds, batch=batch, barrier=go)
-    )
+    main = _run_clients(port, decoded, rate=rate, window=window, seconds=seconds, batch=batch, barrier=go)
+    if loop == "uvloop":
+        import uvloop
+
+        stats = uvloop.run(main)
+    else:
+        stats = asyncio.run(main)
     queue.put(
         {
             "lat": np.asarray(stats["lat"]),
@@ -357,6 +361,8 @@ class Phase:
         Vehicles per gateway (``StreamFixBatches``); 1 streams each vehicle alone.
     rss_at : tuple of float
         Seconds into the phase at which to sample the online server's RSS.
+    loop : str
+        The client processes' event loop: ``uvloop`` or ``asyncio``.
     """
 
     rate: float | None
@@ -366,6 +372,7 @@ class Phase:
     tag: str
     batch: int = 1
     rss_at: tuple[float, ...] = ()
+    loop: str = "uvloop"
 
 
 def run_phase(port: int, vehicles: list[list[Any]], phase: Phase, *, server: Any = None) -> dict[str, Any]:
@@ -379,7 +386,19 @@ def run_phase(port: int, vehicles: list[list[Any]], phase: Phase, *, server: Any
     procs = [
         ctx.Process(
             target=client_process,
-            args=((port, p, phase.rate, phase.window, phase.seconds, phase.batch, queue, (ready, start)),),
+            args=(
+                (
+                    port,
+                    p,
+                    phase.rate,
+                    phase.window,
+                    phase.seconds,
+                    phase.batch,
+                    queue,
+                    (ready, start),
+                    phase.loop,
+                ),
+            ),
         )
         for p in parts
     ]
