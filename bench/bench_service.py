@@ -320,8 +320,19 @@ def client_process(args: tuple[Any, ...]) -> None:
     port, streams, rate, window, seconds, batch, queue, go, loop = args
     from service.gen import mapmatch_pb2 as pb
 
+    loop, _, client = loop.partition("+")
     decoded = [(vid, [pb.Fix.FromString(b) for b in fx]) for vid, fx in streams]
-    main = _run_clients(port, decoded, rate=rate, window=window, seconds=seconds, batch=batch, barrier=go)
+    main: Any
+    if client == "h2" and batch == 1:  # the lighter generator: HTTP/2 framed by h2
+        from h2_load import run_clients_h2
+
+        reqs = [
+            (vid, [pb.FixRequest(vehicle_id=vid, seq=k, fix=f).SerializeToString() for k, f in enumerate(fx)])
+            for vid, fx in decoded
+        ]
+        main = run_clients_h2(port, reqs, rate=rate, window=window, seconds=seconds, barrier=go)
+    else:
+        main = _run_clients(port, decoded, rate=rate, window=window, seconds=seconds, batch=batch, barrier=go)
     if loop == "uvloop":
         import uvloop
 
@@ -362,7 +373,9 @@ class Phase:
     rss_at : tuple of float
         Seconds into the phase at which to sample the online server's RSS.
     loop : str
-        The client processes' event loop: ``uvloop`` or ``asyncio``.
+        The client processes' event loop, ``uvloop`` or ``asyncio``, and their client:
+        grpcio's (``uvloop``), or ``h2`` (``uvloop+h2``: :mod:`h2_load`, HTTP/2 framed by
+        the ``h2`` library, for single-fix streams).
     """
 
     rate: float | None
@@ -372,7 +385,7 @@ class Phase:
     tag: str
     batch: int = 1
     rss_at: tuple[float, ...] = ()
-    loop: str = "uvloop"
+    loop: str = "uvloop+h2"
 
 
 def run_phase(port: int, vehicles: list[list[Any]], phase: Phase, *, server: Any = None) -> dict[str, Any]:
