@@ -19,8 +19,9 @@ phases: against ``on`` it tells what the checkpoint passes cost the fixes.
 Each phase reports the server's CPU seconds (summed over its processes) and the updates per
 server CPU-second: the client processes share the same cores, so wall-clock throughput on a
 2-core machine measures the clients as much as the server (their CPU per update is printed
-too: ``bench_service.py``'s lighter generator, gRPC framed by ``h2`` on uvloop's loop). With the store on, the Redis
-writes per second during the phase come from Redis's own ``INFO commandstats``.
+too: ``bench_service.py``'s lighter generator, gRPC framed by ``h2`` on uvloop's loop). With
+the store on, the Redis writes per second during the phase come from Redis's own ``INFO
+commandstats``.
 
 Part 2 (the cost of a checkpoint): 200 sessions at their full size (30 s of 10 Hz fixes
 each), written as one checkpoint pass of :class:`service.store_checkpoints.Checkpointer`

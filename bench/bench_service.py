@@ -3,8 +3,9 @@
 The server runs as its own process (`mapmatch serve`); the load comes from client
 processes on uvloop's event loop: single-fix streams speak gRPC over HTTP/2 framed by the
 ``h2`` library (:mod:`h2_load`, less CPU per update than grpcio's client, on the cores the
-server shares), the batched phase uses grpc.aio. Vehicles drive random walks along the map's roads at about 10 m/s
-with 3 m GPS noise and send one fused fix every 0.1 s, each on its own bidirectional stream.
+server shares), the batched phase uses grpc.aio. Vehicles drive random walks along the map's
+roads at about 10 m/s with 3 m GPS noise and send one fused fix every 0.1 s, each on its own
+bidirectional stream.
 
 Phase 1 (paced): ``--vehicles`` streams at ``--rate`` Hz. Every stream is opened first; then
 fixes flow for ``--warmup`` s (reported, not measured) plus ``--seconds`` s (measured). Reports
