@@ -113,13 +113,14 @@ def nearest_on_path(  # type: ignore[no-untyped-def]
     carry = math.inf  # the furthest s the fix may place a stopped vehicle
     if p.stopped:
         # stopped: the fix's noise may move the vehicle back but not on across a node; the
-        # odometer's distance may (a vehicle creeping past a node, or carried without GPS)
+        # odometer's distance may (a vehicle creeping past a node, or carried without GPS),
+        # while the fixes keep to the road (within the region radius of it)
         end = acc
         for j in range(j0, k + 1):
             end += road.elen[edges[j]]
         carry = h_s + moved
         jmax = k + 1
-        while jmax < len(edges) and carry > end:
+        while jmax < len(edges) and here[3] <= p.reach and carry > end + 1e-6:
             end += road.elen[edges[jmax]]
             jmax += 1
     ahead = moved + p.reach
