@@ -260,7 +260,9 @@ class StopConfig:
     """Stops, nodes, and the rules that hold at any fix rate (``online.stop``).
 
     stop_speed : m/s; below this (from the odometer) the vehicle is stopped: its position may
-        move back along the path but never on across a node (no flicker at a stop line).
+        move back along the path but its fixes never move it on across a node (no flicker at
+        a stop line); the odometer's distance does, while the fixes keep within the region
+        radius of the road (a vehicle creeping past a node, or carried without GPS).
     stop_time : seconds; the speed compared with ``stop_speed`` is the odometer's averaged over
         this long (exponentially), whatever the fix rate: over 0.1 s an odometer's noise of a
         few centimetres reads as walking pace, and a parked vehicle at 10 Hz kept moving on.
