@@ -12,7 +12,8 @@ geometric mean of our points/s over fastmm's per S, our time per point at S = 30
 vs the smallest map (timed apart, as above, and side by side in one process, in alternating
 rounds of five calls on each: the check's figure, ``--side-rounds``) with each of those two
 tracks' candidates a fix and candidate pairs a step (which the time per point follows), and one
-PASS/FAIL line per target of issue #14.
+PASS/FAIL line per target of issues #14 and #48 (the latter: against Valhalla with
+``fixed_speed`` 120, the per-track shares of any gap printed).
 
     python bench/bench_batch.py                       # all tracks, S = 1, 10, 30
     python bench/bench_batch.py --ids 0,21 --engines custom,fastmm     # a quick check
@@ -222,6 +223,50 @@ def _rmf_checks(
     ]
 
 
+REFERENCE = "valhalla_fs120"
+"""The peer the batch target names: Valhalla with ``fixed_speed`` 120 km/h, its strongest setting."""
+
+
+def _reference_check(Ss: list[int], mean_rmf: RmfByRun) -> Check:
+    """Our mean RMF against half of :data:`REFERENCE`'s at every S (not measured without it)."""
+    if not any((REFERENCE, s) in mean_rmf for s in Ss):
+        return (f"mean RMF at most half of {REFERENCE}'s at every S", None, f"no {REFERENCE} run")
+    ok, txt = True, []
+    for s in Ss:
+        if ("custom", s) not in mean_rmf or (REFERENCE, s) not in mean_rmf:
+            ok = False
+            continue
+        om, vm = mean_rmf[("custom", s)], mean_rmf[(REFERENCE, s)]
+        ok &= om <= 0.5 * vm
+        txt.append(f"S={s}: {om:.4f} vs {vm:.4f} (ratio {om / vm:.2f})")
+    return (f"mean RMF at most half of {REFERENCE}'s at every S", ok, "; ".join(txt))
+
+
+def gap_tracks(by: dict[tuple[str, int], list[dict]], Ss: list[int], *, top: int = 8) -> list[str]:
+    """Per S, the tracks that carry our mean RMF above half of :data:`REFERENCE`'s: each track's
+    excess, our RMF less half of the reference's on it, over the number of tracks (the excesses sum
+    to our mean less half of the reference's mean), the largest ``top`` first; as printed lines."""
+    lines: list[str] = []
+    for s in Ss:
+        ours = {r["track"]: r.get("rmf") for r in by.get(("custom", s), [])}
+        ref = {r["track"]: r.get("rmf") for r in by.get((REFERENCE, s), [])}
+        common = sorted(set(ours) & set(ref))
+        if not common:
+            continue
+        rmf = {t: (1.0 if ours[t] is None else ours[t], 1.0 if ref[t] is None else ref[t]) for t in common}
+        excess = {t: (o - 0.5 * v) / len(common) for t, (o, v) in rmf.items()}
+        total = sum(excess.values())
+        lines.append(
+            f"S={s:2d}: our mean less half of {REFERENCE}'s {total:+.4f} over {len(common)} tracks; "
+            f"largest shares (track: ours / {REFERENCE} RMF, share of the mean):"
+        )
+        worst = sorted(common, key=lambda t: -excess[t])[:top]
+        lines.append(
+            "       " + "; ".join(f"{t}: {rmf[t][0]:.4f} / {rmf[t][1]:.4f}, {excess[t]:+.4f}" for t in worst)
+        )
+    return lines
+
+
 def _speed_check(Ss: list[int], by: dict[tuple[str, int], list[dict]]) -> Check:
     """Per track, our points/s over fastmm's (same points), geometric mean over tracks."""
     speed_txt, speed_ok = [], bool(Ss)
@@ -302,7 +347,7 @@ def _growth_check(by: dict[tuple[str, int], list[dict]], side_rounds: int) -> Ch
 
 def summarise(paths: list[Path], timing: Path | None = None, *, side_rounds: int = 0) -> bool:
     """Print the table, the speed figures and one pass/fail line per "Done means" target of
-    issue #14; returns whether all pass."""
+    issues #14 and #48; returns whether all pass."""
     recs = _load_records(paths, timing)
     by: dict[tuple[str, int], list[dict]] = defaultdict(list)
     for r in recs:
@@ -311,9 +356,12 @@ def summarise(paths: list[Path], timing: Path | None = None, *, side_rounds: int
     mean_rmf, med_rmf = _print_table(by)
     peers = sorted({e for e, _ in by} - {"custom"})
     checks = _rmf_checks(Ss, peers, mean_rmf, med_rmf)
+    checks.append(_reference_check(Ss, mean_rmf))
+    if any(eng == REFERENCE for eng, _ in by):
+        print("\n" + "\n".join(gap_tracks(by, Ss)))
     checks.append(_speed_check(Ss, by))
     checks.append(_growth_check(by, side_rounds))
-    print("\nissue #14, done means:")
+    print("\nissues #14 and #48, done means:")
     for label, ok, txt in checks:
         print(f"  {'PASS' if ok else 'FAIL'}  {label}: {txt}")
     return all(ok for _, ok, _ in checks)
@@ -586,7 +634,7 @@ def _timed(m: object, track: object) -> float:
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--ids", default="all", help="all, or comma-separated track numbers")
-    ap.add_argument("--engines", default="custom,osrm,valhalla,fastmm")
+    ap.add_argument("--engines", default="custom,osrm,valhalla,valhalla_fs120,fastmm")
     ap.add_argument("--S", default="1,10,30")
     ap.add_argument("--tag", default="batch")
     ap.add_argument("--summary", nargs="+", type=Path, help="only summarise these result files")

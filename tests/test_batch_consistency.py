@@ -42,6 +42,26 @@ def test_route_ends_are_cut_at_the_projections_of_the_first_and_last_fix() -> No
     assert b[0] == pytest.approx([200.0, 0.0]) and b[-1] == pytest.approx([250.0, 0.0])
 
 
+def test_a_stretch_counts_as_lost_only_for_its_part_on_the_true_route() -> None:
+    # the sparse route's stretch the full-rate route lacks: 40 m along the truth, then 60 m off
+    # it (a detour); only the 40 m on the truth are a lost stretch of the true route
+    bench = bench_module("bench_consistency")
+    options = bench.CoverOptions()
+    truth = [np.array([[0.0, 0.0], [200.0, 0.0]])]
+    (gap,) = uncovered_stretches(
+        [np.array([[0.0, -20.0], [200.0, -20.0]])],
+        [np.array([[0.0, 0.0], [40.0, 0.0], [40.0, 60.0]])],
+        buffer_m=options.buffer_m,
+        min_length_m=options.min_length_m,
+    )
+    assert bench.on_route_m(truth, gap, options) == pytest.approx(40.0 + options.buffer_m)
+    r = bench.TrackCover(track="t", fixes=10, full_pieces=1)
+    r.on_truth_m[10] = [bench.on_route_m(truth, gap, options)]
+    r.on_truth_m[30] = [bench.on_route_m([np.array([[500.0, 0.0], [600.0, 0.0]])], gap, options)]
+    assert bench.lost_on_truth(r, 10, options) == 1
+    assert bench.lost_on_truth(r, 30, options) == 0  # all of it off the truth: a detour
+
+
 @pytest.mark.slow
 @pytest.mark.parametrize("track", ["00000007", "00000028", "00000045", "00000052"])
 def test_the_full_rate_route_covers_the_routes_at_10_and_30_s(track: str) -> None:

@@ -449,15 +449,16 @@ def test_a_trace_backwards_along_a_one_way_drives_none_of_it() -> None:
     assert all(piece == ["ab"] for piece in routes(m, r))
 
 
-@pytest.mark.xfail(
-    reason="fixes far back on a one-way after a side road are left out, not split", strict=True
-)
 def test_a_jump_back_along_a_one_way_after_a_side_road_keeps_both_stretches() -> None:
     # Valhalla's "forward then backward" with 0 on the side road first: 0, 3, 4, then 1, 2
-    # 150 m back. Valhalla answers da + ab to 4, then ab 1 to 2; here 3 and 4 are left out as
-    # a run of outliers (each reading keeps three fixes) and the stretch 3-4 is lost
+    # 150 m back. Valhalla answers da + ab to 4, then ab 1 to 2. Leaving out 3 and 4 would
+    # reach 1 from 0, but it drops as many fixes as it keeps (each reading keeps three): the
+    # fixes are two stretches of one drive, and the route splits at 1, every fix kept
     m = parse_ascii_map(ONE_WAY_AFTER_A_SIDE_ROAD, scale=10)
     r = untimed(m, _along_ab(m, "03412"))
+    assert routes(m, r) == [["da", "ab"], ["ab"]]
+    assert r.splits == [3]
+    assert r.length_m == pytest.approx(20 + 210 + 30, abs=0.5)
     assert [p.status for p in r.points] == [PointStatus.MATCHED] * 5
 
 

@@ -260,19 +260,22 @@ def skip_more(prev, t, lat, p):  # type: ignore[no-untyped-def]
 
 
 @njit(**UNCOUNTED)
-def leave_out_before_split(prev, s0, sr, fw):  # type: ignore[no-untyped-def]
-    """A run of points from ``s0`` is unreachable from ``prev`` and would start a new piece:
-    maybe the last points kept were the outliers (a drift onto a road that does not lead on).
-    Reach ``s0`` from up to ``max_skip`` points before ``prev``, leaving out the points between
-    (not across a jump, even spread over its steps, nor a run off the route). Returns whether
-    it did (``fw`` then has the step)."""
+def leave_out_before_split(prev, s0, run, sr, fw):  # type: ignore[no-untyped-def]
+    """A run of ``run`` points from ``s0`` is unreachable from ``prev`` and would start a new
+    piece: maybe the last points kept were the outliers (a drift onto a road that does not lead
+    on). Reach ``s0`` from up to ``max_skip`` points before ``prev``, leaving out the points
+    kept between, while they are fewer than the run (not across a jump, even spread over its
+    steps, nor a run off the route). A split keeps every fix: where leaving out the points
+    kept saves no more fixes than it drops, the fixes are two stretches of one drive, not a
+    drift and its way back (fixes far back along a one-way, after the car drove on). Returns
+    whether it did (``fw`` then has the step)."""
     s = deref(sr)
     lat, p = s.lat, s.p
     inputs = step_inputs(lat, s.tr, p, s.router)
     pxy, ptime = lat.pxy, lat.ptime
     q = fw.prev_pt[prev]
-    back = 0
-    while q >= 0 and back < p.max_skip:
+    back = 0  # the points kept from ``q`` to ``prev`` left out: ``back + 1``
+    while q >= 0 and back < p.max_skip and back + 1 < run:
         dq = math.hypot(pxy[s0, 0] - pxy[q, 0], pxy[s0, 1] - pxy[q, 1])
         if far_gap(dq, ptime[s0] - ptime[q], p, back + 2) or left_the_route(q, s0, lat, p):
             return False

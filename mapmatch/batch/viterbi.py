@@ -191,7 +191,7 @@ def _forward(s, fw):  # type: ignore[no-untyped-def]
                 continue
             restart = s0
             counted = nskip == p.max_skip + 1
-        if nskip > 0 and restart == s0 and leave_out_before_split(prev, s0, sr, fw):
+        if nskip > 0 and restart == s0 and leave_out_before_split(prev, s0, nskip, sr, fw):
             prev = s0
             nskip = 0
             t = s0 + 1
