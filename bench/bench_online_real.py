@@ -34,7 +34,8 @@ reverse, other.
 ``--cv`` scores every setting of ``--grid`` (on the current defaults and ``--set``) on every
 track's drive with the outages, chooses on four of the folds of ``bench/folds.py`` and scores
 the fifth (``bench/crossval.py``), and prints the out-of-fold table beside the in-sample ones
-(``--docs``: the fragment ``cv_online``; ``--json``: every setting's rows of every track).
+(``--docs``: the fragment ``cv_online`` at 1 Hz, ``cv_online_10hz`` at 10 Hz; ``--json``:
+every setting's rows of every track).
 
 ``--calibration`` runs every track's drive with the outages at each rate (1 and 10 Hz unless
 ``--rates``) with the confidence model off (the matcher reports the road probability), keeps
@@ -1038,6 +1039,14 @@ def print_breakdown(rows: list[dict[str, object]]) -> None:
                 print(f"{v:7d} {100.0 * v / max(n, 1):5.2f} %  {k}")
 
 
+def cv_fragment(rates: list[float]) -> str:
+    """The docs fragment of ``--cv --docs`` at these rates: ``cv_online`` at 1 Hz, else named by
+    the rates (``cv_online_10hz``), so a run at other rates keeps the 1 Hz table."""
+    if [float(r) for r in rates] == [1.0]:
+        return "cv_online"
+    return "cv_online_" + "_".join(f"{r:g}hz" for r in rates)
+
+
 def run(args: argparse.Namespace) -> int:
     """Check the options, then run the mode asked for; the exit status."""
     try:
@@ -1067,7 +1076,7 @@ def run(args: argparse.Namespace) -> int:
         if args.docs:
             from report import run_header, write_fragment
 
-            print(f"wrote {write_fragment('cv_online', run_header() + text)}")
+            print(f"wrote {write_fragment(cv_fragment(args.rates), run_header() + text)}")
         return 0
     rows = run_drives(names, cfg, args)
     print_rows(rows, docs=args.docs)
