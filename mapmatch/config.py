@@ -436,8 +436,9 @@ class RouteConfig:
         bound, the speed checks). A route table (:class:`~mapmatch.route_table.Ubodt`) holds one turn cost; a
         matcher uses it only for configs with that turn cost.
     route_lp_cut : routes are searched only as a fallback beyond the travelled distance plus
-        this many β (the base ``model.beta``, without ``model.beta_per_m``'s growth: a wider first search
-        costs time on dense maps without changing the matches).
+        this many β (the base ``model.beta``, without ``model.beta_per_m``'s growth): a wider
+        first search costs time on dense maps, and between sparse fixes it may find a better
+        route than the first one within the cut.
     reverse_tolerance : metres a candidate may fall behind the previous one on the same edge and
         count as standing. On a one-way edge, which no vehicle drives backwards, a candidate up
         to ``model.search_radius`` behind counts as standing (noise about the place the vehicle
@@ -994,7 +995,6 @@ _BOUNDS: frozenset[str] = frozenset(
         "online.corrections.trail_max",
         "batch.route.max_route_factor",
         "batch.route.route_slack",
-        "batch.route.route_lp_cut",
         "batch.track.track_pos_sigma_floor",
         "batch.track.track_heading_sigma_floor_deg",
         "batch.outliers.emission_prune",
