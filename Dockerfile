@@ -2,7 +2,7 @@
 #   docker build -t mapmatch .
 #   docker run -p 50051:50051 -v "$PWD/maps:/maps:ro" -e MAPMATCH_MAPS=city=/maps/city.map mapmatch
 # (README, "Deployment"). Stage 1 installs the package into a venv; stage 2 copies only that
-# venv (the core install: no map preparation), runs as an unprivileged user, compiles the batch and online kernels once at build time (so the
+# venv (the core install with the session store's client and uvloop: no map preparation), runs as an unprivileged user, compiles the batch and online kernels once at build time (so the
 # first MatchTrack and the first fixes are fast) and checks health through grpc.health.v1.
 
 # The base image is pinned by digest (the same for both stages): a rebuild gets the same
@@ -14,7 +14,7 @@ FROM ${BASE} AS build
 WORKDIR /src
 COPY . .
 RUN python -m venv /opt/mapmatch \
- && /opt/mapmatch/bin/python -m pip install --no-cache-dir -c requirements/constraints.txt .
+ && /opt/mapmatch/bin/python -m pip install --no-cache-dir -c requirements/constraints.txt '.[redis,uvloop]'
 
 FROM ${BASE}
 RUN useradd --create-home --uid 10001 mapmatch

@@ -18,8 +18,10 @@ phases: against ``on`` it tells what the checkpoint passes cost the fixes.
 
 Each phase reports the server's CPU seconds (summed over its processes) and the updates per
 server CPU-second: the client processes share the same cores, so wall-clock throughput on a
-2-core machine measures the clients as much as the server. With the store on, the Redis
-writes per second during the phase come from Redis's own ``INFO commandstats``.
+2-core machine measures the clients as much as the server (their CPU per update is printed
+too: ``bench_service.py``'s lighter generator, gRPC framed by ``h2`` on uvloop's loop). With
+the store on, the Redis writes per second during the phase come from Redis's own ``INFO
+commandstats``.
 
 Part 2 (the cost of a checkpoint): 200 sessions at their full size (30 s of 10 Hz fixes
 each), written as one checkpoint pass of :class:`service.store_checkpoints.Checkpointer`
@@ -160,6 +162,7 @@ def service_run(
             "cpu_us": 1e6 * r["cpu_s"] / max(r["n"], 1),
             "per_cpu_s": r["n"] / max(r["cpu_s"], 1e-9),
             "writes_s": (s1 - s0) / r["elapsed"],
+            "client_us": 1e6 * r["client_cpu_s"] / max(r["n"], 1),
             "load": os.getloadavg()[0],
         }
         s0 = set_calls(db) if db else 0
@@ -215,15 +218,16 @@ def part1(args: argparse.Namespace, store_port: int) -> None:
           f"peak with {args.window} in flight each ({args.peak_seconds:g} s)\n")  # fmt: skip
     print("| processes | store | paced p50 / p99 / max (ms) | errors | paced server CPU per update | "
           "Redis writes/s | peak updates/s | peak server CPU per update | updates per server CPU-s "
-          "(paced / peak) | load (paced / peak) |")  # fmt: skip
-    print("|---|---|---|---|---|---|---|---|---|---|")
+          "(paced / peak) | client CPU per update (paced / peak) | load (paced / peak) |")  # fmt: skip
+    print("|---|---|---|---|---|---|---|---|---|---|---|")
     for row in rows:
         a, b = row["paced"], row["peak"]
         print(
             f"| {row['processes']} | {row['store']} | {a['p50']:.2f} / {a['p99']:.2f} / "
             f"{a['max']:.1f} | {a['errors'] + b['errors']} | {a['cpu_us']:.0f} µs | "
             f"{a['writes_s']:.0f} / {b['writes_s']:.0f} | {b['ups']:.0f} | {b['cpu_us']:.0f} µs | "
-            f"{a['per_cpu_s']:.0f} / {b['per_cpu_s']:.0f} | {a['load']:.1f} / {b['load']:.1f} |"
+            f"{a['per_cpu_s']:.0f} / {b['per_cpu_s']:.0f} | {a['client_us']:.0f} / {b['client_us']:.0f} µs | "
+            f"{a['load']:.1f} / {b['load']:.1f} |"
         )
 
     def median(processes: int, store: str, phase: str) -> float:

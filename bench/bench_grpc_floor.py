@@ -18,6 +18,7 @@ from __future__ import annotations
 import argparse
 import asyncio
 import multiprocessing as mp
+import os
 import random
 import sys
 import time
@@ -74,9 +75,10 @@ class SyncStyle(pbg.MapMatchServicer):
             yield ANSWER
 
 
-def serve(style: str, port_q: Any) -> None:
+def serve(style: str, port_q: Any, options: tuple[tuple[str, Any], ...] = ()) -> None:
+    style, _, loop = style.partition("+")
     if style == "sync":
-        server = grpc.server(futures.ThreadPoolExecutor(max_workers=64))
+        server = grpc.server(futures.ThreadPoolExecutor(max_workers=256), options=options)
         pbg.add_MapMatchServicer_to_server(SyncStyle(), server)
         port_q.put(server.add_insecure_port("127.0.0.1:0"))
         server.start()
@@ -84,13 +86,18 @@ def serve(style: str, port_q: Any) -> None:
         return
 
     async def main() -> None:
-        server = aio.server()
+        server = aio.server(options=options)
         pbg.add_MapMatchServicer_to_server(IterStyle() if style == "iter" else ReadWriteStyle(), server)
         port_q.put(server.add_insecure_port("127.0.0.1:0"))
         await server.start()
         await server.wait_for_termination()
 
-    asyncio.run(main())
+    if loop == "uvloop":
+        import uvloop
+
+        uvloop.run(main())
+    else:
+        asyncio.run(main())
 
 
 def client(port: int, streams: int, messages: int, out_q: Any, rate: float = 0.0) -> None:
@@ -118,20 +125,27 @@ def client(port: int, streams: int, messages: int, out_q: Any, rate: float = 0.0
     async def main() -> None:
         async with aio.insecure_channel(f"127.0.0.1:{port}") as ch:
             stub = pbg.MapMatchStub(ch)
-            t = time.perf_counter()
+            t, c = time.perf_counter(), time.process_time()
             n = await asyncio.gather(*[one(stub) for _ in range(streams)])
-            out_q.put((sum(n), time.perf_counter() - t))
+            out_q.put((sum(n), time.perf_counter() - t, time.process_time() - c))
 
     asyncio.run(main())
 
 
 def measure(
-    style: str, *, clients: int, streams: int, messages: int, rate: float = 0.0
-) -> tuple[int, float, float]:
-    """(messages answered, server CPU seconds per message, wall seconds)."""
+    style: str,
+    *,
+    clients: int,
+    streams: int,
+    messages: int,
+    rate: float = 0.0,
+    options: tuple[tuple[str, Any], ...] = (),
+) -> tuple[int, float, float, float]:
+    """(messages answered, server CPU seconds per message, wall seconds, client CPU seconds
+    per message)."""
     ctx = mp.get_context("spawn")
     port_q, out_q = ctx.Queue(), ctx.Queue()
-    server = ctx.Process(target=serve, args=(style, port_q), daemon=True)
+    server = ctx.Process(target=serve, args=(style, port_q, options), daemon=True)
     server.start()
     try:
         port = port_q.get(timeout=60)
@@ -154,29 +168,73 @@ def measure(
         server.terminate()
         server.join()
     n = sum(r[0] for r in res)
-    return n, cpu / max(n, 1), max(r[1] for r in res)
+    return n, cpu / max(n, 1), max(r[1] for r in res), sum(r[2] for r in res) / max(n, 1)
+
+
+def _options(text: str) -> tuple[tuple[str, Any], ...]:
+    """``name=value,name=value`` as gRPC server options (integer values as integers);
+    ``env:NAME=value`` sets an environment variable of the server process instead."""
+    out: list[tuple[str, Any]] = []
+    for part in filter(None, text.split(",")):
+        name, _, value = part.partition("=")
+        if not name.startswith("env:"):
+            out.append((name, int(value) if value.lstrip("-").isdigit() else value))
+    return tuple(out)
+
+
+def _env(text: str) -> dict[str, str]:
+    """The ``env:NAME=value`` parts of an option set."""
+    parts = (p.partition("=") for p in filter(None, text.split(",")))
+    return {name[4:]: value for name, _, value in parts if name.startswith("env:")}
 
 
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--style", default="iter,rw,sync", help="comma-separated: iter, rw, sync")
+    ap.add_argument(
+        "--style",
+        default="iter,rw,sync",
+        help="comma-separated: iter, rw, sync; an aio style may end in +uvloop (its event loop)",
+    )
     ap.add_argument("--clients", type=int, default=2, help="client processes")
     ap.add_argument("--streams", type=int, default=25, help="streams per client process")
     ap.add_argument("--messages", type=int, default=400, help="fixes per stream")
     ap.add_argument(
         "--rate", type=float, default=0.0, help="fixes per second per stream (0: as fast as answered)"
     )
-    ap.add_argument("--repeat", type=int, default=2, help="runs per style (the least CPU is printed)")
+    ap.add_argument(
+        "--options",
+        action="append",
+        default=[],
+        help="a set of server options, name=value,... or env:NAME=value (repeat: each set is a variant)",
+    )
+    ap.add_argument(
+        "--repeat", type=int, default=2, help="runs per variant, interleaved (the least CPU is printed)"
+    )
     a = ap.parse_args()
     load = " ".join(f"{x:.2f}" for x in psutil.getloadavg())
     print(f"load average before: {load} ({psutil.cpu_count()} cores)")
-    for style in a.style.split(","):
-        kw = {"clients": a.clients, "streams": a.streams, "messages": a.messages, "rate": a.rate}
-        runs = [measure(style, **kw) for _ in range(a.repeat)]
-        n, per, wall = min(runs, key=lambda r: r[1])
+    variants = [(style, o) for style in a.style.split(",") for o in (a.options or [""])]
+    runs: dict[tuple[str, str], list[tuple[int, float, float, float]]] = {v: [] for v in variants}
+    kw = {"clients": a.clients, "streams": a.streams, "messages": a.messages, "rate": a.rate}
+    for k in range(a.repeat):  # interleaved: the machine's load drifts alike over every variant
+        for style, o in variants if k % 2 == 0 else variants[::-1]:
+            saved = {k: os.environ.get(k) for k in _env(o)}
+            os.environ.update(_env(o))  # inherited by the server process (and the clients)
+            try:
+                runs[(style, o)].append(measure(style, options=_options(o), **kw))
+            finally:
+                for name, value in saved.items():
+                    if value is None:
+                        os.environ.pop(name, None)
+                    else:
+                        os.environ[name] = value
+    for (style, o), got in runs.items():
+        n, per, wall, client_per = min(got, key=lambda r: r[1])
         print(
-            f"{style:5s}: {n} messages, server CPU {per * 1e6:.1f} us per message "
-            f"(one core: at most {1 / per:,.0f} messages/s), wall {wall:.1f} s"
+            f"{style:11s} {o or '(default options)'}: {n} messages, server CPU {per * 1e6:.1f} us per "
+            f"message (one core: at most {1 / per:,.0f} messages/s; all runs "
+            f"{', '.join(f'{r[1] * 1e6:.0f}' for r in got)}), client CPU {client_per * 1e6:.1f} us, "
+            f"wall {wall:.1f} s (load {psutil.getloadavg()[0]:.2f})"
         )
     return 0
 

@@ -40,19 +40,24 @@ the fifth (``bench/crossval.py``), and prints the out-of-fold table beside the i
 ``--rates``) with the confidence model off (the matcher reports the road probability), keeps
 per fix the features the model weighs, and measures probabilities against whether the fix is
 on the right road (as scored above, where the truth is known and the fix is placed on a road):
-the reliability table, the ECE, the wrong share among the fixes marked ``usable`` and the share
-of right fixes marked usable (``bench/calibration.py``), for the road probability, it mapped by
-isotonic regression out of fold, the configured model (what the matcher reports: the same
-numbers, computed from the features), and the model's coefficients and usable threshold
-(:func:`choose_threshold`) fitted per rate on all tracks (in-sample) and on four folds of
-``bench/folds.py`` and applied to the fifth (out of fold), with the matcher's usable test on
-each. The wrong fixes at road probability ``>= 0.999`` and the wrong usable ones are broken
-down by class, by whether the reported edge is next to the true one, GPS or outage,
-distance to the nearer node and whether another road lies near (:data:`CALIB_COLUMNS`).
-``--save-fixes`` writes the per-fix table (CSV), ``--load-fixes`` reports from one without
-running (``--docs``: the fragment ``calibration``).
+the reliability table, the ECE (over its bins and over 20 bins of equal numbers of fixes), the
+log-loss, the wrong share among the fixes marked ``usable``, the share of right fixes marked
+usable and the trade-off curve (right fixes usable at a wrong share of 0.05-0.3 %)
+(``bench/calibration.py``), for the road probability, it mapped by isotonic regression out of
+fold, the configured model (what the matcher reports: the same numbers, computed from the
+features), and the model's coefficients and usable threshold fitted on all tracks (in-sample)
+and on four folds of ``bench/folds.py`` and applied to the fifth (out of fold), pooled over
+the rates unless ``--per-rate`` (``bench/confidence_fit.py``: the L2 prior chosen by CV, the
+threshold judged on out-of-fold probabilities), with the matcher's usable test on each, and
+the model out of fold with each term left out. The wrong fixes at road probability
+``>= 0.999`` and the wrong usable ones are broken down by class, by whether the reported edge
+is next to the true one, GPS or outage, distance to the nearer node and whether another road
+lies near (:data:`CALIB_COLUMNS`).
+``--save-fixes`` writes the per-fix table (CSV), ``--load-fixes`` reports from one or more
+(e.g. one per rate) without running (``--docs``: the fragment ``calibration``).
 
     python bench/bench_online_real.py --calibration --docs
+    python bench/bench_online_real.py --calibration --load-fixes 1hz.csv 10hz.csv --docs
 """
 
 from __future__ import annotations
@@ -63,6 +68,7 @@ import os
 import sys
 import time
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pandas as pd
@@ -72,6 +78,7 @@ sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "bench"))
 
 import calibration  # noqa: E402
+import confidence_fit as cfit  # noqa: E402
 import crossval  # noqa: E402
 import folds  # noqa: E402
 from bench_online import corrected_edges, run_drive  # noqa: E402
@@ -81,7 +88,7 @@ from graph.build import build_map  # noqa: E402
 from graph.index import project_to_edge  # noqa: E402
 from graph.projection import to_xy  # noqa: E402
 from graph.road_graph import RoadGraph  # noqa: E402
-from mapmatch.config import DEFAULT_CONFIG, ConfidenceConfig, MatchConfig  # noqa: E402
+from mapmatch.config import DEFAULT_CONFIG, MatchConfig  # noqa: E402
 from mapmatch.errors import ConfigError  # noqa: E402
 from mapmatch.evaluate import edge_path, is_junction, matched_junctions, path_nodes  # noqa: E402
 from mapmatch.online import OnlineMatcher  # noqa: E402
@@ -480,6 +487,10 @@ CALIB_COLUMNS = (
     "cross_sig",
     "alongside",
     "other_sig",
+    "since_amb",
+    "since_change",
+    "cand2_gap",
+    "cand2_head",
 )
 """The per-fix table of ``--calibration``: the track, rate and fold; the reported road
 probability; whether the answer is on the right road; the matcher's ``usable``; whether the
@@ -584,17 +595,25 @@ def answer_features(matcher: OnlineMatcher, drive: Drive, results: list[SnapResu
     difference to the road, the fix's signed along-track distance from the answer, and the
     time and odometer distance since the last GPS-aided fix; the fix's distance from the road
     in its σ and whether a road runs alongside, as the matcher's confidence model sees them
-    (:func:`mapmatch.online.report.agreement`)."""
+    (:func:`mapmatch.online.report.agreement`); the seconds since the last answer in an
+    ambiguous region and since the reported edge last changed; and the second-best candidate's
+    distance from the fix and heading disagreement, less the answer's (in σ and degrees; inf
+    and NaN without one)."""
     graph, cfg = matcher.graph, matcher.config
     fixes = drive.fix_objects()
     n = len(results)
     p_path, p2 = np.ones(n), np.zeros(n)
+    c2_dist, c2_head = np.full(n, np.inf), np.full(n, np.nan)
+    road = matcher.road
     for i, r in enumerate(results):
         for c in r.candidates:
             if c.edge == r.edge:
                 p_path[i] = c.probability
             elif c.probability > p2[i]:
                 p2[i] = c.probability
+                c2_dist[i] = c.dist
+                hd = float(fixes[i].heading) - road.bearing_at(c.edge, c.offset)
+                c2_head[i] = abs((hd + 180.0) % 360.0 - 180.0)
     e0 = np.maximum(np.array([r.edge for r in results], dtype=np.int64), 0)
     off = np.array([r.offset for r in results], dtype=float)
     elen = graph.edge_len[e0].astype(float)
@@ -613,6 +632,8 @@ def answer_features(matcher: OnlineMatcher, drive: Drive, results: list[SnapResu
     bear = np.array([r.bearing for r in results], dtype=float)
     sig = np.array([f.pos_sigma for f in fixes], dtype=float)
     sig = np.maximum(np.where(sig > 0, sig, cfg.model.gps_sigma), cfg.online.evidence.pos_sigma_floor)
+    amb = np.array([r.state == State.AMBIGUOUS for r in results], dtype=bool)
+    change = np.r_[True, e0[1:] != e0[:-1]]
     m = cfg.confidence
     par = matcher.parallel
     beside = [r.edge >= 0 and bool(par.alongside(r.edge, r.offset, m)) for r in results]
@@ -634,6 +655,10 @@ def answer_features(matcher: OnlineMatcher, drive: Drive, results: list[SnapResu
         "fix_along": fix_along,
         "since_gps": t - last_t,
         "dr_dist": cum - last_c,
+        "since_amb": t - np.maximum.accumulate(np.where(amb, t, -np.inf)),
+        "since_change": t - np.maximum.accumulate(np.where(change, t, -np.inf)),
+        "cand2_gap": c2_dist / sig - np.array([r.dist for r in results], dtype=float) / sig,
+        "cand2_head": c2_head - np.abs((head - bear + 180.0) % 360.0 - 180.0),
     }
 
 
@@ -645,7 +670,7 @@ def collect_calibration(names: list[str], cfg: MatchConfig, args: argparse.Names
     for n, name in enumerate(names):
         folder = KUBICKA / name
         graph = load_graph(folder, args.map_cache)
-        matcher = OnlineMatcher(graph, config=cfg.with_settings(list(IDENTITY)))
+        matcher = OnlineMatcher(graph, config=cfg.with_settings(list(cfit.IDENTITY)))
         for rate in args.rates:
             drive = real_drive(graph, folder, rate_hz=rate, outages=True, seed=int(name))
             res, _ = run_drive(matcher, drive)
@@ -659,33 +684,6 @@ def collect_calibration(names: list[str], cfg: MatchConfig, args: argparse.Names
     return pd.concat(parts, ignore_index=True)[list(CALIB_COLUMNS)]
 
 
-def calibrated_gate(
-    g: pd.DataFrame, q: np.ndarray, cfg: MatchConfig, *, min_probability: float | None = None
-) -> np.ndarray:
-    """The matcher's usable gate with probability ``q`` in place of the reported one (and
-    ``min_probability`` in place of ``measurement.min_probability`` when given)."""
-    least = cfg.measurement.min_probability if min_probability is None else min_probability
-    return g["gate"].to_numpy() & (q >= least)
-
-
-WRONG_USABLE_TARGET = 0.001
-"""The wrong share among usable fixes ``measurement.min_probability`` is chosen for: the least
-threshold whose wrong share is at most this (issue #48's target)."""
-THRESHOLDS = np.round(np.arange(0.9, 0.9995, 0.001), 4)
-"""The thresholds :func:`choose_threshold` tries."""
-
-
-def choose_threshold(g: pd.DataFrame, q: np.ndarray, cfg: MatchConfig) -> float:
-    """The least threshold of :data:`THRESHOLDS` whose wrong share among the usable fixes of
-    ``g`` (probability ``q``) is at most :data:`WRONG_USABLE_TARGET` (the largest if none is)."""
-    right = g["right"].to_numpy()
-    for t in THRESHOLDS.tolist():
-        wrong, _ = calibration.usable_shares(calibrated_gate(g, q, cfg, min_probability=t), right)
-        if wrong <= WRONG_USABLE_TARGET:
-            return float(t)
-    return float(THRESHOLDS[-1])
-
-
 def _reliability_lines(p: np.ndarray, right: np.ndarray) -> list[str]:
     lines = ["| reported p | fixes | mean p | right share |", "|---|---|---|---|"]
     for b in calibration.reliability(p, right):
@@ -696,103 +694,55 @@ def _reliability_lines(p: np.ndarray, right: np.ndarray) -> list[str]:
     return lines
 
 
-CONFIDENCE_TERMS = ("intercept", "log_odds", "heading", "cross", "parallel", "parallel_gap")
-"""The terms of the matcher's confidence model: ``confidence.coef_<term>``."""
-IDENTITY = tuple(f"confidence.coef_{t}={1 if t == 'log_odds' else 0}" for t in CONFIDENCE_TERMS)
-"""The confidence model switched off: the matcher reports the road's probability itself."""
-
-
-def confidence_features(g: pd.DataFrame, model: ConfidenceConfig = DEFAULT_CONFIG.confidence) -> np.ndarray:
-    """The confidence model's features per fix, as :func:`mapmatch.measurement.confidence`
-    takes them, with ``model``'s caps: 1, the road probability's log-odds, the heading
-    disagreement per 10° (at most ``heading_cap``, 0 without a heading), the fix's distance
-    from the road in σ (at most ``cross_cap``), whether a road runs alongside and by how many σ
-    it is nearer to the fix (``gap_cap`` less the gap in σ, the gap within ±``gap_cap``; 0
-    without one)."""
-    m = model
-    p = np.clip(g["p"].to_numpy(dtype=float), m.probability_floor, 1.0 - m.probability_floor)
-    head = np.minimum(np.nan_to_num(g["head_diff"].to_numpy(dtype=float)), m.heading_cap) * 0.1
-    cross_raw = g["cross_sig"].to_numpy(dtype=float)
-    other = g["other_sig"].to_numpy(dtype=float)
-    beside = np.isfinite(other)
-    near = np.clip(np.where(beside, other, 0.0) - cross_raw, -m.gap_cap, m.gap_cap)
-    gap = np.where(beside, m.gap_cap - near, 0.0)
-    return np.column_stack(
-        [np.ones(len(p)), np.log(p / (1.0 - p)), head, np.minimum(cross_raw, m.cross_cap), beside, gap]
-    )
-
-
-def configured_coefficients(cfg: MatchConfig) -> np.ndarray:
-    """The confidence model's coefficients in ``cfg``, in the order of :data:`CONFIDENCE_TERMS`."""
-    m = cfg.confidence
-    return np.array([getattr(m, f"coef_{t}") for t in CONFIDENCE_TERMS], dtype=float)
-
-
 Scored = tuple[np.ndarray, np.ndarray]  # a probability per fix and the usable flag on it
 
 
-def calibration_probabilities(g: pd.DataFrame, cfg: MatchConfig) -> tuple[dict[str, Scored], str]:
+def calibration_probabilities(g: pd.DataFrame, fit: cfit.ModelFit, cfg: MatchConfig) -> dict[str, Scored]:
     """One rate's probabilities to compare, each with its usable flags: the road's (the model
-    off, usable at 0.9 as before the model), isotonic on it out of fold, the configured model
-    (what the matcher reports), the model and threshold fitted on all tracks (in-sample) and
-    on four folds and applied to the fifth (out of fold); and the coefficients and thresholds
-    as text."""
+    off, usable at 0.9), isotonic on it out of fold, the configured model (what the matcher
+    reports), and the model and threshold fitted on all tracks (in-sample) and on four folds
+    and applied to the fifth (out of fold); ``fit`` holds the fixes of ``g``, in its order."""
     p = g["p"].to_numpy()
     right = g["right"].to_numpy()
-    fold = g["fold"].to_numpy()
-    x = confidence_features(g)
-    b_in = calibration.logistic_fit(x, right)
-    q_in = calibration.logistic_apply(b_in, x)
-    t_in = choose_threshold(g, q_in, cfg)
-    q_oof = np.full(len(g), np.nan)
-    u_oof = np.zeros(len(g), dtype=bool)
-    rows = []
-    for f in sorted(np.unique(fold).tolist()):
-        held = fold == f
-        b = calibration.logistic_fit(x[~held], right[~held])
-        q_oof[held] = calibration.logistic_apply(b, x[held])
-        train = g[~held]
-        t = choose_threshold(train, calibration.logistic_apply(b, x[~held]), cfg)
-        u_oof[held] = calibrated_gate(g[held], q_oof[held], cfg, min_probability=t)
-        rows.append((f"without fold {f}", b, t))
-    iso = calibration.out_of_fold(p, right, fold)
-    q_cfg = calibration.logistic_apply(configured_coefficients(cfg), x)
-    probs: dict[str, Scored] = {
-        "road probability (model off, usable at 0.9)": (p, calibrated_gate(g, p, cfg, min_probability=0.9)),
-        "isotonic on it, out of fold": (iso, calibrated_gate(g, iso, cfg)),
-        "confidence model as configured (as reported)": (q_cfg, calibrated_gate(g, q_cfg, cfg)),
-        "confidence model and threshold fitted on all tracks (in-sample)": (
-            q_in,
-            calibrated_gate(g, q_in, cfg, min_probability=t_in),
+    q_cfg = calibration.logistic_apply(cfit.configured(cfg), cfit.features(g, cfg.confidence))
+    return {
+        "road probability (model off, usable at 0.9)": (p, cfit.gate(g, p, 0.9)),
+        "isotonic on it, out of fold": (
+            (iso := calibration.out_of_fold(p, right, g["fold"].to_numpy())),
+            cfit.gate(g, iso, cfg.measurement.min_probability),
         ),
-        "confidence model and threshold fitted on 4 folds, applied to the 5th (out of fold)": (q_oof, u_oof),
+        "confidence model as configured (as reported)": (
+            q_cfg,
+            cfit.gate(g, q_cfg, cfg.measurement.min_probability),
+        ),
+        "confidence model fitted on all tracks (in-sample)": (fit.q_in, fit.u_in),
+        "confidence model and threshold fitted on 4 folds, applied to the 5th (out of fold)": (
+            fit.q_oof,
+            fit.u_oof,
+        ),
     }
-    head = " | ".join(CONFIDENCE_TERMS)
-    lines = [f"| fit | {head} | threshold |", "|---|" + "---|" * (len(CONFIDENCE_TERMS) + 1)]
-    for name, b, t in [("all tracks", b_in, t_in), *rows]:
-        lines.append(f"| {name} | " + " | ".join(f"{v:.3f}" for v in b) + f" | {t:.3f} |")
-    return probs, "\n".join(lines)
 
 
-def calibration_summary(g: pd.DataFrame, cfg: MatchConfig) -> tuple[str, list[dict[str, object]]]:
-    """One rate's reliability tables and a figures row per probability: ECE, wrong share
-    among usable, right share usable."""
+def calibration_summary(
+    g: pd.DataFrame, fit: cfit.ModelFit, cfg: MatchConfig
+) -> tuple[str, list[dict[str, object]]]:
+    """One rate's reliability tables and a figures row per probability: ECE (fixed and
+    equal-mass bins), log-loss, wrong share among usable, right share usable."""
     right = g["right"].to_numpy()
-    probs, coef_text = calibration_probabilities(g, cfg)
-    text: list[str] = [
-        f"\nConfidence model coefficients ({', '.join(CONFIDENCE_TERMS)}) and usable threshold:\n",
-        coef_text,
-    ]
+    text: list[str] = []
     figures: list[dict[str, object]] = []
-    for name, (q, usable) in probs.items():
+    for name, (q, usable) in calibration_probabilities(g, fit, cfg).items():
         wrong, kept = calibration.usable_shares(usable, right)
         figures.append(
             {
                 "probability": name,
                 "ece": calibration.ece(q, right),
+                "ece20": calibration.ece_equal_mass(q, right),
+                "log_loss": calibration.log_loss(q, right),
                 "usable": int(usable.sum()),
                 "wrong_usable": wrong,
                 "right_usable": kept,
+                "curve": cfit.trade_off(q, g),
             }
         )
         text += [f"\n{name}:\n", *_reliability_lines(q, right)]
@@ -851,43 +801,118 @@ def wrong_breakdown(g: pd.DataFrame) -> str:
     return "\n".join(lines)
 
 
-def calibration_report(df: pd.DataFrame, cfg: MatchConfig, *, load0: float) -> str:
-    """``--calibration``: the figures and reliability tables of each rate, as markdown."""
-    n_tracks = df["track"].nunique()
-    head = (
-        f"REAL GPS: {n_tracks} Kubicka tracks as fused drives with the five outages, at "
-        f"{', '.join(f'{h:g} Hz' for h in sorted(df['hz'].unique()))}; scored on the fixes placed "
-        f"on a road where the truth is known. The matcher runs with the confidence model off "
-        f"(it reports the road probability); the model's probability is computed from the same "
-        f"features per fix, as the matcher computes it. Fits per rate; out of fold over "
-        f"{df['fold'].nunique()} folds by track (`bench/folds.py`, seed {folds.SEED}): the "
-        f"coefficients and the threshold are fitted on four folds and applied to the fifth. The "
-        f"threshold is the least `measurement.min_probability` whose wrong share among usable "
-        f"fixes is at most {100 * WRONG_USABLE_TARGET:g} %; usable is the matcher's test on the "
-        f"probability (configured: `measurement.min_probability` "
-        f"{cfg.measurement.min_probability:g}). Load average {load0:.2f} at "
-        f"the start, {os.getloadavg()[0]:.2f} at the end ({os.cpu_count()} cores).\n"
-    )
-    summary = [
-        "| rate | probability | fixes | ECE | usable fixes | wrong share among usable "
-        "| share of right fixes usable |",
-        "|---|---|---|---|---|---|---|",
+def _figure_rows(hz: float, n: int, figures: list[dict[str, Any]]) -> tuple[list[str], list[str]]:
+    """The summary rows and the trade-off rows of one rate's figures."""
+    rows, curve = [], []
+    for f in figures:
+        rows.append(
+            f"| {hz:g} Hz | {f['probability']} | {n} | {f['ece']:.4f} | {f['ece20']:.4f} "
+            f"| {f['log_loss']:.4f} | {f['usable']} | {100 * f['wrong_usable']:.3f} % "
+            f"| {100 * f['right_usable']:.2f} % |"
+        )
+        curve.append(
+            f"| {hz:g} Hz | {f['probability']} | " + " | ".join(f"{100 * c:.2f} %" for c in f["curve"]) + " |"
+        )
+    return rows, curve
+
+
+def _ablation_lines(rows: list[dict[str, Any]]) -> list[str]:
+    lines = [
+        "| model | rate | wrong among usable | right usable | ECE | log-loss |",
+        "|---|---|---|---|---|---|",
     ]
-    tables = []
-    for hz, g in df.groupby("hz"):
-        text, figures = calibration_summary(g, cfg)
-        for f in figures:
-            summary.append(
-                f"| {hz:g} Hz | {f['probability']} | {len(g)} | {f['ece']:.4f} | {f['usable']} "
-                f"| {100 * f['wrong_usable']:.3f} % | {100 * f['right_usable']:.2f} % |"  # type: ignore[operator]
-            )
-        tables.append(f"\nReliability at {hz:g} Hz ({len(g)} fixes):\n{text}")
-        x_cfg = confidence_features(g, cfg.confidence)
-        q_cfg = calibration.logistic_apply(configured_coefficients(cfg), x_cfg)
-        diag = wrong_breakdown(g.assign(usable=calibrated_gate(g, q_cfg, cfg)))
-        if diag:
-            tables.append(f"\nWrong fixes at {hz:g} Hz:\n\n{diag}")
-    return head + "\n" + "\n".join(summary) + "\n" + "\n".join(tables) + "\n"
+    for r in rows:
+        lines.append(
+            f"| {r['model']} | {r['hz']:g} Hz | {100 * r['wrong_usable']:.3f} % "
+            f"| {100 * r['right_usable']:.2f} % | {r['ece']:.4f} | {r['log_loss']:.4f} |"
+        )
+    return lines
+
+
+def calibration_head(df: pd.DataFrame, cfg: MatchConfig, *, pooled: bool, load0: float) -> str:
+    """The paragraph that says what the calibration tables are."""
+    rates = ", ".join(f"{h:g} Hz" for h in sorted(df["hz"].unique()))
+    how = "pooled over the rates (a fix weighs 1 / rate)" if pooled else "per rate"
+    return (
+        f"REAL GPS: {df['track'].nunique()} Kubicka tracks as fused drives with the five "
+        f"outages, at {rates}; scored on the fixes placed on a road where the truth is known. "
+        f"The matcher runs with the confidence model off (it reports the road probability); "
+        f"the model's probability is computed from the same features per fix, as the matcher "
+        f"computes it. The model is fitted {how} by maximum likelihood with an L2 prior whose "
+        f"weight is chosen by the out-of-fold log-loss; out of fold over {df['fold'].nunique()} "
+        f"folds by track (`bench/folds.py`, seed {folds.SEED}): the coefficients are fitted on "
+        f"four folds and applied to the fifth, with the threshold chosen on the four folds' own "
+        f"out-of-fold probabilities. The threshold is the least `measurement.min_probability` "
+        f"whose wrong share among usable fixes is at most {100 * cfit.WRONG_USABLE_TARGET:g} % "
+        f"at each rate, judged out of fold; usable is the matcher's test on the probability "
+        f"(configured: `measurement.min_probability` {cfg.measurement.min_probability:g}). ECE "
+        f"over the bins of the reliability tables and over 20 bins of equal numbers of fixes. "
+        f"Load average {load0:.2f} at the start, {os.getloadavg()[0]:.2f} at the end "
+        f"({os.cpu_count()} cores).\n"
+    )
+
+
+def calibration_report(df: pd.DataFrame, cfg: MatchConfig, *, load0: float, pooled: bool = True) -> str:
+    """``--calibration``: the figures, trade-off curve, fitted coefficients, each term left
+    out and the reliability tables of each rate, as markdown."""
+    df = df.reset_index(drop=True)
+    groups = [df] if pooled else [g for _, g in df.groupby("hz")]
+    summary = [
+        "| rate | probability | fixes | ECE | ECE (equal-mass) | log-loss | usable fixes "
+        "| wrong share among usable | share of right fixes usable |",
+        "|---|---|---|---|---|---|---|---|---|",
+    ]
+    shares = " | ".join(f"at {100 * s:g} %" for s in cfit.WRONG_SHARES)
+    curve = [f"| rate | probability | {shares} |", "|---|---|" + "---|" * len(cfit.WRONG_SHARES)]
+    tables, fits, ablation = [], [], []
+    for grp in groups:
+        fit = cfit.fit_model(grp, cfg, pooled=pooled)
+        name = "all rates" if pooled else f"{grp['hz'].iloc[0]:g} Hz"
+        fits.append(
+            f"\nModel fitted on {name} (L2 prior weight {fit.ridge:g}):\n\n{cfit.coefficient_table(fit)}"
+        )
+        ablation += cfit.without_each_term(grp, cfg, pooled=pooled, ridge=fit.ridge)
+        for hz, g in grp.groupby("hz"):
+            text, figures = calibration_summary(g.reset_index(drop=True), _local(fit, grp, g), cfg)
+            rows, crows = _figure_rows(float(hz), len(g), figures)
+            summary += rows
+            curve += crows
+            tables.append(f"\nReliability at {hz:g} Hz ({len(g)} fixes):\n{text}")
+            q_cfg = calibration.logistic_apply(cfit.configured(cfg), cfit.features(g, cfg.confidence))
+            diag = wrong_breakdown(g.assign(usable=cfit.gate(g, q_cfg, cfg.measurement.min_probability)))
+            if diag:
+                tables.append(f"\nWrong fixes at {hz:g} Hz:\n\n{diag}")
+    return (
+        calibration_head(df, cfg, pooled=pooled, load0=load0)
+        + "\n".join(
+            [
+                "",
+                *summary,
+                "",
+                "Share of right fixes usable at a wrong share among usable fixes "
+                "of at most (the best single threshold on each probability, all tracks; the out-of-fold "
+                "row is the trade-off curve on tracks the model has not seen):",
+                "",
+                *curve,
+            ]
+        )
+        + "\n"
+        + "\n".join(fits)
+        + "\n\nOut of fold, with each term left out (thresholds chosen as above):\n\n"
+        + "\n".join(_ablation_lines(ablation))
+        + "\n"
+        + "\n".join(tables)
+        + "\n"
+    )
+
+
+def _local(fit: cfit.ModelFit, grp: pd.DataFrame, g: pd.DataFrame) -> cfit.ModelFit:
+    """``fit`` (of the fixes of ``grp``) restricted to the fixes of ``g``, a part of it,
+    indexed from 0 like ``g`` after its index is reset."""
+    k = grp.index.get_indexer(g.index)
+    return cfit.ModelFit(
+        fit.ridge, fit.q_in[k], fit.u_in[k], fit.q_oof[k], fit.u_oof[k], fit.coef, fit.threshold, fit.rows
+    )
 
 
 def run_calibration(names: list[str], cfg: MatchConfig, args: argparse.Namespace) -> str:
@@ -895,14 +920,15 @@ def run_calibration(names: list[str], cfg: MatchConfig, args: argparse.Namespace
     return the report."""
     load0 = os.getloadavg()[0]
     if args.load_fixes is not None:
-        df = pd.read_csv(args.load_fixes, dtype={"track": str, "kind": str})
+        parts = [pd.read_csv(f, dtype={"track": str, "kind": str}) for f in args.load_fixes]
+        df = pd.concat(parts, ignore_index=True)
     else:
         df = collect_calibration(names, cfg, args)
     if args.save_fixes is not None:
         tmp = args.save_fixes.with_name(f".{args.save_fixes.name}.tmp")
         df.to_csv(tmp, index=False)
         os.replace(tmp, args.save_fixes)
-    text = calibration_report(df, cfg, load0=load0)
+    text = calibration_report(df, cfg, load0=load0, pooled=not args.per_rate)
     print(text)
     return text
 
@@ -940,8 +966,13 @@ def parse_args() -> argparse.Namespace:
         action="store_true",
         help="reliability of the reported road probability, in-sample and out of fold (outages)",
     )
+    ap.add_argument(
+        "--per-rate", action="store_true", help="--calibration: fit per rate (default: pooled over the rates)"
+    )
     ap.add_argument("--save-fixes", type=Path, default=None, help="--calibration: write the per-fix table")
-    ap.add_argument("--load-fixes", type=Path, default=None, help="--calibration: read it instead of running")
+    ap.add_argument(
+        "--load-fixes", type=Path, nargs="+", default=None, help="--calibration: read them instead of running"
+    )
     return ap.parse_args()
 
 

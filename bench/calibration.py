@@ -13,6 +13,7 @@ out of fold (:func:`out_of_fold`), it is scored on fixes it has never seen.
 
     rows = reliability(p, right)             # list of Bin
     e = ece(p, right)
+    e20 = ece_equal_mass(p, right)
     iso = isotonic_fit(p, right); q = isotonic_apply(iso, p)
 """
 
@@ -151,18 +152,25 @@ def out_of_fold(p: ArrayLike, right: ArrayLike, fold: ArrayLike) -> NDArray[np.f
 
 
 def logistic_fit(
-    x: ArrayLike, right: ArrayLike, *, ridge: float = 1e-3, steps: int = 50
+    x: ArrayLike,
+    right: ArrayLike,
+    *,
+    ridge: float = 1e-3,
+    steps: int = 60,
+    weight: ArrayLike | None = None,
 ) -> NDArray[np.float64]:
     """The coefficients of a logistic model of ``right`` on the columns of ``x`` (the first
-    a column of ones for the intercept), by Newton's method on the log-likelihood with a small
-    ridge (``ridge`` times the squared coefficients) that keeps it finite on separable data.
+    a column of ones for the intercept), by Newton's method on the (weighted) log-likelihood
+    with a ridge prior: ``ridge`` times the squared coefficients other than the intercept's
+    (a light L2 prior; it also keeps the fit finite on separable data).
 
     Parameters
     ----------
     x : (N, K) features.
     right : per fix, 0/1 or bool.
-    ridge : weight of the ridge.
+    ridge : weight of the prior.
     steps : at most this many Newton steps.
+    weight : per fix, its weight in the likelihood (default: 1 each).
 
     Returns
     -------
@@ -171,12 +179,15 @@ def logistic_fit(
     """
     xa = np.asarray(x, dtype=float)
     y = np.asarray(right, dtype=float)
+    w = np.ones(len(y)) if weight is None else np.asarray(weight, dtype=float)
+    prior = ridge * np.eye(xa.shape[1])
+    prior[0, 0] = 1e-9
     b = np.zeros(xa.shape[1])
     for _ in range(steps):
         mu = logistic_apply(b, xa)
-        w = mu * (1.0 - mu) + 1e-12
-        hess = xa.T @ (xa * w[:, None]) + ridge * np.eye(len(b))
-        step = np.linalg.solve(hess, xa.T @ (y - mu) - ridge * b)
+        h = w * mu * (1.0 - mu) + 1e-12
+        hess = xa.T @ (xa * h[:, None]) + prior
+        step = np.linalg.solve(hess, xa.T @ (w * (y - mu)) - prior @ b)
         b += step
         if np.abs(step).max() < 1e-9:
             break
@@ -190,17 +201,63 @@ def logistic_apply(b: ArrayLike, x: ArrayLike) -> NDArray[np.float64]:
 
 
 def logistic_out_of_fold(
-    x: ArrayLike, right: ArrayLike, fold: ArrayLike
+    x: ArrayLike,
+    right: ArrayLike,
+    fold: ArrayLike,
+    *,
+    ridge: float = 1e-3,
+    weight: ArrayLike | None = None,
 ) -> tuple[NDArray[np.float64], dict[int, NDArray[np.float64]]]:
     """Each fix's probability from a logistic fit on the fixes of the other folds, and each
-    fold's coefficients."""
+    fold's coefficients (the fit's ``ridge`` and ``weight`` as in :func:`logistic_fit`)."""
     xa = np.asarray(x, dtype=float)
     ra = np.asarray(right, dtype=float)
     fa = np.asarray(fold)
+    wa = np.ones(len(ra)) if weight is None else np.asarray(weight, dtype=float)
     out = np.full(len(ra), np.nan)
     coefs: dict[int, NDArray[np.float64]] = {}
     for f in np.unique(fa).tolist():
         held = fa == f
-        coefs[int(f)] = logistic_fit(xa[~held], ra[~held])
+        coefs[int(f)] = logistic_fit(xa[~held], ra[~held], ridge=ridge, weight=wa[~held])
         out[held] = logistic_apply(coefs[int(f)], xa[held])
     return out, coefs
+
+
+def log_loss(p: ArrayLike, right: ArrayLike, *, weight: ArrayLike | None = None) -> float:
+    """The (weighted) mean negative log-likelihood of outcomes ``right`` under ``p``."""
+    q = np.clip(np.asarray(p, dtype=float), 1e-12, 1.0 - 1e-12)
+    y = np.asarray(right, dtype=float)
+    w = np.ones(len(y)) if weight is None else np.asarray(weight, dtype=float)
+    return float(-np.sum(w * (y * np.log(q) + (1.0 - y) * np.log1p(-q))) / w.sum())
+
+
+def ece_equal_mass(p: ArrayLike, right: ArrayLike, *, bins: int = 20) -> float:
+    """The ECE over ``bins`` bins of equal numbers of fixes (sorted by ``p``): no bin is
+    nearly empty, so it is not dominated by a few fixes in a sparse bin (0 when empty)."""
+    pa = np.asarray(p, dtype=float)
+    ra = np.asarray(right, dtype=float)
+    if len(pa) == 0:
+        return 0.0
+    parts = np.array_split(np.argsort(pa, kind="stable"), min(bins, len(pa)))
+    return float(sum(len(k) * abs(pa[k].mean() - ra[k].mean()) for k in parts) / len(pa))
+
+
+def right_usable_at(q: ArrayLike, right: ArrayLike, gate: ArrayLike, *, wrong_share: float) -> float:
+    """The largest share of right fixes a single threshold on ``q`` marks usable (among the
+    fixes whose ``gate`` is true) with at most ``wrong_share`` of wrong fixes among the
+    usable ones: one point of the trade-off curve (0 when no threshold meets it)."""
+    qa = np.asarray(q, dtype=float)
+    ra = np.asarray(right, dtype=bool)
+    ga = np.asarray(gate, dtype=bool)
+    order = np.argsort(-np.where(ga, qa, -np.inf), kind="stable")
+    rr, gg = ra[order], ga[order]
+    kept = np.cumsum(rr & gg)
+    wrong = np.cumsum(~rr & gg)
+    n = np.arange(1, len(rr) + 1)
+    # a threshold falls between distinct values only
+    qs = np.where(ga, qa, -np.inf)[order]
+    edge = np.r_[qs[1:] != qs[:-1], True]
+    ok = gg & edge & (wrong <= wrong_share * n)
+    if not ok.any() or not ra.any():
+        return 0.0
+    return float(kept[ok].max() / ra.sum())

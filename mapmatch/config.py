@@ -260,7 +260,9 @@ class StopConfig:
     """Stops, nodes, and the rules that hold at any fix rate (``online.stop``).
 
     stop_speed : m/s; below this (from the odometer) the vehicle is stopped: its position may
-        move back along the path but never on across a node (no flicker at a stop line).
+        move back along the path but its fixes never move it on across a node (no flicker at
+        a stop line); the odometer's distance does, while the fixes keep within the region
+        radius of the road (a vehicle creeping past a node, or carried without GPS).
     stop_time : seconds; the speed compared with ``stop_speed`` is the odometer's averaged over
         this long (exponentially), whatever the fix rate: over 0.1 s an odometer's noise of a
         few centimetres reads as walking pace, and a parked vehicle at 10 Hz kept moving on.
@@ -718,7 +720,7 @@ class MeasurementConfig:
         by this at each end.
     """
 
-    min_probability: float = 0.986
+    min_probability: float = 0.99
     settle_distance: float = 100.0
     map_sigma: float = 1.0
     lane_width: float = 3.25
@@ -762,14 +764,13 @@ class ConfidenceConfig:
     The model's log-odds are ``coef_intercept`` + ``coef_log_odds`` times the log-odds of the
     road's probability (the filter's mass of the path, times the along-track position's share
     on the edge where that applies) + ``coef_heading`` per 10° between the fix's heading and
-    the road's (at most ``heading_cap``) + ``coef_cross`` per fix σ of the fix's distance from the road
-    (at most ``cross_cap``) + when another road runs alongside, ``coef_parallel`` plus
-    ``coef_parallel_gap`` per σ by which that road is nearer to the fix than the answer's,
-    counted from ``gap_cap`` further (0) to ``gap_cap`` nearer. Coefficients 0, 1, 0, 0, 0, 0 report the
-    road's probability itself.
+    the road's (at most ``heading_cap``) + when another road runs alongside, ``coef_parallel``
+    plus ``coef_parallel_gap`` per σ (the fix's) by which that road is nearer to the fix than
+    the answer's, counted from ``gap_cap`` further (0) to ``gap_cap`` nearer. Coefficients 0,
+    1, 0, 0, 0 report the road's probability itself.
 
-    coef_intercept, coef_log_odds, coef_heading, coef_cross, coef_parallel,
-    coef_parallel_gap : the model's coefficients (any sign).
+    coef_intercept, coef_log_odds, coef_heading, coef_parallel, coef_parallel_gap : the
+        model's coefficients (any sign).
     parallel_radius : metres; a road within this of the answer's stretch of its edge, not
         sharing the edge's nodes there, runs alongside it.
     parallel_angle : degrees; ... and its bearing there is within this of the edge's.
@@ -778,23 +779,20 @@ class ConfidenceConfig:
         within this of that node leaves at the junction and does not run alongside.
     probability_floor : the road's probability is taken in [floor, 1 - floor] for its log-odds.
     heading_cap : degrees; a fix further off the road's bearing says no more.
-    cross_cap : fix σ; a fix further from the road says no more.
     gap_cap : fix σ; a road alongside nearer or further than the answer's by more says no more.
     """
 
-    coef_intercept: float = 4.255
-    coef_log_odds: float = 0.197
-    coef_heading: float = -0.502
-    coef_cross: float = -0.14
-    coef_parallel: float = -1.557
-    coef_parallel_gap: float = -0.287
+    coef_intercept: float = 4.025
+    coef_log_odds: float = 0.198
+    coef_heading: float = -0.543
+    coef_parallel: float = -1.167
+    coef_parallel_gap: float = -0.351
     parallel_radius: float = 40.0
     parallel_angle: float = 30.0
     parallel_spacing: float = 20.0
     parallel_node_gap: float = 1.0
     probability_floor: float = 1e-6
     heading_cap: float = 90.0
-    cross_cap: float = 10.0
     gap_cap: float = 5.0
 
     def __post_init__(self) -> None:

@@ -29,7 +29,7 @@ back is safe (``usable``).
   keeps the path's probability. Given how the fix agrees with the answer (:class:`Agreement`),
   the probability reported is the confidence model's (:func:`confidence`, the ``confidence``
   section): calibrated on real drives, it weighs that road probability with the fix's heading
-  against the road's, its distance from the road and a road running alongside.
+  against the road's and a road running alongside (how much nearer to the fix it is).
 * **usable** is false off road, while (re)initialising, for the first ``settle_distance``
   metres after a (re)initialisation and whenever the probability is below
   ``min_probability`` (in an ambiguous region as elsewhere: the probability already says how
@@ -241,24 +241,17 @@ class Agreement:
 def confidence(probability: float, agreement: Agreement, model: ConfidenceConfig) -> float:
     """The probability the answer is on the right road: the logistic model of ``model``
     (``confidence.coef_*``) on the road's probability's log-odds, the heading
-    disagreement per 10° (at most ``heading_cap``), the fix's distance from the road in σ (at
-    most ``cross_cap``), whether a road runs alongside and, if one does, by how many σ it is
-    nearer to the fix than the answer's road, within ±``gap_cap``, counted from ``gap_cap``
-    further (0) to ``gap_cap`` nearer (twice ``gap_cap``)."""
+    disagreement per 10° (at most ``heading_cap``), whether a road runs alongside and, if one
+    does, by how many σ it is nearer to the fix than the answer's road, within ±``gap_cap``,
+    counted from ``gap_cap`` further (0) to ``gap_cap`` nearer (twice ``gap_cap``)."""
     c = model
     p = min(max(probability, c.probability_floor), 1.0 - c.probability_floor)
     head = agreement.heading_diff
     head = 0.0 if head != head else min(abs(head), c.heading_cap)
-    cross = agreement.cross_sigmas
-    z = (
-        c.coef_intercept
-        + c.coef_log_odds * math.log(p / (1.0 - p))
-        + c.coef_heading * head * 0.1
-        + c.coef_cross * min(cross, c.cross_cap)
-    )
+    z = c.coef_intercept + c.coef_log_odds * math.log(p / (1.0 - p)) + c.coef_heading * head * 0.1
     other = agreement.other_sigmas
     if other < math.inf:
-        gap = min(max(other - cross, -c.gap_cap), c.gap_cap)
+        gap = min(max(other - agreement.cross_sigmas, -c.gap_cap), c.gap_cap)
         z += c.coef_parallel + c.coef_parallel_gap * (c.gap_cap - gap)
     return 1.0 / (1.0 + math.exp(-z)) if z > -700.0 else 0.0
 

@@ -81,6 +81,16 @@ NOT_SERVING = health_pb2.HealthCheckResponse.NOT_SERVING
 SWITCH_INTERVAL = 0.001
 
 
+def new_event_loop() -> asyncio.AbstractEventLoop:
+    """The server's event loop: uvloop's when it is installed (a core dependency on Linux and
+    macOS; its wake-ups and callbacks cost less CPU per message than asyncio's), else asyncio's."""
+    try:
+        import uvloop
+    except ImportError:
+        return asyncio.new_event_loop()
+    return uvloop.new_event_loop()
+
+
 class ServiceRuntime:
     """A server's runtime: :meth:`start`, :meth:`warm`, the session sweeper, :meth:`stop`.
 
@@ -162,7 +172,7 @@ class ServiceRuntime:
         ConfigError
             The address cannot be bound; with ``wait_ready``, a map that cannot be served.
         """
-        loop = asyncio.new_event_loop()
+        loop = new_event_loop()
         started = threading.Event()
 
         def run() -> None:

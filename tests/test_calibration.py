@@ -94,3 +94,52 @@ def test_logistic_out_of_fold_fits_each_fold_without_it() -> None:
     assert sorted(coefs) == [0, 1, 2] and not np.isnan(q).any()
     held = fold == 1
     assert q[held] == pytest.approx(cal.logistic_apply(cal.logistic_fit(x[~held], right[~held]), x[held]))
+
+
+def test_the_prior_shrinks_the_slopes_but_not_the_intercept() -> None:
+    rng = np.random.default_rng(5)
+    n = 4000
+    x = np.column_stack([np.ones(n), rng.normal(size=n)])
+    right = rng.random(n) < cal.logistic_apply([3.0, 1.0], x)
+    light = cal.logistic_fit(x, right)
+    heavy = cal.logistic_fit(x, right, ridge=1e6)
+    assert abs(heavy[1]) < 0.01 < abs(light[1])
+    # with the slope held near 0 the intercept is the log-odds of the right share
+    share = right.mean()
+    assert heavy[0] == pytest.approx(math.log(share / (1.0 - share)), abs=0.02)
+
+
+def test_a_weighted_fit_counts_a_fix_of_weight_two_as_two_fixes() -> None:
+    rng = np.random.default_rng(6)
+    n = 500
+    x = np.column_stack([np.ones(n), rng.normal(size=n)])
+    right = rng.random(n) < cal.logistic_apply([0.5, 1.0], x)
+    twice = cal.logistic_fit(np.vstack([x, x[:100]]), np.r_[right, right[:100]])
+    w = np.r_[np.full(100, 2.0), np.ones(n - 100)]
+    assert cal.logistic_fit(x, right, weight=w) == pytest.approx(twice, abs=1e-6)
+
+
+def test_log_loss_and_equal_mass_ece_by_hand() -> None:
+    assert cal.log_loss([0.5, 0.5], [1, 0]) == pytest.approx(math.log(2.0))
+    assert cal.log_loss([0.9, 0.2], [1, 0], weight=[3.0, 1.0]) == pytest.approx(
+        -(3 * math.log(0.9) + math.log(0.8)) / 4
+    )
+    # two bins of two fixes: (0.1, 0.3) against 0 and 1 right; (0.9, 0.9) against both right
+    assert cal.ece_equal_mass([0.9, 0.1, 0.9, 0.3], [1, 0, 1, 1], bins=2) == pytest.approx(
+        (2 * abs(0.2 - 0.5) + 2 * abs(0.9 - 1.0)) / 4
+    )
+    assert cal.ece_equal_mass([], []) == 0.0
+
+
+def test_right_usable_at_a_wrong_share_takes_the_best_single_threshold() -> None:
+    q = [0.99, 0.98, 0.97, 0.96, 0.95, 0.5]
+    right = [1, 1, 0, 1, 0, 1]
+    ok = [True] * 6
+    # at most 0 wrong: the two at the top (2 of 4 right); at most 1 in 4: down to 0.96 (3 of 4;
+    # lower, 2 wrong in 5 and in 6 are too many)
+    assert cal.right_usable_at(q, right, ok, wrong_share=0.0) == pytest.approx(2 / 4)
+    assert cal.right_usable_at(q, right, ok, wrong_share=0.25) == pytest.approx(3 / 4)
+    # a fix the gate refuses is never usable, whatever its probability
+    assert cal.right_usable_at(q, right, [False] + [True] * 5, wrong_share=0.0) == pytest.approx(1 / 4)
+    # ties are one threshold: both at 0.9 or neither
+    assert cal.right_usable_at([0.9, 0.9], [1, 0], [True, True], wrong_share=0.0) == 0.0

@@ -61,7 +61,6 @@ def test_the_identity_model_reports_the_road_probability() -> None:
             "confidence.coef_intercept=0",
             "confidence.coef_log_odds=1",
             "confidence.coef_heading=0",
-            "confidence.coef_cross=0",
             "confidence.coef_parallel=0",
             "confidence.coef_parallel_gap=0",
         ]
@@ -102,3 +101,40 @@ def test_roads_alongside_are_found_mid_edge_and_not_across_a_junction() -> None:
 def test_a_bad_confidence_setting_names_its_field(setting: str, field: str) -> None:
     with pytest.raises(ConfigError, match=field.replace(".", r"\.")):
         DEFAULT_CONFIG.with_settings([setting])
+
+
+def test_the_distance_from_the_road_counts_only_against_a_road_alongside() -> None:
+    model = DEFAULT_CONFIG.confidence
+    # alone, a fix 4 σ off the road is as sure as one on it: the term lost out of fold
+    assert confidence(1.0, Agreement(2.0, 4.0), model) == confidence(1.0, Agreement(2.0, 0.2), model)
+    # beside another road, it is the gap to that road that counts
+    assert confidence(1.0, Agreement(2.0, 4.0, 6.0), model) < confidence(1.0, Agreement(2.0, 0.2, 6.0), model)
+
+
+def _mid_edge_probabilities(amap_text: str, shift: float) -> list[float]:
+    """The reported probabilities of the answers in the middle of a-b, for fixes driven along
+    a-b shifted ``shift`` metres north (towards c-d where there is one)."""
+    m = parse_ascii_map(amap_text, scale=15)
+    a, b = m.xy("a"), m.xy("b")
+    up = np.array([0.0, shift])
+    fixes = drive(m, [], DriveSpec(speed=10.0, sigma=3.0), points=[tuple(a + up), tuple(b + up)])
+    matcher = OnlineMatcher(m.graph)
+    state = matcher.new_session()
+    res = [matcher.update(state, f) for f in fixes]
+    e = m.edge("a", "b")
+    length = float(m.graph.edge_len[e])
+    mid = [r for r in res if r.edge == e and 0.3 * length <= r.offset <= 0.7 * length]
+    assert mid
+    return [r.map_aided.probability for r in mid]
+
+
+def test_fixes_off_the_road_lower_the_probability_only_towards_a_road_alongside() -> None:
+    # a lone road: fixes 9 m (3 σ) north of it report what fixes on it report
+    on = _mid_edge_probabilities(DEAD_END, 0.0)
+    off = _mid_edge_probabilities(DEAD_END, 9.0)
+    assert min(off) == pytest.approx(max(on)) and min(on) == pytest.approx(max(off))
+    # with c-d 30 m north, the same fixes are nearer to it: less sure than on a-b, which is
+    # less sure than a lone road
+    beside_on = _mid_edge_probabilities(ALONGSIDE, 0.0)
+    beside_off = _mid_edge_probabilities(ALONGSIDE, 9.0)
+    assert max(beside_off) < min(beside_on) < min(on)

@@ -52,6 +52,9 @@ def db(redis_port: int) -> Iterator[redis.Redis]:
 
 
 def store_config(port: int, **kw: object) -> ServerConfig:
+    # a look-up bound far above a loaded machine's scheduling delay: these tests are about a
+    # store that answers (the bound itself is tested against a store that does not)
+    kw.setdefault("store_timeout", 5.0)
     return local_config(session_store=f"redis://127.0.0.1:{port}/0", checkpoint_interval=0.1, **kw)
 
 
@@ -395,3 +398,46 @@ def test_a_session_changed_while_it_is_read_is_not_kept(monkeypatch: pytest.Monk
     assert read_session(s) is None
     s.version += 1
     assert read_session(s) is None  # odd: an update under way
+
+
+def test_a_pass_encodes_at_most_a_slice_of_sessions_between_two_waits(db, redis_port, monkeypatch):
+    """The checkpoint thread takes the interpreter from the fixes for one slice at a time: at
+    most ``SLICE_MOST`` sessions are encoded between two of its waits (the fixes run in
+    those), and every session of the pass is written."""
+    from service import store_checkpoints
+    from service.store import RedisStore
+    from service.store_checkpoints import Checkpointer, CheckpointSettings
+
+    monkeypatch.setattr(store_checkpoints, "SLICE_MOST", 4)  # a slice of 4 sessions, 120 in the pass
+    monkeypatch.setattr(store_checkpoints, "SLICE_SECONDS", 10.0)  # bounded by the count alone
+    maps, table = _table_with_sessions(120)
+    checksum = maps.get("city").checksum
+    store = RedisStore(f"redis://127.0.0.1:{redis_port}/0", timeout=1.0)
+    ck = Checkpointer(store=store, sessions=table, maps=maps, settings=CheckpointSettings(interval=0.2))
+    events: list[str] = []
+    encode_one, wait = ck._encode_one, ck._wake.wait
+
+    def counted_encode(*a):  # type: ignore[no-untyped-def]
+        events.append("encode")
+        return encode_one(*a)
+
+    def counted_wait(timeout=None):  # type: ignore[no-untyped-def]
+        events.append("wait")
+        return wait(timeout)
+
+    monkeypatch.setattr(ck, "_encode_one", counted_encode)
+    monkeypatch.setattr(ck._wake, "wait", counted_wait)
+    ck.start()
+    try:
+        wait_until(lambda: ck.healthy, "the store's probe")
+        for i in range(120):  # used since the checkpoint thread began: one pass writes them
+            s = table.live(("city", f"v{i}"))
+            assert s is not None
+            table.touch(s)
+        vids = [f"v{i}" for i in range(120)]
+        wait_until(lambda: all(db.exists(session_key(checksum, v)) for v in vids), "the pass")
+    finally:
+        ck.stop()
+    runs = [len(run) for run in "".join("e" if e == "encode" else "|" for e in events).split("|") if run]
+    assert sum(runs) >= 120 and max(runs) <= 4
+    assert len(runs) >= 30  # the pass went in slices, with waits between them

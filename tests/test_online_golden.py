@@ -15,7 +15,9 @@ and again (``record --set committed``, branch h12) when the step from a hypothes
 came to be judged to the candidates' places corrected alike (``step_from_corrected``);
 and again when the online rules that do not win out of fold were removed
 (``bench/ablate_online.py``), and when the hold of a fix just past a node
-(``node_hold_ahead_sigmas``) was removed after losing out of fold at 1 and 10 Hz.
+(``node_hold_ahead_sigmas``) was removed after losing out of fold at 1 and 10 Hz, and when
+the odometer came to carry a stopped vehicle on across a node (the stop hold holds the fixes
+only).
 They hold every ``SnapResult`` of the service tests' drives and of bench_online drives on
 shared maps, and a session exported half way (imported here and replayed). A few batch
 matches are in ``batch.json.gz``, recorded after #14 changed the batch model (off-map fixes,

@@ -252,7 +252,8 @@ def test_parked_vehicle_in_an_outage_does_not_creep_forward_at_10_hz() -> None:
     """A vehicle stops 3 m before the crossing b in a GPS outage and stands there 2 min, its
     dead-reckoned fixes still. Its odometer's noise, never negative, sums at 10 Hz to ~5 m a
     minute: below ``zero_speed`` the distance counts as zero and the vehicle stays where it
-    stopped; without the rule (``zero_speed`` 0) it creeps up to b."""
+    stopped; without the rule (``zero_speed`` 0) it creeps up to b and on across it (the
+    odometer's distance carries a stopped vehicle across a node)."""
     import numpy as np
 
     from mapmatch.config import DEFAULT_CONFIG
@@ -280,7 +281,36 @@ def test_parked_vehicle_in_an_outage_does_not_creep_forward_at_10_hz() -> None:
     assert {r.edge for r in res[-1200:]} == {ab}
     assert max(r.offset for r in res[-1200:]) < 78.0  # stands ~3 m before b (ab is 80 m)
     off = _run(OnlineMatcher(m.graph, config=DEFAULT_CONFIG.replace(zero_speed=0.0)), moving + standing)
-    assert off[-1].offset > 79.5  # crept up to b
+    assert off[-1].edge != ab or off[-1].offset > 79.5  # crept up to b, or past it
+
+
+def test_vehicle_creeping_across_a_node_in_an_outage_is_carried_by_the_odometer() -> None:
+    """A vehicle stops 2 m before the crossing b in a GPS outage, then creeps on at 0.3 m/s
+    (below ``stop_speed``: stopped) for 30 s, 7 m past b, its dead-reckoned fixes following.
+    The stop hold keeps the fixes' noise from moving a stopped vehicle on across a node, not
+    the distance its odometer gives: it ends on bc."""
+    import numpy as np
+
+    #   a-------o-b-->--c     o: stops 2 m before b, then creeps 9 m on, without GPS
+    m = parse_ascii_map(CROSSING, scale=10)
+    a, b = m.xy("a"), m.xy("b")
+    east = (b - a) / np.linalg.norm(b - a)
+    moving = [
+        f for f in drive(m, "ab", DriveSpec(speed=5, dt=1.0)) if np.dot(b - np.array(_xy(m, f)), east) > 2.0
+    ]
+    t = moving[-1].time
+    creeping = []
+    for i in range(30):
+        at = b + (-2.0 + 0.3 * (i + 1)) * east
+        lon, lat = to_lonlat(m.graph.crs, [at[0]], [at[1]])[0]
+        creeping.append(
+            Fix(time=t + i + 1.0, lat=float(lat), lon=float(lon), heading=90.0, speed=0.3,
+                distance=0.3, gps_valid=False)
+        )  # fmt: skip
+    res = _run(OnlineMatcher(m.graph), moving + creeping)
+    bc = m.edge("b", "c")
+    assert res[-1].edge == bc
+    assert 2.0 < res[-1].offset < 9.0
 
 
 def _east_step(x: float, y: float, *, travelled: float, dt: float, weight: float, bias: FixBias) -> Step:

@@ -108,13 +108,30 @@ def nearest_on_path(  # type: ignore[no-untyped-def]
     j0 = max(k - 1, 0)  # one edge back: a fix may run ahead of the vehicle near a node
     for j in range(j0):
         acc += road.elen[edges[j]]
-    # stopped: the fix's noise may move the vehicle back but not on across a node
-    jmax = k + 1 if p.stopped else len(edges)
-    ahead = (0.0 if math.isnan(p.travelled) else p.travelled) + p.reach
+    moved = 0.0 if math.isnan(p.travelled) else p.travelled
+    jmax = len(edges)
+    carry = math.inf  # the furthest s the fix may place a stopped vehicle
+    if p.stopped:
+        # stopped: the fix's noise may move the vehicle back but not on across a node; the
+        # odometer's distance may (a vehicle creeping past a node, or carried without GPS),
+        # while the fixes keep to the road (within the region radius of it)
+        end = acc
+        for j in range(j0, k + 1):
+            end += road.elen[edges[j]]
+        carry = h_s + moved
+        jmax = k + 1
+        while jmax < len(edges) and here[3] <= p.reach and carry > end + 1e-6:
+            end += road.elen[edges[jmax]]
+            jmax += 1
+    ahead = moved + p.reach
     for j in range(j0, jmax):
         e = edges[j]
         le = road.elen[e]
         off, dist, px, py, brg = project(road, e, p.x, p.y)
+        if j > k and acc + off > carry:  # at most as far as the odometer carried it
+            off = max(carry - acc, 0.0)
+            px, py, brg = locate(road, e, off)
+            dist = hypot(px - p.x, py - p.y)
         s = acc + off
         if j < k and le - off < hold:
             # back across the node only when the fix is clearly behind it (no flicker)
@@ -143,6 +160,8 @@ def nearest_on_path(  # type: ignore[no-untyped-def]
                     best_sc = sc
                     best = (j, off, s, dist, px, py, brg)
         acc += le
+    if p.stopped and jmax > k + 1:
+        acc = min(acc, carry)
     return best_sc, best, acc
 
 
