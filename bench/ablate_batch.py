@@ -40,6 +40,8 @@ VARIANTS: dict[str, tuple[str, ...]] = {
     "reverse_tolerance_off": ("batch.route.reverse_tolerance=0",),
     "stop_uturn_off": ("batch.route.stop_uturn_speed=0",),
     "route_factor_wide": ("batch.route.max_route_factor=6",),
+    "route_slack_wide": ("batch.route.route_slack=300",),
+    "route_lp_cut_wide": ("batch.route.route_lp_cut=60",),
     # batch.track
     "interpolate_off": ("batch.track.interpolate_distance=0",),
     "track_sigma_off": ("batch.track.track_sigma_max=0",),
@@ -47,7 +49,6 @@ VARIANTS: dict[str, tuple[str, ...]] = {
     "motion_heading_off": ("batch.track.motion_heading_sigma=0",),
     "motion_end_leg_off": ("batch.track.motion_end_leg_max=0",),
     # batch.outliers
-    "off_map_sigmas_off": ("batch.outliers.off_map_sigmas=0",),
     "spike_off": ("batch.outliers.spike_speed=0",),
     "spike_run_off": ("batch.outliers.spike_max_time=0",),
     "max_skip_time_off": ("batch.outliers.max_skip_time=0",),
@@ -56,13 +57,13 @@ VARIANTS: dict[str, tuple[str, ...]] = {
     # batch.split
     "gap_distance_off": ("batch.split.gap_distance=0",),
     "split_speed_off": ("batch.split.split_speed=0",),
-    "split_route_speed_off": ("batch.split.split_route_speed=0",),
     "detour_cost_off": ("batch.split.detour_cost_max=0",),
     "off_map_cut_off": ("batch.split.off_map_cut=0",),
-    "bridge_slack_off": ("batch.split.off_map_bridge_slack=0",),
     # model, as the batch uses it
     "beta_per_m_off": ("model.beta_per_m=0",),
     "speed_penalty_off": ("model.speed_penalty=0",),
+    "candidates_wide": ("model.max_candidates=16",),
+    "search_radius_wide": ("model.search_radius=100",),
     "sigma_estimate_only": ("model.gps_sigma=1",),
 }
 """Each variant's settings on the batch defaults (``MatchConfig.with_settings``)."""

@@ -438,8 +438,9 @@ class RouteConfig:
         bound, the speed checks). A route table (:class:`~mapmatch.route_table.Ubodt`) holds one turn cost; a
         matcher uses it only for configs with that turn cost.
     route_lp_cut : routes are searched only as a fallback beyond the travelled distance plus
-        this many β (the base ``model.beta``, without ``model.beta_per_m``'s growth: a wider first search
-        costs time on dense maps without changing the matches).
+        this many β (the base ``model.beta``, without ``model.beta_per_m``'s growth): a wider
+        first search costs time on dense maps, and between sparse fixes it may find a better
+        route than the first one within the cut.
     reverse_tolerance : metres a candidate may fall behind the previous one on the same edge and
         count as standing. On a one-way edge, which no vehicle drives backwards, a candidate up
         to ``model.search_radius`` behind counts as standing (noise about the place the vehicle
@@ -527,7 +528,10 @@ class OutliersConfig:
 
     outlier_distance : a fix further than this from every road is unmatched.
     off_map_sigmas : a fix further than this many σ from every road is off the map: unmatched,
-        never routed to a far road (``outlier_distance`` caps it).
+        never routed to a far road (``outlier_distance`` caps it). Leaving a fix out as an
+        outlier, where that competes with visiting it (``outlier_lookahead``), costs the
+        emission of a fix at this limit, ½ ``off_map_sigmas``² in log-probability (12.5 at
+        5 σ): another choice is taken only if it wins by more.
     emission_prune : candidates whose emission log-probability is this far below their fix's
         best are dropped.
     spike_speed : m/s; a fix the track reaches and leaves in opposite directions, both legs
@@ -561,10 +565,8 @@ class OutliersConfig:
         same way (the new first fix's candidate chosen again, as if the track began there),
         and so is a piece of one fix at the track's start or end beside another piece (one
         fix makes no route: a fix by some road before or after a run off the route); 0:
-        always leave out the unreachable fix, visit every reachable one.
-    leave_out_cost : log-probability each fix left out as an outlier costs where leaving fixes
-        out competes with visiting them (``outlier_lookahead``): 12.5 = ½ 5², a fix at the
-        off-map limit of 5 σ. The other choice is taken only if it wins by more than this.
+        always leave out the unreachable fix, visit every reachable one. Each fix left out
+        costs ½ ``off_map_sigmas``² (:attr:`leave_out_cost`).
     """
 
     outlier_distance: float = 100.0
@@ -576,12 +578,18 @@ class OutliersConfig:
     max_skip: int = 8
     max_skip_time: float = 60.0
     outlier_lookahead: int = 1
-    leave_out_cost: float = 12.5
 
     def __post_init__(self) -> None:
         _check_numbers(self)
+        _positive(self, "off_map_sigmas")
         if self.outlier_lookahead not in (0, 1):
             raise ConfigError(f"{_full_name('outlier_lookahead')} must be 0 or 1")
+
+    @property
+    def leave_out_cost(self) -> float:
+        """Log-probability each fix left out costs where leaving out competes with visiting: the
+        emission of a fix at the off-map limit, ½ ``off_map_sigmas``²."""
+        return 0.5 * self.off_map_sigmas**2
 
 
 @dataclass(frozen=True)
@@ -592,17 +600,15 @@ class SplitConfig:
         ``split_speed`` splits the track (a jump: two drives joined, a clock error); a slower
         one was driven (a logger off, a sparse track) and its route is searched as any step's
         (0: distance never splits).
-    split_speed : m/s; a step whose route is longer than the straight line between its fixes
-        by more than this times its time (plus ``split_slack`` metres of noise) is impossible:
-        the fix is left out as an outlier, or the match splits there (0 disables the check).
-        The detour is what is judged, not the speed: fixes that themselves move too fast tell
-        of their timestamps, not of the road.
+    split_speed : m/s; a car's top speed. A step whose route is longer than the straight line
+        between its fixes by more than this times its time (plus ``split_slack`` metres of
+        noise) is impossible: the fix is left out as an outlier, or the match splits there.
+        Where the fixes themselves move no faster than this, a route needing more than this
+        average speed over the step's time (plus ``split_slack``) is impossible too: sparse
+        fixes either side of a road the map lacks are then not joined round by a far longer
+        way. Where the fixes move faster, their timestamps are in doubt, and only the detour
+        is judged (0 disables both checks).
     split_slack : metres of fix noise allowed on top of ``split_speed`` over a step.
-    split_route_speed : m/s; a step whose route needs more than this average speed over its time
-        (plus ``split_slack``) is impossible too, where its fixes themselves do not move faster
-        (where they do, their timestamps are in doubt, and only ``split_speed`` judges the
-        detour). Sparse fixes either side of a road the map lacks are then not joined round by
-        a far longer way (0 disables the check).
     detour_cost_max : a route longer than the distance travelled between its two fixes by more
         than this many of the step's β (the detour's cost in the transition's log-probability)
         is impossible, whatever the time allows: the fix is left out as an outlier, or the
@@ -626,29 +632,33 @@ class SplitConfig:
         ``off_map_cut``: sparse fixes in a yard off the map travel little among themselves
         (three fixes 20 s apart, 70 m) while the time allows a way round; a car parked beside
         the road, its fixes drifting off the map, is not cut (short legs).
-    off_map_bridge_slack : metres; a run ``off_map_cut`` does not cut (a fast one: GPS trouble
-        on a road, where the route is the better guess) is bridged only by a route at most this
-        much longer than the path through its fixes, from the fix before it to the one after (0:
-        any route). Its fixes still tell where the car went: a route kilometres round, where the
-        map lacks the road they follow, is not it; the step then fails, as a step no route
-        reaches, and the route is cut there. The default is twice ``off_map_cut``: fixes that
-        far off a road on both sides of the run; a smaller slack would also cut where a
-        track's fixes lie far off its true route. Only runs of at least ``off_map_cut_fixes``
-        fixes are held to it: one or two sparse fixes do not trace a winding road.
+        A run ``off_map_cut`` does not cut (a fast one: GPS trouble on a road, where the route
+        is the better guess) is bridged only by a route at most twice ``off_map_cut`` longer
+        than the path through its fixes, from the fix before it to the one after (with
+        ``off_map_cut`` 0: any route). Its fixes still tell where the car went: a route
+        kilometres round, where the map lacks the road they follow, is not it; the step then
+        fails, as a step no route reaches, and the route is cut there. Twice: fixes that far
+        off a road on both sides of the run; a smaller slack would also cut where a track's
+        fixes lie far off its true route. Only runs of at least ``off_map_cut_fixes`` fixes
+        are held to it: one or two sparse fixes do not trace a winding road.
     """
 
     gap_distance: float = 2000.0
     split_speed: float = 50.0
     split_slack: float = 50.0
-    split_route_speed: float = 50.0
     detour_cost_max: float = 25.0
     off_map_cut: float = 200.0
     off_map_cut_fixes: int = 3
     off_map_cut_speed: float = 15.0
-    off_map_bridge_slack: float = 400.0
 
     def __post_init__(self) -> None:
         _check_numbers(self)
+
+    @property
+    def bridge_slack(self) -> float:
+        """Metres a route bridging a run of fixes off the map may be longer than the path
+        through its fixes: twice ``off_map_cut`` (0: any route)."""
+        return 2.0 * self.off_map_cut
 
 
 @dataclass(frozen=True)
@@ -955,6 +965,57 @@ _SECTION_PATH: dict[type, str] = {
     cls: "".join(f"{p}." for p in path) for cls, path, _ in _walk(MatchConfig, ())
 }
 """Every section class's dotted path with a trailing dot (``online.region.``; ``""`` for the root)."""
+
+
+RESULT = "result"
+"""A field that changes a result: a rule's threshold or a model constant. docs/tuning.md lists
+each with its out-of-fold gain (or how it is estimated or cross-validated)."""
+BOUND = "bound"
+"""A field that bounds work or memory (a cap, a prune, a search limit): widening it changes no
+track's answer on the real tracks, or moves a few within noise out of fold."""
+SERVICE = "service"
+"""A field that bounds what a caller may send (an imported session's size): not matching."""
+
+_BOUNDS: frozenset[str] = frozenset(
+    {
+        "model.search_radius",
+        "model.max_candidates",
+        "online.region.max_hypotheses",
+        "online.region.max_hops",
+        "online.region.prune_log_ratio",
+        "online.region.init_max_radius",
+        "online.region.ambiguous_max_radius",
+        "online.reinit.far_off",
+        "online.evidence.turn_max_samples",
+        "online.anchor.align_search_max",
+        "online.odometer.odo_scale_max",
+        "online.corrections.max_live",
+        "online.corrections.trail_max",
+        "batch.route.max_route_factor",
+        "batch.route.route_slack",
+        "batch.track.track_pos_sigma_floor",
+        "batch.track.track_heading_sigma_floor_deg",
+        "batch.outliers.emission_prune",
+        "measurement.along_sigma_max",
+        "confidence.probability_floor",
+    }
+)
+"""The fields of class :data:`BOUND` by full name."""
+_SERVICE_FIELDS: frozenset[str] = frozenset({"online.corrections.max_path_edges"})
+"""The fields of class :data:`SERVICE` by full name."""
+
+
+def field_kinds() -> dict[str, str]:
+    """Every field's class by its full name (``online.region.max_hypotheses``): :data:`BOUND`,
+    :data:`SERVICE` or, for every other field, :data:`RESULT`."""
+    unknown = sorted((_BOUNDS | _SERVICE_FIELDS) - {".".join(p) for p in _PATHS.values()})
+    if unknown:
+        raise ConfigError(f"classed but not fields: {', '.join(unknown)}")
+    out = {}
+    for path in _PATHS.values():
+        full = ".".join(path)
+        out[full] = BOUND if full in _BOUNDS else SERVICE if full in _SERVICE_FIELDS else RESULT
+    return out
 
 
 DEFAULT_CONFIG = MatchConfig()

@@ -414,13 +414,12 @@ def test_fixes_off_the_map_at_the_end_are_unmatched_not_routed_to_a_far_road() -
     assert [names(m, piece) for piece in r.routes] == [["ae"]]
     assert [p.status for p in r.points][6:] == [PointStatus.UNMATCHED] * 4
     assert r.length_m == pytest.approx(60, abs=2)
-    # with the σ rule off (only the fixed outlier distance) the car park's fixes are costly
-    # to visit (their emissions, 5 σ and more, and the way round): still left out
+    # with the off-map limit widened to the outlier distance (13 σ, 104 m) the car park is on
+    # the map, and leaving a fix out costs the emission at that limit (½ 13²): it is routed
+    # to cd
     track = track_from_xy(m, road + park)
-    loose = BatchMatcher(m.graph).match(track, DEFAULT_CONFIG.replace(off_map_sigmas=0))
-    assert [names(m, piece) for piece in loose.routes] == [["ae"]]
-    # and with every fix at the ends visited too, the car park is routed to cd
-    loose = BatchMatcher(m.graph).match(track, DEFAULT_CONFIG.replace(off_map_sigmas=0, outlier_lookahead=0))
+    loose = BatchMatcher(m.graph).match(track, DEFAULT_CONFIG.replace(off_map_sigmas=13))
+    assert [names(m, piece) for piece in loose.routes] == [["ae", "ed", "dc"]]
     assert loose.length_m > 150
 
 
@@ -489,10 +488,10 @@ def test_fixes_off_the_map_at_speed_are_not_bridged_by_a_long_way_round() -> Non
     assert [names(m, piece) for piece in r.routes] == [["ab"], ["cd"]]
     off = [i for i, p in enumerate(r.points) if p.status == PointStatus.UNMATCHED]
     assert off == list(range(15, 33)) and r.splits == [33]
-    # with no such limit (or no cut rules) the run is bridged round by e and f
-    for cfg in (DEFAULT_CONFIG.replace(off_map_bridge_slack=0), DEFAULT_CONFIG.replace(off_map_cut=0)):
-        loose = BatchMatcher(m.graph).match(track, cfg)
-        assert [names(m, piece) for piece in loose.routes] == [["ab", "be", "ef", "fc", "cd"]]
+    # with no cut rules (and so no such limit: it is twice off_map_cut) the run is bridged
+    # round by e and f
+    loose = BatchMatcher(m.graph).match(track, DEFAULT_CONFIG.replace(off_map_cut=0))
+    assert [names(m, piece) for piece in loose.routes] == [["ab", "be", "ef", "fc", "cd"]]
 
 
 def test_sparse_fixes_either_side_of_a_missing_road_split_rather_than_go_round_too_fast() -> None:
@@ -516,9 +515,8 @@ def test_sparse_fixes_either_side_of_a_missing_road_split_rather_than_go_round_t
     assert [names(m, piece) for piece in r.routes] == [["ab"], ["cd"]] and r.splits == [3]
     off = [i for i, p in enumerate(r.points) if p.status != PointStatus.MATCHED]
     assert off == [2]
-    # judged by its detour alone (2400 m more than the straight line in 90 s: within
-    # split_speed), the way round was taken and fix 3 left out
-    loose = BatchMatcher(m.graph).match(track, DEFAULT_CONFIG.replace(split_route_speed=0.0))
+    # at a top speed of 100 m/s the way round is taken and fix 3 left out
+    loose = BatchMatcher(m.graph).match(track, DEFAULT_CONFIG.replace(split_speed=100.0))
     assert [names(m, piece) for piece in loose.routes] == [["ab", "be", "ef", "fc", "cd"]]
     assert [i for i, p in enumerate(loose.points) if p.status != PointStatus.MATCHED] == [2, 3]
 

@@ -326,6 +326,12 @@ def _startup_seconds() -> float:
     return time.perf_counter() - t0
 
 
+def _interruptible() -> None:
+    """In the child before exec: SIGINT as a terminal delivers it, even when the tests run in
+    a background job (which starts with SIGINT ignored, and Python keeps it so)."""
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
 def _read_until_progress(proc: subprocess.Popen[bytes], *, timeout: float = 300) -> bytes:
     """Read ``proc``'s stderr until its progress bar has counted matched points (the first
     partition done, the rest still to match); what was read, for the final message."""
@@ -354,8 +360,9 @@ def test_ctrl_c_at_any_time_is_one_line(grid: tuple[AsciiMap, Path], tmp_path: P
     cmd = [sys.executable, "-m", "mapmatch", "match", "--map", str(map_path), str(src) if matching else "-",
            "-o", str(tmp_path / "o.csv"), "--workers", "1", "--kernels", "interpreted"]  # fmt: skip
     proc = subprocess.Popen(
-        cmd, stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=subprocess.PIPE, env=env
-    )
+        cmd, stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=subprocess.PIPE, env=env,
+        preexec_fn=_interruptible,
+    )  # fmt: skip
     assert proc.stdin is not None
     if matching:
         before = _read_until_progress(proc)

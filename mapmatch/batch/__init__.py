@@ -21,7 +21,7 @@ is always connected through the network; it is split only where the track has a 
 gap, where no route exists between consecutive points, or where the fixes left out between two
 points travel ``off_map_cut`` slowly, or last as long as that takes and travel it with their
 legs to those points (the track left the route's roads and came back), or where only a route
-far longer than the path through such a run would bridge it (``off_map_bridge_slack``);
+more than twice ``off_map_cut`` longer than the path through such a run would bridge it;
 splits are reported.
 """
 

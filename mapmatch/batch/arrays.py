@@ -100,7 +100,8 @@ class KernelParams(NamedTuple):
     outlier_lookahead: bool
     """Where a point is unreachable, also try leaving out the one before it."""
     leave_out_cost: float
-    """Log-probability cost of a point left out, where two ways of leaving points out compete."""
+    """Log-probability cost of a point left out, where two ways of leaving points out compete
+    (½ ``batch.outliers.off_map_sigmas``²)."""
     reverse_tol: float
     one_way_tol: float
     """Metres a candidate may fall behind the previous one on a one-way edge and count as
@@ -109,7 +110,8 @@ class KernelParams(NamedTuple):
     """m/s; 0: no speed check on steps."""
     split_slack: float
     split_route_speed: float
-    """m/s; 0: routes are not judged by their own speed."""
+    """m/s; the top speed a route may need over its step's time, where the fixes move no
+    faster (``batch.split.split_speed``; 0: routes are not judged by their own speed)."""
     detour_cost_max: float
     """Routes longer than the travelled distance by more than this many β are impossible (0: no limit)."""
     off_map_sigmas: float
@@ -117,7 +119,7 @@ class KernelParams(NamedTuple):
     off_map_cut_fixes: int
     off_map_cut_speed: float
     off_map_bridge_slack: float
-    """metres; inf: any route bridges a run off the map."""
+    """metres, twice ``batch.split.off_map_cut``; inf: any route bridges a run off the map."""
 
 
 class Assembly(NamedTuple):
@@ -163,13 +165,11 @@ def kernel_params(cfg: MatchConfig, sigma: float) -> KernelParams:
         one_way_tol=max(float(cfg.model.search_radius), float(b.route.reverse_tolerance)),
         split_speed=float(b.split.split_speed),
         split_slack=float(b.split.split_slack),
-        split_route_speed=float(b.split.split_route_speed),
+        split_route_speed=float(b.split.split_speed),  # one top speed for both checks
         detour_cost_max=float(b.split.detour_cost_max),
         off_map_sigmas=float(b.outliers.off_map_sigmas),
         off_map_cut=float(b.split.off_map_cut),
         off_map_cut_fixes=int(b.split.off_map_cut_fixes),
         off_map_cut_speed=float(b.split.off_map_cut_speed) if b.split.off_map_cut_speed > 0 else np.inf,
-        off_map_bridge_slack=float(b.split.off_map_bridge_slack)
-        if b.split.off_map_bridge_slack > 0
-        else np.inf,
+        off_map_bridge_slack=float(b.split.bridge_slack) if b.split.bridge_slack > 0 else np.inf,
     )
