@@ -134,7 +134,7 @@ class RegionConfig:
     init_max_radius: float = 200.0
     init_max_heading_deg: float = 100.0
     commit_hold_probability: float = 0.05
-    switch_penalty: float = 8.0
+    switch_penalty: float = 12.0
 
     def __post_init__(self) -> None:
         _check_numbers(self)
