@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import math
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import pytest
 
@@ -152,6 +152,17 @@ a-------b-------c
 """
 
 
+def _up_to_b(m: AsciiMap, *, dt: float, before: float) -> tuple[Any, Any, list[Fix]]:
+    """The crossing map's b, the unit vector from a to b, and a drive from a at 5 m/s (one fix
+    every ``dt`` s) up to ``before`` metres short of b."""
+    import numpy as np
+
+    a, b = m.xy("a"), m.xy("b")
+    east = (b - a) / np.linalg.norm(b - a)
+    fixes = drive(m, "ab", DriveSpec(speed=5, dt=dt))
+    return b, east, [f for f in fixes if np.dot(b - np.array(_xy(m, f)), east) > before]
+
+
 def test_stopped_vehicle_stays_stopped_through_odometer_noise_at_10_hz() -> None:
     """A vehicle stops 1 m before the crossing b and stands there 30 s while its fixes drift
     15 m up the side road b-n (on track 84 of the real drives a parked vehicle's fixes did).
@@ -260,11 +271,7 @@ def test_parked_vehicle_in_an_outage_does_not_creep_forward_at_10_hz() -> None:
 
     #   a-----o-b-------c     o: the vehicle stands here, 3 m before b, without GPS
     m = parse_ascii_map(CROSSING, scale=10)
-    a, b = m.xy("a"), m.xy("b")
-    east = (b - a) / np.linalg.norm(b - a)
-    moving = [
-        f for f in drive(m, "ab", DriveSpec(speed=5, dt=0.1)) if np.dot(b - np.array(_xy(m, f)), east) > 3.0
-    ]
+    b, east, moving = _up_to_b(m, dt=0.1, before=3.0)
     t = moving[-1].time
     stop = b - 3.0 * east
     rng = np.random.default_rng(2)
@@ -289,15 +296,10 @@ def test_vehicle_creeping_across_a_node_in_an_outage_is_carried_by_the_odometer(
     (below ``stop_speed``: stopped) for 30 s, 7 m past b, its dead-reckoned fixes following.
     The stop hold keeps the fixes' noise from moving a stopped vehicle on across a node, not
     the distance its odometer gives: it ends on bc."""
-    import numpy as np
 
     #   a-------o-b-->--c     o: stops 2 m before b, then creeps 9 m on, without GPS
     m = parse_ascii_map(CROSSING, scale=10)
-    a, b = m.xy("a"), m.xy("b")
-    east = (b - a) / np.linalg.norm(b - a)
-    moving = [
-        f for f in drive(m, "ab", DriveSpec(speed=5, dt=1.0)) if np.dot(b - np.array(_xy(m, f)), east) > 2.0
-    ]
+    b, east, moving = _up_to_b(m, dt=1.0, before=2.0)
     t = moving[-1].time
     creeping = []
     for i in range(30):
