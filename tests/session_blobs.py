@@ -4,8 +4,12 @@ the same states in version 2 of the format."""
 
 from __future__ import annotations
 
+import base64
 import gzip
+import json
+import math
 from pathlib import Path
+from typing import Any
 
 from online_helpers import DriveSpec, drive
 from service_util import city
@@ -53,6 +57,51 @@ def pinned(path: Path = PINNED) -> list[list[bytes]]:
         at += len(fixes)
     assert at == len(lines), "the pinned file does not match the drives"
     return out
+
+
+ULP_TOLERANCE = 1e-12
+"""Relative difference allowed between a float of a pinned blob and the matcher's: numpy's
+SIMD paths (AVX-512 or not) round a few operations differently in the last bit, so the same
+code on another processor moves a value by an ulp."""
+
+
+def blob_difference(got: bytes, want: bytes) -> str | None:
+    """Where ``got`` differs from the pinned ``want`` beyond :data:`ULP_TOLERANCE`, or None: the
+    same keys in the same order, the same types and whole numbers, floats (also those packed
+    as little-endian float64 in base64 under keys ending ``_f64``) within the tolerance."""
+    if got == want:
+        return None
+    return _diff(json.loads(got), json.loads(want), "")
+
+
+def _diff(a: Any, b: Any, at: str) -> str | None:
+    if isinstance(a, dict) and isinstance(b, dict):
+        if list(a) != list(b):
+            return f"{at}: keys {list(a)} against {list(b)}"
+        for k in a:
+            x, y = a[k], b[k]
+            if k.endswith("_f64") and isinstance(x, str) and isinstance(y, str):
+                x, y = (_floats(v) for v in (x, y))
+            if (d := _diff(x, y, f"{at}.{k}")) is not None:
+                return d
+        return None
+    if isinstance(a, list) and isinstance(b, list):
+        if len(a) != len(b):
+            return f"{at}: {len(a)} items against {len(b)}"
+        for i, (x, y) in enumerate(zip(a, b, strict=True)):
+            if (d := _diff(x, y, f"{at}[{i}]")) is not None:
+                return d
+        return None
+    if isinstance(a, float) and isinstance(b, float):
+        same = (math.isnan(a) and math.isnan(b)) or math.isclose(a, b, rel_tol=ULP_TOLERANCE, abs_tol=1e-300)
+        return None if same else f"{at}: {a!r} against {b!r}"
+    return None if (type(a), a) == (type(b), b) else f"{at}: {a!r} against {b!r}"
+
+
+def _floats(text: str) -> list[float]:
+    import numpy as np
+
+    return np.frombuffer(base64.b64decode(text), "<f8").tolist()
 
 
 def write() -> None:

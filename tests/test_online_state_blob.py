@@ -1,7 +1,8 @@
-"""The session blob format, pinned byte for byte: the fixed drives of :mod:`session_blobs`
-encode to the stored blobs, every stored blob decodes and re-encodes to the same bytes, and a
-decoded blob goes on exactly as the live session did; the same states stored in version 2
-decode to what version 3 holds."""
+"""The session blob format, pinned: the fixed drives of :mod:`session_blobs` encode to the
+stored blobs (the same keys, order and types; floats to the last bits a processor's SIMD path
+may move), every stored blob decodes and re-encodes to the same bytes, and a decoded blob goes
+on exactly as the live session did; the same states stored in version 2 decode to what version
+3 holds."""
 
 from __future__ import annotations
 
@@ -11,7 +12,7 @@ import json
 from pathlib import Path
 
 import numpy as np
-from session_blobs import PINNED_V2, blobs, drives, pinned
+from session_blobs import PINNED_V2, blob_difference, blobs, drives, pinned
 
 from mapmatch.online import SessionState
 from mapmatch.online.codec import to_bytes
@@ -22,7 +23,19 @@ def test_the_fixed_drives_encode_to_the_pinned_bytes() -> None:
     assert [len(r) for r in got] == [len(r) for r in want]
     for run, (g, w) in enumerate(zip(got, want, strict=True)):
         for i, (a, b) in enumerate(zip(g, w, strict=True)):
-            assert a == b, f"drive {run}, fix {i}: the blob differs"
+            assert (d := blob_difference(a, b)) is None, f"drive {run}, fix {i}: the blob differs at {d}"
+
+
+def test_a_blob_differing_beyond_the_last_bits_is_told_apart() -> None:
+    blob = pinned()[0][-1]
+    d = json.loads(blob)
+    assert blob_difference(blob, blob) is None
+    nudged = dict(d, odo_k=d["odo_k"] * (1 + 1e-15))
+    assert blob_difference(json.dumps(nudged).encode(), blob) is None
+    moved = dict(d, odo_k=d["odo_k"] + 1e-6)
+    assert "odo_k" in (blob_difference(json.dumps(moved).encode(), blob) or "")
+    renamed = {("odo" if k == "odo_k" else k): v for k, v in d.items()}
+    assert "keys" in (blob_difference(json.dumps(renamed).encode(), blob) or "")
 
 
 def test_every_pinned_blob_decodes_and_re_encodes_to_its_bytes() -> None:
@@ -31,13 +44,22 @@ def test_every_pinned_blob_decodes_and_re_encodes_to_its_bytes() -> None:
             assert SessionState.from_bytes(blob).to_bytes() == blob
 
 
+def test_a_decoded_blob_goes_on_exactly_as_the_live_session_did() -> None:
+    m, runs = drives()
+    for fixes, run in zip(runs, blobs(), strict=True):
+        for i in range(len(run) - 1):
+            st = SessionState.from_bytes(run[i])
+            m.update(st, fixes[i + 1])
+            assert st.to_bytes() == run[i + 1], f"fix {i + 1}"
+
+
 def test_a_decoded_pinned_blob_goes_on_as_the_live_session_did() -> None:
     m, runs = drives()
     for fixes, run in zip(runs, pinned(), strict=True):
         for i in range(len(run) - 1):
             st = SessionState.from_bytes(run[i])
             m.update(st, fixes[i + 1])
-            assert st.to_bytes() == run[i + 1], f"fix {i + 1}"
+            assert (d := blob_difference(st.to_bytes(), run[i + 1])) is None, f"fix {i + 1}: {d}"
 
 
 def test_version_2_blobs_of_the_same_states_decode_to_what_version_3_holds() -> None:
