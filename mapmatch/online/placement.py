@@ -10,6 +10,7 @@ kernel call per fix for all hypotheses.
 from __future__ import annotations
 
 import math
+from array import array
 from collections.abc import Sequence
 from typing import NamedTuple
 
@@ -235,16 +236,20 @@ def place_one(  # type: ignore[no-untyped-def]
 
 
 @njit(cache=True)
-def _place_all(road_t, p_t, rows, n):  # type: ignore[no-untyped-def]
-    """:func:`place_one` for ``n`` hypotheses: ``rows`` holds ``N_IN`` values each (the
-    ``IN_*`` columns), then all their paths' edges (as floats: one array to convert and pass,
+def _place_all(road_t, p_t, buf, n, out):  # type: ignore[no-untyped-def]
+    """:func:`place_one` for ``n`` hypotheses: ``buf`` holds ``N_IN`` values each (the
+    ``IN_*`` columns), then all their paths' edges (as floats: one buffer to fill and pass,
     not two), hypothesis ``i``'s path the next ``rows[IN_LEN]`` of them; ``N_OUT`` values each
-    out (``OUT_*``). ``road_t`` and ``p_t`` are a :class:`RoadArrays` and a
-    :class:`PlaceParams` as plain tuples (numba reads those ten times faster at a call)."""
+    into ``out`` (``OUT_*``). ``buf`` and ``out`` are ``array.array("d")`` buffers (made and
+    read in Python faster than numpy arrays); ``road_t`` and ``p_t`` are a
+    :class:`RoadArrays` and a :class:`PlaceParams` as plain tuples (numba reads those ten
+    times faster at a call)."""
     road = RoadArrays(*road_t)
     p = PlaceParams(*p_t)
+    rows = np.empty(len(buf))
+    for i in range(len(buf)):
+        rows[i] = buf[i]
     edges = rows[n * N_IN :].astype(np.int64)
-    out = np.empty(n * N_OUT)
     lo = 0
     for i in range(n):
         r = rows[i * N_IN : (i + 1) * N_IN]
@@ -252,12 +257,15 @@ def _place_all(road_t, p_t, rows, n):  # type: ignore[no-untyped-def]
         lo += len(path)
         here = (int(r[IN_K]), r[IN_OFF], r[IN_S], r[IN_DIST], r[IN_PX], r[IN_PY], r[IN_BRG])
         sc, pos, anc, anc_sd = place_one(road, p, path, here, r[IN_ANC], r[IN_ANC_SD])
-        o = out[i * N_OUT : (i + 1) * N_OUT]
-        o[OUT_SCORE] = sc
-        o[OUT_J], o[OUT_OFF], o[OUT_S], o[OUT_DIST], o[OUT_PX], o[OUT_PY], o[OUT_BRG] = pos
-        o[OUT_ANC], o[OUT_ANC_SD] = anc, anc_sd
-        o[OUT_TURN] = turn_score(road, p, path, pos, here[2])
-    return out
+        o = i * N_OUT
+        out[o + OUT_SCORE] = sc
+        out[o + OUT_J], out[o + OUT_OFF], out[o + OUT_S], out[o + OUT_DIST] = pos[0], pos[1], pos[2], pos[3]
+        out[o + OUT_PX], out[o + OUT_PY], out[o + OUT_BRG] = pos[4], pos[5], pos[6]
+        out[o + OUT_ANC], out[o + OUT_ANC_SD] = anc, anc_sd
+        out[o + OUT_TURN] = turn_score(road, p, path, pos, here[2])
+
+
+_OUT_ONE = array("d", [0.0] * N_OUT)  # one hypothesis's output row (``* n`` for ``n``)
 
 
 def place_all(
@@ -278,12 +286,16 @@ def place_all(
         flat += h.edges
         rows += (len(h.edges), h.k, h.off, h.s, h.dist, h.px, h.py, h.bearing, h.anc, h.anc_sd)
     rows += flat
-    out = _place_all(
+    n = len(hyps)
+    buf = _OUT_ONE * n
+    _place_all(
         road.arrays_tuple,
         param_values(step, cfg, turn_obs=turn_obs, covered=covered),
-        np.array(rows, dtype=np.float64),
-        len(hyps),
-    ).tolist()
+        array("d", rows),
+        n,
+        buf,
+    )
+    out = buf.tolist()
     scores = []
     lo = 0
     for h in hyps:
