@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import math
 import threading
+from typing import Any
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -62,13 +63,60 @@ def rows_to_lonlat(crs: str, buf: NDArray[np.float64]) -> None:
     tf.transform(buf[0], buf[1], inplace=True)
 
 
+_FORWARD = TransformDirection.FORWARD
+
+
+def _point_call(kind: str, src: str, dst: str) -> Any:
+    """pyproj's own projection of one point from ``src`` to ``dst`` for this thread (kept in
+    this thread's ``kind`` cache), or None when this pyproj has none that gives the public
+    method's numbers.
+
+    :meth:`Transformer.transform` spends most of its microsecond on one point looking up the
+    thread's transformer and trying its arguments; its point projection is the same PROJ call,
+    so the same numbers.
+    """
+    cache: dict[str, Any] | None = getattr(_local, kind, None)
+    if cache is None:
+        cache = {}
+        setattr(_local, kind, cache)
+    tf = _transformer(src, dst)
+    point = getattr(getattr(tf, "_transformer", None), "_transform_point", None)
+    try:
+        probe = (1.0, 1.0)
+        same = point is not None and point(*probe, None, None, _FORWARD, False, False) == tf.transform(*probe)
+    except TypeError:
+        same = False
+    if not same:
+        point = None
+    cache[dst if src == "EPSG:4326" else src] = point
+    return point
+
+
 def point_to_xy(crs: str, lon: float, lat: float) -> tuple[float, float]:
     """One WGS84 point to metres in ``crs`` (plain floats; the online matcher's hot path)."""
+    try:
+        point = _local.to_xy[crs]
+    except (AttributeError, KeyError):
+        point = _point_call("to_xy", "EPSG:4326", crs)
+    if point is not None:
+        try:
+            return point(lon, lat, None, None, _FORWARD, False, False)  # type: ignore[no-any-return]
+        except TypeError:  # not a Python int or float (a numpy float32, say)
+            pass
     x, y = _transformer("EPSG:4326", crs).transform(lon, lat)
     return float(x), float(y)
 
 
 def point_to_lonlat(crs: str, x: float, y: float) -> tuple[float, float]:
     """One point in metres in ``crs`` to WGS84 ``(lon, lat)`` (plain floats)."""
+    try:
+        point = _local.to_lonlat[crs]
+    except (AttributeError, KeyError):
+        point = _point_call("to_lonlat", crs, "EPSG:4326")
+    if point is not None:
+        try:
+            return point(x, y, None, None, _FORWARD, False, False)  # type: ignore[no-any-return]
+        except TypeError:
+            pass
     lon, lat = _transformer(crs, "EPSG:4326").transform(x, y)
     return float(lon), float(lat)

@@ -244,14 +244,20 @@ def confidence(probability: float, agreement: Agreement, model: ConfidenceConfig
     disagreement per 10° (at most ``heading_cap``), whether a road runs alongside and, if one
     does, by how many σ it is nearer to the fix than the answer's road, within ±``gap_cap``,
     counted from ``gap_cap`` further (0) to ``gap_cap`` nearer (twice ``gap_cap``)."""
-    c = model
+    a = agreement
+    return _confidence(probability, a.heading_diff, a.cross_sigmas, a.other_sigmas, model)
+
+
+def _confidence(
+    probability: float, head: float, cross_sigmas: float, other: float, c: ConfidenceConfig
+) -> float:
+    """:func:`confidence` of the :class:`Agreement` fields ``head`` (heading_diff),
+    ``cross_sigmas`` and ``other`` (other_sigmas) as plain values."""
     p = min(max(probability, c.probability_floor), 1.0 - c.probability_floor)
-    head = agreement.heading_diff
     head = 0.0 if head != head else min(abs(head), c.heading_cap)
     z = c.coef_intercept + c.coef_log_odds * math.log(p / (1.0 - p)) + c.coef_heading * head * 0.1
-    other = agreement.other_sigmas
     if other < math.inf:
-        gap = min(max(other - agreement.cross_sigmas, -c.gap_cap), c.gap_cap)
+        gap = min(max(other - cross_sigmas, -c.gap_cap), c.gap_cap)
         z += c.coef_parallel + c.coef_parallel_gap * (c.gap_cap - gap)
     return 1.0 / (1.0 + math.exp(-z)) if z > -700.0 else 0.0
 
@@ -266,18 +272,35 @@ def along_track_sigma(
     ``bias_along_var`` is the variance of the learnt fix bias along the road (m²; NaN when not
     learnt)."""
     ev = evidence
-    anchor_sd, fix_sigma = ev.anchor_sd, ev.fix_sigma
+    return _along_sigma(
+        ev.gps, ev.fix_sigma, ev.white_share, ev.anchor_sd, ev.odo_sigma, ev.dr_distance, ev.gps_sigma,
+        bias_along_var, config,
+    )  # fmt: skip
+
+
+def _along_sigma(
+    gps: bool,
+    fix_sigma: float,
+    white_share: float,
+    anchor_sd: float,
+    odo_sigma: float,
+    dr_distance: float,
+    gps_sigma: float,
+    bias_along_var: float,
+    config: MeasurementConfig,
+) -> float:
+    """:func:`along_track_sigma` of the :class:`AlongEvidence` fields as plain values."""
     va = anchor_sd * anchor_sd if math.isfinite(anchor_sd) else math.inf
-    if ev.gps:
+    if gps:
         vf = (
-            bias_along_var + (ev.white_share * fix_sigma) ** 2
+            bias_along_var + (white_share * fix_sigma) ** 2
             if math.isfinite(bias_along_var)
             else fix_sigma * fix_sigma
         )
         v = vf if math.isinf(va) else vf * va / (vf + va)
     else:
         # in σ, capped before squaring: a long carry must not overflow
-        carry = min(math.hypot(ev.gps_sigma, ev.odo_sigma * max(ev.dr_distance, 0.0)), config.along_sigma_max)
+        carry = min(math.hypot(gps_sigma, odo_sigma * max(dr_distance, 0.0)), config.along_sigma_max)
         v = min(va, carry * carry)
     return min(math.sqrt(v), config.along_sigma_max)
 
@@ -326,8 +349,14 @@ def heading_sigma(
     change within one along-track σ, and ``node_heading_sigma`` when that reaches past the end.
     ``bearing_at(edge, offset)`` gives the road's bearing (default: from the graph's polyline)."""
     at = bearing_at or (lambda e, off: _bearing_at(graph, e, off))
+    return _heading_sigma(at, edge, offset, along_sigma, float(graph.edge_len[edge]), config)
+
+
+def _heading_sigma(
+    at: BearingAt, edge: int, offset: float, along_sigma: float, length: float, config: MeasurementConfig
+) -> float:
+    """:func:`heading_sigma` with the bearing look-up ``at`` and the edge's ``length`` given."""
     here = at(edge, offset)
-    length = float(graph.edge_len[edge])
     back, ahead = offset - along_sigma, offset + along_sigma
     # max(back, 0.0), min(ahead, length), _angle and max(_, _), inline (a per-fix path)
     a = abs(angle_diff(here, at(edge, 0.0 if back < 0.0 else back)))
@@ -351,21 +380,75 @@ def map_aided_measurement(
     where it puts the vehicle, what it knows along the road, the road's tags and, when given,
     how the fix agrees with the answer (the probability is then :func:`confidence`'s, of
     ``model``)."""
-    state, edge, offset = placement.state, placement.edge, placement.offset
-    lat, lon, bearing, probability = placement.lat, placement.lon, placement.bearing, placement.probability
+    pl, ev = placement, evidence
     tags = tags or _NO_TAGS
-    width, lanes, one_way = tags.width, tags.lanes, tags.one_way
+    edge = pl.edge
+    if edge < 0 or not math.isfinite(pl.lat):
+        return MapAidedMeasurement()
+    highway = graph.edge_highway(edge) if tags.road_class is None else tags.road_class
+    one_way = tags.one_way
+    if one_way is None:
+        one_way = int(graph.edge_reverse[edge]) < 0
+    at = tags.bearing_at or (lambda e, off: _bearing_at(graph, e, off))
+    ag = agreement
+    return measure(
+        pl.state, edge, pl.offset, pl.lat, pl.lon, pl.bearing, pl.probability, pl.since_init, pl.beyond,
+        ev.gps, ev.fix_sigma, ev.bias_cov, ev.white_share, ev.anchor_sd, ev.odo_sigma, ev.dr_distance,
+        ev.gps_sigma,
+        highway, one_way, tags.width, tags.lanes, at, float(graph.edge_len[edge]),
+        ag is not None,
+        ag.heading_diff if ag is not None else math.nan,
+        ag.cross_sigmas if ag is not None else math.nan,
+        ag.other_sigmas if ag is not None else math.inf,
+        config, model,
+    )  # fmt: skip
+
+
+def measure(
+    state: State,
+    edge: int,
+    offset: float,
+    lat: float,
+    lon: float,
+    bearing: float,
+    probability: float,
+    since_init: float,
+    beyond: float,
+    gps: bool,
+    fix_sigma: float,
+    bias_cov: tuple[float, float, float],
+    white_share: float,
+    anchor_sd: float,
+    odo_sigma: float,
+    dr_distance: float,
+    gps_sigma: float,
+    highway: str,
+    one_way: bool,
+    width: float,
+    lanes: float,
+    bearing_at: BearingAt,
+    length: float,
+    agreed: bool,
+    heading_diff: float,
+    cross_sigmas: float,
+    other_sigmas: float,
+    config: MeasurementConfig,
+    model: ConfidenceConfig,
+) -> MapAidedMeasurement:
+    """:func:`map_aided_measurement` of plain values (the online matcher's per-fix path: no
+    records to build): the fields of its :class:`Placement` (``state`` to ``beyond``) and
+    :class:`AlongEvidence` (``gps`` to ``gps_sigma``); the road's class, direction, tags, its
+    bearing look-up and the edge's ``length``; whether an :class:`Agreement` is given
+    (``agreed``) and its fields; the two configuration sections."""
     if edge < 0 or not math.isfinite(lat):
         return MapAidedMeasurement()
     rad = math.radians(bearing)
     tx, ty = math.sin(rad), math.cos(rad)  # along the road (east, north)
-    pxx, pxy, pyy = evidence.bias_cov
-    along = along_track_sigma(
-        evidence, bias_along_var=tx * tx * pxx + 2.0 * tx * ty * pxy + ty * ty * pyy, config=config
-    )
-    highway = graph.edge_highway(edge) if tags.road_class is None else tags.road_class
-    if one_way is None:
-        one_way = int(graph.edge_reverse[edge]) < 0
+    pxx, pxy, pyy = bias_cov
+    along = _along_sigma(
+        gps, fix_sigma, white_share, anchor_sd, odo_sigma, dr_distance, gps_sigma,
+        tx * tx * pxx + 2.0 * tx * ty * pxy + ty * ty * pyy, config,
+    )  # fmt: skip
     if width != width and lanes != lanes:  # no tags: one σ per class and direction
         key = (highway, one_way)
         cross = config.cross_sigmas.get(key, math.nan)
@@ -376,11 +459,10 @@ def map_aided_measurement(
     # in dead reckoning, or held at a node, the road's probability is the path's times the
     # share of the along-track position on the reported edge (the rest is past its end node
     # or not yet at its start node)
-    length = float(graph.edge_len[edge])
-    if not evidence.gps or offset <= _AT_NODE or offset >= length - _AT_NODE:
-        probability *= on_edge_share(offset + placement.beyond, length, along, config.straddle)
-    if agreement is not None:
-        probability = confidence(probability, agreement, model)
+    if not gps or offset <= _AT_NODE or offset >= length - _AT_NODE:
+        probability *= on_edge_share(offset + beyond, length, along, config.straddle)
+    if agreed:
+        probability = _confidence(probability, heading_diff, cross_sigmas, other_sigmas, model)
     va, vc = along * along, cross * cross
     # rotate diag(along², cross²) from (along, across) to (east, north); across = (ty, -tx)
     var_e = va * tx * tx + vc * ty * ty
@@ -390,7 +472,7 @@ def map_aided_measurement(
         reason = "off_road"
     elif state in _STARTING:
         reason = "initialising"
-    elif placement.since_init < config.settle_distance:
+    elif since_init < config.settle_distance:
         reason = "settling"
     elif probability < config.min_probability:
         reason = "low_probability"
@@ -405,7 +487,7 @@ def map_aided_measurement(
         along,
         cross,
         bearing,
-        heading_sigma(graph, edge, offset, along, config=config, bearing_at=tags.bearing_at),
+        _heading_sigma(bearing_at, edge, offset, along, length, config),
         probability,
         reason == "",
         reason,

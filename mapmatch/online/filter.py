@@ -40,7 +40,10 @@ def normalise(hyps: list[H], *, prune_log_ratio: float) -> list[H]:
     """Shift log-probabilities so that the best is 0; drop those ``prune_log_ratio`` below."""
     if not hyps:
         return hyps
-    m = max(h.logp for h in hyps)
+    m = hyps[0].logp  # max(h.logp for h in hyps), without a generator (a per-fix path)
+    for h in hyps:
+        if h.logp > m:
+            m = h.logp
     if not math.isfinite(m):
         for h in hyps:
             h.logp = 0.0

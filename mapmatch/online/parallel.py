@@ -67,14 +67,20 @@ class ParallelRoads:
     def __init__(self, road: RoadModel, index: EdgeIndex) -> None:
         self.road = road
         self.index = index
-        self._roads: dict[tuple[int, float, float, float], list[tuple[int, ...]]] = {}
+        # per (parallel_radius, parallel_angle, parallel_spacing): each edge's stretches
+        self._roads: dict[tuple[float, float, float], dict[int, list[tuple[int, ...]]]] = {}
+        self._last: tuple[ConfidenceConfig | None, dict[int, list[tuple[int, ...]]]] = (None, {})
 
     def alongside(self, edge: int, offset: float, cfg: ConfidenceConfig) -> tuple[int, ...]:
         """The edges alongside ``edge`` at ``offset`` metres from its start (empty: none)."""
-        key = (edge, cfg.parallel_radius, cfg.parallel_angle, cfg.parallel_spacing)
-        roads = self._roads.get(key)
+        last = self._last
+        if last[0] is not cfg:  # the stretches of this section's settings (a per-fix path)
+            key = (cfg.parallel_radius, cfg.parallel_angle, cfg.parallel_spacing)
+            last = self._last = (cfg, self._roads.setdefault(key, {}))
+        kept = last[1]
+        roads = kept.get(edge)
         if roads is None:
-            roads = self._roads[key] = stretch_roads(self.road, self.index, edge, cfg)
+            roads = kept[edge] = stretch_roads(self.road, self.index, edge, cfg)
         length = self.road.elen[edge]
         k = int(offset / length * len(roads)) if length > 0.0 else 0
         return roads[min(max(k, 0), len(roads) - 1)]

@@ -86,7 +86,8 @@ def place_params(step: Step, cfg: MatchConfig, *, turn_obs: float, covered: floa
 def param_values(
     step: Step, cfg: MatchConfig, *, turn_obs: float, covered: float
 ) -> tuple[float | bool, ...]:
-    """:func:`place_params` as a plain tuple (how the kernels take it)."""
+    """:func:`place_params` as a plain tuple (in field order: the first values of the placement
+    kernel's buffer, :func:`mapmatch.online.placement._params`)."""
     global _last
     last = _last
     if last[0] is not cfg:

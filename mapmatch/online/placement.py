@@ -10,6 +10,7 @@ kernel call per fix for all hypotheses.
 from __future__ import annotations
 
 import math
+from array import array
 from collections.abc import Sequence
 from typing import NamedTuple
 
@@ -234,30 +235,83 @@ def place_one(  # type: ignore[no-untyped-def]
     return best_sc, best, anc, anc_sd
 
 
+N_PARAMS = len(PlaceParams._fields)
+
+
+@njit(cache=True, inline="always")  # inlined: its record is then no value to pass
+def _params(v):  # type: ignore[no-untyped-def]
+    """The :class:`PlaceParams` of the first ``N_PARAMS`` values of ``v`` (in field order, the
+    bool fields as 1 or 0)."""
+    return PlaceParams(
+        v[0],
+        v[1],
+        v[2],
+        v[3],
+        v[4],
+        v[5],
+        v[6],
+        v[7] != 0.0,
+        v[8] != 0.0,
+        v[9] != 0.0,
+        v[10],
+        v[11],
+        v[12],
+        v[13],
+        v[14],
+        v[15],
+        v[16],
+        v[17],
+        v[18],
+        v[19],
+        v[20],
+        v[21],
+        v[22],
+        v[23],
+        v[24],
+        v[25],
+        v[26],
+        v[27],
+        v[28],
+        v[29],
+        v[30],
+        v[31],
+        v[32],
+    )
+
+
 @njit(cache=True)
-def _place_all(road_t, p_t, rows, n):  # type: ignore[no-untyped-def]
-    """:func:`place_one` for ``n`` hypotheses: ``rows`` holds ``N_IN`` values each (the
-    ``IN_*`` columns), then all their paths' edges (as floats: one array to convert and pass,
-    not two), hypothesis ``i``'s path the next ``rows[IN_LEN]`` of them; ``N_OUT`` values each
-    out (``OUT_*``). ``road_t`` and ``p_t`` are a :class:`RoadArrays` and a
-    :class:`PlaceParams` as plain tuples (numba reads those ten times faster at a call)."""
+def _place_all(road_t, buf, n, out):  # type: ignore[no-untyped-def]
+    """:func:`place_one` for ``n`` hypotheses: ``buf`` holds the :class:`PlaceParams`
+    (``N_PARAMS`` values, :func:`_params`), then ``N_IN`` values per hypothesis (the ``IN_*``
+    columns), then all their paths' edges (as floats: one buffer to fill and pass, not
+    three), hypothesis ``i``'s path the next ``IN_LEN`` of them; ``N_OUT`` values each into
+    ``out`` (``OUT_*``). ``buf`` and ``out`` are ``array.array("d")`` buffers (made and read
+    in Python faster than numpy arrays, and faster passed than a tuple of floats);
+    ``road_t`` is a :class:`RoadArrays` as a plain tuple (numba reads that ten times faster
+    at a call)."""
     road = RoadArrays(*road_t)
-    p = PlaceParams(*p_t)
-    edges = rows[n * N_IN :].astype(np.int64)
-    out = np.empty(n * N_OUT)
+    rows = np.empty(len(buf))
+    for i in range(len(buf)):
+        rows[i] = buf[i]
+    p = _params(rows)
+    at = N_PARAMS
+    edges = rows[at + n * N_IN :].astype(np.int64)
     lo = 0
     for i in range(n):
-        r = rows[i * N_IN : (i + 1) * N_IN]
+        r = rows[at + i * N_IN : at + (i + 1) * N_IN]
         path = edges[lo : lo + int(r[IN_LEN])]
         lo += len(path)
         here = (int(r[IN_K]), r[IN_OFF], r[IN_S], r[IN_DIST], r[IN_PX], r[IN_PY], r[IN_BRG])
         sc, pos, anc, anc_sd = place_one(road, p, path, here, r[IN_ANC], r[IN_ANC_SD])
-        o = out[i * N_OUT : (i + 1) * N_OUT]
-        o[OUT_SCORE] = sc
-        o[OUT_J], o[OUT_OFF], o[OUT_S], o[OUT_DIST], o[OUT_PX], o[OUT_PY], o[OUT_BRG] = pos
-        o[OUT_ANC], o[OUT_ANC_SD] = anc, anc_sd
-        o[OUT_TURN] = turn_score(road, p, path, pos, here[2])
-    return out
+        o = i * N_OUT
+        out[o + OUT_SCORE] = sc
+        out[o + OUT_J], out[o + OUT_OFF], out[o + OUT_S], out[o + OUT_DIST] = pos[0], pos[1], pos[2], pos[3]
+        out[o + OUT_PX], out[o + OUT_PY], out[o + OUT_BRG] = pos[4], pos[5], pos[6]
+        out[o + OUT_ANC], out[o + OUT_ANC_SD] = anc, anc_sd
+        out[o + OUT_TURN] = turn_score(road, p, path, pos, here[2])
+
+
+_OUT_ONE = array("d", [0.0] * N_OUT)  # one hypothesis's output row (``* n`` for ``n``)
 
 
 def place_all(
@@ -273,17 +327,15 @@ def place_all(
     entry times follow); return each position's log-score and the score of the turn observed
     (``turn_obs`` degrees over the last ``covered`` metres) against the path's."""
     flat: list[int] = []
-    rows: list[float] = []
+    rows: list[float] = list(param_values(step, cfg, turn_obs=turn_obs, covered=covered))
     for h in hyps:
         flat += h.edges
         rows += (len(h.edges), h.k, h.off, h.s, h.dist, h.px, h.py, h.bearing, h.anc, h.anc_sd)
     rows += flat
-    out = _place_all(
-        road.arrays_tuple,
-        param_values(step, cfg, turn_obs=turn_obs, covered=covered),
-        np.array(rows, dtype=np.float64),
-        len(hyps),
-    ).tolist()
+    n = len(hyps)
+    buf = _OUT_ONE * n
+    _place_all(road.arrays_tuple, array("d", rows), n, buf)
+    out = buf.tolist()
     scores = []
     lo = 0
     for h in hyps:

@@ -9,7 +9,7 @@ from dataclasses import dataclass
 from graph.angles import angle_diff
 from graph.projection import point_to_lonlat
 from mapmatch.config import MatchConfig
-from mapmatch.measurement import Agreement, AlongEvidence, Placement, RoadTags, map_aided_measurement
+from mapmatch.measurement import Agreement, measure
 from mapmatch.online.filter import best as best_of
 from mapmatch.online.road import RoadModel
 from mapmatch.online.state import Hypothesis, SessionState, Step
@@ -148,11 +148,18 @@ def agreement(fix: Fix, step: Step, h: Hypothesis, cfg: MatchConfig, *, other_di
     """How the fix agrees with answer ``h``: its heading against the road's, and its distance
     from the road and from the nearest road alongside (``other_dist``), in its reported σ
     (the model's fallback σ when it reports none; at least the σ floor)."""
+    return Agreement(*_agreement(fix, step, h, cfg, other_dist))
+
+
+def _agreement(
+    fix: Fix, step: Step, h: Hypothesis, cfg: MatchConfig, other_dist: float
+) -> tuple[float, float, float]:
+    """:func:`agreement`'s fields as a plain tuple."""
     head = step.heading
     sigma = fix.pos_sigma if fix.pos_sigma > 0.0 else cfg.model.gps_sigma  # NaN: not > 0
     sigma = max(sigma, cfg.online.evidence.pos_sigma_floor)
     diff = angle_diff(head, h.bearing) if head == head else math.nan
-    return Agreement(diff, h.dist / sigma, other_dist / sigma)
+    return diff, h.dist / sigma, other_dist / sigma
 
 
 def report(
@@ -180,34 +187,25 @@ def report(
             probability = c.probability
             break
     beyond = held_beyond(road, shown_hyp, step) if step.gps else 0.0
-    aided = map_aided_measurement(
-        g,
-        Placement(
-            st,
-            e,
-            shown_hyp.off,
-            lat,
-            lon,
-            shown_hyp.bearing,
-            probability,
-            state.odo - state.region.init_odo,
-            beyond,
-        ),
-        AlongEvidence(
-            step.gps,
-            step.sigma,  # fix_sigma
-            step.bias[2:],  # bias_cov: (pxx, pxy, pyy)
-            cfg.online.bias.bias_white_fraction,  # white_share
-            shown_hyp.anc_sd,  # anchor_sd
-            step.odo_sigma,
-            step.dr,  # dr_distance
-            cfg.model.gps_sigma,
-        ),
-        RoadTags(road_class=road_class, one_way=road.rev[e] < 0, bearing_at=road.bearing_at),
-        agreement(fix, step, shown_hyp, cfg, other_dist=outcome.other_dist),
-        config=cfg.measurement,
-        model=cfg.confidence,
-    )
+    diff, cross_sigmas, other_sigmas = _agreement(fix, step, shown_hyp, cfg, outcome.other_dist)
+    aided = measure(  # map_aided_measurement's records as plain values (a per-fix path)
+        st, e, shown_hyp.off, lat, lon, shown_hyp.bearing, probability,
+        state.odo - state.region.init_odo,  # since_init
+        beyond,
+        step.gps,
+        step.sigma,  # fix_sigma
+        step.bias[2:],  # bias_cov: (pxx, pxy, pyy)
+        cfg.online.bias.bias_white_fraction,  # white_share
+        shown_hyp.anc_sd,  # anchor_sd
+        step.odo_sigma,
+        step.dr,  # dr_distance
+        cfg.model.gps_sigma,
+        road_class, road.rev[e] < 0,  # one_way
+        math.nan, math.nan,  # width, lanes: not tagged
+        road.bearing_at, road.elen[e],
+        True, diff, cross_sigmas, other_sigmas,  # the agreement
+        cfg.measurement, cfg.confidence,
+    )  # fmt: skip
     return SnapResult(  # by position, in field order (see SnapResult)
         fix.time,  # time
         st,  # state

@@ -71,7 +71,7 @@ def prepare(road: RoadModel, state: SessionState, fix: Fix, cfg: MatchConfig) ->
         still_kappa = heading_kappa_one(hs, o.evidence.heading_sigma_floor_deg)
         still_weight = o.evidence.stopped_heading_weight * max(per_time - weight, 0.0)
     odo = state.odo + (travelled if not math.isnan(travelled) else 0.0)
-    return Step(  # positional up to ``r_a``, in field order
+    return Step(  # by position, in field order (keywords cost a fix's time)
         fix.time,  # time
         x,
         y,
@@ -86,14 +86,14 @@ def prepare(road: RoadModel, state: SessionState, fix: Fix, cfg: MatchConfig) ->
         weight,
         stopped,
         region_radius(road, sigma, cfg),  # r_a
-        dr=0.0 if gps else odo - state.gps_odo,
-        bias=bias.predict_bias(state.bias.vector, sigma, dt, cfg),
-        odo_sigma=math.sqrt(anchor.odo_kvar(state.anchor, cfg) + o.odometer.odo_scale_floor**2),
-        fix_sigma=own,
-        turn_weight=turn_weight,
-        still_kappa=still_kappa,
-        still_weight=still_weight,
-        speed=speed,
+        0.0 if gps else odo - state.gps_odo,  # dr
+        bias.predict_bias(state.bias.vector, sigma, dt, cfg),  # bias
+        math.sqrt(anchor.odo_kvar(state.anchor, cfg) + o.odometer.odo_scale_floor**2),  # odo_sigma
+        own,  # fix_sigma
+        turn_weight,
+        still_kappa,
+        still_weight,
+        speed,
     )
 
 
