@@ -119,7 +119,7 @@ def carry(a: AnchorState, step: Step) -> None:
     """The odometer's metres of this fix (before the learnt scale) carried on the chain."""
     c = a.chain
     if c.edge >= 0 and step.odo_known and not math.isnan(step.travelled):
-        a.chain = c._replace(dx=c.dx + step.travelled / (1.0 + a.odo_k))
+        a.chain = ScaleChain(c[0], c[1], c[2], c[3] + step.travelled / (1.0 + a.odo_k), *c[4:])
 
 
 def learn_scale_gps(
