@@ -106,11 +106,7 @@ MECHANISMS: tuple[Mechanism, ...] = (
     Mechanism("align_rms_check", ("online.anchor.align_rms_max_deg=180",)),
     Mechanism("align_cover", ("online.anchor.align_cover=0",)),
     Mechanism("scale_from_anchors", ("online.odometer.scale_min_distance=1000000000",)),
-    Mechanism("scale_from_gps", ("online.odometer.scale_baseline=0",)),
-    Mechanism(
-        "scale_learning",
-        ("online.odometer.scale_min_distance=1000000000", "online.odometer.scale_baseline=0"),
-    ),
+    Mechanism("scale_learning", ("online.odometer.odo_scale_sigma=0",)),
     Mechanism("crossing_revision", ("online.corrections.revise_sigmas=1000000",), loss="fin"),
     Mechanism("report_back_ratio", ("online.corrections.report_back_ratio=1",)),
     Mechanism("rate_rules_all", RATE_RULES),

@@ -178,10 +178,11 @@ def drive_rows(matcher: OnlineMatcher, drive: Drive, *, track: str, rate: float)
     """One row per fix of ``drive`` run through ``matcher`` (a new session)."""
     graph = matcher.graph
     state = matcher.new_session()
-    res, odo_k = [], []
+    res, odo_k, odo_ksd = [], [], []
     for f in drive.fix_objects():
         res.append(matcher.update(state, f))
         odo_k.append(state.anchor.odo_k)
+        odo_ksd.append(math.sqrt(state.anchor.odo_kvar))
     tr = drive.truth
     t = tr["time"].to_numpy() - float(tr["time"].iloc[0])
     edges = np.array([r.edge for r in res], dtype=np.int64)
@@ -219,6 +220,7 @@ def drive_rows(matcher: OnlineMatcher, drive: Drive, *, track: str, rate: float)
             "cross_err": dx * np.cos(rad) - dy * np.sin(rad),
             "odo": odo,
             "odo_k": odo_k,
+            "odo_ksd": odo_ksd,
             "true_scale": drive.sensors.true_odo_scale,
             "outage_end": _outage_end_mask(drive),
         }

@@ -320,20 +320,20 @@ class AnchorConfig:
 
 @dataclass(frozen=True)
 class OdometerConfig:
-    """The odometer's scale, learnt from turn anchors and from GPS baselines (``online.odometer``).
+    """The odometer's scale, learnt from turn anchors and from the GPS (``online.odometer``).
 
-    odo_scale_sigma : prior σ of the odometer's relative distance error. The turn anchor is
-        carried along the path by the odometer, whose scale is learnt from anchor to anchor;
-        the anchor's σ grows by the learnt scale's σ of the distance.
+    odo_scale_sigma : prior σ of the odometer's relative distance error. The scale is a
+        running estimate per session (a Kalman filter with this prior): from the GPS, the
+        path metres between the projections of the GPS-aided fixes onto the path driven
+        against the odometer's (the fix's error along the road modelled as the learnt fix
+        bias is: ``bias.bias_time``, ``bias_white_fraction``); and from anchor to anchor.
+        The turn anchor is carried along the path by the odometer; its σ grows by the learnt
+        scale's σ of the distance. 0 learns no scale.
     odo_scale_floor : relative odometer error left after learning its scale.
     odo_scale_max : the largest relative scale error learnt.
     scale_min_distance : metres; turn anchors closer than this teach nothing about the scale ...
     scale_max_distance : ... and further apart the path between them is more likely wrong.
     scale_path_error : relative error of a path's length between turn anchors.
-    scale_baseline : metres; the odometer scale is also learnt from the GPS: the straight line
-        between two GPS-aided fixes this far apart by the odometer, on a road whose bearing
-        stays within ``scale_straight_deg`` all the way (0 disables it).
-    scale_straight_deg : see ``scale_baseline``.
     """
 
     odo_scale_sigma: float = 0.02
@@ -342,8 +342,6 @@ class OdometerConfig:
     scale_min_distance: float = 20.0
     scale_max_distance: float = 600.0
     scale_path_error: float = 0.005
-    scale_baseline: float = 300.0
-    scale_straight_deg: float = 3.0
 
     def __post_init__(self) -> None:
         _check_numbers(self)

@@ -13,6 +13,7 @@ from service_util import city
 from mapmatch.errors import ValidationError
 from mapmatch.online import OnlineMatcher, SessionState
 from mapmatch.online.codec import VERSION, from_bytes, to_bytes
+from mapmatch.online.state import NO_CHAIN
 
 AMAP = city()
 
@@ -139,8 +140,8 @@ def test_version_1_is_migrated() -> None:
         "bk": d["back"],
     }
     old = SessionState.from_bytes(json.dumps(v1).encode())
-    assert all(math.isnan(v) for v in old.base)  # version 1 had no scale baseline: none yet
-    old.base = st.base
+    assert old.chain == NO_CHAIN  # version 1 had no running scale estimate: none yet
+    old.chain = st.chain
     assert math.isnan(old.speed)  # nor an averaged speed: it starts from the next fix
     old.speed = st.speed
     assert old.to_bytes() == st.to_bytes()
@@ -162,8 +163,10 @@ def test_version_1_is_migrated() -> None:
         (lambda d: d.update(drift_sigma=-0.1), "state.drift_sigma"),
         (lambda d: d.update(speed=-0.1), "state.speed"),
         (lambda d: d.update(drift_sigma=1.7e175), "state.drift_sigma"),  # its square overflows
-        (lambda d: d.update(base=[1.0, 2.0]), "state.base"),
-        (lambda d: d.update(base=[1.0, 2.0, "x", 4.0]), "state.base[2]"),
+        (lambda d: d.update(chain=[1.0, 2.0]), "state.chain"),
+        (lambda d: d.update(chain=[1, 2.0, "x", *[0.0] * 8]), "state.chain[2]"),
+        (lambda d: d.update(chain=[1.5, *[0.0] * 10]), "state.chain[0]"),
+        (lambda d: d.update(chain=[1, *[0.0] * 5, -1.0, *[0.0] * 4]), "state.chain[6]"),
         (lambda d: d["bias"].update(pyy=1e200), "state.bias.pyy"),
         (lambda d: d.update(init_pending=1), "state.init_pending"),
         (lambda d: d.update(shown=1.5), "state.shown"),

@@ -913,8 +913,33 @@ def test_odometer_scale_is_learnt_from_the_gps_on_a_straight_road() -> None:
     run(OnlineMatcher(m.graph), fixes, st)
     assert abs(st.odo_k - (1.0 / 1.02 - 1.0)) < 0.005
     off = SessionState()
-    run(OnlineMatcher(m.graph, config=DEFAULT_CONFIG.replace(scale_baseline=0.0)), fixes, off)
+    run(OnlineMatcher(m.graph, config=DEFAULT_CONFIG.replace(odo_scale_sigma=0.0)), fixes, off)
     assert off.odo_k == 0.0
+
+
+ZIGZAG = """
+a     c     e     g     i     k     m
+ \\   / \\   / \\   / \\   / \\   / \\   /
+  \\ /   \\ /   \\ /   \\ /   \\ /   \\ /
+   b     d     f     h     j     l
+"""
+
+
+def test_odometer_scale_is_learnt_from_the_gps_on_a_winding_road() -> None:
+    # a road that bends every 134 m (no straight stretch to measure on, and no turn anchors):
+    # the fixes' projections onto the path, followed round the bends, show the odometer
+    # reading 2 % long
+    m = parse_ascii_map(ZIGZAG, scale=20)
+    route = "abcdefghijklm"
+    fixes = [
+        f._replace(distance=f.distance * 1.02)
+        for f in drive(m, route, DriveSpec(speed=15, noise=3.0, seed=4, sigma=5.0))
+    ]
+    no_anchors = DEFAULT_CONFIG.replace(turn_anchor_sigma=0.0)
+    st = SessionState()
+    run(OnlineMatcher(m.graph, config=no_anchors), fixes, st)
+    assert abs(st.odo_k - (1.0 / 1.02 - 1.0)) < 0.005
+    assert math.sqrt(st.odo_kvar) < 0.01  # and it knows it has learnt it
 
 
 TURN_THEN_CROSSING = """

@@ -77,7 +77,7 @@ def test_each_key_of_the_blob_comes_from_its_record() -> None:
     d = json.loads(blob)
     st = SessionState.from_bytes(blob)
     a, b, c, r = st.anchor, st.bias, st.crossings, st.region
-    assert (a.odo_k, a.anc_odo, list(a.base)) == (d["odo_k"], d["anc_odo"], d["base"])
+    assert (a.odo_k, a.anc_odo, list(a.chain)) == (d["odo_k"], d["anc_odo"], d["chain"])
     assert (b.res_pos2, b.res_head2, b.drift_sigma) == (d["res_pos2"], d["res_head2"], d["drift_sigma"])
     assert b.vector._asdict() == d["bias"]
     headings = np.frombuffer(base64.b64decode(d["headings_f64"]), "<f8").reshape(-1, 2).tolist()
@@ -87,7 +87,7 @@ def test_each_key_of_the_blob_comes_from_its_record() -> None:
     assert [[p.time, p.odo] for p in c.trail] == np.column_stack([times, odos]).tolist()
     assert len(c.trail) > 2 and len(c.back) == len(d["back"])
     assert (r.init_pending, r.init_odo, len(r.live)) == (d["init_pending"], d["init_odo"], len(d["live"]))
-    assert (st.odo_k, st.base, st.res_pos2, st.trail) == (a.odo_k, a.base, b.res_pos2, c.trail)
+    assert (st.odo_k, st.chain, st.res_pos2, st.trail) == (a.odo_k, a.chain, b.res_pos2, c.trail)
 
 
 # the modules that write each record of a session (assignments, deletions and list mutations

@@ -9,15 +9,15 @@ import math
 
 import numpy as np
 
-from graph.angles import angle_diff
 from mapmatch.config import MatchConfig
 from mapmatch.online.road import RoadModel
 from mapmatch.online.state import (
-    NO_BASE,
+    NO_CHAIN,
     AnchorState,
     BackEdge,
     CrossingTrail,
     Hypothesis,
+    ScaleChain,
     SessionState,
     Step,
     TrailPoint,
@@ -31,9 +31,9 @@ def odo_kvar(a: AnchorState, cfg: MatchConfig) -> float:
     return cfg.online.odometer.odo_scale_sigma**2 if math.isnan(a.odo_kvar) else a.odo_kvar
 
 
-def drop_baseline(a: AnchorState) -> None:
-    """No straight GPS baseline (the fixes have left the road): it starts again on one."""
-    a.base = NO_BASE
+def drop_chain(a: AnchorState) -> None:
+    """No running scale estimate from the GPS (the fixes have left the road): it starts again."""
+    a.chain = NO_CHAIN
 
 
 def turn_anchor(
@@ -101,50 +101,121 @@ def learn_scale(
     gain = kvar * dist / sv
     a.odo_k = min(max(a.odo_k + gain * nu, -o.odometer.odo_scale_max), o.odometer.odo_scale_max)
     a.odo_kvar = kvar * (1.0 - gain * dist)
+    c = a.chain
+    if c.edge >= 0:  # the GPS chain's offset and error are correlated with the scale: they move too
+        gp, gb = c.ppk * dist / sv, c.pkb * dist / sv
+        a.chain = c._replace(
+            p=c.p + gp * nu,
+            b=c.b + gb * nu,
+            ppp=c.ppp - gp * c.ppk * dist,
+            ppk=c.ppk * (1.0 - gain * dist),
+            ppb=c.ppb - gp * c.pkb * dist,
+            pkb=c.pkb * (1.0 - gain * dist),
+            pbb=c.pbb - gb * c.pkb * dist,
+        )
+
+
+def carry(a: AnchorState, step: Step) -> None:
+    """The odometer's metres of this fix (before the learnt scale) carried on the chain."""
+    c = a.chain
+    if c.edge >= 0 and step.odo_known and not math.isnan(step.travelled):
+        a.chain = ScaleChain(c[0], c[1], c[2], c[3] + step.travelled / (1.0 + a.odo_k), *c[4:])
 
 
 def learn_scale_gps(
-    a: AnchorState, best: Hypothesis, step: Step, cfg: MatchConfig, *, drift_sigma: float
+    road: RoadModel, a: AnchorState, best: Hypothesis, step: Step, cfg: MatchConfig, *, drift_sigma: float
 ) -> None:
-    """Kalman update of the odometer scale from the GPS on a straight road: the distance the
-    odometer gives between the two ends of a baseline against the straight line between the
-    fixes there (their slowly varying error mostly cancels; on a straight road the chord is
-    the path). The baseline starts again at every bend, without GPS or while the
-    dead-reckoning drift (``drift_sigma``) is still blending out."""
+    """Kalman update of the odometer scale from the GPS: the path metres between the
+    projections of successive GPS-aided fixes onto the path driven against the odometer's.
+
+    The state is the offset between path metres and odometer metres (unknown at the chain's
+    start), the scale error and the fix's slowly varying error along the road (a
+    Gauss-Markov process of correlation time ``bias_time`` and the fix's σ; the white part
+    ``bias_white_fraction`` of it, per unit of evidence weight, is the measurement noise). The
+    projection follows the path through any bend, and the across-track error drops out. The
+    chain starts again without GPS or odometer, while the dead-reckoning drift
+    (``drift_sigma``) blends out, when the last fix's edge is no longer on the path believed,
+    or at a measurement far outside its σ (another path)."""
     o = cfg.online
-    if o.odometer.scale_baseline <= 0.0:
+    if not (step.gps and step.odo_known) or drift_sigma > 0.5 * step.fix_sigma or math.isnan(best.bearing):
+        a.chain = NO_CHAIN
         return
-    if (
-        not (step.gps and step.odo_known)
-        or drift_sigma > 0.5 * step.fix_sigma
-        or math.isnan(best.bearing)
-        or (
-            step.kappa > 0.0
-            and abs(angle_diff(step.heading, best.bearing)) > 4.0 * o.odometer.scale_straight_deg
-        )
-    ):
-        a.base = NO_BASE
+    if step.weight <= 0.0 and a.chain.edge >= 0:
+        return  # standing: the fixes wander, the odometer does not
+    j, off = _path_place(road, best, step.x, step.y)
+    e = best.edges[j]
+    sb2 = step.fix_sigma**2
+    r = (o.bias.bias_white_fraction * step.fix_sigma) ** 2 / max(step.weight, 1e-3)
+    c = a.chain
+    i = _on_path(best.edges, c.edge, j) if c.edge >= 0 else -1
+    if i < 0:
+        a.chain = _chain_start(e, off, step.time, sb2, r)
         return
-    b_odo, bx, by, b_brg = a.base
-    here = (step.odo, step.x, step.y, best.bearing)
-    if math.isnan(b_odo) or abs(angle_diff(best.bearing, b_brg)) > o.odometer.scale_straight_deg:
-        a.base = here
-        return
-    dist = step.odo - b_odo
-    if dist < o.odometer.scale_baseline:
-        return
-    a.base = here
-    nu = math.hypot(step.x - bx, step.y - by) - dist  # metres the odometer missed
-    kvar = odo_kvar(a, cfg)
-    r = 2.0 * step.fix_sigma**2 + (o.odometer.scale_path_error * dist) ** 2
-    sv = dist * dist * kvar + r
+    m = _path_start(road, best.edges, j) + off - (_path_start(road, best.edges, i) + c.off) - c.dx
+    tau = o.bias.bias_time
+    decay = math.exp(-(step.time - c.time) / tau) if tau > 0.0 and step.time > c.time else 0.0
+    pkk = odo_kvar(a, cfg)
+    # predict: b decays (Gauss-Markov); p and the scale hold
+    b = decay * c.b
+    ppb, pkb = decay * c.ppb, decay * c.pkb
+    pbb = decay * decay * c.pbb + (1.0 - decay * decay) * sb2
+    ppp, ppk = c.ppp, c.ppk
+    # measured: m = p + k·dx + b + white
+    dx = c.dx
+    h_p, h_k, h_b = ppp + dx * ppk + ppb, ppk + dx * pkk + pkb, ppb + dx * pkb + pbb  # P·H
+    sv = h_p + dx * h_k + h_b + r
+    nu = m - (c.p + a.odo_k * dx + b)
     if nu * nu > 9.0 * sv:
+        a.chain = _chain_start(e, off, step.time, sb2, r)  # not the same path: start again
         return
-    lim = 2.0 * math.sqrt(sv)
-    nu = min(max(nu, -lim), lim)
-    gain = kvar * dist / sv
-    a.odo_k = min(max(a.odo_k + gain * nu, -o.odometer.odo_scale_max), o.odometer.odo_scale_max)
-    a.odo_kvar = kvar * (1.0 - gain * dist)
+    gp, gk, gb = h_p / sv, h_k / sv, h_b / sv
+    p = c.p + gp * nu
+    k = a.odo_k + gk * nu
+    b += gb * nu
+    ppp, ppk, ppb = ppp - gp * h_p, ppk - gp * h_k, ppb - gp * h_b
+    pkk, pkb, pbb = pkk - gk * h_k, pkb - gk * h_b, pbb - gb * h_b
+    # to this fix: p' = p + k·dx - m
+    ppp, ppk, ppb = ppp + 2.0 * dx * ppk + dx * dx * pkk, ppk + dx * pkk, ppb + dx * pkb
+    p += k * dx - m
+    lim = o.odometer.odo_scale_max
+    a.odo_k = min(max(k, -lim), lim)
+    a.odo_kvar = pkk
+    a.chain = ScaleChain(e, off, step.time, 0.0, p, b, ppp, ppk, ppb, pkb, pbb)
+
+
+def _chain_start(e: int, off: float, time: float, sb2: float, r: float) -> ScaleChain:
+    """A chain starting at a fix: the offset is what was measured less the fix's error there
+    (its slowly varying part ``b`` of variance ``sb2`` and the white of variance ``r``)."""
+    return ScaleChain(e, off, time, 0.0, 0.0, 0.0, sb2 + r, 0.0, -sb2, 0.0, sb2)
+
+
+def _path_start(road: RoadModel, edges: list[int], j: int) -> float:
+    """Metres along the path ``edges`` to the start of ``edges[j]``."""
+    return float(sum(road.elen[e] for e in edges[:j]))
+
+
+def _on_path(edges: list[int], edge: int, j: int) -> int:
+    """The index of ``edge`` in ``edges`` at or before ``j`` (the latest), or -1."""
+    for i in range(j, -1, -1):
+        if edges[i] == edge:
+            return i
+    return -1
+
+
+def _path_place(road: RoadModel, h: Hypothesis, x: float, y: float) -> tuple[int, float]:
+    """The fix's projection onto the path around ``h``'s edge: ``(edge index, offset)`` (the
+    next edge or the one before when the fix lies past either end of it)."""
+    j = h.k
+    off = road.project(h.edges[j], x, y)[0]
+    if off >= road.elen[h.edges[j]] - 1e-6 and j + 1 < len(h.edges):
+        nxt = road.project(h.edges[j + 1], x, y)[0]
+        if nxt > 1e-6:
+            return j + 1, nxt
+    elif off <= 1e-6 and j > 0:
+        prev = road.project(h.edges[j - 1], x, y)[0]
+        if prev < road.elen[h.edges[j - 1]] - 1e-6:
+            return j - 1, prev
+    return j, off
 
 
 def add_trail(trail: list[TrailPoint], time: float, odo: float, standing: bool, cfg: MatchConfig) -> None:

@@ -28,6 +28,7 @@ import numpy as np
 from mapmatch.config import DEFAULT_CONFIG, MatchConfig
 from mapmatch.errors import ValidationError
 from mapmatch.online.state import (
+    NO_CHAIN,
     AnchorState,
     BackEdge,
     BiasState,
@@ -36,6 +37,7 @@ from mapmatch.online.state import (
     Hypothesis,
     LiveFix,
     RegionState,
+    ScaleChain,
     SessionState,
     TrailPoint,
 )
@@ -139,7 +141,7 @@ def _fields(
         "odo_k": anc.odo_k,
         "odo_kvar": anc.odo_kvar,
         "anc_odo": anc.anc_odo,
-        "base": list(anc.base),
+        "chain": list(anc.chain),
         "anc_sd": anc.anc_sd,
         **trail,
         "back": [[b.edge, b.time] for b in st.crossings.back],
@@ -471,7 +473,7 @@ def _decode(r: _Reader, n_edges: int | None, caps: StateCaps) -> SessionState:
         odo_kvar=r.num("odo_kvar", nan=True, low=0.0),
         anc_odo=r.num("anc_odo", nan=True),
         anc_sd=r.num("anc_sd", nan=True, low=0.0),
-        base=_base(r),
+        chain=_chain(r, n_edges),
     )
     return SessionState(
         time=time, x=x, y=y, odo=odo, gps_odo=gps_odo, speed=speed,
@@ -574,12 +576,20 @@ def _live(r: _Reader, n_edges: int | None) -> list[LiveFix]:
     return out
 
 
-def _base(r: _Reader) -> tuple[float, float, float, float]:
-    """The straight GPS baseline's start (absent in older blobs: none)."""
-    if "base" not in r.d:
-        return (_NAN, _NAN, _NAN, _NAN)
-    v = r.list_("base")
-    if len(v) != 4:
-        raise ValidationError(r.name("base"), "must hold 4 numbers")
-    o, x, y, b = (_num(e, f"{r.name('base')}[{i}]", nan=True) for i, e in enumerate(v))
-    return (o, x, y, b)
+def _chain(r: _Reader, n_edges: int | None) -> ScaleChain:
+    """The running scale estimate from the GPS (absent in older blobs, whose straight
+    baseline ``base`` it replaces: none, it starts again)."""
+    if "chain" not in r.d:
+        return NO_CHAIN
+    v = r.list_("chain")
+    if len(v) != len(ScaleChain._fields):
+        raise ValidationError(r.name("chain"), f"must hold {len(ScaleChain._fields)} numbers")
+    name = r.name("chain")
+    edge = _int(v[0], f"{name}[0]", low=-1, high=n_edges)
+    off, time = _num(v[1], f"{name}[1]", nan=True), _num(v[2], f"{name}[2]", nan=True)
+    dx = _num(v[3], f"{name}[3]", low=0.0)
+    p, b = _num(v[4], f"{name}[4]", spread=True), _num(v[5], f"{name}[5]", spread=True)
+    ppp = _num(v[6], f"{name}[6]", low=0.0)
+    ppk, ppb, pkb = (_num(v[i], f"{name}[{i}]", spread=True) for i in (7, 8, 9))
+    pbb = _num(v[10], f"{name}[10]", low=0.0)
+    return ScaleChain(edge, off, time, dx, p, b, ppp, ppk, ppb, pkb, pbb)

@@ -63,6 +63,7 @@ class OnlineMatcher:
         step = prepare(self.road, state, fix, cfg)
         if step is None:  # far off the map: accepted, but nowhere to put it
             state.time = fix.time
+            anchor.drop_chain(state.anchor)
             return report.off_road(fix)
         # the first GPS-aided fix after dead reckoning, and those while its drift blends out:
         # they are the truth, not outliers
@@ -101,6 +102,7 @@ class OnlineMatcher:
             state.odo += step.travelled
         if step.gps:
             state.gps_odo = state.odo
+        anchor.carry(state.anchor, step)
         state.speed = step.speed
         bias.take(state.bias, step, cfg)
         state.time, state.x, state.y = step.time, step.x, step.y
@@ -147,7 +149,7 @@ class OnlineMatcher:
         o = cfg.online
         best = best_of(state.hyps)
         if best.dist > o.reinit.reinit_sigmas * step.sigma:
-            anchor.drop_baseline(state.anchor)
+            anchor.drop_chain(state.anchor)
             if math.isnan(state.bad_time):
                 state.bad_time, state.bad_odo = step.time, state.odo
             elif step.stopped and not math.isnan(step.dt):
@@ -163,5 +165,5 @@ class OnlineMatcher:
         if len(state.hyps) == 1 and not state.region.init_pending:
             bias.learn_residuals(state.bias, best, step, cfg)
             bias.learn_bias(state.bias, best, step, cfg)
-        anchor.learn_scale_gps(state.anchor, best, step, cfg, drift_sigma=state.bias.drift_sigma)
+        anchor.learn_scale_gps(self.road, state.anchor, best, step, cfg, drift_sigma=state.bias.drift_sigma)
         return False

@@ -97,7 +97,26 @@ class BackEdge(NamedTuple):
     time: float
 
 
-NO_BASE = (math.nan, math.nan, math.nan, math.nan)
+class ScaleChain(NamedTuple):
+    """The running estimate of the odometer scale from the GPS (a chain of fixes on one path):
+    the last fix's place on the path, the odometer since it, and the filter's offset and the
+    fix's slowly varying error along the road, with their covariance (the scale's variance is
+    ``AnchorState.odo_kvar``)."""
+
+    edge: int = -1  # the last fix's edge on the path (-1: no chain)
+    off: float = math.nan  # its projection's metres along that edge
+    time: float = math.nan  # its time
+    dx: float = 0.0  # raw odometer metres since it (before the learnt scale)
+    p: float = 0.0  # path metres less raw odometer metres there: the estimate less the measured
+    b: float = 0.0  # the fix's slowly varying error along the road there
+    ppp: float = 0.0  # covariance of (p, scale, b): p·p ...
+    ppk: float = 0.0  # ... p·scale
+    ppb: float = 0.0  # ... p·b
+    pkb: float = 0.0  # ... scale·b
+    pbb: float = 0.0  # ... b·b
+
+
+NO_CHAIN = ScaleChain()
 
 
 @dataclass(slots=True)
@@ -110,9 +129,8 @@ class AnchorState:
     odo_kvar: float = math.nan  # its variance (nan: the configured prior)
     anc_odo: float = math.nan  # odometer reading of the last turn anchor ...
     anc_sd: float = math.nan  # ... and its σ (m)
-    # the start of the straight GPS baseline the odometer scale is also learnt on:
-    # (odometer, x, y, road bearing); nan when none
-    base: tuple[float, float, float, float] = NO_BASE
+    # the running estimate of the scale from the GPS-aided fixes on the path driven
+    chain: ScaleChain = NO_CHAIN
 
 
 @dataclass(slots=True)
@@ -162,7 +180,7 @@ class SessionState:
 
     The vehicle's kinematics and lifecycle (written by :mod:`mapmatch.online.matcher` and
     :mod:`mapmatch.online.hypotheses`) and one record per mechanism: ``anchor``, ``bias``,
-    ``crossings``, ``region``. The flat names ``odo_k``, ``odo_kvar``, ``base``, ``res_pos2``,
+    ``crossings``, ``region``. The flat names ``odo_k``, ``odo_kvar``, ``chain``, ``res_pos2``,
     ``live``, ``trail`` and ``back`` read those records.
     """
 
@@ -194,13 +212,13 @@ class SessionState:
         return self.anchor.odo_kvar
 
     @property
-    def base(self) -> tuple[float, float, float, float]:
-        """The straight GPS baseline's start (``anchor.base``)."""
-        return self.anchor.base
+    def chain(self) -> ScaleChain:
+        """The running scale estimate from the GPS (``anchor.chain``)."""
+        return self.anchor.chain
 
-    @base.setter
-    def base(self, value: tuple[float, float, float, float]) -> None:
-        self.anchor.base = value
+    @chain.setter
+    def chain(self, value: ScaleChain) -> None:
+        self.anchor.chain = value
 
     @property
     def res_pos2(self) -> float:
