@@ -185,7 +185,12 @@ class EvidenceConfig:
     evidence_time : seconds of fixes that count as one independent observation (the fused
         position's error is correlated in time, so 10 Hz fixes must not count ten times).
     evidence_distance : metres travelled that count as one independent observation, when the
-        distance travelled is known (a stopped vehicle's repeated fixes add no evidence).
+        distance travelled is known (a stopped vehicle's repeated fixes add no evidence
+        but by ``decorrelation_time``).
+    decorrelation_time : seconds after which the fix's error is a new one: a fix adds this
+        share of its time over it on top of its distance share, so a standing vehicle's fixes
+        add evidence slowly rather than never (a start-up between two roads decided by its
+        first fix alone), and a long stop does not count as many observations (0: none).
     stopped_heading_weight : a stopped vehicle's fused heading (a fix with ``model.heading_sigma``,
         gyro-aided, which holds at a standstill where a GPS course does not) scores the paths
         with this share of the fix's time weight, the share its distance weight leaves out: a
@@ -200,6 +205,7 @@ class EvidenceConfig:
     turn_sigma: float = 20.0
     evidence_time: float = 1.0
     evidence_distance: float = 5.0
+    decorrelation_time: float = 30.0
     stopped_heading_weight: float = 1.0
     pos_sigma_floor: float = 2.0
     heading_sigma_floor_deg: float = 10.0
