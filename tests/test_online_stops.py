@@ -60,13 +60,14 @@ def parked_start(amap: AsciiMap, *, stand: int, seed: int) -> list[Fix]:
 
 @pytest.mark.parametrize("seed", [0, 1, 2])
 def test_start_up_standing_between_two_roads_takes_the_road_its_fixes_show(seed: int) -> None:
-    """The stand's fixes, weighed by the time they span, outweigh its first fix within half a
-    minute, and the road they show is kept once the vehicle moves; counted as no evidence (the
-    distance share alone), the first fix decides the whole stand."""
+    """The stand's fixes, weighed by the time they span over the error's correlation time
+    (``bias.bias_time``), outweigh its first fix within half a minute, and the road they show
+    is kept once the vehicle moves; counted as no evidence (the distance share alone, as with
+    no correlation time), the first fix decides the whole stand."""
     amap = parse_ascii_map(TWO_ROADS, scale=4.0)
     cd, ab = amap.edge("c", "d"), amap.edge("a", "b")
     fixes = parked_start(amap, stand=90, seed=seed)
-    no_time = DEFAULT_CONFIG.with_settings(["online.evidence.decorrelation_time=0"])
+    no_time = DEFAULT_CONFIG.with_settings(["online.bias.bias_time=0"])
     for cfg, road, span in ((DEFAULT_CONFIG, cd, slice(30, None)), (no_time, ab, slice(0, 90))):
         m = OnlineMatcher(amap.graph, config=cfg)
         st = m.new_session()

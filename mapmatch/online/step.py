@@ -54,11 +54,10 @@ def prepare(road: RoadModel, state: SessionState, fix: Fix, cfg: MatchConfig) ->
         stopped = min(now, speed) < o.stop.stop_speed
         if speed < o.stop.zero_speed:
             travelled = 0.0  # standing: the odometer's rectified noise is no distance
-        # a fix's error decorrelates with time too: a standing vehicle's fixes add evidence
-        # slowly (by ``decorrelation_time``), not never and not once per fix
-        ev = o.evidence
-        per_still = dt / ev.decorrelation_time if ev.decorrelation_time > 0.0 else 0.0
-        weight = min(weight, travelled / ev.evidence_distance + per_still)
+        # the fix's error decorrelates with time too (over ``bias_time``): a standing
+        # vehicle's fixes add evidence slowly, not never and not once per fix
+        tau = o.bias.bias_time
+        weight = min(weight, travelled / o.evidence.evidence_distance + (dt / tau if tau > 0.0 else 0.0))
     # the turn score is already per metre driven: weighed per fix only by the distance share,
     # or it would count ten times less at 10 Hz than at 1 Hz
     turn_weight = weight / per_time if per_time > 0.0 else 0.0
