@@ -97,7 +97,7 @@ from mapmatch.sim.drive import Drive  # noqa: E402
 from mapmatch.sim.realgps import real_drive  # noqa: E402
 from mapmatch.types import SnapResult, State  # noqa: E402
 
-KUBICKA = ROOT.parent / "shared" / "data" / "kubicka"
+KUBICKA = folds.KUBICKA  # MAPMATCH_SHARED, else the folder beside the repository
 STARTUP_S = 30.0
 RECOVERY_S = 10.0
 PARALLEL_M = 40.0

@@ -185,7 +185,10 @@ class EvidenceConfig:
     evidence_time : seconds of fixes that count as one independent observation (the fused
         position's error is correlated in time, so 10 Hz fixes must not count ten times).
     evidence_distance : metres travelled that count as one independent observation, when the
-        distance travelled is known (a stopped vehicle's repeated fixes add no evidence).
+        distance travelled is known; a fix adds its time over ``bias.bias_time`` (the fix
+        error's correlation time) to that share, so a standing vehicle's fixes add evidence
+        slowly: not never (a start-up between two roads would be decided by its first fix),
+        and not once per fix.
     stopped_heading_weight : a stopped vehicle's fused heading (a fix with ``model.heading_sigma``,
         gyro-aided, which holds at a standstill where a GPS course does not) scores the paths
         with this share of the fix's time weight, the share its distance weight leaves out: a
@@ -220,7 +223,8 @@ class BiasConfig:
         the decay is short: a long one leaves the matcher trusting the dead-reckoned road long
         after GPS is back.
     bias_time : seconds; correlation time of the fix's position error, learnt across roads
-        of different directions to correct the along-track position (0 disables it).
+        of different directions to correct the along-track position (0 disables it); a fix
+        also adds its time over this to its evidence weight (``online.evidence``).
     bias_white_fraction : the share of the fix's σ that is white (not learnt as bias).
     bias_emission : share of the learnt fix bias's part across the road taken off a GPS-aided
         fix's distance from each road when the paths are weighed: the receiver's error lasts

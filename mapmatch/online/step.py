@@ -41,7 +41,7 @@ def prepare(road: RoadModel, state: SessionState, fix: Fix, cfg: MatchConfig) ->
         kappa = heading_kappa_one(max(hs, math.sqrt(state.bias.res_head2)), floor)
     # the fused error is correlated: evidence accrues with time and, when known, distance
     per_time = 1.0 if math.isnan(dt) else min(1.0, dt / o.evidence.evidence_time)
-    weight = per_time
+    weight = moved = per_time  # the weight; its distance share (without the share of time)
     stopped = False
     speed = state.speed
     if odo_known and not math.isnan(dt):
@@ -54,10 +54,14 @@ def prepare(road: RoadModel, state: SessionState, fix: Fix, cfg: MatchConfig) ->
         stopped = min(now, speed) < o.stop.stop_speed
         if speed < o.stop.zero_speed:
             travelled = 0.0  # standing: the odometer's rectified noise is no distance
-        weight = min(weight, travelled / o.evidence.evidence_distance)
+        moved = min(per_time, travelled / o.evidence.evidence_distance)
+        # the fix's error decorrelates with time too (over ``bias_time``): a standing
+        # vehicle's fixes add evidence slowly, not never and not once per fix
+        tau = o.bias.bias_time
+        weight = min(per_time, moved + (dt / tau if tau > 0.0 else 0.0))
     # the turn score is already per metre driven: weighed per fix only by the distance share,
     # or it would count ten times less at 10 Hz than at 1 Hz
-    turn_weight = weight / per_time if per_time > 0.0 else 0.0
+    turn_weight = moved / per_time if per_time > 0.0 else 0.0
     # a fused heading (with its σ: gyro-aided) holds at a standstill, where a GPS course does not:
     # a vehicle turning round while stopped shows it by the heading alone, weighed by time
     still_kappa = still_weight = 0.0
@@ -69,7 +73,7 @@ def prepare(road: RoadModel, state: SessionState, fix: Fix, cfg: MatchConfig) ->
     ):
         hs = max(fix.heading_sigma, math.sqrt(state.bias.res_head2))
         still_kappa = heading_kappa_one(hs, o.evidence.heading_sigma_floor_deg)
-        still_weight = o.evidence.stopped_heading_weight * max(per_time - weight, 0.0)
+        still_weight = o.evidence.stopped_heading_weight * max(per_time - moved, 0.0)
     odo = state.odo + (travelled if not math.isnan(travelled) else 0.0)
     return Step(  # by position, in field order (keywords cost a fix's time)
         fix.time,  # time
