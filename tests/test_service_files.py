@@ -73,9 +73,8 @@ def _folders(tmp_path: Path) -> tuple[Path, Path, Path]:
 def test_a_map_file_swapped_with_a_symlink_is_read_inside_or_refused_never_outside(tmp_path):
     maps, inside, outside = _folders(tmp_path)
     seen = {"inside": 0, "refused": 0}
-    deadline = (
-        time.monotonic() + 60.0
-    )  # the threads' interleaving is the scheduler's: go on until both sides are met
+    # the threads' interleaving is the scheduler's: go on until both sides are met
+    deadline = time.monotonic() + 60.0
     with _Swapper(maps, "swap.map", inside, outside) as sw:
         while (
             sw.swaps < 2 or sum(seen.values()) < 400 or not all(seen.values())
