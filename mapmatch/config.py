@@ -446,14 +446,13 @@ class RouteConfig:
         to ``model.search_radius`` behind counts as standing (noise about the place the vehicle
         stands at, the fixes' distance apart charged by the transition), not as a fix to leave
         out at the cost of the place the route reached.
-    stop_uturn_speed : m/s; a step slower than this on average (over at least
-        ``stop_uturn_time``) spans a stop ...
-    stop_uturn_time : ... of at least this many seconds, ...
-    stop_uturn_penalty : ... across which turning round at a junction costs this U-turn
-        penalty (turning round there, e.g. in a yard off the mapped road, is common; mid-road
-        U-turns keep the full penalty). 0.5 keeps a small preference for driving on; much more
-        and a car that stops in a turning loop and turns back at its junction is matched round
-        the loop.
+    stop_uturn_penalty : a step slower on average than ``model.heading_min_speed`` (the speed
+        below which a vehicle's heading tells nothing: as good as stopped) over at least
+        ``batch.outliers.spike_max_time`` seconds (the time a car needs to turn round) spans a
+        stop, across which turning round at a junction costs this U-turn penalty (turning round
+        there, e.g. in a yard off the mapped road, is common; mid-road U-turns keep the full
+        penalty). 0.5 keeps a small preference for driving on; much more and a car that stops
+        in a turning loop and turns back at its junction is matched round the loop.
     """
 
     max_route_factor: float = 3.0
@@ -463,8 +462,6 @@ class RouteConfig:
     turn_cost: float = 20.0
     route_lp_cut: float = 30.0
     reverse_tolerance: float = 10.0
-    stop_uturn_speed: float = 1.0
-    stop_uturn_time: float = 5.0
     stop_uturn_penalty: float = 0.5
 
     def __post_init__(self) -> None:
@@ -495,10 +492,9 @@ class TrackConfig:
     track_heading_sigma_floor_deg : the least heading σ (degrees) of a fix's own heading or of
         the direction of travel.
     motion_heading_sigma : degrees; where a fix has no heading, the direction of travel from
-        its neighbours (both legs at least ``motion_min_distance`` metres, turning by at most
+        its neighbours (both legs at least ``model.gps_sigma`` metres, turning by at most
         ``model.straight_max_deg``) is its heading with this σ against the road's bearing and
-        one-way direction (0 disables it).
-    motion_min_distance : see ``motion_heading_sigma``. Short: consecutive fixes share most of
+        one-way direction (0 disables it). One σ is short: consecutive fixes share most of
         their error, so even a slow vehicle's legs of a few metres tell its direction.
     motion_end_leg_max : metres; the track's first and last fix take the direction of travel
         of their neighbour's two legs only where their own leg is at most this long (0: any
@@ -515,7 +511,6 @@ class TrackConfig:
     track_pos_sigma_floor: float = 0.5
     track_heading_sigma_floor_deg: float = 1.0
     motion_heading_sigma: float = 30.0
-    motion_min_distance: float = 8.0
     motion_end_leg_max: float = 50.0
 
     def __post_init__(self) -> None:
@@ -541,7 +536,9 @@ class OutliersConfig:
     spike_max_time : seconds; a jump may also be a run of fixes lasting up to this (a
         multipath burst): such a run, reached and left in opposite directions, is dropped as
         one when visiting it needs more than ``spike_speed`` (the shortest such run; 0: single
-        fixes only). Short, as a car cannot turn round at that speed within a few seconds.
+        fixes only). Short, as a car cannot turn round at that speed within a few seconds. The
+        same time, the least a car needs to turn round, makes a slow step a stop
+        (``batch.route.stop_uturn_penalty``).
     max_skip : fixes in a row that may be left out as unreachable outliers before the track is
         split ...
     max_skip_time : ... and only once they reach this many seconds after the last fix kept

@@ -109,9 +109,9 @@ def test_slow_dense_fixes_tell_their_direction_against_a_one_way() -> None:
     pts = [at(m, n) for n in "dcba"]
     r = BatchMatcher(m.graph).match(track_from_xy(m, pts, dt=1.0))
     assert [names(m, piece) for piece in r.routes] == [["hg", "gf", "fe"]]
-    # with the direction judged only on legs of 15 m or more, the fixes stand on a-d
+    # without the direction of travel, the fixes stand on a-d
     old = BatchMatcher(m.graph).match(
-        track_from_xy(m, pts, dt=1.0), DEFAULT_CONFIG.replace(motion_min_distance=15)
+        track_from_xy(m, pts, dt=1.0), DEFAULT_CONFIG.replace(motion_heading_sigma=0)
     )
     assert [names(m, piece) for piece in old.routes] == [["bc"]]
 
@@ -329,11 +329,11 @@ def test_a_dense_fast_track_off_the_road_for_a_stretch_is_one_piece_as_its_spars
 def test_batch_tuning_constants_are_validated_config_fields() -> None:
     from mapmatch.errors import ConfigError
 
-    cfg = DEFAULT_CONFIG.replace(emission_prune=5.0, max_skip=3, stop_uturn_time=2.0)
+    cfg = DEFAULT_CONFIG.replace(emission_prune=5.0, max_skip=3, stop_uturn_penalty=2.0)
     assert (
         cfg.batch.outliers.emission_prune,
         cfg.batch.outliers.max_skip,
-        cfg.batch.route.stop_uturn_time,
+        cfg.batch.route.stop_uturn_penalty,
     ) == (5.0, 3, 2.0)
     bads = [{"max_skip": 2.5}, {"reverse_tolerance": -1.0}, {"route_lp_cut": math.inf}]
     for bad in [*bads, {"detour_cost_max": -1.0}, {"off_map_cut_fixes": 1.5}]:

@@ -148,8 +148,9 @@ def kernel_params(cfg: MatchConfig, sigma: float) -> KernelParams:
         prune=float(b.outliers.emission_prune),
         outlier=float(b.outliers.outlier_distance),
         transition=model.transition_params(cfg),
-        stop=np.array(
-            [b.route.stop_uturn_speed, b.route.stop_uturn_time, b.route.stop_uturn_penalty], dtype=np.float64
+        stop=np.array(  # as good as stopped (no heading), for as long as turning round takes
+            [cfg.model.heading_min_speed, b.outliers.spike_max_time, b.route.stop_uturn_penalty],
+            dtype=np.float64,
         ),
         route_factor=float(b.route.max_route_factor),
         route_slack=float(b.route.route_slack + b.route.turn_cost),  # the search counts turns as metres

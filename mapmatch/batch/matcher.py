@@ -175,7 +175,7 @@ class BatchMatcher:
                 spike_speed=float(cfg.batch.outliers.spike_speed),
                 spike_max_time=float(cfg.batch.outliers.spike_max_time),
                 motion_sigma=float(cfg.batch.track.motion_heading_sigma),
-                motion_min_distance=float(cfg.batch.track.motion_min_distance),
+                motion_min_distance=sigma,  # a leg of one σ tells the direction
                 motion_end_leg_max=float(cfg.batch.track.motion_end_leg_max),
                 straight_max_deg=float(cfg.model.straight_max_deg),
                 heading_sigma=float(cfg.model.heading_sigma),

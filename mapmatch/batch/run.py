@@ -91,6 +91,7 @@ class RuleParams(NamedTuple):
     motion_sigma: float
     """Degrees; 0: no direction of travel."""
     motion_min_distance: float
+    """Metres; the shortest leg that tells the direction (the configured σ)."""
     motion_end_leg_max: float
     """Metres; the longest first or last leg whose end fix takes its direction (0: any)."""
     straight_max_deg: float
