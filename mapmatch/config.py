@@ -530,9 +530,9 @@ class OutliersConfig:
     emission_prune : candidates whose emission log-probability is this far below their fix's
         best are dropped.
     spike_speed : m/s; a fix the track reaches and leaves in opposite directions, both legs
-        longer than ``spike_sigmas`` σ, is dropped as a jump when visiting it needs more than
-        this mean speed between its neighbours (turning round needs slowing down; 0 disables).
-    spike_sigmas : see ``spike_speed``.
+        longer than ``off_map_sigmas`` σ (beyond the fixes' noise by the off-map limit), is
+        dropped as a jump when visiting it needs more than this mean speed between its
+        neighbours (turning round needs slowing down; 0 disables).
     spike_max_time : seconds; a jump may also be a run of fixes lasting up to this (a
         multipath burst): such a run, reached and left in opposite directions, is dropped as
         one when visiting it needs more than ``spike_speed`` (the shortest such run; 0: single
@@ -570,7 +570,6 @@ class OutliersConfig:
     off_map_sigmas: float = 5.0
     emission_prune: float = 12.5
     spike_speed: float = 20.0
-    spike_sigmas: float = 3.0
     spike_max_time: float = 5.0
     max_skip: int = 8
     max_skip_time: float = 60.0

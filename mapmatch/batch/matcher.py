@@ -171,7 +171,7 @@ class BatchMatcher:
                 k=int(cfg.model.max_candidates), min_dist=float(cfg.batch.track.interpolate_distance),
             )  # fmt: skip
             track_rules = RuleParams(
-                gps_sigma=sigma, spike_sigmas=float(cfg.batch.outliers.spike_sigmas),
+                gps_sigma=sigma, spike_sigmas=float(cfg.batch.outliers.off_map_sigmas),  # one limit in σ
                 spike_speed=float(cfg.batch.outliers.spike_speed),
                 spike_max_time=float(cfg.batch.outliers.spike_max_time),
                 motion_sigma=float(cfg.batch.track.motion_heading_sigma),
