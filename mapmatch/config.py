@@ -991,7 +991,9 @@ _BOUNDS: frozenset[str] = frozenset(
         "batch.route.route_slack",
         "batch.track.track_pos_sigma_floor",
         "batch.track.track_heading_sigma_floor_deg",
+        "batch.outliers.outlier_distance",
         "batch.outliers.emission_prune",
+        "batch.outliers.max_skip",
         "measurement.along_sigma_max",
         "confidence.probability_floor",
     }
