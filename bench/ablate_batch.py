@@ -43,7 +43,6 @@ VARIANTS: dict[str, tuple[str, ...]] = {
     "route_slack_wide": ("batch.route.route_slack=300",),
     "route_lp_cut_wide": ("batch.route.route_lp_cut=60",),
     # batch.track
-    "interpolate_off": ("batch.track.interpolate_distance=0",),
     "track_sigma_off": ("batch.track.track_sigma_max=0",),
     "thin_off": ("batch.track.thin_sigmas=0",),
     "motion_heading_off": ("batch.track.motion_heading_sigma=0",),

@@ -472,7 +472,6 @@ class RouteConfig:
 class TrackConfig:
     """The track's own σ, thinning, the fixes' σ floors and the direction of travel (``batch.track``).
 
-    interpolate_distance : fixes closer than this to the previous kept fix are interpolated.
     track_sigma_max : metres; a track's fixes without their own accuracy take the larger of
         ``model.gps_sigma`` and the track's own σ, up to this: 1.4826 times the median distance of its
         fixes to their nearest road (Newson and Krumm's robust estimate: a worse receiver
@@ -483,7 +482,7 @@ class TrackConfig:
         fixes 10 m off their roads would give σ 15 m and thin out the fixes between the first
         and last, the evidence of which road the first lies on).
     thin_sigmas : a track whose own σ exceeds ``model.gps_sigma`` is thinned (as by
-        ``interpolate_distance``) at this many times the excess: a worse receiver's fixes
+        fixes closer than ``model.gps_sigma``) at this many times the excess: a worse receiver's fixes
         close together share their error, so they are less evidence than their number says
         (0: never; ``bench/bench_batch_robust.py --sets noise`` adds error to real tracks to
         judge it).
@@ -504,7 +503,6 @@ class TrackConfig:
         end fixes keep it; at one fix every 10 or 30 s they do not.
     """
 
-    interpolate_distance: float = 0.0
     track_sigma_max: float = 30.0
     track_sigma_min_fixes: int = 10
     thin_sigmas: float = 6.0
@@ -1019,9 +1017,7 @@ def field_kinds() -> dict[str, str]:
 DEFAULT_CONFIG = MatchConfig()
 # batch matching fits whole tracks of plain GPS: a wider default σ, costlier U-turns, thinned fixes,
 # and a β that grows with the step (sparse tracks: fixes up to a kilometre apart)
-BATCH_CONFIG = DEFAULT_CONFIG.replace(
-    gps_sigma=8.0, uturn_penalty=20.0, interpolate_distance=8.0, beta_per_m=0.04
-)
+BATCH_CONFIG = DEFAULT_CONFIG.replace(gps_sigma=8.0, uturn_penalty=20.0, beta_per_m=0.04)
 
 UBODT_MAX_BYTES = 1 << 30
 """Default memory budget of a batch run's route table (1 GiB, ``mapmatch match

@@ -203,7 +203,7 @@ def test_outlier_is_unmatched_and_does_not_break_the_route() -> None:
 def test_points_closer_than_the_noise_are_interpolated() -> None:
     m = parse_ascii_map("a--------------b", scale=10)
     xs = np.arange(5.0, 120.0, 3.0)
-    cfg = DEFAULT_CONFIG.replace(interpolate_distance=10.0)
+    cfg = DEFAULT_CONFIG.replace(gps_sigma=10.0)  # fixes within one σ are interpolated
     r = BatchMatcher(m.graph).match(track_from_xy(m, [at(m, "a", float(x), 2) for x in xs], dt=1.0), cfg)
     st = [p.status for p in r.points]
     assert st.count(PointStatus.INTERPOLATED) > len(xs) // 2

@@ -168,7 +168,7 @@ class BatchMatcher:
             sigma = float(model.position_sigma(np.nan, cfg))
             query = QueryParams(
                 radius=float(cfg.model.search_radius), outlier=float(cfg.batch.outliers.outlier_distance),
-                k=int(cfg.model.max_candidates), min_dist=float(cfg.batch.track.interpolate_distance),
+                k=int(cfg.model.max_candidates), min_dist=sigma,  # fixes within one σ tell nothing new
             )  # fmt: skip
             track_rules = RuleParams(
                 gps_sigma=sigma, spike_sigmas=float(cfg.batch.outliers.off_map_sigmas),  # one limit in σ

@@ -75,7 +75,8 @@ class QueryParams(NamedTuple):
     k: int
     """``max_candidates``."""
     min_dist: float
-    """``interpolate_distance``."""
+    """Metres; fixes closer than this to the previous kept one are interpolated (the
+    configured σ)."""
 
 
 class RuleParams(NamedTuple):
