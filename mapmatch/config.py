@@ -595,14 +595,14 @@ class SplitConfig:
         one was driven (a logger off, a sparse track) and its route is searched as any step's
         (0: distance never splits).
     split_speed : m/s; a car's top speed. A step whose route is longer than the straight line
-        between its fixes by more than this times its time (plus ``split_slack`` metres of
-        noise) is impossible: the fix is left out as an outlier, or the match splits there.
-        Where the fixes themselves move no faster than this, a route needing more than this
-        average speed over the step's time (plus ``split_slack``) is impossible too: sparse
-        fixes either side of a road the map lacks are then not joined round by a far longer
-        way. Where the fixes move faster, their timestamps are in doubt, and only the detour
+        between its fixes by more than this times its time (plus the fixes' noise: twice
+        ``batch.outliers.off_map_sigmas`` σ, each of the two fixes up to the off-map limit
+        from its road) is impossible: the fix is left out as an outlier, or the match splits
+        there. Where the fixes themselves move no faster than this, a route needing more
+        than this average speed over the step's time (plus the same noise) is impossible
+        too: sparse fixes either side of a road the map lacks are then not joined round by a
+        far longer way. Where the fixes move faster, their timestamps are in doubt, and only the detour
         is judged (0 disables both checks).
-    split_slack : metres of fix noise allowed on top of ``split_speed`` over a step.
     detour_cost_max : a route longer than the distance travelled between its two fixes by more
         than this many of the step's β (the detour's cost in the transition's log-probability)
         is impossible, whatever the time allows: the fix is left out as an outlier, or the
@@ -639,7 +639,6 @@ class SplitConfig:
 
     gap_distance: float = 2000.0
     split_speed: float = 50.0
-    split_slack: float = 50.0
     detour_cost_max: float = 25.0
     off_map_cut: float = 200.0
     off_map_cut_fixes: int = 3

@@ -109,6 +109,7 @@ class KernelParams(NamedTuple):
     split_speed: float
     """m/s; 0: no speed check on steps."""
     split_slack: float
+    """Metres of the fixes' noise on top of the top speed: 2 ``off_map_sigmas`` σ."""
     split_route_speed: float
     """m/s; the top speed a route may need over its step's time, where the fixes move no
     faster (``batch.split.split_speed``; 0: routes are not judged by their own speed)."""
@@ -165,7 +166,9 @@ def kernel_params(cfg: MatchConfig, sigma: float) -> KernelParams:
         reverse_tol=float(b.route.reverse_tolerance),
         one_way_tol=max(float(cfg.model.search_radius), float(b.route.reverse_tolerance)),
         split_speed=float(b.split.split_speed),
-        split_slack=float(b.split.split_slack),
+        # the fixes' noise on top of the top speed: each of the step's two fixes up to the
+        # off-map limit from its road
+        split_slack=2.0 * float(b.outliers.off_map_sigmas) * float(sigma),
         split_route_speed=float(b.split.split_speed),  # one top speed for both checks
         detour_cost_max=float(b.split.detour_cost_max),
         off_map_sigmas=float(b.outliers.off_map_sigmas),
