@@ -527,7 +527,9 @@ class OutliersConfig:
         5 σ): another choice is taken only if it wins by more.
     emission_prune : candidates whose emission log-probability is this far below their fix's
         best are dropped.
-    spike_speed : m/s; a fix the track reaches and leaves in opposite directions, both legs
+    spike_speed : m/s; the fastest a car turns round or leaves the mapped road (a run of fixes
+        off the map faster than this is GPS trouble on a road: ``batch.split.off_map_cut_fixes``).
+        A fix the track reaches and leaves in opposite directions, both legs
         longer than ``off_map_sigmas`` σ (beyond the fixes' noise by the off-map limit), is
         dropped as a jump when visiting it needs more than this mean speed between its
         neighbours (turning round needs slowing down; 0 disables).
@@ -615,13 +617,14 @@ class SplitConfig:
         route cannot reach in time: unreachable outliers) travelling at least this far among
         themselves (the track leaves the route's roads and comes back) cuts the route there,
         at the run's first fix, and is not routed round (0: never cut) ...
-    off_map_cut_fixes : ... if the run has at least this many fixes ...
-    off_map_cut_speed : ... and is no faster than this from its first fix to its last (m/s; 0:
-        any speed, and the duration rule below takes any duration). Cars leave the mapped roads
-        slowly (car parks, lanes, yards); two or three fixes left out at speed are a fast
-        road's interchange or ramp with GPS trouble, or a multipath burst, where the route is
-        the better guess. A run also cuts where it lasts as long as ``off_map_cut`` takes at
-        this speed (13.3 s at the defaults) and,
+    off_map_cut_fixes : ... if the run has at least this many fixes, and is no faster from
+        its first fix to its last than ``batch.outliers.spike_speed`` (the speed a car turns
+        round or leaves the mapped road at, no faster; 0: any speed, and the duration rule
+        below takes any duration). Cars leave the mapped roads slowly (car parks, lanes,
+        yards); two or three fixes left out at speed are a fast road's interchange or ramp
+        with GPS trouble, or a multipath burst, where the route is the better guess. A run
+        also cuts where it lasts as long as ``off_map_cut`` takes at that speed (10 s at the
+        defaults) and,
         with its legs from the route's fix before it and back to the one after it, travels
         ``off_map_cut``: sparse fixes in a yard off the map travel little among themselves
         (three fixes 20 s apart, 70 m) while the time allows a way round; a car parked beside
@@ -642,7 +645,6 @@ class SplitConfig:
     detour_cost_max: float = 25.0
     off_map_cut: float = 200.0
     off_map_cut_fixes: int = 3
-    off_map_cut_speed: float = 15.0
 
     def __post_init__(self) -> None:
         _check_numbers(self)

@@ -446,7 +446,7 @@ def test_a_run_off_the_map_cuts_the_route() -> None:
     assert [names(m, piece) for piece in r.routes] == [["ae"], ["dc"]]
     assert [p.status for p in r.points][4:10] == [PointStatus.UNMATCHED] * 6
     # a short excursion (less than off_map_cut, lasting less than it takes at
-    # off_map_cut_speed) is bridged
+    # spike_speed) is bridged
     r = BatchMatcher(m.graph).match(track, DEFAULT_CONFIG.replace(off_map_cut=1000.0))
     assert r.splits == [] and len(r.routes) == 1
 
@@ -461,8 +461,8 @@ def test_fixes_off_the_map_at_speed_are_bridged_not_cut() -> None:
     r = BatchMatcher(m.graph).match(track)
     assert [names(m, piece) for piece in r.routes] == [["ab"]] and r.splits == []
     assert [p.status for p in r.points].count(PointStatus.UNMATCHED) == 10
-    # at any speed (``off_map_cut_speed`` 0) the run cuts the route
-    cut = BatchMatcher(m.graph).match(track, DEFAULT_CONFIG.replace(off_map_cut_speed=0))
+    # at any speed (``spike_speed`` 0) the run cuts the route
+    cut = BatchMatcher(m.graph).match(track, DEFAULT_CONFIG.replace(spike_speed=0))
     assert cut.splits == [14] and len(cut.routes) == 2
 
 
@@ -557,7 +557,7 @@ def test_sparse_fixes_off_the_map_for_a_while_cut_the_route_though_they_travel_l
     # fixes 20 s apart, 70 m from every road, 70 m travelled) and comes out west along cd. The
     # time allows the 570 m round by b and d (15 β of detour, under ``detour_cost_max``), and
     # the run is too short in space to cut by ``off_map_cut``; but it lasted 40 s, longer than
-    # ``off_map_cut`` takes at ``off_map_cut_speed`` (13 s), and with its legs from ab and to
+    # ``off_map_cut`` takes at ``spike_speed`` (10 s), and with its legs from ab and to
     # cd it travels 210 m: the track left the roads, and the route is cut there
     m = parse_ascii_map(
         """
@@ -585,8 +585,8 @@ def test_sparse_fixes_off_the_map_for_a_while_cut_the_route_though_they_travel_l
     assert r.splits == [7]
     assert [names(m, piece) for piece in r.routes] == [["ab"], ["dc"]]
     assert [p.status for p in r.points][4:7] == [PointStatus.UNMATCHED] * 3
-    # where 200 m takes 100 s (``off_map_cut_speed`` 2 m/s) the run is too brief: round by b and d
-    loose = BatchMatcher(m.graph).match(track, DEFAULT_CONFIG.replace(off_map_cut_speed=2.0))
+    # where 200 m takes 100 s (``spike_speed`` 2 m/s) the run is too brief: round by b and d
+    loose = BatchMatcher(m.graph).match(track, DEFAULT_CONFIG.replace(spike_speed=2.0))
     assert [names(m, piece) for piece in loose.routes] == [["ab", "bd", "dc"]]
     assert loose.length_m > 1000
 

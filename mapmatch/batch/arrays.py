@@ -174,6 +174,7 @@ def kernel_params(cfg: MatchConfig, sigma: float) -> KernelParams:
         off_map_sigmas=float(b.outliers.off_map_sigmas),
         off_map_cut=float(b.split.off_map_cut),
         off_map_cut_fixes=int(b.split.off_map_cut_fixes),
-        off_map_cut_speed=float(b.split.off_map_cut_speed) if b.split.off_map_cut_speed > 0 else np.inf,
+        # cars leave the mapped road no faster than they turn round
+        off_map_cut_speed=float(b.outliers.spike_speed) if b.outliers.spike_speed > 0 else np.inf,
         off_map_bridge_slack=float(b.split.bridge_slack) if b.split.bridge_slack > 0 else np.inf,
     )
