@@ -45,7 +45,7 @@ VARIANTS: dict[str, tuple[str, ...]] = {
     # batch.track
     "track_sigma_off": ("batch.track.track_sigma_max=0",),
     "thin_off": ("batch.track.thin_sigmas=0",),
-    "motion_heading_off": ("batch.track.motion_heading_sigma=0",),
+    "motion_heading_off": ("model.straight_max_deg=0",),
     "motion_end_leg_off": ("batch.track.motion_end_leg_max=0",),
     # batch.outliers
     "spike_off": ("batch.outliers.spike_speed=0",),

@@ -490,11 +490,12 @@ class TrackConfig:
         zero would make one fix outweigh the whole track).
     track_heading_sigma_floor_deg : the least heading σ (degrees) of a fix's own heading or of
         the direction of travel.
-    motion_heading_sigma : degrees; where a fix has no heading, the direction of travel from
-        its neighbours (both legs at least ``model.gps_sigma`` metres, turning by at most
-        ``model.straight_max_deg``) is its heading with this σ against the road's bearing and
-        one-way direction (0 disables it). One σ is short: consecutive fixes share most of
-        their error, so even a slow vehicle's legs of a few metres tell its direction.
+        Where a fix has no heading, the direction of travel from its neighbours (both legs at
+        least ``model.gps_sigma`` metres, turning by at most ``model.straight_max_deg``) is its
+        heading against the road's bearing and one-way direction, with a σ of
+        ``model.straight_max_deg`` (legs that may turn by that much tell the direction no
+        better; 0 disables it). One σ is short: consecutive fixes share most of their error,
+        so even a slow vehicle's legs of a few metres tell its direction.
     motion_end_leg_max : metres; the track's first and last fix take the direction of travel
         of their neighbour's two legs only where their own leg is at most this long (0: any
         length). A turn at a junction soon after the first fix, or soon before the last, leaves
@@ -508,7 +509,6 @@ class TrackConfig:
     thin_sigmas: float = 6.0
     track_pos_sigma_floor: float = 0.5
     track_heading_sigma_floor_deg: float = 1.0
-    motion_heading_sigma: float = 30.0
     motion_end_leg_max: float = 50.0
 
     def __post_init__(self) -> None:

@@ -111,7 +111,7 @@ def test_slow_dense_fixes_tell_their_direction_against_a_one_way() -> None:
     assert [names(m, piece) for piece in r.routes] == [["hg", "gf", "fe"]]
     # without the direction of travel, the fixes stand on a-d
     old = BatchMatcher(m.graph).match(
-        track_from_xy(m, pts, dt=1.0), DEFAULT_CONFIG.replace(motion_heading_sigma=0)
+        track_from_xy(m, pts, dt=1.0), DEFAULT_CONFIG.replace(straight_max_deg=0)
     )
     assert [names(m, piece) for piece in old.routes] == [["bc"]]
 
@@ -1083,10 +1083,10 @@ def test_first_fix_near_a_crossing_takes_the_road_of_the_direction_of_travel() -
     assert [names(m, piece) for piece in r.routes] == [["ab", "bd"]]
     # without the direction of travel and the cost of turning at b, the nearer road wins and
     # ab is missing
-    off = BatchMatcher(m.graph).match(track, DEFAULT_CONFIG.replace(motion_heading_sigma=0, turn_cost=0))
+    off = BatchMatcher(m.graph).match(track, DEFAULT_CONFIG.replace(straight_max_deg=0, turn_cost=0))
     assert [names(m, piece) for piece in off.routes] == [["cb", "bd"]]
     # either alone puts the first fix on ab
-    for cfg in (DEFAULT_CONFIG.replace(motion_heading_sigma=0), DEFAULT_CONFIG.replace(turn_cost=0)):
+    for cfg in (DEFAULT_CONFIG.replace(straight_max_deg=0), DEFAULT_CONFIG.replace(turn_cost=0)):
         assert [names(m, piece) for piece in BatchMatcher(m.graph).match(track, cfg).routes] == [["ab", "bd"]]
 
 

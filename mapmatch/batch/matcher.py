@@ -174,7 +174,7 @@ class BatchMatcher:
                 gps_sigma=sigma, spike_sigmas=float(cfg.batch.outliers.off_map_sigmas),  # one limit in σ
                 spike_speed=float(cfg.batch.outliers.spike_speed),
                 spike_max_time=float(cfg.batch.outliers.spike_max_time),
-                motion_sigma=float(cfg.batch.track.motion_heading_sigma),
+                motion_sigma=float(cfg.model.straight_max_deg),  # legs turning by that much
                 motion_min_distance=sigma,  # a leg of one σ tells the direction
                 motion_end_leg_max=float(cfg.batch.track.motion_end_leg_max),
                 straight_max_deg=float(cfg.model.straight_max_deg),
