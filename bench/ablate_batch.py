@@ -38,15 +38,14 @@ VARIANTS: dict[str, tuple[str, ...]] = {
     "beta_per_s_off": ("batch.route.beta_per_s=0",),
     "turn_cost_off": ("batch.route.turn_cost=0",),
     "reverse_tolerance_off": ("batch.route.reverse_tolerance=0",),
-    "stop_uturn_off": ("batch.route.stop_uturn_speed=0",),
+    "stop_uturn_off": ("batch.route.stop_uturn_penalty=1e9",),
     "route_factor_wide": ("batch.route.max_route_factor=6",),
     "route_slack_wide": ("batch.route.route_slack=300",),
     "route_lp_cut_wide": ("batch.route.route_lp_cut=60",),
     # batch.track
-    "interpolate_off": ("batch.track.interpolate_distance=0",),
     "track_sigma_off": ("batch.track.track_sigma_max=0",),
     "thin_off": ("batch.track.thin_sigmas=0",),
-    "motion_heading_off": ("batch.track.motion_heading_sigma=0",),
+    "motion_heading_off": ("model.straight_max_deg=0",),
     "motion_end_leg_off": ("batch.track.motion_end_leg_max=0",),
     # batch.outliers
     "spike_off": ("batch.outliers.spike_speed=0",),

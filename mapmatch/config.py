@@ -448,14 +448,13 @@ class RouteConfig:
         to ``model.search_radius`` behind counts as standing (noise about the place the vehicle
         stands at, the fixes' distance apart charged by the transition), not as a fix to leave
         out at the cost of the place the route reached.
-    stop_uturn_speed : m/s; a step slower than this on average (over at least
-        ``stop_uturn_time``) spans a stop ...
-    stop_uturn_time : ... of at least this many seconds, ...
-    stop_uturn_penalty : ... across which turning round at a junction costs this U-turn
-        penalty (turning round there, e.g. in a yard off the mapped road, is common; mid-road
-        U-turns keep the full penalty). 0.5 keeps a small preference for driving on; much more
-        and a car that stops in a turning loop and turns back at its junction is matched round
-        the loop.
+    stop_uturn_penalty : a step slower on average than ``model.heading_min_speed`` (the speed
+        below which a vehicle's heading tells nothing: as good as stopped) over at least
+        ``batch.outliers.spike_max_time`` seconds (the time a car needs to turn round) spans a
+        stop, across which turning round at a junction costs this U-turn penalty (turning round
+        there, e.g. in a yard off the mapped road, is common; mid-road U-turns keep the full
+        penalty). 0.5 keeps a small preference for driving on; much more and a car that stops
+        in a turning loop and turns back at its junction is matched round the loop.
     """
 
     max_route_factor: float = 3.0
@@ -465,8 +464,6 @@ class RouteConfig:
     turn_cost: float = 20.0
     route_lp_cut: float = 30.0
     reverse_tolerance: float = 10.0
-    stop_uturn_speed: float = 1.0
-    stop_uturn_time: float = 5.0
     stop_uturn_penalty: float = 0.5
 
     def __post_init__(self) -> None:
@@ -477,7 +474,6 @@ class RouteConfig:
 class TrackConfig:
     """The track's own σ, thinning, the fixes' σ floors and the direction of travel (``batch.track``).
 
-    interpolate_distance : fixes closer than this to the previous kept fix are interpolated.
     track_sigma_max : metres; a track's fixes without their own accuracy take the larger of
         ``model.gps_sigma`` and the track's own σ, up to this: 1.4826 times the median distance of its
         fixes to their nearest road (Newson and Krumm's robust estimate: a worse receiver
@@ -488,7 +484,7 @@ class TrackConfig:
         fixes 10 m off their roads would give σ 15 m and thin out the fixes between the first
         and last, the evidence of which road the first lies on).
     thin_sigmas : a track whose own σ exceeds ``model.gps_sigma`` is thinned (as by
-        ``interpolate_distance``) at this many times the excess: a worse receiver's fixes
+        fixes closer than ``model.gps_sigma``) at this many times the excess: a worse receiver's fixes
         close together share their error, so they are less evidence than their number says
         (0: never; ``bench/bench_batch_robust.py --sets noise`` adds error to real tracks to
         judge it).
@@ -496,12 +492,12 @@ class TrackConfig:
         zero would make one fix outweigh the whole track).
     track_heading_sigma_floor_deg : the least heading σ (degrees) of a fix's own heading or of
         the direction of travel.
-    motion_heading_sigma : degrees; where a fix has no heading, the direction of travel from
-        its neighbours (both legs at least ``motion_min_distance`` metres, turning by at most
-        ``model.straight_max_deg``) is its heading with this σ against the road's bearing and
-        one-way direction (0 disables it).
-    motion_min_distance : see ``motion_heading_sigma``. Short: consecutive fixes share most of
-        their error, so even a slow vehicle's legs of a few metres tell its direction.
+        Where a fix has no heading, the direction of travel from its neighbours (both legs at
+        least ``model.gps_sigma`` metres, turning by at most ``model.straight_max_deg``) is its
+        heading against the road's bearing and one-way direction, with a σ of
+        ``model.straight_max_deg`` (legs that may turn by that much tell the direction no
+        better; 0 disables it). One σ is short: consecutive fixes share most of their error,
+        so even a slow vehicle's legs of a few metres tell its direction.
     motion_end_leg_max : metres; the track's first and last fix take the direction of travel
         of their neighbour's two legs only where their own leg is at most this long (0: any
         length). A turn at a junction soon after the first fix, or soon before the last, leaves
@@ -510,14 +506,11 @@ class TrackConfig:
         end fixes keep it; at one fix every 10 or 30 s they do not.
     """
 
-    interpolate_distance: float = 0.0
     track_sigma_max: float = 30.0
     track_sigma_min_fixes: int = 10
     thin_sigmas: float = 6.0
     track_pos_sigma_floor: float = 0.5
     track_heading_sigma_floor_deg: float = 1.0
-    motion_heading_sigma: float = 30.0
-    motion_min_distance: float = 8.0
     motion_end_leg_max: float = 50.0
 
     def __post_init__(self) -> None:
@@ -536,14 +529,18 @@ class OutliersConfig:
         5 σ): another choice is taken only if it wins by more.
     emission_prune : candidates whose emission log-probability is this far below their fix's
         best are dropped.
-    spike_speed : m/s; a fix the track reaches and leaves in opposite directions, both legs
-        longer than ``spike_sigmas`` σ, is dropped as a jump when visiting it needs more than
-        this mean speed between its neighbours (turning round needs slowing down; 0 disables).
-    spike_sigmas : see ``spike_speed``.
+    spike_speed : m/s; the fastest a car turns round or leaves the mapped road (a run of fixes
+        off the map faster than this is GPS trouble on a road: ``batch.split.off_map_cut_fixes``).
+        A fix the track reaches and leaves in opposite directions, both legs
+        longer than ``off_map_sigmas`` σ (beyond the fixes' noise by the off-map limit), is
+        dropped as a jump when visiting it needs more than this mean speed between its
+        neighbours (turning round needs slowing down; 0 disables).
     spike_max_time : seconds; a jump may also be a run of fixes lasting up to this (a
         multipath burst): such a run, reached and left in opposite directions, is dropped as
         one when visiting it needs more than ``spike_speed`` (the shortest such run; 0: single
-        fixes only). Short, as a car cannot turn round at that speed within a few seconds.
+        fixes only). Short, as a car cannot turn round at that speed within a few seconds. The
+        same time, the least a car needs to turn round, makes a slow step a stop
+        (``batch.route.stop_uturn_penalty``).
     max_skip : fixes in a row that may be left out as unreachable outliers before the track is
         split ...
     max_skip_time : ... and only once they reach this many seconds after the last fix kept
@@ -575,7 +572,6 @@ class OutliersConfig:
     off_map_sigmas: float = 5.0
     emission_prune: float = 12.5
     spike_speed: float = 20.0
-    spike_sigmas: float = 3.0
     spike_max_time: float = 5.0
     max_skip: int = 8
     max_skip_time: float = 60.0
@@ -603,14 +599,14 @@ class SplitConfig:
         one was driven (a logger off, a sparse track) and its route is searched as any step's
         (0: distance never splits).
     split_speed : m/s; a car's top speed. A step whose route is longer than the straight line
-        between its fixes by more than this times its time (plus ``split_slack`` metres of
-        noise) is impossible: the fix is left out as an outlier, or the match splits there.
-        Where the fixes themselves move no faster than this, a route needing more than this
-        average speed over the step's time (plus ``split_slack``) is impossible too: sparse
-        fixes either side of a road the map lacks are then not joined round by a far longer
-        way. Where the fixes move faster, their timestamps are in doubt, and only the detour
+        between its fixes by more than this times its time (plus the fixes' noise: twice
+        ``batch.outliers.off_map_sigmas`` σ, each of the two fixes up to the off-map limit
+        from its road) is impossible: the fix is left out as an outlier, or the match splits
+        there. Where the fixes themselves move no faster than this, a route needing more
+        than this average speed over the step's time (plus the same noise) is impossible
+        too: sparse fixes either side of a road the map lacks are then not joined round by a
+        far longer way. Where the fixes move faster, their timestamps are in doubt, and only the detour
         is judged (0 disables both checks).
-    split_slack : metres of fix noise allowed on top of ``split_speed`` over a step.
     detour_cost_max : a route longer than the distance travelled between its two fixes by more
         than this many of the step's β (the detour's cost in the transition's log-probability)
         is impossible, whatever the time allows: the fix is left out as an outlier, or the
@@ -623,13 +619,14 @@ class SplitConfig:
         route cannot reach in time: unreachable outliers) travelling at least this far among
         themselves (the track leaves the route's roads and comes back) cuts the route there,
         at the run's first fix, and is not routed round (0: never cut) ...
-    off_map_cut_fixes : ... if the run has at least this many fixes ...
-    off_map_cut_speed : ... and is no faster than this from its first fix to its last (m/s; 0:
-        any speed, and the duration rule below takes any duration). Cars leave the mapped roads
-        slowly (car parks, lanes, yards); two or three fixes left out at speed are a fast
-        road's interchange or ramp with GPS trouble, or a multipath burst, where the route is
-        the better guess. A run also cuts where it lasts as long as ``off_map_cut`` takes at
-        this speed (13.3 s at the defaults) and,
+    off_map_cut_fixes : ... if the run has at least this many fixes, and is no faster from
+        its first fix to its last than ``batch.outliers.spike_speed`` (the speed a car turns
+        round or leaves the mapped road at, no faster; 0: any speed, and the duration rule
+        below takes any duration). Cars leave the mapped roads slowly (car parks, lanes,
+        yards); two or three fixes left out at speed are a fast road's interchange or ramp
+        with GPS trouble, or a multipath burst, where the route is the better guess. A run
+        also cuts where it lasts as long as ``off_map_cut`` takes at that speed (10 s at the
+        defaults) and,
         with its legs from the route's fix before it and back to the one after it, travels
         ``off_map_cut``: sparse fixes in a yard off the map travel little among themselves
         (three fixes 20 s apart, 70 m) while the time allows a way round; a car parked beside
@@ -647,11 +644,9 @@ class SplitConfig:
 
     gap_distance: float = 2000.0
     split_speed: float = 50.0
-    split_slack: float = 50.0
     detour_cost_max: float = 25.0
     off_map_cut: float = 200.0
     off_map_cut_fixes: int = 3
-    off_map_cut_speed: float = 15.0
 
     def __post_init__(self) -> None:
         _check_numbers(self)
@@ -997,7 +992,9 @@ _BOUNDS: frozenset[str] = frozenset(
         "batch.route.route_slack",
         "batch.track.track_pos_sigma_floor",
         "batch.track.track_heading_sigma_floor_deg",
+        "batch.outliers.outlier_distance",
         "batch.outliers.emission_prune",
+        "batch.outliers.max_skip",
         "measurement.along_sigma_max",
         "confidence.probability_floor",
     }
@@ -1023,9 +1020,7 @@ def field_kinds() -> dict[str, str]:
 DEFAULT_CONFIG = MatchConfig()
 # batch matching fits whole tracks of plain GPS: a wider default σ, costlier U-turns, thinned fixes,
 # and a β that grows with the step (sparse tracks: fixes up to a kilometre apart)
-BATCH_CONFIG = DEFAULT_CONFIG.replace(
-    gps_sigma=8.0, uturn_penalty=20.0, interpolate_distance=8.0, beta_per_m=0.04
-)
+BATCH_CONFIG = DEFAULT_CONFIG.replace(gps_sigma=8.0, uturn_penalty=20.0, beta_per_m=0.04)
 
 UBODT_MAX_BYTES = 1 << 30
 """Default memory budget of a batch run's route table (1 GiB, ``mapmatch match

@@ -109,9 +109,9 @@ def test_slow_dense_fixes_tell_their_direction_against_a_one_way() -> None:
     pts = [at(m, n) for n in "dcba"]
     r = BatchMatcher(m.graph).match(track_from_xy(m, pts, dt=1.0))
     assert [names(m, piece) for piece in r.routes] == [["hg", "gf", "fe"]]
-    # with the direction judged only on legs of 15 m or more, the fixes stand on a-d
+    # without the direction of travel, the fixes stand on a-d
     old = BatchMatcher(m.graph).match(
-        track_from_xy(m, pts, dt=1.0), DEFAULT_CONFIG.replace(motion_min_distance=15)
+        track_from_xy(m, pts, dt=1.0), DEFAULT_CONFIG.replace(straight_max_deg=0)
     )
     assert [names(m, piece) for piece in old.routes] == [["bc"]]
 
@@ -203,7 +203,7 @@ def test_outlier_is_unmatched_and_does_not_break_the_route() -> None:
 def test_points_closer_than_the_noise_are_interpolated() -> None:
     m = parse_ascii_map("a--------------b", scale=10)
     xs = np.arange(5.0, 120.0, 3.0)
-    cfg = DEFAULT_CONFIG.replace(interpolate_distance=10.0)
+    cfg = DEFAULT_CONFIG.replace(gps_sigma=10.0)  # fixes within one σ are interpolated
     r = BatchMatcher(m.graph).match(track_from_xy(m, [at(m, "a", float(x), 2) for x in xs], dt=1.0), cfg)
     st = [p.status for p in r.points]
     assert st.count(PointStatus.INTERPOLATED) > len(xs) // 2
@@ -329,11 +329,11 @@ def test_a_dense_fast_track_off_the_road_for_a_stretch_is_one_piece_as_its_spars
 def test_batch_tuning_constants_are_validated_config_fields() -> None:
     from mapmatch.errors import ConfigError
 
-    cfg = DEFAULT_CONFIG.replace(emission_prune=5.0, max_skip=3, stop_uturn_time=2.0)
+    cfg = DEFAULT_CONFIG.replace(emission_prune=5.0, max_skip=3, stop_uturn_penalty=2.0)
     assert (
         cfg.batch.outliers.emission_prune,
         cfg.batch.outliers.max_skip,
-        cfg.batch.route.stop_uturn_time,
+        cfg.batch.route.stop_uturn_penalty,
     ) == (5.0, 3, 2.0)
     bads = [{"max_skip": 2.5}, {"reverse_tolerance": -1.0}, {"route_lp_cut": math.inf}]
     for bad in [*bads, {"detour_cost_max": -1.0}, {"off_map_cut_fixes": 1.5}]:
@@ -446,7 +446,7 @@ def test_a_run_off_the_map_cuts_the_route() -> None:
     assert [names(m, piece) for piece in r.routes] == [["ae"], ["dc"]]
     assert [p.status for p in r.points][4:10] == [PointStatus.UNMATCHED] * 6
     # a short excursion (less than off_map_cut, lasting less than it takes at
-    # off_map_cut_speed) is bridged
+    # spike_speed) is bridged
     r = BatchMatcher(m.graph).match(track, DEFAULT_CONFIG.replace(off_map_cut=1000.0))
     assert r.splits == [] and len(r.routes) == 1
 
@@ -461,8 +461,8 @@ def test_fixes_off_the_map_at_speed_are_bridged_not_cut() -> None:
     r = BatchMatcher(m.graph).match(track)
     assert [names(m, piece) for piece in r.routes] == [["ab"]] and r.splits == []
     assert [p.status for p in r.points].count(PointStatus.UNMATCHED) == 10
-    # at any speed (``off_map_cut_speed`` 0) the run cuts the route
-    cut = BatchMatcher(m.graph).match(track, DEFAULT_CONFIG.replace(off_map_cut_speed=0))
+    # at any speed (``spike_speed`` 0) the run cuts the route
+    cut = BatchMatcher(m.graph).match(track, DEFAULT_CONFIG.replace(spike_speed=0))
     assert cut.splits == [14] and len(cut.routes) == 2
 
 
@@ -557,7 +557,7 @@ def test_sparse_fixes_off_the_map_for_a_while_cut_the_route_though_they_travel_l
     # fixes 20 s apart, 70 m from every road, 70 m travelled) and comes out west along cd. The
     # time allows the 570 m round by b and d (15 β of detour, under ``detour_cost_max``), and
     # the run is too short in space to cut by ``off_map_cut``; but it lasted 40 s, longer than
-    # ``off_map_cut`` takes at ``off_map_cut_speed`` (13 s), and with its legs from ab and to
+    # ``off_map_cut`` takes at ``spike_speed`` (10 s), and with its legs from ab and to
     # cd it travels 210 m: the track left the roads, and the route is cut there
     m = parse_ascii_map(
         """
@@ -585,8 +585,8 @@ def test_sparse_fixes_off_the_map_for_a_while_cut_the_route_though_they_travel_l
     assert r.splits == [7]
     assert [names(m, piece) for piece in r.routes] == [["ab"], ["dc"]]
     assert [p.status for p in r.points][4:7] == [PointStatus.UNMATCHED] * 3
-    # where 200 m takes 100 s (``off_map_cut_speed`` 2 m/s) the run is too brief: round by b and d
-    loose = BatchMatcher(m.graph).match(track, DEFAULT_CONFIG.replace(off_map_cut_speed=2.0))
+    # where 200 m takes 100 s (``spike_speed`` 2 m/s) the run is too brief: round by b and d
+    loose = BatchMatcher(m.graph).match(track, DEFAULT_CONFIG.replace(spike_speed=2.0))
     assert [names(m, piece) for piece in loose.routes] == [["ab", "bd", "dc"]]
     assert loose.length_m > 1000
 
@@ -1083,10 +1083,10 @@ def test_first_fix_near_a_crossing_takes_the_road_of_the_direction_of_travel() -
     assert [names(m, piece) for piece in r.routes] == [["ab", "bd"]]
     # without the direction of travel and the cost of turning at b, the nearer road wins and
     # ab is missing
-    off = BatchMatcher(m.graph).match(track, DEFAULT_CONFIG.replace(motion_heading_sigma=0, turn_cost=0))
+    off = BatchMatcher(m.graph).match(track, DEFAULT_CONFIG.replace(straight_max_deg=0, turn_cost=0))
     assert [names(m, piece) for piece in off.routes] == [["cb", "bd"]]
     # either alone puts the first fix on ab
-    for cfg in (DEFAULT_CONFIG.replace(motion_heading_sigma=0), DEFAULT_CONFIG.replace(turn_cost=0)):
+    for cfg in (DEFAULT_CONFIG.replace(straight_max_deg=0), DEFAULT_CONFIG.replace(turn_cost=0)):
         assert [names(m, piece) for piece in BatchMatcher(m.graph).match(track, cfg).routes] == [["ab", "bd"]]
 
 

@@ -15,7 +15,7 @@ from mapmatch import model
 from mapmatch.batch import BATCH_CONFIG
 from mapmatch.gridindex import GridIndex
 
-PLAIN = BATCH_CONFIG.replace(motion_heading_sigma=0.0, spike_speed=0.0)
+PLAIN = BATCH_CONFIG.replace(straight_max_deg=0.0, spike_speed=0.0)
 """The batch rules on the fixes (direction of travel, jumps) switched off."""
 
 DRAWING = """

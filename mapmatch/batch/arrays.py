@@ -109,6 +109,7 @@ class KernelParams(NamedTuple):
     split_speed: float
     """m/s; 0: no speed check on steps."""
     split_slack: float
+    """Metres of the fixes' noise on top of the top speed: 2 ``off_map_sigmas`` σ."""
     split_route_speed: float
     """m/s; the top speed a route may need over its step's time, where the fixes move no
     faster (``batch.split.split_speed``; 0: routes are not judged by their own speed)."""
@@ -148,8 +149,9 @@ def kernel_params(cfg: MatchConfig, sigma: float) -> KernelParams:
         prune=float(b.outliers.emission_prune),
         outlier=float(b.outliers.outlier_distance),
         transition=model.transition_params(cfg),
-        stop=np.array(
-            [b.route.stop_uturn_speed, b.route.stop_uturn_time, b.route.stop_uturn_penalty], dtype=np.float64
+        stop=np.array(  # as good as stopped (no heading), for as long as turning round takes
+            [cfg.model.heading_min_speed, b.outliers.spike_max_time, b.route.stop_uturn_penalty],
+            dtype=np.float64,
         ),
         route_factor=float(b.route.max_route_factor),
         route_slack=float(b.route.route_slack + b.route.turn_cost),  # the search counts turns as metres
@@ -164,12 +166,15 @@ def kernel_params(cfg: MatchConfig, sigma: float) -> KernelParams:
         reverse_tol=float(b.route.reverse_tolerance),
         one_way_tol=max(float(cfg.model.search_radius), float(b.route.reverse_tolerance)),
         split_speed=float(b.split.split_speed),
-        split_slack=float(b.split.split_slack),
+        # the fixes' noise on top of the top speed: each of the step's two fixes up to the
+        # off-map limit from its road
+        split_slack=2.0 * float(b.outliers.off_map_sigmas) * float(sigma),
         split_route_speed=float(b.split.split_speed),  # one top speed for both checks
         detour_cost_max=float(b.split.detour_cost_max),
         off_map_sigmas=float(b.outliers.off_map_sigmas),
         off_map_cut=float(b.split.off_map_cut),
         off_map_cut_fixes=int(b.split.off_map_cut_fixes),
-        off_map_cut_speed=float(b.split.off_map_cut_speed) if b.split.off_map_cut_speed > 0 else np.inf,
+        # cars leave the mapped road no faster than they turn round
+        off_map_cut_speed=float(b.outliers.spike_speed) if b.outliers.spike_speed > 0 else np.inf,
         off_map_bridge_slack=float(b.split.bridge_slack) if b.split.bridge_slack > 0 else np.inf,
     )

@@ -168,14 +168,14 @@ class BatchMatcher:
             sigma = float(model.position_sigma(np.nan, cfg))
             query = QueryParams(
                 radius=float(cfg.model.search_radius), outlier=float(cfg.batch.outliers.outlier_distance),
-                k=int(cfg.model.max_candidates), min_dist=float(cfg.batch.track.interpolate_distance),
+                k=int(cfg.model.max_candidates), min_dist=sigma,  # fixes within one σ tell nothing new
             )  # fmt: skip
             track_rules = RuleParams(
-                gps_sigma=sigma, spike_sigmas=float(cfg.batch.outliers.spike_sigmas),
+                gps_sigma=sigma, spike_sigmas=float(cfg.batch.outliers.off_map_sigmas),  # one limit in σ
                 spike_speed=float(cfg.batch.outliers.spike_speed),
                 spike_max_time=float(cfg.batch.outliers.spike_max_time),
-                motion_sigma=float(cfg.batch.track.motion_heading_sigma),
-                motion_min_distance=float(cfg.batch.track.motion_min_distance),
+                motion_sigma=float(cfg.model.straight_max_deg),  # legs turning by that much
+                motion_min_distance=sigma,  # a leg of one σ tells the direction
                 motion_end_leg_max=float(cfg.batch.track.motion_end_leg_max),
                 straight_max_deg=float(cfg.model.straight_max_deg),
                 heading_sigma=float(cfg.model.heading_sigma),

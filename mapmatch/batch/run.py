@@ -75,7 +75,8 @@ class QueryParams(NamedTuple):
     k: int
     """``max_candidates``."""
     min_dist: float
-    """``interpolate_distance``."""
+    """Metres; fixes closer than this to the previous kept one are interpolated (the
+    configured σ)."""
 
 
 class RuleParams(NamedTuple):
@@ -91,6 +92,7 @@ class RuleParams(NamedTuple):
     motion_sigma: float
     """Degrees; 0: no direction of travel."""
     motion_min_distance: float
+    """Metres; the shortest leg that tells the direction (the configured σ)."""
     motion_end_leg_max: float
     """Metres; the longest first or last leg whose end fix takes its direction (0: any)."""
     straight_max_deg: float

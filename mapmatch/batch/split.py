@@ -78,8 +78,8 @@ def run_legs(a, b, lat):  # type: ignore[no-untyped-def]
 def left_the_route(a, b, lat, p):  # type: ignore[no-untyped-def]
     """Whether the fixes a step from lattice point ``a`` to ``b`` leaves out (off the map, or
     no road of the route reaches them), ``off_map_cut_fixes`` or more, travel ``off_map_cut``
-    among themselves, or last as long as that takes at ``off_map_cut_speed`` and travel it with
-    their legs to ``a`` and ``b``: the track left the route's roads and came back, and the
+    among themselves, or last as long as that takes at ``off_map_cut_speed`` (``spike_speed``)
+    and travel it with their legs to ``a`` and ``b``: the track left the route's roads and came back, and the
     route is cut there, not routed round."""
     run = lat.run
     # most steps leave out no fix: the count first

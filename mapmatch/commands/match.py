@@ -101,8 +101,6 @@ def register(subparsers: Any) -> None:
     model.add_argument(
         "--search-radius", type=float, default=None, metavar="M", help="candidate radius in metres"
     )
-    model.add_argument("--interpolate-distance", type=float, default=None, metavar="M",
-                       help="points closer than this to the previous one are interpolated")  # fmt: skip
     model.add_argument(
         "--set", action="append", default=[], metavar="SECTION.FIELD=VALUE", dest="settings",
         help="any other matcher parameter by its full name in mapmatch.config (repeatable), "
@@ -191,7 +189,6 @@ def _config(args: argparse.Namespace) -> Any:
         for k, v in (
             ("gps_sigma", args.gps_sigma),
             ("search_radius", args.search_radius),
-            ("interpolate_distance", args.interpolate_distance),
         )
         if v is not None
     }
