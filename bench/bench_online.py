@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
 import time
 from dataclasses import replace
@@ -41,7 +42,7 @@ from mapmatch.sim.routes import Route, random_route  # noqa: E402
 from mapmatch.sim.sensors import DEFAULT_SENSORS, spread_outages  # noqa: E402
 from mapmatch.types import SnapResult  # noqa: E402
 
-SHARED = ROOT.parent / "shared" / "data"
+SHARED = Path(os.environ.get("MAPMATCH_SHARED") or ROOT.parent / "shared") / "data"
 KUBICKA = SHARED / "kubicka"
 KUBICKA_ACCURACY = ("00000000", "00000007", "00000014", "00000063")
 KUBICKA_LARGEST = "00000028"
