@@ -330,7 +330,10 @@ def main() -> int:
     CLOCK = CLOCKS[args.clock]
     out: dict[str, object] = {}
     if not args.no_speed:
-        print(f"## speed: per-fix update time ({args.clock} clock), 10 Hz simulated drive with the paper's outages")
+        print(
+            f"## speed: per-fix update time ({args.clock} clock), "
+            "10 Hz simulated drive with the paper's outages"
+        )
         rows = []
         for name in ["helsinki"] if args.quick else ["helsinki", KUBICKA_LARGEST]:
             rows.append(speed_bench(name, load(name), config=cfg))

@@ -13,6 +13,7 @@ answer of a confidence section of other settings, so no fix pays a spatial query
 
 from __future__ import annotations
 
+import itertools
 import math
 import threading
 from dataclasses import dataclass
@@ -96,7 +97,7 @@ class AlongsideTable:
             return [()] * (hi - lo)
         roads = self.roads[ptr[0] : ptr[-1]].tolist()
         base = ptr[0]
-        return [tuple(roads[a - base : b - base]) for a, b in zip(ptr[:-1], ptr[1:], strict=True)]
+        return [tuple(roads[a - base : b - base]) for a, b in itertools.pairwise(ptr)]
 
 
 @dataclass(frozen=True)
@@ -230,6 +231,10 @@ def alongside_table(road: RoadModel, index: EdgeIndex, cfg: ConfidenceConfig) ->
     return AlongsideTable(stretch_ptr, road_ptr, e2.astype(np.int32))
 
 
+_Kept = dict[int, list[tuple[int, ...]]]
+"""Each edge's stretches, as :meth:`AlongsideTable.stretches` gives them."""
+
+
 def _key(cfg: ConfidenceConfig) -> tuple[float, float, float, float]:
     return (cfg.parallel_radius, cfg.parallel_angle, cfg.parallel_spacing, cfg.parallel_node_gap)
 
@@ -245,12 +250,8 @@ class ParallelRoads:
         self.index = index
         self._tables: dict[tuple[float, float, float, float], AlongsideTable] = {}
         # per settings key: each edge's stretches
-        self._roads: dict[tuple[float, float, float, float], dict[int, list[tuple[int, ...]]]] = {}
-        self._last: tuple[ConfidenceConfig | None, AlongsideTable | None, dict[int, list[tuple[int, ...]]]] = (
-            None,
-            None,
-            {},
-        )
+        self._roads: dict[tuple[float, float, float, float], _Kept] = {}
+        self._last: tuple[ConfidenceConfig | None, AlongsideTable | None, _Kept] = (None, None, {})
         self._lock = threading.Lock()
 
     def prepare(self, cfg: ConfidenceConfig) -> AlongsideTable:
