@@ -108,9 +108,8 @@ class _Pieces:
     cum: NDArray[np.float64]
     seg_len: NDArray[np.float64]
     brg: NDArray[np.float64]
-    row_edge: NDArray[np.int64]
-    piece: NDArray[np.bool_]
     p_rows: NDArray[np.int64]
+    key: NDArray[np.complex128]
     next_long: NDArray[np.int64]
 
     @classmethod
@@ -126,25 +125,28 @@ class _Pieces:
         nxt = np.where((seg_len > 0.0) & piece, np.arange(rows), rows)
         nxt = np.minimum.accumulate(np.append(nxt, rows)[::-1])[::-1]
         brg = np.asarray(road._brg, dtype=np.float64)
-        return cls(ptr, cum, seg_len, brg, row_edge, piece, np.flatnonzero(piece), nxt)
+        p_rows = np.flatnonzero(piece)
+        return cls(ptr, cum, seg_len, brg, p_rows, _pairs(row_edge[p_rows], cum[p_rows]), nxt)
+
+
+def _pairs(a: NDArray[np.int64], b: NDArray[np.float64]) -> NDArray[np.complex128]:
+    """``(a, b)`` pairs as complex numbers, which numpy orders as the pairs (``a`` first): a
+    sorted search of two keys at once, exact (``a`` below 2**53)."""
+    out = np.empty(len(a), dtype=np.complex128)
+    out.real = a
+    out.imag = b
+    return out
 
 
 def _pieces_at(pc: _Pieces, edges: NDArray[np.int64], offs: NDArray[np.float64]) -> NDArray[np.int64]:
     """Per ``(edge, offset)``, the polyline row of the piece :meth:`RoadModel.bearing_at` (and
     the compiled ``locate_on``) takes: the first of the edge's pieces ending at or past the
     offset, of some length; the edge's end row (``ptr[e + 1]``) when none does."""
-    ptr, cum, row_edge, p_rows = pc.ptr, pc.cum, pc.row_edge, pc.p_rows
-    rows = len(cum)
-    # the pieces by (edge, distance to their end), the queries among them
-    # queries sort before pieces of equal distance: a piece ending exactly at the offset is taken
-    key_e = np.concatenate([row_edge[p_rows], edges])
-    key_d = np.concatenate([cum[p_rows], offs])
-    kind = np.concatenate([np.ones(len(p_rows), dtype=np.int8), np.zeros(len(edges), dtype=np.int8)])
-    order = np.lexsort((kind, key_d, key_e))
-    is_piece = kind[order] == 1
-    before = np.cumsum(is_piece) - is_piece  # pieces sorted before each entry
-    at = np.empty(len(edges), dtype=np.int64)
-    at[order[~is_piece] - len(p_rows)] = before[~is_piece]
+    ptr, p_rows = pc.ptr, pc.p_rows
+    rows = len(pc.cum)
+    # the pieces are in order of (edge, distance to their end): the first at or past each
+    # query's is where it sorts (left: a piece ending exactly at the offset is taken)
+    at = np.searchsorted(pc.key, _pairs(edges, offs), side="left")
     # the first piece at or past: its row, or the edge's end when past its last
     q = np.append(p_rows, rows)[at]
     end = ptr[edges + 1]
