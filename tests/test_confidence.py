@@ -4,6 +4,7 @@ it, on ASCII maps through the real matcher."""
 from __future__ import annotations
 
 import math
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -13,7 +14,7 @@ from mapmatch.config import DEFAULT_CONFIG
 from mapmatch.errors import ConfigError
 from mapmatch.measurement import Agreement, confidence
 from mapmatch.online import OnlineMatcher
-from mapmatch.online.parallel import ParallelRoads
+from mapmatch.online.parallel import ParallelRoads, alongside_table, stretch_roads
 from tests.online_helpers import DriveSpec, drive
 
 # a road that ends at b, and the same with a road alongside it one row north (two scale units)
@@ -23,6 +24,15 @@ a--------b
 ALONGSIDE = """
 c--------d
 a--------b
+"""
+# roads alongside, across junctions and at angles: a divided road with a median opening and a
+# frontage road, and a diagonal
+STREETS = """
+a>>>>>>>>>>e>>>>>>>>>>b
+           |
+c<<<<<<<<<<f<<<<<<<<<<d
+ \\                   /
+  g-----------------h
 """
 
 
@@ -88,6 +98,53 @@ def test_roads_alongside_are_found_mid_edge_and_not_across_a_junction() -> None:
     e1 = lone.edge("a", "b")
     assert ParallelRoads(solo.road, solo.index).alongside(e1, 10.0, cfg) == ()
     assert math.isinf(ParallelRoads(solo.road, solo.index).nearest(e1, 10.0, 0.0, 0.0, cfg))
+
+
+@pytest.mark.parametrize(
+    "settings",
+    [
+        [],
+        [
+            "confidence.parallel_radius=60",
+            "confidence.parallel_angle=50",
+            "confidence.parallel_spacing=7",
+            "confidence.parallel_node_gap=4",
+        ],
+    ],
+    ids=["default", "wider"],
+)
+def test_the_map_table_of_roads_alongside_is_each_edge_looked_up_alone(
+    settings: list[str], kubicka_dir: Path
+) -> None:
+    """The table made in one pass for every edge (REAL roads of Kubicka 00000007 and an ASCII
+    map) gives every stretch of every edge the roads its own look-up gives."""
+    from graph.build import build_map
+
+    cfg = DEFAULT_CONFIG.with_settings(settings).confidence
+    graphs = [parse_ascii_map(STREETS, scale=10).graph, build_map(kubicka_dir / "00000007" / "roads.geojson")]
+    for g in graphs:
+        m = OnlineMatcher(g)
+        table = alongside_table(m.road, m.index, cfg)
+        assert table.nbytes > 0
+        found = 0
+        for e in range(g.n_edges):
+            alone = stretch_roads(m.road, m.index, e, cfg)
+            assert table.stretches(e) == alone, e
+            found += sum(map(len, alone))
+        assert found > 0
+        assert len(table.roads) == found
+
+
+def test_the_matcher_makes_the_table_of_its_settings_once_and_answers_from_it() -> None:
+    m = parse_ascii_map(ALONGSIDE, scale=15)
+    matcher = OnlineMatcher(m.graph)
+    cfg = DEFAULT_CONFIG.confidence
+    made = matcher.parallel.prepare(cfg)
+    assert matcher.parallel.prepare(cfg) is made  # made with the matcher, not again
+    e = m.edge("a", "b")
+    assert matcher.parallel.alongside(e, 10.0, cfg) == made.stretches(e)[0]
+    other = DEFAULT_CONFIG.with_settings(["confidence.parallel_node_gap=3"]).confidence
+    assert matcher.parallel.prepare(other) is not made  # every setting of a road alongside counts
 
 
 @pytest.mark.parametrize(

@@ -47,6 +47,9 @@ class OnlineMatcher:
         self.config = config
         self.road = RoadModel(graph)
         self.parallel = ParallelRoads(self.road, self.index)
+        m = config.confidence
+        if m.coef_parallel != 0.0 or m.coef_parallel_gap != 0.0:  # the roads alongside, now: no fix waits
+            self.parallel.prepare(m)
         self.edge_len_ref = self.road.edge_len_ref
 
     def new_session(self) -> SessionState:

@@ -6,15 +6,20 @@ middle of each, the spatial index gives the roads within ``confidence.parallel_r
 One runs alongside when it is not the edge or its reverse, its bearing there is within
 ``confidence.parallel_angle`` of the edge's, and, when it shares a node with the edge, the
 point projects inside it (not onto the shared node: a road leaving at a junction is not
-alongside). Computed for an edge the first time an answer lies on it, then kept: a map
-property, shared by every vehicle.
+alongside). A map property, shared by every vehicle: computed for every edge of the map at
+once (:func:`alongside_table`, one vectorised pass) when the matcher is made, or on the first
+answer of a confidence section of other settings, so no fix pays a spatial query.
 """
 
 from __future__ import annotations
 
+import itertools
 import math
+import threading
+from dataclasses import dataclass
 
 import numpy as np
+from numpy.typing import NDArray
 
 from graph.angles import angle_diff
 from graph.index import EdgeIndex
@@ -60,27 +65,218 @@ def stretch_roads(
     return [tuple(sorted(f)) for f in found]
 
 
+QUERY_POINTS = 50_000
+"""Stretch middles per spatial query of :func:`alongside_table` (bounds its working memory,
+not its answer)."""
+
+
+@dataclass(frozen=True)
+class AlongsideTable:
+    """The roads alongside every stretch of every edge of a map, for one confidence section's
+    settings (compressed rows: edge -> its stretches -> their roads).
+
+    ``stretch_ptr[e]:stretch_ptr[e + 1]`` are edge ``e``'s stretches, from its start;
+    ``road_ptr[s]:road_ptr[s + 1]`` the rows of ``roads`` (edges, ascending) alongside
+    stretch ``s``.
+    """
+
+    stretch_ptr: NDArray[np.int64]
+    road_ptr: NDArray[np.int64]
+    roads: NDArray[np.int32]
+
+    @property
+    def nbytes(self) -> int:
+        """The table's memory in bytes."""
+        return int(self.stretch_ptr.nbytes + self.road_ptr.nbytes + self.roads.nbytes)
+
+    def stretches(self, edge: int) -> list[tuple[int, ...]]:
+        """Per stretch of ``edge``, from its start, the edges alongside (as :func:`stretch_roads`)."""
+        lo, hi = int(self.stretch_ptr[edge]), int(self.stretch_ptr[edge + 1])
+        ptr = self.road_ptr[lo : hi + 1].tolist()
+        if ptr[0] == ptr[-1]:
+            return [()] * (hi - lo)
+        roads = self.roads[ptr[0] : ptr[-1]].tolist()
+        base = ptr[0]
+        return [tuple(roads[a - base : b - base]) for a, b in itertools.pairwise(ptr)]
+
+
+@dataclass(frozen=True)
+class _Pieces:
+    """A road model's polyline tables as arrays (see :func:`~mapmatch.online.road._piece_table`)."""
+
+    ptr: NDArray[np.int64]
+    cum: NDArray[np.float64]
+    seg_len: NDArray[np.float64]
+    brg: NDArray[np.float64]
+    p_rows: NDArray[np.int64]
+    key: NDArray[np.complex128]
+    next_long: NDArray[np.int64]
+
+    @classmethod
+    def of(cls, road: RoadModel) -> _Pieces:
+        ptr = np.asarray(road.ptr, dtype=np.int64)
+        cum = np.asarray(road._cum, dtype=np.float64)
+        seg_len = np.asarray(road._seg_len, dtype=np.float64)
+        rows = len(cum)
+        row_edge = np.repeat(np.arange(len(ptr) - 1, dtype=np.int64), np.diff(ptr))
+        piece = np.ones(rows, dtype=bool)
+        piece[ptr[:-1][np.diff(ptr) > 0]] = False  # an edge's first row ends no piece
+        # per row, the next row ending a piece of some length (``rows``: none)
+        nxt = np.where((seg_len > 0.0) & piece, np.arange(rows), rows)
+        nxt = np.minimum.accumulate(np.append(nxt, rows)[::-1])[::-1]
+        brg = np.asarray(road._brg, dtype=np.float64)
+        p_rows = np.flatnonzero(piece)
+        return cls(ptr, cum, seg_len, brg, p_rows, _pairs(row_edge[p_rows], cum[p_rows]), nxt)
+
+
+def _pairs(a: NDArray[np.int64], b: NDArray[np.float64]) -> NDArray[np.complex128]:
+    """``(a, b)`` pairs as complex numbers, which numpy orders as the pairs (``a`` first): a
+    sorted search of two keys at once, exact (``a`` below 2**53)."""
+    out = np.empty(len(a), dtype=np.complex128)
+    out.real = a
+    out.imag = b
+    return out
+
+
+def _pieces_at(pc: _Pieces, edges: NDArray[np.int64], offs: NDArray[np.float64]) -> NDArray[np.int64]:
+    """Per ``(edge, offset)``, the polyline row of the piece :meth:`RoadModel.bearing_at` (and
+    the compiled ``locate_on``) takes: the first of the edge's pieces ending at or past the
+    offset, of some length; the edge's end row (``ptr[e + 1]``) when none does."""
+    ptr, p_rows = pc.ptr, pc.p_rows
+    rows = len(pc.cum)
+    # the pieces are in order of (edge, distance to their end): the first at or past each
+    # query's is where it sorts (left: a piece ending exactly at the offset is taken)
+    at = np.searchsorted(pc.key, _pairs(edges, offs), side="left")
+    # the first piece at or past: its row, or the edge's end when past its last
+    q = np.append(p_rows, rows)[at]
+    end = ptr[edges + 1]
+    q = np.where(q < end, q, end)
+    # skip pieces of no length: the next row of some length (or the edge's end)
+    q2 = pc.next_long[np.minimum(q, rows)]
+    return np.where(q2 < end, q2, end)
+
+
+def _bearings_at(
+    pc: _Pieces, bend: NDArray[np.float64], q: NDArray[np.int64], edges: NDArray[np.int64]
+) -> NDArray[np.float64]:
+    """The bearing of row ``q``'s piece, or of the edge's end (``q`` its end row)."""
+    inside = q < pc.ptr[edges + 1]
+    return np.where(inside, pc.brg[np.where(inside, q, 0)], bend[edges])
+
+
+def alongside_table(road: RoadModel, index: EdgeIndex, cfg: ConfidenceConfig) -> AlongsideTable:
+    """:func:`stretch_roads` of every edge of the map, in one vectorised pass (the same answers).
+
+    Parameters
+    ----------
+    road : the road model of the map.
+    index : its spatial index.
+    cfg : the confidence section (``parallel_radius``, ``parallel_angle``,
+        ``parallel_spacing``, ``parallel_node_gap``).
+
+    Returns
+    -------
+    AlongsideTable
+        Every edge's stretches and the edges alongside each.
+    """
+    elen = np.asarray(road.elen, dtype=np.float64)
+    n_e = len(elen)
+    n = np.maximum(1, np.ceil(elen / cfg.parallel_spacing)).astype(np.int64) if n_e else np.zeros(0, np.int64)
+    stretch_ptr = np.zeros(n_e + 1, dtype=np.int64)
+    np.cumsum(n, out=stretch_ptr[1:])
+    n_s = int(stretch_ptr[-1])
+    s_edge = np.repeat(np.arange(n_e, dtype=np.int64), n)
+    k = np.arange(n_s, dtype=np.int64) - stretch_ptr[s_edge]
+    mids = (k + 0.5) * elen[s_edge] / n[s_edge]
+    # each middle's place and bearing, as the compiled ``locate_on`` gives them
+    pc = _Pieces.of(road)
+    bend = np.asarray(road.bend, dtype=np.float64)
+    q = _pieces_at(pc, s_edge, mids)
+    seg = np.asarray(road.seg, dtype=np.float64)
+    cum, seg_len, ptr = pc.cum, pc.seg_len, pc.ptr
+    inside = q < ptr[s_edge + 1]
+    qi = np.where(inside, q, ptr[s_edge + 1] - 1)
+    a = seg[np.maximum(qi - 1, 0)]
+    b = seg[qi]
+    t = np.where(inside, (mids - cum[np.maximum(qi - 1, 0)]) / np.where(inside, seg_len[qi], 1.0), 0.0)
+    px = np.where(inside, a[:, 0] + t * (b[:, 0] - a[:, 0]), b[:, 0])
+    py = np.where(inside, a[:, 1] + t * (b[:, 1] - a[:, 1]), b[:, 1])
+    s_brg = _bearings_at(pc, bend, q, s_edge)
+    eu = np.asarray(road.eu, dtype=np.int64)
+    ev = np.asarray(road.ev, dtype=np.int64)
+    rev = np.asarray(road.rev, dtype=np.int64)
+    gap = cfg.parallel_node_gap
+    kept_s: list[NDArray[np.int64]] = []
+    kept_e: list[NDArray[np.int64]] = []
+    for lo in range(0, n_s, QUERY_POINTS):
+        hi = min(lo + QUERY_POINTS, n_s)
+        c = index.query(np.stack([px[lo:hi], py[lo:hi]], axis=1), cfg.parallel_radius)
+        s = c.point + lo
+        e2 = c.edge.astype(np.int64)
+        off = c.offset
+        e1 = s_edge[s]
+        ok = (e2 != e1) & (e2 != rev[e1])
+        shares = (eu[e2] == eu[e1]) | (eu[e2] == ev[e1]) | (ev[e2] == eu[e1]) | (ev[e2] == ev[e1])
+        ok &= ~(shares & ((off < gap) | (off > elen[e2] - gap)))
+        s, e2, off = s[ok], e2[ok], off[ok]
+        b2 = _bearings_at(pc, bend, _pieces_at(pc, e2, off), e2)
+        d = (b2 - s_brg[s] + 180.0) % 360.0 - 180.0  # angle_diff (its -180 is 180: the same size)
+        ok = np.abs(d) <= cfg.parallel_angle
+        kept_s.append(s[ok])
+        kept_e.append(e2[ok])
+    s = np.concatenate(kept_s) if kept_s else np.zeros(0, np.int64)
+    e2 = np.concatenate(kept_e) if kept_e else np.zeros(0, np.int64)
+    order = np.lexsort((e2, s))
+    s, e2 = s[order], e2[order]
+    road_ptr = np.zeros(n_s + 1, dtype=np.int64)
+    np.cumsum(np.bincount(s, minlength=n_s), out=road_ptr[1:])
+    return AlongsideTable(stretch_ptr, road_ptr, e2.astype(np.int32))
+
+
+_Kept = dict[int, list[tuple[int, ...]]]
+"""Each edge's stretches, as :meth:`AlongsideTable.stretches` gives them."""
+
+
+def _key(cfg: ConfidenceConfig) -> tuple[float, float, float, float]:
+    return (cfg.parallel_radius, cfg.parallel_angle, cfg.parallel_spacing, cfg.parallel_node_gap)
+
+
 class ParallelRoads:
-    """The roads alongside each stretch of a map's edges, computed on first use and kept
-    (thread-safe: a race computes an edge's stretches twice, with the same result)."""
+    """The roads alongside each stretch of a map's edges: the map's :class:`AlongsideTable`
+    per confidence section's settings, made once (:meth:`prepare`, or on first use), and each
+    edge's stretches as Python tuples, kept from its first use (thread-safe: a race builds the
+    same thing twice)."""
 
     def __init__(self, road: RoadModel, index: EdgeIndex) -> None:
         self.road = road
         self.index = index
-        # per (parallel_radius, parallel_angle, parallel_spacing): each edge's stretches
-        self._roads: dict[tuple[float, float, float], dict[int, list[tuple[int, ...]]]] = {}
-        self._last: tuple[ConfidenceConfig | None, dict[int, list[tuple[int, ...]]]] = (None, {})
+        self._tables: dict[tuple[float, float, float, float], AlongsideTable] = {}
+        # per settings key: each edge's stretches
+        self._roads: dict[tuple[float, float, float, float], _Kept] = {}
+        self._last: tuple[ConfidenceConfig | None, AlongsideTable | None, _Kept] = (None, None, {})
+        self._lock = threading.Lock()
+
+    def prepare(self, cfg: ConfidenceConfig) -> AlongsideTable:
+        """The table of ``cfg``'s settings, made now when it is not yet."""
+        key = _key(cfg)
+        table = self._tables.get(key)
+        if table is None:
+            with self._lock:
+                table = self._tables.get(key)
+                if table is None:
+                    table = self._tables[key] = alongside_table(self.road, self.index, cfg)
+        return table
 
     def alongside(self, edge: int, offset: float, cfg: ConfidenceConfig) -> tuple[int, ...]:
         """The edges alongside ``edge`` at ``offset`` metres from its start (empty: none)."""
         last = self._last
         if last[0] is not cfg:  # the stretches of this section's settings (a per-fix path)
-            key = (cfg.parallel_radius, cfg.parallel_angle, cfg.parallel_spacing)
-            last = self._last = (cfg, self._roads.setdefault(key, {}))
-        kept = last[1]
+            table = self.prepare(cfg)
+            last = self._last = (cfg, table, self._roads.setdefault(_key(cfg), {}))
+        kept = last[2]
         roads = kept.get(edge)
         if roads is None:
-            roads = kept[edge] = stretch_roads(self.road, self.index, edge, cfg)
+            roads = kept[edge] = last[1].stretches(edge)  # type: ignore[union-attr]
         length = self.road.elen[edge]
         k = int(offset / length * len(roads)) if length > 0.0 else 0
         return roads[min(max(k, 0), len(roads) - 1)]
