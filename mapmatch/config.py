@@ -81,8 +81,8 @@ class ModelConfig:
     speed_penalty : log-probability penalty per (m/s) above ``max_speed``.
     search_radius : metres around a fix to search for candidate edges.
     max_candidates : nearest roads kept per fix.
-    straight_max_deg : a bearing change at most this is straight on (a straight crossing).
-    uturn_min_deg : a bearing change at least this is a U-turn.
+    straight_max_deg : a bearing change at most this is straight on (a straight crossing);
+        one within this of a full reversal (180° less it) is a U-turn.
     """
 
     gps_sigma: float = 5.0
@@ -96,7 +96,6 @@ class ModelConfig:
     search_radius: float = 50.0
     max_candidates: int = 8
     straight_max_deg: float = 30.0
-    uturn_min_deg: float = 150.0
 
     def __post_init__(self) -> None:
         _check_numbers(self)

@@ -129,12 +129,7 @@ def _commit_node(
     is_rev = e1 == road.rev[e0]
     anchor_odo = anchor_sd = math.nan
     angle = angle_diff(road.bstart[e1], road.bend[e0])
-    kind = classify_turn(
-        angle,
-        is_reverse=is_rev,
-        straight_max_deg=cfg.model.straight_max_deg,
-        uturn_min_deg=cfg.model.uturn_min_deg,
-    )
+    kind = classify_turn(angle, is_reverse=is_rev, straight_max_deg=cfg.model.straight_max_deg)
     if road.branching[road.ev[e0]] or is_rev:
         turn = kind
     # a turn, or a bend where no other road joins, tells where the vehicle is
