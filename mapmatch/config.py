@@ -147,14 +147,14 @@ class ReinitConfig:
 
     soft_reinit_sigmas : the index is searched for other roads when the fix is further than this
         many σ from the road believed ...
-    against_heading_deg : ... or the fix heads against that road by more than this.
-    search_every : seconds between two such searches at least.
+    against_heading_deg : ... or the fix heads against that road by more than this; at most
+        once per ``online.evidence.evidence_time`` (one independent observation).
     reinit_sigmas : a fix is inconsistent when further than this many σ from the road.
     reinit_time : seconds of inconsistency before re-initialising.
     reinit_distance : metres travelled while inconsistent before re-initialising.
     far_off : metres; a fix further than this from the map's bounds is not placed.
     return_sigmas : on the first GPS-aided fix with a heading after dead reckoning (and, at most
-        every ``search_every``, on those after it while the drift σ blends out), when it is
+        every ``online.evidence.evidence_time``, on those after it while the drift σ blends out), when it is
         further than this many of its own σ from the road believed, the roads near it join the
         filter at once, weighed at its own σ (not the drift's): it is the truth, not an outlier
         (0 disables it).
@@ -162,7 +162,6 @@ class ReinitConfig:
 
     soft_reinit_sigmas: float = 3.0
     against_heading_deg: float = 100.0
-    search_every: float = 1.0
     reinit_sigmas: float = 4.0
     reinit_time: float = 10.0
     reinit_distance: float = 100.0

@@ -67,7 +67,7 @@ class OnlineMatcher:
         # the first GPS-aided fix after dead reckoning, and those while its drift blends out:
         # they are the truth, not outliers
         first = state.odo - state.gps_odo > 0.0
-        searched = step.time - state.search_time < cfg.online.reinit.search_every
+        searched = step.time - state.search_time < cfg.online.evidence.evidence_time
         blending = state.bias.drift_sigma > step.fix_sigma and not searched
         returned = step.gps and step.kappa > 0.0 and (first or blending)
         self._take(state, step, cfg)
@@ -129,7 +129,8 @@ class OnlineMatcher:
         against = (
             step.kappa > 0.0 and abs(angle_diff(step.heading, best.bearing)) > o.reinit.against_heading_deg
         )
-        searched = step.time - state.search_time < o.reinit.search_every
+        # at most one search per independent observation (``evidence_time``)
+        searched = step.time - state.search_time < o.evidence.evidence_time
         if returned and o.reinit.return_sigmas > 0.0 and best.dist > o.reinit.return_sigmas * step.fix_sigma:
             # weigh the roads near the returning fix against it at its own σ, at once
             state.search_time = step.time
