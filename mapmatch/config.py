@@ -115,7 +115,6 @@ class RegionConfig:
     max_hops : most edges a path looks ahead of the vehicle's edge.
     prune_log_ratio : hypotheses this many log units below the best are dropped.
     init_max_radius : metres; the largest start-up search radius.
-    init_max_heading_deg : no hypothesis starts (or joins) against the fix's heading by more.
     commit_hold_probability : a node is not committed while the paths its commit would drop
         (another branch of a fork) still hold more than this share of the probability, until
         the best path is ``ambiguous_max_radius`` past it: leaving the ambiguous circle is no
@@ -131,7 +130,6 @@ class RegionConfig:
     max_hops: int = 4
     prune_log_ratio: float = 25.0
     init_max_radius: float = 200.0
-    init_max_heading_deg: float = 100.0
     commit_hold_probability: float = 0.05
     switch_penalty: float = 12.0
 
@@ -147,7 +145,8 @@ class ReinitConfig:
 
     soft_reinit_sigmas : the index is searched for other roads when the fix is further than this
         many σ from the road believed ...
-    against_heading_deg : ... or the fix heads against that road by more than this; at most
+    against_heading_deg : ... or the fix heads against that road by more than this (and no
+        hypothesis starts, or joins, against the fix's heading by more); at most
         once per ``online.evidence.evidence_time`` (one independent observation).
     reinit_sigmas : a fix is inconsistent when further than this many σ from the road.
     reinit_time : seconds of inconsistency before re-initialising.
