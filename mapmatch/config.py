@@ -107,8 +107,9 @@ class ModelConfig:
 class RegionConfig:
     """The path hypotheses, the ambiguous region and when a road is committed (``online.region``).
 
-    drift_rate : expected dead-reckoning drift as a fraction of distance (thesis: 0.04).
-    ambiguous_min_radius : lower bound of the ambiguous-region radius in metres.
+    ambiguous_min_radius : lower bound of the ambiguous-region radius in metres (the region
+        also reaches ``online.bias.dr_sigma_growth`` times the map's long edge length: the
+        dead-reckoning drift over one).
     ambiguous_sigma_factor : the region grows to this many position σ.
     ambiguous_max_radius : upper bound of the region radius in metres.
     max_hypotheses : most path hypotheses the online filter keeps.
@@ -122,7 +123,6 @@ class RegionConfig:
     switch_penalty : log-probability penalty of jumping to a road the filter did not follow.
     """
 
-    drift_rate: float = 0.04
     ambiguous_min_radius: float = 10.0
     ambiguous_sigma_factor: float = 2.0
     ambiguous_max_radius: float = 150.0

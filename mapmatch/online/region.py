@@ -26,7 +26,7 @@ def region_radius(road: RoadModel, sigma: float, cfg: MatchConfig) -> float:
     o = cfg.online
     r = max(
         o.region.ambiguous_min_radius,
-        o.region.drift_rate * road.edge_len_ref,
+        o.bias.dr_sigma_growth * road.edge_len_ref,  # the dead-reckoning drift over an edge
         o.region.ambiguous_sigma_factor * sigma,
     )
     return min(r, max(o.region.ambiguous_max_radius, o.region.ambiguous_min_radius))
