@@ -769,11 +769,10 @@ class ConfidenceConfig:
     coef_intercept, coef_log_odds, coef_heading, coef_parallel, coef_parallel_gap : the
         model's coefficients (any sign).
     parallel_radius : metres; a road within this of the answer's stretch of its edge, not
-        sharing the edge's nodes there, runs alongside it.
-    parallel_angle : degrees; ... and its bearing there is within this of the edge's.
+        sharing the edge's nodes there (a road whose nearest point lies within
+        ``measurement.map_sigma`` of a shared node leaves at the junction), at a bearing
+        within ``model.straight_max_deg`` of the edge's, runs alongside it.
     parallel_spacing : metres; the length of the stretches an edge is looked at in.
-    parallel_node_gap : metres; a road sharing a node with the edge whose nearest point lies
-        within this of that node leaves at the junction and does not run alongside.
     probability_floor : the road's probability is taken in [floor, 1 - floor] for its log-odds.
     heading_cap : degrees; a fix further off the road's bearing says no more.
     gap_cap : fix σ; a road alongside nearer or further than the answer's by more says no more.
@@ -785,9 +784,7 @@ class ConfidenceConfig:
     coef_parallel: float = -1.167
     coef_parallel_gap: float = -0.351
     parallel_radius: float = 40.0
-    parallel_angle: float = 30.0
     parallel_spacing: float = 20.0
-    parallel_node_gap: float = 1.0
     probability_floor: float = 1e-6
     heading_cap: float = 90.0
     gap_cap: float = 5.0

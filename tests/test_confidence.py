@@ -73,7 +73,7 @@ def test_roads_alongside_are_found_mid_edge_and_not_across_a_junction() -> None:
     m = parse_ascii_map(ALONGSIDE, scale=15)  # 30 m apart
     road = OnlineMatcher(m.graph)
     par = ParallelRoads(road.road, road.index)
-    cfg = DEFAULT_CONFIG.confidence
+    cfg = DEFAULT_CONFIG
     e = m.edge("a", "b")
     length = float(m.graph.edge_len[e])
     beside = par.alongside(e, 0.5 * length, cfg)

@@ -58,7 +58,11 @@ def register(subparsers: Any) -> None:
     model = p.add_argument_group("model")
     model.add_argument("--gps-sigma", type=float, default=None, metavar="M", help="default position σ (m)")
     model.add_argument(
-        "--drift-rate", type=float, default=None, metavar="F", help="DR drift per metre (0.04; online.bias.dr_sigma_growth)"
+        "--drift-rate",
+        type=float,
+        default=None,
+        metavar="F",
+        help="DR drift per metre (0.04; online.bias.dr_sigma_growth)",
     )
     model.add_argument(
         "--reinit-time", type=float, default=None, metavar="S", help="seconds off road to reinit"

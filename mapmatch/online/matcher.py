@@ -87,7 +87,7 @@ class OnlineMatcher:
         h = shown.hypothesis
         m = cfg.confidence
         other = (
-            self.parallel.nearest(h.edges[h.k], h.off, step.x, step.y, m)
+            self.parallel.nearest(h.edges[h.k], h.off, step.x, step.y, cfg)
             if m.coef_parallel != 0.0 or m.coef_parallel_gap != 0.0
             else math.inf
         )
