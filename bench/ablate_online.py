@@ -132,7 +132,6 @@ MECHANISMS: tuple[Mechanism, ...] = (
     Mechanism("residual_time_as_bias_time", ("online.bias.residual_time=30",)),
     Mechanism("residual_time_as_bias_time_fin", ("online.bias.residual_time=30",), loss="fin"),
     Mechanism("turn_spacing_as_trail_step", ("online.evidence.turn_sample_spacing=2",)),
-    Mechanism("align_search_sigmas_only", ("online.anchor.align_search=0",)),
     Mechanism("step_from_corrected_fin", ("online.bias.step_from_corrected=0",), loss="fin"),
     Mechanism("rate_rules_all", RATE_RULES),
     Mechanism("rate_rules_all_fin", RATE_RULES, loss="fin"),
