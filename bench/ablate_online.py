@@ -93,7 +93,6 @@ MECHANISMS: tuple[Mechanism, ...] = (
         "learned_residuals",
         ("online.bias.learned_pos_sigma_max=0", "online.bias.learned_heading_sigma_max_deg=3"),
     ),
-    Mechanism("step_from_corrected", ("online.bias.step_from_corrected=0",)),
     Mechanism("drift_decay", ("online.bias.drift_decay_time=0.01",)),
     Mechanism("stop_detection", ("online.stop.stop_speed=0",)),
     Mechanism("node_hold_back", ("online.stop.node_hold_sigmas=0",)),
@@ -128,7 +127,6 @@ MECHANISMS: tuple[Mechanism, ...] = (
     Mechanism("residual_time_as_bias_time", ("online.bias.residual_time=30",)),
     Mechanism("residual_time_as_bias_time_fin", ("online.bias.residual_time=30",), loss="fin"),
     Mechanism("turn_spacing_as_trail_step", ("online.evidence.turn_sample_spacing=2",)),
-    Mechanism("step_from_corrected_fin", ("online.bias.step_from_corrected=0",), loss="fin"),
     Mechanism("rate_rules_all", RATE_RULES),
     Mechanism("rate_rules_all_fin", RATE_RULES, loss="fin"),
 )

@@ -225,14 +225,12 @@ class BiasConfig:
     residual_time : seconds over which the road residuals (position, heading) are averaged.
     learned_pos_sigma_max : metres; most position σ the residuals may teach.
     learned_heading_sigma_max_deg : most heading σ the residuals may teach.
-    step_from_corrected : with GPS, the step from a hypothesis's place (where the along-track
-        correction put it: the fix's projection less the learnt fix bias along the road, fused
-        with the turn anchor) to a candidate point is judged to the point's place corrected
-        alike, by this share of the correction (0: to the point's uncorrected projection,
-        which counts the offset between a projection and its corrected place against every
-        step, ten times a second at 10 Hz). A place the path's turn stops short of its
-        estimate pays by the correction's miss, and its step is judged to the estimate by the
-        same share.
+    With GPS, the step from a hypothesis's place (where the along-track correction put it: the
+    fix's projection less the learnt fix bias along the road, fused with the turn anchor) to a
+    candidate point is judged to the point's place corrected alike (not to its uncorrected
+    projection, which would count the offset between a projection and its corrected place
+    against every step, ten times a second at 10 Hz). A place the path's turn stops short of
+    its estimate pays by the correction's miss, and its step is judged to the estimate.
     """
 
     dr_sigma_growth: float = 0.04
@@ -243,7 +241,6 @@ class BiasConfig:
     residual_time: float = 20.0
     learned_pos_sigma_max: float = 10.0
     learned_heading_sigma_max_deg: float = 30.0
-    step_from_corrected: float = 1.0
 
     def __post_init__(self) -> None:
         _check_numbers(self)

@@ -12,7 +12,7 @@ is judged over a second, branches passed in an outage are kept alive, the return
 searched while the drift blends out, the drift σ decays over 4 s, and the turn score is
 weighed by distance only; and a stopped vehicle's fused heading scores the paths by time;
 and again (``record --set committed``, branch h12) when the step from a hypothesis's place
-came to be judged to the candidates' places corrected alike (``step_from_corrected``);
+came to be judged to the candidates' places corrected alike;
 and again when the online rules that do not win out of fold were removed
 (``bench/ablate_online.py``), and when the hold of a fix just past a node
 (``node_hold_ahead_sigmas``) was removed after losing out of fold at 1 and 10 Hz, and when

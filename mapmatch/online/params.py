@@ -43,7 +43,6 @@ class PlaceParams(NamedTuple):
     # configuration
     bias_emission: float
     bias_white_fraction: float
-    step_from_corrected: float
     straight_max_deg: float
     pos_sigma_floor: float
     beta: float
@@ -62,7 +61,6 @@ def _config_part(cfg: MatchConfig) -> tuple[float, ...]:
         for v in (
             o.bias.bias_emission,
             o.bias.bias_white_fraction,
-            o.bias.step_from_corrected,
             m.straight_max_deg,
             o.evidence.pos_sigma_floor,
             m.beta,
