@@ -61,7 +61,6 @@ RATE_RULES = (
     "online.stop.zero_speed=0",
     "online.evidence.evidence_time=0.1",
     "online.stop.stop_time=0.001",
-    "online.stop.speed_time=0",
 )
 """The rules that exist for the fix rate, all switched off at once (for a 10 Hz run: one
 setting instead of six)."""
@@ -97,7 +96,6 @@ MECHANISMS: tuple[Mechanism, ...] = (
     Mechanism("stop_detection", ("online.stop.stop_speed=0",)),
     Mechanism("node_hold_back", ("online.stop.node_hold_sigmas=0",)),
     Mechanism("zero_velocity", ("online.stop.zero_speed=0",)),
-    Mechanism("speed_time", ("online.stop.speed_time=0",)),
     Mechanism("stop_speed_average", ("online.stop.stop_time=0.001",)),
     Mechanism("turn_anchor", ("online.anchor.turn_anchor_sigma=0",)),
     Mechanism("align_cover", ("online.anchor.align_cover=0",)),
@@ -110,7 +108,6 @@ MECHANISMS: tuple[Mechanism, ...] = (
     Mechanism("crossing_revision", ("online.corrections.revise_sigmas=1000000",), loss="fin"),
     Mechanism("report_back_ratio", ("online.corrections.report_back_ratio=1",)),
     Mechanism("heading_min_speed", ("model.heading_min_speed=0",)),
-    Mechanism("speed_penalty", ("model.speed_penalty=0",)),
     Mechanism("region_min_radius", ("online.region.ambiguous_min_radius=0",)),
     Mechanism("one_sigma_gate", ("online.reinit.reinit_sigmas=3", "online.reinit.return_sigmas=3")),
     Mechanism("reinit_sigmas_as_soft", ("online.reinit.reinit_sigmas=3",)),

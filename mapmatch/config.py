@@ -77,8 +77,6 @@ class ModelConfig:
         away from its straight line more than a short one's, so between far-apart fixes a
         route's length tells less and the fixes' distances from the roads tell more.
     uturn_penalty : log-probability penalty of a U-turn.
-    max_speed : m/s; transitions needing more are penalised.
-    speed_penalty : log-probability penalty per (m/s) above ``max_speed``.
     search_radius : metres around a fix to search for candidate edges.
     max_candidates : nearest roads kept per fix.
     straight_max_deg : a bearing change at most this is straight on (a straight crossing);
@@ -91,8 +89,6 @@ class ModelConfig:
     beta: float = 5.0
     beta_per_m: float = 0.0
     uturn_penalty: float = 6.0
-    max_speed: float = 60.0
-    speed_penalty: float = 0.5
     search_radius: float = 50.0
     max_candidates: int = 8
     straight_max_deg: float = 30.0
@@ -265,11 +261,6 @@ class StopConfig:
     still_distance : metres; moving less than this between fixes, the vehicle stands.
     node_hold_sigmas : a vehicle past a node goes back across it only when the fix lies more
         than this many σ before it (no flicker at a crossing).
-    speed_time : seconds; the transition's speed penalty judges the distance along the path over
-        at least this long. Between fixes 0.1 s apart the positions' own noise (a lagging
-        estimate catching up with its fix, 10 m in one step) would read as an impossible speed,
-        which one second of the same motion is not: at 10 Hz the vehicle would stick behind a
-        node.
     """
 
     stop_speed: float = 0.5
@@ -277,7 +268,6 @@ class StopConfig:
     zero_speed: float = 0.2
     still_distance: float = 0.05
     node_hold_sigmas: float = 0.5
-    speed_time: float = 1.0
 
     def __post_init__(self) -> None:
         _check_numbers(self)

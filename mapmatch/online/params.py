@@ -35,7 +35,6 @@ class PlaceParams(NamedTuple):
     pyy: float
     odo_sigma: float
     dr: float
-    speed_dt: float  # the step's dt, at least ``speed_time``: the transition's speed judged over it
     node_hold: float  # ``node_hold_sigmas`` · σ
     turn_obs: float  # the heading change observed over the last ``covered`` metres (nan: none)
     covered: float
@@ -47,8 +46,6 @@ class PlaceParams(NamedTuple):
     pos_sigma_floor: float
     beta: float
     beta_per_m: float
-    max_speed: float
-    speed_penalty: float
     turn_window: float
     turn_sigma: float
 
@@ -65,8 +62,6 @@ def _config_part(cfg: MatchConfig) -> tuple[float, ...]:
             o.evidence.pos_sigma_floor,
             m.beta,
             m.beta_per_m,
-            m.max_speed,
-            m.speed_penalty,
             o.evidence.turn_window,
             o.evidence.turn_sigma,
         )
@@ -109,7 +104,6 @@ def param_values(
         float(b.pyy),
         step.odo_sigma,
         step.dr,
-        float(max(step.dt, o.stop.speed_time)),
         float(o.stop.node_hold_sigmas * step.sigma),
         float(turn_obs),
         float(covered),

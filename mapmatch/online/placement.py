@@ -52,11 +52,8 @@ class RoadPoint(NamedTuple):
 
 @njit(cache=True)
 def transition(p: PlaceParams, route_dist: float) -> float:
-    """Log-probability of ``route_dist`` metres along the path for this step's travel (its
-    speed judged over at least ``speed_time``, whatever the fix rate)."""
-    return transition_one_compiled(  # type: ignore[no-any-return]
-        route_dist, p.travelled, p.speed_dt, p.beta, p.beta_per_m, p.max_speed, p.speed_penalty
-    )
+    """Log-probability of ``route_dist`` metres along the path for this step's travel."""
+    return transition_one_compiled(route_dist, p.travelled, p.beta, p.beta_per_m)  # type: ignore[no-any-return]
 
 
 @njit(cache=True)
