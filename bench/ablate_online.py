@@ -67,7 +67,6 @@ setting instead of six)."""
 
 MECHANISMS: tuple[Mechanism, ...] = (
     Mechanism("region_drift_term", ("online.region.drift_rate=0",)),
-    Mechanism("region_sigma_term", ("online.region.ambiguous_sigma_factor=0",)),
     Mechanism("region_cap_1000", ("online.region.ambiguous_max_radius=1000",)),
     Mechanism(
         "hypothesis_bounds_x2",
