@@ -168,7 +168,7 @@ class EvidenceConfig:
     """What a fix weighs: the turn seen, its evidence weight and its least σ (``online.evidence``).
 
     turn_window : odometer metres over which the heading step is measured.
-    turn_sample_spacing : odometer metres between two heading samples kept for it.
+    (A heading sample is kept every ``online.corrections.trail_step`` odometer metres.)
     turn_max_samples : heading samples kept at most (a memory bound per vehicle).
     turn_sigma : degrees; spread of the observed heading change around a path's predicted one.
     evidence_time : seconds of fixes that count as one independent observation (the fused
@@ -184,7 +184,6 @@ class EvidenceConfig:
     """
 
     turn_window: float = 30.0
-    turn_sample_spacing: float = 1.0
     turn_max_samples: int = 48
     turn_sigma: float = 20.0
     evidence_time: float = 1.0
