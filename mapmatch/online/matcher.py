@@ -108,7 +108,8 @@ class OnlineMatcher:
             ev = cfg.online.evidence
             add_sample(
                 state.headings, state.odo, step.heading,
-                window=ev.turn_window, spacing=cfg.online.corrections.trail_step, max_samples=ev.turn_max_samples,
+                window=ev.turn_window, spacing=cfg.online.corrections.trail_step,
+                max_samples=ev.turn_max_samples,
             )  # fmt: skip
         if step.odo_known:
             anchor.add_trail(
