@@ -67,6 +67,7 @@ setting instead of six)."""
 
 MECHANISMS: tuple[Mechanism, ...] = (
     Mechanism("region_drift_term", ("online.region.drift_rate=0",)),
+    Mechanism("region_sigma_term", ("online.region.ambiguous_sigma_factor=0",)),
     Mechanism("region_cap_1000", ("online.region.ambiguous_max_radius=1000",)),
     Mechanism(
         "hypothesis_bounds_x2",
@@ -107,7 +108,6 @@ MECHANISMS: tuple[Mechanism, ...] = (
     Mechanism("crossing_revision", ("online.corrections.revise_sigmas=1000000",), loss="fin"),
     Mechanism("report_back_ratio", ("online.corrections.report_back_ratio=1",)),
     Mechanism("heading_min_speed", ("model.heading_min_speed=0",)),
-    Mechanism("region_min_radius", ("online.region.ambiguous_min_radius=0",)),
     Mechanism("one_sigma_gate", ("online.reinit.reinit_sigmas=3", "online.reinit.return_sigmas=3")),
     Mechanism("reinit_sigmas_as_soft", ("online.reinit.reinit_sigmas=3",)),
     Mechanism("return_sigmas_as_soft", ("online.reinit.return_sigmas=3",)),

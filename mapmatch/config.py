@@ -103,9 +103,9 @@ class ModelConfig:
 class RegionConfig:
     """The path hypotheses, the ambiguous region and when a road is committed (``online.region``).
 
-    ambiguous_min_radius : lower bound of the ambiguous-region radius in metres (the region
-        also reaches ``online.bias.dr_sigma_growth`` times the map's long edge length: the
-        dead-reckoning drift over one).
+    ambiguous_sigma_factor : the region's radius is this many position σ, at least
+        ``online.bias.dr_sigma_growth`` times the map's long edge length (the dead-reckoning
+        drift over one).
     ambiguous_max_radius : upper bound of the region radius in metres.
     max_hypotheses : most path hypotheses the online filter keeps.
     max_hops : most edges a path looks ahead of the vehicle's edge.
@@ -118,7 +118,7 @@ class RegionConfig:
     switch_penalty : log-probability penalty of jumping to a road the filter did not follow.
     """
 
-    ambiguous_min_radius: float = 10.0
+    ambiguous_sigma_factor: float = 2.0
     ambiguous_max_radius: float = 150.0
     max_hypotheses: int = 32
     max_hops: int = 4

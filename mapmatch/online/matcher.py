@@ -53,9 +53,9 @@ class OnlineMatcher:
         """A fresh vehicle state."""
         return SessionState()
 
-    def region_radius(self, config: MatchConfig | None = None) -> float:
-        """Ambiguous-region radius in metres (:func:`mapmatch.online.region.region_radius`)."""
-        return region.region_radius(self.road, config or self.config)
+    def region_radius(self, sigma: float, config: MatchConfig | None = None) -> float:
+        """Ambiguous-region radius in metres for a fix of position σ (DR growth included)."""
+        return region.region_radius(self.road, sigma, config or self.config)
 
     def update(self, state: SessionState, fix: Fix, *, config: MatchConfig | None = None) -> SnapResult:
         """Match one fix; mutates ``state``. Raises :class:`ValidationError` (state unchanged)."""

@@ -21,13 +21,14 @@ from mapmatch.types import Correction, Turn
 _NO_TURN = Turn.NONE  # as a module value: an enum member's look-up on its class takes 0.1 µs
 
 
-def region_radius(road: RoadModel, cfg: MatchConfig) -> float:
-    """Ambiguous-region radius in metres: the dead-reckoning drift over one of the map's long
-    edges, at least ``ambiguous_min_radius`` (the fix's σ does not widen it: judged on the REAL
-    drives, out of fold, a region growing with σ loses at 10 Hz)."""
+def region_radius(road: RoadModel, sigma: float, cfg: MatchConfig) -> float:
+    """Ambiguous-region radius in metres for a fix of position σ (DR growth included)."""
     o = cfg.online
-    r = max(o.region.ambiguous_min_radius, o.bias.dr_sigma_growth * road.edge_len_ref)
-    return min(r, max(o.region.ambiguous_max_radius, o.region.ambiguous_min_radius))
+    r = max(
+        o.bias.dr_sigma_growth * road.edge_len_ref,  # the dead-reckoning drift over an edge
+        o.region.ambiguous_sigma_factor * sigma,
+    )
+    return min(r, o.region.ambiguous_max_radius)
 
 
 def commit(

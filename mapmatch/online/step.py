@@ -85,7 +85,7 @@ def prepare(road: RoadModel, state: SessionState, fix: Fix, cfg: MatchConfig) ->
         gps,
         weight,
         stopped,
-        region_radius(road, cfg),  # r_a
+        region_radius(road, sigma, cfg),  # r_a
         dr=0.0 if gps else odo - state.gps_odo,
         bias=bias.predict_bias(state.bias.vector, sigma, dt, cfg),
         odo_sigma=math.sqrt(anchor.odo_kvar(state.anchor, cfg) + o.odometer.odo_scale_floor**2),
