@@ -80,7 +80,9 @@ MECHANISMS: tuple[Mechanism, ...] = (
         "soft_reinit_search",
         ("online.reinit.soft_reinit_sigmas=1000000", "online.reinit.against_heading_deg=181"),
     ),
-    Mechanism("hard_reinit", ("online.reinit.reinit_time=1000000000",)),
+    Mechanism(
+        "hard_reinit", ("online.reinit.reinit_time=1000000000", "online.reinit.reinit_distance=1000000000")
+    ),
     Mechanism("return_search", ("online.reinit.return_sigmas=0",)),
     Mechanism("turn_evidence", ("online.evidence.turn_sigma=1000000",)),
     Mechanism("evidence_per_distance", ("online.evidence.evidence_distance=0.000001",)),
@@ -111,6 +113,8 @@ MECHANISMS: tuple[Mechanism, ...] = (
     Mechanism("one_sigma_gate", ("online.reinit.reinit_sigmas=3", "online.reinit.return_sigmas=3")),
     Mechanism("reinit_sigmas_as_soft", ("online.reinit.reinit_sigmas=3",)),
     Mechanism("return_sigmas_as_soft", ("online.reinit.return_sigmas=3",)),
+    Mechanism("reinit_by_time_only", ("online.reinit.reinit_distance=1000000000",)),
+    Mechanism("reinit_by_distance_only", ("online.reinit.reinit_time=1000000000",)),
     Mechanism(
         "learned_caps_wide",
         ("online.bias.learned_pos_sigma_max=20", "online.bias.learned_heading_sigma_max_deg=60"),

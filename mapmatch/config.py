@@ -143,7 +143,8 @@ class ReinitConfig:
         hypothesis starts, or joins, against the fix's heading by more); at most
         once per ``online.evidence.evidence_time`` (one independent observation).
     reinit_sigmas : a fix is inconsistent when further than this many σ from the road.
-    reinit_time : seconds of inconsistency (while moving) before re-initialising.
+    reinit_time : seconds of inconsistency before re-initialising.
+    reinit_distance : metres travelled while inconsistent before re-initialising.
     far_off : metres; a fix further than this from the map's bounds is not placed.
     return_sigmas : on the first GPS-aided fix with a heading after dead reckoning (and, at most
         every ``online.evidence.evidence_time``, on those after it while the drift σ blends out), when it is
@@ -156,6 +157,7 @@ class ReinitConfig:
     against_heading_deg: float = 100.0
     reinit_sigmas: float = 4.0
     reinit_time: float = 10.0
+    reinit_distance: float = 100.0
     far_off: float = 100_000.0
     return_sigmas: float = 2.0
 

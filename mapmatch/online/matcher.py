@@ -154,7 +154,10 @@ class OnlineMatcher:
                 state.bad_time, state.bad_odo = step.time, state.odo
             elif step.stopped and not math.isnan(step.dt):
                 state.bad_time += step.dt  # the clock runs only while moving: fixes wander at a stop
-            if step.time - state.bad_time >= o.reinit.reinit_time:
+            if (
+                step.time - state.bad_time >= o.reinit.reinit_time
+                or state.odo - state.bad_odo >= o.reinit.reinit_distance
+            ):
                 hypotheses.initialise(self.road, self.index, state, step, cfg)
                 return True
             return False
