@@ -124,6 +124,8 @@ MECHANISMS: tuple[Mechanism, ...] = (
         ("online.bias.learned_pos_sigma_max=20", "online.bias.learned_heading_sigma_max_deg=60"),
         loss="fin",
     ),
+    Mechanism("residual_time_as_bias_time", ("online.bias.residual_time=30",)),
+    Mechanism("residual_time_as_bias_time_fin", ("online.bias.residual_time=30",), loss="fin"),
     Mechanism("rate_rules_all", RATE_RULES),
     Mechanism("rate_rules_all_fin", RATE_RULES, loss="fin"),
 )

@@ -217,7 +217,7 @@ class BiasConfig:
         minutes, so a fix that has lain 10 m left of the road is no evidence for the road
         10 m to the left (0 disables it). Half: the learnt bias is an estimate, and taking all
         of it off lets a single fix flip the road believed.
-    The road residuals (position, heading) are averaged over ``bias_time``.
+    residual_time : seconds over which the road residuals (position, heading) are averaged.
     learned_pos_sigma_max : metres; most position σ the residuals may teach.
     learned_heading_sigma_max_deg : most heading σ the residuals may teach.
     With GPS, the step from a hypothesis's place (where the along-track correction put it: the
@@ -233,12 +233,13 @@ class BiasConfig:
     bias_time: float = 30.0
     bias_white_fraction: float = 0.5
     bias_emission: float = 0.5
+    residual_time: float = 20.0
     learned_pos_sigma_max: float = 10.0
     learned_heading_sigma_max_deg: float = 30.0
 
     def __post_init__(self) -> None:
         _check_numbers(self)
-        _positive(self, "drift_decay_time", "bias_white_fraction")
+        _positive(self, "drift_decay_time", "residual_time", "bias_white_fraction")
 
 
 @dataclass(frozen=True)

@@ -58,9 +58,7 @@ def learn_bias(b: BiasState, best: Hypothesis, step: Step, cfg: MatchConfig) -> 
 def learn_residuals(b: BiasState, best: Hypothesis, step: Step, cfg: MatchConfig) -> None:
     """Running estimate of the real position and heading error, from on-road fixes."""
     o = cfg.online
-    # averaged over the fix error's correlation time (none learnt without it: the last fix's)
-    t = o.bias.bias_time
-    a = 1.0 if math.isnan(step.dt) or t <= 0.0 else min(1.0, step.dt / t)
+    a = 1.0 if math.isnan(step.dt) else min(1.0, step.dt / o.bias.residual_time)
     # clipped (robust) and bounded, so that a wrong road cannot teach a large σ
     if step.gps:
         d = min(best.dist, 2.5 * math.sqrt(b.res_pos2))
