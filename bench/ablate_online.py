@@ -100,6 +100,7 @@ MECHANISMS: tuple[Mechanism, ...] = (
     Mechanism("zero_velocity", ("online.stop.zero_speed=0",)),
     Mechanism("stop_speed_average", ("online.stop.stop_time=0.001",)),
     Mechanism("turn_anchor", ("online.anchor.turn_anchor_sigma=0",)),
+    Mechanism("align_rms_check", ("online.anchor.align_rms_max_deg=180",)),
     Mechanism("align_cover", ("online.anchor.align_cover=0",)),
     Mechanism("scale_from_anchors", ("online.odometer.scale_min_distance=1000000000",)),
     Mechanism("scale_from_gps", ("online.odometer.scale_baseline=0",)),

@@ -283,6 +283,7 @@ class AnchorConfig:
         position believed, up to ...
     align_search_max : ... this many metres.
     align_heading_sigma_min_deg : the least heading σ the alignment assumes.
+    align_rms_max_deg : a worse fit: the path is not what the vehicle drove, no anchor.
     align_cover : metres; the heading samples must reach this far either side of the node.
     """
 
@@ -290,6 +291,7 @@ class AnchorConfig:
     align_search_sigmas: float = 2.5
     align_search_max: float = 40.0
     align_heading_sigma_min_deg: float = 3.0
+    align_rms_max_deg: float = 20.0
     align_cover: float = 3.0
 
     def __post_init__(self) -> None:

@@ -41,7 +41,7 @@ def turn_anchor(
 ) -> tuple[float, float]:
     """The odometer reading at which the vehicle was at the end node of ``best.edges[0]``
     and its σ: the fused headings against the odometer aligned with the path's bearing
-    profile. ``(nan, nan)`` when the samples do not cover the turn."""
+    profile. ``(nan, nan)`` when the samples do not cover the turn or do not fit the path."""
     o = cfg.online
     lengths: list[float] = []
     bearings: list[float] = []
@@ -58,11 +58,12 @@ def turn_anchor(
     hs = math.sqrt(state.bias.res_head2)
     hs = min(max(hs, o.anchor.align_heading_sigma_min_deg), o.bias.learned_heading_sigma_max_deg)
     search = min(o.anchor.align_search_sigmas * step.sigma, o.anchor.align_search_max)
-    c, sd, _ = align_headings(
+    c, sd, rms = align_headings(
         samples, bearing_profile(lengths, bearings), c0, search=search, heading_sigma=hs
     )
     if (
         math.isnan(c)
+        or rms > o.anchor.align_rms_max_deg
         or samples[0][0] + c > node - o.anchor.align_cover
         or samples[-1][0] + c < node + o.anchor.align_cover
     ):
