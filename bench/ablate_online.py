@@ -66,14 +66,12 @@ RATE_RULES = (
 setting instead of six)."""
 
 MECHANISMS: tuple[Mechanism, ...] = (
-    Mechanism("region_drift_term", ("online.region.drift_rate=0",)),
     Mechanism("region_sigma_term", ("online.region.ambiguous_sigma_factor=0",)),
     Mechanism("region_cap_1000", ("online.region.ambiguous_max_radius=1000",)),
     Mechanism(
         "hypothesis_bounds_x2",
         ("online.region.max_hypotheses=64", "online.region.max_hops=8", "online.region.prune_log_ratio=40"),
     ),
-    Mechanism("init_heading_gate", ("online.region.init_max_heading_deg=180",)),
     Mechanism("commit_hold_probability", ("online.region.commit_hold_probability=0",)),
     Mechanism("search_against_heading", ("online.reinit.against_heading_deg=181",)),
     Mechanism(
