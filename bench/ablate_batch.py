@@ -61,6 +61,7 @@ VARIANTS: dict[str, tuple[str, ...]] = {
     "off_map_cut_off": ("batch.split.off_map_cut=0",),
     # model, as the batch uses it
     "beta_per_m_off": ("model.beta_per_m=0",),
+    "speed_penalty_off": ("model.speed_penalty=0",),
     "candidates_wide": ("model.max_candidates=16",),
     "search_radius_wide": ("model.search_radius=100",),
     "sigma_estimate_only": ("model.gps_sigma=1",),

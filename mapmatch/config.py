@@ -77,6 +77,9 @@ class ModelConfig:
         away from its straight line more than a short one's, so between far-apart fixes a
         route's length tells less and the fixes' distances from the roads tell more.
     uturn_penalty : log-probability penalty of a U-turn.
+    max_speed : m/s; batch transitions needing more are penalised (online the odometer gives
+        the travel: no speed term).
+    speed_penalty : log-probability penalty per (m/s) above ``max_speed``.
     search_radius : metres around a fix to search for candidate edges.
     max_candidates : nearest roads kept per fix.
     straight_max_deg : a bearing change at most this is straight on (a straight crossing);
@@ -89,6 +92,8 @@ class ModelConfig:
     beta: float = 5.0
     beta_per_m: float = 0.0
     uturn_penalty: float = 6.0
+    max_speed: float = 60.0
+    speed_penalty: float = 0.5
     search_radius: float = 50.0
     max_candidates: int = 8
     straight_max_deg: float = 30.0

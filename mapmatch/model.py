@@ -120,10 +120,21 @@ def emission_one(dist: float, sigma: float, heading: float, bearing: float, kapp
 emission_logp_one = njit(cache=True)(emission_one)
 
 
-def transition_one(route_dist: float, travelled: float, beta: float, beta_per_m: float) -> float:
+def transition_one(
+    route_dist: float,
+    travelled: float,
+    dt: float,
+    beta: float,
+    beta_per_m: float,
+    max_speed: float,
+    speed_penalty: float,
+) -> float:
     """:func:`transition_logp` for one pair without the U-turn term, in plain float math (the
     online hot path); :func:`transition_logp_one` compiles the same function."""
-    return -abs(route_dist - travelled) / (beta + beta_per_m * travelled)
+    lp = -abs(route_dist - travelled) / (beta + beta_per_m * travelled)
+    if dt > 0.0:
+        lp -= speed_penalty * max(route_dist / dt - max_speed, 0.0)
+    return lp
 
 
 _transition_one = njit(cache=True)(transition_one)
@@ -133,6 +144,7 @@ transition_one_compiled = _transition_one  # for other compiled kernels
 def transition_logp(
     route_dist: ArrayLike,
     travelled: ArrayLike,
+    dt: ArrayLike,
     config: MatchConfig,
     *,
     uturn: ArrayLike | bool = False,
@@ -145,20 +157,22 @@ def transition_logp(
         Network distance in metres between the two candidate positions (inf = unreachable).
     travelled
         Odometer distance when given, else the straight-line distance between the fixes.
+    dt
+        Seconds between the fixes (NaN or 0 disables the speed check).
     config
-        Supplies β and the U-turn penalty.
+        Supplies β, the U-turn penalty and the speed limits.
     uturn
         True where the move reverses direction on the same road.
     """
     m = config.model
 
-    def one(r: float, d: float, u: bool) -> float:
+    def one(r: float, d: float, t: float, u: bool) -> float:
         if not math.isfinite(r):
             return NEG_INF
-        lp = transition_one(r, d, m.beta, m.beta_per_m)
+        lp = transition_one(r, d, t, m.beta, m.beta_per_m, m.max_speed, m.speed_penalty)
         return lp - m.uturn_penalty if u else lp
 
-    return _vector(one)(route_dist, travelled, uturn)
+    return _vector(one)(route_dist, travelled, dt, uturn)
 
 
 def normalise_log(lp: ArrayLike) -> NDArray[np.float64]:
@@ -178,6 +192,8 @@ def transition_params(config: MatchConfig) -> NDArray[np.float64]:
     return np.array(
         [
             config.model.beta,
+            config.model.max_speed,
+            config.model.speed_penalty,
             config.model.uturn_penalty,
             config.model.beta_per_m,
         ],
@@ -187,7 +203,7 @@ def transition_params(config: MatchConfig) -> NDArray[np.float64]:
 
 @njit(cache=True, inline="always")  # inlined: no reference count of ``params`` per pair
 def transition_logp_one(
-    route_dist: float, travelled: float, params: NDArray[np.float64], uturn: bool, beta: float
+    route_dist: float, travelled: float, dt: float, params: NDArray[np.float64], uturn: bool, beta: float
 ) -> float:
     """:func:`transition_logp` for one pair, compiled (for loops that route and score together).
 
@@ -197,7 +213,7 @@ def transition_logp_one(
     """
     if not np.isfinite(route_dist):
         return -np.inf
-    lp = _transition_one(route_dist, travelled, beta, params[2])
+    lp = _transition_one(route_dist, travelled, dt, beta, params[4], params[1], params[2])
     if uturn:
-        lp -= params[1]
+        lp -= params[3]
     return lp

@@ -61,12 +61,13 @@ def test_compiled_transition_equals_the_shared_model() -> None:
     rng = np.random.default_rng(5)
     route = np.r_[rng.random(200) * 500, np.inf, 0.0]
     trav = rng.random(len(route)) * 400
+    dt = np.r_[rng.random(len(route) - 3) * 30, np.nan, 0.0, 2.0]
     params = model.transition_params(BATCH_CONFIG)
     for uturn in (False, True):
-        ref = model.transition_logp(route, trav, BATCH_CONFIG, uturn=uturn)
+        ref = model.transition_logp(route, trav, dt, BATCH_CONFIG, uturn=uturn)
         got = [
-            model.transition_logp_one(r, d, params, uturn, params[0])
-            for r, d in zip(route, trav, strict=True)
+            model.transition_logp_one(r, d, t, params, uturn, params[0])
+            for r, d, t in zip(route, trav, dt, strict=True)
         ]
         np.testing.assert_allclose(got, ref)
 

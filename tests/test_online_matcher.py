@@ -467,11 +467,13 @@ def test_the_model_s_array_forms_are_its_scalar_formulas_over_arrays() -> None:
     assert got.tolist() == [emission_one(*x, 8.0) for x in zip(d, s, h, b, strict=True)]
     assert emission_one(3.0, 2.0, np.nan, 90.0, 8.0) == -0.5 * 1.5**2 - math.log(2.0)  # no heading term
     assert emission_one(0.0, 1.0, 90.0, 270.0, 1.0) == -2.0  # facing against the road: κ(cos π - 1)
-    # transitions: |route - travelled| / β, U-turns, -inf
-    lp = transition_logp([10.0, 10.0, np.inf, 200.0], 10.0, C, uturn=[False, True, False, False])
+    # transitions: |route - travelled| / β, the speed penalty past max_speed, U-turns, -inf
+    lp = transition_logp(
+        [10.0, 10.0, np.inf, 200.0], 10.0, [1.0, 1.0, 1.0, 1.0], C, uturn=[False, True, False, False]
+    )
     assert lp[0] == 0.0 and lp[1] == -m.uturn_penalty and lp[2] == -np.inf
     beta = m.beta + m.beta_per_m * 10.0
-    assert lp[3] == pytest.approx(-190.0 / beta)
+    assert lp[3] == pytest.approx(-190.0 / beta - m.speed_penalty * (200.0 - m.max_speed))
     # κ: floored heading σ, none where the heading is unknown or the fix too slow
     k = heading_kappa([90.0, np.nan, 90.0, 90.0], [0.1, 5.0, np.nan, 5.0], [5.0, 5.0, 5.0, 0.0], C)
     floor = C.batch.track.track_heading_sigma_floor_deg

@@ -90,7 +90,7 @@ def test_speed_is_judged_over_a_second_at_any_fix_rate() -> None:
     one = road.transition(11.0, step(1.0), cfg)
     tenth = road.transition(11.0, step(0.1), cfg)
     assert one == pytest.approx(-1.0 / cfg.model.beta, abs=0.01)
-    assert tenth == pytest.approx(-10.0 / cfg.model.beta, abs=0.01)  # the distance alone
+    assert tenth == pytest.approx(-10.0 / cfg.model.beta, abs=0.01)  # the distance, no speed term
     # a real impossibility is still one: 200 m where the odometer drove 1 m
     assert road.transition(200.0, step(0.1), cfg) < -30.0
 

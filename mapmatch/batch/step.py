@@ -188,14 +188,14 @@ def _along_road(i, si, b0, b1, v, edge_len, edge_rev, leg):  # type: ignore[no-u
             r = max(v.offset[j] - o, 0.0)
             lp = -np.inf
             if r <= leg.vcap:
-                lp = transition_logp_one(r, leg.trav, params, False, leg.beta0)
+                lp = transition_logp_one(r, leg.trav, leg.dt, params, False, leg.beta0)
             if relax(v.best, v.bp, b0, j, i, si + lp):
                 v.bpu[j] = False
         else:
             need = True
             r = abs(edge_len[e] - v.offset[j] - o)
             if f == edge_rev[e] and r <= leg.vcap:
-                lp = transition_logp_one(r, leg.trav, params, True, leg.beta0)
+                lp = transition_logp_one(r, leg.trav, leg.dt, params, True, leg.beta0)
                 near_end = edge_len[e] - o <= rules.reverse_tol and v.offset[j] <= rules.reverse_tol
                 if leg.node_uturn < params[3] and near_end:
                     # turning round at the junction (within reverse_tol) after a stop
@@ -242,7 +242,7 @@ def _routed(i, si, lim, targets, v, router, leg):  # type: ignore[no-untyped-def
                 continue
         r = (rest + ubodt_lookup(table, e, f) if via_table else ws.dist[f]) + coff[j]
         if r <= lim:
-            lp = transition_logp_one(r, leg.trav, v.params, False, leg.beta0)
+            lp = transition_logp_one(r, leg.trav, leg.dt, v.params, False, leg.beta0)
             if relax(v.best, v.bp, b0, j, i, si + lp):
                 v.bpu[j] = False
     if not via_table:

@@ -52,8 +52,9 @@ class RoadPoint(NamedTuple):
 
 @njit(cache=True)
 def transition(p: PlaceParams, route_dist: float) -> float:
-    """Log-probability of ``route_dist`` metres along the path for this step's travel."""
-    return transition_one_compiled(route_dist, p.travelled, p.beta, p.beta_per_m)  # type: ignore[no-any-return]
+    """Log-probability of ``route_dist`` metres along the path for this step's travel (no
+    speed term: the odometer gives the travel)."""
+    return transition_one_compiled(route_dist, p.travelled, 0.0, p.beta, p.beta_per_m, 0.0, 0.0)  # type: ignore[no-any-return]
 
 
 @njit(cache=True)

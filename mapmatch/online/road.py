@@ -182,6 +182,7 @@ class RoadModel:
 
     @staticmethod
     def transition(route_dist: float, step: Step, cfg: MatchConfig) -> float:
-        """Log-probability of ``route_dist`` metres along the path for this step's travel."""
+        """Log-probability of ``route_dist`` metres along the path for this step's travel (no
+        speed term: the odometer gives the travel)."""
         m = cfg.model
-        return transition_one(route_dist, step.travelled, m.beta, m.beta_per_m)
+        return transition_one(route_dist, step.travelled, 0.0, m.beta, m.beta_per_m, 0.0, 0.0)
