@@ -61,20 +61,17 @@ RATE_RULES = (
     "online.stop.zero_speed=0",
     "online.evidence.evidence_time=0.1",
     "online.stop.stop_time=0.001",
-    "online.stop.speed_time=0",
 )
 """The rules that exist for the fix rate, all switched off at once (for a 10 Hz run: one
 setting instead of six)."""
 
 MECHANISMS: tuple[Mechanism, ...] = (
-    Mechanism("region_drift_term", ("online.region.drift_rate=0",)),
     Mechanism("region_sigma_term", ("online.region.ambiguous_sigma_factor=0",)),
     Mechanism("region_cap_1000", ("online.region.ambiguous_max_radius=1000",)),
     Mechanism(
         "hypothesis_bounds_x2",
         ("online.region.max_hypotheses=64", "online.region.max_hops=8", "online.region.prune_log_ratio=40"),
     ),
-    Mechanism("init_heading_gate", ("online.region.init_max_heading_deg=180",)),
     Mechanism("commit_hold_probability", ("online.region.commit_hold_probability=0",)),
     Mechanism("search_against_heading", ("online.reinit.against_heading_deg=181",)),
     Mechanism(
@@ -95,12 +92,10 @@ MECHANISMS: tuple[Mechanism, ...] = (
         "learned_residuals",
         ("online.bias.learned_pos_sigma_max=0", "online.bias.learned_heading_sigma_max_deg=3"),
     ),
-    Mechanism("step_from_corrected", ("online.bias.step_from_corrected=0",)),
     Mechanism("drift_decay", ("online.bias.drift_decay_time=0.01",)),
     Mechanism("stop_detection", ("online.stop.stop_speed=0",)),
     Mechanism("node_hold_back", ("online.stop.node_hold_sigmas=0",)),
     Mechanism("zero_velocity", ("online.stop.zero_speed=0",)),
-    Mechanism("speed_time", ("online.stop.speed_time=0",)),
     Mechanism("stop_speed_average", ("online.stop.stop_time=0.001",)),
     Mechanism("turn_anchor", ("online.anchor.turn_anchor_sigma=0",)),
     Mechanism("align_rms_check", ("online.anchor.align_rms_max_deg=180",)),
@@ -109,6 +104,23 @@ MECHANISMS: tuple[Mechanism, ...] = (
     Mechanism("scale_learning", ("online.odometer.odo_scale_sigma=0",)),
     Mechanism("crossing_revision", ("online.corrections.revise_sigmas=1000000",), loss="fin"),
     Mechanism("report_back_ratio", ("online.corrections.report_back_ratio=1",)),
+    Mechanism("heading_min_speed", ("model.heading_min_speed=0",)),
+    Mechanism("one_sigma_gate", ("online.reinit.reinit_sigmas=3", "online.reinit.return_sigmas=3")),
+    Mechanism("reinit_sigmas_as_soft", ("online.reinit.reinit_sigmas=3",)),
+    Mechanism("return_sigmas_as_soft", ("online.reinit.return_sigmas=3",)),
+    Mechanism("reinit_by_time_only", ("online.reinit.reinit_distance=1000000000",)),
+    Mechanism("reinit_by_distance_only", ("online.reinit.reinit_time=1000000000",)),
+    Mechanism(
+        "learned_caps_wide",
+        ("online.bias.learned_pos_sigma_max=20", "online.bias.learned_heading_sigma_max_deg=60"),
+    ),
+    Mechanism(
+        "learned_caps_wide_fin",
+        ("online.bias.learned_pos_sigma_max=20", "online.bias.learned_heading_sigma_max_deg=60"),
+        loss="fin",
+    ),
+    Mechanism("residual_time_as_bias_time", ("online.bias.residual_time=30",)),
+    Mechanism("residual_time_as_bias_time_fin", ("online.bias.residual_time=30",), loss="fin"),
     Mechanism("rate_rules_all", RATE_RULES),
     Mechanism("rate_rules_all_fin", RATE_RULES, loss="fin"),
 )

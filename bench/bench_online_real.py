@@ -635,11 +635,10 @@ def answer_features(matcher: OnlineMatcher, drive: Drive, results: list[SnapResu
     sig = np.maximum(np.where(sig > 0, sig, cfg.model.gps_sigma), cfg.online.evidence.pos_sigma_floor)
     amb = np.array([r.state == State.AMBIGUOUS for r in results], dtype=bool)
     change = np.r_[True, e0[1:] != e0[:-1]]
-    m = cfg.confidence
     par = matcher.parallel
-    beside = [r.edge >= 0 and bool(par.alongside(r.edge, r.offset, m)) for r in results]
+    beside = [r.edge >= 0 and bool(par.alongside(r.edge, r.offset, cfg)) for r in results]
     other = [
-        par.nearest(r.edge, r.offset, float(x), float(y), m) if b else np.inf
+        par.nearest(r.edge, r.offset, float(x), float(y), cfg) if b else np.inf
         for r, b, x, y in zip(results, beside, drive.fused.x, drive.fused.y, strict=True)
     ]
     return {

@@ -77,12 +77,13 @@ class ModelConfig:
         away from its straight line more than a short one's, so between far-apart fixes a
         route's length tells less and the fixes' distances from the roads tell more.
     uturn_penalty : log-probability penalty of a U-turn.
-    max_speed : m/s; transitions needing more are penalised.
+    max_speed : m/s; batch transitions needing more are penalised (online the odometer gives
+        the travel: no speed term).
     speed_penalty : log-probability penalty per (m/s) above ``max_speed``.
     search_radius : metres around a fix to search for candidate edges.
     max_candidates : nearest roads kept per fix.
-    straight_max_deg : a bearing change at most this is straight on (a straight crossing).
-    uturn_min_deg : a bearing change at least this is a U-turn.
+    straight_max_deg : a bearing change at most this is straight on (a straight crossing);
+        one within this of a full reversal (180° less it) is a U-turn.
     """
 
     gps_sigma: float = 5.0
@@ -96,7 +97,6 @@ class ModelConfig:
     search_radius: float = 50.0
     max_candidates: int = 8
     straight_max_deg: float = 30.0
-    uturn_min_deg: float = 150.0
 
     def __post_init__(self) -> None:
         _check_numbers(self)
@@ -108,15 +108,14 @@ class ModelConfig:
 class RegionConfig:
     """The path hypotheses, the ambiguous region and when a road is committed (``online.region``).
 
-    drift_rate : expected dead-reckoning drift as a fraction of distance (thesis: 0.04).
-    ambiguous_min_radius : lower bound of the ambiguous-region radius in metres.
-    ambiguous_sigma_factor : the region grows to this many position σ.
+    ambiguous_sigma_factor : the region's radius is this many position σ, at least
+        ``online.bias.dr_sigma_growth`` times the map's long edge length (the dead-reckoning
+        drift over one).
     ambiguous_max_radius : upper bound of the region radius in metres.
     max_hypotheses : most path hypotheses the online filter keeps.
     max_hops : most edges a path looks ahead of the vehicle's edge.
     prune_log_ratio : hypotheses this many log units below the best are dropped.
     init_max_radius : metres; the largest start-up search radius.
-    init_max_heading_deg : no hypothesis starts (or joins) against the fix's heading by more.
     commit_hold_probability : a node is not committed while the paths its commit would drop
         (another branch of a fork) still hold more than this share of the probability, until
         the best path is ``ambiguous_max_radius`` past it: leaving the ambiguous circle is no
@@ -124,15 +123,12 @@ class RegionConfig:
     switch_penalty : log-probability penalty of jumping to a road the filter did not follow.
     """
 
-    drift_rate: float = 0.04
-    ambiguous_min_radius: float = 10.0
     ambiguous_sigma_factor: float = 2.0
     ambiguous_max_radius: float = 150.0
     max_hypotheses: int = 32
     max_hops: int = 4
     prune_log_ratio: float = 25.0
     init_max_radius: float = 200.0
-    init_max_heading_deg: float = 100.0
     commit_hold_probability: float = 0.05
     switch_penalty: float = 12.0
 
@@ -148,14 +144,15 @@ class ReinitConfig:
 
     soft_reinit_sigmas : the index is searched for other roads when the fix is further than this
         many σ from the road believed ...
-    against_heading_deg : ... or the fix heads against that road by more than this.
-    search_every : seconds between two such searches at least.
+    against_heading_deg : ... or the fix heads against that road by more than this (and no
+        hypothesis starts, or joins, against the fix's heading by more); at most
+        once per ``online.evidence.evidence_time`` (one independent observation).
     reinit_sigmas : a fix is inconsistent when further than this many σ from the road.
     reinit_time : seconds of inconsistency before re-initialising.
     reinit_distance : metres travelled while inconsistent before re-initialising.
     far_off : metres; a fix further than this from the map's bounds is not placed.
     return_sigmas : on the first GPS-aided fix with a heading after dead reckoning (and, at most
-        every ``search_every``, on those after it while the drift σ blends out), when it is
+        every ``online.evidence.evidence_time``, on those after it while the drift σ blends out), when it is
         further than this many of its own σ from the road believed, the roads near it join the
         filter at once, weighed at its own σ (not the drift's): it is the truth, not an outlier
         (0 disables it).
@@ -163,7 +160,6 @@ class ReinitConfig:
 
     soft_reinit_sigmas: float = 3.0
     against_heading_deg: float = 100.0
-    search_every: float = 1.0
     reinit_sigmas: float = 4.0
     reinit_time: float = 10.0
     reinit_distance: float = 100.0
@@ -179,7 +175,7 @@ class EvidenceConfig:
     """What a fix weighs: the turn seen, its evidence weight and its least σ (``online.evidence``).
 
     turn_window : odometer metres over which the heading step is measured.
-    turn_sample_spacing : odometer metres between two heading samples kept for it.
+    (A heading sample is kept every ``online.corrections.trail_step`` odometer metres.)
     turn_max_samples : heading samples kept at most (a memory bound per vehicle).
     turn_sigma : degrees; spread of the observed heading change around a path's predicted one.
     evidence_time : seconds of fixes that count as one independent observation (the fused
@@ -198,7 +194,6 @@ class EvidenceConfig:
     """
 
     turn_window: float = 30.0
-    turn_sample_spacing: float = 1.0
     turn_max_samples: int = 48
     turn_sigma: float = 20.0
     evidence_time: float = 1.0
@@ -234,14 +229,12 @@ class BiasConfig:
     residual_time : seconds over which the road residuals (position, heading) are averaged.
     learned_pos_sigma_max : metres; most position σ the residuals may teach.
     learned_heading_sigma_max_deg : most heading σ the residuals may teach.
-    step_from_corrected : with GPS, the step from a hypothesis's place (where the along-track
-        correction put it: the fix's projection less the learnt fix bias along the road, fused
-        with the turn anchor) to a candidate point is judged to the point's place corrected
-        alike, by this share of the correction (0: to the point's uncorrected projection,
-        which counts the offset between a projection and its corrected place against every
-        step, ten times a second at 10 Hz). A place the path's turn stops short of its
-        estimate pays by the correction's miss, and its step is judged to the estimate by the
-        same share.
+    With GPS, the step from a hypothesis's place (where the along-track correction put it: the
+    fix's projection less the learnt fix bias along the road, fused with the turn anchor) to a
+    candidate point is judged to the point's place corrected alike (not to its uncorrected
+    projection, which would count the offset between a projection and its corrected place
+    against every step, ten times a second at 10 Hz). A place the path's turn stops short of
+    its estimate pays by the correction's miss, and its step is judged to the estimate.
     """
 
     dr_sigma_growth: float = 0.04
@@ -252,7 +245,6 @@ class BiasConfig:
     residual_time: float = 20.0
     learned_pos_sigma_max: float = 10.0
     learned_heading_sigma_max_deg: float = 30.0
-    step_from_corrected: float = 1.0
 
     def __post_init__(self) -> None:
         _check_numbers(self)
@@ -277,11 +269,6 @@ class StopConfig:
     still_distance : metres; moving less than this between fixes, the vehicle stands.
     node_hold_sigmas : a vehicle past a node goes back across it only when the fix lies more
         than this many σ before it (no flicker at a crossing).
-    speed_time : seconds; the transition's speed penalty judges the distance along the path over
-        at least this long. Between fixes 0.1 s apart the positions' own noise (a lagging
-        estimate catching up with its fix, 10 m in one step) would read as an impossible speed,
-        which one second of the same motion is not: at 10 Hz the vehicle would stick behind a
-        node.
     """
 
     stop_speed: float = 0.5
@@ -289,7 +276,6 @@ class StopConfig:
     zero_speed: float = 0.2
     still_distance: float = 0.05
     node_hold_sigmas: float = 0.5
-    speed_time: float = 1.0
 
     def __post_init__(self) -> None:
         _check_numbers(self)
@@ -302,8 +288,8 @@ class AnchorConfig:
 
     turn_anchor_sigma : metres; the least σ of the along-path position a turn gives (the fused
         headings aligned with the path's bearing profile); 0 disables the anchor.
-    align_search : metres; a turn's heading profile is searched within this plus ...
-    align_search_sigmas : ... this many fix σ of the position believed, up to ...
+    align_search_sigmas : a turn's heading profile is searched within this many fix σ of the
+        position believed, up to ...
     align_search_max : ... this many metres.
     align_heading_sigma_min_deg : the least heading σ the alignment assumes.
     align_rms_max_deg : a worse fit: the path is not what the vehicle drove, no anchor.
@@ -311,7 +297,6 @@ class AnchorConfig:
     """
 
     turn_anchor_sigma: float = 1.0
-    align_search: float = 5.0
     align_search_sigmas: float = 2.5
     align_search_max: float = 40.0
     align_heading_sigma_min_deg: float = 3.0
@@ -769,11 +754,10 @@ class ConfidenceConfig:
     coef_intercept, coef_log_odds, coef_heading, coef_parallel, coef_parallel_gap : the
         model's coefficients (any sign).
     parallel_radius : metres; a road within this of the answer's stretch of its edge, not
-        sharing the edge's nodes there, runs alongside it.
-    parallel_angle : degrees; ... and its bearing there is within this of the edge's.
+        sharing the edge's nodes there (a road whose nearest point lies within
+        ``measurement.map_sigma`` of a shared node leaves at the junction), at a bearing
+        within ``model.straight_max_deg`` of the edge's, runs alongside it.
     parallel_spacing : metres; the length of the stretches an edge is looked at in.
-    parallel_node_gap : metres; a road sharing a node with the edge whose nearest point lies
-        within this of that node leaves at the junction and does not run alongside.
     probability_floor : the road's probability is taken in [floor, 1 - floor] for its log-odds.
     heading_cap : degrees; a fix further off the road's bearing says no more.
     gap_cap : fix σ; a road alongside nearer or further than the answer's by more says no more.
@@ -785,9 +769,7 @@ class ConfidenceConfig:
     coef_parallel: float = -1.167
     coef_parallel_gap: float = -0.351
     parallel_radius: float = 40.0
-    parallel_angle: float = 30.0
     parallel_spacing: float = 20.0
-    parallel_node_gap: float = 1.0
     probability_floor: float = 1e-6
     heading_cap: float = 90.0
     gap_cap: float = 5.0

@@ -130,12 +130,11 @@ def align_headings(
     return offset + mean, sd, rms
 
 
-def classify_turn(
-    turn_angle: float, *, is_reverse: bool = False, straight_max_deg: float, uturn_min_deg: float
-) -> Turn:
+def classify_turn(turn_angle: float, *, is_reverse: bool = False, straight_max_deg: float) -> Turn:
     """Classify a turn angle (exit bearing minus entry bearing, degrees; positive = right):
-    straight up to ``straight_max_deg``, a U-turn from ``uturn_min_deg`` on (or onto the reverse)."""
-    if is_reverse or abs(turn_angle) >= uturn_min_deg:
+    straight up to ``straight_max_deg``, a U-turn from 180° less it on (or onto the reverse):
+    within the same angle of a full reversal as straight on is of none."""
+    if is_reverse or abs(turn_angle) >= 180.0 - straight_max_deg:
         return Turn.U_TURN
     if abs(turn_angle) <= straight_max_deg:
         return Turn.STRAIGHT

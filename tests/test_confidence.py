@@ -83,7 +83,7 @@ def test_roads_alongside_are_found_mid_edge_and_not_across_a_junction() -> None:
     m = parse_ascii_map(ALONGSIDE, scale=15)  # 30 m apart
     road = OnlineMatcher(m.graph)
     par = ParallelRoads(road.road, road.index)
-    cfg = DEFAULT_CONFIG.confidence
+    cfg = DEFAULT_CONFIG
     e = m.edge("a", "b")
     length = float(m.graph.edge_len[e])
     beside = par.alongside(e, 0.5 * length, cfg)
@@ -106,9 +106,9 @@ def test_roads_alongside_are_found_mid_edge_and_not_across_a_junction() -> None:
         [],
         [
             "confidence.parallel_radius=60",
-            "confidence.parallel_angle=50",
+            "model.straight_max_deg=50",
             "confidence.parallel_spacing=7",
-            "confidence.parallel_node_gap=4",
+            "measurement.map_sigma=4",
         ],
     ],
     ids=["default", "wider"],
@@ -120,7 +120,7 @@ def test_the_map_table_of_roads_alongside_is_each_edge_looked_up_alone(
     map) gives every stretch of every edge the roads its own look-up gives."""
     from graph.build import build_map
 
-    cfg = DEFAULT_CONFIG.with_settings(settings).confidence
+    cfg = DEFAULT_CONFIG.with_settings(settings)
     graphs = [parse_ascii_map(STREETS, scale=10).graph, build_map(kubicka_dir / "00000007" / "roads.geojson")]
     for g in graphs:
         m = OnlineMatcher(g)
@@ -138,12 +138,12 @@ def test_the_map_table_of_roads_alongside_is_each_edge_looked_up_alone(
 def test_the_matcher_makes_the_table_of_its_settings_once_and_answers_from_it() -> None:
     m = parse_ascii_map(ALONGSIDE, scale=15)
     matcher = OnlineMatcher(m.graph)
-    cfg = DEFAULT_CONFIG.confidence
+    cfg = DEFAULT_CONFIG
     made = matcher.parallel.prepare(cfg)
     assert matcher.parallel.prepare(cfg) is made  # made with the matcher, not again
     e = m.edge("a", "b")
     assert matcher.parallel.alongside(e, 10.0, cfg) == made.stretches(e)[0]
-    other = DEFAULT_CONFIG.with_settings(["confidence.parallel_node_gap=3"]).confidence
+    other = DEFAULT_CONFIG.with_settings(["measurement.map_sigma=3"])
     assert matcher.parallel.prepare(other) is not made  # every setting of a road alongside counts
 
 

@@ -60,10 +60,8 @@ def test_sections_hold_a_handful_of_fields_each() -> None:
 
 
 def test_settings_by_full_name_as_the_cli_takes_them() -> None:
-    cfg = DEFAULT_CONFIG.with_settings(
-        ["online.bias.step_from_corrected=0", " online.stop.node_hold_sigmas = 2.5"]
-    )
-    assert (cfg.online.bias.step_from_corrected, cfg.online.stop.node_hold_sigmas) == (0.0, 2.5)
+    cfg = DEFAULT_CONFIG.with_settings(["online.bias.bias_emission=0", " online.stop.node_hold_sigmas = 2.5"])
+    assert (cfg.online.bias.bias_emission, cfg.online.stop.node_hold_sigmas) == (0.0, 2.5)
     assert cfg.online.region == DEFAULT_CONFIG.online.region  # the other sub-sections as they were
     assert DEFAULT_CONFIG.with_settings([]) == DEFAULT_CONFIG
     eight = DEFAULT_CONFIG.with_settings(["online.region.max_hypotheses=8"])
@@ -72,7 +70,7 @@ def test_settings_by_full_name_as_the_cli_takes_them() -> None:
         DEFAULT_CONFIG.with_settings(["measurement.min_probability=0.95"]).measurement.min_probability == 0.95
     )
     for bad, says in (
-        (["online.bias.step_from_corrected"], "SECTION.FIELD=VALUE"),
+        (["online.bias.bias_emission"], "SECTION.FIELD=VALUE"),
         (
             ["online.stop.node_hold_sigmas=wide"],
             "online.stop.node_hold_sigmas: 'wide' is not a number",

@@ -12,12 +12,14 @@ is judged over a second, branches passed in an outage are kept alive, the return
 searched while the drift blends out, the drift σ decays over 4 s, and the turn score is
 weighed by distance only; and a stopped vehicle's fused heading scores the paths by time;
 and again (``record --set committed``, branch h12) when the step from a hypothesis's place
-came to be judged to the candidates' places corrected alike (``step_from_corrected``);
+came to be judged to the candidates' places corrected alike;
 and again when the online rules that do not win out of fold were removed
 (``bench/ablate_online.py``), and when the hold of a fix just past a node
 (``node_hold_ahead_sigmas``) was removed after losing out of fold at 1 and 10 Hz, and when
 the odometer came to carry a stopped vehicle on across a node (the stop hold holds the fixes
-only).
+only), and when fields were cut (#48): the transition lost its speed term, the step with GPS
+is always judged between corrected places, heading samples are kept every 2 m, the region has
+no least radius and the turn alignment no fixed search margin.
 They hold every ``SnapResult`` of the service tests' drives and of bench_online drives on
 shared maps, and a session exported half way (imported here and replayed). A few batch
 matches are in ``batch.json.gz``, recorded after #14 changed the batch model (off-map fixes,

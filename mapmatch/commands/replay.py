@@ -58,7 +58,11 @@ def register(subparsers: Any) -> None:
     model = p.add_argument_group("model")
     model.add_argument("--gps-sigma", type=float, default=None, metavar="M", help="default position σ (m)")
     model.add_argument(
-        "--drift-rate", type=float, default=None, metavar="F", help="DR drift per metre (0.04)"
+        "--drift-rate",
+        type=float,
+        default=None,
+        metavar="F",
+        help="DR drift per metre (0.04; online.bias.dr_sigma_growth)",
     )
     model.add_argument(
         "--reinit-time", type=float, default=None, metavar="S", help="seconds off road to reinit"
@@ -100,7 +104,7 @@ def run_replay(args: argparse.Namespace) -> int:
         k: v
         for k, v in (
             ("gps_sigma", args.gps_sigma),
-            ("drift_rate", args.drift_rate),
+            ("dr_sigma_growth", args.drift_rate),
             ("reinit_time", args.reinit_time),
         )
         if v is not None

@@ -24,14 +24,14 @@ def _candidates(
     cfg: MatchConfig,
     edges: list[int] | None = None,
 ) -> list[tuple[int, Projection]]:
-    """Edges near the fix (or the given ``edges``) not heading against it (never start against
-    one-ways), projected."""
+    """Edges near the fix (or the given ``edges``) not heading against it by more than
+    ``online.reinit.against_heading_deg`` (never start against one-ways), projected."""
     if edges is None:
         edges = index.query([[step.x, step.y]], radius, k=cfg.model.max_candidates).edge.tolist()
     out = []
     for e in edges:
         pr = road.project(e, step.x, step.y)
-        if step.kappa > 0.0 and abs(angle_diff(step.heading, pr[4])) > cfg.online.region.init_max_heading_deg:
+        if step.kappa > 0.0 and abs(angle_diff(step.heading, pr[4])) > cfg.online.reinit.against_heading_deg:
             continue
         out.append((e, pr))
     return out

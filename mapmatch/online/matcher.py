@@ -49,7 +49,7 @@ class OnlineMatcher:
         self.parallel = ParallelRoads(self.road, self.index)
         m = config.confidence
         if m.coef_parallel != 0.0 or m.coef_parallel_gap != 0.0:  # the roads alongside, now: no fix waits
-            self.parallel.prepare(m)
+            self.parallel.prepare(config)
         self.edge_len_ref = self.road.edge_len_ref
 
     def new_session(self) -> SessionState:
@@ -71,7 +71,7 @@ class OnlineMatcher:
         # the first GPS-aided fix after dead reckoning, and those while its drift blends out:
         # they are the truth, not outliers
         first = state.odo - state.gps_odo > 0.0
-        searched = step.time - state.search_time < cfg.online.reinit.search_every
+        searched = step.time - state.search_time < cfg.online.evidence.evidence_time
         blending = state.bias.drift_sigma > step.fix_sigma and not searched
         returned = step.gps and step.kappa > 0.0 and (first or blending)
         self._take(state, step, cfg)
@@ -91,7 +91,7 @@ class OnlineMatcher:
         h = shown.hypothesis
         m = cfg.confidence
         other = (
-            self.parallel.nearest(h.edges[h.k], h.off, step.x, step.y, m)
+            self.parallel.nearest(h.edges[h.k], h.off, step.x, step.y, cfg)
             if m.coef_parallel != 0.0 or m.coef_parallel_gap != 0.0
             else math.inf
         )
@@ -113,7 +113,8 @@ class OnlineMatcher:
             ev = cfg.online.evidence
             add_sample(
                 state.headings, state.odo, step.heading,
-                window=ev.turn_window, spacing=ev.turn_sample_spacing, max_samples=ev.turn_max_samples,
+                window=ev.turn_window, spacing=cfg.online.corrections.trail_step,
+                max_samples=ev.turn_max_samples,
             )  # fmt: skip
         if step.odo_known:
             anchor.add_trail(
@@ -134,7 +135,8 @@ class OnlineMatcher:
         against = (
             step.kappa > 0.0 and abs(angle_diff(step.heading, best.bearing)) > o.reinit.against_heading_deg
         )
-        searched = step.time - state.search_time < o.reinit.search_every
+        # at most one search per independent observation (``evidence_time``)
+        searched = step.time - state.search_time < o.evidence.evidence_time
         if returned and o.reinit.return_sigmas > 0.0 and best.dist > o.reinit.return_sigmas * step.fix_sigma:
             # weigh the roads near the returning fix against it at its own σ, at once
             state.search_time = step.time

@@ -4,9 +4,9 @@ a similar bearing (the commonest place for a sure answer on the wrong road).
 An edge is cut into stretches of about ``confidence.parallel_spacing`` metres; for the
 middle of each, the spatial index gives the roads within ``confidence.parallel_radius``.
 One runs alongside when it is not the edge or its reverse, its bearing there is within
-``confidence.parallel_angle`` of the edge's, and, when it shares a node with the edge, the
-point projects inside it (not onto the shared node: a road leaving at a junction is not
-alongside). A map property, shared by every vehicle: computed for every edge of the map at
+``model.straight_max_deg`` of the edge's (straight on from it), and, when it shares a node
+with the edge, the point projects inside it, further than ``measurement.map_sigma`` (the
+map's own error) from the shared node: a road leaving at a junction is not alongside. A map property, shared by every vehicle: computed for every edge of the map at
 once (:func:`alongside_table`, one vectorised pass) when the matcher is made, or on the first
 answer of a confidence section of other settings, so no fix pays a spatial query.
 """
@@ -17,19 +17,33 @@ import itertools
 import math
 import threading
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
 from numpy.typing import NDArray
 
 from graph.angles import angle_diff
 from graph.index import EdgeIndex
-from mapmatch.config import ConfidenceConfig
+from mapmatch.config import MatchConfig
 from mapmatch.online.road import RoadModel
 
 
-def stretch_roads(
-    road: RoadModel, index: EdgeIndex, edge: int, cfg: ConfidenceConfig
-) -> list[tuple[int, ...]]:
+class AlongsideSettings(NamedTuple):
+    """What counts as a road alongside, from the configuration (the key of a map's table)."""
+
+    radius: float  # confidence.parallel_radius
+    angle: float  # model.straight_max_deg
+    spacing: float  # confidence.parallel_spacing
+    node_gap: float  # measurement.map_sigma
+
+    @classmethod
+    def of(cls, cfg: MatchConfig) -> AlongsideSettings:
+        """The settings of ``cfg``."""
+        c = cfg.confidence
+        return cls(c.parallel_radius, cfg.model.straight_max_deg, c.parallel_spacing, cfg.measurement.map_sigma)
+
+
+def stretch_roads(road: RoadModel, index: EdgeIndex, edge: int, cfg: MatchConfig) -> list[tuple[int, ...]]:
     """Per stretch of ``edge`` (see the module docstring), the edges that run alongside it.
 
     Parameters
@@ -37,19 +51,20 @@ def stretch_roads(
     road : the road model of the map.
     index : its spatial index.
     edge : the edge.
-    cfg : the confidence section (``parallel_radius``, ``parallel_angle``,
-        ``parallel_spacing``, ``parallel_node_gap``).
+    cfg : the configuration (``confidence.parallel_radius``, ``confidence.parallel_spacing``,
+        ``model.straight_max_deg``, ``measurement.map_sigma``).
 
     Returns
     -------
     list of tuple of int
         Per stretch, from the edge's start, the edges alongside (empty: none).
     """
+    st = AlongsideSettings.of(cfg)
     length = road.elen[edge]
-    n = max(1, math.ceil(length / cfg.parallel_spacing))
+    n = max(1, math.ceil(length / st.spacing))
     mids = [(k + 0.5) * length / n for k in range(n)]
     pts = [road.locate(edge, s) for s in mids]
-    c = index.query(np.array([[p[0], p[1]] for p in pts]), cfg.parallel_radius)
+    c = index.query(np.array([[p[0], p[1]] for p in pts]), st.radius)
     found: list[set[int]] = [set() for _ in range(n)]
     nodes = {road.eu[edge], road.ev[edge]}
     rev = road.rev[edge]
@@ -57,10 +72,10 @@ def stretch_roads(
         if e2 in (edge, rev) or e2 in found[k]:
             continue
         if (road.eu[e2] in nodes or road.ev[e2] in nodes) and (
-            off < cfg.parallel_node_gap or off > road.elen[e2] - cfg.parallel_node_gap
+            off < st.node_gap or off > road.elen[e2] - st.node_gap
         ):
             continue
-        if abs(angle_diff(road.bearing_at(e2, off), pts[k][2])) <= cfg.parallel_angle:
+        if abs(angle_diff(road.bearing_at(e2, off), pts[k][2])) <= st.angle:
             found[k].add(e2)
     return [tuple(sorted(f)) for f in found]
 
@@ -164,24 +179,25 @@ def _bearings_at(
     return np.where(inside, pc.brg[np.where(inside, q, 0)], bend[edges])
 
 
-def alongside_table(road: RoadModel, index: EdgeIndex, cfg: ConfidenceConfig) -> AlongsideTable:
+def alongside_table(road: RoadModel, index: EdgeIndex, cfg: MatchConfig) -> AlongsideTable:
     """:func:`stretch_roads` of every edge of the map, in one vectorised pass (the same answers).
 
     Parameters
     ----------
     road : the road model of the map.
     index : its spatial index.
-    cfg : the confidence section (``parallel_radius``, ``parallel_angle``,
-        ``parallel_spacing``, ``parallel_node_gap``).
+    cfg : the configuration (``confidence.parallel_radius``, ``confidence.parallel_spacing``,
+        ``model.straight_max_deg``, ``measurement.map_sigma``).
 
     Returns
     -------
     AlongsideTable
         Every edge's stretches and the edges alongside each.
     """
+    st = AlongsideSettings.of(cfg)
     elen = np.asarray(road.elen, dtype=np.float64)
     n_e = len(elen)
-    n = np.maximum(1, np.ceil(elen / cfg.parallel_spacing)).astype(np.int64) if n_e else np.zeros(0, np.int64)
+    n = np.maximum(1, np.ceil(elen / st.spacing)).astype(np.int64) if n_e else np.zeros(0, np.int64)
     stretch_ptr = np.zeros(n_e + 1, dtype=np.int64)
     np.cumsum(n, out=stretch_ptr[1:])
     n_s = int(stretch_ptr[-1])
@@ -205,12 +221,12 @@ def alongside_table(road: RoadModel, index: EdgeIndex, cfg: ConfidenceConfig) ->
     eu = np.asarray(road.eu, dtype=np.int64)
     ev = np.asarray(road.ev, dtype=np.int64)
     rev = np.asarray(road.rev, dtype=np.int64)
-    gap = cfg.parallel_node_gap
+    gap = st.node_gap
     kept_s: list[NDArray[np.int64]] = []
     kept_e: list[NDArray[np.int64]] = []
     for lo in range(0, n_s, QUERY_POINTS):
         hi = min(lo + QUERY_POINTS, n_s)
-        c = index.query(np.stack([px[lo:hi], py[lo:hi]], axis=1), cfg.parallel_radius)
+        c = index.query(np.stack([px[lo:hi], py[lo:hi]], axis=1), st.radius)
         s = c.point + lo
         e2 = c.edge.astype(np.int64)
         off = c.offset
@@ -221,7 +237,7 @@ def alongside_table(road: RoadModel, index: EdgeIndex, cfg: ConfidenceConfig) ->
         s, e2, off = s[ok], e2[ok], off[ok]
         b2 = _bearings_at(pc, bend, _pieces_at(pc, e2, off), e2)
         d = (b2 - s_brg[s] + 180.0) % 360.0 - 180.0  # angle_diff (its -180 is 180: the same size)
-        ok = np.abs(d) <= cfg.parallel_angle
+        ok = np.abs(d) <= st.angle
         kept_s.append(s[ok])
         kept_e.append(e2[ok])
     s = np.concatenate(kept_s) if kept_s else np.zeros(0, np.int64)
@@ -237,28 +253,24 @@ _Kept = dict[int, list[tuple[int, ...]]]
 """Each edge's stretches, as :meth:`AlongsideTable.stretches` gives them."""
 
 
-def _key(cfg: ConfidenceConfig) -> tuple[float, float, float, float]:
-    return (cfg.parallel_radius, cfg.parallel_angle, cfg.parallel_spacing, cfg.parallel_node_gap)
-
-
 class ParallelRoads:
     """The roads alongside each stretch of a map's edges: the map's :class:`AlongsideTable`
-    per confidence section's settings, made once (:meth:`prepare`, or on first use), and each
+    per setting of what counts as alongside, made once (:meth:`prepare`, or on first use), and each
     edge's stretches as Python tuples, kept from its first use (thread-safe: a race builds the
     same thing twice)."""
 
     def __init__(self, road: RoadModel, index: EdgeIndex) -> None:
         self.road = road
         self.index = index
-        self._tables: dict[tuple[float, float, float, float], AlongsideTable] = {}
-        # per settings key: each edge's stretches
-        self._roads: dict[tuple[float, float, float, float], _Kept] = {}
-        self._last: tuple[ConfidenceConfig | None, AlongsideTable | None, _Kept] = (None, None, {})
+        self._tables: dict[AlongsideSettings, AlongsideTable] = {}
+        # per settings: each edge's stretches
+        self._roads: dict[AlongsideSettings, _Kept] = {}
+        self._last: tuple[MatchConfig | None, AlongsideTable | None, _Kept] = (None, None, {})
         self._lock = threading.Lock()
 
-    def prepare(self, cfg: ConfidenceConfig) -> AlongsideTable:
+    def prepare(self, cfg: MatchConfig) -> AlongsideTable:
         """The table of ``cfg``'s settings, made now when it is not yet."""
-        key = _key(cfg)
+        key = AlongsideSettings.of(cfg)
         table = self._tables.get(key)
         if table is None:
             with self._lock:
@@ -267,12 +279,12 @@ class ParallelRoads:
                     table = self._tables[key] = alongside_table(self.road, self.index, cfg)
         return table
 
-    def alongside(self, edge: int, offset: float, cfg: ConfidenceConfig) -> tuple[int, ...]:
+    def alongside(self, edge: int, offset: float, cfg: MatchConfig) -> tuple[int, ...]:
         """The edges alongside ``edge`` at ``offset`` metres from its start (empty: none)."""
         last = self._last
-        if last[0] is not cfg:  # the stretches of this section's settings (a per-fix path)
+        if last[0] is not cfg:  # the stretches of this configuration's settings (a per-fix path)
             table = self.prepare(cfg)
-            last = self._last = (cfg, table, self._roads.setdefault(_key(cfg), {}))
+            last = self._last = (cfg, table, self._roads.setdefault(AlongsideSettings.of(cfg), {}))
         kept = last[2]
         roads = kept.get(edge)
         if roads is None:
@@ -281,7 +293,7 @@ class ParallelRoads:
         k = int(offset / length * len(roads)) if length > 0.0 else 0
         return roads[min(max(k, 0), len(roads) - 1)]
 
-    def nearest(self, edge: int, offset: float, x: float, y: float, cfg: ConfidenceConfig) -> float:
+    def nearest(self, edge: int, offset: float, x: float, y: float, cfg: MatchConfig) -> float:
         """Metres from the point ``(x, y)`` to the nearest road alongside ``edge`` at
         ``offset`` (inf: none)."""
         best = math.inf

@@ -35,7 +35,6 @@ class PlaceParams(NamedTuple):
     pyy: float
     odo_sigma: float
     dr: float
-    speed_dt: float  # the step's dt, at least ``speed_time``: the transition's speed judged over it
     node_hold: float  # ``node_hold_sigmas`` · σ
     turn_obs: float  # the heading change observed over the last ``covered`` metres (nan: none)
     covered: float
@@ -43,13 +42,10 @@ class PlaceParams(NamedTuple):
     # configuration
     bias_emission: float
     bias_white_fraction: float
-    step_from_corrected: float
     straight_max_deg: float
     pos_sigma_floor: float
     beta: float
     beta_per_m: float
-    max_speed: float
-    speed_penalty: float
     turn_window: float
     turn_sigma: float
 
@@ -62,13 +58,10 @@ def _config_part(cfg: MatchConfig) -> tuple[float, ...]:
         for v in (
             o.bias.bias_emission,
             o.bias.bias_white_fraction,
-            o.bias.step_from_corrected,
             m.straight_max_deg,
             o.evidence.pos_sigma_floor,
             m.beta,
             m.beta_per_m,
-            m.max_speed,
-            m.speed_penalty,
             o.evidence.turn_window,
             o.evidence.turn_sigma,
         )
@@ -112,7 +105,6 @@ def param_values(
         float(b.pyy),
         step.odo_sigma,
         step.dr,
-        float(max(step.dt, o.stop.speed_time)),
         float(o.stop.node_hold_sigmas * step.sigma),
         float(turn_obs),
         float(covered),

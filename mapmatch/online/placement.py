@@ -53,11 +53,9 @@ class RoadPoint(NamedTuple):
 
 @njit(cache=True)
 def transition(p: PlaceParams, route_dist: float) -> float:
-    """Log-probability of ``route_dist`` metres along the path for this step's travel (its
-    speed judged over at least ``speed_time``, whatever the fix rate)."""
-    return transition_one_compiled(  # type: ignore[no-any-return]
-        route_dist, p.travelled, p.speed_dt, p.beta, p.beta_per_m, p.max_speed, p.speed_penalty
-    )
+    """Log-probability of ``route_dist`` metres along the path for this step's travel (no
+    speed term: the odometer gives the travel)."""
+    return transition_one_compiled(route_dist, p.travelled, 0.0, p.beta, p.beta_per_m, 0.0, 0.0)  # type: ignore[no-any-return]
 
 
 @njit(cache=True)
@@ -81,15 +79,15 @@ def _score(p: PlaceParams, at: RoadPoint, s: float, here: Pos, anc: float, anc_s
     """Log-score of the road point ``at`` (:class:`RoadPoint`), ``s`` along the path (emission,
     and transition from the hypothesis's place ``here``; ``anc``, ``anc_sd`` its turn anchor).
     That place is where the along-track correction put it: with GPS the step is judged from
-    there to the point's place corrected alike (``step_from_corrected`` of the correction),
-    or the offset between a projection and its corrected place would count against every
-    step (ten times a second at 10 Hz). Not stopped at the path's turns: a place held at a
-    turn pays for that by the correction's miss, not twice."""
+    there to the point's place corrected alike, or the offset between a projection and its
+    corrected place would count against every step (ten times a second at 10 Hz). Not stopped
+    at the path's turns: a place held at a turn pays for that by the correction's miss, not
+    twice."""
     brg = at.bearing
     sc = emission_logp_one(debiased(p, at.dist, at.x, at.y, brg), p.sigma, p.heading, brg, p.kappa)
     if not math.isnan(p.travelled):
-        if p.gps and p.step_from_corrected > 0.0:
-            s += p.step_from_corrected * (corrected_s(p, s, brg, anc, anc_sd) - s)
+        if p.gps:
+            s = corrected_s(p, s, brg, anc, anc_sd)
         sc += transition(p, s - here[2])
     return sc  # type: ignore[no-any-return]
 
@@ -226,9 +224,8 @@ def place_one(  # type: ignore[no-untyped-def]
             best_sc = emission_logp_one(dist, p.sigma, p.heading, pos[6], p.kappa) - miss
             if not math.isnan(p.travelled):
                 # held at a turn short of the estimate: the miss is its penalty; the step
-                # is judged to the estimate (``step_from_corrected`` of the way there)
-                to = pos[2] + p.step_from_corrected * (want - pos[2])
-                best_sc += transition(p, to - here[2])
+                # is judged to the estimate
+                best_sc += transition(p, want - here[2])
             best = pos
     elif p.odo_known:
         best_sc, best = dead_reckon(road, p, edges, here[0], here[2], acc)

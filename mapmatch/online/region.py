@@ -25,11 +25,10 @@ def region_radius(road: RoadModel, sigma: float, cfg: MatchConfig) -> float:
     """Ambiguous-region radius in metres for a fix of position σ (DR growth included)."""
     o = cfg.online
     r = max(
-        o.region.ambiguous_min_radius,
-        o.region.drift_rate * road.edge_len_ref,
+        o.bias.dr_sigma_growth * road.edge_len_ref,  # the dead-reckoning drift over an edge
         o.region.ambiguous_sigma_factor * sigma,
     )
-    return min(r, max(o.region.ambiguous_max_radius, o.region.ambiguous_min_radius))
+    return min(r, o.region.ambiguous_max_radius)
 
 
 def commit(
@@ -129,12 +128,7 @@ def _commit_node(
     is_rev = e1 == road.rev[e0]
     anchor_odo = anchor_sd = math.nan
     angle = angle_diff(road.bstart[e1], road.bend[e0])
-    kind = classify_turn(
-        angle,
-        is_reverse=is_rev,
-        straight_max_deg=cfg.model.straight_max_deg,
-        uturn_min_deg=cfg.model.uturn_min_deg,
-    )
+    kind = classify_turn(angle, is_reverse=is_rev, straight_max_deg=cfg.model.straight_max_deg)
     if road.branching[road.ev[e0]] or is_rev:
         turn = kind
     # a turn, or a bend where no other road joins, tells where the vehicle is

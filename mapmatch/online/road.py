@@ -182,10 +182,7 @@ class RoadModel:
 
     @staticmethod
     def transition(route_dist: float, step: Step, cfg: MatchConfig) -> float:
-        """Log-probability of ``route_dist`` metres along the path for this step's travel (its
-        speed judged over at least ``speed_time``, whatever the fix rate)."""
+        """Log-probability of ``route_dist`` metres along the path for this step's travel (no
+        speed term: the odometer gives the travel)."""
         m = cfg.model
-        dt = max(step.dt, cfg.online.stop.speed_time)
-        return transition_one(
-            route_dist, step.travelled, dt, m.beta, m.beta_per_m, m.max_speed, m.speed_penalty
-        )
+        return transition_one(route_dist, step.travelled, 0.0, m.beta, m.beta_per_m, 0.0, 0.0)
