@@ -269,10 +269,6 @@ def _params(v):  # type: ignore[no-untyped-def]
         v[26],
         v[27],
         v[28],
-        v[29],
-        v[30],
-        v[31],
-        v[32],
     )
 
 
