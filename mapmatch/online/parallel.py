@@ -6,9 +6,10 @@ middle of each, the spatial index gives the roads within ``confidence.parallel_r
 One runs alongside when it is not the edge or its reverse, its bearing there is within
 ``model.straight_max_deg`` of the edge's (straight on from it), and, when it shares a node
 with the edge, the point projects inside it, further than ``measurement.map_sigma`` (the
-map's own error) from the shared node: a road leaving at a junction is not alongside. A map property, shared by every vehicle: computed for every edge of the map at
-once (:func:`alongside_table`, one vectorised pass) when the matcher is made, or on the first
-answer of a confidence section of other settings, so no fix pays a spatial query.
+map's own error) from the shared node: a road leaving at a junction is not alongside. A map
+property, shared by every vehicle: computed for every edge of the map at once
+(:func:`alongside_table`, one vectorised pass) when the matcher is made, or on the first
+answer of a configuration of other settings, so no fix pays a spatial query.
 """
 
 from __future__ import annotations
@@ -40,7 +41,9 @@ class AlongsideSettings(NamedTuple):
     def of(cls, cfg: MatchConfig) -> AlongsideSettings:
         """The settings of ``cfg``."""
         c = cfg.confidence
-        return cls(c.parallel_radius, cfg.model.straight_max_deg, c.parallel_spacing, cfg.measurement.map_sigma)
+        return cls(
+            c.parallel_radius, cfg.model.straight_max_deg, c.parallel_spacing, cfg.measurement.map_sigma
+        )
 
 
 def stretch_roads(road: RoadModel, index: EdgeIndex, edge: int, cfg: MatchConfig) -> list[tuple[int, ...]]:
