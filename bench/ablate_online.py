@@ -108,6 +108,7 @@ MECHANISMS: tuple[Mechanism, ...] = (
     Mechanism("one_sigma_gate", ("online.reinit.reinit_sigmas=3", "online.reinit.return_sigmas=3")),
     Mechanism("reinit_sigmas_as_soft", ("online.reinit.reinit_sigmas=3",)),
     Mechanism("return_sigmas_as_soft", ("online.reinit.return_sigmas=3",)),
+    Mechanism("zero_speed_as_stop_speed", ("online.stop.zero_speed=0.5",)),
     Mechanism("reinit_by_time_only", ("online.reinit.reinit_distance=1000000000",)),
     Mechanism("reinit_by_distance_only", ("online.reinit.reinit_time=1000000000",)),
     Mechanism(

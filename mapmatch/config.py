@@ -288,16 +288,15 @@ class AnchorConfig:
 
     turn_anchor_sigma : metres; the least σ of the along-path position a turn gives (the fused
         headings aligned with the path's bearing profile); 0 disables the anchor.
-    align_search_sigmas : a turn's heading profile is searched within this many fix σ of the
-        position believed, up to ...
-    align_search_max : ... this many metres.
+    align_search_max : metres; a turn's heading profile is searched within
+        ``online.reinit.soft_reinit_sigmas`` fix σ of the position believed (as far as a fix on
+        the road may lie from it), up to this many metres.
     align_heading_sigma_min_deg : the least heading σ the alignment assumes.
     align_rms_max_deg : a worse fit: the path is not what the vehicle drove, no anchor.
     align_cover : metres; the heading samples must reach this far either side of the node.
     """
 
     turn_anchor_sigma: float = 1.0
-    align_search_sigmas: float = 2.5
     align_search_max: float = 40.0
     align_heading_sigma_min_deg: float = 3.0
     align_rms_max_deg: float = 20.0

@@ -57,7 +57,7 @@ def turn_anchor(
     samples = [x for x in state.headings if x[0] + c0 >= 0.0]
     hs = math.sqrt(state.bias.res_head2)
     hs = min(max(hs, o.anchor.align_heading_sigma_min_deg), o.bias.learned_heading_sigma_max_deg)
-    search = min(o.anchor.align_search_sigmas * step.sigma, o.anchor.align_search_max)
+    search = min(o.reinit.soft_reinit_sigmas * step.sigma, o.anchor.align_search_max)
     c, sd, rms = align_headings(
         samples, bearing_profile(lengths, bearings), c0, search=search, heading_sigma=hs
     )
