@@ -54,7 +54,6 @@ VARIANTS: dict[str, tuple[str, ...]] = {
     "lookahead_off": ("batch.outliers.outlier_lookahead=0",),
     "emission_prune_wide": ("batch.outliers.emission_prune=25",),
     # batch.split
-    "gap_distance_off": ("batch.split.gap_distance=0",),
     "split_speed_off": ("batch.split.split_speed=0",),
     "detour_cost_off": ("batch.split.detour_cost_max=0",),
     "off_map_cut_off": ("batch.split.off_map_cut=0",),

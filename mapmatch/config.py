@@ -578,10 +578,6 @@ class OutliersConfig:
 class SplitConfig:
     """Where a track is split into pieces or its route cut (``batch.split``).
 
-    gap_distance : metres between consecutive fixes beyond which a step faster on average than
-        ``split_speed`` splits the track (a jump: two drives joined, a clock error); a slower
-        one was driven (a logger off, a sparse track) and its route is searched as any step's
-        (0: distance never splits).
     split_speed : m/s; a car's top speed. A step whose route is longer than the straight line
         between its fixes by more than this times its time (plus the fixes' noise: twice
         ``batch.outliers.off_map_sigmas`` σ, each of the two fixes up to the off-map limit
@@ -590,7 +586,11 @@ class SplitConfig:
         than this average speed over the step's time (plus the same noise) is impossible
         too: sparse fixes either side of a road the map lacks are then not joined round by a
         far longer way. Where the fixes move faster, their timestamps are in doubt, and only the detour
-        is judged (0 disables both checks).
+        is judged (0 disables both checks). A step faster than this and longer than it takes
+        over ``batch.outliers.max_skip_time`` (3 km at the defaults: further than the car can
+        go while its fixes are left out as outliers) is a jump (two drives joined, a clock
+        error) and splits the track; a slower one was driven (a logger off, a sparse track) and
+        its route is searched as any step's (with either 0, distance never splits).
     detour_cost_max : a route longer than the distance travelled between its two fixes by more
         than this many of the step's β (the detour's cost in the transition's log-probability)
         is impossible, whatever the time allows: the fix is left out as an outlier, or the
@@ -626,7 +626,6 @@ class SplitConfig:
         are held to it: one or two sparse fixes do not trace a winding road.
     """
 
-    gap_distance: float = 2000.0
     split_speed: float = 50.0
     detour_cost_max: float = 25.0
     off_map_cut: float = 200.0

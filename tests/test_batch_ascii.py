@@ -139,11 +139,12 @@ def test_turn_restriction_is_respected() -> None:
 
 
 def test_gap_splits_the_track_and_is_reported() -> None:
-    # fixes 3 and 4 are 180 m apart, beyond gap_distance (100 m here), and 2 s apart: too fast
-    # to drive (split_speed 50 m/s), a jump, so the track splits there
+    # fixes 3 and 4 are 180 m apart, beyond the jump distance (split_speed 50 m/s times
+    # max_skip_time, 2 s here: 100 m), and 2 s apart: too fast to drive, a jump, so the track
+    # splits there
     m = parse_ascii_map("a-----------------------------b", scale=10)
     xs = [10, 30, 50, 230, 250, 270]
-    cfg = DEFAULT_CONFIG.replace(gap_distance=100.0)
+    cfg = DEFAULT_CONFIG.replace(max_skip_time=2.0)
     r = BatchMatcher(m.graph).match(track_from_xy(m, [at(m, "a", x, 1) for x in xs], dt=2.0), cfg)
     assert r.splits == [3]
     assert len(r.routes) == 2 and len(r.route_lonlat) == 2
@@ -154,34 +155,35 @@ def test_gap_splits_the_track_and_is_reported() -> None:
 
 
 def test_a_gap_driven_at_road_speed_is_bridged_by_its_route() -> None:
-    # a sparse track with the logger off for 150 s between fixes 3 and 4, 2.1 km apart (beyond
-    # gap_distance) and 2.4 km along an L-shaped road (100 m per character): 16 m/s is a drive,
-    # not a jump, so the route bridges the gap and the track stays one piece; the same 2.1 km in
-    # 15 s (140 m/s) splits
+    # a sparse track with the logger off for 200 s between fixes 3 and 4, 3.6 km apart (beyond
+    # the jump distance, split_speed times max_skip_time: 3 km) and 3.9 km along an L-shaped
+    # road (100 m per character): 20 m/s is a drive, not a jump, so the route bridges the gap
+    # and the track stays one piece; the same 3.6 km in 15 s (240 m/s) splits
     #
-    #   a-------------------------b
-    #                             |
-    #                             c
+    #   a----------------------------------------b
+    #                                            |
+    #                                            c
     m = parse_ascii_map(
         """
-        a-------------------------b
-                                  |
-                                  c
+        a----------------------------------------b
+                                                 |
+                                                 c
         """,
         scale=100,
     )
     xy = [at(m, "a", 100, 3), at(m, "a", 300, -3), at(m, "a", 500, 2)]
     xy += [at(m, "b", -4, -300), at(m, "b", 3, -380)]
-    assert math.dist(xy[2], xy[3]) > DEFAULT_CONFIG.batch.split.gap_distance
+    split = DEFAULT_CONFIG.batch.split
+    assert math.dist(xy[2], xy[3]) > split.split_speed * DEFAULT_CONFIG.batch.outliers.max_skip_time
     ll = np.array([m.lonlat(x, y) for x, y in xy])
-    bridged = Track("t", np.array([0.0, 15.0, 30.0, 180.0, 190.0]), ll[:, 1], ll[:, 0])
+    bridged = Track("t", np.array([0.0, 15.0, 30.0, 230.0, 240.0]), ll[:, 1], ll[:, 0])
     r = BatchMatcher(m.graph).match(bridged)
     assert r.splits == [] and [names(m, piece) for piece in r.routes] == [["ab", "bc"]]
-    assert r.length_m == pytest.approx(2500 + 380, abs=5.0)
+    assert r.length_m == pytest.approx(4000 + 380, abs=5.0)
     jump = Track("t", np.array([0.0, 15.0, 30.0, 45.0, 55.0]), ll[:, 1], ll[:, 0])
     assert BatchMatcher(m.graph).match(jump).splits == [3]
-    # gap_distance 0: distance never splits, so even the jump is one piece
-    never = BatchMatcher(m.graph).match(jump, DEFAULT_CONFIG.replace(gap_distance=0.0))
+    # max_skip_time 0: distance never splits, so even the jump is one piece
+    never = BatchMatcher(m.graph).match(jump, DEFAULT_CONFIG.replace(max_skip_time=0.0))
     assert never.splits == [] and [names(m, piece) for piece in never.routes] == [["ab", "bc"]]
 
 

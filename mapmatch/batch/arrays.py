@@ -94,6 +94,8 @@ class KernelParams(NamedTuple):
     """Metres of β per second of a step's driving time (its mean fix interval)."""
     lp_cut_m: float
     gap_distance: float
+    """Metres a faster step than ``split_speed`` must reach to split: ``split_speed`` times
+    ``batch.outliers.max_skip_time`` (inf: distance never splits)."""
     max_skip: int
     max_skip_time: float
     """seconds after the last point kept before ``max_skip`` unreachable points split (0: none)."""
@@ -158,7 +160,8 @@ def kernel_params(cfg: MatchConfig, sigma: float) -> KernelParams:
         route_speed=float(b.route.route_speed),
         beta_per_s=float(b.route.beta_per_s),
         lp_cut_m=float(cfg.model.beta * b.route.route_lp_cut),
-        gap_distance=float(b.split.gap_distance) if b.split.gap_distance > 0 else np.inf,
+        # a jump: further than the top speed goes while fixes may be left out as outliers
+        gap_distance=float(b.split.split_speed * b.outliers.max_skip_time) or np.inf,
         max_skip=int(b.outliers.max_skip),
         max_skip_time=float(b.outliers.max_skip_time),
         outlier_lookahead=bool(b.outliers.outlier_lookahead),

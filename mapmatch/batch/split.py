@@ -28,8 +28,9 @@ def splits_before(prev, t, d, lat, p):  # type: ignore[no-untyped-def]
 @njit(cache=True, nogil=True, inline="always")
 def far_gap(d, dt, p, steps):  # type: ignore[no-untyped-def]
     """Whether ``d`` metres in ``dt`` seconds, over ``steps`` steps, is a gap that splits the
-    track: longer than ``gap_distance`` a step, and faster on average than ``split_speed`` (a
-    slower gap, a logger off or a sparse track, is driven: its route is searched as any step's).
+    track: longer than ``gap_distance`` a step (``split_speed`` times ``max_skip_time``), and
+    faster on average than ``split_speed`` (a slower gap, a logger off or a sparse track, is
+    driven: its route is searched as any step's).
     """
     if d <= p.gap_distance * steps:
         return False
