@@ -55,7 +55,6 @@ VARIANTS: dict[str, tuple[str, ...]] = {
     "emission_prune_wide": ("batch.outliers.emission_prune=25",),
     # batch.split
     "split_speed_off": ("batch.split.split_speed=0",),
-    "detour_cost_off": ("batch.split.detour_cost_max=0",),
     "off_map_cut_off": ("batch.split.off_map_cut=0",),
     # model, as the batch uses it
     "beta_per_m_off": ("model.beta_per_m=0",),

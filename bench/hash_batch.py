@@ -12,7 +12,7 @@ edge; routes and splits): the digest a change that moves distances by rounding a
     python bench/hash_batch.py                 # all 15 tracks, S = 1, 10, 30
     python bench/hash_batch.py --choices       # the matched edges, routes and splits only
     python bench/hash_batch.py --ids 0,14 --S 30
-    python bench/hash_batch.py --set batch.split.detour_cost_max=20    # which answers a setting changes
+    python bench/hash_batch.py --set batch.split.off_map_cut=300      # which answers a setting changes
 """
 
 from __future__ import annotations

@@ -549,7 +549,14 @@ class OutliersConfig:
         and so is a piece of one fix at the track's start or end beside another piece (one
         fix makes no route: a fix by some road before or after a run off the route); 0:
         always leave out the unreachable fix, visit every reachable one. Each fix left out
-        costs ½ ``off_map_sigmas``² (:attr:`leave_out_cost`).
+        costs ½ ``off_map_sigmas``² (:attr:`leave_out_cost`). A step whose route is longer
+        than the distance travelled between its fixes by more than twice that many of its β
+        (``off_map_sigmas``²: the detour costs more than both its fixes left out) is
+        impossible, whatever the time allows: the fix is left out as an outlier, or the match
+        splits there. A fix beside some road where the map ends (a car park, an unmapped lane)
+        is then not joined to the route by a long way round; the limit (25 β at 5 σ) lies
+        above the detours true routes take (``bench/bench_batch_ends.py`` removes the roads at
+        a true route's ends to see how much road a match adds there).
     """
 
     outlier_distance: float = 100.0
@@ -573,6 +580,12 @@ class OutliersConfig:
         emission of a fix at the off-map limit, ½ ``off_map_sigmas``²."""
         return 0.5 * self.off_map_sigmas**2
 
+    @property
+    def detour_cost_max(self) -> float:
+        """β of detour beyond which a step is impossible: twice :attr:`leave_out_cost`,
+        ``off_map_sigmas``² (the detour costs more than leaving out both its fixes)."""
+        return 2.0 * self.leave_out_cost
+
 
 @dataclass(frozen=True)
 class SplitConfig:
@@ -591,14 +604,6 @@ class SplitConfig:
         go while its fixes are left out as outliers) is a jump (two drives joined, a clock
         error) and splits the track; a slower one was driven (a logger off, a sparse track) and
         its route is searched as any step's (with either 0, distance never splits).
-    detour_cost_max : a route longer than the distance travelled between its two fixes by more
-        than this many of the step's β (the detour's cost in the transition's log-probability)
-        is impossible, whatever the time allows: the fix is left out as an outlier, or the
-        match splits there (0: no limit). A fix beside some road where the map ends (a car park,
-        an unmapped lane) is then not joined to the route by a long way round. The default
-        lies above the detours true routes take (a U-turn's penalty comes on top), so it cuts
-        only the ways round a map that lacks the road (``bench/bench_batch_ends.py`` removes
-        the roads at a true route's ends to see how much road a match adds there).
     off_map_cut : metres; a run of fixes the route leaves out (off the map, or on roads the
         route cannot reach in time: unreachable outliers) travelling at least this far among
         themselves (the track leaves the route's roads and comes back) cuts the route there,
@@ -627,7 +632,6 @@ class SplitConfig:
     """
 
     split_speed: float = 50.0
-    detour_cost_max: float = 25.0
     off_map_cut: float = 200.0
     off_map_cut_fixes: int = 3
 

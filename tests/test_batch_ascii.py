@@ -338,7 +338,7 @@ def test_batch_tuning_constants_are_validated_config_fields() -> None:
         cfg.batch.route.stop_uturn_penalty,
     ) == (5.0, 3, 2.0)
     bads = [{"max_skip": 2.5}, {"reverse_tolerance": -1.0}, {"route_lp_cut": math.inf}]
-    for bad in [*bads, {"detour_cost_max": -1.0}, {"off_map_cut_fixes": 1.5}]:
+    for bad in [*bads, {"off_map_sigmas": -1.0}, {"off_map_cut_fixes": 1.5}]:
         with pytest.raises(ConfigError):
             DEFAULT_CONFIG.replace(**bad)
 
@@ -619,10 +619,12 @@ def test_a_first_fix_in_a_car_park_by_another_road_is_left_out_not_a_piece() -> 
     assert r.splits == [2] and [names(m, piece) for piece in r.routes] == [["de"], ["ab"]]
 
 
-def test_fixes_in_a_car_park_are_not_joined_to_the_drive_by_a_long_way_round() -> None:
+def test_fixes_in_a_car_park_are_not_joined_to_the_drive_by_a_long_way_round(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
     # the track starts 28 m south of de and waits on an unmapped lane for a minute (fixes 20 s
     # apart, 50 m from each road) before driving west along ab. The time allows the 900 m
-    # round by e and b, but that detour costs more than ``detour_cost_max`` β: the car park's
+    # round by e and b, but that detour costs more than ``off_map_sigmas``² β: the car park's
     # fixes are left unmatched. The same at the end of a track.
     m = parse_ascii_map(CAR_PARK_MAP, scale=10)
     park = [at(m, "d", 20, -28)] + [at(m, "d", 30 + 20 * k, -50) for k in (1, 2, 3)]
@@ -641,8 +643,16 @@ def test_fixes_in_a_car_park_are_not_joined_to_the_drive_by_a_long_way_round() -
         assert [names(m, piece) for piece in r.routes] == [route]
         assert set(p.status for p in r.points[out]) == {PointStatus.UNMATCHED}
         assert r.length_m == pytest.approx(132, abs=2)
-        # with any detour the time allows, and every fix at the ends visited: round by e and b
-        loose = DEFAULT_CONFIG.replace(detour_cost_max=0, outlier_lookahead=0)
+    # with any detour the time allows (the limit off, as the matcher's joining call has it),
+    # and every fix at the ends visited: round by e and b
+    from mapmatch.batch import matcher as matcher_module
+
+    with_limit = matcher_module.kernel_params
+    monkeypatch.setattr(
+        matcher_module, "kernel_params", lambda c, s: with_limit(c, s)._replace(detour_cost_max=0.0)
+    )
+    loose = DEFAULT_CONFIG.replace(outlier_lookahead=0)
+    for trk in (start, end):
         assert BatchMatcher(m.graph).match(trk, loose).length_m > 800
 
 
@@ -933,17 +943,18 @@ def test_a_stray_fix_followed_by_another_is_dropped_not_the_good_fixes_after_the
     r = BatchMatcher(m.graph).match(track)
     assert [names(m, piece) for piece in r.routes] == [["ab", "bc"]]
     assert [p.status for p in r.points] == ["matched"] * 2 + ["unmatched"] * 2 + ["matched"] * 4
-    # without trying the fix before a run left out, with any detour the time allows, and no
+    # without trying the fix before a run left out, with the detours the time allows (a limit
+    # of 400 β at 20 σ), and no
     # cut where the fixes left out travel ``off_map_cut``: the trip up hd, three good fixes lost
     # (the first fix's direction kept over its 140 m leg: else the way is made longer by
     # turning round at the dead end a, to fit the 140 m)
     loose = DEFAULT_CONFIG.replace(
-        outlier_lookahead=0, detour_cost_max=0, off_map_cut=0, motion_end_leg_max=0
+        outlier_lookahead=0, off_map_sigmas=20.0, off_map_cut=0, motion_end_leg_max=0
     )
     greedy = BatchMatcher(m.graph).match(track, loose)
     assert names(m, greedy.routes[0]) == ["ab", "bh", "hd", "dh", "hb", "bc"]
     assert [p.status for p in greedy.points][2:6] == ["matched", "unmatched", "unmatched", "unmatched"]
-    # the way back down hd to 4 is a detour of 630 m over 100 m: beyond ``detour_cost_max`` β,
+    # the way back down hd to 4 is a detour of 630 m over 100 m: beyond ``off_map_sigmas``² β,
     # 4 is out of reach from 2 however the fixes are weighed: 2 is left out with 3
     greedy = BatchMatcher(m.graph).match(track, DEFAULT_CONFIG.replace(outlier_lookahead=0))
     assert [names(m, piece) for piece in greedy.routes] == [["ab", "bc"]]

@@ -116,7 +116,8 @@ class KernelParams(NamedTuple):
     """m/s; the top speed a route may need over its step's time, where the fixes move no
     faster (``batch.split.split_speed``; 0: routes are not judged by their own speed)."""
     detour_cost_max: float
-    """Routes longer than the travelled distance by more than this many β are impossible (0: no limit)."""
+    """Routes longer than the travelled distance by more than this many β are impossible:
+    ``batch.outliers.off_map_sigmas``² (0: no limit, the joining call's)."""
     off_map_sigmas: float
     off_map_cut: float
     off_map_cut_fixes: int
@@ -173,7 +174,7 @@ def kernel_params(cfg: MatchConfig, sigma: float) -> KernelParams:
         # off-map limit from its road
         split_slack=2.0 * float(b.outliers.off_map_sigmas) * float(sigma),
         split_route_speed=float(b.split.split_speed),  # one top speed for both checks
-        detour_cost_max=float(b.split.detour_cost_max),
+        detour_cost_max=float(b.outliers.detour_cost_max),
         off_map_sigmas=float(b.outliers.off_map_sigmas),
         off_map_cut=float(b.split.off_map_cut),
         off_map_cut_fixes=int(b.split.off_map_cut_fixes),

@@ -72,7 +72,7 @@ class _ThreadState(NamedTuple):
     to_map: Callable[[NDArray[np.float64]], None]
     """Projects rows 2 and 3 (lon, lat) of a (4, n) buffer to the map's CRS in place
     (:func:`_projector`)."""
-    contexts: dict[int, tuple[MatchConfig, Context]]
+    contexts: dict[tuple[int, bool], tuple[MatchConfig, Context]]
     """By ``id`` of the config: the config and its :class:`~mapmatch.batch.context.Context`
     with this thread's scratch (the arena's growth starts a new dict)."""
 
@@ -128,7 +128,7 @@ class BatchMatcher:
         self._roads = RoadArrays(self._seg_end, read_only(segment_bearings(seg_xy, seg_ptr), F8))
         self._run_track = CompiledRun(run_track_in)
         self._local = threading.local()
-        self._settings: dict[int, _Settings] = {}
+        self._settings: dict[tuple[int, bool], _Settings] = {}
         self._joining_cfg: dict[int, tuple[MatchConfig, MatchConfig]] = {}
 
     def _state(self) -> _ThreadState:
@@ -161,9 +161,10 @@ class BatchMatcher:
             return st.router
         return Router(rg, st.router.ws, self._table_for(cfg))
 
-    def _settings_for(self, cfg: MatchConfig) -> _Settings:
-        """The kernels' parameters of ``cfg`` (a config is immutable: cached by identity)."""
-        st = self._settings.get(id(cfg))
+    def _settings_for(self, cfg: MatchConfig, joining: bool = False) -> _Settings:
+        """The kernels' parameters of ``cfg`` (a config is immutable: cached by identity); with
+        ``joining``, without the detour limit (:meth:`_joining`)."""
+        st = self._settings.get((id(cfg), joining))
         if st is None or st.config is not cfg:
             sigma = float(model.position_sigma(np.nan, cfg))
             query = QueryParams(
@@ -186,10 +187,13 @@ class BatchMatcher:
                 pos_sigma_floor=float(cfg.batch.track.track_pos_sigma_floor),
                 heading_sigma_floor=float(cfg.batch.track.track_heading_sigma_floor_deg),
             )  # fmt: skip
-            st = _Settings(cfg, kernel_params(cfg, sigma), query, sigma, track_rules)
+            params = kernel_params(cfg, sigma)
+            if joining:
+                params = params._replace(detour_cost_max=0.0)
+            st = _Settings(cfg, params, query, sigma, track_rules)
             if len(self._settings) >= 64:
                 self._settings.clear()
-            self._settings[id(cfg)] = st
+            self._settings[(id(cfg), joining)] = st
         return st
 
     def match(self, track: Track, config: MatchConfig | None = None, *, lonlat: bool = True) -> TrackMatch:
@@ -205,12 +209,13 @@ class BatchMatcher:
             fill_route_lonlat(res, self.graph.crs)
         return res
 
-    def _context(self, st: _ThreadState, cfg: MatchConfig) -> Context:
-        """This thread's :class:`~mapmatch.batch.context.Context` for ``cfg`` (built once)."""
-        got = st.contexts.get(id(cfg))
+    def _context(self, st: _ThreadState, cfg: MatchConfig, joining: bool = False) -> Context:
+        """This thread's :class:`~mapmatch.batch.context.Context` for ``cfg`` (built once); with
+        ``joining``, without the detour limit."""
+        got = st.contexts.get((id(cfg), joining))
         if got is not None and got[0] is cfg:
             return got[1]
-        s = self._settings_for(cfg)
+        s = self._settings_for(cfg, joining)
         ctx = new_context(
             MatchInputs(
                 s.query, s.track_rules, s.params, self._geom, self._roads, self._router_for(st, cfg),
@@ -219,7 +224,7 @@ class BatchMatcher:
         )  # fmt: skip
         if len(st.contexts) >= 64:
             st.contexts.clear()
-        st.contexts[id(cfg)] = (cfg, ctx)
+        st.contexts[(id(cfg), joining)] = (cfg, ctx)
         return ctx
 
     def _match_compiled(self, track: Track, cfg: MatchConfig) -> TrackMatch:
@@ -241,23 +246,25 @@ class BatchMatcher:
         )  # fmt: skip
         res = decode(self._call(ti, cfg, st))
         if n > 1 and res.length == 0.0:  # no route
-            res = _joined(res, lambda: decode(self._call(ti, self._joining(cfg), self._state())))
+            joining = self._joining(cfg)
+            res = _joined(res, lambda: decode(self._call(ti, joining, self._state(), joining=True)))
         return track_match(str(track.track_id), res)
 
-    def _call(self, ti: TrackInput, cfg: MatchConfig, st: _ThreadState) -> Packed:
-        """One compiled call with this thread's scratch ``st``; its arena grown after a call
-        that needed more (``st`` is then this thread's no more: :meth:`_state` again)."""
-        packed = self._run_track(ti, self._context(st, cfg))
+    def _call(self, ti: TrackInput, cfg: MatchConfig, st: _ThreadState, joining: bool = False) -> Packed:
+        """One compiled call with this thread's scratch ``st`` (``joining``: without the detour
+        limit); its arena grown after a call that needed more (``st`` is then this thread's no
+        more: :meth:`_state` again)."""
+        packed = self._run_track(ti, self._context(st, cfg, joining))
         if max(st.arena.top.tolist()) > len(st.arena.f8):
             self._grow_arena(st)
         return packed  # type: ignore[no-any-return]
 
     def _joining(self, cfg: MatchConfig) -> MatchConfig:
-        """``cfg`` without the rules that leave fixes out (``outlier_lookahead``) or judge a
-        step's detour without its time (``detour_cost_max``): for a track they left one fix."""
+        """``cfg`` without the rule that leaves fixes out (``outlier_lookahead``), for a track
+        it and the detour limit left one fix (the call drops the limit: ``joining``)."""
         got = self._joining_cfg.get(id(cfg))
         if got is None or got[0] is not cfg:
-            got = self._joining_cfg[id(cfg)] = (cfg, cfg.replace(outlier_lookahead=0, detour_cost_max=0.0))
+            got = self._joining_cfg[id(cfg)] = (cfg, cfg.replace(outlier_lookahead=0))
         return got[1]
 
     def _grow_arena(self, st: _ThreadState) -> None:
