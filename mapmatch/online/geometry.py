@@ -79,6 +79,15 @@ def locate(road: RoadArrays, e: int, off: float) -> tuple[float, float, float]:
 
 
 @njit(cache=True)
+def locate_all(road: RoadArrays, edges: NDArray[np.int64], offs: NDArray[np.float64]) -> NDArray[np.float64]:
+    """:func:`locate` of every ``(edges[i], offs[i])``: rows of ``(x, y, bearing)``."""
+    out = np.empty((len(edges), 3))
+    for i in range(len(edges)):
+        out[i, 0], out[i, 1], out[i, 2] = locate(road, edges[i], offs[i])
+    return out
+
+
+@njit(cache=True)
 def bearing_on_path(road: RoadArrays, edges: NDArray[np.int64], s: float) -> float:
     """The road's bearing ``s`` metres along the path ``edges``."""
     if s <= 0.0:

@@ -26,6 +26,7 @@ from numpy.typing import NDArray
 from graph.angles import angle_diff
 from graph.index import EdgeIndex
 from mapmatch.config import MatchConfig
+from mapmatch.online.geometry import locate_all
 from mapmatch.online.road import RoadModel
 
 
@@ -118,70 +119,6 @@ class AlongsideTable:
         return [tuple(roads[a - base : b - base]) for a, b in itertools.pairwise(ptr)]
 
 
-@dataclass(frozen=True)
-class _Pieces:
-    """A road model's polyline tables as arrays (see :func:`~mapmatch.online.road._piece_table`)."""
-
-    ptr: NDArray[np.int64]
-    cum: NDArray[np.float64]
-    seg_len: NDArray[np.float64]
-    brg: NDArray[np.float64]
-    p_rows: NDArray[np.int64]
-    key: NDArray[np.complex128]
-    next_long: NDArray[np.int64]
-
-    @classmethod
-    def of(cls, road: RoadModel) -> _Pieces:
-        ptr = np.asarray(road.ptr, dtype=np.int64)
-        cum = np.asarray(road._cum, dtype=np.float64)
-        seg_len = np.asarray(road._seg_len, dtype=np.float64)
-        rows = len(cum)
-        row_edge = np.repeat(np.arange(len(ptr) - 1, dtype=np.int64), np.diff(ptr))
-        piece = np.ones(rows, dtype=bool)
-        piece[ptr[:-1][np.diff(ptr) > 0]] = False  # an edge's first row ends no piece
-        # per row, the next row ending a piece of some length (``rows``: none)
-        nxt = np.where((seg_len > 0.0) & piece, np.arange(rows), rows)
-        nxt = np.minimum.accumulate(np.append(nxt, rows)[::-1])[::-1]
-        brg = np.asarray(road._brg, dtype=np.float64)
-        p_rows = np.flatnonzero(piece)
-        return cls(ptr, cum, seg_len, brg, p_rows, _pairs(row_edge[p_rows], cum[p_rows]), nxt)
-
-
-def _pairs(a: NDArray[np.int64], b: NDArray[np.float64]) -> NDArray[np.complex128]:
-    """``(a, b)`` pairs as complex numbers, which numpy orders as the pairs (``a`` first): a
-    sorted search of two keys at once, exact (``a`` below 2**53)."""
-    out = np.empty(len(a), dtype=np.complex128)
-    out.real = a
-    out.imag = b
-    return out
-
-
-def _pieces_at(pc: _Pieces, edges: NDArray[np.int64], offs: NDArray[np.float64]) -> NDArray[np.int64]:
-    """Per ``(edge, offset)``, the polyline row of the piece :meth:`RoadModel.bearing_at` (and
-    the compiled ``locate_on``) takes: the first of the edge's pieces ending at or past the
-    offset, of some length; the edge's end row (``ptr[e + 1]``) when none does."""
-    ptr, p_rows = pc.ptr, pc.p_rows
-    rows = len(pc.cum)
-    # the pieces are in order of (edge, distance to their end): the first at or past each
-    # query's is where it sorts (left: a piece ending exactly at the offset is taken)
-    at = np.searchsorted(pc.key, _pairs(edges, offs), side="left")
-    # the first piece at or past: its row, or the edge's end when past its last
-    q = np.append(p_rows, rows)[at]
-    end = ptr[edges + 1]
-    q = np.where(q < end, q, end)
-    # skip pieces of no length: the next row of some length (or the edge's end)
-    q2 = pc.next_long[np.minimum(q, rows)]
-    return np.where(q2 < end, q2, end)
-
-
-def _bearings_at(
-    pc: _Pieces, bend: NDArray[np.float64], q: NDArray[np.int64], edges: NDArray[np.int64]
-) -> NDArray[np.float64]:
-    """The bearing of row ``q``'s piece, or of the edge's end (``q`` its end row)."""
-    inside = q < pc.ptr[edges + 1]
-    return np.where(inside, pc.brg[np.where(inside, q, 0)], bend[edges])
-
-
 def alongside_table(road: RoadModel, index: EdgeIndex, cfg: MatchConfig) -> AlongsideTable:
     """:func:`stretch_roads` of every edge of the map, in one vectorised pass (the same answers).
 
@@ -207,20 +144,9 @@ def alongside_table(road: RoadModel, index: EdgeIndex, cfg: MatchConfig) -> Alon
     s_edge = np.repeat(np.arange(n_e, dtype=np.int64), n)
     k = np.arange(n_s, dtype=np.int64) - stretch_ptr[s_edge]
     mids = (k + 0.5) * elen[s_edge] / n[s_edge]
-    # each middle's place and bearing, as the compiled ``locate_on`` gives them
-    pc = _Pieces.of(road)
-    bend = np.asarray(road.bend, dtype=np.float64)
-    q = _pieces_at(pc, s_edge, mids)
-    seg = np.asarray(road.seg, dtype=np.float64)
-    cum, seg_len, ptr = pc.cum, pc.seg_len, pc.ptr
-    inside = q < ptr[s_edge + 1]
-    qi = np.where(inside, q, ptr[s_edge + 1] - 1)
-    a = seg[np.maximum(qi - 1, 0)]
-    b = seg[qi]
-    t = np.where(inside, (mids - cum[np.maximum(qi - 1, 0)]) / np.where(inside, seg_len[qi], 1.0), 0.0)
-    px = np.where(inside, a[:, 0] + t * (b[:, 0] - a[:, 0]), b[:, 0])
-    py = np.where(inside, a[:, 1] + t * (b[:, 1] - a[:, 1]), b[:, 1])
-    s_brg = _bearings_at(pc, bend, q, s_edge)
+    # each middle's place and bearing (the compiled ``locate``, as :func:`stretch_roads`)
+    mid = locate_all(road.arrays, s_edge, mids)
+    px, py, s_brg = mid[:, 0], mid[:, 1], mid[:, 2]
     eu = np.asarray(road.eu, dtype=np.int64)
     ev = np.asarray(road.ev, dtype=np.int64)
     rev = np.asarray(road.rev, dtype=np.int64)
@@ -238,7 +164,7 @@ def alongside_table(road: RoadModel, index: EdgeIndex, cfg: MatchConfig) -> Alon
         shares = (eu[e2] == eu[e1]) | (eu[e2] == ev[e1]) | (ev[e2] == eu[e1]) | (ev[e2] == ev[e1])
         ok &= ~(shares & ((off < gap) | (off > elen[e2] - gap)))
         s, e2, off = s[ok], e2[ok], off[ok]
-        b2 = _bearings_at(pc, bend, _pieces_at(pc, e2, off), e2)
+        b2 = locate_all(road.arrays, e2, off)[:, 2]
         d = (b2 - s_brg[s] + 180.0) % 360.0 - 180.0  # angle_diff (its -180 is 180: the same size)
         ok = np.abs(d) <= st.angle
         kept_s.append(s[ok])
